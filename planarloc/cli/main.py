@@ -1,0 +1,50 @@
+"""The `planarloc` command line: map building, localization, evaluation and the demo."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+
+from planarloc import __version__
+from planarloc.cli import demo_command, evaluate_command, localize_command, map_command
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="planarloc",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+        description="Localize a ground robot's camera against a map that is only a set of posed images "
+                    "(no 3D model), from 2D-2D matches under local planar motion.\n\n"
+                    "start here:\n"
+                    "  planarloc demo                      map and localize a generated indoor world\n"
+                    "  planarloc map build DATA -f kitti --out map.db\n"
+                    "  planarloc localize --map map.db query.png --camera 'PINHOLE W H fx fy cx cy'\n"
+                    "  planarloc evaluate DATA -f kitti --map-every 2 --structure tracks",
+    )
+    parser.add_argument("--version", action="version", version=f"planarloc {__version__}")
+    parser.add_argument("--verbose", "-v", action="count", default=0, help="more log output (-vv for debug)")
+    sub = parser.add_subparsers(dest="command", required=True)
+    for module in (demo_command, map_command, localize_command, evaluate_command):
+        module.add_parser(sub)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=[logging.WARNING, logging.INFO, logging.DEBUG][min(args.verbose, 2)],
+                        format="%(levelname)s %(name)s: %(message)s")
+    try:
+        return int(args.func(args) or 0)
+    except (ValueError, FileNotFoundError) as exc:
+        # Known errors (bad input, bad files) print one line; anything else keeps its traceback.
+        print(f"planarloc {args.command}: error: {exc}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        print("interrupted; re-run the same command to resume", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

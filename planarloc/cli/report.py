@@ -1,0 +1,40 @@
+"""Tables and files that the evaluate / demo commands write."""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Sequence
+from pathlib import Path
+
+from rich.table import Table
+
+from planarloc.cli.progress import console
+
+
+def print_summary_table(summaries: Sequence[dict], title: str) -> None:
+    """One row per (method, structure): success at the paper's thresholds, errors, failures, time."""
+    if not summaries:
+        return
+    table = Table(title=title, min_width=100)
+    table.add_column("method")
+    table.add_column("structure")
+    for key in summaries[0]["success"]:
+        table.add_column(key, justify="right")
+    for col in ("median t [m]", "median R [°]", "failed", "degenerate", "s/query"):
+        table.add_column(col, justify="right")
+    for s in summaries:
+        mt, mr = s["median_translation_error_m"], s["median_rotation_error_deg"]
+        table.add_row(s["method"], s["structure"], *[f"{v:.1f}%" for v in s["success"].values()],
+                      "-" if mt is None else f"{mt:.3f}", "-" if mr is None else f"{mr:.2f}",
+                      f"{s['failed_queries']}/{s['queries']}", str(s["status_counts"].get("degenerate_scale", 0)),
+                      f"{s['seconds_per_query']:.2f}")
+    console.print(table)
+
+
+def write_json(path: Path | None, data: object) -> None:
+    if path is None:
+        return
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(data, indent=1))
+    console.print(f"wrote {path}")

@@ -1,0 +1,117 @@
+"""Two-view epipolar geometry shared by solvers, estimators and refinement.
+
+All functions take normalized homogeneous coordinates ``x = (x/z, y/z, 1)`` (or any bearing
+vector with positive z-direction) with the constraint ``x_refᵀ E x_query = 0`` for
+``E = [t]x R`` and ``ref_from_query = (R, t)``. Arrays are N-first; leading batch dimensions
+broadcast.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def skew(v: np.ndarray) -> np.ndarray:
+    """(..., 3) -> (..., 3, 3) cross-product matrices with ``skew(a) @ b == cross(a, b)``."""
+    v = np.asarray(v, dtype=float)
+    S = np.zeros(v.shape[:-1] + (3, 3))
+    S[..., 0, 1], S[..., 0, 2] = -v[..., 2], v[..., 1]
+    S[..., 1, 0], S[..., 1, 2] = v[..., 2], -v[..., 0]
+    S[..., 2, 0], S[..., 2, 1] = -v[..., 1], v[..., 0]
+    return S
+
+
+def essential_from_relpose(R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """``E = [t]x R`` for ``x_b = R x_a + t``; (..., 3, 3), (..., 3) -> (..., 3, 3)."""
+    return skew(t) @ R
+
+
+def sampson_error_sq(
+    E: np.ndarray,
+    x_query: np.ndarray,
+    x_ref: np.ndarray,
+    f_query: tuple[float, float] | np.ndarray = (1.0, 1.0),
+    f_ref: tuple[float, float] | np.ndarray = (1.0, 1.0),
+) -> np.ndarray:
+    """Squared Sampson error of ``x_refᵀ E x_query = 0``, optionally in pixels.
+
+    Args:
+        E: (3, 3) essential matrix, ``x_refᵀ E x_query = 0``.
+        x_query, x_ref: (N, 3) normalized homogeneous points (third coordinate 1).
+        f_query, f_ref: (fx, fy) focal lengths of the two cameras. With the defaults the error
+            is in normalized units; with the true focal lengths it is the Sampson error of the
+            fundamental matrix ``K_ref⁻ᵀ E K_query⁻¹`` in pixels (Hartley & Zisserman eq. 11.9).
+
+    Returns:
+        (N,) squared errors.
+    """
+    Ex = x_query @ E.T  # (N, 3): E x_query
+    Etx = x_ref @ E  # (N, 3): Eᵀ x_ref
+    r = np.einsum("ij,ij->i", x_ref, Ex)
+    fq = np.asarray(f_query, dtype=float)
+    fr = np.asarray(f_ref, dtype=float)
+    den = (Ex[:, 0] / fr[0]) ** 2 + (Ex[:, 1] / fr[1]) ** 2 + (Etx[:, 0] / fq[0]) ** 2 + (Etx[:, 1] / fq[1]) ** 2
+    return r * r / np.maximum(den, 1e-300)
+
+
+def triangulation_depths(R: np.ndarray, t: np.ndarray, x_query: np.ndarray, x_ref: np.ndarray) -> np.ndarray:
+    """Depths ``(λ_query, λ_ref)`` with ``λ_ref x_ref ≈ λ_query R x_query + t`` (midpoint method).
+
+    Args:
+        R, t: ``ref_from_query``.
+        x_query, x_ref: (N, 3) rays.
+
+    Returns:
+        (N, 2) depths along the given rays; NaN where the rays are parallel (no baseline or
+        a point at infinity), so that any ``> 0`` test on them fails.
+    """
+    a = x_query @ R.T  # query rays in the reference frame
+    b = x_ref
+    # Minimise |λq a + t - λr b|²: normal equations of a 2x2 system.
+    aa = np.einsum("ij,ij->i", a, a)
+    bb = np.einsum("ij,ij->i", b, b)
+    ab = np.einsum("ij,ij->i", a, b)
+    at = a @ t
+    bt = b @ t
+    det = aa * bb - ab * ab
+    ok = det > 1e-12 * aa * bb
+    with np.errstate(divide="ignore", invalid="ignore"):
+        lq = (-at * bb + ab * bt) / det
+        lr = (aa * bt - ab * at) / det
+    out = np.stack([lq, lr], axis=1)
+    out[~ok] = np.nan
+    return out
+
+
+def triangulate_points(
+    cam_from_world_a: tuple[np.ndarray, np.ndarray],
+    cam_from_world_b: tuple[np.ndarray, np.ndarray],
+    x_a: np.ndarray,
+    x_b: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Midpoint triangulation of (N, 3) rays seen by two cameras with known poses.
+
+    Args:
+        cam_from_world_a, cam_from_world_b: (R (3, 3), t (3,)) of each camera.
+        x_a, x_b: (N, 3) normalized homogeneous points in each camera.
+
+    Returns:
+        points (N, 3) in world coordinates (NaN where rays are parallel) and the
+        triangulation angle (N,) in degrees.
+    """
+    Ra, ta = cam_from_world_a
+    Rb, tb = cam_from_world_b
+    R = Rb @ Ra.T
+    t = tb - R @ ta
+    depths = triangulation_depths(R, t, x_a, x_b)
+    Xa = x_a * depths[:, :1]
+    Xb_in_a = (x_b * depths[:, 1:2] - t) @ R  # R^T (λ x_b - t)
+    X_a = 0.5 * (Xa + Xb_in_a)
+    X_world = (X_a - ta) @ Ra
+    da = x_a @ Ra  # ray directions in world
+    db = x_b @ Rb
+    cosang = np.einsum("ij,ij->i", da, db) / (np.linalg.norm(da, axis=1) * np.linalg.norm(db, axis=1))
+    angle = np.degrees(np.arccos(np.clip(cosang, -1.0, 1.0)))
+    bad = ~np.all(depths > 0, axis=1)
+    X_world[bad] = np.nan
+    return X_world, angle

@@ -1,0 +1,357 @@
+"""Relative poses from an essential matrix: the four decompositions and the cheirality test.
+
+Convention (see :mod:`planarloc.geometry.epipolar`): ``x_refᵀ E x_query = 0`` with
+``E = [t]x R`` for ``ref_from_query = (R, t)``, i.e. ``x_ref ∝ R x_query + t``. An essential
+matrix fixes ``t`` only up to scale and sign; decompositions here have ``‖t‖ = 1``.
+
+References:
+    Hartley & Zisserman, *Multiple View Geometry*, 2nd ed., Sec. 9.6.2 (Result 9.19: the four
+    solutions ``[UWVᵀ | ±u3]``, ``[UWᵀVᵀ | ±u3]``) and Sec. 9.6.3 (choose the one that puts
+    points in front of both cameras). The batched kernel uses instead the SVD-free closed form
+    of B. K. P. Horn, "Recovering baseline and orientation from essential matrix", 1990:
+    ``R = cof(E) ∓ [t]x E`` for ``‖t‖ = 1`` and ``‖E‖_F² = 2``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+from planarloc.geometry.epipolar import triangulation_depths
+from planarloc.geometry.pose import Pose
+from planarloc.geometry.validation import InputError, check_array
+
+__all__ = [
+    "check_correspondence_batch",
+    "check_correspondences",
+    "motion_from_essential",
+    "relposes_from_essential",
+]
+
+_W = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+RANK2_TOL = 1e-10  # sigma_2 / sigma_1 below this: not an essential matrix (rank < 2)
+
+
+# ---- validation shared by the relative-pose solvers -------------------------------------------
+
+
+def _check_nonzero_rays(name: str, x: np.ndarray) -> None:
+    zero = np.all(x == 0.0, axis=-1)
+    if zero.any():
+        idx = tuple(int(i) for i in np.argwhere(zero)[0])
+        where = idx[0] if len(idx) == 1 else idx
+        raise InputError(f"{name}[{where}] is a zero vector; hint: a ray needs a direction, e.g. (x, y, 1)")
+
+
+def check_correspondences(
+    x_query: object, x_ref: object, *, rows: int | None = None, min_rows: int = 1
+) -> tuple[np.ndarray, np.ndarray]:
+    """Validate two (N, 3) arrays of matching rays.
+
+    Args:
+        x_query, x_ref: (N, 3) rays (normalized homogeneous points or bearings).
+        rows: if given, N must equal it.
+        min_rows: N must be at least this.
+
+    Returns:
+        Both as contiguous float64 arrays.
+
+    Raises:
+        InputError: wrong shape, row-count mismatch, NaN/inf, or an all-zero row.
+    """
+    shape = (rows, 3)
+    xq = check_array("x_query", x_query, shape, min_rows=min_rows)
+    xr = check_array("x_ref", x_ref, shape, min_rows=min_rows)
+    if xq.shape != xr.shape:
+        raise InputError(
+            f"x_query and x_ref must have the same number of rows, got {xq.shape[0]} and {xr.shape[0]}"
+        )
+    _check_nonzero_rays("x_query", xq)
+    _check_nonzero_rays("x_ref", xr)
+    return xq, xr
+
+
+def check_correspondence_batch(x_query: object, x_ref: object, rows: int) -> tuple[np.ndarray, np.ndarray]:
+    """Validate (M, rows, 3) batches of matching rays; see :func:`check_correspondences`."""
+    xq = check_array("x_query", x_query, (None, rows, 3))
+    xr = check_array("x_ref", x_ref, (None, rows, 3))
+    if xq.shape != xr.shape:
+        raise InputError(f"x_query and x_ref must have the same shape, got {xq.shape} and {xr.shape}")
+    _check_nonzero_rays("x_query", xq)
+    _check_nonzero_rays("x_ref", xr)
+    return xq, xr
+
+
+def _check_essential(E: object) -> np.ndarray:
+    E = check_array("E", E)
+    if E.ndim < 2 or E.shape[-2:] != (3, 3):
+        raise InputError(f"E: expected shape (..., 3, 3), got {E.shape}")
+    return E
+
+
+# ---- the four decompositions -------------------------------------------------------------
+
+
+def _motion_from_essential(E: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Unchecked core of :func:`motion_from_essential`; also returns the singular values."""
+    U, S, Vt = np.linalg.svd(E)
+    U = U * np.where(np.linalg.det(U) < 0, -1.0, 1.0)[..., None, None]
+    Vt = Vt * np.where(np.linalg.det(Vt) < 0, -1.0, 1.0)[..., None, None]
+    R1 = U @ _W @ Vt
+    R2 = U @ _W.T @ Vt
+    t = U[..., :, 2]
+    R = np.stack([R1, R1, R2, R2], axis=-3)
+    T = np.stack([t, -t, t, -t], axis=-2)
+    return R, T, S
+
+
+def motion_from_essential(E: object) -> tuple[np.ndarray, np.ndarray]:
+    """The four ``ref_from_query`` motions ``(R, t)`` with ``E ∝ [t]x R`` (H&Z Result 9.19).
+
+    With ``E = U diag(σ1, σ2, 0) Vᵀ`` (``det U = det V = +1``) and
+    ``W = [[0, -1, 0], [1, 0, 0], [0, 0, 1]]`` the solutions are, in this order,
+    ``(UWVᵀ, u3), (UWVᵀ, -u3), (UWᵀVᵀ, u3), (UWᵀVᵀ, -u3)``. A matrix with ``σ1 ≠ σ2`` is
+    implicitly replaced by its nearest essential matrix ``U diag(1, 1, 0) Vᵀ``.
+
+    Args:
+        E: (..., 3, 3) essential matrices, ``x_refᵀ E x_query = 0``; any scale and sign.
+
+    Returns:
+        R: (..., 4, 3, 3) rotations (det +1).
+        t: (..., 4, 3) unit translations, ``x_ref ∝ R x_query + t``.
+
+    Raises:
+        InputError: wrong shape, NaN/inf, or a matrix of rank < 2 (``σ2 ≤ 1e-10 σ1``), for which
+        the translation direction is undefined.
+
+    Example:
+        >>> from planarloc.geometry.epipolar import essential_from_relpose
+        >>> R, t = motion_from_essential(essential_from_relpose(np.eye(3), np.array([1.0, 0, 0])))
+        >>> R.shape, t.shape
+        ((4, 3, 3), (4, 3))
+    """
+    E = _check_essential(E)
+    try:
+        R, T, S = _motion_from_essential(E)
+    except np.linalg.LinAlgError as exc:  # pragma: no cover - SVD of finite 3x3 converges
+        raise InputError(f"E: SVD failed ({exc})") from None
+    bad = ~(S[..., 1] > RANK2_TOL * S[..., 0])
+    if bad.any():
+        where = tuple(int(i) for i in np.argwhere(bad)[0]) if bad.ndim else ()
+        raise InputError(
+            f"E{list(where) if where else ''}: rank < 2 (singular values {S[where] if where else S}); "
+            "not an essential matrix, the translation direction is undefined"
+        )
+    return R, T
+
+
+def relposes_from_essential_unchecked(E: np.ndarray, x_query: np.ndarray, x_ref: np.ndarray) -> list[Pose]:
+    """:func:`relposes_from_essential` without input validation; [] for a rank < 2 ``E``."""
+    try:
+        R, T, S = _motion_from_essential(E)
+    except np.linalg.LinAlgError:
+        return []
+    if not (np.all(np.isfinite(S)) and S[1] > RANK2_TOL * S[0]):
+        return []
+    poses = []
+    for k in range(4):
+        depths = triangulation_depths(R[k], T[k], x_query, x_ref)
+        if np.all(depths > 0.0):  # NaN (parallel rays) fails
+            poses.append(Pose(R[k], T[k]))
+    return poses
+
+
+def relposes_from_essential(E: object, x_query: object, x_ref: object) -> list[Pose]:
+    """Decompositions of ``E`` that put every correspondence in front of both cameras.
+
+    Args:
+        E: (3, 3) essential matrix, ``x_refᵀ E x_query = 0``; any scale and sign.
+        x_query: (N, 3) query rays (normalized homogeneous points or bearings), N ≥ 1.
+        x_ref: (N, 3) matching reference rays.
+
+    Returns:
+        ``ref_from_query`` poses (``‖t‖ = 1``) among the four of :func:`motion_from_essential`
+        for which **all** N points have positive depth along both rays
+        (:func:`planarloc.geometry.epipolar.triangulation_depths`). Usually one pose, or none
+        if the points disagree; a point with parallel rays (at infinity, or zero baseline)
+        fails the test, so such input gives ``[]``.
+
+    Raises:
+        InputError: wrong shapes, NaN/inf, zero rays, or ``E`` of rank < 2.
+
+    References:
+        Hartley & Zisserman, 2nd ed., Sec. 9.6.3.
+    """
+    E = _check_essential(E)
+    if E.shape != (3, 3):
+        raise InputError(f"E: expected shape (3, 3), got {E.shape}")
+    xq, xr = check_correspondences(x_query, x_ref)
+    R, T = motion_from_essential(E)
+    poses = []
+    for k in range(4):
+        depths = triangulation_depths(R[k], T[k], xq, xr)
+        if np.all(depths > 0.0):
+            poses.append(Pose(R[k], T[k]))
+    return poses
+
+
+# ---- numba kernels for the batched solvers ---------------------------------------------------
+
+
+@njit(cache=True)
+def _depths(R, t, xq, xr, i):
+    """Midpoint depths (λ_query, λ_ref) of point i for (R, t), as triangulation_depths.
+
+    Returns (ok, λ_query, λ_ref); ok is False for (near-)parallel rays.
+    """
+    a0 = R[0, 0] * xq[i, 0] + R[0, 1] * xq[i, 1] + R[0, 2] * xq[i, 2]
+    a1 = R[1, 0] * xq[i, 0] + R[1, 1] * xq[i, 1] + R[1, 2] * xq[i, 2]
+    a2 = R[2, 0] * xq[i, 0] + R[2, 1] * xq[i, 1] + R[2, 2] * xq[i, 2]
+    b0, b1, b2 = xr[i, 0], xr[i, 1], xr[i, 2]
+    aa = a0 * a0 + a1 * a1 + a2 * a2
+    bb = b0 * b0 + b1 * b1 + b2 * b2
+    ab = a0 * b0 + a1 * b1 + a2 * b2
+    at = a0 * t[0] + a1 * t[1] + a2 * t[2]
+    bt = b0 * t[0] + b1 * t[1] + b2 * t[2]
+    det = aa * bb - ab * ab
+    if not det > 1e-12 * aa * bb:
+        return False, 0.0, 0.0
+    return True, (-at * bb + ab * bt) / det, (aa * bt - ab * at) / det
+
+
+@njit(cache=True)
+def _polar_step(R, out):
+    """out = (R + R⁻ᵀ) / 2, one step of the polar iteration (re-orthonormalises a near-rotation)."""
+    c00 = R[1, 1] * R[2, 2] - R[1, 2] * R[2, 1]
+    c01 = R[1, 2] * R[2, 0] - R[1, 0] * R[2, 2]
+    c02 = R[1, 0] * R[2, 1] - R[1, 1] * R[2, 0]
+    c10 = R[2, 1] * R[0, 2] - R[2, 2] * R[0, 1]
+    c11 = R[2, 2] * R[0, 0] - R[2, 0] * R[0, 2]
+    c12 = R[2, 0] * R[0, 1] - R[2, 1] * R[0, 0]
+    c20 = R[0, 1] * R[1, 2] - R[0, 2] * R[1, 1]
+    c21 = R[0, 2] * R[1, 0] - R[0, 0] * R[1, 2]
+    c22 = R[0, 0] * R[1, 1] - R[0, 1] * R[1, 0]
+    h = 0.5 / (R[0, 0] * c00 + R[0, 1] * c01 + R[0, 2] * c02)  # cof(R) / det(R) = R⁻ᵀ
+    out[0, 0], out[0, 1], out[0, 2] = 0.5 * R[0, 0] + h * c00, 0.5 * R[0, 1] + h * c01, 0.5 * R[0, 2] + h * c02
+    out[1, 0], out[1, 1], out[1, 2] = 0.5 * R[1, 0] + h * c10, 0.5 * R[1, 1] + h * c11, 0.5 * R[1, 2] + h * c12
+    out[2, 0], out[2, 1], out[2, 2] = 0.5 * R[2, 0] + h * c20, 0.5 * R[2, 1] + h * c21, 0.5 * R[2, 2] + h * c22
+
+
+@njit(cache=True)
+def _orthonormality_error(R) -> float:
+    err = 0.0
+    for i in range(3):
+        for j in range(3):
+            d = R[i, 0] * R[j, 0] + R[i, 1] * R[j, 1] + R[i, 2] * R[j, 2] - (1.0 if i == j else 0.0)
+            err = max(err, abs(d))
+    return err
+
+
+@njit(cache=True)
+def relpose_from_essential_kernel(E, xq, xr, R_out, t_out) -> bool:
+    """Closed-form decomposition of E (Horn 1990) + cheirality on all rows of xq / xr.
+
+    With ``‖E‖_F² = 2`` and unit ``t`` (orthogonal to every column of ``E = [t]x R``, taken
+    as the longest cross product of two columns) the two rotations are
+    ``cof(E) ∓ [t]x E``. Writes the first of the four motions ``(R, ±t)`` that passes into
+    R_out (3, 3), t_out (3,) (unit). Returns False if none passes or ``E`` is not
+    (numerically) essential.
+    """
+    fro = 0.0
+    for i in range(3):
+        for j in range(3):
+            fro += E[i, j] * E[i, j]
+    if not (fro > 0.0 and np.isfinite(fro)):
+        return False
+    En = E * np.sqrt(2.0 / fro)
+    best = -1.0
+    t0 = t1 = t2 = 0.0
+    for p in range(3):
+        q = (p + 1) % 3
+        c0 = En[1, p] * En[2, q] - En[2, p] * En[1, q]
+        c1 = En[2, p] * En[0, q] - En[0, p] * En[2, q]
+        c2 = En[0, p] * En[1, q] - En[1, p] * En[0, q]
+        n2 = c0 * c0 + c1 * c1 + c2 * c2
+        if n2 > best:
+            best = n2
+            t0, t1, t2 = c0, c1, c2
+    if not best > 1e-6:  # the largest is >= 1/3 for an essential matrix with ‖E‖_F² = 2
+        return False
+    inv = 1.0 / np.sqrt(best)
+    t = np.array([t0 * inv, t1 * inv, t2 * inv])
+    Ra = np.empty((3, 3))
+    Rb = np.empty((3, 3))
+    for i in range(3):
+        r1 = (i + 1) % 3
+        r2 = (i + 2) % 3
+        for j in range(3):
+            j1 = (j + 1) % 3
+            j2 = (j + 2) % 3
+            cof = En[r1, j1] * En[r2, j2] - En[r1, j2] * En[r2, j1]
+            # ([t]x En)[i, j] = t[r1] En[r2, j] - t[r2] En[r1, j]
+            te = t[r1] * En[r2, j] - t[r2] * En[r1, j]
+            Ra[i, j] = cof - te
+            Rb[i, j] = cof + te
+    # Point 0 selects the candidate: depths are linear in t, so (R, -t) has both depths negated,
+    # and of the four motions at most one puts the point in front of both cameras.
+    for which in range(2):
+        Rc = Ra if which == 0 else Rb
+        if not _orthonormality_error(Rc) < 1e-4:
+            return False  # E is not an essential matrix
+        _polar_step(Rc, R_out)
+        _polar_step(R_out, Rc)
+        ok, lq, lr = _depths(Rc, t, xq, xr, 0)
+        if not ok:
+            continue
+        if lq > 0.0 and lr > 0.0:
+            sign = 1.0
+        elif lq < 0.0 and lr < 0.0:
+            sign = -1.0
+        else:
+            continue
+        t *= sign
+        for i in range(1, xq.shape[0]):
+            ok, lq, lr = _depths(Rc, t, xq, xr, i)
+            if not (ok and lq > 0.0 and lr > 0.0):
+                return False
+        R_out[:, :] = Rc
+        t_out[0], t_out[1], t_out[2] = t[0], t[1], t[2]
+        return True
+    return False
+
+
+@njit(cache=True)
+def relpose_batch_kernel(Es, n, xq, xr, R_out, t_out, valid_out) -> int:
+    """Decompose ``Es[:n]``; write the poses that pass cheirality packed into the outputs.
+
+    Returns the number of valid poses k (``valid_out[:k]`` set True). Slots past k may hold
+    scratch values; callers mask them with ``valid_out``.
+    """
+    k = 0
+    for s in range(n):
+        if relpose_from_essential_kernel(Es[s], xq, xr, R_out[k], t_out[k]):
+            valid_out[k] = True
+            k += 1
+    return k
+
+
+def relposes_closed_form(Es: np.ndarray, x_query: np.ndarray, x_ref: np.ndarray) -> list[Pose]:
+    """Internal, unchecked: poses of several essential matrices passing cheirality on all points.
+
+    Same result as :func:`relposes_from_essential` for each matrix of ``Es`` (K, 3, 3) (at
+    most one pose per matrix, as for exact data), computed by the numba kernel of the batched
+    solvers: the closed form of Horn (1990) instead of the SVD, and the cheirality test of
+    :func:`planarloc.geometry.epipolar.triangulation_depths` re-implemented point by point.
+    """
+    K = Es.shape[0]
+    R = np.empty((max(K, 1), 3, 3))
+    t = np.empty((max(K, 1), 3))
+    valid = np.zeros(max(K, 1), dtype=np.bool_)
+    k = relpose_batch_kernel(np.ascontiguousarray(Es), K, x_query, x_ref, R, t, valid)
+    return [Pose(R[i], t[i]) for i in range(k)]
+
+
+def mask_invalid(R: np.ndarray, t: np.ndarray, valid: np.ndarray) -> None:
+    """Set the invalid slots of batched solver output to NaN, in place."""
+    R[~valid] = np.nan
+    t[~valid] = np.nan

@@ -1,0 +1,81 @@
+"""Registry of dataset readers: one name per format, one entry point.
+
+========== ======================================= ==========================================
+name       reader                                   root
+========== ======================================= ==========================================
+kitti      :func:`planarloc.io.kitti.read_kitti`    sequence dir (image_l/, poses.txt, calib.txt)
+tum        :func:`planarloc.io.tum.read_tum`        sequence dir (rgb.txt, groundtruth.txt)
+openloris  :func:`planarloc.io.openloris.read_openloris`  sequence dir (color.txt, groundtruth.txt)
+kapture    :func:`planarloc.io.kapture.read_kapture`      dataset dir (sensors/...)
+colmap     :func:`planarloc.io.colmap_text.read_colmap`   model dir (cameras.txt, images.txt)
+list       :func:`planarloc.io.pose_list.read_pose_list`  list file or its directory
+========== ======================================= ==========================================
+"""
+
+from __future__ import annotations
+
+import inspect
+from collections.abc import Callable
+from pathlib import Path
+
+from planarloc.geometry.validation import InputError
+from planarloc.io.colmap_text import read_colmap
+from planarloc.io.kapture import read_kapture
+from planarloc.io.kitti import read_kitti
+from planarloc.io.openloris import read_openloris
+from planarloc.io.pose_list import read_pose_list
+from planarloc.io.tum import read_tum
+from planarloc.pipeline.posed_image import PosedImage
+
+FORMATS: dict[str, Callable[..., list[PosedImage]]] = {
+    "kitti": read_kitti,
+    "tum": read_tum,
+    "openloris": read_openloris,
+    "kapture": read_kapture,
+    "colmap": read_colmap,
+    "list": read_pose_list,
+}
+
+
+def format_options(fmt: str) -> list[str]:
+    """Names of the keyword options the reader of ``fmt`` accepts."""
+    reader = _reader(fmt)
+    return [
+        p.name
+        for p in inspect.signature(reader).parameters.values()
+        if p.kind is inspect.Parameter.KEYWORD_ONLY
+    ]
+
+
+def _reader(fmt: str) -> Callable[..., list[PosedImage]]:
+    try:
+        return FORMATS[str(fmt).lower()]
+    except KeyError:
+        raise InputError(f"unknown dataset format {fmt!r}; known formats: {', '.join(FORMATS)}") from None
+
+
+def read_dataset(root: Path, fmt: str, **options: object) -> list[PosedImage]:
+    """Read a dataset of posed images in format ``fmt``.
+
+    Args:
+        root: dataset root (see the table in the module docstring).
+        fmt: a key of :data:`FORMATS` (case-insensitive).
+        **options: keyword options of that format's reader.
+
+    Returns:
+        The reader's :class:`PosedImage` list, sorted by index.
+
+    Raises:
+        InputError: unknown format or option; FormatError (an InputError) from the reader.
+
+    Example:
+        >>> frames = read_dataset(Path("data/kitti_seq2"), "kitti")   # doctest: +SKIP
+    """
+    reader = _reader(fmt)
+    allowed = format_options(fmt)
+    unknown = sorted(set(options) - set(allowed))
+    if unknown:
+        raise InputError(
+            f"format {fmt!r}: unknown option(s) {', '.join(unknown)}; accepted: {', '.join(allowed) or 'none'}"
+        )
+    return reader(Path(root), **options)

@@ -1,0 +1,316 @@
+"""TUM RGB-D sequences (Sturm et al., IROS 2012), and the timestamp association shared with
+other RGB-D formats (OpenLORIS).
+
+Layout of a sequence directory ``root``::
+
+    root/
+      rgb.txt           '# comment' lines, then 'timestamp filename' per frame, e.g.
+                        '1305031102.175304 rgb/1305031102.175304.png' (filename relative to root)
+      groundtruth.txt   'timestamp tx ty tz qx qy qz qw': CAMERA-TO-WORLD pose (world_from_cam,
+                        metres, quaternion in x y z w order) — or of a body frame, see
+                        ``base_from_camera``
+      depth.txt         optional, like rgb.txt; uint16 PNGs, metres = value / 5000
+      camera.txt        optional intrinsics, one line 'PINHOLE width height fx fy cx cy' or any
+                        line '[KEY] MODEL width height params...' (see planarloc.io.camera_file)
+
+Association: each rgb frame takes the ground-truth sample (and the depth frame) with the
+nearest timestamp if it is within ``max_dt`` seconds; frames without a pose are skipped (one
+warning with their count), frames without depth get ``depth_path = None``. No interpolation.
+
+Intrinsics, first that applies: ``camera=`` argument; ``tum_camera="fr1"|"fr2"|"fr3"``
+(TUM's published pinhole defaults for 640x480, distortion not included); ``camera.txt``; the
+freiburg number in the directory name (``rgbd_dataset_freiburg2_...``). Otherwise an error
+asks for one of them. (Explicit arguments win over files so that an argument is never ignored.)
+"""
+
+from __future__ import annotations
+
+import logging
+import re
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from planarloc.geometry.camera import Camera
+from planarloc.geometry.pose import Pose
+from planarloc.geometry.validation import InputError
+from planarloc.io._parsing import (
+    iter_data_lines,
+    parse_floats,
+    pose_from_quat_wxyz,
+    resolve_image,
+)
+from planarloc.io.camera_file import read_camera_file
+from planarloc.io.format_error import FormatError
+from planarloc.pipeline.posed_image import PosedImage
+
+logger = logging.getLogger(__name__)
+
+FORMAT = "TUM RGB-D"
+#: TUM's published pinhole intrinsics of the Freiburg Kinects (640x480).
+TUM_CAMERAS = {
+    "fr1": Camera("PINHOLE", 640, 480, (517.3, 516.5, 318.6, 255.3)),
+    "fr2": Camera("PINHOLE", 640, 480, (520.9, 521.0, 325.1, 249.7)),
+    "fr3": Camera("PINHOLE", 640, 480, (535.4, 539.2, 320.1, 247.6)),
+}
+TUM_DEPTH_SCALE = 5000.0
+DEFAULT_MAX_DT = 0.02
+
+
+def associate_timestamps(query: object, reference: object, max_dt: float) -> np.ndarray:
+    """For each query timestamp, the index of the nearest reference timestamp within ``max_dt``.
+
+    Args:
+        query: (N,) timestamps in seconds.
+        reference: (M,) timestamps in seconds, any order (duplicates allowed).
+        max_dt: largest accepted ``|query - reference|`` in seconds (inclusive).
+
+    Returns:
+        (N,) int64 indices into ``reference``; -1 where no reference is within ``max_dt``.
+        Ties go to the earlier reference. A reference may be used by several queries.
+
+    Example:
+        >>> associate_timestamps([0.0, 0.5, 1.01], [1.0, 0.0], 0.02)
+        array([ 1, -1,  0])
+    """
+    q = np.asarray(query, dtype=float).reshape(-1)
+    r = np.asarray(reference, dtype=float).reshape(-1)
+    if not np.isfinite(max_dt) or max_dt < 0:
+        raise InputError(f"max_dt: expected a finite number >= 0 seconds, got {max_dt!r}")
+    if r.size == 0 or q.size == 0:
+        return np.full(q.shape, -1, dtype=np.int64)
+    order = np.argsort(r, kind="stable")
+    rs = r[order]
+    pos = np.searchsorted(rs, q)
+    left = np.clip(pos - 1, 0, len(rs) - 1)
+    right = np.clip(pos, 0, len(rs) - 1)
+    d_left, d_right = np.abs(q - rs[left]), np.abs(rs[right] - q)
+    best = np.where(d_right < d_left, right, left)
+    return np.where(np.minimum(d_left, d_right) <= max_dt, order[best], -1).astype(np.int64)
+
+
+@dataclass(frozen=True)
+class _Entry:
+    lineno: int
+    timestamp: float
+    name: str
+
+
+def read_timestamped_list(path: Path, fmt: str, purpose: str) -> list[_Entry]:
+    """Entries of a 'timestamp filename' list (TUM rgb.txt/depth.txt, OpenLORIS color.txt)."""
+    entries = []
+    for lineno, tokens in iter_data_lines(path, fmt, purpose):
+        if len(tokens) != 2:
+            raise FormatError(path, lineno, f"expected 2 fields 'timestamp filename', found {len(tokens)}")
+        ts = float(parse_floats(path, lineno, tokens[:1], "timestamp in seconds")[0])
+        entries.append(_Entry(lineno, ts, tokens[1]))
+    return entries
+
+
+def read_tum_trajectory(path: Path, fmt: str = FORMAT) -> tuple[np.ndarray, list[Pose]]:
+    """A TUM trajectory file 'timestamp tx ty tz qx qy qz qw' (``to_world`` poses).
+
+    Returns:
+        (N,) timestamps and the N poses ``world_from_frame`` (x_world = R x_frame + t).
+    """
+    times, poses = [], []
+    for lineno, tokens in iter_data_lines(path, fmt, "poses 'timestamp tx ty tz qx qy qz qw'"):
+        if len(tokens) != 8:
+            raise FormatError(
+                path, lineno, f"expected 8 fields 'timestamp tx ty tz qx qy qz qw', found {len(tokens)}"
+            )
+        v = parse_floats(path, lineno, tokens, "timestamp, translation or quaternion")
+        times.append(v[0])
+        poses.append(pose_from_quat_wxyz(path, lineno, v[[7, 4, 5, 6]], v[1:4]))
+    if not poses:
+        raise FormatError(path, None, "expected poses 'timestamp tx ty tz qx qy qz qw', found none")
+    return np.array(times), poses
+
+
+def resolve_camera(root: Path, fmt: str, camera: Camera | None, preset: Camera | None, hint: str) -> Camera:
+    """Intrinsics: ``camera`` argument, else ``preset``, else ``root/camera.txt``, else an error."""
+    if camera is not None:
+        if not isinstance(camera, Camera):
+            raise InputError(f"camera: expected a planarloc Camera, got {type(camera).__name__}")
+        return camera
+    if preset is not None:
+        return preset
+    path = root / "camera.txt"
+    if path.is_file():
+        cams = read_camera_file(path, fmt)
+        if len(cams) != 1:
+            raise FormatError(path, None, f"expected exactly one camera line, found {len(cams)}")
+        return next(iter(cams.values()))
+    raise FormatError(root, None, f"cannot determine the camera intrinsics of this {fmt} sequence; {hint}")
+
+
+def read_rgbd_sequence(
+    root: Path,
+    *,
+    fmt: str,
+    image_list: str,
+    pose_file: str,
+    camera: Camera,
+    depth_list: str | None,
+    depth_dir: str | None,
+    depth_scale: float,
+    base_from_camera: Pose | None,
+    max_dt: float,
+    check_images: bool,
+) -> list[PosedImage]:
+    """The shared reader of timestamped RGB(-D) sequences with a TUM-style trajectory.
+
+    Args:
+        root: sequence directory.
+        fmt: format name for messages.
+        image_list: 'timestamp filename' list of the colour images (relative to root).
+        pose_file: TUM trajectory file of the camera or, with ``base_from_camera``, of a body.
+        camera: intrinsics of every image.
+        depth_list: optional 'timestamp filename' list of depth images (used if it exists).
+        depth_dir: optional depth directory whose file stems are timestamps (used if
+            ``depth_list`` does not exist).
+        depth_scale: stored depth value per metre.
+        base_from_camera: extrinsic of the camera in the trajectory's body frame; ``None`` if
+            the trajectory is the camera's.
+        max_dt: association tolerance in seconds.
+        check_images: raise if a listed image does not exist.
+    """
+    if base_from_camera is not None and not isinstance(base_from_camera, Pose):
+        raise InputError(
+            f"base_from_camera: expected a planarloc Pose, got {type(base_from_camera).__name__}"
+        )
+    list_path = root / image_list
+    entries = read_timestamped_list(list_path, fmt, "'timestamp filename' per colour image")
+    gt_times, world_from_body = read_tum_trajectory(root / pose_file, fmt)
+
+    depth_times: list[float] = []
+    depth_paths: list[Path] = []
+    if depth_list is not None and (root / depth_list).is_file():
+        dpath = root / depth_list
+        for e in read_timestamped_list(dpath, fmt, "'timestamp filename' per depth image"):
+            depth_times.append(e.timestamp)
+            depth_paths.append(resolve_image(dpath, e.lineno, root, e.name, check=check_images))
+    elif depth_dir is not None and (root / depth_dir).is_dir():
+        for p in sorted((root / depth_dir).iterdir()):
+            try:
+                depth_times.append(float(p.stem))
+            except ValueError:
+                continue
+            depth_paths.append(p.absolute())
+
+    ts = np.array([e.timestamp for e in entries])
+    pose_idx = associate_timestamps(ts, gt_times, max_dt)
+    depth_idx = associate_timestamps(ts, depth_times, max_dt)
+    skipped = [e for e, i in zip(entries, pose_idx) if i < 0]
+    if skipped:
+        logger.warning(
+            "%s: %d of %d frames have no ground-truth pose within max_dt = %g s in %s and are skipped "
+            "(first at %s line %d, t = %.6f)",
+            root,
+            len(skipped),
+            len(entries),
+            max_dt,
+            pose_file,
+            image_list,
+            skipped[0].lineno,
+            skipped[0].timestamp,
+        )
+    if depth_times:
+        logger.debug("%s: %d frames without depth within %g s", root, int(np.sum(depth_idx < 0)), max_dt)
+
+    out = []
+    for index, (e, gi, di) in enumerate(zip(entries, pose_idx, depth_idx)):
+        if gi < 0:
+            continue
+        world_from_cam = (
+            world_from_body[gi] if base_from_camera is None else world_from_body[gi] @ base_from_camera
+        )
+        out.append(
+            PosedImage(
+                name=e.name,
+                path=resolve_image(list_path, e.lineno, root, e.name, check=check_images),
+                cam_from_world=world_from_cam.inverse(),
+                camera=camera,
+                index=index,
+                timestamp=e.timestamp,
+                depth_path=depth_paths[di] if di >= 0 else None,
+                depth_scale=depth_scale,
+            )
+        )
+    if not out:
+        raise FormatError(
+            list_path,
+            None,
+            f"expected frames with a pose in {pose_file} within max_dt = {max_dt:g} s, found none "
+            f"({len(entries)} frames listed); check the timestamps or raise max_dt",
+        )
+    return out
+
+
+def read_tum(
+    root: Path,
+    *,
+    camera: Camera | None = None,
+    tum_camera: str | None = None,
+    max_dt: float = DEFAULT_MAX_DT,
+    base_from_camera: Pose | None = None,
+    depth_scale: float = TUM_DEPTH_SCALE,
+    check_images: bool = True,
+) -> list[PosedImage]:
+    """Read a TUM RGB-D sequence (format in the module docstring).
+
+    Args:
+        root: sequence directory (with ``rgb.txt`` and ``groundtruth.txt``).
+        camera: intrinsics of the colour camera; overrides everything else.
+        tum_camera: ``"fr1"``, ``"fr2"`` or ``"fr3"``: use TUM's published defaults.
+        max_dt: association tolerance in seconds between rgb, ground truth and depth.
+        base_from_camera: if ``groundtruth.txt`` is the pose of a body frame, the camera's pose
+            in it (``x_base = R x_cam + t``); camera pose = world_from_base ∘ base_from_camera.
+        depth_scale: depth PNG value per metre (TUM: 5000).
+        check_images: raise if a listed image does not exist.
+
+    Returns:
+        One :class:`PosedImage` per rgb frame that has a pose, ``index`` = its position in
+        ``rgb.txt`` (0-based, counting skipped frames), names as listed in ``rgb.txt``.
+
+    Raises:
+        FormatError: missing/malformed files, missing images, no intrinsics.
+    """
+    root = Path(root)
+    preset = None
+    if tum_camera is not None:
+        if camera is not None:
+            raise InputError("read_tum: give either camera= or tum_camera=, not both")
+        key = str(tum_camera).lower()
+        if key not in TUM_CAMERAS:
+            raise InputError(f"tum_camera: expected one of {', '.join(TUM_CAMERAS)}, got {tum_camera!r}")
+        preset = TUM_CAMERAS[key]
+    elif camera is None and not (root / "camera.txt").is_file():
+        m = re.search(r"freiburg([123])", root.absolute().name)
+        if m:
+            preset = TUM_CAMERAS[f"fr{m.group(1)}"]
+            logger.info(
+                "%s: using the TUM fr%s default intrinsics (from the directory name)", root, m.group(1)
+            )
+    cam = resolve_camera(
+        root,
+        FORMAT,
+        camera,
+        preset,
+        "pass camera=Camera(...) or tum_camera='fr1'|'fr2'|'fr3', or write camera.txt "
+        "('PINHOLE width height fx fy cx cy')",
+    )
+    return read_rgbd_sequence(
+        root,
+        fmt=FORMAT,
+        image_list="rgb.txt",
+        pose_file="groundtruth.txt",
+        camera=cam,
+        depth_list="depth.txt",
+        depth_dir=None,
+        depth_scale=depth_scale,
+        base_from_camera=base_from_camera,
+        max_dt=max_dt,
+        check_images=check_images,
+    )

@@ -1,0 +1,329 @@
+"""Estimator adapters for the generic loop: one per hypothesis family.
+
+* :class:`Planar2p1pEstimator` — the paper's 2p1p (Sec. IV-C): 2 matches of pair j, 1 of pair
+  k ≠ j; in ``tracks`` mode the third datum may instead be a 2D-3D constraint.
+* :class:`RelativePairEstimator` — 2p2p (Sec. IV-B) and the baselines 5p5p-Nistér,
+  5p5p-Stewénius and 8p8p: a relative pose per pair from a minimal (or 8-point) sample,
+  then Rcheck, triangulation, Pdcheck and the consistency check.
+
+All share the scoring (MSAC over every match of every pair plus 2D-3D constraints) and the
+refinement (robust 6DoF) of the problem.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import numpy as np
+
+from planarloc.geometry.planar import rotation_from_yaw
+from planarloc.robust.hypotheses import hypotheses_2p1p, hypotheses_from_relative_poses, hypotheses_up2p
+from planarloc.robust.options import Method, RansacOptions
+from planarloc.robust.problem import AbsolutePoseProblem
+from planarloc.robust.refinement import refine_pose
+from planarloc.robust.result import RansacStatistics
+from planarloc.robust.sampling import draw_pair_samples
+from planarloc.robust.scoring import errors_sq, msac_scores
+from planarloc.solvers.relpose_planar_2p import _solve_batch
+
+SIGMA_FLOOR_PX = 0.5  # lower bound of the pixel noise assumed for covariances
+_IDENTITY = np.eye(3)
+_FREE = np.zeros(6, dtype=np.bool_)
+
+
+class _ProblemEstimator:
+    """Scoring, inliers and refinement shared by every hypothesis family."""
+
+    sample_size = 3
+
+    def __init__(self, problem: AbsolutePoseProblem, options: RansacOptions) -> None:
+        self.p = problem
+        self.options = options
+        self.threshold_sq = options.threshold_px**2
+        self.num_data = len(problem.xq) + len(problem.X3d)
+        self.counters = np.zeros(5, dtype=np.int64)
+
+    def score(self, R: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        p = self.p
+        return msac_scores(np.ascontiguousarray(R), np.ascontiguousarray(t), len(R), p.xq, p.xr, p.offsets,
+                           p.f_query, p.f_ref, p.ref_R, p.ref_t, p.xq3d, p.X3d, self.threshold_sq)
+
+    def inliers(self, R: np.ndarray, t: np.ndarray, threshold_sq: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+        p = self.p
+        th = self.threshold_sq if threshold_sq is None else threshold_sq
+        e2d, e3d = errors_sq(R, t, p.xq, p.xr, p.offsets, p.f_query, p.f_ref, p.ref_R, p.ref_t, p.xq3d, p.X3d)
+        return e2d < th, e3d < th
+
+    def _refine(self, R: np.ndarray, c0: np.ndarray, in2d: np.ndarray, in3d: np.ndarray, max_iterations: int,
+                B: np.ndarray = _IDENTITY, fixed: np.ndarray = _FREE) -> tuple:
+        p = self.p
+        return refine_pose(
+            np.ascontiguousarray(R), -R @ c0, p.xq, p.xr, p.pair, np.flatnonzero(in2d),
+            p.f_query, p.f_ref, p.ref_R, p.ref_t, p.xq3d, p.X3d, np.flatnonzero(in3d),
+            self.options.threshold_px, max_iterations, SIGMA_FLOOR_PX, np.ascontiguousarray(c0), B, fixed,
+        )
+
+    def refine_full(self, R: np.ndarray, t: np.ndarray, max_iterations: int) -> tuple:
+        """Refine on the current inliers; returns (R, t, cov_center, sigma, cost, in2d, in3d)."""
+        in2d, in3d = self.inliers(R, t)
+        R2, t2, cov, sigma, cost = self._refine(R, -R.T @ t, in2d, in3d, max_iterations)
+        return R2, t2, cov, sigma, cost, in2d, in3d
+
+    def profile_std(self, R: np.ndarray, t: np.ndarray, in2d: np.ndarray, in3d: np.ndarray, sigma: float,
+                    cost: float, direction: np.ndarray, distance: float) -> float:
+        """Secant estimate of the position std along ``direction`` (unit, world frame).
+
+        The centre is moved by ``±distance`` along ``direction`` and held there while the
+        rotation and the two other centre coordinates are re-optimised on the same inliers.
+        If the robust cost rises by ``ΔC``, a quadratic profile ``ΔC/σ̂² = d²/(2 std²)``
+        gives ``std = d / sqrt(2 ΔC / σ̂²)``; a flat profile (ΔC ≈ 0) gives inf. Unlike the
+        linearised covariance, this sees curved, banana-shaped valleys of near-degenerate
+        geometry (query almost collinear with the reference centres).
+        """
+        u = direction / np.linalg.norm(direction)
+        a = np.array([1.0, 0.0, 0.0]) if abs(u[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+        v1 = np.cross(u, a)
+        v1 /= np.linalg.norm(v1)
+        B = np.ascontiguousarray(np.stack([u, v1, np.cross(u, v1)], axis=1))
+        fixed = np.array([False, False, False, True, False, False])
+        c = -R.T @ t
+        worst = 0.0
+        for sgn in (1.0, -1.0):
+            *_, c_moved = self._refine(R, c + sgn * distance * u, in2d, in3d, 10, B, fixed)
+            rise = max(c_moved - cost, 0.0) / (sigma * sigma)
+            worst = max(worst, distance / np.sqrt(2.0 * rise) if rise > 0 else np.inf)
+        return worst
+
+    def refine(self, R: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Local optimisation: refine on inliers of a shrinking threshold (4τ, 2τ, τ), so that a
+        hypothesis near the right basin gathers the constraints it first missed."""
+        for scale in (4.0, 2.0, 1.0):
+            in2d, in3d = self.inliers(R, t, scale * scale * self.threshold_sq)
+            if in2d.sum() + in3d.sum() < 6:
+                break
+            R, t, *_ = self._refine(R, -R.T @ t, in2d, in3d, 5)
+        return R, t
+
+    def centre_collinearity(self, R: np.ndarray, t: np.ndarray, in2d: np.ndarray) -> float:
+        """How far the query and reference centres are from lying on one line (scale-free).
+
+        The ratio ``s₂ / s₁`` of the two largest singular values of the centred set of the
+        query centre and the centres of the references with at least 5 inliers: 0 for
+        collinear centres (a straight corridor or road), O(1) for a spread configuration.
+        2D-2D constraints fix the query position by intersecting the lines from the
+        reference centres, so it is unobservable along the line when the ratio is small.
+        """
+        p = self.p
+        pts = [-R.T @ t]
+        for k in range(p.num_pairs):
+            if in2d[p.offsets[k]:p.offsets[k + 1]].sum() >= 5:
+                pts.append(-p.ref_R[k].T @ p.ref_t[k])
+        if len(pts) < 3:
+            return 0.0
+        P = np.array(pts)
+        sv = np.linalg.svd(P - P.mean(axis=0), compute_uv=False)
+        return float(sv[1] / sv[0]) if sv[0] > 0 else 0.0
+
+    def weak_directions(self, R: np.ndarray, t: np.ndarray, in2d: np.ndarray, cov: np.ndarray) -> list[np.ndarray]:
+        """Directions along which the position may be unobservable (world frame).
+
+        The largest axis of the linearised covariance, and the weakest axis of the bearing
+        configuration: with the query centre ``c`` and the reference centres ``c_p`` of pairs
+        with inliers, ``A = Σ_p (I - u_p u_pᵀ) / |c - c_p|²`` with ``u_p`` the unit bearing;
+        collinear centres make its smallest eigenvalue vanish along the line.
+        """
+        dirs = []
+        if np.all(np.isfinite(cov)):
+            dirs.append(np.linalg.eigh(cov)[1][:, -1])
+        p = self.p
+        c = -R.T @ t
+        A = np.zeros((3, 3))
+        for k in range(p.num_pairs):
+            if in2d[p.offsets[k]:p.offsets[k + 1]].sum() < 5:
+                continue
+            d = c - (-p.ref_R[k].T @ p.ref_t[k])
+            n2 = float(d @ d)
+            if n2 < 1e-12:
+                continue
+            u = d / np.sqrt(n2)
+            A += (np.eye(3) - np.outer(u, u)) / n2
+        w, V = np.linalg.eigh(A)
+        dirs.append(V[:, 0])
+        if len(dirs) == 2 and abs(dirs[0] @ dirs[1]) > 0.98:
+            dirs.pop()
+        return dirs
+
+    def _flush(self, stats: RansacStatistics) -> None:
+        c = self.counters
+        stats.hypotheses += int(c[0])
+        stats.rejected_rcheck += int(c[1])
+        stats.rejected_pdcheck += int(c[2])
+        stats.rejected_consistency += int(c[3])
+        stats.rejected_degenerate += int(c[4])
+        c[:] = 0
+
+
+class Planar2p1pEstimator(_ProblemEstimator):
+    """The paper's 2p1p (Sec. IV-C) with Pdcheck; optional 2D-3D third datum."""
+
+    sample_size = 3
+
+    def __init__(self, problem: AbsolutePoseProblem, options: RansacOptions) -> None:
+        super().__init__(problem, options)
+        self.use_3d = len(problem.X3d) > 0
+
+    def generate(self, rng: np.random.Generator, n: int, stats: RansacStatistics) -> tuple[np.ndarray, np.ndarray]:
+        p = self.p
+        u = rng.random((n, 5))
+        samples = np.empty((n, 3), dtype=np.int64)
+        pj = np.empty(n, dtype=np.int64)
+        pk = np.empty(n, dtype=np.int64)
+        draw_pair_samples(u, p.offsets, 2, 1, samples, pj, pk)
+        third_3d = np.zeros(n, dtype=np.bool_)
+        R_up = np.zeros((0, 3, 3))
+        t_up = np.zeros((0, 3))
+        if self.use_3d:
+            # Structure mode: a third of the samples take the scale from a 2D-3D constraint,
+            # a third are upright P2P samples of two 2D-3D constraints (no 2D-2D at all).
+            kind = rng.integers(0, 3, n)
+            kind[pk < 0] = 1 + (kind[pk < 0] % 2)
+            third_3d = kind == 1
+            samples[third_3d, 2] = rng.integers(0, len(p.X3d), third_3d.sum())
+            up = np.flatnonzero((kind == 2) & (pj >= 0))
+            if len(up) and len(p.X3d) >= 2:
+                first = rng.integers(0, len(p.X3d), len(up))
+                second = (first + rng.integers(1, len(p.X3d), len(up))) % len(p.X3d)
+                s_up = np.stack([first, second], axis=1)
+                R_up = np.empty((2 * len(up), 3, 3))
+                t_up = np.empty((2 * len(up), 3))
+                m_up = hypotheses_up2p(s_up, pj[up], p.ref_R, p.ref_t, p.xq3d, p.X3d, R_up, t_up, self.counters)
+                R_up, t_up = R_up[:m_up], t_up[:m_up]
+            keep = kind != 2
+            samples, pj, pk, third_3d = samples[keep], pj[keep], pk[keep], third_3d[keep]
+        ok = (pk >= 0) | third_3d
+        samples, pj, pk, third_3d = samples[ok], pj[ok], pk[ok], third_3d[ok]
+        out_R = np.empty((2 * len(samples), 3, 3))
+        out_t = np.empty((2 * len(samples), 3))
+        m = hypotheses_2p1p(samples, third_3d, pj, pk, p.xq, p.xr, p.ref_R, p.ref_t, p.xq3d, p.X3d,
+                            out_R, out_t, self.counters)
+        self._flush(stats)
+        return np.concatenate([out_R[:m], R_up]), np.concatenate([out_t[:m], t_up])
+
+
+RelposeBatchSolver = Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray, np.ndarray]]
+
+
+def _planar_2p_batch_Rt(xq: np.ndarray, xr: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    m = len(xq)
+    th = np.zeros((m, 2))
+    ph = np.zeros((m, 2))
+    cnt = np.zeros(m, dtype=np.int64)
+    _solve_batch(xq, xr, th, ph, cnt)
+    R = rotation_from_yaw(th)
+    d = np.stack([np.sin(ph), np.zeros_like(ph), np.cos(ph)], axis=-1)
+    t = -np.einsum("smij,smj->smi", R, d)
+    return R, t, np.arange(2)[None] < cnt[:, None]
+
+
+def _baseline_solver(method: Method) -> tuple[int, RelposeBatchSolver]:
+    if method == Method.P2P2:
+        return 2, _planar_2p_batch_Rt
+    if method == Method.NISTER:
+        from planarloc.solvers.relpose_5p_nister import relpose_5p_nister_batch
+
+        return 5, relpose_5p_nister_batch
+    if method == Method.STEWENIUS:
+        from planarloc.solvers.relpose_5p_stewenius import relpose_5p_stewenius_batch
+
+        return 5, relpose_5p_stewenius_batch
+    if method == Method.EIGHT:
+        from planarloc.solvers.relpose_8p import relpose_8p_batch
+
+        return 8, relpose_8p_batch
+    raise ValueError(f"no relative-pose solver for {method}")
+
+
+class RelativePairEstimator(_ProblemEstimator):
+    """2p2p and the 5p5p / 8p8p baselines, in the paper's two stages (Sec. IV-B).
+
+    Stage 1, per pair: relative poses from ``n`` minimal samples of that pair, scored by
+    MSAC over the pair's matches; the ``top_k`` best distinct ones are kept. Stage 2, for
+    every two pairs (j, k): Rcheck (eq. 12), triangulation (eq. 13-15), Pdcheck and the
+    consistency check on each combination of their kept relative poses. A stage-1 sample
+    needs only ``m`` inliers of one pair (not ``2m`` across two pairs), which is what makes
+    2p2p robust at high outlier rates.
+    """
+
+    top_k = 3
+
+    def __init__(self, problem: AbsolutePoseProblem, options: RansacOptions, method: Method) -> None:
+        super().__init__(problem, options)
+        self.m, self.solver = _baseline_solver(method)
+        self.sample_size = self.m
+        self.cos_rcheck = float(np.cos(np.radians(options.rcheck_deg)))
+        self.cos_consistency = float(np.cos(np.radians(options.consistency_deg)))
+        self.fallback_3d = method == Method.P2P2 and len(problem.X3d) > 0
+        self._planar = Planar2p1pEstimator(problem, options) if self.fallback_3d else None
+
+    def _best_relative(self, rng: np.random.Generator, n: int) -> list[tuple[np.ndarray, np.ndarray]]:
+        """Stage 1: per pair, up to ``top_k`` distinct best relative poses (R (K,3,3), t (K,3))."""
+        p, m = self.p, self.m
+        eligible = np.flatnonzero(p.counts >= m)
+        sample_pair = np.repeat(eligible, n)
+        samples = np.empty((len(sample_pair), m), dtype=np.int64)
+        from planarloc.robust.sampling import draw_within_pairs
+        from planarloc.robust.scoring import relative_msac_scores
+
+        draw_within_pairs(rng.random((len(sample_pair), m)), p.offsets, sample_pair, m, samples)
+        R, t, valid = self.solver(p.xq[samples], p.xr[samples])
+        R, t, valid = np.ascontiguousarray(R), np.ascontiguousarray(t), np.ascontiguousarray(valid)
+        cost = relative_msac_scores(R, t, valid, sample_pair, p.xq, p.xr, p.offsets, p.f_query, p.f_ref,
+                                    self.threshold_sq)
+        best: list[tuple[np.ndarray, np.ndarray]] = [(np.zeros((0, 3, 3)), np.zeros((0, 3)))] * p.num_pairs
+        A = valid.shape[1]
+        for idx, pair in enumerate(eligible):
+            c = cost[idx * n:(idx + 1) * n].ravel()
+            order = np.argsort(c)
+            Rs, ts = [], []
+            for o in order:
+                if not np.isfinite(c[o]) or len(Rs) == self.top_k:
+                    break
+                Rc, tc = R[idx * n + o // A, o % A], t[idx * n + o // A, o % A]
+                if any(np.sum(Rc * Rk) > 3.0 - 1e-4 and tc @ tk > 0.9998 for Rk, tk in zip(Rs, ts)):
+                    continue  # same pose found by another sample
+                Rs.append(Rc)
+                ts.append(tc)
+            if Rs:
+                best[pair] = (np.array(Rs), np.array(ts))
+        return best
+
+    def generate(self, rng: np.random.Generator, n: int, stats: RansacStatistics) -> tuple[np.ndarray, np.ndarray]:
+        p = self.p
+        best = self._best_relative(rng, n)
+        K = self.top_k
+        combos = [(j, k) for j in range(p.num_pairs) for k in range(j + 1, p.num_pairs)
+                  if len(best[j][0]) and len(best[k][0])]
+        C = len(combos)
+        Ra = np.zeros((C, K, 3, 3))
+        ta = np.zeros((C, K, 3))
+        va = np.zeros((C, K), dtype=np.bool_)
+        Rb, tb, vb = Ra.copy(), ta.copy(), va.copy()
+        for c, (j, k) in enumerate(combos):
+            for (Rs, ts), (Rx, tx, vx) in ((best[j], (Ra, ta, va)), (best[k], (Rb, tb, vb))):
+                Rx[c, :len(Rs)] = Rs
+                tx[c, :len(Rs)] = ts
+                vx[c, :len(Rs)] = True
+        pj = np.array([j for j, _ in combos], dtype=np.int64)
+        pk = np.array([k for _, k in combos], dtype=np.int64)
+        out_R = np.empty((C * K * K, 3, 3))
+        out_t = np.empty((C * K * K, 3))
+        cnt = hypotheses_from_relative_poses(Ra, ta, va, Rb, tb, vb, pj, pk, p.ref_R, p.ref_t, self.cos_rcheck,
+                                             self.cos_consistency, out_R, out_t, self.counters)
+        self._flush(stats)
+        R, t = out_R[:cnt], out_t[:cnt]
+        if self._planar is not None:
+            # Structure mode: the 2p relative pose of pair j with the scale from a 2D-3D
+            # constraint survives collinear geometry, where eq. (15) is singular.
+            R3, t3 = self._planar.generate(rng, n, stats)
+            R, t = np.concatenate([R, R3]), np.concatenate([t, t3])
+        return R, t

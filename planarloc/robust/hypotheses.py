@@ -1,0 +1,212 @@
+"""Absolute-pose hypotheses from minimal samples, with the paper's multiple checking (numba).
+
+Counters (indices into the ``counters`` array): 0 hypotheses, 1 rejected by Rcheck (eq. 12),
+2 rejected by Pdcheck (ρ ≤ 0 or a negative depth), 3 rejected by the consistency check,
+4 degenerate (no finite solution).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+from planarloc.solvers.abspose_2p1p import scale_2p1p, scale_from_point3d
+from planarloc.solvers.abspose_2p2p import triangulate_scales
+from planarloc.solvers.abspose_up2p import solve_up2p
+from planarloc.solvers.relpose_planar_2p import solve_planar_2p
+
+HYPOTHESES, RCHECK, PDCHECK, CONSISTENCY, DEGENERATE = range(5)
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _positive_depths(R: np.ndarray, t: np.ndarray, xq: np.ndarray, xr: np.ndarray) -> bool:
+    """Both midpoint depths of ``x_r λr ≈ λq R x_q + t`` positive."""
+    a0 = R[0, 0] * xq[0] + R[0, 1] * xq[1] + R[0, 2] * xq[2]
+    a1 = R[1, 0] * xq[0] + R[1, 1] * xq[1] + R[1, 2] * xq[2]
+    a2 = R[2, 0] * xq[0] + R[2, 1] * xq[1] + R[2, 2] * xq[2]
+    aa = a0 * a0 + a1 * a1 + a2 * a2
+    bb = xr[0] * xr[0] + xr[1] * xr[1] + xr[2] * xr[2]
+    ab = a0 * xr[0] + a1 * xr[1] + a2 * xr[2]
+    at = a0 * t[0] + a1 * t[1] + a2 * t[2]
+    bt = xr[0] * t[0] + xr[1] * t[1] + xr[2] * t[2]
+    det = aa * bb - ab * ab
+    if det <= 1e-12 * aa * bb:
+        return False
+    return (-at * bb + ab * bt) / det > 0 and (aa * bt - ab * at) / det > 0
+
+
+@njit(cache=True, error_model="numpy")
+def hypotheses_2p1p(
+    samples: np.ndarray, third_is_3d: np.ndarray, pj: np.ndarray, pk: np.ndarray,
+    xq: np.ndarray, xr: np.ndarray, ref_R: np.ndarray, ref_t: np.ndarray,
+    xq3d: np.ndarray, X3d: np.ndarray, out_R: np.ndarray, out_t: np.ndarray, counters: np.ndarray,
+) -> int:
+    """2p1p hypotheses (paper Sec. IV-C) with Pdcheck.
+
+    Args:
+        samples: (S, 3) rows ``(i1, i2, i3)``: two matches of pair ``pj`` and the third, a
+            match row of pair ``pk`` or, where ``third_is_3d``, a row of ``xq3d``/``X3d``
+            (structure mode: scale from a 2D-3D constraint, same unknown ρ).
+        out_R, out_t: (2S, 3, 3), (2S, 3) output buffers for ``query_from_world``.
+        counters: (5,) int64, incremented.
+
+    Returns:
+        number of hypotheses written.
+    """
+    sq = np.empty((2, 3))
+    sr = np.empty((2, 3))
+    thetas = np.empty(2)
+    phis = np.empty(2)
+    R = np.zeros((3, 3))
+    R[1, 1] = 1.0
+    tt = np.empty(3)
+    out = 0
+    for s in range(samples.shape[0]):
+        i1, i2, i3 = samples[s, 0], samples[s, 1], samples[s, 2]
+        sq[0], sq[1] = xq[i1], xq[i2]
+        sr[0], sr[1] = xr[i1], xr[i2]
+        n = solve_planar_2p(sq, sr, thetas, phis)
+        if n == 0:
+            counters[DEGENERATE] += 1
+            continue
+        j = pj[s]
+        Rj, tj = ref_R[j], ref_t[j]
+        for m in range(n):
+            counters[HYPOTHESES] += 1
+            c, sn = np.cos(thetas[m]), np.sin(thetas[m])
+            R[0, 0], R[0, 2], R[2, 0], R[2, 2] = c, -sn, sn, c
+            sp, cp = np.sin(phis[m]), np.cos(phis[m])
+            tt[0] = -(c * sp - sn * cp)
+            tt[1] = 0.0
+            tt[2] = -(sn * sp + c * cp)
+            if third_is_3d[s]:
+                Xref = Rj @ X3d[i3] + tj
+                v = R @ xq3d[i3]
+                rho = scale_from_point3d(tt, Xref, v)
+                if rho != rho:
+                    counters[DEGENERATE] += 1
+                    continue
+                Xq = R.T @ (Xref - rho * tt)
+                if rho <= 0 or Xq[2] <= 0:
+                    counters[PDCHECK] += 1
+                    continue
+            else:
+                k = pk[s]
+                R21 = ref_R[k] @ Rj.T
+                t21 = ref_t[k] - R21 @ tj
+                a = R21 @ tt
+                y = R21 @ (R @ xq[i3])
+                rho = scale_2p1p(a, t21, y, xr[i3])
+                if rho != rho:
+                    counters[DEGENERATE] += 1
+                    continue
+                if rho <= 0 or not _positive_depths(R21 @ R, rho * a + t21, xq[i3], xr[i3]):
+                    counters[PDCHECK] += 1
+                    continue
+            out_R[out] = R.T @ Rj
+            out_t[out] = R.T @ (tj - rho * tt)
+            out += 1
+    return out
+
+
+@njit(cache=True, error_model="numpy")
+def hypotheses_from_relative_poses(
+    Ra: np.ndarray, ta: np.ndarray, va: np.ndarray, Rb: np.ndarray, tb: np.ndarray, vb: np.ndarray,
+    pj: np.ndarray, pk: np.ndarray, ref_R: np.ndarray, ref_t: np.ndarray,
+    cos_rcheck: float, cos_consistency: float,
+    out_R: np.ndarray, out_t: np.ndarray, counters: np.ndarray,
+) -> int:
+    """Absolute hypotheses from relative poses to two references (2p2p and the baselines).
+
+    Paper Sec. IV-B: Rcheck (eq. 12), triangulation (eq. 13-15) and Pdcheck, consistency.
+
+    Args:
+        Ra, ta, va: (S, A, 3, 3), (S, A, 3), (S, A) candidate ``j_from_query`` per sample
+            (unit ``t``), valid flags; Rb, tb, vb likewise for ``k_from_query``.
+        pj, pk: (S,) the two pairs of each sample.
+        cos_rcheck, cos_consistency: cosines of ``e_th`` and ``α_th``.
+
+    Returns:
+        number of ``query_from_world`` hypotheses written to out_R, out_t.
+    """
+    out = 0
+    for s in range(Ra.shape[0]):
+        j, k = pj[s], pk[s]
+        Rj, tj, Rk, tk = ref_R[j], ref_t[j], ref_R[k], ref_t[k]
+        R12 = Rj @ Rk.T  # j_from_k, eq. (12)
+        t12 = tj - R12 @ tk
+        any_valid = False
+        for a in range(Ra.shape[1]):
+            if not va[s, a]:
+                continue
+            for b in range(Rb.shape[1]):
+                if not vb[s, b]:
+                    continue
+                any_valid = True
+                counters[HYPOTHESES] += 1
+                Rab = Ra[s, a] @ Rb[s, b].T
+                cos_e = 0.5 * (np.sum(R12 * Rab) - 1.0)  # tr(R12 Rabᵀ) = Σ R12 ∘ Rab
+                if cos_e < cos_rcheck:
+                    counters[RCHECK] += 1
+                    continue
+                t2_in_1 = Rab @ tb[s, b]
+                rho, rho2, reg = triangulate_scales(ta[s, a], t2_in_1, t12)
+                if reg:
+                    counters[DEGENERATE] += 1
+                    continue
+                if rho <= 0 or rho2 <= 0:
+                    counters[PDCHECK] += 1
+                    continue
+                Rq = Ra[s, a].T @ Rj
+                tq = Ra[s, a].T @ (tj - rho * ta[s, a])
+                cq = -Rq.T @ tq
+                that = Rk @ cq + tk  # query centre seen from k; must point along t̃₂
+                nt = np.sqrt(np.sum(that * that))
+                if nt < 1e-12 or np.sum(that * tb[s, b]) / nt < cos_consistency:
+                    counters[CONSISTENCY] += 1
+                    continue
+                out_R[out] = Rq
+                out_t[out] = tq
+                out += 1
+        if not any_valid:
+            counters[DEGENERATE] += 1
+    return out
+
+
+@njit(cache=True, error_model="numpy")
+def hypotheses_up2p(
+    samples: np.ndarray, pj: np.ndarray, ref_R: np.ndarray, ref_t: np.ndarray, xq3d: np.ndarray, X3d: np.ndarray,
+    out_R: np.ndarray, out_t: np.ndarray, counters: np.ndarray,
+) -> int:
+    """Upright P2P hypotheses (structure mode): two 2D-3D constraints, yaw relative to pair ``pj``.
+
+    Args:
+        samples: (S, 2) rows of ``xq3d`` / ``X3d``.
+        pj: (S,) the reference whose frame is upright relative to the query (local planar motion).
+        out_R, out_t: (2S, 3, 3), (2S, 3) ``query_from_world`` outputs.
+    """
+    x = np.empty((2, 3))
+    X = np.empty((2, 3))
+    th = np.empty(2)
+    ts = np.empty((2, 3))
+    R = np.zeros((3, 3))
+    R[1, 1] = 1.0
+    out = 0
+    for s in range(samples.shape[0]):
+        j = pj[s]
+        Rj, tj = ref_R[j], ref_t[j]
+        for k in range(2):
+            x[k] = xq3d[samples[s, k]]
+            X[k] = Rj @ X3d[samples[s, k]] + tj
+        n = solve_up2p(x, X, th, ts)
+        if n == 0:
+            counters[DEGENERATE] += 1
+            continue
+        for m in range(n):
+            counters[HYPOTHESES] += 1
+            c, sn = np.cos(th[m]), np.sin(th[m])
+            R[0, 0], R[0, 2], R[2, 0], R[2, 2] = c, -sn, sn, c
+            out_R[out] = R @ Rj
+            out_t[out] = R @ tj + ts[m]
+            out += 1
+    return out

@@ -1,0 +1,98 @@
+"""Options of the robust absolute pose estimator: one frozen dataclass, documented defaults."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from enum import Enum
+
+from planarloc.geometry.validation import InputError
+
+
+class Method(str, Enum):
+    """Minimal solvers for hypotheses (paper Sec. IV and its baselines, Sec. V)."""
+
+    P2P1 = "2p1p"
+    P2P2 = "2p2p"
+    NISTER = "5p5p-nister"
+    STEWENIUS = "5p5p-stewenius"
+    EIGHT = "8p8p"
+
+
+class Structure(str, Enum):
+    """Which constraints beyond 2D-2D are used.
+
+    ``none``: the paper's 2D-2D constraints only (plus ``ref_points3d`` if given).
+    ``tracks``: also triangulate query keypoints matched in two or more references (whose
+    poses are known) and use the 2D-3D constraints — removes the collinear degeneracy.
+    """
+
+    NONE = "none"
+    TRACKS = "tracks"
+
+
+@dataclass(frozen=True)
+class RansacOptions:
+    """Options of :func:`planarloc.estimate_absolute_pose`.
+
+    Attributes:
+        max_iterations: upper bound on minimal samples drawn.
+        min_iterations: lower bound; set both to 100 to reproduce the paper's fixed 100.
+        threshold_px: inlier threshold on the Sampson error (and reprojection error of
+            2D-3D constraints), in pixels.
+        confidence: RANSAC confidence for adaptive termination.
+        rcheck_deg: Rcheck threshold ``e_th`` of eq. (12), degrees (2p2p and baselines).
+        consistency_deg: consistency check threshold ``α_th``, degrees.
+        structure: ``"none"`` or ``"tracks"`` (see :class:`Structure`).
+        refine: run the final robust 6DoF refinement (and local optimisation).
+        local_optimization: refine the best model on its inliers whenever it improves.
+        min_inliers: fewer inliers than this in total is a failure.
+        max_position_std_m: a refined position whose standard deviation (largest axis of
+            its covariance) exceeds this is reported as ``degenerate_scale``, not as a pose.
+        min_collinearity_ratio: with fewer than ``min_inliers`` 2D-3D inliers, the query
+            centre and the centres of the references with inliers must not lie on one line:
+            the ratio of the second to the first singular value of the centred centres must
+            be at least this. Otherwise the query position along the line is unobservable
+            from 2D-2D constraints and ``degenerate_scale`` is returned (straight corridors
+            and roads; see NOTES.md, KITTI).
+        track_min_angle_deg: minimum triangulation angle for a track's 3D point.
+        seed: seed of the ``numpy.random.Generator`` used for sampling.
+    """
+
+    max_iterations: int = 1000
+    min_iterations: int = 100
+    threshold_px: float = 2.0
+    confidence: float = 0.9999
+    rcheck_deg: float = 2.0
+    consistency_deg: float = 2.0
+    structure: Structure | str = Structure.NONE
+    refine: bool = True
+    local_optimization: bool = True
+    min_inliers: int = 10
+    max_position_std_m: float = 0.25
+    min_collinearity_ratio: float = 0.05
+    track_min_angle_deg: float = 1.0
+    seed: int | None = 0
+
+    def __post_init__(self) -> None:
+        try:
+            object.__setattr__(self, "structure", Structure(getattr(self.structure, "value", self.structure)))
+        except ValueError:
+            raise InputError(f"RansacOptions.structure: expected 'none' or 'tracks', got {self.structure!r}") from None
+        if not (1 <= self.min_iterations <= self.max_iterations):
+            raise InputError(
+                f"RansacOptions: need 1 <= min_iterations <= max_iterations, got {self.min_iterations}, "
+                f"{self.max_iterations}"
+            )
+        for name in ("threshold_px", "rcheck_deg", "consistency_deg", "max_position_std_m"):
+            if not getattr(self, name) > 0:
+                raise InputError(f"RansacOptions.{name}: must be > 0, got {getattr(self, name)}")
+        if not (0.0 < self.confidence < 1.0):
+            raise InputError(f"RansacOptions.confidence: must be in (0, 1), got {self.confidence}")
+
+
+def parse_method(method: Method | str) -> Method:
+    try:
+        return Method(getattr(method, "value", method))
+    except ValueError:
+        names = ", ".join(m.value for m in Method)
+        raise InputError(f"method: unknown method {method!r}; choose one of {names}") from None

@@ -1,0 +1,67 @@
+"""The estimator's input: matches between the query and one reference image with a known pose."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from planarloc.geometry.camera import Camera
+from planarloc.geometry.pose import Pose
+from planarloc.geometry.validation import InputError, check_array
+
+
+@dataclass(frozen=True, eq=False)
+class PairMatches:
+    """2D-2D matches between the query and one retrieved reference image.
+
+    Attributes:
+        ref_pose: the reference's ``cam_from_world`` (known from the map).
+        ref_camera: the reference's intrinsics.
+        query_points: (N, 2) pixel coordinates of the matched query keypoints.
+        ref_points: (N, 2) pixel coordinates of the matched reference keypoints.
+        query_indices: (N,) ids of the query keypoints, or None. The same id in several
+            pairs means the same query keypoint, which links matches into tracks
+            (``structure="tracks"``). Must be unique within one pair.
+        ref_points3d: (N, 3) world points where the reference has depth, NaN rows where
+            it has none; or None.
+
+    Raises:
+        InputError: on shape mismatches, non-finite pixels, or a ``ref_pose`` that is not a Pose.
+    """
+
+    ref_pose: Pose
+    ref_camera: Camera
+    query_points: np.ndarray
+    ref_points: np.ndarray
+    query_indices: np.ndarray | None = None
+    ref_points3d: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.ref_pose, Pose):
+            raise InputError(f"PairMatches.ref_pose: expected a planarloc.Pose, got {type(self.ref_pose).__name__}")
+        if not isinstance(self.ref_camera, Camera):
+            raise InputError(
+                f"PairMatches.ref_camera: expected a planarloc.Camera, got {type(self.ref_camera).__name__}"
+            )
+        q = check_array("PairMatches.query_points", self.query_points, (None, 2))
+        n = len(q)
+        r = check_array("PairMatches.ref_points", self.ref_points, (n, 2))
+        object.__setattr__(self, "query_points", q)
+        object.__setattr__(self, "ref_points", r)
+        if self.query_indices is not None:
+            ids = check_array("PairMatches.query_indices", self.query_indices, (n,), dtype=np.int64)
+            if len(np.unique(ids)) != n:
+                raise InputError("PairMatches.query_indices: ids must be unique within one pair")
+            object.__setattr__(self, "query_indices", ids)
+        if self.ref_points3d is not None:
+            X = check_array("PairMatches.ref_points3d", self.ref_points3d, (n, 3), finite=False)
+            if np.any(np.isinf(X)):
+                raise InputError("PairMatches.ref_points3d: contains inf; use NaN rows for missing depth")
+            partial = np.isnan(X).any(axis=1) & ~np.isnan(X).all(axis=1)
+            if partial.any():
+                raise InputError("PairMatches.ref_points3d: rows must be all finite or all NaN")
+            object.__setattr__(self, "ref_points3d", X)
+
+    def __len__(self) -> int:
+        return len(self.query_points)

@@ -1,0 +1,112 @@
+"""Flattened, validated arrays of one absolute-pose problem (what the numba kernels consume)."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from planarloc.geometry.camera import Camera
+from planarloc.geometry.validation import InputError
+from planarloc.robust.pair_matches import PairMatches
+
+
+@dataclass(frozen=True, eq=False)
+class AbsolutePoseProblem:
+    """All matches of one query, concatenated over pairs (pair ``p`` owns rows
+    ``offsets[p]:offsets[p+1]``).
+
+    Attributes:
+        xq, xr: (N, 3) normalized homogeneous query / reference points (undistorted).
+        pair: (N,) pair index of each match.
+        offsets: (P + 1,) row offsets of the pairs.
+        query_ids: (N,) query keypoint ids (-1 when unknown).
+        f_query: (2,) query focal lengths (fx, fy) for errors in pixels.
+        f_ref: (P, 2) reference focal lengths.
+        ref_R, ref_t: (P, 3, 3), (P, 3) reference ``cam_from_world``.
+        xq3d: (M, 3) query rays of 2D-3D constraints; X3d: (M, 3) their world points.
+        source3d: (M,) -1 for a triangulated track, else the match row whose depth gave it.
+    """
+
+    xq: np.ndarray
+    xr: np.ndarray
+    pair: np.ndarray
+    offsets: np.ndarray
+    query_ids: np.ndarray
+    f_query: np.ndarray
+    f_ref: np.ndarray
+    ref_R: np.ndarray
+    ref_t: np.ndarray
+    xq3d: np.ndarray
+    X3d: np.ndarray
+    source3d: np.ndarray
+
+    @property
+    def num_pairs(self) -> int:
+        return len(self.offsets) - 1
+
+    @property
+    def counts(self) -> np.ndarray:
+        return np.diff(self.offsets)
+
+    def with_points3d(self, xq3d: np.ndarray, X3d: np.ndarray, source3d: np.ndarray) -> AbsolutePoseProblem:
+        return AbsolutePoseProblem(
+            self.xq, self.xr, self.pair, self.offsets, self.query_ids, self.f_query, self.f_ref,
+            self.ref_R, self.ref_t,
+            np.ascontiguousarray(np.vstack([self.xq3d, xq3d])),
+            np.ascontiguousarray(np.vstack([self.X3d, X3d])),
+            np.concatenate([self.source3d, source3d]).astype(np.int64),
+        )
+
+
+def build_problem(query_camera: Camera, pairs: Sequence[PairMatches]) -> AbsolutePoseProblem:
+    """Validate the estimator's input and flatten it.
+
+    Raises:
+        InputError: not a Camera, not a sequence of PairMatches, or fewer than two pairs.
+    """
+    if not isinstance(query_camera, Camera):
+        raise InputError(f"query_camera: expected a planarloc.Camera, got {type(query_camera).__name__}")
+    if isinstance(pairs, PairMatches) or not isinstance(pairs, Sequence):
+        raise InputError("pairs: expected a list of PairMatches (one per retrieved reference image)")
+    for i, p in enumerate(pairs):
+        if not isinstance(p, PairMatches):
+            raise InputError(f"pairs[{i}]: expected PairMatches, got {type(p).__name__}")
+    if len(pairs) < 2:
+        raise InputError(
+            f"pairs: need matches to at least 2 reference images to fix the scale, got {len(pairs)}; "
+            "hint: retrieve more reference images (top-n >= 2)"
+        )
+    xq, xr, pair, qids, xq3, X3, src = [], [], [], [], [], [], []
+    offsets = [0]
+    base = 0
+    for p_idx, p in enumerate(pairs):
+        n = len(p)
+        q = query_camera.bearings_from_img(p.query_points) if n else np.zeros((0, 3))
+        r = p.ref_camera.bearings_from_img(p.ref_points) if n else np.zeros((0, 3))
+        xq.append(q)
+        xr.append(r)
+        pair.append(np.full(n, p_idx, dtype=np.int64))
+        qids.append(p.query_indices if p.query_indices is not None else np.full(n, -1, dtype=np.int64))
+        if p.ref_points3d is not None and n:
+            has = ~np.isnan(p.ref_points3d[:, 0])
+            xq3.append(q[has])
+            X3.append(p.ref_points3d[has])
+            src.append(base + np.flatnonzero(has))
+        base += n
+        offsets.append(base)
+    return AbsolutePoseProblem(
+        xq=np.ascontiguousarray(np.vstack(xq)),
+        xr=np.ascontiguousarray(np.vstack(xr)),
+        pair=np.concatenate(pair),
+        offsets=np.asarray(offsets, dtype=np.int64),
+        query_ids=np.concatenate(qids).astype(np.int64),
+        f_query=np.asarray(query_camera.focal, dtype=float),
+        f_ref=np.asarray([p.ref_camera.focal for p in pairs], dtype=float),
+        ref_R=np.ascontiguousarray(np.stack([p.ref_pose.R for p in pairs])),
+        ref_t=np.ascontiguousarray(np.stack([p.ref_pose.t for p in pairs])),
+        xq3d=np.ascontiguousarray(np.vstack(xq3)) if xq3 else np.zeros((0, 3)),
+        X3d=np.ascontiguousarray(np.vstack(X3)) if X3 else np.zeros((0, 3)),
+        source3d=np.concatenate(src).astype(np.int64) if src else np.zeros(0, dtype=np.int64),
+    )

@@ -1,0 +1,97 @@
+"""A generic, batched RANSAC/MSAC loop over an estimator protocol.
+
+The loop owns sampling budgets, adaptive termination, local optimisation and statistics;
+problem specifics live in the estimator (``planarloc.robust.estimators``). Hypotheses are
+generated and scored in batches, so the per-iteration Python overhead is paid once per batch
+while the numba kernels do the work.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass
+from typing import Protocol
+
+import numpy as np
+
+from planarloc.robust.options import RansacOptions
+from planarloc.robust.result import RansacStatistics
+
+
+class Estimator(Protocol):
+    """What the loop needs from a problem.
+
+    ``sample_size`` is the number of data in a minimal sample (for the adaptive iteration
+    count), ``num_data`` the number of scored data. ``generate`` draws ``n`` minimal samples
+    and returns the hypotheses that passed the solver's checks; ``score`` returns MSAC costs
+    and inlier counts; ``refine`` improves one model on its inliers (local optimisation).
+    """
+
+    sample_size: int
+    num_data: int
+
+    def generate(self, rng: np.random.Generator, n: int, stats: RansacStatistics) -> tuple[np.ndarray, np.ndarray]: ...
+
+    def score(self, R: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]: ...
+
+    def refine(self, R: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]: ...
+
+
+@dataclass
+class RansacOutput:
+    R: np.ndarray | None
+    t: np.ndarray | None
+    cost: float
+    num_inliers: int
+    stats: RansacStatistics
+
+
+def required_iterations(inlier_ratio: float, sample_size: int, confidence: float) -> float:
+    """Standard bound ``log(1 - p) / log(1 - w^s)`` (inf when w = 0)."""
+    w_s = inlier_ratio**sample_size
+    if w_s <= 0:
+        return math.inf
+    if w_s >= 1:
+        return 0.0
+    return math.log(1.0 - confidence) / math.log(1.0 - w_s)
+
+
+def ransac(estimator: Estimator, options: RansacOptions, rng: np.random.Generator,
+           stats: RansacStatistics | None = None, batch_size: int = 50) -> RansacOutput:
+    """Run MSAC with adaptive termination between ``min_iterations`` and ``max_iterations``.
+
+    Local optimisation (``estimator.refine``) runs whenever a batch produces a new best model.
+    """
+    stats = stats or RansacStatistics()
+    best_R = best_t = None
+    best_cost, best_inl = math.inf, 0
+    needed = float(options.max_iterations)
+    while stats.iterations < options.max_iterations:
+        todo = options.min_iterations - stats.iterations if stats.iterations < options.min_iterations else batch_size
+        n = int(min(max(todo, 1), options.max_iterations - stats.iterations))
+        t0 = time.perf_counter()
+        R, t = estimator.generate(rng, n, stats)
+        stats.iterations += n
+        t1 = time.perf_counter()
+        stats.add_time("hypotheses", t1 - t0)
+        if len(R):
+            cost, inl = estimator.score(R, t)
+            stats.scored += len(R)
+            k = int(np.argmin(cost))
+            stats.add_time("scoring", time.perf_counter() - t1)
+            if cost[k] < best_cost:
+                best_R, best_t, best_cost, best_inl = R[k], t[k], float(cost[k]), int(inl[k])
+                if options.local_optimization and options.refine:
+                    t2 = time.perf_counter()
+                    R_lo, t_lo = estimator.refine(best_R, best_t)
+                    c_lo, i_lo = estimator.score(R_lo[None], t_lo[None])
+                    stats.local_optimizations += 1
+                    if c_lo[0] < best_cost:
+                        best_R, best_t, best_cost, best_inl = R_lo, t_lo, float(c_lo[0]), int(i_lo[0])
+                    stats.add_time("local_optimization", time.perf_counter() - t2)
+                ratio = best_inl / max(estimator.num_data, 1)
+                needed = required_iterations(ratio, estimator.sample_size, options.confidence)
+        if stats.iterations >= options.min_iterations and stats.iterations >= needed:
+            break
+    return RansacOutput(best_R, best_t, best_cost, best_inl, stats)

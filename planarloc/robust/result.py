@@ -1,0 +1,89 @@
+"""What the robust estimator returns."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from planarloc.geometry.pose import Pose
+
+
+@dataclass
+class RansacStatistics:
+    """Counters of the hypothesis pipeline and time per stage (seconds).
+
+    ``hypotheses`` counts solver outputs; each check counts the hypotheses it rejected:
+    ``rejected_rcheck`` (eq. 12), ``rejected_pdcheck`` (ρ ≤ 0 or negative depth),
+    ``rejected_consistency`` (direction mismatch), ``rejected_degenerate`` (a solver had no
+    finite solution for the sample). ``scored`` = hypotheses that reached scoring.
+    """
+
+    iterations: int = 0
+    hypotheses: int = 0
+    rejected_rcheck: int = 0
+    rejected_pdcheck: int = 0
+    rejected_consistency: int = 0
+    rejected_degenerate: int = 0
+    scored: int = 0
+    local_optimizations: int = 0
+    time_s: dict[str, float] = field(default_factory=dict)
+
+    def add_time(self, stage: str, seconds: float) -> None:
+        self.time_s[stage] = self.time_s.get(stage, 0.0) + seconds
+
+
+@dataclass
+class PoseEstimate:
+    """Result of :func:`planarloc.estimate_absolute_pose`.
+
+    Attributes:
+        pose: the query ``cam_from_world``, or None when not ``success``.
+        success: True only for a pose that is supported and observable.
+        status: ``"success"`` or a machine-readable reason: ``"too_few_matches"``,
+            ``"no_consistent_hypothesis"``, ``"too_few_inliers"``, ``"degenerate_scale"``.
+        message: a human-readable explanation.
+        inliers: one (N_k,) bool array per input pair.
+        num_inliers: total 2D-2D inliers.
+        num_inliers_3d: inlier 2D-3D constraints (tracks / depth).
+        iterations: minimal samples drawn.
+        position_std_m: standard deviation of the query position along its worst axis, from
+            the refinement's covariance (inf when unobservable, nan without refinement).
+        unreliable_pose: for ``degenerate_scale`` the best (unobservable-position) pose, for
+            diagnostics only; None otherwise.
+        stats: counters per check and time per stage.
+        references: names of the reference images used (filled by the Localizer).
+    """
+
+    pose: Pose | None
+    success: bool
+    status: str
+    message: str
+    inliers: list[np.ndarray]
+    num_inliers: int = 0
+    num_inliers_3d: int = 0
+    iterations: int = 0
+    position_std_m: float = float("nan")
+    unreliable_pose: Pose | None = None
+    stats: RansacStatistics = field(default_factory=RansacStatistics)
+    references: list[str] = field(default_factory=list)
+
+    def to_dict(self) -> dict:
+        """JSON-serialisable summary (for result files)."""
+        d = {
+            "success": self.success,
+            "status": self.status,
+            "message": self.message,
+            "num_inliers": int(self.num_inliers),
+            "num_inliers_3d": int(self.num_inliers_3d),
+            "num_matches": [int(len(m)) for m in self.inliers],
+            "iterations": int(self.iterations),
+            "position_std_m": None if not np.isfinite(self.position_std_m) else float(self.position_std_m),
+            "stats": {k: v for k, v in vars(self.stats).items() if k != "time_s"},
+            "time_s": dict(self.stats.time_s),
+            "references": list(self.references),
+        }
+        if self.pose is not None:
+            d["quat_wxyz"] = [float(v) for v in self.pose.quat_wxyz]
+            d["t"] = [float(v) for v in self.pose.t]
+        return d

@@ -1,0 +1,151 @@
+"""MSAC scoring of absolute-pose hypotheses over every match of every pair (numba).
+
+A hypothesis ``query_from_world = (R_q, t_q)`` implies for pair ``p`` the relative pose
+``p_from_query = (R_p R_qᵀ, t_p - R_p R_qᵀ t_q)`` and the essential matrix ``E_p``; each
+2D-2D match is scored by its Sampson error in pixels under ``E_p`` and each 2D-3D
+constraint by its reprojection error in pixels. The authors' code counts inliers with the
+algebraic error ``|x_iᵀ E x_j|``, which is not in pixels and depends on the scale of E.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _relative_essential(Rp: np.ndarray, tp: np.ndarray, Rq: np.ndarray, tq: np.ndarray, E: np.ndarray) -> None:
+    """E = [t]x R for p_from_query = (Rp Rqᵀ, tp - Rp Rqᵀ tq), written into E (3, 3)."""
+    R = Rp @ Rq.T
+    t0 = tp[0] - (R[0, 0] * tq[0] + R[0, 1] * tq[1] + R[0, 2] * tq[2])
+    t1 = tp[1] - (R[1, 0] * tq[0] + R[1, 1] * tq[1] + R[1, 2] * tq[2])
+    t2 = tp[2] - (R[2, 0] * tq[0] + R[2, 1] * tq[1] + R[2, 2] * tq[2])
+    for j in range(3):
+        E[0, j] = -t2 * R[1, j] + t1 * R[2, j]
+        E[1, j] = t2 * R[0, j] - t0 * R[2, j]
+        E[2, j] = -t1 * R[0, j] + t0 * R[1, j]
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _sampson_sq(E: np.ndarray, q: np.ndarray, r: np.ndarray, fq0: float, fq1: float, fr0: float, fr1: float) -> float:
+    Ex0 = E[0, 0] * q[0] + E[0, 1] * q[1] + E[0, 2] * q[2]
+    Ex1 = E[1, 0] * q[0] + E[1, 1] * q[1] + E[1, 2] * q[2]
+    Ex2 = E[2, 0] * q[0] + E[2, 1] * q[1] + E[2, 2] * q[2]
+    Etx0 = E[0, 0] * r[0] + E[1, 0] * r[1] + E[2, 0] * r[2]
+    Etx1 = E[0, 1] * r[0] + E[1, 1] * r[1] + E[2, 1] * r[2]
+    res = r[0] * Ex0 + r[1] * Ex1 + r[2] * Ex2
+    den = (Ex0 / fr0) ** 2 + (Ex1 / fr1) ** 2 + (Etx0 / fq0) ** 2 + (Etx1 / fq1) ** 2
+    if den < 1e-300:
+        return 1e300
+    return res * res / den
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _reproj_sq(Rq: np.ndarray, tq: np.ndarray, X: np.ndarray, x: np.ndarray, fq0: float, fq1: float) -> float:
+    z = Rq[2, 0] * X[0] + Rq[2, 1] * X[1] + Rq[2, 2] * X[2] + tq[2]
+    if z <= 1e-9:
+        return 1e300
+    u = (Rq[0, 0] * X[0] + Rq[0, 1] * X[1] + Rq[0, 2] * X[2] + tq[0]) / z
+    v = (Rq[1, 0] * X[0] + Rq[1, 1] * X[1] + Rq[1, 2] * X[2] + tq[1]) / z
+    du = (u - x[0] / x[2]) * fq0
+    dv = (v - x[1] / x[2]) * fq1
+    return du * du + dv * dv
+
+
+@njit(cache=True, error_model="numpy")
+def errors_sq(
+    Rq: np.ndarray, tq: np.ndarray, xq: np.ndarray, xr: np.ndarray, offsets: np.ndarray,
+    f_query: np.ndarray, f_ref: np.ndarray, ref_R: np.ndarray, ref_t: np.ndarray,
+    xq3d: np.ndarray, X3d: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Squared pixel errors of one hypothesis: (N,) Sampson and (M,) reprojection."""
+    n = xq.shape[0]
+    e2d = np.empty(n)
+    E = np.empty((3, 3))
+    for p in range(offsets.shape[0] - 1):
+        _relative_essential(ref_R[p], ref_t[p], Rq, tq, E)
+        for i in range(offsets[p], offsets[p + 1]):
+            e2d[i] = _sampson_sq(E, xq[i], xr[i], f_query[0], f_query[1], f_ref[p, 0], f_ref[p, 1])
+    e3d = np.empty(X3d.shape[0])
+    for i in range(X3d.shape[0]):
+        e3d[i] = _reproj_sq(Rq, tq, X3d[i], xq3d[i], f_query[0], f_query[1])
+    return e2d, e3d
+
+
+@njit(cache=True, error_model="numpy")
+def msac_scores(
+    Rs: np.ndarray, ts: np.ndarray, num: int, xq: np.ndarray, xr: np.ndarray, offsets: np.ndarray,
+    f_query: np.ndarray, f_ref: np.ndarray, ref_R: np.ndarray, ref_t: np.ndarray,
+    xq3d: np.ndarray, X3d: np.ndarray, threshold_sq: float,
+) -> tuple[np.ndarray, np.ndarray]:
+    """MSAC cost ``Σ min(e², τ²)`` and inlier count of the first ``num`` hypotheses.
+
+    Args:
+        Rs, ts: (H, 3, 3), (H, 3) hypotheses ``query_from_world``.
+        threshold_sq: τ² in pixels².
+
+    Returns:
+        cost (num,), inliers (num,).
+    """
+    cost = np.empty(num)
+    inl = np.zeros(num, dtype=np.int64)
+    E = np.empty((3, 3))
+    for h in range(num):
+        c = 0.0
+        k = 0
+        Rq = Rs[h]
+        tq = ts[h]
+        for p in range(offsets.shape[0] - 1):
+            _relative_essential(ref_R[p], ref_t[p], Rq, tq, E)
+            for i in range(offsets[p], offsets[p + 1]):
+                e = _sampson_sq(E, xq[i], xr[i], f_query[0], f_query[1], f_ref[p, 0], f_ref[p, 1])
+                if e < threshold_sq:
+                    c += e
+                    k += 1
+                else:
+                    c += threshold_sq
+        for i in range(X3d.shape[0]):
+            e = _reproj_sq(Rq, tq, X3d[i], xq3d[i], f_query[0], f_query[1])
+            if e < threshold_sq:
+                c += e
+                k += 1
+            else:
+                c += threshold_sq
+        cost[h] = c
+        inl[h] = k
+    return cost, inl
+
+
+@njit(cache=True, error_model="numpy")
+def relative_msac_scores(
+    R: np.ndarray, t: np.ndarray, valid: np.ndarray, sample_pair: np.ndarray, xq: np.ndarray, xr: np.ndarray,
+    offsets: np.ndarray, f_query: np.ndarray, f_ref: np.ndarray, threshold_sq: float,
+) -> np.ndarray:
+    """MSAC cost of relative-pose candidates ``ref_from_query`` over the matches of their own pair.
+
+    Args:
+        R, t, valid: (S, A, 3, 3), (S, A, 3), (S, A) candidates of S samples.
+        sample_pair: (S,) pair of each sample.
+
+    Returns:
+        (S, A) costs, inf where not valid.
+    """
+    S, A = valid.shape
+    cost = np.full((S, A), np.inf)
+    E = np.empty((3, 3))
+    for s in range(S):
+        p = sample_pair[s]
+        for a in range(A):
+            if not valid[s, a]:
+                continue
+            Ra, ta = R[s, a], t[s, a]
+            for j in range(3):
+                E[0, j] = -ta[2] * Ra[1, j] + ta[1] * Ra[2, j]
+                E[1, j] = ta[2] * Ra[0, j] - ta[0] * Ra[2, j]
+                E[2, j] = -ta[1] * Ra[0, j] + ta[0] * Ra[1, j]
+            c = 0.0
+            for i in range(offsets[p], offsets[p + 1]):
+                e = _sampson_sq(E, xq[i], xr[i], f_query[0], f_query[1], f_ref[p, 0], f_ref[p, 1])
+                c += e if e < threshold_sq else threshold_sq
+            cost[s, a] = c
+    return cost

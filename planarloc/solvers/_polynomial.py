@@ -1,0 +1,603 @@
+"""Polynomial machinery shared by the five-point solvers (numba kernels, no Python API).
+
+Two groups of helpers live here:
+
+* **The five-point polynomial system** (Nistér 2004, Sec. 3, steps "extraction of the null
+  space" and "expansion of the cubic constraints"; Stewénius et al. 2006 reuse it verbatim):
+  the four-dimensional null space ``E = x X + y Y + z Z + W`` of the five epipolar
+  constraints and the ten cubic constraints ``det E = 0`` and ``2 E Eᵀ E − tr(E Eᵀ) E = 0``
+  as a 10 × 20 coefficient matrix over the 20 monomials of degree ≤ 3 in ``(x, y, z)``.
+  Columns are in the graded reverse lexicographic order of :data:`MONOMIALS`; each solver
+  permutes them into the order its elimination needs.
+* **Univariate real roots** by Sturm sequences, bisection and safeguarded Newton, as in
+  Nistér 2004, Sec. 3, step "extraction of roots".
+
+The kernels assume validated, finite input; they return a success flag instead of raising so
+that a batched caller never aborts a whole batch for one degenerate sample.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+# --------------------------------------------------------------------------------------------
+# Monomials of degree <= 3 in (x, y, z), graded reverse lexicographic order (x > y > z):
+#   x³ x²y x²z xy² xyz xz² y³ y²z yz² z³ | x² xy xz y² yz z² | x y z | 1
+# --------------------------------------------------------------------------------------------
+MONOMIALS: tuple[tuple[int, int, int], ...] = (
+    (3, 0, 0), (2, 1, 0), (2, 0, 1), (1, 2, 0), (1, 1, 1), (1, 0, 2), (0, 3, 0), (0, 2, 1), (0, 1, 2), (0, 0, 3),
+    (2, 0, 0), (1, 1, 0), (1, 0, 1), (0, 2, 0), (0, 1, 1), (0, 0, 2),
+    (1, 0, 0), (0, 1, 0), (0, 0, 1),
+    (0, 0, 0),
+)  # fmt: skip
+_INDEX = {m: i for i, m in enumerate(MONOMIALS)}
+
+
+def monomial_permutation(order: list[tuple[int, int, int]]) -> np.ndarray:
+    """Column indices into :data:`MONOMIALS` that list the monomials in ``order``."""
+    if sorted(order) != sorted(MONOMIALS):
+        raise ValueError("order must be a permutation of the 20 monomials of degree <= 3")
+    return np.array([_INDEX[m] for m in order], dtype=np.int64)
+
+
+
+# Floating-point contraction (FMA) and reassociation for the dense arithmetic kernels; never the
+# no-NaN/no-inf assumptions, so finiteness tests stay meaningful.
+_FASTMATH = {"contract", "reassoc"}
+
+# Tolerances shared by both five-point solvers (documented in their docstrings).
+RANK_TOL = 1e-10  # smallest |R_ii| of the QR of the unit-normalised 9x5 constraint matrix
+# Gauss-Newton polishing of the roots (refine_five_point_root): single calls polish to rounding
+# level; the batched RANSAC kernels only polish roots whose residual shows lost digits.
+REFINE_ITERS, REFINE_RTOL = 5, 1e-15
+BATCH_REFINE_ITERS, BATCH_REFINE_RTOL = 2, 1e-12
+ROTATION_ONLY_TOL = 1e-10  # max | |x_q,i . x_q,j| - |x_r,i . x_r,j| | below which the sample is a pure rotation
+
+
+@njit(cache=True)
+def unit_rows(x: np.ndarray) -> np.ndarray:
+    """(N, 3) rays scaled to unit length (rows must be non-zero)."""
+    out = np.empty_like(x)
+    for i in range(x.shape[0]):
+        n = np.sqrt(x[i, 0] ** 2 + x[i, 1] ** 2 + x[i, 2] ** 2)
+        for j in range(3):
+            out[i, j] = x[i, j] / n
+    return out
+
+
+@njit(cache=True)
+def is_rotation_only(uq: np.ndarray, ur: np.ndarray, tol: float) -> bool:
+    """True if unit rays ``ur`` are (up to per-ray sign) a rotation of ``uq``.
+
+    A rotation preserves all angles between rays, so equal |Gram matrices| are necessary for
+    ``x_ref ∝ R x_query``. For such a sample every ``[t]x R`` satisfies the epipolar
+    constraints: the five-point system has a continuum of solutions and no isolated ones.
+    """
+    n = uq.shape[0]
+    for i in range(n):
+        for j in range(i + 1, n):
+            gq = uq[i, 0] * uq[j, 0] + uq[i, 1] * uq[j, 1] + uq[i, 2] * uq[j, 2]
+            gr = ur[i, 0] * ur[j, 0] + ur[i, 1] * ur[j, 1] + ur[i, 2] * ur[j, 2]
+            if abs(abs(gq) - abs(gr)) > tol:
+                return False
+    return True
+
+
+@njit(cache=True, fastmath=_FASTMATH)
+def five_point_nullspace(uq: np.ndarray, ur: np.ndarray, basis: np.ndarray, rank_tol: float) -> bool:
+    """Orthonormal basis of the null space of the 5 x 9 epipolar constraint matrix.
+
+    Row ``k`` of the constraint matrix is ``kron(x_ref_k, x_query_k)`` so that it dotted with
+    the row-major ``vec(E)`` gives ``x_refᵀ E x_query``. Householder QR of its 9 x 5 transpose;
+    the last four columns of ``Q`` span the null space (Nistér 2004 allows QR or SVD).
+
+    Args:
+        uq, ur: (5, 3) unit rays, query and reference.
+        basis: (9, 4) output; columns X, Y, Z, W.
+        rank_tol: the sample is degenerate (rank < 5: repeated points, points on one
+            epipolar plane, ...) if a diagonal entry of R is below this (columns have norm 1).
+
+    Returns:
+        False for a degenerate sample (``basis`` is then undefined).
+    """
+    A = np.empty((9, 5))
+    for k in range(5):
+        for i in range(3):
+            for j in range(3):
+                A[3 * i + j, k] = ur[k, i] * uq[k, j]
+    V = np.zeros((9, 5))
+    beta = np.zeros(5)
+    for k in range(5):
+        norm = 0.0
+        for i in range(k, 9):
+            norm += A[i, k] * A[i, k]
+        norm = np.sqrt(norm)
+        if norm < rank_tol:
+            return False
+        alpha = -norm if A[k, k] >= 0.0 else norm
+        vnorm2 = 0.0
+        for i in range(k, 9):
+            V[i, k] = A[i, k]
+        V[k, k] -= alpha
+        for i in range(k, 9):
+            vnorm2 += V[i, k] * V[i, k]
+        beta[k] = 2.0 / vnorm2
+        A[k, k] = alpha
+        for j in range(k + 1, 5):
+            s = 0.0
+            for i in range(k, 9):
+                s += V[i, k] * A[i, j]
+            s *= beta[k]
+            for i in range(k, 9):
+                A[i, j] -= s * V[i, k]
+    q = np.empty(9)
+    for c in range(4):
+        for i in range(9):
+            q[i] = 0.0
+        q[5 + c] = 1.0
+        for k in range(4, -1, -1):
+            s = 0.0
+            for i in range(k, 9):
+                s += V[i, k] * q[i]
+            s *= beta[k]
+            for i in range(k, 9):
+                q[i] -= s * V[i, k]
+        for i in range(9):
+            basis[i, c] = q[i]
+    return True
+
+
+@njit(cache=True, fastmath=_FASTMATH)
+def _lin_lin(a, b, out):
+    """out += a * b: linear forms over (x, y, z, 1) -> quadratic over MONOMIALS[10:20]."""
+    out[0] += a[0] * b[0]
+    out[1] += a[0] * b[1] + a[1] * b[0]
+    out[2] += a[0] * b[2] + a[2] * b[0]
+    out[3] += a[1] * b[1]
+    out[4] += a[1] * b[2] + a[2] * b[1]
+    out[5] += a[2] * b[2]
+    out[6] += a[0] * b[3] + a[3] * b[0]
+    out[7] += a[1] * b[3] + a[3] * b[1]
+    out[8] += a[2] * b[3] + a[3] * b[2]
+    out[9] += a[3] * b[3]
+
+
+@njit(cache=True, fastmath=_FASTMATH)
+def _quad_lin(q, l, out, s):
+    """out += s * q * l: quadratic over MONOMIALS[10:20] times linear -> cubic over MONOMIALS.
+
+    Generated from the monomial tables; ``tests/solvers/test_relpose_5p.py`` checks the
+    resulting constraints against direct evaluation of ``E = x X + y Y + z Z + W``.
+    """
+    out[0] += s * (q[0] * l[0])
+    out[1] += s * (q[0] * l[1] + q[1] * l[0])
+    out[2] += s * (q[0] * l[2] + q[2] * l[0])
+    out[3] += s * (q[1] * l[1] + q[3] * l[0])
+    out[4] += s * (q[1] * l[2] + q[2] * l[1] + q[4] * l[0])
+    out[5] += s * (q[2] * l[2] + q[5] * l[0])
+    out[6] += s * (q[3] * l[1])
+    out[7] += s * (q[3] * l[2] + q[4] * l[1])
+    out[8] += s * (q[4] * l[2] + q[5] * l[1])
+    out[9] += s * (q[5] * l[2])
+    out[10] += s * (q[0] * l[3] + q[6] * l[0])
+    out[11] += s * (q[1] * l[3] + q[6] * l[1] + q[7] * l[0])
+    out[12] += s * (q[2] * l[3] + q[6] * l[2] + q[8] * l[0])
+    out[13] += s * (q[3] * l[3] + q[7] * l[1])
+    out[14] += s * (q[4] * l[3] + q[7] * l[2] + q[8] * l[1])
+    out[15] += s * (q[5] * l[3] + q[8] * l[2])
+    out[16] += s * (q[6] * l[3] + q[9] * l[0])
+    out[17] += s * (q[7] * l[3] + q[9] * l[1])
+    out[18] += s * (q[8] * l[3] + q[9] * l[2])
+    out[19] += s * (q[9] * l[3])
+
+
+@njit(cache=True, fastmath=_FASTMATH)
+def five_point_constraints(basis: np.ndarray) -> np.ndarray:
+    """The ten cubic constraints on ``E = x X + y Y + z Z + W`` (Nistér 2004, Sec. 3).
+
+    Rows 0-8: entries (row-major) of ``2 E Eᵀ E − tr(E Eᵀ) E``; row 9: ``det E``.
+
+    Args:
+        basis: (9, 4) null-space basis, columns X, Y, Z, W as row-major ``vec(E)``; row
+            ``3 i + j`` is the linear form of ``E[i, j]`` over ``(x, y, z, 1)``.
+
+    Returns:
+        (10, 20) coefficients over :data:`MONOMIALS` (graded reverse lexicographic order).
+    """
+    L = basis
+    EEt = np.zeros((9, 10))  # (E Eᵀ)[i, j], quadratic
+    for i in range(3):
+        for j in range(i, 3):
+            for k in range(3):
+                _lin_lin(L[3 * i + k], L[3 * j + k], EEt[3 * i + j])
+            if j != i:
+                EEt[3 * j + i, :] = EEt[3 * i + j, :]
+    tr = EEt[0] + EEt[4] + EEt[8]
+    A = np.zeros((10, 20))
+    for i in range(3):
+        for j in range(3):
+            row = A[3 * i + j]
+            for k in range(3):
+                _quad_lin(EEt[3 * i + k], L[3 * k + j], row, 2.0)
+            _quad_lin(tr, L[3 * i + j], row, -1.0)
+    # det E = sum_k E[0, k] cof[k], cofactors of the first row
+    cof = np.zeros((3, 10))
+    neg = np.empty(4)
+    for k in range(3):
+        a = (k + 1) % 3
+        b = (k + 2) % 3
+        _lin_lin(L[3 + a], L[6 + b], cof[k])
+        for c in range(4):
+            neg[c] = -L[3 + b, c]
+        _lin_lin(neg, L[6 + a], cof[k])
+        _quad_lin(cof[k], L[k], A[9], 1.0)
+    return A
+
+
+@njit(cache=True)
+def _monomials_and_jacobian(x, y, z, m, dm):
+    """m[i] = MONOMIALS[i](x, y, z); dm[v, i] = d MONOMIALS[i] / d (x, y, z)[v]."""
+    xx, xy, xz, yy, yz, zz = x * x, x * y, x * z, y * y, y * z, z * z
+    m[0], m[1], m[2], m[3], m[4] = xx * x, xx * y, xx * z, xy * y, xy * z
+    m[5], m[6], m[7], m[8], m[9] = xz * z, yy * y, yy * z, yz * z, zz * z
+    m[10], m[11], m[12], m[13], m[14], m[15] = xx, xy, xz, yy, yz, zz
+    m[16], m[17], m[18], m[19] = x, y, z, 1.0
+    dm[:, :] = 0.0
+    dm[0, 0], dm[0, 1], dm[0, 2], dm[0, 3], dm[0, 4], dm[0, 5] = 3 * xx, 2 * xy, 2 * xz, yy, yz, zz
+    dm[0, 10], dm[0, 11], dm[0, 12], dm[0, 16] = 2 * x, y, z, 1.0
+    dm[1, 1], dm[1, 3], dm[1, 4], dm[1, 6], dm[1, 7], dm[1, 8] = xx, 2 * xy, xz, 3 * yy, 2 * yz, zz
+    dm[1, 11], dm[1, 13], dm[1, 14], dm[1, 17] = x, 2 * y, z, 1.0
+    dm[2, 2], dm[2, 4], dm[2, 5], dm[2, 7], dm[2, 8], dm[2, 9] = xx, xy, 2 * xz, yy, 2 * yz, 3 * zz
+    dm[2, 12], dm[2, 14], dm[2, 15], dm[2, 18] = x, y, 2 * z, 1.0
+
+
+@njit(cache=True, fastmath=_FASTMATH)
+def _residual(C, m) -> float:
+    ss = 0.0
+    for i in range(10):
+        acc = 0.0
+        for k in range(20):
+            acc += C[i, k] * m[k]
+        ss += acc * acc
+    return ss
+
+
+@njit(cache=True)
+def refine_five_point_root(
+    C: np.ndarray, sol: np.ndarray, iters: int, rtol: float, m: np.ndarray, dm: np.ndarray
+) -> None:
+    """Gauss-Newton polishing of a root (x, y, z) of the ten cubic constraints, in place.
+
+    Not in either paper: the elimination steps lose digits on ill-conditioned samples (the
+    constraints' residual at a root is then ~1e-8 instead of ~1e-16). Each step solves the
+    3 x 3 normal equations of the 10 x 3 Jacobian; a step that does not reduce the residual is
+    rejected, so the refinement can only improve the root. Roots whose residual is already
+    below ``rtol`` times the magnitude of its terms cost one evaluation.
+
+    Args:
+        C: (10, 20) constraints over :data:`MONOMIALS` from :func:`five_point_constraints`.
+        sol: (3,) root (x, y, z), refined in place.
+        iters: maximum number of Gauss-Newton steps.
+        rtol: stop once ``‖residual‖ ≤ rtol Σ|terms|``.
+        m, dm: (20,) and (3, 20) work buffers.
+    """
+    _monomials_and_jacobian(sol[0], sol[1], sol[2], m, dm)
+    ss = 0.0
+    mag = 0.0  # magnitude of the terms: a residual at that level times 1e-12 is final
+    for i in range(10):
+        acc = 0.0
+        for k in range(20):
+            v = C[i, k] * m[k]
+            acc += v
+            mag += abs(v)
+        ss += acc * acc
+    for _ in range(iters):
+        if ss <= (rtol * mag) ** 2:
+            return
+        # normal equations (JᵀJ) d = Jᵀ r, accumulated row by row, solved by Cramer's rule
+        a00 = a01 = a02 = a11 = a12 = a22 = g0 = g1 = g2 = 0.0
+        for i in range(10):
+            r = j0 = j1 = j2 = 0.0
+            for k in range(20):
+                c = C[i, k]
+                r += c * m[k]
+                j0 += c * dm[0, k]
+                j1 += c * dm[1, k]
+                j2 += c * dm[2, k]
+            a00 += j0 * j0
+            a01 += j0 * j1
+            a02 += j0 * j2
+            a11 += j1 * j1
+            a12 += j1 * j2
+            a22 += j2 * j2
+            g0 += j0 * r
+            g1 += j1 * r
+            g2 += j2 * r
+        c00 = a11 * a22 - a12 * a12
+        c01 = a12 * a02 - a01 * a22
+        c02 = a01 * a12 - a11 * a02
+        det = a00 * c00 + a01 * c01 + a02 * c02
+        if not abs(det) > 1e-300:
+            return
+        c11 = a00 * a22 - a02 * a02
+        c12 = a02 * a01 - a00 * a12
+        c22 = a00 * a11 - a01 * a01
+        nx = sol[0] - (c00 * g0 + c01 * g1 + c02 * g2) / det
+        ny = sol[1] - (c01 * g0 + c11 * g1 + c12 * g2) / det
+        nz = sol[2] - (c02 * g0 + c12 * g1 + c22 * g2) / det
+        _monomials_and_jacobian(nx, ny, nz, m, dm)
+        ss_new = _residual(C, m)
+        if not ss_new < ss:
+            return
+        sol[0], sol[1], sol[2] = nx, ny, nz
+        ss = ss_new
+
+
+@njit(cache=True, fastmath=_FASTMATH)
+def gauss_jordan(A: np.ndarray, ncols: int, pivot_tol: float) -> bool:
+    """In-place Gauss-Jordan elimination with partial pivoting of the first ``ncols`` columns.
+
+    On success ``A[:, :ncols]`` is the identity (``A`` must have ``ncols`` rows).
+    Returns False if a pivot falls below ``pivot_tol`` times the largest entry.
+    """
+    n = A.shape[0]
+    m = A.shape[1]
+    scale = 0.0
+    for i in range(n):
+        for j in range(m):
+            scale = max(scale, abs(A[i, j]))
+    if scale == 0.0:
+        return False
+    for c in range(ncols):
+        p = c
+        for r in range(c + 1, n):
+            if abs(A[r, c]) > abs(A[p, c]):
+                p = r
+        if abs(A[p, c]) <= pivot_tol * scale:
+            return False
+        if p != c:
+            for j in range(m):
+                tmp = A[c, j]
+                A[c, j] = A[p, j]
+                A[p, j] = tmp
+        inv = 1.0 / A[c, c]
+        for j in range(m):
+            A[c, j] *= inv
+        A[c, c] = 1.0
+        for r in range(n):
+            if r != c:
+                f = A[r, c]
+                if f != 0.0:
+                    for j in range(c, m):
+                        A[r, j] -= f * A[c, j]
+                    A[r, c] = 0.0
+    return True
+
+
+# --------------------------------------------------------------------------------------------
+# Univariate polynomials, coefficients in ascending order: c[0] + c[1] z + ... + c[n] z^n.
+# --------------------------------------------------------------------------------------------
+
+
+@njit(cache=True)
+def polyval(c: np.ndarray, deg: int, z: float) -> float:
+    """Horner evaluation of ``c[0] + ... + c[deg] z^deg``."""
+    r = c[deg]
+    for k in range(deg - 1, -1, -1):
+        r = r * z + c[k]
+    return r
+
+
+@njit(cache=True)
+def _sign_changes(S, degs, ns, quot, linear, z) -> int:
+    """Sign changes of the Sturm sequence at z.
+
+    In the generic case every remainder lowers the degree by one and the sequence obeys
+    ``S[k+1] = c_k ((a_k z + b_k) S[k] − S[k−1])`` (``quot[k] = (a_k, b_k, c_k)``), so for
+    ``|z| ≤ 1`` only S[0] and S[1] are evaluated by Horner's rule. For larger ``|z|`` the
+    recurrence cancels ~``z²`` per step, so each member is evaluated directly.
+    """
+    count = 0
+    prev = polyval(S[0], degs[0], z)
+    cur = polyval(S[1], degs[1], z)
+    last = prev
+    for k in range(1, ns):
+        if k >= 2:
+            if linear and abs(z) <= 1.0:
+                nxt = quot[k - 1, 2] * ((quot[k - 1, 0] * z + quot[k - 1, 1]) * cur - prev)
+            else:
+                nxt = polyval(S[k], degs[k], z)
+            prev = cur
+            cur = nxt
+        if cur != 0.0:
+            if last != 0.0 and (cur > 0.0) != (last > 0.0):
+                count += 1
+            last = cur
+        elif last == 0.0:
+            last = cur
+    return count
+
+
+@njit(cache=True)
+def _sign_changes_at_infinity(S: np.ndarray, degs: np.ndarray, ns: int, positive: bool) -> int:
+    count = 0
+    last = 0.0
+    for k in range(ns):
+        v = S[k, degs[k]]
+        if not positive and degs[k] % 2 == 1:
+            v = -v
+        if v != 0.0:
+            if last != 0.0 and (v > 0.0) != (last > 0.0):
+                count += 1
+            last = v
+    return count
+
+
+@njit(cache=True)
+def _newton_bisect(c: np.ndarray, deg: int, lo: float, hi: float) -> float:
+    """Root of ``c`` in the bracket [lo, hi] by Newton steps safeguarded by bisection."""
+    flo = polyval(c, deg, lo)
+    fhi = polyval(c, deg, hi)
+    if flo == 0.0:
+        return lo
+    if fhi == 0.0:
+        return hi
+    if (flo > 0.0) == (fhi > 0.0):
+        return 0.5 * (lo + hi)  # no sign change (even multiplicity within rounding)
+    # orient so that f(xl) < 0 < f(xh)
+    if flo < 0.0:
+        xl, xh = lo, hi
+    else:
+        xl, xh = hi, lo
+    x = 0.5 * (lo + hi)
+    dxold = abs(hi - lo)
+    dx = dxold
+    for _ in range(100):
+        f = c[deg]
+        df = 0.0
+        bound = abs(c[deg])  # sum |c_k| |x|^k: the rounding error of f is below ~2 deg eps bound
+        ax = abs(x)
+        for k in range(deg - 1, -1, -1):
+            df = df * x + f
+            f = f * x + c[k]
+            bound = bound * ax + abs(c[k])
+        if abs(f) <= 4.0 * deg * 2.2e-16 * bound:
+            return x  # f is rounding noise: x is a root to working precision
+        if f < 0.0:
+            xl = x
+        else:
+            xh = x
+        if ((x - xh) * df - f) * ((x - xl) * df - f) > 0.0 or abs(2.0 * f) > abs(dxold * df):
+            dxold = dx
+            dx = 0.5 * (xh - xl)
+            x = xl + dx
+        else:
+            dxold = dx
+            dx = f / df
+            x -= dx
+        if abs(dx) <= 4e-16 * max(abs(x), 1e-300):
+            return x
+    return x
+
+
+@njit(cache=True)
+def real_roots_sturm(coeffs: np.ndarray, roots: np.ndarray) -> int:
+    """All distinct real roots of a polynomial by Sturm sequences (Nistér 2004, Sec. 3).
+
+    The Sturm sequence ``p, p', −rem(p, p'), ...`` counts the distinct real roots in any
+    interval (Sturm's theorem). Starting from Fujiwara's bound on the root magnitudes, intervals
+    are bisected until each holds exactly one root, which is then polished by Newton steps
+    safeguarded by bisection to full double precision. A cluster of roots closer than
+    ~1e-14 relative is reported once.
+
+    Args:
+        coeffs: (n + 1,) ascending coefficients. Leading coefficients below 1e-15 of the
+            largest one are treated as zero (the roots they would add are at ~1e15).
+        roots: (≥ n,) output buffer.
+
+    Returns:
+        Number of real roots written to ``roots`` (0 for a polynomial that is identically 0).
+    """
+    n = coeffs.shape[0] - 1
+    scale = 0.0
+    for k in range(n + 1):
+        scale = max(scale, abs(coeffs[k]))
+    if scale == 0.0:
+        return 0
+    while n > 0 and abs(coeffs[n]) <= 1e-15 * scale:
+        n -= 1
+    if n == 0:
+        return 0
+    S = np.zeros((n + 1, n + 1))
+    degs = np.zeros(n + 1, dtype=np.int64)
+    quot = np.zeros((n + 1, 3))  # row k: (a, b, c) with S[k+1] = c ((a z + b) S[k] − S[k−1])
+    linear = True
+    lead = coeffs[n]
+    for k in range(n + 1):
+        S[0, k] = coeffs[k] / lead
+    degs[0] = n
+    for k in range(1, n + 1):
+        S[1, k - 1] = k * S[0, k] / n
+    degs[1] = n - 1
+    ns = 2
+    r = np.empty(n + 1)
+    while degs[ns - 1] > 0:
+        # remainder of S[ns-2] divided by S[ns-1]
+        da = degs[ns - 2]
+        db = degs[ns - 1]
+        big = 0.0
+        for k in range(da + 1):
+            r[k] = S[ns - 2, k]
+            big = max(big, abs(r[k]))
+        b = S[ns - 1]
+        q0 = q1 = 0.0
+        for k in range(da - db, -1, -1):
+            f = r[k + db] / b[db]
+            for j in range(db + 1):
+                r[k + j] -= f * b[j]
+            r[k + db] = 0.0
+            if k == 1:
+                q1 = f
+            elif k == 0:
+                q0 = f
+        dr = db - 1
+        while dr >= 0 and abs(r[dr]) <= 1e-14 * big:
+            dr -= 1
+        if dr < 0:
+            break  # p has multiple roots: the sequence ends at gcd(p, p')
+        if da - db != 1 or dr != db - 1:
+            linear = False
+        # S_next = −r / |leading coefficient| (a positive scale keeps the signs)
+        c = 1.0 / abs(r[dr])
+        for k in range(dr + 1):
+            S[ns, k] = -r[k] * c
+        quot[ns - 1, 0], quot[ns - 1, 1], quot[ns - 1, 2] = q1, q0, c
+        degs[ns] = dr
+        ns += 1
+    # Fujiwara bound on |root| of the monic S[0]
+    bound = 0.0
+    for k in range(1, n + 1):
+        a = abs(S[0, n - k])
+        if k == n:
+            a *= 0.5
+        if a > 0.0:
+            bound = max(bound, a ** (1.0 / k))
+    bound = 2.0 * bound * (1.0 + 1e-12) + 1e-300
+    v_lo = _sign_changes(S, degs, ns, quot, linear, -bound)
+    v_hi = _sign_changes(S, degs, ns, quot, linear, bound)
+    # fall back to the counts at infinity if rounding put a root on the bound
+    if v_lo != _sign_changes_at_infinity(S, degs, ns, False) or v_hi != _sign_changes_at_infinity(S, degs, ns, True):
+        bound *= 2.0
+        v_lo = _sign_changes(S, degs, ns, quot, linear, -bound)
+        v_hi = _sign_changes(S, degs, ns, quot, linear, bound)
+    # isolate by bisection (depth-first, explicit stack), then polish each isolated root
+    stack_lo = np.empty(128)
+    stack_hi = np.empty(128)
+    stack_vlo = np.empty(128, dtype=np.int64)
+    stack_vhi = np.empty(128, dtype=np.int64)
+    stack_lo[0], stack_hi[0], stack_vlo[0], stack_vhi[0] = -bound, bound, v_lo, v_hi
+    top = 1
+    count = 0
+    cap = roots.shape[0]
+    while top > 0:
+        top -= 1
+        lo, hi, vl, vh = stack_lo[top], stack_hi[top], stack_vlo[top], stack_vhi[top]
+        k = vl - vh
+        if k <= 0:
+            continue
+        if k == 1 or hi - lo <= 1e-14 * max(abs(lo), abs(hi), 1e-300) or top >= 126:
+            if count < cap:
+                if k == 1:
+                    roots[count] = _newton_bisect(S[0], n, lo, hi)
+                else:
+                    roots[count] = 0.5 * (lo + hi)  # root cluster, reported once
+                count += 1
+            continue
+        mid = 0.5 * (lo + hi)
+        vm = _sign_changes(S, degs, ns, quot, linear, mid)
+        stack_lo[top], stack_hi[top], stack_vlo[top], stack_vhi[top] = lo, mid, vl, vm
+        top += 1
+        stack_lo[top], stack_hi[top], stack_vlo[top], stack_vhi[top] = mid, hi, vm, vh
+        top += 1
+    return count

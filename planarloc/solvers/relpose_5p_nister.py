@@ -1,0 +1,279 @@
+"""Calibrated relative pose from five correspondences: Nistér's tenth-degree polynomial.
+
+Convention (as everywhere in planarloc): rays ``x_query``, ``x_ref`` satisfy
+``x_refᵀ E x_query = 0`` with ``E = [t]x R`` and the returned poses are ``ref_from_query``
+(``x_ref ∝ R x_query + t``), ``‖t‖ = 1``.
+
+Algorithm (D. Nistér, "An efficient solution to the five-point relative pose problem",
+IEEE TPAMI 26(6), 2004, Sec. 3 "The five-point method", followed step by step):
+
+1. *Extraction of the null space*: the five epipolar constraints on ``vec(E)`` leave a
+   four-dimensional null space ``E = x X + y Y + z Z + W`` (Householder QR here).
+2. *Expansion of the cubic constraints*: ``det E = 0`` and ``2 E Eᵀ E − tr(E Eᵀ) E = 0`` give
+   10 cubic equations in the 20 monomials ordered
+   ``x³ y³ x²y xy² x²z x² y²z y² xyz xy | xz² xz x yz² yz y z³ z² z 1``.
+3. *Gauss-Jordan elimination* (partial pivoting) of the first ten columns; the rows are the
+   paper's ⟨a⟩ ... ⟨j⟩.
+4. *Expansion of the determinant polynomial*: ``⟨k⟩ = ⟨e⟩ − z⟨f⟩``, ``⟨l⟩ = ⟨g⟩ − z⟨h⟩``,
+   ``⟨m⟩ = ⟨i⟩ − z⟨j⟩`` are linear in ``(x, y, 1)`` with coefficients of degree 3, 3, 4 in ``z``:
+   ``B(z) [x, y, 1]ᵀ = 0``; ``⟨n⟩ = det B(z)`` is the tenth-degree polynomial, expanded from the
+   cofactors ``p1, p2`` (degree 7) and ``p3`` (degree 6) of the last two rows.
+5. *Extraction of roots*: **Sturm sequences and bisection**, as in the paper, then Newton
+   polishing safeguarded by bisection. Chosen over companion-matrix eigenvalues because it
+   finds only the real roots (complex ones never cost anything), needs no LAPACK call (which
+   from numba costs more than the whole solver) and Stewénius' solver in
+   :mod:`planarloc.solvers.relpose_5p_stewenius` already covers the eigenvalue route.
+6. *Recovery*: ``x = p1(z)/p3(z)``, ``y = p2(z)/p3(z)``, ``E = x X + y Y + z Z + W``; the
+   pose from :func:`planarloc.geometry.essential_decomposition.relposes_from_essential`
+   (cheirality).
+
+Deviations from the paper:
+
+* Rays are scaled to unit length before step 1 (does not change the solution set; improves
+  conditioning for wide-angle bearings).
+* The paper recovers (R, t) with its own SVD-free formula; here the single-call API uses the
+  SVD decomposition of Hartley & Zisserman 9.6 and the batched API a closed form (Horn 1990),
+  both followed by the same midpoint-triangulation cheirality test.
+* Degeneracy checks the paper does not have, so that degenerate samples give no solution
+  rather than spurious ones: rank < 5 of the constraint matrix (smallest ``|R_ii|`` of the
+  unit-normalised QR below ``RANK_TOL = 1e-10``: repeated points, all points on one epipolar
+  plane), a pure-rotation sample (angles between the five rays preserved to 1e-10: the
+  system then has a continuum of solutions), a Gauss-Jordan pivot below 1e-12 of the largest
+  entry, ``|p3(z)|`` vanishing at a root.
+* Solutions with ``w = 0`` (``E`` in the span of X, Y, Z) are not representable in the
+  paper's dehomogenisation either; they are lost (a measure-zero event).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+from planarloc.geometry.essential_decomposition import (
+    check_correspondence_batch,
+    check_correspondences,
+    mask_invalid,
+    relpose_batch_kernel,
+    relposes_closed_form,
+)
+from planarloc.geometry.pose import Pose
+from planarloc.solvers._polynomial import (
+    BATCH_REFINE_ITERS,
+    BATCH_REFINE_RTOL,
+    REFINE_ITERS,
+    REFINE_RTOL,
+    RANK_TOL,
+    ROTATION_ONLY_TOL,
+    five_point_constraints,
+    five_point_nullspace,
+    gauss_jordan,
+    is_rotation_only,
+    monomial_permutation,
+    refine_five_point_root,
+    polyval,
+    real_roots_sturm,
+    unit_rows,
+)
+
+__all__ = ["essentials_5p_nister", "relpose_5p_nister", "relpose_5p_nister_batch"]
+
+MAX_SOLUTIONS = 10
+
+# Nistér 2004, Sec. 3, monomial order of the 10 x 20 matrix.
+_NISTER_ORDER = [
+    (3, 0, 0), (0, 3, 0), (2, 1, 0), (1, 2, 0), (2, 0, 1), (2, 0, 0), (0, 2, 1), (0, 2, 0), (1, 1, 1), (1, 1, 0),
+    (1, 0, 2), (1, 0, 1), (1, 0, 0), (0, 1, 2), (0, 1, 1), (0, 1, 0), (0, 0, 3), (0, 0, 2), (0, 0, 1), (0, 0, 0),
+]  # fmt: skip
+_PERM = monomial_permutation(_NISTER_ORDER)
+_PIVOT_TOL = 1e-12
+
+
+@njit(cache=True)
+def _row_polys(A, r_lead, r_low, out):
+    """⟨r_lead⟩ − z⟨r_low⟩ as polynomials in z: out[0] (× x), out[1] (× y), out[2] (× 1).
+
+    After elimination row r reads ``lead_r + A[r,10] xz² + A[r,11] xz + A[r,12] x
+    + A[r,13] yz² + A[r,14] yz + A[r,15] y + A[r,16] z³ + A[r,17] z² + A[r,18] z + A[r,19]``;
+    the leading monomials of the row pairs (e, f), (g, h), (i, j) differ by a factor z and cancel.
+    Coefficients ascending in z; out[0], out[1] have degree 3, out[2] degree 4.
+    """
+    e = A[r_lead]
+    f = A[r_low]
+    out[0, 0], out[0, 1], out[0, 2], out[0, 3], out[0, 4] = e[12], e[11] - f[12], e[10] - f[11], -f[10], 0.0
+    out[1, 0], out[1, 1], out[1, 2], out[1, 3], out[1, 4] = e[15], e[14] - f[15], e[13] - f[14], -f[13], 0.0
+    out[2, 0], out[2, 1], out[2, 2], out[2, 3], out[2, 4] = e[19], e[18] - f[19], e[17] - f[18], e[16] - f[17], -f[16]
+
+
+@njit(cache=True)
+def _mul_sub(a, b, c, d, out):
+    """out = a * b − c * d for coefficient arrays of length 5 (degree ≤ 4); out has length 9."""
+    out[:] = 0.0
+    for i in range(5):
+        for j in range(5):
+            out[i + j] += a[i] * b[j] - c[i] * d[j]
+
+
+@njit(cache=True)
+def nister_essentials(
+    xq: np.ndarray, xr: np.ndarray, E_out: np.ndarray, refine_iters: int, refine_rtol: float
+) -> int:
+    """Kernel: essential matrices from (5, 3) rays; writes E_out[:n] (unit Frobenius norm)."""
+    uq = unit_rows(xq)
+    ur = unit_rows(xr)
+    if is_rotation_only(uq, ur, ROTATION_ONLY_TOL):
+        return 0
+    basis = np.empty((9, 4))
+    if not five_point_nullspace(uq, ur, basis, RANK_TOL):
+        return 0
+    C = five_point_constraints(basis)
+    A = np.empty((10, 20))
+    for i in range(10):
+        for j in range(20):
+            A[i, j] = C[i, _PERM[j]]
+    if not gauss_jordan(A, 10, _PIVOT_TOL):
+        return 0
+    # rows: a=0 x³, b=1 y³, c=2 x²y, d=3 xy², e=4 x²z, f=5 x², g=6 y²z, h=7 y², i=8 xyz, j=9 xy
+    B = np.empty((3, 3, 5))  # B(z): rows ⟨k⟩, ⟨l⟩, ⟨m⟩; columns: coefficients of x, y, 1
+    _row_polys(A, 4, 5, B[0])
+    _row_polys(A, 6, 7, B[1])
+    _row_polys(A, 8, 9, B[2])
+    # cofactors of the first row: [x, y, 1] ∝ (p1, p2, p3) = row ⟨l⟩ × row ⟨m⟩
+    P = np.empty((3, 9))
+    _mul_sub(B[1, 1], B[2, 2], B[1, 2], B[2, 1], P[0])  # p1, degree 7
+    _mul_sub(B[1, 2], B[2, 0], B[1, 0], B[2, 2], P[1])  # p2, degree 7
+    _mul_sub(B[1, 0], B[2, 1], B[1, 1], B[2, 0], P[2])  # p3, degree 6
+    n = np.zeros(11)  # ⟨n⟩ = det B(z), degree 10
+    for c in range(3):
+        for i in range(5):
+            for j in range(min(8, 11 - i)):
+                n[i + j] += B[0, c, i] * P[c, j]
+    roots = np.empty(10)
+    nroots = real_roots_sturm(n, roots)
+    p3_scale = 0.0
+    for k in range(7):
+        p3_scale = max(p3_scale, abs(P[2, k]))
+    sol = np.empty(3)
+    m = np.empty(20)
+    dm = np.empty((3, 20))
+    count = 0
+    for s in range(nroots):
+        z = roots[s]
+        d = polyval(P[2], 6, z)
+        if abs(d) <= 1e-14 * p3_scale * max(1.0, abs(z)) ** 6:
+            continue  # x, y at infinity
+        sol[0] = polyval(P[0], 7, z) / d
+        sol[1] = polyval(P[1], 7, z) / d
+        sol[2] = z
+        refine_five_point_root(C, sol, refine_iters, refine_rtol, m, dm)
+        norm = 0.0
+        for i in range(3):
+            for j in range(3):
+                r = 3 * i + j
+                v = sol[0] * basis[r, 0] + sol[1] * basis[r, 1] + sol[2] * basis[r, 2] + basis[r, 3]
+                E_out[count, i, j] = v
+                norm += v * v
+        if not (np.isfinite(norm) and norm > 0.0):
+            continue
+        norm = 1.0 / np.sqrt(norm)
+        for i in range(3):
+            for j in range(3):
+                E_out[count, i, j] *= norm
+        count += 1
+    return count
+
+
+@njit(cache=True)
+def _nister_batch(xq, xr, R, t, valid):
+    Es = np.empty((MAX_SOLUTIONS, 3, 3))
+    for m in range(xq.shape[0]):
+        n = nister_essentials(xq[m], xr[m], Es, BATCH_REFINE_ITERS, BATCH_REFINE_RTOL)
+        relpose_batch_kernel(Es, n, xq[m], xr[m], R[m], t[m], valid[m])
+
+
+def essentials_5p_nister(x_query: object, x_ref: object) -> list[np.ndarray]:
+    """All real essential matrices consistent with five correspondences (Nistér 2004).
+
+    Args:
+        x_query: (5, 3) rays of the query camera: normalized homogeneous points ``(x, y, 1)``
+            or bearing vectors (any non-zero length, any direction).
+        x_ref: (5, 3) rays of the reference camera, row ``i`` matching ``x_query[i]``.
+
+    Returns:
+        Up to 10 (3, 3) essential matrices with ``x_refᵀ E x_query = 0``, unit Frobenius norm,
+        sign arbitrary. No cheirality filtering. Empty for a degenerate sample (see module
+        docstring).
+
+    Raises:
+        InputError: wrong shape, NaN/inf, or a zero-length ray.
+
+    References:
+        Nistér, TPAMI 2004, Sec. 3; deviations listed in the module docstring.
+
+    Example:
+        >>> Es = essentials_5p_nister(x_query, x_ref)   # doctest: +SKIP
+    """
+    xq, xr = check_correspondences(x_query, x_ref, rows=5)
+    Es = np.empty((MAX_SOLUTIONS, 3, 3))
+    n = nister_essentials(xq, xr, Es, REFINE_ITERS, REFINE_RTOL)
+    return [Es[i].copy() for i in range(n)]
+
+
+def relpose_5p_nister(x_query: object, x_ref: object) -> list[Pose]:
+    """All relative poses from five (or more) correspondences, Nistér's five-point method.
+
+    Args:
+        x_query: (N ≥ 5, 3) rays of the query camera (normalized homogeneous points or
+            bearings). Only the **first five** rows enter the minimal solve.
+        x_ref: (N, 3) matching rays of the reference camera.
+
+    Returns:
+        ``ref_from_query`` poses (``x_ref ∝ R x_query + t``, ``‖t‖ = 1``), one for each real
+        essential matrix whose decomposition puts **all N** points in front of both cameras
+        (the midpoint test of :func:`planarloc.geometry.epipolar.triangulation_depths`; the
+        pose from the closed form of the batched kernel, equal to
+        :func:`~planarloc.geometry.essential_decomposition.relposes_from_essential`).
+        Passing extra points thus prunes the up to 10 minimal solutions. Empty for degenerate
+        input: repeated points, pure rotation, points at infinity (parallel rays), all points on
+        one epipolar plane.
+
+    Raises:
+        InputError: wrong shape, fewer than 5 rows, NaN/inf, or a zero-length ray.
+
+    References:
+        Nistér, TPAMI 2004, Sec. 3; deviations listed in the module docstring.
+    """
+    xq, xr = check_correspondences(x_query, x_ref, min_rows=5)
+    Es = np.empty((MAX_SOLUTIONS, 3, 3))
+    n = nister_essentials(xq[:5].copy(), xr[:5].copy(), Es, REFINE_ITERS, REFINE_RTOL)
+    return relposes_closed_form(Es[:n], xq, xr)
+
+
+def relpose_5p_nister_batch(x_query: object, x_ref: object) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Nistér's five-point solver on M samples at once (for RANSAC).
+
+    Args:
+        x_query: (M, 5, 3) query rays (normalized homogeneous points or bearings).
+        x_ref: (M, 5, 3) matching reference rays.
+
+    Returns:
+        R: (M, 10, 3, 3) rotations ``ref_from_query``; NaN where not valid.
+        t: (M, 10, 3) unit translations; NaN where not valid.
+        valid: (M, 10) bool; True for a real solution whose pose puts all five sample points in
+        front of both cameras. Valid solutions are packed first: ``valid[m, :k]``.
+
+    Raises:
+        InputError: wrong shape, NaN/inf, or a zero-length ray. Degenerate samples raise
+        nothing; their rows of ``valid`` are all False.
+
+    References:
+        Nistér, TPAMI 2004, Sec. 3; the pose comes from the closed-form decomposition
+        ``R = cof(E) ∓ [t]x E`` (Horn 1990) instead of the SVD of the single-call API.
+    """
+    xq, xr = check_correspondence_batch(x_query, x_ref, 5)
+    M = xq.shape[0]
+    R = np.full((M, MAX_SOLUTIONS, 3, 3), np.nan)
+    t = np.full((M, MAX_SOLUTIONS, 3), np.nan)
+    valid = np.zeros((M, MAX_SOLUTIONS), dtype=np.bool_)
+    _nister_batch(xq, xr, R, t, valid)
+    mask_invalid(R, t, valid)
+    return R, t, valid

@@ -1,0 +1,256 @@
+"""Planar 2-point relative pose (paper Sec. IV-A, eq. 3-11).
+
+Under local planar motion (rotation about the camera y-axis, translation in x-z), the
+essential matrix has the sparse form of eq. (2)::
+
+    E = [[0, e01, 0], [e10, 0, e12], [0, e21, 0]]
+      = ρ [[0, cos(θ-φ), 0], [-cos φ, 0, sin φ], [0, sin(θ-φ), 0]]
+
+Each match gives one linear equation in ``e = (e01, e10, e12, e21)`` (eq. 4-5, 8):
+``x_r0 x_q1 e01 + x_r1 x_q0 e10 + x_r1 x_q2 e12 + x_r2 x_q1 e21 = 0``; two matches leave a
+2-D null space (eq. 9). The paper then imposes the two unit-circle constraints of eq. (10)
+on ``x = e / ρ``; since ``ρ`` is free these reduce to the single homogeneous quadratic
+``e01² + e21² = e10² + e12²``. On the null space it is a 2x2 quadratic form whose two
+isotropic directions we obtain in closed form from its eigen-decomposition — a
+numerically stable replacement of the authors' "solve then filter with the trace
+constraint" (their MATLAB code), giving at most 2 essential matrices. ``θ`` and ``φ`` follow
+from eq. (11); the sign of ``t`` (``φ`` vs ``φ + π``) is fixed by the cheirality test. The
+180° "twisted pair" of a general essential matrix is never planar, so it does not arise.
+
+Degenerate input returns no solution: repeated matches (rank-1 system), matches on the
+horizon line in both views (no constraint), and zero baseline / points at infinity (the
+quadratic form vanishes on the whole null space, so every direction fits).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+from planarloc.geometry.pose import Pose
+from planarloc.geometry.planar import relpose_from_planar_params
+from planarloc.geometry.validation import InputError, check_array
+
+_EPS_RANK = 1e-9
+_EPS_FORM = 1e-12
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def _depth_signs(c: float, s: float, sp: float, cp: float, xq: np.ndarray, xr: np.ndarray) -> int:
+    """+1 if both matches have positive depths for (θ, φ), -1 if for (θ, φ + π), else 0.
+
+    ``c, s = cos θ, sin θ`` and ``sp, cp = sin φ, cos φ``; t = -R_y(θ) [sin φ, 0, cos φ].
+    """
+    t0 = -(c * sp - s * cp)
+    t2 = -(s * sp + c * cp)
+    sign = 0
+    for k in range(2):
+        a0 = c * xq[k, 0] - s * xq[k, 2]  # a = R x_query
+        a1 = xq[k, 1]
+        a2 = s * xq[k, 0] + c * xq[k, 2]
+        b0, b1, b2 = xr[k, 0], xr[k, 1], xr[k, 2]
+        aa = a0 * a0 + a1 * a1 + a2 * a2
+        bb = b0 * b0 + b1 * b1 + b2 * b2
+        ab = a0 * b0 + a1 * b1 + a2 * b2
+        at = a0 * t0 + a2 * t2
+        bt = b0 * t0 + b2 * t2
+        det = aa * bb - ab * ab
+        if det <= 1e-12 * aa * bb:
+            return 0  # parallel rays: point at infinity or on the baseline
+        lq = (-at * bb + ab * bt) / det
+        lr = (aa * bt - ab * at) / det
+        if lq > 0 and lr > 0:
+            s_k = 1
+        elif lq < 0 and lr < 0:
+            s_k = -1
+        else:
+            return 0
+        if sign == 0:
+            sign = s_k
+        elif sign != s_k:
+            return 0
+    return sign
+
+
+@njit(cache=True, error_model="numpy")
+def solve_planar_2p(xq: np.ndarray, xr: np.ndarray, thetas: np.ndarray, phis: np.ndarray) -> int:
+    """Core solver on one sample; writes up to 2 solutions, returns how many.
+
+    Args:
+        xq, xr: (2, 3) query / reference rays.
+        thetas, phis: (2,) output buffers for yaw θ and translation direction φ (eq. 1).
+
+    Written with scalars only (no temporary arrays): heap allocations would dominate the
+    ~100 floating-point operations of a solve.
+    """
+    # Row k of the 2x4 system A e = 0 (eq. 8), normalised.
+    r0 = xr[0, 0] * xq[0, 1]
+    r1 = xr[0, 1] * xq[0, 0]
+    r2 = xr[0, 1] * xq[0, 2]
+    r3 = xr[0, 2] * xq[0, 1]
+    s0 = xr[1, 0] * xq[1, 1]
+    s1 = xr[1, 1] * xq[1, 0]
+    s2 = xr[1, 1] * xq[1, 2]
+    s3 = xr[1, 2] * xq[1, 1]
+    nr = np.sqrt(r0 * r0 + r1 * r1 + r2 * r2 + r3 * r3)
+    ns = np.sqrt(s0 * s0 + s1 * s1 + s2 * s2 + s3 * s3)
+    if not (nr > 1e-300 and ns > 1e-300):
+        return 0  # a match on the horizon line of both views constrains nothing (or NaN)
+    r0, r1, r2, r3 = r0 / nr, r1 / nr, r2 / nr, r3 / nr
+    s0, s1, s2, s3 = s0 / ns, s1 / ns, s2 / ns, s3 / ns
+    # Null space (eq. 9) from the Hodge dual of r ^ s: its rows are orthogonal to r and s.
+    p01 = r0 * s1 - r1 * s0
+    p02 = r0 * s2 - r2 * s0
+    p03 = r0 * s3 - r3 * s0
+    p12 = r1 * s2 - r2 * s1
+    p13 = r1 * s3 - r3 * s1
+    p23 = r2 * s3 - r3 * s2
+    if p01 * p01 + p02 * p02 + p03 * p03 + p12 * p12 + p13 * p13 + p23 * p23 < _EPS_RANK * _EPS_RANK:
+        return 0  # rank 1: repeated or proportional matches
+    # Candidate null vectors (dual rows); take the longest, then Gram-Schmidt the next.
+    c = ((0.0, p23, -p13, p12), (-p23, 0.0, p03, -p02), (p13, -p03, 0.0, p01), (-p12, p02, -p01, 0.0))
+    best, ib = -1.0, 0
+    for i in range(4):
+        ni = c[i][0] ** 2 + c[i][1] ** 2 + c[i][2] ** 2 + c[i][3] ** 2
+        if ni > best:
+            best, ib = ni, i
+    nb = np.sqrt(best)
+    a0, a1, a2, a3 = c[ib][0] / nb, c[ib][1] / nb, c[ib][2] / nb, c[ib][3] / nb
+    best2 = -1.0
+    b0 = b1 = b2 = b3 = 0.0
+    for i in range(4):
+        d = c[i][0] * a0 + c[i][1] * a1 + c[i][2] * a2 + c[i][3] * a3
+        w0, w1, w2, w3 = c[i][0] - d * a0, c[i][1] - d * a1, c[i][2] - d * a2, c[i][3] - d * a3
+        nw = w0 * w0 + w1 * w1 + w2 * w2 + w3 * w3
+        if nw > best2:
+            best2, b0, b1, b2, b3 = nw, w0, w1, w2, w3
+    nb2 = np.sqrt(best2)
+    b0, b1, b2, b3 = b0 / nb2, b1 / nb2, b2 / nb2, b3 / nb2
+    n1 = (a0, a1, a2, a3)
+    n2 = (b0, b1, b2, b3)
+    # Quadratic form of e01² + e21² - e10² - e12² restricted to the null space.
+    p = n1[0] * n1[0] - n1[1] * n1[1] - n1[2] * n1[2] + n1[3] * n1[3]
+    r = n2[0] * n2[0] - n2[1] * n2[1] - n2[2] * n2[2] + n2[3] * n2[3]
+    q = n1[0] * n2[0] - n1[1] * n2[1] - n1[2] * n2[2] + n1[3] * n2[3]
+    mean = 0.5 * (p + r)
+    dev = np.sqrt(0.25 * (p - r) ** 2 + q * q)
+    lam1 = mean + dev
+    lam2 = mean - dev
+    if dev < _EPS_FORM and abs(mean) < _EPS_FORM:
+        return 0  # form vanishes: zero baseline or points at infinity
+    if lam2 > _EPS_FORM or lam1 < -_EPS_FORM:
+        return 0  # definite form: no real solution
+    lam1 = max(lam1, 0.0)
+    lam2 = min(lam2, 0.0)
+    # Eigenvector of lam1 (choose the better-conditioned of two formulas).
+    va0, va1 = q, lam1 - p
+    vb0, vb1 = lam1 - r, q
+    if va0 * va0 + va1 * va1 >= vb0 * vb0 + vb1 * vb1:
+        v10, v11 = va0, va1
+    else:
+        v10, v11 = vb0, vb1
+    nv = np.sqrt(v10 * v10 + v11 * v11)
+    if nv < 1e-300:  # p == r and q == 0: isotropic form, already excluded unless lam1 == lam2
+        v10, v11 = 1.0, 0.0
+    else:
+        v10, v11 = v10 / nv, v11 / nv
+    v20, v21 = -v11, v10
+    mu1 = np.sqrt(-lam2)
+    mu2 = np.sqrt(lam1)
+    count = 0
+    for sgn in (1.0, -1.0):
+        if sgn < 0 and mu1 * mu2 < 1e-9 * (mu1 * mu1 + mu2 * mu2):
+            break  # double root
+        l1 = v10 * mu1 + v20 * sgn * mu2
+        l2 = v11 * mu1 + v21 * sgn * mu2
+        e01 = l1 * n1[0] + l2 * n2[0]
+        e10 = l1 * n1[1] + l2 * n2[1]
+        e12 = l1 * n1[2] + l2 * n2[2]
+        e21 = l1 * n1[3] + l2 * n2[3]
+        if e01 * e01 + e21 * e21 < 1e-24:
+            continue
+        # eq. (11) without trigonometric calls: cos/sin of θ-φ and φ are entries of e / ρ.
+        rho = np.sqrt(e01 * e01 + e21 * e21)
+        c1, s1 = e01 / rho, e21 / rho  # cos(θ-φ), sin(θ-φ)
+        rho2 = np.sqrt(e10 * e10 + e12 * e12)
+        cp, sp = -e10 / rho2, e12 / rho2  # cos φ, sin φ
+        ct = c1 * cp - s1 * sp  # cos θ = cos((θ-φ) + φ)
+        st = s1 * cp + c1 * sp
+        sign = _depth_signs(ct, st, sp, cp, xq, xr)
+        if sign == 0:
+            continue
+        thetas[count] = np.arctan2(st, ct)
+        phis[count] = np.arctan2(sign * sp, sign * cp)
+        count += 1
+    return count
+
+
+@njit(cache=True, error_model="numpy")
+def _solve_batch(xq: np.ndarray, xr: np.ndarray, thetas: np.ndarray, phis: np.ndarray, counts: np.ndarray) -> None:
+    for i in range(xq.shape[0]):
+        counts[i] = solve_planar_2p(xq[i], xr[i], thetas[i], phis[i])
+
+
+def _check_points(name: str, x: object, shape: tuple) -> np.ndarray:
+    arr = check_array(name, x)
+    if arr.ndim == len(shape) and arr.shape[-1] == 2 and arr.shape[:-1] == shape[:-1]:
+        arr = np.concatenate([arr, np.ones(arr.shape[:-1] + (1,))], axis=-1)
+    return check_array(name, arr, shape)
+
+
+def relpose_planar_2p(x_query: object, x_ref: object) -> list[Pose]:
+    """All planar relative poses ``ref_from_query`` consistent with two matches.
+
+    Args:
+        x_query: (2, 3) normalized homogeneous points ``(x, y, 1)`` or bearing vectors in the
+            query camera (camera axes x right, y down = gravity, z forward). (2, 2) normalized
+            points are accepted and get z = 1.
+        x_ref: (2, 3) matching points in the reference camera.
+
+    Returns:
+        Up to 2 poses ``ref_from_query`` (``x_ref = R x_query + t``, ``R`` about y, ``‖t‖ = 1``,
+        ``t_y = 0``), each placing both points in front of both cameras. Empty for degenerate
+        input (repeated matches, zero baseline, points at infinity, no real solution).
+
+    Raises:
+        InputError: wrong shape or non-finite values.
+
+    References:
+        Paper Sec. IV-A, eq. (1)-(11). Deviation: closed-form isotropic directions of the
+        quadratic form instead of intersecting unit circles and filtering (same solutions).
+
+    Example:
+        >>> from planarloc.geometry.planar import relpose_from_planar_params
+        >>> truth = relpose_from_planar_params(0.2, 0.5)
+        >>> X = np.array([[1.0, -0.5, 6.0], [-2.0, 0.8, 9.0]])
+        >>> xq = X / X[:, 2:]; Xr = X @ truth.R.T + truth.t; xr = Xr / Xr[:, 2:]
+        >>> [round(float(p.t @ truth.t), 6) for p in relpose_planar_2p(xq, xr)]  # doctest: +SKIP
+    """
+    xq = _check_points("x_query", x_query, (2, 3))
+    xr = _check_points("x_ref", x_ref, (2, 3))
+    thetas, phis = np.empty(2), np.empty(2)
+    n = solve_planar_2p(xq, xr, thetas, phis)
+    return [relpose_from_planar_params(thetas[i], phis[i], 1.0) for i in range(n)]
+
+
+def relpose_planar_2p_batch(x_query: object, x_ref: object) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Batched :func:`relpose_planar_2p` for M samples, in the paper's (θ, φ) parameters.
+
+    Args:
+        x_query, x_ref: (M, 2, 3) rays of M two-match samples.
+
+    Returns:
+        theta (M, 2), phi (M, 2) and valid (M, 2) bool. Solution ``k`` of sample ``i`` is
+        ``relpose_from_planar_params(theta[i, k], phi[i, k])`` where ``valid[i, k]``.
+    """
+    xq = _check_points("x_query", x_query, (None, 2, 3))
+    xr = _check_points("x_ref", x_ref, (None, 2, 3))
+    if xq.shape[0] != xr.shape[0]:
+        raise InputError(f"x_query and x_ref: different numbers of samples ({xq.shape[0]} vs {xr.shape[0]})")
+    m = xq.shape[0]
+    thetas = np.zeros((m, 2))
+    phis = np.zeros((m, 2))
+    counts = np.zeros(m, dtype=np.int64)
+    _solve_batch(xq, xr, thetas, phis, counts)
+    valid = np.arange(2)[None, :] < counts[:, None]
+    return thetas, phis, valid

@@ -1,0 +1,156 @@
+"""Random multi-view planar scenes for tests and benchmarks (the paper's Sec. V-A protocol).
+
+3D points uniform in ``[-10, 10]³``; upright cameras (y = gravity) at height 0 with centres
+``x, z ∈ [-5, 5]`` and yaw ``∈ [-π, π]``; ``f = 800``, 1280×1080, principal point
+(640, 540); each reference sees ``matches_per_pair`` points that the query sees too; pixel
+noise; outliers made by projecting the point with a different random planar pose (the
+authors' scripts). Query keypoint ids are the point ids, so a point matched in several
+references forms a track.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from planarloc.geometry.camera import Camera
+from planarloc.geometry.planar import rotation_from_yaw
+from planarloc.geometry.pose import Pose
+from planarloc.robust.pair_matches import PairMatches
+
+PAPER_CAMERA = Camera("PINHOLE", 1280, 1080, (800.0, 800.0, 640.0, 540.0))
+
+
+@dataclass(frozen=True, eq=False)
+class SyntheticScene:
+    """A generated query with its matches to posed references.
+
+    Attributes:
+        query_camera: intrinsics of every camera.
+        query_pose: ground-truth ``cam_from_world`` of the query.
+        pairs: one :class:`PairMatches` per reference.
+        points: (K, 3) world points (row = query keypoint id).
+        is_outlier: one (N_k,) bool array per pair.
+    """
+
+    query_camera: Camera
+    query_pose: Pose
+    pairs: list[PairMatches]
+    points: np.ndarray
+    is_outlier: list[np.ndarray]
+
+
+def random_planar_pose(rng: np.random.Generator, extent: float = 5.0, tilt_deg: float = 0.0) -> Pose:
+    """Upright ``cam_from_world`` with centre (x, 0, z), x, z ∈ [-extent, extent], yaw ∈ [-π, π].
+
+    ``tilt_deg`` > 0 adds random pitch and roll of that standard deviation (uneven floor)."""
+    R = rotation_from_yaw(rng.uniform(-np.pi, np.pi))
+    if tilt_deg > 0:
+        from scipy.spatial.transform import Rotation
+
+        pitch, roll = np.radians(rng.normal(0.0, tilt_deg, 2))
+        R = Rotation.from_euler("xz", [pitch, roll]).as_matrix() @ R
+    c = np.array([rng.uniform(-extent, extent), 0.0, rng.uniform(-extent, extent)])
+    return Pose(R, -R @ c)
+
+
+def _project(camera: Camera, pose: Pose, X: np.ndarray, min_depth: float = 0.5) -> tuple[np.ndarray, np.ndarray]:
+    Xc = X @ pose.R.T + pose.t
+    z = Xc[:, 2]
+    uv = np.full((len(X), 2), np.nan)
+    front = z > min_depth
+    uv[front] = camera.img_from_cam(Xc[front])
+    inside = front & (uv[:, 0] >= 0) & (uv[:, 0] < camera.width) & (uv[:, 1] >= 0) & (uv[:, 1] < camera.height)
+    return uv, inside
+
+
+def make_scene(
+    rng: np.random.Generator,
+    num_refs: int = 5,
+    matches_per_pair: int = 100,
+    noise_px: float = 1.0,
+    outlier_ratio: float = 0.0,
+    camera: Camera = PAPER_CAMERA,
+    num_points: int = 4000,
+    collinear: bool = False,
+    ref_tilt_deg: float = 0.0,
+    with_depth: bool = False,
+    track_pool: float | None = None,
+    max_tries: int = 200,
+) -> SyntheticScene:
+    """Generate one scene of the paper's synthetic protocol.
+
+    Args:
+        rng: seeded generator.
+        num_refs: reference views, each co-visible with the query.
+        matches_per_pair: matches per query-reference pair (inliers + outliers).
+        noise_px: std of Gaussian pixel noise added to every keypoint.
+        outlier_ratio: fraction of matches per pair that are outliers.
+        collinear: all camera centres on the world z-axis with small yaw (a straight corridor
+            or road: the position along it is unobservable from 2D-2D constraints).
+        ref_tilt_deg: pitch/roll noise of the references (uneven floor).
+        with_depth: fill ``ref_points3d`` with the true points (reference depth maps).
+        track_pool: if set, the query keypoints are a random subset of
+            ``track_pool * matches_per_pair`` visible points, so pairs share query keypoints
+            (as with real matching); None draws every pair from all visible points.
+    """
+    for _ in range(max_tries):
+        if collinear:
+            def pose_on_line(z: float) -> Pose:
+                R = rotation_from_yaw(rng.uniform(-0.05, 0.05))
+                return Pose(R, -R @ np.array([0.0, 0.0, z]))
+
+            query = pose_on_line(rng.uniform(-1.0, 1.0))
+            refs = [pose_on_line(rng.uniform(-4.0, 4.0)) for _ in range(num_refs)]
+            X = np.c_[rng.uniform(-10, 10, num_points), rng.uniform(-3, 3, num_points),
+                      rng.uniform(6, 30, num_points)]
+        else:
+            query = random_planar_pose(rng)
+            X = rng.uniform(-10.0, 10.0, (num_points, 3))
+            refs = []
+        uv_q, vis_q = _project(camera, query, X)
+        if vis_q.sum() < matches_per_pair:
+            continue
+        if track_pool is not None:
+            # The query detects a limited set of keypoints; references re-observe them, so
+            # the same query keypoint is matched in several pairs (tracks).
+            pool = rng.choice(np.flatnonzero(vis_q), min(int(vis_q.sum()), int(track_pool * matches_per_pair)), replace=False)
+            vis_q = np.zeros_like(vis_q)
+            vis_q[pool] = True
+        pairs, outl = [], []
+        tries = 0
+        while len(pairs) < num_refs and tries < 50:
+            tries += 1
+            ref = refs[len(pairs)] if collinear else random_planar_pose(rng, tilt_deg=ref_tilt_deg)
+            uv_r, vis_r = _project(camera, ref, X)
+            common = np.flatnonzero(vis_q & vis_r)
+            if len(common) < matches_per_pair:
+                if collinear:
+                    break
+                continue
+            ids = rng.choice(common, matches_per_pair, replace=False)
+            q = uv_q[ids] + rng.normal(0.0, noise_px, (matches_per_pair, 2))
+            r = uv_r[ids] + rng.normal(0.0, noise_px, (matches_per_pair, 2))
+            is_out = np.zeros(matches_per_pair, dtype=bool)
+            n_out = int(round(outlier_ratio * matches_per_pair))
+            if n_out:
+                out_idx = rng.choice(matches_per_pair, n_out, replace=False)
+                is_out[out_idx] = True
+                for i in out_idx:
+                    for _attempt in range(20):
+                        wrong = random_planar_pose(rng)
+                        uv_w, vis_w = _project(camera, wrong, X[ids[i]][None])
+                        if vis_w[0]:
+                            r[i] = uv_w[0]
+                            break
+                    else:
+                        r[i] = rng.uniform([0, 0], [camera.width, camera.height])
+            X3 = X[ids].copy() if with_depth else None
+            if X3 is not None:
+                X3[is_out] = np.nan
+            pairs.append(PairMatches(ref, camera, q, r, query_indices=ids, ref_points3d=X3))
+            outl.append(is_out)
+        if len(pairs) == num_refs:
+            return SyntheticScene(camera, query, pairs, X, outl)
+    raise RuntimeError("could not generate a scene with enough co-visible points; lower matches_per_pair")

@@ -1,0 +1,145 @@
+"""Named world presets.
+
+- ``office`` (default): an 8 x 6 m room with boxes and posters; the map loops around the
+  room, the query loops 0.3 m further out, turned 20 +- 8 degrees, with mild noise and
+  up to 1 degree of pitch/roll.
+- ``corridor``: a 2.6 x 20 m corridor with doors and posters; map and query both walk
+  straight along it (query 0.3 m to the side, same heading): the forward-motion,
+  low-parallax case that is degenerate for 2D-2D methods.
+- ``lifelong``: ``office`` whose query session has different lighting (gain, gamma, a
+  shading ramp), blur, more noise, and 2 moved plus 2 added boxes.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable
+
+from planarloc.synthetic.world.config import (
+    CameraConfig,
+    EffectsConfig,
+    SceneConfig,
+    TrajectoryConfig,
+    WorldConfig,
+)
+
+DEFAULT_PRESET = "office"
+
+
+def office() -> WorldConfig:
+    """An 8 x 6 x 2.6 m office: 6 boxes, 12 posters, 40 map and 30 query frames of 640 x 480."""
+    return WorldConfig(
+        name="office",
+        camera=CameraConfig(),
+        scene=SceneConfig(kind="room", size_x=8.0, size_z=6.0, height=2.6, n_boxes=6, n_posters=12),
+        trajectory=TrajectoryConfig(
+            shape="loop",
+            n_map=40,
+            n_query=30,
+            wall_margin=1.4,
+            lateral_offset=0.3,
+            yaw_offset_deg=20.0,
+            yaw_wobble_deg=8.0,
+        ),
+        map_effects=EffectsConfig(),
+        query_effects=EffectsConfig(noise_sigma=2.0, tilt_deg=1.0),
+    )
+
+
+def corridor() -> WorldConfig:
+    """A 2.6 x 20 x 2.6 m corridor: doors, 10 posters, 3 boxes; 40 map and 30 query frames, straight."""
+    return WorldConfig(
+        name="corridor",
+        camera=CameraConfig(),
+        scene=SceneConfig(
+            kind="corridor",
+            size_x=2.6,
+            size_z=20.0,
+            height=2.6,
+            n_boxes=3,
+            box_size_min=(0.4, 0.4, 0.3),
+            box_size_max=(1.0, 1.4, 0.5),
+            n_posters=10,
+        ),
+        trajectory=TrajectoryConfig(
+            shape="line",
+            n_map=40,
+            n_query=30,
+            wall_margin=1.0,
+            lateral_offset=0.3,
+            yaw_offset_deg=0.0,
+            yaw_wobble_deg=0.0,
+        ),
+        map_effects=EffectsConfig(),
+        query_effects=EffectsConfig(noise_sigma=2.0, tilt_deg=1.0),
+    )
+
+
+def lifelong() -> WorldConfig:
+    """``office`` with a changed query session: darker, gamma, shading ramp, blur, noise,
+    2 moved and 2 added boxes."""
+    base = office()
+    return WorldConfig(
+        name="lifelong",
+        camera=base.camera,
+        scene=base.scene,
+        trajectory=base.trajectory,
+        map_effects=base.map_effects,
+        query_effects=EffectsConfig(
+            gain=0.75,
+            gamma=1.3,
+            shading_gradient=0.35,
+            shading_angle_deg=30.0,
+            noise_sigma=3.0,
+            blur_sigma=0.7,
+            tilt_deg=1.5,
+            moved_boxes=2,
+            added_boxes=2,
+        ),
+    )
+
+
+PRESETS: dict[str, Callable[[], WorldConfig]] = {"office": office, "corridor": corridor, "lifelong": lifelong}
+
+
+def preset_names() -> tuple[str, ...]:
+    """Names accepted by :func:`get_preset`."""
+    return tuple(PRESETS)
+
+
+def get_preset(name: str) -> WorldConfig:
+    """The config of preset ``name``.
+
+    Raises:
+        ValueError: for an unknown name (the message lists the known ones).
+    """
+    try:
+        return PRESETS[name]()
+    except KeyError:
+        raise ValueError(f"unknown world preset {name!r}; choose one of {', '.join(PRESETS)}") from None
+
+
+def shrunk(
+    config: WorldConfig, scale: float = 0.25, n_map: int = 8, n_query: int = 6, px_per_m: float = 80.0
+) -> WorldConfig:
+    """A quick version of ``config`` for tests and demos: images (and focal lengths) scaled by
+    ``scale``, ``n_map`` / ``n_query`` frames on the same paths, coarser textures, half the posters.
+
+    Example: ``shrunk(get_preset("office"))`` renders 160 x 120 frames in a few milliseconds.
+    """
+    cam = config.camera
+    cx, cy = cam.principal_point
+    camera = CameraConfig(
+        width=max(16, round(float(cam.width * scale))),
+        height=max(16, round(float(cam.height * scale))),
+        fx=cam.fx * scale,
+        fy=cam.fy * scale,
+        cx=None if cam.cx is None else cx * scale,
+        cy=None if cam.cy is None else cy * scale,
+    )
+    return dataclasses.replace(
+        config,
+        camera=camera,
+        scene=dataclasses.replace(config.scene, px_per_m=px_per_m, n_posters=config.scene.n_posters // 2),
+        trajectory=dataclasses.replace(config.trajectory, n_map=n_map, n_query=n_query),
+    )

@@ -1,0 +1,166 @@
+"""SIFT/RootSIFT extraction on generated images."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import cv2
+import numpy as np
+import pytest
+
+from planarloc.geometry.validation import InputError
+from planarloc.pipeline.features import (
+    DEFAULT_FEATURE_CONFIG,
+    FeatureConfig,
+    Features,
+    extract_features,
+    rootsift,
+)
+
+
+def textured_image(rng: np.random.Generator, h: int = 240, w: int = 320) -> np.ndarray:
+    """Random filled shapes, lines and text, lightly blurred (uint8, (h, w))."""
+    img = np.full((h, w), int(rng.integers(90, 160)), np.uint8)
+    for _ in range(int(0.0006 * h * w)):
+        kind, col = int(rng.integers(4)), int(rng.integers(0, 256))
+        x, y, s = (
+            int(rng.integers(0, w)),
+            int(rng.integers(0, h)),
+            int(rng.integers(4, max(6, min(h, w) // 6))),
+        )
+        if kind == 0:
+            cv2.circle(img, (x, y), s, col, -1, cv2.LINE_AA)
+        elif kind == 1:
+            cv2.rectangle(img, (x, y), (x + s, y + int(rng.integers(4, 40))), col, -1)
+        elif kind == 2:
+            end = (int(rng.integers(0, w)), int(rng.integers(0, h)))
+            cv2.line(img, (x, y), end, col, int(rng.integers(1, 4)), cv2.LINE_AA)
+        else:
+            cv2.fillPoly(img, [(rng.random((3, 2)) * s * 2 + [x, y]).astype(np.int32)], col, cv2.LINE_AA)
+    for _ in range(int(0.0001 * h * w) + 1):
+        text = "".join(rng.choice(list("ABCDEFGHKMNPRSTWXYZ0123456789"), 4))
+        org = (int(rng.integers(0, w - 60)), int(rng.integers(20, h)))
+        cv2.putText(
+            img,
+            text,
+            org,
+            cv2.FONT_HERSHEY_SIMPLEX,
+            float(rng.uniform(0.5, 1.2)),
+            int(rng.integers(0, 256)),
+            2,
+            cv2.LINE_AA,
+        )
+    return cv2.GaussianBlur(img, (0, 0), 0.7)
+
+
+@pytest.fixture(scope="module")
+def image() -> np.ndarray:
+    return textured_image(np.random.default_rng(0), 240, 320)
+
+
+def test_rootsift_properties():
+    rng = np.random.default_rng(0)
+    sift = rng.integers(0, 200, size=(20, 128)).astype(np.float32)
+    sift[3] = 0.0
+    d = rootsift(sift)
+    assert d.dtype == np.float32 and d.shape == (20, 128)
+    assert np.all(d >= 0)
+    norms = np.linalg.norm(d, axis=1)
+    assert np.allclose(np.delete(norms, 3), 1.0, atol=1e-6) and norms[3] == 0.0
+    # The dot product of RootSIFT vectors is the Hellinger kernel of the L1-normalised SIFT.
+    p = sift[0] / sift[0].sum()
+    q = sift[1] / sift[1].sum()
+    assert float(d[0] @ d[1]) == pytest.approx(float(np.sqrt(p * q).sum()), rel=1e-5)
+    # Invariant to the scale of the input histogram.
+    assert np.allclose(rootsift(sift[:1] * 7.0), d[:1], atol=1e-6)
+    with pytest.raises(InputError, match="non-negative"):
+        rootsift(-sift)
+
+
+def test_features_on_textured_image(image):
+    f = extract_features(image)
+    assert isinstance(f, Features)
+    n = len(f)
+    assert n > 150
+    assert f.keypoints.shape == (n, 2) and f.keypoints.dtype == np.float32
+    assert f.descriptors.shape == (n, 128) and f.descriptors.dtype == np.float32
+    assert f.scales.shape == (n,) and f.scales.dtype == np.float32 and np.all(f.scales > 0)
+    assert np.allclose(np.linalg.norm(f.descriptors, axis=1), 1.0, atol=1e-5)
+    assert np.all(f.descriptors >= 0)  # RootSIFT
+    assert np.all((f.keypoints >= -0.5) & (f.keypoints <= [image.shape[1] - 0.5, image.shape[0] - 0.5]))
+
+
+def test_extraction_is_deterministic_and_colour_equals_gray(image):
+    a = extract_features(image)
+    b = extract_features(np.dstack([image] * 3))
+    c = extract_features(image[:, :, None])
+    for other in (b, c):
+        assert np.array_equal(a.keypoints, other.keypoints)
+        assert np.array_equal(a.descriptors, other.descriptors)
+
+
+def test_max_features_and_plain_sift(image):
+    f = extract_features(image, FeatureConfig(max_features=40))
+    assert 30 <= len(f) <= 45  # OpenCV keeps ties at the response cut
+    g = extract_features(image, FeatureConfig(rootsift=False))
+    assert np.allclose(np.linalg.norm(g.descriptors, axis=1), 1.0, atol=1e-5)
+    assert not np.allclose(g.descriptors, extract_features(image).descriptors)
+
+
+def test_keypoints_are_unbiased_across_scales():
+    """OpenCV's default SIFT reports keypoints +0.25 px off; with the precise upscale a keypoint
+    of a half-size image maps to (x' + 0.5)·2 − 0.5 in the full image without bias."""
+    big = textured_image(np.random.default_rng(5), 480, 640)
+    small = cv2.resize(big, (320, 240), interpolation=cv2.INTER_AREA)
+    fb, fs = extract_features(big), extract_features(small)
+    sim = fs.descriptors @ fb.descriptors.T
+    j = sim.argmax(axis=1)
+    mutual = sim.argmax(axis=0)[j] == np.arange(len(fs))
+    residual = fb.keypoints[j[mutual]] - ((fs.keypoints[mutual] + 0.5) * 2.0 - 0.5)
+    close = np.linalg.norm(residual, axis=1) < 2.0
+    assert close.sum() > 50
+    assert np.all(np.abs(np.median(residual[close], axis=0)) < 0.1)
+
+
+def test_tilt_pool_contains_the_plain_features(image):
+    plain = extract_features(image)
+    tilted = extract_features(image, FeatureConfig(tilt=True))
+    n = len(plain)
+    assert len(tilted) > 1.5 * n
+    assert np.array_equal(tilted.keypoints[:n], plain.keypoints)
+    assert np.array_equal(tilted.descriptors[:n], plain.descriptors)
+    assert np.all((tilted.keypoints[:, 1] > -1.0) & (tilted.keypoints[:, 1] < image.shape[0]))
+
+
+def test_blank_image_gives_empty_features():
+    f = extract_features(np.full((100, 120), 128, np.uint8))
+    assert len(f) == 0
+    assert f.keypoints.shape == (0, 2) and f.descriptors.shape == (0, 128) and f.scales.shape == (0,)
+    assert len(extract_features(np.full((100, 120), 128, np.uint8), FeatureConfig(tilt=True))) == 0
+
+
+@pytest.mark.parametrize(
+    "bad",
+    [
+        np.zeros((50, 60), np.float32),
+        np.zeros((50, 60, 4), np.uint8),
+        np.zeros((50,), np.uint8),
+        np.zeros((0, 60), np.uint8),
+        [[1, 2], [3, 4]],
+    ],
+)
+def test_bad_images_raise(bad):
+    with pytest.raises(InputError, match="image"):
+        extract_features(bad)
+
+
+def test_config_defaults_and_validation():
+    cfg = DEFAULT_FEATURE_CONFIG
+    assert cfg.max_features == 4000 and cfg.tilt is False and cfg.rootsift is True and len(cfg.tilts) == 6
+    assert cfg.name == "rootsift-n4000"
+    assert FeatureConfig(tilt=True).name == "rootsift-n4000-tilt6"
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        cfg.max_features = 10  # type: ignore[misc]
+    for kwargs in ({"max_features": 0}, {"contrast_threshold": 0.0}, {"tilts": (1.0, 0.7)}, {"sigma": -1.0}):
+        with pytest.raises(InputError):
+            FeatureConfig(**kwargs)
