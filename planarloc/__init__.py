@@ -4,6 +4,34 @@ Conventions: see docs/conventions.md. Poses are ``cam_from_world`` (x_cam = R x_
 """
 
 from planarloc.geometry import Camera, CameraModel, InputError, Pose
+from planarloc.robust.absolute_pose import estimate_absolute_pose
+from planarloc.robust.options import Method, RansacOptions, Structure
+from planarloc.robust.pair_matches import PairMatches
+from planarloc.robust.result import PoseEstimate
 
-__all__ = ["Camera", "CameraModel", "InputError", "Pose"]
 __version__ = "0.1.0"
+
+
+def __getattr__(name: str):
+    # The pipeline (OpenCV, faiss, SQLite) loads only when used, keeping `import planarloc` light.
+    if name in ("Localizer", "LocalizerConfig"):
+        from planarloc.pipeline import localizer
+
+        return getattr(localizer, name)
+    raise AttributeError(f"module 'planarloc' has no attribute {name!r}")
+
+
+__all__ = [
+    "Camera",
+    "CameraModel",
+    "InputError",
+    "Localizer",
+    "LocalizerConfig",
+    "Method",
+    "PairMatches",
+    "Pose",
+    "PoseEstimate",
+    "RansacOptions",
+    "Structure",
+    "estimate_absolute_pose",
+]

@@ -263,7 +263,11 @@ def relpose_from_essential_kernel(E, xq, xr, R_out, t_out) -> bool:
             fro += E[i, j] * E[i, j]
     if not (fro > 0.0 and np.isfinite(fro)):
         return False
-    En = E * np.sqrt(2.0 / fro)
+    En = np.empty((3, 3))
+    f = np.sqrt(2.0 / fro)
+    for i in range(3):
+        for j in range(3):
+            En[i, j] = E[i, j] * f
     best = -1.0
     t0 = t1 = t2 = 0.0
     for p in range(3):
@@ -278,7 +282,8 @@ def relpose_from_essential_kernel(E, xq, xr, R_out, t_out) -> bool:
     if not best > 1e-6:  # the largest is >= 1/3 for an essential matrix with ‖E‖_F² = 2
         return False
     inv = 1.0 / np.sqrt(best)
-    t = np.array([t0 * inv, t1 * inv, t2 * inv])
+    t = np.empty(3)
+    t[0], t[1], t[2] = t0 * inv, t1 * inv, t2 * inv
     Ra = np.empty((3, 3))
     Rb = np.empty((3, 3))
     for i in range(3):
@@ -309,12 +314,15 @@ def relpose_from_essential_kernel(E, xq, xr, R_out, t_out) -> bool:
             sign = -1.0
         else:
             continue
-        t *= sign
+        for j in range(3):
+            t[j] *= sign
         for i in range(1, xq.shape[0]):
             ok, lq, lr = _depths(Rc, t, xq, xr, i)
             if not (ok and lq > 0.0 and lr > 0.0):
                 return False
-        R_out[:, :] = Rc
+        for i in range(3):
+            for j in range(3):
+                R_out[i, j] = Rc[i, j]
         t_out[0], t_out[1], t_out[2] = t[0], t[1], t[2]
         return True
     return False

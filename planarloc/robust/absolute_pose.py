@@ -106,16 +106,21 @@ def estimate_absolute_pose(
         R, t, cov, sigma, cost, in2d, in3d = estimator.refine_full(R, t, max_iterations=10 if options.refine else 0)
     stats.add_time("refinement", time.perf_counter() - t0)
     t0 = time.perf_counter()
-    std = float(np.sqrt(max(np.linalg.eigvalsh(cov).max(), 0.0))) if np.all(np.isfinite(cov)) else float("inf")
     in2d, in3d = estimator.inliers(R, t)
+    if np.all(np.isfinite(cov)) and (options.map_rotation_std_deg > 0 or options.map_position_std_m > 0):
+        cov = cov + estimator.map_covariance(R, t, in2d, in3d)
+    std = float(np.sqrt(max(np.linalg.eigvalsh(cov).max(), 0.0))) if np.all(np.isfinite(cov)) else float("inf")
     inliers = _split(in2d, problem.offsets)
     n2d, n3d = int(in2d.sum()), int(in3d.sum())
     spread = estimator.centre_collinearity(R, t, in2d)
     if np.isfinite(std) and (spread < PROFILE_BELOW_RATIO and n3d < options.min_inliers):
         # Near-collinear geometry: the linearised covariance is over-confident in the curved
-        # valley of the cost; profile the cost along the weak directions at twice the tolerance.
+        # valley of the cost; profile the cost along the weak directions.
+        # Probe at 3σ (does the quadratic model hold?) and at the decision scale.
+        probes = {min(max(3.0 * std, 0.02), 2.0), min(options.max_position_std_m, 2.0)}
         for u in estimator.weak_directions(R, t, in2d, cov):
-            std = max(std, estimator.profile_std(R, t, in2d, in3d, sigma, cost, u, 2.0 * options.max_position_std_m))
+            for d in probes:
+                std = max(std, estimator.profile_std(R, t, in2d, in3d, sigma, cost, u, d))
     stats.add_time("degeneracy_check", time.perf_counter() - t0)
     pose = Pose(R, t)
     if n2d + n3d < options.min_inliers:

@@ -20,7 +20,7 @@ from planarloc.geometry.planar import rotation_from_yaw
 from planarloc.robust.hypotheses import hypotheses_2p1p, hypotheses_from_relative_poses, hypotheses_up2p
 from planarloc.robust.options import Method, RansacOptions
 from planarloc.robust.problem import AbsolutePoseProblem
-from planarloc.robust.refinement import refine_pose
+from planarloc.robust.refinement import map_uncertainty_covariance, refine_pose
 from planarloc.robust.result import RansacStatistics
 from planarloc.robust.sampling import draw_pair_samples
 from planarloc.robust.scoring import errors_sq, msac_scores
@@ -69,6 +69,14 @@ class _ProblemEstimator:
         R2, t2, cov, sigma, cost = self._refine(R, -R.T @ t, in2d, in3d, max_iterations)
         return R2, t2, cov, sigma, cost, in2d, in3d
 
+    def map_covariance(self, R: np.ndarray, t: np.ndarray, in2d: np.ndarray, in3d: np.ndarray) -> np.ndarray:
+        """(3, 3) position covariance caused by the map's pose uncertainty (options.map_*_std)."""
+        p, o = self.p, self.options
+        return map_uncertainty_covariance(
+            np.ascontiguousarray(R), np.ascontiguousarray(t), p.xq, p.xr, p.pair, np.flatnonzero(in2d),
+            p.f_query, p.f_ref, p.ref_R, p.ref_t, p.xq3d, p.X3d, np.flatnonzero(in3d), o.threshold_px,
+            float(np.radians(o.map_rotation_std_deg)), float(o.map_position_std_m))
+
     def profile_std(self, R: np.ndarray, t: np.ndarray, in2d: np.ndarray, in3d: np.ndarray, sigma: float,
                     cost: float, direction: np.ndarray, distance: float) -> float:
         """Secant estimate of the position std along ``direction`` (unit, world frame).
@@ -95,13 +103,13 @@ class _ProblemEstimator:
         return worst
 
     def refine(self, R: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Local optimisation: refine on inliers of a shrinking threshold (4τ, 2τ, τ), so that a
+        """Local optimisation: refine on inliers of a shrinking threshold (3τ, then τ), so that a
         hypothesis near the right basin gathers the constraints it first missed."""
-        for scale in (4.0, 2.0, 1.0):
+        for scale in (3.0, 1.0):
             in2d, in3d = self.inliers(R, t, scale * scale * self.threshold_sq)
             if in2d.sum() + in3d.sum() < 6:
                 break
-            R, t, *_ = self._refine(R, -R.T @ t, in2d, in3d, 5)
+            R, t, *_ = self._refine(R, -R.T @ t, in2d, in3d, 4)
         return R, t
 
     def centre_collinearity(self, R: np.ndarray, t: np.ndarray, in2d: np.ndarray) -> float:

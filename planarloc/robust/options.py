@@ -48,6 +48,10 @@ class RansacOptions:
         min_inliers: fewer inliers than this in total is a failure.
         max_position_std_m: a refined position whose standard deviation (largest axis of
             its covariance) exceeds this is reported as ``degenerate_scale``, not as a pose.
+        map_rotation_std_deg, map_position_std_m: uncertainty of the map's reference poses
+            (rotation in degrees, centre in metres), propagated into ``position_std_m``; map
+            errors are systematic per reference and near-collinear geometry amplifies them.
+            Set both to 0 for perfect (e.g. synthetic) maps.
         min_collinearity_ratio: with fewer than ``min_inliers`` 2D-3D inliers, the query
             centre and the centres of the references with inliers must not lie on one line:
             the ratio of the second to the first singular value of the centred centres must
@@ -68,8 +72,10 @@ class RansacOptions:
     refine: bool = True
     local_optimization: bool = True
     min_inliers: int = 10
-    max_position_std_m: float = 0.25
-    min_collinearity_ratio: float = 0.05
+    max_position_std_m: float = 1.0
+    map_rotation_std_deg: float = 0.05
+    map_position_std_m: float = 0.02
+    min_collinearity_ratio: float = 0.01
     track_min_angle_deg: float = 1.0
     seed: int | None = 0
 

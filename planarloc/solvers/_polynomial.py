@@ -212,8 +212,11 @@ def five_point_constraints(basis: np.ndarray) -> np.ndarray:
             for k in range(3):
                 _lin_lin(L[3 * i + k], L[3 * j + k], EEt[3 * i + j])
             if j != i:
-                EEt[3 * j + i, :] = EEt[3 * i + j, :]
-    tr = EEt[0] + EEt[4] + EEt[8]
+                for c in range(10):
+                    EEt[3 * j + i, c] = EEt[3 * i + j, c]
+    tr = np.empty(10)
+    for c in range(10):
+        tr[c] = EEt[0, c] + EEt[4, c] + EEt[8, c]
     A = np.zeros((10, 20))
     for i in range(3):
         for j in range(3):
@@ -243,7 +246,9 @@ def _monomials_and_jacobian(x, y, z, m, dm):
     m[5], m[6], m[7], m[8], m[9] = xz * z, yy * y, yy * z, yz * z, zz * z
     m[10], m[11], m[12], m[13], m[14], m[15] = xx, xy, xz, yy, yz, zz
     m[16], m[17], m[18], m[19] = x, y, z, 1.0
-    dm[:, :] = 0.0
+    for v in range(3):
+        for k in range(20):
+            dm[v, k] = 0.0
     dm[0, 0], dm[0, 1], dm[0, 2], dm[0, 3], dm[0, 4], dm[0, 5] = 3 * xx, 2 * xy, 2 * xz, yy, yz, zz
     dm[0, 10], dm[0, 11], dm[0, 12], dm[0, 16] = 2 * x, y, z, 1.0
     dm[1, 1], dm[1, 3], dm[1, 4], dm[1, 6], dm[1, 7], dm[1, 8] = xx, 2 * xy, xz, 3 * yy, 2 * yz, zz

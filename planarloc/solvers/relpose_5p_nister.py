@@ -107,7 +107,8 @@ def _row_polys(A, r_lead, r_low, out):
 @njit(cache=True)
 def _mul_sub(a, b, c, d, out):
     """out = a * b − c * d for coefficient arrays of length 5 (degree ≤ 4); out has length 9."""
-    out[:] = 0.0
+    for k in range(9):
+        out[k] = 0.0
     for i in range(5):
         for j in range(5):
             out[i + j] += a[i] * b[j] - c[i] * d[j]
@@ -134,9 +135,8 @@ def nister_essentials(
         return 0
     # rows: a=0 x³, b=1 y³, c=2 x²y, d=3 xy², e=4 x²z, f=5 x², g=6 y²z, h=7 y², i=8 xyz, j=9 xy
     B = np.empty((3, 3, 5))  # B(z): rows ⟨k⟩, ⟨l⟩, ⟨m⟩; columns: coefficients of x, y, 1
-    _row_polys(A, 4, 5, B[0])
-    _row_polys(A, 6, 7, B[1])
-    _row_polys(A, 8, 9, B[2])
+    for q in range(3):  # (e, f), (g, h), (i, j)
+        _row_polys(A, 4 + 2 * q, 5 + 2 * q, B[q])
     # cofactors of the first row: [x, y, 1] ∝ (p1, p2, p3) = row ⟨l⟩ × row ⟨m⟩
     P = np.empty((3, 9))
     _mul_sub(B[1, 1], B[2, 2], B[1, 2], B[2, 1], P[0])  # p1, degree 7
@@ -183,10 +183,10 @@ def nister_essentials(
 
 
 @njit(cache=True)
-def _nister_batch(xq, xr, R, t, valid):
+def _nister_batch(xq, xr, R, t, valid, refine_iters, refine_rtol):
     Es = np.empty((MAX_SOLUTIONS, 3, 3))
     for m in range(xq.shape[0]):
-        n = nister_essentials(xq[m], xr[m], Es, BATCH_REFINE_ITERS, BATCH_REFINE_RTOL)
+        n = nister_essentials(xq[m], xr[m], Es, refine_iters, refine_rtol)
         relpose_batch_kernel(Es, n, xq[m], xr[m], R[m], t[m], valid[m])
 
 
@@ -274,6 +274,6 @@ def relpose_5p_nister_batch(x_query: object, x_ref: object) -> tuple[np.ndarray,
     R = np.full((M, MAX_SOLUTIONS, 3, 3), np.nan)
     t = np.full((M, MAX_SOLUTIONS, 3), np.nan)
     valid = np.zeros((M, MAX_SOLUTIONS), dtype=np.bool_)
-    _nister_batch(xq, xr, R, t, valid)
+    _nister_batch(xq, xr, R, t, valid, BATCH_REFINE_ITERS, BATCH_REFINE_RTOL)
     mask_invalid(R, t, valid)
     return R, t, valid

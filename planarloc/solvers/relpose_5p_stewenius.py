@@ -305,12 +305,13 @@ def eigenvector(M: np.ndarray, lam: float, v: np.ndarray) -> bool:
     usual trick: the shifted matrix is singular by construction), two solves from ``(1, ..., 1)``.
     """
     n = M.shape[0]
-    A = M.copy()
+    A = np.empty((n, n))
     scale = 0.0
     for i in range(n):
-        A[i, i] -= lam
         for j in range(n):
+            A[i, j] = M[i, j]
             scale = max(scale, abs(M[i, j]))
+        A[i, i] -= lam
     tiny = 1e-14 * max(scale, 1e-300)
     piv = np.empty(n, dtype=np.int64)
     for c in range(n):
@@ -373,7 +374,10 @@ def stewenius_essentials(
     if not five_point_nullspace(uq, ur, basis, RANK_TOL):
         return 0
     C = five_point_constraints(basis)  # columns already in graded reverse lexicographic order
-    G = C.copy()
+    G = np.empty((10, 20))
+    for i in range(10):
+        for j in range(20):
+            G[i, j] = C[i, j]
     if not gauss_jordan(G, 10, _PIVOT_TOL):
         return 0
     # action matrix of x on b = [x², xy, xz, y², yz, z², x, y, z, 1] (columns 10..19 of G)
@@ -419,10 +423,10 @@ def stewenius_essentials(
 
 
 @njit(cache=True)
-def _stewenius_batch(xq, xr, R, t, valid):
+def _stewenius_batch(xq, xr, R, t, valid, refine_iters, refine_rtol):
     Es = np.empty((MAX_SOLUTIONS, 3, 3))
     for m in range(xq.shape[0]):
-        n = stewenius_essentials(xq[m], xr[m], Es, BATCH_REFINE_ITERS, BATCH_REFINE_RTOL)
+        n = stewenius_essentials(xq[m], xr[m], Es, refine_iters, refine_rtol)
         relpose_batch_kernel(Es, n, xq[m], xr[m], R[m], t[m], valid[m])
 
 
@@ -504,6 +508,6 @@ def relpose_5p_stewenius_batch(x_query: object, x_ref: object) -> tuple[np.ndarr
     R = np.full((M, MAX_SOLUTIONS, 3, 3), np.nan)
     t = np.full((M, MAX_SOLUTIONS, 3), np.nan)
     valid = np.zeros((M, MAX_SOLUTIONS), dtype=np.bool_)
-    _stewenius_batch(xq, xr, R, t, valid)
+    _stewenius_batch(xq, xr, R, t, valid, BATCH_REFINE_ITERS, BATCH_REFINE_RTOL)
     mask_invalid(R, t, valid)
     return R, t, valid

@@ -1,0 +1,256 @@
+"""Robustness to outliers: the paper's Sec. V-A protocol (Fig. 6), with PoseLib as a peer.
+
+For matches per pair in {100, 50, 20} and outlier rates in {0, 20, 40, 50, 60} %, ``--trials``
+scenes are drawn with :func:`planarloc.synthetic.scenes.make_scene` (5 references, 1 px noise,
+f = 800, 1280x1080, points in [-10, 10]^3, planar cameras). On each scene every method runs
+with exactly 100 RANSAC iterations (``min_iterations = max_iterations = 100``), and so does
+PoseLib's ``estimate_generalized_relative_pose`` (rig 1 = the query, rig 2 = the posed
+references; see ``poselib_peer.py``). Success = camera-centre error < 0.1 m and rotation
+error < 1 deg; a pose we report as unreliable (``degenerate_scale``) or no pose is a failure.
+
+Timing: each call is timed in the worker process that ran it, ours and PoseLib's on the same
+scene back to back, after a warm-up in the parent process (numba compiled or loaded from its
+cache, inherited by the forked workers). Both wall time (``perf_counter``) and CPU time of the
+process (``process_time``; numba and PoseLib are single-threaded) are recorded; on a machine
+shared with other jobs the CPU time is the meaningful one. With ``--jobs 2`` two workers share
+the machine's two cores; ``--jobs 1`` gives the cleanest wall times.
+
+Usage::
+
+    python benchmarks/robustness.py                 # 100 trials per cell, as the paper
+    python benchmarks/robustness.py --quick         # 20 trials per cell
+    python benchmarks/robustness.py --trials 50 --seed 3 --json out.json --jobs 1
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import multiprocessing as mp
+import os
+import sys
+import time
+import traceback
+from collections import Counter
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from poselib_peer import estimate_query_pose_poselib  # noqa: E402
+
+from planarloc.geometry.pose import pose_errors  # noqa: E402
+from planarloc.robust.absolute_pose import estimate_absolute_pose  # noqa: E402
+from planarloc.robust.options import RansacOptions  # noqa: E402
+from planarloc.synthetic.scenes import make_scene  # noqa: E402
+
+METHODS = ("2p1p", "2p2p", "5p5p-nister", "5p5p-stewenius", "8p8p")
+PEER = "poselib-gen"
+MATCHES = (100, 50, 20)
+OUTLIERS = (0.0, 0.2, 0.4, 0.5, 0.6)
+NUM_REFS = 5
+NOISE_PX = 1.0
+ITERATIONS = 100
+MAX_CENTRE_ERROR_M = 0.1
+MAX_ROTATION_ERROR_DEG = 1.0
+THRESHOLD_PX = 2.0  # ours (RansacOptions default) and PoseLib's max_epipolar_error
+
+
+def trial_seeds(seed: int, mi: int, ri: int, trial: int) -> tuple[np.random.Generator, int]:
+    """Scene generator and RANSAC seed of one trial, independent of scheduling."""
+    ss = np.random.SeedSequence([seed, mi, ri, trial])
+    return np.random.default_rng(ss), int(ss.generate_state(1)[0])
+
+
+def run_trial(task: tuple[int, int, int, int, tuple[str, ...], bool]) -> dict:
+    """One scene, every method and the peer on it. Returns errors, status and time per method."""
+    seed, mi, ri, trial, methods, with_peer = task
+    rng, ransac_seed = trial_seeds(seed, mi, ri, trial)
+    c0 = time.process_time()
+    sc = make_scene(rng, num_refs=NUM_REFS, matches_per_pair=MATCHES[mi], noise_px=NOISE_PX,
+                    outlier_ratio=OUTLIERS[ri])
+    out: dict = {"cell": (mi, ri), "scene_cpu_s": time.process_time() - c0, "methods": {}}
+    opts = RansacOptions(max_iterations=ITERATIONS, min_iterations=ITERATIONS, threshold_px=THRESHOLD_PX,
+                         seed=ransac_seed)
+    for method in methods:
+        try:
+            t, c = time.perf_counter(), time.process_time()
+            est = estimate_absolute_pose(sc.query_camera, sc.pairs, method, opts)
+            dt, dc = time.perf_counter() - t, time.process_time() - c
+        except Exception as exc:  # a crash is a failure to report, not a reason to lose the run
+            out["methods"][method] = {"ok": False, "status": f"error: {type(exc).__name__}: {exc}",
+                                      "time_s": float("nan"), "cpu_s": float("nan"), "trace": traceback.format_exc()}
+            continue
+        r = {"status": est.status, "time_s": dt, "cpu_s": dc, "stage_s": dict(est.stats.time_s), "ok": False}
+        pose = est.pose if est.success else est.unreliable_pose
+        if pose is not None:
+            dc, dr = pose_errors(pose, sc.query_pose)
+            good = dc < MAX_CENTRE_ERROR_M and dr < MAX_ROTATION_ERROR_DEG
+            r.update(centre_m=dc, rotation_deg=dr, ok=bool(est.success and good),
+                     gated_correct=bool(not est.success and good))
+        out["methods"][method] = r
+    if with_peer:
+        peer = estimate_query_pose_poselib(sc.query_camera, sc.pairs, iterations=ITERATIONS,
+                                           threshold_px=THRESHOLD_PX, seed=ransac_seed)
+        r = {"status": "success" if peer.pose is not None else "no_pose", "time_s": peer.time_s,
+             "cpu_s": peer.cpu_s, "ok": False}
+        if peer.pose is not None:
+            dc, dr = pose_errors(peer.pose, sc.query_pose)
+            r.update(centre_m=dc, rotation_deg=dr, ok=bool(dc < MAX_CENTRE_ERROR_M and dr < MAX_ROTATION_ERROR_DEG))
+        out["methods"][PEER] = r
+    return out
+
+
+def warm_up(methods: tuple[str, ...] = METHODS) -> None:
+    """Load the numba caches (or compile) of every method before anything is timed."""
+    sc = make_scene(np.random.default_rng(12345), num_refs=3, matches_per_pair=20, noise_px=1.0, outlier_ratio=0.2)
+    for method in methods:
+        estimate_absolute_pose(sc.query_camera, sc.pairs, method, RansacOptions(max_iterations=20, min_iterations=20))
+    estimate_query_pose_poselib(sc.query_camera, sc.pairs, iterations=20)
+
+
+def run(trials: int, seed: int, jobs: int, methods: tuple[str, ...], with_peer: bool) -> list[dict]:
+    tasks = [(seed, mi, ri, k, methods, with_peer)
+             for k in range(trials) for mi in range(len(MATCHES)) for ri in range(len(OUTLIERS))]
+    total = len(tasks)
+    results: list[dict] = []
+    t_start = time.perf_counter()
+    last = 0.0
+
+    def progress(done: int) -> None:
+        nonlocal last
+        now = time.perf_counter() - t_start
+        if done == total or now - last > 10.0:
+            last = now
+            eta = now / done * (total - done) if done else float("nan")
+            print(f"[robustness] {done}/{total} scenes ({100 * done / total:.0f}%), "
+                  f"{now:.0f} s elapsed, ~{eta:.0f} s left", file=sys.stderr, flush=True)
+
+    print("[robustness] warming up (numba compile or cache load) ...", file=sys.stderr, flush=True)
+    warm_up(methods)  # before the fork: workers inherit the compiled kernels
+    print(f"[robustness] warm-up {time.perf_counter() - t_start:.0f} s; {total} scenes on {jobs} worker(s)",
+          file=sys.stderr, flush=True)
+    t_start = time.perf_counter()
+    if jobs <= 1:
+        for i, task in enumerate(tasks):
+            results.append(run_trial(task))
+            progress(i + 1)
+    else:
+        with mp.get_context("fork").Pool(jobs) as pool:
+            for i, res in enumerate(pool.imap_unordered(run_trial, tasks, chunksize=1)):
+                results.append(res)
+                progress(i + 1)
+    return results
+
+
+def summarise(results: list[dict], names: tuple[str, ...]) -> dict:
+    """Per cell and method: success rate, median time, status counts, median errors."""
+    cells: dict = {}
+    for mi, m in enumerate(MATCHES):
+        for ri, r in enumerate(OUTLIERS):
+            rows = [res for res in results if tuple(res["cell"]) == (mi, ri)]
+            cell = {"matches_per_pair": m, "outlier_ratio": r, "trials": len(rows),
+                    "scene_median_cpu_s": float(np.median([x["scene_cpu_s"] for x in rows])), "methods": {}}
+            for name in names:
+                rs = [x["methods"][name] for x in rows if name in x["methods"]]
+                times = [v["time_s"] for v in rs if np.isfinite(v["time_s"])]
+                cpus = [v["cpu_s"] for v in rs if np.isfinite(v["cpu_s"])]
+                centre = [v["centre_m"] for v in rs if "centre_m" in v]
+                stage_keys = sorted({k for v in rs for k in v.get("stage_s", {})})
+                cell["methods"][name] = {
+                    "success_rate": float(np.mean([v["ok"] for v in rs])) if rs else float("nan"),
+                    "median_time_s": float(np.median(times)) if times else float("nan"),
+                    "median_cpu_s": float(np.median(cpus)) if cpus else float("nan"),
+                    "median_centre_error_m": float(np.median(centre)) if centre else None,
+                    "status": dict(Counter(v["status"] for v in rs)),
+                    "gated_but_correct": int(sum(v.get("gated_correct", False) for v in rs)),
+                    "median_stage_s": {k: float(np.median([v["stage_s"].get(k, 0.0) for v in rs]))
+                                       for k in stage_keys},
+                }
+            cells[f"{m}x{r:.1f}"] = cell
+    return cells
+
+
+def print_tables(cells: dict, names: tuple[str, ...], trials: int) -> None:
+    w = max(len(n) for n in names) + 2
+    head = "".join(f"{int(100 * r):>6d}%" for r in OUTLIERS)
+    print(f"\nSuccess rate (%): {NUM_REFS} refs, {NOISE_PX:g} px noise, {ITERATIONS} fixed iterations, "
+          f"centre < {MAX_CENTRE_ERROR_M} m & R < {MAX_ROTATION_ERROR_DEG} deg, {trials} trials per cell")
+    for m in MATCHES:
+        print(f"\n  matches/pair = {m}\n  {'method':<{w}}{head}")
+        for name in names:
+            vals = "".join(f"{100 * cells[f'{m}x{r:.1f}']['methods'][name]['success_rate']:>7.0f}" for r in OUTLIERS)
+            print(f"  {name:<{w}}{vals}")
+    for key, label in (("median_cpu_s", "CPU"), ("median_time_s", "wall")):
+        print(f"\nMedian {label} time per query (ms), by matches/pair (median of the per-cell medians):")
+        print(f"  {'method':<{w}}" + "".join(f"{m:>8d}" for m in MATCHES))
+        for name in names:
+            vals = [np.median([cells[f"{m}x{r:.1f}"]["methods"][name][key] for r in OUTLIERS]) for m in MATCHES]
+            print(f"  {name:<{w}}" + "".join(f"{1e3 * v:>8.2f}" for v in vals))
+    if PEER in names and "2p1p" in names:
+        print(f"\nTime ratio ours/PoseLib, 2p1p vs {PEER}, {NUM_REFS}x100 matches (median per query):")
+        print(f"  {'outliers':<10}{'CPU ours':>10}{'PoseLib':>10}{'ratio':>7}{'wall ours':>11}{'PoseLib':>10}{'ratio':>7}")
+        for r in OUTLIERS:
+            c = cells[f"100x{r:.1f}"]["methods"]
+            a, b = c["2p1p"], c[PEER]
+            print(f"  {int(100 * r):>3d}%      {1e3 * a['median_cpu_s']:>8.2f}ms{1e3 * b['median_cpu_s']:>8.2f}ms"
+                  f"{a['median_cpu_s'] / b['median_cpu_s']:>7.2f}{1e3 * a['median_time_s']:>9.2f}ms"
+                  f"{1e3 * b['median_time_s']:>8.2f}ms{a['median_time_s'] / b['median_time_s']:>7.2f}")
+        for r in (0.0, 0.6):
+            st = cells[f"100x{r:.1f}"]["methods"]["2p1p"]["median_stage_s"]
+            if st:
+                print(f"  2p1p stages at 100 matches, {int(100 * r)}% outliers (median wall ms): "
+                      + ", ".join(f"{k} {1e3 * v:.2f}" for k, v in st.items()))
+    errors = {n: sum(v for s, v in cells[c]["methods"][n]["status"].items() if s.startswith("error"))
+              for c in cells for n in names}
+    if any(errors.values()):
+        print(f"\nWARNING: methods raised exceptions (counted as failures): "
+              f"{ {n: k for n, k in errors.items() if k} }")
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--trials", type=int, default=100, help="scenes per (matches, outliers) cell (default 100)")
+    ap.add_argument("--quick", action="store_true", help="20 trials per cell")
+    ap.add_argument("--seed", type=int, default=0, help="base seed of scenes and RANSAC (default 0)")
+    ap.add_argument("--json", type=Path, help="write the per-cell summary to this file")
+    ap.add_argument("--jobs", type=int, default=min(2, os.cpu_count() or 1),
+                    help="worker processes (default: min(2, cores)); 1 for the cleanest timings")
+    ap.add_argument("--methods", nargs="+", default=list(METHODS), choices=METHODS)
+    ap.add_argument("--no-poselib", action="store_true", help="skip the PoseLib peer")
+    args = ap.parse_args(argv)
+    trials = 20 if args.quick else args.trials
+    if trials < 1 or args.jobs < 1:
+        print("error: --trials and --jobs must be >= 1", file=sys.stderr)
+        return 1
+    methods = tuple(args.methods)
+    names = methods + (() if args.no_poselib else (PEER,))
+    t0 = time.perf_counter()
+    results = run(trials, args.seed, args.jobs, methods, not args.no_poselib)
+    wall = time.perf_counter() - t0
+    cells = summarise(results, names)
+    print_tables(cells, names, trials)
+    scene_s = sum(r["scene_cpu_s"] for r in results)
+    method_s = {n: sum(r["methods"][n]["cpu_s"] for r in results if np.isfinite(r["methods"][n]["cpu_s"]))
+                for n in names}
+    cpu_total = scene_s + sum(method_s.values())
+    print(f"\nWall time {wall:.0f} s with {args.jobs} job(s), warm-up included. CPU time: scene generation "
+          f"{scene_s:.0f} s, estimators " + ", ".join(f"{n} {s:.0f} s" for n, s in method_s.items())
+          + f"; total {cpu_total:.0f} s = {cpu_total / args.jobs:.0f} s wall on {args.jobs} idle core(s)")
+    if args.json:
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        args.json.write_text(json.dumps({
+            "protocol": {"num_refs": NUM_REFS, "noise_px": NOISE_PX, "iterations": ITERATIONS,
+                         "threshold_px": THRESHOLD_PX, "success": {"centre_m": MAX_CENTRE_ERROR_M,
+                                                                   "rotation_deg": MAX_ROTATION_ERROR_DEG},
+                         "trials": trials, "seed": args.seed, "jobs": args.jobs},
+            "wall_time_s": wall, "scene_generation_cpu_s": scene_s, "estimator_cpu_s": method_s,
+            "cells": cells,
+        }, indent=1))
+        print(f"wrote {args.json}", file=sys.stderr)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,381 @@
+"""Tests of the five-point solvers (Nistér 2004 and Stewénius et al. 2006).
+
+Generated data only. PoseLib is the peer-library oracle (its convention x2 = R x1 + t is
+ours with x1 = query, x2 = reference; it expects unit bearings).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import poselib
+import pytest
+from scipy.spatial.transform import Rotation
+
+from planarloc.geometry.epipolar import essential_from_relpose, triangulation_depths
+from planarloc.geometry.validation import InputError
+from planarloc.solvers._polynomial import MONOMIALS, five_point_constraints, real_roots_sturm
+from planarloc.solvers.relpose_5p_nister import (
+    essentials_5p_nister,
+    relpose_5p_nister,
+    relpose_5p_nister_batch,
+)
+from planarloc.solvers.relpose_5p_stewenius import (
+    essentials_5p_stewenius,
+    real_eigenvalues,
+    relpose_5p_stewenius,
+    relpose_5p_stewenius_batch,
+)
+
+SOLVERS = {
+    "nister": (essentials_5p_nister, relpose_5p_nister, relpose_5p_nister_batch),
+    "stewenius": (essentials_5p_stewenius, relpose_5p_stewenius, relpose_5p_stewenius_batch),
+}
+
+
+# ---- scene generation (local to this file) ------------------------------------------------------
+
+
+def random_relpose(rng, planar=False, max_angle=1.0, min_baseline=0.3):
+    """ref_from_query (R, t): general 6DoF, or planar (yaw about y, t in the x-z plane)."""
+    if planar:
+        R = Rotation.from_rotvec([0.0, rng.uniform(-max_angle, max_angle), 0.0]).as_matrix()
+        phi = rng.uniform(-np.pi, np.pi)
+        t = -R @ (rng.uniform(min_baseline, 2.0) * np.array([np.sin(phi), 0.0, np.cos(phi)]))
+    else:
+        axis = rng.normal(size=3)
+        R = Rotation.from_rotvec(axis / np.linalg.norm(axis) * rng.uniform(0.0, max_angle)).as_matrix()
+        t = rng.normal(size=3)
+        t *= rng.uniform(min_baseline, 2.0) / np.linalg.norm(t)
+    return R, t
+
+
+def make_scene(rng, n=5, planar=False, noise=0.0, max_angle=1.0):
+    """Points uniform in [-10, 10]³ (query frame) with depth > 0.5 in both cameras.
+
+    Returns normalized homogeneous x_query, x_ref (n, 3), the true R and unit t.
+    """
+    R, t = random_relpose(rng, planar, max_angle)
+    X = np.empty((0, 3))
+    while len(X) < n:
+        P = rng.uniform(-10.0, 10.0, size=(8 * n, 3))
+        Q = P @ R.T + t
+        X = np.vstack([X, P[(P[:, 2] > 0.5) & (Q[:, 2] > 0.5)]])
+    X = X[:n]
+    Y = X @ R.T + t
+    xq, xr = X / X[:, 2:], Y / Y[:, 2:]
+    if noise > 0:
+        xq[:, :2] += rng.normal(scale=noise, size=(n, 2))
+        xr[:, :2] += rng.normal(scale=noise, size=(n, 2))
+    return xq, xr, R, t / np.linalg.norm(t)
+
+
+def pose_error(pose, R, t):
+    return max(np.abs(pose.R - R).max(), np.abs(pose.t - t).max())
+
+
+def best_error(poses, R, t):
+    return min((pose_error(p, R, t) for p in poses), default=np.inf)
+
+
+def e_distance(A, B):
+    """Distance of two essential matrices up to scale and sign."""
+    A = A / np.linalg.norm(A)
+    B = B / np.linalg.norm(B)
+    return min(np.abs(A - B).max(), np.abs(A + B).max())
+
+
+def unit(x):
+    return x / np.linalg.norm(x, axis=1, keepdims=True)
+
+
+def sets_agree(As, Bs, tol):
+    return len(As) == len(Bs) and all(min(e_distance(a, b) for b in Bs) < tol for a in As)
+
+
+# ---- exact recovery -------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("name", SOLVERS)
+@pytest.mark.parametrize("planar", [False, True], ids=["6dof", "planar"])
+@pytest.mark.parametrize("seed", range(3))
+def test_exact_recovery(name, planar, seed):
+    essentials, relpose, _ = SOLVERS[name]
+    rng = np.random.default_rng(100 * seed + planar)
+    for _ in range(60):
+        xq, xr, R, t = make_scene(rng, planar=planar)
+        poses = relpose(xq, xr)
+        assert best_error(poses, R, t) < 1e-8
+        Es = essentials(xq, xr)
+        assert 1 <= len(Es) <= 10 and len(poses) <= len(Es)
+        assert min(e_distance(E, essential_from_relpose(R, t)) for E in Es) < 1e-8
+        for E in Es:  # every returned matrix is an exact essential matrix of the data
+            assert np.abs(np.einsum("ni,ij,nj->n", unit(xr), E, unit(xq))).max() < 1e-9
+            s = np.linalg.svd(E, compute_uv=False)
+            assert s[0] - s[1] < 1e-8 and s[2] < 1e-8
+
+
+@pytest.mark.parametrize("name", SOLVERS)
+def test_bearings_all_around(name):
+    """Bearings of any length and any direction (points behind the 'image plane' too)."""
+    _, relpose, _ = SOLVERS[name]
+    rng = np.random.default_rng(5)
+    for _ in range(40):
+        R, t = random_relpose(rng, max_angle=np.pi)
+        X = rng.uniform(-10, 10, size=(5, 3))
+        Y = X @ R.T + t
+        if min(np.linalg.norm(X, axis=1).min(), np.linalg.norm(Y, axis=1).min()) < 0.5:
+            continue
+        xq = unit(X) * rng.uniform(0.1, 10, size=(5, 1))
+        xr = unit(Y) * rng.uniform(0.1, 10, size=(5, 1))
+        assert best_error(relpose(xq, xr), R, t / np.linalg.norm(t)) < 1e-8
+
+
+@pytest.mark.parametrize("name", SOLVERS)
+def test_extra_points_used_for_cheirality(name):
+    _, relpose, _ = SOLVERS[name]
+    rng = np.random.default_rng(6)
+    for _ in range(30):
+        xq, xr, R, t = make_scene(rng, n=20)
+        minimal = relpose(xq[:5], xr[:5])
+        poses = relpose(xq, xr)
+        assert best_error(poses, R, t) < 1e-8
+        assert len(poses) <= len(minimal)
+        for p in poses:  # every returned pose passes cheirality on all 20 points
+            assert np.all(triangulation_depths(p.R, p.t, xq, xr) > 0)
+
+
+@pytest.mark.parametrize("name", SOLVERS)
+def test_planar_structure_is_not_degenerate(name):
+    """Five coplanar points (plane not through the camera centres) still give the truth."""
+    _, relpose, _ = SOLVERS[name]
+    rng = np.random.default_rng(8)
+    for _ in range(30):
+        R, t = random_relpose(rng)
+        n = rng.normal(size=3)
+        n /= np.linalg.norm(n)
+        X = []
+        while len(X) < 5:
+            p = rng.uniform(-10, 10, size=3)
+            p = p - (p @ n - 5.0) * n  # on the plane n·X = 5, which misses both centres
+            if p[2] > 0.5 and (R @ p + t)[2] > 0.5 and abs(n @ (-R.T @ t) - 5.0) > 0.5:
+                X.append(p)
+        X = np.array(X)
+        Y = X @ R.T + t
+        poses = relpose(X / X[:, 2:], Y / Y[:, 2:])
+        assert best_error(poses, R, t / np.linalg.norm(t)) < 1e-7
+
+
+@pytest.mark.parametrize("name", SOLVERS)
+def test_small_noise_near_exact(name):
+    _, relpose, _ = SOLVERS[name]
+    rng = np.random.default_rng(9)
+    errors = []
+    for _ in range(100):
+        xq, xr, R, t = make_scene(rng, n=5, noise=1e-9)
+        errors.append(best_error(relpose(xq, xr), R, t))
+    errors = np.array(errors)
+    # minimal solvers amplify noise by the (random) conditioning of the sample
+    assert np.median(errors) < 1e-7
+    assert np.quantile(errors, 0.9) < 1e-5
+
+
+# ---- degenerate and invalid input ----------------------------------------------------------------
+
+
+def degenerate_samples():
+    rng = np.random.default_rng(10)
+    xq, xr, R, t = make_scene(rng)
+    out = {}
+    a, b = xq.copy(), xr.copy()
+    a[3], b[3] = a[1], b[1]
+    out["repeated point"] = (a, b)
+    out["all points identical"] = (np.repeat(xq[:1], 5, axis=0), np.repeat(xr[:1], 5, axis=0))
+    Y = (xq * rng.uniform(1, 10, size=(5, 1))) @ R.T  # zero baseline
+    out["pure rotation"] = (xq, Y / Y[:, 2:])
+    out["points at infinity"] = (xq, (xq @ R.T) * rng.uniform(0.5, 2, size=(5, 1)))
+    # all points on one epipolar plane (coplanar with both camera centres)
+    c_ref = -R.T @ t  # reference centre in the query frame
+    u = rng.normal(size=3)
+    X = np.array([rng.uniform(1, 5) * c_ref + rng.uniform(-3, 3) * u + np.array([0, 0, 8.0]) * rng.uniform(0.5, 1)
+                  for _ in range(5)])  # fmt: skip
+    normal = np.cross(c_ref, X[0])
+    X = X - np.outer((X @ normal) / (normal @ normal), normal)  # project onto the plane (0, c_ref, X0)
+    Y = X @ R.T + t
+    out["one epipolar plane"] = (X / X[:, 2:], Y / Y[:, 2:])
+    return out
+
+
+DEGENERATE = degenerate_samples()
+
+
+@pytest.mark.parametrize("name", SOLVERS)
+@pytest.mark.parametrize("case", DEGENERATE)
+def test_degenerate_input_gives_no_solution(name, case):
+    essentials, relpose, batch = SOLVERS[name]
+    xq, xr = DEGENERATE[case]
+    assert essentials(xq, xr) == []
+    assert relpose(xq, xr) == []
+    R, t, valid = batch(xq[None], xr[None])
+    assert not valid.any() and np.isnan(R).all() and np.isnan(t).all()
+
+
+@pytest.mark.parametrize("name", SOLVERS)
+def test_invalid_input_raises(name):
+    essentials, relpose, batch = SOLVERS[name]
+    rng = np.random.default_rng(12)
+    xq, xr, _, _ = make_scene(rng, n=6)
+    with pytest.raises(InputError, match=r"expected shape \(5, 3\)"):
+        essentials(xq, xr)  # the minimal solve takes exactly five
+    with pytest.raises(InputError, match="at least 5 rows"):
+        relpose(xq[:4], xr[:4])
+    with pytest.raises(InputError, match=r"expected shape \(N, 3\)"):
+        relpose(xq[:, :2], xr[:, :2])
+    with pytest.raises(InputError, match="same number of rows"):
+        relpose(xq, xr[:5])
+    bad = xq.copy()
+    bad[2, 0] = np.nan
+    with pytest.raises(InputError, match=r"NaN or inf \(first at index \(2, 0\)\)"):
+        relpose(bad, xr)
+    bad[2, 0] = np.inf
+    with pytest.raises(ValueError):
+        essentials(bad[:5], xr[:5])
+    bad = xq.copy()
+    bad[4] = 0.0
+    with pytest.raises(InputError, match=r"x_query\[4\] is a zero vector"):
+        relpose(bad, xr)
+    with pytest.raises(InputError, match=r"expected shape \(N, 5, 3\)"):
+        batch(xq[None], xr[None])
+    with pytest.raises(InputError, match="same shape"):
+        batch(np.stack([xq[:5]] * 2), xr[None, :5])
+    with pytest.raises(InputError, match="zero vector"):
+        batch(np.zeros((1, 5, 3)), xr[None, :5])
+    with pytest.raises(InputError, match="NaN or inf"):
+        batch(np.full((1, 5, 3), np.nan), xr[None, :5])
+
+
+# ---- batched API --------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("name", SOLVERS)
+def test_batch_matches_single_calls(name):
+    _, relpose, batch = SOLVERS[name]
+    rng = np.random.default_rng(13)
+    scenes = [make_scene(rng, planar=bool(i % 2)) for i in range(60)]
+    XQ = np.stack([s[0] for s in scenes])
+    XR = np.stack([s[1] for s in scenes])
+    XQ[7], XR[7] = DEGENERATE["repeated point"]
+    XQ[20], XR[20] = DEGENERATE["pure rotation"]
+    R, t, valid = batch(XQ, XR)
+    assert R.shape == (60, 10, 3, 3) and t.shape == (60, 10, 3) and valid.shape == (60, 10)
+    assert valid.dtype == bool
+    assert not valid[7].any() and not valid[20].any()
+    for m in range(60):
+        k = int(valid[m].sum())
+        assert valid[m, :k].all()  # packed first
+        assert np.isnan(R[m, k:]).all() and np.isnan(t[m, k:]).all()
+        single = relpose(XQ[m], XR[m])
+        assert len(single) == k
+        for p in single:  # same poses (the batch polishes roots a little less)
+            assert min(max(np.abs(R[m, j] - p.R).max(), np.abs(t[m, j] - p.t).max()) for j in range(k)) < 1e-7
+        if m not in (7, 20):
+            Rt, tt = scenes[m][2], scenes[m][3]
+            assert min(max(np.abs(R[m, j] - Rt).max(), np.abs(t[m, j] - tt).max()) for j in range(k)) < 1e-6
+    # rotations are proper and translations unit
+    Rv, tv = R[valid], t[valid]
+    assert np.allclose(Rv @ Rv.transpose(0, 2, 1), np.eye(3), atol=1e-10)
+    assert np.allclose(np.linalg.det(Rv), 1.0) and np.allclose(np.linalg.norm(tv, axis=1), 1.0)
+    # an empty batch is fine
+    R0, t0, v0 = batch(np.empty((0, 5, 3)), np.empty((0, 5, 3)))
+    assert R0.shape == (0, 10, 3, 3) and v0.shape == (0, 10)
+
+
+# ---- cross-checks -------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("name", SOLVERS)
+@pytest.mark.parametrize("planar", [False, True], ids=["6dof", "planar"])
+def test_agrees_with_poselib(name, planar):
+    essentials, relpose, _ = SOLVERS[name]
+    rng = np.random.default_rng(14 + planar)
+    agree_E = agree_pose = 0
+    trials = 100
+    for _ in range(trials):
+        xq, xr, R, t = make_scene(rng, planar=planar)
+        ours = essentials(xq, xr)
+        theirs = poselib.essential_matrix_5pt(unit(xq), unit(xr))
+        agree_E += sets_agree(ours, theirs, 1e-6) and sets_agree(theirs, ours, 1e-6)
+        poses = relpose(xq, xr)
+        ppl = poselib.relpose_5pt(unit(xq), unit(xr))
+        same = len(ppl) == len(poses) and all(
+            min(max(np.abs(p.R - q.R).max(), np.abs(p.t - q.t / np.linalg.norm(q.t)).max()) for q in ppl) < 1e-6
+            for p in poses
+        )
+        agree_pose += same
+        # the truth is always among ours
+        assert best_error(poses, R, t) < 1e-8
+    # PoseLib loses digits on ill-conditioned samples (then a root may be missing or off by > 1e-6)
+    assert agree_E >= 0.95 * trials
+    assert agree_pose >= 0.95 * trials
+
+
+def test_nister_and_stewenius_agree():
+    rng = np.random.default_rng(15)
+    agree = 0
+    for i in range(150):
+        xq, xr, _, _ = make_scene(rng, planar=bool(i % 2))
+        A = essentials_5p_nister(xq, xr)
+        B = essentials_5p_stewenius(xq, xr)
+        agree += sets_agree(A, B, 1e-8) and sets_agree(B, A, 1e-8)
+    assert agree >= 147  # near-double real roots may be counted differently
+
+
+# ---- building blocks ----------------------------------------------------------------------------
+
+
+def test_cubic_constraints_match_direct_evaluation():
+    rng = np.random.default_rng(16)
+    for _ in range(10):
+        basis = np.linalg.qr(rng.normal(size=(9, 4)))[0]
+        C = five_point_constraints(basis)
+        for _ in range(5):
+            x, y, z = rng.normal(size=3)
+            E = (basis @ np.array([x, y, z, 1.0])).reshape(3, 3)
+            EEt = E @ E.T
+            direct = np.concatenate([(2 * EEt @ E - np.trace(EEt) * E).ravel(), [np.linalg.det(E)]])
+            monomials = np.array([x**a * y**b * z**c for a, b, c in MONOMIALS])
+            assert np.allclose(C @ monomials, direct, rtol=1e-12, atol=1e-12)
+
+
+def test_sturm_real_roots():
+    rng = np.random.default_rng(17)
+    out = np.empty(10)
+    for k in range(200):
+        n_real = 2 * rng.integers(0, 6)  # 0, 2, ..., 10 real roots; the rest complex pairs
+        roots = rng.normal(scale=3, size=n_real)
+        coeffs = np.poly1d([rng.uniform(0.1, 10) * rng.choice([-1, 1])])
+        for r in roots:
+            coeffs *= np.poly1d([1.0, -r])
+        for _ in range((10 - n_real) // 2):
+            a, b = rng.normal(), rng.uniform(0.5, 2)
+            coeffs *= np.poly1d([1.0, -2 * a, a * a + b * b])
+        c = coeffs.coeffs[::-1].copy()  # ascending
+        count = real_roots_sturm(c, out)
+        if np.min(np.diff(np.sort(roots)), initial=np.inf) > 1e-3:
+            assert count == n_real
+            assert np.allclose(np.sort(out[:count]), np.sort(roots), atol=1e-8)
+    # a double root is reported once; a constant or zero polynomial has no roots
+    assert real_roots_sturm(np.array([1.0, -2.0, 1.0]), out) == 1 and out[0] == pytest.approx(1.0, abs=1e-6)
+    assert real_roots_sturm(np.array([3.0, 0.0, 0.0]), out) == 0
+    assert real_roots_sturm(np.zeros(11), out) == 0
+
+
+def test_real_eigenvalues_match_numpy():
+    rng = np.random.default_rng(18)
+    out = np.empty(10)
+    for _ in range(100):
+        M = rng.normal(size=(10, 10)) * rng.uniform(0.1, 100)
+        ref = np.linalg.eigvals(M)
+        ref = np.sort(ref.real[np.abs(ref.imag) <= 1e-10 * np.maximum(1, np.abs(ref.real))])
+        count = real_eigenvalues(M, out)
+        assert count == len(ref)
+        assert np.allclose(np.sort(out[:count]), ref, rtol=1e-9, atol=1e-9)
