@@ -112,7 +112,8 @@ def run_trial(task: tuple[int, int, int, int, tuple[str, ...], bool]) -> dict:
 def warm_up(methods: tuple[str, ...] = METHODS) -> None:
     sc = make_scene(np.random.default_rng(12345), num_refs=3, matches_per_pair=20, noise_px=1.0)
     for method in methods:
-        estimate_absolute_pose(sc.query_camera, sc.pairs, method, RansacOptions(max_iterations=20, min_iterations=20))
+        estimate_absolute_pose(sc.query_camera, sc.pairs, method,
+                               RansacOptions(max_iterations=20, min_iterations=20))
     estimate_query_pose_poselib(sc.query_camera, sc.pairs, iterations=20)
 
 
@@ -158,7 +159,8 @@ def summarise(results: list[dict], names: tuple[str, ...]) -> dict:
                 s[key]["mean"][m], s[key]["median"][m] = [], []
             s["failed"][m], s["flagged"][m], s["median_time_s"][m] = [], [], []
             for ni in range(len(NOISES)):
-                rs = [r["methods"][name] for r in results if tuple(r["cell"]) == (ni, mi) and name in r["methods"]]
+                rs = [r["methods"][name] for r in results
+                      if tuple(r["cell"]) == (ni, mi) and name in r["methods"]]
                 ok = [r for r in rs if "position_m" in r]
                 for key, _ in METRICS:
                     vals = [r[key] for r in ok]
@@ -184,10 +186,11 @@ def print_tables(summary: dict, names: tuple[str, ...], trials: int) -> None:
                 vals = summary[name][key]["mean"][m]
                 fmt = (lambda v: f"{v:>8.4f}") if key == "position_m" else (lambda v: f"{v:>8.3f}")
                 print(f"  {name:<{w}}" + "".join(fmt(v) for v in vals))
-    bad = {(n, m): (sum(summary[n]["failed"][m]), sum(summary[n]["flagged"][m])) for n in names for m in MATCHES}
+    bad = {(n, m): (sum(summary[n]["failed"][m]), sum(summary[n]["flagged"][m]))
+           for n in names for m in MATCHES}
     if any(f or g for f, g in bad.values()):
-        print("\n  runs without a pose (failed, left out of the means) / with a pose flagged degenerate_scale "
-              "(included):")
+        print("\n  runs without a pose (failed, left out of the means) / with a pose flagged "
+              "degenerate_scale (included):")
         for (n, m), (f, g) in bad.items():
             if f or g:
                 print(f"    {n:<{w}} {m:>3d}/pair: failed {f}, flagged {g} of {trials * len(NOISES)}")

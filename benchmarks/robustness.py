@@ -79,7 +79,8 @@ def run_trial(task: tuple[int, int, int, int, tuple[str, ...], bool]) -> dict:
             dt, dc = time.perf_counter() - t, time.process_time() - c
         except Exception as exc:  # a crash is a failure to report, not a reason to lose the run
             out["methods"][method] = {"ok": False, "status": f"error: {type(exc).__name__}: {exc}",
-                                      "time_s": float("nan"), "cpu_s": float("nan"), "trace": traceback.format_exc()}
+                                      "time_s": float("nan"), "cpu_s": float("nan"),
+                                      "trace": traceback.format_exc()}
             continue
         r = {"status": est.status, "time_s": dt, "cpu_s": dc, "stage_s": dict(est.stats.time_s), "ok": False}
         pose = est.pose if est.success else est.unreliable_pose
@@ -96,16 +97,19 @@ def run_trial(task: tuple[int, int, int, int, tuple[str, ...], bool]) -> dict:
              "cpu_s": peer.cpu_s, "ok": False}
         if peer.pose is not None:
             dc, dr = pose_errors(peer.pose, sc.query_pose)
-            r.update(centre_m=dc, rotation_deg=dr, ok=bool(dc < MAX_CENTRE_ERROR_M and dr < MAX_ROTATION_ERROR_DEG))
+            r.update(centre_m=dc, rotation_deg=dr,
+                     ok=bool(dc < MAX_CENTRE_ERROR_M and dr < MAX_ROTATION_ERROR_DEG))
         out["methods"][PEER] = r
     return out
 
 
 def warm_up(methods: tuple[str, ...] = METHODS) -> None:
     """Load the numba caches (or compile) of every method before anything is timed."""
-    sc = make_scene(np.random.default_rng(12345), num_refs=3, matches_per_pair=20, noise_px=1.0, outlier_ratio=0.2)
+    sc = make_scene(np.random.default_rng(12345), num_refs=3, matches_per_pair=20, noise_px=1.0,
+                    outlier_ratio=0.2)
     for method in methods:
-        estimate_absolute_pose(sc.query_camera, sc.pairs, method, RansacOptions(max_iterations=20, min_iterations=20))
+        estimate_absolute_pose(sc.query_camera, sc.pairs, method,
+                               RansacOptions(max_iterations=20, min_iterations=20))
     estimate_query_pose_poselib(sc.query_camera, sc.pairs, iterations=20)
 
 
@@ -179,21 +183,25 @@ def print_tables(cells: dict, names: tuple[str, ...], trials: int) -> None:
     for m in MATCHES:
         print(f"\n  matches/pair = {m}\n  {'method':<{w}}{head}")
         for name in names:
-            vals = "".join(f"{100 * cells[f'{m}x{r:.1f}']['methods'][name]['success_rate']:>7.0f}" for r in OUTLIERS)
+            rates = [cells[f"{m}x{r:.1f}"]["methods"][name]["success_rate"] for r in OUTLIERS]
+            vals = "".join(f"{100 * v:>7.0f}" for v in rates)
             print(f"  {name:<{w}}{vals}")
     for key, label in (("median_cpu_s", "CPU"), ("median_time_s", "wall")):
         print(f"\nMedian {label} time per query (ms), by matches/pair (median of the per-cell medians):")
         print(f"  {'method':<{w}}" + "".join(f"{m:>8d}" for m in MATCHES))
         for name in names:
-            vals = [np.median([cells[f"{m}x{r:.1f}"]["methods"][name][key] for r in OUTLIERS]) for m in MATCHES]
+            vals = [np.median([cells[f"{m}x{r:.1f}"]["methods"][name][key] for r in OUTLIERS])
+                    for m in MATCHES]
             print(f"  {name:<{w}}" + "".join(f"{1e3 * v:>8.2f}" for v in vals))
     if PEER in names and "2p1p" in names:
         print(f"\nTime ratio ours/PoseLib, 2p1p vs {PEER}, {NUM_REFS}x100 matches (median per query):")
-        print(f"  {'outliers':<10}{'CPU ours':>10}{'PoseLib':>10}{'ratio':>7}{'wall ours':>11}{'PoseLib':>10}{'ratio':>7}")
+        print(f"  {'outliers':<10}{'CPU ours':>10}{'PoseLib':>10}{'ratio':>7}"
+              f"{'wall ours':>11}{'PoseLib':>10}{'ratio':>7}")
         for r in OUTLIERS:
             c = cells[f"100x{r:.1f}"]["methods"]
             a, b = c["2p1p"], c[PEER]
-            print(f"  {int(100 * r):>3d}%      {1e3 * a['median_cpu_s']:>8.2f}ms{1e3 * b['median_cpu_s']:>8.2f}ms"
+            print(f"  {int(100 * r):>3d}%      {1e3 * a['median_cpu_s']:>8.2f}ms"
+                  f"{1e3 * b['median_cpu_s']:>8.2f}ms"
                   f"{a['median_cpu_s'] / b['median_cpu_s']:>7.2f}{1e3 * a['median_time_s']:>9.2f}ms"
                   f"{1e3 * b['median_time_s']:>8.2f}ms{a['median_time_s'] / b['median_time_s']:>7.2f}")
         for r in (0.0, 0.6):
@@ -211,7 +219,8 @@ def print_tables(cells: dict, names: tuple[str, ...], trials: int) -> None:
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--trials", type=int, default=100, help="scenes per (matches, outliers) cell (default 100)")
+    ap.add_argument("--trials", type=int, default=100,
+                    help="scenes per (matches, outliers) cell (default 100)")
     ap.add_argument("--quick", action="store_true", help="20 trials per cell")
     ap.add_argument("--seed", type=int, default=0, help="base seed of scenes and RANSAC (default 0)")
     ap.add_argument("--json", type=Path, help="write the per-cell summary to this file")

@@ -109,16 +109,29 @@ class Camera:
         return np.array(self.params[4:8]) if self.model == CameraModel.OPENCV else np.zeros(4)
 
     def scaled(self, sx: float, sy: float | None = None) -> Camera:
-        """The same camera for an image resized by (sx, sy)."""
+        """The same camera for an image resized by (sx, sy) (as ``cv2.resize`` does).
+
+        With pixel centres on integers (OpenCV), ``u' = s (u + 0.5) - 0.5``."""
         sy = sx if sy is None else sy
         (fx, fy), (cx, cy) = self.focal, self.principal_point
-        p = (fx * sx, fy * sy, cx * sx, cy * sy, *self.params[4:8])
+        p = (fx * sx, fy * sy, sx * (cx + 0.5) - 0.5, sy * (cy + 0.5) - 0.5, *self.params[4:8])
         model = CameraModel.OPENCV if self.model == CameraModel.OPENCV else CameraModel.PINHOLE
         return Camera(model, round(self.width * sx), round(self.height * sy), p)
 
+    def with_principal_point_offset(self, dx: float, dy: float) -> Camera:
+        """The same camera with ``(cx + dx, cy + dy)``; e.g. ``(-0.5, -0.5)`` converts COLMAP's
+        pixel convention (top-left pixel centre at (0.5, 0.5)) to planarloc's (OpenCV)."""
+        p = list(self.params)
+        i = 1 if self.model == CameraModel.SIMPLE_PINHOLE else 2
+        p[i] += dx
+        p[i + 1] += dy
+        return Camera(self.model, self.width, self.height, tuple(p))
+
     # ---- projection ----------------------------------------------------------------------
     def cam_from_img(self, points: object) -> np.ndarray:
-        """Pixels (N, 2) -> undistorted normalized coordinates (N, 2)."""
+        """Pixels (N, 2) -> undistorted normalized coordinates (N, 2).
+
+        Rows outside the valid range of the OPENCV distortion model come back NaN."""
         uv = check_array("points", points, (None, 2))
         (fx, fy), (cx, cy) = self.focal, self.principal_point
         xd = np.stack([(uv[:, 0] - cx) / fx, (uv[:, 1] - cy) / fy], axis=1)
@@ -187,4 +200,8 @@ def undistort_normalized(xd: np.ndarray, dist: np.ndarray, iterations: int = 30)
         x[:, 1] -= step_v
         if max(np.abs(step_u).max(initial=0.0), np.abs(step_v).max(initial=0.0)) < 1e-14:
             break
+    # Outside the range where the distortion map is invertible Newton converges to a wrong
+    # point: mark those NaN rather than return a wrong ray.
+    bad = np.abs(distort_normalized(x, dist) - xd).max(axis=1) > 1e-9
+    x[bad] = np.nan
     return x

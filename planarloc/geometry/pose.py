@@ -34,8 +34,8 @@ class Pose:
     t: np.ndarray
 
     def __post_init__(self) -> None:
-        R = check_rotation("Pose.R", self.R)
-        t = check_array("Pose.t", self.t, (3,))
+        R = check_rotation("Pose.R", self.R).copy()  # never freeze the caller's arrays
+        t = check_array("Pose.t", self.t, (3,)).copy()
         R.setflags(write=False)
         t.setflags(write=False)
         object.__setattr__(self, "R", R)
@@ -83,7 +83,7 @@ class Pose:
 
     @property
     def center(self) -> np.ndarray:
-        """(3,) origin of frame ``a`` expressed in frame ``b``'s inverse, i.e. ``-Rᵀ t``.
+        """(3,) origin of frame ``b`` expressed in frame ``a``, i.e. ``-Rᵀ t``.
 
         For ``cam_from_world`` this is the camera centre in world coordinates.
         """

@@ -21,7 +21,8 @@ class InputError(ValueError):
 
 
 def _shape_str(shape: Sequence[int | None]) -> str:
-    return "(" + ", ".join("N" if s is None else str(s) for s in shape) + ")"
+    inner = ", ".join("N" if s is None else str(s) for s in shape)
+    return f"({inner},)" if len(shape) == 1 else f"({inner})"
 
 
 def check_array(

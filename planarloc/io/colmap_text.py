@@ -38,7 +38,8 @@ def read_colmap_cameras(path: Path) -> dict[int, Camera]:
                 "expected 'CAMERA_ID MODEL WIDTH HEIGHT PARAMS...', found a line without CAMERA_ID",
             )
         try:
-            out[int(key)] = cam
+            # COLMAP puts the top-left pixel centre at (0.5, 0.5); planarloc uses OpenCV's (0, 0).
+            out[int(key)] = cam.with_principal_point_offset(-0.5, -0.5)
         except ValueError:
             raise FormatError(path, None, f"expected integer camera ids, found {key!r}") from None
     return out

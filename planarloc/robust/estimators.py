@@ -20,7 +20,12 @@ from planarloc.geometry.planar import rotation_from_yaw
 from planarloc.robust.hypotheses import hypotheses_2p1p, hypotheses_from_relative_poses, hypotheses_up2p
 from planarloc.robust.options import Method, RansacOptions
 from planarloc.robust.problem import AbsolutePoseProblem
-from planarloc.robust.refinement import map_uncertainty_covariance, refine_pose
+from planarloc.robust.refinement import (
+    centre_covariance,
+    map_covariance_from_parts,
+    map_uncertainty_covariance,
+    refine_pose,
+)
 from planarloc.robust.result import RansacStatistics
 from planarloc.robust.sampling import draw_pair_samples
 from planarloc.robust.scoring import errors_sq, msac_scores
@@ -66,16 +71,17 @@ class _ProblemEstimator:
     def refine_full(self, R: np.ndarray, t: np.ndarray, max_iterations: int) -> tuple:
         """Refine on the current inliers; returns (R, t, cov_center, sigma, cost, in2d, in3d)."""
         in2d, in3d = self.inliers(R, t)
-        R2, t2, cov, sigma, cost = self._refine(R, -R.T @ t, in2d, in3d, max_iterations)
-        return R2, t2, cov, sigma, cost, in2d, in3d
+        R2, t2, H, sigma, cost = self._refine(R, -R.T @ t, in2d, in3d, max_iterations)
+        return R2, t2, centre_covariance(H, sigma), sigma, cost, in2d, in3d
 
     def map_covariance(self, R: np.ndarray, t: np.ndarray, in2d: np.ndarray, in3d: np.ndarray) -> np.ndarray:
         """(3, 3) position covariance caused by the map's pose uncertainty (options.map_*_std)."""
         p, o = self.p, self.options
-        return map_uncertainty_covariance(
+        H, M, var = map_uncertainty_covariance(
             np.ascontiguousarray(R), np.ascontiguousarray(t), p.xq, p.xr, p.pair, np.flatnonzero(in2d),
             p.f_query, p.f_ref, p.ref_R, p.ref_t, p.xq3d, p.X3d, np.flatnonzero(in3d), o.threshold_px,
             float(np.radians(o.map_rotation_std_deg)), float(o.map_position_std_m))
+        return map_covariance_from_parts(H, M, var)
 
     def profile_std(self, R: np.ndarray, t: np.ndarray, in2d: np.ndarray, in3d: np.ndarray, sigma: float,
                     cost: float, direction: np.ndarray, distance: float) -> float:

@@ -182,6 +182,40 @@ def _residuals_jacobian(
 
 
 @njit(cache=True, error_model="numpy")
+def _solve_spd(A: np.ndarray, b: np.ndarray, x: np.ndarray) -> bool:
+    """Solve ``A x = b`` for a small symmetric positive-definite A by Cholesky; False if not SPD.
+
+    Hand-written: numba's ``np.linalg.solve`` pulls in LAPACK bindings that take tens of
+    seconds to compile, for a 6x6 system that this solves in ~100 ns.
+    """
+    n = A.shape[0]
+    L = np.zeros((n, n))
+    for i in range(n):
+        for j in range(i + 1):
+            acc = A[i, j]
+            for k in range(j):
+                acc -= L[i, k] * L[j, k]
+            if i == j:
+                if not acc > 0.0:
+                    return False
+                L[i, i] = np.sqrt(acc)
+            else:
+                L[i, j] = acc / L[j, j]
+    y = np.empty(n)
+    for i in range(n):
+        acc = b[i]
+        for k in range(i):
+            acc -= L[i, k] * y[k]
+        y[i] = acc / L[i, i]
+    for i in range(n - 1, -1, -1):
+        acc = y[i]
+        for k in range(i + 1, n):
+            acc -= L[k, i] * x[k]
+        x[i] = acc / L[i, i]
+    return True
+
+
+@njit(cache=True, error_model="numpy")
 def refine_pose(
     Rq: np.ndarray, tq: np.ndarray, xq: np.ndarray, xr: np.ndarray, pair: np.ndarray, idx2d: np.ndarray,
     f_query: np.ndarray, f_ref: np.ndarray, ref_R: np.ndarray, ref_t: np.ndarray,
@@ -202,8 +236,9 @@ def refine_pose(
             overfitted residuals cannot make an ill-conditioned position look certain.
 
     Returns:
-        R (3, 3), t (3,), the (3, 3) covariance of the camera centre in world units²
-        (inf-filled when singular), the residual scale σ̂ in pixels, and the final robust cost.
+        R (3, 3), t (3,), the (6, 6) normal matrix ``JᵀWJ`` at the solution (parameters
+        ``(δ, p)``; see :func:`centre_covariance`), the residual scale σ̂ in pixels, and the
+        final robust cost.
     """
     m = idx2d.shape[0] + 2 * idx3d.shape[0]
     R = Rq.copy()
@@ -247,10 +282,9 @@ def refine_pose(
                 A[k, k] += lam * max(H[k, k], 1e-12)
                 if fixed[k]:
                     A[k, k] = 1.0
-            if np.linalg.det(A) == 0.0:
+            if not _solve_spd(A, -g, step):
                 lam *= 10.0
                 continue
-            step = -np.linalg.solve(A, g)
             R_new = _exp_so3(step[:3]) @ R
             c_new = c + B @ step[3:]
             _residuals(zero, R_new, c_new, B, xq, xr, pair, idx2d, f_query, f_ref, ref_R, ref_t, xq3d, X3d, idx3d, rp)
@@ -266,17 +300,11 @@ def refine_pose(
             _residuals_jacobian(R, c, B, xq, xr, pair, idx2d, f_query, f_ref, ref_R, ref_t, xq3d, X3d, idx3d, r, J)
         if not improved or np.sqrt(np.sum(step * step)) < 1e-9:
             max_iterations = it + 1  # one more pass to evaluate H at the solution
-    # Covariance of the centre at the solution: σ̂² (JᵀWJ)⁻¹, scale-aware singularity test.
+    # The normal matrix JᵀWJ at the solution; the covariance σ̂² (JᵀWJ)⁻¹ is formed by the caller.
     dof = max(m - 6, 1)
     sigma2 = max(wr2 / dof, sigma_floor * sigma_floor)
-    cov_c = np.full((3, 3), np.inf)
-    if not fixed.any():
-        ev = np.linalg.eigvalsh(H)
-        if ev[0] > 1e-12 * ev[-1] and ev[0] > 0:
-            Hinv = np.linalg.inv(H)
-            cov_c = sigma2 * (B @ np.ascontiguousarray(Hinv[3:, 3:]) @ B.T)
     t = -(R @ c)
-    return R, t, cov_c, np.sqrt(sigma2), cost
+    return R, t, H.copy(), np.sqrt(sigma2), cost
 
 
 @njit(cache=True, error_model="numpy")
@@ -285,7 +313,7 @@ def map_uncertainty_covariance(
     f_query: np.ndarray, f_ref: np.ndarray, ref_R: np.ndarray, ref_t: np.ndarray,
     xq3d: np.ndarray, X3d: np.ndarray, idx3d: np.ndarray, loss_scale: float,
     rotation_std_rad: float, position_std_m: float,
-) -> np.ndarray:
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Covariance of the query centre caused by errors of the map's reference poses.
 
     First-order propagation: with ``J`` the residual Jacobian w.r.t. the query parameters and
@@ -297,7 +325,9 @@ def map_uncertainty_covariance(
     matches; near-collinear geometry amplifies them along the line of travel.
 
     Returns:
-        (3, 3) covariance of the camera centre (inf-filled when the normal matrix is singular).
+        ``H = JᵀWJ`` (6, 6), ``M = JᵀW J_r`` (6, 6P) and the variances (6P,) of the reference
+        parameters; :func:`map_covariance_from_parts` forms the centre covariance (numpy
+        linear algebra stays outside numba, whose LAPACK bindings are slow to compile).
     """
     m = idx2d.shape[0] + 2 * idx3d.shape[0]
     R0 = Rq.copy()
@@ -347,15 +377,28 @@ def map_uncertainty_covariance(
             for n in range(rows.shape[0]):
                 Jr[rows[n], 6 * p + k] = (pert[n] - base[n]) / h
     JW = J * w[:, None]
-    H = JW.T @ J
-    out = np.full((3, 3), np.inf)
-    ev = np.linalg.eigvalsh(H)
-    if not (ev[0] > 1e-12 * ev[-1] and ev[0] > 0):
-        return out
-    Bm = np.linalg.solve(H, JW.T @ Jr)  # (6, 6P)
     var = np.empty(6 * P)
     for p in range(P):
         for k in range(6):
             var[6 * p + k] = rotation_std_rad**2 if k < 3 else position_std_m**2
-    S = (Bm * var[None, :]) @ Bm.T
-    return S[3:, 3:].copy()
+    return JW.T @ J, JW.T @ Jr, var
+
+
+def centre_covariance(H: np.ndarray, sigma: float, B: np.ndarray = np.eye(3)) -> np.ndarray:
+    """(3, 3) covariance of the camera centre ``σ̂² B (H⁻¹)[3:, 3:] Bᵀ`` from the normal matrix.
+
+    Inf-filled when H is singular relative to its scale (an unobservable direction).
+    """
+    ev = np.linalg.eigvalsh(H)
+    if not (ev[0] > 1e-12 * ev[-1] and ev[0] > 0):
+        return np.full((3, 3), np.inf)
+    return sigma * sigma * (B @ np.linalg.inv(H)[3:, 3:] @ B.T)
+
+
+def map_covariance_from_parts(H: np.ndarray, M: np.ndarray, var: np.ndarray) -> np.ndarray:
+    """``B diag(var) Bᵀ`` with ``B = H⁻¹ M``, centre block; inf-filled when H is singular."""
+    ev = np.linalg.eigvalsh(H)
+    if not (ev[0] > 1e-12 * ev[-1] and ev[0] > 0):
+        return np.full((3, 3), np.inf)
+    Bm = np.linalg.solve(H, M)
+    return ((Bm * var[None, :]) @ Bm.T)[3:, 3:]

@@ -51,7 +51,7 @@ RANK_TOL = 1e-10  # smallest |R_ii| of the QR of the unit-normalised 9x5 constra
 # Gauss-Newton polishing of the roots (refine_five_point_root): single calls polish to rounding
 # level; the batched RANSAC kernels only polish roots whose residual shows lost digits.
 REFINE_ITERS, REFINE_RTOL = 5, 1e-15
-BATCH_REFINE_ITERS, BATCH_REFINE_RTOL = 2, 1e-12
+BATCH_REFINE_ITERS, BATCH_REFINE_RTOL = 5, 1e-12
 ROTATION_ONLY_TOL = 1e-10  # max | |x_q,i . x_q,j| - |x_r,i . x_r,j| | below which the sample is a pure rotation
 
 
@@ -441,7 +441,10 @@ def _sign_changes_at_infinity(S: np.ndarray, degs: np.ndarray, ns: int, positive
 
 @njit(cache=True)
 def _newton_bisect(c: np.ndarray, deg: int, lo: float, hi: float) -> float:
-    """Root of ``c`` in the bracket [lo, hi] by Newton steps safeguarded by bisection."""
+    """Root of ``c`` in the bracket [lo, hi] by Newton steps safeguarded by bisection.
+
+    NaN if ``c`` has the same sign at both ends (no bracket).
+    """
     flo = polyval(c, deg, lo)
     fhi = polyval(c, deg, hi)
     if flo == 0.0:
@@ -449,7 +452,7 @@ def _newton_bisect(c: np.ndarray, deg: int, lo: float, hi: float) -> float:
     if fhi == 0.0:
         return hi
     if (flo > 0.0) == (fhi > 0.0):
-        return 0.5 * (lo + hi)  # no sign change (even multiplicity within rounding)
+        return np.nan  # no sign change: even multiplicity
     # orient so that f(xl) < 0 < f(xh)
     if flo < 0.0:
         xl, xh = lo, hi
@@ -493,8 +496,9 @@ def real_roots_sturm(coeffs: np.ndarray, roots: np.ndarray) -> int:
     The Sturm sequence ``p, p', −rem(p, p'), ...`` counts the distinct real roots in any
     interval (Sturm's theorem). Starting from Fujiwara's bound on the root magnitudes, intervals
     are bisected until each holds exactly one root, which is then polished by Newton steps
-    safeguarded by bisection to full double precision. A cluster of roots closer than
-    ~1e-14 relative is reported once.
+    safeguarded by bisection to full double precision (a root of even multiplicity, where p
+    does not change sign, is found as a root of the last member of the sequence,
+    ``gcd(p, p')``). A cluster of roots closer than ~1e-14 relative is reported once.
 
     Args:
         coeffs: (n + 1,) ascending coefficients. Leading coefficients below 1e-15 of the
@@ -505,6 +509,7 @@ def real_roots_sturm(coeffs: np.ndarray, roots: np.ndarray) -> int:
         Number of real roots written to ``roots`` (0 for a polynomial that is identically 0).
     """
     n = coeffs.shape[0] - 1
+    multiple = False  # p has multiple roots: the Sturm sequence ends at gcd(p, p')
     scale = 0.0
     for k in range(n + 1):
         scale = max(scale, abs(coeffs[k]))
@@ -550,7 +555,8 @@ def real_roots_sturm(coeffs: np.ndarray, roots: np.ndarray) -> int:
         while dr >= 0 and abs(r[dr]) <= 1e-14 * big:
             dr -= 1
         if dr < 0:
-            break  # p has multiple roots: the sequence ends at gcd(p, p')
+            multiple = True
+            break
         if da - db != 1 or dr != db - 1:
             linear = False
         # S_next = −r / |leading coefficient| (a positive scale keeps the signs)
@@ -594,7 +600,11 @@ def real_roots_sturm(coeffs: np.ndarray, roots: np.ndarray) -> int:
         if k == 1 or hi - lo <= 1e-14 * max(abs(lo), abs(hi), 1e-300) or top >= 126:
             if count < cap:
                 if k == 1:
-                    roots[count] = _newton_bisect(S[0], n, lo, hi)
+                    z = _newton_bisect(S[0], n, lo, hi)
+                    if np.isnan(z) and multiple:
+                        # a root of even multiplicity is a root of odd multiplicity of the gcd
+                        z = _newton_bisect(S[ns - 1], degs[ns - 1], lo, hi)
+                    roots[count] = 0.5 * (lo + hi) if np.isnan(z) else z
                 else:
                     roots[count] = 0.5 * (lo + hi)  # root cluster, reported once
                 count += 1

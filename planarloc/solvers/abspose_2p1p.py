@@ -45,7 +45,19 @@ class AbsPose2p1p:
 
 @njit(cache=True, error_model="numpy")
 def scale_2p1p(a: np.ndarray, b: np.ndarray, y: np.ndarray, x2: np.ndarray) -> float:
-    """``ρ`` of eq. (18); NaN when degenerate (``|x₂·(a×y)|`` ≈ 0 relative to the magnitudes)."""
+    """``ρ`` of eq. (18); NaN when degenerate.
+
+    Degenerate: ``|x₂·(a×y)|`` ≈ 0 relative to the magnitudes, or ``a ∥ b`` — the query centre
+    on the line through both reference centres, where every match yields ``ρ`` placing the
+    query on the centre of ``j₂`` regardless of the data.
+    """
+    ab0 = a[1] * b[2] - a[2] * b[1]
+    ab1 = a[2] * b[0] - a[0] * b[2]
+    ab2 = a[0] * b[1] - a[1] * b[0]
+    na2 = a[0] ** 2 + a[1] ** 2 + a[2] ** 2
+    nb2 = b[0] ** 2 + b[1] ** 2 + b[2] ** 2
+    if ab0 * ab0 + ab1 * ab1 + ab2 * ab2 <= 1e-18 * na2 * nb2:
+        return np.nan
     ay0 = a[1] * y[2] - a[2] * y[1]
     ay1 = a[2] * y[0] - a[0] * y[2]
     ay2 = a[0] * y[1] - a[1] * y[0]

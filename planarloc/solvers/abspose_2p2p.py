@@ -9,7 +9,7 @@ reference ``j`` and ``(R₂, t̃₂)`` to reference ``j₂`` (unit translations,
 * the scales ``s = (ρ, ρ₂)`` from ``C s = b`` with ``C = [t̃, -R R₂ᵀ t̃₂]``, ``b = t₁₂``
   (eq. 13), by least squares (eq. 14), regularised with ``+I`` when ``CᵀC`` is singular
   (eq. 15) — which happens when the query is collinear with both reference centres: then
-  the result is not a position estimate and ``cos_parallax`` tells so.
+  the result is not a position estimate and ``sin_parallax`` tells so.
 
 The query pose is ``query_from_world = (R, ρ t̃)⁻¹ ∘ cam_from_world_j``.
 """

@@ -37,7 +37,8 @@ _EPS_FORM = 1e-12
 
 @njit(cache=True, inline="always", error_model="numpy")
 def _depth_signs(c: float, s: float, sp: float, cp: float, xq: np.ndarray, xr: np.ndarray) -> int:
-    """+1 if both matches have positive depths for (θ, φ), -1 if for (θ, φ + π), else 0.
+    """+1 if both matches have positive depths for (θ, φ), -1 if for (θ, φ + π), 0 if
+    neither, 2 if a match has parallel rays (a point at infinity: no depth information).
 
     ``c, s = cos θ, sin θ`` and ``sp, cp = sin φ, cos φ``; t = -R_y(θ) [sin φ, 0, cos φ].
     """
@@ -56,7 +57,7 @@ def _depth_signs(c: float, s: float, sp: float, cp: float, xq: np.ndarray, xr: n
         bt = b0 * t0 + b2 * t2
         det = aa * bb - ab * ab
         if det <= 1e-12 * aa * bb:
-            return 0  # parallel rays: point at infinity or on the baseline
+            return 2  # parallel rays: point at infinity or on the baseline
         lq = (-at * bb + ab * bt) / det
         lr = (aa * bt - ab * at) / det
         if lq > 0 and lr > 0:
@@ -177,6 +178,8 @@ def solve_planar_2p(xq: np.ndarray, xr: np.ndarray, thetas: np.ndarray, phis: np
         ct = c1 * cp - s1 * sp  # cos θ = cos((θ-φ) + φ)
         st = s1 * cp + c1 * sp
         sign = _depth_signs(ct, st, sp, cp, xq, xr)
+        if sign == 2:
+            return 0  # a point at infinity: cheirality cannot tell the solutions apart
         if sign == 0:
             continue
         thetas[count] = np.arctan2(st, ct)
@@ -193,7 +196,9 @@ def _solve_batch(xq: np.ndarray, xr: np.ndarray, thetas: np.ndarray, phis: np.nd
 
 def _check_points(name: str, x: object, shape: tuple) -> np.ndarray:
     arr = check_array(name, x)
-    if arr.ndim == len(shape) and arr.shape[-1] == 2 and arr.shape[:-1] == shape[:-1]:
+    if arr.ndim == len(shape) and arr.shape[-1] == 2 and all(
+        s is None or s == a for s, a in zip(shape[:-1], arr.shape[:-1])
+    ):
         arr = np.concatenate([arr, np.ones(arr.shape[:-1] + (1,))], axis=-1)
     return check_array(name, arr, shape)
 

@@ -167,7 +167,8 @@ def test_collinear_centres_are_degenerate_not_a_position() -> None:
 # --------------------------------------------------------------------------------------------
 # 2p1p: hypotheses_2p1p
 # --------------------------------------------------------------------------------------------
-def run_2p1p(third_query_cam: Pose, third_is_3d: bool, seed: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def run_2p1p(third_query_cam: Pose, third_is_3d: bool,
+             seed: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Two true Q-J matches plus a third datum observed from ``third_query_cam``.
 
     The third datum is a Q-K match (or a 2D-3D constraint) of a point seen from

@@ -43,7 +43,8 @@ class LineEstimator:
         e2 = (self.y[None] - a[:, None] * self.x[None] - b[:, None]) ** 2
         return np.minimum(e2, self.th2).sum(axis=1), (e2 < self.th2).sum(axis=1)
 
-    def generate(self, rng: np.random.Generator, n: int, stats: RansacStatistics) -> tuple[np.ndarray, np.ndarray]:
+    def generate(self, rng: np.random.Generator, n: int,
+                 stats: RansacStatistics) -> tuple[np.ndarray, np.ndarray]:
         self.generate_sizes.append(n)
         idx = np.array([rng.choice(self.num_data, 2, replace=False) for _ in range(n)])
         self.samples.append(idx)
@@ -76,6 +77,15 @@ class NoHypotheses(LineEstimator):
         rng.random(n)
         stats.rejected_rcheck += n
         return np.zeros((0, 2)), np.zeros((0, 2))
+
+
+class RefusesEmptyBatches(NoHypotheses):
+    """Fails loudly instead of letting a loop that draws zero samples spin forever."""
+
+    def generate(self, rng, n, stats):
+        if n < 1:
+            raise RuntimeError(f"generate called with n = {n}: the loop would make no progress")
+        return super().generate(rng, n, stats)
 
 
 def opts(**kw) -> RansacOptions:
@@ -187,3 +197,12 @@ def test_statistics_are_accumulated_into_the_given_object() -> None:
     assert out.stats is stats
     assert stats.scored == stats.hypotheses
     assert {"hypotheses", "scoring"} <= set(stats.time_s)
+
+
+@pytest.mark.xfail(strict=True, raises=RuntimeError, reason=(
+    "BUG ransac.py: with a non-integral max_iterations (accepted by RansacOptions), once "
+    "0 < max_iterations - iterations < 1 the batch size int(...) is 0 and the while loop never ends"))
+def test_non_integral_max_iterations_terminates() -> None:
+    est = RefusesEmptyBatches(*line_data(50, 0.0, 0.01))
+    out = ransac(est, opts(max_iterations=2.5, min_iterations=1), np.random.default_rng(0))
+    assert out.stats.iterations <= 2.5

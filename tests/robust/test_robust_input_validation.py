@@ -146,8 +146,9 @@ def test_options_type_rejected(small_scene, no_work, options) -> None:
         estimate_absolute_pose(small_scene.query_camera, small_scene.pairs, "2p1p", options)
 
 
-@pytest.mark.xfail(strict=True, reason="BUG absolute_pose.py: `options or RansacOptions()` replaces a falsy "
-                                       "non-RansacOptions (e.g. {} or 0) with the defaults instead of raising")
+@pytest.mark.xfail(strict=True, reason="BUG absolute_pose.py: `options or RansacOptions()` replaces a "
+                                       "falsy non-RansacOptions (e.g. {} or 0) with the defaults instead "
+                                       "of raising")
 @pytest.mark.parametrize("options", [{}, 0, ""])
 def test_falsy_options_rejected(small_scene, options) -> None:
     with pytest.raises(ValueError, match="options"):
@@ -170,6 +171,26 @@ def test_falsy_options_rejected(small_scene, options) -> None:
 ])
 def test_bad_options_rejected(kwargs: dict, field: str) -> None:
     with pytest.raises(ValueError, match=field):
+        RansacOptions(**kwargs)
+
+
+def _unvalidated(kwargs: dict, consequence: str):
+    return pytest.param(kwargs, marks=pytest.mark.xfail(strict=True, reason=(
+        f"BUG options.py RansacOptions.__post_init__: {kwargs} is accepted; {consequence}")))
+
+
+@pytest.mark.parametrize("kwargs", [
+    _unvalidated(dict(max_iterations=2.5, min_iterations=1),
+                 "ransac.py then loops forever once 0 < max_iterations - iterations < 1 "
+                 "(batch of int(0.5) = 0)"),
+    _unvalidated(dict(seed=-1),
+                 "numpy raises 'expected non-negative integer' only inside estimate_absolute_pose"),
+    _unvalidated(dict(seed=1.5), "numpy raises TypeError (not ValueError) inside estimate_absolute_pose"),
+    _unvalidated(dict(threshold_px=float("inf")), "every match becomes an inlier, silently"),
+    _unvalidated(dict(min_inliers=-3), "the min_inliers check can never fail"),
+])
+def test_invalid_options_rejected_at_construction(kwargs: dict) -> None:
+    with pytest.raises(ValueError):
         RansacOptions(**kwargs)
 
 
