@@ -87,20 +87,23 @@ def spread(values: list[float]) -> dict:
 
 def time_build(map_images, path: Path, features: FeatureConfig) -> dict:
     """Features-only time per image, then a full build_map (features + storage + VLAD index)."""
-    feature_s = []
+    feature_s, feature_cpu = [], []
     for i, im in enumerate(map_images):
         gray = read_gray(im.path)
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         extract_features(gray, features)
         feature_s.append(time.perf_counter() - t0)
+        feature_cpu.append(time.process_time() - c0)
         progress(f"features only ({'tilt' if features.tilt else 'no tilt'})", i + 1, len(map_images))
     load_before = peer.load_average()
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     build_map(map_images, path, features, progress=progress)
-    total = time.perf_counter() - t0
+    total, cpu = time.perf_counter() - t0, time.process_time() - c0
     return {"features": features.name, "images": len(map_images), "build_seconds": total,
             "build_ms_per_image": 1000 * total / len(map_images),
+            "build_cpu_ms_per_image": 1000 * cpu / len(map_images),
             "features_ms_per_image": 1000 * float(np.median(feature_s)),
+            "features_cpu_ms_per_image": 1000 * float(np.median(feature_cpu)),
             "load_average": [load_before, peer.load_average()]}
 
 
@@ -159,8 +162,12 @@ def main(argv: list[str] | None = None) -> int:
         h, w = read_gray(map_images[0].path).shape
         print(f"# Pipeline speed: {label}, {len(map_images)} map images, {w}x{h}; {args.queries} queries "
               f"(+1 warm-up); OpenCV {cv2.__version__}, PoseLib {peer.poselib_version() or 'not installed'}")
+        threads = {k: os.environ.get(k) for k in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS") if os.environ.get(k)}
+        print(f"threads: OpenCV {cv2.getNumThreads()}, BLAS "
+              f"{', '.join(f'{k}={v}' for k, v in threads.items()) or 'library default'}")
         print(peer.load_note("at start"))
-        report.update({"data": label, "image_size": [w, h]})
+        report.update({"data": label, "image_size": [w, h], "thread_env": threads,
+                       "opencv_threads": cv2.getNumThreads()})
         maps = Path(tmp.name)
 
         # (a) map build
@@ -169,10 +176,12 @@ def main(argv: list[str] | None = None) -> int:
             features = FeatureConfig(tilt=tilt)
             builds.append(time_build(map_images, maps / f"speed-{features.name}.db", features))
         rows = [[b["features"], b["images"], f"{b['features_ms_per_image']:.0f}", f"{b['build_ms_per_image']:.0f}",
+                 f"{b['features_cpu_ms_per_image']:.0f}", f"{b['build_cpu_ms_per_image']:.0f}",
                  f"{b['load_average'][0][0]:.2f} → {b['load_average'][1][0]:.2f}"] for b in builds]
         print()
         print(peer.markdown_table(["features", "images", "features only [ms/image]", "build_map [ms/image]",
-                                   "load (1 min)"], rows, "(a) Map build time per image"))
+                                   "features only, CPU [ms/image]", "build_map, CPU [ms/image]", "load (1 min)"],
+                                  rows, "(a) Map build time per image (wall clock; CPU = process time, all threads)"))
         report["build"] = builds
 
         # (b) ours, (c) peer, same queries and references
@@ -189,19 +198,24 @@ def main(argv: list[str] | None = None) -> int:
             for i, q in enumerate(chosen):
                 gray = read_gray(q.path)
                 ests = {}
+                cpu = {}
                 for s, loc in locs.items():
+                    c0 = time.process_time()
                     ests[s] = loc.localize(gray, q.camera)
+                    cpu[f"ours {s}"] = time.process_time() - c0
                 refs = ests["none"].references  # the map images our pipeline used
                 if have_peer:
                     pipe.prepare(refs)
+                    c0 = time.process_time()
                     pt, pres = pipe.localize(gray, q.camera, refs)
+                    cpu["peer"] = time.process_time() - c0
                 if i == 0:
                     continue  # warm-up
                 for s, est in ests.items():
-                    times[f"ours {s}"].append(our_stage_times(est))
+                    times[f"ours {s}"].append({**our_stage_times(est), "end_to_end_cpu": cpu[f"ours {s}"]})
                     errors[f"ours {s}"].append(peer.errors_of(est.pose if est.success else None, q.cam_from_world))
                 if have_peer:
-                    times["peer"].append(pt)
+                    times["peer"].append({**pt, "end_to_end_cpu": cpu["peer"]})
                     errors["peer"].append(peer.errors_of(pres.pose, q.cam_from_world))
                 progress("localize (ours x2 + peer)", i, len(chosen) - 1)
             load_after = peer.load_average()
@@ -210,13 +224,13 @@ def main(argv: list[str] | None = None) -> int:
             peer.log("poselib is not installed (pip install -e '.[bench]'): no peer timings")
 
         med = {k: {stage: float(np.median([t[stage] for t in v])) for stage in v[0]} for k, v in times.items()}
-        stages = [*OUR_STAGES, "end_to_end"]
+        stages = [*OUR_STAGES, "end_to_end", "end_to_end_cpu"]
         headers = ["stage", *[f"{k} [ms]" for k in times]]
         if have_peer:
             headers += ["ours none / peer", "ours tracks / peer"]
         rows = []
         for st in stages:
-            row = [st.replace("_", " ")] + [f"{1000 * med[k][st]:.1f}" for k in times]
+            row = [st.replace("_", " ").replace(" cpu", ", CPU time")] + [f"{1000 * med[k][st]:.1f}" for k in times]
             if have_peer:
                 for k in ("ours none", "ours tracks"):
                     row.append("-" if med["peer"][st] == 0 else f"{med[k][st] / med['peer'][st]:.2f}")

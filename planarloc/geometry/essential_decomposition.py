@@ -248,14 +248,14 @@ def _orthonormality_error(R) -> float:
 
 
 @njit(cache=True)
-def relpose_from_essential_kernel(E, xq, xr, R_out, t_out) -> bool:
+def relpose_from_essential_kernel(E, xq, xr, R_out, t_out, work) -> bool:
     """Closed-form decomposition of E (Horn 1990) + cheirality on all rows of xq / xr.
 
     With ``‖E‖_F² = 2`` and unit ``t`` (orthogonal to every column of ``E = [t]x R``, taken
     as the longest cross product of two columns) the two rotations are
     ``cof(E) ∓ [t]x E``. Writes the first of the four motions ``(R, ±t)`` that passes into
     R_out (3, 3), t_out (3,) (unit). Returns False if none passes or ``E`` is not
-    (numerically) essential.
+    (numerically) essential. ``work`` is a (4, 3, 3) scratch buffer.
     """
     fro = 0.0
     for i in range(3):
@@ -263,7 +263,7 @@ def relpose_from_essential_kernel(E, xq, xr, R_out, t_out) -> bool:
             fro += E[i, j] * E[i, j]
     if not (fro > 0.0 and np.isfinite(fro)):
         return False
-    En = np.empty((3, 3))
+    En = work[0]
     f = np.sqrt(2.0 / fro)
     for i in range(3):
         for j in range(3):
@@ -282,10 +282,10 @@ def relpose_from_essential_kernel(E, xq, xr, R_out, t_out) -> bool:
     if not best > 1e-6:  # the largest is >= 1/3 for an essential matrix with ‖E‖_F² = 2
         return False
     inv = 1.0 / np.sqrt(best)
-    t = np.empty(3)
+    t = work[3, 0]
     t[0], t[1], t[2] = t0 * inv, t1 * inv, t2 * inv
-    Ra = np.empty((3, 3))
-    Rb = np.empty((3, 3))
+    Ra = work[1]
+    Rb = work[2]
     for i in range(3):
         r1 = (i + 1) % 3
         r2 = (i + 2) % 3
@@ -335,9 +335,10 @@ def relpose_batch_kernel(Es, n, xq, xr, R_out, t_out, valid_out) -> int:
     Returns the number of valid poses k (``valid_out[:k]`` set True). Slots past k may hold
     scratch values; callers mask them with ``valid_out``.
     """
+    work = np.empty((4, 3, 3))
     k = 0
     for s in range(n):
-        if relpose_from_essential_kernel(Es[s], xq, xr, R_out[k], t_out[k]):
+        if relpose_from_essential_kernel(Es[s], xq, xr, R_out[k], t_out[k], work):
             valid_out[k] = True
             k += 1
     return k

@@ -123,8 +123,11 @@ class Localizer:
         pose = posed.cam_from_world
         return (X_cam - pose.t) @ pose.R
 
-    def pairs_for(self, features: Features, references: Sequence[str]) -> tuple[list[PairMatches], list[str]]:
+    def pairs_for(self, features: Features, references: Sequence[str],
+                  camera: Camera | None = None) -> tuple[list[PairMatches], list[str]]:
         """Match the query to each reference and package the matches for the estimator.
+
+        ``camera`` (the query's) lets keypoints outside its distortion model's range be dropped.
 
         Returns:
             the pairs with at least ``min_matches`` matches, and the names of their references.
@@ -136,6 +139,13 @@ class Localizer:
             if len(m) < self.config.min_matches:
                 continue
             posed = self._posed[name]
+            # Keypoints outside the valid range of a distortion model cannot be undistorted.
+            ok = np.isfinite(posed.camera.cam_from_img(ref.keypoints[m[:, 1]])).all(axis=1)
+            if camera is not None:
+                ok &= np.isfinite(camera.cam_from_img(features.keypoints[m[:, 0]])).all(axis=1)
+            m = m[ok]
+            if len(m) < self.config.min_matches:
+                continue
             ref_pts = np.asarray(ref.keypoints[m[:, 1]], dtype=float)
             X = self._points3d(name, ref_pts) if self.config.use_depth else None
             pairs.append(PairMatches(posed.cam_from_world, posed.camera,
@@ -154,7 +164,7 @@ class Localizer:
         if unknown:
             raise InputError(f"references not in the map: {unknown[:3]}{'...' if len(unknown) > 3 else ''}")
         t1 = time.perf_counter()
-        pairs, used = self.pairs_for(features, refs)
+        pairs, used = self.pairs_for(features, refs, camera)
         t2 = time.perf_counter()
         if len(pairs) < 2:
             est = PoseEstimate(None, False, "too_few_matches",

@@ -85,6 +85,13 @@ def build_problem(query_camera: Camera, pairs: Sequence[PairMatches]) -> Absolut
         n = len(p)
         q = query_camera.bearings_from_img(p.query_points) if n else np.zeros((0, 3))
         r = p.ref_camera.bearings_from_img(p.ref_points) if n else np.zeros((0, 3))
+        for name, rays in (("query_points", q), ("ref_points", r)):
+            if not np.isfinite(rays).all():
+                bad = int(np.flatnonzero(~np.isfinite(rays).all(axis=1))[0])
+                raise InputError(
+                    f"pairs[{p_idx}].{name}[{bad}]: pixel outside the valid range of the camera's distortion "
+                    "model (undistortion does not converge); drop such keypoints or check the intrinsics"
+                )
         xq.append(q)
         xr.append(r)
         pair.append(np.full(n, p_idx, dtype=np.int64))

@@ -340,10 +340,12 @@ def refine_five_point_root(
 
 
 @njit(cache=True, fastmath=_FASTMATH)
-def gauss_jordan(A: np.ndarray, ncols: int, pivot_tol: float) -> bool:
+def gauss_jordan(A: np.ndarray, ncols: int, pivot_tol: float, first_row: int) -> bool:
     """In-place Gauss-Jordan elimination with partial pivoting of the first ``ncols`` columns.
 
-    On success ``A[:, :ncols]`` is the identity (``A`` must have ``ncols`` rows).
+    Forward elimination with partial pivoting, then back substitution restricted to the rows
+    ``first_row:`` (the rows above are left in echelon form; ``first_row = 0`` is the full
+    reduction). On success ``A[first_row:, :ncols]`` is ``[0 | I]`` (``A`` has ``ncols`` rows).
     Returns False if a pivot falls below ``pivot_tol`` times the largest entry.
     """
     n = A.shape[0]
@@ -362,21 +364,28 @@ def gauss_jordan(A: np.ndarray, ncols: int, pivot_tol: float) -> bool:
         if abs(A[p, c]) <= pivot_tol * scale:
             return False
         if p != c:
-            for j in range(m):
+            for j in range(c, m):
                 tmp = A[c, j]
                 A[c, j] = A[p, j]
                 A[p, j] = tmp
         inv = 1.0 / A[c, c]
-        for j in range(m):
+        for r in range(c + 1, n):
+            f = A[r, c] * inv
+            if f != 0.0:
+                for j in range(c + 1, m):
+                    A[r, j] -= f * A[c, j]
+            A[r, c] = 0.0
+    for c in range(ncols - 1, first_row - 1, -1):
+        inv = 1.0 / A[c, c]
+        for j in range(ncols, m):
             A[c, j] *= inv
         A[c, c] = 1.0
-        for r in range(n):
-            if r != c:
-                f = A[r, c]
-                if f != 0.0:
-                    for j in range(c, m):
-                        A[r, j] -= f * A[c, j]
-                    A[r, c] = 0.0
+        for r in range(first_row, c):
+            f = A[r, c]
+            if f != 0.0:
+                for j in range(ncols, m):
+                    A[r, j] -= f * A[c, j]
+                A[r, c] = 0.0
     return True
 
 
@@ -519,7 +528,7 @@ def real_roots_sturm(coeffs: np.ndarray, roots: np.ndarray) -> int:
         n -= 1
     if n == 0:
         return 0
-    S = np.zeros((n + 1, n + 1))
+    S = np.zeros((n + 2, n + 1))  # the sequence; the last row is scratch for remainders
     degs = np.zeros(n + 1, dtype=np.int64)
     quot = np.zeros((n + 1, 3))  # row k: (a, b, c) with S[k+1] = c ((a z + b) S[k] − S[k−1])
     linear = True
@@ -531,7 +540,7 @@ def real_roots_sturm(coeffs: np.ndarray, roots: np.ndarray) -> int:
         S[1, k - 1] = k * S[0, k] / n
     degs[1] = n - 1
     ns = 2
-    r = np.empty(n + 1)
+    r = S[n + 1]
     while degs[ns - 1] > 0:
         # remainder of S[ns-2] divided by S[ns-1]
         da = degs[ns - 2]
@@ -583,10 +592,10 @@ def real_roots_sturm(coeffs: np.ndarray, roots: np.ndarray) -> int:
         v_lo = _sign_changes(S, degs, ns, quot, linear, -bound)
         v_hi = _sign_changes(S, degs, ns, quot, linear, bound)
     # isolate by bisection (depth-first, explicit stack), then polish each isolated root
-    stack_lo = np.empty(128)
-    stack_hi = np.empty(128)
-    stack_vlo = np.empty(128, dtype=np.int64)
-    stack_vhi = np.empty(128, dtype=np.int64)
+    stack = np.empty((2, 128))  # interval ends
+    counts = np.empty((2, 128), dtype=np.int64)  # sign changes at the ends
+    stack_lo, stack_hi = stack[0], stack[1]
+    stack_vlo, stack_vhi = counts[0], counts[1]
     stack_lo[0], stack_hi[0], stack_vlo[0], stack_vhi[0] = -bound, bound, v_lo, v_hi
     top = 1
     count = 0

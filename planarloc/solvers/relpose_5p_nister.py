@@ -47,7 +47,7 @@ Deviations from the paper:
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
+from numba import njit, prange
 
 from planarloc.geometry.essential_decomposition import (
     check_correspondence_batch,
@@ -131,7 +131,7 @@ def nister_essentials(
     for i in range(10):
         for j in range(20):
             A[i, j] = C[i, _PERM[j]]
-    if not gauss_jordan(A, 10, _PIVOT_TOL):
+    if not gauss_jordan(A, 10, _PIVOT_TOL, 4):
         return 0
     # rows: a=0 x³, b=1 y³, c=2 x²y, d=3 xy², e=4 x²z, f=5 x², g=6 y²z, h=7 y², i=8 xyz, j=9 xy
     B = np.empty((3, 3, 5))  # B(z): rows ⟨k⟩, ⟨l⟩, ⟨m⟩; columns: coefficients of x, y, 1
@@ -186,6 +186,14 @@ def nister_essentials(
 def _nister_batch(xq, xr, R, t, valid, refine_iters, refine_rtol):
     Es = np.empty((MAX_SOLUTIONS, 3, 3))
     for m in range(xq.shape[0]):
+        n = nister_essentials(xq[m], xr[m], Es, refine_iters, refine_rtol)
+        relpose_batch_kernel(Es, n, xq[m], xr[m], R[m], t[m], valid[m])
+
+
+@njit(cache=True, parallel=True)
+def _nister_batch_parallel(xq, xr, R, t, valid, refine_iters, refine_rtol):
+    for m in prange(xq.shape[0]):
+        Es = np.empty((MAX_SOLUTIONS, 3, 3))
         n = nister_essentials(xq[m], xr[m], Es, refine_iters, refine_rtol)
         relpose_batch_kernel(Es, n, xq[m], xr[m], R[m], t[m], valid[m])
 
@@ -248,12 +256,17 @@ def relpose_5p_nister(x_query: object, x_ref: object) -> list[Pose]:
     return relposes_closed_form(Es[:n], xq, xr)
 
 
-def relpose_5p_nister_batch(x_query: object, x_ref: object) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def relpose_5p_nister_batch(
+    x_query: object, x_ref: object, *, parallel: bool = False
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Nistér's five-point solver on M samples at once (for RANSAC).
 
     Args:
         x_query: (M, 5, 3) query rays (normalized homogeneous points or bearings).
         x_ref: (M, 5, 3) matching reference rays.
+        parallel: spread the samples over numba's threads (``numba.set_num_threads``). Off by
+            default: the OpenMP/TBB thread pools are not fork-safe, so a process that later
+            forks workers (``multiprocessing`` on Linux) must not have used them.
 
     Returns:
         R: (M, 10, 3, 3) rotations ``ref_from_query``; NaN where not valid.
@@ -274,6 +287,7 @@ def relpose_5p_nister_batch(x_query: object, x_ref: object) -> tuple[np.ndarray,
     R = np.full((M, MAX_SOLUTIONS, 3, 3), np.nan)
     t = np.full((M, MAX_SOLUTIONS, 3), np.nan)
     valid = np.zeros((M, MAX_SOLUTIONS), dtype=np.bool_)
-    _nister_batch(xq, xr, R, t, valid, BATCH_REFINE_ITERS, BATCH_REFINE_RTOL)
+    kernel = _nister_batch_parallel if parallel else _nister_batch
+    kernel(xq, xr, R, t, valid, BATCH_REFINE_ITERS, BATCH_REFINE_RTOL)
     mask_invalid(R, t, valid)
     return R, t, valid

@@ -45,7 +45,7 @@ Deviations from the paper:
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
+from numba import njit, prange
 
 from planarloc.geometry.essential_decomposition import (
     check_correspondence_batch,
@@ -378,7 +378,7 @@ def stewenius_essentials(
     for i in range(10):
         for j in range(20):
             G[i, j] = C[i, j]
-    if not gauss_jordan(G, 10, _PIVOT_TOL):
+    if not gauss_jordan(G, 10, _PIVOT_TOL, 0):
         return 0
     # action matrix of x on b = [x², xy, xz, y², yz, z², x, y, z, 1] (columns 10..19 of G)
     M = np.zeros((10, 10))
@@ -426,6 +426,14 @@ def stewenius_essentials(
 def _stewenius_batch(xq, xr, R, t, valid, refine_iters, refine_rtol):
     Es = np.empty((MAX_SOLUTIONS, 3, 3))
     for m in range(xq.shape[0]):
+        n = stewenius_essentials(xq[m], xr[m], Es, refine_iters, refine_rtol)
+        relpose_batch_kernel(Es, n, xq[m], xr[m], R[m], t[m], valid[m])
+
+
+@njit(cache=True, parallel=True)
+def _stewenius_batch_parallel(xq, xr, R, t, valid, refine_iters, refine_rtol):
+    for m in prange(xq.shape[0]):
+        Es = np.empty((MAX_SOLUTIONS, 3, 3))
         n = stewenius_essentials(xq[m], xr[m], Es, refine_iters, refine_rtol)
         relpose_batch_kernel(Es, n, xq[m], xr[m], R[m], t[m], valid[m])
 
@@ -482,12 +490,17 @@ def relpose_5p_stewenius(x_query: object, x_ref: object) -> list[Pose]:
     return relposes_closed_form(Es[:n], xq, xr)
 
 
-def relpose_5p_stewenius_batch(x_query: object, x_ref: object) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def relpose_5p_stewenius_batch(
+    x_query: object, x_ref: object, *, parallel: bool = False
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Stewénius' five-point solver on M samples at once (for RANSAC).
 
     Args:
         x_query: (M, 5, 3) query rays (normalized homogeneous points or bearings).
         x_ref: (M, 5, 3) matching reference rays.
+        parallel: spread the samples over numba's threads (``numba.set_num_threads``). Off by
+            default: the OpenMP/TBB thread pools are not fork-safe, so a process that later
+            forks workers (``multiprocessing`` on Linux) must not have used them.
 
     Returns:
         R: (M, 10, 3, 3) rotations ``ref_from_query``; NaN where not valid.
@@ -508,6 +521,7 @@ def relpose_5p_stewenius_batch(x_query: object, x_ref: object) -> tuple[np.ndarr
     R = np.full((M, MAX_SOLUTIONS, 3, 3), np.nan)
     t = np.full((M, MAX_SOLUTIONS, 3), np.nan)
     valid = np.zeros((M, MAX_SOLUTIONS), dtype=np.bool_)
-    _stewenius_batch(xq, xr, R, t, valid, BATCH_REFINE_ITERS, BATCH_REFINE_RTOL)
+    kernel = _stewenius_batch_parallel if parallel else _stewenius_batch
+    kernel(xq, xr, R, t, valid, BATCH_REFINE_ITERS, BATCH_REFINE_RTOL)
     mask_invalid(R, t, valid)
     return R, t, valid

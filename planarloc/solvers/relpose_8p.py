@@ -175,6 +175,7 @@ def _batch_8p(xq, xr, R, t, valid):
     e = np.empty(9)
     En = np.empty((3, 3))
     E = np.empty((3, 3))
+    work = np.empty((4, 3, 3))
     for m in range(xq.shape[0]):
         if not (_normalize(xq[m], nq, Tq) and _normalize(xr[m], nr, Tr)):
             continue
@@ -200,7 +201,7 @@ def _batch_8p(xq, xr, R, t, valid):
         for i in range(3):
             for j in range(3):
                 E[i, j] = U[i, 0] * Vt[0, j] + U[i, 1] * Vt[1, j]
-        if relpose_from_essential_kernel(E, xq[m], xr[m], R[m, 0], t[m, 0]):
+        if relpose_from_essential_kernel(E, xq[m], xr[m], R[m, 0], t[m, 0], work):
             valid[m, 0] = True
 
 

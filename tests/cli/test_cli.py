@@ -1,0 +1,58 @@
+"""Smoke tests of the `planarloc` command line on a tiny generated world."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from planarloc.cli.main import build_parser, main
+
+
+def run(argv: list[str]) -> int:
+    return main([str(a) for a in argv])
+
+
+@pytest.mark.parametrize("argv", [[], ["map"], ["map", "build"], ["localize"], ["evaluate"], ["demo"]])
+def test_help_teaches(argv: list[str], capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit) as exc:
+        build_parser().parse_args([*argv, "--help"])
+    assert exc.value.code == 0
+    out = capsys.readouterr().out
+    assert "usage: planarloc" in out
+    if argv:
+        assert "example" in out or "demo" in argv or argv == ["map"]
+
+
+def test_map_build_localize_evaluate(tiny_world: Path, tmp_path: Path) -> None:
+    db = tmp_path / "map.db"
+    assert run(["map", "build", tiny_world / "map", "--format", "tum", "--out", db]) == 0
+    assert run(["map", "info", db]) == 0
+    out = tmp_path / "poses.txt"
+    queries = sorted((tiny_world / "query" / "rgb").glob("*.png"))[:3]
+    cam = (tiny_world / "query" / "camera.txt").read_text().splitlines()[-1]
+    assert run(["localize", "--map", db, *queries, "--camera", cam, "--structure", "tracks", "--out", out]) == 0
+    lines = out.read_text().splitlines()
+    assert len(lines) == 3 and all(len(line.split()) == 8 for line in lines)
+    records = [json.loads(p.read_text()) for p in sorted((tmp_path / "poses.txt.json.d").glob("*.json"))]
+    assert len(records) == 3 and all(r["success"] and r["num_inliers"] > 0 for r in records)
+    summary = tmp_path / "eval.json"
+    plot = tmp_path / "eval.png"
+    assert run(["evaluate", tiny_world / "map", "--format", "tum", "--map-every", "2", "--map", tmp_path / "e.db",
+                "--structure", "tracks", "--json", summary, "--plot", plot]) == 0
+    s = json.loads(summary.read_text())
+    assert s["queries"] == 6 and s["method"] == "2p1p" and s["structure"] == "tracks"
+    assert set(s["success"]) == {"0.25m/10deg", "0.5m/10deg", "1m/20deg"}
+    assert s["success"]["0.25m/10deg"] >= 80.0 and plot.stat().st_size > 1000
+    for key in ("median_translation_error_m", "median_rotation_error_deg", "failed_queries", "seconds_per_query"):
+        assert key in s
+
+
+def test_known_errors_print_one_line_and_exit_1(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    assert run(["map", "build", tmp_path / "missing", "--format", "kitti", "--out", tmp_path / "m.db"]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("planarloc map build: error:")
+    (tmp_path / "not_a_map.db").write_text("hello")
+    assert run(["map", "info", tmp_path / "not_a_map.db"]) == 1
+    assert "not a planarloc map" in capsys.readouterr().err
