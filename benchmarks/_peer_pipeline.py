@@ -164,6 +164,38 @@ def errors_of(pose: Pose | None, truth: Pose) -> tuple[float, float]:
 
 
 # ---- plumbing of the benchmark scripts --------------------------------------------------------------
+def code_version() -> dict:
+    """Which planarloc was measured: git HEAD, uncommitted files, and a hash of the package sources
+    (the package is installed editable, so uncommitted edits are what runs)."""
+    import hashlib
+    import subprocess
+
+    import planarloc
+
+    pkg = Path(planarloc.__file__).resolve().parent
+    h = hashlib.sha1()
+    for f in sorted(pkg.rglob("*.py")):
+        h.update(f.relative_to(pkg).as_posix().encode())
+        h.update(f.read_bytes())
+    out = {"planarloc_version": planarloc.__version__, "source_sha1": h.hexdigest()[:12]}
+    try:
+        git = ["git", "-C", str(pkg.parent)]
+        out["git_head"] = subprocess.run([*git, "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
+                                         check=True).stdout.strip()
+        status = subprocess.run([*git, "status", "--porcelain", "--", "planarloc"], capture_output=True, text=True,
+                                check=True).stdout
+        out["uncommitted_files"] = len(status.splitlines())
+    except (OSError, subprocess.CalledProcessError):
+        pass
+    return out
+
+
+def code_note() -> str:
+    v = code_version()
+    git = f", git {v['git_head']} + {v.get('uncommitted_files', 0)} uncommitted file(s)" if "git_head" in v else ""
+    return f"planarloc {v['planarloc_version']} (sources sha1 {v['source_sha1']}{git})"
+
+
 def load_average() -> tuple[float, float, float]:
     return os.getloadavg()
 

@@ -82,7 +82,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
 
 
 def confident_wrong(summary: dict, t_max: float = 0.25, r_max: float = 10.0) -> int:
-    """Queries reported as success whose pose is off by more than (t_max, r_max)."""
+    """Queries reported as success whose pose is off by at least (t_max, r_max)."""
     return sum(1 for q in summary["per_query"]
                if q["success"] and not (q["translation_error_m"] < t_max and q["rotation_error_deg"] < r_max))
 
@@ -95,7 +95,7 @@ def summary_row(s: dict, label: str | None = None) -> list[str]:
 
 
 HEADERS = ["method", "structure", *[threshold_name(t, r) for t, r in THRESHOLDS], "median t [m]",
-           "median R [°]", "failed", "degenerate", "wrong >0.25m", "s/query"]
+           "median R [°]", "failed", "degenerate", "confident wrong", "s/query"]
 
 
 def build(map_images, path: Path, features: FeatureConfig, reuse: bool) -> float:
@@ -144,6 +144,8 @@ def run_peer(db: MapDatabase, map_images, queries) -> dict:
             "queries": len(queries), "success": peer.success_rates(errors),
             "median_translation_error_m": float(np.median(e[ok, 0])) if ok.any() else None,
             "median_rotation_error_deg": float(np.median(e[ok, 1])) if ok.any() else None,
+            "failed_queries": int((~ok).sum()),  # PoseLib has no failure status: only "not run" fails
+            "confident_wrong": int((ok & ~((e[:, 0] < 0.25) & (e[:, 1] < 10.0))).sum()),
             "seconds_per_query_estimation": float(np.mean([p["seconds"] for p in per_query])),
             "per_query": per_query}
 
@@ -161,9 +163,10 @@ def main(argv: list[str] | None = None) -> int:
     images = read_dataset(args.data, "kitti")
     print(f"# KITTI benchmark: {args.data.name}, {len(images)} frames; methods {', '.join(args.methods)}; "
           f"structures {', '.join(STRUCTURES)}; top-{TOP_N} retrieval")
+    print(peer.code_note())
     print(peer.load_note("at start"))
     report: dict = {"dataset": str(args.data), "frames": len(images), "quick": args.quick, "runs": [], "peer": [],
-                    "targets": [], "load_average_start": peer.load_average()}
+                    "targets": [], "code": peer.code_version(), "load_average_start": peer.load_average()}
     verdicts: list[tuple[bool, str]] = []
     tmp = None if args.map_dir else tempfile.TemporaryDirectory(prefix="planarloc-kitti-")
     map_dir = args.map_dir or Path(tmp.name)
@@ -224,7 +227,8 @@ def main(argv: list[str] | None = None) -> int:
                 ps = peer_summary
                 peer_row = ["PoseLib gen. relpose (peer)", "none (6DoF)", *[peer.fmt_pct(v) for v in ps["success"].values()],
                             peer.fmt_num(ps["median_translation_error_m"]), peer.fmt_num(ps["median_rotation_error_deg"], 2),
-                            "-", "-", "-", peer.fmt_num(ps["seconds_per_query_estimation"], 3) + " (est. only)"]
+                            f"{ps['failed_queries']}/{ps['queries']}", "-", str(ps["confident_wrong"]),
+                            peer.fmt_num(ps["seconds_per_query_estimation"], 3) + " (est. only)"]
                 rows = [peer_row] + [summary_row(s, "2p1p (ours)") for s in oracle_summaries]
                 print()
                 print(peer.markdown_table(HEADERS, rows, f"Peer vs ours on the ORACLE top-{TOP_N} map frames, map every "

@@ -176,10 +176,12 @@ def main(argv: list[str] | None = None) -> int:
     t_start = time.perf_counter()
     print(f"# Map memory: {args.images} images x {args.features} random RootSIFT-like features, "
           f"{args.queries} queries in a fresh process")
+    print(peer.code_note())
     print(peer.load_note("at start"))
     tmp = None if args.map else tempfile.TemporaryDirectory(prefix="planarloc-memory-")
     path = args.map or Path(tmp.name) / f"random-{args.images}.db"
-    report: dict = {"images": args.images, "features_per_image": args.features, "load_average_start": peer.load_average()}
+    report: dict = {"images": args.images, "features_per_image": args.features, "code": peer.code_version(),
+                    "load_average_start": peer.load_average()}
     try:
         if map_is_reusable(path, args.images):
             peer.log(f"reusing {path}")

@@ -18,6 +18,7 @@ inflated by other jobs and are flagged.
 
     python benchmarks/pipeline_speed.py --json speed.json
     python benchmarks/pipeline_speed.py --synthetic --queries 10
+    python benchmarks/pipeline_speed.py --blas-threads 1     # single-threaded BLAS (see BENCHMARKS.md)
 """
 
 from __future__ import annotations
@@ -61,8 +62,23 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument("--no-tilt", action="store_true", help="skip the (about 3x slower) tilt-augmented build")
     p.add_argument("--work-dir", type=Path, default=None,
                    help="where the generated world is kept (default: a temporary folder); maps are always rebuilt")
+    p.add_argument("--blas-threads", type=int, default=None,
+                   help="re-run with OPENBLAS_NUM_THREADS / OMP_NUM_THREADS set to N (default: the library's)")
     p.add_argument("--json", type=Path, default=None, help="write all timings here")
     return p.parse_args(argv)
+
+
+BLAS_ENV = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")
+
+
+def reexec_with_blas_threads(n: int, argv: list[str] | None) -> None:
+    """BLAS reads its thread count when numpy loads: restart this script with the variables set."""
+    env = dict(os.environ)
+    if all(env.get(k) == str(n) for k in BLAS_ENV):
+        return
+    env.update({k: str(n) for k in BLAS_ENV})
+    args = sys.argv[1:] if argv is None else argv
+    os.execve(sys.executable, [sys.executable, str(Path(__file__).resolve()), *args], env)
 
 
 def load_data(args: argparse.Namespace, work: Path):
@@ -75,7 +91,7 @@ def load_data(args: argparse.Namespace, work: Path):
         peer.log(f"KITTI data not found at {args.data}: using the generated office world")
     from planarloc.synthetic.world.export import generate
 
-    world = generate("office", work / "world-office", seed=0, progress=lambda d, n: progress("render world", d, n))
+    world = generate("office", work / "world-office-seed0", seed=0, progress=lambda d, n: progress("render world", d, n))
     return "generated office world", read_dataset(world / "map", "tum"), read_dataset(world / "query", "tum")
 
 
@@ -152,19 +168,22 @@ class PeerPipeline:
 
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
+    if args.blas_threads is not None:
+        reexec_with_blas_threads(args.blas_threads, argv)
     t_start = time.perf_counter()
     tmp = tempfile.TemporaryDirectory(prefix="planarloc-speed-")
     work = args.work_dir or Path(tmp.name)
     work.mkdir(parents=True, exist_ok=True)
-    report: dict = {"load_average_start": peer.load_average()}
+    report: dict = {"code": peer.code_version(), "load_average_start": peer.load_average()}
     try:
         label, map_images, queries = load_data(args, work)
         h, w = read_gray(map_images[0].path).shape
         print(f"# Pipeline speed: {label}, {len(map_images)} map images, {w}x{h}; {args.queries} queries "
               f"(+1 warm-up); OpenCV {cv2.__version__}, PoseLib {peer.poselib_version() or 'not installed'}")
-        threads = {k: os.environ.get(k) for k in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS") if os.environ.get(k)}
+        threads = {k: os.environ.get(k) for k in BLAS_ENV if os.environ.get(k)}
         print(f"threads: OpenCV {cv2.getNumThreads()}, BLAS "
               f"{', '.join(f'{k}={v}' for k, v in threads.items()) or 'library default'}")
+        print(peer.code_note())
         print(peer.load_note("at start"))
         report.update({"data": label, "image_size": [w, h], "thread_env": threads,
                        "opencv_threads": cv2.getNumThreads()})

@@ -137,7 +137,9 @@ def main(argv: list[str] | None = None) -> int:
     t_start = time.perf_counter()
     print(f"# Generated worlds: {', '.join(args.presets)} (seed {args.seed}); method {args.method}, "
           f"structures {', '.join(STRUCTURES)}, VLAD top-5")
+    print(peer.code_note())
     print(peer.load_note("at start"))
+    code = peer.code_version()
     tmp = tempfile.TemporaryDirectory(prefix="planarloc-worlds-")
     work = args.work_dir or Path(tmp.name)
     work.mkdir(parents=True, exist_ok=True)
@@ -160,7 +162,7 @@ def main(argv: list[str] | None = None) -> int:
         print(peer.verdict(ok, text))
     seconds = time.perf_counter() - t_start
     print(f"total {seconds:.0f} s; {peer.load_note('at end')}")
-    peer.write_json(args.json, {"seed": args.seed, "method": args.method, "runs": runs,
+    peer.write_json(args.json, {"seed": args.seed, "method": args.method, "code": code, "runs": runs,
                                 "targets": [{"pass": ok, "target": t} for ok, t in verdicts], "seconds": seconds})
     return 0
 

@@ -145,22 +145,6 @@ def motion_from_essential(E: object) -> tuple[np.ndarray, np.ndarray]:
     return R, T
 
 
-def relposes_from_essential_unchecked(E: np.ndarray, x_query: np.ndarray, x_ref: np.ndarray) -> list[Pose]:
-    """:func:`relposes_from_essential` without input validation; [] for a rank < 2 ``E``."""
-    try:
-        R, T, S = _motion_from_essential(E)
-    except np.linalg.LinAlgError:
-        return []
-    if not (np.all(np.isfinite(S)) and S[1] > RANK2_TOL * S[0]):
-        return []
-    poses = []
-    for k in range(4):
-        depths = triangulation_depths(R[k], T[k], x_query, x_ref)
-        if np.all(depths > 0.0):  # NaN (parallel rays) fails
-            poses.append(Pose(R[k], T[k]))
-    return poses
-
-
 def relposes_from_essential(E: object, x_query: object, x_ref: object) -> list[Pose]:
     """Decompositions of ``E`` that put every correspondence in front of both cameras.
 
@@ -232,9 +216,10 @@ def _polar_step(R, out):
     c21 = R[0, 2] * R[1, 0] - R[0, 0] * R[1, 2]
     c22 = R[0, 0] * R[1, 1] - R[0, 1] * R[1, 0]
     h = 0.5 / (R[0, 0] * c00 + R[0, 1] * c01 + R[0, 2] * c02)  # cof(R) / det(R) = R⁻ᵀ
-    out[0, 0], out[0, 1], out[0, 2] = 0.5 * R[0, 0] + h * c00, 0.5 * R[0, 1] + h * c01, 0.5 * R[0, 2] + h * c02
-    out[1, 0], out[1, 1], out[1, 2] = 0.5 * R[1, 0] + h * c10, 0.5 * R[1, 1] + h * c11, 0.5 * R[1, 2] + h * c12
-    out[2, 0], out[2, 1], out[2, 2] = 0.5 * R[2, 0] + h * c20, 0.5 * R[2, 1] + h * c21, 0.5 * R[2, 2] + h * c22
+    c = ((c00, c01, c02), (c10, c11, c12), (c20, c21, c22))
+    for i in range(3):
+        for j in range(3):
+            out[i, j] = 0.5 * R[i, j] + h * c[i][j]
 
 
 @njit(cache=True)

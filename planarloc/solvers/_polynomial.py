@@ -8,12 +8,18 @@ Two groups of helpers live here:
   constraints and the ten cubic constraints ``det E = 0`` and ``2 E Eᵀ E − tr(E Eᵀ) E = 0``
   as a 10 × 20 coefficient matrix over the 20 monomials of degree ≤ 3 in ``(x, y, z)``.
   Columns are in the graded reverse lexicographic order of :data:`MONOMIALS`; each solver
-  permutes them into the order its elimination needs.
+  permutes them into the order its elimination needs (:func:`gauss_jordan`). Also the
+  degeneracy tests of a five-point sample and the Gauss-Newton polishing of a root of the
+  system (:func:`refine_five_point_root`, not in either paper).
 * **Univariate real roots** by Sturm sequences, bisection and safeguarded Newton, as in
   Nistér 2004, Sec. 3, step "extraction of roots".
 
 The kernels assume validated, finite input; they return a success flag instead of raising so
 that a batched caller never aborts a whole batch for one degenerate sample.
+
+Note for developers: numba's on-disk cache (``cache=True``) does not track calls across
+modules; after editing a kernel here, delete ``planarloc/solvers/__pycache__/*.nb[ic]`` so
+that the solvers that inline it are recompiled.
 """
 
 from __future__ import annotations
@@ -52,7 +58,8 @@ RANK_TOL = 1e-10  # smallest |R_ii| of the QR of the unit-normalised 9x5 constra
 # level; the batched RANSAC kernels only polish roots whose residual shows lost digits.
 REFINE_ITERS, REFINE_RTOL = 5, 1e-15
 BATCH_REFINE_ITERS, BATCH_REFINE_RTOL = 5, 1e-12
-ROTATION_ONLY_TOL = 1e-10  # max | |x_q,i . x_q,j| - |x_r,i . x_r,j| | below which the sample is a pure rotation
+# a sample is a pure rotation if max_ij | |x_q,i · x_q,j| − |x_r,i · x_r,j| | (unit rays) is below this
+ROTATION_ONLY_TOL = 1e-10
 
 
 @njit(cache=True)
@@ -587,7 +594,9 @@ def real_roots_sturm(coeffs: np.ndarray, roots: np.ndarray) -> int:
     v_lo = _sign_changes(S, degs, ns, quot, linear, -bound)
     v_hi = _sign_changes(S, degs, ns, quot, linear, bound)
     # fall back to the counts at infinity if rounding put a root on the bound
-    if v_lo != _sign_changes_at_infinity(S, degs, ns, False) or v_hi != _sign_changes_at_infinity(S, degs, ns, True):
+    v_inf_lo = _sign_changes_at_infinity(S, degs, ns, False)
+    v_inf_hi = _sign_changes_at_infinity(S, degs, ns, True)
+    if v_lo != v_inf_lo or v_hi != v_inf_hi:
         bound *= 2.0
         v_lo = _sign_changes(S, degs, ns, quot, linear, -bound)
         v_hi = _sign_changes(S, degs, ns, quot, linear, bound)

@@ -5,8 +5,8 @@ Convention (as everywhere in planarloc): rays ``x_query``, ``x_ref`` satisfy
 (``x_ref ∝ R x_query + t``), ``‖t‖ = 1``.
 
 Algorithm (H. Stewénius, C. Engels, D. Nistér, "Recent developments on direct relative
-orientation", ISPRS J. Photogrammetry and Remote Sensing 60(4), 2006, Sec. 3 "the five-point
-solver" with the Gröbner-basis background of Sec. 2):
+orientation", ISPRS J. Photogrammetry and Remote Sensing 60(4):284-294, 2006: the five-point
+solver by a Gröbner basis and the action matrix, followed step by step):
 
 1. Null space ``E = x X + y Y + z Z + W`` of the five epipolar constraints and the ten cubic
    constraints ``det E = 0``, ``2 E Eᵀ E − tr(E Eᵀ) E = 0`` — shared with Nistér's solver
@@ -31,12 +31,16 @@ Deviations from the paper:
 
 * Eigenvalues by our own numba port of the classic EISPACK/Numerical Recipes route
   (balancing, reduction to Hessenberg form by stabilised elimination, shifted double-step QR,
-  ``hqr``); eigenvectors of the *real* eigenvalues only, by two steps of inverse iteration on
-  ``M − λI``. Reason: numba's ``np.linalg.eig`` needs complex input and costs ~150 µs per
+  ``hqr``). Reason: numba's ``np.linalg.eig`` needs complex input and costs ~150 µs per
   10 × 10 matrix, ten times the whole solver. An eigenvalue counts as real if its imaginary
   part is below 1e-10 ``max(1, |λ|)`` (rounding can split a double real root into a pair).
+* Eigenvectors of the *real* eigenvalues only, from the structure of the action matrix: with
+  ``b₉ = 1`` its identity rows fix ``b₀, b₁, b₂, b₆`` and the other six rows are a 6 × 5
+  least-squares problem in ``b₃, b₄, b₅, b₇ = y, b₈ = z`` (:func:`action_eigenvector`),
+  instead of a general 10 × 10 null-vector computation; ``x = b₆`` is the eigenvalue itself.
 * Rays are scaled to unit length; the same degeneracy checks as the Nistér solver (rank < 5,
-  pure rotation, tiny elimination pivot, ``b₉ ≈ 0``: solution at infinity).
+  pure rotation, tiny elimination pivot); an eigenvalue whose 6 × 5 system is rank deficient
+  (two solutions with the same ``x``, or one at infinity) is skipped.
 * Each root is polished by Gauss-Newton on the ten cubic constraints when its residual is
   above rounding level (:func:`planarloc.solvers._polynomial.refine_five_point_root`).
 * The pose recovery is the closed form shared with the batched kernels, not the paper's.
@@ -58,9 +62,9 @@ from planarloc.geometry.pose import Pose
 from planarloc.solvers._polynomial import (
     BATCH_REFINE_ITERS,
     BATCH_REFINE_RTOL,
+    RANK_TOL,
     REFINE_ITERS,
     REFINE_RTOL,
-    RANK_TOL,
     ROTATION_ONLY_TOL,
     five_point_constraints,
     five_point_nullspace,
@@ -298,63 +302,67 @@ def real_eigenvalues(M: np.ndarray, out: np.ndarray) -> int:
 
 
 @njit(cache=True)
-def eigenvector(M: np.ndarray, lam: float, v: np.ndarray) -> bool:
-    """Right eigenvector of M for the (real, approximate) eigenvalue lam by inverse iteration.
+def action_eigenvector(M: np.ndarray, lam: float, v: np.ndarray) -> bool:
+    """Eigenvector ``b = [x², xy, xz, y², yz, z², x, y, z, 1]`` of the action matrix for x = lam.
 
-    LU with partial pivoting of ``M − lam I`` (a zero pivot is replaced by ``1e-14 ‖M‖``, the
-    usual trick: the shifted matrix is singular by construction), two solves from ``(1, ..., 1)``.
+    ``(M − lam I) b = 0`` with ``b₉ = 1``: rows 6-9 (the identity rows of M) give
+    ``b₆ = lam, b₀ = lam², b₁ = lam b₇, b₂ = lam b₈``; rows 0-5 are then six consistent linear
+    equations in the five unknowns ``b₃, b₄, b₅, b₇, b₈``, solved in the least-squares sense
+    by Householder QR. This is the null vector of ``M − lam I`` restricted to the
+    normalisation ``b₉ = 1`` (solutions at infinity, ``b₉ = 0``, are not representable).
+
+    Returns False if the 6 x 5 system is rank deficient (two solutions share x).
     """
-    n = M.shape[0]
-    A = np.empty((n, n))
+    A = np.empty((6, 6))  # [coefficients | right-hand side]
+    l2 = lam * lam
+    for i in range(6):
+        A[i, 0] = M[i, 3]
+        A[i, 1] = M[i, 4]
+        A[i, 2] = M[i, 5]
+        A[i, 3] = lam * M[i, 1] + M[i, 7]
+        A[i, 4] = lam * M[i, 2] + M[i, 8]
+        A[i, 5] = -(M[i, 0] * l2 + M[i, 6] * lam + M[i, 9])
+    A[0, 5] += l2 * lam  # row 0: lam b₀ = lam³
+    A[1, 3] -= l2  # row 1: lam b₁ = lam² b₇
+    A[2, 4] -= l2  # row 2: lam b₂ = lam² b₈
+    A[3, 0] -= lam  # rows 3-5: lam b₃, lam b₄, lam b₅
+    A[4, 1] -= lam
+    A[5, 2] -= lam
     scale = 0.0
-    for i in range(n):
-        for j in range(n):
-            A[i, j] = M[i, j]
-            scale = max(scale, abs(M[i, j]))
-        A[i, i] -= lam
-    tiny = 1e-14 * max(scale, 1e-300)
-    piv = np.empty(n, dtype=np.int64)
-    for c in range(n):
-        p = c
-        for r in range(c + 1, n):
-            if abs(A[r, c]) > abs(A[p, c]):
-                p = r
-        piv[c] = p
-        if p != c:
-            for j in range(n):
-                A[c, j], A[p, j] = A[p, j], A[c, j]
-        if abs(A[c, c]) < tiny:
-            A[c, c] = tiny
-        inv = 1.0 / A[c, c]
-        for r in range(c + 1, n):
-            f = A[r, c] * inv
-            A[r, c] = f
-            if f != 0.0:
-                for j in range(c + 1, n):
-                    A[r, j] -= f * A[c, j]
-    for i in range(n):
-        v[i] = 1.0
-    for _ in range(2):
-        for c in range(n):  # P b (rows were swapped whole, LAPACK style: permute first)
-            p = piv[c]
-            if p != c:
-                v[c], v[p] = v[p], v[c]
-        for c in range(n):  # forward: L y = P b
-            for r in range(c + 1, n):
-                v[r] -= A[r, c] * v[c]
-        for c in range(n - 1, -1, -1):  # backward: U x = y
-            acc = v[c]
-            for j in range(c + 1, n):
-                acc -= A[c, j] * v[j]
-            v[c] = acc / A[c, c]
+    for i in range(6):
+        for j in range(5):
+            scale = max(scale, abs(A[i, j]))
+    # Householder QR of the 6 x 5 coefficients, applied to the right-hand side as well
+    for k in range(5):
         norm = 0.0
-        for i in range(n):
-            norm += v[i] * v[i]
-        if not (norm > 0.0 and np.isfinite(norm)):
+        for i in range(k, 6):
+            norm += A[i, k] * A[i, k]
+        norm = np.sqrt(norm)
+        if not norm > 1e-12 * scale:
             return False
-        norm = 1.0 / np.sqrt(norm)
-        for i in range(n):
-            v[i] *= norm
+        alpha = -norm if A[k, k] >= 0.0 else norm
+        v0 = A[k, k] - alpha
+        vn = v0 * v0
+        for i in range(k + 1, 6):
+            vn += A[i, k] * A[i, k]
+        A[k, k] = v0  # Householder vector in A[k:, k] during the update
+        for j in range(k + 1, 6):
+            dot = 0.0
+            for i in range(k, 6):
+                dot += A[i, k] * A[i, j]
+            f = 2.0 * dot / vn
+            for i in range(k, 6):
+                A[i, j] -= f * A[i, k]
+        A[k, k] = alpha
+    w = np.empty(5)
+    for k in range(4, -1, -1):
+        acc = A[k, 5]
+        for j in range(k + 1, 5):
+            acc -= A[k, j] * w[j]
+        w[k] = acc / A[k, k]
+    v[0], v[1], v[2] = l2, lam * w[3], lam * w[4]
+    v[3], v[4], v[5] = w[0], w[1], w[2]
+    v[6], v[7], v[8], v[9] = lam, w[3], w[4], 1.0
     return True
 
 
@@ -397,13 +405,11 @@ def stewenius_essentials(
     dm = np.empty((3, 20))
     count = 0
     for s in range(nl):
-        if not eigenvector(M, lams[s], v):
+        if not action_eigenvector(M, lams[s], v):
             continue
-        if abs(v[9]) <= 1e-12:
-            continue  # solution at infinity
-        sol[0] = v[6] / v[9]
-        sol[1] = v[7] / v[9]
-        sol[2] = v[8] / v[9]
+        sol[0] = v[6]  # = lams[s]
+        sol[1] = v[7]
+        sol[2] = v[8]
         refine_five_point_root(C, sol, refine_iters, refine_rtol, m, dm)
         norm = 0.0
         for i in range(3):
@@ -455,7 +461,8 @@ def essentials_5p_stewenius(x_query: object, x_ref: object) -> list[np.ndarray]:
         InputError: wrong shape, NaN/inf, or a zero-length ray.
 
     References:
-        Stewénius, Engels & Nistér, ISPRS J. 2006, Sec. 3; deviations in the module docstring.
+        Stewénius, Engels & Nistér, ISPRS J. 2006 (Gröbner basis, action matrix); deviations in
+        the module docstring.
     """
     xq, xr = check_correspondences(x_query, x_ref, rows=5)
     Es = np.empty((MAX_SOLUTIONS, 3, 3))
@@ -482,7 +489,8 @@ def relpose_5p_stewenius(x_query: object, x_ref: object) -> list[Pose]:
         InputError: wrong shape, fewer than 5 rows, NaN/inf, or a zero-length ray.
 
     References:
-        Stewénius, Engels & Nistér, ISPRS J. 2006, Sec. 3; deviations in the module docstring.
+        Stewénius, Engels & Nistér, ISPRS J. 2006 (Gröbner basis, action matrix); deviations in
+        the module docstring.
     """
     xq, xr = check_correspondences(x_query, x_ref, min_rows=5)
     Es = np.empty((MAX_SOLUTIONS, 3, 3))
@@ -513,7 +521,7 @@ def relpose_5p_stewenius_batch(
         nothing; their rows of ``valid`` are all False.
 
     References:
-        Stewénius, Engels & Nistér, ISPRS J. 2006, Sec. 3; pose by the closed form of
+        Stewénius, Engels & Nistér, ISPRS J. 2006; pose by the closed form of
         :func:`planarloc.geometry.essential_decomposition.relpose_from_essential_kernel`.
     """
     xq, xr = check_correspondence_batch(x_query, x_ref, 5)

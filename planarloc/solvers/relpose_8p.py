@@ -39,7 +39,7 @@ from planarloc.geometry.essential_decomposition import (
     check_correspondences,
     mask_invalid,
     relpose_from_essential_kernel,
-    relposes_from_essential_unchecked,
+    relposes_closed_form,
 )
 from planarloc.geometry.pose import Pose
 
@@ -257,9 +257,10 @@ def relpose_8p(x_query: object, x_ref: object) -> list[Pose]:
     Returns:
         The ``ref_from_query`` poses (``x_ref ∝ R x_query + t``, ``‖t‖ = 1``) of
         :func:`essential_8p` whose decomposition puts **all N** points in front of both cameras
-        (:func:`planarloc.geometry.essential_decomposition.relposes_from_essential`): usually
-        one pose; ``[]`` for degenerate input, for points at infinity (parallel rays) and when
-        noise or outliers put any point behind a camera.
+        (the test of :func:`planarloc.geometry.essential_decomposition.relposes_from_essential`,
+        run by the numba kernel shared with the batched solvers): usually one pose; ``[]`` for
+        degenerate input, for points at infinity (parallel rays) and when noise or outliers put
+        any point behind a camera.
 
     Raises:
         InputError: wrong shape, fewer than 8 rows, NaN/inf, or a zero-length ray.
@@ -268,10 +269,8 @@ def relpose_8p(x_query: object, x_ref: object) -> list[Pose]:
         Hartley, TPAMI 1997; Hartley & Zisserman Alg. 11.1, Sec. 9.6.
     """
     xq, xr = check_correspondences(x_query, x_ref, min_rows=8)
-    poses: list[Pose] = []
-    for E in essential_8p(xq, xr):
-        poses.extend(relposes_from_essential_unchecked(E, xq, xr))
-    return poses
+    Es = essential_8p(xq, xr)
+    return relposes_closed_form(np.array(Es).reshape(-1, 3, 3), xq, xr)
 
 
 def relpose_8p_batch(x_query: object, x_ref: object) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -25,7 +25,7 @@ quadratic form vanishes on the whole null space, so every direction fits).
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
+from numba import njit, prange
 
 from planarloc.geometry.pose import Pose
 from planarloc.geometry.planar import relpose_from_planar_params
@@ -194,6 +194,17 @@ def _solve_batch(xq: np.ndarray, xr: np.ndarray, thetas: np.ndarray, phis: np.nd
         counts[i] = solve_planar_2p(xq[i], xr[i], thetas[i], phis[i])
 
 
+@njit(cache=True, error_model="numpy", parallel=True)
+def _solve_batch_parallel(
+    xq: np.ndarray, xr: np.ndarray, thetas: np.ndarray, phis: np.ndarray, counts: np.ndarray
+) -> None:
+    for i in prange(xq.shape[0]):
+        counts[i] = solve_planar_2p(xq[i], xr[i], thetas[i], phis[i])
+
+
+_PARALLEL_MIN_BATCH = 4096  # below this, thread start-up costs more than it saves
+
+
 def _check_points(name: str, x: object, shape: tuple) -> np.ndarray:
     arr = check_array(name, x)
     if arr.ndim == len(shape) and arr.shape[-1] == 2 and all(
@@ -244,6 +255,8 @@ def relpose_planar_2p_batch(x_query: object, x_ref: object) -> tuple[np.ndarray,
     Args:
         x_query, x_ref: (M, 2, 3) rays of M two-match samples.
 
+    Large batches run on all cores (numba ``prange``).
+
     Returns:
         theta (M, 2), phi (M, 2) and valid (M, 2) bool. Solution ``k`` of sample ``i`` is
         ``relpose_from_planar_params(theta[i, k], phi[i, k])`` where ``valid[i, k]``.
@@ -256,6 +269,6 @@ def relpose_planar_2p_batch(x_query: object, x_ref: object) -> tuple[np.ndarray,
     thetas = np.zeros((m, 2))
     phis = np.zeros((m, 2))
     counts = np.zeros(m, dtype=np.int64)
-    _solve_batch(xq, xr, thetas, phis, counts)
+    (_solve_batch_parallel if m >= _PARALLEL_MIN_BATCH else _solve_batch)(xq, xr, thetas, phis, counts)
     valid = np.arange(2)[None, :] < counts[:, None]
     return thetas, phis, valid

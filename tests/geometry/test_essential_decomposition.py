@@ -62,7 +62,9 @@ def test_motion_from_essential_gives_the_four_decompositions(seed):
         # the two rotations are the "twisted pair": R2 = (2 t tᵀ - I) R1
         assert np.allclose(Rs[2], (2 * np.outer(tn, tn) - np.eye(3)) @ Rs[0], atol=1e-12)
         # the truth is among them
-        hits = [k for k in range(4) if np.allclose(Rs[k], R, atol=1e-12) and np.allclose(ts[k], tn, atol=1e-12)]
+        hits = [
+            k for k in range(4) if np.allclose(Rs[k], R, atol=1e-12) and np.allclose(ts[k], tn, atol=1e-12)
+        ]
         assert len(hits) == 1
 
 
@@ -90,7 +92,8 @@ def test_motion_from_essential_batched_and_nearest_essential():
     R, t = random_relpose(rng)
     E = essential_from_relpose(R, t)
     Rp, tp = motion_from_essential(E + 1e-9 * rng.normal(size=(3, 3)))
-    assert any(np.allclose(Rp[k], R, atol=1e-7) and np.allclose(tp[k], t / np.linalg.norm(t), atol=1e-7) for k in range(4))
+    tn = t / np.linalg.norm(t)
+    assert any(np.allclose(Rp[k], R, atol=1e-7) and np.allclose(tp[k], tn, atol=1e-7) for k in range(4))
 
 
 @pytest.mark.parametrize(
@@ -128,7 +131,8 @@ def test_relposes_from_essential_keeps_the_true_pose_only(seed):
         # same result from the closed-form kernel used by the solvers
         fast = relposes_closed_form(E[None], xq, xr)
         assert len(fast) == 1
-        assert np.allclose(fast[0].R, poses[0].R, atol=1e-12) and np.allclose(fast[0].t, poses[0].t, atol=1e-12)
+        assert np.allclose(fast[0].R, poses[0].R, atol=1e-12)
+        assert np.allclose(fast[0].t, poses[0].t, atol=1e-12)
         # bearings of any positive length give the same answer
         s = rng.uniform(0.1, 10.0, size=(len(xq), 1))
         poses_b = relposes_from_essential(E, xq * s, xr / s)

@@ -199,7 +199,7 @@ def degenerate_samples():
     # all points on one epipolar plane (coplanar with both camera centres)
     c_ref = -R.T @ t  # reference centre in the query frame
     u = rng.normal(size=3)
-    X = np.array([rng.uniform(1, 5) * c_ref + rng.uniform(-3, 3) * u + np.array([0, 0, 8.0]) * rng.uniform(0.5, 1)
+    X = np.array([rng.uniform(1, 5) * c_ref + rng.uniform(-3, 3) * u + np.array([0, 0, rng.uniform(4.0, 8.0)])
                   for _ in range(5)])  # fmt: skip
     normal = np.cross(c_ref, X[0])
     X = X - np.outer((X @ normal) / (normal @ normal), normal)  # project onto the plane (0, c_ref, X0)
@@ -290,6 +290,19 @@ def test_batch_matches_single_calls(name):
     # an empty batch is fine
     R0, t0, v0 = batch(np.empty((0, 5, 3)), np.empty((0, 5, 3)))
     assert R0.shape == (0, 10, 3, 3) and v0.shape == (0, 10)
+
+
+@pytest.mark.parametrize("name", SOLVERS)
+def test_parallel_batch_equals_serial(name):
+    _, _, batch = SOLVERS[name]
+    rng = np.random.default_rng(19)
+    scenes = [make_scene(rng) for _ in range(40)]
+    XQ = np.stack([s[0] for s in scenes])
+    XR = np.stack([s[1] for s in scenes])
+    R, t, valid = batch(XQ, XR)
+    Rp, tp, validp = batch(XQ, XR, parallel=True)
+    assert np.array_equal(valid, validp)
+    assert np.array_equal(R[valid], Rp[valid]) and np.array_equal(t[valid], tp[valid])
 
 
 # ---- cross-checks -------------------------------------------------------------------------------
