@@ -231,7 +231,7 @@ def plot(summary: dict, names: tuple[str, ...], path: Path) -> None:
             ax.set_title(f"{m} matches/pair", fontsize=9)
             ax.set_xlabel("noise sigma (px)")
             ax.set_ylabel(title)
-            ax.set_yscale("log")
+            ax.set_ylim(bottom=0.0)
             ax.grid(alpha=0.3)
     axes[0, 0].legend(fontsize=7)
     fig.tight_layout()

@@ -21,7 +21,7 @@ from planarloc.robust.structure import triangulate_tracks
 
 logger = logging.getLogger(__name__)
 
-PROFILE_BELOW_RATIO = 0.3  # centre collinearity ratio under which the cost profile is checked
+PROFILE_BELOW_RATIO = 0.15  # centre collinearity ratio under which the cost profile is checked
 
 MIN_SAMPLE = {Method.P2P1: (2, 1), Method.P2P2: (2, 2), Method.NISTER: (5, 5), Method.STEWENIUS: (5, 5),
               Method.EIGHT: (8, 8)}
@@ -61,7 +61,7 @@ def estimate_absolute_pose(
     """
     t_start = time.perf_counter()
     method = parse_method(method)
-    options = options or RansacOptions()
+    options = RansacOptions() if options is None else options
     if not isinstance(options, RansacOptions):
         raise ValueError(f"options: expected RansacOptions, got {type(options).__name__}")
     problem = build_problem(query_camera, pairs)
@@ -101,19 +101,29 @@ def estimate_absolute_pose(
 
     t0 = time.perf_counter()
     R, t = out.R, out.t
-    rounds = 2 if options.refine else 1
-    for _ in range(rounds):
-        R, t, cov, sigma, cost, in2d, in3d = estimator.refine_full(R, t, max_iterations=10 if options.refine else 0)
+    R, t, cov, sigma, cost, in2d, in3d = estimator.refine_full(R, t, max_iterations=10 if options.refine else 0)
+    if options.refine:
+        # Refine again on the inliers of the refined pose when they changed.
+        new2d, new3d = estimator.inliers(R, t)
+        if not (np.array_equal(new2d, in2d) and np.array_equal(new3d, in3d)):
+            R, t, cov, sigma, cost, in2d, in3d = estimator.refine_full(R, t, max_iterations=10)
     stats.add_time("refinement", time.perf_counter() - t0)
     t0 = time.perf_counter()
     in2d, in3d = estimator.inliers(R, t)
-    if np.all(np.isfinite(cov)) and (options.map_rotation_std_deg > 0 or options.map_position_std_m > 0):
-        cov = cov + estimator.map_covariance(R, t, in2d, in3d)
-    std = float(np.sqrt(max(np.linalg.eigvalsh(cov).max(), 0.0))) if np.all(np.isfinite(cov)) else float("inf")
     inliers = _split(in2d, problem.offsets)
     n2d, n3d = int(in2d.sum()), int(in3d.sum())
     spread = estimator.centre_collinearity(R, t, in2d)
-    if np.isfinite(std) and (spread < PROFILE_BELOW_RATIO and n3d < options.min_inliers):
+    near_collinear = spread < PROFILE_BELOW_RATIO and n3d < options.min_inliers
+    if np.all(np.isfinite(cov)) and (options.map_rotation_std_deg > 0 or options.map_position_std_m > 0):
+        if near_collinear:
+            # Weak geometry amplifies map errors: propagate them through the full model.
+            cov = cov + estimator.map_covariance(R, t, in2d, in3d)
+        else:
+            # Spread geometry: map errors move the query like the references, no amplification.
+            d = estimator.median_reference_distance(R, t, in2d)
+            cov = cov + np.eye(3) * (options.map_position_std_m**2 + (d * np.radians(options.map_rotation_std_deg)) ** 2)
+    std = float(np.sqrt(max(np.linalg.eigvalsh(cov).max(), 0.0))) if np.all(np.isfinite(cov)) else float("inf")
+    if np.isfinite(std) and near_collinear:
         # Near-collinear geometry: the linearised covariance is over-confident in the curved
         # valley of the cost; profile the cost along the weak directions.
         # Probe at 3σ (does the quadratic model hold?) and at the decision scale.

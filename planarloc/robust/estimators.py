@@ -48,10 +48,20 @@ class _ProblemEstimator:
         self.num_data = len(problem.xq) + len(problem.X3d)
         self.counters = np.zeros(5, dtype=np.int64)
 
-    def score(self, R: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def score(self, R: np.ndarray, t: np.ndarray, bound: float = np.inf) -> tuple[np.ndarray, np.ndarray]:
         p = self.p
         return msac_scores(np.ascontiguousarray(R), np.ascontiguousarray(t), len(R), p.xq, p.xr, p.offsets,
-                           p.f_query, p.f_ref, p.ref_R, p.ref_t, p.xq3d, p.X3d, self.threshold_sq)
+                           p.f_query, p.f_ref, p.ref_R, p.ref_t, p.xq3d, p.X3d, self.threshold_sq, bound)
+
+    def distinct(self, Ra: np.ndarray, ta: np.ndarray, Rb: np.ndarray, tb: np.ndarray) -> bool:
+        """Two hypotheses are distinct models when their centres differ by more than 10% of
+        the distance to the nearest reference centre (the scatter of correct hypotheses
+        is not; a pose slid along a weak direction is)."""
+        ca, cb = -Ra.T @ ta, -Rb.T @ tb
+        if not hasattr(self, "_ref_centres"):
+            self._ref_centres = -np.einsum("pji,pj->pi", self.p.ref_R, self.p.ref_t)
+        scale = np.linalg.norm(self._ref_centres - ca, axis=1).min()
+        return bool(np.linalg.norm(ca - cb) > 0.1 * scale)
 
     def inliers(self, R: np.ndarray, t: np.ndarray, threshold_sq: float | None = None) -> tuple[np.ndarray, np.ndarray]:
         p = self.p
@@ -103,7 +113,7 @@ class _ProblemEstimator:
         c = -R.T @ t
         worst = 0.0
         for sgn in (1.0, -1.0):
-            *_, c_moved = self._refine(R, c + sgn * distance * u, in2d, in3d, 10, B, fixed)
+            *_, c_moved = self._refine(R, c + sgn * distance * u, in2d, in3d, 6, B, fixed)
             rise = max(c_moved - cost, 0.0) / (sigma * sigma)
             worst = max(worst, distance / np.sqrt(2.0 * rise) if rise > 0 else np.inf)
         return worst
@@ -115,8 +125,17 @@ class _ProblemEstimator:
             in2d, in3d = self.inliers(R, t, scale * scale * self.threshold_sq)
             if in2d.sum() + in3d.sum() < 6:
                 break
-            R, t, *_ = self._refine(R, -R.T @ t, in2d, in3d, 4)
+            R, t, *_ = self._refine(R, -R.T @ t, in2d, in3d, 3)
         return R, t
+
+    def median_reference_distance(self, R: np.ndarray, t: np.ndarray, in2d: np.ndarray) -> float:
+        """Median distance from the query centre to the centres of references with inliers."""
+        p = self.p
+        c = -R.T @ t
+        centres = -np.einsum("pji,pj->pi", p.ref_R, p.ref_t)
+        has = np.add.reduceat(in2d.astype(np.int64), p.offsets[:-1]) > 0 if len(in2d) else np.zeros(0, bool)
+        d = np.linalg.norm(centres[has] - c, axis=1) if has.any() else np.linalg.norm(centres - c, axis=1)
+        return float(np.median(d))
 
     def centre_collinearity(self, R: np.ndarray, t: np.ndarray, in2d: np.ndarray) -> float:
         """How far the query and reference centres are from lying on one line (scale-free).
@@ -141,8 +160,8 @@ class _ProblemEstimator:
     def weak_directions(self, R: np.ndarray, t: np.ndarray, in2d: np.ndarray, cov: np.ndarray) -> list[np.ndarray]:
         """Directions along which the position may be unobservable (world frame).
 
-        The largest axis of the linearised covariance, and the weakest axis of the bearing
-        configuration: with the query centre ``c`` and the reference centres ``c_p`` of pairs
+        The weakest axis of the bearing configuration (and the largest axis of the linearised
+        covariance when it differs by more than ~10°): with the query centre ``c`` and the reference centres ``c_p`` of pairs
         with inliers, ``A = Σ_p (I - u_p u_pᵀ) / |c - c_p|²`` with ``u_p`` the unit bearing;
         collinear centres make its smallest eigenvalue vanish along the line.
         """
@@ -164,7 +183,7 @@ class _ProblemEstimator:
         w, V = np.linalg.eigh(A)
         dirs.append(V[:, 0])
         if len(dirs) == 2 and abs(dirs[0] @ dirs[1]) > 0.98:
-            dirs.pop()
+            dirs.pop(0)
         return dirs
 
     def _flush(self, stats: RansacStatistics) -> None:

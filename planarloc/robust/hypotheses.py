@@ -10,6 +10,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+from planarloc.geometry import mat3 as m3
 from planarloc.solvers.abspose_2p1p import scale_2p1p, scale_from_point3d
 from planarloc.solvers.abspose_2p2p import triangulate_scales
 from planarloc.solvers.abspose_up2p import solve_up2p
@@ -80,31 +81,31 @@ def hypotheses_2p1p(
             tt[1] = 0.0
             tt[2] = -(sn * sp + c * cp)
             if third_is_3d[s]:
-                Xref = Rj @ X3d[i3] + tj
-                v = R @ xq3d[i3]
+                Xref = m3.vec(Rj, X3d[i3]) + tj
+                v = m3.vec(R, xq3d[i3])
                 rho = scale_from_point3d(tt, Xref, v)
                 if rho != rho:
                     counters[DEGENERATE] += 1
                     continue
-                Xq = R.T @ (Xref - rho * tt)
+                Xq = m3.t_vec(R, Xref - rho * tt)
                 if rho <= 0 or Xq[2] <= 0:
                     counters[PDCHECK] += 1
                     continue
             else:
                 k = pk[s]
-                R21 = ref_R[k] @ Rj.T
-                t21 = ref_t[k] - R21 @ tj
-                a = R21 @ tt
-                y = R21 @ (R @ xq[i3])
+                R21 = m3.mul_t(ref_R[k], Rj)
+                t21 = ref_t[k] - m3.vec(R21, tj)
+                a = m3.vec(R21, tt)
+                y = m3.vec(R21, m3.vec(R, xq[i3]))
                 rho = scale_2p1p(a, t21, y, xr[i3])
                 if rho != rho:
                     counters[DEGENERATE] += 1
                     continue
-                if rho <= 0 or not _positive_depths(R21 @ R, rho * a + t21, xq[i3], xr[i3]):
+                if rho <= 0 or not _positive_depths(m3.mul(R21, R), rho * a + t21, xq[i3], xr[i3]):
                     counters[PDCHECK] += 1
                     continue
-            out_R[out] = R.T @ Rj
-            out_t[out] = R.T @ (tj - rho * tt)
+            out_R[out] = m3.t_mul(R, Rj)
+            out_t[out] = m3.t_vec(R, tj - rho * tt)
             out += 1
     return out
 
@@ -133,8 +134,8 @@ def hypotheses_from_relative_poses(
     for s in range(Ra.shape[0]):
         j, k = pj[s], pk[s]
         Rj, tj, Rk, tk = ref_R[j], ref_t[j], ref_R[k], ref_t[k]
-        R12 = Rj @ Rk.T  # j_from_k, eq. (12)
-        t12 = tj - R12 @ tk
+        R12 = m3.mul_t(Rj, Rk)  # j_from_k, eq. (12)
+        t12 = tj - m3.vec(R12, tk)
         any_valid = False
         for a in range(Ra.shape[1]):
             if not va[s, a]:
@@ -144,12 +145,12 @@ def hypotheses_from_relative_poses(
                     continue
                 any_valid = True
                 counters[HYPOTHESES] += 1
-                Rab = Ra[s, a] @ Rb[s, b].T
+                Rab = m3.mul_t(Ra[s, a], Rb[s, b])
                 cos_e = 0.5 * (np.sum(R12 * Rab) - 1.0)  # tr(R12 Rabᵀ) = Σ R12 ∘ Rab
                 if cos_e < cos_rcheck:
                     counters[RCHECK] += 1
                     continue
-                t2_in_1 = Rab @ tb[s, b]
+                t2_in_1 = m3.vec(Rab, tb[s, b])
                 rho, rho2, reg = triangulate_scales(ta[s, a], t2_in_1, t12)
                 if reg:
                     counters[DEGENERATE] += 1
@@ -157,10 +158,10 @@ def hypotheses_from_relative_poses(
                 if rho <= 0 or rho2 <= 0:
                     counters[PDCHECK] += 1
                     continue
-                Rq = Ra[s, a].T @ Rj
-                tq = Ra[s, a].T @ (tj - rho * ta[s, a])
-                cq = -Rq.T @ tq
-                that = Rk @ cq + tk  # query centre seen from k; must point along t̃₂
+                Rq = m3.t_mul(Ra[s, a], Rj)
+                tq = m3.t_vec(Ra[s, a], tj - rho * ta[s, a])
+                cq = -m3.t_vec(Rq, tq)
+                that = m3.vec(Rk, cq) + tk  # query centre seen from k; must point along t̃₂
                 nt = np.sqrt(np.sum(that * that))
                 if nt < 1e-12 or np.sum(that * tb[s, b]) / nt < cos_consistency:
                     counters[CONSISTENCY] += 1
@@ -197,7 +198,7 @@ def hypotheses_up2p(
         Rj, tj = ref_R[j], ref_t[j]
         for k in range(2):
             x[k] = xq3d[samples[s, k]]
-            X[k] = Rj @ X3d[samples[s, k]] + tj
+            X[k] = m3.vec(Rj, X3d[samples[s, k]]) + tj
         n = solve_up2p(x, X, th, ts)
         if n == 0:
             counters[DEGENERATE] += 1
@@ -206,7 +207,7 @@ def hypotheses_up2p(
             counters[HYPOTHESES] += 1
             c, sn = np.cos(th[m]), np.sin(th[m])
             R[0, 0], R[0, 2], R[2, 0], R[2, 2] = c, -sn, sn, c
-            out_R[out] = R @ Rj
-            out_t[out] = R @ tj + ts[m]
+            out_R[out] = m3.mul(R, Rj)
+            out_t[out] = m3.vec(R, tj) + ts[m]
             out += 1
     return out

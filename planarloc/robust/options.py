@@ -5,6 +5,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 from enum import Enum
 
+import numpy as np
+
 from planarloc.geometry.validation import InputError
 
 
@@ -73,7 +75,7 @@ class RansacOptions:
     local_optimization: bool = True
     min_inliers: int = 10
     max_position_std_m: float = 1.0
-    map_rotation_std_deg: float = 0.05
+    map_rotation_std_deg: float = 0.1
     map_position_std_m: float = 0.02
     min_collinearity_ratio: float = 0.01
     track_min_angle_deg: float = 1.0
@@ -84,6 +86,18 @@ class RansacOptions:
             object.__setattr__(self, "structure", Structure(getattr(self.structure, "value", self.structure)))
         except ValueError:
             raise InputError(f"RansacOptions.structure: expected 'none' or 'tracks', got {self.structure!r}") from None
+        for name in ("max_iterations", "min_iterations", "min_inliers"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 0:
+                raise InputError(f"RansacOptions.{name}: expected a non-negative integer, got {v!r}")
+        if self.seed is not None and (isinstance(self.seed, bool) or not isinstance(self.seed, (int, np.integer))
+                                      or self.seed < 0):
+            raise InputError(f"RansacOptions.seed: expected a non-negative integer or None, got {self.seed!r}")
+        for name in ("threshold_px", "rcheck_deg", "consistency_deg", "max_position_std_m",
+                     "map_rotation_std_deg", "map_position_std_m", "min_collinearity_ratio", "track_min_angle_deg"):
+            v = getattr(self, name)
+            if not np.isfinite(v) and name != "max_position_std_m":
+                raise InputError(f"RansacOptions.{name}: must be finite, got {v}")
         if not (1 <= self.min_iterations <= self.max_iterations):
             raise InputError(
                 f"RansacOptions: need 1 <= min_iterations <= max_iterations, got {self.min_iterations}, "

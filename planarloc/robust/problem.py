@@ -78,12 +78,14 @@ def build_problem(query_camera: Camera, pairs: Sequence[PairMatches]) -> Absolut
             f"pairs: need matches to at least 2 reference images to fix the scale, got {len(pairs)}; "
             "hint: retrieve more reference images (top-n >= 2)"
         )
-    xq, xr, pair, qids, xq3, X3, src = [], [], [], [], [], [], []
+    xr, pair, qids, xq3, X3, src = [], [], [], [], [], []
     offsets = [0]
     base = 0
+    # One undistortion call for all query points (same camera); references may differ.
+    xq_all = query_camera.bearings_from_img(np.vstack([p.query_points for p in pairs]))
     for p_idx, p in enumerate(pairs):
         n = len(p)
-        q = query_camera.bearings_from_img(p.query_points) if n else np.zeros((0, 3))
+        q = xq_all[base:base + n]
         r = p.ref_camera.bearings_from_img(p.ref_points) if n else np.zeros((0, 3))
         for name, rays in (("query_points", q), ("ref_points", r)):
             if not np.isfinite(rays).all():
@@ -92,7 +94,6 @@ def build_problem(query_camera: Camera, pairs: Sequence[PairMatches]) -> Absolut
                     f"pairs[{p_idx}].{name}[{bad}]: pixel outside the valid range of the camera's distortion "
                     "model (undistortion does not converge); drop such keypoints or check the intrinsics"
                 )
-        xq.append(q)
         xr.append(r)
         pair.append(np.full(n, p_idx, dtype=np.int64))
         qids.append(p.query_indices if p.query_indices is not None else np.full(n, -1, dtype=np.int64))
@@ -104,7 +105,7 @@ def build_problem(query_camera: Camera, pairs: Sequence[PairMatches]) -> Absolut
         base += n
         offsets.append(base)
     return AbsolutePoseProblem(
-        xq=np.ascontiguousarray(np.vstack(xq)),
+        xq=np.ascontiguousarray(xq_all),
         xr=np.ascontiguousarray(np.vstack(xr)),
         pair=np.concatenate(pair),
         offsets=np.asarray(offsets, dtype=np.int64),

@@ -24,7 +24,8 @@ class Estimator(Protocol):
 
     ``sample_size`` is the number of data in a minimal sample (for the adaptive iteration
     count), ``num_data`` the number of scored data. ``generate`` draws ``n`` minimal samples
-    and returns the hypotheses that passed the solver's checks; ``score`` returns MSAC costs
+    and returns the hypotheses that passed the solver's checks; ``score`` returns MSAC costs (above ``bound``
+    possibly partial lower bounds)
     and inlier counts; ``refine`` improves one model on its inliers (local optimisation).
     """
 
@@ -33,7 +34,7 @@ class Estimator(Protocol):
 
     def generate(self, rng: np.random.Generator, n: int, stats: RansacStatistics) -> tuple[np.ndarray, np.ndarray]: ...
 
-    def score(self, R: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]: ...
+    def score(self, R: np.ndarray, t: np.ndarray, bound: float = ...) -> tuple[np.ndarray, np.ndarray]: ...
 
     def refine(self, R: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]: ...
 
@@ -57,11 +58,34 @@ def required_iterations(inlier_ratio: float, sample_size: int, confidence: float
     return math.log(1.0 - confidence) / math.log(1.0 - w_s)
 
 
+LO_CANDIDATES = 2
+LO_NEAR_TIE = 1.1
+
+
+def _lo_candidates(estimator: Estimator, R: np.ndarray, t: np.ndarray, cost: np.ndarray, k: int) -> list[int]:
+    """The batch's best hypothesis and up to ``LO_CANDIDATES - 1`` near-ties (cost within
+    ``LO_NEAR_TIE``) that the estimator calls distinct models (``estimator.distinct``)."""
+    chosen = [k]
+    distinct = getattr(estimator, "distinct", None)
+    if distinct is None:
+        return chosen
+    for i in np.argsort(cost)[1:]:
+        if len(chosen) == LO_CANDIDATES or cost[i] > LO_NEAR_TIE * cost[k]:
+            break
+        if all(distinct(R[i], t[i], R[j], t[j]) for j in chosen):
+            chosen.append(int(i))
+    return chosen
+
+
 def ransac(estimator: Estimator, options: RansacOptions, rng: np.random.Generator,
            stats: RansacStatistics | None = None, batch_size: int = 50) -> RansacOutput:
     """Run MSAC with adaptive termination between ``min_iterations`` and ``max_iterations``.
 
-    Local optimisation (``estimator.refine``) runs whenever a batch produces a new best model.
+    Local optimisation (``estimator.refine``) runs whenever a batch produces a new best model,
+    on that model and on up to ``LO_CANDIDATES - 1`` other hypotheses of the batch whose cost is
+    within ``LO_NEAR_TIE`` of it: near-ties are where a wrong pose with almost the same support
+    (e.g. shifted along a weakly observed direction) can win the raw score but lose after
+    refinement.
     """
     stats = stats or RansacStatistics()
     best_R = best_t = None
@@ -76,7 +100,7 @@ def ransac(estimator: Estimator, options: RansacOptions, rng: np.random.Generato
         t1 = time.perf_counter()
         stats.add_time("hypotheses", t1 - t0)
         if len(R):
-            cost, inl = estimator.score(R, t)
+            cost, inl = estimator.score(R, t, best_cost)
             stats.scored += len(R)
             k = int(np.argmin(cost))
             stats.add_time("scoring", time.perf_counter() - t1)
@@ -84,11 +108,12 @@ def ransac(estimator: Estimator, options: RansacOptions, rng: np.random.Generato
                 best_R, best_t, best_cost, best_inl = R[k], t[k], float(cost[k]), int(inl[k])
                 if options.local_optimization and options.refine:
                     t2 = time.perf_counter()
-                    R_lo, t_lo = estimator.refine(best_R, best_t)
-                    c_lo, i_lo = estimator.score(R_lo[None], t_lo[None])
-                    stats.local_optimizations += 1
-                    if c_lo[0] < best_cost:
-                        best_R, best_t, best_cost, best_inl = R_lo, t_lo, float(c_lo[0]), int(i_lo[0])
+                    for c in _lo_candidates(estimator, R, t, cost, k):
+                        R_lo, t_lo = estimator.refine(R[c], t[c])
+                        c_lo, i_lo = estimator.score(R_lo[None], t_lo[None])
+                        stats.local_optimizations += 1
+                        if c_lo[0] < best_cost:
+                            best_R, best_t, best_cost, best_inl = R_lo, t_lo, float(c_lo[0]), int(i_lo[0])
                     stats.add_time("local_optimization", time.perf_counter() - t2)
                 ratio = best_inl / max(estimator.num_data, 1)
                 needed = required_iterations(ratio, estimator.sample_size, options.confidence)

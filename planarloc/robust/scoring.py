@@ -12,11 +12,13 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+from planarloc.geometry import mat3 as m3
+
 
 @njit(cache=True, error_model="numpy", inline="always")
 def _relative_essential(Rp: np.ndarray, tp: np.ndarray, Rq: np.ndarray, tq: np.ndarray, E: np.ndarray) -> None:
     """E = [t]x R for p_from_query = (Rp Rqᵀ, tp - Rp Rqᵀ tq), written into E (3, 3)."""
-    R = Rp @ Rq.T
+    R = m3.mul_t(Rp, Rq)
     t0 = tp[0] - (R[0, 0] * tq[0] + R[0, 1] * tq[1] + R[0, 2] * tq[2])
     t1 = tp[1] - (R[1, 0] * tq[0] + R[1, 1] * tq[1] + R[1, 2] * tq[2])
     t2 = tp[2] - (R[2, 0] * tq[0] + R[2, 1] * tq[1] + R[2, 2] * tq[2])
@@ -76,13 +78,17 @@ def errors_sq(
 def msac_scores(
     Rs: np.ndarray, ts: np.ndarray, num: int, xq: np.ndarray, xr: np.ndarray, offsets: np.ndarray,
     f_query: np.ndarray, f_ref: np.ndarray, ref_R: np.ndarray, ref_t: np.ndarray,
-    xq3d: np.ndarray, X3d: np.ndarray, threshold_sq: float,
+    xq3d: np.ndarray, X3d: np.ndarray, threshold_sq: float, bound: float = np.inf,
 ) -> tuple[np.ndarray, np.ndarray]:
     """MSAC cost ``Σ min(e², τ²)`` and inlier count of the first ``num`` hypotheses.
 
     Args:
         Rs, ts: (H, 3, 3), (H, 3) hypotheses ``query_from_world``.
         threshold_sq: τ² in pixels².
+        bound: cost of the best model so far. Scoring of a hypothesis stops (after a pair)
+            once its partial cost exceeds the best cost seen, so most bad hypotheses cost a
+            fraction of a full pass; their returned cost is then only a lower bound (and their
+            inlier count partial), which leaves the argmin exact.
 
     Returns:
         cost (num,), inliers (num,).
@@ -90,6 +96,7 @@ def msac_scores(
     cost = np.empty(num)
     inl = np.zeros(num, dtype=np.int64)
     E = np.empty((3, 3))
+    best = bound
     for h in range(num):
         c = 0.0
         k = 0
@@ -104,6 +111,12 @@ def msac_scores(
                     k += 1
                 else:
                     c += threshold_sq
+            if c > best:
+                break
+        if c > best:
+            cost[h] = c
+            inl[h] = k
+            continue
         for i in range(X3d.shape[0]):
             e = _reproj_sq(Rq, tq, X3d[i], xq3d[i], f_query[0], f_query[1])
             if e < threshold_sq:
@@ -113,6 +126,8 @@ def msac_scores(
                 c += threshold_sq
         cost[h] = c
         inl[h] = k
+        if c < best:
+            best = c
     return cost, inl
 
 

@@ -137,15 +137,19 @@ def make_scene(
             if n_out:
                 out_idx = rng.choice(matches_per_pair, n_out, replace=False)
                 is_out[out_idx] = True
+                K = camera.K
                 for i in out_idx:
-                    for _attempt in range(20):
-                        wrong = random_planar_pose(rng)
-                        uv_w, vis_w = _project(camera, wrong, X[ids[i]][None])
-                        if vis_w[0]:
-                            r[i] = uv_w[0]
-                            break
-                    else:
-                        r[i] = rng.uniform([0, 0], [camera.width, camera.height])
+                    # Project the point with random wrong planar poses (vectorised over 20
+                    # attempts: Pose objects would validate each one) and keep a visible one.
+                    Rw = rotation_from_yaw(rng.uniform(-np.pi, np.pi, 20))
+                    cw = np.stack([rng.uniform(-5, 5, 20), np.zeros(20), rng.uniform(-5, 5, 20)], axis=1)
+                    Xc = np.einsum("kij,kj->ki", Rw, X[ids[i]] - cw)
+                    with np.errstate(divide="ignore", invalid="ignore"):
+                        uv_w = (Xc @ K.T)[:, :2] / Xc[:, 2:3]
+                    ok = (Xc[:, 2] > 0.5) & (uv_w[:, 0] >= 0) & (uv_w[:, 0] < camera.width) & (
+                        uv_w[:, 1] >= 0) & (uv_w[:, 1] < camera.height)
+                    hit = np.flatnonzero(ok)
+                    r[i] = uv_w[hit[0]] if len(hit) else rng.uniform([0, 0], [camera.width, camera.height])
             X3 = X[ids].copy() if with_depth else None
             if X3 is not None:
                 X3[is_out] = np.nan

@@ -146,9 +146,6 @@ def test_options_type_rejected(small_scene, no_work, options) -> None:
         estimate_absolute_pose(small_scene.query_camera, small_scene.pairs, "2p1p", options)
 
 
-@pytest.mark.xfail(strict=True, reason="BUG absolute_pose.py: `options or RansacOptions()` replaces a "
-                                       "falsy non-RansacOptions (e.g. {} or 0) with the defaults instead "
-                                       "of raising")
 @pytest.mark.parametrize("options", [{}, 0, ""])
 def test_falsy_options_rejected(small_scene, options) -> None:
     with pytest.raises(ValueError, match="options"):
@@ -175,8 +172,8 @@ def test_bad_options_rejected(kwargs: dict, field: str) -> None:
 
 
 def _unvalidated(kwargs: dict, consequence: str):
-    return pytest.param(kwargs, marks=pytest.mark.xfail(strict=True, reason=(
-        f"BUG options.py RansacOptions.__post_init__: {kwargs} is accepted; {consequence}")))
+    """Options that used to be accepted silently (``consequence``); now rejected up front."""
+    return pytest.param(kwargs, id=",".join(kwargs))
 
 
 @pytest.mark.parametrize("kwargs", [
