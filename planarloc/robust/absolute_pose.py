@@ -93,6 +93,11 @@ def estimate_absolute_pose(
         estimator = RelativePairEstimator(problem, options, method)
     rng = np.random.default_rng(options.seed)
     out = ransac(estimator, options, rng, stats)
+    if out.R is None and stats.rejected_degenerate > 0 and stats.rejected_degenerate >= (
+            stats.rejected_rcheck + stats.rejected_pdcheck + stats.rejected_consistency):
+        return failure("degenerate_scale",
+                       f"no hypothesis: {stats.rejected_degenerate} samples were degenerate (triangulation "
+                       "singular: query collinear with the reference centres); try structure='tracks'")
     if out.R is None:
         return failure("no_consistent_hypothesis",
                        f"none of {stats.hypotheses} hypotheses passed the checks (Rcheck {stats.rejected_rcheck}, "

@@ -16,12 +16,7 @@ SEEDS = range(4)
 COLLINEAR = dict(num_refs=5, matches_per_pair=100, collinear=True, track_pool=2)
 
 
-EXACT_8P8P = pytest.param(
-    "8p8p", 0.0, marks=pytest.mark.xfail(strict=True, reason=(
-        "BUG (report): exactly collinear noise-free input, 8p8p: every stage-1 relative pose is exact, "
-        "so every hypothesis is degenerate (eq. 15) and the status is 'no_consistent_hypothesis' "
-        "with no unreliable_pose, instead of 'degenerate_scale'")))
-CASES = [(m, n) for n in (0.0, 1.0) for m in ALL_METHODS if (m, n) != ("8p8p", 0.0)] + [EXACT_8P8P]
+CASES = [(m, n) for n in (0.0, 1.0) for m in ALL_METHODS if (m, n) != ("8p8p", 0.0)]
 
 
 @pytest.mark.parametrize("method, noise_px", CASES)
@@ -37,6 +32,17 @@ def test_collinear_without_structure_is_degenerate(scene, method: str, noise_px:
         assert est.unreliable_pose is not None
         assert "tracks" in est.message  # the hint to the remedy
         assert est.num_inliers > 0 and est.num_inliers_3d == 0
+
+
+def test_exact_collinear_8p8p_reports_degenerate_without_a_hypothesis(scene) -> None:
+    """Noise-free 8p8p: every relative pose is exact, every triangulation singular (eq. 15)."""
+    for seed in SEEDS:
+        sc = scene(seed, noise_px=0.0, **COLLINEAR)
+        est = estimate_absolute_pose(sc.query_camera, sc.pairs, "8p8p",
+                                     RansacOptions(max_iterations=100, min_iterations=100, seed=seed))
+        assert not est.success and est.pose is None
+        assert est.status == "degenerate_scale", est.message
+        assert est.stats.rejected_degenerate > 0 and "tracks" in est.message
 
 
 @pytest.mark.parametrize("method", ALL_METHODS)
