@@ -119,9 +119,10 @@ class _ProblemEstimator:
         return worst
 
     def refine(self, R: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Local optimisation: refine on inliers of a shrinking threshold (3τ, then τ), so that a
-        hypothesis near the right basin gathers the constraints it first missed."""
-        for scale in (3.0, 1.0):
+        """Local optimisation: refine on the inliers of a widened threshold (2τ), so that a
+        hypothesis near the right basin gathers the constraints it first missed; the final
+        refinement then works at τ."""
+        for scale in (2.0,):
             in2d, in3d = self.inliers(R, t, scale * scale * self.threshold_sq)
             if in2d.sum() + in3d.sum() < 6:
                 break
