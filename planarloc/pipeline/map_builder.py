@@ -11,7 +11,9 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import os
 from collections.abc import Callable, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import cv2
@@ -57,6 +59,7 @@ def build_map(
     num_words: int = DEFAULT_NUM_WORDS,
     seed: int = 0,
     progress: Progress | None = None,
+    workers: int | None = None,
 ) -> Path:
     """Create (or resume / append to) the map at ``path`` from posed images.
 
@@ -68,6 +71,7 @@ def build_map(
         num_words: VLAD vocabulary size.
         seed: seeds the vocabulary training.
         progress: optional ``(stage, done, total)`` callback.
+        workers: feature extraction threads (default: one per core).
 
     Returns:
         The map path.
@@ -81,10 +85,13 @@ def build_map(
         todo = [im for im in images if not db.has_image(im.name)]
         if len(todo) < len(images):
             logger.info("%s: %d of %d images already in the map, resuming", path, len(images) - len(todo), len(images))
-        for i, im in enumerate(todo):
-            db.add_image(im, extract_features(read_gray(im.path), features))
-            if progress:
-                progress("features", i + 1, len(todo))
+        # Reading and SIFT run in worker threads (OpenCV releases the GIL); the database is
+        # written in this thread, in order, one transaction per image (resumable).
+        with ThreadPoolExecutor(max_workers=workers or os.cpu_count() or 1) as pool:
+            for i, feats in enumerate(pool.map(lambda im: extract_features(read_gray(im.path), features), todo)):
+                db.add_image(todo[i], feats)
+                if progress:
+                    progress("features", i + 1, len(todo))
         index_map(db, num_words=num_words, seed=seed, progress=progress)
         db.mark_complete()
     return path
