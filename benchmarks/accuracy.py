@@ -45,7 +45,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import multiprocessing as mp
 import os
 import sys
 import time
@@ -54,6 +53,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _trial_runner import run_trials  # noqa: E402
 from poselib_peer import estimate_query_pose_poselib  # noqa: E402
 
 from planarloc.geometry.pose import Pose, pose_errors  # noqa: E402
@@ -134,32 +134,7 @@ def run(trials: int, seed: int, jobs: int, methods: tuple[str, ...], with_peer: 
         threshold_scale: float = 0.0, refine: bool = True) -> list[dict]:
     tasks = [(seed, ni, mi, k, methods, with_peer, threshold_scale, refine)
              for k in range(trials) for ni in range(len(NOISES)) for mi in range(len(MATCHES))]
-    total, results = len(tasks), []
-    t_start, last = time.perf_counter(), 0.0
-
-    def progress(done: int) -> None:
-        nonlocal last
-        now = time.perf_counter() - t_start
-        if done == total or now - last > 10.0:
-            last = now
-            print(f"[accuracy] {done}/{total} scenes ({100 * done / total:.0f}%), {now:.0f} s elapsed, "
-                  f"~{now / done * (total - done):.0f} s left", file=sys.stderr, flush=True)
-
-    print("[accuracy] warming up (numba compile or cache load) ...", file=sys.stderr, flush=True)
-    warm_up(methods)  # before the fork: workers inherit the compiled kernels
-    print(f"[accuracy] warm-up {time.perf_counter() - t_start:.0f} s; {total} scenes on {jobs} worker(s)",
-          file=sys.stderr, flush=True)
-    t_start = time.perf_counter()
-    if jobs <= 1:
-        for i, task in enumerate(tasks):
-            results.append(run_trial(task))
-            progress(i + 1)
-    else:
-        with mp.get_context("fork").Pool(jobs) as pool:
-            for i, res in enumerate(pool.imap_unordered(run_trial, tasks, chunksize=1)):
-                results.append(res)
-                progress(i + 1)
-    return results
+    return run_trials("accuracy", tasks, run_trial, jobs, lambda: warm_up(methods))
 
 
 def summarise(results: list[dict], names: tuple[str, ...]) -> dict:

@@ -26,7 +26,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import multiprocessing as mp
 import os
 import sys
 import time
@@ -37,6 +36,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _trial_runner import run_trials  # noqa: E402
 from poselib_peer import estimate_query_pose_poselib  # noqa: E402
 
 from planarloc.geometry.pose import pose_errors  # noqa: E402
@@ -116,35 +116,7 @@ def warm_up(methods: tuple[str, ...] = METHODS) -> None:
 def run(trials: int, seed: int, jobs: int, methods: tuple[str, ...], with_peer: bool) -> list[dict]:
     tasks = [(seed, mi, ri, k, methods, with_peer)
              for k in range(trials) for mi in range(len(MATCHES)) for ri in range(len(OUTLIERS))]
-    total = len(tasks)
-    results: list[dict] = []
-    t_start = time.perf_counter()
-    last = 0.0
-
-    def progress(done: int) -> None:
-        nonlocal last
-        now = time.perf_counter() - t_start
-        if done == total or now - last > 10.0:
-            last = now
-            eta = now / done * (total - done) if done else float("nan")
-            print(f"[robustness] {done}/{total} scenes ({100 * done / total:.0f}%), "
-                  f"{now:.0f} s elapsed, ~{eta:.0f} s left", file=sys.stderr, flush=True)
-
-    print("[robustness] warming up (numba compile or cache load) ...", file=sys.stderr, flush=True)
-    warm_up(methods)  # before the fork: workers inherit the compiled kernels
-    print(f"[robustness] warm-up {time.perf_counter() - t_start:.0f} s; {total} scenes on {jobs} worker(s)",
-          file=sys.stderr, flush=True)
-    t_start = time.perf_counter()
-    if jobs <= 1:
-        for i, task in enumerate(tasks):
-            results.append(run_trial(task))
-            progress(i + 1)
-    else:
-        with mp.get_context("fork").Pool(jobs) as pool:
-            for i, res in enumerate(pool.imap_unordered(run_trial, tasks, chunksize=1)):
-                results.append(res)
-                progress(i + 1)
-    return results
+    return run_trials("robustness", tasks, run_trial, jobs, lambda: warm_up(methods))
 
 
 def summarise(results: list[dict], names: tuple[str, ...]) -> dict:
