@@ -106,12 +106,12 @@ def estimate_absolute_pose(
 
     t0 = time.perf_counter()
     R, t = out.R, out.t
-    R, t, cov, sigma, cost, in2d, in3d = estimator.refine_full(R, t, max_iterations=10 if options.refine else 0)
+    R, t, cov, sigma, cost, in2d, in3d = estimator.refine_full(R, t, max_iterations=6 if options.refine else 0)
     if options.refine:
         # Refine again on the inliers of the refined pose when they changed.
         new2d, new3d = estimator.inliers(R, t)
         if not (np.array_equal(new2d, in2d) and np.array_equal(new3d, in3d)):
-            R, t, cov, sigma, cost, in2d, in3d = estimator.refine_full(R, t, max_iterations=10)
+            R, t, cov, sigma, cost, in2d, in3d = estimator.refine_full(R, t, max_iterations=6)
     stats.add_time("refinement", time.perf_counter() - t0)
     t0 = time.perf_counter()
     in2d, in3d = estimator.inliers(R, t)
