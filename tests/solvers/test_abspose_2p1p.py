@@ -7,18 +7,14 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from planarloc.geometry.planar import rotation_from_yaw
+from two_view_scenes import unit_relpose
+
 from planarloc.geometry.pose import Pose
 from planarloc.solvers.abspose_2p1p import abspose_2p1p, scale_2p1p, scale_from_point3d
 from planarloc.synthetic.scenes import random_planar_pose
 
 SEEDS = [0, 1, 2]
 EXACT = 1e-8
-
-
-def unit_relpose(ref_cam_from_world: Pose, query_cam_from_world: Pose) -> tuple[Pose, float]:
-    rel = ref_cam_from_world @ query_cam_from_world.inverse()
-    rho = float(np.linalg.norm(rel.t))
-    return Pose(rel.R, rel.t / rho), rho
 
 
 def tilted_pose(rng: np.random.Generator) -> Pose:
