@@ -36,6 +36,7 @@ def estimate_absolute_pose(
     pairs: Sequence[PairMatches],
     method: Method | str = "2p1p",
     options: RansacOptions | None = None,
+    query_gravity: object | None = None,
 ) -> PoseEstimate:
     """Absolute pose of a query image from 2D-2D matches to reference images with known poses.
 
@@ -45,6 +46,9 @@ def estimate_absolute_pose(
         method: ``"2p1p"`` (paper Sec. IV-C, default), ``"2p2p"`` (Sec. IV-B), or the
             baselines ``"5p5p-nister"``, ``"5p5p-stewenius"``, ``"8p8p"``.
         options: :class:`RansacOptions`; defaults are the paper's thresholds (2 px, 2°).
+        query_gravity: (3,) gravity direction (down) in the query camera frame, e.g. from an
+            IMU; None assumes the query is mounted like the references (the median of their
+            ``ref_gravity``, or upright when they have none).
 
     Returns:
         :class:`PoseEstimate`. ``success`` is True only for a supported pose whose position

@@ -11,6 +11,15 @@ from planarloc.geometry.pose import Pose
 from planarloc.geometry.validation import InputError, check_array
 
 
+def unit_gravity(name: str, gravity: object) -> np.ndarray:
+    """(3,) unit vector from a finite, non-zero (3,) gravity direction; InputError otherwise."""
+    g = check_array(name, gravity, (3,))
+    n = float(np.linalg.norm(g))
+    if not n > 1e-9:
+        raise InputError(f"{name}: expected a non-zero gravity direction (gx, gy, gz), got {g.tolist()}")
+    return g / n
+
+
 @dataclass(frozen=True, eq=False)
 class PairMatches:
     """2D-2D matches between the query and one retrieved reference image.
@@ -25,6 +34,10 @@ class PairMatches:
             (``structure="tracks"``). Must be unique within one pair.
         ref_points3d: (N, 3) world points where the reference has depth, NaN rows where
             it has none; or None.
+        ref_gravity: (3,) direction of gravity (pointing down) in the reference camera frame,
+            or None for an upright reference (camera y-axis = gravity, the paper's assumption).
+            Normalised on construction. The planar solvers run on bearings rotated so that
+            this direction becomes the camera y-axis (docs/conventions.md, "Gravity").
 
     Raises:
         InputError: on shape mismatches, non-finite pixels, or a ``ref_pose`` that is not a Pose.
@@ -36,6 +49,7 @@ class PairMatches:
     ref_points: np.ndarray
     query_indices: np.ndarray | None = None
     ref_points3d: np.ndarray | None = None
+    ref_gravity: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         if not isinstance(self.ref_pose, Pose):
@@ -62,6 +76,9 @@ class PairMatches:
             if partial.any():
                 raise InputError("PairMatches.ref_points3d: rows must be all finite or all NaN")
             object.__setattr__(self, "ref_points3d", X)
+
+        if self.ref_gravity is not None:
+            object.__setattr__(self, "ref_gravity", unit_gravity("PairMatches.ref_gravity", self.ref_gravity))
 
     def __len__(self) -> int:
         return len(self.query_points)

@@ -53,6 +53,10 @@ class PoseEstimate:
             diagnostics only; None otherwise.
         stats: counters per check and time per stage.
         references: names of the reference images used (filled by the Localizer).
+        model: motion model of the returned pose: ``"planar"`` (yaw + translation in the
+            gravity-levelled plane of the references, the paper's model) or ``"6dof"`` (the
+            planar model did not fit and 6DoF hypotheses won); empty on failure before a
+            model was chosen.
     """
 
     pose: Pose | None
@@ -67,6 +71,7 @@ class PoseEstimate:
     unreliable_pose: Pose | None = None
     stats: RansacStatistics = field(default_factory=RansacStatistics)
     references: list[str] = field(default_factory=list)
+    model: str = ""
 
     def to_dict(self) -> dict:
         """JSON-serialisable summary (for result files)."""
@@ -82,6 +87,7 @@ class PoseEstimate:
             "stats": {k: v for k, v in vars(self.stats).items() if k != "time_s"},
             "time_s": dict(self.stats.time_s),
             "references": list(self.references),
+            "model": self.model,
         }
         if self.pose is not None:
             d["quat_wxyz"] = [float(v) for v in self.pose.quat_wxyz]
