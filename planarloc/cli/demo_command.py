@@ -37,7 +37,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--out", "-o", type=Path, default=Path("planarloc-demo"), help="output folder (default: %(default)s)")
     p.add_argument("--preset", default="office", choices=preset_names(), help="world preset (default: %(default)s)")
     p.add_argument("--seed", type=int, default=0, help="world seed (default: %(default)s)")
-    p.add_argument("--method", "-m", default="2p1p", help="solver for both runs (default: %(default)s)")
+    p.add_argument("--method", "-m", default="auto", help="solver for both runs (default: %(default)s)")
     p.add_argument("--tilt", action="store_true", help="tilt-augment the map features (paper Sec. III-B)")
     p.set_defaults(func=run)
 

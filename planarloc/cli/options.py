@@ -40,8 +40,9 @@ def feature_config(args: argparse.Namespace) -> FeatureConfig:
 def add_localizer_args(p: argparse.ArgumentParser) -> None:
     g = p.add_argument_group("localization")
     g.add_argument("--method", "-m", default=Method(_LOC.method).value, choices=[m.value for m in Method],
-                   help="absolute pose solver: 2p1p / 2p2p (paper, planar) or the 6DoF baselines "
-                        "(default: %(default)s)")
+                   help="auto = planar 2p1p where the planar model holds, 6DoF 5-point where it does not "
+                        "(tilted or off-plane queries); 2p1p / 2p2p = the paper's planar methods; 5p5p-nister, "
+                        "5p5p-stewenius, 8p8p = its 6DoF baselines (default: %(default)s)")
     g.add_argument("--structure", "-s", default=_RANSAC.structure.value, choices=[s.value for s in Structure],
                    help="none = the paper's 2D-2D constraints only (position unobservable when the query is "
                         "collinear with the map images: reported as degenerate_scale); tracks = also "

@@ -38,7 +38,8 @@ class LocalizerConfig:
 
     Attributes:
         top_n: number of retrieved map images (paper: 5).
-        method: absolute pose solver (``"2p1p"`` default, see :class:`Method`).
+        method: hypothesis families (``"auto"`` default: planar where it holds, 6DoF
+            otherwise; the paper's ``"2p1p"`` etc. by name, see :class:`Method`).
         ransac: estimator options (structure mode, thresholds, iterations).
         ratio: ratio-test threshold of the matcher.
         use_depth: use the map images' depth maps (if any) as 2D-3D constraints.
@@ -46,7 +47,7 @@ class LocalizerConfig:
     """
 
     top_n: int = DEFAULT_TOP_N
-    method: Method | str = Method.P2P1
+    method: Method | str = Method.AUTO
     ransac: RansacOptions = field(default_factory=RansacOptions)
     ratio: float = DEFAULT_RATIO
     use_depth: bool = False

@@ -1,19 +1,34 @@
-"""The public entry point: robust absolute pose of a query from matches to posed references."""
+"""The public entry point: robust absolute pose of a query from matches to posed references.
+
+Stages: gravity levelling (planar families run on upright bearings), one RANSAC search per
+hypothesis family (``auto``: planar 2p1p and 6DoF 5-point), robust 6DoF refinement of each
+search's best, the lowest-cost pose wins; then :mod:`planarloc.robust.observability` judges
+it (collinear degeneracy, covariance with map uncertainty, leave-one-reference-out
+verification, planar fit) and only a pose that passes is a ``success``.
+"""
 
 from __future__ import annotations
 
 import logging
 import time
 from collections.abc import Sequence
+from dataclasses import dataclass
 
 import numpy as np
 
 from planarloc.geometry.camera import Camera
+from planarloc.geometry.gravity import mean_direction, upright_from_gravity
 from planarloc.geometry.pose import Pose
-from planarloc.robust.estimators import Planar2p1pEstimator, RelativePairEstimator
+from planarloc.robust import observability as obs
+from planarloc.robust.estimators import (
+    Planar2p1pEstimator,
+    RectifiedHypotheses,
+    RelativePairEstimator,
+    rectify_problem,
+)
 from planarloc.robust.options import Method, RansacOptions, Structure, parse_method
-from planarloc.robust.pair_matches import PairMatches
-from planarloc.robust.problem import build_problem
+from planarloc.robust.pair_matches import PairMatches, unit_gravity
+from planarloc.robust.problem import AbsolutePoseProblem, build_problem
 from planarloc.robust.ransac import ransac
 from planarloc.robust.result import PoseEstimate, RansacStatistics
 from planarloc.robust.sampling import eligible_pairs
@@ -23,18 +38,76 @@ logger = logging.getLogger(__name__)
 
 PROFILE_BELOW_RATIO = 0.15  # centre collinearity ratio under which the cost profile is checked
 
-MIN_SAMPLE = {Method.P2P1: (2, 1), Method.P2P2: (2, 2), Method.NISTER: (5, 5), Method.STEWENIUS: (5, 5),
-              Method.EIGHT: (8, 8)}
+MIN_SAMPLE = {Method.AUTO: (2, 1), Method.P2P1: (2, 1), Method.P2P2: (2, 2), Method.NISTER: (5, 5),
+              Method.STEWENIUS: (5, 5), Method.EIGHT: (8, 8)}
+PLANAR = (Method.P2P1, Method.P2P2)
+# Hypothesis families searched per method, in order.
+FAMILIES = {Method.AUTO: (Method.P2P1, Method.NISTER), Method.P2P1: (Method.P2P1,), Method.P2P2: (Method.P2P2,),
+            Method.NISTER: (Method.NISTER,), Method.STEWENIUS: (Method.STEWENIUS,), Method.EIGHT: (Method.EIGHT,)}
+E_Y = np.array([0.0, 1.0, 0.0])
+# An explicit planar method fails when a 6DoF pose elsewhere has less than this share of its cost.
+PLANAR_VIOLATION_RATIO = 0.8
 
 
 def _split(mask: np.ndarray, offsets: np.ndarray) -> list[np.ndarray]:
     return [mask[offsets[p]:offsets[p + 1]].copy() for p in range(len(offsets) - 1)]
 
 
+@dataclass(frozen=True)
+class _Gravity:
+    """Gravity of one problem: per reference (camera frames), the world's, the query's."""
+
+    refs: np.ndarray          # (P, 3) unit, reference camera frames
+    world: np.ndarray         # (3,) unit, world frame (mean over references)
+    query: np.ndarray         # (3,) unit, query camera frame (given, or the references' mount)
+    query_given: bool
+
+    @property
+    def levelled(self) -> bool:
+        """True when every camera is already upright (no rectification needed)."""
+        return bool(np.allclose(self.refs, E_Y, atol=1e-12) and np.allclose(self.query, E_Y, atol=1e-12))
+
+
+def _gravity(pairs: Sequence[PairMatches], problem: AbsolutePoseProblem, query_gravity: object | None) -> _Gravity:
+    g_refs = np.array([E_Y if p.ref_gravity is None else p.ref_gravity for p in pairs], dtype=float)
+    g_world = mean_direction(np.einsum("pji,pj->pi", problem.ref_R, g_refs))
+    if query_gravity is None:
+        return _Gravity(g_refs, g_world, mean_direction(g_refs), False)
+    return _Gravity(g_refs, g_world, unit_gravity("query_gravity", query_gravity), True)
+
+
+def _estimator(problem: AbsolutePoseProblem, options: RansacOptions, family: Method, gravity: _Gravity):
+    if family not in PLANAR:
+        return RelativePairEstimator(problem, options, family)
+    make = Planar2p1pEstimator if family == Method.P2P1 else (
+        lambda prob, opt: RelativePairEstimator(prob, opt, Method.P2P2))
+    if gravity.levelled:
+        return make(problem, options)
+    Uq = upright_from_gravity(gravity.query)
+    upright = rectify_problem(problem, Uq, upright_from_gravity(gravity.refs))
+    return RectifiedHypotheses(make(upright, options), make(problem, options), Uq)
+
+
+def _eligible(problem: AbsolutePoseProblem, family: Method) -> bool:
+    m1, m2 = MIN_SAMPLE[family]
+    has_3d = len(problem.X3d) > 0 and family in PLANAR
+    return bool(eligible_pairs(problem.counts, m1, m2) or (has_3d and (problem.counts >= m1).any()))
+
+
+def _refine(estimator, R: np.ndarray, t: np.ndarray, options: RansacOptions) -> tuple:
+    """Final robust refinement, repeated once on the refined pose's inliers when they changed."""
+    R, t, cov, sigma, cost, in2d, in3d = estimator.refine_full(R, t, max_iterations=6 if options.refine else 0)
+    if options.refine:
+        new2d, new3d = estimator.inliers(R, t)
+        if not (np.array_equal(new2d, in2d) and np.array_equal(new3d, in3d)):
+            R, t, cov, sigma, cost, in2d, in3d = estimator.refine_full(R, t, max_iterations=6)
+    return R, t, cov, sigma, cost
+
+
 def estimate_absolute_pose(
     query_camera: Camera,
     pairs: Sequence[PairMatches],
-    method: Method | str = "2p1p",
+    method: Method | str = "auto",
     options: RansacOptions | None = None,
     query_gravity: object | None = None,
 ) -> PoseEstimate:
@@ -43,24 +116,26 @@ def estimate_absolute_pose(
     Args:
         query_camera: intrinsics of the query.
         pairs: one :class:`PairMatches` per retrieved reference image (at least 2).
-        method: ``"2p1p"`` (paper Sec. IV-C, default), ``"2p2p"`` (Sec. IV-B), or the
-            baselines ``"5p5p-nister"``, ``"5p5p-stewenius"``, ``"8p8p"``.
+        method: ``"auto"`` (default: planar 2p1p on gravity-levelled bearings plus 6DoF
+            5-point hypotheses, the lower-cost refined pose wins), ``"2p1p"`` (paper Sec.
+            IV-C), ``"2p2p"`` (Sec. IV-B), or the baselines ``"5p5p-nister"``,
+            ``"5p5p-stewenius"``, ``"8p8p"``.
         options: :class:`RansacOptions`; defaults are the paper's thresholds (2 px, 2°).
         query_gravity: (3,) gravity direction (down) in the query camera frame, e.g. from an
-            IMU; None assumes the query is mounted like the references (the median of their
+            IMU; None assumes the query is mounted like the references (the mean of their
             ``ref_gravity``, or upright when they have none).
 
     Returns:
         :class:`PoseEstimate`. ``success`` is True only for a supported pose whose position
-        is observable; otherwise ``pose`` is None and ``status`` says why.
+        is observable and that survives leaving out any one reference; otherwise ``pose``
+        is None and ``status`` says why.
 
     Raises:
         ValueError: invalid input (NaN/inf, mismatched lengths, fewer than two pairs,
-            non-rotation poses, unknown method) — before any work is done.
+            non-rotation poses, unknown method, zero gravity) — before any work is done.
 
     Example:
-        >>> est = estimate_absolute_pose(cam, pairs, method="2p1p",
-        ...                              options=RansacOptions(structure="tracks"))  # doctest: +SKIP
+        >>> est = estimate_absolute_pose(cam, pairs, options=RansacOptions(structure="tracks"))  # doctest: +SKIP
         >>> est.pose.center if est.success else est.status  # doctest: +SKIP
     """
     t_start = time.perf_counter()
@@ -69,6 +144,7 @@ def estimate_absolute_pose(
     if not isinstance(options, RansacOptions):
         raise ValueError(f"options: expected RansacOptions, got {type(options).__name__}")
     problem = build_problem(query_camera, pairs)
+    gravity = _gravity(pairs, problem, query_gravity)
     stats = RansacStatistics()
     if options.structure == Structure.TRACKS:
         t0 = time.perf_counter()
@@ -83,53 +159,86 @@ def estimate_absolute_pose(
         return PoseEstimate(None, False, status, message, kw.pop("inliers", empty), iterations=stats.iterations,
                             stats=stats, **kw)
 
-    m1, m2 = MIN_SAMPLE[method]
-    has_3d = len(problem.X3d) > 0 and method in (Method.P2P1, Method.P2P2)
-    counts = problem.counts
-    if not (eligible_pairs(counts, m1, m2) or (has_3d and (counts >= m1).any())):
+    families = [f for f in FAMILIES[method] if _eligible(problem, f)]
+    check_6dof = method in PLANAR and options.verify_planar and _eligible(problem, Method.NISTER)
+    if not families:
+        m1, m2 = MIN_SAMPLE[method]
         return failure("too_few_matches",
                        f"{method.value} needs {m1} matches in one pair and {m2} in another; "
-                       f"got {counts.tolist()} matches per pair")
+                       f"got {problem.counts.tolist()} matches per pair")
 
-    if method == Method.P2P1:
-        estimator = Planar2p1pEstimator(problem, options)
-    else:
-        estimator = RelativePairEstimator(problem, options, method)
     rng = np.random.default_rng(options.seed)
-    out = ransac(estimator, options, rng, stats)
-    if out.R is None and stats.rejected_degenerate > 0 and stats.rejected_degenerate >= (
-            stats.rejected_rcheck + stats.rejected_pdcheck + stats.rejected_consistency):
-        return failure("degenerate_scale",
-                       f"no hypothesis: {stats.rejected_degenerate} samples were degenerate (triangulation "
-                       "singular: query collinear with the reference centres); try structure='tracks'")
-    if out.R is None:
+    candidates = []
+    scorer = None
+    for family in families + ([Method.NISTER] if check_6dof and families else []):
+        estimator = _estimator(problem, options, family, gravity)
+        scorer = getattr(estimator, "scorer", estimator)
+        search = RansacStatistics()  # each family gets the full iteration budget
+        out = ransac(estimator, options, rng, search)
+        if family in FAMILIES[method]:
+            stats.merge(search)
+        else:  # the 6DoF check of an explicit planar method: its time, not its counters
+            stats.add_time("planar_verification", sum(search.time_s.values()))
+        if out.R is None:
+            continue
+        t0 = time.perf_counter()
+        R, t, cov, sigma, cost = _refine(scorer, out.R, out.t, options)
+        stats.add_time("refinement", time.perf_counter() - t0)
+        score = float(scorer.score(R[None], t[None])[0][0])
+        candidates.append((score, family, R, t, cov, sigma, cost))
+    if not candidates:
+        if stats.rejected_degenerate > 0 and stats.rejected_degenerate >= (
+                stats.rejected_rcheck + stats.rejected_pdcheck + stats.rejected_consistency):
+            return failure("degenerate_scale",
+                           f"no hypothesis: {stats.rejected_degenerate} samples were degenerate (triangulation "
+                           "singular: query collinear with the reference centres); try structure='tracks'")
         return failure("no_consistent_hypothesis",
                        f"none of {stats.hypotheses} hypotheses passed the checks (Rcheck {stats.rejected_rcheck}, "
                        f"Pdcheck {stats.rejected_pdcheck}, consistency {stats.rejected_consistency}, "
                        f"degenerate {stats.rejected_degenerate})")
+    planar = [c for c in candidates if c[1] in FAMILIES[method]]
+    if not planar:
+        return failure("no_consistent_hypothesis", f"the {method.value} search found no hypothesis that passed "
+                       f"the checks ({stats.hypotheses} hypotheses)")
+    _, family, R, t, cov, sigma, cost = min(planar if method != Method.AUTO else candidates, key=lambda c: c[0])
+    est = _judge(scorer, problem, options, method, gravity, R, t, cov, sigma, cost, stats, t_start, failure)
+    # A 6DoF pose elsewhere that explains the matches clearly better: the planar model failed.
+    better = [c for c in candidates if c[1] not in FAMILIES[method] and c[0] < PLANAR_VIOLATION_RATIO * planar[0][0]]
+    if est.success and better and _different(problem, (R, t), better[0][2:4]):
+        return PoseEstimate(None, False, "planar_model_violated",
+                            f"a 6DoF pose explains the matches better than the {method.value} pose (MSAC cost "
+                            f"{better[0][0]:.4g} < {planar[0][0]:.4g}) and lies elsewhere: the query is tilted or "
+                            "off the map's plane; use method='auto'", est.inliers, est.num_inliers,
+                            est.num_inliers_3d, est.iterations, est.position_std_m, est.pose, est.stats, model="6dof")
+    return est
 
-    t0 = time.perf_counter()
-    R, t = out.R, out.t
-    R, t, cov, sigma, cost, in2d, in3d = estimator.refine_full(R, t, max_iterations=6 if options.refine else 0)
-    if options.refine:
-        # Refine again on the inliers of the refined pose when they changed.
-        new2d, new3d = estimator.inliers(R, t)
-        if not (np.array_equal(new2d, in2d) and np.array_equal(new3d, in3d)):
-            R, t, cov, sigma, cost, in2d, in3d = estimator.refine_full(R, t, max_iterations=6)
-    stats.add_time("refinement", time.perf_counter() - t0)
+
+def _different(problem: AbsolutePoseProblem, a: tuple, b: tuple) -> bool:
+    """Two poses are different answers when their centres differ by more than 5 % of the
+    distance to the nearest reference centre or their rotations by more than 2°."""
+    ca, cb = -a[0].T @ a[1], -b[0].T @ b[1]
+    scale = np.linalg.norm(obs.reference_centres(problem) - ca, axis=1).min()
+    angle = np.degrees(np.arccos(np.clip((np.trace(a[0] @ b[0].T) - 1.0) / 2.0, -1.0, 1.0)))
+    return bool(np.linalg.norm(ca - cb) > 0.05 * scale or angle > 2.0)
+
+
+def _judge(estimator, problem: AbsolutePoseProblem, options: RansacOptions, method: Method, gravity: _Gravity,
+           R: np.ndarray, t: np.ndarray, cov: np.ndarray, sigma: float, cost: float, stats: RansacStatistics,
+           t_start: float, failure) -> PoseEstimate:
+    """Uncertainty and verification of the refined pose; a success only if it passes."""
     t0 = time.perf_counter()
     in2d, in3d = estimator.inliers(R, t)
     inliers = _split(in2d, problem.offsets)
     n2d, n3d = int(in2d.sum()), int(in3d.sum())
-    spread = estimator.centre_collinearity(R, t, in2d)
+    spread = obs.centre_collinearity(estimator, R, t, in2d)
     near_collinear = spread < PROFILE_BELOW_RATIO and n3d < options.min_inliers
     if np.all(np.isfinite(cov)) and (options.map_rotation_std_deg > 0 or options.map_position_std_m > 0):
         if near_collinear:
             # Weak geometry amplifies map errors: propagate them through the full model.
-            cov = cov + estimator.map_covariance(R, t, in2d, in3d)
+            cov = cov + obs.map_covariance(estimator, R, t, in2d, in3d)
         else:
             # Spread geometry: map errors move the query like the references, no amplification.
-            d = estimator.median_reference_distance(R, t, in2d)
+            d = obs.median_reference_distance(estimator, R, t, in2d)
             cov = cov + np.eye(3) * (options.map_position_std_m**2 + (d * np.radians(options.map_rotation_std_deg)) ** 2)
     std = float(np.sqrt(max(np.linalg.eigvalsh(cov).max(), 0.0))) if np.all(np.isfinite(cov)) else float("inf")
     if np.isfinite(std) and near_collinear:
@@ -137,24 +246,49 @@ def estimate_absolute_pose(
         # valley of the cost; profile the cost along the weak directions.
         # Probe at 3σ (does the quadratic model hold?) and at the decision scale.
         probes = {min(max(3.0 * std, 0.02), 2.0), min(options.max_position_std_m, 2.0)}
-        for u in estimator.weak_directions(R, t, in2d, cov):
+        for u in obs.weak_directions(estimator, R, t, in2d, cov):
             for d in probes:
-                std = max(std, estimator.profile_std(R, t, in2d, in3d, sigma, cost, u, d))
-    stats.add_time("degeneracy_check", time.perf_counter() - t0)
+                std = max(std, obs.profile_std(estimator, R, t, in2d, in3d, sigma, cost, u, d))
+    fit = obs.planar_fit(problem, R, t, in2d, gravity.world, gravity.query)
+    model = "planar" if fit.holds(options.planar_tolerance_deg) else "6dof"
     pose = Pose(R, t)
+    common = dict(inliers=inliers, num_inliers=n2d, num_inliers_3d=n3d, model=model)
     if n2d + n3d < options.min_inliers:
+        stats.add_time("verification", time.perf_counter() - t0)
         return failure("too_few_inliers", f"best pose has {n2d + n3d} inliers, fewer than min_inliers="
-                       f"{options.min_inliers}", inliers=inliers, num_inliers=n2d, num_inliers_3d=n3d,
-                       position_std_m=std)
+                       f"{options.min_inliers}", position_std_m=std, **common)
+    supporting = obs.supporting_pairs(problem, in2d)
+    if len(supporting) < 2 and n3d < options.min_inliers:
+        stats.add_time("verification", time.perf_counter() - t0)
+        return failure("single_reference",
+                       f"only {len(supporting)} reference image(s) support the pose with >= {obs.MIN_PAIR_INLIERS} "
+                       "inliers: the position along the baseline cannot be verified; retrieve more map images",
+                       position_std_m=std, unreliable_pose=pose, **common)
     collinear = n3d < options.min_inliers and spread < options.min_collinearity_ratio
     if collinear or not std <= options.max_position_std_m:
         hint = "" if options.structure == Structure.TRACKS else "; try structure='tracks'"
         why = (f"the query and reference centres are nearly collinear (ratio {spread:.2g} < "
                f"min_collinearity_ratio = {options.min_collinearity_ratio})") if collinear else (
                f"std {std:.3g} m > max_position_std_m = {options.max_position_std_m} m")
+        stats.add_time("verification", time.perf_counter() - t0)
         return failure("degenerate_scale", f"position unobservable from the inliers: {why}{hint}",
-                       inliers=inliers, num_inliers=n2d, num_inliers_3d=n3d, position_std_m=std,
-                       unreliable_pose=pose)
+                       position_std_m=std, unreliable_pose=pose, **common)
+    if options.refine:
+        jk = obs.reference_jackknife(estimator, R, t, in2d, in3d)
+        if np.isfinite(jk.position_std_m):
+            std = max(std, jk.position_std_m)
+            limit = min(options.max_reference_shift_std * std, options.max_position_std_m)
+            if jk.max_shift_m > limit or jk.max_rotation_deg > 5.0:
+                stats.add_time("verification", time.perf_counter() - t0)
+                return failure("inconsistent_references",
+                               f"leaving out reference {jk.worst_reference} moves the pose by {jk.max_shift_m:.3g} m / "
+                               f"{jk.max_rotation_deg:.2g}° (limit {limit:.3g} m / 5°): the references disagree",
+                               position_std_m=std, unreliable_pose=pose, **common)
+    stats.add_time("verification", time.perf_counter() - t0)
+    if not std <= options.max_position_std_m:
+        return failure("degenerate_scale", f"position std {std:.3g} m > max_position_std_m = "
+                       f"{options.max_position_std_m} m after leave-one-reference-out verification",
+                       position_std_m=std, unreliable_pose=pose, **common)
     stats.add_time("total", time.perf_counter() - t_start)
-    return PoseEstimate(pose, True, "success", f"{n2d} 2D-2D and {n3d} 2D-3D inliers, position std {std:.3g} m",
-                        inliers, n2d, n3d, stats.iterations, std, None, stats)
+    return PoseEstimate(pose, True, "success", f"{n2d} 2D-2D and {n3d} 2D-3D inliers, position std {std:.3g} m, "
+                        f"{model} model", inliers, n2d, n3d, stats.iterations, std, None, stats, model=model)

@@ -7,7 +7,9 @@
   then Rcheck, triangulation, Pdcheck and the consistency check.
 
 All share the scoring (MSAC over every match of every pair plus 2D-3D constraints) and the
-refinement (robust 6DoF) of the problem.
+refinement (robust 6DoF) of the problem. :class:`RectifiedHypotheses` runs a planar family on
+gravity-levelled bearings (:mod:`planarloc.geometry.gravity`) and scores on the original ones.
+What a refined pose's matches can tell about it lives in :mod:`planarloc.robust.observability`.
 """
 
 from __future__ import annotations
@@ -20,12 +22,7 @@ from planarloc.geometry.planar import rotation_from_yaw
 from planarloc.robust.hypotheses import hypotheses_2p1p, hypotheses_from_relative_poses, hypotheses_up2p
 from planarloc.robust.options import Method, RansacOptions
 from planarloc.robust.problem import AbsolutePoseProblem
-from planarloc.robust.refinement import (
-    centre_covariance,
-    map_covariance_from_parts,
-    map_uncertainty_covariance,
-    refine_pose,
-)
+from planarloc.robust.refinement import centre_covariance, refine_pose
 from planarloc.robust.result import RansacStatistics
 from planarloc.robust.sampling import draw_pair_samples
 from planarloc.robust.scoring import errors_sq, msac_scores
@@ -84,40 +81,6 @@ class _ProblemEstimator:
         R2, t2, H, sigma, cost = self._refine(R, -R.T @ t, in2d, in3d, max_iterations)
         return R2, t2, centre_covariance(H, sigma), sigma, cost, in2d, in3d
 
-    def map_covariance(self, R: np.ndarray, t: np.ndarray, in2d: np.ndarray, in3d: np.ndarray) -> np.ndarray:
-        """(3, 3) position covariance caused by the map's pose uncertainty (options.map_*_std)."""
-        p, o = self.p, self.options
-        H, M, var = map_uncertainty_covariance(
-            np.ascontiguousarray(R), np.ascontiguousarray(t), p.xq, p.xr, p.pair, np.flatnonzero(in2d),
-            p.f_query, p.f_ref, p.ref_R, p.ref_t, p.xq3d, p.X3d, np.flatnonzero(in3d), o.threshold_px,
-            float(np.radians(o.map_rotation_std_deg)), float(o.map_position_std_m))
-        return map_covariance_from_parts(H, M, var)
-
-    def profile_std(self, R: np.ndarray, t: np.ndarray, in2d: np.ndarray, in3d: np.ndarray, sigma: float,
-                    cost: float, direction: np.ndarray, distance: float) -> float:
-        """Secant estimate of the position std along ``direction`` (unit, world frame).
-
-        The centre is moved by ``±distance`` along ``direction`` and held there while the
-        rotation and the two other centre coordinates are re-optimised on the same inliers.
-        If the robust cost rises by ``ΔC``, a quadratic profile ``ΔC/σ̂² = d²/(2 std²)``
-        gives ``std = d / sqrt(2 ΔC / σ̂²)``; a flat profile (ΔC ≈ 0) gives inf. Unlike the
-        linearised covariance, this sees curved, banana-shaped valleys of near-degenerate
-        geometry (query almost collinear with the reference centres).
-        """
-        u = direction / np.linalg.norm(direction)
-        a = np.array([1.0, 0.0, 0.0]) if abs(u[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
-        v1 = np.cross(u, a)
-        v1 /= np.linalg.norm(v1)
-        B = np.ascontiguousarray(np.stack([u, v1, np.cross(u, v1)], axis=1))
-        fixed = np.array([False, False, False, True, False, False])
-        c = -R.T @ t
-        worst = 0.0
-        for sgn in (1.0, -1.0):
-            *_, c_moved = self._refine(R, c + sgn * distance * u, in2d, in3d, 6, B, fixed)
-            rise = max(c_moved - cost, 0.0) / (sigma * sigma)
-            worst = max(worst, distance / np.sqrt(2.0 * rise) if rise > 0 else np.inf)
-        return worst
-
     def refine(self, R: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Local optimisation: refine on the inliers of a widened threshold (2τ), so that a
         hypothesis near the right basin gathers the constraints it first missed; the final
@@ -128,64 +91,6 @@ class _ProblemEstimator:
                 break
             R, t, *_ = self._refine(R, -R.T @ t, in2d, in3d, 3)
         return R, t
-
-    def median_reference_distance(self, R: np.ndarray, t: np.ndarray, in2d: np.ndarray) -> float:
-        """Median distance from the query centre to the centres of references with inliers."""
-        p = self.p
-        c = -R.T @ t
-        centres = -np.einsum("pji,pj->pi", p.ref_R, p.ref_t)
-        has = np.add.reduceat(in2d.astype(np.int64), p.offsets[:-1]) > 0 if len(in2d) else np.zeros(0, bool)
-        d = np.linalg.norm(centres[has] - c, axis=1) if has.any() else np.linalg.norm(centres - c, axis=1)
-        return float(np.median(d))
-
-    def centre_collinearity(self, R: np.ndarray, t: np.ndarray, in2d: np.ndarray) -> float:
-        """How far the query and reference centres are from lying on one line (scale-free).
-
-        The ratio ``s₂ / s₁`` of the two largest singular values of the centred set of the
-        query centre and the centres of the references with at least 5 inliers: 0 for
-        collinear centres (a straight corridor or road), O(1) for a spread configuration.
-        2D-2D constraints fix the query position by intersecting the lines from the
-        reference centres, so it is unobservable along the line when the ratio is small.
-        """
-        p = self.p
-        pts = [-R.T @ t]
-        for k in range(p.num_pairs):
-            if in2d[p.offsets[k]:p.offsets[k + 1]].sum() >= 5:
-                pts.append(-p.ref_R[k].T @ p.ref_t[k])
-        if len(pts) < 3:
-            return 0.0
-        P = np.array(pts)
-        sv = np.linalg.svd(P - P.mean(axis=0), compute_uv=False)
-        return float(sv[1] / sv[0]) if sv[0] > 0 else 0.0
-
-    def weak_directions(self, R: np.ndarray, t: np.ndarray, in2d: np.ndarray, cov: np.ndarray) -> list[np.ndarray]:
-        """Directions along which the position may be unobservable (world frame).
-
-        The weakest axis of the bearing configuration (and the largest axis of the linearised
-        covariance when it differs by more than ~10°): with the query centre ``c`` and the reference centres ``c_p`` of pairs
-        with inliers, ``A = Σ_p (I - u_p u_pᵀ) / |c - c_p|²`` with ``u_p`` the unit bearing;
-        collinear centres make its smallest eigenvalue vanish along the line.
-        """
-        dirs = []
-        if np.all(np.isfinite(cov)):
-            dirs.append(np.linalg.eigh(cov)[1][:, -1])
-        p = self.p
-        c = -R.T @ t
-        A = np.zeros((3, 3))
-        for k in range(p.num_pairs):
-            if in2d[p.offsets[k]:p.offsets[k + 1]].sum() < 5:
-                continue
-            d = c - (-p.ref_R[k].T @ p.ref_t[k])
-            n2 = float(d @ d)
-            if n2 < 1e-12:
-                continue
-            u = d / np.sqrt(n2)
-            A += (np.eye(3) - np.outer(u, u)) / n2
-        w, V = np.linalg.eigh(A)
-        dirs.append(V[:, 0])
-        if len(dirs) == 2 and abs(dirs[0] @ dirs[1]) > 0.98:
-            dirs.pop(0)
-        return dirs
 
     def _flush(self, stats: RansacStatistics) -> None:
         c = self.counters
@@ -361,3 +266,60 @@ class RelativePairEstimator(_ProblemEstimator):
             R3, t3 = self._planar.generate(rng, n, stats)
             R, t = np.concatenate([R, R3]), np.concatenate([t, t3])
         return R, t
+
+
+class RectifiedHypotheses:
+    """A planar hypothesis family run on the gravity-levelled problem, scored on the original.
+
+    ``upright`` is the same problem with query bearings ``U_q x``, reference bearings
+    ``U_k x`` and reference poses ``U_k · ref_from_world`` (:func:`rectify_problem`), so
+    upright frames are related by the planar model; a hypothesis ``upright_from_world`` of
+    the query is returned as ``cam_from_world = U_qᵀ · upright_from_world``. Scoring,
+    inliers and refinement are those of ``scorer`` (the original problem).
+    """
+
+    def __init__(self, hypotheses: _ProblemEstimator, scorer: _ProblemEstimator, upright_from_query: np.ndarray) -> None:
+        self.hypotheses = hypotheses
+        self.scorer = scorer
+        self.p = scorer.p
+        self.options = scorer.options
+        self.sample_size = hypotheses.sample_size
+        self.num_data = scorer.num_data
+        self.Uq_T = np.ascontiguousarray(upright_from_query.T)
+
+    def generate(self, rng: np.random.Generator, n: int, stats: RansacStatistics) -> tuple[np.ndarray, np.ndarray]:
+        R, t = self.hypotheses.generate(rng, n, stats)
+        return np.ascontiguousarray(self.Uq_T @ R), np.ascontiguousarray(t @ self.Uq_T.T)
+
+    def __getattr__(self, name: str):  # score, inliers, refine, distinct, _refine, refine_full
+        return getattr(self.scorer, name)
+
+
+def _rotate_rays(x: np.ndarray, U: np.ndarray) -> np.ndarray:
+    """Rays ``U x`` rescaled to z = 1 (normalised coordinates of the levelled camera) where
+    z stays clearly positive, so pixel-scaled errors keep their meaning."""
+    y = x @ U.T if U.ndim == 2 else np.einsum("nij,nj->ni", U, x)
+    z = y[:, 2:3]
+    return np.ascontiguousarray(np.where(z > 0.05, y / np.where(z > 0.05, z, 1.0), y))
+
+
+def rectify_problem(p: AbsolutePoseProblem, upright_from_query: np.ndarray,
+                    upright_from_refs: np.ndarray) -> AbsolutePoseProblem:
+    """The problem seen from gravity-levelled frames.
+
+    Args:
+        p: the original problem.
+        upright_from_query: (3, 3) ``U_q`` of the query; upright_from_refs: (P, 3, 3) ``U_k``.
+
+    Returns:
+        a problem with ``xq ← U_q xq``, ``xr ← U_k xr`` (pair k), ``ref_R ← U_k ref_R``,
+        ``ref_t ← U_k ref_t``, ``xq3d ← U_q xq3d``; world points unchanged.
+    """
+    Ur = upright_from_refs[p.pair]
+    return AbsolutePoseProblem(
+        _rotate_rays(p.xq, upright_from_query), _rotate_rays(p.xr, Ur), p.pair, p.offsets, p.query_ids,
+        p.f_query, p.f_ref,
+        np.ascontiguousarray(upright_from_refs @ p.ref_R),
+        np.ascontiguousarray(np.einsum("pij,pj->pi", upright_from_refs, p.ref_t)),
+        _rotate_rays(p.xq3d, upright_from_query) if len(p.xq3d) else p.xq3d, p.X3d, p.source3d,
+    )

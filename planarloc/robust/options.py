@@ -11,8 +11,15 @@ from planarloc.geometry.validation import InputError
 
 
 class Method(str, Enum):
-    """Minimal solvers for hypotheses (paper Sec. IV and its baselines, Sec. V)."""
+    """Hypothesis families (paper Sec. IV and its baselines, Sec. V).
 
+    ``auto`` (default): the planar 2p1p on gravity-levelled bearings *and* 6DoF 5-point
+    hypotheses (Nistér) in one problem; the refined pose of lowest cost wins and its
+    :attr:`PoseEstimate.model` says whether the planar model held. The others are the
+    paper's methods by name, for reproduction.
+    """
+
+    AUTO = "auto"
     P2P1 = "2p1p"
     P2P2 = "2p2p"
     NISTER = "5p5p-nister"
@@ -61,6 +68,19 @@ class RansacOptions:
             from 2D-2D constraints and ``degenerate_scale`` is returned (straight corridors
             and roads; see NOTES.md, KITTI).
         track_min_angle_deg: minimum triangulation angle for a track's 3D point.
+        planar_tolerance_deg: the planar model "holds" for a refined pose whose implied
+            gravity is within this angle of the query's gravity and whose elevation above or
+            below the references' level plane is within this angle
+            (:func:`planarloc.robust.observability.planar_fit`).
+        verify_planar: with ``method="2p1p"`` or ``"2p2p"``, also run a 6DoF (5-point) search
+            and report ``planar_model_violated`` instead of the planar pose when a 6DoF pose
+            far from it explains the matches better (tilted query, query off the map's
+            plane). Turning it off reproduces the paper's method and timing, without the
+            guarantee. ``"auto"`` always runs both and returns the better one.
+        max_reference_shift_std: verification. Each supporting reference is left out in
+            turn and the pose refined again; a pose that moves by more than this many
+            (final) standard deviations, or by more than ``max_position_std_m``, when one
+            reference is removed is reported as ``inconsistent_references``.
         seed: seed of the ``numpy.random.Generator`` used for sampling.
     """
 
@@ -79,6 +99,9 @@ class RansacOptions:
     map_position_std_m: float = 0.02
     min_collinearity_ratio: float = 0.01
     track_min_angle_deg: float = 1.0
+    planar_tolerance_deg: float = 1.5
+    verify_planar: bool = True
+    max_reference_shift_std: float = 6.0
     seed: int | None = 0
 
     def __post_init__(self) -> None:
@@ -94,7 +117,8 @@ class RansacOptions:
                                       or self.seed < 0):
             raise InputError(f"RansacOptions.seed: expected a non-negative integer or None, got {self.seed!r}")
         for name in ("threshold_px", "rcheck_deg", "consistency_deg", "max_position_std_m",
-                     "map_rotation_std_deg", "map_position_std_m", "min_collinearity_ratio", "track_min_angle_deg"):
+                     "map_rotation_std_deg", "map_position_std_m", "min_collinearity_ratio", "track_min_angle_deg",
+                     "planar_tolerance_deg", "max_reference_shift_std"):
             v = getattr(self, name)
             if not np.isfinite(v) and name != "max_position_std_m":
                 raise InputError(f"RansacOptions.{name}: must be finite, got {v}")
@@ -103,7 +127,8 @@ class RansacOptions:
                 f"RansacOptions: need 1 <= min_iterations <= max_iterations, got {self.min_iterations}, "
                 f"{self.max_iterations}"
             )
-        for name in ("threshold_px", "rcheck_deg", "consistency_deg", "max_position_std_m"):
+        for name in ("threshold_px", "rcheck_deg", "consistency_deg", "max_position_std_m",
+                     "planar_tolerance_deg", "max_reference_shift_std"):
             if not getattr(self, name) > 0:
                 raise InputError(f"RansacOptions.{name}: must be > 0, got {getattr(self, name)}")
         if not (0.0 < self.confidence < 1.0):

@@ -32,6 +32,15 @@ class RansacStatistics:
     def add_time(self, stage: str, seconds: float) -> None:
         self.time_s[stage] = self.time_s.get(stage, 0.0) + seconds
 
+    def merge(self, other: RansacStatistics) -> None:
+        """Add another search's counters and times to these."""
+        for name, value in vars(other).items():
+            if name == "time_s":
+                for stage, seconds in value.items():
+                    self.add_time(stage, seconds)
+            else:
+                setattr(self, name, getattr(self, name) + value)
+
 
 @dataclass
 class PoseEstimate:

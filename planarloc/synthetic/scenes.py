@@ -10,13 +10,14 @@ references forms a track.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
 from planarloc.geometry.camera import Camera
 from planarloc.geometry.planar import rotation_from_yaw
 from planarloc.geometry.pose import Pose
+from planarloc.pipeline.upright import upright_from_cam_rotation
 from planarloc.robust.pair_matches import PairMatches
 
 PAPER_CAMERA = Camera("PINHOLE", 1280, 1080, (800.0, 800.0, 640.0, 540.0))
@@ -55,6 +56,25 @@ def random_planar_pose(rng: np.random.Generator, extent: float = 5.0, tilt_deg: 
     return Pose(R, -R @ c)
 
 
+def gravity_world(scene: SyntheticScene, world_from_upright: Pose | None = None) -> np.ndarray:
+    """(3,) gravity (down) in the scene's world frame: +y, rotated by ``world_from_upright``."""
+    g = np.array([0.0, 1.0, 0.0])
+    return g if world_from_upright is None else world_from_upright.R @ g
+
+
+def _transform_world(scene: SyntheticScene, world_from_upright: Pose) -> SyntheticScene:
+    """The same scene in another world frame: X' = W X + w, cam_from_world' = cam_from_world ∘ W⁻¹."""
+    upright_from_world = world_from_upright.inverse()
+
+    def move(p: Pose) -> Pose:
+        return p @ upright_from_world
+
+    W, w = world_from_upright.R, world_from_upright.t
+    pairs = [replace(p, ref_pose=move(p.ref_pose),
+                     ref_points3d=None if p.ref_points3d is None else p.ref_points3d @ W.T + w) for p in scene.pairs]
+    return SyntheticScene(scene.query_camera, move(scene.query_pose), pairs, scene.points @ W.T + w, scene.is_outlier)
+
+
 def _project(camera: Camera, pose: Pose, X: np.ndarray, min_depth: float = 0.5) -> tuple[np.ndarray, np.ndarray]:
     Xc = X @ pose.R.T + pose.t
     z = Xc[:, 2]
@@ -78,6 +98,12 @@ def make_scene(
     with_depth: bool = False,
     track_pool: float | None = None,
     max_tries: int = 200,
+    mount_pitch_deg: float = 0.0,
+    mount_roll_deg: float = 0.0,
+    query_tilt_deg: float = 0.0,
+    query_height_m: float = 0.0,
+    world_from_upright: Pose | None = None,
+    with_gravity: bool = False,
 ) -> SyntheticScene:
     """Generate one scene of the paper's synthetic protocol.
 
@@ -94,7 +120,29 @@ def make_scene(
         track_pool: if set, the query keypoints are a random subset of
             ``track_pool * matches_per_pair`` visible points, so pairs share query keypoints
             (as with real matching); None draws every pair from all visible points.
+        mount_pitch_deg, mount_roll_deg: every camera (query and references) is mounted with
+            this pitch (looking down for > 0) and roll (:mod:`planarloc.pipeline.upright`).
+        query_tilt_deg: the query gets an extra random pitch and roll of this standard
+            deviation (uneven floor, handheld camera) that the map does not share.
+        query_height_m: the query centre is this far below (> 0) the references' plane.
+        world_from_upright: a rigid transform applied to the whole scene afterwards, so the
+            world frame is not gravity-aligned (as with SfM reconstructions).
+        with_gravity: fill each pair's ``ref_gravity`` with the true gravity direction.
+            The query's true gravity is ``query_pose.R @ gravity_world(scene, world_from_upright)``.
     """
+    tilted = mount_pitch_deg != 0.0 or mount_roll_deg != 0.0 or query_tilt_deg > 0 or query_height_m != 0.0
+    cam_from_upright = upright_from_cam_rotation(mount_pitch_deg, mount_roll_deg).T
+
+    def mount(pose: Pose, extra_tilt: float = 0.0, drop: float = 0.0) -> Pose:
+        if not tilted:
+            return pose
+        R = cam_from_upright @ pose.R
+        if extra_tilt > 0:
+            pitch, roll = rng.normal(0.0, extra_tilt, 2)
+            R = upright_from_cam_rotation(pitch, roll).T @ R
+        c = pose.center + np.array([0.0, drop, 0.0])
+        return Pose(R, -R @ c)
+
     for _ in range(max_tries):
         if collinear:
             def pose_on_line(z: float) -> Pose:
@@ -106,7 +154,7 @@ def make_scene(
             X = np.c_[rng.uniform(-10, 10, num_points), rng.uniform(-3, 3, num_points),
                       rng.uniform(6, 30, num_points)]
         else:
-            query = random_planar_pose(rng)
+            query = mount(random_planar_pose(rng), query_tilt_deg, query_height_m)
             X = rng.uniform(-10.0, 10.0, (num_points, 3))
             refs = []
         uv_q, vis_q = _project(camera, query, X)
@@ -122,7 +170,7 @@ def make_scene(
         tries = 0
         while len(pairs) < num_refs and tries < 50:
             tries += 1
-            ref = refs[len(pairs)] if collinear else random_planar_pose(rng, tilt_deg=ref_tilt_deg)
+            ref = refs[len(pairs)] if collinear else mount(random_planar_pose(rng, tilt_deg=ref_tilt_deg))
             uv_r, vis_r = _project(camera, ref, X)
             common = np.flatnonzero(vis_q & vis_r)
             if len(common) < matches_per_pair:
@@ -156,5 +204,11 @@ def make_scene(
             pairs.append(PairMatches(ref, camera, q, r, query_indices=ids, ref_points3d=X3))
             outl.append(is_out)
         if len(pairs) == num_refs:
-            return SyntheticScene(camera, query, pairs, X, outl)
+            scene = SyntheticScene(camera, query, pairs, X, outl)
+            if world_from_upright is not None:
+                scene = _transform_world(scene, world_from_upright)
+            if with_gravity:
+                g = gravity_world(scene, world_from_upright)
+                scene.pairs[:] = [replace(p, ref_gravity=p.ref_pose.R @ g) for p in scene.pairs]
+            return scene
     raise RuntimeError("could not generate a scene with enough co-visible points; lower matches_per_pair")

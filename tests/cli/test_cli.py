@@ -42,7 +42,7 @@ def test_map_build_localize_evaluate(tiny_world: Path, tmp_path: Path) -> None:
     assert run(["evaluate", tiny_world / "map", "--format", "tum", "--map-every", "2", "--map", tmp_path / "e.db",
                 "--structure", "tracks", "--json", summary, "--plot", plot]) == 0
     s = json.loads(summary.read_text())
-    assert s["queries"] == 6 and s["method"] == "2p1p" and s["structure"] == "tracks"
+    assert s["queries"] == 6 and s["method"] == "auto" and s["structure"] == "tracks"
     assert set(s["success"]) == {"0.25m/10deg", "0.5m/10deg", "1m/20deg"}
     assert s["success"]["0.25m/10deg"] >= 80.0 and plot.stat().st_size > 1000
     for key in ("median_translation_error_m", "median_rotation_error_deg", "failed_queries", "seconds_per_query"):
