@@ -47,6 +47,8 @@ FAMILIES = {Method.AUTO: (Method.P2P1, Method.NISTER), Method.P2P1: (Method.P2P1
 E_Y = np.array([0.0, 1.0, 0.0])
 # An explicit planar method fails when a 6DoF pose elsewhere has less than this share of its cost.
 PLANAR_VIOLATION_RATIO = 0.8
+FINAL_REFINEMENT_ROUNDS = 4
+TILT_SEARCH_SCALE = 0.0  # planar hypotheses are scored at τ + scale·f·tan(planar_tolerance_deg)
 
 
 def _split(mask: np.ndarray, offsets: np.ndarray) -> list[np.ndarray]:
@@ -81,11 +83,15 @@ def _estimator(problem: AbsolutePoseProblem, options: RansacOptions, family: Met
         return RelativePairEstimator(problem, options, family)
     make = Planar2p1pEstimator if family == Method.P2P1 else (
         lambda prob, opt: RelativePairEstimator(prob, opt, Method.P2P2))
+    scorer = make(problem, options)
     if gravity.levelled:
-        return make(problem, options)
-    Uq = upright_from_gravity(gravity.query)
-    upright = rectify_problem(problem, Uq, upright_from_gravity(gravity.refs))
-    return RectifiedHypotheses(make(upright, options), make(problem, options), Uq)
+        Uq, upright = np.eye(3), scorer
+    else:
+        Uq = upright_from_gravity(gravity.query)
+        upright = make(rectify_problem(problem, Uq, upright_from_gravity(gravity.refs)), options)
+    f = float(np.mean(problem.f_query))
+    widen = TILT_SEARCH_SCALE * f * np.tan(np.radians(options.planar_tolerance_deg))
+    return RectifiedHypotheses(upright, scorer, Uq, options.threshold_px + widen)
 
 
 def _eligible(problem: AbsolutePoseProblem, family: Method) -> bool:
@@ -95,12 +101,13 @@ def _eligible(problem: AbsolutePoseProblem, family: Method) -> bool:
 
 
 def _refine(estimator, R: np.ndarray, t: np.ndarray, options: RansacOptions) -> tuple:
-    """Final robust refinement, repeated once on the refined pose's inliers when they changed."""
+    """Final robust refinement, repeated on the refined pose's inliers while they change."""
     R, t, cov, sigma, cost, in2d, in3d = estimator.refine_full(R, t, max_iterations=6 if options.refine else 0)
-    if options.refine:
+    for _ in range(FINAL_REFINEMENT_ROUNDS - 1 if options.refine else 0):
         new2d, new3d = estimator.inliers(R, t)
-        if not (np.array_equal(new2d, in2d) and np.array_equal(new3d, in3d)):
-            R, t, cov, sigma, cost, in2d, in3d = estimator.refine_full(R, t, max_iterations=6)
+        if np.array_equal(new2d, in2d) and np.array_equal(new3d, in3d):
+            break
+        R, t, cov, sigma, cost, in2d, in3d = estimator.refine_full(R, t, max_iterations=6)
     return R, t, cov, sigma, cost
 
 
@@ -202,6 +209,12 @@ def estimate_absolute_pose(
                        f"the checks ({stats.hypotheses} hypotheses)")
     _, family, R, t, cov, sigma, cost = min(planar if method != Method.AUTO else candidates, key=lambda c: c[0])
     est = _judge(scorer, problem, options, method, gravity, R, t, cov, sigma, cost, stats, t_start, failure)
+    if est.success and method in PLANAR and options.verify_planar and est.model != "planar":
+        return PoseEstimate(None, False, "planar_model_violated",
+                            f"the {method.value} pose does not fit the planar model it assumes (it implies a tilt or "
+                            f"an elevation above {options.planar_tolerance_deg}° relative to the references); use "
+                            "method='auto'", est.inliers, est.num_inliers, est.num_inliers_3d, est.iterations,
+                            est.position_std_m, est.pose, est.stats, model="6dof")
     # A 6DoF pose elsewhere that explains the matches clearly better: the planar model failed.
     better = [c for c in candidates if c[1] not in FAMILIES[method] and c[0] < PLANAR_VIOLATION_RATIO * planar[0][0]]
     if est.success and better and _different(problem, (R, t), better[0][2:4]):
