@@ -245,14 +245,19 @@ def _judge(estimator, problem: AbsolutePoseProblem, options: RansacOptions, meth
     n2d, n3d = int(in2d.sum()), int(in3d.sum())
     spread = obs.centre_collinearity(estimator, R, t, in2d)
     near_collinear = spread < PROFILE_BELOW_RATIO and n3d < options.min_inliers
+    # Residuals within one reference are correlated (its pose error, calibration, model
+    # errors): thousands of matches are not thousands of independent constraints.
+    correlation = obs.correlation_inflation(problem, in2d, n3d)
+    cov = cov * correlation**2
     if np.all(np.isfinite(cov)) and (options.map_rotation_std_deg > 0 or options.map_position_std_m > 0):
-        if near_collinear:
-            # Weak geometry amplifies map errors: propagate them through the full model.
-            cov = cov + obs.map_covariance(estimator, R, t, in2d, in3d)
-        else:
-            # Spread geometry: map errors move the query like the references, no amplification.
-            d = obs.median_reference_distance(estimator, R, t, in2d)
-            cov = cov + np.eye(3) * (options.map_position_std_m**2 + (d * np.radians(options.map_rotation_std_deg)) ** 2)
+        # Map errors through the full model (weak geometry amplifies them: a 0.1° error of a
+        # reference's rotation moves a 2D-2D position by metres when the query is almost
+        # collinear with the references), and never less than the references' own error
+        # moved rigidly with the query.
+        d = obs.median_reference_distance(estimator, R, t, in2d)
+        rigid = options.map_position_std_m**2 + (d * np.radians(options.map_rotation_std_deg)) ** 2
+        cov = cov + obs.map_covariance(estimator, R, t, in2d, in3d)
+        cov = cov + np.eye(3) * rigid if np.all(np.isfinite(cov)) else cov
     std = float(np.sqrt(max(np.linalg.eigvalsh(cov).max(), 0.0))) if np.all(np.isfinite(cov)) else float("inf")
     if np.isfinite(std) and near_collinear:
         # Near-collinear geometry: the linearised covariance is over-confident in the curved
@@ -261,7 +266,7 @@ def _judge(estimator, problem: AbsolutePoseProblem, options: RansacOptions, meth
         probes = {min(max(3.0 * std, 0.02), 2.0), min(options.max_position_std_m, 2.0)}
         for u in obs.weak_directions(estimator, R, t, in2d, cov):
             for d in probes:
-                std = max(std, obs.profile_std(estimator, R, t, in2d, in3d, sigma, cost, u, d))
+                std = max(std, correlation * obs.profile_std(estimator, R, t, in2d, in3d, sigma, cost, u, d))
     fit = obs.planar_fit(problem, R, t, in2d, gravity.world, gravity.query)
     model = "planar" if fit.holds(options.planar_tolerance_deg) else "6dof"
     pose = Pose(R, t)

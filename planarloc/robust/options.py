@@ -56,7 +56,10 @@ class RansacOptions:
         local_optimization: refine the best model on its inliers whenever it improves.
         min_inliers: fewer inliers than this in total is a failure.
         max_position_std_m: a refined position whose standard deviation (largest axis of
-            its covariance) exceeds this is reported as ``degenerate_scale``, not as a pose.
+            its covariance, inflated for per-reference correlation and checked by leaving
+            out each reference) exceeds this is reported as ``degenerate_scale``, not as a
+            pose. 0.3 m keeps every success within 1 m when the std is calibrated
+            (3·std + 0.05 m); raise it to accept coarser poses.
         map_rotation_std_deg, map_position_std_m: uncertainty of the map's reference poses
             (rotation in degrees, centre in metres), propagated into ``position_std_m``; map
             errors are systematic per reference and near-collinear geometry amplifies them.
@@ -94,7 +97,7 @@ class RansacOptions:
     refine: bool = True
     local_optimization: bool = True
     min_inliers: int = 10
-    max_position_std_m: float = 1.0
+    max_position_std_m: float = 0.3
     map_rotation_std_deg: float = 0.1
     map_position_std_m: float = 0.02
     min_collinearity_ratio: float = 0.01
