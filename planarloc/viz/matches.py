@@ -116,13 +116,13 @@ def save_match_plot(path: Path | str, query_path: Path | str, ref_paths: Sequenc
     for k, ax in enumerate(axes[:, 0]):
         if k < len(pairs):
             inl = estimate.inliers[k] if k < len(estimate.inliers) else None
-            plot_pair(ax, query, _rgb(ref_paths[k]), pairs[k], inl, Path(str(estimate.references[k])).name, seed=k)
+            plot_pair(ax, query, _rgb(ref_paths[k]), pairs[k], inl, str(estimate.references[k]), seed=k)
         else:
             ax.imshow(query)
             ax.set_axis_off()
             ax.set_title("no reference image with enough matches", fontsize="small")
     fig.suptitle(estimate_caption(name, estimate, truth), fontsize="medium")
-    fig.tight_layout()
+    fig.tight_layout(rect=(0, 0, 1, 1 - 0.5 / fig.get_figheight()))
     fig.savefig(path, dpi=100)
     plt.close(fig)
     return path
