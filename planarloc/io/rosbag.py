@@ -612,6 +612,7 @@ def write_rosbag(
     base_frame: str = "base_link",
     camera_frame: str = "camera_optical_frame",
     base_from_camera: Pose | None = None,
+    pose_delay: float = 0.0,
 ) -> Path:
     """Write posed images as a ROS bag (the inverse of :func:`read_rosbag`).
 
@@ -630,6 +631,7 @@ def write_rosbag(
         base_from_camera: if given, the poses written are the base's (world_from_cam ∘
             camera_from_base) and ``/tf_static`` holds ``base_frame -> camera_frame``; else the
             poses are the camera's (``base_frame`` = ``camera_frame`` in tf mode).
+        pose_delay: seconds added to the pose stamps (to exercise time matching).
 
     Returns:
         ``out``.
@@ -690,26 +692,27 @@ def write_rosbag(
             ns = _stamp_of(im)
             world_from_cam = im.cam_from_world.inverse()
             world_from_posed = world_from_cam if base_from_camera is None else world_from_cam @ base_from_camera.inverse()
+            pns = ns + int(round(pose_delay * 1e9))
             if pose_message == "tf":
-                msg = T[TF_MESSAGE](transforms=[transform_msg(ns, world_frame, posed_frame, world_from_posed)])
-                writer.write(add("/tf", TF_MESSAGE), ns, serialize(msg, TF_MESSAGE))
+                msg = T[TF_MESSAGE](transforms=[transform_msg(pns, world_frame, posed_frame, world_from_posed)])
+                writer.write(add("/tf", TF_MESSAGE), pns, serialize(msg, TF_MESSAGE))
             else:
                 mt = POSE_MESSAGES[pose_message]
                 p = pose_msg(world_from_posed)
                 if mt == POSE_STAMPED:
-                    msg = T[mt](header=header(ns, world_frame, seq), pose=p)
+                    msg = T[mt](header=header(pns, world_frame, seq), pose=p)
                 else:
                     cov = T["geometry_msgs/msg/PoseWithCovariance"](pose=p, covariance=np.zeros(36))
                     if mt == POSE_WITH_COVARIANCE:
-                        msg = T[mt](header=header(ns, world_frame, seq), pose=cov)
+                        msg = T[mt](header=header(pns, world_frame, seq), pose=cov)
                     else:
                         twist = T["geometry_msgs/msg/TwistWithCovariance"](
                             twist=T["geometry_msgs/msg/Twist"](linear=T["geometry_msgs/msg/Vector3"](x=0., y=0., z=0.),
                                                                angular=T["geometry_msgs/msg/Vector3"](x=0., y=0., z=0.)),
                             covariance=np.zeros(36))
-                        msg = T[mt](header=header(ns, world_frame, seq), child_frame_id=posed_frame, pose=cov,
+                        msg = T[mt](header=header(pns, world_frame, seq), child_frame_id=posed_frame, pose=cov,
                                     twist=twist)
-                writer.write(add(pose_topic, mt), ns, serialize(msg, mt))
+                writer.write(add(pose_topic, mt), pns, serialize(msg, mt))
             if camera_info_topic is not None:
                 msg = _camera_info_msg(T, header(ns, camera_frame, seq), im.camera, ros1)
                 writer.write(add(camera_info_topic, CAMERA_INFO), ns, serialize(msg, CAMERA_INFO))
