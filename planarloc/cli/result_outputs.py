@@ -73,8 +73,8 @@ class EstimateOutputs:
             if not self._map_logged:
                 self.rerun.log_map(loc.db.posed_images())
                 self._map_logged = True
-            pairs, _ = query_pairs(loc, features, camera, estimate)
-            self.rerun.log_query(name, path, camera, estimate, truth, pairs)
+            pairs, inliers = query_pairs(loc, features, camera, estimate)
+            self.rerun.log_query(name, path, camera, estimate, truth, pairs, inliers)
 
     def __call__(self, loc: Localizer, query: PosedImage, features: Features, estimate: PoseEstimate) -> None:
         self.add(loc, query.name, query.path, query.camera, estimate, query.cam_from_world, features)

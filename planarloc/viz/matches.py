@@ -28,18 +28,21 @@ MAX_OUTLIER_LINES = 150  # per pair: keep the figure readable; inliers are all d
 
 
 def query_pairs(localizer: Localizer, features: Features, camera: Camera,
-                estimate: PoseEstimate) -> tuple[list[PairMatches], list[str]]:
-    """The matched pairs behind ``estimate`` (aligned with ``estimate.inliers``).
+                estimate: PoseEstimate) -> tuple[list[PairMatches], list[np.ndarray | None]]:
+    """The matched pairs behind ``estimate`` and their inlier masks (None for a pair the
+    estimator did not score, e.g. after ``too_few_matches``).
 
     Raises:
-        ValueError: the re-matched pairs do not line up with the estimate's inlier masks
-            (the map changed since the estimate).
+        ValueError: the re-matched references differ from the estimate's (the map changed).
     """
     pairs, names = localizer.pairs_for(features, estimate.references, camera)
-    if names != list(estimate.references) or (
-            estimate.inliers and [len(m) for m in estimate.inliers] != [len(p.query_points) for p in pairs]):
+    if names != list(estimate.references):
         raise ValueError("the matches of this estimate cannot be recovered (did the map change?)")
-    return pairs, names
+    inliers: list[np.ndarray | None] = []
+    for k, p in enumerate(pairs):
+        m = estimate.inliers[k] if k < len(estimate.inliers) else None
+        inliers.append(np.asarray(m, bool) if m is not None and len(m) == len(p.query_points) else None)
+    return pairs, inliers
 
 
 def _rgb(path: Path | str) -> np.ndarray:
@@ -57,7 +60,7 @@ def plot_pair(ax, query_image: np.ndarray, ref_image: np.ndarray, pair: PairMatc
         ax: a matplotlib Axes.
         query_image, ref_image: (H, W, 3) RGB or (H, W) gray images.
         pair: the matches (query and reference pixel coordinates, N each).
-        inliers: (N,) bool, or None when the estimator never scored them (all drawn as outliers).
+        inliers: (N,) bool, or None when the estimator did not score them (drawn red).
         ref_label: text under the reference.
     """
     from matplotlib.collections import LineCollection
@@ -71,7 +74,7 @@ def plot_pair(ax, query_image: np.ndarray, ref_image: np.ndarray, pair: PairMatc
     ax.imshow(np.concatenate([pad(query_image), pad(ref_image)], axis=1))
     off = query_image.shape[1]
     q, r = pair.query_points, pair.ref_points
-    inl = np.zeros(len(q), bool) if inliers is None or len(inliers) != len(q) else np.asarray(inliers, bool)
+    inl = np.zeros(len(q), bool) if inliers is None else np.asarray(inliers, bool)
     out_idx = np.flatnonzero(~inl)
     if len(out_idx) > MAX_OUTLIER_LINES:
         out_idx = np.sort(np.random.default_rng(seed).choice(out_idx, MAX_OUTLIER_LINES, replace=False))
@@ -82,8 +85,9 @@ def plot_pair(ax, query_image: np.ndarray, ref_image: np.ndarray, pair: PairMatc
             ends = segments.reshape(-1, 2)
             ax.scatter(ends[:, 0], ends[:, 1], s=2, color=color)
     ax.set_axis_off()
-    ax.set_title(f"query | {ref_label}: {int(inl.sum())} inliers (green), {int((~inl).sum())} outliers (red)",
-                 fontsize="small")
+    counts = (f"{len(q)} matches, not scored (red)" if inliers is None
+              else f"{int(inl.sum())} inliers (green), {int((~inl).sum())} outliers (red)")
+    ax.set_title(f"query | {ref_label}: {counts}", fontsize="small")
 
 
 def estimate_caption(name: str, estimate: PoseEstimate, truth: Pose | None) -> str:
@@ -100,8 +104,8 @@ def estimate_caption(name: str, estimate: PoseEstimate, truth: Pose | None) -> s
 
 
 def save_match_plot(path: Path | str, query_path: Path | str, ref_paths: Sequence[Path | str],
-                    pairs: Sequence[PairMatches], estimate: PoseEstimate, name: str,
-                    truth: Pose | None = None) -> Path:
+                    pairs: Sequence[PairMatches], inliers: Sequence[np.ndarray | None], estimate: PoseEstimate,
+                    name: str, truth: Pose | None = None) -> Path:
     """Write one figure: a row per reference (query | reference with its matches), the
     estimate's status and, if ``truth`` (the query's ``cam_from_world``) is known, its error."""
     import matplotlib
@@ -117,8 +121,7 @@ def save_match_plot(path: Path | str, query_path: Path | str, ref_paths: Sequenc
     fig, axes = plt.subplots(rows, 1, figsize=(10, 10 * aspect * rows + 0.6), squeeze=False)
     for k, ax in enumerate(axes[:, 0]):
         if k < len(pairs):
-            inl = estimate.inliers[k] if k < len(estimate.inliers) else None
-            plot_pair(ax, query, _rgb(ref_paths[k]), pairs[k], inl, str(estimate.references[k]), seed=k)
+            plot_pair(ax, query, _rgb(ref_paths[k]), pairs[k], inliers[k], str(estimate.references[k]), seed=k)
         else:
             ax.imshow(query)
             ax.set_axis_off()
@@ -157,10 +160,10 @@ class MatchPlotter:
     def plot(self, localizer: Localizer, name: str, query_path: Path | str, camera: Camera, features: Features,
              estimate: PoseEstimate, truth: Pose | None = None) -> Path:
         """Plot one estimate; returns the written file."""
-        pairs, names = query_pairs(localizer, features, camera, estimate)
+        pairs, inliers = query_pairs(localizer, features, camera, estimate)
         paths = self._map_paths(localizer)
-        path = save_match_plot(self.out_dir / match_plot_name(name), query_path, [paths[n] for n in names], pairs,
-                               estimate, name, truth)
+        path = save_match_plot(self.out_dir / match_plot_name(name), query_path,
+                               [paths[n] for n in estimate.references], pairs, inliers, estimate, name, truth)
         self.written.append(path)
         return path
 

@@ -85,8 +85,10 @@ class RerunLogger:
             self._camera(f"world/map/cameras/{k}", im.cam_from_world, im.camera, GRAY, static=True)
 
     def log_query(self, name: str, image_path: Path | str | None, camera: Camera, estimate: PoseEstimate,
-                  truth: Pose | None = None, pairs: Sequence[PairMatches] = ()) -> None:
-        """One query at the next step of the ``query`` timeline."""
+                  truth: Pose | None = None, pairs: Sequence[PairMatches] = (),
+                  inliers: Sequence[np.ndarray | None] = ()) -> None:
+        """One query at the next step of the ``query`` timeline (``inliers[k]``: mask of
+        ``pairs[k]``, None if not scored)."""
         rr = self.rr
         self.rec.set_time("query", sequence=self._step)
         self._step += 1
@@ -118,8 +120,7 @@ class RerunLogger:
             self.rec.log("query/image", rr.EncodedImage(path=str(image_path)))
             q_in, q_out = [], []
             for k, p in enumerate(pairs):
-                inl = estimate.inliers[k] if k < len(estimate.inliers) else np.zeros(len(p.query_points), bool)
-                inl = np.asarray(inl, bool) if len(inl) == len(p.query_points) else np.zeros(len(p.query_points), bool)
+                inl = inliers[k] if k < len(inliers) and inliers[k] is not None else np.zeros(len(p.query_points), bool)
                 q_in.append(p.query_points[inl])
                 q_out.append(p.query_points[~inl])
             if pairs:
