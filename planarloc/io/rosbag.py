@@ -269,7 +269,7 @@ class _TfBuffer:
         self.static: dict[str, tuple[str, Pose]] = {}
         self.dynamic: dict[str, tuple[str, list[float], list[Pose]]] = {}
 
-    def add(self, msg: Any, static: bool) -> None:
+    def add(self, msg: Any, static: bool, bag_ns: int = 0) -> None:
         for tf in msg.transforms:
             parent, child = _frame(tf.header.frame_id), _frame(tf.child_frame_id)
             pose = _pose_of(tf.transform.translation, tf.transform.rotation)
@@ -277,7 +277,7 @@ class _TfBuffer:
                 self.static[child] = (parent, pose)
             else:
                 entry = self.dynamic.setdefault(child, (parent, [], []))
-                entry[1].append(_stamp_ns(tf, 0) * 1e-9)
+                entry[1].append(_stamp_ns(tf, bag_ns) * 1e-9)
                 entry[2].append(pose)
 
     def parent(self, child: str) -> str | None:
@@ -385,7 +385,7 @@ def _read_bag(
         conns = [c for c in reader.connections if c.topic in wanted]
         out_dir = Path(image_dir) if image_dir is not None else default_image_dir(paths, img_topic)
         slug = img_topic.strip("/").replace("/", "_") or "image"
-        pending: list[tuple[str, Path, int, int, str]] = []  # images seen before the CameraInfo
+        pending: list[tuple[str, Path, int, int, str]] = []  # name, file, index, stamp, frame
         pose_times: list[float] = []
         poses: list[Pose] = []
         pose_frame: str | None = None
@@ -425,7 +425,7 @@ def _read_bag(
                     pose_frame = _frame(msg.child_frame_id)
             elif conn.msgtype == TF_MESSAGE:
                 try:
-                    tf.add(reader.deserialize(raw, conn.msgtype), static=conn.topic == "/tf_static")
+                    tf.add(reader.deserialize(raw, conn.msgtype), conn.topic == "/tf_static", bag_ns)
                 except InputError as exc:
                     raise FormatError(root, None, f"{conn.topic}: {exc}") from None
     finally:
@@ -691,7 +691,8 @@ def write_rosbag(
         for seq, im in enumerate(images):
             ns = _stamp_of(im)
             world_from_cam = im.cam_from_world.inverse()
-            world_from_posed = world_from_cam if base_from_camera is None else world_from_cam @ base_from_camera.inverse()
+            world_from_posed = (world_from_cam if base_from_camera is None
+                                else world_from_cam @ base_from_camera.inverse())
             pns = ns + int(round(pose_delay * 1e9))
             if pose_message == "tf":
                 msg = T[TF_MESSAGE](transforms=[transform_msg(pns, world_frame, posed_frame, world_from_posed)])
@@ -706,10 +707,9 @@ def write_rosbag(
                     if mt == POSE_WITH_COVARIANCE:
                         msg = T[mt](header=header(pns, world_frame, seq), pose=cov)
                     else:
+                        zero = T["geometry_msgs/msg/Vector3"](x=0.0, y=0.0, z=0.0)
                         twist = T["geometry_msgs/msg/TwistWithCovariance"](
-                            twist=T["geometry_msgs/msg/Twist"](linear=T["geometry_msgs/msg/Vector3"](x=0., y=0., z=0.),
-                                                               angular=T["geometry_msgs/msg/Vector3"](x=0., y=0., z=0.)),
-                            covariance=np.zeros(36))
+                            twist=T["geometry_msgs/msg/Twist"](linear=zero, angular=zero), covariance=np.zeros(36))
                         msg = T[mt](header=header(pns, world_frame, seq), child_frame_id=posed_frame, pose=cov,
                                     twist=twist)
                 writer.write(add(pose_topic, mt), pns, serialize(msg, mt))

@@ -27,7 +27,8 @@ def _evo():  # noqa: ANN202
     return metrics, sync, trajectory
 
 
-def _trajectory(trajectory_mod, timestamps: np.ndarray, centers: np.ndarray, quat_wxyz_cam_from_world: np.ndarray):  # noqa: ANN001, ANN202
+def _trajectory(trajectory_mod, timestamps: np.ndarray, centers: np.ndarray,  # noqa: ANN001, ANN202
+                quat_wxyz_cam_from_world: np.ndarray):
     # world_from_cam: position = centre, rotation = inverse of cam_from_world (conjugate quaternion)
     q = np.asarray(quat_wxyz_cam_from_world, dtype=float) * np.array([1.0, -1.0, -1.0, -1.0])
     return trajectory_mod.PoseTrajectory3D(positions_xyz=np.asarray(centers, dtype=float),
