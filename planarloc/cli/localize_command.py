@@ -4,11 +4,16 @@ from __future__ import annotations
 
 import argparse
 import json
+from contextlib import closing
 from pathlib import Path
 
+from planarloc.cli.map_command import parse_dataset_options
 from planarloc.cli.options import add_localizer_args, localizer_config, parse_camera
 from planarloc.cli.progress import console, progress_bar
+from planarloc.cli.query_sources import QuerySource, dataset_queries
+from planarloc.cli.result_outputs import EstimateOutputs, add_output_args, write_localize_tum
 from planarloc.geometry.camera import Camera
+from planarloc.io.datasets import FORMATS
 from planarloc.io.hloc_pairs import read_hloc_pairs
 from planarloc.io.pose_list import write_pose_list
 from planarloc.pipeline.localizer import Localizer
@@ -28,14 +33,23 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                     "world-to-camera) and one JSON per query with its status, inliers and position std. "
                     "Failed queries are listed as failed, never replaced by a map pose.\n\n"
                     "example:\n  planarloc localize --map kitti.db queries/*.png --camera 'PINHOLE 1241 376 "
-                    "718.856 718.856 607.19 185.22' --structure tracks --out poses.txt")
+                    "718.856 718.856 607.19 185.22' --structure tracks --out poses.txt\n"
+                    "  planarloc localize --map office.db run2.bag --format rosbag --dataset-option "
+                    "image_topic=/camera/image_raw --tum run2.tum --plot-matches matches/")
     p.add_argument("--map", required=True, type=Path, help="map file from `planarloc map build`")
-    p.add_argument("images", nargs="+", type=Path, help="query image files or folders of images")
+    p.add_argument("images", nargs="+", type=Path, help="query image files or folders of images, or one dataset "
+                                                        "with --format")
+    p.add_argument("--format", "-f", choices=sorted(FORMATS), help="read the queries from a dataset in this format "
+                   "(e.g. rosbag: images only unless pose options are given; known poses caption --plot-matches)")
+    p.add_argument("--dataset-option", action="append", metavar="KEY=VALUE",
+                   help="importer option with --format, e.g. image_topic=/cam/image_raw (repeatable)")
     p.add_argument("--camera", help="query intrinsics 'MODEL W H PARAMS...' (COLMAP syntax); default: the map's "
                                     "camera if the map has one camera of the same image size")
     p.add_argument("--out", "-o", type=Path, default=Path("poses.txt"), help="results file (default: %(default)s)")
     p.add_argument("--json-dir", type=Path, help="folder for one JSON per query (default: <out>.json.d)")
     add_localizer_args(p)
+    add_output_args(p, "also write the localized queries as a TUM trajectory (timestamp tx ty tz qx qy qz qw, "
+                       "camera-to-world) for evo")
     p.set_defaults(func=run)
 
 
@@ -66,27 +80,36 @@ def _default_camera(loc: Localizer, shape: tuple[int, int]) -> Camera:
 
 
 def run(args: argparse.Namespace) -> int:
-    queries = _collect(args.images)
+    camera = parse_camera(args.camera) if args.camera else None
+    if args.format:
+        queries = dataset_queries(args.images, args.format, parse_dataset_options(args.dataset_option), camera)
+    else:
+        queries = [QuerySource(name, path) for name, path in _collect(args.images)]
     loc = Localizer(args.map, localizer_config(args))
     pairs = read_hloc_pairs(args.pairs) if args.pairs else None
     json_dir = args.json_dir or args.out.with_name(args.out.name + ".json.d")
     json_dir.mkdir(parents=True, exist_ok=True)
-    camera = parse_camera(args.camera) if args.camera else None
-    poses, failed = [], 0
-    with progress_bar() as update:
-        for i, (name, path) in enumerate(queries):
+    poses, failed, tum = [], 0, []
+    outputs = EstimateOutputs(args.plot_matches, args.rerun)
+    with progress_bar() as update, closing(outputs):
+        for i, q in enumerate(queries):
+            name, path = q.name, q.path
             image = read_gray(path)
-            cam = camera or _default_camera(loc, image.shape[:2])
+            cam = camera or q.camera or _default_camera(loc, image.shape[:2])
             refs = retrieve_from_pairs(pairs, name, loc.config.top_n) if pairs else None
             est = loc.localize(image, cam, refs)
+            outputs.add(loc, name, path, cam, est, q.truth)
             record = {"name": name, **est.to_dict()}
             (json_dir / (name.replace("/", "__") + ".json")).write_text(json.dumps(record, indent=1))
             if est.success:
                 poses.append((name, est.pose))
+                tum.append((name, q.timestamp, est.pose))
             else:
                 failed += 1
             update("localize", i + 1, len(queries))
     write_pose_list(args.out, poses)
+    if args.tum:
+        write_localize_tum(args.tum, tum)
     console.print(f"localized {len(poses)} of {len(queries)} queries ({failed} failed) -> {args.out}, "
                   f"details in {json_dir}/")
     return 0

@@ -16,11 +16,18 @@ _RANSAC = RansacOptions()
 _LOC = LocalizerConfig()
 
 
-def add_dataset_args(p: argparse.ArgumentParser) -> None:
-    p.add_argument("dataset", help="dataset folder (see --format)")
-    p.add_argument("--format", "-f", required=True, choices=sorted(FORMATS),
-                   help="dataset layout: kitti (image_l/, poses.txt, calib.txt), tum (rgb.txt, groundtruth.txt, "
-                        "camera.txt), openloris, kapture, colmap (text model), list (name qw qx qy qz tx ty tz)")
+FORMAT_HELP = ("dataset layout: kitti (image_l/, poses.txt, calib.txt), tum (rgb.txt, groundtruth.txt, camera.txt), "
+               "openloris, kapture, colmap (text model), list (name qw qx qy qz tx ty tz), rosbag (ROS 1 .bag or "
+               "ROS 2 bag folder; options image_topic, camera_info_topic, pose_topic or tf_parent+tf_child, "
+               "base_to_camera, max_dt, every)")
+
+
+def add_dataset_args(p: argparse.ArgumentParser, many: bool = False) -> None:
+    if many:
+        p.add_argument("dataset", nargs="+", help="dataset folder(s) (see --format)")
+    else:
+        p.add_argument("dataset", help="dataset folder (see --format)")
+    p.add_argument("--format", "-f", required=True, choices=sorted(FORMATS), help=FORMAT_HELP)
 
 
 def add_feature_args(p: argparse.ArgumentParser) -> None:

@@ -9,6 +9,7 @@ openloris  :func:`planarloc.io.openloris.read_openloris`  sequence dir (color.tx
 kapture    :func:`planarloc.io.kapture.read_kapture`      dataset dir (sensors/...)
 colmap     :func:`planarloc.io.colmap_text.read_colmap`   model dir (cameras.txt, images.txt)
 list       :func:`planarloc.io.pose_list.read_pose_list`  list file or its directory
+rosbag     :func:`planarloc.io.rosbag.read_rosbag`        .bag file or ROS 2 bag folder (needs rosbags)
 ========== ======================================= ==========================================
 """
 
@@ -24,6 +25,7 @@ from planarloc.io.kapture import read_kapture
 from planarloc.io.kitti import read_kitti
 from planarloc.io.openloris import read_openloris
 from planarloc.io.pose_list import read_pose_list
+from planarloc.io.rosbag import read_rosbag
 from planarloc.io.tum import read_tum
 from planarloc.pipeline.posed_image import PosedImage
 
@@ -34,6 +36,7 @@ FORMATS: dict[str, Callable[..., list[PosedImage]]] = {
     "kapture": read_kapture,
     "colmap": read_colmap,
     "list": read_pose_list,
+    "rosbag": read_rosbag,
 }
 
 

@@ -40,6 +40,7 @@ from planarloc.io._parsing import (
     parse_floats,
     pose_from_quat_wxyz,
     resolve_image,
+    write_text_atomic,
 )
 from planarloc.io.camera_file import read_camera_file
 from planarloc.io.format_error import FormatError
@@ -314,3 +315,33 @@ def read_tum(
         max_dt=max_dt,
         check_images=check_images,
     )
+
+
+def tum_lines(timestamps: object, world_from_cam: list[Pose]) -> list[str]:
+    """TUM trajectory lines ``timestamp tx ty tz qx qy qz qw`` (camera-to-world, as read by evo).
+
+    Args:
+        timestamps: (N,) seconds.
+        world_from_cam: N poses ``world_from_cam`` (x_world = R x_cam + t).
+    """
+    ts = np.asarray(timestamps, dtype=float).reshape(-1)
+    if len(ts) != len(world_from_cam):
+        raise InputError(f"tum_lines: {len(ts)} timestamps for {len(world_from_cam)} poses")
+    out = []
+    for t, p in zip(ts, world_from_cam):
+        w, x, y, z = p.quat_wxyz
+        out.append(f"{t:.9f} " + " ".join(f"{v:.9f}" for v in (*p.t, x, y, z, w)) + "\n")
+    return out
+
+
+def write_tum_trajectory(path: Path, timestamps: object, world_from_cam: list[Pose]) -> None:
+    """Write a TUM trajectory file (see :func:`tum_lines`; ``evo_ape tum gt.txt est.txt`` reads it).
+
+    Timestamps must be strictly increasing (evo rejects anything else); the file is written
+    atomically (never half a file).
+    """
+    ts = np.asarray(timestamps, dtype=float).reshape(-1)
+    if len(ts) > 1 and not np.all(np.diff(ts) > 0):
+        raise InputError(f"{path}: TUM timestamps must be strictly increasing (evo requires it)")
+    write_text_atomic(Path(path), ["# timestamp tx ty tz qx qy qz qw (camera-to-world)\n",
+                                   *tum_lines(ts, world_from_cam)])

@@ -16,12 +16,15 @@ from pathlib import Path
 import numpy as np
 
 from planarloc.geometry.pose import pose_errors
+from planarloc.pipeline.features import Features
 from planarloc.pipeline.localizer import Localizer, LocalizerConfig
 from planarloc.pipeline.map_builder import read_gray
 from planarloc.pipeline.map_database import MapDatabase
 from planarloc.pipeline.posed_image import PosedImage
 from planarloc.robust.result import PoseEstimate
 
+#: ``on_estimate(localizer, query, features, estimate)`` callback of :func:`evaluate_configs`.
+OnEstimate = Callable[[Localizer, PosedImage, Features, PoseEstimate], None]
 THRESHOLDS: tuple[tuple[float, float], ...] = ((0.25, 10.0), (0.5, 10.0), (1.0, 20.0))
 
 
@@ -31,7 +34,12 @@ def threshold_name(t: float, r: float) -> str:
 
 @dataclass(frozen=True)
 class QueryResult:
-    """Outcome of one query: errors are NaN when no pose was returned."""
+    """Outcome of one query: errors are NaN when no pose was returned.
+
+    Poses are ``cam_from_world``: ``*_quat_wxyz`` its rotation, ``*_center`` the camera centre
+    in the world. ``references``: the map images whose matches reached the estimator.
+    ``timestamp``: the query's, in seconds (None if its format has none).
+    """
 
     name: str
     status: str
@@ -44,6 +52,10 @@ class QueryResult:
     seconds: float
     estimate_center: tuple[float, float, float] | None
     truth_center: tuple[float, float, float]
+    timestamp: float | None = None
+    estimate_quat_wxyz: tuple[float, float, float, float] | None = None
+    truth_quat_wxyz: tuple[float, float, float, float] | None = None
+    references: tuple[str, ...] = ()
 
 
 def split_map_queries(images: Sequence[PosedImage], map_every: int) -> tuple[list[PosedImage], list[PosedImage]]:
@@ -57,11 +69,13 @@ def query_result(query: PosedImage, est: PoseEstimate, seconds: float) -> QueryR
     if est.success and est.pose is not None:
         t_err, r_err = pose_errors(est.pose, query.cam_from_world)
         c = tuple(float(v) for v in est.pose.center)
+        q = tuple(float(v) for v in est.pose.quat_wxyz)
     else:
-        t_err, r_err, c = float("nan"), float("nan"), None
+        t_err, r_err, c, q = float("nan"), float("nan"), None, None
     return QueryResult(query.name, est.status, bool(est.success), t_err, r_err, float(est.position_std_m),
                        int(est.num_inliers), int(est.num_inliers_3d), seconds, c,
-                       tuple(float(v) for v in query.cam_from_world.center))
+                       tuple(float(v) for v in query.cam_from_world.center), query.timestamp, q,
+                       tuple(float(v) for v in query.cam_from_world.quat_wxyz), tuple(est.references))
 
 
 def summarize(results: Sequence[QueryResult], method: str, structure: str, **extra: object) -> dict:
@@ -99,9 +113,11 @@ def evaluate_queries(
     queries: Sequence[PosedImage],
     progress: Callable[[int, int], None] | None = None,
     pairs: dict[str, list[str]] | None = None,
+    on_estimate: OnEstimate | None = None,
 ) -> list[QueryResult]:
-    """Localize every query image and compare with its ground truth."""
-    return evaluate_configs(localizer.db, [localizer.config], queries, progress, pairs)[0]
+    """Localize every query image and compare with its ground truth (``on_estimate``: see
+    :func:`evaluate_configs`)."""
+    return evaluate_configs(localizer.db, [localizer.config], queries, progress, pairs, on_estimate)[0]
 
 
 def evaluate_configs(
@@ -110,8 +126,12 @@ def evaluate_configs(
     queries: Sequence[PosedImage],
     progress: Callable[[int, int], None] | None = None,
     pairs: dict[str, list[str]] | None = None,
+    on_estimate: OnEstimate | None = None,
 ) -> list[list[QueryResult]]:
     """Localize every query with each configuration, extracting its features only once.
+
+    ``on_estimate(localizer, query, features, estimate)``, if given, is called after each
+    estimate (plots, recordings); it does not count in ``seconds``.
 
     Returns:
         one list of :class:`QueryResult` per configuration. ``seconds`` of a result is the
@@ -131,6 +151,8 @@ def evaluate_configs(
             refs = retrieve_from_pairs(pairs, q.name, loc.config.top_n) if pairs is not None else None
             est = loc.localize_features(features, q.camera, refs)
             results.append(query_result(q, est, t_feat + time.perf_counter() - t1))
+            if on_estimate is not None:
+                on_estimate(loc, q, features, est)
         if progress:
             progress(i + 1, len(queries))
     return out

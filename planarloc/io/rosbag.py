@@ -1,0 +1,779 @@
+"""ROS bags (ROS 1 ``.bag``, ROS 2 sqlite3 and mcap) as posed-image datasets, via ``rosbags``.
+
+Needs the optional ``rosbags`` package (pure Python, no ROS install): ``pip install 'planarloc[ros]'``.
+
+What is read (``root`` is a ``.bag`` file, a folder of ``.bag`` files read as one recording, a
+ROS 2 bag folder with ``metadata.yaml``, or a ``.db3`` / ``.mcap`` file inside one):
+
+- images: ``image_topic`` (``sensor_msgs/Image`` in mono8, mono16, rgb8, bgr8, rgba8, bgra8, or
+  ``sensor_msgs/CompressedImage`` jpeg/png). Optional when the bag has a single image topic.
+  Each image is written once to ``image_dir`` (default: a cache folder in the temp directory
+  keyed by the bag's path, size and mtime): raw images as lossless PNG, compressed images as
+  their stored bytes (no re-encoding). The name of a frame is ``<topic>/<sec>.<nanosec>.<ext>``
+  with the header stamp (the bag's receive time when the stamp is zero).
+- intrinsics, first that applies: the ``camera`` option (a Camera or a line
+  ``'PINHOLE W H fx fy cx cy'``); the first ``sensor_msgs/CameraInfo`` of ``camera_info_topic``
+  (or of the bag's only CameraInfo topic). A CameraInfo becomes PINHOLE (no distortion) or
+  OPENCV (plumb_bob with k3 = 0); for an image topic whose name contains ``rect`` the
+  projection matrix P is used (rectified images have no distortion).
+- poses, either ``pose_topic`` (``geometry_msgs/PoseStamped``, ``PoseWithCovarianceStamped`` or
+  ``nav_msgs/Odometry``: the pose of a frame in the world, x_world = R x_frame + t), or the
+  ``/tf`` + ``/tf_static`` chain from ``tf_parent`` (the world, e.g. ``map``) down to ``tf_child``.
+  Each image takes, per transform, the sample with the nearest header stamp within ``max_dt``
+  seconds (no interpolation, as the TUM reader); frames without one are skipped with a warning.
+
+The camera pose: when the posed frame is the robot base rather than the camera's optical frame
+(z forward, x right, y down; ROS ``*_optical_frame``), the base-to-camera transform is composed
+with it: ``base_to_camera`` if given (``'x y z qx qy qz qw'``, the camera's pose in the base frame,
+the argument order of ``static_transform_publisher``), else the ``/tf_static`` chain from the posed
+frame (``tf_child`` or the Odometry ``child_frame_id``) to the image's ``header.frame_id``. If
+neither exists and the frames differ, the pose is taken as the camera's, with a warning.
+
+:func:`write_rosbag` writes posed images as a bag in the same layout (tests, conversions).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import logging
+import os
+import tempfile
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+
+from planarloc.geometry.camera import Camera
+from planarloc.geometry.pose import Pose
+from planarloc.geometry.validation import InputError
+from planarloc.io.camera_file import camera_from_tokens
+from planarloc.io.format_error import FormatError
+from planarloc.io.tum import associate_timestamps
+from planarloc.pipeline.posed_image import PosedImage
+
+logger = logging.getLogger(__name__)
+
+FORMAT = "ROS bag"
+DEFAULT_MAX_DT = 0.05
+IMAGE = "sensor_msgs/msg/Image"
+COMPRESSED_IMAGE = "sensor_msgs/msg/CompressedImage"
+CAMERA_INFO = "sensor_msgs/msg/CameraInfo"
+POSE_STAMPED = "geometry_msgs/msg/PoseStamped"
+POSE_WITH_COVARIANCE = "geometry_msgs/msg/PoseWithCovarianceStamped"
+ODOMETRY = "nav_msgs/msg/Odometry"
+TF_MESSAGE = "tf2_msgs/msg/TFMessage"
+POSE_TYPES = (POSE_STAMPED, POSE_WITH_COVARIANCE, ODOMETRY)
+#: raw encodings read: name -> (channels, dtype, cv2 conversion to BGR or None)
+_ENCODINGS = {
+    "mono8": (1, np.uint8, None),
+    "8uc1": (1, np.uint8, None),
+    "mono16": (1, np.uint16, None),
+    "16uc1": (1, np.uint16, None),
+    "bgr8": (3, np.uint8, None),
+    "8uc3": (3, np.uint8, None),
+    "rgb8": (3, np.uint8, cv2.COLOR_RGB2BGR),
+    "bgra8": (4, np.uint8, cv2.COLOR_BGRA2BGR),
+    "rgba8": (4, np.uint8, cv2.COLOR_RGBA2BGR),
+}
+_PNG = [cv2.IMWRITE_PNG_COMPRESSION, 1]
+
+
+def _rosbags() -> Any:
+    try:
+        import rosbags.highlevel  # noqa: F401
+        import rosbags.typesys
+    except ImportError:
+        raise InputError(
+            "the rosbag format needs the 'rosbags' package: pip install 'planarloc[ros]'"
+        ) from None
+    import rosbags
+
+    return rosbags
+
+
+@dataclass(frozen=True)
+class BagImage:
+    """One image of a bag, decoded to a file (no pose).
+
+    Attributes:
+        name: ``<topic>/<sec>.<nanosec>.<ext>``, unique within the bag.
+        path: the image file in the image folder.
+        camera: intrinsics.
+        index: position among the image topic's messages (0-based, before ``every``).
+        timestamp: header stamp in seconds.
+        frame_id: the image's ``header.frame_id`` (its optical frame), without a leading '/'.
+    """
+
+    name: str
+    path: Path
+    camera: Camera
+    index: int
+    timestamp: float
+    frame_id: str
+
+
+def bag_paths(root: Path) -> list[Path]:
+    """The paths ``rosbags.highlevel.AnyReader`` opens for ``root`` (see the module docstring)."""
+    root = Path(root)
+    if root.is_file() and root.suffix == ".bag":
+        return [root]
+    if root.is_file() and root.suffix in (".db3", ".mcap") and (root.parent / "metadata.yaml").is_file():
+        return [root.parent]
+    if root.is_dir() and (root / "metadata.yaml").is_file():
+        return [root]
+    if root.is_dir():
+        bags = sorted(root.glob("*.bag"))
+        if bags:
+            return bags
+    if not root.exists():
+        raise FormatError(root, None, "no such file or folder; expected a ROS 1 .bag file or a ROS 2 bag folder")
+    raise FormatError(
+        root, None, "expected a ROS 1 .bag file, a folder of .bag files, or a ROS 2 bag folder with metadata.yaml"
+    )
+
+
+def _stamp_ns(msg: Any, bag_ns: int) -> int:
+    header = getattr(msg, "header", None)
+    if header is None:
+        return int(bag_ns)
+    ns = int(header.stamp.sec) * 1_000_000_000 + int(header.stamp.nanosec)
+    return ns if ns > 0 else int(bag_ns)
+
+
+def _frame(name: str) -> str:
+    return str(name).lstrip("/")
+
+
+def _pose_of(position: Any, orientation: Any) -> Pose:
+    q = np.array([orientation.w, orientation.x, orientation.y, orientation.z], dtype=float)
+    if not np.isfinite(q).all() or np.linalg.norm(q) < 1e-9:
+        raise InputError(f"invalid quaternion (w, x, y, z) = {q}")
+    return Pose.from_quat_wxyz(q, [position.x, position.y, position.z])
+
+
+def parse_transform(value: object, option: str) -> Pose:
+    """``'x y z qx qy qz qw'`` (or 7 numbers): the child's pose in the parent frame -> ``parent_from_child``."""
+    if isinstance(value, Pose):
+        return value
+    tokens = value.replace(",", " ").split() if isinstance(value, str) else list(value)  # type: ignore[arg-type]
+    try:
+        v = np.array([float(x) for x in tokens], dtype=float)
+    except (TypeError, ValueError):
+        v = np.zeros(0)
+    if v.shape != (7,) or not np.isfinite(v).all():
+        raise InputError(f"{option}: expected 7 numbers 'x y z qx qy qz qw', got {value!r}")
+    return Pose.from_quat_wxyz(v[[6, 3, 4, 5]], v[:3])
+
+
+def parse_camera_option(value: object) -> Camera:
+    """A Camera, or a line ``'MODEL W H PARAMS...'`` (COLMAP syntax) -> Camera."""
+    if isinstance(value, Camera):
+        return value
+    if not isinstance(value, str):
+        raise InputError(f"camera: expected 'MODEL WIDTH HEIGHT PARAMS...', got {value!r}")
+    return camera_from_tokens(Path("camera option"), 1, value.replace(",", " ").split())
+
+
+def camera_from_info(msg: Any, rectified: bool) -> Camera:
+    """A Camera from a ``sensor_msgs/CameraInfo`` (ROS 1 upper- or ROS 2 lower-case fields)."""
+    K = np.asarray(getattr(msg, "k", getattr(msg, "K", None)), dtype=float).reshape(3, 3)
+    P = np.asarray(getattr(msg, "p", getattr(msg, "P", None)), dtype=float).reshape(3, 4)
+    D = np.asarray(getattr(msg, "d", getattr(msg, "D", [])), dtype=float).reshape(-1)
+    w, h = int(msg.width), int(msg.height)
+    if rectified and P[0, 0] > 0:
+        return Camera.from_K(P[:, :3], w, h)
+    if D.size == 0 or not np.any(D):
+        return Camera.from_K(K, w, h)
+    model = str(msg.distortion_model)
+    if model == "plumb_bob" and (D.size < 5 or not np.any(D[4:])):
+        return Camera.from_K(K, w, h, D[:4])
+    raise InputError(
+        f"CameraInfo distortion model {model!r} with D = {D.tolist()} is not supported (PINHOLE, or plumb_bob "
+        "with k3 = 0); use a rectified image topic or pass the option camera='OPENCV W H fx fy cx cy k1 k2 p1 p2'"
+    )
+
+
+def decode_image(msg: Any) -> np.ndarray:
+    """A ``sensor_msgs/Image`` as (H, W) gray or (H, W, 3) BGR array (uint8, or uint16 for mono16)."""
+    enc = str(msg.encoding).lower()
+    if enc not in _ENCODINGS:
+        raise InputError(f"image encoding {msg.encoding!r} is not supported (supported: {', '.join(_ENCODINGS)})")
+    channels, dtype, conversion = _ENCODINGS[enc]
+    h, w, step = int(msg.height), int(msg.width), int(msg.step)
+    item = np.dtype(dtype).itemsize
+    data = np.frombuffer(bytes(msg.data), dtype=np.uint8)
+    if data.size < h * step or step < w * channels * item:
+        raise InputError(f"image message: {data.size} bytes do not hold {h} rows of step {step} ({w}x{h} {enc})")
+    rows = np.ascontiguousarray(data[: h * step].reshape(h, step)[:, : w * channels * item])
+    order = ">" if int(getattr(msg, "is_bigendian", 0)) else "<"
+    img = rows.view(np.dtype(dtype).newbyteorder(order)).astype(dtype).reshape(h, w, channels)
+    img = img[:, :, 0] if channels == 1 else img
+    return cv2.cvtColor(img, conversion) if conversion is not None else img
+
+
+def _write_atomic(path: Path, data: bytes) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def default_image_dir(paths: Sequence[Path], image_topic: str) -> Path:
+    """The cache folder of a bag's decoded images (temp dir, keyed by path, size, mtime and topic)."""
+    h = hashlib.sha1(image_topic.encode())
+    for p in paths:
+        files = sorted(f for f in Path(p).rglob("*") if f.is_file()) if Path(p).is_dir() else [Path(p)]
+        for f in files:
+            st = f.stat()
+            h.update(f"{f.resolve()}|{st.st_size}|{st.st_mtime_ns}".encode())
+    return Path(tempfile.gettempdir()) / "planarloc-bags" / f"{Path(paths[0]).stem}-{h.hexdigest()[:12]}"
+
+
+def _pick_topic(topics: dict[str, str], wanted: str | None, types: Sequence[str], option: str, root: Path,
+                required: bool) -> str | None:
+    if wanted is not None:
+        if wanted not in topics:
+            raise FormatError(root, None, f"{option}={wanted!r}: no such topic; topics: {_topic_list(topics)}")
+        if topics[wanted] not in types:
+            raise FormatError(
+                root, None, f"{option}={wanted!r} has type {topics[wanted]}, expected one of {', '.join(types)}"
+            )
+        return wanted
+    candidates = sorted(t for t, ty in topics.items() if ty in types)
+    if len(candidates) == 1:
+        return candidates[0]
+    if not required and not candidates:
+        return None
+    found = ", ".join(candidates) if candidates else "none"
+    raise FormatError(
+        root, None, f"give the dataset option {option}=TOPIC ({', '.join(types)} topics in the bag: {found})"
+    )
+
+
+def _topic_list(topics: dict[str, str]) -> str:
+    return ", ".join(f"{t} ({ty})" for t, ty in sorted(topics.items())) or "none"
+
+
+class _TfBuffer:
+    """Static and time-stamped transforms ``parent_from_child`` per edge (child -> parent)."""
+
+    def __init__(self) -> None:
+        self.static: dict[str, tuple[str, Pose]] = {}
+        self.dynamic: dict[str, tuple[str, list[float], list[Pose]]] = {}
+
+    def add(self, msg: Any, static: bool, bag_ns: int = 0) -> None:
+        for tf in msg.transforms:
+            parent, child = _frame(tf.header.frame_id), _frame(tf.child_frame_id)
+            pose = _pose_of(tf.transform.translation, tf.transform.rotation)
+            if static:
+                self.static[child] = (parent, pose)
+            else:
+                entry = self.dynamic.setdefault(child, (parent, [], []))
+                entry[1].append(_stamp_ns(tf, bag_ns) * 1e-9)
+                entry[2].append(pose)
+
+    def parent(self, child: str) -> str | None:
+        if child in self.static:
+            return self.static[child][0]
+        if child in self.dynamic:
+            return self.dynamic[child][0]
+        return None
+
+    def chain(self, parent: str, child: str) -> list[str] | None:
+        """Frames from ``child`` up to (excluding) ``parent``, or None if ``parent`` is not an ancestor."""
+        out, frame = [], child
+        while frame != parent:
+            out.append(frame)
+            frame = self.parent(frame)  # type: ignore[assignment]
+            if frame is None or len(out) > 1000:
+                return None
+        return out
+
+    def static_chain(self, parent: str, child: str) -> Pose | None:
+        """``parent_from_child`` if ``child`` hangs below ``parent`` through static transforms only."""
+        chain = self.chain(parent, child)
+        if chain is None or any(f not in self.static for f in chain):
+            return None
+        pose = Pose.identity()
+        for f in chain:
+            pose = self.static[f][1] @ pose
+        return pose
+
+    def frames(self) -> list[str]:
+        names = set(self.static) | set(self.dynamic)
+        names |= {p for p, _ in self.static.values()} | {e[0] for e in self.dynamic.values()}
+        return sorted(names)
+
+    def poses_at(self, parent: str, child: str, times: np.ndarray, max_dt: float,
+                 root: Path) -> list[Pose | None]:
+        """``parent_from_child`` at each time (None where a dynamic edge has no sample within max_dt)."""
+        chain = self.chain(parent, child)
+        if chain is None:
+            raise FormatError(
+                root, None, f"tf_parent={parent!r} is not an ancestor of tf_child={child!r} in /tf and /tf_static "
+                f"(frames: {', '.join(self.frames()) or 'none'})"
+            )
+        out: list[Pose | None] = [Pose.identity() for _ in times]
+        for frame in chain:
+            if frame in self.static:
+                edge = self.static[frame][1]
+                out = [None if p is None else edge @ p for p in out]
+                continue
+            _, stamps, poses = self.dynamic[frame]
+            idx = associate_timestamps(times, stamps, max_dt)
+            out = [None if p is None or i < 0 else poses[i] @ p for p, i in zip(out, idx)]
+        return out
+
+
+@dataclass
+class _BagContent:
+    images: list[BagImage]
+    pose_times: list[float]
+    poses: list[Pose]
+    pose_frame: str | None
+    tf: _TfBuffer
+
+
+def _read_bag(
+    root: Path,
+    *,
+    image_topic: str | None,
+    camera_info_topic: str | None,
+    camera: object,
+    pose_topic: str | None,
+    with_tf: bool,
+    every: int,
+    image_dir: str | Path | None,
+) -> _BagContent:
+    rb = _rosbags()
+    from rosbags.highlevel import AnyReader
+    from rosbags.typesys import Stores, get_typestore
+
+    if int(every) < 1:
+        raise InputError(f"every: expected an integer >= 1, got {every!r}")
+    paths = bag_paths(Path(root))
+    try:
+        reader = AnyReader(paths, default_typestore=get_typestore(Stores.ROS2_HUMBLE))
+        reader.open()
+    except (rb.highlevel.AnyReaderError, OSError) as exc:
+        raise FormatError(root, None, f"cannot open the bag: {exc}") from None
+    try:
+        topics = {c.topic: c.msgtype for c in reader.connections}
+        img_topic = _pick_topic(topics, image_topic, (IMAGE, COMPRESSED_IMAGE), "image_topic", root, True)
+        cam = parse_camera_option(camera) if camera is not None else None
+        info_topic = None
+        if cam is None:
+            info_topic = _pick_topic(topics, camera_info_topic, (CAMERA_INFO,), "camera_info_topic", root, False)
+            if info_topic is None:
+                raise FormatError(
+                    root, None, "cannot determine the intrinsics: the bag has no sensor_msgs/CameraInfo topic; pass "
+                    "the option camera='PINHOLE W H fx fy cx cy' (localize: --camera)"
+                )
+        if pose_topic is not None:
+            _pick_topic(topics, pose_topic, POSE_TYPES, "pose_topic", root, True)
+        wanted = {img_topic, info_topic, pose_topic}
+        if with_tf:
+            wanted |= {t for t, ty in topics.items() if ty == TF_MESSAGE and t in ("/tf", "/tf_static")}
+        conns = [c for c in reader.connections if c.topic in wanted]
+        out_dir = Path(image_dir) if image_dir is not None else default_image_dir(paths, img_topic)
+        slug = img_topic.strip("/").replace("/", "_") or "image"
+        pending: list[tuple[str, Path, int, int, str]] = []  # name, file, index, stamp, frame
+        pose_times: list[float] = []
+        poses: list[Pose] = []
+        pose_frame: str | None = None
+        tf = _TfBuffer()
+        n_image = 0
+        names: set[str] = set()
+        for conn, bag_ns, raw in reader.messages(connections=conns):
+            if conn.topic == img_topic:
+                index = n_image
+                n_image += 1
+                if index % int(every):
+                    continue
+                msg = reader.deserialize(raw, conn.msgtype)
+                ns = _stamp_ns(msg, bag_ns)
+                name = f"{slug}/{ns // 1_000_000_000}.{ns % 1_000_000_000:09d}"
+                while name in names:
+                    name += "_"
+                names.add(name)
+                path = _store_image(out_dir, name, msg, conn.msgtype, root)
+                name = str(path.relative_to(out_dir))
+                pending.append((name, path, index, ns, _frame(msg.header.frame_id)))
+            elif conn.topic == info_topic and cam is None:
+                msg = reader.deserialize(raw, conn.msgtype)
+                try:
+                    cam = camera_from_info(msg, "rect" in img_topic)
+                except InputError as exc:
+                    raise FormatError(root, None, f"{info_topic}: {exc}") from None
+            elif conn.topic == pose_topic:
+                msg = reader.deserialize(raw, conn.msgtype)
+                p = msg.pose if conn.msgtype == POSE_STAMPED else msg.pose.pose
+                try:
+                    poses.append(_pose_of(p.position, p.orientation))
+                except InputError as exc:
+                    raise FormatError(root, None, f"{pose_topic} at t = {_stamp_ns(msg, bag_ns) * 1e-9:.9f}: {exc}")
+                pose_times.append(_stamp_ns(msg, bag_ns) * 1e-9)
+                if conn.msgtype == ODOMETRY:
+                    pose_frame = _frame(msg.child_frame_id)
+            elif conn.msgtype == TF_MESSAGE:
+                try:
+                    tf.add(reader.deserialize(raw, conn.msgtype), conn.topic == "/tf_static", bag_ns)
+                except InputError as exc:
+                    raise FormatError(root, None, f"{conn.topic}: {exc}") from None
+    finally:
+        reader.close()
+    if cam is None:
+        raise FormatError(root, None, f"{info_topic}: no CameraInfo message in the bag; pass the option camera=...")
+    images = [BagImage(name, path, cam, index, ns * 1e-9, frame) for name, path, index, ns, frame in pending]
+    if not images:
+        raise FormatError(root, None, f"expected messages on {img_topic}, found none")
+    first = cv2.imread(str(images[0].path), cv2.IMREAD_UNCHANGED)
+    if first is None:
+        raise FormatError(root, None, f"{img_topic}: cannot decode the first image ({images[0].path})")
+    if (first.shape[1], first.shape[0]) != (images[0].camera.width, images[0].camera.height):
+        raise FormatError(
+            root, None, f"{img_topic}: images are {first.shape[1]}x{first.shape[0]} but the camera is "
+            f"{images[0].camera.width}x{images[0].camera.height}; check camera_info_topic / camera"
+        )
+    return _BagContent(images, pose_times, poses, pose_frame, tf)
+
+
+def _store_image(out_dir: Path, name: str, msg: Any, msgtype: str, root: Path) -> Path:
+    if msgtype == COMPRESSED_IMAGE:
+        fmt = str(msg.format).lower()
+        if "compresseddepth" in fmt:
+            raise FormatError(root, None, f"compressed depth images ({msg.format!r}) are not colour images")
+        path = out_dir / (name + (".png" if "png" in fmt else ".jpg"))
+        if not path.is_file():
+            _write_atomic(path, bytes(msg.data))
+        return path
+    path = out_dir / (name + ".png")
+    if not path.is_file():
+        try:
+            img = decode_image(msg)
+        except InputError as exc:
+            raise FormatError(root, None, str(exc)) from None
+        ok, buf = cv2.imencode(".png", img, _PNG)
+        if not ok:
+            raise FormatError(root, None, f"cannot encode {name} as PNG")
+        _write_atomic(path, buf.tobytes())
+    return path
+
+
+def read_rosbag_images(
+    root: Path,
+    *,
+    image_topic: str | None = None,
+    camera_info_topic: str | None = None,
+    camera: Camera | str | None = None,
+    every: int = 1,
+    image_dir: str | Path | None = None,
+) -> list[BagImage]:
+    """The images of a bag (no poses needed), e.g. the queries of ``planarloc localize``.
+
+    Args: as :func:`read_rosbag`.
+
+    Returns:
+        One :class:`BagImage` per selected message of ``image_topic``, in message order.
+    """
+    content = _read_bag(Path(root), image_topic=image_topic, camera_info_topic=camera_info_topic, camera=camera,
+                        pose_topic=None, with_tf=False, every=every, image_dir=image_dir)
+    return content.images
+
+
+def read_rosbag(
+    root: Path,
+    *,
+    image_topic: str | None = None,
+    camera_info_topic: str | None = None,
+    camera: Camera | str | None = None,
+    pose_topic: str | None = None,
+    tf_parent: str | None = None,
+    tf_child: str | None = None,
+    base_to_camera: str | Sequence[float] | Pose | None = None,
+    max_dt: float = DEFAULT_MAX_DT,
+    every: int = 1,
+    image_dir: str | Path | None = None,
+) -> list[PosedImage]:
+    """Read a ROS bag as posed images (format in the module docstring).
+
+    Args:
+        root: ``.bag`` file, folder of ``.bag`` files, ROS 2 bag folder, or its ``.db3``/``.mcap`` file.
+        image_topic: Image or CompressedImage topic (default: the bag's only one).
+        camera_info_topic: CameraInfo topic (default: the bag's only one, unless ``camera``).
+        camera: intrinsics (Camera or ``'MODEL W H PARAMS...'``); overrides CameraInfo.
+        pose_topic: PoseStamped / PoseWithCovarianceStamped / Odometry topic with the world pose
+            of the camera or of the base.
+        tf_parent, tf_child: instead of ``pose_topic``: the world frame and the posed frame of
+            the ``/tf`` + ``/tf_static`` chain.
+        base_to_camera: the camera's pose in the posed frame, ``'x y z qx qy qz qw'`` (metres,
+            quaternion x y z w); default: from ``/tf_static`` if it links the posed frame to the
+            image's frame_id, else none.
+        max_dt: largest |image stamp - pose stamp| in seconds.
+        every: keep image messages with ``index % every == 0``.
+        image_dir: where decoded images are written (default: a cache folder in the temp dir).
+
+    Returns:
+        One :class:`PosedImage` per kept image that has a pose; ``index`` = message position,
+        ``timestamp`` = header stamp in seconds.
+
+    Raises:
+        FormatError: missing/ambiguous topics, undecodable images, no intrinsics, no poses.
+        InputError: bad options, or ``rosbags`` not installed.
+
+    Example:
+        >>> read_rosbag(Path("run1.bag"), image_topic="/cam/image_raw", pose_topic="/odom")  # doctest: +SKIP
+    """
+    root = Path(root)
+    if (pose_topic is None) == (tf_parent is None and tf_child is None):
+        raise InputError(
+            "rosbag: give either the option pose_topic=TOPIC or both tf_parent=FRAME and tf_child=FRAME"
+        )
+    if pose_topic is None and (tf_parent is None or tf_child is None):
+        raise InputError("rosbag: the tf chain needs both tf_parent=FRAME (the world) and tf_child=FRAME")
+    if not np.isfinite(float(max_dt)) or float(max_dt) < 0:
+        raise InputError(f"max_dt: expected a number of seconds >= 0, got {max_dt!r}")
+    base_from_camera = parse_transform(base_to_camera, "base_to_camera") if base_to_camera is not None else None
+    content = _read_bag(root, image_topic=image_topic, camera_info_topic=camera_info_topic, camera=camera,
+                        pose_topic=pose_topic, with_tf=True, every=every, image_dir=image_dir)
+    images = content.images
+    times = np.array([im.timestamp for im in images])
+    if pose_topic is not None:
+        if not content.poses:
+            raise FormatError(root, None, f"expected pose messages on {pose_topic}, found none")
+        idx = associate_timestamps(times, content.pose_times, float(max_dt))
+        world_from_posed = [content.poses[i] if i >= 0 else None for i in idx]
+        posed_frame = content.pose_frame
+    else:
+        world_from_posed = content.tf.poses_at(_frame(tf_parent), _frame(tf_child), times, float(max_dt), root)
+        posed_frame = _frame(tf_child)
+    extrinsic = base_from_camera
+    if extrinsic is None and posed_frame:
+        image_frame = images[0].frame_id
+        if image_frame and image_frame != posed_frame:
+            extrinsic = content.tf.static_chain(posed_frame, image_frame)
+            if extrinsic is None:
+                logger.warning(
+                    "%s: the poses are of frame %r, the images of frame %r, and /tf_static does not link them; "
+                    "taking the poses as the camera's (pass base_to_camera='x y z qx qy qz qw' if not)",
+                    root, posed_frame, image_frame,
+                )
+    elif extrinsic is None and images[0].frame_id in content.tf.static:
+        logger.warning(
+            "%s: %s does not name its posed frame, and /tf_static places the image frame %r below %r; taking "
+            "the poses as the camera's (if they are of the base, pass base_to_camera='x y z qx qy qz qw')",
+            root, pose_topic, images[0].frame_id, content.tf.static[images[0].frame_id][0],
+        )
+    out = []
+    for im, w_from_p in zip(images, world_from_posed):
+        if w_from_p is None:
+            continue
+        world_from_cam = w_from_p if extrinsic is None else w_from_p @ extrinsic
+        out.append(PosedImage(name=im.name, path=im.path, cam_from_world=world_from_cam.inverse(), camera=im.camera,
+                              index=im.index, timestamp=im.timestamp))
+    skipped = len(images) - len(out)
+    source = pose_topic or f"tf {tf_parent} -> {tf_child}"
+    if not out:
+        raise FormatError(
+            root, None, f"expected images with a pose ({source}) within max_dt = {float(max_dt):g} s, found none "
+            f"({len(images)} images); check the topics/frames or raise max_dt"
+        )
+    if skipped:
+        logger.warning("%s: %d of %d images have no pose (%s) within max_dt = %g s and are skipped",
+                       root, skipped, len(images), source, float(max_dt))
+    return out
+
+
+# ---- writing ----------------------------------------------------------------------------------
+STORAGES = ("rosbag1", "sqlite3", "mcap")
+POSE_MESSAGES = {"PoseStamped": POSE_STAMPED, "PoseWithCovarianceStamped": POSE_WITH_COVARIANCE,
+                 "Odometry": ODOMETRY, "tf": TF_MESSAGE}
+
+
+def write_rosbag(
+    out: Path,
+    images: Sequence[PosedImage],
+    *,
+    storage: str = "sqlite3",
+    compressed: bool = False,
+    image_topic: str = "/camera/image_raw",
+    camera_info_topic: str | None = "/camera/camera_info",
+    pose_topic: str = "/pose",
+    pose_message: str = "PoseStamped",
+    world_frame: str = "map",
+    base_frame: str = "base_link",
+    camera_frame: str = "camera_optical_frame",
+    base_from_camera: Pose | None = None,
+    pose_delay: float = 0.0,
+) -> Path:
+    """Write posed images as a ROS bag (the inverse of :func:`read_rosbag`).
+
+    Args:
+        out: a new ``.bag`` file (``storage="rosbag1"``) or a new ROS 2 bag folder.
+        images: posed images; stamps are their ``timestamp`` (else ``0.1 s * index``).
+        storage: ``"rosbag1"``, ``"sqlite3"`` or ``"mcap"``.
+        compressed: write ``sensor_msgs/CompressedImage`` (the image files' PNG/JPEG bytes)
+            instead of ``sensor_msgs/Image`` (mono8 or bgr8).
+        image_topic, camera_info_topic: image and CameraInfo topics (CameraInfo skipped if None;
+            PINHOLE and OPENCV cameras only).
+        pose_topic, pose_message: topic and type (``PoseStamped``, ``PoseWithCovarianceStamped``,
+            ``Odometry``) of the poses, or ``"tf"``: the poses go to ``/tf`` as
+            ``world_frame -> base_frame`` (``pose_topic`` unused).
+        world_frame, base_frame, camera_frame: frame ids.
+        base_from_camera: if given, the poses written are the base's (world_from_cam ∘
+            camera_from_base) and ``/tf_static`` holds ``base_frame -> camera_frame``; else the
+            poses are the camera's (``base_frame`` = ``camera_frame`` in tf mode).
+        pose_delay: seconds added to the pose stamps (to exercise time matching).
+
+    Returns:
+        ``out``.
+    """
+    _rosbags()
+    from rosbags.typesys import Stores, get_typestore
+
+    if storage not in STORAGES:
+        raise InputError(f"storage: expected one of {', '.join(STORAGES)}, got {storage!r}")
+    if pose_message not in POSE_MESSAGES:
+        raise InputError(f"pose_message: expected one of {', '.join(POSE_MESSAGES)}, got {pose_message!r}")
+    ros1 = storage == "rosbag1"
+    ts = get_typestore(Stores.ROS1_NOETIC if ros1 else Stores.ROS2_HUMBLE)
+    if TF_MESSAGE not in ts.types:  # the noetic store lacks tf2_msgs
+        from rosbags.typesys import get_types_from_msg
+
+        ts.register(get_types_from_msg("geometry_msgs/TransformStamped[] transforms", TF_MESSAGE))
+    T = ts.types
+    out = Path(out)
+    posed_frame = base_frame if base_from_camera is not None else camera_frame
+
+    def stamp(ns: int) -> Any:
+        return T["builtin_interfaces/msg/Time"](sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000)
+
+    def header(ns: int, frame: str, seq: int = 0) -> Any:
+        kw = {"seq": seq} if ros1 else {}
+        return T["std_msgs/msg/Header"](**kw, stamp=stamp(ns), frame_id=frame)
+
+    def pose_msg(p: Pose) -> Any:
+        q, t = p.quat_wxyz, p.t
+        return T["geometry_msgs/msg/Pose"](
+            position=T["geometry_msgs/msg/Point"](x=float(t[0]), y=float(t[1]), z=float(t[2])),
+            orientation=T["geometry_msgs/msg/Quaternion"](x=float(q[1]), y=float(q[2]), z=float(q[3]), w=float(q[0])))
+
+    def transform_msg(ns: int, parent: str, child: str, p: Pose) -> Any:
+        q, t = p.quat_wxyz, p.t
+        return T["geometry_msgs/msg/TransformStamped"](
+            header=header(ns, parent), child_frame_id=child,
+            transform=T["geometry_msgs/msg/Transform"](
+                translation=T["geometry_msgs/msg/Vector3"](x=float(t[0]), y=float(t[1]), z=float(t[2])),
+                rotation=T["geometry_msgs/msg/Quaternion"](x=float(q[1]), y=float(q[2]), z=float(q[3]),
+                                                           w=float(q[0]))))
+
+    writer, serialize = _open_writer(out, storage, ts)
+    with writer:
+        conns: dict[str, Any] = {}
+
+        def add(topic: str, msgtype: str) -> Any:
+            if topic not in conns:
+                conns[topic] = writer.add_connection(topic, msgtype, typestore=ts)
+            return conns[topic]
+
+        if base_from_camera is not None:
+            ns0 = _stamp_of(images[0]) if images else 0
+            msg = T[TF_MESSAGE](transforms=[transform_msg(ns0, base_frame, camera_frame, base_from_camera)])
+            writer.write(add("/tf_static", TF_MESSAGE), ns0, serialize(msg, TF_MESSAGE))
+        for seq, im in enumerate(images):
+            ns = _stamp_of(im)
+            world_from_cam = im.cam_from_world.inverse()
+            world_from_posed = (world_from_cam if base_from_camera is None
+                                else world_from_cam @ base_from_camera.inverse())
+            pns = ns + int(round(pose_delay * 1e9))
+            if pose_message == "tf":
+                msg = T[TF_MESSAGE](transforms=[transform_msg(pns, world_frame, posed_frame, world_from_posed)])
+                writer.write(add("/tf", TF_MESSAGE), pns, serialize(msg, TF_MESSAGE))
+            else:
+                mt = POSE_MESSAGES[pose_message]
+                p = pose_msg(world_from_posed)
+                if mt == POSE_STAMPED:
+                    msg = T[mt](header=header(pns, world_frame, seq), pose=p)
+                else:
+                    cov = T["geometry_msgs/msg/PoseWithCovariance"](pose=p, covariance=np.zeros(36))
+                    if mt == POSE_WITH_COVARIANCE:
+                        msg = T[mt](header=header(pns, world_frame, seq), pose=cov)
+                    else:
+                        zero = T["geometry_msgs/msg/Vector3"](x=0.0, y=0.0, z=0.0)
+                        twist = T["geometry_msgs/msg/TwistWithCovariance"](
+                            twist=T["geometry_msgs/msg/Twist"](linear=zero, angular=zero), covariance=np.zeros(36))
+                        msg = T[mt](header=header(pns, world_frame, seq), child_frame_id=posed_frame, pose=cov,
+                                    twist=twist)
+                writer.write(add(pose_topic, mt), pns, serialize(msg, mt))
+            if camera_info_topic is not None:
+                msg = _camera_info_msg(T, header(ns, camera_frame, seq), im.camera, ros1)
+                writer.write(add(camera_info_topic, CAMERA_INFO), ns, serialize(msg, CAMERA_INFO))
+            if compressed:
+                data = Path(im.path).read_bytes()
+                fmt = "png" if Path(im.path).suffix.lower() == ".png" else "jpeg"
+                msg = T[COMPRESSED_IMAGE](header=header(ns, camera_frame, seq), format=fmt,
+                                          data=np.frombuffer(data, dtype=np.uint8))
+                writer.write(add(image_topic, COMPRESSED_IMAGE), ns, serialize(msg, COMPRESSED_IMAGE))
+            else:
+                img = cv2.imread(str(im.path), cv2.IMREAD_UNCHANGED)
+                if img is None:
+                    raise InputError(f"{im.path}: cannot read image")
+                if img.ndim == 3 and img.shape[2] == 4:
+                    img = cv2.cvtColor(img, cv2.COLOR_BGRA2BGR)
+                enc = "mono8" if img.ndim == 2 else "bgr8"
+                if img.dtype != np.uint8:
+                    raise InputError(f"{im.path}: only 8-bit images can be written as sensor_msgs/Image")
+                msg = T[IMAGE](header=header(ns, camera_frame, seq), height=img.shape[0], width=img.shape[1],
+                               encoding=enc, is_bigendian=0, step=img.shape[1] * (1 if img.ndim == 2 else 3),
+                               data=np.ascontiguousarray(img).reshape(-1))
+                writer.write(add(image_topic, IMAGE), ns, serialize(msg, IMAGE))
+    return out
+
+
+def _stamp_of(im: PosedImage) -> int:
+    t = im.timestamp if im.timestamp is not None else 0.1 * im.index
+    return int(round(float(t) * 1e9))
+
+
+def _camera_info_msg(T: Any, header: Any, cam: Camera, ros1: bool) -> Any:
+    fx, fy = cam.focal
+    cx, cy = cam.principal_point
+    K = np.array([fx, 0, cx, 0, fy, cy, 0, 0, 1], dtype=float)
+    P = np.array([fx, 0, cx, 0, 0, fy, cy, 0, 0, 0, 1, 0], dtype=float)
+    D = np.asarray(cam.distortion, dtype=float).reshape(-1)
+    D = np.concatenate([D, np.zeros(1)]) if D.size == 4 else np.zeros(5)
+    roi = T["sensor_msgs/msg/RegionOfInterest"](x_offset=0, y_offset=0, height=0, width=0, do_rectify=False)
+    fields = {"D": D, "K": K, "R": np.eye(3).reshape(-1), "P": P} if ros1 else \
+        {"d": D, "k": K, "r": np.eye(3).reshape(-1), "p": P}
+    return T[CAMERA_INFO](header=header, height=cam.height, width=cam.width, distortion_model="plumb_bob",
+                          binning_x=0, binning_y=0, roi=roi, **fields)
+
+
+def _open_writer(out: Path, storage: str, ts: Any) -> tuple[Any, Any]:
+    if out.exists():
+        raise InputError(f"{out}: exists already; a bag is never overwritten")
+    if storage == "rosbag1":
+        from rosbags.rosbag1 import Writer as Writer1
+
+        return Writer1(out), ts.serialize_ros1
+    import inspect
+
+    from rosbags.rosbag2 import StoragePlugin, Writer as Writer2
+
+    kwargs: dict[str, Any] = {}
+    params = inspect.signature(Writer2).parameters
+    if "version" in params:
+        kwargs["version"] = 9
+    if "storage_plugin" in params:
+        kwargs["storage_plugin"] = StoragePlugin.MCAP if storage == "mcap" else StoragePlugin.SQLITE3
+    elif storage == "mcap":
+        raise InputError("writing mcap needs rosbags >= 0.10 with the mcap storage plugin")
+    return Writer2(out, **kwargs), ts.serialize_cdr

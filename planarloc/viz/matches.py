@@ -1,0 +1,171 @@
+"""Match plots (the paper's Fig. 9): a query beside each of its reference images, with the
+matches the estimator saw, inliers and outliers in two colours.
+
+Functions take a matplotlib ``ax`` so they compose; :func:`save_match_plot` writes one figure
+per query (one row per reference). :func:`query_pairs` recovers the matches behind an
+estimate (matching is deterministic, so re-matching the query's features to the estimate's
+references yields the pairs whose inlier masks the estimate holds).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from planarloc.geometry.camera import Camera
+from planarloc.geometry.pose import Pose, pose_errors
+from planarloc.pipeline.features import Features
+from planarloc.pipeline.localizer import Localizer
+from planarloc.robust.pair_matches import PairMatches
+from planarloc.robust.result import PoseEstimate
+
+INLIER_COLOR = "#1a9850"  # green
+OUTLIER_COLOR = "#d73027"  # red
+MAX_OUTLIER_LINES = 150  # per pair: keep the figure readable; inliers are all drawn
+
+
+def query_pairs(localizer: Localizer, features: Features, camera: Camera,
+                estimate: PoseEstimate) -> tuple[list[PairMatches], list[np.ndarray | None]]:
+    """The matched pairs behind ``estimate`` and their inlier masks (None for a pair the
+    estimator did not score, e.g. after ``too_few_matches``).
+
+    Raises:
+        ValueError: the re-matched references differ from the estimate's (the map changed).
+    """
+    pairs, names = localizer.pairs_for(features, estimate.references, camera)
+    if names != list(estimate.references):
+        raise ValueError("the matches of this estimate cannot be recovered (did the map change?)")
+    inliers: list[np.ndarray | None] = []
+    for k, p in enumerate(pairs):
+        m = estimate.inliers[k] if k < len(estimate.inliers) else None
+        inliers.append(np.asarray(m, bool) if m is not None and len(m) == len(p.query_points) else None)
+    return pairs, inliers
+
+
+def _rgb(path: Path | str) -> np.ndarray:
+    img = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    if img is None:
+        raise ValueError(f"{path}: cannot read image")
+    return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
+
+
+def plot_pair(ax, query_image: np.ndarray, ref_image: np.ndarray, pair: PairMatches, inliers: np.ndarray | None,
+              ref_label: str = "", seed: int = 0) -> None:
+    """Query (left) and reference (right) side by side with match lines.
+
+    Args:
+        ax: a matplotlib Axes.
+        query_image, ref_image: (H, W, 3) RGB or (H, W) gray images.
+        pair: the matches (query and reference pixel coordinates, N each).
+        inliers: (N,) bool, or None when the estimator did not score them (drawn red).
+        ref_label: text under the reference.
+    """
+    from matplotlib.collections import LineCollection
+
+    h = max(query_image.shape[0], ref_image.shape[0])
+
+    def pad(img: np.ndarray) -> np.ndarray:
+        img = img if img.ndim == 3 else np.repeat(img[:, :, None], 3, axis=2)
+        return np.pad(img, ((0, h - img.shape[0]), (0, 0), (0, 0)), constant_values=255)
+
+    ax.imshow(np.concatenate([pad(query_image), pad(ref_image)], axis=1))
+    off = query_image.shape[1]
+    q, r = pair.query_points, pair.ref_points
+    inl = np.zeros(len(q), bool) if inliers is None else np.asarray(inliers, bool)
+    out_idx = np.flatnonzero(~inl)
+    if len(out_idx) > MAX_OUTLIER_LINES:
+        out_idx = np.sort(np.random.default_rng(seed).choice(out_idx, MAX_OUTLIER_LINES, replace=False))
+    for idx, color, width in ((out_idx, OUTLIER_COLOR, 0.4), (np.flatnonzero(inl), INLIER_COLOR, 0.7)):
+        if len(idx):
+            segments = np.stack([q[idx], r[idx] + [off, 0]], axis=1)  # (n, 2 ends, xy)
+            ax.add_collection(LineCollection(segments, colors=color, linewidths=width, alpha=0.8))
+            ends = segments.reshape(-1, 2)
+            ax.scatter(ends[:, 0], ends[:, 1], s=2, color=color)
+    ax.set_axis_off()
+    counts = (f"{len(q)} matches, not scored (red)" if inliers is None
+              else f"{int(inl.sum())} inliers (green), {int((~inl).sum())} outliers (red)")
+    ax.set_title(f"query | {ref_label}: {counts}", fontsize="small")
+
+
+def estimate_caption(name: str, estimate: PoseEstimate, truth: Pose | None) -> str:
+    """``name: status, inliers, position std, error vs. ground truth (if known)``."""
+    parts = [f"{name}: {estimate.status}", f"{estimate.num_inliers} inliers"]
+    if np.isfinite(estimate.position_std_m):
+        parts.append(f"position std {estimate.position_std_m:.3f} m")
+    if truth is None:
+        parts.append("no ground truth")
+    elif estimate.success and estimate.pose is not None:
+        t_err, r_err = pose_errors(estimate.pose, truth)
+        parts.append(f"error {t_err:.3f} m / {r_err:.2f}°")
+    return ", ".join(parts)
+
+
+def save_match_plot(path: Path | str, query_path: Path | str, ref_paths: Sequence[Path | str],
+                    pairs: Sequence[PairMatches], inliers: Sequence[np.ndarray | None], estimate: PoseEstimate,
+                    name: str, truth: Pose | None = None) -> Path:
+    """Write one figure: a row per reference (query | reference with its matches), the
+    estimate's status and, if ``truth`` (the query's ``cam_from_world``) is known, its error."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    query = _rgb(query_path)
+    rows = max(1, len(pairs))
+    aspect = query.shape[0] / (2 * query.shape[1])
+    fig, axes = plt.subplots(rows, 1, figsize=(10, 10 * aspect * rows + 0.6), squeeze=False)
+    for k, ax in enumerate(axes[:, 0]):
+        if k < len(pairs):
+            plot_pair(ax, query, _rgb(ref_paths[k]), pairs[k], inliers[k], str(estimate.references[k]), seed=k)
+        else:
+            ax.imshow(query)
+            ax.set_axis_off()
+            ax.set_title("no reference image with enough matches", fontsize="small")
+    fig.suptitle(estimate_caption(name, estimate, truth), fontsize="medium")
+    fig.tight_layout(rect=(0, 0, 1, 1 - 0.5 / fig.get_figheight()))
+    fig.set_dpi(100)
+    fig.canvas.draw()  # encode with OpenCV: several times faster than matplotlib's PNG writer
+    rgba = np.asarray(fig.canvas.buffer_rgba())
+    plt.close(fig)
+    if not cv2.imwrite(str(path), cv2.cvtColor(rgba, cv2.COLOR_RGBA2BGR), [cv2.IMWRITE_PNG_COMPRESSION, 1]):
+        raise ValueError(f"{path}: cannot write the match plot")
+    return path
+
+
+def match_plot_name(query_name: str) -> str:
+    """File name of a query's match plot: its name with '/' replaced, as PNG."""
+    return query_name.replace("/", "__").rsplit(".", 1)[0] + ".png"
+
+
+class MatchPlotter:
+    """Writes :func:`save_match_plot` figures to ``out_dir`` for each estimate it is given
+    (an ``on_estimate`` callback of :func:`planarloc.pipeline.evaluation.evaluate_configs`)."""
+
+    def __init__(self, out_dir: Path | str) -> None:
+        self.out_dir = Path(out_dir)
+        self._paths: dict[int, dict[str, Path]] = {}
+        self.written: list[Path] = []
+
+    def _map_paths(self, localizer: Localizer) -> dict[str, Path]:
+        key = id(localizer.db)
+        if key not in self._paths:
+            self._paths[key] = {p.name: Path(p.path) for p in localizer.db.posed_images()}
+        return self._paths[key]
+
+    def plot(self, localizer: Localizer, name: str, query_path: Path | str, camera: Camera, features: Features,
+             estimate: PoseEstimate, truth: Pose | None = None) -> Path:
+        """Plot one estimate; returns the written file."""
+        pairs, inliers = query_pairs(localizer, features, camera, estimate)
+        paths = self._map_paths(localizer)
+        path = save_match_plot(self.out_dir / match_plot_name(name), query_path,
+                               [paths[n] for n in estimate.references], pairs, inliers, estimate, name, truth)
+        self.written.append(path)
+        return path
+
+    def __call__(self, localizer: Localizer, query, features: Features, estimate: PoseEstimate) -> None:  # noqa: ANN001
+        self.plot(localizer, query.name, query.path, query.camera, features, estimate, query.cam_from_world)
