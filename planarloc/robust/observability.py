@@ -212,8 +212,8 @@ class PlanarFit:
     Attributes:
         tilt_deg: angle between the query gravity the pose implies (``R · g_world``) and the
             query gravity assumed for the planar hypotheses.
-        elevation_deg: largest angle between the query-to-reference baselines of supporting
-            references and the references' level plane (0 for a query at their height).
+        elevation_deg: the query's median height offset from the supporting references over
+            the median horizontal baseline length, as an angle (0 for a query at their height).
     """
 
     tilt_deg: float
@@ -232,12 +232,15 @@ def planar_fit(problem, R: np.ndarray, t: np.ndarray, in2d: np.ndarray, gravity_
         query_gravity: (3,) unit gravity assumed in the query camera frame.
     """
     tilt = float(tilt_between_deg(R @ gravity_world, query_gravity))
+    support = supporting_pairs(problem, in2d)
+    if len(support) == 0:
+        return PlanarFit(tilt, 0.0)
     c = -R.T @ t
-    elev = 0.0
-    centres = reference_centres(problem)
-    for k in supporting_pairs(problem, in2d):
-        b = c - centres[k]
-        nb = np.linalg.norm(b)
-        if nb > 1e-9:
-            elev = max(elev, float(np.degrees(np.arcsin(min(abs(b @ gravity_world) / nb, 1.0)))))
+    b = c - reference_centres(problem)[support]                       # (S, 3) baselines
+    heights = b @ gravity_world                                        # query above/below each reference
+    horizontal = np.linalg.norm(b - np.outer(heights, gravity_world), axis=1)
+    # The query's height offset from the references' level plane over the typical baseline
+    # length: robust to one short baseline (collinear sequences) where a per-baseline angle
+    # would be dominated by centimetres of noise.
+    elev = float(np.degrees(np.arctan2(abs(np.median(heights)), max(float(np.median(horizontal)), 1e-9))))
     return PlanarFit(tilt, elev)

@@ -122,3 +122,28 @@ def test_bad_gravity_is_a_clear_error() -> None:
     with pytest.raises(InputError, match="ref_gravity"):
         PairMatches(sc.pairs[0].ref_pose, sc.query_camera, sc.pairs[0].query_points, sc.pairs[0].ref_points,
                     ref_gravity=[0.0, 1.0])
+
+
+@pytest.mark.parametrize("tilt_deg", [1.0, 3.0])
+def test_returned_pose_never_costs_more_than_the_refined_truth(tilt_deg: float) -> None:
+    # Residual pitch/roll of the query (uneven floor): the search must not lose the basin of
+    # the truth, i.e. the returned pose's MSAC cost is at most that of the ground truth
+    # refined on the same matches (up to the refinement's convergence tolerance).
+    from planarloc.robust.estimators import Planar2p1pEstimator
+    from planarloc.robust.problem import build_problem
+
+    options = RansacOptions(**PERFECT_MAP)
+    for seed in range(6):
+        rng = np.random.default_rng(300 + seed)
+        sc = make_scene(rng, num_refs=5, matches_per_pair=100, noise_px=1.0, outlier_ratio=0.4,
+                        query_tilt_deg=tilt_deg)
+        est = estimate_absolute_pose(sc.query_camera, sc.pairs, "auto", options)
+        assert est.pose is not None or est.unreliable_pose is not None, est.status
+        pose = est.pose if est.pose is not None else est.unreliable_pose
+        scorer = Planar2p1pEstimator(build_problem(sc.query_camera, sc.pairs), options)
+        R, t = sc.query_pose.R, sc.query_pose.t
+        for _ in range(3):
+            R, t, *_ = scorer.refine_full(R, t, 20)
+        truth_cost = scorer.score(R[None], t[None])[0][0]
+        returned_cost = scorer.score(pose.R[None], pose.t[None])[0][0]
+        assert returned_cost <= truth_cost * 1.01 + 1e-6, (seed, returned_cost, truth_cost)
