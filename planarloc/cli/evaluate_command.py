@@ -8,12 +8,27 @@ from pathlib import Path
 import numpy as np
 
 from planarloc.cli.map_command import parse_dataset_options
-from planarloc.cli.options import add_dataset_args, add_feature_args, add_localizer_args, feature_config, localizer_config
+from planarloc.cli.options import (
+    add_dataset_args,
+    add_feature_args,
+    add_gravity_file_arg,
+    add_localizer_args,
+    feature_config,
+    localizer_config,
+)
 from planarloc.cli.progress import console, progress_bar
 from planarloc.cli.report import print_summary_table, write_json
 from planarloc.io.datasets import read_dataset
+from planarloc.io.gravity_file import read_gravity_file
 from planarloc.io.hloc_pairs import read_hloc_pairs
-from planarloc.pipeline.evaluation import config_label, default_map_path, evaluate_queries, split_map_queries, summarize
+from planarloc.pipeline.evaluation import (
+    config_label,
+    default_map_path,
+    evaluate_queries,
+    gravity_from_truth,
+    split_map_queries,
+    summarize,
+)
 from planarloc.pipeline.localizer import Localizer
 from planarloc.pipeline.map_builder import build_map
 
@@ -26,13 +41,21 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                     "frame and compares with its ground truth. Success thresholds are the paper's: "
                     "0.25 m/10°, 0.5 m/10°, 1.0 m/20°. A failed query counts as a failure.\n\n"
                     "example:\n  planarloc evaluate data/kitti_seq2 --format kitti --map-every 2 "
-                    "--structure tracks --json kitti.json --plot kitti.png")
+                    "--structure tracks --json kitti.json --plot kitti.png\n"
+                    "  planarloc evaluate worlds/office/map -f tum --map-every 3 --gravity-from-truth")
     add_dataset_args(p)
     p.add_argument("--map-every", type=int, required=True, help="frames with index %% N == 0 form the map")
     p.add_argument("--map", type=Path, help="map file to build/reuse (default: a cache file in the temp folder)")
     p.add_argument("--json", type=Path, help="write the summary and per-query results here")
     p.add_argument("--plot", type=Path, help="write the trajectory plot (paper Fig. 8) here")
-    p.add_argument("--dataset-option", action="append", metavar="KEY=VALUE", help="importer option (repeatable)")
+    p.add_argument("--dataset-option", action="append", metavar="KEY=VALUE",
+                   help="importer option (repeatable); up=AXIS gives the world's up direction, e.g. up=z")
+    grav = p.add_mutually_exclusive_group()
+    grav.add_argument("--gravity-from-truth", action="store_true",
+                      help="simulate an IMU: give each query its true gravity (ground-truth rotation x the world's "
+                           "down direction); needs a format that declares it (kitti, openloris, generated worlds) "
+                           "or the dataset option up=...")
+    add_gravity_file_arg(grav)
     add_feature_args(p)
     add_localizer_args(p)
     p.set_defaults(func=run)
@@ -45,14 +68,21 @@ def run(args: argparse.Namespace) -> int:
     map_path = args.map or default_map_path(Path(args.dataset), args.map_every, features.name)
     config = localizer_config(args)
     pairs = read_hloc_pairs(args.pairs) if args.pairs else None
+    gravity = read_gravity_file(args.gravity_file) if args.gravity_file else None
+    if args.gravity_from_truth:
+        gravity = gravity_from_truth(queries)
+        if len(gravity) < len(queries):
+            raise ValueError(f"--gravity-from-truth: the {args.format} format does not declare the world's gravity; "
+                             "pass the dataset option up=... (e.g. --dataset-option up=z)")
     console.print(f"map: {len(map_images)} frames -> {map_path}; queries: {len(queries)} frames")
     with progress_bar() as update:
         build_map(map_images, map_path, features, num_words=args.vocabulary_size, progress=update)
         loc = Localizer(map_path, config)
-        results = evaluate_queries(loc, queries, lambda d, n: update("localize", d, n), pairs)
+        results = evaluate_queries(loc, queries, lambda d, n: update("localize", d, n), pairs, gravity)
     method, structure = config_label(config)
     summary = summarize(results, method, structure, dataset=str(args.dataset), map_every=args.map_every,
-                        top_n=config.top_n, tilt=features.tilt)
+                        top_n=config.top_n, tilt=features.tilt,
+                        query_gravity="truth" if args.gravity_from_truth else ("file" if gravity else "map"))
     print_summary_table([summary], f"{Path(args.dataset).name}, map every {args.map_every}")
     write_json(args.json, summary)
     if args.plot:

@@ -6,9 +6,16 @@ import argparse
 import json
 from pathlib import Path
 
-from planarloc.cli.options import add_localizer_args, localizer_config, parse_camera
+from planarloc.cli.options import (
+    add_gravity_file_arg,
+    add_localizer_args,
+    localizer_config,
+    parse_camera,
+    parse_gravity,
+)
 from planarloc.cli.progress import console, progress_bar
 from planarloc.geometry.camera import Camera
+from planarloc.io.gravity_file import read_gravity_file
 from planarloc.io.hloc_pairs import read_hloc_pairs
 from planarloc.io.pose_list import write_pose_list
 from planarloc.pipeline.localizer import Localizer
@@ -28,13 +35,19 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                     "world-to-camera) and one JSON per query with its status, inliers and position std. "
                     "Failed queries are listed as failed, never replaced by a map pose.\n\n"
                     "example:\n  planarloc localize --map kitti.db queries/*.png --camera 'PINHOLE 1241 376 "
-                    "718.856 718.856 607.19 185.22' --structure tracks --out poses.txt")
+                    "718.856 718.856 607.19 185.22' --structure tracks --out poses.txt\n"
+                    "  planarloc localize --map office.db frame.png --gravity '0 0.996 0.087'   # camera pitched 5°")
     p.add_argument("--map", required=True, type=Path, help="map file from `planarloc map build`")
     p.add_argument("images", nargs="+", type=Path, help="query image files or folders of images")
     p.add_argument("--camera", help="query intrinsics 'MODEL W H PARAMS...' (COLMAP syntax); default: the map's "
                                     "camera if the map has one camera of the same image size")
     p.add_argument("--out", "-o", type=Path, default=Path("poses.txt"), help="results file (default: %(default)s)")
     p.add_argument("--json-dir", type=Path, help="folder for one JSON per query (default: <out>.json.d)")
+    grav = p.add_mutually_exclusive_group()
+    grav.add_argument("--gravity", metavar="'GX GY GZ'",
+                      help="gravity of all queries (direction, pointing down) in the query camera frame "
+                           "(x right, y down, z forward), e.g. from an IMU; default: the map cameras' mount tilt")
+    add_gravity_file_arg(grav)
     add_localizer_args(p)
     p.set_defaults(func=run)
 
@@ -72,14 +85,26 @@ def run(args: argparse.Namespace) -> int:
     json_dir = args.json_dir or args.out.with_name(args.out.name + ".json.d")
     json_dir.mkdir(parents=True, exist_ok=True)
     camera = parse_camera(args.camera) if args.camera else None
+    gravity_all = parse_gravity(args.gravity) if args.gravity else None
+    gravity = read_gravity_file(args.gravity_file) if args.gravity_file else None
+    if gravity is not None:
+        names = {name for name, _ in queries}
+        missing, unused = len(names - set(gravity)), sorted(set(gravity) - names)
+        if missing:
+            console.print(f"[yellow]{args.gravity_file}: no gravity for {missing} of {len(names)} queries; they are "
+                          "assumed mounted like the map cameras[/]")
+        if unused:
+            console.print(f"[yellow]{args.gravity_file}: {len(unused)} name(s) match no query, e.g. {unused[0]!r} "
+                          "(names are file names, or paths relative to a query folder)[/]")
     poses, failed = [], 0
     with progress_bar() as update:
         for i, (name, path) in enumerate(queries):
             image = read_gray(path)
             cam = camera or _default_camera(loc, image.shape[:2])
             refs = retrieve_from_pairs(pairs, name, loc.config.top_n) if pairs else None
-            est = loc.localize(image, cam, refs)
-            record = {"name": name, **est.to_dict()}
+            g = gravity_all if gravity is None else gravity.get(name)
+            est = loc.localize(image, cam, refs, g)
+            record = {"name": name, **est.to_dict(), "query_gravity": None if g is None else [float(v) for v in g]}
             (json_dir / (name.replace("/", "__") + ".json")).write_text(json.dumps(record, indent=1))
             if est.success:
                 poses.append((name, est.pose))

@@ -10,6 +10,9 @@ file (:mod:`planarloc.io.camera_file`): lines ``[KEY] MODEL WIDTH HEIGHT PARAMS.
 KEY equal to an image name gives that image's camera (hloc ``queries_with_intrinsics.txt``)
 and a keyless line — or the only line of the file, e.g. a COLMAP ``cameras.txt`` with one
 camera — applies to all other images.
+
+Gravity: the format does not define the world's up axis (``world_down`` is None): the map
+estimates it from its poses, or the user gives it with the dataset option ``up=``.
 """
 
 from __future__ import annotations

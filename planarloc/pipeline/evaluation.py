@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from planarloc.geometry.pose import pose_errors
+from planarloc.pipeline.gravity import gravity_in_camera
 from planarloc.pipeline.localizer import Localizer, LocalizerConfig
 from planarloc.pipeline.map_builder import read_gray
 from planarloc.pipeline.map_database import MapDatabase
@@ -94,14 +95,29 @@ def summarize(results: Sequence[QueryResult], method: str, structure: str, **ext
     }
 
 
+def gravity_from_truth(queries: Sequence[PosedImage]) -> dict[str, np.ndarray]:
+    """A simulated IMU: each query's true gravity in its camera frame, ``R_gt · world_down``.
+
+    Only queries whose dataset declares the world's down direction (``world_down``, e.g. the
+    generated worlds, or the ``up=`` option) get one.
+
+    Returns:
+        ``{query name: (3,) unit gravity (down) in the query camera frame}``.
+    """
+    return {q.name: gravity_in_camera(q.cam_from_world, q.world_down.direction)
+            for q in queries if q.world_down is not None}
+
+
 def evaluate_queries(
     localizer: Localizer,
     queries: Sequence[PosedImage],
     progress: Callable[[int, int], None] | None = None,
     pairs: dict[str, list[str]] | None = None,
+    gravity: dict[str, np.ndarray] | None = None,
 ) -> list[QueryResult]:
-    """Localize every query image and compare with its ground truth."""
-    return evaluate_configs(localizer.db, [localizer.config], queries, progress, pairs)[0]
+    """Localize every query image and compare with its ground truth (``gravity``: see
+    :func:`evaluate_configs`)."""
+    return evaluate_configs(localizer.db, [localizer.config], queries, progress, pairs, gravity)[0]
 
 
 def evaluate_configs(
@@ -110,8 +126,13 @@ def evaluate_configs(
     queries: Sequence[PosedImage],
     progress: Callable[[int, int], None] | None = None,
     pairs: dict[str, list[str]] | None = None,
+    gravity: dict[str, np.ndarray] | None = None,
 ) -> list[list[QueryResult]]:
     """Localize every query with each configuration, extracting its features only once.
+
+    ``gravity`` optionally gives queries their (3,) gravity in the camera frame
+    (``{query name: g}``, e.g. :func:`gravity_from_truth`); the others get None (mounted like
+    the map cameras).
 
     Returns:
         one list of :class:`QueryResult` per configuration. ``seconds`` of a result is the
@@ -129,7 +150,8 @@ def evaluate_configs(
         for loc, results in zip(localizers, out):
             t1 = time.perf_counter()
             refs = retrieve_from_pairs(pairs, q.name, loc.config.top_n) if pairs is not None else None
-            est = loc.localize_features(features, q.camera, refs)
+            g = None if gravity is None else gravity.get(q.name)
+            est = loc.localize_features(features, q.camera, refs, g)
             results.append(query_result(q, est, t_feat + time.perf_counter() - t1))
         if progress:
             progress(i + 1, len(queries))
