@@ -80,5 +80,5 @@ def run_info(args: argparse.Namespace) -> int:
                       f"{'complete' if db.is_complete else '[yellow]incomplete build[/]'}")
         if n:
             for line in map_gravity(db).summary_lines():
-                console.print(line, markup=False, highlight=False)
+                console.print(line, markup=False, highlight=False, soft_wrap=True)
     return 0

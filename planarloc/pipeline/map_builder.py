@@ -90,7 +90,9 @@ def build_map(
     """
     path = Path(path)
     config = _map_config(features, num_words)
+    declared = declared_world_down(images)
     with MapDatabase.open_or_create(path, config) as db:
+        resolve_world_down(db, declared)  # a contradicting declaration fails before any work
         todo = [im for im in images if not db.has_image(im.name)]
         if len(todo) < len(images):
             logger.info("%s: %d of %d images already in the map, resuming", path, len(images) - len(todo), len(images))
@@ -102,7 +104,7 @@ def build_map(
                 if progress:
                     progress("features", i + 1, len(todo))
         index_map(db, num_words=num_words, seed=seed, progress=progress)
-        store_map_gravity(db, declared_world_down(images))
+        store_map_gravity(db, declared)
         db.mark_complete()
     return path
 
@@ -144,6 +146,22 @@ def declared_world_down(images: Sequence[PosedImage]) -> WorldDown | None:
     return next(iter(found), None)
 
 
+def resolve_world_down(db: MapDatabase, declared: WorldDown | None) -> tuple[WorldDown | None, WorldDown | None]:
+    """``(stored, to use)`` world down of a map given the new images' declaration (rules in
+    :func:`store_map_gravity`); InputError on a contradiction."""
+    raw = db.get_meta(WORLD_DOWN_META)
+    stored = WorldDown.from_dict(json.loads(raw)) if raw else None
+    if declared is None:
+        return stored, stored
+    if stored is None or declared.source == "option":
+        return stored, declared
+    if stored.source == "declared" and not np.allclose(stored.direction, declared.direction, atol=1e-9):
+        raise InputError(
+            f"{db.path}: the map's world has down = {stored.direction} ({stored.detail}) but the new images "
+            f"declare {declared.direction} ({declared.detail}); hint: pass the dataset option up=...")
+    return stored, stored
+
+
 def store_map_gravity(db: MapDatabase, declared: WorldDown | None = None) -> GravityReport:
     """Compute the map's gravity from all its poses and store it (meta ``gravity``).
 
@@ -159,16 +177,7 @@ def store_map_gravity(db: MapDatabase, declared: WorldDown | None = None) -> Gra
     Raises:
         InputError: a declaration that contradicts the map's (different world frames).
     """
-    raw = db.get_meta(WORLD_DOWN_META)
-    stored = WorldDown.from_dict(json.loads(raw)) if raw else None
-    use = stored
-    if declared is not None:
-        if stored is None or declared.source == "option":
-            use = declared
-        elif stored.source == "declared" and not np.allclose(stored.direction, declared.direction, atol=1e-9):
-            raise InputError(
-                f"{db.path}: the map's world has down = {stored.direction} ({stored.detail}) but the new images "
-                f"declare {declared.direction} ({declared.detail}); hint: pass the dataset option up=...")
+    stored, use = resolve_world_down(db, declared)
     if use is not None and use != stored:
         db.set_meta(WORLD_DOWN_META, json.dumps(use.to_dict()))
     _, report = gravity_from_map_poses(list(db.load_all_poses().values()), use)
