@@ -36,8 +36,9 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 
 from planarloc.geometry.pose import Pose
-from planarloc.geometry.validation import InputError, check_array
+from planarloc.geometry.validation import InputError
 from planarloc.pipeline.upright import pitch_roll_from_gravity
+from planarloc.robust.pair_matches import unit_gravity
 
 COLLINEAR_RATIO = 0.05
 """Centres whose second rms extent is below this fraction of the first are treated as a line."""
@@ -68,7 +69,7 @@ class WorldDown:
     detail: str
 
     def __post_init__(self) -> None:
-        g = _unit("WorldDown.direction", self.direction)
+        g = unit_gravity("WorldDown.direction", self.direction)
         object.__setattr__(self, "direction", tuple(float(v) + 0.0 for v in g))  # no -0.0
         if self.source not in ("declared", "option"):
             raise InputError(f"WorldDown.source: expected 'declared' or 'option', got {self.source!r}")
@@ -79,14 +80,6 @@ class WorldDown:
     @classmethod
     def from_dict(cls, d: dict) -> WorldDown:
         return cls(tuple(d["direction"]), d["source"], d.get("detail", ""))
-
-
-def _unit(name: str, v: object) -> np.ndarray:
-    g = check_array(name, v, (3,))
-    n = float(np.linalg.norm(g))
-    if not n > 1e-12:
-        raise InputError(f"{name}: expected a non-zero direction, got {g.tolist()}")
-    return g / n
 
 
 def parse_up(value: object) -> np.ndarray:
@@ -149,7 +142,7 @@ def gravity_in_camera(pose: Pose, g_world: object) -> np.ndarray:
     """
     if not isinstance(pose, Pose):
         raise InputError(f"pose: expected a planarloc Pose, got {type(pose).__name__}")
-    return pose.R @ _unit("g_world", g_world)
+    return pose.R @ unit_gravity("g_world", g_world)
 
 
 @dataclass(frozen=True)
@@ -255,7 +248,7 @@ def mount_tilt(poses: Sequence[Pose], g_world: object) -> tuple[np.ndarray, np.n
         ``(pitch (N,), roll (N,))`` as :func:`planarloc.pipeline.upright.pitch_roll_from_gravity`
         of ``R_i · g_world``.
     """
-    g = _unit("g_world", g_world)
+    g = unit_gravity("g_world", g_world)
     tilts = [pitch_roll_from_gravity(p.R @ g) for p in poses]
     arr = np.array(tilts, dtype=float).reshape(-1, 2)
     return arr[:, 0], arr[:, 1]
