@@ -37,7 +37,7 @@ import numpy as np
 
 from planarloc.geometry.pose import Pose
 from planarloc.geometry.validation import InputError
-from planarloc.pipeline.upright import pitch_roll_from_gravity
+from planarloc.pipeline.upright import pitch_roll_from_gravity, upright_from_cam_rotation
 from planarloc.robust.pair_matches import unit_gravity
 
 COLLINEAR_RATIO = 0.05
@@ -189,8 +189,7 @@ class GravityReport:
     @property
     def mount_gravity(self) -> np.ndarray:
         """(3,) gravity in the camera frame of the map's median mount tilt."""
-        p, r = np.radians(self.pitch_deg), np.radians(self.roll_deg)
-        return np.array([np.sin(r) * np.cos(p), np.cos(r) * np.cos(p), np.sin(p)])
+        return upright_from_cam_rotation(self.pitch_deg, self.roll_deg).T @ np.array([0.0, 1.0, 0.0])
 
     def to_dict(self) -> dict:
         d = asdict(self)
