@@ -47,7 +47,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     b.add_argument("--out", "-o", required=True, type=Path, help="map file to create or extend")
     b.add_argument("--dataset-option", action="append", metavar="KEY=VALUE",
                    help="importer option, e.g. tum_camera=fr1 or max_dt=0.05 (repeatable); up=AXIS gives the "
-                        "world's up direction (e.g. up=z, up=-y, up=0,0,1) when the format does not define it")
+                        "world's up direction (e.g. up=z, up=-y, up=0,0,1; up=estimate: from the camera centres' plane "
+                        "even if the format declares one)")
     add_feature_args(b)
     b.set_defaults(func=run_build)
     i = msub.add_parser("info", help="summarise a map: images, features, gravity and camera mount tilt",

@@ -12,8 +12,9 @@ list       :func:`planarloc.io.pose_list.read_pose_list`  list file or its direc
 ========== ======================================= ==========================================
 
 Every format also accepts the option ``up``: the world's up direction (``"z"``, ``"-y"``,
-``"0,0,1"``, see :func:`planarloc.pipeline.gravity.parse_up`); it replaces the format's declared
-gravity (``PosedImage.world_down``) on every image.
+``"0,0,1"``, see :func:`planarloc.pipeline.gravity.parse_up`) or ``estimate`` (estimate it from
+the map's poses); it replaces the format's declared gravity (``PosedImage.world_down``) on every
+image.
 """
 
 from __future__ import annotations

@@ -105,7 +105,7 @@ def gravity_from_truth(queries: Sequence[PosedImage]) -> dict[str, np.ndarray]:
         ``{query name: (3,) unit gravity (down) in the query camera frame}``.
     """
     return {q.name: gravity_in_camera(q.cam_from_world, q.world_down.direction)
-            for q in queries if q.world_down is not None}
+            for q in queries if q.world_down is not None and q.world_down.direction is not None}
 
 
 def evaluate_queries(

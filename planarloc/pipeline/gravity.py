@@ -12,7 +12,8 @@ Frames and signs (docs/conventions.md, "Gravity"):
 
 Where ``g_world`` comes from, first that applies:
 
-1. ``option``: the user's ``up=`` dataset option (:func:`world_down_from_up`);
+1. ``option``: the user's ``up=`` dataset option (:func:`world_down_from_up`); ``up=estimate``
+   ignores the format's declaration and estimates (3.);
 2. ``declared``: the dataset format defines the world's up axis (:class:`WorldDown` on every
    :class:`~planarloc.pipeline.posed_image.PosedImage` of the importer);
 3. ``estimated`` (:func:`gravity_from_map_poses`): a ground robot's camera centres lie on the
@@ -52,6 +53,8 @@ LARGE_TILT_WARN_DEG = 45.0
 SOURCES = ("option", "declared", "estimated")
 
 _AXES = {"x": 0, "y": 1, "z": 2}
+ESTIMATE = "estimate"
+"""``up=estimate``: ignore the format's declared gravity, estimate it from the map's poses."""
 
 
 @dataclass(frozen=True)
@@ -59,27 +62,34 @@ class WorldDown:
     """A world's down direction given by the dataset format or by the user.
 
     Attributes:
-        direction: (3,) unit vector of gravity (pointing down) in the world frame.
+        direction: (3,) unit vector of gravity (pointing down) in the world frame; None only for
+            the user's ``up=estimate`` (estimate from the poses even if the format declares one).
         source: ``"declared"`` (the dataset format defines it) or ``"option"`` (``up=`` given).
         detail: where it comes from, for ``map info`` (e.g. ``"KITTI: world = first camera frame"``).
     """
 
-    direction: tuple[float, float, float]
+    direction: tuple[float, float, float] | None
     source: str
     detail: str
 
     def __post_init__(self) -> None:
-        g = unit_gravity("WorldDown.direction", self.direction)
-        object.__setattr__(self, "direction", tuple(float(v) + 0.0 for v in g))  # no -0.0
         if self.source not in ("declared", "option"):
             raise InputError(f"WorldDown.source: expected 'declared' or 'option', got {self.source!r}")
+        if self.direction is None:
+            if self.source != "option":
+                raise InputError("WorldDown.direction: None (estimate) is only an option (up=estimate)")
+            return
+        g = unit_gravity("WorldDown.direction", self.direction)
+        object.__setattr__(self, "direction", tuple(float(v) + 0.0 for v in g))  # no -0.0
 
     def to_dict(self) -> dict:
-        return {"direction": list(self.direction), "source": self.source, "detail": self.detail}
+        direction = None if self.direction is None else list(self.direction)
+        return {"direction": direction, "source": self.source, "detail": self.detail}
 
     @classmethod
     def from_dict(cls, d: dict) -> WorldDown:
-        return cls(tuple(d["direction"]), d["source"], d.get("detail", ""))
+        direction = None if d["direction"] is None else tuple(d["direction"])
+        return cls(direction, d["source"], d.get("detail", ""))
 
 
 def parse_up(value: object) -> np.ndarray:
@@ -99,7 +109,8 @@ def parse_up(value: object) -> np.ndarray:
         >>> parse_up("-y")
         array([ 0., -1.,  0.])
     """
-    hint = "expected an axis (x, y, z with optional sign, e.g. -y) or a vector 'ux,uy,uz' (e.g. 0,0,1)"
+    hint = ("expected an axis (x, y, z with optional sign, e.g. -y), a vector 'ux,uy,uz' (e.g. 0,0,1) "
+            f"or '{ESTIMATE}'")
     if isinstance(value, str):
         text = value.strip().lower()
         if text.lstrip("+-") in _AXES and len(text) - len(text.lstrip("+-")) <= 1:
@@ -125,7 +136,11 @@ def parse_up(value: object) -> np.ndarray:
 
 
 def world_down_from_up(value: object) -> WorldDown:
-    """:class:`WorldDown` of the user's ``up=`` option (``source="option"``); see :func:`parse_up`."""
+    """:class:`WorldDown` of the user's ``up=`` option (``source="option"``); see :func:`parse_up`.
+
+    ``up=estimate`` gives ``direction=None``: estimate from the poses."""
+    if isinstance(value, str) and value.strip().lower() == ESTIMATE:
+        return WorldDown(None, "option", f"up={ESTIMATE}")
     return WorldDown(tuple(-parse_up(value)), "option", f"up={value if isinstance(value, str) else list(value)}")
 
 
@@ -305,7 +320,8 @@ def gravity_from_map_poses(
     Args:
         poses: N >= 1 ``cam_from_world`` poses of the map images (world frame = the map's).
         declared: the world's down direction if the dataset or the user gives it; then it is
-            used as is and only the mount tilt is measured.
+            used as is and only the mount tilt is measured (``up=estimate``, direction None:
+            estimated all the same).
 
     Returns:
         ``(g_world (3,) unit, report)``: gravity pointing down in the world frame, and the
@@ -327,9 +343,9 @@ def gravity_from_map_poses(
         ('estimated', 8.0)
     """
     poses = _check_poses(poses)
-    if declared is not None:
-        if not isinstance(declared, WorldDown):
-            raise InputError(f"declared: expected a WorldDown, got {type(declared).__name__}")
+    if declared is not None and not isinstance(declared, WorldDown):
+        raise InputError(f"declared: expected a WorldDown, got {type(declared).__name__}")
+    if declared is not None and declared.direction is not None:
         g, method, detail, plane_rms, warnings = np.array(declared.direction), "given", declared.detail, None, []
         centers = np.array([p.center for p in poses])
         s = (np.linalg.svd(centers - centers.mean(axis=0), compute_uv=False) / math.sqrt(len(poses))
@@ -339,6 +355,8 @@ def gravity_from_map_poses(
     else:
         g, method, detail, plane_rms, extent, warnings = _estimate(poses)
         source = "estimated"
+        if declared is not None:  # up=estimate
+            detail = f"{declared.detail}: {detail}" if detail else declared.detail
     g = g / np.linalg.norm(g)
     g_cams = np.array([p.R @ g for p in poses])
     median_g = np.median(g_cams, axis=0)

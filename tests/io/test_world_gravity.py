@@ -82,3 +82,9 @@ def test_bad_up_option_is_a_clear_error_before_reading(tmp_path, up):
     # the dataset does not even exist: the option is checked first
     with pytest.raises(InputError, match=r"up=.*expected an axis \(x, y, z with optional sign"):
         read_dataset(tmp_path / "missing", "kitti", up=up)
+
+
+def test_up_estimate_drops_the_declaration(tmp_path, write_image, random_poses):
+    write_sequence(tmp_path, random_poses(2), write_image)
+    frames = read_dataset(tmp_path, "kitti", up="estimate")
+    assert _down(frames) == {None} and frames[0].world_down.source == "option"

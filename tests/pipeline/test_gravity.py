@@ -134,6 +134,18 @@ def test_declared_gravity_is_used_and_tilt_measured(world_rotation):
     np.testing.assert_allclose(roll, -1.5, atol=1e-7)
 
 
+def test_up_estimate_estimates_even_when_declared(world_rotation):
+    rng = np.random.default_rng(8)
+    centers = np.column_stack([rng.uniform(-5, 5, 6), np.zeros(6), rng.uniform(-5, 5, 6)])
+    poses = robot_poses(world_rotation, centers, rng.uniform(-3, 3, 6), 4.0, 0.0)
+    g, rep = gravity_from_map_poses(poses, world_down_from_up("estimate"))
+    np.testing.assert_allclose(g, world_rotation @ [0, 1, 0], atol=1e-9)
+    assert rep.source == "estimated" and rep.method == "plane" and rep.detail.startswith("up=estimate")
+    assert WorldDown.from_dict(json.loads(json.dumps(world_down_from_up("estimate").to_dict()))).direction is None
+    with pytest.raises(InputError, match="only an option"):
+        WorldDown(None, "declared", "")
+
+
 def test_report_round_trips_through_json(world_rotation):
     rng = np.random.default_rng(7)
     centers = np.column_stack([rng.uniform(-5, 5, 6), np.zeros(6), rng.uniform(-5, 5, 6)])

@@ -87,6 +87,9 @@ def test_up_option_replaces_and_declarations_must_agree(small_map: tuple, tmp_pa
         assert rep.source == "option" and rep.g_world == (0.0, 0.0, -1.0)
         # a format's declaration never replaces the user's option
         assert store_map_gravity(db, images[0].world_down).source == "option"
+        # up=estimate replaces a stored declaration or option by the estimate
+        assert store_map_gravity(db, WorldDown(None, "option", "up=estimate")).source == "estimated"
+        assert store_map_gravity(db, WorldDown((0.0, 0.0, -1.0), "option", "up=z")).source == "option"
     loc = Localizer(path)
     loc.localize(read_gray(queries[0].path), queries[0].camera, references=[m.name for m in images])
     for pair in captured[0]["pairs"]:
