@@ -53,8 +53,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     grav = p.add_mutually_exclusive_group()
     grav.add_argument("--gravity-from-truth", action="store_true",
                       help="simulate an IMU: give each query its true gravity (ground-truth rotation x the world's "
-                           "down direction); needs a format that declares it (kitti, openloris, generated worlds) "
-                           "or the dataset option up=...")
+                           "down direction: the format's, up=..., or the map's estimate; see `map info`)")
     add_gravity_file_arg(grav)
     add_feature_args(p)
     add_localizer_args(p)
@@ -69,15 +68,13 @@ def run(args: argparse.Namespace) -> int:
     config = localizer_config(args)
     pairs = read_hloc_pairs(args.pairs) if args.pairs else None
     gravity = read_gravity_file(args.gravity_file) if args.gravity_file else None
-    if args.gravity_from_truth:
-        gravity = gravity_from_truth(queries)
-        if len(gravity) < len(queries):
-            raise ValueError(f"--gravity-from-truth: the {args.format} format does not declare the world's gravity; "
-                             "pass the dataset option up=... (e.g. --dataset-option up=z)")
     console.print(f"map: {len(map_images)} frames -> {map_path}; queries: {len(queries)} frames")
     with progress_bar() as update:
         build_map(map_images, map_path, features, num_words=args.vocabulary_size, progress=update)
         loc = Localizer(map_path, config)
+        if args.gravity_from_truth:
+            # the dataset's declared down direction, else the map's (estimated) gravity
+            gravity = gravity_from_truth(queries, loc.gravity.g_world_array)
         results = evaluate_queries(loc, queries, lambda d, n: update("localize", d, n), pairs, gravity)
     method, structure = config_label(config)
     summary = summarize(results, method, structure, dataset=str(args.dataset), map_every=args.map_every,

@@ -95,17 +95,26 @@ def summarize(results: Sequence[QueryResult], method: str, structure: str, **ext
     }
 
 
-def gravity_from_truth(queries: Sequence[PosedImage]) -> dict[str, np.ndarray]:
+def gravity_from_truth(queries: Sequence[PosedImage], g_world: object | None = None) -> dict[str, np.ndarray]:
     """A simulated IMU: each query's true gravity in its camera frame, ``R_gt · world_down``.
 
-    Only queries whose dataset declares the world's down direction (``world_down``, e.g. the
-    generated worlds, or the ``up=`` option) get one.
+    Args:
+        queries: posed query images (ground truth in the map's world frame).
+        g_world: (3,) down direction for queries whose dataset declares none (e.g. the map's
+            estimated gravity); None: such queries get no gravity.
 
     Returns:
-        ``{query name: (3,) unit gravity (down) in the query camera frame}``.
+        ``{query name: (3,) unit gravity (down) in the query camera frame}``: the declared
+        ``world_down`` (generated worlds, KITTI, OpenLORIS, ``up=``) where there is one, else
+        ``g_world``.
     """
-    return {q.name: gravity_in_camera(q.cam_from_world, q.world_down.direction)
-            for q in queries if q.world_down is not None and q.world_down.direction is not None}
+    out = {}
+    for q in queries:
+        down = q.world_down.direction if q.world_down is not None else None
+        down = g_world if down is None else down
+        if down is not None:
+            out[q.name] = gravity_in_camera(q.cam_from_world, down)
+    return out
 
 
 def evaluate_queries(

@@ -122,4 +122,7 @@ def test_gravity_from_truth_is_the_true_gravity_in_the_query_camera(small_map: t
     assert set(g) == {q.name for q in queries}
     for q in queries:
         np.testing.assert_allclose(q.cam_from_world.R.T @ g[q.name], [0, 1, 0], atol=1e-12)
-    assert gravity_from_truth([dataclasses.replace(queries[0], world_down=None)]) == {}
+    undeclared = dataclasses.replace(queries[0], world_down=None)
+    assert gravity_from_truth([undeclared]) == {}
+    g_est = gravity_from_truth([undeclared], [0.0, 0.0, 3.0])[undeclared.name]
+    np.testing.assert_allclose(undeclared.cam_from_world.R.T @ g_est, [0, 0, 1], atol=1e-12)
