@@ -50,8 +50,6 @@ TILT_SPREAD_WARN_DEG = 2.0
 LARGE_TILT_WARN_DEG = 45.0
 """An estimated plane whose normal is this far from the cameras' median y-axis is suspicious."""
 
-SOURCES = ("option", "declared", "estimated")
-
 _AXES = {"x": 0, "y": 1, "z": 2}
 ESTIMATE = "estimate"
 """``up=estimate``: ignore the format's declared gravity, estimate it from the map's poses."""
