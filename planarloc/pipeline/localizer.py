@@ -73,6 +73,7 @@ class Localizer:
         >>> loc = Localizer("office.db")                      # doctest: +SKIP
         >>> est = loc.localize(gray_image, camera)              # doctest: +SKIP
         >>> est.pose if est.success else est.status             # doctest: +SKIP
+        >>> est = loc.localize(gray_image, camera, gravity=(0.0, 0.99, 0.14))  # IMU: pitched 8°  # doctest: +SKIP
     """
 
     def __init__(self, map_db: MapDatabase | str | Path, config: LocalizerConfig | None = None) -> None:
