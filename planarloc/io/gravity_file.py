@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from planarloc.io._parsing import iter_data_lines, parse_floats
+from planarloc.io._parsing import iter_named_lines, parse_floats
 from planarloc.io.format_error import FormatError
 
 FORMAT = "gravity file"
@@ -34,17 +34,10 @@ def read_gravity_file(path: Path) -> dict[str, np.ndarray]:
     """
     path = Path(path)
     out: dict[str, np.ndarray] = {}
-    lines: dict[str, int] = {}
-    for lineno, tokens in iter_data_lines(path, FORMAT, f"one image per line {LINE}"):
-        if len(tokens) != 4:
-            raise FormatError(path, lineno, f"expected 4 fields {LINE}, found {len(tokens)}")
-        name = tokens[0]
-        if name in lines:
-            raise FormatError(path, lineno, f"expected unique names, found {name!r} again (line {lines[name]})")
-        g = parse_floats(path, lineno, tokens[1:], "gravity component", 2)
+    for lineno, name, fields in iter_named_lines(Path(path), FORMAT, LINE, 4):
+        g = parse_floats(path, lineno, fields, "gravity component", 2)
         norm = float(np.linalg.norm(g))
         if not norm > 1e-9:
             raise FormatError(path, lineno, f"expected a non-zero gravity direction, found {g.tolist()}")
-        lines[name] = lineno
         out[name] = g / norm
     return out
