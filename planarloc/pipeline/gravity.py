@@ -368,7 +368,9 @@ def gravity_from_map_poses(
         warnings.append(
             f"the cameras' tilt relative to gravity is inconsistent (spread pitch {p_spread:.1f}°, roll "
             f"{r_spread:.1f}°): not one rigid mount on level ground; queries without their own gravity get the "
-            "median tilt, which may be wrong for them")
+            "median tilt, which may be wrong for them"
+            + ("; the format's declared gravity may be approximate: try the dataset option up=estimate"
+               if source == "declared" else ""))
     tilt = math.degrees(math.acos(float(np.clip(median_g[1] / np.linalg.norm(median_g), -1.0, 1.0))))
     if method in ("plane", "line") and tilt > LARGE_TILT_WARN_DEG:
         warnings.append(
