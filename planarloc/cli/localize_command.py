@@ -99,7 +99,8 @@ def run(args: argparse.Namespace) -> int:
     if gravity_all is None:
         rep = loc.gravity
         console.print(f"map gravity: {rep.source}; queries without their own gravity are assumed mounted like the "
-                      f"map cameras (pitch {rep.pitch_deg:+.1f}°, roll {rep.roll_deg:+.1f}°)", highlight=False, soft_wrap=True)
+                      f"map cameras (pitch {rep.pitch_deg:+.1f}°, roll {rep.roll_deg:+.1f}°)",
+                      highlight=False, soft_wrap=True)
     poses, failed = [], 0
     with progress_bar() as update:
         for i, (name, path) in enumerate(queries):
