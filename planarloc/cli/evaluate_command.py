@@ -75,7 +75,7 @@ def run(args: argparse.Namespace) -> int:
         if args.gravity_from_truth:
             # the dataset's declared down direction, else the map's (estimated) gravity
             gravity = gravity_from_truth(queries, loc.gravity.g_world_array)
-        results = evaluate_queries(loc, queries, lambda d, n: update("localize", d, n), pairs, gravity)
+        results = evaluate_queries(loc, queries, lambda d, n: update("localize", d, n), pairs, gravity=gravity)
     method, structure = config_label(config)
     summary = summarize(results, method, structure, dataset=str(args.dataset), map_every=args.map_every,
                         top_n=config.top_n, tilt=features.tilt,

@@ -78,6 +78,17 @@ def _default_camera(loc: Localizer, shape: tuple[int, int]) -> Camera:
     return cam
 
 
+def _gravity_file_notes(path: Path, gravity: dict, names: set[str]) -> None:
+    """Say which queries the gravity file missed and which of its names matched no query."""
+    missing, unused = len(names - set(gravity)), sorted(set(gravity) - names)
+    if missing:
+        console.print(f"[yellow]{path}: no gravity for {missing} of {len(names)} queries; they were assumed "
+                      "mounted like the map cameras[/]")
+    if unused:
+        console.print(f"[yellow]{path}: {len(unused)} name(s) match no query, e.g. {unused[0]!r} "
+                      "(names are file names, or paths relative to a query folder)[/]")
+
+
 def run(args: argparse.Namespace) -> int:
     queries = _collect(args.images)
     loc = Localizer(args.map, localizer_config(args))
@@ -87,20 +98,12 @@ def run(args: argparse.Namespace) -> int:
     camera = parse_camera(args.camera) if args.camera else None
     gravity_all = parse_gravity(args.gravity) if args.gravity else None
     gravity = read_gravity_file(args.gravity_file) if args.gravity_file else None
-    if gravity is not None:
-        names = {name for name, _ in queries}
-        missing, unused = len(names - set(gravity)), sorted(set(gravity) - names)
-        if missing:
-            console.print(f"[yellow]{args.gravity_file}: no gravity for {missing} of {len(names)} queries; they are "
-                          "assumed mounted like the map cameras[/]")
-        if unused:
-            console.print(f"[yellow]{args.gravity_file}: {len(unused)} name(s) match no query, e.g. {unused[0]!r} "
-                          "(names are file names, or paths relative to a query folder)[/]")
     if gravity_all is None:
         rep = loc.gravity
         console.print(f"map gravity: {rep.source}; queries without their own gravity are assumed mounted like the "
                       f"map cameras (pitch {rep.pitch_deg:+.1f}°, roll {rep.roll_deg:+.1f}°)",
                       highlight=False, soft_wrap=True)
+    names = []
     poses, failed = [], 0
     with progress_bar() as update:
         for i, (name, path) in enumerate(queries):
@@ -108,7 +111,8 @@ def run(args: argparse.Namespace) -> int:
             cam = camera or _default_camera(loc, image.shape[:2])
             refs = retrieve_from_pairs(pairs, name, loc.config.top_n) if pairs else None
             g = gravity_all if gravity is None else gravity.get(name)
-            est = loc.localize(image, cam, refs, g)
+            names.append(name)
+            est = loc.localize(image, cam, refs, gravity=g)
             record = {"name": name, **est.to_dict(), "query_gravity": None if g is None else [float(v) for v in g]}
             (json_dir / (name.replace("/", "__") + ".json")).write_text(json.dumps(record, indent=1))
             if est.success:
@@ -117,6 +121,8 @@ def run(args: argparse.Namespace) -> int:
                 failed += 1
             update("localize", i + 1, len(queries))
     write_pose_list(args.out, poses)
+    if gravity is not None:
+        _gravity_file_notes(args.gravity_file, gravity, set(names))
     console.print(f"localized {len(poses)} of {len(queries)} queries ({failed} failed) -> {args.out}, "
                   f"details in {json_dir}/")
     return 0

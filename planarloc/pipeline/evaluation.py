@@ -122,11 +122,12 @@ def evaluate_queries(
     queries: Sequence[PosedImage],
     progress: Callable[[int, int], None] | None = None,
     pairs: dict[str, list[str]] | None = None,
+    *,
     gravity: dict[str, np.ndarray] | None = None,
 ) -> list[QueryResult]:
     """Localize every query image and compare with its ground truth (``gravity``: see
     :func:`evaluate_configs`)."""
-    return evaluate_configs(localizer.db, [localizer.config], queries, progress, pairs, gravity)[0]
+    return evaluate_configs(localizer.db, [localizer.config], queries, progress, pairs, gravity=gravity)[0]
 
 
 def evaluate_configs(
@@ -135,6 +136,7 @@ def evaluate_configs(
     queries: Sequence[PosedImage],
     progress: Callable[[int, int], None] | None = None,
     pairs: dict[str, list[str]] | None = None,
+    *,
     gravity: dict[str, np.ndarray] | None = None,
 ) -> list[list[QueryResult]]:
     """Localize every query with each configuration, extracting its features only once.
@@ -160,7 +162,7 @@ def evaluate_configs(
             t1 = time.perf_counter()
             refs = retrieve_from_pairs(pairs, q.name, loc.config.top_n) if pairs is not None else None
             g = None if gravity is None else gravity.get(q.name)
-            est = loc.localize_features(features, q.camera, refs, g)
+            est = loc.localize_features(features, q.camera, refs, gravity=g)
             results.append(query_result(q, est, t_feat + time.perf_counter() - t1))
         if progress:
             progress(i + 1, len(queries))

@@ -166,7 +166,7 @@ class Localizer:
 
     # ---- whole pipeline ------------------------------------------------------------------
     def localize_features(self, features: Features, camera: Camera,
-                          references: Sequence[str] | None = None, gravity: object | None = None) -> PoseEstimate:
+                          references: Sequence[str] | None = None, *, gravity: object | None = None) -> PoseEstimate:
         """Localize from already extracted query features (retrieval unless ``references``).
 
         ``gravity``: see :meth:`localize`.
@@ -192,7 +192,7 @@ class Localizer:
         est.stats.add_time("matching", t2 - t1)
         return est
 
-    def localize(self, image: np.ndarray, camera: Camera, references: Sequence[str] | None = None,
+    def localize(self, image: np.ndarray, camera: Camera, references: Sequence[str] | None = None, *,
                  gravity: object | None = None) -> PoseEstimate:
         """Localize one live frame (grayscale or BGR uint8 array) taken with ``camera``.
 
@@ -211,7 +211,7 @@ class Localizer:
         if gravity is not None:
             unit_gravity("gravity", gravity)  # bad input fails before feature extraction
         features = extract_features(image, self.features)
-        est = self.localize_features(features, camera, references, gravity)
+        est = self.localize_features(features, camera, references, gravity=gravity)
         est.stats.add_time("features", time.perf_counter() - t0 - sum(
             est.stats.time_s.get(k, 0.0) for k in ("retrieval", "matching", "total")))
         est.stats.time_s["end_to_end"] = time.perf_counter() - t0
@@ -223,6 +223,7 @@ def localize_posed_images(
     queries: Sequence[PosedImage],
     pairs: dict[str, list[str]] | None = None,
     progress: Callable[[int, int], None] | None = None,
+    *,
     gravity: dict[str, np.ndarray] | None = None,
 ) -> list[PoseEstimate]:
     """Localize image files (e.g. a dataset's query frames); ``pairs`` overrides retrieval
@@ -236,7 +237,7 @@ def localize_posed_images(
 
             refs = retrieve_from_pairs(pairs, q.name, localizer.config.top_n)
         g = None if gravity is None else gravity.get(q.name)
-        out.append(localizer.localize(read_gray(q.path), q.camera, refs, g))
+        out.append(localizer.localize(read_gray(q.path), q.camera, refs, gravity=g))
         if progress:
             progress(i + 1, len(queries))
     return out
