@@ -9,12 +9,20 @@ from pathlib import Path
 import numpy as np
 
 from planarloc.cli.cross_session import add_cross_session_args, read_map_and_queries
-from planarloc.cli.options import add_dataset_args, add_feature_args, add_localizer_args, feature_config, localizer_config
+from planarloc.cli.options import (
+    add_dataset_args,
+    add_feature_args,
+    add_gravity_file_arg,
+    add_localizer_args,
+    feature_config,
+    localizer_config,
+)
 from planarloc.cli.progress import console, progress_bar
 from planarloc.cli.report import print_summary_table, write_json
 from planarloc.cli.result_outputs import EstimateOutputs, add_output_args, write_evaluation_tum
+from planarloc.io.gravity_file import read_gravity_file
 from planarloc.io.hloc_pairs import read_hloc_pairs
-from planarloc.pipeline.evaluation import config_label, evaluate_queries, summarize
+from planarloc.pipeline.evaluation import config_label, evaluate_queries, gravity_from_truth, summarize
 from planarloc.pipeline.localizer import Localizer
 from planarloc.pipeline.map_builder import build_map
 
@@ -31,6 +39,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                     "query, the map images it used (references).\n\n"
                     "example:\n  planarloc evaluate data/kitti_seq2 --format kitti --map-every 2 "
                     "--structure tracks --json kitti.json --plot kitti.png\n"
+                    "  planarloc evaluate worlds/office/map -f tum --map-every 3 --gravity-from-truth\n"
                     "  planarloc evaluate home1 home3 -f openloris --queries home2 --json home2.json --tum home2-tum\n"
                     "  planarloc evaluate monday/ -f tum --queries friday.bag --queries-format rosbag "
                     "--queries-option pose_topic=/pose --plot-matches matches/")
@@ -39,7 +48,13 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--map", type=Path, help="map file to build/reuse (default: a cache file in the temp folder)")
     p.add_argument("--json", type=Path, help="write the summary and per-query results here")
     p.add_argument("--plot", type=Path, help="write the trajectory plot (paper Fig. 8) here")
-    p.add_argument("--dataset-option", action="append", metavar="KEY=VALUE", help="importer option (repeatable)")
+    p.add_argument("--dataset-option", action="append", metavar="KEY=VALUE",
+                   help="importer option (repeatable); up=AXIS gives the world's up direction, e.g. up=z")
+    grav = p.add_mutually_exclusive_group()
+    grav.add_argument("--gravity-from-truth", action="store_true",
+                      help="simulate an IMU: give each query its true gravity (ground-truth rotation x the world's "
+                           "down direction: the format's, up=..., or the map's estimate; see `map info`)")
+    add_gravity_file_arg(grav)
     add_feature_args(p)
     add_localizer_args(p)
     add_output_args(p, "write DIR/estimate.txt and DIR/groundtruth.txt (TUM, camera-to-world, localized queries) "
@@ -52,18 +67,23 @@ def run(args: argparse.Namespace) -> int:
     map_images, queries, map_path, extra, title = read_map_and_queries(args, features.name)
     config = localizer_config(args)
     pairs = read_hloc_pairs(args.pairs) if args.pairs else None
+    gravity = read_gravity_file(args.gravity_file) if args.gravity_file else None
     console.print(f"map: {len(map_images)} frames -> {map_path}; queries: {len(queries)} frames")
     outputs = EstimateOutputs(args.plot_matches, args.rerun)
     try:
         with progress_bar() as update:
             build_map(map_images, map_path, features, num_words=args.vocabulary_size, progress=update)
             loc = Localizer(map_path, config)
+            if args.gravity_from_truth:
+                # the dataset's declared down direction, else the map's (estimated) gravity
+                gravity = gravity_from_truth(queries, loc.gravity.g_world_array)
             results = evaluate_queries(loc, queries, lambda d, n: update("localize", d, n), pairs,
-                                       outputs if outputs.active else None)
+                                       outputs if outputs.active else None, gravity=gravity)
     finally:
         outputs.close()
     method, structure = config_label(config)
-    summary = summarize(results, method, structure, **extra, top_n=config.top_n, tilt=features.tilt)
+    summary = summarize(results, method, structure, **extra, top_n=config.top_n, tilt=features.tilt,
+                        query_gravity="truth" if args.gravity_from_truth else ("file" if gravity else "map"))
     if args.tum:
         summary["evo"] = write_evaluation_tum(args.tum, results)
     print_summary_table([summary], title)

@@ -8,12 +8,19 @@ from contextlib import closing
 from pathlib import Path
 
 from planarloc.cli.map_command import parse_dataset_options
-from planarloc.cli.options import add_localizer_args, localizer_config, parse_camera
+from planarloc.cli.options import (
+    add_gravity_file_arg,
+    add_localizer_args,
+    localizer_config,
+    parse_camera,
+    parse_gravity,
+)
 from planarloc.cli.progress import console, progress_bar
 from planarloc.cli.query_sources import QuerySource, dataset_queries
 from planarloc.cli.result_outputs import EstimateOutputs, add_output_args, write_localize_tum
 from planarloc.geometry.camera import Camera
 from planarloc.io.datasets import FORMATS
+from planarloc.io.gravity_file import read_gravity_file
 from planarloc.io.hloc_pairs import read_hloc_pairs
 from planarloc.io.pose_list import write_pose_list
 from planarloc.pipeline.localizer import Localizer
@@ -34,6 +41,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                     "Failed queries are listed as failed, never replaced by a map pose.\n\n"
                     "example:\n  planarloc localize --map kitti.db queries/*.png --camera 'PINHOLE 1241 376 "
                     "718.856 718.856 607.19 185.22' --structure tracks --out poses.txt\n"
+                    "  planarloc localize --map office.db frame.png --gravity '0 0.996 0.087'   # camera pitched 5°\n"
                     "  planarloc localize --map office.db run2.bag --format rosbag --dataset-option "
                     "image_topic=/camera/image_raw --tum run2.tum --plot-matches matches/")
     p.add_argument("--map", required=True, type=Path, help="map file from `planarloc map build`")
@@ -47,6 +55,11 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                                     "camera if the map has one camera of the same image size")
     p.add_argument("--out", "-o", type=Path, default=Path("poses.txt"), help="results file (default: %(default)s)")
     p.add_argument("--json-dir", type=Path, help="folder for one JSON per query (default: <out>.json.d)")
+    grav = p.add_mutually_exclusive_group()
+    grav.add_argument("--gravity", metavar="'GX GY GZ'",
+                      help="gravity of all queries (direction, pointing down) in the query camera frame "
+                           "(x right, y down, z forward), e.g. from an IMU; default: the map cameras' mount tilt")
+    add_gravity_file_arg(grav)
     add_localizer_args(p)
     add_output_args(p, "also write the localized queries as a TUM trajectory (timestamp tx ty tz qx qy qz qw, "
                        "camera-to-world) for evo")
@@ -79,6 +92,17 @@ def _default_camera(loc: Localizer, shape: tuple[int, int]) -> Camera:
     return cam
 
 
+def _gravity_file_notes(path: Path, gravity: dict, names: set[str]) -> None:
+    """Say which queries the gravity file missed and which of its names matched no query."""
+    missing, unused = len(names - set(gravity)), sorted(set(gravity) - names)
+    if missing:
+        console.print(f"[yellow]{path}: no gravity for {missing} of {len(names)} queries; they were assumed "
+                      "mounted like the map cameras[/]")
+    if unused:
+        console.print(f"[yellow]{path}: {len(unused)} name(s) match no query, e.g. {unused[0]!r} "
+                      "(names are file names, or paths relative to a query folder)[/]")
+
+
 def run(args: argparse.Namespace) -> int:
     camera = parse_camera(args.camera) if args.camera else None
     if args.format:
@@ -89,6 +113,14 @@ def run(args: argparse.Namespace) -> int:
     pairs = read_hloc_pairs(args.pairs) if args.pairs else None
     json_dir = args.json_dir or args.out.with_name(args.out.name + ".json.d")
     json_dir.mkdir(parents=True, exist_ok=True)
+    gravity_all = parse_gravity(args.gravity) if args.gravity else None
+    gravity = read_gravity_file(args.gravity_file) if args.gravity_file else None
+    if gravity_all is None:
+        rep = loc.gravity
+        console.print(f"map gravity: {rep.source}; queries without their own gravity are assumed mounted like the "
+                      f"map cameras (pitch {rep.pitch_deg:+.1f}°, roll {rep.roll_deg:+.1f}°)",
+                      highlight=False, soft_wrap=True)
+    names = []
     poses, failed, tum = [], 0, []
     outputs = EstimateOutputs(args.plot_matches, args.rerun)
     with progress_bar() as update, closing(outputs):
@@ -97,9 +129,11 @@ def run(args: argparse.Namespace) -> int:
             image = read_gray(path)
             cam = camera or q.camera or _default_camera(loc, image.shape[:2])
             refs = retrieve_from_pairs(pairs, name, loc.config.top_n) if pairs else None
-            est = loc.localize(image, cam, refs)
+            g = gravity_all if gravity is None else gravity.get(name)
+            names.append(name)
+            est = loc.localize(image, cam, refs, gravity=g)
             outputs.add(loc, name, path, cam, est, q.truth)
-            record = {"name": name, **est.to_dict()}
+            record = {"name": name, **est.to_dict(), "query_gravity": None if g is None else [float(v) for v in g]}
             (json_dir / (name.replace("/", "__") + ".json")).write_text(json.dumps(record, indent=1))
             if est.success:
                 poses.append((name, est.pose))
@@ -110,6 +144,8 @@ def run(args: argparse.Namespace) -> int:
     write_pose_list(args.out, poses)
     if args.tum:
         write_localize_tum(args.tum, tum)
+    if gravity is not None:
+        _gravity_file_notes(args.gravity_file, gravity, set(names))
     console.print(f"localized {len(poses)} of {len(queries)} queries ({failed} failed) -> {args.out}, "
                   f"details in {json_dir}/")
     return 0

@@ -9,7 +9,7 @@ from pathlib import Path
 from planarloc.cli.options import add_dataset_args, add_feature_args, feature_config
 from planarloc.cli.progress import console, progress_bar
 from planarloc.io.datasets import read_dataset
-from planarloc.pipeline.map_builder import build_map
+from planarloc.pipeline.map_builder import build_map, map_gravity
 from planarloc.pipeline.map_database import MapDatabase
 
 
@@ -38,15 +38,26 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                     "then index the map for retrieval (VLAD).\n\n"
                     "Re-running the same command resumes an interrupted build; running it on another "
                     "dataset with the same --out appends those images.\n\n"
-                    "example:\n  planarloc map build data/kitti_seq2 --format kitti --every 2 --out kitti.db")
+                    "The world's gravity is the format's (KITTI, OpenLORIS, generated worlds), the dataset option "
+                    "up=..., or estimated from the camera centres' plane; `map info` shows it.\n\n"
+                    "example:\n  planarloc map build data/kitti_seq2 --format kitti --every 2 --out kitti.db\n"
+                    "  planarloc map build data/fountain_p11 --format kapture --dataset-option up=-z --out f.db")
     add_dataset_args(b)
     b.add_argument("--every", type=int, default=1, help="only frames with index %% N == 0 go into the map (default: 1)")
     b.add_argument("--out", "-o", required=True, type=Path, help="map file to create or extend")
     b.add_argument("--dataset-option", action="append", metavar="KEY=VALUE",
-                   help="importer option, e.g. tum_camera=fr1 or max_dt=0.05 (repeatable)")
+                   help="importer option, e.g. tum_camera=fr1 or max_dt=0.05 (repeatable); up=AXIS gives the "
+                        "world's up direction (e.g. up=z, up=-y, up=0,0,1; up=estimate: from the camera centres' plane "
+                        "even if the format declares one)")
     add_feature_args(b)
     b.set_defaults(func=run_build)
-    i = msub.add_parser("info", help="summarise a map")
+    i = msub.add_parser("info", help="summarise a map: images, features, gravity and camera mount tilt",
+                        formatter_class=argparse.RawDescriptionHelpFormatter,
+                        description="Prints the number of images, the feature settings, whether the build is "
+                                    "complete, and the map's gravity: where it comes from (declared by the "
+                                    "format, the up= option, or estimated from the camera centres' plane) and "
+                                    "the map cameras' mount pitch/roll relative to it.\n\n"
+                                    "example:\n  planarloc map info kitti.db")
     i.add_argument("map", type=Path)
     i.set_defaults(func=run_info)
 
@@ -68,4 +79,7 @@ def run_info(args: argparse.Namespace) -> int:
         cfg = db.config
         console.print(f"{args.map}: {n} images, features {cfg.get('feature_name', '?')}, "
                       f"{'complete' if db.is_complete else '[yellow]incomplete build[/]'}")
+        if n:
+            for line in map_gravity(db).summary_lines():
+                console.print(line, markup=False, highlight=False, soft_wrap=True)
     return 0

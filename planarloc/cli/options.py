@@ -4,6 +4,9 @@
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
+
+import numpy as np
 
 from planarloc.geometry.camera import Camera
 from planarloc.io.datasets import FORMATS
@@ -72,6 +75,26 @@ def localizer_config(args: argparse.Namespace) -> LocalizerConfig:
     ransac = RansacOptions(structure=args.structure, threshold_px=args.threshold,
                            max_position_std_m=args.max_position_std, seed=args.seed, **it)
     return LocalizerConfig(top_n=args.top_n, method=args.method, ransac=ransac, use_depth=args.use_depth)
+
+
+def add_gravity_file_arg(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--gravity-file", type=Path, metavar="FILE",
+                   help="per-query gravity (e.g. from an IMU), lines 'name gx gy gz': direction of gravity "
+                        "(down) in the query camera frame (x right, y down, z forward); queries not listed "
+                        "are assumed mounted like the map cameras")
+
+
+def parse_gravity(text: str) -> np.ndarray:
+    """'gx gy gz' (spaces or commas) -> (3,) unit gravity direction; ValueError naming --gravity."""
+    tok = text.replace(",", " ").split()
+    try:
+        g = np.array([float(v) for v in tok])
+    except ValueError:
+        g = np.zeros(0)
+    if g.shape != (3,) or not np.all(np.isfinite(g)) or not np.linalg.norm(g) > 1e-9:
+        raise ValueError(f"--gravity: expected three numbers 'gx gy gz' (gravity pointing down in the query "
+                         f"camera frame, not zero), e.g. '0 1 0' for an upright camera, got {text!r}")
+    return g / np.linalg.norm(g)
 
 
 def parse_camera(text: str) -> Camera:

@@ -6,6 +6,7 @@ See :mod:`planarloc.io.datasets` for the registry (``read_dataset(root, fmt)``).
 from planarloc.io.colmap_text import read_colmap
 from planarloc.io.datasets import FORMATS, read_dataset
 from planarloc.io.format_error import FormatError
+from planarloc.io.gravity_file import read_gravity_file
 from planarloc.io.hloc_pairs import read_hloc_pairs, write_hloc_pairs
 from planarloc.io.kapture import read_kapture
 from planarloc.io.kitti import read_kitti
@@ -19,6 +20,7 @@ __all__ = [
     "associate_timestamps",
     "read_colmap",
     "read_dataset",
+    "read_gravity_file",
     "read_hloc_pairs",
     "read_kapture",
     "read_kitti",

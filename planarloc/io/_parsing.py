@@ -58,6 +58,23 @@ def iter_data_lines(
         yield lineno, tokens
 
 
+def iter_named_lines(path: Path, fmt: str, line: str, n_fields: int) -> Iterator[tuple[int, str, list[str]]]:
+    """Yield ``(line number, name, other fields)`` of a per-image list ``name field...``.
+
+    Every data line must have exactly ``n_fields`` fields (``line`` describes them in the
+    message, e.g. ``"'name gx gy gz'"``) and names must be unique.
+    """
+    seen: dict[str, int] = {}
+    for lineno, tokens in iter_data_lines(path, fmt, f"one image per line {line}"):
+        if len(tokens) != n_fields:
+            raise FormatError(path, lineno, f"expected {n_fields} fields {line}, found {len(tokens)}")
+        name = tokens[0]
+        if name in seen:
+            raise FormatError(path, lineno, f"expected unique names, found {name!r} again (line {seen[name]})")
+        seen[name] = lineno
+        yield lineno, name, tokens[1:]
+
+
 def expect_count(path: Path, lineno: int, tokens: Sequence[str], n: int, what: str) -> None:
     """Raise unless the line has exactly ``n`` fields."""
     if len(tokens) != n:

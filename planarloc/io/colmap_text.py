@@ -11,6 +11,9 @@ error naming the model; undistort the images first, e.g. with ``colmap image_und
 
 Images are found at ``image_dir / NAME``. ``points3D.txt`` is not read: planarloc needs no 3D
 model. Images are returned sorted by NAME with ``index`` = rank (COLMAP ids are arbitrary).
+
+Gravity: the format does not define the world's up axis (``world_down`` is None): the map
+estimates it from its poses, or the user gives it with the dataset option ``up=``.
 """
 
 from __future__ import annotations

@@ -11,10 +11,16 @@ colmap     :func:`planarloc.io.colmap_text.read_colmap`   model dir (cameras.txt
 list       :func:`planarloc.io.pose_list.read_pose_list`  list file or its directory
 rosbag     :func:`planarloc.io.rosbag.read_rosbag`        .bag file or ROS 2 bag folder (needs rosbags)
 ========== ======================================= ==========================================
+
+Every format also accepts the option ``up``: the world's up direction (``"z"``, ``"-y"``,
+``"0,0,1"``, see :func:`planarloc.pipeline.gravity.parse_up`) or ``estimate`` (estimate it from
+the map's poses); it replaces the format's declared gravity (``PosedImage.world_down``) on every
+image.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import inspect
 from collections.abc import Callable
 from pathlib import Path
@@ -27,6 +33,7 @@ from planarloc.io.openloris import read_openloris
 from planarloc.io.pose_list import read_pose_list
 from planarloc.io.rosbag import read_rosbag
 from planarloc.io.tum import read_tum
+from planarloc.pipeline.gravity import world_down_from_up
 from planarloc.pipeline.posed_image import PosedImage
 
 FORMATS: dict[str, Callable[..., list[PosedImage]]] = {
@@ -40,14 +47,17 @@ FORMATS: dict[str, Callable[..., list[PosedImage]]] = {
 }
 
 
+UP_OPTION = "up"
+
+
 def format_options(fmt: str) -> list[str]:
-    """Names of the keyword options the reader of ``fmt`` accepts."""
+    """Names of the keyword options the reader of ``fmt`` accepts (``up`` is common to all)."""
     reader = _reader(fmt)
     return [
         p.name
         for p in inspect.signature(reader).parameters.values()
         if p.kind is inspect.Parameter.KEYWORD_ONLY
-    ]
+    ] + [UP_OPTION]
 
 
 def _reader(fmt: str) -> Callable[..., list[PosedImage]]:
@@ -63,7 +73,8 @@ def read_dataset(root: Path, fmt: str, **options: object) -> list[PosedImage]:
     Args:
         root: dataset root (see the table in the module docstring).
         fmt: a key of :data:`FORMATS` (case-insensitive).
-        **options: keyword options of that format's reader.
+        **options: keyword options of that format's reader, and ``up`` (the world's up
+            direction, overrides the format's declared gravity).
 
     Returns:
         The reader's :class:`PosedImage` list, sorted by index.
@@ -81,4 +92,9 @@ def read_dataset(root: Path, fmt: str, **options: object) -> list[PosedImage]:
         raise InputError(
             f"format {fmt!r}: unknown option(s) {', '.join(unknown)}; accepted: {', '.join(allowed) or 'none'}"
         )
-    return reader(Path(root), **options)
+    up = options.pop(UP_OPTION, None)
+    world_down = None if up is None else world_down_from_up(up)  # a bad value fails before reading
+    images = reader(Path(root), **options)
+    if world_down is not None:
+        images = [dataclasses.replace(im, world_down=world_down) for im in images]
+    return images

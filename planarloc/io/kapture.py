@@ -16,6 +16,9 @@ Layout of a dataset directory ``root``; all files are comma-separated, ``#`` sta
 An image's pose is the trajectory entry with the same timestamp and camera id, or, if the
 camera belongs to a rig, ``cam_from_world = cam_from_rig ∘ rig_from_world`` with the rig's
 entry at that timestamp. Records without a pose (e.g. query images) are skipped with a warning.
+
+Gravity: the format does not define the world's up axis (``world_down`` is None): the map
+estimates it from its poses, or the user gives it with the dataset option ``up=``.
 """
 
 from __future__ import annotations

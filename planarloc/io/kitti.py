@@ -20,6 +20,9 @@ projection matrix with a translation column (``P2`` of the colour cameras) also 
 is read from the first image. Blank lines and lines starting with ``#`` are ignored.
 
 Returned poses are ``cam_from_world = (world_from_cam)⁻¹``.
+
+Gravity: the world is the first camera's frame, so the format declares down = +y
+(:data:`WORLD_DOWN`, exact when that camera is level; a map overrides it with ``up=``).
 """
 
 from __future__ import annotations
@@ -34,6 +37,7 @@ from planarloc.geometry.camera import Camera
 from planarloc.geometry.pose import Pose
 from planarloc.io._parsing import image_size, iter_data_lines, parse_floats, pose_from_matrix34, read_text
 from planarloc.io.format_error import FormatError
+from planarloc.pipeline.gravity import WorldDown
 from planarloc.pipeline.posed_image import PosedImage
 
 logger = logging.getLogger(__name__)
@@ -41,6 +45,10 @@ logger = logging.getLogger(__name__)
 FORMAT = "KITTI odometry"
 IMAGE_DIRS = ("image_l", "image_0", "image_2")
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
+#: KITTI's world is camera 0 of the first frame (x right, y down, z forward): down = +y.
+WORLD_DOWN = WorldDown(
+    (0.0, 1.0, 0.0), "declared", "KITTI: world = first camera frame, down = +y (that camera level)"
+)
 
 
 def _find_image_dir(root: Path, image_dir: str | None) -> Path:
@@ -211,6 +219,7 @@ def read_kitti(
             camera=camera,
             index=k,
             timestamp=None if times is None else times[k],
+            world_down=WORLD_DOWN,
         )
         for k, path, pose in frames
     ]

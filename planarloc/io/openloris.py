@@ -18,6 +18,9 @@ extrinsic ``T_bc`` (``DEFAULT_BASE_FROM_CAMERA``). Intrinsics, first that applie
 ``camera=`` argument, ``camera.txt``, the published d400 colour intrinsics (848x480).
 Association with ground truth and depth as for TUM (:func:`planarloc.io.tum.associate_timestamps`):
 nearest timestamp within ``max_dt``; frames without a pose are skipped with a warning.
+
+Gravity: the ground-truth world has z up (the robot base moves in its x-y plane), so the format
+declares down = −z (:data:`WORLD_DOWN`).
 """
 
 from __future__ import annotations
@@ -27,6 +30,7 @@ from pathlib import Path
 from planarloc.geometry.camera import Camera
 from planarloc.geometry.pose import Pose
 from planarloc.io.tum import DEFAULT_MAX_DT, read_rgbd_sequence, resolve_camera
+from planarloc.pipeline.gravity import WorldDown
 from planarloc.pipeline.posed_image import PosedImage
 
 FORMAT = "OpenLORIS-Scene"
@@ -36,6 +40,8 @@ DEFAULT_BASE_FROM_CAMERA = Pose.from_quat_wxyz([0.5082, -0.4968, 0.4999, -0.4951
 #: RealSense D400 colour intrinsics of OpenLORIS-Scene.
 D400_COLOR_CAMERA = Camera("PINHOLE", 848, 480, (611.4510, 611.4857, 433.2040, 249.4730))
 OPENLORIS_DEPTH_SCALE = 1000.0
+#: The ground-truth world of OpenLORIS-Scene has z up (planar base motion in x-y): down = −z.
+WORLD_DOWN = WorldDown((0.0, 0.0, -1.0), "declared", "OpenLORIS-Scene: world z up, down = -z")
 
 
 def read_openloris(
@@ -77,4 +83,5 @@ def read_openloris(
         base_from_camera=base_from_camera,
         max_dt=max_dt,
         check_images=check_images,
+        world_down=WORLD_DOWN,
     )

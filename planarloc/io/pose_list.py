@@ -10,6 +10,9 @@ file (:mod:`planarloc.io.camera_file`): lines ``[KEY] MODEL WIDTH HEIGHT PARAMS.
 KEY equal to an image name gives that image's camera (hloc ``queries_with_intrinsics.txt``)
 and a keyless line — or the only line of the file, e.g. a COLMAP ``cameras.txt`` with one
 camera — applies to all other images.
+
+Gravity: the format does not define the world's up axis (``world_down`` is None): the map
+estimates it from its poses, or the user gives it with the dataset option ``up=``.
 """
 
 from __future__ import annotations
@@ -21,7 +24,7 @@ from planarloc.geometry.camera import Camera
 from planarloc.geometry.pose import Pose
 from planarloc.geometry.validation import InputError
 from planarloc.io._parsing import (
-    iter_data_lines,
+    iter_named_lines,
     parse_floats,
     pose_from_quat_wxyz,
     resolve_image,
@@ -86,17 +89,8 @@ def read_pose_list(
     )
 
     out: list[PosedImage] = []
-    seen: dict[str, int] = {}
-    for lineno, tokens in iter_data_lines(list_path, FORMAT, f"one image per line {LINE}"):
-        if len(tokens) != 8:
-            raise FormatError(list_path, lineno, f"expected 8 fields {LINE}, found {len(tokens)}")
-        name = tokens[0]
-        if name in seen:
-            raise FormatError(
-                list_path, lineno, f"expected unique names, found {name!r} again (line {seen[name]})"
-            )
-        seen[name] = lineno
-        v = parse_floats(list_path, lineno, tokens[1:], "quaternion or translation", 2)
+    for lineno, name, fields in iter_named_lines(list_path, FORMAT, LINE, 8):
+        v = parse_floats(list_path, lineno, fields, "quaternion or translation", 2)
         cam = cams.get(name, fallback) if camera is None else camera
         if cam is None:
             raise FormatError(

@@ -21,10 +21,16 @@ Intrinsics, first that applies: ``camera=`` argument; ``tum_camera="fr1"|"fr2"|"
 (TUM's published pinhole defaults for 640x480, distortion not included); ``camera.txt``; the
 freiburg number in the directory name (``rgbd_dataset_freiburg2_...``). Otherwise an error
 asks for one of them. (Explicit arguments win over files so that an argument is never ignored.)
+
+Gravity: TUM does not define the world's up axis (``world_down`` is None; the map estimates it),
+except for sequences of a planarloc generated world (a ``world.json`` of
+``planarloc.synthetic.world`` in the parent directory), whose world has y down
+(:data:`GENERATED_WORLD_DOWN`).
 """
 
 from __future__ import annotations
 
+import json
 import logging
 import re
 from dataclasses import dataclass
@@ -44,6 +50,7 @@ from planarloc.io._parsing import (
 )
 from planarloc.io.camera_file import read_camera_file
 from planarloc.io.format_error import FormatError
+from planarloc.pipeline.gravity import WorldDown
 from planarloc.pipeline.posed_image import PosedImage
 
 logger = logging.getLogger(__name__)
@@ -57,6 +64,11 @@ TUM_CAMERAS = {
 }
 TUM_DEPTH_SCALE = 5000.0
 DEFAULT_MAX_DT = 0.02
+#: World frame of planarloc's generated worlds (planarloc.synthetic.world.export): y down.
+GENERATED_WORLD_DOWN = WorldDown(
+    (0.0, 1.0, 0.0), "declared", "planarloc generated world (world.json): down = +y"
+)
+GENERATED_WORLD_GENERATOR = "planarloc.synthetic.world"
 
 
 def associate_timestamps(query: object, reference: object, max_dt: float) -> np.ndarray:
@@ -146,6 +158,21 @@ def resolve_camera(root: Path, fmt: str, camera: Camera | None, preset: Camera |
     raise FormatError(root, None, f"cannot determine the camera intrinsics of this {fmt} sequence; {hint}")
 
 
+def generated_world_down(root: Path) -> WorldDown | None:
+    """:data:`GENERATED_WORLD_DOWN` if ``root`` is a session of a planarloc generated world
+    (``root/../world.json`` names the generator), else None."""
+    path = Path(root).absolute().parent / "world.json"
+    if not path.is_file():
+        return None
+    try:
+        doc = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        logger.debug("%s: not a readable world.json; world gravity unknown", path)
+        return None
+    generated = isinstance(doc, dict) and doc.get("generator") == GENERATED_WORLD_GENERATOR
+    return GENERATED_WORLD_DOWN if generated else None
+
+
 def read_rgbd_sequence(
     root: Path,
     *,
@@ -159,6 +186,7 @@ def read_rgbd_sequence(
     base_from_camera: Pose | None,
     max_dt: float,
     check_images: bool,
+    world_down: WorldDown | None = None,
 ) -> list[PosedImage]:
     """The shared reader of timestamped RGB(-D) sequences with a TUM-style trajectory.
 
@@ -176,6 +204,7 @@ def read_rgbd_sequence(
             the trajectory is the camera's.
         max_dt: association tolerance in seconds.
         check_images: raise if a listed image does not exist.
+        world_down: the world's down direction if the format declares one.
     """
     if base_from_camera is not None and not isinstance(base_from_camera, Pose):
         raise InputError(
@@ -237,6 +266,7 @@ def read_rgbd_sequence(
                 timestamp=e.timestamp,
                 depth_path=depth_paths[di] if di >= 0 else None,
                 depth_scale=depth_scale,
+                world_down=world_down,
             )
         )
     if not out:
@@ -314,6 +344,7 @@ def read_tum(
         base_from_camera=base_from_camera,
         max_dt=max_dt,
         check_images=check_images,
+        world_down=generated_world_down(root),
     )
 
 

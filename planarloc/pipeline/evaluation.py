@@ -17,6 +17,7 @@ import numpy as np
 
 from planarloc.geometry.pose import pose_errors
 from planarloc.pipeline.features import Features
+from planarloc.pipeline.gravity import gravity_in_camera
 from planarloc.pipeline.localizer import Localizer, LocalizerConfig
 from planarloc.pipeline.map_builder import read_gray
 from planarloc.pipeline.map_database import MapDatabase
@@ -108,16 +109,41 @@ def summarize(results: Sequence[QueryResult], method: str, structure: str, **ext
     }
 
 
+def gravity_from_truth(queries: Sequence[PosedImage], g_world: object | None = None) -> dict[str, np.ndarray]:
+    """A simulated IMU: each query's true gravity in its camera frame, ``R_gt · world_down``.
+
+    Args:
+        queries: posed query images (ground truth in the map's world frame).
+        g_world: (3,) down direction for queries whose dataset declares none (e.g. the map's
+            estimated gravity); None: such queries get no gravity.
+
+    Returns:
+        ``{query name: (3,) unit gravity (down) in the query camera frame}``: the declared
+        ``world_down`` (generated worlds, KITTI, OpenLORIS, ``up=``) where there is one, else
+        ``g_world``.
+    """
+    out = {}
+    for q in queries:
+        down = q.world_down.direction if q.world_down is not None else None
+        down = g_world if down is None else down
+        if down is not None:
+            out[q.name] = gravity_in_camera(q.cam_from_world, down)
+    return out
+
+
 def evaluate_queries(
     localizer: Localizer,
     queries: Sequence[PosedImage],
     progress: Callable[[int, int], None] | None = None,
     pairs: dict[str, list[str]] | None = None,
     on_estimate: OnEstimate | None = None,
+    *,
+    gravity: dict[str, np.ndarray] | None = None,
 ) -> list[QueryResult]:
-    """Localize every query image and compare with its ground truth (``on_estimate``: see
-    :func:`evaluate_configs`)."""
-    return evaluate_configs(localizer.db, [localizer.config], queries, progress, pairs, on_estimate)[0]
+    """Localize every query image and compare with its ground truth (``on_estimate``, ``gravity``:
+    see :func:`evaluate_configs`)."""
+    return evaluate_configs(localizer.db, [localizer.config], queries, progress, pairs, on_estimate,
+                            gravity=gravity)[0]
 
 
 def evaluate_configs(
@@ -127,11 +153,15 @@ def evaluate_configs(
     progress: Callable[[int, int], None] | None = None,
     pairs: dict[str, list[str]] | None = None,
     on_estimate: OnEstimate | None = None,
+    *,
+    gravity: dict[str, np.ndarray] | None = None,
 ) -> list[list[QueryResult]]:
     """Localize every query with each configuration, extracting its features only once.
 
     ``on_estimate(localizer, query, features, estimate)``, if given, is called after each
-    estimate (plots, recordings); it does not count in ``seconds``.
+    estimate (plots, recordings); it does not count in ``seconds``. ``gravity`` optionally gives
+    queries their (3,) gravity in the camera frame (``{query name: g}``, e.g.
+    :func:`gravity_from_truth`); the others get None (mounted like the map cameras).
 
     Returns:
         one list of :class:`QueryResult` per configuration. ``seconds`` of a result is the
@@ -149,7 +179,8 @@ def evaluate_configs(
         for loc, results in zip(localizers, out):
             t1 = time.perf_counter()
             refs = retrieve_from_pairs(pairs, q.name, loc.config.top_n) if pairs is not None else None
-            est = loc.localize_features(features, q.camera, refs)
+            g = None if gravity is None else gravity.get(q.name)
+            est = loc.localize_features(features, q.camera, refs, gravity=g)
             results.append(query_result(q, est, t_feat + time.perf_counter() - t1))
             if on_estimate is not None:
                 on_estimate(loc, q, features, est)

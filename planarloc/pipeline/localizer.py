@@ -2,6 +2,11 @@
 
 The core works in memory on one live frame (:meth:`Localizer.localize`); nothing is written
 to disk. File-based batch helpers sit on top (:func:`localize_posed_images`).
+
+Gravity: every reference gets ``ref_gravity = R_ref · g_world`` from the map's gravity
+(:func:`planarloc.pipeline.map_builder.map_gravity`); a query's own gravity (an IMU's, in its
+camera frame) is passed as ``gravity=``, otherwise the estimator assumes the query is mounted like
+the map cameras (docs/conventions.md, "Gravity").
 """
 
 from __future__ import annotations
@@ -19,14 +24,14 @@ import numpy as np
 from planarloc.geometry.camera import Camera
 from planarloc.geometry.validation import InputError
 from planarloc.pipeline.features import Features, extract_features
-from planarloc.pipeline.map_builder import VOCABULARY_BLOB, feature_config_from_map, read_gray
+from planarloc.pipeline.map_builder import VOCABULARY_BLOB, feature_config_from_map, map_gravity, read_gray
 from planarloc.pipeline.map_database import MapDatabase
 from planarloc.pipeline.matching import DEFAULT_RATIO, match_query_to_refs
 from planarloc.pipeline.posed_image import PosedImage
 from planarloc.pipeline.retrieval import DEFAULT_TOP_N, GlobalIndex, VladVocabulary, vlad_descriptor
 from planarloc.robust.absolute_pose import estimate_absolute_pose
 from planarloc.robust.options import Method, RansacOptions
-from planarloc.robust.pair_matches import PairMatches
+from planarloc.robust.pair_matches import PairMatches, unit_gravity
 from planarloc.robust.result import PoseEstimate
 
 logger = logging.getLogger(__name__)
@@ -69,6 +74,7 @@ class Localizer:
         >>> loc = Localizer("office.db")                      # doctest: +SKIP
         >>> est = loc.localize(gray_image, camera)              # doctest: +SKIP
         >>> est.pose if est.success else est.status             # doctest: +SKIP
+        >>> est = loc.localize(gray_image, camera, gravity=(0.0, 0.99, 0.14))  # IMU: pitched 8°  # doctest: +SKIP
     """
 
     def __init__(self, map_db: MapDatabase | str | Path, config: LocalizerConfig | None = None) -> None:
@@ -87,6 +93,9 @@ class Localizer:
         self._posed = {p.name: p for p in self.db.posed_images()}
         self._by_id = {self.db.image_id(n): n for n in self._posed}
         self._depth_cache: OrderedDict[str, np.ndarray | None] = OrderedDict()
+        self.gravity = map_gravity(self.db)
+        """The map's :class:`~planarloc.pipeline.gravity.GravityReport` (``g_world``, mount tilt)."""
+        self._g_world = self.gravity.g_world_array
 
     # ---- steps ---------------------------------------------------------------------------
     def retrieve(self, features: Features, top_n: int | None = None) -> list[str]:
@@ -151,15 +160,20 @@ class Localizer:
             X = self._points3d(name, ref_pts) if self.config.use_depth else None
             pairs.append(PairMatches(posed.cam_from_world, posed.camera,
                                      np.asarray(features.keypoints[m[:, 0]], dtype=float), ref_pts,
-                                     query_indices=m[:, 0], ref_points3d=X))
+                                     query_indices=m[:, 0], ref_points3d=X,
+                                     ref_gravity=posed.cam_from_world.R @ self._g_world))
             names.append(name)
         return pairs, names
 
     # ---- whole pipeline ------------------------------------------------------------------
     def localize_features(self, features: Features, camera: Camera,
-                          references: Sequence[str] | None = None) -> PoseEstimate:
-        """Localize from already extracted query features (retrieval unless ``references``)."""
+                          references: Sequence[str] | None = None, *, gravity: object | None = None) -> PoseEstimate:
+        """Localize from already extracted query features (retrieval unless ``references``).
+
+        ``gravity``: see :meth:`localize`.
+        """
         t0 = time.perf_counter()
+        query_gravity = None if gravity is None else unit_gravity("gravity", gravity)
         refs = list(references) if references is not None else self.retrieve(features)
         unknown = [r for r in refs if r not in self._posed]
         if unknown:
@@ -172,19 +186,33 @@ class Localizer:
                                f"fewer than 2 of the {len(refs)} retrieved map images have >= "
                                f"{self.config.min_matches} matches", [np.zeros(0, bool)] * len(pairs))
         else:
-            est = estimate_absolute_pose(camera, pairs, self.config.method, self.config.ransac)
+            est = estimate_absolute_pose(camera, pairs, self.config.method, self.config.ransac,
+                                         query_gravity=query_gravity)
         est.references = used
         est.stats.add_time("retrieval", t1 - t0)
         est.stats.add_time("matching", t2 - t1)
         return est
 
-    def localize(self, image: np.ndarray, camera: Camera, references: Sequence[str] | None = None) -> PoseEstimate:
-        """Localize one live frame (grayscale or BGR uint8 array) taken with ``camera``."""
+    def localize(self, image: np.ndarray, camera: Camera, references: Sequence[str] | None = None, *,
+                 gravity: object | None = None) -> PoseEstimate:
+        """Localize one live frame (grayscale or BGR uint8 array) taken with ``camera``.
+
+        Args:
+            image: (H, W) or (H, W, 3) uint8.
+            camera: the query's intrinsics.
+            references: map image names to match against instead of retrieval.
+            gravity: (3,) direction of gravity (pointing down) in the query camera frame
+                (x right, y down, z forward), e.g. an IMU's accelerometer reading negated
+                (it measures the reaction, i.e. up) and rotated into the camera frame; any
+                non-zero length. None: the query is assumed mounted like the map cameras.
+        """
         t0 = time.perf_counter()
         if not isinstance(camera, Camera):
             raise InputError(f"camera: expected a planarloc.Camera, got {type(camera).__name__}")
+        if gravity is not None:
+            unit_gravity("gravity", gravity)  # bad input fails before feature extraction
         features = extract_features(image, self.features)
-        est = self.localize_features(features, camera, references)
+        est = self.localize_features(features, camera, references, gravity=gravity)
         est.stats.add_time("features", time.perf_counter() - t0 - sum(
             est.stats.time_s.get(k, 0.0) for k in ("retrieval", "matching", "total")))
         est.stats.time_s["end_to_end"] = time.perf_counter() - t0
@@ -196,9 +224,12 @@ def localize_posed_images(
     queries: Sequence[PosedImage],
     pairs: dict[str, list[str]] | None = None,
     progress: Callable[[int, int], None] | None = None,
+    *,
+    gravity: dict[str, np.ndarray] | None = None,
 ) -> list[PoseEstimate]:
     """Localize image files (e.g. a dataset's query frames); ``pairs`` overrides retrieval
-    with an hloc-style ``{query name: [map names]}`` mapping."""
+    with an hloc-style ``{query name: [map names]}`` mapping; ``gravity`` gives the (3,) gravity
+    of some queries in their camera frame (``{query name: g}``, see :meth:`Localizer.localize`)."""
     out = []
     for i, q in enumerate(queries):
         refs = None
@@ -206,7 +237,8 @@ def localize_posed_images(
             from planarloc.pipeline.retrieval import retrieve_from_pairs
 
             refs = retrieve_from_pairs(pairs, q.name, localizer.config.top_n)
-        out.append(localizer.localize(read_gray(q.path), q.camera, refs))
+        g = None if gravity is None else gravity.get(q.name)
+        out.append(localizer.localize(read_gray(q.path), q.camera, refs, gravity=g))
         if progress:
             progress(i + 1, len(queries))
     return out

@@ -7,6 +7,7 @@ from pathlib import Path
 
 from planarloc.geometry.camera import Camera
 from planarloc.geometry.pose import Pose
+from planarloc.pipeline.gravity import WorldDown
 
 
 @dataclass(frozen=True)
@@ -24,6 +25,9 @@ class PosedImage:
         timestamp: seconds, when the format has one (TUM, OpenLORIS, kapture), else None.
         depth_path: optional depth image (uint16 PNG, metres x ``depth_scale``).
         depth_scale: factor from stored depth values to metres' reciprocal (TUM: 5000).
+        world_down: the world's gravity direction when the dataset's format defines one (e.g.
+            KITTI: +y of the first camera) or the user gave ``up=``; None = unknown, the map
+            estimates it from its poses (:mod:`planarloc.pipeline.gravity`).
     """
 
     name: str
@@ -34,3 +38,4 @@ class PosedImage:
     timestamp: float | None = None
     depth_path: Path | None = None
     depth_scale: float = 5000.0
+    world_down: WorldDown | None = None
