@@ -11,6 +11,7 @@ from planarloc.cli.progress import console, progress_bar
 from planarloc.geometry.camera import Camera
 from planarloc.io.hloc_pairs import read_hloc_pairs
 from planarloc.io.pose_list import write_pose_list
+from planarloc.io.query_json import query_record, query_record_filename
 from planarloc.pipeline.localizer import Localizer
 from planarloc.pipeline.map_builder import read_gray
 from planarloc.pipeline.retrieval import retrieve_from_pairs
@@ -79,8 +80,8 @@ def run(args: argparse.Namespace) -> int:
             cam = camera or _default_camera(loc, image.shape[:2])
             refs = retrieve_from_pairs(pairs, name, loc.config.top_n) if pairs else None
             est = loc.localize(image, cam, refs)
-            record = {"name": name, **est.to_dict()}
-            (json_dir / (name.replace("/", "__") + ".json")).write_text(json.dumps(record, indent=1))
+            record = query_record(name, est)
+            (json_dir / query_record_filename(name)).write_text(json.dumps(record, indent=1))
             if est.success:
                 poses.append((name, est.pose))
             else:

@@ -1,0 +1,91 @@
+"""The CPU side of a localization request: decode the image, localize, build the per-query record.
+
+Runs in a worker process of the service (:mod:`planarloc.serve.worker_pool`) or in a Ray Serve
+replica. Each process opens its maps once, read-only (:func:`open_localizers`), and keeps them.
+The record is :func:`planarloc.io.query_json.query_record`, the one ``planarloc localize``
+writes, and the configuration is built from the same defaults as the CLI's, so a served pose
+equals the CLI's pose for the same image, camera and seed.
+"""
+
+from __future__ import annotations
+
+import copy
+import inspect
+import logging
+from collections.abc import Mapping
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from planarloc.io.query_json import query_record
+from planarloc.pipeline.localizer import Localizer, LocalizerConfig
+from planarloc.robust.options import RansacOptions
+from planarloc.serve.requests import LocalizeRequest, RequestError
+
+logger = logging.getLogger(__name__)
+
+_LOCALIZERS: dict[str, Localizer] = {}
+#: Whether this planarloc's Localizer.localize accepts a gravity prior.
+LOCALIZER_TAKES_GRAVITY = "gravity" in inspect.signature(Localizer.localize).parameters
+
+
+def open_localizers(maps: Mapping[str, str | Path]) -> dict[str, Localizer]:
+    """Open every map read-only (process initializer of the workers); kept for the process' life."""
+    _LOCALIZERS.clear()
+    for name, path in maps.items():
+        _LOCALIZERS[name] = Localizer(Path(path))
+    return _LOCALIZERS
+
+
+def request_config(req: LocalizeRequest) -> LocalizerConfig:
+    """The CLI's default configuration with the request's method, structure and seed."""
+    base = LocalizerConfig()
+    ransac = RansacOptions(**{k: v for k, v in (("structure", req.structure), ("seed", req.seed)) if v is not None})
+    return LocalizerConfig(method=req.method or base.method, ransac=ransac)
+
+
+def decode_gray(req: LocalizeRequest) -> np.ndarray:
+    """The request's image as (H, W) uint8, decoded like ``cv2.imread(..., IMREAD_GRAYSCALE)``."""
+    image = cv2.imdecode(np.frombuffer(req.image, np.uint8), cv2.IMREAD_GRAYSCALE)
+    if image is None:
+        raise RequestError(400, "image: cannot decode (corrupt or truncated JPEG/PNG)")
+    if (image.shape[1], image.shape[0]) != (req.camera.width, req.camera.height):
+        raise RequestError(400, f"camera: {req.camera.width}x{req.camera.height} does not fit the "
+                                f"{image.shape[1]}x{image.shape[0]} image")
+    return image
+
+
+def localize_with(base: Localizer, req: LocalizeRequest) -> dict:
+    """Localize one request with an open map; returns the per-query record (JSON-serialisable).
+
+    Raises:
+        RequestError: undecodable image, gravity not supported by this build, invalid options.
+    """
+    image = decode_gray(req)
+    try:
+        loc = copy.copy(base)  # shares the open map, index and caches; only the configuration differs
+        loc.config = request_config(req)
+    except ValueError as exc:
+        raise RequestError(400, str(exc)) from None
+    kwargs = {}
+    if req.gravity is not None:
+        if not LOCALIZER_TAKES_GRAVITY:
+            raise RequestError(422, "gravity: this planarloc version cannot use a gravity prior yet; omit the field")
+        kwargs["gravity"] = np.asarray(req.gravity, dtype=float)
+    est = loc.localize(image, req.camera, **kwargs)
+    return query_record(req.name, est)
+
+
+def localize_request(req: LocalizeRequest) -> dict:
+    """Worker-process entry point: localize against the map opened by :func:`open_localizers`."""
+    if req.map_name not in _LOCALIZERS:
+        raise RequestError(404, f"map: {req.map_name!r} is not open in this worker")
+    return localize_with(_LOCALIZERS[req.map_name], req)
+
+
+def ping() -> int:
+    """Warm-up task: returns the worker's process id once its maps are open."""
+    import os
+
+    return os.getpid()
