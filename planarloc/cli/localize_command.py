@@ -8,6 +8,7 @@ from pathlib import Path
 
 from planarloc.cli.options import add_localizer_args, localizer_config, parse_camera
 from planarloc.cli.progress import console, progress_bar
+from planarloc.cli.remote_localize import add_server_args, run_remote
 from planarloc.geometry.camera import Camera
 from planarloc.io.hloc_pairs import read_hloc_pairs
 from planarloc.io.pose_list import write_pose_list
@@ -30,13 +31,15 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                     "Failed queries are listed as failed, never replaced by a map pose.\n\n"
                     "example:\n  planarloc localize --map kitti.db queries/*.png --camera 'PINHOLE 1241 376 "
                     "718.856 718.856 607.19 185.22' --structure tracks --out poses.txt")
-    p.add_argument("--map", required=True, type=Path, help="map file from `planarloc map build`")
+    p.add_argument("--map", required=True, type=Path,
+                   help="map file from `planarloc map build` (with --server: the served map's name)")
     p.add_argument("images", nargs="+", type=Path, help="query image files or folders of images")
     p.add_argument("--camera", help="query intrinsics 'MODEL W H PARAMS...' (COLMAP syntax); default: the map's "
                                     "camera if the map has one camera of the same image size")
     p.add_argument("--out", "-o", type=Path, default=Path("poses.txt"), help="results file (default: %(default)s)")
     p.add_argument("--json-dir", type=Path, help="folder for one JSON per query (default: <out>.json.d)")
     add_localizer_args(p)
+    add_server_args(p)
     p.set_defaults(func=run)
 
 
@@ -68,6 +71,8 @@ def _default_camera(loc: Localizer, shape: tuple[int, int]) -> Camera:
 
 def run(args: argparse.Namespace) -> int:
     queries = _collect(args.images)
+    if args.server:
+        return run_remote(args, queries)
     loc = Localizer(args.map, localizer_config(args))
     pairs = read_hloc_pairs(args.pairs) if args.pairs else None
     json_dir = args.json_dir or args.out.with_name(args.out.name + ".json.d")

@@ -15,8 +15,7 @@ Endpoints:
 With a token, ``/v1/*`` and ``/metrics`` need ``Authorization: Bearer <token>``.
 """
 
-from __future__ import annotations
-
+# No `from __future__ import annotations`: FastAPI reads the handlers' annotations at definition time.
 import hmac
 import json
 import logging

@@ -22,6 +22,7 @@ class ServiceMetrics:
 
     def __init__(self, pool_state) -> None:  # pool_state: object with admitted, busy, restarts
         prom = require("prometheus_client", "serve")
+        prom.disable_created_metrics()  # no *_created series: counters and histograms only
         self.registry = prom.CollectorRegistry()
         self.requests = prom.Counter("planarloc_requests", "HTTP responses", ["endpoint", "code"],
                                      registry=self.registry)
