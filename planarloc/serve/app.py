@@ -139,7 +139,7 @@ def create_app(settings: ServeSettings):  # -> fastapi.FastAPI
 
     async def _read_request(request):
         ctype = request.headers.get("content-type", "")
-        if not ctype.startswith("multipart/form-data"):
+        if not ctype.startswith(("multipart/form-data", "application/x-www-form-urlencoded")):
             raise RequestError(415, f"expected a multipart/form-data body, got {ctype[:60]!r}")
         length = request.headers.get("content-length")
         limit = settings.max_image_bytes + FORM_OVERHEAD_BYTES
