@@ -11,6 +11,7 @@ from planarloc.cli.map_command import parse_dataset_options
 from planarloc.cli.options import add_dataset_args, add_feature_args, add_localizer_args, feature_config, localizer_config
 from planarloc.cli.progress import console, progress_bar
 from planarloc.cli.report import print_summary_table, write_json
+from planarloc.distributed.ray_backend import ray_session
 from planarloc.io.datasets import read_dataset
 from planarloc.io.hloc_pairs import read_hloc_pairs
 from planarloc.pipeline.evaluation import config_label, default_map_path, evaluate_queries, split_map_queries, summarize
@@ -35,6 +36,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--dataset-option", action="append", metavar="KEY=VALUE", help="importer option (repeatable)")
     add_feature_args(p)
     add_localizer_args(p)
+    p.add_argument("--ray", nargs="?", const="local", metavar="ADDRESS",
+                   help="distribute over a Ray cluster (auto, HOST:PORT, ray://HOST:PORT; a local one without "
+                        "ADDRESS); needs pip install 'planarloc[ray]'")
     p.set_defaults(func=run)
 
 
@@ -46,10 +50,14 @@ def run(args: argparse.Namespace) -> int:
     config = localizer_config(args)
     pairs = read_hloc_pairs(args.pairs) if args.pairs else None
     console.print(f"map: {len(map_images)} frames -> {map_path}; queries: {len(queries)} frames")
-    with progress_bar() as update:
-        build_map(map_images, map_path, features, num_words=args.vocabulary_size, progress=update)
-        loc = Localizer(map_path, config)
-        results = evaluate_queries(loc, queries, lambda d, n: update("localize", d, n), pairs)
+    with ray_session(args.ray) as ray_backend, progress_bar() as update:
+        build_map(map_images, map_path, features, num_words=args.vocabulary_size, progress=update,
+                  mapper=ray_backend.map if ray_backend else None)
+        if ray_backend:
+            results = ray_backend.evaluate(map_path, config, queries, pairs, lambda d, n: update("localize", d, n))
+        else:
+            loc = Localizer(map_path, config)
+            results = evaluate_queries(loc, queries, lambda d, n: update("localize", d, n), pairs)
     method, structure = config_label(config)
     summary = summarize(results, method, structure, dataset=str(args.dataset), map_every=args.map_every,
                         top_n=config.top_n, tilt=features.tilt)

@@ -8,6 +8,7 @@ from pathlib import Path
 
 from planarloc.cli.options import add_dataset_args, add_feature_args, feature_config
 from planarloc.cli.progress import console, progress_bar
+from planarloc.distributed.ray_backend import ray_session
 from planarloc.io.datasets import read_dataset
 from planarloc.pipeline.map_builder import build_map
 from planarloc.pipeline.map_database import MapDatabase
@@ -45,6 +46,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     b.add_argument("--dataset-option", action="append", metavar="KEY=VALUE",
                    help="importer option, e.g. tum_camera=fr1 or max_dt=0.05 (repeatable)")
     add_feature_args(b)
+    b.add_argument("--ray", nargs="?", const="local", metavar="ADDRESS",
+                   help="distribute over a Ray cluster (auto, HOST:PORT, ray://HOST:PORT; a local one without "
+                        "ADDRESS); needs pip install 'planarloc[ray]'")
     b.set_defaults(func=run_build)
     i = msub.add_parser("info", help="summarise a map")
     i.add_argument("map", type=Path)
@@ -57,8 +61,9 @@ def run_build(args: argparse.Namespace) -> int:
     images = read_dataset(args.dataset, args.format, **parse_dataset_options(args.dataset_option))
     images = [im for im in images if im.index % args.every == 0]
     console.print(f"building map [bold]{args.out}[/] from {len(images)} images of {args.dataset}")
-    with progress_bar() as update:
-        build_map(images, args.out, feature_config(args), num_words=args.vocabulary_size, progress=update)
+    with ray_session(args.ray) as ray_backend, progress_bar() as update:
+        build_map(images, args.out, feature_config(args), num_words=args.vocabulary_size, progress=update,
+                  mapper=ray_backend.map if ray_backend else None)
     return run_info(argparse.Namespace(map=args.out))
 
 

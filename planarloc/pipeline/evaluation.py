@@ -117,23 +117,32 @@ def evaluate_configs(
         one list of :class:`QueryResult` per configuration. ``seconds`` of a result is the
         feature extraction time plus that configuration's retrieval, matching and estimation.
     """
-    from planarloc.pipeline.features import extract_features
-    from planarloc.pipeline.retrieval import retrieve_from_pairs
-
     localizers = [Localizer(map_db, c) for c in configs]
     out: list[list[QueryResult]] = [[] for _ in configs]
     for i, q in enumerate(queries):
-        t0 = time.perf_counter()
-        features = extract_features(read_gray(q.path), localizers[0].features)
-        t_feat = time.perf_counter() - t0
-        for loc, results in zip(localizers, out):
-            t1 = time.perf_counter()
-            refs = retrieve_from_pairs(pairs, q.name, loc.config.top_n) if pairs is not None else None
-            est = loc.localize_features(features, q.camera, refs)
-            results.append(query_result(q, est, t_feat + time.perf_counter() - t1))
+        for results, r in zip(out, evaluate_query(localizers, q, pairs)):
+            results.append(r)
         if progress:
             progress(i + 1, len(queries))
     return out
+
+
+def evaluate_query(localizers: Sequence[Localizer], query: PosedImage,
+                   pairs: dict[str, list[str]] | None = None) -> list[QueryResult]:
+    """Localize one query with each localizer (same map), extracting its features once."""
+    from planarloc.pipeline.features import extract_features
+    from planarloc.pipeline.retrieval import retrieve_from_pairs
+
+    t0 = time.perf_counter()
+    features = extract_features(read_gray(query.path), localizers[0].features)
+    t_feat = time.perf_counter() - t0
+    results = []
+    for loc in localizers:
+        t1 = time.perf_counter()
+        refs = retrieve_from_pairs(pairs, query.name, loc.config.top_n) if pairs is not None else None
+        est = loc.localize_features(features, query.camera, refs)
+        results.append(query_result(query, est, t_feat + time.perf_counter() - t1))
+    return results
 
 
 def config_label(config: LocalizerConfig) -> tuple[str, str]:
