@@ -122,13 +122,18 @@ class RayBackend:
 
         actor = self.ray.remote(num_cpus=1)(_QueryEvaluator)
         n = max(1, min(self.num_cpus, len(queries)))
-        pool = ActorPool([actor.remote(str(Path(map_path).resolve()), list(configs)) for _ in range(n)])
+        actors = [actor.remote(str(Path(map_path).resolve()), list(configs)) for _ in range(n)]
         out: list[list[QueryResult]] = [[] for _ in configs]
-        for i, per_config in enumerate(pool.map(lambda a, q: a.evaluate.remote(q, pairs), list(queries))):
-            for results, r in zip(out, per_config):
-                results.append(r)
-            if progress:
-                progress(i + 1, len(queries))
+        try:
+            for i, per_config in enumerate(ActorPool(actors).map(lambda a, q: a.evaluate.remote(q, pairs),
+                                                                 list(queries))):
+                for results, r in zip(out, per_config):
+                    results.append(r)
+                if progress:
+                    progress(i + 1, len(queries))
+        finally:
+            for a in actors:  # free their CPUs now, not when garbage collected
+                self.ray.kill(a)
         return out
 
     def evaluate(self, map_path: str | Path, config: LocalizerConfig, queries: Sequence[PosedImage],

@@ -28,20 +28,13 @@ from planarloc.geometry.validation import InputError
 from planarloc.pipeline.map_database import MapDatabase
 from planarloc.serve import worker
 from planarloc.serve.metrics import ServiceMetrics
-from planarloc.serve.requests import (
-    DEFAULT_MAX_IMAGE_BYTES,
-    FIELDS,
-    MapSet,
-    RequestError,
-    parse_localize_request,
-)
+from planarloc.serve.form import read_localize_form
+from planarloc.serve.requests import DEFAULT_MAX_IMAGE_BYTES, MapSet, RequestError
 from planarloc.serve.worker_pool import Overloaded, WorkerDied, WorkerPool
 
 logger = logging.getLogger(__name__)
 
 ENDPOINTS = ("/v1/localize", "/v1/maps", "/healthz", "/metrics")
-#: Room for the multipart envelope and the text fields on top of the image limit.
-FORM_OVERHEAD_BYTES = 64 * 1024
 
 
 @dataclass(frozen=True)
@@ -118,7 +111,7 @@ def create_app(settings: ServeSettings):  # -> fastapi.FastAPI
             return error(503, f"server busy ({pool.admitted} requests admitted); retry later",
                          {"Retry-After": str(exc.retry_after_s)})
         try:
-            req = await _read_request(request)
+            req = await read_localize_form(request, settings.maps, settings.max_image_bytes)
             try:
                 record = await pool.run(worker.localize_request, req)
             except InputError as exc:  # bad options found by the localizer itself
@@ -136,34 +129,6 @@ def create_app(settings: ServeSettings):  # -> fastapi.FastAPI
             return error(500, f"internal error: {type(exc).__name__}: {exc}"[:300])
         finally:
             pool.release()
-
-    async def _read_request(request):
-        ctype = request.headers.get("content-type", "")
-        if not ctype.startswith(("multipart/form-data", "application/x-www-form-urlencoded")):
-            raise RequestError(415, f"expected a multipart/form-data body, got {ctype[:60]!r}")
-        length = request.headers.get("content-length")
-        limit = settings.max_image_bytes + FORM_OVERHEAD_BYTES
-        if length is not None and length.isdigit() and int(length) > limit:
-            raise RequestError(413, f"request body of {length} bytes is over the limit of {limit} bytes")
-        try:
-            form = await request.form(max_files=1, max_fields=len(FIELDS), max_part_size=16 * 1024)
-        except Exception as exc:  # noqa: BLE001 - the multipart parser's errors are the client's
-            raise RequestError(400, f"malformed multipart form: {getattr(exc, 'detail', exc)}") from None
-        try:
-            fields, image, filename = {}, None, None
-            for key, value in form.multi_items():
-                if isinstance(value, str):
-                    fields[key] = value
-                elif key == "image":
-                    image = await value.read(settings.max_image_bytes + 1)
-                    filename = value.filename
-                else:
-                    raise RequestError(400, f"{key[:40]}: unexpected file field (only 'image' is a file)")
-            if "image" in fields:
-                raise RequestError(400, "image: must be a file field (multipart filename=...), not text")
-            return parse_localize_request(fields, image, filename, settings.maps, settings.max_image_bytes)
-        finally:
-            await form.close()
 
     @app.get("/v1/maps")
     async def maps():
