@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import subprocess
 from collections.abc import Iterator
+from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
@@ -10,12 +12,23 @@ import pytest
 pytest.importorskip("fastapi", reason="the serve extra is not installed (pip install 'planarloc[serve]')")
 pytest.importorskip("httpx", reason="the serve extra is not installed (pip install 'planarloc[serve]')")
 
-from live_server import TOKEN, Served, start_server, stop_server  # noqa: E402
-
 from planarloc.io.datasets import read_dataset  # noqa: E402
 from planarloc.pipeline.map_builder import build_map  # noqa: E402
+from planarloc.serve.launcher import start_server, stop_server  # noqa: E402
 from planarloc.synthetic.world.export import generate  # noqa: E402
 from planarloc.synthetic.world.presets import get_preset, shrunk  # noqa: E402
+
+TOKEN = "test-token"
+
+
+@dataclass(frozen=True)
+class Served:
+    url: str
+    process: subprocess.Popen
+    world: Path
+    map_path: Path
+    camera: str
+    token: str
 
 
 @pytest.fixture(scope="session")

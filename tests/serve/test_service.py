@@ -12,15 +12,14 @@ import pytest
 
 from planarloc.cli.main import main
 from planarloc.client import Client, ServiceError
+from planarloc.serve.launcher import worker_pids
 
-from live_server import Served, worker_pids
 
-
-def queries(server: Served, n: int = 3) -> list[Path]:
+def queries(server, n: int = 3) -> list[Path]:
     return sorted((server.world / "query" / "rgb").glob("*.png"))[:n]
 
 
-def test_served_pose_equals_cli_pose(server: Served, tmp_path: Path) -> None:
+def test_served_pose_equals_cli_pose(server, tmp_path: Path) -> None:
     images = queries(server)
     out = tmp_path / "poses.txt"
     assert main(["localize", "--map", str(server.map_path), *map(str, images), "--camera", server.camera,
@@ -41,7 +40,7 @@ def test_served_pose_equals_cli_pose(server: Served, tmp_path: Path) -> None:
     assert remote.read_text() == out.read_text()
 
 
-def test_malformed_requests_get_one_line_4xx_and_the_server_stays_up(server: Served) -> None:
+def test_malformed_requests_get_one_line_4xx_and_the_server_stays_up(server) -> None:
     image = queries(server, 1)[0]
     png = image.read_bytes()
     cam = server.camera
@@ -93,7 +92,7 @@ def test_malformed_requests_get_one_line_4xx_and_the_server_stays_up(server: Ser
         assert exc.value.status == 415
 
 
-def test_overload_answers_503_with_retry_after_and_nothing_else(server: Served) -> None:
+def test_overload_answers_503_with_retry_after_and_nothing_else(server) -> None:
     image = queries(server, 1)[0]
     statuses: list[tuple[int, str | None]] = []
     barrier = threading.Barrier(12)
@@ -123,7 +122,7 @@ def test_overload_answers_503_with_retry_after_and_nothing_else(server: Served) 
 
 
 
-def test_worker_killed_mid_request_fails_cleanly_and_the_pool_recovers(server: Served) -> None:
+def test_worker_killed_mid_request_fails_cleanly_and_the_pool_recovers(server) -> None:
     import os
     import signal
 
