@@ -109,10 +109,14 @@ def level_stats(records: list[tuple[int, float, str | None]], seconds: float) ->
     codes: dict[str, int] = {}
     for s, _, _ in records:
         codes[str(s)] = codes.get(str(s), 0) + 1
-    return {"requests": len(records), "statuses": codes, "seconds": seconds,
-            "throughput_per_s": len(ok) / seconds if seconds > 0 else None,
-            "p50_s": float(np.percentile(ok, 50)) if ok else None,
-            "p99_s": float(np.percentile(ok, 99)) if ok else None}
+    return {
+        "requests": len(records),
+        "statuses": codes,
+        "seconds": seconds,
+        "throughput_per_s": len(ok) / seconds if seconds > 0 else None,
+        "p50_s": float(np.percentile(ok, 50)) if ok else None,
+        "p99_s": float(np.percentile(ok, 99)) if ok else None,
+    }
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -120,8 +124,9 @@ def main(argv: list[str] | None = None) -> int:
     report: dict = {"workers": args.workers, "queue": args.queue, "cpu_count": os.cpu_count()}
     with tempfile.TemporaryDirectory() as tmp:
         map_path, images, camera = prepare(args, Path(tmp))
-        url, proc = start_server(["--map", f"bench={map_path}", "--workers", str(args.workers),
-                                  "--queue", str(args.queue)])
+        url, proc = start_server(
+            ["--map", f"bench={map_path}", "--workers", str(args.workers), "--queue", str(args.queue)]
+        )
         try:
             load = Load(url, images, camera)
             load.run(args.workers, 2, 120)  # warm-up: every worker has run a request
@@ -130,8 +135,11 @@ def main(argv: list[str] | None = None) -> int:
                 t0 = time.perf_counter()
                 recs = load.run(clients, args.requests, 300)
                 report["levels"][clients] = s = level_stats(recs, time.perf_counter() - t0)
-                print(f"{clients:2d} clients: {s['throughput_per_s']:.2f} req/s, p50 {s['p50_s']:.3f} s, "
-                      f"p99 {s['p99_s']:.3f} s, statuses {s['statuses']}", flush=True)
+                print(
+                    f"{clients:2d} clients: {s['throughput_per_s']:.2f} req/s, p50 {s['p50_s']:.3f} s, "
+                    f"p99 {s['p99_s']:.3f} s, statuses {s['statuses']}",
+                    flush=True,
+                )
 
             t0 = time.perf_counter()
             recs = load.run(16, 4, 300)
@@ -140,8 +148,11 @@ def main(argv: list[str] | None = None) -> int:
             s["non_200_503"] = bad
             s["all_503_have_retry_after"] = all(ra is not None for st, _, ra in recs if st == 503)
             report["overload_16"] = s
-            print(f"16 clients (overload): statuses {s['statuses']}, other than 200/503: {bad or 'none'}, "
-                  f"Retry-After on every 503: {s['all_503_have_retry_after']}", flush=True)
+            print(
+                f"16 clients (overload): statuses {s['statuses']}, other than 200/503: {bad or 'none'}, "
+                f"Retry-After on every 503: {s['all_503_have_retry_after']}",
+                flush=True,
+            )
 
             pids = [proc.pid, *worker_pids(proc.pid)]
             samples: list[tuple[float, int]] = [(0.0, rss_bytes(pids))]
@@ -150,7 +161,9 @@ def main(argv: list[str] | None = None) -> int:
             def sample() -> None:
                 t_start = time.monotonic()
                 while not stop.wait(5.0):
-                    samples.append((time.monotonic() - t_start, rss_bytes([proc.pid, *worker_pids(proc.pid)])))
+                    samples.append(
+                        (time.monotonic() - t_start, rss_bytes([proc.pid, *worker_pids(proc.pid)]))
+                    )
 
             sampler = threading.Thread(target=sample)
             sampler.start()
@@ -161,12 +174,21 @@ def main(argv: list[str] | None = None) -> int:
             s = level_stats(recs, time.perf_counter() - t0)
             rss = [r for _, r in samples]
             half = max(1, len(rss) // 2)
-            s.update(rss_start_mb=rss[0] / 2**20, rss_end_mb=rss[-1] / 2**20, rss_max_mb=max(rss) / 2**20,
-                     rss_second_half_growth_mb=(rss[-1] - rss[half]) / 2**20, rss_samples=len(rss))
+            s.update(
+                rss_start_mb=rss[0] / 2**20,
+                rss_end_mb=rss[-1] / 2**20,
+                rss_max_mb=max(rss) / 2**20,
+                rss_second_half_growth_mb=(rss[-1] - rss[half]) / 2**20,
+                rss_samples=len(rss),
+            )
             report["soak"] = s
-            print(f"soak {s['seconds']:.0f} s, 2 clients: {s['requests']} requests {s['statuses']}, RSS "
-                  f"{s['rss_start_mb']:.0f} -> {s['rss_end_mb']:.0f} MB (max {s['rss_max_mb']:.0f}, second half "
-                  f"{s['rss_second_half_growth_mb']:+.1f} MB)", flush=True)
+            print(
+                f"soak {s['seconds']:.0f} s, 2 clients: {s['requests']} requests {s['statuses']}, RSS "
+                f"{s['rss_start_mb']:.0f} -> {s['rss_end_mb']:.0f} MB (max {s['rss_max_mb']:.0f}, "
+                f"second half "
+                f"{s['rss_second_half_growth_mb']:+.1f} MB)",
+                flush=True,
+            )
 
             before = worker_pids(proc.pid)
             result: list = []
@@ -184,12 +206,19 @@ def main(argv: list[str] | None = None) -> int:
                     break
                 time.sleep(0.1)
             after = level_stats(load.run(args.workers, 2, 120), 1.0)["statuses"]
-            report["fault"] = {"in_flight_statuses": sorted(st for st, _, _ in result), "recovery_s": recovered,
-                               "after_statuses": after, "server_alive": proc.poll() is None,
-                               "worker_restarts": httpx.get(url + "/healthz").json()["worker_restarts"]}
-            print(f"worker killed mid-request: in-flight answers {report['fault']['in_flight_statuses']}, "
-                  f"pool recovered in {recovered if recovered is None else round(recovered, 2)} s, "
-                  f"then {after}", flush=True)
+            report["fault"] = {
+                "in_flight_statuses": sorted(st for st, _, _ in result),
+                "recovery_s": recovered,
+                "after_statuses": after,
+                "server_alive": proc.poll() is None,
+                "worker_restarts": httpx.get(url + "/healthz").json()["worker_restarts"],
+            }
+            print(
+                f"worker killed mid-request: in-flight answers {report['fault']['in_flight_statuses']}, "
+                f"pool recovered in {recovered if recovered is None else round(recovered, 2)} s, "
+                f"then {after}",
+                flush=True,
+            )
         finally:
             stop_server(proc)
     if args.json:

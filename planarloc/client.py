@@ -28,7 +28,9 @@ def camera_text(camera: Camera | str) -> str:
     """COLMAP syntax ``MODEL W H PARAMS...`` of a camera (strings pass through)."""
     if isinstance(camera, str):
         return camera
-    return " ".join([camera.model.value, str(camera.width), str(camera.height), *(repr(p) for p in camera.params)])
+    return " ".join(
+        [camera.model.value, str(camera.width), str(camera.height), *(repr(p) for p in camera.params)]
+    )
 
 
 class Client:
@@ -41,7 +43,9 @@ class Client:
         retries: how often a 503 (busy, worker died) is retried, waiting ``Retry-After`` (bounded).
     """
 
-    def __init__(self, base_url: str, token: str | None = None, timeout: float = 120.0, retries: int = 3) -> None:
+    def __init__(
+        self, base_url: str, token: str | None = None, timeout: float = 120.0, retries: int = 3
+    ) -> None:
         httpx = require("httpx", "serve")
         headers = {"Authorization": f"Bearer {token}"} if token else {}
         self._http = httpx.Client(base_url=base_url.rstrip("/"), headers=headers, timeout=timeout)
@@ -64,7 +68,9 @@ class Client:
         except ValueError:
             reason = response.text[:200]
         retry = response.headers.get("retry-after")
-        raise ServiceError(response.status_code, str(reason), float(retry) if retry and retry.isdigit() else None)
+        raise ServiceError(
+            response.status_code, str(reason), float(retry) if retry and retry.isdigit() else None
+        )
 
     def health(self) -> dict:
         """``GET /healthz``."""
@@ -74,10 +80,19 @@ class Client:
         """``GET /v1/maps``: name, images, cameras and completeness of each served map."""
         return self._check(self._http.get("/v1/maps"))["maps"]
 
-    def localize(self, image: str | Path | bytes, camera: Camera | str, *, map: str | None = None,
-                 name: str | None = None, gravity: tuple[float, float, float] | None = None,
-                 session: str | None = None, method: str | None = None, structure: str | None = None,
-                 seed: int | None = None) -> dict:
+    def localize(
+        self,
+        image: str | Path | bytes,
+        camera: Camera | str,
+        *,
+        map: str | None = None,
+        name: str | None = None,
+        gravity: tuple[float, float, float] | None = None,
+        session: str | None = None,
+        method: str | None = None,
+        structure: str | None = None,
+        seed: int | None = None,
+    ) -> dict:
         """``POST /v1/localize``; returns the per-query record (as ``planarloc localize`` writes it).
 
         Args:
@@ -94,13 +109,21 @@ class Client:
             data, fname = image, name or "query.png"
         else:
             data, fname = Path(image).read_bytes(), name or Path(image).name
-        fields = {"camera": camera_text(camera), "map": map, "session": session, "method": method,
-                  "structure": structure, "seed": None if seed is None else str(int(seed)),
-                  "gravity": None if gravity is None else " ".join(repr(float(g)) for g in gravity)}
+        fields = {
+            "camera": camera_text(camera),
+            "map": map,
+            "session": session,
+            "method": method,
+            "structure": structure,
+            "seed": None if seed is None else str(int(seed)),
+            "gravity": None if gravity is None else " ".join(repr(float(g)) for g in gravity),
+        }
         fields = {k: v for k, v in fields.items() if v is not None}
         for attempt in range(self.retries + 1):
             try:
-                return self._check(self._http.post("/v1/localize", data=fields, files={"image": (fname, data)}))
+                return self._check(
+                    self._http.post("/v1/localize", data=fields, files={"image": (fname, data)})
+                )
             except ServiceError as exc:
                 if exc.status != 503 or attempt == self.retries:
                     raise

@@ -19,5 +19,7 @@ def require(module: str, extra: str) -> ModuleType:
     try:
         return importlib.import_module(module)
     except ImportError as exc:
-        raise MissingExtraError(f"{module} is not installed ({exc.msg}); install the optional dependencies "
-                                f"with: pip install 'planarloc[{extra}]'") from None
+        raise MissingExtraError(
+            f"{module} is not installed ({exc.msg}); install the optional dependencies "
+            f"with: pip install 'planarloc[{extra}]'"
+        ) from None

@@ -17,15 +17,24 @@ from planarloc.pipeline.localizer import LocalizerConfig
 
 _LOC = LocalizerConfig()
 #: Options the service takes per request; the others are the server's and cannot be changed remotely.
-_LOCAL_ONLY = {"pairs": None, "use_depth": False, "iterations": None, "top_n": _LOC.top_n,
-               "threshold": _LOC.ransac.threshold_px, "max_position_std": _LOC.ransac.max_position_std_m}
+_LOCAL_ONLY = {
+    "pairs": None,
+    "use_depth": False,
+    "iterations": None,
+    "top_n": _LOC.top_n,
+    "threshold": _LOC.ransac.threshold_px,
+    "max_position_std": _LOC.ransac.max_position_std_m,
+}
 
 
 def add_server_args(p: argparse.ArgumentParser) -> None:
     g = p.add_argument_group("remote (planarloc serve)")
-    g.add_argument("--server", metavar="URL",
-                   help="localize through this planarloc service (e.g. http://127.0.0.1:8080); --map is then "
-                        "the served map's name and --camera is required")
+    g.add_argument(
+        "--server",
+        metavar="URL",
+        help="localize through this planarloc service (e.g. http://127.0.0.1:8080); --map is then "
+        "the served map's name and --camera is required",
+    )
     g.add_argument("--token", help="bearer token of the service (planarloc serve --token)")
 
 
@@ -33,10 +42,14 @@ def run_remote(args: argparse.Namespace, queries: list[tuple[str, object]]) -> i
     """Send every query to ``args.server``; same result files as the local run."""
     from planarloc.client import Client, ServiceError
 
-    changed = [k.replace("_", "-") for k, default in _LOCAL_ONLY.items() if getattr(args, k, default) != default]
+    changed = [
+        k.replace("_", "-") for k, default in _LOCAL_ONLY.items() if getattr(args, k, default) != default
+    ]
     if changed:
-        raise ValueError(f"--server: --{', --'.join(changed)} cannot be set per request (the server uses its "
-                         "defaults); drop them or localize locally")
+        raise ValueError(
+            f"--server: --{', --'.join(changed)} cannot be set per request (the server uses its "
+            "defaults); drop them or localize locally"
+        )
     if not args.camera:
         raise ValueError("--server: pass the query intrinsics with --camera 'MODEL W H PARAMS...'")
     json_dir = args.json_dir or args.out.with_name(args.out.name + ".json.d")
@@ -45,8 +58,15 @@ def run_remote(args: argparse.Namespace, queries: list[tuple[str, object]]) -> i
     with Client(args.server, token=args.token) as client, progress_bar() as update:
         for i, (name, path) in enumerate(queries):
             try:
-                record = client.localize(path, args.camera, map=str(args.map), name=name.replace("/", "__"),
-                                         method=args.method, structure=args.structure, seed=args.seed)
+                record = client.localize(
+                    path,
+                    args.camera,
+                    map=str(args.map),
+                    name=name.replace("/", "__"),
+                    method=args.method,
+                    structure=args.structure,
+                    seed=args.seed,
+                )
             except ServiceError as exc:
                 raise ValueError(f"{path}: {args.server} answered {exc}") from None
             record["name"] = name
@@ -55,11 +75,15 @@ def run_remote(args: argparse.Namespace, queries: list[tuple[str, object]]) -> i
                 Pose.from_quat_wxyz(record["quat_wxyz"], record["t"])  # validates the server's answer
                 # The record's own numbers, not a quaternion -> matrix -> quaternion round trip, so the
                 # file is byte-identical to a local run's.
-                poses.append(" ".join([name, *(repr(float(v)) for v in (*record["quat_wxyz"], *record["t"]))]) + "\n")
+                poses.append(
+                    " ".join([name, *(repr(float(v)) for v in (*record["quat_wxyz"], *record["t"]))]) + "\n"
+                )
             else:
                 failed += 1
             update("localize", i + 1, len(queries))
     write_text_atomic(args.out, poses)
-    console.print(f"localized {len(poses)} of {len(queries)} queries ({failed} failed) via {args.server} -> "
-                  f"{args.out}, details in {json_dir}/")
+    console.print(
+        f"localized {len(poses)} of {len(queries)} queries ({failed} failed) via {args.server} -> "
+        f"{args.out}, details in {json_dir}/"
+    )
     return 0

@@ -46,8 +46,10 @@ def check_address(address: str | None) -> str | None:
     if address is None or address == LOCAL:
         return None
     if not _ADDRESS.match(address):
-        raise ValueError(f"--ray {address!r}: not a Ray address (auto, HOST:PORT or ray://HOST:PORT); write "
-                         "--ray=ADDRESS, or put a bare --ray after the positional arguments")
+        raise ValueError(
+            f"--ray {address!r}: not a Ray address (auto, HOST:PORT or ray://HOST:PORT); write "
+            "--ray=ADDRESS, or put a bare --ray after the positional arguments"
+        )
     return address
 
 
@@ -78,8 +80,11 @@ class RayBackend:
         address = check_address(address)
         self._owns = not self.ray.is_initialized()
         if self._owns:
-            kwargs: dict[str, Any] = {"include_dashboard": False, "logging_level": logging.WARNING,
-                                      "log_to_driver": False}
+            kwargs: dict[str, Any] = {
+                "include_dashboard": False,
+                "logging_level": logging.WARNING,
+                "log_to_driver": False,
+            }
             if address is None:
                 kwargs["num_cpus"] = num_cpus
             self.ray.init(address=address, **kwargs)
@@ -114,9 +119,14 @@ class RayBackend:
         while pending:
             yield self.ray.get(pending.popleft())
 
-    def evaluate_configs(self, map_path: str | Path, configs: Sequence[LocalizerConfig],
-                         queries: Sequence[PosedImage], pairs: dict[str, list[str]] | None = None,
-                         progress: Callable[[int, int], None] | None = None) -> list[list[QueryResult]]:
+    def evaluate_configs(
+        self,
+        map_path: str | Path,
+        configs: Sequence[LocalizerConfig],
+        queries: Sequence[PosedImage],
+        pairs: dict[str, list[str]] | None = None,
+        progress: Callable[[int, int], None] | None = None,
+    ) -> list[list[QueryResult]]:
         """Like :func:`planarloc.pipeline.evaluation.evaluate_configs`, with one actor per CPU."""
         from ray.util import ActorPool
 
@@ -125,8 +135,9 @@ class RayBackend:
         actors = [actor.remote(str(Path(map_path).resolve()), list(configs)) for _ in range(n)]
         out: list[list[QueryResult]] = [[] for _ in configs]
         try:
-            for i, per_config in enumerate(ActorPool(actors).map(lambda a, q: a.evaluate.remote(q, pairs),
-                                                                 list(queries))):
+            for i, per_config in enumerate(
+                ActorPool(actors).map(lambda a, q: a.evaluate.remote(q, pairs), list(queries))
+            ):
                 for results, r in zip(out, per_config):
                     results.append(r)
                 if progress:
@@ -136,9 +147,14 @@ class RayBackend:
                 self.ray.kill(a)
         return out
 
-    def evaluate(self, map_path: str | Path, config: LocalizerConfig, queries: Sequence[PosedImage],
-                 pairs: dict[str, list[str]] | None = None,
-                 progress: Callable[[int, int], None] | None = None) -> list[QueryResult]:
+    def evaluate(
+        self,
+        map_path: str | Path,
+        config: LocalizerConfig,
+        queries: Sequence[PosedImage],
+        pairs: dict[str, list[str]] | None = None,
+        progress: Callable[[int, int], None] | None = None,
+    ) -> list[QueryResult]:
         """Localize every query on the cluster and compare with its ground truth."""
         return self.evaluate_configs(map_path, [config], queries, pairs, progress)[0]
 

@@ -2,8 +2,9 @@
 
 One Ray Serve application per map; each application is a deployment of ``replicas`` replicas,
 and every replica opens **its one map** once, read-only, and keeps it. Ray Serve routes the
-requests over the replicas and queues at most ``max_ongoing_requests`` per replica (beyond that
-at most ``max_queued_requests`` wait beyond that; then its proxy answers 503). A replica speaks the same API as ``planarloc serve``:
+requests over the replicas; each replica takes ``max_ongoing_requests`` at a time, at most
+``max_queued_requests`` more wait, beyond that Ray Serve answers 503. A replica speaks the same
+API as ``planarloc serve``:
 
     POST /v1/maps/<name>/localize   multipart form: image, camera, gravity, session, method,
                                      structure, seed  ->  the record ``planarloc localize`` writes
@@ -79,12 +80,19 @@ class LocalizerReplica:
             return JSONResponse({"error": " ".join(str(exc).split())}, status_code=400)
         except Exception as exc:  # noqa: BLE001 - a bug: one line to the client, traceback in the replica log
             logging.getLogger(__name__).exception("localize failed")
-            return JSONResponse({"error": f"internal error: {type(exc).__name__}: {exc}"[:300]}, status_code=500)
+            return JSONResponse(
+                {"error": f"internal error: {type(exc).__name__}: {exc}"[:300]}, status_code=500
+            )
         return Response(json.dumps(record), media_type="application/json")
 
 
-def localizer_app(map_name: str, map_path: str | Path, replicas: int = 1, max_ongoing_requests: int = 2,
-                  max_queued_requests: int = 16):
+def localizer_app(
+    map_name: str,
+    map_path: str | Path,
+    replicas: int = 1,
+    max_ongoing_requests: int = 2,
+    max_queued_requests: int = 16,
+):
     """The bound Ray Serve application of one map (``replicas`` replicas, 1 CPU each).
 
     Each replica takes ``max_ongoing_requests`` at a time (one computes, the others wait in it);
@@ -93,15 +101,25 @@ def localizer_app(map_name: str, map_path: str | Path, replicas: int = 1, max_on
     serve = require("ray.serve", "ray")
     if replicas < 1:
         raise ValueError(f"replicas: need at least 1, got {replicas}")
-    deployment = serve.deployment(LocalizerReplica, name=f"localizer-{map_name}", num_replicas=int(replicas),
-                                  max_ongoing_requests=int(max_ongoing_requests),
-                                  max_queued_requests=int(max_queued_requests),
-                                  ray_actor_options={"num_cpus": 1})
+    deployment = serve.deployment(
+        LocalizerReplica,
+        name=f"localizer-{map_name}",
+        num_replicas=int(replicas),
+        max_ongoing_requests=int(max_ongoing_requests),
+        max_queued_requests=int(max_queued_requests),
+        ray_actor_options={"num_cpus": 1},
+    )
     return deployment.bind(map_name, str(Path(map_path).resolve()))
 
 
-def deploy_fleet(maps: Mapping[str, str | Path], replicas: int = 1, host: str = "127.0.0.1", port: int = 8000,
-                 max_ongoing_requests: int = 2, max_queued_requests: int = 16) -> dict:
+def deploy_fleet(
+    maps: Mapping[str, str | Path],
+    replicas: int = 1,
+    host: str = "127.0.0.1",
+    port: int = 8000,
+    max_ongoing_requests: int = 2,
+    max_queued_requests: int = 16,
+) -> dict:
     """Deploy one application per map on the connected Ray cluster; returns ``{name: handle}``.
 
     Routes: ``POST /v1/maps/<name>/localize`` on ``host:port`` (Ray Serve's HTTP proxy).

@@ -27,8 +27,8 @@ from planarloc.extras import require
 from planarloc.geometry.validation import InputError
 from planarloc.pipeline.map_database import MapDatabase
 from planarloc.serve import worker
-from planarloc.serve.metrics import ServiceMetrics
 from planarloc.serve.form import read_localize_form
+from planarloc.serve.metrics import ServiceMetrics
 from planarloc.serve.requests import DEFAULT_MAX_IMAGE_BYTES, MapSet, RequestError
 from planarloc.serve.worker_pool import Overloaded, WorkerDied, WorkerPool
 
@@ -53,10 +53,20 @@ def map_summaries(maps: MapSet) -> list[dict]:
     out = []
     for name, path in maps.paths.items():
         with MapDatabase.open(path, mode="r") as db:
-            cams = sorted({(p.camera.model.value, p.camera.width, p.camera.height, p.camera.params)
-                           for p in db.posed_images()})
-            out.append({"name": name, "images": db.num_images(), "complete": bool(db.is_complete),
-                        "cameras": [f"{m} {w} {h} " + " ".join(repr(v) for v in prm) for m, w, h, prm in cams]})
+            cams = sorted(
+                {
+                    (p.camera.model.value, p.camera.width, p.camera.height, p.camera.params)
+                    for p in db.posed_images()
+                }
+            )
+            out.append(
+                {
+                    "name": name,
+                    "images": db.num_images(),
+                    "complete": bool(db.is_complete),
+                    "cameras": [f"{m} {w} {h} " + " ".join(repr(v) for v in prm) for m, w, h, prm in cams],
+                }
+            )
     return out
 
 
@@ -81,7 +91,9 @@ def create_app(settings: ServeSettings):  # -> fastapi.FastAPI
         finally:
             await pool.close()
 
-    app = fastapi.FastAPI(title="planarloc", lifespan=lifespan, docs_url=None, redoc_url=None, openapi_url=None)
+    app = fastapi.FastAPI(
+        title="planarloc", lifespan=lifespan, docs_url=None, redoc_url=None, openapi_url=None
+    )
     app.state.pool = pool
     app.state.metrics = metrics
 
@@ -94,8 +106,11 @@ def create_app(settings: ServeSettings):  # -> fastapi.FastAPI
             auth = request.headers.get("authorization", "")
             if not hmac.compare_digest(auth.encode(), f"Bearer {settings.token}".encode()):
                 metrics.rejected.labels("unauthorized").inc()
-                response = error(401, "missing or wrong bearer token (header 'Authorization: Bearer TOKEN')",
-                                 {"WWW-Authenticate": "Bearer"})
+                response = error(
+                    401,
+                    "missing or wrong bearer token (header 'Authorization: Bearer TOKEN')",
+                    {"WWW-Authenticate": "Bearer"},
+                )
                 metrics.observe(endpoint, 401, time.perf_counter() - t0)
                 return response
         response = await call_next(request)
@@ -108,8 +123,11 @@ def create_app(settings: ServeSettings):  # -> fastapi.FastAPI
             pool.admit()
         except Overloaded as exc:
             metrics.rejected.labels("overloaded").inc()
-            return error(503, f"server busy ({pool.admitted} requests admitted); retry later",
-                         {"Retry-After": str(exc.retry_after_s)})
+            return error(
+                503,
+                f"server busy ({pool.admitted} requests admitted); retry later",
+                {"Retry-After": str(exc.retry_after_s)},
+            )
         try:
             req = await read_localize_form(request, settings.maps, settings.max_image_bytes)
             try:
@@ -138,10 +156,17 @@ def create_app(settings: ServeSettings):  # -> fastapi.FastAPI
     async def healthz():
         alive = sum(p is not None for p in pool.pids)
         return responses.JSONResponse(
-            {"status": "ok" if alive == pool.workers else "degraded", "workers": pool.workers,
-             "workers_alive": alive, "worker_restarts": pool.restarts, "admitted": pool.admitted,
-             "capacity": pool.capacity, "maps": list(settings.maps.paths)},
-            status_code=200 if alive else 503)
+            {
+                "status": "ok" if alive == pool.workers else "degraded",
+                "workers": pool.workers,
+                "workers_alive": alive,
+                "worker_restarts": pool.restarts,
+                "admitted": pool.admitted,
+                "capacity": pool.capacity,
+                "maps": list(settings.maps.paths),
+            },
+            status_code=200 if alive else 503,
+        )
 
     @app.get("/metrics")
     async def prometheus():

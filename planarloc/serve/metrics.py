@@ -24,17 +24,29 @@ class ServiceMetrics:
         prom = require("prometheus_client", "serve")
         prom.disable_created_metrics()  # no *_created series: counters and histograms only
         self.registry = prom.CollectorRegistry()
-        self.requests = prom.Counter("planarloc_requests", "HTTP responses", ["endpoint", "code"],
-                                     registry=self.registry)
-        self.latency = prom.Histogram("planarloc_request_seconds", "request latency", ["endpoint"],
-                                      buckets=LATENCY_BUCKETS, registry=self.registry)
-        self.outcomes = prom.Counter("planarloc_localize", "localization outcomes", ["status"],
-                                     registry=self.registry)
-        self.rejected = prom.Counter("planarloc_rejected", "refused requests", ["reason"], registry=self.registry)
-        admitted = prom.Gauge("planarloc_queue_admitted", "requests running or waiting", registry=self.registry)
+        self.requests = prom.Counter(
+            "planarloc_requests", "HTTP responses", ["endpoint", "code"], registry=self.registry
+        )
+        self.latency = prom.Histogram(
+            "planarloc_request_seconds",
+            "request latency",
+            ["endpoint"],
+            buckets=LATENCY_BUCKETS,
+            registry=self.registry,
+        )
+        self.outcomes = prom.Counter(
+            "planarloc_localize", "localization outcomes", ["status"], registry=self.registry
+        )
+        self.rejected = prom.Counter(
+            "planarloc_rejected", "refused requests", ["reason"], registry=self.registry
+        )
+        admitted = prom.Gauge(
+            "planarloc_queue_admitted", "requests running or waiting", registry=self.registry
+        )
         busy = prom.Gauge("planarloc_workers_busy", "workers running a request", registry=self.registry)
-        restarts = prom.Gauge("planarloc_worker_restarts_total", "worker processes replaced after dying",
-                              registry=self.registry)
+        restarts = prom.Gauge(
+            "planarloc_worker_restarts_total", "worker processes replaced after dying", registry=self.registry
+        )
         admitted.set_function(lambda: pool_state.admitted)
         busy.set_function(lambda: pool_state.busy)
         restarts.set_function(lambda: pool_state.restarts)

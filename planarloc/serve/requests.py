@@ -58,8 +58,10 @@ class MapSet:
             if not sep:
                 name, path = Path(spec).stem, spec
             if not MAP_NAME.match(name):
-                raise ValueError(f"--map {spec!r}: map names are 1-64 characters [A-Za-z0-9_.-] starting with a "
-                                 f"letter or digit, got {name!r}; use --map NAME=PATH")
+                raise ValueError(
+                    f"--map {spec!r}: map names are 1-64 characters [A-Za-z0-9_.-] starting with a "
+                    f"letter or digit, got {name!r}; use --map NAME=PATH"
+                )
             if name in paths:
                 raise ValueError(f"--map {spec!r}: the name {name!r} is given twice; use --map NAME=PATH")
             if not Path(path).is_file():
@@ -74,7 +76,9 @@ class MapSet:
         if not name:
             if len(self.paths) == 1:
                 return next(iter(self.paths))
-            raise RequestError(400, f"map: required when several maps are served ({', '.join(sorted(self.paths))})")
+            raise RequestError(
+                400, f"map: required when several maps are served ({', '.join(sorted(self.paths))})"
+            )
         if name not in self.paths:
             raise RequestError(404, f"map: unknown map {name[:64]!r}; GET /v1/maps lists the served maps")
         return name
@@ -119,9 +123,9 @@ def image_size(data: bytes) -> tuple[str, int, int]:
             if marker in (0xD8, 0x01) or 0xD0 <= marker <= 0xD7:
                 i += 2
                 continue
-            length = struct.unpack(">H", data[i + 2:i + 4])[0]
+            length = struct.unpack(">H", data[i + 2 : i + 4])[0]
             if 0xC0 <= marker <= 0xCF and marker not in (0xC4, 0xC8, 0xCC):
-                h, w = struct.unpack(">HH", data[i + 5:i + 9])
+                h, w = struct.unpack(">HH", data[i + 5 : i + 9])
                 return "jpeg", int(w), int(h)
             i += 2 + length
         raise RequestError(400, "image: corrupt JPEG (no frame header)")
@@ -132,7 +136,9 @@ def parse_camera_field(text: str) -> Camera:
     """``MODEL WIDTH HEIGHT PARAMS...`` (COLMAP syntax) -> :class:`Camera`, else a 400."""
     tok = text.replace(",", " ").split()
     if len(tok) < 4:
-        raise RequestError(400, f"camera: expected 'MODEL WIDTH HEIGHT PARAMS...' (COLMAP syntax), got {text[:80]!r}")
+        raise RequestError(
+            400, f"camera: expected 'MODEL WIDTH HEIGHT PARAMS...' (COLMAP syntax), got {text[:80]!r}"
+        )
     try:
         return Camera(tok[0], int(tok[1]), int(tok[2]), tuple(float(v) for v in tok[3:]))
     except ValueError as exc:
@@ -145,8 +151,11 @@ def _parse_gravity(text: str) -> tuple[float, float, float]:
     except ValueError:
         g = ()
     if len(g) != 3 or not all(abs(v) < float("inf") for v in g) or sum(v * v for v in g) == 0:
-        raise RequestError(400, f"gravity: expected three finite numbers 'gx gy gz' (camera frame, not all zero), "
-                                f"got {text[:80]!r}")
+        raise RequestError(
+            400,
+            f"gravity: expected three finite numbers 'gx gy gz' (camera frame, not all zero), "
+            f"got {text[:80]!r}",
+        )
     return g  # type: ignore[return-value]
 
 
@@ -158,8 +167,13 @@ def _choice(name: str, text: str | None, choices: Sequence[str]) -> str | None:
     return text
 
 
-def parse_localize_request(fields: Mapping[str, str], image: bytes | None, filename: str | None, maps: MapSet,
-                           max_image_bytes: int = DEFAULT_MAX_IMAGE_BYTES) -> LocalizeRequest:
+def parse_localize_request(
+    fields: Mapping[str, str],
+    image: bytes | None,
+    filename: str | None,
+    maps: MapSet,
+    max_image_bytes: int = DEFAULT_MAX_IMAGE_BYTES,
+) -> LocalizeRequest:
     """Validate the fields of ``POST /v1/localize`` (module docstring).
 
     Args:
@@ -171,7 +185,9 @@ def parse_localize_request(fields: Mapping[str, str], image: bytes | None, filen
     """
     unknown = sorted(set(fields) - set(FIELDS))
     if unknown:
-        raise RequestError(400, f"unknown form field(s) {', '.join(unknown)[:80]}; expected {', '.join(FIELDS)}")
+        raise RequestError(
+            400, f"unknown form field(s) {', '.join(unknown)[:80]}; expected {', '.join(FIELDS)}"
+        )
     map_name = maps.resolve(fields.get("map") or None)
     if image is None:
         raise RequestError(400, "image: missing (multipart file field 'image', a JPEG or PNG)")
@@ -196,8 +212,14 @@ def parse_localize_request(fields: Mapping[str, str], image: bytes | None, filen
     if any(c.isspace() for c in name) or len(name) > 255:
         raise RequestError(400, "image: the file name must be at most 255 characters without whitespace")
     return LocalizeRequest(
-        map_name=map_name, name=name, image=bytes(image), camera=camera,
-        gravity=_parse_gravity(fields["gravity"]) if fields.get("gravity") else None, session=session,
+        map_name=map_name,
+        name=name,
+        image=bytes(image),
+        camera=camera,
+        gravity=_parse_gravity(fields["gravity"]) if fields.get("gravity") else None,
+        session=session,
         method=_choice("method", fields.get("method"), [m.value for m in Method]),
         structure=_choice("structure", fields.get("structure"), [s.value for s in Structure]),
-        seed=None if seed is None else int(seed), image_size=(w, h))
+        seed=None if seed is None else int(seed),
+        image_size=(w, h),
+    )

@@ -41,7 +41,9 @@ def open_localizers(maps: Mapping[str, str | Path]) -> dict[str, Localizer]:
 def request_config(req: LocalizeRequest) -> LocalizerConfig:
     """The CLI's default configuration with the request's method, structure and seed."""
     base = LocalizerConfig()
-    ransac = RansacOptions(**{k: v for k, v in (("structure", req.structure), ("seed", req.seed)) if v is not None})
+    ransac = RansacOptions(
+        **{k: v for k, v in (("structure", req.structure), ("seed", req.seed)) if v is not None}
+    )
     return LocalizerConfig(method=req.method or base.method, ransac=ransac)
 
 
@@ -51,8 +53,11 @@ def decode_gray(req: LocalizeRequest) -> np.ndarray:
     if image is None:
         raise RequestError(400, "image: cannot decode (corrupt or truncated JPEG/PNG)")
     if (image.shape[1], image.shape[0]) != (req.camera.width, req.camera.height):
-        raise RequestError(400, f"camera: {req.camera.width}x{req.camera.height} does not fit the "
-                                f"{image.shape[1]}x{image.shape[0]} image")
+        raise RequestError(
+            400,
+            f"camera: {req.camera.width}x{req.camera.height} does not fit the "
+            f"{image.shape[1]}x{image.shape[0]} image",
+        )
     return image
 
 
@@ -71,7 +76,9 @@ def localize_with(base: Localizer, req: LocalizeRequest) -> dict:
     kwargs = {}
     if req.gravity is not None:
         if not LOCALIZER_TAKES_GRAVITY:
-            raise RequestError(422, "gravity: this planarloc version cannot use a gravity prior yet; omit the field")
+            raise RequestError(
+                422, "gravity: this planarloc version cannot use a gravity prior yet; omit the field"
+            )
         kwargs["gravity"] = np.asarray(req.gravity, dtype=float)
     est = loc.localize(image, req.camera, **kwargs)
     return query_record(req.name, est)

@@ -80,8 +80,9 @@ class WorkerPool:
         return self.workers + self.queue_size
 
     def _new_executor(self) -> ProcessPoolExecutor:
-        return ProcessPoolExecutor(1, mp_context=self._ctx, initializer=worker.open_localizers,
-                                   initargs=(self.maps,))
+        return ProcessPoolExecutor(
+            1, mp_context=self._ctx, initializer=worker.open_localizers, initargs=(self.maps,)
+        )
 
     async def start(self) -> None:
         """Spawn the workers and wait until each has opened its maps (raises if a map fails to open)."""
@@ -92,7 +93,9 @@ class WorkerPool:
             pids = await asyncio.gather(*(loop.run_in_executor(ex, worker.ping) for ex in self._executors))
         except BrokenProcessPool:
             await self.close()
-            raise ValueError("a worker process failed to open the maps (run `planarloc map info` on each)") from None
+            raise ValueError(
+                "a worker process failed to open the maps (run `planarloc map info` on each)"
+            ) from None
         self.pids = list(pids)
         self._tasks = [asyncio.create_task(self._serve(i)) for i in range(self.workers)]
 
@@ -130,7 +133,9 @@ class WorkerPool:
                 self._executors[slot] = self._new_executor()
                 self.restarts += 1
                 if not job.future.done():
-                    job.future.set_exception(WorkerDied("the worker process running this request died; retry"))
+                    job.future.set_exception(
+                        WorkerDied("the worker process running this request died; retry")
+                    )
                 try:
                     self.pids[slot] = await loop.run_in_executor(self._executors[slot], worker.ping)
                 except BrokenProcessPool:

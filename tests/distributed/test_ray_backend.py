@@ -43,7 +43,9 @@ def assert_same_map_content(a_path: Path, b_path: Path) -> None:
         for name in pa:
             assert np.array_equal(pa[name].cam_from_world.matrix4, pb[name].cam_from_world.matrix4)
             fa, fb = a.get_features(name), b.get_features(name)
-            assert np.array_equal(fa.keypoints, fb.keypoints) and np.array_equal(fa.descriptors, fb.descriptors)
+            assert np.array_equal(fa.keypoints, fb.keypoints) and np.array_equal(
+                fa.descriptors, fb.descriptors
+            )
         (ia, ga), (ib, gb) = a.get_global_descriptors(), b.get_global_descriptors()
         assert np.array_equal(ia, ib) and np.array_equal(ga, gb)
         assert a.get_blob("retrieval/vlad_vocabulary") == b.get_blob("retrieval/vlad_vocabulary")
@@ -61,7 +63,10 @@ def test_addresses_are_checked() -> None:
 def test_map_build_on_ray_equals_local_build(world: Path, tmp_path: Path, backend: RayBackend) -> None:
     local = build_map(read_dataset(world / "map", "tum"), tmp_path / "local.db")
     # The CLI reuses the Ray instance this process is connected to (the fixture's local one).
-    assert main(["map", "build", str(world / "map"), "-f", "tum", "--out", str(tmp_path / "ray.db"), "--ray"]) == 0
+    assert (
+        main(["map", "build", str(world / "map"), "-f", "tum", "--out", str(tmp_path / "ray.db"), "--ray"])
+        == 0
+    )
     assert_same_map_content(local, tmp_path / "ray.db")
     # The ordered map yields task results in input order and re-raises a task's error.
     assert list(backend.map(abs, [-3, 1, -2, 5, -8], window=2)) == [3, 1, 2, 5, 8]
@@ -77,8 +82,28 @@ def test_evaluate_on_ray_equals_local(world: Path, tmp_path: Path, backend: RayB
     local = evaluate_queries(Localizer(db, config), queries)
     assert sum(r.success for r in local) >= len(local) // 2
     summary = tmp_path / "eval.json"
-    assert main(["evaluate", str(world / "map"), "-f", "tum", "--map-every", "2", "--map", str(db),
-                 "--structure", "tracks", "--seed", "3", "--json", str(summary), "--ray"]) == 0
+    assert (
+        main(
+            [
+                "evaluate",
+                str(world / "map"),
+                "-f",
+                "tum",
+                "--map-every",
+                "2",
+                "--map",
+                str(db),
+                "--structure",
+                "tracks",
+                "--seed",
+                "3",
+                "--json",
+                str(summary),
+                "--ray",
+            ]
+        )
+        == 0
+    )
     per_query = json.loads(summary.read_text())["per_query"]
     assert [q["name"] for q in per_query] == [r.name for r in local]
     for q, r in zip(per_query, local):  # same poses as the local run, query by query
@@ -104,7 +129,9 @@ def test_ray_serve_deployment_serves_the_cli_pose(world: Path, tmp_path: Path, b
     try:
         deploy_fleet({"office": db}, replicas=2, host="127.0.0.1", port=port)
         url = f"http://127.0.0.1:{port}/v1/maps/office/localize"
-        r = httpx.post(url, files={"image": (query.name, query.read_bytes())}, data={"camera": camera}, timeout=120)
+        r = httpx.post(
+            url, files={"image": (query.name, query.read_bytes())}, data={"camera": camera}, timeout=120
+        )
         assert r.status_code == 200, r.text
         served = r.json()
         assert served["quat_wxyz"] == local["quat_wxyz"] and served["t"] == local["t"]

@@ -44,8 +44,22 @@ def served_world(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path, 
 @pytest.fixture(scope="module")
 def server(served_world: tuple[Path, Path, str]) -> Iterator[Served]:
     world, map_path, camera = served_world
-    url, proc = start_server(["--map", f"office={map_path}", "--map", f"second={map_path}", "--workers", "2",
-                              "--queue", "2", "--token", TOKEN, "--max-image-mb", "1"])
+    url, proc = start_server(
+        [
+            "--map",
+            f"office={map_path}",
+            "--map",
+            f"second={map_path}",
+            "--workers",
+            "2",
+            "--queue",
+            "2",
+            "--token",
+            TOKEN,
+            "--max-image-mb",
+            "1",
+        ]
+    )
     try:
         yield Served(url, proc, world, map_path, camera, TOKEN)
     finally:

@@ -18,8 +18,15 @@ def test_image_size_reads_the_header(ext: str) -> None:
     assert image_size(data)[1:] == (53, 37)
 
 
-@pytest.mark.parametrize("data,status", [(b"hello world", 415), (b"\x89PNG\r\n\x1a\n\0\0", 400),
-                                         (b"\xff\xd8\xff\xe0\x00\x10JFIF\x00", 400), (b"", 415)])
+@pytest.mark.parametrize(
+    "data,status",
+    [
+        (b"hello world", 415),
+        (b"\x89PNG\r\n\x1a\n\0\0", 400),
+        (b"\xff\xd8\xff\xe0\x00\x10JFIF\x00", 400),
+        (b"", 415),
+    ],
+)
 def test_image_size_rejects_non_images(data: bytes, status: int) -> None:
     with pytest.raises(RequestError) as exc:
         image_size(data)
@@ -50,5 +57,7 @@ def test_camera_must_fit_the_image(tmp_path: Path) -> None:
     with pytest.raises(RequestError, match="does not fit"):
         parse_localize_request({"camera": "PINHOLE 64 48 30 30 16 12"}, png, "q.png", maps)
     with pytest.raises(RequestError, match="over the limit") as exc:
-        parse_localize_request({"camera": "PINHOLE 32 24 30 30 16 12"}, png, "q.png", maps, max_image_bytes=10)
+        parse_localize_request(
+            {"camera": "PINHOLE 32 24 30 30 16 12"}, png, "q.png", maps, max_image_bytes=10
+        )
     assert exc.value.status == 413

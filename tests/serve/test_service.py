@@ -22,21 +22,68 @@ def queries(server, n: int = 3) -> list[Path]:
 def test_served_pose_equals_cli_pose(server, tmp_path: Path) -> None:
     images = queries(server)
     out = tmp_path / "poses.txt"
-    assert main(["localize", "--map", str(server.map_path), *map(str, images), "--camera", server.camera,
-                 "--structure", "tracks", "--seed", "7", "--out", str(out)]) == 0
+    assert (
+        main(
+            [
+                "localize",
+                "--map",
+                str(server.map_path),
+                *map(str, images),
+                "--camera",
+                server.camera,
+                "--structure",
+                "tracks",
+                "--seed",
+                "7",
+                "--out",
+                str(out),
+            ]
+        )
+        == 0
+    )
     with Client(server.url, token=server.token) as client:
         for image in images:
             local = json.loads((tmp_path / "poses.txt.json.d" / (image.name + ".json")).read_text())
             served = client.localize(image, server.camera, map="office", structure="tracks", seed=7)
             assert served["success"] and served["status"] == local["status"]
-            for key in ("name", "quat_wxyz", "t", "num_inliers", "num_inliers_3d", "num_matches", "references",
-                        "position_std_m", "stats", "model"):
+            for key in (
+                "name",
+                "quat_wxyz",
+                "t",
+                "num_inliers",
+                "num_inliers_3d",
+                "num_matches",
+                "references",
+                "position_std_m",
+                "stats",
+                "model",
+            ):
                 assert served[key] == local[key], key
     # localize --server writes the same files as the local run.
     remote = tmp_path / "remote.txt"
-    assert main(["localize", "--server", server.url, "--token", server.token, "--map", "second",
-                 *map(str, images), "--camera", server.camera, "--structure", "tracks", "--seed", "7",
-                 "--out", str(remote)]) == 0
+    assert (
+        main(
+            [
+                "localize",
+                "--server",
+                server.url,
+                "--token",
+                server.token,
+                "--map",
+                "second",
+                *map(str, images),
+                "--camera",
+                server.camera,
+                "--structure",
+                "tracks",
+                "--seed",
+                "7",
+                "--out",
+                str(remote),
+            ]
+        )
+        == 0
+    )
     assert remote.read_text() == out.read_text()
 
 
@@ -47,28 +94,70 @@ def test_malformed_requests_get_one_line_4xx_and_the_server_stays_up(server) -> 
     auth = {"Authorization": f"Bearer {server.token}"}
     url = server.url + "/v1/localize"
     battery = [
-        ("not an image", dict(files={"image": ("q.png", b"GIF89a....")}, data={"camera": cam, "map": "office"}), 415),
-        ("truncated png", dict(files={"image": ("q.png", png[:40])}, data={"camera": cam, "map": "office"}), 400),
-        ("too large", dict(files={"image": ("q.png", png + b"\0" * (2 << 20))}, data={"camera": cam, "map": "office"}),
-         413),
-        ("camera garbage", dict(files={"image": ("q.png", png)}, data={"camera": "hello", "map": "office"}), 400),
-        ("camera model", dict(files={"image": ("q.png", png)}, data={"camera": "FISHEYE 320 240 1 2 3", "map": "office"}),
-         400),
-        ("camera size", dict(files={"image": ("q.png", png)}, data={"camera": "PINHOLE 640 480 500 500 320 240",
-                                                                    "map": "office"}), 400),
+        (
+            "not an image",
+            dict(files={"image": ("q.png", b"GIF89a....")}, data={"camera": cam, "map": "office"}),
+            415,
+        ),
+        (
+            "truncated png",
+            dict(files={"image": ("q.png", png[:40])}, data={"camera": cam, "map": "office"}),
+            400,
+        ),
+        (
+            "too large",
+            dict(files={"image": ("q.png", png + b"\0" * (2 << 20))}, data={"camera": cam, "map": "office"}),
+            413,
+        ),
+        (
+            "camera garbage",
+            dict(files={"image": ("q.png", png)}, data={"camera": "hello", "map": "office"}),
+            400,
+        ),
+        (
+            "camera model",
+            dict(files={"image": ("q.png", png)}, data={"camera": "FISHEYE 320 240 1 2 3", "map": "office"}),
+            400,
+        ),
+        (
+            "camera size",
+            dict(
+                files={"image": ("q.png", png)},
+                data={"camera": "PINHOLE 640 480 500 500 320 240", "map": "office"},
+            ),
+            400,
+        ),
         ("no camera", dict(files={"image": ("q.png", png)}, data={"map": "office"}), 400),
         ("no image", dict(data={"camera": cam, "map": "office"}), 400),
         ("image as text", dict(data={"image": "abc", "camera": cam, "map": "office"}), 400),
         ("no map of two", dict(files={"image": ("q.png", png)}, data={"camera": cam}), 400),
         ("unknown map", dict(files={"image": ("q.png", png)}, data={"camera": cam, "map": "nope"}), 404),
-        ("map as path", dict(files={"image": ("q.png", png)}, data={"camera": cam, "map": str(server.map_path)}), 404),
+        (
+            "map as path",
+            dict(files={"image": ("q.png", png)}, data={"camera": cam, "map": str(server.map_path)}),
+            404,
+        ),
         ("traversal", dict(files={"image": ("q.png", png)}, data={"camera": cam, "map": "../office"}), 404),
-        ("bad gravity", dict(files={"image": ("q.png", png)}, data={"camera": cam, "map": "office", "gravity": "0 1"}),
-         400),
-        ("bad method", dict(files={"image": ("q.png", png)}, data={"camera": cam, "map": "office", "method": "9p"}),
-         400),
-        ("bad seed", dict(files={"image": ("q.png", png)}, data={"camera": cam, "map": "office", "seed": "-3"}), 400),
-        ("unknown field", dict(files={"image": ("q.png", png)}, data={"camera": cam, "map": "office", "x": "1"}), 400),
+        (
+            "bad gravity",
+            dict(files={"image": ("q.png", png)}, data={"camera": cam, "map": "office", "gravity": "0 1"}),
+            400,
+        ),
+        (
+            "bad method",
+            dict(files={"image": ("q.png", png)}, data={"camera": cam, "map": "office", "method": "9p"}),
+            400,
+        ),
+        (
+            "bad seed",
+            dict(files={"image": ("q.png", png)}, data={"camera": cam, "map": "office", "seed": "-3"}),
+            400,
+        ),
+        (
+            "unknown field",
+            dict(files={"image": ("q.png", png)}, data={"camera": cam, "map": "office", "x": "1"}),
+            400,
+        ),
         ("json body", dict(json={"camera": cam}), 415),
     ]
     with httpx.Client(headers=auth, timeout=60) as http:
@@ -77,7 +166,9 @@ def test_malformed_requests_get_one_line_4xx_and_the_server_stays_up(server) -> 
             assert r.status_code == status, (what, r.text)
             reason = r.json()["error"]
             assert reason and "\n" not in reason, what
-        r = http.post(url, content=b"--x\r\nbroken", headers={"content-type": "multipart/form-data; boundary=x"})
+        r = http.post(
+            url, content=b"--x\r\nbroken", headers={"content-type": "multipart/form-data; boundary=x"}
+        )
         assert 400 <= r.status_code < 500
         assert http.get(server.url + "/v1/maps").json()["maps"][0]["name"] == "office"
         assert "str(server.map_path)" not in http.get(server.url + "/v1/maps").text
@@ -100,8 +191,11 @@ def test_overload_answers_503_with_retry_after_and_nothing_else(server) -> None:
     def one() -> None:
         with httpx.Client(timeout=120, headers={"Authorization": f"Bearer {server.token}"}) as http:
             barrier.wait()
-            r = http.post(server.url + "/v1/localize", files={"image": (image.name, image.read_bytes())},
-                          data={"camera": server.camera, "map": "office", "structure": "tracks"})
+            r = http.post(
+                server.url + "/v1/localize",
+                files={"image": (image.name, image.read_bytes())},
+                data={"camera": server.camera, "map": "office", "structure": "tracks"},
+            )
             statuses.append((r.status_code, r.headers.get("retry-after")))
 
     threads = [threading.Thread(target=one) for _ in range(12)]
@@ -115,11 +209,12 @@ def test_overload_answers_503_with_retry_after_and_nothing_else(server) -> None:
     assert all(ra and int(ra) >= 1 for s, ra in statuses if s == 503)
     metrics = httpx.get(server.url + "/metrics", headers={"Authorization": f"Bearer {server.token}"}).text
     assert 'planarloc_requests_total{code="200",endpoint="/v1/localize"}' in metrics
-    assert "planarloc_request_seconds_bucket" in metrics and 'planarloc_localize_total{status="success"}' in metrics
+    assert (
+        "planarloc_request_seconds_bucket" in metrics
+        and 'planarloc_localize_total{status="success"}' in metrics
+    )
     if 503 in codes:
         assert 'planarloc_rejected_total{reason="overloaded"}' in metrics
-
-
 
 
 def test_worker_killed_mid_request_fails_cleanly_and_the_pool_recovers(server) -> None:
