@@ -26,8 +26,10 @@ from planarloc.serve.requests import LocalizeRequest, RequestError
 logger = logging.getLogger(__name__)
 
 _LOCALIZERS: dict[str, Localizer] = {}
-#: Whether this planarloc's Localizer.localize accepts a gravity prior.
-LOCALIZER_TAKES_GRAVITY = "gravity" in inspect.signature(Localizer.localize).parameters
+#: The keyword of Localizer.localize that takes a gravity prior, if this planarloc has one.
+GRAVITY_KEYWORD = next(
+    (k for k in ("gravity", "query_gravity") if k in inspect.signature(Localizer.localize).parameters), None
+)
 
 
 def open_localizers(maps: Mapping[str, str | Path]) -> dict[str, Localizer]:
@@ -75,11 +77,11 @@ def localize_with(base: Localizer, req: LocalizeRequest) -> dict:
         raise RequestError(400, str(exc)) from None
     kwargs = {}
     if req.gravity is not None:
-        if not LOCALIZER_TAKES_GRAVITY:
+        if GRAVITY_KEYWORD is None:
             raise RequestError(
                 422, "gravity: this planarloc version cannot use a gravity prior yet; omit the field"
             )
-        kwargs["gravity"] = np.asarray(req.gravity, dtype=float)
+        kwargs[GRAVITY_KEYWORD] = np.asarray(req.gravity, dtype=float)
     est = loc.localize(image, req.camera, **kwargs)
     return query_record(req.name, est)
 
