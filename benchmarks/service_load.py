@@ -121,7 +121,12 @@ def level_stats(records: list[tuple[int, float, str | None]], seconds: float) ->
 
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
-    report: dict = {"workers": args.workers, "queue": args.queue, "cpu_count": os.cpu_count()}
+    report: dict = {
+        "workers": args.workers,
+        "queue": args.queue,
+        "cpu_count": os.cpu_count(),
+        "load_average_1min_start": os.getloadavg()[0],
+    }
     with tempfile.TemporaryDirectory() as tmp:
         map_path, images, camera = prepare(args, Path(tmp))
         url, proc = start_server(
@@ -221,6 +226,11 @@ def main(argv: list[str] | None = None) -> int:
             )
         finally:
             stop_server(proc)
+    report["load_average_1min_end"] = os.getloadavg()[0]
+    print(
+        f"machine load average (1 min): {report['load_average_1min_start']:.1f} at start, "
+        f"{report['load_average_1min_end']:.1f} at the end, on {os.cpu_count()} cores"
+    )
     if args.json:
         args.json.write_text(json.dumps(report, indent=1))
     return 0

@@ -15,7 +15,8 @@ from planarloc.cli.main import build_parser, main
 def test_cli_import_does_not_load_the_extras() -> None:
     code = (
         "import sys, planarloc.cli.main, planarloc.client, planarloc.distributed.ray_backend;"
-        "loaded = [m for m in ('fastapi', 'uvicorn', 'ray', 'httpx', 'prometheus_client') if m in sys.modules];"
+        "extras = ('fastapi', 'uvicorn', 'ray', 'httpx', 'prometheus_client');"
+        "loaded = [m for m in extras if m in sys.modules];"
         "print(loaded); sys.exit(1 if loaded else 0)"
     )
     root = Path(__file__).resolve().parents[2]
