@@ -50,6 +50,7 @@ class Client:
         headers = {"Authorization": f"Bearer {token}"} if token else {}
         self._http = httpx.Client(base_url=base_url.rstrip("/"), headers=headers, timeout=timeout)
         self.retries = int(retries)
+        self._transport_error = httpx.TransportError
 
     def __enter__(self) -> Client:
         return self
@@ -59,6 +60,15 @@ class Client:
 
     def close(self) -> None:
         self._http.close()
+
+    def _send(self, method: str, path: str, **kwargs: object) -> dict:
+        try:
+            response = self._http.request(method, path, **kwargs)
+        except self._transport_error as exc:
+            raise ServiceError(
+                0, f"cannot reach {self._http.base_url}: {type(exc).__name__}: {exc}"
+            ) from None
+        return self._check(response)
 
     def _check(self, response) -> dict:
         if response.status_code == 200:
@@ -74,11 +84,11 @@ class Client:
 
     def health(self) -> dict:
         """``GET /healthz``."""
-        return self._check(self._http.get("/healthz"))
+        return self._send("GET", "/healthz")
 
     def maps(self) -> list[dict]:
         """``GET /v1/maps``: name, images, cameras and completeness of each served map."""
-        return self._check(self._http.get("/v1/maps"))["maps"]
+        return self._send("GET", "/v1/maps")["maps"]
 
     def localize(
         self,
@@ -121,9 +131,7 @@ class Client:
         fields = {k: v for k, v in fields.items() if v is not None}
         for attempt in range(self.retries + 1):
             try:
-                return self._check(
-                    self._http.post("/v1/localize", data=fields, files={"image": (fname, data)})
-                )
+                return self._send("POST", "/v1/localize", data=fields, files={"image": (fname, data)})
             except ServiceError as exc:
                 if exc.status != 503 or attempt == self.retries:
                     raise

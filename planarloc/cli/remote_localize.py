@@ -33,9 +33,26 @@ def add_server_args(p: argparse.ArgumentParser) -> None:
         "--server",
         metavar="URL",
         help="localize through this planarloc service (e.g. http://127.0.0.1:8080); --map is then "
-        "the served map's name and --camera is required",
+        "the served map's name; example: planarloc localize --server http://127.0.0.1:8080 --map office "
+        "q/*.png --camera 'PINHOLE 640 480 525 525 320 240'",
     )
     g.add_argument("--token", help="bearer token of the service (planarloc serve --token)")
+
+
+def _served_camera(client, map_name: str) -> str:
+    """The camera of a served map that has exactly one (like the local default), else an error."""
+    from planarloc.client import ServiceError
+
+    try:
+        maps = {m["name"]: m for m in client.maps()}
+    except ServiceError as exc:
+        raise ValueError(f"--server: {exc}") from None
+    cameras = maps.get(map_name, {}).get("cameras", [])
+    if len(cameras) != 1:
+        raise ValueError(
+            f"--server: map {map_name!r} has {len(cameras)} cameras: pass the query intrinsics with --camera"
+        )
+    return cameras[0]
 
 
 def run_remote(args: argparse.Namespace, queries: list[tuple[str, object]]) -> int:
@@ -50,17 +67,16 @@ def run_remote(args: argparse.Namespace, queries: list[tuple[str, object]]) -> i
             f"--server: --{', --'.join(changed)} cannot be set per request (the server uses its "
             "defaults); drop them or localize locally"
         )
-    if not args.camera:
-        raise ValueError("--server: pass the query intrinsics with --camera 'MODEL W H PARAMS...'")
     json_dir = args.json_dir or args.out.with_name(args.out.name + ".json.d")
     json_dir.mkdir(parents=True, exist_ok=True)
     poses, failed = [], 0
     with Client(args.server, token=args.token) as client, progress_bar() as update:
+        camera = args.camera or _served_camera(client, str(args.map))
         for i, (name, path) in enumerate(queries):
             try:
                 record = client.localize(
                     path,
-                    args.camera,
+                    camera,
                     map=str(args.map),
                     name=name.replace("/", "__"),
                     method=args.method,

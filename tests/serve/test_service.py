@@ -32,6 +32,7 @@ def test_served_pose_equals_cli_pose(server, tmp_path: Path) -> None:
             keys = "name quat_wxyz t num_inliers num_inliers_3d num_matches references position_std_m model"
             for key in keys.split():
                 assert served[key] == local[key], key
+            assert served["stats"] == local["stats"]  # same RANSAC run: same counters
     # localize --server writes the same files as the local run.
     remote = tmp_path / "remote.txt"
     server_args = ["--server", server.url, "--token", server.token, "--map", "second"]
