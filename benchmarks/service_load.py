@@ -4,6 +4,9 @@
    rendered office world (or ``--map``/``--queries``/``--camera`` for your data).
 2. Closed-loop clients (each sends its next request when the previous one is answered) at 1, 2
    and 4 concurrent clients, ``--requests`` per client: throughput, p50 / p99 latency, statuses.
+   Peer: the same queries localized in this process (``Localizer.localize``, no HTTP, one at a
+   time, measured right before the server starts); the ratio of the 1-client p50 to it is the
+   service's overhead (upload, multipart, queue, process hop, JSON).
 3. Overload: 16 concurrent clients, no retries: every answer must be 200 or 503 (+ Retry-After).
 4. Soak: 2 clients for ``--soak-seconds`` (bounded also by a request count); the RSS of the server
    and its workers is sampled every few seconds: memory must stay flat.
@@ -104,6 +107,22 @@ class Load:
         return out
 
 
+def in_process_latency(map_path: Path, images: list[Path], camera: str, n: int) -> dict:
+    """The peer: the same localization in this process, without the service."""
+    from planarloc.pipeline.localizer import Localizer
+    from planarloc.pipeline.map_builder import read_gray
+    from planarloc.serve.requests import parse_camera_field
+
+    loc, cam = Localizer(map_path), parse_camera_field(camera)
+    loc.localize(read_gray(images[0]), cam)  # warm-up (numba cache, map pages)
+    times = []
+    for i in range(n):
+        t0 = time.perf_counter()
+        loc.localize(read_gray(images[i % len(images)]), cam)
+        times.append(time.perf_counter() - t0)
+    return {"requests": n, "p50_s": float(np.median(times))}
+
+
 def level_stats(records: list[tuple[int, float, str | None]], seconds: float) -> dict:
     ok = [lat for s, lat, _ in records if s == 200]
     codes: dict[str, int] = {}
@@ -129,6 +148,10 @@ def main(argv: list[str] | None = None) -> int:
     }
     with tempfile.TemporaryDirectory() as tmp:
         map_path, images, camera = prepare(args, Path(tmp))
+        report["in_process"] = peer = in_process_latency(map_path, images, camera, args.requests)
+        print(
+            f"in-process peer: p50 {peer['p50_s']:.3f} s per query ({peer['requests']} queries)", flush=True
+        )
         url, proc = start_server(
             ["--map", f"bench={map_path}", "--workers", str(args.workers), "--queue", str(args.queue)]
         )
@@ -140,6 +163,7 @@ def main(argv: list[str] | None = None) -> int:
                 t0 = time.perf_counter()
                 recs = load.run(clients, args.requests, 300)
                 report["levels"][clients] = s = level_stats(recs, time.perf_counter() - t0)
+                s["p50_over_in_process"] = s["p50_s"] / peer["p50_s"] if s["p50_s"] else None
                 print(
                     f"{clients:2d} clients: {s['throughput_per_s']:.2f} req/s, p50 {s['p50_s']:.3f} s, "
                     f"p99 {s['p99_s']:.3f} s, statuses {s['statuses']}",

@@ -20,7 +20,7 @@ class ServiceError(RuntimeError):
     """The service refused a request: ``status`` (HTTP code) and the server's one-line ``reason``."""
 
     def __init__(self, status: int, reason: str, retry_after_s: float | None = None) -> None:
-        super().__init__(f"HTTP {status}: {reason}")
+        super().__init__(f"HTTP {status}: {reason}" if status else reason)
         self.status, self.reason, self.retry_after_s = status, reason, retry_after_s
 
 

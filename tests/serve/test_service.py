@@ -22,8 +22,9 @@ def queries(server, n: int = 3) -> list[Path]:
 def test_served_pose_equals_cli_pose(server, tmp_path: Path) -> None:
     images = queries(server)
     out = tmp_path / "poses.txt"
-    common = [*map(str, images), "--camera", server.camera, "--structure", "tracks", "--seed", "7"]
-    assert main(["localize", "--map", str(server.map_path), *common, "--out", str(out)]) == 0
+    common = [*map(str, images), "--structure", "tracks", "--seed", "7"]
+    camera = ["--camera", server.camera]
+    assert main(["localize", "--map", str(server.map_path), *common, *camera, "--out", str(out)]) == 0
     with Client(server.url, token=server.token) as client:
         for image in images:
             local = json.loads((tmp_path / "poses.txt.json.d" / (image.name + ".json")).read_text())
@@ -33,7 +34,7 @@ def test_served_pose_equals_cli_pose(server, tmp_path: Path) -> None:
             for key in keys.split():
                 assert served[key] == local[key], key
             assert served["stats"] == local["stats"]  # same RANSAC run: same counters
-    # localize --server writes the same files as the local run.
+    # localize --server writes the same files as the local run (camera: the served map's only one).
     remote = tmp_path / "remote.txt"
     server_args = ["--server", server.url, "--token", server.token, "--map", "second"]
     assert main(["localize", *server_args, *common, "--out", str(remote)]) == 0
