@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import json
 import socket
-from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -28,12 +27,6 @@ from planarloc.synthetic.world.presets import get_preset, shrunk  # noqa: E402
 def world(tmp_path_factory: pytest.TempPathFactory) -> Path:
     config = shrunk(get_preset("office"), scale=0.5, n_map=12, n_query=4)
     return generate(config, tmp_path_factory.mktemp("world") / "office", seed=0)
-
-
-@pytest.fixture(scope="module")
-def backend() -> Iterator[RayBackend]:
-    with RayBackend(num_cpus=2) as b:
-        yield b
 
 
 def assert_same_map_content(a_path: Path, b_path: Path) -> None:
@@ -60,7 +53,7 @@ def test_addresses_are_checked() -> None:
         check_address("data/kitti_seq2")
 
 
-def test_map_build_on_ray_equals_local_build(world: Path, tmp_path: Path, backend: RayBackend) -> None:
+def check_map_build_on_ray_equals_local_build(world: Path, tmp_path: Path, backend: RayBackend) -> None:
     local = build_map(read_dataset(world / "map", "tum"), tmp_path / "local.db")
     # The CLI reuses the Ray instance this process is connected to (the fixture's local one).
     assert (
@@ -74,7 +67,7 @@ def test_map_build_on_ray_equals_local_build(world: Path, tmp_path: Path, backen
         list(backend.map(np.math.sqrt if hasattr(np, "math") else __import__("math").sqrt, [4.0, -1.0]))
 
 
-def test_evaluate_on_ray_equals_local(world: Path, tmp_path: Path, backend: RayBackend) -> None:
+def check_evaluate_on_ray_equals_local(world: Path, tmp_path: Path) -> None:
     images = read_dataset(world / "map", "tum")
     map_images, queries = split_map_queries(images, 2)
     db = build_map(map_images, tmp_path / "e.db")
@@ -111,7 +104,7 @@ def test_evaluate_on_ray_equals_local(world: Path, tmp_path: Path, backend: RayB
         assert q["estimate_center"] == (list(r.estimate_center) if r.estimate_center else None)
 
 
-def test_ray_serve_deployment_serves_the_cli_pose(world: Path, tmp_path: Path, backend: RayBackend) -> None:
+def check_ray_serve_deployment_serves_the_cli_pose(world: Path, tmp_path: Path) -> None:
     httpx = pytest.importorskip("httpx", reason="the serve extra is not installed")
     from ray import serve
 
@@ -143,3 +136,12 @@ def test_ray_serve_deployment_serves_the_cli_pose(world: Path, tmp_path: Path, b
         assert replicas.get("RUNNING", 0) == 2
     finally:
         serve.shutdown()
+
+
+def test_ray_on_one_local_instance(world: Path, tmp_path: Path) -> None:
+    """One test, so that pytest-xdist never starts two Ray instances (each takes ~20 s to start)."""
+    with RayBackend(num_cpus=2) as backend:
+        check_map_build_on_ray_equals_local_build(world, tmp_path, backend)
+        check_evaluate_on_ray_equals_local(world, tmp_path)
+        check_ray_serve_deployment_serves_the_cli_pose(world, tmp_path)
+    assert not ray.is_initialized()
