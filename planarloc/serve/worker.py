@@ -12,6 +12,9 @@ from __future__ import annotations
 import copy
 import inspect
 import logging
+import os
+import threading
+import time
 from collections.abc import Mapping
 from pathlib import Path
 
@@ -32,8 +35,19 @@ GRAVITY_KEYWORD = next(
 )
 
 
+def _exit_with_parent(parent: int, period_s: float = 1.0) -> None:
+    """Exit this worker when its server process is gone (e.g. SIGKILLed), never outlive it."""
+    while os.getppid() == parent:
+        time.sleep(period_s)
+    os._exit(0)
+
+
 def open_localizers(maps: Mapping[str, str | Path]) -> dict[str, Localizer]:
-    """Open every map read-only (process initializer of the workers); kept for the process' life."""
+    """Open every map read-only (process initializer of the workers); kept for the process' life.
+
+    Also starts a watcher that ends the worker when the server process dies.
+    """
+    threading.Thread(target=_exit_with_parent, args=(os.getppid(),), daemon=True).start()
     _LOCALIZERS.clear()
     for name, path in maps.items():
         _LOCALIZERS[name] = Localizer(Path(path))
@@ -95,6 +109,4 @@ def localize_request(req: LocalizeRequest) -> dict:
 
 def ping() -> int:
     """Warm-up task: returns the worker's process id once its maps are open."""
-    import os
-
     return os.getpid()

@@ -161,3 +161,27 @@ def test_worker_killed_mid_request_fails_cleanly_and_the_pool_recovers(server) -
     assert set(worker_pids(server.process.pid)).isdisjoint(pids)
     with Client(server.url, token=server.token) as client:
         assert client.localize(image, server.camera, map="office", structure="tracks")["success"]
+
+
+def test_workers_never_outlive_a_killed_server(served_world) -> None:
+    import os
+    import signal
+
+    from planarloc.serve.launcher import start_server
+
+    _world, map_path, _camera = served_world
+    _url, proc = start_server(["--map", str(map_path), "--workers", "1"])
+    workers = worker_pids(proc.pid)
+    assert len(workers) == 1
+    os.kill(proc.pid, signal.SIGKILL)
+    proc.wait(10)
+    def running(pid: int) -> bool:  # a zombie (exited, not yet reaped by init) is not running
+        try:
+            return "\tZ" not in Path(f"/proc/{pid}/status").read_text().split("State:")[1].split("\n")[0]
+        except (FileNotFoundError, IndexError):
+            return False
+
+    deadline = time.monotonic() + 20
+    while time.monotonic() < deadline and any(running(pid) for pid in workers):
+        time.sleep(0.2)
+    assert not any(running(pid) for pid in workers)
