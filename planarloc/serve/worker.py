@@ -3,13 +3,15 @@
 Runs in a worker process of the service (:mod:`planarloc.serve.worker_pool`) or in a Ray Serve
 replica. Each process opens its maps once, read-only (:func:`open_localizers`), and keeps them.
 The record is :func:`planarloc.io.query_json.query_record`, the one ``planarloc localize``
-writes, and the configuration is built from the same defaults as the CLI's, so a served pose
+writes, and the configuration is built by the CLI's own option parser, so a served pose
 equals the CLI's pose for the same image, camera and seed.
 """
 
 from __future__ import annotations
 
+import argparse
 import copy
+import functools
 import inspect
 import logging
 import os
@@ -23,7 +25,6 @@ import numpy as np
 
 from planarloc.io.query_json import query_record
 from planarloc.pipeline.localizer import Localizer, LocalizerConfig
-from planarloc.robust.options import RansacOptions
 from planarloc.serve.requests import LocalizeRequest, RequestError
 
 logger = logging.getLogger(__name__)
@@ -54,13 +55,28 @@ def open_localizers(maps: Mapping[str, str | Path]) -> dict[str, Localizer]:
     return _LOCALIZERS
 
 
+@functools.cache
+def _cli_localizer_parser() -> argparse.ArgumentParser:
+    from planarloc.cli.options import add_localizer_args
+
+    parser = argparse.ArgumentParser(add_help=False)
+    add_localizer_args(parser)
+    return parser
+
+
 def request_config(req: LocalizeRequest) -> LocalizerConfig:
-    """The CLI's default configuration with the request's method, structure and seed."""
-    base = LocalizerConfig()
-    ransac = RansacOptions(
-        **{k: v for k, v in (("structure", req.structure), ("seed", req.seed)) if v is not None}
-    )
-    return LocalizerConfig(method=req.method or base.method, ransac=ransac)
+    """The configuration `planarloc localize` builds for ``--method M --structure S --seed N``.
+
+    Built by the CLI's own option parser and ``localizer_config``, so every other setting has the
+    CLI's default by construction (a served pose equals the CLI's for the same input and seed).
+    """
+    from planarloc.cli.options import localizer_config
+
+    argv = []
+    for option, value in (("--method", req.method), ("--structure", req.structure), ("--seed", req.seed)):
+        if value is not None:
+            argv += [option, str(value)]
+    return localizer_config(_cli_localizer_parser().parse_args(argv))
 
 
 def decode_gray(req: LocalizeRequest) -> np.ndarray:
