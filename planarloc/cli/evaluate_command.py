@@ -20,11 +20,13 @@ from planarloc.cli.options import (
 from planarloc.cli.progress import console, progress_bar
 from planarloc.cli.report import print_summary_table, write_json
 from planarloc.cli.result_outputs import EstimateOutputs, add_output_args, write_evaluation_tum
+from planarloc.distributed.ray_backend import ray_session
 from planarloc.io.gravity_file import read_gravity_file
 from planarloc.io.hloc_pairs import read_hloc_pairs
 from planarloc.pipeline.evaluation import config_label, evaluate_queries, gravity_from_truth, summarize
 from planarloc.pipeline.localizer import Localizer
-from planarloc.pipeline.map_builder import build_map
+from planarloc.pipeline.map_builder import build_map, map_gravity
+from planarloc.pipeline.map_database import MapDatabase
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -59,6 +61,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     add_localizer_args(p)
     add_output_args(p, "write DIR/estimate.txt and DIR/groundtruth.txt (TUM, camera-to-world, localized queries) "
                        "for `evo_ape tum DIR/groundtruth.txt DIR/estimate.txt`, and add evo's APE/RPE to the JSON")
+    p.add_argument("--ray", nargs="?", const="local", metavar="ADDRESS",
+                   help="distribute over a Ray cluster (auto, HOST:PORT, ray://HOST:PORT; a local one without "
+                        "ADDRESS); needs pip install 'planarloc[ray]'")
     p.set_defaults(func=run)
 
 
@@ -70,15 +75,22 @@ def run(args: argparse.Namespace) -> int:
     gravity = read_gravity_file(args.gravity_file) if args.gravity_file else None
     console.print(f"map: {len(map_images)} frames -> {map_path}; queries: {len(queries)} frames")
     outputs = EstimateOutputs(args.plot_matches, args.rerun)
+    if args.ray and outputs.active:
+        raise ValueError("--plot-matches and --rerun draw in this process: run them without --ray")
     try:
-        with progress_bar() as update:
-            build_map(map_images, map_path, features, num_words=args.vocabulary_size, progress=update)
-            loc = Localizer(map_path, config)
+        with ray_session(args.ray) as ray_backend, progress_bar() as update:
+            build_map(map_images, map_path, features, num_words=args.vocabulary_size, progress=update,
+                      mapper=ray_backend.map if ray_backend else None)
             if args.gravity_from_truth:
                 # the dataset's declared down direction, else the map's (estimated) gravity
-                gravity = gravity_from_truth(queries, loc.gravity.g_world_array)
-            results = evaluate_queries(loc, queries, lambda d, n: update("localize", d, n), pairs,
-                                       outputs if outputs.active else None, gravity=gravity)
+                with MapDatabase.open(map_path) as db:
+                    gravity = gravity_from_truth(queries, map_gravity(db).g_world_array)
+            progress = lambda d, n: update("localize", d, n)  # noqa: E731
+            if ray_backend:
+                results = ray_backend.evaluate(map_path, config, queries, pairs, progress, gravity=gravity)
+            else:
+                results = evaluate_queries(Localizer(map_path, config), queries, progress, pairs,
+                                           outputs if outputs.active else None, gravity=gravity)
     finally:
         outputs.close()
     method, structure = config_label(config)

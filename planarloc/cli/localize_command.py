@@ -17,12 +17,14 @@ from planarloc.cli.options import (
 )
 from planarloc.cli.progress import console, progress_bar
 from planarloc.cli.query_sources import QuerySource, dataset_queries
+from planarloc.cli.remote_localize import add_server_args, run_remote
 from planarloc.cli.result_outputs import EstimateOutputs, add_output_args, write_localize_tum
 from planarloc.geometry.camera import Camera
 from planarloc.io.datasets import FORMATS
 from planarloc.io.gravity_file import read_gravity_file
 from planarloc.io.hloc_pairs import read_hloc_pairs
 from planarloc.io.pose_list import write_pose_list
+from planarloc.io.query_json import query_record, query_record_filename
 from planarloc.pipeline.localizer import Localizer
 from planarloc.pipeline.map_builder import read_gray
 from planarloc.pipeline.retrieval import retrieve_from_pairs
@@ -43,8 +45,10 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                     "718.856 718.856 607.19 185.22' --structure tracks --out poses.txt\n"
                     "  planarloc localize --map office.db frame.png --gravity '0 0.996 0.087'   # camera pitched 5°\n"
                     "  planarloc localize --map office.db run2.bag --format rosbag --dataset-option "
-                    "image_topic=/camera/image_raw --tum run2.tum --plot-matches matches/")
-    p.add_argument("--map", required=True, type=Path, help="map file from `planarloc map build`")
+                    "image_topic=/camera/image_raw --tum run2.tum --plot-matches matches/\n"
+                    "  planarloc localize --server http://127.0.0.1:8080 --map office frame.png")
+    p.add_argument("--map", required=True, type=Path,
+                   help="map file from `planarloc map build` (with --server: the served map's name)")
     p.add_argument("images", nargs="+", type=Path, help="query image files or folders of images, or one dataset "
                                                         "with --format")
     p.add_argument("--format", "-f", choices=sorted(FORMATS), help="read the queries from a dataset in this format "
@@ -63,6 +67,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     add_localizer_args(p)
     add_output_args(p, "also write the localized queries as a TUM trajectory (timestamp tx ty tz qx qy qz qw, "
                        "camera-to-world) for evo")
+    add_server_args(p)
     p.set_defaults(func=run)
 
 
@@ -109,6 +114,8 @@ def run(args: argparse.Namespace) -> int:
         queries = dataset_queries(args.images, args.format, parse_dataset_options(args.dataset_option), camera)
     else:
         queries = [QuerySource(name, path) for name, path in _collect(args.images)]
+    if args.server:
+        return run_remote(args, [(q.name, q.path) for q in queries])
     loc = Localizer(args.map, localizer_config(args))
     pairs = read_hloc_pairs(args.pairs) if args.pairs else None
     json_dir = args.json_dir or args.out.with_name(args.out.name + ".json.d")
@@ -133,8 +140,8 @@ def run(args: argparse.Namespace) -> int:
             names.append(name)
             est = loc.localize(image, cam, refs, gravity=g)
             outputs.add(loc, name, path, cam, est, q.truth)
-            record = {"name": name, **est.to_dict(), "query_gravity": None if g is None else [float(v) for v in g]}
-            (json_dir / (name.replace("/", "__") + ".json")).write_text(json.dumps(record, indent=1))
+            record = query_record(name, est, g)
+            (json_dir / query_record_filename(name)).write_text(json.dumps(record, indent=1))
             if est.success:
                 poses.append((name, est.pose))
                 tum.append((name, q.timestamp, est.pose))

@@ -7,7 +7,8 @@ import logging
 import sys
 
 from planarloc import __version__
-from planarloc.cli import demo_command, evaluate_command, localize_command, map_command
+from planarloc.cli import demo_command, evaluate_command, localize_command, map_command, serve_command
+from planarloc.extras import MissingExtraError
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -25,7 +26,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--version", action="version", version=f"planarloc {__version__}")
     parser.add_argument("--verbose", "-v", action="count", default=0, help="more log output (-vv for debug)")
     sub = parser.add_subparsers(dest="command", required=True)
-    for module in (demo_command, map_command, localize_command, evaluate_command):
+    for module in (demo_command, map_command, localize_command, evaluate_command, serve_command):
         module.add_parser(sub)
     return parser
 
@@ -37,7 +38,7 @@ def main(argv: list[str] | None = None) -> int:
                         format="%(levelname)s %(name)s: %(message)s")
     try:
         return int(args.func(args) or 0)
-    except (ValueError, FileNotFoundError) as exc:
+    except (ValueError, FileNotFoundError, MissingExtraError) as exc:
         # Known errors (bad input, bad files) print one line; anything else keeps its traceback.
         command = " ".join(filter(None, [args.command, getattr(args, "map_command", None)]))
         print(f"planarloc {command}: error: {exc}", file=sys.stderr)

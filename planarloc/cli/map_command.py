@@ -8,6 +8,7 @@ from pathlib import Path
 
 from planarloc.cli.options import add_dataset_args, add_feature_args, feature_config
 from planarloc.cli.progress import console, progress_bar
+from planarloc.distributed.ray_backend import ray_session
 from planarloc.io.datasets import read_dataset
 from planarloc.pipeline.map_builder import build_map, map_gravity
 from planarloc.pipeline.map_database import MapDatabase
@@ -50,6 +51,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                         "world's up direction (e.g. up=z, up=-y, up=0,0,1; up=estimate: from the camera centres' plane "
                         "even if the format declares one)")
     add_feature_args(b)
+    b.add_argument("--ray", nargs="?", const="local", metavar="ADDRESS",
+                   help="distribute over a Ray cluster (auto, HOST:PORT, ray://HOST:PORT; a local one without "
+                        "ADDRESS); needs pip install 'planarloc[ray]'")
     b.set_defaults(func=run_build)
     i = msub.add_parser("info", help="summarise a map: images, features, gravity and camera mount tilt",
                         formatter_class=argparse.RawDescriptionHelpFormatter,
@@ -68,8 +72,9 @@ def run_build(args: argparse.Namespace) -> int:
     images = read_dataset(args.dataset, args.format, **parse_dataset_options(args.dataset_option))
     images = [im for im in images if im.index % args.every == 0]
     console.print(f"building map [bold]{args.out}[/] from {len(images)} images of {args.dataset}")
-    with progress_bar() as update:
-        build_map(images, args.out, feature_config(args), num_words=args.vocabulary_size, progress=update)
+    with ray_session(args.ray) as ray_backend, progress_bar() as update:
+        build_map(images, args.out, feature_config(args), num_words=args.vocabulary_size, progress=update,
+                  mapper=ray_backend.map if ray_backend else None)
     return run_info(argparse.Namespace(map=args.out))
 
 

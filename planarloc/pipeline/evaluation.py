@@ -16,12 +16,13 @@ from pathlib import Path
 import numpy as np
 
 from planarloc.geometry.pose import pose_errors
-from planarloc.pipeline.features import Features
+from planarloc.pipeline.features import Features, extract_features
 from planarloc.pipeline.gravity import gravity_in_camera
 from planarloc.pipeline.localizer import Localizer, LocalizerConfig
 from planarloc.pipeline.map_builder import read_gray
 from planarloc.pipeline.map_database import MapDatabase
 from planarloc.pipeline.posed_image import PosedImage
+from planarloc.pipeline.retrieval import retrieve_from_pairs
 from planarloc.robust.result import PoseEstimate
 
 #: ``on_estimate(localizer, query, features, estimate)`` callback of :func:`evaluate_configs`.
@@ -167,26 +168,34 @@ def evaluate_configs(
         one list of :class:`QueryResult` per configuration. ``seconds`` of a result is the
         feature extraction time plus that configuration's retrieval, matching and estimation.
     """
-    from planarloc.pipeline.features import extract_features
-    from planarloc.pipeline.retrieval import retrieve_from_pairs
-
     localizers = [Localizer(map_db, c) for c in configs]
     out: list[list[QueryResult]] = [[] for _ in configs]
     for i, q in enumerate(queries):
-        t0 = time.perf_counter()
-        features = extract_features(read_gray(q.path), localizers[0].features)
-        t_feat = time.perf_counter() - t0
-        for loc, results in zip(localizers, out):
-            t1 = time.perf_counter()
-            refs = retrieve_from_pairs(pairs, q.name, loc.config.top_n) if pairs is not None else None
-            g = None if gravity is None else gravity.get(q.name)
-            est = loc.localize_features(features, q.camera, refs, gravity=g)
-            results.append(query_result(q, est, t_feat + time.perf_counter() - t1))
-            if on_estimate is not None:
-                on_estimate(loc, q, features, est)
+        for results, r in zip(out, evaluate_query(localizers, q, pairs, on_estimate,
+                                                  gravity=None if gravity is None else gravity.get(q.name))):
+            results.append(r)
         if progress:
             progress(i + 1, len(queries))
     return out
+
+
+def evaluate_query(localizers: Sequence[Localizer], query: PosedImage,
+                   pairs: dict[str, list[str]] | None = None, on_estimate: OnEstimate | None = None,
+                   *, gravity: np.ndarray | None = None) -> list[QueryResult]:
+    """Localize one query with each localizer (same map), extracting its features once
+    (``on_estimate`` and ``gravity``: see :func:`evaluate_configs`, here for this query)."""
+    t0 = time.perf_counter()
+    features = extract_features(read_gray(query.path), localizers[0].features)
+    t_feat = time.perf_counter() - t0
+    results = []
+    for loc in localizers:
+        t1 = time.perf_counter()
+        refs = retrieve_from_pairs(pairs, query.name, loc.config.top_n) if pairs is not None else None
+        est = loc.localize_features(features, query.camera, refs, gravity=gravity)
+        results.append(query_result(query, est, t_feat + time.perf_counter() - t1))
+        if on_estimate is not None:
+            on_estimate(loc, query, features, est)
+    return results
 
 
 def config_label(config: LocalizerConfig) -> tuple[str, str]:

@@ -14,10 +14,11 @@ and ``world_down`` (the declared or user-given down direction, if any).
 from __future__ import annotations
 
 import dataclasses
+import functools
 import json
 import logging
 import os
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
@@ -25,7 +26,7 @@ import cv2
 import numpy as np
 
 from planarloc.geometry.validation import InputError
-from planarloc.pipeline.features import DEFAULT_FEATURE_CONFIG, FeatureConfig, extract_features
+from planarloc.pipeline.features import DEFAULT_FEATURE_CONFIG, FeatureConfig, Features, extract_features
 from planarloc.pipeline.gravity import GravityReport, WorldDown, gravity_from_map_poses
 from planarloc.pipeline.map_database import MapDatabase
 from planarloc.pipeline.posed_image import PosedImage
@@ -37,6 +38,8 @@ VOCABULARY_BLOB = "retrieval/vlad_vocabulary"
 GRAVITY_META = "gravity"
 WORLD_DOWN_META = "world_down"
 Progress = Callable[[str, int, int], None]  # (stage, done, total)
+#: ``mapper(fn, items)`` -> ``fn(item)`` for each item, in order (like the builtin ``map``).
+Mapper = Callable[[Callable[[PosedImage], Features], Sequence[PosedImage]], Iterable[Features]]
 
 
 def read_gray(path: Path) -> np.ndarray:
@@ -45,6 +48,11 @@ def read_gray(path: Path) -> np.ndarray:
     if image is None:
         raise InputError(f"{path}: cannot read image (missing file or unsupported format)")
     return image
+
+
+def extract_image_features(image: PosedImage, features: FeatureConfig) -> Features:
+    """Read a posed image's file and extract its local features (one map-building task)."""
+    return extract_features(read_gray(image.path), features)
 
 
 def feature_config_from_map(db: MapDatabase) -> FeatureConfig:
@@ -68,6 +76,7 @@ def build_map(
     seed: int = 0,
     progress: Progress | None = None,
     workers: int | None = None,
+    mapper: Mapper | None = None,
 ) -> Path:
     """Create (or resume / append to) the map at ``path`` from posed images.
 
@@ -80,6 +89,8 @@ def build_map(
         seed: seeds the vocabulary training.
         progress: optional ``(stage, done, total)`` callback.
         workers: feature extraction threads (default: one per core).
+        mapper: runs the feature extraction instead of the threads: ``mapper(fn, images)`` yields
+            ``fn(image)`` in input order (e.g. :func:`planarloc.distributed.ray_backend.RayBackend.map`).
 
     Returns:
         The map path.
@@ -96,10 +107,12 @@ def build_map(
         todo = [im for im in images if not db.has_image(im.name)]
         if len(todo) < len(images):
             logger.info("%s: %d of %d images already in the map, resuming", path, len(images) - len(todo), len(images))
-        # Reading and SIFT run in worker threads (OpenCV releases the GIL); the database is
-        # written in this thread, in order, one transaction per image (resumable).
+        # Reading and SIFT run in worker threads (OpenCV releases the GIL) or on the given mapper
+        # (e.g. a Ray cluster); the database is written in this thread, in order, one transaction
+        # per image (resumable).
+        extract = functools.partial(extract_image_features, features=features)
         with ThreadPoolExecutor(max_workers=workers or os.cpu_count() or 1) as pool:
-            for i, feats in enumerate(pool.map(lambda im: extract_features(read_gray(im.path), features), todo)):
+            for i, feats in enumerate((mapper or pool.map)(extract, todo)):
                 db.add_image(todo[i], feats)
                 if progress:
                     progress("features", i + 1, len(todo))

@@ -1,0 +1,87 @@
+"""`planarloc serve`: the localization service over HTTP (FastAPI + uvicorn)."""
+
+from __future__ import annotations
+
+import argparse
+import ipaddress
+import logging
+
+from planarloc.cli.progress import console
+
+logger = logging.getLogger(__name__)
+
+
+def add_parser(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "serve",
+        help="serve localization over HTTP for a fleet of robots",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+        description="POST /v1/localize (multipart: image, camera 'MODEL W H PARAMS...', optional map, "
+        "gravity, "
+        "session, method, structure, seed) answers the same JSON `planarloc localize` writes per "
+        "query. GET /v1/maps, /healthz, /metrics (Prometheus). Localization runs in --workers "
+        "processes that open every map once, read-only; at most --workers + --queue requests are "
+        "admitted, the others get 503 with Retry-After. Needs: pip install 'planarloc[serve]'.\n\n"
+        "example:\n  planarloc serve --map office=office.db --map lab=lab.db --workers 2 --port 8080\n"
+        "  curl -F image=@q.png -F 'camera=PINHOLE 640 480 525 525 320 240' -F map=office "
+        "http://127.0.0.1:8080/v1/localize",
+    )
+    p.add_argument(
+        "--map",
+        dest="maps",
+        action="append",
+        required=True,
+        metavar="PATH|NAME=PATH",
+        help="map file to serve, named after its file stem or NAME (repeatable)",
+    )
+    p.add_argument(
+        "--host", default="127.0.0.1", help="address to bind (default: %(default)s, loopback only)"
+    )
+    p.add_argument(
+        "--port", type=int, default=8080, help="TCP port, 0 = any free port (default: %(default)s)"
+    )
+    p.add_argument(
+        "--workers", type=int, default=2, help="localization worker processes (default: %(default)s)"
+    )
+    p.add_argument(
+        "--queue", type=int, default=8, help="requests waiting for a worker before 503 (default: %(default)s)"
+    )
+    p.add_argument("--token", help="require 'Authorization: Bearer TOKEN' on /v1/* and /metrics")
+    p.add_argument(
+        "--max-image-mb", type=float, default=20.0, help="image upload limit in MB (default: %(default)s)"
+    )
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from planarloc.extras import require
+    from planarloc.serve.app import ServeSettings, create_app
+    from planarloc.serve.requests import MapSet
+
+    uvicorn = require("uvicorn", "serve")
+    if not 0 <= args.port < 65536:
+        raise ValueError(f"--port: expected 0..65535, got {args.port}")
+    if args.max_image_mb <= 0:
+        raise ValueError(f"--max-image-mb: must be positive, got {args.max_image_mb}")
+    try:
+        loopback = ipaddress.ip_address(args.host).is_loopback
+    except ValueError:
+        loopback = args.host == "localhost"
+    if not loopback and not args.token:
+        logger.warning("serving on %s without --token: anyone who can reach it can use it", args.host)
+    settings = ServeSettings(
+        MapSet.from_specs(args.maps),
+        workers=args.workers,
+        queue_size=args.queue,
+        token=args.token,
+        max_image_bytes=int(args.max_image_mb * 1024 * 1024),
+    )
+    if settings.workers < 1 or settings.queue_size < 0:
+        raise ValueError(f"--workers must be >= 1 and --queue >= 0, got {args.workers} and {args.queue}")
+    app = create_app(settings)
+    console.print(
+        f"serving {', '.join(settings.maps.paths)} on http://{args.host}:{args.port} "
+        f"({settings.workers} workers, queue {settings.queue_size})"
+    )
+    uvicorn.run(app, host=args.host, port=args.port, log_level="warning", timeout_graceful_shutdown=5)
+    return 0

@@ -1,0 +1,187 @@
+"""The real server on a loopback port, spoken to over HTTP (httpx)."""
+
+from __future__ import annotations
+
+import json
+import threading
+import time
+from pathlib import Path
+
+import httpx
+import pytest
+
+from planarloc.cli.main import main
+from planarloc.client import Client, ServiceError
+from planarloc.serve.launcher import worker_pids
+
+
+def queries(server, n: int = 3) -> list[Path]:
+    return sorted((server.world / "query" / "rgb").glob("*.png"))[:n]
+
+
+def test_served_pose_equals_cli_pose(server, tmp_path: Path) -> None:
+    images = queries(server)
+    out = tmp_path / "poses.txt"
+    common = [*map(str, images), "--structure", "tracks", "--seed", "7"]
+    camera = ["--camera", server.camera]
+    assert main(["localize", "--map", str(server.map_path), *common, *camera, "--out", str(out)]) == 0
+    with Client(server.url, token=server.token) as client:
+        for image in images:
+            local = json.loads((tmp_path / "poses.txt.json.d" / (image.name + ".json")).read_text())
+            served = client.localize(image, server.camera, map="office", structure="tracks", seed=7)
+            assert served["success"] and served["status"] == local["status"]
+            keys = "name quat_wxyz t num_inliers num_inliers_3d num_matches references position_std_m model"
+            for key in keys.split():
+                assert served[key] == local[key], key
+            assert served["stats"] == local["stats"]  # same RANSAC run: same counters
+    # localize --server writes the same files as the local run (camera: the served map's only one).
+    remote = tmp_path / "remote.txt"
+    server_args = ["--server", server.url, "--token", server.token, "--map", "second"]
+    assert main(["localize", *server_args, *common, "--out", str(remote)]) == 0
+    assert remote.read_text() == out.read_text()
+
+
+def test_malformed_requests_get_one_line_4xx_and_the_server_stays_up(server) -> None:
+    image = queries(server, 1)[0]
+    png = image.read_bytes()
+    cam = server.camera
+    auth = {"Authorization": f"Bearer {server.token}"}
+    url = server.url + "/v1/localize"
+
+    def form(data: bytes | None = png, **fields: str | None) -> dict:
+        """A localize form with the valid defaults, where a None field is left out."""
+        fields = {k: v for k, v in {"camera": cam, "map": "office", **fields}.items() if v is not None}
+        return {"files": {"image": ("q.png", data)}, "data": fields} if data is not None else {"data": fields}
+
+    battery = [
+        ("not an image", form(b"GIF89a...."), 415),
+        ("truncated png", form(png[:40]), 400),
+        ("too large", form(png + b"\0" * (2 << 20)), 413),
+        ("camera garbage", form(camera="hello"), 400),
+        ("camera model", form(camera="FISHEYE 320 240 1 2 3"), 400),
+        ("camera size", form(camera="PINHOLE 640 480 500 500 320 240"), 400),
+        ("no camera", form(camera=None), 400),
+        ("no image", form(None), 400),
+        ("image as text", form(None, image="abc"), 400),
+        ("no map of two", form(map=None), 400),
+        ("unknown map", form(map="nope"), 404),
+        ("map as path", form(map=str(server.map_path)), 404),
+        ("traversal", form(map="../office"), 404),
+        ("bad gravity", form(gravity="0 1"), 400),
+        ("bad method", form(method="9p"), 400),
+        ("bad seed", form(seed="-3"), 400),
+        ("unknown field", form(x="1"), 400),
+        ("json body", {"json": {"camera": cam}}, 415),
+    ]
+    with httpx.Client(headers=auth, timeout=60) as http:
+        for what, kwargs, status in battery:
+            r = http.post(url, **kwargs)
+            assert r.status_code == status, (what, r.text)
+            reason = r.json()["error"]
+            assert reason and "\n" not in reason, what
+        r = http.post(
+            url, content=b"--x\r\nbroken", headers={"content-type": "multipart/form-data; boundary=x"}
+        )
+        assert 400 <= r.status_code < 500
+        assert http.get(server.url + "/v1/maps").json()["maps"][0]["name"] == "office"
+        assert str(server.map_path) not in http.get(server.url + "/v1/maps").text
+    unauth = httpx.post(url, files={"image": ("q.png", png)}, data={"camera": cam, "map": "office"})
+    assert unauth.status_code == 401 and unauth.headers["www-authenticate"] == "Bearer"
+    assert server.process.poll() is None
+    assert httpx.get(server.url + "/healthz").json()["status"] == "ok"
+    with Client(server.url, token=server.token) as client:
+        assert client.localize(image, cam, map="office")["name"] == image.name
+        with pytest.raises(ServiceError) as exc:
+            client.localize(b"not an image", cam, map="office")
+        assert exc.value.status == 415
+
+
+def test_overload_answers_503_with_retry_after_and_nothing_else(server) -> None:
+    image = queries(server, 1)[0]
+    statuses: list[tuple[int, str | None]] = []
+    barrier = threading.Barrier(12)
+
+    def one() -> None:
+        with httpx.Client(timeout=120, headers={"Authorization": f"Bearer {server.token}"}) as http:
+            barrier.wait()
+            r = http.post(
+                server.url + "/v1/localize",
+                files={"image": (image.name, image.read_bytes())},
+                data={"camera": server.camera, "map": "office", "structure": "tracks"},
+            )
+            statuses.append((r.status_code, r.headers.get("retry-after")))
+
+    threads = [threading.Thread(target=one) for _ in range(12)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(180)
+    codes = [s for s, _ in statuses]
+    assert len(codes) == 12 and set(codes) <= {200, 503}, codes
+    assert codes.count(200) >= 4  # capacity: 2 workers + queue 2
+    assert all(ra and int(ra) >= 1 for s, ra in statuses if s == 503)
+    metrics = httpx.get(server.url + "/metrics", headers={"Authorization": f"Bearer {server.token}"}).text
+    assert 'planarloc_requests_total{code="200",endpoint="/v1/localize"}' in metrics
+    assert (
+        "planarloc_request_seconds_bucket" in metrics
+        and 'planarloc_localize_total{status="success"}' in metrics
+    )
+    if 503 in codes:
+        assert 'planarloc_rejected_total{reason="overloaded"}' in metrics
+
+
+def test_worker_killed_mid_request_fails_cleanly_and_the_pool_recovers(server) -> None:
+    import os
+    import signal
+
+    image = queries(server, 1)[0]
+    pids = worker_pids(server.process.pid)
+    assert len(pids) == 2
+    result: dict = {}
+
+    def one() -> None:
+        with Client(server.url, token=server.token, retries=0) as client:
+            try:
+                result["record"] = client.localize(image, server.camera, map="office", structure="tracks")
+            except ServiceError as exc:
+                result["error"] = exc
+
+    t = threading.Thread(target=one)
+    t.start()
+    time.sleep(0.15)
+    for pid in pids:  # whichever runs the request
+        os.kill(pid, signal.SIGKILL)
+    t.join(60)
+    assert "error" in result and result["error"].status == 503 and "died" in result["error"].reason
+    deadline = time.monotonic() + 60
+    while time.monotonic() < deadline and httpx.get(server.url + "/healthz").json()["workers_alive"] < 2:
+        time.sleep(0.2)
+    health = httpx.get(server.url + "/healthz").json()
+    assert health["status"] == "ok" and health["worker_restarts"] >= 1
+    assert set(worker_pids(server.process.pid)).isdisjoint(pids)
+    with Client(server.url, token=server.token) as client:
+        assert client.localize(image, server.camera, map="office", structure="tracks")["success"]
+
+
+def test_workers_never_outlive_a_killed_server(served_world) -> None:
+    import os
+    import signal
+
+    from planarloc.serve.launcher import start_server
+
+    _world, map_path, _camera = served_world
+    _url, proc = start_server(["--map", str(map_path), "--workers", "1"])
+    workers = worker_pids(proc.pid)
+    assert len(workers) == 1
+    os.kill(proc.pid, signal.SIGKILL)
+    proc.wait(10)
+    def running(pid: int) -> bool:  # a zombie (exited, not yet reaped by init) is not running
+        try:
+            return "\tZ" not in Path(f"/proc/{pid}/status").read_text().split("State:")[1].split("\n")[0]
+        except (FileNotFoundError, IndexError):
+            return False
+
+    deadline = time.monotonic() + 20
+    while time.monotonic() < deadline and any(running(pid) for pid in workers):
+        time.sleep(0.2)
+    assert not any(running(pid) for pid in workers)
