@@ -168,6 +168,8 @@ def test_mount_and_height_configs_validate():
         dataclasses.replace(tc, query_height_drop=0.8, query_height_wobble=0.2)
     with pytest.raises(ValueError, match="wobble"):
         dataclasses.replace(tc, query_height_wobble=-0.1)
+    with pytest.raises(ValueError, match="ceiling"):
+        dataclasses.replace(get_preset("office"), trajectory=dataclasses.replace(tc, query_height_drop=-1.7))
 
 
 def test_lifelong_query_world_changed():

@@ -296,6 +296,12 @@ class WorldConfig:
             self.map_effects.moved_boxes == 0 and self.map_effects.added_boxes == 0,
             "map_effects cannot move or add boxes: the map session defines the scene",
         )
+        tc = self.trajectory
+        highest = max(tc.camera_height, tc.camera_height - tc.query_height_drop + tc.query_height_wobble)
+        _require(
+            highest < self.scene.height - 0.1,
+            f"cameras go up to {highest:.2f} m: they must stay 0.1 m below the {self.scene.height} m ceiling",
+        )
         _require(
             self.query_effects.moved_boxes <= self.scene.n_boxes,
             f"cannot move {self.query_effects.moved_boxes} of {self.scene.n_boxes} boxes",
