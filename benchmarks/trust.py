@@ -58,7 +58,13 @@ from rich.table import Table  # noqa: E402
 
 from planarloc.cli.progress import progress_bar  # noqa: E402
 from planarloc.io.datasets import read_dataset  # noqa: E402
-from planarloc.pipeline.evaluation import THRESHOLDS, query_result, split_map_queries, threshold_name  # noqa: E402
+from planarloc.pipeline.evaluation import (  # noqa: E402
+    THRESHOLDS,
+    config_label,
+    query_result,
+    split_map_queries,
+    threshold_name,
+)
 from planarloc.pipeline.features import extract_features  # noqa: E402
 from planarloc.pipeline.localizer import Localizer, LocalizerConfig  # noqa: E402
 from planarloc.pipeline.map_builder import read_gray  # noqa: E402
@@ -295,11 +301,11 @@ def run_dataset(data: DataSet, args: argparse.Namespace, root: Path, update) -> 
     eval_s = time.perf_counter() - t0
     peer.log(f"{data.name}: {len(data.map_images)} map / {len(data.queries)} queries, map build {build_s:.0f} s"
              f"{' (cached)' if build_s == 0 else ''}, localization {eval_s:.0f} s; {peer.load_note()}")
-    return [{"dataset": data.name, "source": data.source, "method": c.method if isinstance(c.method, str)
-             else c.method.value, "structure": s, "map_images": len(data.map_images), "queries": len(data.queries),
+    return [{"dataset": data.name, "source": data.source, "method": config_label(c)[0], "structure": config_label(c)[1],
+             "map_images": len(data.map_images), "queries": len(data.queries),
              "query_gravity": args.query_gravity if data.gravity is not None else "none",
              "metrics": trust_metrics(r), "per_query": r}
-            for c, s, r in zip(configs, [c.ransac.structure.value for c in configs], rows, strict=True)]
+            for c, r in zip(configs, rows, strict=True)]
 
 
 def main(argv: list[str] | None = None) -> int:
