@@ -83,8 +83,10 @@ def images_key(images: Sequence[PosedImage]) -> list:
     out = []
     for im in images:
         st = Path(im.path).stat()
-        out.append([im.name, str(im.path), st.st_size, st.st_mtime_ns, np.asarray(im.cam_from_world.R).round(12).tolist(),
-                    np.asarray(im.cam_from_world.t).round(12).tolist(), im.camera.model.value, list(im.camera.params)])
+        pose = im.cam_from_world
+        out.append([im.name, str(im.path), st.st_size, st.st_mtime_ns,
+                    np.asarray(pose.R).round(12).tolist(), np.asarray(pose.t).round(12).tolist(),
+                    im.camera.model.value, list(im.camera.params)])
     return out
 
 
@@ -106,7 +108,8 @@ def build_or_reuse(map_images: Sequence[PosedImage], path: Path, features: Featu
     return time.perf_counter() - t0
 
 
-def cached_map(map_images: Sequence[PosedImage], label: str, root: Path, features: FeatureConfig | None = None,
+def cached_map(map_images: Sequence[PosedImage], label: str, root: Path,
+               features: FeatureConfig | None = None,
                progress: Callable[[str, int, int], None] | None = None) -> tuple[Path, float]:
     """The map of ``map_images`` under ``root/maps``, keyed by content; (path, build seconds or 0)."""
     features = features or FeatureConfig()

@@ -121,11 +121,13 @@ def dataset_names(world_frames: tuple[int, int] = WORLD_FRAMES) -> list[str]:
     return [*world_configs(*world_frames), "kitti-every4", "kitti-every2", "fountain_p11", "entry_p10"]
 
 
-def load_dataset(name: str, args: argparse.Namespace, root: Path, update: Callable[[str, int, int], None]) -> DataSet | None:
+def load_dataset(name: str, args: argparse.Namespace, root: Path,
+                 update: Callable[[str, int, int], None]) -> DataSet | None:
     """The data set ``name`` (rendered if needed), or None when its real data is not there."""
     worlds = world_configs(*args.world_frames)
     if name in worlds:
-        folder = cache.cached_world(worlds[name], WORLD_SEED, root, lambda d, n: update(f"render {name}", d, n))
+        folder = cache.cached_world(worlds[name], WORLD_SEED, root,
+                                    lambda d, n: update(f"render {name}", d, n))
         queries = read_dataset(folder / "query", "tum")
         g = read_gravity(folder / "query" / "gravity.txt")
         return DataSet(name, read_dataset(folder / "map", "tum"), queries,
@@ -211,13 +213,15 @@ def trust_metrics(rows: Sequence[dict]) -> dict:
         "calibration": calibration,
         "models": dict(Counter(r.get("model", "") or "-" for r in rows if r["success"])),
         "status_counts": dict(Counter(r.get("status", "") for r in rows)),
-        "seconds_per_query": float(np.mean([r["seconds"] for r in rows])) if n and "seconds" in rows[0] else None,
+        "seconds_per_query": (float(np.mean([r["seconds"] for r in rows]))
+                              if n and "seconds" in rows[0] else None),
     }
 
 
 # ---- output ---------------------------------------------------------------------------------------
 HEADERS = ["data", "method", "structure", "queries", *[threshold_name(t, r) for t, r in THRESHOLDS],
-           "confident wrong", "> 1m/20°", "worst t [m]", "worst R [°]", "≤ 1σ", "≤ 2σ", "≤ 3σ", "≤ 3σ+5cm",
+           "confident wrong", "> 1m/20°", "worst t [m]", "worst R [°]",
+           "≤ 1σ", "≤ 2σ", "≤ 3σ", "≤ 3σ+5cm",
            "models", "s/query"]
 
 
@@ -226,7 +230,8 @@ def table_row(result: dict) -> list[str]:
     cal = m["calibration"]
     models = ", ".join(f"{k} {v}" for k, v in sorted(m["models"].items()) if k != "-") or "-"
     return [result["dataset"], result["method"], result["structure"], str(m["queries"]),
-            *[peer.fmt_pct(v) for v in m["success"].values()], str(m["confident_wrong"]), str(m["beyond_gate"]),
+            *[peer.fmt_pct(v) for v in m["success"].values()],
+            str(m["confident_wrong"]), str(m["beyond_gate"]),
             peer.fmt_num(m["worst_translation_error_m"], 2), peer.fmt_num(m["worst_rotation_error_deg"], 1),
             *[peer.fmt_pct(cal[f"within_{s}std"]) for s in SIGMAS], peer.fmt_pct(cal["within_3std_plus_5cm"]),
             models, peer.fmt_num(m["seconds_per_query"], 2)]
@@ -238,7 +243,8 @@ def rich_table(results: Sequence[dict], title: str) -> Table:
         table.add_column(h, justify="left" if h in ("data", "method", "structure", "models") else "right",
                          no_wrap=h in ("data", "method"))
     for r in results:
-        style = "bold red" if r["metrics"]["beyond_gate"] else ("yellow" if r["metrics"]["confident_wrong"] else None)
+        m = r["metrics"]
+        style = "bold red" if m["beyond_gate"] else ("yellow" if m["confident_wrong"] else None)
         table.add_row(*table_row(r), style=style)
     return table
 
@@ -249,7 +255,8 @@ def offending_lines(results: Sequence[dict]) -> list[str]:
     for r in results:
         for q in beyond(r["per_query"], cache.GATE_T, cache.GATE_R):
             out.append(f"{r['dataset']} {r['method']} {r['structure']}: query {q['name']} reported success "
-                       f"({q['status']}, model {q['model'] or '-'}) but is {q['translation_error_m']:.2f} m / "
+                       f"({q['status']}, model {q['model'] or '-'}) but is "
+                       f"{q['translation_error_m']:.2f} m / "
                        f"{q['rotation_error_deg']:.1f}° off, position_std_m {q['position_std_m']:.3f}")
     return out
 
@@ -266,16 +273,20 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument("--structures", nargs="+", default=STRUCTURES, choices=STRUCTURES,
                    help="structure modes (default: both)")
     p.add_argument("--query-gravity", choices=["none", "truth"], default="none",
-                   help="pass each query's true gravity to the Localizer (generated worlds only; default: none)")
+                   help="pass each query's true gravity to the Localizer "
+                        "(generated worlds only; default: none)")
     p.add_argument("--world-frames", nargs=2, type=int, default=list(WORLD_FRAMES), metavar=("MAP", "QUERY"),
                    help="frames of a generated world (default: %(default)s)")
-    p.add_argument("--data-root", type=Path, default=DATA_ROOT, help="shared real data (default: %(default)s)")
+    p.add_argument("--data-root", type=Path, default=DATA_ROOT,
+                   help="shared real data (default: %(default)s)")
     p.add_argument("--cache-dir", type=Path, default=None,
-                   help="rendered worlds and maps, reused when their content matches (default: $TMPDIR/planarloc-bench)")
+                   help="rendered worlds and maps, reused when their content matches "
+                        "(default: $TMPDIR/planarloc-bench)")
     p.add_argument("--quick", action="store_true",
                    help="CI gate: 3 data sets, default method; exit 1 on any success beyond 1 m or 20°")
     p.add_argument("--json", type=Path, default=None, help="write all metrics and per-query results here")
-    p.add_argument("--markdown", type=Path, default=None, help="write the table as markdown (for BENCHMARKS.md)")
+    p.add_argument("--markdown", type=Path, default=None,
+                   help="write the table as markdown (for BENCHMARKS.md)")
     args = p.parse_args(argv)
     args.world_frames = tuple(args.world_frames)
     if min(args.world_frames) < 2:
@@ -299,9 +310,11 @@ def run_dataset(data: DataSet, args: argparse.Namespace, root: Path, update) -> 
     with MapDatabase.open(map_path) as db:
         rows = localize_all(db, configs, data, args.query_gravity == "truth", update)
     eval_s = time.perf_counter() - t0
-    peer.log(f"{data.name}: {len(data.map_images)} map / {len(data.queries)} queries, map build {build_s:.0f} s"
+    peer.log(f"{data.name}: {len(data.map_images)} map / {len(data.queries)} queries, "
+             f"map build {build_s:.0f} s"
              f"{' (cached)' if build_s == 0 else ''}, localization {eval_s:.0f} s; {peer.load_note()}")
-    return [{"dataset": data.name, "source": data.source, "method": config_label(c)[0], "structure": config_label(c)[1],
+    return [{"dataset": data.name, "source": data.source,
+             "method": config_label(c)[0], "structure": config_label(c)[1],
              "map_images": len(data.map_images), "queries": len(data.queries),
              "query_gravity": args.query_gravity if data.gravity is not None else "none",
              "metrics": trust_metrics(r), "per_query": r}
@@ -340,7 +353,8 @@ def main(argv: list[str] | None = None) -> int:
     peer.write_json(args.json, {"args": {k: v for k, v in vars(args).items()}, "code": peer.code_version(),
                                 "seconds": seconds, "skipped": skipped, "results": results})
     if offending:
-        console.print(f"[bold red]{len(offending)} success(es) beyond {cache.GATE_T:g} m or {cache.GATE_R:g}°:")
+        console.print(f"[bold red]{len(offending)} success(es) beyond "
+                      f"{cache.GATE_T:g} m or {cache.GATE_R:g}°:")
         for line in offending:
             print(line)
     else:

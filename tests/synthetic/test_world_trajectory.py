@@ -118,10 +118,12 @@ def test_existing_presets_unchanged():
     # options must not change them (nor the random streams of their floor jitter).
     c = get_preset("office")
     m, q = build_sessions(dataclasses.replace(c, scene=dataclasses.replace(c.scene, px_per_m=40.0)), seed=0)
-    np.testing.assert_allclose(q.R[3], [[0.8825761584140888, 0.009201720980649806, 0.4700794113019881],
-                                        [-0.004257638222708759, 0.999923889816133, -0.01157959808191193],
-                                        [-0.4701501857021796, 0.008218449121845207, 0.882548162979357]], atol=1e-12)
-    np.testing.assert_allclose(q.t[3], [-7.405734647348958, 1.075905718506971, -0.934279342664057], atol=1e-12)
+    R3 = [[0.8825761584140888, 0.009201720980649806, 0.4700794113019881],
+          [-0.004257638222708759, 0.999923889816133, -0.01157959808191193],
+          [-0.4701501857021796, 0.008218449121845207, 0.882548162979357]]
+    np.testing.assert_allclose(q.R[3], R3, atol=1e-12)
+    t3 = [-7.405734647348958, 1.075905718506971, -0.934279342664057]
+    np.testing.assert_allclose(q.t[3], t3, atol=1e-12)
     np.testing.assert_allclose(m.t[5], [-6.578447439957221, 1.0, 2.807147204510538], atol=1e-12)
 
 
@@ -132,11 +134,11 @@ def test_mount_pitch_and_roll_exact_centres_kept():
                              query_mount_pitch_deg=q_pitch, query_mount_roll_deg=q_roll)
     upright = dataclasses.replace(base, query_effects=dataclasses.replace(base.query_effects, tilt_deg=0.0))
     mounted = dataclasses.replace(upright, trajectory=tc)
-    for s0, s1, (p, r) in zip(build_sessions(upright, 4), build_sessions(mounted, 4), [(pitch, roll), (q_pitch, q_roll)],
-                              strict=True):
+    mounts = [(pitch, roll), (q_pitch, q_roll)]
+    for s0, s1, (p, r) in zip(build_sessions(upright, 4), build_sessions(mounted, 4), mounts, strict=True):
         np.testing.assert_allclose(camera_centers(s1.R, s1.t), camera_centers(s0.R, s0.t), atol=1e-12)
         g = gravity_in_camera(s1.R)
-        # Pitch: the optical axis is below the horizon by p (gravity leans towards +z); roll: the x-axis is up.
+        # Pitch: the optical axis is p below the horizon (gravity leans towards +z); roll: x-axis up.
         np.testing.assert_allclose(np.degrees(np.arctan2(g[:, 2], g[:, 1])), p, atol=1e-9)
         np.testing.assert_allclose(np.degrees(-np.arcsin(g[:, 0])), r, atol=1e-9)
         axis_in_world = s1.R[:, 2]  # third row: the optical axis in world coordinates (y down)

@@ -75,7 +75,9 @@ def tilt_rotation(pitch: float, roll: float) -> np.ndarray:
     return rx @ rz
 
 
-def mount_poses(R: np.ndarray, t: np.ndarray, pitch_deg: float, roll_deg: float) -> tuple[np.ndarray, np.ndarray]:
+def mount_poses(
+    R: np.ndarray, t: np.ndarray, pitch_deg: float, roll_deg: float
+) -> tuple[np.ndarray, np.ndarray]:
     """Apply a fixed camera mount to poses, keeping the centres.
 
     Args:

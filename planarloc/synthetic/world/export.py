@@ -148,7 +148,9 @@ def read_gravity(path: str | Path) -> dict[str, np.ndarray]:
         except ValueError:
             g = np.zeros(0)
         if len(parts) != 4 or not np.all(np.isfinite(g)) or not np.linalg.norm(g) > 0:
-            raise ValueError(f"{path}:{number}: expected 'timestamp gx gy gz' with a non-zero direction, got {line!r}")
+            raise ValueError(
+                f"{path}:{number}: expected 'timestamp gx gy gz' with a non-zero direction, got {line!r}"
+            )
         out[parts[0]] = g / np.linalg.norm(g)
     return out
 

@@ -177,7 +177,9 @@ def build_sessions(config: WorldConfig, seed: int = 0) -> tuple[Session, Session
         else:
             height = tc.camera_height
             if tc.query_height_drop or tc.query_height_wobble:
-                height = traj.height_profile(tc.camera_height, tc.query_height_drop, tc.query_height_wobble, len(xz))
+                height = traj.height_profile(
+                    tc.camera_height, tc.query_height_drop, tc.query_height_wobble, len(xz)
+                )
             pitch, roll = tc.query_mount_deg()
         R, t = traj.planar_poses(xz, yaw, height)
         R, t = mount_poses(R, t, pitch, roll)

@@ -64,7 +64,9 @@ def planar_poses(
     return R, t
 
 
-def height_profile(base_m: float, drop_m: float, wobble_m: float, count: int, cycles: float = 2.0) -> np.ndarray:
+def height_profile(
+    base_m: float, drop_m: float, wobble_m: float, count: int, cycles: float = 2.0
+) -> np.ndarray:
     """(count,) camera heights ``base - drop - wobble · sin(2π · cycles · i / count)`` in metres."""
     i = np.arange(count)
     return base_m - drop_m - wobble_m * np.sin(2 * np.pi * cycles * i / max(count, 1))
