@@ -339,7 +339,10 @@ def main(argv: list[str] | None = None) -> int:
             if data is None:
                 skipped.append(name)
                 continue
-            results += run_dataset(data, args, root, update)
+            rows = run_dataset(data, args, root, update)
+            results += rows
+            # Long runs: each data set's rows as soon as they are measured (markdown, on stderr).
+            peer.log("\n".join("| " + " | ".join(table_row(r)) + " |" for r in rows))
     console.print(rich_table(results, title))
     if skipped:
         console.print(f"skipped (data not found under {args.data_root}): {', '.join(skipped)}")
