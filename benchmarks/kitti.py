@@ -33,6 +33,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import _peer_pipeline as peer  # noqa: E402
+from _datasets import build_or_reuse, confident_wrong  # noqa: E402
 
 from planarloc.io.datasets import read_dataset  # noqa: E402
 from planarloc.pipeline.evaluation import (  # noqa: E402
@@ -45,7 +46,7 @@ from planarloc.pipeline.evaluation import (  # noqa: E402
 )
 from planarloc.pipeline.features import FeatureConfig, extract_features  # noqa: E402
 from planarloc.pipeline.localizer import LocalizerConfig  # noqa: E402
-from planarloc.pipeline.map_builder import build_map, read_gray  # noqa: E402
+from planarloc.pipeline.map_builder import read_gray  # noqa: E402
 from planarloc.pipeline.map_database import MapDatabase  # noqa: E402
 from planarloc.pipeline.matching import match_query_to_refs  # noqa: E402
 from planarloc.robust.options import Method, RansacOptions  # noqa: E402
@@ -81,37 +82,15 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     return args
 
 
-def confident_wrong(summary: dict, t_max: float = 0.25, r_max: float = 10.0) -> int:
-    """Queries reported as success whose pose is off by at least (t_max, r_max)."""
-    return sum(1 for q in summary["per_query"]
-               if q["success"] and not (q["translation_error_m"] < t_max and q["rotation_error_deg"] < r_max))
-
-
 def summary_row(s: dict, label: str | None = None) -> list[str]:
     return [label or s["method"], s["structure"], *[peer.fmt_pct(v) for v in s["success"].values()],
             peer.fmt_num(s["median_translation_error_m"]), peer.fmt_num(s["median_rotation_error_deg"], 2),
             f"{s['failed_queries']}/{s['queries']}", str(s["status_counts"].get("degenerate_scale", 0)),
-            str(confident_wrong(s)), peer.fmt_num(s["seconds_per_query"], 2)]
+            str(len(confident_wrong(s))), peer.fmt_num(s["seconds_per_query"], 2)]
 
 
 HEADERS = ["method", "structure", *[threshold_name(t, r) for t, r in THRESHOLDS], "median t [m]",
            "median R [°]", "failed", "degenerate", "confident wrong", "s/query"]
-
-
-def build(map_images, path: Path, features: FeatureConfig, reuse: bool) -> float:
-    """Build (or reuse) the map; returns the build time in seconds (0 when reused)."""
-    if path.exists() and not reuse:
-        for p in (path, *(path.with_name(path.name + s) for s in ("-wal", "-shm"))):
-            p.unlink(missing_ok=True)
-    if path.exists():
-        with MapDatabase.open(path) as db:
-            if db.is_complete and db.num_images() == len(map_images):
-                peer.log(f"reusing {path}")
-                return 0.0
-    peer.log(f"building {path.name}: {len(map_images)} images, features {features.name}")
-    t0 = time.perf_counter()
-    build_map(map_images, path, features, progress=peer.Progress())
-    return time.perf_counter() - t0
 
 
 def run_peer(db: MapDatabase, map_images, queries) -> dict:
@@ -153,7 +132,7 @@ def run_peer(db: MapDatabase, map_images, queries) -> dict:
 def evaluate_map(args: argparse.Namespace, every: int, tilt: bool, map_images, queries, path: Path) -> dict:
     """Build (or reuse) one map and localize every query with each method x structure; print the table."""
     features = FeatureConfig(tilt=tilt)
-    build_s = build(map_images, path, features, reuse=args.map_dir is not None)
+    build_s = build_or_reuse(map_images, path, features, reuse=args.map_dir is not None)
     configs = [LocalizerConfig(top_n=TOP_N, method=m, ransac=RansacOptions(structure=s))
                for m in args.methods for s in STRUCTURES]
     t0 = time.perf_counter()
@@ -222,7 +201,7 @@ def peer_verdicts(run: dict, comparison: dict) -> list[tuple[bool, str]]:
         ok = all(s["success"][k] >= ps["success"][k] for k in ps["success"])
         ours = " / ".join(f"{v:.0f}" for v in s["success"].values())
         out.append((ok, f"map every {run['map_every']}, {s['method']} none ({how}) >= peer at each threshold: "
-                        f"{ours} % vs {theirs} % (confident-but-wrong: {confident_wrong(s)}/{s['queries']} vs "
+                        f"{ours} % vs {theirs} % (confident-but-wrong: {len(confident_wrong(s))}/{s['queries']} vs "
                         f"{ps['confident_wrong']}/{ps['queries']})"))
     return out
 

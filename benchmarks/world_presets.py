@@ -28,6 +28,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import _peer_pipeline as peer  # noqa: E402
+from _datasets import WRONG_R, WRONG_T, confident_wrong, is_wrong  # noqa: E402
 
 from planarloc.io.datasets import read_dataset  # noqa: E402
 from planarloc.pipeline.evaluation import THRESHOLDS, config_label, evaluate_configs, summarize, threshold_name  # noqa: E402
@@ -41,28 +42,20 @@ from planarloc.synthetic.world.presets import preset_names  # noqa: E402
 
 STRICT = threshold_name(*THRESHOLDS[0])
 TARGET_SUCCESS = 90.0
-WRONG_T, WRONG_R = 0.25, 10.0
 STRUCTURES = ("none", "tracks")
+DEFAULT_PRESETS = ("office", "corridor", "lifelong")
 
 
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--presets", nargs="+", default=list(preset_names()), choices=preset_names(),
-                   help="worlds to run (default: all)")
+    p.add_argument("--presets", nargs="+", default=list(DEFAULT_PRESETS), choices=preset_names(),
+                   help="worlds to run (default: %(default)s; trust.py covers pitched and offplane)")
     p.add_argument("--seed", type=int, default=0, help="world seed (default: %(default)s)")
     p.add_argument("--method", default="2p1p", help="solver (default: %(default)s)")
     p.add_argument("--work-dir", type=Path, default=None,
                    help="keep rendered worlds here and reuse them (default: a temporary folder); maps are rebuilt")
     p.add_argument("--json", type=Path, default=None, help="write all summaries and per-query results here")
     return p.parse_args(argv)
-
-
-def is_wrong(q: dict) -> bool:
-    return not (q["translation_error_m"] < WRONG_T and q["rotation_error_deg"] < WRONG_R)
-
-
-def confident_wrong(summary: dict) -> list[str]:
-    return [q["name"] for q in summary["per_query"] if q["success"] and is_wrong(q)]
 
 
 def row(preset: str, tilt: bool, s: dict) -> list[str]:

@@ -21,7 +21,7 @@ from planarloc.synthetic.world import (
     render_frame,
     shrunk,
 )
-from planarloc.synthetic.world.export import DEPTH_SCALE, MARKER, depth_to_png16
+from planarloc.synthetic.world.export import DEPTH_SCALE, MARKER, depth_to_png16, read_gravity
 
 LINE = re.compile(r"^(\d+\.\d{6}) (rgb|depth)/(\d+\.\d{6})\.png$")
 
@@ -55,7 +55,7 @@ def test_layout(generated, tiny_config):
     for name, n in sizes.items():
         folder = out / name
         assert sorted(p.name for p in folder.iterdir()) == sorted(
-            ["rgb", "depth", "rgb.txt", "depth.txt", "groundtruth.txt", "camera.txt"]
+            ["rgb", "depth", "rgb.txt", "depth.txt", "groundtruth.txt", "camera.txt", "gravity.txt"]
         )
         for kind in ("rgb", "depth"):
             header, body = _read_list(folder / f"{kind}.txt")
@@ -107,6 +107,25 @@ def test_groundtruth_is_camera_to_world_of_rendered_poses(generated, tiny_config
         np.testing.assert_allclose(
             data[:, 2], -tiny_config.trajectory.camera_height, atol=1e-8
         )  # y down: camera above floor
+
+
+def test_gravity_file_is_world_down_in_each_camera(tmp_path):
+    # A pitched, rolled and jittered session: the file must hold R (0, 1, 0) of the rendered poses.
+    config = shrunk(get_preset("pitched"), n_map=3, n_query=3, scale=0.1)
+    out = generate(config, tmp_path / "w", seed=1)
+    for session in build_sessions(config, seed=1):
+        header, body = _read_list(out / session.name / "gravity.txt")
+        assert header[-1] == "# timestamp gx gy gz" and len(body) == len(session)
+        gravity = read_gravity(out / session.name / "gravity.txt")
+        assert list(gravity) == [f"{ts:.6f}" for ts in session.timestamps]
+        g = np.array(list(gravity.values()))
+        world_down = np.einsum("nji,nj->ni", session.R, g)  # back to the world frame: R^T g
+        np.testing.assert_allclose(world_down, np.tile([0.0, 1.0, 0.0], (len(session), 1)), atol=1e-11)
+    assert not np.allclose(g, [0.0, 1.0, 0.0], atol=0.1)  # the query camera is pitched ~14 degrees
+    bad = tmp_path / "gravity.txt"
+    bad.write_text("# timestamp gx gy gz\n0.000000 0 0 0\n")
+    with pytest.raises(ValueError, match=r"gravity.txt:2"):
+        read_gravity(bad)
 
 
 def test_images_and_depth_match_renders(generated, tiny_config):

@@ -7,11 +7,11 @@ Modules:
     render      z-buffer renderer of textured rectangles -> RGB image and metric depth
     trajectory  planar camera paths (loop, line, offset query path) and poses
     placement   clearances in the floor plane and random box placement
-    effects     lighting / blur / noise on images, pitch-roll jitter on poses
+    effects     lighting / blur / noise on images, camera mount and pitch-roll jitter on poses
     config      frozen dataclass configuration
-    presets     named configs: office (default), corridor, lifelong
+    presets     named configs: office (default), corridor, lifelong, pitched, offplane
     sessions    map and query sessions of a config and seed
-    export      ``generate``: write both sessions in the TUM RGB-D layout
+    export      ``generate``: write both sessions in the TUM RGB-D layout (+ true gravity)
 
 Conventions: world y points down (gravity), floor at y = 0; camera x right, y down, z
 forward; poses are ``cam_from_world`` (x_cam = R x_world + t) and an upright camera with

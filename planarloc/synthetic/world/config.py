@@ -138,6 +138,17 @@ class TrajectoryConfig:
     right of the direction of travel, turned by ``yaw_offset_deg`` plus a sinusoidal
     ``yaw_wobble_deg``. Cameras must stay ``min_clearance`` from walls and boxes.
     Timestamps are ``frame_period`` seconds apart, starting at 0.
+
+    Camera mount (fixed per robot, every frame of a session): the camera is pitched down by
+    ``mount_pitch_deg`` (its optical axis points below the horizon) and rolled by
+    ``mount_roll_deg`` (positive: its right side, the x-axis, goes up), i.e. its
+    ``cam_from_world`` rotation is ``R_x(pitch) R_z(roll) R_y(yaw)``
+    (:func:`planarloc.synthetic.world.effects.tilt_rotation`). ``query_mount_pitch_deg`` /
+    ``query_mount_roll_deg`` give the query robot another mount (None: the map robot's).
+    Off-plane queries: the query camera is ``query_height_drop`` metres lower than
+    ``camera_height``, plus ``query_height_wobble * sin(2π · 2 · i / n_query)`` lower at query
+    frame ``i`` (e.g. drop 0.45, wobble 0.25: 0.2–0.7 m lower, a hand-held camera).
+    The per-frame pitch/roll jitter of an uneven floor is ``EffectsConfig.tilt_deg``.
     """
 
     shape: str = "loop"
@@ -150,6 +161,19 @@ class TrajectoryConfig:
     yaw_wobble_deg: float = 8.0
     min_clearance: float = 0.5
     frame_period: float = 0.1
+    mount_pitch_deg: float = 0.0
+    mount_roll_deg: float = 0.0
+    query_mount_pitch_deg: float | None = None
+    query_mount_roll_deg: float | None = None
+    query_height_drop: float = 0.0
+    query_height_wobble: float = 0.0
+
+    def query_mount_deg(self) -> tuple[float, float]:
+        """(pitch, roll) in degrees of the query robot's camera mount."""
+        return (
+            self.mount_pitch_deg if self.query_mount_pitch_deg is None else self.query_mount_pitch_deg,
+            self.mount_roll_deg if self.query_mount_roll_deg is None else self.query_mount_roll_deg,
+        )
 
     def __post_init__(self) -> None:
         _require(
@@ -177,6 +201,23 @@ class TrajectoryConfig:
         _require(
             _finite(self.frame_period) and self.frame_period > 0,
             f"frame_period must be positive, got {self.frame_period}",
+        )
+        mounts = (self.mount_pitch_deg, self.mount_roll_deg, *self.query_mount_deg())
+        _require(
+            _finite(*mounts) and all(abs(v) <= 45 for v in mounts),
+            f"mount pitch and roll must be in [-45, 45] degrees, got {mounts}",
+        )
+        _require(
+            _finite(self.query_height_drop, self.query_height_wobble) and self.query_height_wobble >= 0,
+            "query_height_drop must be finite and query_height_wobble >= 0, "
+            f"got {self.query_height_drop}, {self.query_height_wobble}",
+        )
+        lowest = self.camera_height - self.query_height_drop - self.query_height_wobble
+        _require(
+            lowest >= 0.1,
+            f"query camera would come down to {lowest:.2f} m above the floor (camera_height "
+            f"{self.camera_height} - query_height_drop {self.query_height_drop} - query_height_wobble "
+            f"{self.query_height_wobble}); it must stay >= 0.1 m",
         )
 
 
@@ -254,6 +295,12 @@ class WorldConfig:
         _require(
             self.map_effects.moved_boxes == 0 and self.map_effects.added_boxes == 0,
             "map_effects cannot move or add boxes: the map session defines the scene",
+        )
+        tc = self.trajectory
+        highest = max(tc.camera_height, tc.camera_height - tc.query_height_drop + tc.query_height_wobble)
+        _require(
+            highest < self.scene.height - 0.1,
+            f"cameras go up to {highest:.2f} m: they must stay 0.1 m below the {self.scene.height} m ceiling",
         )
         _require(
             self.query_effects.moved_boxes <= self.scene.n_boxes,

@@ -1,4 +1,4 @@
-"""Session effects: lighting change, blur and noise on images; pitch/roll jitter on poses.
+"""Session effects: lighting change, blur and noise on images; camera mount and pitch/roll jitter on poses.
 
 Image functions take and return (H, W, 3) uint8 images and are deterministic given their
 arguments (noise draws from the ``numpy.random.Generator`` passed in). Scene changes
@@ -73,6 +73,32 @@ def tilt_rotation(pitch: float, roll: float) -> np.ndarray:
     rx = np.array([[1.0, 0.0, 0.0], [0.0, cp, -sp], [0.0, sp, cp]])
     rz = np.array([[cr, -sr, 0.0], [sr, cr, 0.0], [0.0, 0.0, 1.0]])
     return rx @ rz
+
+
+def mount_poses(
+    R: np.ndarray, t: np.ndarray, pitch_deg: float, roll_deg: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Apply a fixed camera mount to poses, keeping the centres.
+
+    Args:
+        R: (N, 3, 3) ``cam_from_world`` rotations; t: (N, 3) translations.
+        pitch_deg: downward pitch of the optical axis (positive: looks below the horizon).
+        roll_deg: roll about the optical axis (positive: the camera's x-axis goes up).
+
+    Returns:
+        (R', t') with ``R' = M R``, ``t' = M t`` and ``M = R_x(pitch) R_z(roll)``; the inputs
+        themselves (not copies) when both angles are 0, so upright sessions stay bit-identical.
+    """
+    if pitch_deg == 0 and roll_deg == 0:
+        return R, t
+    mount = tilt_rotation(np.radians(pitch_deg), np.radians(roll_deg))
+    return mount @ np.asarray(R, dtype=np.float64), np.asarray(t, dtype=np.float64) @ mount.T
+
+
+def gravity_in_camera(R: np.ndarray) -> np.ndarray:
+    """(N, 3) unit direction of gravity (down) in the camera frames of (N, 3, 3) ``cam_from_world``
+    rotations: the world is y-down, so ``g_cam = R (0, 1, 0)`` (the second column of R)."""
+    return np.asarray(R, dtype=np.float64)[..., :, 1].copy()
 
 
 def tilt_poses(

@@ -12,6 +12,10 @@ Layout of ``out_dir``::
                                 then the camera-to-world pose of the optical frame per frame
                                 (quaternion x y z w, as TUM)
         camera.txt              '# ' comment line, then 'PINHOLE width height fx fy cx cy'
+        gravity.txt             '# ' comment lines ending with '# timestamp gx gy gz', then the
+                                true unit direction of gravity (down) in the camera frame per
+                                frame, ``g_cam = R (0, 1, 0)`` for ``cam_from_world`` R (what an
+                                ideal IMU would give; (0, 1, 0) for an upright camera)
     COMPLETE                    written last; its presence with an identical world.json
                                 means the generation can be reused as is
 
@@ -33,12 +37,14 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from planarloc.synthetic.world.config import WorldConfig
+from planarloc.synthetic.world.effects import gravity_in_camera
 from planarloc.synthetic.world.presets import get_preset
 from planarloc.synthetic.world.sessions import Session, build_sessions, render_frame
 
 logger = logging.getLogger(__name__)
 
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
+"""2: gravity.txt per session."""
 DEPTH_SCALE = 5000.0
 """TUM depth PNG scale: stored value = depth in metres x 5000."""
 MARKER = "COMPLETE"
@@ -103,6 +109,16 @@ def _write_session_meta(session: Session, folder: Path, label: str) -> None:
         ],
         groundtruth_lines(session.timestamps, session.R, session.t),
     )
+    gravity = gravity_in_camera(session.R)
+    _write_text(
+        folder / "gravity.txt",
+        [
+            "true gravity direction (down, unit) in the camera frame (x right, y down, z forward)",
+            "world frame: y down, so g_cam = R (0, 1, 0) for cam_from_world R; " + label,
+            "timestamp gx gy gz",
+        ],
+        [f"{n} " + " ".join(f"{v:.12f}" for v in g) for n, g in zip(names, gravity, strict=True)],
+    )
     K = session.K
     _write_text(
         folder / "camera.txt",
@@ -113,6 +129,30 @@ def _write_session_meta(session: Session, folder: Path, label: str) -> None:
             )
         ],
     )
+
+
+def read_gravity(path: str | Path) -> dict[str, np.ndarray]:
+    """The ``gravity.txt`` of an exported session: ``{timestamp name: (3,) unit gravity in the camera}``.
+
+    Raises:
+        ValueError: naming the file and line of a malformed row.
+    """
+    path = Path(path)
+    out: dict[str, np.ndarray] = {}
+    for number, line in enumerate(path.read_text().splitlines(), start=1):
+        if not line.strip() or line.startswith("#"):
+            continue
+        parts = line.split()
+        try:
+            g = np.array([float(v) for v in parts[1:]])
+        except ValueError:
+            g = np.zeros(0)
+        if len(parts) != 4 or not np.all(np.isfinite(g)) or not np.linalg.norm(g) > 0:
+            raise ValueError(
+                f"{path}:{number}: expected 'timestamp gx gy gz' with a non-zero direction, got {line!r}"
+            )
+        out[parts[0]] = g / np.linalg.norm(g)
+    return out
 
 
 def _write_frame(session: Session, index: int, folder: Path) -> None:

@@ -8,6 +8,10 @@
   low-parallax case that is degenerate for 2D-2D methods.
 - ``lifelong``: ``office`` whose query session has different lighting (gain, gamma, a
   shading ramp), blur, more noise, and 2 moved plus 2 added boxes.
+- ``pitched``: ``office`` recorded by robots whose cameras are mounted pitched down: the map
+  robot 11°, the query robot 14° with 1° of roll, plus the query floor's 1° jitter.
+- ``offplane``: ``office`` whose queries come from a hand-held camera 0.2–0.7 m lower than
+  the map robot's, tilted up to 4° in pitch and roll: the planar model does not hold.
 """
 
 from __future__ import annotations
@@ -99,7 +103,52 @@ def lifelong() -> WorldConfig:
     )
 
 
-PRESETS: dict[str, Callable[[], WorldConfig]] = {"office": office, "corridor": corridor, "lifelong": lifelong}
+def pitched() -> WorldConfig:
+    """``office`` with cameras mounted pitched down: map 11°, query 14° pitch and 1° roll."""
+    base = office()
+    return dataclasses.replace(
+        base,
+        name="pitched",
+        trajectory=dataclasses.replace(
+            base.trajectory, mount_pitch_deg=11.0, query_mount_pitch_deg=14.0, query_mount_roll_deg=1.0
+        ),
+    )
+
+
+def offplane() -> WorldConfig:
+    """``office`` with hand-held queries 0.2–0.7 m below the map cameras, tilted up to 4°."""
+    base = office()
+    return dataclasses.replace(
+        base,
+        name="offplane",
+        trajectory=dataclasses.replace(base.trajectory, query_height_drop=0.45, query_height_wobble=0.25),
+        query_effects=dataclasses.replace(base.query_effects, tilt_deg=4.0),
+    )
+
+
+def robot_variant(config: WorldConfig, floor_tilt_deg: float, mount_pitch_deg: float) -> WorldConfig:
+    """``config`` with both robots' cameras mounted ``mount_pitch_deg`` down and the query floor
+    jitter set to ``floor_tilt_deg``; named e.g. ``office-tilt3-pitch10``."""
+    return dataclasses.replace(
+        config,
+        name=f"{config.name}-tilt{floor_tilt_deg:g}-pitch{mount_pitch_deg:g}",
+        trajectory=dataclasses.replace(
+            config.trajectory,
+            mount_pitch_deg=float(mount_pitch_deg),
+            query_mount_pitch_deg=None,
+            query_mount_roll_deg=None,
+        ),
+        query_effects=dataclasses.replace(config.query_effects, tilt_deg=float(floor_tilt_deg)),
+    )
+
+
+PRESETS: dict[str, Callable[[], WorldConfig]] = {
+    "office": office,
+    "corridor": corridor,
+    "lifelong": lifelong,
+    "pitched": pitched,
+    "offplane": offplane,
+}
 
 
 def preset_names() -> tuple[str, ...]:

@@ -14,7 +14,7 @@ import numpy as np
 
 from planarloc.synthetic.world import trajectory as traj
 from planarloc.synthetic.world.config import EffectsConfig, WorldConfig
-from planarloc.synthetic.world.effects import apply_image_effects, tilt_poses
+from planarloc.synthetic.world.effects import apply_image_effects, mount_poses, tilt_poses
 from planarloc.synthetic.world.placement import check_clearance, place_boxes, rearrange_boxes
 from planarloc.synthetic.world.render import render
 from planarloc.synthetic.world.scene import (
@@ -37,7 +37,8 @@ class Session:
         name: "map" or "query".
         world: the scene as it was during this session.
         K: (3, 3) intrinsics; width, height: image size.
-        R: (N, 3, 3) and t: (N, 3) ``cam_from_world`` poses actually rendered (tilt included).
+        R: (N, 3, 3) and t: (N, 3) ``cam_from_world`` poses actually rendered (mount and tilt
+            included); gravity in camera frame i is ``R[i][:, 1]`` (world y points down).
         timestamps: (N,) seconds.
         effects: image effects applied to every render.
         noise_entropy: seed of the per-frame noise generators.
@@ -170,7 +171,18 @@ def build_sessions(config: WorldConfig, seed: int = 0) -> tuple[Session, Session
         ("map", map_path, map_world, config.map_effects, streams[3], streams[5]),
         ("query", query_path, query_world, config.query_effects, streams[4], streams[6]),
     ):
-        R, t = traj.planar_poses(xz, yaw, tc.camera_height)
+        if name == "map":
+            height: float | np.ndarray = tc.camera_height
+            pitch, roll = tc.mount_pitch_deg, tc.mount_roll_deg
+        else:
+            height = tc.camera_height
+            if tc.query_height_drop or tc.query_height_wobble:
+                height = traj.height_profile(
+                    tc.camera_height, tc.query_height_drop, tc.query_height_wobble, len(xz)
+                )
+            pitch, roll = tc.query_mount_deg()
+        R, t = traj.planar_poses(xz, yaw, height)
+        R, t = mount_poses(R, t, pitch, roll)
         if effects.tilt_deg > 0:
             R, t = tilt_poses(R, t, np.random.default_rng(tilt_seq), effects.tilt_deg)
         for arr in (R, t):

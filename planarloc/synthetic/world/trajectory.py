@@ -36,13 +36,16 @@ def heading_of(R: np.ndarray) -> np.ndarray:
     return np.arctan2(R[..., 2, 0], R[..., 2, 2])
 
 
-def planar_poses(xz: np.ndarray, yaw: np.ndarray, camera_height: float) -> tuple[np.ndarray, np.ndarray]:
+def planar_poses(
+    xz: np.ndarray, yaw: np.ndarray, camera_height: float | np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
     """``cam_from_world`` poses of upright cameras.
 
     Args:
         xz: (N, 2) camera positions on the floor plane.
         yaw: (N,) headings in radians.
-        camera_height: height of the optical centre above the floor, metres (> 0).
+        camera_height: height of the optical centre above the floor, metres (> 0): one
+            value, or (N,) values, one per pose.
 
     Returns:
         R: (N, 3, 3) rotations, t: (N, 3) translations.
@@ -51,12 +54,22 @@ def planar_poses(xz: np.ndarray, yaw: np.ndarray, camera_height: float) -> tuple
     yaw = np.asarray(yaw, dtype=np.float64).reshape(-1)
     if len(xz) != len(yaw):
         raise ValueError(f"planar_poses: {len(xz)} positions but {len(yaw)} yaws")
-    if not camera_height > 0:
-        raise ValueError(f"camera_height must be positive, got {camera_height!r}")
-    centers = np.column_stack([xz[:, 0], np.full(len(xz), -float(camera_height)), xz[:, 1]])
+    height = np.broadcast_to(np.asarray(camera_height, dtype=np.float64), (len(xz),)) \
+        if np.ndim(camera_height) == 0 else np.asarray(camera_height, dtype=np.float64)
+    if height.shape != (len(xz),) or not np.all(height > 0):
+        raise ValueError(f"camera_height must be positive, one value or one per pose, got {camera_height!r}")
+    centers = np.column_stack([xz[:, 0], -height, xz[:, 1]])
     R = yaw_rotation(yaw)
     t = -np.einsum("nij,nj->ni", R, centers)
     return R, t
+
+
+def height_profile(
+    base_m: float, drop_m: float, wobble_m: float, count: int, cycles: float = 2.0
+) -> np.ndarray:
+    """(count,) camera heights ``base - drop - wobble · sin(2π · cycles · i / count)`` in metres."""
+    i = np.arange(count)
+    return base_m - drop_m - wobble_m * np.sin(2 * np.pi * cycles * i / max(count, 1))
 
 
 def camera_centers(R: np.ndarray, t: np.ndarray) -> np.ndarray:

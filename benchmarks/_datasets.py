@@ -1,0 +1,126 @@
+"""Shared benchmark code for end-to-end runs: cached worlds and maps, wrong-pose counts.
+
+Used by ``kitti.py``, ``world_presets.py`` and ``trust.py``. Caches live under one folder
+(by default ``$TMPDIR/planarloc-bench``) and are keyed by content:
+
+- worlds: ``worlds/<name>-<sha1 of config and seed>``; :func:`planarloc.synthetic.world.generate`
+  itself reuses a complete generation of the same config and seed.
+- maps: ``maps/<label>-<sha1>.db`` where the hash covers the map images (names, files' sizes and
+  modification times, poses, cameras), the feature settings and the sources of the code that
+  builds maps (``planarloc/geometry``, ``planarloc/io`` and ``planarloc/pipeline`` except the
+  localizer and the evaluation), so an edit of the map code rebuilds them and an edit of the
+  estimator does not.
+
+Not part of the package: benchmarks sit on top of it and may import anything.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import tempfile
+import time
+from collections.abc import Callable, Sequence
+from pathlib import Path
+
+import _peer_pipeline as peer
+import numpy as np
+
+import planarloc
+from planarloc.pipeline.features import FeatureConfig
+from planarloc.pipeline.map_builder import build_map
+from planarloc.pipeline.map_database import MapDatabase
+from planarloc.pipeline.posed_image import PosedImage
+from planarloc.synthetic.world.config import WorldConfig
+from planarloc.synthetic.world.export import generate
+
+WRONG_T, WRONG_R = 0.25, 10.0
+"""A success off by at least this much (metres, degrees) is *confident-but-wrong*."""
+GATE_T, GATE_R = 1.0, 20.0
+"""A success off by more than this is never acceptable (the CI gate of ``trust.py --quick``)."""
+
+_MAP_CODE = ("geometry", "io", "pipeline")
+_NOT_MAP_CODE = {"pipeline/localizer.py", "pipeline/evaluation.py"}
+
+
+def is_wrong(q: dict, t_max: float = WRONG_T, r_max: float = WRONG_R) -> bool:
+    """True unless per-query result ``q`` is within ``t_max`` metres and ``r_max`` degrees (NaN: wrong)."""
+    return not (q["translation_error_m"] < t_max and q["rotation_error_deg"] < r_max)
+
+
+def confident_wrong(summary: dict, t_max: float = WRONG_T, r_max: float = WRONG_R) -> list[str]:
+    """Names of the queries of an evaluation summary reported as success but off by >= (t_max, r_max)."""
+    return [q["name"] for q in summary["per_query"] if q["success"] and is_wrong(q, t_max, r_max)]
+
+
+def cache_root(path: Path | None = None) -> Path:
+    """The cache folder (created): ``path`` or ``$TMPDIR/planarloc-bench``."""
+    root = Path(path) if path is not None else Path(tempfile.gettempdir()) / "planarloc-bench"
+    root.mkdir(parents=True, exist_ok=True)
+    return root
+
+
+def content_key(*parts: object) -> str:
+    """12 hex digits of the sha1 of the JSON of ``parts`` (anything ``str()`` can render)."""
+    return hashlib.sha1(json.dumps(parts, sort_keys=True, default=str).encode()).hexdigest()[:12]
+
+
+def map_code_key() -> str:
+    """Hash of the sources that determine a built map (see the module docstring)."""
+    pkg = Path(planarloc.__file__).resolve().parent
+    h = hashlib.sha1()
+    for sub in _MAP_CODE:
+        for f in sorted((pkg / sub).rglob("*.py")):
+            rel = f.relative_to(pkg).as_posix()
+            if rel not in _NOT_MAP_CODE:
+                h.update(rel.encode())
+                h.update(f.read_bytes())
+    return h.hexdigest()[:12]
+
+
+def images_key(images: Sequence[PosedImage]) -> list:
+    """What identifies a list of posed images: names, file sizes and times, poses, cameras."""
+    out = []
+    for im in images:
+        st = Path(im.path).stat()
+        pose = im.cam_from_world
+        out.append([im.name, str(im.path), st.st_size, st.st_mtime_ns,
+                    np.asarray(pose.R).round(12).tolist(), np.asarray(pose.t).round(12).tolist(),
+                    im.camera.model.value, list(im.camera.params)])
+    return out
+
+
+def build_or_reuse(map_images: Sequence[PosedImage], path: Path, features: FeatureConfig, reuse: bool,
+                   progress: Callable[[str, int, int], None] | None = None) -> float:
+    """Build (or, with ``reuse``, reuse a complete) map at ``path``; returns the build time in seconds
+    (0 when reused). Without ``reuse`` an existing file is deleted first."""
+    if path.exists() and not reuse:
+        for p in (path, *(path.with_name(path.name + s) for s in ("-wal", "-shm"))):
+            p.unlink(missing_ok=True)
+    if path.exists():
+        with MapDatabase.open(path) as db:
+            if db.is_complete and db.num_images() == len(map_images):
+                peer.log(f"reusing {path}")
+                return 0.0
+    peer.log(f"building {path.name}: {len(map_images)} images, features {features.name}")
+    t0 = time.perf_counter()
+    build_map(map_images, path, features, progress=progress or peer.Progress())
+    return time.perf_counter() - t0
+
+
+def cached_map(map_images: Sequence[PosedImage], label: str, root: Path,
+               features: FeatureConfig | None = None,
+               progress: Callable[[str, int, int], None] | None = None) -> tuple[Path, float]:
+    """The map of ``map_images`` under ``root/maps``, keyed by content; (path, build seconds or 0)."""
+    features = features or FeatureConfig()
+    key = content_key(images_key(map_images), features.name, map_code_key())
+    path = root / "maps" / f"{label}-{key}.db"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    return path, build_or_reuse(map_images, path, features, reuse=True, progress=progress)
+
+
+def cached_world(config: WorldConfig, seed: int, root: Path,
+                 progress: Callable[[int, int], None] | None = None) -> Path:
+    """The rendered world of ``config`` and ``seed`` under ``root/worlds`` (rendered once)."""
+    out = root / "worlds" / f"{config.name}-{content_key(config.to_dict(), seed)}"
+    return generate(config, out, seed=seed, progress=progress)
