@@ -142,10 +142,27 @@ def config_label(config: LocalizerConfig) -> tuple[str, str]:
     return str(method), str(structure)
 
 
-def default_map_path(dataset_root: Path, map_every: int, feature_name: str) -> Path:
-    """Where `evaluate` caches the map it builds: next to nothing the user owns."""
+def default_map_path(dataset_root: Path, map_every: int, feature_name: str,
+                     map_images: Sequence[PosedImage] = (), settings: str = "") -> Path:
+    """Where `evaluate` caches the map it builds: next to nothing the user owns.
+
+    The key covers the map images' content as far as it is cheap to know — names, file paths
+    and sizes, poses, cameras — and ``settings`` (e.g. the vocabulary size): a dataset whose
+    poses were edited gets a new map instead of a stale one. (Changed image bytes of the same
+    size are caught by the build itself, which compares SHA-256 hashes.)
+    """
     import hashlib
+    import os
     import tempfile
 
-    key = hashlib.sha1(f"{Path(dataset_root).resolve()}|{map_every}|{feature_name}".encode()).hexdigest()[:12]
+    h = hashlib.sha1(f"{Path(dataset_root).resolve()}|{map_every}|{feature_name}|{settings}".encode())
+    for im in map_images:
+        try:
+            size = os.stat(im.path).st_size
+        except OSError:
+            size = -1
+        pose = im.cam_from_world
+        h.update(f"|{im.name}|{Path(im.path).absolute()}|{size}|{im.camera}".encode())
+        h.update(np.concatenate([pose.R.ravel(), pose.t]).astype("<f8").tobytes())
+    key = h.hexdigest()[:12]
     return Path(tempfile.gettempdir()) / "planarloc-maps" / f"{Path(dataset_root).name}-every{map_every}-{key}.db"

@@ -2,9 +2,12 @@
 
 Building a map is inserting posed images (the paper's point: no 3D model). The build is
 resumable: images already in the map are skipped, so re-running after a crash or Ctrl-C
-continues; appending images to an existing map works the same way. The retrieval
-vocabulary and the global descriptors are (re)computed at the end, then the map is marked
-complete.
+continues; appending images to an existing map works the same way. Identity is by content
+(:mod:`planarloc.pipeline.map_identity`): a changed pose is updated, a changed image file is
+re-extracted, another dataset's image with a stored name is namespaced. The retrieval
+vocabulary and the global descriptors are (re)computed when anything changed, then the map is
+marked complete. Only one process builds a map at a time (the others wait, see
+:mod:`planarloc.pipeline.map_lock`).
 """
 
 from __future__ import annotations
@@ -22,6 +25,7 @@ import numpy as np
 from planarloc.geometry.validation import InputError
 from planarloc.pipeline.features import DEFAULT_FEATURE_CONFIG, FeatureConfig, extract_features
 from planarloc.pipeline.map_database import MapDatabase
+from planarloc.pipeline.map_identity import file_sha256, plan_map_update
 from planarloc.pipeline.posed_image import PosedImage
 from planarloc.pipeline.retrieval import DEFAULT_NUM_WORDS, VladVocabulary, vlad_descriptor
 
@@ -47,6 +51,24 @@ def feature_config_from_map(db: MapDatabase) -> FeatureConfig:
     return FeatureConfig(**cfg)
 
 
+def check_num_words(num_words: object) -> int:
+    """The VLAD vocabulary size as an int >= 1 (InputError otherwise)."""
+    if isinstance(num_words, bool) or not isinstance(num_words, (int, np.integer)) or num_words < 1:
+        raise InputError(f"num_words (--vocabulary-size): expected an integer >= 1, got {num_words!r}")
+    return int(num_words)
+
+
+def read_map_image(image: PosedImage) -> np.ndarray:
+    """Read a map image as (H, W) uint8 and check it has its camera's size."""
+    gray = read_gray(image.path)
+    if gray.shape[:2] != (image.camera.height, image.camera.width):
+        raise InputError(
+            f"{image.path}: image is {gray.shape[1]}x{gray.shape[0]} but its camera is "
+            f"{image.camera.width}x{image.camera.height}; fix the dataset's intrinsics"
+        )
+    return gray
+
+
 def _map_config(features: FeatureConfig, num_words: int) -> dict:
     return {"features": dataclasses.asdict(features), "feature_name": features.name,
             "retrieval": {"type": "vlad", "num_words": int(num_words)}}
@@ -60,6 +82,7 @@ def build_map(
     seed: int = 0,
     progress: Progress | None = None,
     workers: int | None = None,
+    lock_timeout: float | None = None,
 ) -> Path:
     """Create (or resume / append to) the map at ``path`` from posed images.
 
@@ -72,28 +95,55 @@ def build_map(
         seed: seeds the vocabulary training.
         progress: optional ``(stage, done, total)`` callback.
         workers: feature extraction threads (default: one per core).
+        lock_timeout: seconds to wait while another process builds the same map (None: wait).
 
     Returns:
         The map path.
 
     Raises:
-        InputError: an existing map built with different settings, unreadable images.
+        InputError: an existing map built with different settings, unreadable images, an
+            image whose size differs from its camera's, bad options (checked before any work).
+        MapBusyError: another process still builds the map after ``lock_timeout``.
     """
     path = Path(path)
+    num_words = check_num_words(num_words)
+    if not isinstance(features, FeatureConfig):
+        raise InputError(f"features: expected a FeatureConfig, got {type(features).__name__}")
+    images = list(images)
+    if not images:
+        raise InputError(f"{path}: no images to build the map from")
+    if not all(isinstance(im, PosedImage) for im in images):
+        raise InputError("images: expected PosedImage records (e.g. from planarloc.io.datasets.read_dataset)")
     config = _map_config(features, num_words)
-    with MapDatabase.open_or_create(path, config) as db:
-        todo = [im for im in images if not db.has_image(im.name)]
-        if len(todo) < len(images):
-            logger.info("%s: %d of %d images already in the map, resuming", path, len(images) - len(todo), len(images))
-        # Reading and SIFT run in worker threads (OpenCV releases the GIL); the database is
-        # written in this thread, in order, one transaction per image (resumable).
-        with ThreadPoolExecutor(max_workers=workers or os.cpu_count() or 1) as pool:
-            for i, feats in enumerate(pool.map(lambda im: extract_features(read_gray(im.path), features), todo)):
-                db.add_image(todo[i], feats)
+    n_workers = workers or os.cpu_count() or 1
+    with MapDatabase.open_or_create(path, config, lock_timeout=lock_timeout) as db:
+        with ThreadPoolExecutor(max_workers=n_workers) as pool:
+            hashes = []
+            for i, h in enumerate(pool.map(lambda im: file_sha256(im.path), images)):
+                hashes.append(h)
+                if progress:
+                    progress("check images", i + 1, len(images))
+            plan = plan_map_update(db, images, hashes)
+            for line in plan.summary_lines(path):
+                logger.warning("%s", line)
+            if plan.keep:
+                logger.info("%s: %d of %d images already in the map, resuming", path, len(plan.keep), len(images))
+            for record, sha in plan.update:
+                db.update_image_record(record.name, record, sha)
+            todo = plan.replace + plan.add
+            # Reading and SIFT run in worker threads (OpenCV releases the GIL); the database is
+            # written in this thread, in order, one transaction per image (resumable).
+            extracted = pool.map(lambda item: extract_features(read_map_image(item[0]), features), todo)
+            for i, feats in enumerate(extracted):
+                record, sha = todo[i]
+                if db.has_image(record.name):  # replaced: old features out, new in, one image at a time
+                    db.remove_image(record.name)
+                db.add_image(record, feats, content_sha256=sha)
                 if progress:
                     progress("features", i + 1, len(todo))
-        index_map(db, num_words=num_words, seed=seed, progress=progress)
-        db.mark_complete()
+        if plan.changes_map or not db.is_complete or db.get_blob(VOCABULARY_BLOB) is None:
+            index_map(db, num_words=num_words, seed=seed, progress=progress)
+            db.mark_complete()
     return path
 
 
