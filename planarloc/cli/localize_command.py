@@ -4,17 +4,24 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
+import os
 from pathlib import Path
 
+from planarloc.cli.exit_codes import EXIT_OK, EXIT_PARTIAL
 from planarloc.cli.options import add_localizer_args, localizer_config, parse_camera
+from planarloc.cli.output_paths import check_output_dir, check_output_file, input_files, write_text_atomic
 from planarloc.cli.progress import console, progress_bar
 from planarloc.geometry.camera import Camera
+from planarloc.geometry.validation import InputError
 from planarloc.io.hloc_pairs import read_hloc_pairs
 from planarloc.io.pose_list import write_pose_list
 from planarloc.pipeline.localizer import Localizer
 from planarloc.pipeline.map_builder import read_gray
+from planarloc.pipeline.map_database import MapFormatError
 from planarloc.pipeline.retrieval import retrieve_from_pairs
 
+logger = logging.getLogger(__name__)
 IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".ppm", ".pgm"}
 
 
@@ -26,7 +33,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                     "query's absolute pose from 2D-2D matches under local planar motion.\n\n"
                     "Writes the poses of localized queries in the hloc format (name qw qx qy qz tx ty tz, "
                     "world-to-camera) and one JSON per query with its status, inliers and position std. "
-                    "Failed queries are listed as failed, never replaced by a map pose.\n\n"
+                    "Failed queries are listed as failed, never replaced by a map pose. A query that cannot be "
+                    "processed (unreadable image, size different from the camera) is recorded as failed with its "
+                    "reason and the batch goes on; the results file is always written (exit code 3 then).\n\n"
                     "example:\n  planarloc localize --map kitti.db queries/*.png --camera 'PINHOLE 1241 376 "
                     "718.856 718.856 607.19 185.22' --structure tracks --out poses.txt")
     p.add_argument("--map", required=True, type=Path, help="map file from `planarloc map build`")
@@ -54,39 +63,67 @@ def _collect(paths: list[Path]) -> list[tuple[str, Path]]:
     return out
 
 
-def _default_camera(loc: Localizer, shape: tuple[int, int]) -> Camera:
-    cams = {(p.camera.model, p.camera.width, p.camera.height, p.camera.params) for p in loc.db.posed_images()}
-    if len(cams) != 1:
-        raise ValueError("the map has several cameras: pass the query intrinsics with --camera")
-    cam = Camera(*next(iter(cams)))
+def _map_camera(loc: Localizer) -> Camera | None:
+    """The map's camera if it has exactly one, else None."""
+    cams = {p.camera for p in loc.db.posed_images()}
+    return next(iter(cams)) if len(cams) == 1 else None
+
+
+def _query_camera(camera: Camera | None, map_camera: Camera, shape: tuple[int, int], given: bool) -> Camera:
+    cam = camera or map_camera
     if (cam.height, cam.width) != shape:
-        raise ValueError(f"query images are {shape[1]}x{shape[0]} but the map camera is {cam.width}x{cam.height}: "
-                         "pass --camera")
+        source = "--camera" if given else "the map camera"
+        raise InputError(f"image is {shape[1]}x{shape[0]} but {source} is {cam.width}x{cam.height}"
+                         + ("" if given else "; pass --camera"))
     return cam
 
 
 def run(args: argparse.Namespace) -> int:
-    queries = _collect(args.images)
-    loc = Localizer(args.map, localizer_config(args))
-    pairs = read_hloc_pairs(args.pairs) if args.pairs else None
-    json_dir = args.json_dir or args.out.with_name(args.out.name + ".json.d")
-    json_dir.mkdir(parents=True, exist_ok=True)
+    # Options and outputs are checked before the first image is read.
+    config = localizer_config(args)
     camera = parse_camera(args.camera) if args.camera else None
-    poses, failed = [], 0
-    with progress_bar() as update:
-        for i, (name, path) in enumerate(queries):
-            image = read_gray(path)
-            cam = camera or _default_camera(loc, image.shape[:2])
-            refs = retrieve_from_pairs(pairs, name, loc.config.top_n) if pairs else None
-            est = loc.localize(image, cam, refs)
-            record = {"name": name, **est.to_dict()}
-            (json_dir / (name.replace("/", "__") + ".json")).write_text(json.dumps(record, indent=1))
-            if est.success:
-                poses.append((name, est.pose))
-            else:
-                failed += 1
-            update("localize", i + 1, len(queries))
-    write_pose_list(args.out, poses)
-    console.print(f"localized {len(poses)} of {len(queries)} queries ({failed} failed) -> {args.out}, "
-                  f"details in {json_dir}/")
-    return 0
+    pairs = read_hloc_pairs(args.pairs) if args.pairs else None
+    queries = _collect(args.images)
+    json_dir = args.json_dir or args.out.with_name(args.out.name + ".json.d")
+    inputs = input_files([p for _, p in queries] + [args.pairs], with_map_sidecars=[args.map])
+    check_output_file(args.out, "--out", inputs)
+    check_output_dir(json_dir, "--json-dir", inputs)
+    if _same_path(json_dir, args.out):
+        raise ValueError(f"--json-dir {json_dir}: is the same path as --out; choose another folder")
+    loc = Localizer(args.map, config)
+    map_camera = _map_camera(loc)
+    if camera is None and map_camera is None:
+        raise ValueError("the map has several cameras: pass the query intrinsics with --camera")
+    json_dir.mkdir(parents=True, exist_ok=True)
+    poses, failed, errors = [], 0, 0
+    try:
+        with progress_bar() as update:
+            for i, (name, path) in enumerate(queries):
+                try:  # one bad query is recorded as failed with its reason; the batch goes on
+                    image = read_gray(path)
+                    cam = _query_camera(camera, map_camera, image.shape[:2], camera is not None)  # type: ignore[arg-type]
+                    refs = retrieve_from_pairs(pairs, name, loc.config.top_n) if pairs else None
+                    est = loc.localize(image, cam, refs)
+                    record = {"name": name, **est.to_dict()}
+                except MapFormatError:
+                    raise  # a damaged map fails every query: stop (the results so far are written)
+                except (InputError, OSError) as exc:
+                    reason = f"{path}: {exc.strerror or exc}" if isinstance(exc, OSError) else str(exc)
+                    est, record = None, {"name": name, "success": False, "status": "error", "reason": reason}
+                    errors += 1
+                    logger.warning("query %s not processed: %s", name, reason)
+                write_text_atomic(json_dir / (name.replace("/", "__") + ".json"), json.dumps(record, indent=1))
+                if est is not None and est.success:
+                    poses.append((name, est.pose))
+                else:
+                    failed += 1
+                update("localize", i + 1, len(queries))
+    finally:
+        write_pose_list(args.out, poses)  # always written, also when interrupted (atomic)
+    console.print(f"localized {len(poses)} of {len(queries)} queries ({failed} failed"
+                  f"{f', {errors} could not be processed' if errors else ''}) -> {args.out}, details in {json_dir}/")
+    return EXIT_PARTIAL if errors else EXIT_OK
+
+
+def _same_path(a: Path, b: Path) -> bool:
+    return os.path.realpath(a) == os.path.realpath(b)

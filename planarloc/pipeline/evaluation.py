@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from planarloc.geometry.pose import pose_errors
+from planarloc.geometry.validation import InputError
 from planarloc.pipeline.localizer import Localizer, LocalizerConfig
 from planarloc.pipeline.map_builder import read_gray
 from planarloc.pipeline.map_database import MapDatabase
@@ -44,6 +45,7 @@ class QueryResult:
     seconds: float
     estimate_center: tuple[float, float, float] | None
     truth_center: tuple[float, float, float]
+    reason: str = ""  # why a query could not be processed (status "error"), e.g. unreadable image
 
 
 def split_map_queries(images: Sequence[PosedImage], map_every: int) -> tuple[list[PosedImage], list[PosedImage]]:
@@ -124,7 +126,20 @@ def evaluate_configs(
     out: list[list[QueryResult]] = [[] for _ in configs]
     for i, q in enumerate(queries):
         t0 = time.perf_counter()
-        features = extract_features(read_gray(q.path), localizers[0].features)
+        try:  # one bad query (unreadable, wrong size) is a failed query, the batch goes on
+            image = read_gray(q.path)
+            if image.shape[:2] != (q.camera.height, q.camera.width):
+                raise InputError(f"{q.path}: image is {image.shape[1]}x{image.shape[0]} but its camera is "
+                                 f"{q.camera.width}x{q.camera.height}")
+            features = extract_features(image, localizers[0].features)
+        except InputError as exc:
+            for results in out:
+                results.append(QueryResult(q.name, "error", False, float("nan"), float("nan"), float("nan"), 0, 0,
+                                           time.perf_counter() - t0, None,
+                                           tuple(float(v) for v in q.cam_from_world.center), str(exc)))
+            if progress:
+                progress(i + 1, len(queries))
+            continue
         t_feat = time.perf_counter() - t0
         for loc, results in zip(localizers, out):
             t1 = time.perf_counter()

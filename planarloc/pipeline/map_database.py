@@ -149,7 +149,7 @@ def record_digest(name: str, camera_key: Sequence[object], pose7: Sequence[float
     h = hashlib.sha256()
     h.update(name.encode("utf-8") + b"\0")
     h.update(json.dumps([str(c) for c in camera_key]).encode() + b"\0")
-    h.update(struct.pack("<7d", *(float(v) for v in pose7)))
+    h.update(struct.pack("<7d", *(float(v) + 0.0 for v in pose7)))  # + 0.0: SQLite stores -0.0 as 0
     h.update(struct.pack("<qq", int(num), int(dim)) + encoding.encode() + b"\0")
     h.update(bytes(kp_blob))
     h.update(bytes(desc_blob))
