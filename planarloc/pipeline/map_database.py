@@ -278,19 +278,22 @@ class MapDatabase:
         base = path.absolute().as_uri()
         if writable:
             return sqlite3.connect(f"{base}?mode=rw", uri=True, isolation_level=None, timeout=60.0)
-        conn = sqlite3.connect(f"{base}?mode=ro", uri=True, isolation_level=None, timeout=60.0)
         try:
-            conn.execute("SELECT COUNT(*) FROM sqlite_master").fetchone()
-            return conn
-        except sqlite3.OperationalError:  # (not a database at all: _validate names it)
+            conn = sqlite3.connect(f"{base}?mode=ro", uri=True, isolation_level=None, timeout=60.0)
+            try:
+                conn.execute("SELECT COUNT(*) FROM sqlite_master").fetchone()
+                return conn
+            except sqlite3.OperationalError:
+                conn.close()
+                raise
+            except sqlite3.DatabaseError:
+                return conn  # not a database at all: _validate names it
+        except sqlite3.OperationalError:
             # A map still in WAL mode needs to create '-shm' next to it, even to read. On
             # read-only media open it immutable, which is exact as long as no '-wal' holds
             # commits that are not yet in the main file.
-            conn.close()
             if os.access(path.parent, os.W_OK) and os.access(path, os.W_OK):
                 raise
-        except sqlite3.DatabaseError:
-            return conn
         wal = path.with_name(path.name + "-wal")
         if wal.is_file() and wal.stat().st_size > 0:
             raise MapFormatError(
@@ -517,6 +520,12 @@ class MapDatabase:
     def close(self) -> None:
         """Close the connection (idempotent). Committed images are already on disk."""
         if self._conn is not None:
+            if self.writable and not self._conn.in_transaction:
+                try:  # a complete map is left as one file that opens from read-only media
+                    if self.is_complete:
+                        self._leave_wal()
+                except sqlite3.Error:
+                    pass
             self._conn.close()
             self._conn = None  # type: ignore[assignment]
             self._cache.clear()
@@ -586,6 +595,9 @@ class MapDatabase:
                 "INSERT OR REPLACE INTO meta (key, value) VALUES ('completed_at', ?)",
                 (_dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),),
             )
+        self._leave_wal()
+
+    def _leave_wal(self) -> None:
         try:
             self._db.execute("PRAGMA wal_checkpoint(TRUNCATE)").fetchall()
             self._db.execute("PRAGMA journal_mode = DELETE").fetchall()
