@@ -17,6 +17,7 @@ Schema (version 1)::
         descriptor_encoding  'auto' | 'uint8' | 'float16' | 'float32' (see below)
         descriptor_dim   D, set by the first image with features
         build_complete   '1' after mark_complete(), '0' while (re)building or appending
+        blob_sha256/<key>  SHA-256 of each blob (checked when it is read)
         ... any other key set with set_meta()
     cameras(id INTEGER PRIMARY KEY, model TEXT, width INTEGER, height INTEGER,
             params TEXT  -- JSON list, COLMAP order;  UNIQUE(model, width, height, params))
@@ -36,6 +37,7 @@ Schema (version 1)::
                   content_sha256 TEXT NULL  -- SHA-256 of the source image file's bytes
                   record_sha256 TEXT        -- SHA-256 of the stored row: name, camera, pose,
                                             -- keypoint and descriptor blobs (see record_digest)
+                  global_sha256 TEXT NULL   -- SHA-256 of its global descriptor blob
       (added in 0.x without a schema bump: older maps lack it and are upgraded on append)
 
 Descriptor encodings (descriptors are always returned as float32, L2-normalised rows):
@@ -91,13 +93,14 @@ CREATED_BY = "planarloc"
 APPLICATION_ID = 0x504C4F43
 DESCRIPTOR_ENCODINGS = ("auto", "uint8", "float16", "float32")
 DEFAULT_CACHE_SIZE = 16
+BLOB_SHA_PREFIX = "blob_sha256/"
 _RESERVED_META = frozenset(
     {"schema_version", "created_by", "config", "descriptor_encoding", "descriptor_dim", "build_complete"}
 )
 
 _SOURCES_TABLE = """CREATE TABLE IF NOT EXISTS image_sources (
         image_id INTEGER PRIMARY KEY REFERENCES images(id) ON DELETE CASCADE,
-        content_sha256 TEXT, record_sha256 TEXT NOT NULL)"""
+        content_sha256 TEXT, record_sha256 TEXT NOT NULL, global_sha256 TEXT)"""
 _SCHEMA = [
     "CREATE TABLE meta (key TEXT PRIMARY KEY NOT NULL, value TEXT NOT NULL)",
     """CREATE TABLE cameras (
@@ -256,6 +259,7 @@ class MapDatabase:
         # Use create()/open(); the connection must hold a validated planarloc map.
         self._conn = conn
         self._lock = lock
+        self._sources: bool | None = None
         self.path = path
         self.writable = writable
         self._cache: OrderedDict[int, Features] = OrderedDict()
@@ -611,7 +615,7 @@ class MapDatabase:
 
     def set_meta(self, key: str, value: str) -> None:
         """Store a free-form meta value (the keys managed by planarloc are refused)."""
-        if key in _RESERVED_META:
+        if key in _RESERVED_META or key.startswith(BLOB_SHA_PREFIX):
             raise InputError(f"meta key {key!r} is managed by MapDatabase and cannot be set directly")
         with self._transaction() as conn:
             conn.execute("INSERT OR REPLACE INTO meta (key, value) VALUES (?, ?)", (key, str(value)))
@@ -725,9 +729,11 @@ class MapDatabase:
         return None if row is None else (row[0], row[1])
 
     def _has_sources(self) -> bool:
-        return self._db.execute(
-            "SELECT 1 FROM sqlite_master WHERE type = 'table' AND name = 'image_sources'"
-        ).fetchone() is not None
+        if self._sources is None:
+            self._sources = self._db.execute(
+                "SELECT 1 FROM sqlite_master WHERE type = 'table' AND name = 'image_sources'"
+            ).fetchone() is not None
+        return self._sources
 
     def update_image_record(self, name: str, posed: PosedImage, content_sha256: str | None = None) -> None:
         """Replace the pose, path and (if given) content hash of a stored image, keeping its
@@ -828,11 +834,16 @@ class MapDatabase:
             conn.executemany(
                 "INSERT OR REPLACE INTO global_descriptors (image_id, dim, data) VALUES (?, ?, ?)", rows
             )
+            conn.executemany("UPDATE image_sources SET global_sha256 = ? WHERE image_id = ?",
+                             [(hashlib.sha256(r[2]).hexdigest(), r[0]) for r in rows])
 
     def put_blob(self, key: str, data: bytes) -> None:
         """Store (replace) a named binary blob, e.g. a retrieval vocabulary or index."""
+        data = bytes(data)
         with self._transaction() as conn:
-            conn.execute("INSERT OR REPLACE INTO blobs (key, data) VALUES (?, ?)", (str(key), bytes(data)))
+            conn.execute("INSERT OR REPLACE INTO blobs (key, data) VALUES (?, ?)", (str(key), data))
+            conn.execute("INSERT OR REPLACE INTO meta (key, value) VALUES (?, ?)",
+                         (BLOB_SHA_PREFIX + str(key), hashlib.sha256(data).hexdigest()))
 
     # ---- reading -------------------------------------------------------------------------------
     def _find_id(self, name: str) -> int | None:
@@ -996,6 +1007,7 @@ class MapDatabase:
                 raise KeyError(f"image id {image_id} is not in map {self.path}")
             raise _blob_error(self.path, f"{name[0]!r} (row id {image_id})", "its keypoints or descriptors are missing")
         feats = self._features_from_blobs(f"row id {image_id}", *row)
+        self._verify_record(image_id, row)
         if self._cache_size > 0:
             self._cache[image_id] = feats
             if len(self._cache) > self._cache_size:
@@ -1009,7 +1021,24 @@ class MapDatabase:
             "JOIN keypoints k ON k.image_id = i.id JOIN descriptors d ON d.image_id = i.id ORDER BY i.id"
         )
         for image_id, name, *blobs in cursor:
-            yield int(image_id), name, self._features_from_blobs(f"{name!r} (row id {image_id})", *blobs)
+            feats = self._features_from_blobs(f"{name!r} (row id {image_id})", *blobs)
+            self._verify_record(image_id, blobs)
+            yield int(image_id), name, feats
+
+    def _verify_record(self, image_id: int, blobs: Sequence[object]) -> None:
+        """Compare an image row with its stored checksum (maps without checksums: no-op)."""
+        if not self._has_sources():
+            return
+        row = self._db.execute(
+            "SELECT i.name, c.model, c.width, c.height, c.params, i.qw, i.qx, i.qy, i.qz, i.tx, i.ty, i.tz, "
+            "s.record_sha256 FROM images i JOIN image_sources s ON s.image_id = i.id "
+            "LEFT JOIN cameras c ON c.id = i.camera_id WHERE i.id = ?", (image_id,)).fetchone()
+        if row is None:
+            return
+        num, kp_blob, dim, encoding, desc_blob = blobs
+        if record_digest(row[0], row[1:5], row[5:12], num, kp_blob, dim, encoding, desc_blob) != row[12]:
+            raise _blob_error(self.path, f"{row[0]!r} (row id {image_id})",
+                              "checksum mismatch (name, camera, pose or features changed on disk)")
 
     def get_global_descriptors(self) -> tuple[np.ndarray, np.ndarray]:
         """All stored global descriptors.
@@ -1020,6 +1049,11 @@ class MapDatabase:
         rows = self._db.execute(
             "SELECT image_id, dim, data FROM global_descriptors ORDER BY image_id"
         ).fetchall()
+        sums = dict(self._db.execute("SELECT image_id, global_sha256 FROM image_sources "
+                                     "WHERE global_sha256 IS NOT NULL")) if self._has_sources() else {}
+        for image_id, _dim, data in rows:
+            if image_id in sums and (not isinstance(data, bytes) or hashlib.sha256(data).hexdigest() != sums[image_id]):
+                raise _blob_error(self.path, f"row id {image_id}", "global descriptor checksum mismatch")
         if not rows:
             return np.zeros(0, dtype=np.int64), np.zeros((0, 0), dtype=np.float32)
         ids = np.array([r[0] for r in rows], dtype=np.int64)
@@ -1034,7 +1068,15 @@ class MapDatabase:
     def get_blob(self, key: str) -> bytes | None:
         """A named blob, or None if it was never stored."""
         row = self._db.execute("SELECT data FROM blobs WHERE key = ?", (str(key),)).fetchone()
-        return None if row is None else bytes(row[0])
+        if row is None:
+            return None
+        data = row[0]
+        if not isinstance(data, bytes):
+            raise _blob_error(self.path, f"blob {key!r}", "not a blob")
+        expected = self.get_meta(BLOB_SHA_PREFIX + str(key))
+        if expected is not None and hashlib.sha256(data).hexdigest() != expected:
+            raise _blob_error(self.path, f"blob {key!r}", "checksum mismatch (damaged on disk)")
+        return data
 
     def blob_keys(self) -> list[str]:
         return [r[0] for r in self._db.execute("SELECT key FROM blobs ORDER BY key")]

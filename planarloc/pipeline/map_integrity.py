@@ -10,6 +10,7 @@ finite); the retrieval vocabulary (decodes). Each problem is one line naming the
 
 from __future__ import annotations
 
+import hashlib
 import json
 import sqlite3
 from collections.abc import Callable
@@ -20,7 +21,8 @@ import numpy as np
 
 from planarloc.geometry.camera import Camera
 from planarloc.pipeline.map_builder import VOCABULARY_BLOB
-from planarloc.pipeline.map_database import MapDatabase, MapFormatError, decode_descriptors, record_digest
+from planarloc.pipeline.map_database import (BLOB_SHA_PREFIX, MapDatabase, MapFormatError, decode_descriptors,
+                                             record_digest)
 from planarloc.pipeline.retrieval import VladVocabulary
 
 MAX_PROBLEMS = 50
@@ -67,7 +69,9 @@ def check_map(path: str | Path, progress: Callable[[int, int], None] | None = No
             rows = conn.execute("PRAGMA integrity_check(20)").fetchall()
             if [r[0] for r in rows] != ["ok"]:
                 for (msg,) in rows:
-                    report.add(f"SQLite integrity_check: {msg}")
+                    for line in str(msg).splitlines():
+                        if line.strip() and not line.startswith("*** in database"):
+                            report.add(f"SQLite integrity_check: {line.strip()}")
         except sqlite3.DatabaseError as exc:
             report.add(f"SQLite integrity_check: {exc}")
         try:
@@ -101,7 +105,10 @@ def _check_rows(db: MapDatabase, conn: sqlite3.Connection, report: MapCheckRepor
 
     has_sources = conn.execute(
         "SELECT 1 FROM sqlite_master WHERE type = 'table' AND name = 'image_sources'").fetchone() is not None
-    digests = dict(conn.execute("SELECT image_id, record_sha256 FROM image_sources")) if has_sources else {}
+    digests, global_sums = {}, {}
+    if has_sources:
+        for image_id, rec, glob in conn.execute("SELECT image_id, record_sha256, global_sha256 FROM image_sources"):
+            digests[image_id], global_sums[image_id] = rec, glob
     total = int(conn.execute("SELECT COUNT(*) FROM images").fetchone()[0])
     report.num_images = total
     names_seen: set[str] = set()
@@ -144,9 +151,17 @@ def _check_rows(db: MapDatabase, conn: sqlite3.Connection, report: MapCheckRepor
             report.add(f"global_descriptors row {image_id}: blob length does not match dim {gdim}")
         elif not np.isfinite(np.frombuffer(data, dtype="<f4")).all():
             report.add(f"global_descriptors row {image_id}: non-finite values")
+        elif global_sums.get(image_id) not in (None, hashlib.sha256(data).hexdigest()):
+            report.add(f"global_descriptors row {image_id}: checksum mismatch")
     orphans = conn.execute("SELECT COUNT(*) FROM global_descriptors WHERE image_id NOT IN (SELECT id FROM images)")
     if (n := orphans.fetchone()[0]) > 0:
         report.add(f"global_descriptors: {n} row(s) of images that are not in the map")
+    for key, data in conn.execute("SELECT key, data FROM blobs"):
+        expected = meta.get(BLOB_SHA_PREFIX + str(key))
+        if not isinstance(data, bytes):
+            report.add(f"blobs row {key!r}: not a blob")
+        elif expected is not None and hashlib.sha256(data).hexdigest() != expected:
+            report.add(f"blobs row {key!r}: checksum mismatch")
     vocab = conn.execute("SELECT data FROM blobs WHERE key = ?", (VOCABULARY_BLOB,)).fetchone()
     if vocab is not None:
         try:
