@@ -13,7 +13,7 @@ from planarloc.cli.exit_codes import EXIT_OK, EXIT_PARTIAL
 from planarloc.cli.options import (add_dataset_args, add_feature_args, add_localizer_args, check_vocabulary_size,
                                    feature_config, localizer_config)
 from planarloc.cli.output_paths import atomic_output, check_output_file, input_files
-from planarloc.cli.progress import console, progress_bar
+from planarloc.cli.progress import console, notify, progress_bar
 from planarloc.cli.report import print_summary_table, write_json
 from planarloc.io.datasets import read_dataset
 from planarloc.io.hloc_pairs import read_hloc_pairs
@@ -72,7 +72,8 @@ def run(args: argparse.Namespace) -> int:
                                             settings=f"words={num_words}|{features}")
     console.print(f"map: {len(map_images)} frames -> {map_path}; queries: {len(queries)} frames")
     with progress_bar() as update:
-        build_map(map_images, map_path, features, num_words=num_words, progress=update)
+        build_map(map_images, map_path, features, num_words=num_words, progress=update,
+                  notify=notify)
         loc = Localizer(map_path, config)
         results = evaluate_queries(loc, queries, lambda d, n: update("localize", d, n), pairs)
     method, structure = config_label(config)

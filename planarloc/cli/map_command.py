@@ -8,7 +8,7 @@ from pathlib import Path
 
 from planarloc.cli.options import add_dataset_args, add_feature_args, check_vocabulary_size, feature_config
 from planarloc.cli.output_paths import check_output_file, input_files
-from planarloc.cli.progress import console, progress_bar
+from planarloc.cli.progress import console, notify, progress_bar
 from planarloc.io.datasets import read_dataset
 from planarloc.pipeline.map_builder import build_map
 from planarloc.pipeline.map_database import MapDatabase
@@ -87,7 +87,8 @@ def run_build(args: argparse.Namespace) -> int:
     check_output_file(args.out, "--out", input_files(im.path for im in images))
     console.print(f"building map [bold]{args.out}[/] from {len(images)} images of {args.dataset}")
     with progress_bar() as update:
-        build_map(images, args.out, features, num_words=num_words, progress=update)
+        build_map(images, args.out, features, num_words=num_words, progress=update,
+                  notify=notify)
     return run_info(argparse.Namespace(map=args.out))
 
 

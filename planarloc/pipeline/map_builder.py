@@ -83,6 +83,7 @@ def build_map(
     progress: Progress | None = None,
     workers: int | None = None,
     lock_timeout: float | None = None,
+    notify: Callable[[str], None] | None = None,
 ) -> Path:
     """Create (or resume / append to) the map at ``path`` from posed images.
 
@@ -96,6 +97,8 @@ def build_map(
         progress: optional ``(stage, done, total)`` callback.
         workers: feature extraction threads (default: one per core).
         lock_timeout: seconds to wait while another process builds the same map (None: wait).
+        notify: receives one line per identity action (updated poses, re-extracted or
+            namespaced images); default: logged as warnings.
 
     Returns:
         The map path.
@@ -125,7 +128,10 @@ def build_map(
                     progress("check images", i + 1, len(images))
             plan = plan_map_update(db, images, hashes)
             for line in plan.summary_lines(path):
-                logger.warning("%s", line)
+                if notify is not None:
+                    notify(line)
+                else:
+                    logger.warning("%s", line)
             if plan.keep:
                 logger.info("%s: %d of %d images already in the map, resuming", path, len(plan.keep), len(images))
             for record, sha in plan.update:
