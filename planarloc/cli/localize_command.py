@@ -60,7 +60,32 @@ def _collect(paths: list[Path]) -> list[tuple[str, Path]]:
             raise ValueError(f"{p}: no such image or folder")
     if not out:
         raise ValueError("no query images found")
-    return out
+    return _unique_names(out)
+
+
+def _unique_names(items: list[tuple[str, Path]]) -> list[tuple[str, Path]]:
+    """Drop repeated files; give different files with the same name (a/1.png, b/1.png) names
+    with as many parent folders as it takes to tell them apart, so results never mix up."""
+    seen: set[str] = set()
+    files = []
+    for name, path in items:
+        key = os.path.realpath(path)
+        if key not in seen:
+            seen.add(key)
+            files.append((name, path))
+    names = [n for n, _ in files]
+    for depth in range(1, 64):
+        counts: dict[str, int] = {}
+        for n in names:
+            counts[n] = counts.get(n, 0) + 1
+        clash = {n for n, c in counts.items() if c > 1}
+        if not clash:
+            break
+        for i, (name, path) in enumerate(files):
+            if names[i] in clash:
+                parts = Path(os.path.abspath(path)).parts[-depth - 1:]
+                names[i] = "/".join(parts) if len(parts) > depth else os.path.abspath(path)
+    return [(n, p) for n, (_, p) in zip(names, files)]
 
 
 def _map_camera(loc: Localizer) -> Camera | None:

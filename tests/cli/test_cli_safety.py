@@ -209,3 +209,16 @@ def test_damaged_map_fails_info_and_check_with_the_row_named(world_map: Path, tm
     captured = capsys.readouterr()
     assert "images row 3" in captured.out and len(captured.err.strip().splitlines()) == 1
     assert run(["map", "check", world_map]) == 0
+
+
+def test_same_file_names_in_two_folders_do_not_mix_up(world_map: Path, queries, tmp_path: Path) -> None:
+    images, cam = queries
+    for sub, src in (("a", images[0]), ("b", images[1])):
+        (tmp_path / sub).mkdir()
+        shutil.copy(src, tmp_path / sub / "q.png")
+    out = tmp_path / "poses.txt"
+    assert run(["localize", "--map", world_map, tmp_path / "a" / "q.png", tmp_path / "b" / "q.png",
+                "--camera", cam, "--structure", "tracks", "--out", out]) == 0
+    names = sorted(line.split()[0] for line in out.read_text().splitlines())
+    assert names == ["a/q.png", "b/q.png"]
+    assert len(list((tmp_path / "poses.txt.json.d").glob("*.json"))) == 2
