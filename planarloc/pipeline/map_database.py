@@ -473,6 +473,18 @@ class MapDatabase:
             lock.release()
             raise
         if _canonical_json(db.config) != _canonical_json(config):
+            if db.num_images() == 0 and not db.is_complete:
+                # An empty, unfinished map (a build that failed before its first image) holds
+                # nothing to lose: start it again with the new configuration.
+                lock, db._lock = db._lock, None
+                db.close()
+                logger.warning("%s: replacing an empty unfinished map built with other settings", path)
+                try:
+                    return cls.create(path, config, overwrite=True, _lock=lock, **create_options)  # type: ignore[arg-type]
+                except BaseException:
+                    if lock is not None:
+                        lock.release()
+                    raise
             db.close()
             raise InputError(
                 f"{path} was built with feature config {_canonical_json(db.config)}, not "
