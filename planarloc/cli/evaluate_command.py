@@ -19,7 +19,7 @@ from planarloc.io.datasets import read_dataset
 from planarloc.io.hloc_pairs import read_hloc_pairs
 from planarloc.pipeline.evaluation import config_label, default_map_path, evaluate_queries, split_map_queries, summarize
 from planarloc.pipeline.localizer import Localizer
-from planarloc.pipeline.map_builder import build_map
+from planarloc.pipeline.map_builder import build_map, check_map_settings
 
 
 #: Files the dataset readers read next to the images (an output must never be one of them).
@@ -63,6 +63,8 @@ def run(args: argparse.Namespace) -> int:
     for option in ("--json", "--plot"):
         check_output_file(outputs[option], option, input_files(inputs, with_map_sidecars=[args.map]))
     check_output_file(args.map, "--map", inputs)
+    if args.map is not None:
+        check_map_settings(args.map, features, num_words)
     images = read_dataset(args.dataset, args.format, **dataset_options)
     map_images, queries = split_map_queries(images, args.map_every)
     image_paths = [im.path for im in images]

@@ -10,7 +10,7 @@ from planarloc.cli.options import add_dataset_args, add_feature_args, check_voca
 from planarloc.cli.output_paths import check_output_file, input_files
 from planarloc.cli.progress import console, notify, progress_bar
 from planarloc.io.datasets import read_dataset
-from planarloc.pipeline.map_builder import build_map
+from planarloc.pipeline.map_builder import build_map, check_map_settings
 from planarloc.pipeline.map_database import MapDatabase
 from planarloc.pipeline.map_integrity import check_map
 
@@ -80,6 +80,7 @@ def run_build(args: argparse.Namespace) -> int:
     num_words = check_vocabulary_size(args.vocabulary_size)
     dataset_options = parse_dataset_options(args.dataset_option)
     check_output_file(args.out, "--out", input_files([args.dataset]))
+    check_map_settings(args.out, features, num_words)
     images = read_dataset(args.dataset, args.format, **dataset_options)
     images = [im for im in images if im.index % args.every == 0]
     if not images:

@@ -13,6 +13,7 @@ marked complete. Only one process builds a map at a time (the others wait, see
 from __future__ import annotations
 
 import dataclasses
+import json
 import logging
 import os
 from collections.abc import Callable, Sequence
@@ -24,7 +25,7 @@ import numpy as np
 
 from planarloc.geometry.validation import InputError
 from planarloc.pipeline.features import DEFAULT_FEATURE_CONFIG, FeatureConfig, extract_features
-from planarloc.pipeline.map_database import MapDatabase
+from planarloc.pipeline.map_database import MapDatabase, settings_mismatch_error
 from planarloc.pipeline.map_identity import file_sha256, plan_map_update
 from planarloc.pipeline.posed_image import PosedImage
 from planarloc.pipeline.retrieval import DEFAULT_NUM_WORDS, VladVocabulary, vlad_descriptor
@@ -67,6 +68,20 @@ def read_map_image(image: PosedImage) -> np.ndarray:
             f"{image.camera.width}x{image.camera.height}; fix the dataset's intrinsics"
         )
     return gray
+
+
+def check_map_settings(path: str | Path, features: FeatureConfig, num_words: int) -> None:
+    """Before any work: an existing map at ``path`` must have been built with these settings
+    (an empty unfinished one is replaced by :func:`build_map`, so it passes)."""
+    path = Path(path)
+    if not path.exists():
+        return
+    with MapDatabase.open(path) as db:
+        stored = db.config
+        empty = db.num_images() == 0 and not db.is_complete
+    config = _map_config(features, check_num_words(num_words))
+    if not empty and json.dumps(stored, sort_keys=True) != json.dumps(config, sort_keys=True):
+        raise settings_mismatch_error(path, stored, config)
 
 
 def _map_config(features: FeatureConfig, num_words: int) -> dict:

@@ -223,6 +223,31 @@ def _canonical_json(config: Mapping[str, object]) -> str:
         raise InputError(f"config: must be JSON-serialisable ({exc})") from None
 
 
+def _flatten(config: Mapping[str, object], prefix: str = "") -> dict[str, object]:
+    out: dict[str, object] = {}
+    for k, v in config.items():
+        if isinstance(v, Mapping):
+            out.update(_flatten(v, f"{prefix}{k}."))
+        else:
+            out[f"{prefix}{k}"] = v
+    return out
+
+
+def config_diff(stored: Mapping[str, object], given: Mapping[str, object]) -> str:
+    """``key: map has X, given Y`` for every differing (nested) key, e.g. ``features.tilt``."""
+    a, b = _flatten(stored), _flatten(given)
+    diffs = [f"{k}: map has {json.dumps(a.get(k))}, given {json.dumps(b.get(k))}"
+             for k in sorted(set(a) | set(b))
+             if json.dumps(a.get(k)) != json.dumps(b.get(k)) and not k.endswith("feature_name")]
+    return "; ".join(diffs) or "feature config differs"
+
+
+def settings_mismatch_error(path: Path, stored: Mapping[str, object], given: Mapping[str, object]) -> InputError:
+    """The error for building into a map made with other settings (names the differing keys)."""
+    return InputError(f"{path} was built with other settings ({config_diff(stored, dict(given))}); use a new map "
+                      "file, or the map's settings to resume or extend it")
+
+
 def _poses_from_columns(rows: Sequence[Sequence[float]]) -> list[Pose]:
     """Poses from rows ``(qw, qx, qy, qz, tx, ty, tz)``, converting all quaternions at once."""
     if not rows:
@@ -230,6 +255,16 @@ def _poses_from_columns(rows: Sequence[Sequence[float]]) -> list[Pose]:
     a = np.asarray(rows, dtype=float)
     R = Rotation.from_quat(a[:, [1, 2, 3, 0]]).as_matrix()
     return [Pose(Ri, ti) for Ri, ti in zip(R, a[:, 4:])]
+
+
+def _has_map_header(path: Path) -> bool:
+    """True if the file starts like a planarloc map (SQLite header with our application_id)."""
+    try:
+        with open(path, "rb") as f:
+            head = f.read(72)
+    except OSError:
+        return False
+    return head[:16] == b"SQLite format 3\x00" and int.from_bytes(head[68:72], "big") == APPLICATION_ID
 
 
 def _sidecars(path: Path) -> list[Path]:
@@ -485,11 +520,9 @@ class MapDatabase:
                     if lock is not None:
                         lock.release()
                     raise
+            stored = db.config
             db.close()
-            raise InputError(
-                f"{path} was built with feature config {_canonical_json(db.config)}, not "
-                f"{_canonical_json(config)}; use a new map file or the map's configuration"
-            )
+            raise settings_mismatch_error(path, stored, config)
         return db
 
     @staticmethod
@@ -497,6 +530,8 @@ class MapDatabase:
         try:
             tables = {r[0] for r in conn.execute("SELECT name FROM sqlite_master WHERE type = 'table'")}
         except sqlite3.DatabaseError as exc:
+            if _has_map_header(path):
+                raise MapCorruptError(f"{path}: damaged planarloc map ({exc}); rebuild it") from None
             raise MapFormatError(f"{path} is not a planarloc map (not an SQLite database: {exc})") from None
         if "meta" not in tables:
             raise MapFormatError(
