@@ -12,7 +12,7 @@ from planarloc.cli.map_command import parse_dataset_options
 from planarloc.cli.exit_codes import EXIT_OK, EXIT_PARTIAL
 from planarloc.cli.options import (add_dataset_args, add_feature_args, add_localizer_args, check_vocabulary_size,
                                    feature_config, localizer_config)
-from planarloc.cli.output_paths import atomic_output, check_output_file, input_files
+from planarloc.cli.output_paths import atomic_output, check_output_file, dataset_files, input_files
 from planarloc.cli.progress import console, notify, progress_bar
 from planarloc.cli.report import print_summary_table, write_json
 from planarloc.io.datasets import read_dataset
@@ -20,11 +20,6 @@ from planarloc.io.hloc_pairs import read_hloc_pairs
 from planarloc.pipeline.evaluation import config_label, default_map_path, evaluate_queries, split_map_queries, summarize
 from planarloc.pipeline.localizer import Localizer
 from planarloc.pipeline.map_builder import build_map, check_map_settings
-
-
-#: Files the dataset readers read next to the images (an output must never be one of them).
-DATASET_FILES = ("poses.txt", "calib.txt", "times.txt", "rgb.txt", "depth.txt", "groundtruth.txt", "camera.txt",
-                 "color.txt", "cameras.txt", "images.txt", "points3D.txt", "list.txt")
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -59,7 +54,7 @@ def run(args: argparse.Namespace) -> int:
     root = Path(args.dataset)
     outputs = {"--map": args.map, "--json": args.json, "--plot": args.plot}
     _check_distinct(outputs)
-    inputs = input_files([*(root / name for name in DATASET_FILES), args.pairs, root])
+    inputs = input_files([*dataset_files(root), args.pairs, root])
     for option in ("--json", "--plot"):
         check_output_file(outputs[option], option, input_files(inputs, with_map_sidecars=[args.map]))
     check_output_file(args.map, "--map", inputs)

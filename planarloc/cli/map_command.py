@@ -7,7 +7,7 @@ import json
 from pathlib import Path
 
 from planarloc.cli.options import add_dataset_args, add_feature_args, check_vocabulary_size, feature_config
-from planarloc.cli.output_paths import check_output_file, input_files
+from planarloc.cli.output_paths import check_output_file, dataset_files, input_files
 from planarloc.cli.progress import console, notify, progress_bar
 from planarloc.io.datasets import read_dataset
 from planarloc.pipeline.map_builder import build_map, check_map_settings
@@ -79,13 +79,13 @@ def run_build(args: argparse.Namespace) -> int:
     features = feature_config(args)
     num_words = check_vocabulary_size(args.vocabulary_size)
     dataset_options = parse_dataset_options(args.dataset_option)
-    check_output_file(args.out, "--out", input_files([args.dataset]))
-    check_map_settings(args.out, features, num_words)
+    check_output_file(args.out, "--out", input_files([args.dataset, *dataset_files(args.dataset)]))
     images = read_dataset(args.dataset, args.format, **dataset_options)
     images = [im for im in images if im.index % args.every == 0]
     if not images:
         raise ValueError(f"--every {args.every}: no frame of {args.dataset} has an index divisible by it")
     check_output_file(args.out, "--out", input_files(im.path for im in images))
+    check_map_settings(args.out, features, num_words)  # before the first image is read
     console.print(f"building map [bold]{args.out}[/] from {len(images)} images of {args.dataset}")
     with progress_bar() as update:
         build_map(images, args.out, features, num_words=num_words, progress=update,

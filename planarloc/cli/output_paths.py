@@ -49,6 +49,17 @@ def input_files(paths: Iterable[Path | str | None], with_map_sidecars: Iterable[
     return out
 
 
+#: Files the dataset readers read next to the images (an output must never be one of them).
+DATASET_FILES = ("poses.txt", "calib.txt", "times.txt", "rgb.txt", "depth.txt", "groundtruth.txt", "camera.txt",
+                 "color.txt", "cameras.txt", "images.txt", "points3D.txt", "list.txt")
+
+
+def dataset_files(root: Path | str) -> list[Path]:
+    """The metadata files a dataset at ``root`` may have (``root`` itself if it is a file)."""
+    root = Path(root)
+    return [root] if root.is_file() else [root / name for name in DATASET_FILES]
+
+
 def _check_parent(path: Path, option: str) -> None:
     """The first existing ancestor of ``path`` must be a writable folder."""
     parent = Path(os.path.abspath(path)).parent
