@@ -151,6 +151,10 @@ def os_error_message(exc: OSError) -> str:
 def sqlite_error_message(exc: sqlite3.Error) -> str:
     """One line for an SQLite error escaping the map layer."""
     text = str(exc)
+    if "disk is full" in text:
+        return f"the disk is full ({text}); free space and re-run the same command to resume"
+    if "locked" in text or "busy" in text:
+        return f"the map is busy ({text}); another process holds it, re-run when it is done"
     if "readonly" in text or "unable to open" in text:
         return f"cannot write the map ({text}); check that the map and its folder are writable"
     if isinstance(exc, sqlite3.DatabaseError) and ("malformed" in text or "not a database" in text):

@@ -24,6 +24,9 @@ from planarloc.geometry.validation import InputError
 
 logger = logging.getLogger(__name__)
 
+#: Lock files held by this process: a second writer in the same process would wait for itself.
+_HELD: set[str] = set()
+
 
 class MapBusyError(InputError):
     """Another process is writing the map and did not finish within the timeout."""
@@ -64,6 +67,7 @@ class MapWriterLock:
         self.timeout = timeout
         self.on_wait = on_wait
         self._fd: int | None = None
+        self._key = ""
 
     @property
     def held(self) -> bool:
@@ -72,6 +76,11 @@ class MapWriterLock:
     def acquire(self) -> None:
         if self._fd is not None:
             return
+        key = os.path.realpath(self.path)
+        if key in _HELD:
+            raise MapBusyError(
+                f"{self.map_path} is already open for writing in this process; close that MapDatabase first"
+            )
         deadline = None if self.timeout is None else time.monotonic() + self.timeout
         told = False
         while True:
@@ -108,12 +117,15 @@ class MapWriterLock:
             os.ftruncate(fd, 0)
             os.write(fd, f"{os.getpid()}\n".encode())
             self._fd = fd
+            self._key = key
+            _HELD.add(key)
             return
 
     def release(self) -> None:
         if self._fd is None:
             return
         fd, self._fd = self._fd, None
+        _HELD.discard(self._key)
         try:
             self.path.unlink(missing_ok=True)  # while still locked: waiters then retry on a new file
         except OSError:

@@ -18,7 +18,7 @@ from planarloc.pipeline.features import FeatureConfig
 from planarloc.pipeline.map_builder import build_map
 from planarloc.pipeline.map_database import MapCorruptError, MapDatabase, MapFormatError
 from planarloc.pipeline.map_integrity import check_map
-from planarloc.pipeline.map_lock import MapBusyError, MapWriterLock, lock_path_of
+from planarloc.pipeline.map_lock import _HELD, MapBusyError, MapWriterLock, lock_path_of
 
 FEATURES = FeatureConfig(max_features=300)
 WORDS = 8
@@ -173,9 +173,14 @@ def test_concurrent_builds_serialize(tmp_path: Path) -> None:
 
 
 def test_second_writer_waits_or_names_the_pid(built: Path) -> None:
-    with MapDatabase.open(built, mode="a"):
+    with MapWriterLock(built, timeout=0) as lock:  # as another process would hold it
+        _HELD.discard(lock._key)
         with pytest.raises(MapBusyError, match=f"being built by PID {os.getpid()}"):
             MapDatabase.open(built, mode="a", lock_timeout=0.2)
+        _HELD.add(lock._key)
+    with MapDatabase.open(built, mode="a"):
+        with pytest.raises(MapBusyError, match="already open for writing in this process"):
+            MapDatabase.open(built, mode="a")
         with MapDatabase.open(built, mode="r") as reader:  # readers never wait
             assert reader.num_images() == 4
     with MapDatabase.open(built, mode="a", lock_timeout=0):  # released on close
