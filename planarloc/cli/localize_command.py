@@ -85,6 +85,10 @@ def _unique_names(items: list[tuple[str, Path]]) -> list[tuple[str, Path]]:
             if names[i] in clash:
                 parts = Path(os.path.abspath(path)).parts[-depth - 1:]
                 names[i] = "/".join(parts) if len(parts) > depth else os.path.abspath(path)
+    for n, (_, p) in zip(names, files):
+        if any(c.isspace() for c in n):  # before any work: the results file could not hold it
+            raise ValueError(f"{p}: query image names must not contain whitespace (the hloc results format "
+                             "is 'name qw qx qy qz tx ty tz'); rename the file")
     return [(n, p) for n, (_, p) in zip(names, files)]
 
 

@@ -222,3 +222,12 @@ def test_same_file_names_in_two_folders_do_not_mix_up(world_map: Path, queries, 
     names = sorted(line.split()[0] for line in out.read_text().splitlines())
     assert names == ["a/q.png", "b/q.png"]
     assert len(list((tmp_path / "poses.txt.json.d").glob("*.json"))) == 2
+
+
+def test_query_names_with_whitespace_refused_before_work(world_map: Path, queries, tmp_path: Path, capsys) -> None:
+    images, cam = queries
+    odd = tmp_path / "my query.png"
+    shutil.copy(images[0], odd)
+    assert run(["localize", "--map", world_map, images[1], odd, "--camera", cam, "--out", tmp_path / "p.txt"]) == 1
+    one_error_line(capsys, "whitespace")
+    assert not (tmp_path / "p.txt").exists()
