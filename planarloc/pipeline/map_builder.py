@@ -59,6 +59,27 @@ def check_num_words(num_words: object) -> int:
     return int(num_words)
 
 
+def png_size(path: Path) -> tuple[int, int] | None:
+    """(width, height) from a PNG header (24 bytes read), None for other or unreadable files."""
+    try:
+        with open(path, "rb") as f:
+            head = f.read(24)
+    except OSError:
+        return None
+    if len(head) < 24 or head[:8] != b"\x89PNG\r\n\x1a\n" or head[12:16] != b"IHDR":
+        return None
+    return int.from_bytes(head[16:20], "big"), int.from_bytes(head[20:24], "big")
+
+
+def _hash_checked(image: PosedImage) -> str:
+    """SHA-256 of an image file, after a cheap size check against its camera (PNG headers)."""
+    size = png_size(image.path)
+    if size is not None and size != (image.camera.width, image.camera.height):
+        raise InputError(f"{image.path}: image is {size[0]}x{size[1]} but its camera is "
+                         f"{image.camera.width}x{image.camera.height}; fix the dataset's intrinsics")
+    return file_sha256(image.path)
+
+
 def read_map_image(image: PosedImage) -> np.ndarray:
     """Read a map image as (H, W) uint8 and check it has its camera's size."""
     gray = read_gray(image.path)
@@ -137,7 +158,7 @@ def build_map(
     with MapDatabase.open_or_create(path, config, lock_timeout=lock_timeout) as db:
         with ThreadPoolExecutor(max_workers=n_workers) as pool:
             hashes = []
-            for i, h in enumerate(pool.map(lambda im: file_sha256(im.path), images)):
+            for i, h in enumerate(pool.map(_hash_checked, images)):
                 hashes.append(h)
                 if progress:
                     progress("check images", i + 1, len(images))
