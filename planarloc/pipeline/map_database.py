@@ -649,11 +649,15 @@ class MapDatabase:
         self._leave_wal()
 
     def _leave_wal(self) -> None:
+        conn = self._db
+        conn.execute("PRAGMA busy_timeout = 2000")  # never hang on a reader: WAL mode is also fine
         try:
-            self._db.execute("PRAGMA wal_checkpoint(TRUNCATE)").fetchall()
-            self._db.execute("PRAGMA journal_mode = DELETE").fetchall()
+            conn.execute("PRAGMA wal_checkpoint(TRUNCATE)").fetchall()
+            conn.execute("PRAGMA journal_mode = DELETE").fetchall()
         except sqlite3.OperationalError as exc:  # a reader holds the WAL open: it stays in WAL mode
             logger.info("%s: stays in WAL mode (%s)", self.path, exc)
+        finally:
+            conn.execute("PRAGMA busy_timeout = 60000")
 
     def get_meta(self, key: str) -> str | None:
         """A meta value, None if absent."""
