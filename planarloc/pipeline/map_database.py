@@ -244,8 +244,8 @@ def config_diff(stored: Mapping[str, object], given: Mapping[str, object]) -> st
 
 def settings_mismatch_error(path: Path, stored: Mapping[str, object], given: Mapping[str, object]) -> InputError:
     """The error for building into a map made with other settings (names the differing keys)."""
-    return InputError(f"{path} was built with other settings ({config_diff(stored, dict(given))}); use a new map "
-                      "file, or the map's settings to resume or extend it")
+    return InputError(f"{path} was built with another feature config ({config_diff(stored, dict(given))}); use a "
+                      "new map file, or the map's settings to resume or extend it")
 
 
 def _poses_from_columns(rows: Sequence[Sequence[float]]) -> list[Pose]:

@@ -171,7 +171,7 @@ def test_resume_skips_existing_and_append(tmp_path: Path, rng: np.random.Generat
 def test_open_or_create_refuses_other_config(tmp_path: Path) -> None:
     with MapDatabase.create(tmp_path / "m.db", CONFIG) as db:
         db.add_image(make_posed(0), make_features(np.random.default_rng(0), 10))
-    with pytest.raises(InputError, match=r"built with other settings \(tilt: map has true, given false\)"):
+    with pytest.raises(InputError, match=r"built with another feature config \(tilt: map has true, given false\)"):
         MapDatabase.open_or_create(tmp_path / "m.db", {**CONFIG, "tilt": False})
     with pytest.raises(InputError, match="already exists"):
         MapDatabase.create(tmp_path / "m.db", CONFIG)
