@@ -231,3 +231,10 @@ def test_query_names_with_whitespace_refused_before_work(world_map: Path, querie
     assert run(["localize", "--map", world_map, images[1], odd, "--camera", cam, "--out", tmp_path / "p.txt"]) == 1
     one_error_line(capsys, "whitespace")
     assert not (tmp_path / "p.txt").exists()
+
+
+def test_demo_out_that_is_a_file_is_refused_before_rendering(tmp_path: Path, capsys) -> None:
+    (tmp_path / "f").write_text("keep")
+    assert run(["demo", "--out", tmp_path / "f"]) == 1
+    one_error_line(capsys, "is a file, not a folder")
+    assert (tmp_path / "f").read_text() == "keep"
