@@ -149,6 +149,11 @@ def run(args: argparse.Namespace) -> int:
                 update("localize", i + 1, len(queries))
     finally:
         write_pose_list(args.out, poses)  # always written, also when interrupted (atomic)
+    ours = {name.replace("/", "__") + ".json" for name, _ in queries}
+    stale = [p.name for p in json_dir.glob("*.json") if p.name not in ours]
+    if stale:
+        console.print(f"[yellow]note:[/] {len(stale)} JSON file(s) in {json_dir}/ are from an earlier run (e.g. "
+                      f"{stale[0]}), not from these queries")
     console.print(f"localized {len(poses)} of {len(queries)} queries ({failed} failed"
                   f"{f', {errors} could not be processed' if errors else ''}) -> {args.out}, details in {json_dir}/")
     return EXIT_PARTIAL if errors else EXIT_OK
