@@ -19,7 +19,7 @@ from planarloc.geometry.pose import pose_errors
 from planarloc.geometry.validation import InputError
 from planarloc.pipeline.localizer import Localizer, LocalizerConfig
 from planarloc.pipeline.map_builder import read_gray
-from planarloc.pipeline.map_database import MapDatabase
+from planarloc.pipeline.map_database import MapDatabase, MapFormatError
 from planarloc.pipeline.posed_image import PosedImage
 from planarloc.robust.result import PoseEstimate
 
@@ -64,6 +64,13 @@ def query_result(query: PosedImage, est: PoseEstimate, seconds: float) -> QueryR
     return QueryResult(query.name, est.status, bool(est.success), t_err, r_err, float(est.position_std_m),
                        int(est.num_inliers), int(est.num_inliers_3d), seconds, c,
                        tuple(float(v) for v in query.cam_from_world.center))
+
+
+def _error_result(query: PosedImage, seconds: float, reason: str) -> QueryResult:
+    """A query that could not be processed: failed, status ``"error"``, with the reason."""
+    nan = float("nan")
+    return QueryResult(query.name, "error", False, nan, nan, nan, 0, 0, seconds, None,
+                       tuple(float(v) for v in query.cam_from_world.center), reason)
 
 
 def summarize(results: Sequence[QueryResult], method: str, structure: str, **extra: object) -> dict:
@@ -126,25 +133,33 @@ def evaluate_configs(
     out: list[list[QueryResult]] = [[] for _ in configs]
     for i, q in enumerate(queries):
         t0 = time.perf_counter()
-        try:  # one bad query (unreadable, wrong size) is a failed query, the batch goes on
+        # One bad query (unreadable, wrong size, not in the pairs file) is a failed query with its
+        # reason and the batch goes on; a damaged map stops it (it would fail every query).
+        try:
             image = read_gray(q.path)
             if image.shape[:2] != (q.camera.height, q.camera.width):
                 raise InputError(f"{q.path}: image is {image.shape[1]}x{image.shape[0]} but its camera is "
                                  f"{q.camera.width}x{q.camera.height}")
             features = extract_features(image, localizers[0].features)
+        except MapFormatError:
+            raise
         except InputError as exc:
             for results in out:
-                results.append(QueryResult(q.name, "error", False, float("nan"), float("nan"), float("nan"), 0, 0,
-                                           time.perf_counter() - t0, None,
-                                           tuple(float(v) for v in q.cam_from_world.center), str(exc)))
+                results.append(_error_result(q, time.perf_counter() - t0, str(exc)))
             if progress:
                 progress(i + 1, len(queries))
             continue
         t_feat = time.perf_counter() - t0
         for loc, results in zip(localizers, out):
             t1 = time.perf_counter()
-            refs = retrieve_from_pairs(pairs, q.name, loc.config.top_n) if pairs is not None else None
-            est = loc.localize_features(features, q.camera, refs)
+            try:
+                refs = retrieve_from_pairs(pairs, q.name, loc.config.top_n) if pairs is not None else None
+                est = loc.localize_features(features, q.camera, refs)
+            except MapFormatError:
+                raise
+            except InputError as exc:
+                results.append(_error_result(q, t_feat + time.perf_counter() - t1, str(exc)))
+                continue
             results.append(query_result(q, est, t_feat + time.perf_counter() - t1))
         if progress:
             progress(i + 1, len(queries))

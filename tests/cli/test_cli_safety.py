@@ -238,3 +238,17 @@ def test_demo_out_that_is_a_file_is_refused_before_rendering(tmp_path: Path, cap
     assert run(["demo", "--out", tmp_path / "f"]) == 1
     one_error_line(capsys, "is a file, not a folder")
     assert (tmp_path / "f").read_text() == "keep"
+
+
+def test_evaluate_records_a_broken_query_and_goes_on(tiny_world: Path, tmp_path: Path) -> None:
+    data = tmp_path / "data"
+    shutil.copytree(tiny_world / "map", data)
+    broken = read_dataset(data, "tum")[1]  # odd index: a query at --map-every 2
+    broken.path.write_bytes(b"truncated")
+    summary = tmp_path / "e.json"
+    assert run(["evaluate", data, "-f", "tum", "--map-every", "2", "--map", tmp_path / "e.db", "--vocabulary-size",
+                "16", "--structure", "tracks", "--json", summary]) == 3
+    s = json.loads(summary.read_text())
+    errors = [q for q in s["per_query"] if q["status"] == "error"]
+    assert s["queries"] == 6 and len(errors) == 1 and errors[0]["name"] == broken.name
+    assert "cannot read image" in errors[0]["reason"] and s["localized"] >= 4
