@@ -396,6 +396,8 @@ class MapDatabase:
             path.unlink()
         for side in _sidecars(path):
             side.unlink(missing_ok=True)
+        for stale in path.parent.glob(f".{path.name}.*.creating*"):  # left by a killed create (we hold the lock)
+            stale.unlink(missing_ok=True)
 
         from planarloc import __version__
 

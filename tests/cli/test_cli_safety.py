@@ -252,3 +252,22 @@ def test_evaluate_records_a_broken_query_and_goes_on(tiny_world: Path, tmp_path:
     errors = [q for q in s["per_query"] if q["status"] == "error"]
     assert s["queries"] == 6 and len(errors) == 1 and errors[0]["name"] == broken.name
     assert "cannot read image" in errors[0]["reason"] and s["localized"] >= 4
+
+
+def test_interrupted_batch_keeps_the_poses_so_far(world_map: Path, queries, tmp_path: Path,
+                                                  monkeypatch: pytest.MonkeyPatch) -> None:
+    from planarloc.pipeline.localizer import Localizer
+
+    images, cam = queries
+    real, calls = Localizer.localize, []
+
+    def interrupt_second(self, *args, **kwargs):
+        calls.append(1)
+        if len(calls) == 2:
+            raise KeyboardInterrupt
+        return real(self, *args, **kwargs)
+
+    monkeypatch.setattr(Localizer, "localize", interrupt_second)
+    out = tmp_path / "poses.txt"
+    assert run(["localize", "--map", world_map, *images, "--camera", cam, "--structure", "tracks", "--out", out]) == 130
+    assert [line.split()[0] for line in out.read_text().splitlines()] == [images[0].name]
