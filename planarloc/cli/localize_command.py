@@ -4,9 +4,10 @@ from __future__ import annotations
 
 import argparse
 import json
-import logging
 import os
 from pathlib import Path
+
+from rich.markup import escape
 
 from planarloc.cli.exit_codes import EXIT_OK, EXIT_PARTIAL
 from planarloc.cli.options import add_localizer_args, localizer_config, parse_camera
@@ -21,7 +22,6 @@ from planarloc.pipeline.map_builder import read_gray
 from planarloc.pipeline.map_database import MapFormatError
 from planarloc.pipeline.retrieval import retrieve_from_pairs
 
-logger = logging.getLogger(__name__)
 IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".ppm", ".pgm"}
 
 
@@ -140,7 +140,7 @@ def run(args: argparse.Namespace) -> int:
                     reason = f"{path}: {exc.strerror or exc}" if isinstance(exc, OSError) else str(exc)
                     est, record = None, {"name": name, "success": False, "status": "error", "reason": reason}
                     errors += 1
-                    logger.warning("query %s not processed: %s", name, reason)
+                    console.print(f"[yellow]query {escape(name)} not processed:[/] {escape(reason)}")
                 write_text_atomic(json_dir / (name.replace("/", "__") + ".json"), json.dumps(record, indent=1))
                 if est is not None and est.success:
                     poses.append((name, est.pose))
