@@ -13,6 +13,7 @@ marked complete. Only one process builds a map at a time (the others wait, see
 from __future__ import annotations
 
 import dataclasses
+import errno
 import json
 import logging
 import os
@@ -155,13 +156,20 @@ def build_map(
         raise InputError("images: expected PosedImage records (e.g. from planarloc.io.datasets.read_dataset)")
     config = _map_config(features, num_words)
     n_workers = workers or os.cpu_count() or 1
-    with MapDatabase.open_or_create(path, config, lock_timeout=lock_timeout) as db:
-        with ThreadPoolExecutor(max_workers=n_workers) as pool:
-            hashes = []
-            for i, h in enumerate(pool.map(_hash_checked, images)):
-                hashes.append(h)
-                if progress:
-                    progress("check images", i + 1, len(images))
+    with ThreadPoolExecutor(max_workers=n_workers) as pool:
+        hashes = []
+        for i, h in enumerate(pool.map(_hash_checked, images)):  # reads every file once, before any work
+            hashes.append(h)
+            if progress:
+                progress("check images", i + 1, len(images))
+        try:
+            db = MapDatabase.open_or_create(path, config, lock_timeout=lock_timeout)
+        except OSError as exc:
+            if exc.errno not in (errno.EACCES, errno.EPERM, errno.EROFS) or not path.is_file():
+                raise
+            _check_read_only_map_is_current(path, config, images, hashes, exc)
+            return path
+        with db:
             plan = plan_map_update(db, images, hashes)
             for line in plan.summary_lines(path):
                 if notify is not None:
@@ -183,10 +191,25 @@ def build_map(
                 db.add_image(record, feats, content_sha256=sha)
                 if progress:
                     progress("features", i + 1, len(todo))
-        if plan.changes_map or not db.is_complete or db.get_blob(VOCABULARY_BLOB) is None:
-            index_map(db, num_words=num_words, seed=seed, progress=progress)
-            db.mark_complete()
+            if plan.changes_map or not db.is_complete or db.get_blob(VOCABULARY_BLOB) is None:
+                index_map(db, num_words=num_words, seed=seed, progress=progress)
+                db.mark_complete()
     return path
+
+
+def _check_read_only_map_is_current(path: Path, config: dict, images: Sequence[PosedImage], hashes: Sequence[str],
+                                    exc: OSError) -> None:
+    """A map that cannot be written (read-only media) is fine if it already is this build."""
+    with MapDatabase.open(path) as db:
+        if json.dumps(db.config, sort_keys=True) != json.dumps(config, sort_keys=True):
+            raise settings_mismatch_error(path, db.config, config)
+        plan = plan_map_update(db, images, hashes)
+        if db.is_complete and not plan.changes_map:
+            logger.info("%s: read-only and already complete with these images; nothing to do", path)
+            return
+    need = len(plan.add) + len(plan.replace) + len(plan.update)
+    raise InputError(f"{path}: cannot write the map ({exc.strerror}: {exc.filename}) but {need} image(s) must be "
+                     "added or updated; copy it to a writable location or build a new map there")
 
 
 def index_map(db: MapDatabase, num_words: int = DEFAULT_NUM_WORDS, seed: int = 0,

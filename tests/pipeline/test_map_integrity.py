@@ -219,3 +219,16 @@ def test_map_in_wal_mode_opens_immutable_where_not_writable(built: Path, monkeyp
     monkeypatch.setattr(os, "access", lambda *a, **k: False)
     with MapDatabase.open(built) as db:
         assert db.num_images() == 3 and db.get_meta("note") == "x" and not db.is_complete
+
+
+def test_build_on_read_only_media_passes_if_current_else_says_why(seq_a, built: Path,
+                                                                  monkeypatch: pytest.MonkeyPatch) -> None:
+    import errno
+
+    def read_only(self) -> None:
+        raise PermissionError(errno.EROFS, "Read-only file system", str(self.path))
+
+    monkeypatch.setattr(MapWriterLock, "acquire", read_only)
+    assert build(seq_a, built) == built  # e.g. `evaluate --map` on a finished map on a DVD
+    with pytest.raises(ValueError, match="cannot write the map .*4 image\\(s\\) must be added or updated"):
+        build(shifted(seq_a, 1.0), built)
