@@ -24,9 +24,10 @@ def add_cross_session_args(p: argparse.ArgumentParser) -> None:
 
 
 def read_map_and_queries(
-    args: argparse.Namespace, features_name: str
+    args: argparse.Namespace, features_name: str, settings: str = ""
 ) -> tuple[list[PosedImage], list[PosedImage], Path, dict, str]:
-    """Map images, queries, map path, extra JSON fields and a title, for both protocols."""
+    """Map images, queries, map path, extra JSON fields and a title, for both protocols
+    (``settings``: the map settings that key the cached map, with the map images' content)."""
     map_options = parse_dataset_options(args.dataset_option)
     if (args.queries is None) == (args.map_every is None):
         raise ValueError("give either --map-every N (split one dataset) or --queries QUERY_DATASET (cross-session)")
@@ -35,13 +36,14 @@ def read_map_and_queries(
             raise ValueError(f"--map-every splits one dataset, got {len(args.dataset)}; use --queries for several")
         images = read_dataset(args.dataset[0], args.format, **map_options)
         map_images, queries = split_map_queries(images, args.map_every)
-        map_path = args.map or default_map_path(Path(args.dataset[0]), args.map_every, features_name)
+        map_path = args.map or default_map_path(Path(args.dataset[0]), args.map_every, features_name, map_images,
+                                                settings=settings)
         return (map_images, queries, map_path, {"dataset": str(args.dataset[0]), "map_every": args.map_every},
                 f"{Path(args.dataset[0]).name}, map every {args.map_every}")
     map_images = read_sessions(args.dataset, args.format, **map_options)
     queries = read_dataset(Path(args.queries), args.queries_format or args.format,
                            **parse_dataset_options(args.queries_option))
-    map_path = args.map or sessions_map_path(args.dataset, args.format, map_options, features_name)
+    map_path = args.map or sessions_map_path(args.dataset, args.format, map_options, f"{features_name}|{settings}")
     extra = {"map_datasets": [str(d) for d in args.dataset], "map_format": args.format,
              "queries_dataset": str(args.queries), "queries_format": args.queries_format or args.format}
     return map_images, queries, map_path, extra, f"map {'+'.join(session_labels(args.dataset))}, queries " \

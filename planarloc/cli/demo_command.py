@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
+from planarloc.cli.output_paths import atomic_output, check_output_dir
 from planarloc.cli.progress import console, progress_bar
 from planarloc.cli.report import print_summary_table, write_json
 from planarloc.io.datasets import read_dataset
@@ -45,6 +46,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     t_start = time.perf_counter()
     out = args.out
+    check_output_dir(out, "--out")  # before rendering anything
     features = FeatureConfig(tilt=args.tilt)
     with progress_bar() as update:
         world = generate(args.preset, out / "world", seed=args.seed, progress=lambda d, n: update("render world", d, n))
@@ -66,7 +68,8 @@ def run(args: argparse.Namespace) -> int:
     for c, r in zip(configs, results):
         method, structure = config_label(c)
         path = out / f"trajectory-{method}-{structure}.png"
-        save_localization_plot(path, centers, r, f"{args.preset}: {method}, structure={structure}")
+        with atomic_output(path) as tmp:
+            save_localization_plot(tmp, centers, r, f"{args.preset}: {method}, structure={structure}")
         console.print(f"wrote {path}")
     console.print(f"done in {time.perf_counter() - t_start:.0f} s")
     return 0

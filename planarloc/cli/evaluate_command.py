@@ -4,20 +4,24 @@ sessions, queries = another (cross-session); success rates."""
 from __future__ import annotations
 
 import argparse
+import os
 from pathlib import Path
 
 import numpy as np
 
 from planarloc.cli.cross_session import add_cross_session_args, read_map_and_queries
+from planarloc.cli.exit_codes import EXIT_OK, EXIT_PARTIAL
 from planarloc.cli.options import (
     add_dataset_args,
     add_feature_args,
     add_gravity_file_arg,
     add_localizer_args,
+    check_vocabulary_size,
     feature_config,
     localizer_config,
 )
-from planarloc.cli.progress import console, progress_bar
+from planarloc.cli.output_paths import atomic_output, check_output_file, dataset_files, input_files
+from planarloc.cli.progress import console, notify, progress_bar
 from planarloc.cli.report import print_summary_table, write_json
 from planarloc.cli.result_outputs import EstimateOutputs, add_output_args, write_evaluation_tum
 from planarloc.distributed.ray_backend import ray_session
@@ -25,7 +29,7 @@ from planarloc.io.gravity_file import read_gravity_file
 from planarloc.io.hloc_pairs import read_hloc_pairs
 from planarloc.pipeline.evaluation import config_label, evaluate_queries, gravity_from_truth, summarize
 from planarloc.pipeline.localizer import Localizer
-from planarloc.pipeline.map_builder import build_map, map_gravity
+from planarloc.pipeline.map_builder import build_map, check_map_settings, map_gravity
 from planarloc.pipeline.map_database import MapDatabase
 
 
@@ -68,18 +72,35 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    # Every option and output is checked before the first image is read.
+    if args.map_every is not None and args.map_every < 2:
+        raise ValueError(f"--map-every must be >= 2 (otherwise there are no queries), got {args.map_every}")
     features = feature_config(args)
-    map_images, queries, map_path, extra, title = read_map_and_queries(args, features.name)
+    num_words = check_vocabulary_size(args.vocabulary_size)
     config = localizer_config(args)
     pairs = read_hloc_pairs(args.pairs) if args.pairs else None
     gravity = read_gravity_file(args.gravity_file) if args.gravity_file else None
+    outputs_paths = {"--map": args.map, "--json": args.json, "--plot": args.plot}
+    _check_distinct(outputs_paths)
+    roots = [Path(d) for d in args.dataset] + ([Path(args.queries)] if args.queries is not None else [])
+    inputs = input_files([*(f for r in roots for f in dataset_files(r)), *roots, args.pairs, args.gravity_file])
+    for option in ("--json", "--plot"):
+        check_output_file(outputs_paths[option], option, input_files(inputs, with_map_sidecars=[args.map]))
+    check_output_file(args.map, "--map", inputs)
+    if args.map is not None:
+        check_map_settings(args.map, features, num_words)
+    map_images, queries, map_path, extra, title = read_map_and_queries(args, features.name,
+                                                                       settings=f"words={num_words}|{features}")
+    image_paths = [im.path for im in [*map_images, *queries]]
+    for option, path in outputs_paths.items():
+        check_output_file(path, option, image_paths)
     console.print(f"map: {len(map_images)} frames -> {map_path}; queries: {len(queries)} frames")
     outputs = EstimateOutputs(args.plot_matches, args.rerun)
     if args.ray and outputs.active:
         raise ValueError("--plot-matches and --rerun draw in this process: run them without --ray")
     try:
         with ray_session(args.ray) as ray_backend, progress_bar() as update:
-            build_map(map_images, map_path, features, num_words=args.vocabulary_size, progress=update,
+            build_map(map_images, map_path, features, num_words=num_words, progress=update, notify=notify,
                       mapper=ray_backend.map if ray_backend else None)
             if args.gravity_from_truth:
                 # the dataset's declared down direction, else the map's (estimated) gravity
@@ -104,6 +125,23 @@ def run(args: argparse.Namespace) -> int:
         from planarloc.viz.trajectory import save_localization_plot
 
         centers = np.array([m.cam_from_world.center for m in map_images])
-        save_localization_plot(args.plot, centers, results, f"{title}: {method}, {structure}")
+        with atomic_output(args.plot) as tmp:
+            save_localization_plot(tmp, centers, results, f"{title}: {method}, {structure}")
         console.print(f"wrote {args.plot}")
-    return 0
+    errors = [r for r in results if r.status == "error"]
+    if errors:
+        console.print(f"[yellow]{len(errors)} of {len(results)} queries could not be processed[/] "
+                      f"(e.g. {errors[0].reason}); they count as failed")
+        return EXIT_PARTIAL
+    return EXIT_OK
+
+
+def _check_distinct(outputs: dict[str, Path | None]) -> None:
+    seen: dict[str, str] = {}
+    for option, path in outputs.items():
+        if path is None:
+            continue
+        key = os.path.realpath(path)
+        if key in seen:
+            raise ValueError(f"{option} {path}: the same path as {seen[key]}; give each output its own path")
+        seen[key] = option

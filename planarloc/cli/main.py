@@ -4,10 +4,14 @@ from __future__ import annotations
 
 import argparse
 import logging
+import sqlite3
 import sys
 
 from planarloc import __version__
 from planarloc.cli import demo_command, evaluate_command, localize_command, map_command, serve_command
+from planarloc.cli.exit_codes import EXIT_ERROR, EXIT_INTERRUPTED
+from planarloc.cli.exit_codes import HELP as EXIT_CODES_HELP
+from planarloc.cli.output_paths import os_error_message, sqlite_error_message
 from planarloc.extras import MissingExtraError
 
 
@@ -22,6 +26,7 @@ def build_parser() -> argparse.ArgumentParser:
                     "  planarloc map build DATA -f kitti --out map.db\n"
                     "  planarloc localize --map map.db query.png --camera 'PINHOLE W H fx fy cx cy'\n"
                     "  planarloc evaluate DATA -f kitti --map-every 2 --structure tracks",
+        epilog=EXIT_CODES_HELP,
     )
     parser.add_argument("--version", action="version", version=f"planarloc {__version__}")
     parser.add_argument("--verbose", "-v", action="count", default=0, help="more log output (-vv for debug)")
@@ -38,14 +43,23 @@ def main(argv: list[str] | None = None) -> int:
                         format="%(levelname)s %(name)s: %(message)s")
     try:
         return int(args.func(args) or 0)
-    except (ValueError, FileNotFoundError, MissingExtraError) as exc:
-        # Known errors (bad input, bad files) print one line; anything else keeps its traceback.
+    except (ValueError, OSError, sqlite3.Error, KeyError, MissingExtraError) as exc:
+        # Known errors (bad input, bad files, file system, damaged maps, a missing optional
+        # extra) print one line; anything else keeps its traceback.
         command = " ".join(filter(None, [args.command, getattr(args, "map_command", None)]))
-        print(f"planarloc {command}: error: {exc}", file=sys.stderr)
-        return 1
+        if isinstance(exc, OSError):
+            text = os_error_message(exc)
+        elif isinstance(exc, sqlite3.Error):
+            text = sqlite_error_message(exc)
+        elif isinstance(exc, KeyError):
+            text = f"map lookup failed ({exc.args[0] if exc.args else exc}); run `planarloc map check` on the map"
+        else:
+            text = str(exc)
+        print(f"planarloc {command}: error: {' '.join(text.split())}", file=sys.stderr)
+        return EXIT_ERROR
     except KeyboardInterrupt:
         print("interrupted; re-run the same command to resume", file=sys.stderr)
-        return 130
+        return EXIT_INTERRUPTED
 
 
 if __name__ == "__main__":

@@ -43,6 +43,13 @@ def add_feature_args(p: argparse.ArgumentParser) -> None:
                    help="VLAD visual words for retrieval (default: %(default)s)")
 
 
+def check_vocabulary_size(value: int) -> int:
+    """--vocabulary-size as a positive int (checked before any work)."""
+    if value < 1:
+        raise ValueError(f"--vocabulary-size must be >= 1, got {value}")
+    return int(value)
+
+
 def feature_config(args: argparse.Namespace) -> FeatureConfig:
     return FeatureConfig(max_features=args.max_features, tilt=args.tilt)
 
@@ -104,6 +111,6 @@ def parse_camera(text: str) -> Camera:
         raise ValueError(f"--camera: expected 'MODEL WIDTH HEIGHT PARAMS...', e.g. 'PINHOLE 640 480 500 500 320 240', "
                          f"got {text!r}")
     try:
-        return Camera(tok[0], int(tok[1]), int(tok[2]), tuple(float(v) for v in tok[3:]))
+        return Camera(tok[0], tok[1], tok[2], tuple(float(v) for v in tok[3:]))
     except ValueError as exc:
         raise ValueError(f"--camera {text!r}: {exc}") from None

@@ -26,3 +26,8 @@ def progress_bar() -> Iterator[Callable[[str, int, int], None]]:
             prog.update(tasks[stage], completed=done, total=total)
 
         yield update
+
+
+def notify(line: str) -> None:
+    """Print one notice line from the library (e.g. what a map build updated) on stderr, as is."""
+    console.print(line, markup=False, highlight=False, soft_wrap=True)

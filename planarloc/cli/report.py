@@ -8,6 +8,7 @@ from pathlib import Path
 
 from rich.table import Table
 
+from planarloc.cli.output_paths import write_text_atomic
 from planarloc.cli.progress import console
 
 
@@ -34,7 +35,5 @@ def print_summary_table(summaries: Sequence[dict], title: str) -> None:
 def write_json(path: Path | None, data: object) -> None:
     if path is None:
         return
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps(data, indent=1))
+    write_text_atomic(Path(path), json.dumps(data, indent=1))
     console.print(f"wrote {path}")

@@ -64,14 +64,13 @@ class Camera:
             raise InputError(
                 f"Camera.params: {model.value} takes {NUM_PARAMS[model]} parameters, got {len(params)}"
             )
-        if int(self.width) <= 0 or int(self.height) <= 0:
-            raise InputError(f"Camera: image size must be positive, got {self.width}x{self.height}")
+        width, height = _pixel_count("width", self.width), _pixel_count("height", self.height)
         if params[0] <= 0 or (model != CameraModel.SIMPLE_PINHOLE and params[1] <= 0):
             raise InputError(f"Camera.params: focal lengths must be positive, got {params[:2]}")
         object.__setattr__(self, "model", model)
         object.__setattr__(self, "params", params)
-        object.__setattr__(self, "width", int(self.width))
-        object.__setattr__(self, "height", int(self.height))
+        object.__setattr__(self, "width", width)
+        object.__setattr__(self, "height", height)
 
     @classmethod
     def from_K(cls, K: object, width: int, height: int, dist: object | None = None) -> Camera:
@@ -131,7 +130,9 @@ class Camera:
     def cam_from_img(self, points: object) -> np.ndarray:
         """Pixels (N, 2) -> undistorted normalized coordinates (N, 2).
 
-        Rows outside the valid range of the OPENCV distortion model come back NaN."""
+        Rows outside the valid range of the OPENCV distortion model come back NaN: where the
+        radial distortion ``r (1 + k1 r² + k2 r⁴)`` stops increasing with ``r`` (see
+        :func:`max_undistorted_radius`), pixels beyond the fold have no or two preimages."""
         uv = check_array("points", points, (None, 2))
         (fx, fy), (cx, cy) = self.focal, self.principal_point
         xd = np.stack([(uv[:, 0] - cx) / fx, (uv[:, 1] - cy) / fy], axis=1)
@@ -142,7 +143,8 @@ class Camera:
     def img_from_cam(self, points: object) -> np.ndarray:
         """Normalized (N, 2) or camera-frame (N, 3) points -> pixels (N, 2), with distortion.
 
-        3D points must be in front of the camera (z > 0)."""
+        3D points must be in front of the camera (z > 0). Points beyond the OPENCV model's
+        valid radius (:func:`max_undistorted_radius`) come back NaN."""
         x = check_array("points", points)
         if x.ndim != 2 or x.shape[1] not in (2, 3):
             raise InputError(f"points: expected shape (N, 2) or (N, 3), got {x.shape}")
@@ -151,7 +153,10 @@ class Camera:
                 raise InputError("points: 3D points must have z > 0 (in front of the camera)")
             x = x[:, :2] / x[:, 2:3]
         if self.model == CameraModel.OPENCV:
+            r_max = max_undistorted_radius(self.distortion)
+            beyond = np.einsum("ij,ij->i", x, x) >= r_max * r_max
             x = distort_normalized(x, self.distortion)
+            x[beyond] = np.nan
         (fx, fy), (cx, cy) = self.focal, self.principal_point
         return np.stack([fx * x[:, 0] + cx, fy * x[:, 1] + cy], axis=1)
 
@@ -159,6 +164,42 @@ class Camera:
         """Pixels (N, 2) -> homogeneous normalized rays (N, 3) ``(x, y, 1)``."""
         x = self.cam_from_img(points)
         return np.hstack([x, np.ones((len(x), 1))])
+
+
+def _pixel_count(name: str, value: object) -> int:
+    """An image width/height: a positive whole number (``640`` or ``640.0``, never ``640.5``)."""
+    try:
+        v = float(value)  # type: ignore[arg-type]
+    except (TypeError, ValueError):
+        raise InputError(f"Camera.{name}: image size must be positive whole pixel counts, got {value!r}") from None
+    if isinstance(value, bool) or not np.isfinite(v) or v != int(v) or v <= 0:
+        raise InputError(f"Camera.{name}: image size must be positive whole pixel counts, got {value!r}")
+    return int(v)
+
+
+def max_undistorted_radius(dist: object) -> float:
+    """Largest normalized radius where OpenCV's radial distortion is still monotonic.
+
+    The radial part maps ``r -> r (1 + k1 r² + k2 r⁴)``; its derivative ``1 + 3 k1 r² + 5 k2 r⁴``
+    first vanishes at the returned radius (``inf`` if it never does, e.g. ``k1, k2 >= 0``).
+    Beyond it the distortion folds back, so pixels there have no unique ray; like COLMAP,
+    planarloc treats them as outside the model (the tangential terms are ignored here).
+
+    Args:
+        dist: (4,) ``(k1, k2, p1, p2)``.
+
+    Returns:
+        The radius (unitless, in normalized coordinates), > 0 or ``inf``.
+    """
+    k1, k2 = float(np.asarray(dist, dtype=float)[0]), float(np.asarray(dist, dtype=float)[1])
+    # roots in s = r² of 5 k2 s² + 3 k1 s + 1 = 0
+    if k2 == 0.0:
+        roots = [-1.0 / (3.0 * k1)] if k1 != 0.0 else []
+    else:
+        disc = 9.0 * k1 * k1 - 20.0 * k2
+        roots = [] if disc < 0 else [(-3.0 * k1 + sgn * np.sqrt(disc)) / (10.0 * k2) for sgn in (-1.0, 1.0)]
+    positive = [s for s in roots if s > 0]
+    return float(np.sqrt(min(positive))) if positive else float("inf")
 
 
 def distort_normalized(x: np.ndarray, dist: np.ndarray) -> np.ndarray:
@@ -203,5 +244,9 @@ def undistort_normalized(xd: np.ndarray, dist: np.ndarray, iterations: int = 30)
     # Outside the range where the distortion map is invertible Newton converges to a wrong
     # point: mark those NaN rather than return a wrong ray.
     bad = np.abs(distort_normalized(x, dist) - xd).max(axis=1) > 1e-9
+    # Beyond the radius where the radial distortion folds back, a converged point is one of
+    # two preimages (and the wrong one for pixels in the outer image): outside the model.
+    r_max = max_undistorted_radius(dist)
+    bad |= np.einsum("ij,ij->i", x, x) >= r_max * r_max
     x[bad] = np.nan
     return x

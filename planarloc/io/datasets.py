@@ -27,6 +27,7 @@ from pathlib import Path
 
 from planarloc.geometry.validation import InputError
 from planarloc.io.colmap_text import read_colmap
+from planarloc.io.format_error import FormatError
 from planarloc.io.kapture import read_kapture
 from planarloc.io.kitti import read_kitti
 from planarloc.io.openloris import read_openloris
@@ -48,6 +49,40 @@ FORMATS: dict[str, Callable[..., list[PosedImage]]] = {
 
 
 UP_OPTION = "up"
+
+#: Files (relative to the root) whose presence identifies each folder format. ``list`` accepts
+#: any file, so it has none and is never guessed.
+SIGNATURES: dict[str, tuple[str, ...]] = {
+    "kitti": ("poses.txt", "calib.txt"),
+    "tum": ("rgb.txt", "groundtruth.txt"),
+    "openloris": ("color.txt", "groundtruth.txt"),
+    "kapture": ("sensors/sensors.txt",),
+    "colmap": ("cameras.txt", "images.txt"),
+}
+
+
+def detect_formats(root: Path) -> list[str]:
+    """The formats whose signature files are all present in folder ``root`` (maybe none)."""
+    root = Path(root)
+    return [f for f, files in SIGNATURES.items() if root.is_dir() and all((root / n).is_file() for n in files)]
+
+
+def _check_layout(root: Path, fmt: str) -> None:
+    """Say "not a TUM folder" (and which format it looks like) before the reader asks for
+    files of the wrong format, e.g. TUM intrinsics for a KITTI sequence."""
+    if not root.exists():
+        raise FormatError(root, None, "no such file or folder")
+    files = SIGNATURES.get(fmt)
+    if files is None:
+        return
+    if not root.is_dir():
+        raise FormatError(root, None, f"is a file; the {fmt} format needs its folder (with {', '.join(files)})")
+    missing = [n for n in files if not (root / n).is_file()]
+    if not missing:
+        return
+    looks = [f for f in detect_formats(root) if f != fmt]
+    hint = f"; it looks like a {looks[0]} dataset: use --format {looks[0]}" if looks else ""
+    raise FormatError(root, None, f"not a {fmt} folder (no {', '.join(missing)}){hint}")
 
 
 def format_options(fmt: str) -> list[str]:
@@ -80,12 +115,14 @@ def read_dataset(root: Path, fmt: str, **options: object) -> list[PosedImage]:
         The reader's :class:`PosedImage` list, sorted by index.
 
     Raises:
-        InputError: unknown format or option; FormatError (an InputError) from the reader.
+        InputError: unknown format or option; FormatError (an InputError) from the reader, or
+            when ``root`` lacks the format's files (naming the format it looks like instead).
 
     Example:
         >>> frames = read_dataset(Path("data/kitti_seq2"), "kitti")   # doctest: +SKIP
     """
     reader = _reader(fmt)
+    _check_layout(Path(root), str(fmt).lower())
     allowed = format_options(fmt)
     unknown = sorted(set(options) - set(allowed))
     if unknown:

@@ -16,11 +16,12 @@ from pathlib import Path
 import numpy as np
 
 from planarloc.geometry.pose import pose_errors
+from planarloc.geometry.validation import InputError
 from planarloc.pipeline.features import Features, extract_features
 from planarloc.pipeline.gravity import gravity_in_camera
 from planarloc.pipeline.localizer import Localizer, LocalizerConfig
 from planarloc.pipeline.map_builder import read_gray
-from planarloc.pipeline.map_database import MapDatabase
+from planarloc.pipeline.map_database import MapDatabase, MapFormatError
 from planarloc.pipeline.posed_image import PosedImage
 from planarloc.pipeline.retrieval import retrieve_from_pairs
 from planarloc.robust.result import PoseEstimate
@@ -58,6 +59,7 @@ class QueryResult:
     estimate_quat_wxyz: tuple[float, float, float, float] | None = None
     truth_quat_wxyz: tuple[float, float, float, float] | None = None
     references: tuple[str, ...] = ()
+    reason: str = ""  # why a query could not be processed (status "error"), e.g. unreadable image
 
 
 def split_map_queries(images: Sequence[PosedImage], map_every: int) -> tuple[list[PosedImage], list[PosedImage]]:
@@ -78,6 +80,13 @@ def query_result(query: PosedImage, est: PoseEstimate, seconds: float) -> QueryR
                        int(est.num_inliers), int(est.num_inliers_3d), seconds, c,
                        tuple(float(v) for v in query.cam_from_world.center), query.timestamp, q,
                        tuple(float(v) for v in query.cam_from_world.quat_wxyz), tuple(est.references))
+
+
+def _error_result(query: PosedImage, seconds: float, reason: str) -> QueryResult:
+    """A query that could not be processed: failed, status ``"error"``, with the reason."""
+    nan = float("nan")
+    return QueryResult(query.name, "error", False, nan, nan, nan, 0, 0, seconds, None,
+                       tuple(float(v) for v in query.cam_from_world.center), reason)
 
 
 def summarize(results: Sequence[QueryResult], method: str, structure: str, **extra: object) -> dict:
@@ -183,15 +192,35 @@ def evaluate_query(localizers: Sequence[Localizer], query: PosedImage,
                    pairs: dict[str, list[str]] | None = None, on_estimate: OnEstimate | None = None,
                    *, gravity: np.ndarray | None = None) -> list[QueryResult]:
     """Localize one query with each localizer (same map), extracting its features once
-    (``on_estimate`` and ``gravity``: see :func:`evaluate_configs`, here for this query)."""
+    (``on_estimate`` and ``gravity``: see :func:`evaluate_configs`, here for this query).
+
+    One bad query (unreadable, wrong size, not in the pairs file) is a failed query with its
+    reason (status ``error``) and the batch goes on; a damaged map raises (it would fail every
+    query).
+    """
     t0 = time.perf_counter()
-    features = extract_features(read_gray(query.path), localizers[0].features)
+    try:
+        image = read_gray(query.path)
+        if image.shape[:2] != (query.camera.height, query.camera.width):
+            raise InputError(f"{query.path}: image is {image.shape[1]}x{image.shape[0]} but its camera is "
+                             f"{query.camera.width}x{query.camera.height}")
+        features = extract_features(image, localizers[0].features)
+    except MapFormatError:
+        raise
+    except InputError as exc:
+        return [_error_result(query, time.perf_counter() - t0, str(exc)) for _ in localizers]
     t_feat = time.perf_counter() - t0
     results = []
     for loc in localizers:
         t1 = time.perf_counter()
-        refs = retrieve_from_pairs(pairs, query.name, loc.config.top_n) if pairs is not None else None
-        est = loc.localize_features(features, query.camera, refs, gravity=gravity)
+        try:
+            refs = retrieve_from_pairs(pairs, query.name, loc.config.top_n) if pairs is not None else None
+            est = loc.localize_features(features, query.camera, refs, gravity=gravity)
+        except MapFormatError:
+            raise
+        except InputError as exc:
+            results.append(_error_result(query, t_feat + time.perf_counter() - t1, str(exc)))
+            continue
         results.append(query_result(query, est, t_feat + time.perf_counter() - t1))
         if on_estimate is not None:
             on_estimate(loc, query, features, est)
@@ -204,10 +233,27 @@ def config_label(config: LocalizerConfig) -> tuple[str, str]:
     return str(method), str(structure)
 
 
-def default_map_path(dataset_root: Path, map_every: int, feature_name: str) -> Path:
-    """Where `evaluate` caches the map it builds: next to nothing the user owns."""
+def default_map_path(dataset_root: Path, map_every: int, feature_name: str,
+                     map_images: Sequence[PosedImage] = (), settings: str = "") -> Path:
+    """Where `evaluate` caches the map it builds: next to nothing the user owns.
+
+    The key covers the map images' content as far as it is cheap to know — names, file paths
+    and sizes, poses, cameras — and ``settings`` (e.g. the vocabulary size): a dataset whose
+    poses were edited gets a new map instead of a stale one. (Changed image bytes of the same
+    size are caught by the build itself, which compares SHA-256 hashes.)
+    """
     import hashlib
+    import os
     import tempfile
 
-    key = hashlib.sha1(f"{Path(dataset_root).resolve()}|{map_every}|{feature_name}".encode()).hexdigest()[:12]
+    h = hashlib.sha1(f"{Path(dataset_root).resolve()}|{map_every}|{feature_name}|{settings}".encode())
+    for im in map_images:
+        try:
+            size = os.stat(im.path).st_size
+        except OSError:
+            size = -1
+        pose = im.cam_from_world
+        h.update(f"|{im.name}|{Path(im.path).absolute()}|{size}|{im.camera}".encode())
+        h.update(np.concatenate([pose.R.ravel(), pose.t]).astype("<f8").tobytes())
+    key = h.hexdigest()[:12]
     return Path(tempfile.gettempdir()) / "planarloc-maps" / f"{Path(dataset_root).name}-every{map_every}-{key}.db"

@@ -211,6 +211,10 @@ class Localizer:
             raise InputError(f"camera: expected a planarloc.Camera, got {type(camera).__name__}")
         if gravity is not None:
             unit_gravity("gravity", gravity)  # bad input fails before feature extraction
+        shape = np.shape(image)[:2]
+        if shape != (camera.height, camera.width):
+            raise InputError(f"image is {shape[1] if len(shape) > 1 else '?'}x{shape[0] if shape else '?'} but its "
+                             f"camera is {camera.width}x{camera.height}; pass the intrinsics of this image size")
         features = extract_features(image, self.features)
         est = self.localize_features(features, camera, references, gravity=gravity)
         est.stats.add_time("features", time.perf_counter() - t0 - sum(

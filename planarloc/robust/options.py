@@ -134,6 +134,12 @@ class RansacOptions:
                      "planar_tolerance_deg", "max_reference_shift_std"):
             if not getattr(self, name) > 0:
                 raise InputError(f"RansacOptions.{name}: must be > 0, got {getattr(self, name)}")
+        for name in ("map_rotation_std_deg", "map_position_std_m", "min_collinearity_ratio", "track_min_angle_deg"):
+            if not getattr(self, name) >= 0:
+                raise InputError(f"RansacOptions.{name}: must be >= 0, got {getattr(self, name)}")
+        if self.min_collinearity_ratio > 1:
+            raise InputError(f"RansacOptions.min_collinearity_ratio: a singular value ratio, must be <= 1, "
+                             f"got {self.min_collinearity_ratio}")
         if not (0.0 < self.confidence < 1.0):
             raise InputError(f"RansacOptions.confidence: must be in (0, 1), got {self.confidence}")
 

@@ -64,7 +64,11 @@ class PairMatches:
         object.__setattr__(self, "query_points", q)
         object.__setattr__(self, "ref_points", r)
         if self.query_indices is not None:
-            ids = check_array("PairMatches.query_indices", self.query_indices, (n,), dtype=np.int64)
+            raw = check_array("PairMatches.query_indices", self.query_indices, (n,), dtype=np.float64)
+            ids = raw.astype(np.int64)
+            if np.any(ids != raw):  # 2.5 would silently become keypoint 2 (another track)
+                bad = int(np.argmax(ids != raw))
+                raise InputError(f"PairMatches.query_indices: expected whole numbers, got {raw[bad]} at index {bad}")
             if len(np.unique(ids)) != n:
                 raise InputError("PairMatches.query_indices: ids must be unique within one pair")
             object.__setattr__(self, "query_indices", ids)

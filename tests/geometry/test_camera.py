@@ -8,7 +8,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from planarloc.geometry.camera import NUM_PARAMS, Camera, CameraModel
+from planarloc.geometry.camera import NUM_PARAMS, Camera, CameraModel, max_undistorted_radius
 from planarloc.geometry.validation import InputError
 
 W, H = 640, 480
@@ -61,7 +61,7 @@ def test_unknown_model_is_rejected_with_the_supported_list() -> None:
         Camera("FISHEYE", W, H, (1.0, 2.0, 3.0))
 
 
-@pytest.mark.parametrize("size", [(0, 480), (640, 0), (-1, 480)])
+@pytest.mark.parametrize("size", [(0, 480), (640, 0), (-1, 480), (640.5, 480), (640, 479.9), ("640x", 480)])
 def test_bad_image_size_is_rejected(size) -> None:
     with pytest.raises(ValueError, match="image size must be positive"):
         Camera("PINHOLE", *size, PARAMS["PINHOLE"])
@@ -215,3 +215,35 @@ def test_scaled_principal_point_follows_the_opencv_pixel_convention() -> None:
     np.testing.assert_allclose(centroid, (s * (u0 + 0.5) - 0.5, s * (v0 + 0.5) - 0.5), atol=1e-3)
     cx, cy = cam.principal_point
     np.testing.assert_allclose(cam.scaled(s).principal_point, (s * (cx + 0.5) - 0.5, s * (cy + 0.5) - 0.5))
+
+
+def test_whole_float_sizes_are_accepted_as_ints() -> None:
+    cam = Camera("PINHOLE", 640.0, "480", PARAMS["PINHOLE"])
+    assert (cam.width, cam.height) == (640, 480) and isinstance(cam.width, int)
+
+
+def test_opencv_pixels_beyond_the_radial_fold_are_nan() -> None:
+    """k1 = -0.3 folds back at r = 1/sqrt(0.9): pixels beyond map to NaN, never to the opposite quadrant."""
+    cam = Camera("OPENCV", 1241, 376, (718.856, 718.856, 607.19, 185.22, -0.3, 0.0, 0.0, 0.0))
+    r_max = max_undistorted_radius(cam.distortion)
+    assert r_max == pytest.approx(1.0 / np.sqrt(0.9))
+    u, v = np.meshgrid(np.linspace(0, 1240, 80), np.linspace(0, 375, 68))
+    uv = np.stack([u.ravel(), v.ravel()], axis=1)
+    x = cam.cam_from_img(uv)
+    ok = np.isfinite(x).all(axis=1)
+    xd = (uv - cam.principal_point) / cam.focal
+    assert 0 < ok.sum() < len(uv)
+    assert np.all(np.sign(x[ok]) == np.sign(xd[ok]))  # same quadrant as the distorted point
+    assert np.all(np.hypot(*x[ok].T) < r_max)
+    assert np.isnan(cam.cam_from_img([[0.0, 0.0]])).all()
+    np.testing.assert_allclose(cam.img_from_cam(x[ok]), uv[ok], atol=1e-6)  # valid points round-trip
+    assert np.isnan(cam.img_from_cam([[1.2, 0.0]])).all()  # beyond the fold: no pixel
+
+
+@pytest.mark.parametrize(("k1", "k2", "expected"), [(0.1, 0.01, np.inf), (0.0, 0.0, np.inf), (-0.3, 0.0, 1.0 / np.sqrt(0.9)),
+                                                    (0.0, -0.1, 2.0 ** 0.25)])
+def test_max_undistorted_radius(k1: float, k2: float, expected: float) -> None:
+    r = max_undistorted_radius([k1, k2, 0.0, 0.0])
+    assert r == pytest.approx(expected)
+    if np.isfinite(r):  # the derivative of the radial map vanishes there
+        assert 1 + 3 * k1 * r**2 + 5 * k2 * r**4 == pytest.approx(0.0, abs=1e-12)

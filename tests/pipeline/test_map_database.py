@@ -169,14 +169,21 @@ def test_resume_skips_existing_and_append(tmp_path: Path, rng: np.random.Generat
 
 
 def test_open_or_create_refuses_other_config(tmp_path: Path) -> None:
-    MapDatabase.create(tmp_path / "m.db", CONFIG).close()
-    with pytest.raises(InputError, match="feature config"):
+    with MapDatabase.create(tmp_path / "m.db", CONFIG) as db:
+        db.add_image(make_posed(0), make_features(np.random.default_rng(0), 10))
+    with pytest.raises(InputError, match=r"built with another feature config \(tilt: map has true, given false\)"):
         MapDatabase.open_or_create(tmp_path / "m.db", {**CONFIG, "tilt": False})
     with pytest.raises(InputError, match="already exists"):
         MapDatabase.create(tmp_path / "m.db", CONFIG)
     MapDatabase.create(tmp_path / "m.db", {"tilt": False}, overwrite=True).close()
     with MapDatabase.open(tmp_path / "m.db") as db:
         assert db.config == {"tilt": False}
+
+
+def test_empty_unfinished_map_with_other_config_is_replaced(tmp_path: Path) -> None:
+    MapDatabase.create(tmp_path / "m.db", CONFIG).close()  # a build that failed before its first image
+    with MapDatabase.open_or_create(tmp_path / "m.db", {"tilt": False}) as db:
+        assert db.config == {"tilt": False} and db.num_images() == 0
 
 
 class _Boom(Exception):
