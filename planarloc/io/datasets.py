@@ -122,7 +122,6 @@ def read_dataset(root: Path, fmt: str, **options: object) -> list[PosedImage]:
         >>> frames = read_dataset(Path("data/kitti_seq2"), "kitti")   # doctest: +SKIP
     """
     reader = _reader(fmt)
-    _check_layout(Path(root), str(fmt).lower())
     allowed = format_options(fmt)
     unknown = sorted(set(options) - set(allowed))
     if unknown:
@@ -131,6 +130,7 @@ def read_dataset(root: Path, fmt: str, **options: object) -> list[PosedImage]:
         )
     up = options.pop(UP_OPTION, None)
     world_down = None if up is None else world_down_from_up(up)  # a bad value fails before reading
+    _check_layout(Path(root), str(fmt).lower())
     images = reader(Path(root), **options)
     if world_down is not None:
         images = [dataclasses.replace(im, world_down=world_down) for im in images]

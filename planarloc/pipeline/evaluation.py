@@ -86,7 +86,7 @@ def _error_result(query: PosedImage, seconds: float, reason: str) -> QueryResult
     """A query that could not be processed: failed, status ``"error"``, with the reason."""
     nan = float("nan")
     return QueryResult(query.name, "error", False, nan, nan, nan, 0, 0, seconds, None,
-                       tuple(float(v) for v in query.cam_from_world.center), reason)
+                       tuple(float(v) for v in query.cam_from_world.center), reason=reason)
 
 
 def summarize(results: Sequence[QueryResult], method: str, structure: str, **extra: object) -> dict:
