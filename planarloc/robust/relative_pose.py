@@ -16,6 +16,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field, replace
 
 import numpy as np
+from numba import njit
 
 from planarloc.geometry.camera import Camera
 from planarloc.geometry.pose import Pose
@@ -24,10 +25,13 @@ from planarloc.robust.options import RansacOptions
 from planarloc.robust.pose_graph import so3_exp
 from planarloc.robust.ransac import ransac
 from planarloc.robust.result import RansacStatistics
+from planarloc.robust.scoring import _sampson_sq as sampson_sq
 
 #: the 6DoF model replaces the planar one only if it has this many times its inliers
 SIX_DOF_MARGIN = 1.15
 MODELS = ("planar", "6dof", "auto")
+#: refinement uses at most this many inliers, evenly spread over the match list
+REFINE_MAX_POINTS = 150
 
 
 @dataclass
@@ -67,6 +71,33 @@ def _sampson_sq(R: np.ndarray, t: np.ndarray, xa: np.ndarray, xb: np.ndarray, fa
     return num / np.maximum(den, 1e-300)
 
 
+@njit(cache=True, error_model="numpy")
+def _msac_kernel(R: np.ndarray, t: np.ndarray, xa: np.ndarray, xb: np.ndarray, fa: np.ndarray, fb: np.ndarray,
+                 threshold_sq: float) -> tuple[np.ndarray, np.ndarray]:
+    """MSAC costs (K,) and inlier counts (K,) of K poses ``b_from_a`` on N ray pairs."""
+    K = R.shape[0]
+    cost = np.zeros(K)
+    count = np.zeros(K, dtype=np.int64)
+    E = np.empty((3, 3))
+    for k in range(K):
+        Rk, tk = R[k], t[k]
+        for j in range(3):
+            E[0, j] = -tk[2] * Rk[1, j] + tk[1] * Rk[2, j]
+            E[1, j] = tk[2] * Rk[0, j] - tk[0] * Rk[2, j]
+            E[2, j] = -tk[1] * Rk[0, j] + tk[0] * Rk[1, j]
+        c, n = 0.0, 0
+        for i in range(xa.shape[0]):
+            e = sampson_sq(E, xa[i], xb[i], fa[0], fa[1], fb[0], fb[1])
+            if e < threshold_sq:
+                c += e
+                n += 1
+            else:
+                c += threshold_sq
+        cost[k] = c
+        count[k] = n
+    return cost, count
+
+
 class _RelativeEstimator:
     """Adapter of one minimal relative-pose solver to the generic loop."""
 
@@ -92,8 +123,8 @@ class _RelativeEstimator:
         return np.asarray(R)[valid], np.asarray(t)[valid]
 
     def score(self, R: np.ndarray, t: np.ndarray, bound: float = np.inf) -> tuple[np.ndarray, np.ndarray]:
-        e = _sampson_sq(R, t, self.xa, self.xb, self.fa, self.fb)
-        return np.minimum(e, self.threshold_sq).sum(axis=1), (e < self.threshold_sq).sum(axis=1)
+        return _msac_kernel(np.ascontiguousarray(R, dtype=float), np.ascontiguousarray(t, dtype=float),
+                            self.xa, self.xb, self.fa, self.fb, self.threshold_sq)
 
     def refine(self, R: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Least squares on the signed Sampson errors of the inliers, in the model's own
@@ -104,7 +135,9 @@ class _RelativeEstimator:
         inl = e < self.threshold_sq
         if inl.sum() < 2 * self.sample_size:
             return R, t
-        xa, xb = self.xa[inl], self.xb[inl]
+        idx = np.flatnonzero(inl)
+        idx = idx[np.linspace(0, len(idx) - 1, min(len(idx), REFINE_MAX_POINTS)).astype(int)]
+        xa, xb = self.xa[idx], self.xb[idx]
         planar = self.sample_size == 2
 
         def pose(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -119,9 +152,23 @@ class _RelativeEstimator:
             r = _sampson_sq(Rx[None], tx[None], xa, xb, self.fa, self.fb)[0]
             return np.sqrt(r)
 
-        res = least_squares(fun, np.zeros(2 if planar else 6), method="lm", max_nfev=60)
+        res = least_squares(fun, np.zeros(2 if planar else 6), method="lm", max_nfev=40, xtol=1e-6, ftol=1e-6)
         Rr, tr = pose(res.x)
         return Rr, tr
+
+
+def _depths_positive(R: np.ndarray, t: np.ndarray, xa: np.ndarray, xb: np.ndarray) -> int:
+    """How many rays pairs triangulate in front of both cameras (midpoint depths λ_a, λ_b > 0 of
+    ``λ_b x_b = λ_a R x_a + t``)."""
+    a = xa @ R.T
+    b = xb
+    aa, bb, ab = np.einsum("ni,ni->n", a, a), np.einsum("ni,ni->n", b, b), np.einsum("ni,ni->n", a, b)
+    at, bt = a @ t, b @ t
+    den = aa * bb - ab**2
+    ok = den > 1e-12
+    la = (ab * bt - bb * at) / np.where(ok, den, 1.0)
+    lb = (aa * bt - ab * at) / np.where(ok, den, 1.0)
+    return int(np.sum(ok & (la > 0) & (lb > 0)))
 
 
 def _rays(camera: Camera, px: np.ndarray) -> np.ndarray:
@@ -186,5 +233,10 @@ def estimate_relative_pose(
     m, R, t, _ = best
     R, t = _RelativeEstimator(xa, xb, fa, fb, m, options.threshold_px).refine(R, t)
     e = _sampson_sq(R[None], t[None], xa, xb, fa, fb)[0]
-    inliers[idx] = e < options.threshold_px**2
+    inl = e < options.threshold_px**2
+    # The minimal sample's cheirality decides the sign of t on 2 or 5 points, which is fragile
+    # under forward motion (distant points); all inliers vote.
+    if _depths_positive(R, -t, xa[inl], xb[inl]) > _depths_positive(R, t, xa[inl], xb[inl]):
+        t = -t
+    inliers[idx] = inl
     return RelativePoseEstimate(Pose(R, t / np.linalg.norm(t)), True, "success", m, inliers, int(inliers.sum()), stats)
