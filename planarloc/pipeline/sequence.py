@@ -157,7 +157,9 @@ class SequenceEstimate:
             single-frame estimator failed) or ``"none"`` (not attempted).
         rejected: one dict per rejected fix: centre, Mahalanobis distance², retrieval kind.
         mahalanobis_sq: distance² of the accepted or last rejected fix to the prediction.
-        motion_source: ``"odometry"``, ``"visual"``, ``"constant"`` or ``"none"`` (first frame).
+        motion_source: ``"odometry"``, ``"visual"``, ``"constant"``, ``"none"`` (first frame) or
+            ``"visual_rejected"`` (visual odometry contradicted an accepted fix and was replaced
+            by the constant-velocity model).
         motion_model: ``"planar"`` / ``"6dof"`` for visual odometry, else empty.
         global_retrieval: whether global (VLAD) retrieval was used.
         kidnap_suspected: a rejected fix is waiting for confirmation.
@@ -339,7 +341,11 @@ class SequenceLocalizer:
             motion = Pose(vo.pose.R, -vo.pose.R @ d)
             cov = _motion_covariance(u, along, across, np.radians(cfg.vo_rotation_std_deg))
             return motion, cov, "visual", vo.model
-        # constant velocity from the last two nodes, with a large covariance
+        return (*self._constant_motion(dt), "constant", "")
+
+    def _constant_motion(self, dt: float) -> tuple[Pose, np.ndarray]:
+        """Constant velocity from the last two nodes, with a large covariance (a weak motion
+        model: position std ``max_speed_mps · dt / 5`` plus half the step, rotation 20°)."""
         motion, d = Pose.identity(), np.zeros(3)
         if len(self._poses) >= 2 and self._speed is not None:
             last = self._poses[-1] @ self._poses[-2].inverse()
@@ -348,8 +354,8 @@ class SequenceLocalizer:
             if n > 1e-9:
                 d = d / n * self._speed * dt
             motion = Pose(last.R, -last.R @ d)
-        along = 0.5 * float(np.linalg.norm(d)) + 0.2 * speed_sigma
-        return motion, _motion_covariance(d, along, along, np.radians(20.0)), "constant", ""
+        along = 0.5 * float(np.linalg.norm(d)) + 0.2 * self.config.max_speed_mps * dt
+        return motion, _motion_covariance(d, along, along, np.radians(20.0))
 
     # ---- retrieval prior ------------------------------------------------------------------
     def references_near(self, pose: Pose, position_std_m: float) -> list[str] | None:
@@ -463,8 +469,10 @@ class SequenceLocalizer:
             self._relative.append(RelativeFactor(n - 1, n, motion, motion_cov))
             pred_cov = marginal_covariances(self._poses, self._absolute, self._relative)[-1]
         if self._candidate is not None:
+            # agreeing fixes need only agree roughly: the weak motion model bounds the motion
             self._candidate.cur_from_cand = motion @ self._candidate.cur_from_cand
-            self._candidate.motion_cov = self._candidate.motion_cov + motion_cov
+            self._candidate.motion_cov = self._candidate.motion_cov + motion_cov + \
+                self._constant_motion(self._dt(stamp))[1]
         pred_std, _ = _stds(pred_cov)
         usable = pred is not None and pred_std <= cfg.lost_std_m
 
@@ -490,6 +498,19 @@ class SequenceLocalizer:
                 fix_status = "accepted"
                 break
             d2 = mahalanobis_sq(fix.pose, cov, pred, pred_cov)
+            if d2 > self._gate and source == "visual":
+                # Visual odometry can be wrong (few matches, bas-relief ambiguity): if the fix
+                # agrees with the weak motion model instead, the visual factor is the outlier.
+                weak, weak_cov = self._constant_motion(self._dt(stamp))
+                n = len(self._poses) - 1
+                alt = weak @ self._poses[n - 1]
+                alt_rel = RelativeFactor(n - 1, n, weak, weak_cov)
+                alt_cov = marginal_covariances(self._poses[:-1] + [alt], self._absolute,
+                                               self._relative[:-1] + [alt_rel])[-1]
+                d2_alt = mahalanobis_sq(fix.pose, cov, alt, alt_cov)
+                if d2_alt <= self._gate:
+                    self._poses[-1], self._relative[-1] = alt, alt_rel
+                    pred, pred_cov, d2, source = alt, alt_cov, d2_alt, "visual_rejected"
             if d2 <= self._gate:
                 accepted = (fix.pose, cov)
                 fix_status = "accepted"
@@ -521,7 +542,8 @@ class SequenceLocalizer:
             if pred is not None:
                 self._cov = pred_cov
                 self._trim()
-            status = FrameStatus.PREDICTED if usable and self._candidate is None else FrameStatus.LOST
+            # one contradicting fix is not enough to doubt the prediction (kidnap_suspected says it)
+            status = FrameStatus.PREDICTED if usable else FrameStatus.LOST
         pose = self._poses[-1] if self._poses else None
         cov = self._cov if pose is not None else np.full((6, 6), np.inf)
         pos_std, rot_std = _stds(cov)
