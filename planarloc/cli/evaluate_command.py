@@ -11,6 +11,7 @@ from planarloc.cli.map_command import parse_dataset_options
 from planarloc.cli.options import add_dataset_args, add_feature_args, add_localizer_args, feature_config, localizer_config
 from planarloc.cli.progress import console, progress_bar
 from planarloc.cli.report import print_summary_table, write_json
+from planarloc.cli.sequence_cli import add_sequence_args, check_sequential_args, evaluate_sequential
 from planarloc.io.datasets import read_dataset
 from planarloc.io.hloc_pairs import read_hloc_pairs
 from planarloc.pipeline.evaluation import config_label, default_map_path, evaluate_queries, split_map_queries, summarize
@@ -26,7 +27,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                     "frame and compares with its ground truth. Success thresholds are the paper's: "
                     "0.25 m/10°, 0.5 m/10°, 1.0 m/20°. A failed query counts as a failure.\n\n"
                     "example:\n  planarloc evaluate data/kitti_seq2 --format kitti --map-every 2 "
-                    "--structure tracks --json kitti.json --plot kitti.png")
+                    "--structure tracks --json kitti.json --plot kitti.png\n"
+                    "  planarloc evaluate data/kitti_seq2 --format kitti --map-every 4 --structure tracks --sequential "
+                    "--kidnap-at 10 --json seq.json   # the queries as one stream")
     add_dataset_args(p)
     p.add_argument("--map-every", type=int, required=True, help="frames with index %% N == 0 form the map")
     p.add_argument("--map", type=Path, help="map file to build/reuse (default: a cache file in the temp folder)")
@@ -35,10 +38,12 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--dataset-option", action="append", metavar="KEY=VALUE", help="importer option (repeatable)")
     add_feature_args(p)
     add_localizer_args(p)
+    add_sequence_args(p, evaluate=True)
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
+    check_sequential_args(args)
     images = read_dataset(args.dataset, args.format, **parse_dataset_options(args.dataset_option))
     map_images, queries = split_map_queries(images, args.map_every)
     features = feature_config(args)
@@ -48,8 +53,11 @@ def run(args: argparse.Namespace) -> int:
     console.print(f"map: {len(map_images)} frames -> {map_path}; queries: {len(queries)} frames")
     with progress_bar() as update:
         build_map(map_images, map_path, features, num_words=args.vocabulary_size, progress=update)
-        loc = Localizer(map_path, config)
-        results = evaluate_queries(loc, queries, lambda d, n: update("localize", d, n), pairs)
+        if not args.sequential:
+            loc = Localizer(map_path, config)
+            results = evaluate_queries(loc, queries, lambda d, n: update("localize", d, n), pairs)
+    if args.sequential:
+        return evaluate_sequential(args, map_path, queries, config)
     method, structure = config_label(config)
     summary = summarize(results, method, structure, dataset=str(args.dataset), map_every=args.map_every,
                         top_n=config.top_n, tilt=features.tilt)

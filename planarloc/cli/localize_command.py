@@ -8,6 +8,7 @@ from pathlib import Path
 
 from planarloc.cli.options import add_localizer_args, localizer_config, parse_camera
 from planarloc.cli.progress import console, progress_bar
+from planarloc.cli.sequence_cli import add_sequence_args, localize_sequence
 from planarloc.geometry.camera import Camera
 from planarloc.io.hloc_pairs import read_hloc_pairs
 from planarloc.io.pose_list import write_pose_list
@@ -28,7 +29,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                     "world-to-camera) and one JSON per query with its status, inliers and position std. "
                     "Failed queries are listed as failed, never replaced by a map pose.\n\n"
                     "example:\n  planarloc localize --map kitti.db queries/*.png --camera 'PINHOLE 1241 376 "
-                    "718.856 718.856 607.19 185.22' --structure tracks --out poses.txt")
+                    "718.856 718.856 607.19 185.22' --structure tracks --out poses.txt\n"
+                    "  planarloc localize --map kitti.db --sequence frames.txt --odometry odom.txt --out poses.txt"
+                    "   # a stream: pose, covariance and status (localized/predicted/lost) per frame")
     p.add_argument("--map", required=True, type=Path, help="map file from `planarloc map build`")
     p.add_argument("images", nargs="+", type=Path, help="query image files or folders of images")
     p.add_argument("--camera", help="query intrinsics 'MODEL W H PARAMS...' (COLMAP syntax); default: the map's "
@@ -36,6 +39,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--out", "-o", type=Path, default=Path("poses.txt"), help="results file (default: %(default)s)")
     p.add_argument("--json-dir", type=Path, help="folder for one JSON per query (default: <out>.json.d)")
     add_localizer_args(p)
+    add_sequence_args(p, evaluate=False)
     p.set_defaults(func=run)
 
 
@@ -66,6 +70,10 @@ def _default_camera(loc: Localizer, shape: tuple[int, int]) -> Camera:
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.sequence:
+        return localize_sequence(args)
+    if args.odometry:
+        raise ValueError("--odometry: only used with --sequence")
     queries = _collect(args.images)
     loc = Localizer(args.map, localizer_config(args))
     pairs = read_hloc_pairs(args.pairs) if args.pairs else None
