@@ -31,7 +31,7 @@ from planarloc.robust.scoring import _sampson_sq as sampson_sq
 SIX_DOF_MARGIN = 1.15
 MODELS = ("planar", "6dof", "auto")
 #: refinement uses at most this many inliers, evenly spread over the match list
-REFINE_MAX_POINTS = 150
+REFINE_MAX_POINTS = 60
 
 
 @dataclass
@@ -152,7 +152,7 @@ class _RelativeEstimator:
             r = _sampson_sq(Rx[None], tx[None], xa, xb, self.fa, self.fb)[0]
             return np.sqrt(r)
 
-        res = least_squares(fun, np.zeros(2 if planar else 6), method="lm", max_nfev=40, xtol=1e-6, ftol=1e-6)
+        res = least_squares(fun, np.zeros(2 if planar else 6), method="lm", max_nfev=15, xtol=1e-6, ftol=1e-6)
         Rr, tr = pose(res.x)
         return Rr, tr
 
