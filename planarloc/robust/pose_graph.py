@@ -35,18 +35,9 @@ import numpy as np
 from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
+from planarloc.geometry.epipolar import skew
 from planarloc.geometry.pose import Pose
 from planarloc.geometry.validation import InputError, check_array
-
-
-def hat(v: np.ndarray) -> np.ndarray:
-    """(..., 3) vectors -> (..., 3, 3) skew-symmetric matrices ``[v]×``."""
-    v = np.asarray(v, dtype=float)
-    out = np.zeros(v.shape[:-1] + (3, 3))
-    out[..., 0, 1], out[..., 0, 2] = -v[..., 2], v[..., 1]
-    out[..., 1, 0], out[..., 1, 2] = v[..., 2], -v[..., 0]
-    out[..., 2, 0], out[..., 2, 1] = -v[..., 1], v[..., 0]
-    return out
 
 
 def so3_exp(omega: np.ndarray) -> np.ndarray:
@@ -63,7 +54,7 @@ def so3_left_jacobian_inverse(phi: np.ndarray) -> np.ndarray:
     """(N, 3) -> (N, 3, 3) ``J_l⁻¹(φ)``: ``log(exp(ε) exp(φ)) ≈ φ + J_l⁻¹(φ) ε`` (Barfoot eq. 7.77)."""
     phi = np.asarray(phi, dtype=float).reshape(-1, 3)
     th = np.linalg.norm(phi, axis=1)
-    P = hat(phi)
+    P = skew(phi)
     small = th < 1e-6
     ths = np.where(small, 1.0, th)
     coef = np.where(small, 1.0 / 12.0, 1.0 / ths**2 - (1.0 + np.cos(ths)) / (2.0 * ths * np.sin(ths)))
@@ -192,7 +183,7 @@ class _Packed:
             bj = np.zeros((len(Ri), 6, 6))
             bi[:, :3, :3] = -Jinv @ Rj @ np.transpose(Ri, (0, 2, 1))
             bj[:, :3, :3] = Jinv
-            bi[:, 3:, :3] = -hat(d)
+            bi[:, 3:, :3] = -skew(d)
             bi[:, 3:, 3:] = -Ri
             bj[:, 3:, 3:] = Ri
             Wi, Wj = self.r_U @ bi, self.r_U @ bj

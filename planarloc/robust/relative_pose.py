@@ -19,6 +19,7 @@ import numpy as np
 from numba import njit
 
 from planarloc.geometry.camera import Camera
+from planarloc.geometry.epipolar import essential_from_relpose
 from planarloc.geometry.pose import Pose
 from planarloc.geometry.validation import InputError, check_array
 from planarloc.robust.options import RansacOptions
@@ -60,10 +61,7 @@ class RelativePoseEstimate:
 def _sampson_sq(R: np.ndarray, t: np.ndarray, xa: np.ndarray, xb: np.ndarray, fa: np.ndarray,
                 fb: np.ndarray) -> np.ndarray:
     """(K, N) squared Sampson errors in pixels of K poses ``b_from_a`` on N ray pairs (N, 3)."""
-    tx = np.zeros((len(t), 3, 3))
-    tx[:, 0, 1], tx[:, 0, 2], tx[:, 1, 2] = -t[:, 2], t[:, 1], -t[:, 0]
-    tx[:, 1, 0], tx[:, 2, 0], tx[:, 2, 1] = t[:, 2], -t[:, 1], t[:, 0]
-    E = tx @ R                                           # x_bᵀ E x_a = 0
+    E = essential_from_relpose(R, t)                    # x_bᵀ E x_a = 0
     Ea = np.einsum("kij,nj->kni", E, xa)                 # E x_a
     Eb = np.einsum("kji,nj->kni", E, xb)                 # Eᵀ x_b
     num = np.einsum("ni,kni->kn", xb, Ea) ** 2
