@@ -132,3 +132,18 @@ def test_bad_input_is_an_error(stream_world: tuple) -> None:
         SequenceConfig(vo_model="5pt")
     with pytest.raises(InputError, match="localizer"):
         SequenceLocalizer("map.db")
+
+
+def test_retrieval_prior_prefers_map_images_near_the_prediction(stream_world: tuple) -> None:
+    map_path, queries = stream_world
+    loc = Localizer(map_path)
+    seq = SequenceLocalizer(loc, SequenceConfig(local_top_n=3))
+    posed = {p.name: p.cam_from_world for p in loc.db.posed_images()}
+    q = queries[4].cam_from_world
+    refs = seq.references_near(q, 0.1)
+    assert len(refs) == 3
+    dist = {n: np.linalg.norm(p.center - q.center) for n, p in posed.items()}
+    assert max(dist[r] for r in refs) <= sorted(dist.values())[5]          # among the nearest
+    far = Pose.from_center(q.R, q.center + [100.0, 0, 0])
+    assert seq.references_near(far, 0.1) is None                           # nothing near: global retrieval
+    assert seq.references_near(far, 40.0) is not None                      # an uncertain prediction widens the radius
