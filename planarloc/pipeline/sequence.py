@@ -89,6 +89,10 @@ class SequenceConfig:
         gate_probability: χ²(6) quantile of the Mahalanobis gate.
         fix_std_scale, min_fix_std_m, pixel_std, min_rotation_std_deg: covariance of a fix
             (module docstring).
+        fix_std_scale_2d, min_inliers_3d: a fix with fewer than ``min_inliers_3d`` 2D-3D
+            inliers (the paper's 2D-2D constraints only) has its position std scaled by
+            ``fix_std_scale_2d`` instead: on forward motion its ``position_std_m`` is optimistic
+            by up to ~10x (KITTI: 3-4 m errors reported with 0.1-0.3 m std).
         odometry_translation_std, odometry_min_std_m: wheel-odometry translation std, as a
             fraction of the distance travelled plus a floor (metres, per frame).
         odometry_rotation_std, odometry_min_rotation_std_deg: the same for rotation.
@@ -109,6 +113,8 @@ class SequenceConfig:
     local_max_angle_deg: float = 60.0
     gate_probability: float = 0.999
     fix_std_scale: float = 2.0
+    fix_std_scale_2d: float = 5.0
+    min_inliers_3d: int = 10
     min_fix_std_m: float = 0.03
     pixel_std: float = 1.0
     min_rotation_std_deg: float = 0.2
@@ -137,7 +143,8 @@ class SequenceConfig:
         if not 0.5 < self.gate_probability < 1:
             raise InputError(f"SequenceConfig.gate_probability: expected a probability in (0.5, 1), "
                              f"got {self.gate_probability}")
-        for name in ("local_radius_m", "local_max_angle_deg", "fix_std_scale", "min_fix_std_m", "pixel_std",
+        for name in ("local_radius_m", "local_max_angle_deg", "fix_std_scale", "fix_std_scale_2d", "min_fix_std_m",
+                     "pixel_std",
                      "min_rotation_std_deg", "odometry_translation_std", "odometry_min_std_m",
                      "odometry_rotation_std", "odometry_min_rotation_std_deg", "vo_direction_std_deg",
                      "vo_rotation_std_deg", "vo_scale_std", "max_speed_mps", "lost_std_m", "frame_period_s",
@@ -407,7 +414,8 @@ class SequenceLocalizer:
         std = float(est.position_std_m)
         if not np.isfinite(std):
             return None
-        pos = max(cfg.fix_std_scale * std, cfg.min_fix_std_m)
+        scale = cfg.fix_std_scale if int(est.num_inliers_3d) >= cfg.min_inliers_3d else cfg.fix_std_scale_2d
+        pos = max(scale * std, cfg.min_fix_std_m)
         n = max(int(est.num_inliers) + int(est.num_inliers_3d), 1)
         f = float(np.mean(camera.focal))
         rot = np.sqrt((cfg.pixel_std / f) ** 2 / n + self._map_rotation_std**2)
@@ -492,10 +500,12 @@ class SequenceLocalizer:
             self._relative.append(RelativeFactor(n - 1, n, motion, motion_cov))
             pred_cov = marginal_covariances(self._poses, self._absolute, self._relative)[-1]
         if self._candidate is not None:
-            # agreeing fixes need only agree roughly: the weak motion model bounds the motion
+            # wheel odometry is trusted across a kidnap check; visual odometry may be wrong exactly
+            # there, so agreeing fixes then need only agree within the weak motion model
             self._candidate.cur_from_cand = motion @ self._candidate.cur_from_cand
-            self._candidate.motion_cov = self._candidate.motion_cov + motion_cov + \
-                self._constant_motion(self._dt(stamp))[1]
+            self._candidate.motion_cov = self._candidate.motion_cov + motion_cov
+            if source != "odometry":
+                self._candidate.motion_cov = self._candidate.motion_cov + self._constant_motion(self._dt(stamp))[1]
         pred_std, _ = _stds(pred_cov)
         usable = pred is not None and pred_std <= cfg.lost_std_m
 
