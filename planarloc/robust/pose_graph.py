@@ -41,13 +41,30 @@ from planarloc.geometry.validation import InputError, check_array
 
 
 def so3_exp(omega: np.ndarray) -> np.ndarray:
-    """(N, 3) rotation vectors (radians) -> (N, 3, 3) rotation matrices."""
-    return Rotation.from_rotvec(np.asarray(omega, dtype=float).reshape(-1, 3)).as_matrix()
+    """(N, 3) rotation vectors (radians) -> (N, 3, 3) rotation matrices (Rodrigues)."""
+    w = np.asarray(omega, dtype=float).reshape(-1, 3)
+    th = np.linalg.norm(w, axis=1)
+    small = th < 1e-8
+    ths = np.where(small, 1.0, th)
+    a = np.where(small, 1.0, np.sin(ths) / ths)
+    b = np.where(small, 0.5, (1.0 - np.cos(ths)) / ths**2)
+    K = skew(w)
+    return np.eye(3)[None] + a[:, None, None] * K + b[:, None, None] * (K @ K)
 
 
 def so3_log(R: np.ndarray) -> np.ndarray:
     """(N, 3, 3) rotation matrices -> (N, 3) rotation vectors (radians, norm ≤ π)."""
-    return Rotation.from_matrix(np.asarray(R, dtype=float).reshape(-1, 3, 3)).as_rotvec()
+    R = np.asarray(R, dtype=float).reshape(-1, 3, 3)
+    cos = np.clip((np.trace(R, axis1=1, axis2=2) - 1.0) / 2.0, -1.0, 1.0)
+    th = np.arccos(cos)
+    v = np.stack([R[:, 2, 1] - R[:, 1, 2], R[:, 0, 2] - R[:, 2, 0], R[:, 1, 0] - R[:, 0, 1]], axis=1)
+    small = th < 1e-6
+    f = np.where(small, 0.5 + th**2 / 12.0, th / (2.0 * np.sin(np.where(small, 1.0, th))))
+    out = f[:, None] * v
+    near_pi = th > np.pi - 1e-3          # sin θ → 0: the antisymmetric part loses the axis
+    if near_pi.any():
+        out[near_pi] = Rotation.from_matrix(R[near_pi]).as_rotvec()
+    return out
 
 
 def so3_left_jacobian_inverse(phi: np.ndarray) -> np.ndarray:
@@ -173,8 +190,8 @@ class _Packed:
             blk[:, :3, :3] = so3_left_jacobian_inverse(phi_a)
             blk[:, 3:, 3:] = np.eye(3)
             W = self.a_U @ blk
-            for k, node in enumerate(self.a_idx):
-                J[6 * k:6 * k + 6, 6 * node:6 * node + 6] = W[k]
+            rows = 6 * np.arange(na)[:, None, None] + np.arange(6)[None, :, None]
+            J[rows, 6 * self.a_idx[:, None, None] + np.arange(6)[None, None, :]] = W
         if len(self.r_i):
             Ri, Rj = R[self.r_i], R[self.r_j]
             Jinv = so3_left_jacobian_inverse(phi_r)
@@ -187,10 +204,9 @@ class _Packed:
             bi[:, 3:, 3:] = -Ri
             bj[:, 3:, 3:] = Ri
             Wi, Wj = self.r_U @ bi, self.r_U @ bj
-            for k, (i, j) in enumerate(zip(self.r_i, self.r_j)):
-                row = 6 * (na + k)
-                J[row:row + 6, 6 * i:6 * i + 6] = Wi[k]
-                J[row:row + 6, 6 * j:6 * j + 6] = Wj[k]
+            rows = 6 * (na + np.arange(len(Ri)))[:, None, None] + np.arange(6)[None, :, None]
+            J[rows, 6 * self.r_i[:, None, None] + np.arange(6)[None, None, :]] = Wi
+            J[rows, 6 * self.r_j[:, None, None] + np.arange(6)[None, None, :]] = Wj
         return J
 
 

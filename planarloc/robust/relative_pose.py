@@ -150,7 +150,7 @@ class _RelativeEstimator:
             r = _sampson_sq(Rx[None], tx[None], xa, xb, self.fa, self.fb)[0]
             return np.sqrt(r)
 
-        res = least_squares(fun, np.zeros(2 if planar else 6), method="lm", max_nfev=15, xtol=1e-6, ftol=1e-6)
+        res = least_squares(fun, np.zeros(2 if planar else 6), method="lm", max_nfev=8, xtol=1e-6, ftol=1e-6)
         Rr, tr = pose(res.x)
         return Rr, tr
 
