@@ -15,7 +15,7 @@ Per frame:
    ``cam_from_odom`` pose of this frame in the odometry frame, e.g. a TUM pose file), otherwise
    visual odometry between the two query frames (:func:`estimate_relative_pose`, the planar
    2-point solver, 6DoF when the planar model does not fit). Visual odometry has no scale: its
-   translation is scaled by the speed measured between the last two fixes (``SequenceConfig``
+   translation is scaled by the speed measured over the last fixes (``SequenceConfig``
    documents the covariances). Without either, a constant-velocity guess with a large
    covariance.
 2. **Prediction**: the new node of the sliding-window pose graph
@@ -71,6 +71,10 @@ from planarloc.robust.result import PoseEstimate
 logger = logging.getLogger(__name__)
 
 
+#: visual-odometry speed: chord over this many of the latest fixes (see ``_update_speed``)
+SPEED_FIXES = 5
+
+
 class FrameStatus(str, Enum):
     LOCALIZED = "localized"
     PREDICTED = "predicted"
@@ -100,7 +104,7 @@ class SequenceConfig:
         vo_direction_std_deg, vo_rotation_std_deg: visual-odometry direction and rotation std.
         vo_scale_std: relative std of the speed used to scale visual odometry.
         max_speed_mps: std of the distance per second while the speed is unknown.
-        lost_std_m: a predicted position std above this is reported ``lost``.
+        lost_std_m: a frame whose position std (fused or predicted) is above this is ``lost``.
         kidnap_confirmations: consistent rejected fixes needed to re-initialise.
         refix_radius_m: a global fix is re-estimated from the map images nearest to it; the
             second estimate replaces the first when within this distance.
@@ -316,6 +320,7 @@ class SequenceLocalizer:
         self._prev: tuple[Features, Camera, float, Pose | None] | None = None
         self._speed: float | None = None
         self._candidate: _Candidate | None = None
+        self._fix_centers: list[tuple[float, np.ndarray]] = []
 
     # ---- motion ---------------------------------------------------------------------------
     def _dt(self, stamp: float) -> float:
@@ -428,12 +433,16 @@ class SequenceLocalizer:
         self._poses = sol.poses
         self._cov = sol.covariances[-1]
         self._trim()
-        # speed from the last two fixed nodes that are consecutive in the window
-        if len(self._poses) >= 2 and self._localized[-1] and self._localized[-2]:
-            dt = self._stamps[-1] - self._stamps[-2]
-            if dt > 0:
-                v = float(np.linalg.norm(self._poses[-1].center - self._poses[-2].center)) / dt
-                self._speed = v if self._speed is None else 0.5 * (self._speed + v)
+        self._update_speed()
+
+    def _update_speed(self) -> None:
+        """Speed (scale of visual odometry) from the raw fixes, not the fused poses: fused poses
+        follow visual odometry, whose scale comes from this speed (a feedback loop that would
+        keep any initial error). Chord between the oldest and newest of the last
+        ``SPEED_FIXES`` fixes: longer baselines dilute the fixes' noise."""
+        fixes = self._fix_centers[-SPEED_FIXES:]
+        if len(fixes) >= 2 and fixes[-1][0] > fixes[0][0]:
+            self._speed = float(np.linalg.norm(fixes[-1][1] - fixes[0][1])) / (fixes[-1][0] - fixes[0][0])
 
     def _trim(self) -> None:
         """Marginalise the oldest nodes beyond the window."""
@@ -448,6 +457,7 @@ class SequenceLocalizer:
     def _initialize(self, pose: Pose, cov: np.ndarray, stamp: float) -> None:
         self._poses, self._stamps, self._localized = [pose], [stamp], [True]
         self._absolute, self._relative = [AbsoluteFactor(0, pose, cov)], []
+        self._fix_centers = [(stamp, pose.center)]
         self._cov = cov
         self._candidate = None
 
@@ -568,6 +578,7 @@ class SequenceLocalizer:
             else:
                 self._absolute.append(AbsoluteFactor(len(self._poses) - 1, *accepted))
                 self._localized[-1] = True
+                self._fix_centers.append((stamp, accepted[0].center))
                 self._solve()
             self._candidate = None
             status = FrameStatus.LOCALIZED
@@ -590,8 +601,8 @@ class SequenceLocalizer:
         pose = self._poses[-1] if self._poses else None
         cov = self._cov if pose is not None else np.full((6, 6), np.inf)
         pos_std, rot_std = _stds(cov)
-        if status == FrameStatus.PREDICTED and pos_std > cfg.lost_std_m:
-            status = FrameStatus.LOST
+        if status != FrameStatus.LOST and pos_std > cfg.lost_std_m:
+            status = FrameStatus.LOST   # never report a pose as usable beyond lost_std_m
         return SequenceEstimate(stamp, status.value, pose, cov, pos_std, rot_std, fix, fix_status, rejected, d2,
                                 source, model, used_global, self._candidate is not None, reinitialized)
 
