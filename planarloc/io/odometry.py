@@ -1,4 +1,4 @@
-"""Wheel-odometry pose files for sequential localization, and ordered image lists.
+"""Wheel-odometry pose files for sequential localization (reader), and ordered image lists.
 
 Odometry file (TUM trajectory layout), one line per frame (or per odometry sample)::
 
@@ -64,20 +64,6 @@ def read_odometry(path: Path, stamps: Sequence[float] | None = None, max_dt: flo
     if missing:
         logger.warning("%s: %d of %d frames have no odometry sample within %g s", path, missing, len(idx), max_dt)
     return [poses[i] if i >= 0 else None for i in idx]
-
-
-def write_odometry(path: Path, stamps: Sequence[float], cam_from_odom: Sequence[Pose]) -> None:
-    """Write ``cam_from_odom`` poses as an odometry file (module docstring)."""
-    if len(stamps) != len(cam_from_odom):
-        raise ValueError(f"stamps and poses: different lengths ({len(stamps)} vs {len(cam_from_odom)})")
-    lines = ["# timestamp tx ty tz qx qy qz qw (odom_from_cam)"]
-    for s, p in zip(stamps, cam_from_odom):
-        q = p.inverse()
-        w, x, y, z = q.quat_wxyz
-        lines.append(" ".join(f"{v:.9g}" for v in (s, *q.t, x, y, z, w)))
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text("\n".join(lines) + "\n")
 
 
 def read_image_list(path: Path) -> list[tuple[float | None, Path]]:

@@ -8,14 +8,19 @@ import pytest
 
 from planarloc.geometry.pose import Pose, pose_errors
 from planarloc.io.format_error import FormatError
-from planarloc.io.odometry import read_image_list, read_odometry, write_odometry
+from planarloc.io.odometry import read_image_list, read_odometry
 from planarloc.robust.pose_graph import so3_exp
 
 
 def test_round_trip_and_association(tmp_path: Path) -> None:
     poses = [Pose(so3_exp([[0, 0.1 * k, 0]])[0], [0.2 * k, 0, 1.0]) for k in range(4)]
     path = tmp_path / "odom.txt"
-    write_odometry(path, [0.0, 0.1, 0.2, 0.3], poses)
+    lines = []
+    for s, p in zip([0.0, 0.1, 0.2, 0.3], poses):
+        q = p.inverse()                                       # the file holds odom_from_cam
+        w, x, y, z = q.quat_wxyz
+        lines.append(" ".join(f"{v:.12g}" for v in (s, *q.t, x, y, z, w)))
+    path.write_text("# timestamp tx ty tz qx qy qz qw\n" + "\n".join(lines) + "\n")
     back = read_odometry(path)
     assert all(pose_errors(a, b)[0] < 1e-6 and pose_errors(a, b)[1] < 1e-2 for a, b in zip(back, poses))
     assoc = read_odometry(path, stamps=[0.101, 0.25, 0.3])
