@@ -24,6 +24,7 @@ from planarloc.cli.output_paths import atomic_output, check_output_file, dataset
 from planarloc.cli.progress import console, notify, progress_bar
 from planarloc.cli.report import print_summary_table, write_json
 from planarloc.cli.result_outputs import EstimateOutputs, add_output_args, write_evaluation_tum
+from planarloc.cli.sequence_cli import add_sequence_args, check_sequential_args, evaluate_sequential
 from planarloc.distributed.ray_backend import ray_session
 from planarloc.io.gravity_file import read_gravity_file
 from planarloc.io.hloc_pairs import read_hloc_pairs
@@ -48,7 +49,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                     "  planarloc evaluate worlds/office/map -f tum --map-every 3 --gravity-from-truth\n"
                     "  planarloc evaluate home1 home3 -f openloris --queries home2 --json home2.json --tum home2-tum\n"
                     "  planarloc evaluate monday/ -f tum --queries friday.bag --queries-format rosbag "
-                    "--queries-option pose_topic=/pose --plot-matches matches/")
+                    "--queries-option pose_topic=/pose --plot-matches matches/\n"
+                    "  planarloc evaluate data/kitti_seq2 --format kitti --map-every 4 --structure tracks --sequential "
+                    "--kidnap-at 10 --json seq.json   # the queries as one stream")
     add_dataset_args(p, many=True)
     add_cross_session_args(p)
     p.add_argument("--map", type=Path, help="map file to build/reuse (default: a cache file in the temp folder)")
@@ -68,6 +71,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--ray", nargs="?", const="local", metavar="ADDRESS",
                    help="distribute over a Ray cluster (auto, HOST:PORT, ray://HOST:PORT; a local one without "
                         "ADDRESS); needs pip install 'planarloc[ray]'")
+    add_sequence_args(p, evaluate=True)
     p.set_defaults(func=run)
 
 
@@ -75,6 +79,11 @@ def run(args: argparse.Namespace) -> int:
     # Every option and output is checked before the first image is read.
     if args.map_every is not None and args.map_every < 2:
         raise ValueError(f"--map-every must be >= 2 (otherwise there are no queries), got {args.map_every}")
+    check_sequential_args(args)
+    if args.sequential and (args.ray or args.tum or args.plot_matches or args.rerun or args.gravity_file
+                            or args.gravity_from_truth):
+        raise ValueError("--sequential: --ray, --tum, --plot-matches, --rerun and query gravity are single-frame "
+                         "options; drop them")
     features = feature_config(args)
     num_words = check_vocabulary_size(args.vocabulary_size)
     config = localizer_config(args)
@@ -95,6 +104,10 @@ def run(args: argparse.Namespace) -> int:
     for option, path in outputs_paths.items():
         check_output_file(path, option, image_paths)
     console.print(f"map: {len(map_images)} frames -> {map_path}; queries: {len(queries)} frames")
+    if args.sequential:
+        with progress_bar() as update:
+            build_map(map_images, map_path, features, num_words=num_words, progress=update, notify=notify)
+        return evaluate_sequential(args, map_path, queries, config)
     outputs = EstimateOutputs(args.plot_matches, args.rerun)
     if args.ray and outputs.active:
         raise ValueError("--plot-matches and --rerun draw in this process: run them without --ray")

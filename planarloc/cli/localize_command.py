@@ -24,6 +24,7 @@ from planarloc.cli.progress import console, progress_bar
 from planarloc.cli.query_sources import QuerySource, dataset_queries
 from planarloc.cli.remote_localize import add_server_args, run_remote
 from planarloc.cli.result_outputs import EstimateOutputs, add_output_args, write_localize_tum
+from planarloc.cli.sequence_cli import add_sequence_args, localize_sequence
 from planarloc.geometry.camera import Camera
 from planarloc.geometry.validation import InputError
 from planarloc.io.datasets import FORMATS
@@ -55,7 +56,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                     "  planarloc localize --map office.db frame.png --gravity '0 0.996 0.087'   # camera pitched 5°\n"
                     "  planarloc localize --map office.db run2.bag --format rosbag --dataset-option "
                     "image_topic=/camera/image_raw --tum run2.tum --plot-matches matches/\n"
-                    "  planarloc localize --server http://127.0.0.1:8080 --map office frame.png")
+                    "  planarloc localize --server http://127.0.0.1:8080 --map office frame.png\n"
+                    "  planarloc localize --map kitti.db --sequence frames.txt --odometry odom.txt --out poses.txt"
+                    "   # a stream: pose, covariance and status (localized/predicted/lost) per frame")
     p.add_argument("--map", required=True, type=Path,
                    help="map file from `planarloc map build` (with --server: the served map's name)")
     p.add_argument("images", nargs="+", type=Path, help="query image files or folders of images, or one dataset "
@@ -77,6 +80,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     add_output_args(p, "also write the localized queries as a TUM trajectory (timestamp tx ty tz qx qy qz qw, "
                        "camera-to-world) for evo")
     add_server_args(p)
+    add_sequence_args(p, evaluate=False)
     p.set_defaults(func=run)
 
 
@@ -130,6 +134,14 @@ def _map_camera(loc: Localizer) -> Camera | None:
     return next(iter(cams)) if len(cams) == 1 else None
 
 
+def _default_camera(loc: Localizer, shape: tuple[int, int]) -> Camera:
+    """The map's only camera for a query of image size ``shape`` (H, W); an error otherwise."""
+    map_camera = _map_camera(loc)
+    if map_camera is None:
+        raise ValueError("the map has several cameras: pass the query intrinsics with --camera")
+    return _query_camera(None, map_camera, shape, False)
+
+
 def _query_camera(camera: Camera | None, map_camera: Camera, shape: tuple[int, int], given: bool) -> Camera:
     cam = camera or map_camera
     if (cam.height, cam.width) != shape:
@@ -152,6 +164,15 @@ def _gravity_file_notes(path: Path, gravity: dict, names: set[str]) -> None:
 
 def run(args: argparse.Namespace) -> int:
     # Options and outputs are checked before the first image is read.
+    if args.sequence:
+        if args.server or args.format or args.tum or args.plot_matches or args.rerun or args.gravity_file:
+            raise ValueError("--sequence: --server, --format, --tum, --plot-matches, --rerun and --gravity-file are "
+                             "single-frame options; drop them")
+        check_output_file(args.out, "--out", input_files(list(args.images) + [args.odometry],
+                                                         with_map_sidecars=[args.map]))
+        return localize_sequence(args)
+    if args.odometry:
+        raise ValueError("--odometry: only used with --sequence")
     config = localizer_config(args)
     camera = parse_camera(args.camera) if args.camera else None
     pairs = read_hloc_pairs(args.pairs) if args.pairs else None

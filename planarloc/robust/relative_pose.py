@@ -1,0 +1,240 @@
+"""Robust relative pose between two images of the same camera stream (visual odometry).
+
+Hypotheses come from the planar 2-point solver (paper Sec. IV-A: rotation about the camera
+y-axis, translation in the x–z plane) or, for the 6DoF model, from Nistér's 5-point solver; both
+run in the generic MSAC loop (:func:`planarloc.robust.ransac.ransac`) and are scored by the
+Sampson error in pixels. ``model="auto"`` runs both and keeps the planar pose unless the 6DoF
+pose explains clearly more matches (the planar model does not hold: a slope, a bump, a
+camera that is not upright).
+
+The translation of a relative pose from 2D-2D matches has no scale: it is returned with unit
+norm. The scale comes from elsewhere (wheel odometry or absolute fixes).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+from numba import njit
+
+from planarloc.geometry.camera import Camera
+from planarloc.geometry.epipolar import essential_from_relpose
+from planarloc.geometry.pose import Pose
+from planarloc.geometry.validation import InputError, check_array
+from planarloc.robust.options import RansacOptions
+from planarloc.robust.pose_graph import so3_exp
+from planarloc.robust.ransac import ransac
+from planarloc.robust.result import RansacStatistics
+from planarloc.robust.scoring import _sampson_sq as sampson_sq
+
+#: the 6DoF model replaces the planar one only if it has this many times its inliers
+SIX_DOF_MARGIN = 1.15
+MODELS = ("planar", "6dof", "auto")
+#: refinement uses at most this many inliers, evenly spread over the match list
+REFINE_MAX_POINTS = 60
+
+
+@dataclass
+class RelativePoseEstimate:
+    """Result of :func:`estimate_relative_pose`.
+
+    Attributes:
+        pose: ``b_from_a`` with unit-norm translation, or None when not ``success``.
+        success: a supported pose was found.
+        status: ``"success"``, ``"too_few_matches"`` or ``"too_few_inliers"``.
+        model: ``"planar"`` or ``"6dof"`` (empty on failure).
+        inliers: (N,) bool over the input matches.
+        num_inliers: inlier count.
+        stats: RANSAC counters and times.
+    """
+
+    pose: Pose | None
+    success: bool
+    status: str
+    model: str = ""
+    inliers: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
+    num_inliers: int = 0
+    stats: RansacStatistics = field(default_factory=RansacStatistics)
+
+
+def _sampson_sq(R: np.ndarray, t: np.ndarray, xa: np.ndarray, xb: np.ndarray, fa: np.ndarray,
+                fb: np.ndarray) -> np.ndarray:
+    """(K, N) squared Sampson errors in pixels of K poses ``b_from_a`` on N ray pairs (N, 3)."""
+    E = essential_from_relpose(R, t)                    # x_bᵀ E x_a = 0
+    Ea = np.einsum("kij,nj->kni", E, xa)                 # E x_a
+    Eb = np.einsum("kji,nj->kni", E, xb)                 # Eᵀ x_b
+    num = np.einsum("ni,kni->kn", xb, Ea) ** 2
+    den = (Ea[..., 0] / fb[0]) ** 2 + (Ea[..., 1] / fb[1]) ** 2 + (Eb[..., 0] / fa[0]) ** 2 + (Eb[..., 1] / fa[1]) ** 2
+    return num / np.maximum(den, 1e-300)
+
+
+@njit(cache=True, error_model="numpy")
+def _msac_kernel(R: np.ndarray, t: np.ndarray, xa: np.ndarray, xb: np.ndarray, fa: np.ndarray, fb: np.ndarray,
+                 threshold_sq: float) -> tuple[np.ndarray, np.ndarray]:
+    """MSAC costs (K,) and inlier counts (K,) of K poses ``b_from_a`` on N ray pairs."""
+    K = R.shape[0]
+    cost = np.zeros(K)
+    count = np.zeros(K, dtype=np.int64)
+    E = np.empty((3, 3))
+    for k in range(K):
+        Rk, tk = R[k], t[k]
+        for j in range(3):
+            E[0, j] = -tk[2] * Rk[1, j] + tk[1] * Rk[2, j]
+            E[1, j] = tk[2] * Rk[0, j] - tk[0] * Rk[2, j]
+            E[2, j] = -tk[1] * Rk[0, j] + tk[0] * Rk[1, j]
+        c, n = 0.0, 0
+        for i in range(xa.shape[0]):
+            e = sampson_sq(E, xa[i], xb[i], fa[0], fa[1], fb[0], fb[1])
+            if e < threshold_sq:
+                c += e
+                n += 1
+            else:
+                c += threshold_sq
+        cost[k] = c
+        count[k] = n
+    return cost, count
+
+
+class _RelativeEstimator:
+    """Adapter of one minimal relative-pose solver to the generic loop."""
+
+    def __init__(self, xa: np.ndarray, xb: np.ndarray, fa: np.ndarray, fb: np.ndarray, model: str,
+                 threshold_px: float) -> None:
+        self.xa, self.xb, self.fa, self.fb = xa, xb, fa, fb
+        self.num_data = len(xa)
+        self.threshold_sq = threshold_px**2
+        if model == "planar":
+            from planarloc.robust.estimators import _planar_2p_batch_Rt
+
+            self.sample_size, self.solver = 2, _planar_2p_batch_Rt
+        else:
+            from planarloc.solvers.relpose_5p_nister import relpose_5p_nister_batch
+
+            self.sample_size, self.solver = 5, relpose_5p_nister_batch
+
+    def generate(self, rng: np.random.Generator, n: int, stats: RansacStatistics) -> tuple[np.ndarray, np.ndarray]:
+        m = self.sample_size
+        samples = np.argsort(rng.random((n, self.num_data)), axis=1)[:, :m]
+        R, t, valid = self.solver(self.xa[samples], self.xb[samples])   # b_from_a ("ref_from_query")
+        stats.hypotheses += int(valid.sum())
+        return np.asarray(R)[valid], np.asarray(t)[valid]
+
+    def score(self, R: np.ndarray, t: np.ndarray, bound: float = np.inf) -> tuple[np.ndarray, np.ndarray]:
+        return _msac_kernel(np.ascontiguousarray(R, dtype=float), np.ascontiguousarray(t, dtype=float),
+                            self.xa, self.xb, self.fa, self.fb, self.threshold_sq)
+
+    def refine(self, R: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Least squares on the signed Sampson errors of the inliers, in the model's own
+        parameters (planar: yaw and heading of the translation; 6DoF: rotation and direction)."""
+        from scipy.optimize import least_squares
+
+        e = _sampson_sq(R[None], t[None], self.xa, self.xb, self.fa, self.fb)[0]
+        inl = e < self.threshold_sq
+        if inl.sum() < 2 * self.sample_size:
+            return R, t
+        idx = np.flatnonzero(inl)
+        idx = idx[np.linspace(0, len(idx) - 1, min(len(idx), REFINE_MAX_POINTS)).astype(int)]
+        xa, xb = self.xa[idx], self.xb[idx]
+        planar = self.sample_size == 2
+
+        def pose(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+            if planar:
+                Ry, Rt = so3_exp([[0, x[0], 0], [0, x[1], 0]])
+                return Ry @ R, Rt @ t
+            tt = t + x[3:]
+            return so3_exp(x[None, :3])[0] @ R, tt / np.linalg.norm(tt)
+
+        def fun(x: np.ndarray) -> np.ndarray:
+            Rx, tx = pose(x)
+            r = _sampson_sq(Rx[None], tx[None], xa, xb, self.fa, self.fb)[0]
+            return np.sqrt(r)
+
+        res = least_squares(fun, np.zeros(2 if planar else 6), method="lm", max_nfev=8, xtol=1e-6, ftol=1e-6)
+        Rr, tr = pose(res.x)
+        return Rr, tr
+
+
+def _depths_positive(R: np.ndarray, t: np.ndarray, xa: np.ndarray, xb: np.ndarray) -> int:
+    """How many rays pairs triangulate in front of both cameras (midpoint depths λ_a, λ_b > 0 of
+    ``λ_b x_b = λ_a R x_a + t``)."""
+    a = xa @ R.T
+    b = xb
+    aa, bb, ab = np.einsum("ni,ni->n", a, a), np.einsum("ni,ni->n", b, b), np.einsum("ni,ni->n", a, b)
+    at, bt = a @ t, b @ t
+    den = aa * bb - ab**2
+    ok = den > 1e-12
+    la = (ab * bt - bb * at) / np.where(ok, den, 1.0)
+    lb = (aa * bt - ab * at) / np.where(ok, den, 1.0)
+    return int(np.sum(ok & (la > 0) & (lb > 0)))
+
+
+def _rays(camera: Camera, px: np.ndarray) -> np.ndarray:
+    x = camera.cam_from_img(px)
+    return np.concatenate([x, np.ones((len(x), 1))], axis=1)
+
+
+def estimate_relative_pose(
+    camera_a: Camera,
+    camera_b: Camera,
+    points_a: object,
+    points_b: object,
+    model: str = "auto",
+    options: RansacOptions | None = None,
+    min_inliers: int = 15,
+) -> RelativePoseEstimate:
+    """Relative pose ``b_from_a`` from N pixel matches between image a and image b.
+
+    Args:
+        camera_a, camera_b: intrinsics of the two images.
+        points_a, points_b: (N, 2) matching pixels.
+        model: ``"planar"`` (2-point solver, paper Sec. IV-A), ``"6dof"`` (5-point) or
+            ``"auto"`` (both; the 6DoF pose only if it has ``SIX_DOF_MARGIN`` times the planar
+            inliers).
+        options: RANSAC options (threshold in pixels, iterations, seed); the absolute-pose
+            checks in them do not apply here. Default: ``RansacOptions(min_iterations=50,
+            max_iterations=300)``.
+        min_inliers: fewer inliers is ``too_few_inliers``.
+
+    Returns:
+        :class:`RelativePoseEstimate` with a unit-norm translation.
+
+    Example:
+        >>> est = estimate_relative_pose(cam, cam, px_prev, px_cur)   # doctest: +SKIP
+        >>> est.pose.R if est.success else est.status                   # doctest: +SKIP
+    """
+    if model not in MODELS:
+        raise InputError(f"model: expected one of {MODELS}, got {model!r}")
+    pa = check_array("points_a", points_a, (None, 2))
+    pb = check_array("points_b", points_b, (len(pa), 2))
+    options = options or RansacOptions(min_iterations=50, max_iterations=300)
+    options = replace(options, local_optimization=False)
+    ok = np.isfinite(camera_a.cam_from_img(pa)).all(axis=1) & np.isfinite(camera_b.cam_from_img(pb)).all(axis=1)
+    idx = np.flatnonzero(ok)
+    inliers = np.zeros(len(pa), dtype=bool)
+    if len(idx) < max(min_inliers, 5):
+        return RelativePoseEstimate(None, False, "too_few_matches", inliers=inliers)
+    xa, xb = _rays(camera_a, pa[idx]), _rays(camera_b, pb[idx])
+    fa, fb = np.asarray(camera_a.focal, dtype=float), np.asarray(camera_b.focal, dtype=float)
+    stats = RansacStatistics()
+    best: tuple[str, np.ndarray, np.ndarray, int] | None = None
+    for m in (("planar", "6dof") if model == "auto" else (model,)):
+        est = _RelativeEstimator(xa, xb, fa, fb, m, options.threshold_px)
+        out = ransac(est, options, np.random.default_rng(options.seed), stats)
+        if out.R is None:
+            continue
+        if best is None or out.num_inliers > SIX_DOF_MARGIN * best[3]:
+            best = (m, out.R, out.t, out.num_inliers)
+    if best is None or best[3] < min_inliers:
+        return RelativePoseEstimate(None, False, "too_few_inliers", inliers=inliers, stats=stats,
+                                    num_inliers=0 if best is None else best[3])
+    m, R, t, _ = best
+    R, t = _RelativeEstimator(xa, xb, fa, fb, m, options.threshold_px).refine(R, t)
+    e = _sampson_sq(R[None], t[None], xa, xb, fa, fb)[0]
+    inl = e < options.threshold_px**2
+    # The minimal sample's cheirality decides the sign of t on 2 or 5 points, which is fragile
+    # under forward motion (distant points); all inliers vote.
+    if _depths_positive(R, -t, xa[inl], xb[inl]) > _depths_positive(R, t, xa[inl], xb[inl]):
+        t = -t
+    inliers[idx] = inl
+    return RelativePoseEstimate(Pose(R, t / np.linalg.norm(t)), True, "success", m, inliers, int(inliers.sum()), stats)
