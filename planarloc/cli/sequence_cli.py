@@ -182,11 +182,12 @@ def evaluate_sequential(args: argparse.Namespace, map_path: Path, queries: list,
         results = evaluate_stream(seq, [f.image for f in frames], stamps, odometry, [f.kidnapped for f in frames],
                                   lambda d, t: update("localize stream", d, t))
     motion = "simulated odometry" if args.simulate_odometry else "odometry" if args.odometry else "visual odometry"
-    summary = summarize_sequence(results, dataset=str(args.dataset), map_every=args.map_every, motion=motion,
+    summary = summarize_sequence(results, dataset=" ".join(str(d) for d in args.dataset), map_every=args.map_every,
+                                 motion=motion,
                                  structure=str(getattr(localizer_config.ransac.structure, "value", "")),
                                  kidnap_at=args.kidnap_at, drop_every=args.drop_every, dropped=len(drop),
                                  window=seq.config.window, local_top_n=seq.config.local_top_n)
-    print_sequence_table([(motion, summary)], f"{Path(args.dataset).name}, map every {args.map_every}, "
+    print_sequence_table([(motion, summary)], f"{Path(args.dataset[0]).name}, map every {args.map_every}, "
                                               f"{len(frames)} frames streamed")
     write_json(args.json, summary)
     return 0
