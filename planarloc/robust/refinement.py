@@ -18,6 +18,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+from planarloc.geometry import mat3 as m3
 from planarloc.robust.scoring import _relative_essential
 
 
@@ -28,7 +29,7 @@ def _exp_so3(w: np.ndarray) -> np.ndarray:
     K[0, 1], K[0, 2], K[1, 0], K[1, 2], K[2, 0], K[2, 1] = -w[2], w[1], w[2], -w[0], -w[1], w[0]
     if th < 1e-12:
         return np.eye(3) + K
-    return np.eye(3) + np.sin(th) / th * K + (1.0 - np.cos(th)) / (th * th) * (K @ K)
+    return np.eye(3) + np.sin(th) / th * K + (1.0 - np.cos(th)) / (th * th) * m3.mul(K, K)
 
 
 @njit(cache=True, error_model="numpy")
@@ -41,9 +42,9 @@ def _residuals(
 
     Scalar code without array views in the loops: this runs ~10⁵ times per query.
     """
-    Rq = _exp_so3(params[:3]) @ R0
-    c = c0 + B @ params[3:]
-    tq = -(Rq @ c)
+    Rq = m3.mul(_exp_so3(params[:3]), R0)
+    c = c0 + m3.vec(B, params[3:])
+    tq = -m3.vec(Rq, c)
     P = ref_R.shape[0]
     Es = np.empty((P, 3, 3))
     for p in range(P):
@@ -94,14 +95,15 @@ def _residuals_jacobian(
     Rpq = np.empty((P, 3, 3))
     V = np.empty((P, 3, 3))  # V[p, k] = R_p b_k
     for p in range(P):
-        Rpq[p] = ref_R[p] @ R.T
-        t = ref_t[p] + ref_R[p] @ c
+        Rpq[p] = m3.mul_t(ref_R[p], R)
+        t = ref_t[p] + m3.vec(ref_R[p], c)
         for j in range(3):
             E[p, 0, j] = -t[2] * Rpq[p, 1, j] + t[1] * Rpq[p, 2, j]
             E[p, 1, j] = t[2] * Rpq[p, 0, j] - t[0] * Rpq[p, 2, j]
             E[p, 2, j] = -t[1] * Rpq[p, 0, j] + t[0] * Rpq[p, 1, j]
         for k in range(3):
-            V[p, k] = ref_R[p] @ np.ascontiguousarray(B[:, k])
+            for j in range(3):
+                V[p, k, j] = ref_R[p, j, 0] * B[0, k] + ref_R[p, j, 1] * B[1, k] + ref_R[p, j, 2] * B[2, k]
     fq0, fq1 = f_query[0], f_query[1]
     iq0, iq1 = 1.0 / (fq0 * fq0), 1.0 / (fq1 * fq1)
     for n in range(idx2d.shape[0]):
@@ -157,7 +159,7 @@ def _residuals_jacobian(
             dden = 2.0 * (Ex0 * dx0 * ir0 + Ex1 * dx1 * ir1 + Et0 * d0 * iq0 + Et1 * d1 * iq1)
             J[n, 3 + k] = dres / sq - 0.5 * res * dden / (den * sq)
     m0 = idx2d.shape[0]
-    RB = R @ B
+    RB = m3.mul(R, B)
     for n in range(idx3d.shape[0]):
         i = idx3d[n]
         D0, D1, D2 = X3d[i, 0] - c[0], X3d[i, 1] - c[1], X3d[i, 2] - c[2]
@@ -285,8 +287,8 @@ def refine_pose(
             if not _solve_spd(A, -g, step):
                 lam *= 10.0
                 continue
-            R_new = _exp_so3(step[:3]) @ R
-            c_new = c + B @ step[3:]
+            R_new = m3.mul(_exp_so3(step[:3]), R)
+            c_new = c + m3.vec(B, step[3:])
             _residuals(zero, R_new, c_new, B, xq, xr, pair, idx2d, f_query, f_ref, ref_R, ref_t, xq3d, X3d, idx3d, rp)
             new_cost = 0.5 * s2 * np.sum(np.log1p(rp * rp / s2))
             if new_cost <= cost:
@@ -303,7 +305,7 @@ def refine_pose(
     # The normal matrix JᵀWJ at the solution; the covariance σ̂² (JᵀWJ)⁻¹ is formed by the caller.
     dof = max(m - 6, 1)
     sigma2 = max(wr2 / dof, sigma_floor * sigma_floor)
-    t = -(R @ c)
+    t = -m3.vec(R, c)
     return R, t, H.copy(), np.sqrt(sigma2), cost
 
 
