@@ -17,7 +17,13 @@ from collections.abc import Callable
 import numpy as np
 
 from planarloc.geometry.planar import rotation_from_yaw
-from planarloc.robust.hypotheses import hypotheses_2p1p, hypotheses_from_relative_poses, hypotheses_up2p
+from planarloc.robust.hypotheses import (
+    hypotheses_2p1p,
+    hypotheses_2p1p_consensus,
+    hypotheses_from_relative_poses,
+    hypotheses_up2p,
+    planar_relative_candidates,
+)
 from planarloc.robust.options import Method, RansacOptions
 from planarloc.robust.problem import AbsolutePoseProblem
 from planarloc.robust.refinement import (
@@ -27,7 +33,7 @@ from planarloc.robust.refinement import (
     refine_pose,
 )
 from planarloc.robust.result import RansacStatistics
-from planarloc.robust.sampling import draw_pair_samples
+from planarloc.robust.sampling import draw_pair_samples, draw_within_pairs
 from planarloc.robust.scoring import errors_sq, msac_scores
 from planarloc.solvers.relpose_planar_2p import _solve_batch
 
@@ -202,11 +208,53 @@ class Planar2p1pEstimator(_ProblemEstimator):
 
     sample_size = 3
 
-    def __init__(self, problem: AbsolutePoseProblem, options: RansacOptions) -> None:
+    top_k = 3  # relative poses kept per pair (consensus scale)
+    peaks = 2  # scale maxima per relative pose
+
+    def __init__(self, problem: AbsolutePoseProblem, options: RansacOptions, consensus_scale: bool = True) -> None:
         super().__init__(problem, options)
         self.use_3d = len(problem.X3d) > 0
+        self.consensus_scale = consensus_scale
+        counts = problem.counts
+        self._eligible = np.flatnonzero(counts >= 2)
+        w = counts[self._eligible].astype(float)
+        self._share = w / w.sum() if len(w) else w
+
+    def _generate_consensus(self, rng: np.random.Generator, n: int, stats: RansacStatistics
+                            ) -> tuple[np.ndarray, np.ndarray]:
+        """2p1p with the third datum chosen by consensus instead of at random.
+
+        The ``n`` minimal samples are pairs of matches of one reference (the pair drawn in
+        proportion to its matches, as in the paper); their planar relative poses are scored on
+        their own pair and the ``top_k`` best per pair kept (stage 1,
+        :func:`planar_relative_candidates`). For each, eq. (18) is solved for every match of
+        the other pairs at once: the scale ρ supported by the most of them is the hypothesis
+        (:func:`hypotheses_2p1p_consensus`). A random third match is an inlier with
+        probability w; the consensus scale needs only some inliers among all the other pairs'
+        matches, so at 60 % outliers the hypotheses are those of the all-inlier samples.
+        """
+        p = self.p
+        elig = self._eligible
+        if len(elig) == 0:
+            return np.zeros((0, 3, 3)), np.zeros((0, 3))
+        sample_pair = elig[np.minimum(np.searchsorted(np.cumsum(self._share), rng.random(n), side="right"),
+                                      len(elig) - 1)]
+        samples = np.empty((n, 2), dtype=np.int64)
+        draw_within_pairs(rng.random((n, 2)), p.offsets, sample_pair, 2, samples)
+        K = self.top_k * p.num_pairs
+        Rrel, trel, prel = np.empty((K, 3, 3)), np.empty((K, 3)), np.empty(K, dtype=np.int64)
+        c = planar_relative_candidates(samples, sample_pair, p.xq, p.xr, p.offsets, p.f_query, p.f_ref,
+                                       self.threshold_sq, self.top_k, Rrel, trel, prel, self.counters)
+        out_R, out_t = np.empty((c * self.peaks, 3, 3)), np.empty((c * self.peaks, 3))
+        m = hypotheses_2p1p_consensus(Rrel[:c], trel[:c], prel[:c], p.xq, p.xr, p.offsets, p.f_query, p.f_ref,
+                                      p.ref_R, p.ref_t, self.threshold_sq, self.peaks, out_R, out_t,
+                                      self.counters)
+        self._flush(stats)
+        return out_R[:m], out_t[:m]
 
     def generate(self, rng: np.random.Generator, n: int, stats: RansacStatistics) -> tuple[np.ndarray, np.ndarray]:
+        if not self.use_3d and self.consensus_scale:
+            return self._generate_consensus(rng, n, stats)
         p = self.p
         u = rng.random((n, 5))
         samples = np.empty((n, 3), dtype=np.int64)

@@ -78,7 +78,7 @@ def _lo_candidates(estimator: Estimator, R: np.ndarray, t: np.ndarray, cost: np.
 
 
 def ransac(estimator: Estimator, options: RansacOptions, rng: np.random.Generator,
-           stats: RansacStatistics | None = None, batch_size: int = 50) -> RansacOutput:
+           stats: RansacStatistics | None = None, batch_size: int = 50, first_batch: int = 10**9) -> RansacOutput:
     """Run MSAC with adaptive termination between ``min_iterations`` and ``max_iterations``.
 
     Local optimisation (``estimator.refine``) runs whenever a batch produces a new best model,
@@ -92,7 +92,7 @@ def ransac(estimator: Estimator, options: RansacOptions, rng: np.random.Generato
     best_cost, best_inl = math.inf, 0
     needed = float(options.max_iterations)
     while stats.iterations < options.max_iterations:
-        todo = options.min_iterations - stats.iterations if stats.iterations < options.min_iterations else batch_size
+        todo = min(options.min_iterations - stats.iterations, first_batch) if stats.iterations < options.min_iterations else batch_size
         n = int(min(max(todo, 1), options.max_iterations - stats.iterations))
         t0 = time.perf_counter()
         R, t = estimator.generate(rng, n, stats)
