@@ -30,10 +30,11 @@ from planarloc.robust.refinement import (
     centre_covariance,
     map_covariance_from_parts,
     map_uncertainty_covariance,
+    refine_on_inliers,
     refine_pose,
 )
 from planarloc.robust.result import RansacStatistics
-from planarloc.robust.sampling import draw_pair_samples, draw_within_pairs
+from planarloc.robust.sampling import draw_pair_samples
 from planarloc.robust.scoring import errors_sq, msac_scores
 from planarloc.solvers.relpose_planar_2p import _solve_batch
 
@@ -53,6 +54,7 @@ class _ProblemEstimator:
         self.threshold_sq = options.threshold_px**2
         self.num_data = len(problem.xq) + len(problem.X3d)
         self.counters = np.zeros(5, dtype=np.int64)
+        self._ref_centres = -np.einsum("pji,pj->pi", problem.ref_R, problem.ref_t)
 
     def score(self, R: np.ndarray, t: np.ndarray, bound: float = np.inf) -> tuple[np.ndarray, np.ndarray]:
         p = self.p
@@ -63,11 +65,10 @@ class _ProblemEstimator:
         """Two hypotheses are distinct models when their centres differ by more than 10% of
         the distance to the nearest reference centre (the scatter of correct hypotheses
         is not; a pose slid along a weak direction is)."""
-        ca, cb = -Ra.T @ ta, -Rb.T @ tb
-        if not hasattr(self, "_ref_centres"):
-            self._ref_centres = -np.einsum("pji,pj->pi", self.p.ref_R, self.p.ref_t)
-        scale = np.linalg.norm(self._ref_centres - ca, axis=1).min()
-        return bool(np.linalg.norm(ca - cb) > 0.1 * scale)
+        ca, cb = -(ta @ Ra), -(tb @ Rb)
+        d = self._ref_centres - ca
+        e = ca - cb
+        return bool(e @ e > 0.01 * (d * d).sum(axis=1).min())
 
     def inliers(self, R: np.ndarray, t: np.ndarray, threshold_sq: float | None = None) -> tuple[np.ndarray, np.ndarray]:
         p = self.p
@@ -84,10 +85,19 @@ class _ProblemEstimator:
             self.options.threshold_px, max_iterations, SIGMA_FLOOR_PX, np.ascontiguousarray(c0), B, fixed,
         )
 
+    def _refine_on_inliers(self, R: np.ndarray, t: np.ndarray, threshold_sq: float, max_iterations: int) -> tuple:
+        p = self.p
+        return refine_on_inliers(np.ascontiguousarray(R), np.ascontiguousarray(t), p.xq, p.xr, p.pair, p.offsets,
+                                 p.f_query, p.f_ref, p.ref_R, p.ref_t, p.xq3d, p.X3d, threshold_sq,
+                                 self.options.threshold_px, max_iterations, SIGMA_FLOOR_PX)
+
     def refine_full(self, R: np.ndarray, t: np.ndarray, max_iterations: int) -> tuple:
         """Refine on the current inliers; returns (R, t, cov_center, sigma, cost, in2d, in3d)."""
         in2d, in3d = self.inliers(R, t)
-        R2, t2, H, sigma, cost = self._refine(R, -R.T @ t, in2d, in3d, max_iterations)
+        if in2d.sum() + in3d.sum() < 6:
+            R2, t2, H, sigma, cost = self._refine(R, -R.T @ t, in2d, in3d, max_iterations)
+            return R2, t2, centre_covariance(H, sigma), sigma, cost, in2d, in3d
+        R2, t2, H, sigma, cost, in2d, in3d = self._refine_on_inliers(R, t, self.threshold_sq, max_iterations)
         return R2, t2, centre_covariance(H, sigma), sigma, cost, in2d, in3d
 
     def map_covariance(self, R: np.ndarray, t: np.ndarray, in2d: np.ndarray, in3d: np.ndarray) -> np.ndarray:
@@ -128,11 +138,7 @@ class _ProblemEstimator:
         """Local optimisation: refine on the inliers of a widened threshold (2τ), so that a
         hypothesis near the right basin gathers the constraints it first missed; the final
         refinement then works at τ."""
-        for scale in (2.0,):
-            in2d, in3d = self.inliers(R, t, scale * scale * self.threshold_sq)
-            if in2d.sum() + in3d.sum() < 6:
-                break
-            R, t, *_ = self._refine(R, -R.T @ t, in2d, in3d, 3)
+        R, t, *_ = self._refine_on_inliers(R, t, 4.0 * self.threshold_sq, 3)
         return R, t
 
     def median_reference_distance(self, R: np.ndarray, t: np.ndarray, in2d: np.ndarray) -> float:
@@ -208,17 +214,14 @@ class Planar2p1pEstimator(_ProblemEstimator):
 
     sample_size = 3
 
-    top_k = 3  # relative poses kept per pair (consensus scale)
-    peaks = 2  # scale maxima per relative pose
+    top_k = 2  # relative poses kept per pair (consensus scale)
+    peaks = 1  # scale maxima per relative pose
 
     def __init__(self, problem: AbsolutePoseProblem, options: RansacOptions, consensus_scale: bool = True) -> None:
         super().__init__(problem, options)
         self.use_3d = len(problem.X3d) > 0
         self.consensus_scale = consensus_scale
-        counts = problem.counts
-        self._eligible = np.flatnonzero(counts >= 2)
-        w = counts[self._eligible].astype(float)
-        self._share = w / w.sum() if len(w) else w
+        self._any_eligible = bool((problem.counts >= 2).any())
 
     def _generate_consensus(self, rng: np.random.Generator, n: int, stats: RansacStatistics
                             ) -> tuple[np.ndarray, np.ndarray]:
@@ -234,13 +237,11 @@ class Planar2p1pEstimator(_ProblemEstimator):
         matches, so at 60 % outliers the hypotheses are those of the all-inlier samples.
         """
         p = self.p
-        elig = self._eligible
-        if len(elig) == 0:
+        if not self._any_eligible:
             return np.zeros((0, 3, 3)), np.zeros((0, 3))
-        sample_pair = elig[np.minimum(np.searchsorted(np.cumsum(self._share), rng.random(n), side="right"),
-                                      len(elig) - 1)]
         samples = np.empty((n, 2), dtype=np.int64)
-        draw_within_pairs(rng.random((n, 2)), p.offsets, sample_pair, 2, samples)
+        sample_pair = np.empty(n, dtype=np.int64)
+        draw_pair_samples(rng.random((n, 4)), p.offsets, 2, 0, samples, sample_pair, np.empty(n, dtype=np.int64))
         K = self.top_k * p.num_pairs
         Rrel, trel, prel = np.empty((K, 3, 3)), np.empty((K, 3)), np.empty(K, dtype=np.int64)
         c = planar_relative_candidates(samples, sample_pair, p.xq, p.xr, p.offsets, p.f_query, p.f_ref,

@@ -19,7 +19,7 @@ import numpy as np
 from numba import njit
 
 from planarloc.geometry import mat3 as m3
-from planarloc.robust.scoring import _relative_essential
+from planarloc.robust.scoring import _relative_essential, errors_sq
 
 
 @njit(cache=True, error_model="numpy")
@@ -307,6 +307,37 @@ def refine_pose(
     sigma2 = max(wr2 / dof, sigma_floor * sigma_floor)
     t = -m3.vec(R, c)
     return R, t, H.copy(), np.sqrt(sigma2), cost
+
+
+@njit(cache=True, error_model="numpy")
+def refine_on_inliers(
+    Rq: np.ndarray, tq: np.ndarray, xq: np.ndarray, xr: np.ndarray, pair: np.ndarray, offsets: np.ndarray,
+    f_query: np.ndarray, f_ref: np.ndarray, ref_R: np.ndarray, ref_t: np.ndarray,
+    xq3d: np.ndarray, X3d: np.ndarray, inlier_threshold_sq: float, loss_scale: float, max_iterations: int,
+    sigma_floor: float,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, float, float, np.ndarray, np.ndarray]:
+    """:func:`refine_pose` on the inliers of the initial pose, in one call.
+
+    The inliers are the 2D-2D matches (Sampson) and 2D-3D constraints (reprojection) whose
+    squared pixel error at ``(Rq, tq)`` is below ``inlier_threshold_sq``; with fewer than 6
+    of them the pose is returned unchanged (cost inf).
+
+    Returns:
+        R, t, the normal matrix H, σ̂, cost (as :func:`refine_pose`), and the inlier masks
+        (N,), (M,) bool at the initial pose.
+    """
+    e2d, e3d = errors_sq(Rq, tq, xq, xr, offsets, f_query, f_ref, ref_R, ref_t, xq3d, X3d)
+    in2d = e2d < inlier_threshold_sq
+    in3d = e3d < inlier_threshold_sq
+    idx2d = np.flatnonzero(in2d)
+    idx3d = np.flatnonzero(in3d)
+    if idx2d.shape[0] + idx3d.shape[0] < 6:
+        return Rq.copy(), tq.copy(), np.zeros((6, 6)), np.inf, np.inf, in2d, in3d
+    c0 = -m3.t_vec(Rq, tq)
+    R, t, H, sigma, cost = refine_pose(Rq, tq, xq, xr, pair, idx2d, f_query, f_ref, ref_R, ref_t, xq3d, X3d,
+                                       idx3d, loss_scale, max_iterations, sigma_floor, c0, np.eye(3),
+                                       np.zeros(6, dtype=np.bool_))
+    return R, t, H, sigma, cost, in2d, in3d
 
 
 @njit(cache=True, error_model="numpy")
