@@ -216,6 +216,7 @@ class Planar2p1pEstimator(_ProblemEstimator):
 
     top_k = 2  # relative poses kept per pair (consensus scale)
     peaks = 1  # scale maxima per relative pose
+    max_votes = 128  # matches of the other pairs that vote for the scale (strided beyond)
 
     def __init__(self, problem: AbsolutePoseProblem, options: RansacOptions, consensus_scale: bool = True) -> None:
         super().__init__(problem, options)
@@ -245,10 +246,11 @@ class Planar2p1pEstimator(_ProblemEstimator):
         K = self.top_k * p.num_pairs
         Rrel, trel, prel = np.empty((K, 3, 3)), np.empty((K, 3)), np.empty(K, dtype=np.int64)
         c = planar_relative_candidates(samples, sample_pair, p.xq, p.xr, p.offsets, p.f_query, p.f_ref,
-                                       self.threshold_sq, self.top_k, Rrel, trel, prel, self.counters)
+                                       self.threshold_sq, self.top_k, self.max_votes // 2, Rrel, trel, prel,
+                                       self.counters)
         out_R, out_t = np.empty((c * self.peaks, 3, 3)), np.empty((c * self.peaks, 3))
         m = hypotheses_2p1p_consensus(Rrel[:c], trel[:c], prel[:c], p.xq, p.xr, p.offsets, p.f_query, p.f_ref,
-                                      p.ref_R, p.ref_t, self.threshold_sq, self.peaks, out_R, out_t,
+                                      p.ref_R, p.ref_t, self.threshold_sq, self.peaks, self.max_votes, out_R, out_t,
                                       self.counters)
         self._flush(stats)
         return out_R[:m], out_t[:m]

@@ -217,7 +217,7 @@ def hypotheses_up2p(
 @njit(cache=True, error_model="numpy")
 def planar_relative_candidates(
     samples: np.ndarray, sample_pair: np.ndarray, xq: np.ndarray, xr: np.ndarray, offsets: np.ndarray,
-    f_query: np.ndarray, f_ref: np.ndarray, threshold_sq: float, top_k: int,
+    f_query: np.ndarray, f_ref: np.ndarray, threshold_sq: float, top_k: int, max_scored: int,
     out_R: np.ndarray, out_t: np.ndarray, out_pair: np.ndarray, counters: np.ndarray,
 ) -> int:
     """Stage 1 of the consensus 2p1p: per pair, the ``top_k`` best distinct planar relative poses.
@@ -229,6 +229,8 @@ def planar_relative_candidates(
     Args:
         samples: (S, 2) match rows, both of pair ``sample_pair[s]``.
         threshold_sq: MSAC threshold τ² (pixels²).
+        max_scored: a pair with more matches is scored on every s-th (s = ⌈n / max_scored⌉);
+            ranking relative poses needs no more.
         out_R, out_t, out_pair: (P * top_k, ...) outputs: ``ref_from_query`` rotation, unit
             translation, pair index.
 
@@ -264,7 +266,8 @@ def planar_relative_candidates(
             E[2, 0], E[2, 1], E[2, 2] = 0.0, t0, 0.0
             acc = 0.0
             worst = bound[p, top_k - 1]
-            for i in range(offsets[p], offsets[p + 1]):
+            n_p = offsets[p + 1] - offsets[p]
+            for i in range(offsets[p], offsets[p + 1], max(1, (n_p + max_scored - 1) // max_scored)):
                 e = _sampson_sq(E, xq[i], xr[i], f_query[0], f_query[1], f_ref[p, 0], f_ref[p, 1])
                 acc += e if e < threshold_sq else threshold_sq
                 if acc > worst:
@@ -314,25 +317,22 @@ def planar_relative_candidates(
 
 
 @njit(cache=True, error_model="numpy")
-def _majority_in_front(rho: float, R: np.ndarray, tt: np.ndarray, j: int, lo: np.ndarray, hi: np.ndarray,
-                       row: np.ndarray, xq: np.ndarray, xr: np.ndarray, offsets: np.ndarray, ref_R: np.ndarray,
-                       ref_t: np.ndarray) -> bool:
+def _majority_in_front(rho: float, lo: np.ndarray, hi: np.ndarray, row: np.ndarray, row_pair: np.ndarray,
+                       Rkq: np.ndarray, a: np.ndarray, b: np.ndarray, xq: np.ndarray, xr: np.ndarray) -> bool:
     """Pdcheck of a consensus scale: at least half of the matches voting for ``rho`` (their
-    interval contains it) triangulate in front of the query and their reference."""
+    interval contains it) triangulate in front of the query and their reference
+    (``k_from_query = (Rkq[k], ρ a[k] + b[k])``)."""
     votes = 0
     front = 0
-    Rj, tj = ref_R[j], ref_t[j]
+    tk = np.empty(3)
     for q in range(row.shape[0]):
         if not (lo[q] < rho < hi[q]):
             continue
-        i = row[q]
-        k = 0
-        while offsets[k + 1] <= i:
-            k += 1
-        R21 = m3.mul_t(ref_R[k], Rj)
-        tk = rho * m3.vec(R21, tt) + ref_t[k] - m3.vec(R21, tj)
+        k = row_pair[q]
+        for d in range(3):
+            tk[d] = rho * a[k, d] + b[k, d]
         votes += 1
-        if _positive_depths(m3.mul(R21, R), tk, xq[i], xr[i]):
+        if _positive_depths(Rkq[k], tk, xq[row[q]], xr[row[q]]):
             front += 1
     return 2 * front >= votes
 
@@ -341,7 +341,7 @@ def _majority_in_front(rho: float, R: np.ndarray, tt: np.ndarray, j: int, lo: np
 def hypotheses_2p1p_consensus(
     Rrel: np.ndarray, trel: np.ndarray, prel: np.ndarray, xq: np.ndarray, xr: np.ndarray, offsets: np.ndarray,
     f_query: np.ndarray, f_ref: np.ndarray, ref_R: np.ndarray, ref_t: np.ndarray, threshold_sq: float,
-    peaks: int, out_R: np.ndarray, out_t: np.ndarray, counters: np.ndarray,
+    peaks: int, max_votes: int, out_R: np.ndarray, out_t: np.ndarray, counters: np.ndarray,
 ) -> int:
     """Stage 2 of the consensus 2p1p: the scale of each relative pose from all other matches.
 
@@ -358,6 +358,9 @@ def hypotheses_2p1p_consensus(
         Rrel, trel, prel: (C, 3, 3), (C, 3), (C,) relative poses ``ref_from_query`` of pair prel
             (unit translation), e.g. from :func:`planar_relative_candidates`.
         threshold_sq: τ² in pixels².
+        max_votes: with more matches in the other pairs than this, every s-th match of each
+            pair votes (s = ⌈others / max_votes⌉): a hundred votes find the peak as well as
+            a thousand, and the cost is linear in the votes.
         out_R, out_t: (C * peaks, ...) ``query_from_world`` outputs.
 
     Returns:
@@ -372,17 +375,23 @@ def hypotheses_2p1p_consensus(
     lo = np.empty(N)
     hi = np.empty(N)
     row = np.empty(N, dtype=np.int64)
+    row_pair = np.empty(N, dtype=np.int64)
+    P = offsets.shape[0] - 1
+    Rkq_all = np.empty((P, 3, 3))
+    a_all = np.empty((P, 3))
+    b_all = np.empty((P, 3))
     ev = np.empty(2 * N)
     delta = np.empty(2 * N, dtype=np.int64)
     fq0, fq1 = f_query[0], f_query[1]
     tau2 = threshold_sq
     out = 0
-    P = offsets.shape[0] - 1
     for c in range(Rrel.shape[0]):
         j = prel[c]
         R = Rrel[c]
         tt = trel[c]
         Rj, tj = ref_R[j], ref_t[j]
+        others = N - (offsets[j + 1] - offsets[j])
+        stride = max(1, (others + max_votes - 1) // max_votes)
         m = 0
         for k in range(P):
             if k == j:
@@ -391,10 +400,13 @@ def hypotheses_2p1p_consensus(
             b = ref_t[k] - m3.vec(R21, tj)
             a = m3.vec(R21, tt)
             Rkq = m3.mul(R21, R)
+            Rkq_all[k] = Rkq
+            a_all[k] = a
+            b_all[k] = b
             a0, a1, a2 = a[0], a[1], a[2]
             b0, b1, b2 = b[0], b[1], b[2]
             fr0, fr1 = f_ref[k, 0], f_ref[k, 1]
-            for i in range(offsets[k], offsets[k + 1]):
+            for i in range(offsets[k], offsets[k + 1], stride):
                 q0, q1, q2 = xq[i, 0], xq[i, 1], xq[i, 2]
                 y0 = Rkq[0, 0] * q0 + Rkq[0, 1] * q1 + Rkq[0, 2] * q2
                 y1 = Rkq[1, 0] * q0 + Rkq[1, 1] * q1 + Rkq[1, 2] * q2
@@ -431,6 +443,7 @@ def hypotheses_2p1p_consensus(
                 lo[m] = max((-B - sd) / (2.0 * A), 0.0)
                 hi[m] = r2
                 row[m] = i
+                row_pair[m] = k
                 m += 1
         if m == 0:
             counters[HYPOTHESES] += 1
@@ -472,8 +485,8 @@ def hypotheses_2p1p_consensus(
             used_hi[best_found] = rho * 1.1
             best_found += 1
             counters[HYPOTHESES] += 1
-            if not rho > 0.0 or not _majority_in_front(rho, R, tt, j, lo[:m], hi[:m], row[:m], xq, xr, offsets,
-                                                        ref_R, ref_t):
+            if not rho > 0.0 or not _majority_in_front(rho, lo[:m], hi[:m], row[:m], row_pair[:m], Rkq_all, a_all,
+                                                        b_all, xq, xr):
                 counters[PDCHECK] += 1
                 continue
             out_R[out] = m3.t_mul(R, Rj)

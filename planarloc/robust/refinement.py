@@ -422,10 +422,12 @@ def centre_covariance(H: np.ndarray, sigma: float, B: np.ndarray = np.eye(3)) ->
 
     Inf-filled when H is singular relative to its scale (an unobservable direction).
     """
-    ev = np.linalg.eigvalsh(H)
+    ev, V = np.linalg.eigh(H)
     if not (ev[0] > 1e-12 * ev[-1] and ev[0] > 0):
         return np.full((3, 3), np.inf)
-    return sigma * sigma * (B @ np.linalg.inv(H)[3:, 3:] @ B.T)
+    Vc = V[3:]  # (H⁻¹)[3:, 3:] = V[3:] diag(1/ev) V[3:]ᵀ
+    cov = (Vc / ev) @ Vc.T
+    return sigma * sigma * (B @ cov @ B.T)
 
 
 def map_covariance_from_parts(H: np.ndarray, M: np.ndarray, var: np.ndarray) -> np.ndarray:
