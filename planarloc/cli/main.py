@@ -16,7 +16,7 @@ def build_parser() -> argparse.ArgumentParser:
         formatter_class=argparse.RawDescriptionHelpFormatter,
         description="Localize a ground robot's camera against a map that is only a set of posed images "
                     "(no 3D model), from 2D-2D matches under local planar motion.\n\n"
-                    "start here:\n"
+                    "examples (start here):\n"
                     "  planarloc demo                      map and localize a generated indoor world\n"
                     "  planarloc map build DATA -f kitti --out map.db\n"
                     "  planarloc localize --map map.db query.png --camera 'PINHOLE W H fx fy cx cy'\n"

@@ -29,7 +29,10 @@ def parse_dataset_options(items: list[str] | None) -> dict:
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("map", help="build or inspect a map (a SQLite file of posed images and their features)",
-                       description="A map is just posed images with their features: no 3D model is built.")
+                       formatter_class=argparse.RawDescriptionHelpFormatter,
+                       description="A map is just posed images with their features: no 3D model is built.\n\n"
+                                   "examples:\n  planarloc map build data/kitti_seq2 --format kitti --out kitti.db\n"
+                                   "  planarloc map info kitti.db")
     msub = p.add_subparsers(dest="map_command", required=True)
     b = msub.add_parser(
         "build", help="build (or resume / extend) a map from a dataset",
@@ -46,7 +49,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    help="importer option, e.g. tum_camera=fr1 or max_dt=0.05 (repeatable)")
     add_feature_args(b)
     b.set_defaults(func=run_build)
-    i = msub.add_parser("info", help="summarise a map")
+    i = msub.add_parser("info", help="summarise a map", formatter_class=argparse.RawDescriptionHelpFormatter,
+                        description="Print the number of images, the feature configuration and whether the build "
+                                    "is complete.\n\nexample:\n  planarloc map info kitti.db")
     i.add_argument("map", type=Path)
     i.set_defaults(func=run_info)
 
