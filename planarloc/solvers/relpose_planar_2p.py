@@ -28,8 +28,7 @@ import numpy as np
 from numba import njit, prange
 
 from planarloc.geometry.pose import Pose
-from planarloc.geometry.planar import relpose_from_planar_params
-from planarloc.geometry.validation import InputError, check_array
+from planarloc.geometry.validation import InputError, check_array, check_array_fast
 
 _EPS_RANK = 1e-9
 _EPS_FORM = 1e-12
@@ -206,6 +205,8 @@ _PARALLEL_MIN_BATCH = 4096  # below this, thread start-up costs more than it sav
 
 
 def _check_points(name: str, x: object, shape: tuple) -> np.ndarray:
+    if type(x) is np.ndarray and x.shape[-1:] == (3,):
+        return check_array_fast(name, x, shape)
     arr = check_array(name, x)
     if arr.ndim == len(shape) and arr.shape[-1] == 2 and all(
         s is None or s == a for s, a in zip(shape[:-1], arr.shape[:-1])
@@ -246,7 +247,12 @@ def relpose_planar_2p(x_query: object, x_ref: object) -> list[Pose]:
     xr = _check_points("x_ref", x_ref, (2, 3))
     thetas, phis = np.empty(2), np.empty(2)
     n = solve_planar_2p(xq, xr, thetas, phis)
-    return [relpose_from_planar_params(thetas[i], phis[i], 1.0) for i in range(n)]
+    out = []
+    for i in range(n):  # relpose_from_planar_params without re-validating a rotation built as one
+        c, s, sp, cp = np.cos(thetas[i]), np.sin(thetas[i]), np.sin(phis[i]), np.cos(phis[i])
+        R = np.array([[c, 0.0, -s], [0.0, 1.0, 0.0], [s, 0.0, c]])
+        out.append(Pose._unchecked(R, -(R @ np.array([sp, 0.0, cp]))))
+    return out
 
 
 def relpose_planar_2p_batch(x_query: object, x_ref: object) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
