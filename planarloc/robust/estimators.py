@@ -16,7 +16,6 @@ from collections.abc import Callable
 
 import numpy as np
 
-from planarloc.geometry.planar import rotation_from_yaw
 from planarloc.robust.hypotheses import (
     hypotheses_2p1p,
     hypotheses_2p1p_consensus,
@@ -36,7 +35,7 @@ from planarloc.robust.refinement import (
 from planarloc.robust.result import RansacStatistics
 from planarloc.robust.sampling import draw_pair_samples
 from planarloc.robust.scoring import errors_sq, msac_scores
-from planarloc.solvers.relpose_planar_2p import _solve_batch
+from planarloc.solvers.relpose_planar_2p import planar_2p_batch_unchecked
 
 SIGMA_FLOOR_PX = 0.5  # lower bound of the pixel noise assumed for covariances
 _IDENTITY = np.eye(3)
@@ -138,7 +137,7 @@ class _ProblemEstimator:
         """Local optimisation: refine on the inliers of a widened threshold (2τ), so that a
         hypothesis near the right basin gathers the constraints it first missed; the final
         refinement then works at τ."""
-        R, t, *_ = self._refine_on_inliers(R, t, 4.0 * self.threshold_sq, 3)
+        R, t, *_ = self._refine_on_inliers(R, t, 4.0 * self.threshold_sq, 2)
         return R, t
 
     def median_reference_distance(self, R: np.ndarray, t: np.ndarray, in2d: np.ndarray) -> float:
@@ -214,7 +213,7 @@ class Planar2p1pEstimator(_ProblemEstimator):
 
     sample_size = 3
 
-    top_k = 2  # relative poses kept per pair (consensus scale)
+    top_k = 3  # relative poses kept per pair (consensus scale)
     peaks = 1  # scale maxima per relative pose
     max_votes = 128  # matches of the other pairs that vote for the scale (strided beyond)
 
@@ -298,21 +297,9 @@ class Planar2p1pEstimator(_ProblemEstimator):
 RelposeBatchSolver = Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray, np.ndarray]]
 
 
-def _planar_2p_batch_Rt(xq: np.ndarray, xr: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    m = len(xq)
-    th = np.zeros((m, 2))
-    ph = np.zeros((m, 2))
-    cnt = np.zeros(m, dtype=np.int64)
-    _solve_batch(xq, xr, th, ph, cnt)
-    R = rotation_from_yaw(th)
-    d = np.stack([np.sin(ph), np.zeros_like(ph), np.cos(ph)], axis=-1)
-    t = -np.einsum("smij,smj->smi", R, d)
-    return R, t, np.arange(2)[None] < cnt[:, None]
-
-
 def _baseline_solver(method: Method) -> tuple[int, RelposeBatchSolver]:
     if method == Method.P2P2:
-        return 2, _planar_2p_batch_Rt
+        return 2, planar_2p_batch_unchecked
     if method == Method.NISTER:
         from planarloc.solvers.relpose_5p_nister import relpose_5p_nister_batch
 

@@ -293,7 +293,7 @@ def refine_pose(
             new_cost = 0.5 * s2 * np.sum(np.log1p(rp * rp / s2))
             if new_cost <= cost:
                 R, c = R_new, c_new
-                improved = cost - new_cost > 1e-8 * cost
+                improved = cost - new_cost > 1e-6 * cost
                 cost = new_cost
                 lam = max(lam * 0.1, 1e-9)
                 break

@@ -256,7 +256,8 @@ def relpose_planar_2p(x_query: object, x_ref: object) -> list[Pose]:
 
 
 def relpose_planar_2p_batch(x_query: object, x_ref: object) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Batched :func:`relpose_planar_2p` for M samples, in the paper's (θ, φ) parameters.
+    """Batched :func:`relpose_planar_2p` for M samples, with the contract of the other batched
+    solvers.
 
     Args:
         x_query, x_ref: (M, 2, 3) rays of M two-match samples.
@@ -264,17 +265,31 @@ def relpose_planar_2p_batch(x_query: object, x_ref: object) -> tuple[np.ndarray,
     Large batches run on all cores (numba ``prange``).
 
     Returns:
-        theta (M, 2), phi (M, 2) and valid (M, 2) bool. Solution ``k`` of sample ``i`` is
-        ``relpose_from_planar_params(theta[i, k], phi[i, k])`` where ``valid[i, k]``.
+        R (M, 2, 3, 3), t (M, 2, 3) of ``ref_from_query`` (unit ``t``) and valid (M, 2) bool;
+        valid solutions come first, invalid slots are NaN. Solution ``k`` of sample ``i`` is
+        ``relpose_from_planar_params(θ, φ)`` of the paper's parameters.
     """
     xq = _check_points("x_query", x_query, (None, 2, 3))
     xr = _check_points("x_ref", x_ref, (None, 2, 3))
     if xq.shape[0] != xr.shape[0]:
         raise InputError(f"x_query and x_ref: different numbers of samples ({xq.shape[0]} vs {xr.shape[0]})")
+    return planar_2p_batch_unchecked(xq, xr)
+
+
+def planar_2p_batch_unchecked(xq: np.ndarray, xr: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`relpose_planar_2p_batch` on contiguous float64 (M, 2, 3) arrays, unchecked (the
+    RANSAC estimators' entry point)."""
     m = xq.shape[0]
     thetas = np.zeros((m, 2))
     phis = np.zeros((m, 2))
     counts = np.zeros(m, dtype=np.int64)
     (_solve_batch_parallel if m >= _PARALLEL_MIN_BATCH else _solve_batch)(xq, xr, thetas, phis, counts)
     valid = np.arange(2)[None, :] < counts[:, None]
-    return thetas, phis, valid
+    c, s = np.cos(thetas), np.sin(thetas)
+    R = np.zeros((m, 2, 3, 3))
+    R[..., 0, 0], R[..., 0, 2], R[..., 1, 1], R[..., 2, 0], R[..., 2, 2] = c, -s, 1.0, s, c
+    d = np.stack([np.sin(phis), np.zeros_like(phis), np.cos(phis)], axis=-1)
+    t = -np.einsum("smij,smj->smi", R, d)
+    R[~valid] = np.nan
+    t[~valid] = np.nan
+    return R, t, valid
