@@ -7,7 +7,7 @@ import logging
 import sys
 
 from planarloc import __version__
-from planarloc.cli import demo_command, evaluate_command, localize_command, map_command
+from planarloc.cli import demo_command, evaluate_command, localize_command, map_command, warmup_command
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -25,7 +25,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--version", action="version", version=f"planarloc {__version__}")
     parser.add_argument("--verbose", "-v", action="count", default=0, help="more log output (-vv for debug)")
     sub = parser.add_subparsers(dest="command", required=True)
-    for module in (demo_command, map_command, localize_command, evaluate_command):
+    for module in (demo_command, map_command, localize_command, evaluate_command, warmup_command):
         module.add_parser(sub)
     return parser
 

@@ -38,6 +38,7 @@ from planarloc.robust.scoring import errors_sq, msac_scores
 from planarloc.solvers.relpose_planar_2p import planar_2p_batch_unchecked
 
 SIGMA_FLOOR_PX = 0.5  # lower bound of the pixel noise assumed for covariances
+LO_WIDENING = 3.0  # local optimisation gathers inliers within LO_WIDENING * threshold
 _IDENTITY = np.eye(3)
 _FREE = np.zeros(6, dtype=np.bool_)
 
@@ -134,10 +135,12 @@ class _ProblemEstimator:
         return worst
 
     def refine(self, R: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Local optimisation: refine on the inliers of a widened threshold (2τ), so that a
-        hypothesis near the right basin gathers the constraints it first missed; the final
-        refinement then works at τ."""
-        R, t, *_ = self._refine_on_inliers(R, t, 4.0 * self.threshold_sq, 2)
+        """Local optimisation: 2 LM iterations on the inliers of a widened threshold (3τ, the
+        Cauchy loss at τ down-weights what it lets in), so that a hypothesis near the right
+        basin gathers the constraints it first missed; the final refinement then works at τ.
+        3τ rather than 2τ: +3 points of success at 20 matches per pair, 1.5 px noise, 60 %
+        outliers (600 scenes), where a noisy minimal-sample hypothesis misses many inliers."""
+        R, t, *_ = self._refine_on_inliers(R, t, LO_WIDENING**2 * self.threshold_sq, 2)
         return R, t
 
     def median_reference_distance(self, R: np.ndarray, t: np.ndarray, in2d: np.ndarray) -> float:
