@@ -188,6 +188,22 @@ def solve_planar_2p(xq: np.ndarray, xr: np.ndarray, thetas: np.ndarray, phis: np
 
 
 @njit(cache=True, error_model="numpy")
+def _solve_Rt(xq: np.ndarray, xr: np.ndarray, R: np.ndarray, t: np.ndarray) -> int:
+    """:func:`solve_planar_2p` with the poses written as R (2, 3, 3), t (2, 3) (eq. 1)."""
+    thetas = np.empty(2)
+    phis = np.empty(2)
+    n = solve_planar_2p(xq, xr, thetas, phis)
+    for i in range(n):
+        c, s = np.cos(thetas[i]), np.sin(thetas[i])
+        sp, cp = np.sin(phis[i]), np.cos(phis[i])
+        R[i, 0, 0], R[i, 0, 1], R[i, 0, 2] = c, 0.0, -s
+        R[i, 1, 0], R[i, 1, 1], R[i, 1, 2] = 0.0, 1.0, 0.0
+        R[i, 2, 0], R[i, 2, 1], R[i, 2, 2] = s, 0.0, c
+        t[i, 0], t[i, 1], t[i, 2] = -(c * sp - s * cp), 0.0, -(s * sp + c * cp)
+    return n
+
+
+@njit(cache=True, error_model="numpy")
 def _solve_batch(xq: np.ndarray, xr: np.ndarray, thetas: np.ndarray, phis: np.ndarray, counts: np.ndarray) -> None:
     for i in range(xq.shape[0]):
         counts[i] = solve_planar_2p(xq[i], xr[i], thetas[i], phis[i])
@@ -245,14 +261,9 @@ def relpose_planar_2p(x_query: object, x_ref: object) -> list[Pose]:
     """
     xq = _check_points("x_query", x_query, (2, 3))
     xr = _check_points("x_ref", x_ref, (2, 3))
-    thetas, phis = np.empty(2), np.empty(2)
-    n = solve_planar_2p(xq, xr, thetas, phis)
-    out = []
-    for i in range(n):  # relpose_from_planar_params without re-validating a rotation built as one
-        c, s, sp, cp = np.cos(thetas[i]), np.sin(thetas[i]), np.sin(phis[i]), np.cos(phis[i])
-        R = np.array([[c, 0.0, -s], [0.0, 1.0, 0.0], [s, 0.0, c]])
-        out.append(Pose._unchecked(R, -(R @ np.array([sp, 0.0, cp]))))
-    return out
+    R, t = np.empty((2, 3, 3)), np.empty((2, 3))
+    n = _solve_Rt(xq, xr, R, t)
+    return [Pose._unchecked(R[i], t[i]) for i in range(n)]
 
 
 def relpose_planar_2p_batch(x_query: object, x_ref: object) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
