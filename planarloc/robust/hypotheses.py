@@ -15,7 +15,7 @@ from planarloc.robust.scoring import _sampson_sq
 from planarloc.solvers.abspose_2p1p import scale_2p1p, scale_from_point3d
 from planarloc.solvers.abspose_2p2p import triangulate_scales
 from planarloc.solvers.abspose_up2p import solve_up2p
-from planarloc.solvers.relpose_planar_2p import solve_planar_2p
+from planarloc.solvers.relpose_planar_2p import planar_pose_into, solve_planar_2p
 
 HYPOTHESES, RCHECK, PDCHECK, CONSISTENCY, DEGENERATE = range(5)
 
@@ -306,13 +306,7 @@ def planar_relative_candidates(
         kept[p] += 1
         out += 1
     for q in range(out):
-        th, ph = out_t[q, 1], out_R[q, 1, 0]
-        c, sn = np.cos(th), np.sin(th)
-        sp, cp = np.sin(ph), np.cos(ph)
-        out_R[q, 0, 0], out_R[q, 0, 1], out_R[q, 0, 2] = c, 0.0, -sn
-        out_R[q, 1, 0], out_R[q, 1, 1], out_R[q, 1, 2] = 0.0, 1.0, 0.0
-        out_R[q, 2, 0], out_R[q, 2, 1], out_R[q, 2, 2] = sn, 0.0, c
-        out_t[q, 0], out_t[q, 1], out_t[q, 2] = -(c * sp - sn * cp), 0.0, -(sn * sp + c * cp)
+        planar_pose_into(out_t[q, 1], out_R[q, 1, 0], out_R[q], out_t[q])
     return out
 
 

@@ -187,6 +187,17 @@ def solve_planar_2p(xq: np.ndarray, xr: np.ndarray, thetas: np.ndarray, phis: np
     return count
 
 
+@njit(cache=True, error_model="numpy", inline="always")
+def planar_pose_into(theta: float, phi: float, R: np.ndarray, t: np.ndarray) -> None:
+    """Write ``ref_from_query`` of the paper's (θ, φ) (eq. 1, ρ = 1) into R (3, 3), t (3,)."""
+    c, s = np.cos(theta), np.sin(theta)
+    sp, cp = np.sin(phi), np.cos(phi)
+    R[0, 0], R[0, 1], R[0, 2] = c, 0.0, -s
+    R[1, 0], R[1, 1], R[1, 2] = 0.0, 1.0, 0.0
+    R[2, 0], R[2, 1], R[2, 2] = s, 0.0, c
+    t[0], t[1], t[2] = -(c * sp - s * cp), 0.0, -(s * sp + c * cp)
+
+
 @njit(cache=True, error_model="numpy")
 def _solve_Rt(xq: np.ndarray, xr: np.ndarray, R: np.ndarray, t: np.ndarray) -> int:
     """:func:`solve_planar_2p` with the poses written as R (2, 3, 3), t (2, 3) (eq. 1)."""
@@ -194,12 +205,7 @@ def _solve_Rt(xq: np.ndarray, xr: np.ndarray, R: np.ndarray, t: np.ndarray) -> i
     phis = np.empty(2)
     n = solve_planar_2p(xq, xr, thetas, phis)
     for i in range(n):
-        c, s = np.cos(thetas[i]), np.sin(thetas[i])
-        sp, cp = np.sin(phis[i]), np.cos(phis[i])
-        R[i, 0, 0], R[i, 0, 1], R[i, 0, 2] = c, 0.0, -s
-        R[i, 1, 0], R[i, 1, 1], R[i, 1, 2] = 0.0, 1.0, 0.0
-        R[i, 2, 0], R[i, 2, 1], R[i, 2, 2] = s, 0.0, c
-        t[i, 0], t[i, 1], t[i, 2] = -(c * sp - s * cp), 0.0, -(s * sp + c * cp)
+        planar_pose_into(thetas[i], phis[i], R[i], t[i])
     return n
 
 
