@@ -1,7 +1,8 @@
 """Estimator adapters for the generic loop: one per hypothesis family.
 
-* :class:`Planar2p1pEstimator` — the paper's 2p1p (Sec. IV-C): 2 matches of pair j, 1 of pair
-  k ≠ j; in ``tracks`` mode the third datum may instead be a 2D-3D constraint.
+* :class:`Planar2p1pEstimator` — the paper's 2p1p (Sec. IV-C): 2 matches of pair j, and the
+  scale from the matches of the other pairs (a 1D consensus over all of them rather than one
+  random match); in ``tracks`` mode the third datum may instead be a 2D-3D constraint.
 * :class:`RelativePairEstimator` — 2p2p (Sec. IV-B) and the baselines 5p5p-Nistér,
   5p5p-Stewénius and 8p8p: a relative pose per pair from a minimal (or 8-point) sample,
   then Rcheck, triangulation, Pdcheck and the consistency check.
@@ -212,7 +213,13 @@ class _ProblemEstimator:
 
 
 class Planar2p1pEstimator(_ProblemEstimator):
-    """The paper's 2p1p (Sec. IV-C) with Pdcheck; optional 2D-3D third datum."""
+    """The paper's 2p1p (Sec. IV-C) with Pdcheck; optional 2D-3D third datum.
+
+    Without 2D-3D constraints (``structure="none"``) and ``consensus_scale`` (default), the
+    scale comes from all matches of the other pairs instead of one random match
+    (:meth:`_generate_consensus`; deviation from the paper, which draws the third match). With
+    2D-3D constraints, or ``consensus_scale=False``, the paper's random third datum is used.
+    """
 
     sample_size = 3
 
