@@ -5,6 +5,10 @@
 (b) Localization time per query, end to end (features + retrieval + matching to 5 map images +
     estimation), per stage from ``PoseEstimate.stats.time_s``; default LocalizerConfig
     (2p1p, structure none) and structure tracks.
+(d) 1080p queries: the same queries upscaled to 1920x1080's pixel count (2.07 MP, aspect kept,
+    camera scaled alike), localized
+    end to end with the default ``FeatureConfig.resize_max`` (detection at 1600 px, keypoints
+    mapped back) and with ``resize_max=None`` (full resolution), against the same map.
 (c) The peer on the same queries and the same 5 map images our retrieval picked: OpenCV SIFT
     (same max features) + ``cv2.BFMatcher`` knnMatch ratio test (0.8) + PoseLib
     ``estimate_generalized_relative_pose`` with its default options. Map-side peer features
@@ -24,6 +28,7 @@ inflated by other jobs and are flagged.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import os
 import sys
 import tempfile
@@ -166,6 +171,37 @@ class PeerPipeline:
                 "end_to_end": t3 - t0}, res
 
 
+def time_1080p(map_path: Path, chosen, maps: Path) -> dict:
+    """End-to-end localization of the chosen queries upscaled to 1920x1080, default
+    ``resize_max`` and full resolution; the first query is a warm-up."""
+    out = {}
+    with MapDatabase.open(map_path) as db:
+        for label, resize in (("resize_max 1600 (default)", FeatureConfig().resize_max), ("full resolution", None)):
+            loc = Localizer(db, LocalizerConfig())
+            loc.features = dataclasses.replace(loc.features, resize_max=resize)
+            feats, ends, cpus, ok = [], [], [], 0
+            for i, q in enumerate(chosen):
+                gray = read_gray(q.path)
+                s = np.sqrt(1920 * 1080 / (gray.shape[0] * gray.shape[1]))  # 1080p pixel count, aspect kept
+                size = (round(gray.shape[1] * s), round(gray.shape[0] * s))
+                sx, sy = size[0] / gray.shape[1], size[1] / gray.shape[0]
+                big = cv2.resize(gray, size, interpolation=cv2.INTER_CUBIC)
+                c0, t0 = time.process_time(), time.perf_counter()
+                est = loc.localize(big, q.camera.scaled(sx, sy))
+                wall, cpu = time.perf_counter() - t0, time.process_time() - c0
+                if i == 0:
+                    continue
+                feats.append(our_stage_times(est)["features"])
+                ends.append(wall)
+                cpus.append(cpu)
+                e = peer.errors_of(est.pose if est.success else None, q.cam_from_world)
+                ok += int(np.isfinite(e[0]) and e[0] < 0.25 and e[1] < 10)
+                progress(f"1080p ({label})", i, len(chosen) - 1)
+            out[label] = {"features": float(np.median(feats)), "end_to_end": float(np.median(ends)),
+                          "end_to_end_cpu": float(np.median(cpus)), "success": ok, "queries": len(ends)}
+    return out
+
+
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     if args.blas_threads is not None:
@@ -277,6 +313,14 @@ def main(argv: list[str] | None = None) -> int:
         report["localize"] = {"queries": [q.name for q in chosen[1:]], "median_seconds": med,
                               "per_query_seconds": times, "errors": errors,
                               "load_average": [load_before, load_after]}
+
+        report["localize_1080p"] = hd = time_1080p(plain, chosen, maps)
+        rows = [[k, f"{1000 * v['features']:.0f}", f"{1000 * v['end_to_end']:.0f}", f"{1000 * v['end_to_end_cpu']:.0f}",
+                 f"{v['success']}/{v['queries']}"] for k, v in hd.items()]
+        print()
+        print(peer.markdown_table(["2.07 MP query", "features [ms]", "end to end [ms]", "end to end, CPU [ms]",
+                                   "within 0.25 m/10°"], rows,
+                                  "(d) 1080p-sized queries (2.07 MP, upscaled, camera scaled), median per query"))
 
         print()
         print("## Targets")

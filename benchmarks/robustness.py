@@ -15,9 +15,14 @@ process (``process_time``; numba and PoseLib are single-threaded) are recorded; 
 shared with other jobs the CPU time is the meaningful one. With ``--jobs 2`` two workers share
 the machine's two cores; ``--jobs 1`` gives the cleanest wall times.
 
+``--protocol hard`` (issue 10): 3 references, 1.5 px noise, 50 and 20 matches per pair, the same
+outlier rates; everything else as above. ``2p1p-oracle`` is 2p1p fed only the true inliers of
+each scene (the limit of outlier rejection for that estimator).
+
 Usage::
 
     python benchmarks/robustness.py                 # 100 trials per cell, as the paper
+    python benchmarks/robustness.py --protocol hard --methods 2p1p 2p2p 2p1p-oracle --trials 50
     python benchmarks/robustness.py --quick         # 20 trials per cell
     python benchmarks/robustness.py --trials 50 --seed 3 --json out.json --jobs 1
 """
@@ -42,14 +47,16 @@ from poselib_peer import estimate_query_pose_poselib  # noqa: E402
 from planarloc.geometry.pose import pose_errors  # noqa: E402
 from planarloc.robust.absolute_pose import estimate_absolute_pose  # noqa: E402
 from planarloc.robust.options import RansacOptions  # noqa: E402
+from planarloc.robust.pair_matches import PairMatches  # noqa: E402
 from planarloc.synthetic.scenes import make_scene  # noqa: E402
 
 METHODS = ("2p1p", "2p2p", "5p5p-nister", "5p5p-stewenius", "8p8p")
+ORACLE = "2p1p-oracle"  # 2p1p on the true inliers only
 PEER = "poselib-gen"
-MATCHES = (100, 50, 20)
 OUTLIERS = (0.0, 0.2, 0.4, 0.5, 0.6)
-NUM_REFS = 5
-NOISE_PX = 1.0
+# name: (references, pixel noise, matches per pair)
+PROTOCOLS = {"paper": (5, 1.0, (100, 50, 20)), "hard": (3, 1.5, (50, 20))}
+NUM_REFS, NOISE_PX, MATCHES = PROTOCOLS["paper"]
 ITERATIONS = 100
 MAX_CENTRE_ERROR_M = 0.1
 MAX_ROTATION_ERROR_DEG = 1.0
@@ -62,20 +69,33 @@ def trial_seeds(seed: int, mi: int, ri: int, trial: int) -> tuple[np.random.Gene
     return np.random.default_rng(ss), int(ss.generate_state(1)[0])
 
 
-def run_trial(task: tuple[int, int, int, int, tuple[str, ...], bool]) -> dict:
+def inlier_pairs(sc) -> list[PairMatches]:
+    """The scene's pairs without their outliers (the oracle's input)."""
+    return [PairMatches(p.ref_pose, p.ref_camera, p.query_points[~o], p.ref_points[~o],
+                        None if p.query_indices is None else p.query_indices[~o])
+            for p, o in zip(sc.pairs, sc.is_outlier)]
+
+
+def run_trial(task: tuple[int, int, int, int, tuple[str, ...], bool, str]) -> dict:
     """One scene, every method and the peer on it. Returns errors, status and time per method."""
-    seed, mi, ri, trial, methods, with_peer = task
+    seed, mi, ri, trial, methods, with_peer, protocol = task
+    num_refs, noise_px, matches = PROTOCOLS[protocol]
     rng, ransac_seed = trial_seeds(seed, mi, ri, trial)
     c0 = time.process_time()
-    sc = make_scene(rng, num_refs=NUM_REFS, matches_per_pair=MATCHES[mi], noise_px=NOISE_PX,
+    sc = make_scene(rng, num_refs=num_refs, matches_per_pair=matches[mi], noise_px=noise_px,
                     outlier_ratio=OUTLIERS[ri])
     out: dict = {"cell": (mi, ri), "scene_cpu_s": time.process_time() - c0, "methods": {}}
+    # The paper's methods as published: no 6DoF cross-check of the planar pose (the library's
+    # default verify_planar=True adds one 5-point search per query; see BENCHMARKS.md, "Trust").
     opts = RansacOptions(max_iterations=ITERATIONS, min_iterations=ITERATIONS, threshold_px=THRESHOLD_PX,
-                         seed=ransac_seed)
+                         seed=ransac_seed, verify_planar=False)
     for method in methods:
         try:
             t, c = time.perf_counter(), time.process_time()
-            est = estimate_absolute_pose(sc.query_camera, sc.pairs, method, opts)
+            if method == ORACLE:
+                est = estimate_absolute_pose(sc.query_camera, inlier_pairs(sc), "2p1p", opts)
+            else:
+                est = estimate_absolute_pose(sc.query_camera, sc.pairs, method, opts)
             dt, dc = time.perf_counter() - t, time.process_time() - c
         except Exception as exc:  # a crash is a failure to report, not a reason to lose the run
             out["methods"][method] = {"ok": False, "status": f"error: {type(exc).__name__}: {exc}",
@@ -108,21 +128,23 @@ def warm_up(methods: tuple[str, ...] = METHODS) -> None:
     sc = make_scene(np.random.default_rng(12345), num_refs=3, matches_per_pair=20, noise_px=1.0,
                     outlier_ratio=0.2)
     for method in methods:
-        estimate_absolute_pose(sc.query_camera, sc.pairs, method,
+        estimate_absolute_pose(sc.query_camera, sc.pairs, "2p1p" if method == ORACLE else method,
                                RansacOptions(max_iterations=20, min_iterations=20))
     estimate_query_pose_poselib(sc.query_camera, sc.pairs, iterations=20)
 
 
-def run(trials: int, seed: int, jobs: int, methods: tuple[str, ...], with_peer: bool) -> list[dict]:
-    tasks = [(seed, mi, ri, k, methods, with_peer)
-             for k in range(trials) for mi in range(len(MATCHES)) for ri in range(len(OUTLIERS))]
+def run(trials: int, seed: int, jobs: int, methods: tuple[str, ...], with_peer: bool,
+        protocol: str = "paper") -> list[dict]:
+    matches = PROTOCOLS[protocol][2]
+    tasks = [(seed, mi, ri, k, methods, with_peer, protocol)
+             for k in range(trials) for mi in range(len(matches)) for ri in range(len(OUTLIERS))]
     return run_trials("robustness", tasks, run_trial, jobs, lambda: warm_up(methods))
 
 
-def summarise(results: list[dict], names: tuple[str, ...]) -> dict:
+def summarise(results: list[dict], names: tuple[str, ...], protocol: str = "paper") -> dict:
     """Per cell and method: success rate, median time, status counts, median errors."""
     cells: dict = {}
-    for mi, m in enumerate(MATCHES):
+    for mi, m in enumerate(PROTOCOLS[protocol][2]):
         for ri, r in enumerate(OUTLIERS):
             rows = [res for res in results if tuple(res["cell"]) == (mi, ri)]
             cell = {"matches_per_pair": m, "outlier_ratio": r, "trials": len(rows),
@@ -147,12 +169,14 @@ def summarise(results: list[dict], names: tuple[str, ...]) -> dict:
     return cells
 
 
-def print_tables(cells: dict, names: tuple[str, ...], trials: int) -> None:
+def print_tables(cells: dict, names: tuple[str, ...], trials: int, protocol: str = "paper") -> None:
+    num_refs, noise_px, matches = PROTOCOLS[protocol]
     w = max(len(n) for n in names) + 2
     head = "".join(f"{int(100 * r):>6d}%" for r in OUTLIERS)
-    print(f"\nSuccess rate (%): {NUM_REFS} refs, {NOISE_PX:g} px noise, {ITERATIONS} fixed iterations, "
-          f"centre < {MAX_CENTRE_ERROR_M} m & R < {MAX_ROTATION_ERROR_DEG} deg, {trials} trials per cell")
-    for m in MATCHES:
+    print(f"\nSuccess rate (%), protocol {protocol!r}: {num_refs} refs, {noise_px:g} px noise, {ITERATIONS} "
+          f"fixed iterations, centre < {MAX_CENTRE_ERROR_M} m & R < {MAX_ROTATION_ERROR_DEG} deg, "
+          f"{trials} trials per cell")
+    for m in matches:
         print(f"\n  matches/pair = {m}\n  {'method':<{w}}{head}")
         for name in names:
             rates = [cells[f"{m}x{r:.1f}"]["methods"][name]["success_rate"] for r in OUTLIERS]
@@ -160,26 +184,26 @@ def print_tables(cells: dict, names: tuple[str, ...], trials: int) -> None:
             print(f"  {name:<{w}}{vals}")
     for key, label in (("median_cpu_s", "CPU"), ("median_time_s", "wall")):
         print(f"\nMedian {label} time per query (ms), by matches/pair (median of the per-cell medians):")
-        print(f"  {'method':<{w}}" + "".join(f"{m:>8d}" for m in MATCHES))
+        print(f"  {'method':<{w}}" + "".join(f"{m:>8d}" for m in matches))
         for name in names:
             vals = [np.median([cells[f"{m}x{r:.1f}"]["methods"][name][key] for r in OUTLIERS])
-                    for m in MATCHES]
+                    for m in matches]
             print(f"  {name:<{w}}" + "".join(f"{1e3 * v:>8.2f}" for v in vals))
-    if PEER in names and "2p1p" in names:
-        print(f"\nTime ratio ours/PoseLib, 2p1p vs {PEER}, {NUM_REFS}x100 matches (median per query):")
+    for m in (matches if PEER in names and "2p1p" in names else ()):
+        print(f"\nTime ratio ours/PoseLib, 2p1p vs {PEER}, {num_refs}x{m} matches (median per query):")
         print(f"  {'outliers':<10}{'CPU ours':>10}{'PoseLib':>10}{'ratio':>7}"
               f"{'wall ours':>11}{'PoseLib':>10}{'ratio':>7}")
         for r in OUTLIERS:
-            c = cells[f"100x{r:.1f}"]["methods"]
+            c = cells[f"{m}x{r:.1f}"]["methods"]
             a, b = c["2p1p"], c[PEER]
             print(f"  {int(100 * r):>3d}%      {1e3 * a['median_cpu_s']:>8.2f}ms"
                   f"{1e3 * b['median_cpu_s']:>8.2f}ms"
                   f"{a['median_cpu_s'] / b['median_cpu_s']:>7.2f}{1e3 * a['median_time_s']:>9.2f}ms"
                   f"{1e3 * b['median_time_s']:>8.2f}ms{a['median_time_s'] / b['median_time_s']:>7.2f}")
         for r in (0.0, 0.6):
-            st = cells[f"100x{r:.1f}"]["methods"]["2p1p"]["median_stage_s"]
+            st = cells[f"{m}x{r:.1f}"]["methods"]["2p1p"]["median_stage_s"]
             if st:
-                print(f"  2p1p stages at 100 matches, {int(100 * r)}% outliers (median wall ms): "
+                print(f"  2p1p stages at {m} matches, {int(100 * r)}% outliers (median wall ms): "
                       + ", ".join(f"{k} {1e3 * v:.2f}" for k, v in st.items()))
     errors = {n: sum(v for s, v in cells[c]["methods"][n]["status"].items() if s.startswith("error"))
               for c in cells for n in names}
@@ -198,7 +222,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--json", type=Path, help="write the per-cell summary to this file")
     ap.add_argument("--jobs", type=int, default=min(2, os.cpu_count() or 1),
                     help="worker processes (default: min(2, cores)); 1 for the cleanest timings")
-    ap.add_argument("--methods", nargs="+", default=list(METHODS), choices=METHODS)
+    ap.add_argument("--methods", nargs="+", default=list(METHODS), choices=METHODS + (ORACLE,),
+                    help=f"methods to run (default: all but {ORACLE})")
+    ap.add_argument("--protocol", choices=tuple(PROTOCOLS), default="paper",
+                    help="paper: 5 refs, 1 px, 100/50/20 matches; hard: 3 refs, 1.5 px, 50/20 matches")
     ap.add_argument("--no-poselib", action="store_true", help="skip the PoseLib peer")
     args = ap.parse_args(argv)
     trials = 20 if args.quick else args.trials
@@ -208,10 +235,10 @@ def main(argv: list[str] | None = None) -> int:
     methods = tuple(args.methods)
     names = methods + (() if args.no_poselib else (PEER,))
     t0 = time.perf_counter()
-    results = run(trials, args.seed, args.jobs, methods, not args.no_poselib)
+    results = run(trials, args.seed, args.jobs, methods, not args.no_poselib, args.protocol)
     wall = time.perf_counter() - t0
-    cells = summarise(results, names)
-    print_tables(cells, names, trials)
+    cells = summarise(results, names, args.protocol)
+    print_tables(cells, names, trials, args.protocol)
     scene_s = sum(r["scene_cpu_s"] for r in results)
     method_s = {n: sum(r["methods"][n]["cpu_s"] for r in results if np.isfinite(r["methods"][n]["cpu_s"]))
                 for n in names}
@@ -222,7 +249,8 @@ def main(argv: list[str] | None = None) -> int:
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps({
-            "protocol": {"num_refs": NUM_REFS, "noise_px": NOISE_PX, "iterations": ITERATIONS,
+            "protocol": {"name": args.protocol, "num_refs": PROTOCOLS[args.protocol][0],
+                         "noise_px": PROTOCOLS[args.protocol][1], "iterations": ITERATIONS,
                          "threshold_px": THRESHOLD_PX, "success": {"centre_m": MAX_CENTRE_ERROR_M,
                                                                    "rotation_deg": MAX_ROTATION_ERROR_DEG},
                          "trials": trials, "seed": args.seed, "jobs": args.jobs},

@@ -34,7 +34,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                     "presets: office (default), corridor (straight: the 2D-2D-only mode must report degenerate "
                     "queries), lifelong (lighting change and moved objects).\n\n"
                     "The generated world is in TUM RGB-D layout, so it also works with\n"
-                    "  planarloc map build DIR/world/map --format tum --out map.db")
+                    "  planarloc map build DIR/world/map --format tum --out map.db\n\n"
+                    "example:\n  planarloc demo --preset corridor --out corridor-demo")
     p.add_argument("--out", "-o", type=Path, default=Path("planarloc-demo"), help="output folder (default: %(default)s)")
     p.add_argument("--preset", default="office", choices=preset_names(), help="world preset (default: %(default)s)")
     p.add_argument("--seed", type=int, default=0, help="world seed (default: %(default)s)")

@@ -8,7 +8,14 @@ import sqlite3
 import sys
 
 from planarloc import __version__
-from planarloc.cli import demo_command, evaluate_command, localize_command, map_command, serve_command
+from planarloc.cli import (
+    demo_command,
+    evaluate_command,
+    localize_command,
+    map_command,
+    serve_command,
+    warmup_command,
+)
 from planarloc.cli.exit_codes import EXIT_ERROR, EXIT_INTERRUPTED
 from planarloc.cli.exit_codes import HELP as EXIT_CODES_HELP
 from planarloc.cli.output_paths import os_error_message, sqlite_error_message
@@ -21,7 +28,7 @@ def build_parser() -> argparse.ArgumentParser:
         formatter_class=argparse.RawDescriptionHelpFormatter,
         description="Localize a ground robot's camera against a map that is only a set of posed images "
                     "(no 3D model), from 2D-2D matches under local planar motion.\n\n"
-                    "start here:\n"
+                    "examples (start here):\n"
                     "  planarloc demo                      map and localize a generated indoor world\n"
                     "  planarloc map build DATA -f kitti --out map.db\n"
                     "  planarloc localize --map map.db query.png --camera 'PINHOLE W H fx fy cx cy'\n"
@@ -31,7 +38,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--version", action="version", version=f"planarloc {__version__}")
     parser.add_argument("--verbose", "-v", action="count", default=0, help="more log output (-vv for debug)")
     sub = parser.add_subparsers(dest="command", required=True)
-    for module in (demo_command, map_command, localize_command, evaluate_command, serve_command):
+    for module in (demo_command, map_command, localize_command, evaluate_command, serve_command, warmup_command):
         module.add_parser(sub)
     return parser
 

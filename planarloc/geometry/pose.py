@@ -43,6 +43,20 @@ class Pose:
 
     # ---- constructors -------------------------------------------------------------------
     @classmethod
+    def _unchecked(cls, R: np.ndarray, t: np.ndarray) -> Pose:
+        """Internal: a pose from a rotation and translation that are valid by construction
+        (solver output, composition or inverse of validated poses), without re-validating
+        them. ~1 µs instead of ~15 µs; public constructors validate."""
+        obj = object.__new__(cls)
+        R = np.array(R, dtype=np.float64)
+        t = np.array(t, dtype=np.float64)
+        R.setflags(write=False)
+        t.setflags(write=False)
+        object.__setattr__(obj, "R", R)
+        object.__setattr__(obj, "t", t)
+        return obj
+
+    @classmethod
     def identity(cls) -> Pose:
         return cls(np.eye(3), np.zeros(3))
 
@@ -103,7 +117,7 @@ class Pose:
 
     def inverse(self) -> Pose:
         """``a_from_b`` for ``self = b_from_a``."""
-        return Pose(self.R.T, -self.R.T @ self.t)
+        return Pose._unchecked(self.R.T, -self.R.T @ self.t)
 
     def transform(self, points: object) -> np.ndarray:
         """Map (N, 3) points of frame ``a`` to frame ``b``."""
@@ -114,7 +128,7 @@ class Pose:
         """``c_from_a = c_from_b @ b_from_a``."""
         if not isinstance(other, Pose):
             return NotImplemented
-        return Pose(self.R @ other.R, self.R @ other.t + self.t)
+        return Pose._unchecked(self.R @ other.R, self.R @ other.t + self.t)
 
     def __repr__(self) -> str:
         q = np.array2string(self.quat_wxyz, precision=6, separator=", ")

@@ -63,6 +63,11 @@ class FeatureConfig:
         tilt: pool features over the vertical tilts ``tilts`` (for MAP images; paper Sec. III-B).
         tilts: tilts ``t >= 1``; default the paper's √2^j, j = 0…5.
         tilt_blur: ASIFT anti-aliasing constant c, σ_y = c·√(t² − 1).
+        resize_max: images whose longer side exceeds this many pixels are downscaled to it
+            (``cv2.INTER_AREA``) before detection, as hloc does (its SIFT default, 1600);
+            keypoints and scales are mapped back to full-resolution pixels. ``None`` keeps
+            the full resolution. Stored with a map so that queries are extracted the same way;
+            a map built before this setting existed reads as ``None`` (it was not resized).
     """
 
     max_features: int = 4000
@@ -74,8 +79,13 @@ class FeatureConfig:
     tilt: bool = False
     tilts: tuple[float, ...] = _tilt.DEFAULT_TILTS
     tilt_blur: float = _tilt.ASIFT_BLUR
+    resize_max: int | None = 1600
 
     def __post_init__(self) -> None:
+        if self.resize_max is not None:
+            if isinstance(self.resize_max, bool) or int(self.resize_max) < 16:
+                raise InputError(f"FeatureConfig.resize_max: expected None or an integer >= 16, got {self.resize_max}")
+            object.__setattr__(self, "resize_max", int(self.resize_max))
         if int(self.max_features) < 1:
             raise InputError(f"FeatureConfig.max_features: expected >= 1, got {self.max_features}")
         if not self.contrast_threshold > 0:
@@ -115,6 +125,8 @@ class FeatureConfig:
                 parts.append("tilt" + "_".join(f"{t:.3g}" for t in self.tilts))
             if self.tilt_blur != _tilt.ASIFT_BLUR:
                 parts.append(f"tb{self.tilt_blur:g}")
+        if self.resize_max != default["resize_max"].default:
+            parts.append("full" if self.resize_max is None else f"r{self.resize_max}")
         return "-".join(parts)
 
 
@@ -221,7 +233,8 @@ def extract_features(image: np.ndarray, config: FeatureConfig = DEFAULT_FEATURE_
             (intended for map images, see :mod:`planarloc.pipeline.tilt`).
 
     Returns:
-        :class:`Features` with keypoints (N, 2) in original-image pixels (OpenCV convention;
+        :class:`Features` with keypoints (N, 2) in original-image pixels (also when
+        ``config.resize_max`` downscaled the image for detection; OpenCV convention;
         OpenCV's precise upscale is enabled, so keypoints carry no 0.25 px bias),
         descriptors (N, 128) float32 with unit L2 norm, and scales (N,) = SIFT keypoint size in
         pixels (of the tilted image for tilted features, i.e. their horizontal extent).
@@ -237,6 +250,12 @@ def extract_features(image: np.ndarray, config: FeatureConfig = DEFAULT_FEATURE_
         (128, True)
     """
     gray = _to_gray(image)
+    full_shape = gray.shape
+    resized = config.resize_max is not None and max(gray.shape) > config.resize_max
+    if resized:
+        s = config.resize_max / max(gray.shape)
+        size = (max(1, round(gray.shape[1] * s)), max(1, round(gray.shape[0] * s)))
+        gray = cv2.resize(gray, size, interpolation=cv2.INTER_AREA)
     if config.tilt:
         pts, desc, sizes, _ = _tilt.tilted_extraction(
             gray,
@@ -248,7 +267,13 @@ def extract_features(image: np.ndarray, config: FeatureConfig = DEFAULT_FEATURE_
     else:
         pts, desc, sizes = _detect_sift(gray, config, config.max_features)
     desc = rootsift(desc) if config.rootsift else _l2_normalize(desc)
+    if resized:
+        # Pixel centres at integer coordinates (OpenCV): x_small + 0.5 = s (x_full + 0.5).
+        sx, sy = gray.shape[1] / full_shape[1], gray.shape[0] / full_shape[0]
+        pts = np.column_stack([(pts[:, 0] + 0.5) / sx - 0.5, (pts[:, 1] + 0.5) / sy - 0.5]).astype(np.float32)
+        sizes = (sizes / (0.5 * (sx + sy))).astype(np.float32)
     logger.debug(
-        "extracted %d features (%s) on a %dx%d image", len(pts), config.name, gray.shape[1], gray.shape[0]
+        "extracted %d features (%s) on a %dx%d image (of %dx%d)", len(pts), config.name, gray.shape[1],
+        gray.shape[0], full_shape[1], full_shape[0]
     )
     return Features(keypoints=pts, descriptors=desc, scales=sizes)

@@ -59,6 +59,7 @@ def read_gray(path: Path) -> np.ndarray:
 def feature_config_from_map(db: MapDatabase) -> FeatureConfig:
     """The FeatureConfig a map was built with (queries are extracted the same way, minus tilt)."""
     cfg = dict(db.config.get("features", {}))
+    cfg.setdefault("resize_max", None)  # maps from before resize_max were extracted at full resolution
     if "tilts" in cfg:
         cfg["tilts"] = tuple(cfg["tilts"])
     return FeatureConfig(**cfg)

@@ -26,7 +26,9 @@ class Estimator(Protocol):
     count), ``num_data`` the number of scored data. ``generate`` draws ``n`` minimal samples
     and returns the hypotheses that passed the solver's checks; ``score`` returns MSAC costs (above ``bound``
     possibly partial lower bounds)
-    and inlier counts; ``refine`` improves one model on its inliers (local optimisation).
+    and inlier counts; ``refine`` improves one model on its inliers (local optimisation);
+    ``distinct`` says whether two models are different solutions (not the same one found
+    twice), which picks the near-ties that local optimisation also refines.
     """
 
     sample_size: int
@@ -37,6 +39,8 @@ class Estimator(Protocol):
     def score(self, R: np.ndarray, t: np.ndarray, bound: float = ...) -> tuple[np.ndarray, np.ndarray]: ...
 
     def refine(self, R: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]: ...
+
+    def distinct(self, Ra: np.ndarray, ta: np.ndarray, Rb: np.ndarray, tb: np.ndarray) -> bool: ...
 
 
 @dataclass
@@ -66,9 +70,7 @@ def _lo_candidates(estimator: Estimator, R: np.ndarray, t: np.ndarray, cost: np.
     """The batch's best hypothesis and up to ``LO_CANDIDATES - 1`` near-ties (cost within
     ``LO_NEAR_TIE``) that the estimator calls distinct models (``estimator.distinct``)."""
     chosen = [k]
-    distinct = getattr(estimator, "distinct", None)
-    if distinct is None:
-        return chosen
+    distinct = estimator.distinct
     for i in np.argsort(cost)[1:]:
         if len(chosen) == LO_CANDIDATES or cost[i] > LO_NEAR_TIE * cost[k]:
             break
@@ -78,7 +80,7 @@ def _lo_candidates(estimator: Estimator, R: np.ndarray, t: np.ndarray, cost: np.
 
 
 def ransac(estimator: Estimator, options: RansacOptions, rng: np.random.Generator,
-           stats: RansacStatistics | None = None, batch_size: int = 50) -> RansacOutput:
+           stats: RansacStatistics | None = None, batch_size: int = 50, first_batch: int = 10**9) -> RansacOutput:
     """Run MSAC with adaptive termination between ``min_iterations`` and ``max_iterations``.
 
     Local optimisation (``estimator.refine``) runs whenever a batch produces a new best model,
@@ -92,7 +94,7 @@ def ransac(estimator: Estimator, options: RansacOptions, rng: np.random.Generato
     best_cost, best_inl = math.inf, 0
     needed = float(options.max_iterations)
     while stats.iterations < options.max_iterations:
-        todo = options.min_iterations - stats.iterations if stats.iterations < options.min_iterations else batch_size
+        todo = min(options.min_iterations - stats.iterations, first_batch) if stats.iterations < options.min_iterations else batch_size
         n = int(min(max(todo, 1), options.max_iterations - stats.iterations))
         t0 = time.perf_counter()
         R, t = estimator.generate(rng, n, stats)

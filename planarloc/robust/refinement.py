@@ -18,7 +18,8 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from planarloc.robust.scoring import _relative_essential
+from planarloc.geometry import mat3 as m3
+from planarloc.robust.scoring import _relative_essential, errors_sq
 
 
 @njit(cache=True, error_model="numpy")
@@ -28,7 +29,7 @@ def _exp_so3(w: np.ndarray) -> np.ndarray:
     K[0, 1], K[0, 2], K[1, 0], K[1, 2], K[2, 0], K[2, 1] = -w[2], w[1], w[2], -w[0], -w[1], w[0]
     if th < 1e-12:
         return np.eye(3) + K
-    return np.eye(3) + np.sin(th) / th * K + (1.0 - np.cos(th)) / (th * th) * (K @ K)
+    return np.eye(3) + np.sin(th) / th * K + (1.0 - np.cos(th)) / (th * th) * m3.mul(K, K)
 
 
 @njit(cache=True, error_model="numpy")
@@ -41,9 +42,9 @@ def _residuals(
 
     Scalar code without array views in the loops: this runs ~10⁵ times per query.
     """
-    Rq = _exp_so3(params[:3]) @ R0
-    c = c0 + B @ params[3:]
-    tq = -(Rq @ c)
+    Rq = m3.mul(_exp_so3(params[:3]), R0)
+    c = c0 + m3.vec(B, params[3:])
+    tq = -m3.vec(Rq, c)
     P = ref_R.shape[0]
     Es = np.empty((P, 3, 3))
     for p in range(P):
@@ -94,14 +95,15 @@ def _residuals_jacobian(
     Rpq = np.empty((P, 3, 3))
     V = np.empty((P, 3, 3))  # V[p, k] = R_p b_k
     for p in range(P):
-        Rpq[p] = ref_R[p] @ R.T
-        t = ref_t[p] + ref_R[p] @ c
+        Rpq[p] = m3.mul_t(ref_R[p], R)
+        t = ref_t[p] + m3.vec(ref_R[p], c)
         for j in range(3):
             E[p, 0, j] = -t[2] * Rpq[p, 1, j] + t[1] * Rpq[p, 2, j]
             E[p, 1, j] = t[2] * Rpq[p, 0, j] - t[0] * Rpq[p, 2, j]
             E[p, 2, j] = -t[1] * Rpq[p, 0, j] + t[0] * Rpq[p, 1, j]
         for k in range(3):
-            V[p, k] = ref_R[p] @ np.ascontiguousarray(B[:, k])
+            for j in range(3):
+                V[p, k, j] = ref_R[p, j, 0] * B[0, k] + ref_R[p, j, 1] * B[1, k] + ref_R[p, j, 2] * B[2, k]
     fq0, fq1 = f_query[0], f_query[1]
     iq0, iq1 = 1.0 / (fq0 * fq0), 1.0 / (fq1 * fq1)
     for n in range(idx2d.shape[0]):
@@ -157,7 +159,7 @@ def _residuals_jacobian(
             dden = 2.0 * (Ex0 * dx0 * ir0 + Ex1 * dx1 * ir1 + Et0 * d0 * iq0 + Et1 * d1 * iq1)
             J[n, 3 + k] = dres / sq - 0.5 * res * dden / (den * sq)
     m0 = idx2d.shape[0]
-    RB = R @ B
+    RB = m3.mul(R, B)
     for n in range(idx3d.shape[0]):
         i = idx3d[n]
         D0, D1, D2 = X3d[i, 0] - c[0], X3d[i, 1] - c[1], X3d[i, 2] - c[2]
@@ -285,13 +287,13 @@ def refine_pose(
             if not _solve_spd(A, -g, step):
                 lam *= 10.0
                 continue
-            R_new = _exp_so3(step[:3]) @ R
-            c_new = c + B @ step[3:]
+            R_new = m3.mul(_exp_so3(step[:3]), R)
+            c_new = c + m3.vec(B, step[3:])
             _residuals(zero, R_new, c_new, B, xq, xr, pair, idx2d, f_query, f_ref, ref_R, ref_t, xq3d, X3d, idx3d, rp)
             new_cost = 0.5 * s2 * np.sum(np.log1p(rp * rp / s2))
             if new_cost <= cost:
                 R, c = R_new, c_new
-                improved = cost - new_cost > 1e-8 * cost
+                improved = cost - new_cost > 1e-6 * cost
                 cost = new_cost
                 lam = max(lam * 0.1, 1e-9)
                 break
@@ -303,8 +305,39 @@ def refine_pose(
     # The normal matrix JᵀWJ at the solution; the covariance σ̂² (JᵀWJ)⁻¹ is formed by the caller.
     dof = max(m - 6, 1)
     sigma2 = max(wr2 / dof, sigma_floor * sigma_floor)
-    t = -(R @ c)
+    t = -m3.vec(R, c)
     return R, t, H.copy(), np.sqrt(sigma2), cost
+
+
+@njit(cache=True, error_model="numpy")
+def refine_on_inliers(
+    Rq: np.ndarray, tq: np.ndarray, xq: np.ndarray, xr: np.ndarray, pair: np.ndarray, offsets: np.ndarray,
+    f_query: np.ndarray, f_ref: np.ndarray, ref_R: np.ndarray, ref_t: np.ndarray,
+    xq3d: np.ndarray, X3d: np.ndarray, inlier_threshold_sq: float, loss_scale: float, max_iterations: int,
+    sigma_floor: float,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, float, float, np.ndarray, np.ndarray]:
+    """:func:`refine_pose` on the inliers of the initial pose, in one call.
+
+    The inliers are the 2D-2D matches (Sampson) and 2D-3D constraints (reprojection) whose
+    squared pixel error at ``(Rq, tq)`` is below ``inlier_threshold_sq``; with fewer than 6
+    of them the pose is returned unchanged (cost inf).
+
+    Returns:
+        R, t, the normal matrix H, σ̂, cost (as :func:`refine_pose`), and the inlier masks
+        (N,), (M,) bool at the initial pose.
+    """
+    e2d, e3d = errors_sq(Rq, tq, xq, xr, offsets, f_query, f_ref, ref_R, ref_t, xq3d, X3d)
+    in2d = e2d < inlier_threshold_sq
+    in3d = e3d < inlier_threshold_sq
+    idx2d = np.flatnonzero(in2d)
+    idx3d = np.flatnonzero(in3d)
+    if idx2d.shape[0] + idx3d.shape[0] < 6:
+        return Rq.copy(), tq.copy(), np.zeros((6, 6)), np.inf, np.inf, in2d, in3d
+    c0 = -m3.t_vec(Rq, tq)
+    R, t, H, sigma, cost = refine_pose(Rq, tq, xq, xr, pair, idx2d, f_query, f_ref, ref_R, ref_t, xq3d, X3d,
+                                       idx3d, loss_scale, max_iterations, sigma_floor, c0, np.eye(3),
+                                       np.zeros(6, dtype=np.bool_))
+    return R, t, H, sigma, cost, in2d, in3d
 
 
 @njit(cache=True, error_model="numpy")
@@ -389,10 +422,12 @@ def centre_covariance(H: np.ndarray, sigma: float, B: np.ndarray = np.eye(3)) ->
 
     Inf-filled when H is singular relative to its scale (an unobservable direction).
     """
-    ev = np.linalg.eigvalsh(H)
+    ev, V = np.linalg.eigh(H)
     if not (ev[0] > 1e-12 * ev[-1] and ev[0] > 0):
         return np.full((3, 3), np.inf)
-    return sigma * sigma * (B @ np.linalg.inv(H)[3:, 3:] @ B.T)
+    Vc = V[3:]  # (H⁻¹)[3:, 3:] = V[3:] diag(1/ev) V[3:]ᵀ
+    cov = (Vc / ev) @ Vc.T
+    return sigma * sigma * (B @ cov @ B.T)
 
 
 def map_covariance_from_parts(H: np.ndarray, M: np.ndarray, var: np.ndarray) -> np.ndarray:

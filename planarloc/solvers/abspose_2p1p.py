@@ -130,7 +130,7 @@ def abspose_2p1p(
     rho = scale_2p1p(a, j2_from_j.t, y, x2)
     if not np.isfinite(rho):
         return []
-    query_from_j = Pose(ref_from_query.R.T, -ref_from_query.R.T @ (rho * t))
+    query_from_j = Pose._unchecked(ref_from_query.R.T, -ref_from_query.R.T @ (rho * t))
     pose = query_from_j @ ref_cam_from_world
     j2_from_q = ref2_cam_from_world @ pose.inverse()
     depths = triangulation_depths(j2_from_q.R, j2_from_q.t, xq[None], x2[None])[0]

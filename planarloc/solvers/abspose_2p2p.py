@@ -99,6 +99,6 @@ def abspose_2p2p(
     rcheck = rotation_error_deg(j_from_j2.R, R @ R2.T)
     t2_in_1 = R @ R2.T @ t2
     rho, rho2, reg = triangulate_scales(t1, t2_in_1, j_from_j2.t)
-    query_from_j = Pose(R.T, -R.T @ (rho * t1))
+    query_from_j = Pose._unchecked(R.T, -R.T @ (rho * t1))
     sin_par = float(np.linalg.norm(np.cross(t1, t2_in_1)))
     return AbsPose2p2p(query_from_j @ ref_cam_from_world, float(rho), float(rho2), rcheck, bool(reg), sin_par)

@@ -94,4 +94,4 @@ def abspose_up2p(x_query: object, points: object) -> list[Pose]:
     th = np.empty(2)
     ts = np.empty((2, 3))
     n = solve_up2p(x, X, th, ts)
-    return [Pose(rotation_from_yaw(th[i]), ts[i]) for i in range(n)]
+    return [Pose._unchecked(rotation_from_yaw(th[i]), ts[i]) for i in range(n)]

@@ -226,6 +226,10 @@ def essential_8p(x_query: object, x_ref: object) -> list[np.ndarray]:
         Hartley, TPAMI 1997; Hartley & Zisserman Alg. 11.1 and Sec. 9.6.1.
     """
     xq, xr = check_correspondences(x_query, x_ref, min_rows=8)
+    return _essential_8p_unchecked(xq, xr)
+
+
+def _essential_8p_unchecked(xq: np.ndarray, xr: np.ndarray) -> list[np.ndarray]:
     N = xq.shape[0]
     nq, nr = np.empty((N, 3)), np.empty((N, 3))
     Tq, Tr = np.empty((3, 3)), np.empty((3, 3))
@@ -269,7 +273,11 @@ def relpose_8p(x_query: object, x_ref: object) -> list[Pose]:
         Hartley, TPAMI 1997; Hartley & Zisserman Alg. 11.1, Sec. 9.6.
     """
     xq, xr = check_correspondences(x_query, x_ref, min_rows=8)
-    Es = essential_8p(xq, xr)
+    if xq.shape[0] == 8:  # minimal: the batch kernel (QR null vector), one compiled call
+        R, t, valid = np.empty((1, 1, 3, 3)), np.empty((1, 1, 3)), np.zeros((1, 1), dtype=np.bool_)
+        _batch_8p(xq[None], xr[None], R, t, valid)
+        return [Pose._unchecked(R[0, 0], t[0, 0])] if valid[0, 0] else []
+    Es = _essential_8p_unchecked(xq, xr)
     return relposes_closed_form(np.array(Es).reshape(-1, 3, 3), xq, xr)
 
 

@@ -28,8 +28,7 @@ import numpy as np
 from numba import njit, prange
 
 from planarloc.geometry.pose import Pose
-from planarloc.geometry.planar import relpose_from_planar_params
-from planarloc.geometry.validation import InputError, check_array
+from planarloc.geometry.validation import InputError, check_array, check_array_fast
 
 _EPS_RANK = 1e-9
 _EPS_FORM = 1e-12
@@ -188,6 +187,28 @@ def solve_planar_2p(xq: np.ndarray, xr: np.ndarray, thetas: np.ndarray, phis: np
     return count
 
 
+@njit(cache=True, error_model="numpy", inline="always")
+def planar_pose_into(theta: float, phi: float, R: np.ndarray, t: np.ndarray) -> None:
+    """Write ``ref_from_query`` of the paper's (θ, φ) (eq. 1, ρ = 1) into R (3, 3), t (3,)."""
+    c, s = np.cos(theta), np.sin(theta)
+    sp, cp = np.sin(phi), np.cos(phi)
+    R[0, 0], R[0, 1], R[0, 2] = c, 0.0, -s
+    R[1, 0], R[1, 1], R[1, 2] = 0.0, 1.0, 0.0
+    R[2, 0], R[2, 1], R[2, 2] = s, 0.0, c
+    t[0], t[1], t[2] = -(c * sp - s * cp), 0.0, -(s * sp + c * cp)
+
+
+@njit(cache=True, error_model="numpy")
+def _solve_Rt(xq: np.ndarray, xr: np.ndarray, R: np.ndarray, t: np.ndarray) -> int:
+    """:func:`solve_planar_2p` with the poses written as R (2, 3, 3), t (2, 3) (eq. 1)."""
+    thetas = np.empty(2)
+    phis = np.empty(2)
+    n = solve_planar_2p(xq, xr, thetas, phis)
+    for i in range(n):
+        planar_pose_into(thetas[i], phis[i], R[i], t[i])
+    return n
+
+
 @njit(cache=True, error_model="numpy")
 def _solve_batch(xq: np.ndarray, xr: np.ndarray, thetas: np.ndarray, phis: np.ndarray, counts: np.ndarray) -> None:
     for i in range(xq.shape[0]):
@@ -206,6 +227,8 @@ _PARALLEL_MIN_BATCH = 4096  # below this, thread start-up costs more than it sav
 
 
 def _check_points(name: str, x: object, shape: tuple) -> np.ndarray:
+    if type(x) is np.ndarray and x.shape[-1:] == (3,):
+        return check_array_fast(name, x, shape)
     arr = check_array(name, x)
     if arr.ndim == len(shape) and arr.shape[-1] == 2 and all(
         s is None or s == a for s, a in zip(shape[:-1], arr.shape[:-1])
@@ -244,13 +267,14 @@ def relpose_planar_2p(x_query: object, x_ref: object) -> list[Pose]:
     """
     xq = _check_points("x_query", x_query, (2, 3))
     xr = _check_points("x_ref", x_ref, (2, 3))
-    thetas, phis = np.empty(2), np.empty(2)
-    n = solve_planar_2p(xq, xr, thetas, phis)
-    return [relpose_from_planar_params(thetas[i], phis[i], 1.0) for i in range(n)]
+    R, t = np.empty((2, 3, 3)), np.empty((2, 3))
+    n = _solve_Rt(xq, xr, R, t)
+    return [Pose._unchecked(R[i], t[i]) for i in range(n)]
 
 
 def relpose_planar_2p_batch(x_query: object, x_ref: object) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Batched :func:`relpose_planar_2p` for M samples, in the paper's (θ, φ) parameters.
+    """Batched :func:`relpose_planar_2p` for M samples, with the contract of the other batched
+    solvers.
 
     Args:
         x_query, x_ref: (M, 2, 3) rays of M two-match samples.
@@ -258,17 +282,31 @@ def relpose_planar_2p_batch(x_query: object, x_ref: object) -> tuple[np.ndarray,
     Large batches run on all cores (numba ``prange``).
 
     Returns:
-        theta (M, 2), phi (M, 2) and valid (M, 2) bool. Solution ``k`` of sample ``i`` is
-        ``relpose_from_planar_params(theta[i, k], phi[i, k])`` where ``valid[i, k]``.
+        R (M, 2, 3, 3), t (M, 2, 3) of ``ref_from_query`` (unit ``t``) and valid (M, 2) bool;
+        valid solutions come first, invalid slots are NaN. Solution ``k`` of sample ``i`` is
+        ``relpose_from_planar_params(θ, φ)`` of the paper's parameters.
     """
     xq = _check_points("x_query", x_query, (None, 2, 3))
     xr = _check_points("x_ref", x_ref, (None, 2, 3))
     if xq.shape[0] != xr.shape[0]:
         raise InputError(f"x_query and x_ref: different numbers of samples ({xq.shape[0]} vs {xr.shape[0]})")
+    return planar_2p_batch_unchecked(xq, xr)
+
+
+def planar_2p_batch_unchecked(xq: np.ndarray, xr: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`relpose_planar_2p_batch` on contiguous float64 (M, 2, 3) arrays, unchecked (the
+    RANSAC estimators' entry point)."""
     m = xq.shape[0]
     thetas = np.zeros((m, 2))
     phis = np.zeros((m, 2))
     counts = np.zeros(m, dtype=np.int64)
     (_solve_batch_parallel if m >= _PARALLEL_MIN_BATCH else _solve_batch)(xq, xr, thetas, phis, counts)
     valid = np.arange(2)[None, :] < counts[:, None]
-    return thetas, phis, valid
+    c, s = np.cos(thetas), np.sin(thetas)
+    R = np.zeros((m, 2, 3, 3))
+    R[..., 0, 0], R[..., 0, 2], R[..., 1, 1], R[..., 2, 0], R[..., 2, 2] = c, -s, 1.0, s, c
+    d = np.stack([np.sin(phis), np.zeros_like(phis), np.cos(phis)], axis=-1)
+    t = -np.einsum("smij,smj->smi", R, d)
+    R[~valid] = np.nan
+    t[~valid] = np.nan
+    return R, t, valid

@@ -14,15 +14,16 @@ def run(argv: list[str]) -> int:
     return main([str(a) for a in argv])
 
 
-@pytest.mark.parametrize("argv", [[], ["map"], ["map", "build"], ["localize"], ["evaluate"], ["demo"]])
+@pytest.mark.parametrize("argv", [[], ["map"], ["map", "build"], ["map", "info"], ["localize"], ["evaluate"],
+                                  ["demo"], ["warmup"]])
 def test_help_teaches(argv: list[str], capsys: pytest.CaptureFixture[str]) -> None:
     with pytest.raises(SystemExit) as exc:
         build_parser().parse_args([*argv, "--help"])
     assert exc.value.code == 0
     out = capsys.readouterr().out
     assert "usage: planarloc" in out
-    if argv:
-        assert "example" in out or "demo" in argv or argv == ["map"]
+    # Every help page, the top-level one included, shows a command to copy.
+    assert "example" in out and "planarloc " + " ".join(argv) in out
 
 
 def test_map_build_localize_evaluate(tiny_world: Path, tmp_path: Path) -> None:

@@ -132,3 +132,48 @@ def test_config_defaults_and_validation():
     for kwargs in ({"max_features": 0}, {"contrast_threshold": 0.0}, {"tilts": (1.0, 0.7)}, {"sigma": -1.0}):
         with pytest.raises(InputError):
             FeatureConfig(**kwargs)
+
+
+def test_resize_max_maps_keypoints_back_to_full_resolution() -> None:
+    """A 1920x1080 image detected at 960 px: keypoints land where the same structures are in
+    full resolution (2x the half-size detections), descriptors stay unit length."""
+    from planarloc.pipeline.features import FeatureConfig, extract_features
+
+    rng = np.random.default_rng(3)
+    small = cv2.GaussianBlur((rng.random((540, 960)) * 255).astype(np.uint8), (0, 0), 2.0)
+    big = cv2.resize(small, (1920, 1080), interpolation=cv2.INTER_LINEAR)
+    f_half = extract_features(small, FeatureConfig(max_features=300, resize_max=None))
+    f_big = extract_features(big, FeatureConfig(max_features=300, resize_max=960))
+    assert len(f_big.keypoints) > 100
+    assert f_big.keypoints[:, 0].max() > 1000 and f_big.keypoints[:, 1].max() > 600  # full-resolution pixels
+    expected = (f_half.keypoints + 0.5) * 2.0 - 0.5
+    d = np.linalg.norm(f_big.keypoints[:, None] - expected[None], axis=2).min(axis=1)
+    assert np.median(d) < 1.5  # same structures (the downscale is not bit-identical to `small`)
+    np.testing.assert_allclose(np.linalg.norm(f_big.descriptors, axis=1), 1.0, atol=1e-5)
+    # A small image is not resized: identical to resize_max=None.
+    a = extract_features(small, FeatureConfig(max_features=300, resize_max=1600))
+    np.testing.assert_array_equal(a.keypoints, f_half.keypoints)
+
+
+def test_resize_max_in_name_and_validation() -> None:
+    from planarloc.geometry.validation import InputError
+    from planarloc.pipeline.features import FeatureConfig
+
+    assert FeatureConfig().name == "rootsift-n4000"
+    assert FeatureConfig(resize_max=None).name.endswith("-full")
+    assert FeatureConfig(resize_max=1024).name.endswith("-r1024")
+    with pytest.raises(InputError, match="resize_max"):
+        FeatureConfig(resize_max=0)
+
+
+def test_map_without_resize_max_reads_as_full_resolution() -> None:
+    """Maps built before resize_max existed were extracted at full resolution; their queries must be too."""
+    import types
+
+    from planarloc.pipeline.features import FeatureConfig
+    from planarloc.pipeline.map_builder import _map_config, feature_config_from_map
+
+    old = types.SimpleNamespace(config={"features": {"max_features": 2000, "tilt": False}})
+    assert feature_config_from_map(old).resize_max is None
+    new = types.SimpleNamespace(config=_map_config(FeatureConfig(resize_max=1024), 64))
+    assert feature_config_from_map(new).resize_max == 1024

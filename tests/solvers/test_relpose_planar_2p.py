@@ -48,13 +48,6 @@ def pose_error(a: Pose, R: np.ndarray, t: np.ndarray) -> float:
 # ---- ground truth -----------------------------------------------------------------------------
 
 
-def batch_poses(th: np.ndarray, ph: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(M, 2) parameters -> R (M, 2, 3, 3), t (M, 2, 3) by eq. (1)."""
-    Rs = rotation_from_yaw(th)
-    ts = -np.einsum("mkij,mkj->mki", Rs, np.stack([np.sin(ph), np.zeros_like(ph), np.cos(ph)], -1))
-    return Rs, ts
-
-
 def midpoint_depths(R: np.ndarray, t: np.ndarray, xq: np.ndarray, xr: np.ndarray) -> np.ndarray:
     """Depths (..., n, 2) with λ_r x_r ≈ λ_q R x_q + t, independent of the library (least squares)."""
     a = np.einsum("...ij,...nj->...ni", R, xq)  # query rays in the reference frame
@@ -75,12 +68,12 @@ def test_noise_free_exact_recovery_on_random_planar_scenes(seed: int) -> None:
     rng = np.random.default_rng(seed)
     theta, phi, R, t, xq, xr, _ = planar_scenes(rng, 12000)
     assert len(theta) > 10000
-    th, ph, valid = relpose_planar_2p_batch(xq, xr)
+    Rs, ts, valid = relpose_planar_2p_batch(xq, xr)
     # A sample is declared degenerate (no solution) when a candidate has exactly parallel rays
     # for one match (a point at infinity for that candidate: cheirality cannot decide); that is
     # a measure-zero coincidence for random scenes.
     assert (~valid[:, 0]).mean() < 1e-3
-    Rs, ts = batch_poses(th, ph)
+    assert np.isnan(Rs[~valid]).all() and np.isnan(ts[~valid]).all()
     err = np.maximum(np.linalg.norm(Rs - R[:, None], axis=(2, 3)), np.linalg.norm(ts - t[:, None], axis=2))
     assert np.where(valid, err, np.inf).min(axis=1)[valid[:, 0]].max() < EXACT
     depths = midpoint_depths(Rs, ts, xq[:, None], xr[:, None])  # (M, 2 solutions, 2 points, 2)
@@ -108,17 +101,16 @@ def test_single_call_exact_recovery_and_cheirality(seed: int) -> None:
 def test_batch_agrees_with_single(seed: int) -> None:
     rng = np.random.default_rng(100 + seed)
     theta, phi, R, t, xq, xr, _ = planar_scenes(rng, 1000)
-    th, ph, valid = relpose_planar_2p_batch(xq, xr)
-    assert th.shape == ph.shape == valid.shape == (len(theta), 2)
+    Rs, ts, valid = relpose_planar_2p_batch(xq, xr)
+    assert valid.shape == (len(theta), 2) and Rs.shape == (len(theta), 2, 3, 3) and ts.shape == (len(theta), 2, 3)
     assert not np.any(valid[:, 1] & ~valid[:, 0])  # valid solutions are packed first
     # Identical to the single-call API on a subset.
     for i in rng.choice(len(theta), 300, replace=False):
         single = relpose_planar_2p(xq[i], xr[i])
         assert len(single) == valid[i].sum()
         for k, p in enumerate(single):
-            q = relpose_from_planar_params(th[i, k], ph[i, k])
-            np.testing.assert_allclose(p.R, q.R, atol=1e-14)
-            np.testing.assert_allclose(p.t, q.t, atol=1e-14)
+            np.testing.assert_allclose(p.R, Rs[i, k], atol=1e-14)
+            np.testing.assert_allclose(p.t, ts[i, k], atol=1e-14)
 
 
 def test_accepts_2d_normalized_points_and_bearings() -> None:
@@ -143,8 +135,7 @@ def test_small_noise_gives_near_exact_poses(seed: int) -> None:
     xr_n = xr.copy()
     xq_n[..., :2] += rng.normal(0, sigma, xq[..., :2].shape)
     xr_n[..., :2] += rng.normal(0, sigma, xr[..., :2].shape)
-    th, ph, valid = relpose_planar_2p_batch(xq_n, xr_n)
-    Rs, ts = batch_poses(th, ph)
+    Rs, ts, valid = relpose_planar_2p_batch(xq_n, xr_n)
     err = np.maximum(np.linalg.norm(Rs - R[:, None], axis=(2, 3)), np.linalg.norm(ts - t[:, None], axis=2))
     best = np.where(valid, err, np.inf).min(axis=1)
     # Two-point samples can be ill-conditioned (e.g. both points near the horizon row), so the

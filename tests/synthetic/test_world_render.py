@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import time
-
 import cv2
 import numpy as np
 import pytest
@@ -196,17 +194,3 @@ def test_office_frames_have_many_sift_features_and_geometrically_correct_matches
     assert angle < 2.0, f"relative rotation off by {angle:.2f} degrees"
     cos_t = float(t_est.ravel() @ t_qm / np.linalg.norm(t_qm))
     assert cos_t > 0.9, f"translation direction off (cos {cos_t:.3f})"
-
-
-def test_render_time_640x480(office):
-    m, _ = office
-    render(m.world, m.K, m.R[0], m.t[0], m.width, m.height)  # build mip pyramids
-    times = []
-    for i in range(0, len(m), 4):
-        start = time.perf_counter()
-        render(m.world, m.K, m.R[i], m.t[i], m.width, m.height)
-        times.append(time.perf_counter() - start)
-    print(
-        f"\nrender 640x480 office: median {1000 * np.median(times):.1f} ms, "
-        f"max {1000 * max(times):.1f} ms over {len(times)} frames"
-    )
