@@ -105,9 +105,9 @@ class _RelativeEstimator:
         self.num_data = len(xa)
         self.threshold_sq = threshold_px**2
         if model == "planar":
-            from planarloc.robust.estimators import _planar_2p_batch_Rt
+            from planarloc.solvers.relpose_planar_2p import planar_2p_batch_unchecked
 
-            self.sample_size, self.solver = 2, _planar_2p_batch_Rt
+            self.sample_size, self.solver = 2, planar_2p_batch_unchecked
         else:
             from planarloc.solvers.relpose_5p_nister import relpose_5p_nister_batch
 
@@ -119,6 +119,13 @@ class _RelativeEstimator:
         R, t, valid = self.solver(self.xa[samples], self.xb[samples])   # b_from_a ("ref_from_query")
         stats.hypotheses += int(valid.sum())
         return np.asarray(R)[valid], np.asarray(t)[valid]
+
+    def distinct(self, Ra: np.ndarray, ta: np.ndarray, Rb: np.ndarray, tb: np.ndarray) -> bool:
+        """Different relative poses: rotations more than 1° or translation directions more than 2° apart."""
+        cos_r = (np.trace(Ra @ Rb.T) - 1.0) / 2.0
+        na, nb = np.linalg.norm(ta), np.linalg.norm(tb)
+        cos_t = float(ta @ tb) / (na * nb) if na > 0 and nb > 0 else 1.0
+        return bool(cos_r < np.cos(np.radians(1.0)) or cos_t < np.cos(np.radians(2.0)))
 
     def score(self, R: np.ndarray, t: np.ndarray, bound: float = np.inf) -> tuple[np.ndarray, np.ndarray]:
         return _msac_kernel(np.ascontiguousarray(R, dtype=float), np.ascontiguousarray(t, dtype=float),
