@@ -47,6 +47,8 @@ FAMILIES = {Method.AUTO: (Method.P2P1, Method.NISTER), Method.P2P1: (Method.P2P1
 E_Y = np.array([0.0, 1.0, 0.0])
 # An explicit planar method fails when a 6DoF pose elsewhere has less than this share of its cost.
 PLANAR_VIOLATION_RATIO = 0.8
+# Another search's refined pose within this cost ratio of the best one is a rival answer.
+RIVAL_COST_RATIO = 1.25
 FINAL_REFINEMENT_ROUNDS = 4
 TILT_SEARCH_SCALE = 0.0  # planar hypotheses are scored at τ + scale·f·tan(planar_tolerance_deg)
 
@@ -208,7 +210,13 @@ def estimate_absolute_pose(
         return failure("no_consistent_hypothesis", f"the {method.value} search found no hypothesis that passed "
                        f"the checks ({stats.hypotheses} hypotheses)")
     _, family, R, t, cov, sigma, cost = min(planar if method != Method.AUTO else candidates, key=lambda c: c[0])
-    est = _judge(scorer, problem, options, method, gravity, R, t, cov, sigma, cost, stats, t_start, failure)
+    best_score = min(c[0] for c in (planar if method != Method.AUTO else candidates))
+    # Other searches' refined poses that explain the matches almost as well: where they lie
+    # elsewhere, the data do not single out one position (a flat or multi-modal cost), and the
+    # distance between the answers is a lower bound of the position's uncertainty.
+    rivals = [-c[2].T @ c[3] for c in candidates if c[0] <= RIVAL_COST_RATIO * best_score]
+    est = _judge(scorer, problem, options, method, gravity, R, t, cov, sigma, cost, stats, t_start, failure,
+                 rivals)
     if est.success and method in PLANAR and options.verify_planar and est.model != "planar":
         return PoseEstimate(None, False, "planar_model_violated",
                             f"the {method.value} pose does not fit the planar model it assumes (it implies a tilt or "
@@ -237,8 +245,10 @@ def _different(problem: AbsolutePoseProblem, a: tuple, b: tuple) -> bool:
 
 def _judge(estimator, problem: AbsolutePoseProblem, options: RansacOptions, method: Method, gravity: _Gravity,
            R: np.ndarray, t: np.ndarray, cov: np.ndarray, sigma: float, cost: float, stats: RansacStatistics,
-           t_start: float, failure) -> PoseEstimate:
-    """Uncertainty and verification of the refined pose; a success only if it passes."""
+           t_start: float, failure, rivals: Sequence[np.ndarray] = ()) -> PoseEstimate:
+    """Uncertainty and verification of the refined pose; a success only if it passes.
+
+    ``rivals``: (3,) centres of other searches' refined poses of nearly the same cost."""
     t0 = time.perf_counter()
     in2d, in3d = estimator.inliers(R, t)
     inliers = _split(in2d, problem.offsets)
@@ -267,6 +277,9 @@ def _judge(estimator, problem: AbsolutePoseProblem, options: RansacOptions, meth
         for u in obs.weak_directions(estimator, R, t, in2d, cov):
             for d in probes:
                 std = max(std, correlation * obs.profile_std(estimator, R, t, in2d, in3d, sigma, cost, u, d))
+    c = -R.T @ t
+    for other in rivals:
+        std = max(std, float(np.linalg.norm(other - c)))
     fit = obs.planar_fit(problem, R, t, in2d, gravity.world, gravity.query)
     model = "planar" if fit.holds(options.planar_tolerance_deg) else "6dof"
     pose = Pose(R, t)
