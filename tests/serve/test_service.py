@@ -148,7 +148,11 @@ def test_worker_killed_mid_request_fails_cleanly_and_the_pool_recovers(server) -
 
     t = threading.Thread(target=one)
     t.start()
-    time.sleep(0.15)
+    # Kill only once the request is admitted (running on a worker): under load the upload
+    # and parsing alone can take longer than any fixed sleep.
+    deadline = time.monotonic() + 30
+    while time.monotonic() < deadline and httpx.get(server.url + "/healthz").json()["admitted"] < 1:
+        time.sleep(0.01)
     for pid in pids:  # whichever runs the request
         os.kill(pid, signal.SIGKILL)
     t.join(60)
