@@ -172,11 +172,12 @@ class Jackknife:
 
 
 def reference_jackknife(est, R: np.ndarray, t: np.ndarray, in2d: np.ndarray, in3d: np.ndarray,
-                        max_iterations: int = 6) -> Jackknife:
+                        max_iterations: int = 3) -> Jackknife:
     """Refine the pose once per supporting reference with that reference's matches left out.
 
     2D-3D constraints (tracks, depth) stay in every refinement: they tie the query to world
-    points, not to one reference. With fewer than 3 supporting references nothing is left
+    points, not to one reference. Each refinement starts at the full estimate, so a few
+    Gauss-Newton steps reach the leave-one-out optimum (``max_iterations``). With fewer than 3 supporting references nothing is left
     to compare and the spread is nan.
 
     References:
