@@ -30,9 +30,10 @@ class Method(str, Enum):
 class Structure(str, Enum):
     """Which constraints beyond 2D-2D are used.
 
-    ``none``: the paper's 2D-2D constraints only (plus ``ref_points3d`` if given).
-    ``tracks``: also triangulate query keypoints matched in two or more references (whose
-    poses are known) and use the 2D-3D constraints — removes the collinear degeneracy.
+    ``tracks`` (default): also triangulate query keypoints matched in two or more references
+    (whose poses are known) and use the 2D-3D constraints — removes the collinear degeneracy
+    of roads and corridors (KITTI: 100 % within 0.25 m instead of 0 %), still with no pre-built
+    3D model. ``none``: the paper's 2D-2D constraints only (plus ``ref_points3d`` if given).
     """
 
     NONE = "none"
@@ -51,7 +52,8 @@ class RansacOptions:
         confidence: RANSAC confidence for adaptive termination.
         rcheck_deg: Rcheck threshold ``e_th`` of eq. (12), degrees (2p2p and baselines).
         consistency_deg: consistency check threshold ``α_th``, degrees.
-        structure: ``"none"`` or ``"tracks"`` (see :class:`Structure`).
+        structure: ``"tracks"`` (default) or ``"none"``, the paper's 2D-2D mode (see
+            :class:`Structure`).
         refine: run the final robust 6DoF refinement (and local optimisation).
         local_optimization: refine the best model on its inliers whenever it improves.
         min_inliers: fewer inliers than this in total is a failure.
@@ -93,7 +95,7 @@ class RansacOptions:
     confidence: float = 0.9999
     rcheck_deg: float = 2.0
     consistency_deg: float = 2.0
-    structure: Structure | str = Structure.NONE
+    structure: Structure | str = Structure.TRACKS
     refine: bool = True
     local_optimization: bool = True
     min_inliers: int = 10

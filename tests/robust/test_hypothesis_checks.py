@@ -220,7 +220,7 @@ def test_pdcheck_rejects_negative_scale_2p1p(third_is_3d: bool, seed: int) -> No
 def test_statistics_account_for_every_hypothesis(scene, method: str) -> None:
     sc = scene(3, num_refs=5, matches_per_pair=50, noise_px=1.0, outlier_ratio=0.5)
     est = estimate_absolute_pose(sc.query_camera, sc.pairs, method,
-                                 RansacOptions(max_iterations=100, min_iterations=100, seed=3))
+                                 RansacOptions(max_iterations=100, min_iterations=100, structure="none", seed=3))
     s = est.stats
     rejected = s.rejected_rcheck + s.rejected_pdcheck + s.rejected_consistency
     # A degenerate count is either a solver without solution (no hypothesis) or a hypothesis

@@ -205,7 +205,8 @@ def _truncated(sc, n: int) -> list[PairMatches]:
 @pytest.mark.parametrize("method, n", [("2p1p", 1), ("2p2p", 1), ("5p5p-nister", 4), ("5p5p-stewenius", 4),
                                        ("8p8p", 7), ("2p1p", 0)])
 def test_too_few_matches_is_a_status(small_scene, no_work, method: str, n: int) -> None:
-    est = estimate_absolute_pose(small_scene.query_camera, _truncated(small_scene, n), method)
+    est = estimate_absolute_pose(small_scene.query_camera, _truncated(small_scene, n), method,
+                                 RansacOptions(structure="none"))  # the 2D-2D minimal samples
     assert not est.success and est.pose is None
     assert est.status == "too_few_matches"
     assert [len(m) for m in est.inliers] == [n] * 3
@@ -217,7 +218,7 @@ def test_too_few_matches_in_one_pair_only(small_scene, no_work) -> None:
     p = small_scene.pairs[0]
     pairs[0] = pair_like(p, query_points=p.query_points[:2], ref_points=p.ref_points[:2],
                          query_indices=p.query_indices[:2])
-    est = estimate_absolute_pose(small_scene.query_camera, pairs, "2p2p")
+    est = estimate_absolute_pose(small_scene.query_camera, pairs, "2p2p", RansacOptions(structure="none"))
     assert est.status == "too_few_matches"
 
 
@@ -225,6 +226,7 @@ def test_other_camera_model_is_accepted(scene) -> None:
     """SIMPLE_PINHOLE with the same intrinsics describes the same camera."""
     sc = scene(0, num_refs=3, matches_per_pair=30, noise_px=0.0)
     cam = Camera("SIMPLE_PINHOLE", 1280, 1080, (800.0, 640.0, 540.0))
-    est = estimate_absolute_pose(cam, sc.pairs, "2p1p", RansacOptions(max_iterations=100, min_iterations=100))
+    est = estimate_absolute_pose(cam, sc.pairs, "2p1p", RansacOptions(max_iterations=100, min_iterations=100,
+                                                                   structure="none"))
     assert est.success
     assert np.linalg.norm(est.pose.center - sc.query_pose.center) < 1e-6

@@ -24,7 +24,7 @@ def test_collinear_without_structure_is_degenerate(scene, method: str, noise_px:
     for seed in SEEDS:
         sc = scene(seed, noise_px=noise_px, **COLLINEAR)
         est = estimate_absolute_pose(sc.query_camera, sc.pairs, method,
-                                     RansacOptions(max_iterations=100, min_iterations=100, seed=seed))
+                                     RansacOptions(max_iterations=100, min_iterations=100, structure="none", seed=seed))
         assert not est.success, f"seed {seed}: reported success, centre error " \
                                 f"{pose_errors(est.pose, sc.query_pose)[0]:.3f} m"
         assert est.status == "degenerate_scale", est.message
@@ -39,7 +39,7 @@ def test_exact_collinear_8p8p_reports_degenerate_without_a_hypothesis(scene) -> 
     for seed in SEEDS:
         sc = scene(seed, noise_px=0.0, **COLLINEAR)
         est = estimate_absolute_pose(sc.query_camera, sc.pairs, "8p8p",
-                                     RansacOptions(max_iterations=100, min_iterations=100, seed=seed))
+                                     RansacOptions(max_iterations=100, min_iterations=100, structure="none", seed=seed))
         assert not est.success and est.pose is None
         assert est.status == "degenerate_scale", est.message
         assert est.stats.rejected_degenerate > 0 and "tracks" in est.message
@@ -51,7 +51,7 @@ def test_collinear_never_succeeds_with_a_wrong_position(scene, method: str) -> N
     for seed in SEEDS:
         sc = scene(seed, noise_px=0.0, **COLLINEAR)
         est = estimate_absolute_pose(sc.query_camera, sc.pairs, method,
-                                     RansacOptions(max_iterations=100, min_iterations=100, seed=seed))
+                                     RansacOptions(max_iterations=100, min_iterations=100, structure="none", seed=seed))
         assert not est.success and est.pose is None
         assert est.status in ("degenerate_scale", "no_consistent_hypothesis")
 
@@ -73,7 +73,7 @@ def test_collinear_with_tracks_is_solved(scene, method: str) -> None:
 def test_collinear_with_reference_depth_is_solved(scene, method: str) -> None:
     sc = scene(0, noise_px=1.0, with_depth=True, **COLLINEAR)
     est = estimate_absolute_pose(sc.query_camera, sc.pairs, method,
-                                 RansacOptions(max_iterations=100, min_iterations=100))
+                                 RansacOptions(max_iterations=100, min_iterations=100, structure="none"))
     assert est.success, est.message
     assert pose_errors(est.pose, sc.query_pose)[0] < 0.1
 
@@ -84,7 +84,7 @@ def test_spread_scene_is_not_flagged(scene) -> None:
     for seed in range(10):
         sc = scene(100 + seed, num_refs=5, matches_per_pair=100, noise_px=1.0, outlier_ratio=0.4)
         est = estimate_absolute_pose(sc.query_camera, sc.pairs, "2p1p",
-                                     RansacOptions(max_iterations=100, min_iterations=100, seed=seed))
+                                     RansacOptions(max_iterations=100, min_iterations=100, structure="none", seed=seed))
         flagged += est.status == "degenerate_scale"
         assert np.isfinite(est.position_std_m)
     assert flagged == 0
