@@ -18,11 +18,12 @@ refined pose ``(R, t)`` (``cam_from_world``) and returns numbers, never a new es
 
 from __future__ import annotations
 
+import math
+import statistics
 from dataclasses import dataclass
 
 import numpy as np
 
-from planarloc.geometry.gravity import tilt_between_deg
 from planarloc.robust.refinement import map_covariance_from_parts, map_uncertainty_covariance
 
 MIN_PAIR_INLIERS = 5  # a reference "supports" a pose with at least this many 2D-2D inliers
@@ -172,7 +173,7 @@ class Jackknife:
 
 
 def reference_jackknife(est, R: np.ndarray, t: np.ndarray, in2d: np.ndarray, in3d: np.ndarray,
-                        max_iterations: int = 3) -> Jackknife:
+                        max_iterations: int = 2) -> Jackknife:
     """Refine the pose once per supporting reference with that reference's matches left out.
 
     2D-3D constraints (tracks, depth) stay in every refinement: they tie the query to world
@@ -232,16 +233,21 @@ def planar_fit(problem, R: np.ndarray, t: np.ndarray, in2d: np.ndarray, gravity_
         gravity_world: (3,) unit gravity (down) in the world frame (from the references).
         query_gravity: (3,) unit gravity assumed in the query camera frame.
     """
-    tilt = float(tilt_between_deg(R @ gravity_world, query_gravity))
+    # Scalar math (math module): this runs once per estimate, on 3-vectors, where numpy's
+    # per-call overhead dominates.
+    g_pred = R @ gravity_world
+    cos_t = float(g_pred @ query_gravity) / max(math.sqrt(float(g_pred @ g_pred) * float(query_gravity @ query_gravity)),
+                                             1e-300)
+    tilt = math.degrees(math.acos(min(1.0, max(-1.0, cos_t))))
     support = supporting_pairs(problem, in2d)
     if len(support) == 0:
         return PlanarFit(tilt, 0.0)
-    c = -R.T @ t
-    b = c - reference_centres(problem)[support]                       # (S, 3) baselines
+    b = (-R.T @ t) - reference_centres(problem)[support]             # (S, 3) baselines
     heights = b @ gravity_world                                        # query above/below each reference
-    horizontal = np.linalg.norm(b - np.outer(heights, gravity_world), axis=1)
+    horizontal = np.sqrt(np.maximum((b * b).sum(axis=1) - heights * heights, 0.0))
     # The query's height offset from the references' level plane over the typical baseline
     # length: robust to one short baseline (collinear sequences) where a per-baseline angle
     # would be dominated by centimetres of noise.
-    elev = float(np.degrees(np.arctan2(abs(np.median(heights)), max(float(np.median(horizontal)), 1e-9))))
+    elev = math.degrees(math.atan2(abs(statistics.median(heights.tolist())),
+                                   max(statistics.median(horizontal.tolist()), 1e-9)))
     return PlanarFit(tilt, elev)
