@@ -56,3 +56,27 @@ def t_vec(A: np.ndarray, v: np.ndarray) -> np.ndarray:
     for i in range(3):
         out[i] = A[0, i] * v[0] + A[1, i] * v[1] + A[2, i] * v[2]
     return out
+
+
+@njit(cache=True, inline="always")
+def sym_eigvals(A: np.ndarray) -> tuple[float, float, float]:
+    """Eigenvalues ``λ1 ≥ λ2 ≥ λ3`` of a symmetric (3, 3) matrix, in closed form.
+
+    The trigonometric solution of the characteristic cubic (Smith, CACM 1961): no LAPACK call
+    from numba (slow to compile) for a matrix this small.
+    """
+    p1 = A[0, 1] * A[0, 1] + A[0, 2] * A[0, 2] + A[1, 2] * A[1, 2]
+    q = (A[0, 0] + A[1, 1] + A[2, 2]) / 3.0
+    d0, d1, d2 = A[0, 0] - q, A[1, 1] - q, A[2, 2] - q
+    p2 = d0 * d0 + d1 * d1 + d2 * d2 + 2.0 * p1
+    if p2 <= 1e-300:
+        return q, q, q
+    p = np.sqrt(p2 / 6.0)
+    b00, b11, b22 = d0 / p, d1 / p, d2 / p
+    b01, b02, b12 = A[0, 1] / p, A[0, 2] / p, A[1, 2] / p
+    r = 0.5 * (b00 * (b11 * b22 - b12 * b12) - b01 * (b01 * b22 - b12 * b02) + b02 * (b01 * b12 - b11 * b02))
+    r = min(1.0, max(-1.0, r))
+    phi = np.arccos(r) / 3.0
+    e1 = q + 2.0 * p * np.cos(phi)
+    e3 = q + 2.0 * p * np.cos(phi + 2.0 * np.pi / 3.0)
+    return e1, 3.0 * q - e1 - e3, e3

@@ -10,6 +10,7 @@ verification, planar fit) and only a pose that passes is a ``success``.
 from __future__ import annotations
 
 import logging
+import math
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -21,6 +22,7 @@ from planarloc.geometry.gravity import mean_direction, upright_from_gravity
 from planarloc.geometry.pose import Pose
 from planarloc.robust import observability as obs
 from planarloc.robust.estimators import (
+    SIGMA_FLOOR_PX,
     Planar2p1pEstimator,
     RectifiedHypotheses,
     RelativePairEstimator,
@@ -30,6 +32,7 @@ from planarloc.robust.options import Method, RansacOptions, Structure, parse_met
 from planarloc.robust.pair_matches import PairMatches, unit_gravity
 from planarloc.robust.problem import AbsolutePoseProblem, build_problem
 from planarloc.robust.ransac import ransac
+from planarloc.robust.refinement import centre_covariance, refine_until_stable
 from planarloc.robust.result import PoseEstimate, RansacStatistics
 from planarloc.robust.sampling import eligible_pairs
 from planarloc.robust.structure import triangulate_tracks
@@ -59,25 +62,31 @@ def _split(mask: np.ndarray, offsets: np.ndarray) -> list[np.ndarray]:
 
 @dataclass(frozen=True)
 class _Gravity:
-    """Gravity of one problem: per reference (camera frames), the world's, the query's."""
+    """Gravity of one problem: per reference (camera frames), the world's, the query's.
+
+    ``levelled``: every camera is already upright (no rectification needed)."""
 
     refs: np.ndarray          # (P, 3) unit, reference camera frames
     world: np.ndarray         # (3,) unit, world frame (mean over references)
     query: np.ndarray         # (3,) unit, query camera frame (given, or the references' mount)
     query_given: bool
+    levelled: bool
 
-    @property
-    def levelled(self) -> bool:
-        """True when every camera is already upright (no rectification needed)."""
-        return bool(np.allclose(self.refs, E_Y, atol=1e-12) and np.allclose(self.query, E_Y, atol=1e-12))
+
+def _is_upright(g: np.ndarray) -> bool:
+    return bool(np.abs(g - E_Y).max() <= 1e-12)
 
 
 def _gravity(pairs: Sequence[PairMatches], problem: AbsolutePoseProblem, query_gravity: object | None) -> _Gravity:
+    if query_gravity is None and all(p.ref_gravity is None for p in pairs):  # the paper's case: all upright
+        g_refs = np.tile(E_Y, (len(pairs), 1))
+        return _Gravity(g_refs, mean_direction(problem.ref_R[:, 1, :]), E_Y.copy(), False, True)
+    given = [p.ref_gravity for p in pairs if p.ref_gravity is not None]
     g_refs = np.array([E_Y if p.ref_gravity is None else p.ref_gravity for p in pairs], dtype=float)
     g_world = mean_direction(np.einsum("pji,pj->pi", problem.ref_R, g_refs))
-    if query_gravity is None:
-        return _Gravity(g_refs, g_world, mean_direction(g_refs), False)
-    return _Gravity(g_refs, g_world, unit_gravity("query_gravity", query_gravity), True)
+    g_query = mean_direction(g_refs) if query_gravity is None else unit_gravity("query_gravity", query_gravity)
+    levelled = all(_is_upright(g) for g in given) and _is_upright(g_query)
+    return _Gravity(g_refs, g_world, g_query, query_gravity is not None, levelled)
 
 
 def _estimator(problem: AbsolutePoseProblem, options: RansacOptions, family: Method, gravity: _Gravity):
@@ -86,13 +95,15 @@ def _estimator(problem: AbsolutePoseProblem, options: RansacOptions, family: Met
     make = Planar2p1pEstimator if family == Method.P2P1 else (
         lambda prob, opt: RelativePairEstimator(prob, opt, Method.P2P2))
     scorer = make(problem, options)
+    f = float(np.mean(problem.f_query))
+    widen = TILT_SEARCH_SCALE * f * math.tan(math.radians(options.planar_tolerance_deg))
     if gravity.levelled:
+        if widen == 0.0:
+            return scorer  # upright cameras, hypotheses scored at τ: nothing to rectify
         Uq, upright = np.eye(3), scorer
     else:
         Uq = upright_from_gravity(gravity.query)
         upright = make(rectify_problem(problem, Uq, upright_from_gravity(gravity.refs)), options)
-    f = float(np.mean(problem.f_query))
-    widen = TILT_SEARCH_SCALE * f * np.tan(np.radians(options.planar_tolerance_deg))
     return RectifiedHypotheses(upright, scorer, Uq, options.threshold_px + widen)
 
 
@@ -102,15 +113,30 @@ def _eligible(problem: AbsolutePoseProblem, family: Method) -> bool:
     return bool(eligible_pairs(problem.counts, m1, m2) or (has_3d and (problem.counts >= m1).any()))
 
 
-def _refine(estimator, R: np.ndarray, t: np.ndarray, options: RansacOptions) -> tuple:
-    """Final robust refinement, repeated on the refined pose's inliers while they change."""
-    R, t, cov, sigma, cost, in2d, in3d = estimator.refine_full(R, t, max_iterations=6 if options.refine else 0)
-    for _ in range(FINAL_REFINEMENT_ROUNDS - 1 if options.refine else 0):
-        new2d, new3d = estimator.inliers(R, t)
-        if np.array_equal(new2d, in2d) and np.array_equal(new3d, in3d):
-            break
-        R, t, cov, sigma, cost, in2d, in3d = estimator.refine_full(R, t, max_iterations=6)
-    return R, t, cov, sigma, cost
+@dataclass(frozen=True)
+class _Refined:
+    """One search's final pose: refined (R, t), centre covariance from the pixel noise, σ̂,
+    robust cost, MSAC score at τ and the inlier masks at the pose."""
+
+    R: np.ndarray
+    t: np.ndarray
+    cov: np.ndarray
+    sigma: float
+    cost: float
+    score: float
+    in2d: np.ndarray
+    in3d: np.ndarray
+
+
+def _refine(scorer, R: np.ndarray, t: np.ndarray, options: RansacOptions) -> _Refined:
+    """Final robust refinement, repeated on the refined pose's inliers while they change
+    (one compiled call, :func:`refine_until_stable`)."""
+    p = scorer.p
+    R, t, H, sigma, cost, in2d, in3d, score = refine_until_stable(
+        np.ascontiguousarray(R), np.ascontiguousarray(t), p.xq, p.xr, p.pair, p.offsets, p.f_query, p.f_ref,
+        p.ref_R, p.ref_t, p.xq3d, p.X3d, scorer.threshold_sq, options.threshold_px,
+        6 if options.refine else 0, FINAL_REFINEMENT_ROUNDS if options.refine else 1, SIGMA_FLOOR_PX)
+    return _Refined(R, t, centre_covariance(H, sigma), sigma, cost, score, in2d, in3d)
 
 
 def estimate_absolute_pose(
@@ -191,10 +217,9 @@ def estimate_absolute_pose(
         if out.R is None:
             continue
         t0 = time.perf_counter()
-        R, t, cov, sigma, cost = _refine(scorer, out.R, out.t, options)
+        ref = _refine(scorer, out.R, out.t, options)
         stats.add_time("refinement", time.perf_counter() - t0)
-        score = float(scorer.score(R[None], t[None])[0][0])
-        candidates.append((score, family, R, t, cov, sigma, cost))
+        candidates.append((ref.score, family, ref))
     if not candidates:
         if stats.rejected_degenerate > 0 and stats.rejected_degenerate >= (
                 stats.rejected_rcheck + stats.rejected_pdcheck + stats.rejected_consistency):
@@ -209,14 +234,13 @@ def estimate_absolute_pose(
     if not planar:
         return failure("no_consistent_hypothesis", f"the {method.value} search found no hypothesis that passed "
                        f"the checks ({stats.hypotheses} hypotheses)")
-    _, family, R, t, cov, sigma, cost = min(planar if method != Method.AUTO else candidates, key=lambda c: c[0])
-    best_score = min(c[0] for c in (planar if method != Method.AUTO else candidates))
+    best_score, family, ref = min(planar if method != Method.AUTO else candidates, key=lambda c: c[0])
+    R, t = ref.R, ref.t
     # Other searches' refined poses that explain the matches almost as well: where they lie
     # elsewhere, the data do not single out one position (a flat or multi-modal cost), and the
     # distance between the answers is a lower bound of the position's uncertainty.
-    rivals = [-c[2].T @ c[3] for c in candidates if c[0] <= RIVAL_COST_RATIO * best_score]
-    est = _judge(scorer, problem, options, method, gravity, R, t, cov, sigma, cost, stats, t_start, failure,
-                 rivals)
+    rivals = [-c[2].R.T @ c[2].t for c in candidates if c[0] <= RIVAL_COST_RATIO * best_score and c[2] is not ref]
+    est = _judge(scorer, problem, options, gravity, ref, stats, t_start, failure, rivals)
     if est.success and method in PLANAR and options.verify_planar and est.model != "planar":
         return PoseEstimate(None, False, "planar_model_violated",
                             f"the {method.value} pose does not fit the planar model it assumes (it implies a tilt or "
@@ -225,7 +249,7 @@ def estimate_absolute_pose(
                             est.position_std_m, est.pose, est.stats, model="6dof")
     # A 6DoF pose elsewhere that explains the matches clearly better: the planar model failed.
     better = [c for c in candidates if c[1] not in FAMILIES[method] and c[0] < PLANAR_VIOLATION_RATIO * planar[0][0]]
-    if est.success and better and _different(problem, (R, t), better[0][2:4]):
+    if est.success and better and _different(problem, (R, t), (better[0][2].R, better[0][2].t)):
         return PoseEstimate(None, False, "planar_model_violated",
                             f"a 6DoF pose explains the matches better than the {method.value} pose (MSAC cost "
                             f"{better[0][0]:.4g} < {planar[0][0]:.4g}) and lies elsewhere: the query is tilted or "
@@ -243,53 +267,57 @@ def _different(problem: AbsolutePoseProblem, a: tuple, b: tuple) -> bool:
     return bool(np.linalg.norm(ca - cb) > 0.05 * scale or angle > 2.0)
 
 
-def _judge(estimator, problem: AbsolutePoseProblem, options: RansacOptions, method: Method, gravity: _Gravity,
-           R: np.ndarray, t: np.ndarray, cov: np.ndarray, sigma: float, cost: float, stats: RansacStatistics,
-           t_start: float, failure, rivals: Sequence[np.ndarray] = ()) -> PoseEstimate:
+def _judge(estimator, problem: AbsolutePoseProblem, options: RansacOptions, gravity: _Gravity, ref: _Refined,
+           stats: RansacStatistics, t_start: float, failure, rivals: Sequence[np.ndarray] = ()) -> PoseEstimate:
     """Uncertainty and verification of the refined pose; a success only if it passes.
 
     ``rivals``: (3,) centres of other searches' refined poses of nearly the same cost."""
     t0 = time.perf_counter()
-    in2d, in3d = estimator.inliers(R, t)
+    R, t, in2d, in3d = ref.R, ref.t, ref.in2d, ref.in3d
     inliers = _split(in2d, problem.offsets)
-    n2d, n3d = int(in2d.sum()), int(in3d.sum())
-    spread = obs.centre_collinearity(estimator, R, t, in2d)
+    n2d, n3d = int(np.count_nonzero(in2d)), int(np.count_nonzero(in3d))
+    support = obs.pose_support(problem, R, t, in2d, gravity.world, gravity.query)
+    spread = support.collinearity
     near_collinear = spread < PROFILE_BELOW_RATIO and n3d < options.min_inliers
     # Residuals within one reference are correlated (its pose error, calibration, model
     # errors): thousands of matches are not thousands of independent constraints.
-    correlation = obs.correlation_inflation(problem, in2d, n3d)
-    cov = cov * correlation**2
-    if np.all(np.isfinite(cov)) and (options.map_rotation_std_deg > 0 or options.map_position_std_m > 0):
+    correlation = obs.correlation_inflation(n2d + n3d, len(support.supporting))
+    cov = ref.cov * correlation**2
+    finite = bool(np.isfinite(cov).all())
+    if finite and (options.map_rotation_std_deg > 0 or options.map_position_std_m > 0):
         # Map errors through the full model, always: weak geometry amplifies them (a 0.1° error
         # of a reference's rotation moves a 2D-2D position by metres when the query is almost
         # collinear with the references), and triangulated tracks inherit them (KITTI, tracks:
         # 95 % -> 100 % of successes within 3σ + 5 cm with the full model); never less than the
         # references' own error moved rigidly with the query.
-        d = obs.median_reference_distance(estimator, R, t, in2d)
-        rigid = options.map_position_std_m**2 + (d * np.radians(options.map_rotation_std_deg)) ** 2
+        d = support.median_distance_m
+        rigid = options.map_position_std_m**2 + (d * math.radians(options.map_rotation_std_deg)) ** 2
         cov = cov + obs.map_covariance(estimator, R, t, in2d, in3d)
-        cov = cov + np.eye(3) * rigid if np.all(np.isfinite(cov)) else cov
-    std = float(np.sqrt(max(np.linalg.eigvalsh(cov).max(), 0.0))) if np.all(np.isfinite(cov)) else float("inf")
-    if np.isfinite(std) and near_collinear:
+        finite = bool(np.isfinite(cov).all())
+        if finite:
+            cov = cov + np.eye(3) * rigid
+    std = math.sqrt(max(float(np.linalg.eigvalsh(cov)[-1]), 0.0)) if finite else math.inf
+    if math.isfinite(std) and near_collinear:
         # Near-collinear geometry: the linearised covariance is over-confident in the curved
         # valley of the cost; profile the cost along the weak directions.
         # Probe at 3σ (does the quadratic model hold?) and at the decision scale.
         probes = {min(max(3.0 * std, 0.02), 2.0), min(options.max_position_std_m, 2.0)}
-        for u in obs.weak_directions(estimator, R, t, in2d, cov):
+        for u in obs.weak_directions(estimator, R, t, support.supporting, cov):
             for d in probes:
-                std = max(std, correlation * obs.profile_std(estimator, R, t, in2d, in3d, sigma, cost, u, d))
-    c = -R.T @ t
-    for other in rivals:
-        std = max(std, float(np.linalg.norm(other - c)))
-    fit = obs.planar_fit(problem, R, t, in2d, gravity.world, gravity.query)
+                std = max(std, correlation * obs.profile_std(estimator, R, t, in2d, in3d, ref.sigma, ref.cost, u, d))
+    if rivals:
+        c = -R.T @ t
+        for other in rivals:
+            std = max(std, float(np.linalg.norm(other - c)))
+    fit = support.fit
     model = "planar" if fit.holds(options.planar_tolerance_deg) else "6dof"
-    pose = Pose(R, t)
+    pose = Pose._unchecked(R, t)  # a refined rotation (exp map of a rotation): valid by construction
     common = dict(inliers=inliers, num_inliers=n2d, num_inliers_3d=n3d, model=model)
     if n2d + n3d < options.min_inliers:
         stats.add_time("verification", time.perf_counter() - t0)
         return failure("too_few_inliers", f"best pose has {n2d + n3d} inliers, fewer than min_inliers="
                        f"{options.min_inliers}", position_std_m=std, **common)
-    supporting = obs.supporting_pairs(problem, in2d)
+    supporting = support.supporting
     if len(supporting) < 2 and n3d < options.min_inliers:
         stats.add_time("verification", time.perf_counter() - t0)
         return failure("single_reference",
@@ -306,8 +334,8 @@ def _judge(estimator, problem: AbsolutePoseProblem, options: RansacOptions, meth
         return failure("degenerate_scale", f"position unobservable from the inliers: {why}{hint}",
                        position_std_m=std, unreliable_pose=pose, **common)
     if options.refine:
-        jk = obs.reference_jackknife(estimator, R, t, in2d, in3d)
-        if np.isfinite(jk.position_std_m):
+        jk = obs.reference_jackknife(estimator, R, t, in2d, in3d, support=supporting)
+        if math.isfinite(jk.position_std_m):
             std = max(std, jk.position_std_m)
             limit = min(options.max_reference_shift_std * std, options.max_position_std_m)
             if jk.max_shift_m > limit or jk.max_rotation_deg > 5.0:

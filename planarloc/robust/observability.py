@@ -1,30 +1,38 @@
 """What the matches can tell about a refined pose: observability, uncertainty, verification.
 
 Estimation (:mod:`planarloc.robust.estimators`) finds a pose; this module judges it. Every
-function takes the problem's estimator (for its matches, inliers and refinement) and a
-refined pose ``(R, t)`` (``cam_from_world``) and returns numbers, never a new estimate:
+function takes the problem (or its estimator, for refinement) and a refined pose ``(R, t)``
+(``cam_from_world``) and returns numbers, never a new estimate:
 
-* :func:`centre_collinearity`, :func:`weak_directions`, :func:`profile_std` — the collinear
-  (straight corridor / road) degeneracy of 2D-2D constraints and a secant profile of the
-  cost along weakly observed directions;
-* :func:`map_covariance`, :func:`median_reference_distance` — the map's pose uncertainty
-  propagated into the query position;
+* :func:`pose_support` — which references support the pose, how collinear their centres are
+  with the query's (the straight corridor / road degeneracy of 2D-2D constraints), the
+  median distance to them, and the planar fit (tilt from the references' gravity,
+  elevation of the query above or below their plane);
+* :func:`weak_directions`, :func:`profile_std` — a secant profile of the cost along weakly
+  observed directions of near-collinear geometry;
+* :func:`map_covariance` — the map's pose uncertainty propagated into the query position;
+* :func:`correlation_inflation` — residuals correlated within one reference;
 * :func:`reference_jackknife` — leave-one-reference-out refinements: an empirical spread that
   sees what the linearised covariance cannot (one reference with a wrong pose, a wrong
-  basin supported by one reference, model errors), and the disagreement between references;
-* :func:`planar_fit` — how far a pose is from the planar model (tilt from the references'
-  gravity, elevation of the query above or below their plane).
+  basin supported by one reference, model errors), and the disagreement between references.
+
+The per-estimate numbers come from compiled kernels (:func:`support_kernel`,
+:func:`jackknife_kernel`, :func:`~planarloc.robust.refinement.map_centre_covariance`): they run
+once per query on a few hundred inliers, where Python and numpy call overhead would cost more
+than the arithmetic (issue 10: the whole verification is a fraction of PoseLib's RANSAC time).
 """
 
 from __future__ import annotations
 
 import math
-import statistics
 from dataclasses import dataclass
 
 import numpy as np
+from numba import njit
 
-from planarloc.robust.refinement import map_covariance_from_parts, map_uncertainty_covariance
+from planarloc.geometry import mat3 as m3
+from planarloc.robust.estimators import SIGMA_FLOOR_PX
+from planarloc.robust.refinement import refine_pose_core, map_centre_covariance
 
 MIN_PAIR_INLIERS = 5  # a reference "supports" a pose with at least this many 2D-2D inliers
 # Independent constraints one reference image is worth for the covariance (see correlation_inflation).
@@ -45,7 +53,7 @@ def supporting_pairs(problem, in2d: np.ndarray, min_inliers: int = MIN_PAIR_INLI
     return np.flatnonzero(counts >= min_inliers)
 
 
-def correlation_inflation(problem, in2d: np.ndarray, num_inliers_3d: int,
+def correlation_inflation(num_inliers: int, num_supporting: int,
                           per_reference: int = EFFECTIVE_CONSTRAINTS_PER_REFERENCE) -> float:
     """Factor (≥ 1) on standard deviations for residuals that are correlated per reference.
 
@@ -55,41 +63,139 @@ def correlation_inflation(problem, in2d: np.ndarray, num_inliers_3d: int,
     average out; on real sequences (KITTI) the error of 2D-2D poses is 2–3× the linearised
     std with ~1,000 inliers. Counting at most ``per_reference`` independent constraints per
     supporting reference gives the factor ``sqrt(N / (per_reference · n_refs))``.
+
+    Args:
+        num_inliers: 2D-2D plus 2D-3D inliers N; num_supporting: supporting references.
     """
-    n_refs = max(len(supporting_pairs(problem, in2d)), 1)
-    n = int(in2d.sum()) + int(num_inliers_3d)
-    return float(np.sqrt(max(1.0, n / (per_reference * n_refs))))
+    return math.sqrt(max(1.0, num_inliers / (per_reference * max(num_supporting, 1))))
 
 
-def median_reference_distance(est, R: np.ndarray, t: np.ndarray, in2d: np.ndarray) -> float:
-    """Median distance from the query centre to the centres of references with inliers."""
-    p = est.p
-    c = -R.T @ t
-    centres = reference_centres(p)
-    has = np.add.reduceat(in2d.astype(np.int64), p.offsets[:-1]) > 0 if len(in2d) else np.zeros(0, bool)
-    d = np.linalg.norm(centres[has] - c, axis=1) if has.any() else np.linalg.norm(centres - c, axis=1)
-    return float(np.median(d))
+@njit(cache=True, error_model="numpy")
+def support_kernel(R: np.ndarray, t: np.ndarray, in2d: np.ndarray, offsets: np.ndarray, ref_R: np.ndarray,
+                   ref_t: np.ndarray, gravity_world: np.ndarray, query_gravity: np.ndarray,
+                   min_pair_inliers: int) -> tuple[np.ndarray, float, float, float, float]:
+    """The numbers of :class:`PoseSupport` in one compiled call; see :func:`pose_support`."""
+    P = offsets.shape[0] - 1
+    counts = np.zeros(P, dtype=np.int64)
+    for p in range(P):
+        for i in range(offsets[p], offsets[p + 1]):
+            if in2d[i]:
+                counts[p] += 1
+    c = -m3.t_vec(R, t)
+    centres = np.empty((P, 3))
+    for p in range(P):
+        centres[p] = -m3.t_vec(ref_R[p], ref_t[p])
+    # collinearity: s2 / s1 of the centred {query centre} ∪ {supporting reference centres}
+    pts = [c]
+    for p in range(P):
+        if counts[p] >= min_pair_inliers:
+            pts.append(centres[p])
+    collinearity = 0.0
+    if len(pts) >= 3:
+        mean = np.zeros(3)
+        for q in pts:
+            mean += q / len(pts)
+        S = np.zeros((3, 3))
+        for q in pts:
+            d = q - mean
+            for a in range(3):
+                for b in range(3):
+                    S[a, b] += d[a] * d[b]
+        l1, l2, _ = m3.sym_eigvals(S)
+        collinearity = np.sqrt(max(l2, 0.0) / l1) if l1 > 0 else 0.0
+    # median distance to the references with inliers (all of them when none has any)
+    has = counts > 0
+    dist = np.empty(P)
+    k = 0
+    for p in range(P):
+        if has[p] or not has.any():
+            dist[k] = np.sqrt(np.sum((centres[p] - c) ** 2))
+            k += 1
+    median_distance = np.median(dist[:k]) if k else np.nan
+    # planar fit: tilt of the implied gravity, elevation over the supporting references
+    g_pred = m3.vec(R, gravity_world)
+    cos_t = np.sum(g_pred * query_gravity) / max(np.sqrt(np.sum(g_pred * g_pred) * np.sum(query_gravity ** 2)),
+                                                 1e-300)
+    tilt = np.degrees(np.arccos(min(1.0, max(-1.0, cos_t))))
+    heights = np.empty(P)
+    horizontal = np.empty(P)
+    k = 0
+    for p in range(P):
+        if counts[p] >= min_pair_inliers:
+            b = c - centres[p]
+            h = np.sum(b * gravity_world)
+            heights[k] = h
+            horizontal[k] = np.sqrt(max(np.sum(b * b) - h * h, 0.0))
+            k += 1
+    elevation = 0.0
+    if k:
+        elevation = np.degrees(np.arctan2(abs(np.median(heights[:k])), max(np.median(horizontal[:k]), 1e-9)))
+    return counts, collinearity, median_distance, tilt, elevation
 
 
-def centre_collinearity(est, R: np.ndarray, t: np.ndarray, in2d: np.ndarray) -> float:
-    """How far the query and reference centres are from lying on one line (scale-free).
+@dataclass(frozen=True)
+class PlanarFit:
+    """How well a pose fits the planar model relative to its references.
 
-    The ratio ``s₂ / s₁`` of the two largest singular values of the centred set of the
-    query centre and the centres of the references with at least 5 inliers: 0 for
-    collinear centres (a straight corridor or road), O(1) for a spread configuration.
-    2D-2D constraints fix the query position by intersecting the lines from the
-    reference centres, so it is unobservable along the line when the ratio is small.
+    Attributes:
+        tilt_deg: angle between the query gravity the pose implies (``R · g_world``) and the
+            query gravity assumed for the planar hypotheses.
+        elevation_deg: the query's median height offset from the supporting references over
+            the median horizontal baseline length, as an angle (0 for a query at their height).
     """
-    p = est.p
-    pts = [-R.T @ t] + [-p.ref_R[k].T @ p.ref_t[k] for k in supporting_pairs(p, in2d)]
-    if len(pts) < 3:
-        return 0.0
-    P = np.array(pts)
-    sv = np.linalg.svd(P - P.mean(axis=0), compute_uv=False)
-    return float(sv[1] / sv[0]) if sv[0] > 0 else 0.0
+
+    tilt_deg: float
+    elevation_deg: float
+
+    def holds(self, tolerance_deg: float) -> bool:
+        return self.tilt_deg <= tolerance_deg and self.elevation_deg <= tolerance_deg
 
 
-def weak_directions(est, R: np.ndarray, t: np.ndarray, in2d: np.ndarray, cov: np.ndarray) -> list[np.ndarray]:
+@dataclass(frozen=True)
+class PoseSupport:
+    """Which references support a pose, and the geometry of their centres around it.
+
+    Attributes:
+        pair_inliers: (P,) 2D-2D inliers per pair.
+        supporting: indices of the pairs with at least ``MIN_PAIR_INLIERS`` of them.
+        collinearity: ``s₂ / s₁``, the ratio of the two largest singular values of the centred
+            set of the query centre and the supporting reference centres: 0 for collinear
+            centres (a straight corridor or road), O(1) for a spread configuration (fewer than
+            3 points: 0). 2D-2D constraints fix the position by intersecting lines from the
+            reference centres, so it is unobservable along the line when the ratio is small.
+        median_distance_m: median distance from the query centre to the references with
+            inliers (to all references when none has any).
+        fit: :class:`PlanarFit` of the pose.
+    """
+
+    pair_inliers: np.ndarray
+    supporting: np.ndarray
+    collinearity: float
+    median_distance_m: float
+    fit: PlanarFit
+
+
+def pose_support(problem, R: np.ndarray, t: np.ndarray, in2d: np.ndarray, gravity_world: np.ndarray,
+                 query_gravity: np.ndarray, min_pair_inliers: int = MIN_PAIR_INLIERS) -> PoseSupport:
+    """:class:`PoseSupport` of ``cam_from_world = (R, t)`` with 2D-2D inliers ``in2d`` (N,).
+
+    Args:
+        gravity_world: (3,) unit gravity (down) in the world frame (from the references).
+        query_gravity: (3,) unit gravity assumed in the query camera frame.
+
+    The planar fit's elevation is the median height offset over the median horizontal
+    baseline: robust to one short baseline (collinear sequences), where a per-baseline angle
+    would be dominated by centimetres of noise.
+    """
+    counts, col, dist, tilt, elev = support_kernel(
+        np.ascontiguousarray(R, dtype=float), np.ascontiguousarray(t, dtype=float), in2d, problem.offsets,
+        problem.ref_R, problem.ref_t, np.ascontiguousarray(gravity_world, dtype=float),
+        np.ascontiguousarray(query_gravity, dtype=float), min_pair_inliers)
+    return PoseSupport(counts, np.flatnonzero(counts >= min_pair_inliers), float(col), float(dist),
+                       PlanarFit(float(tilt), float(elev)))
+
+
+def weak_directions(est, R: np.ndarray, t: np.ndarray, support: np.ndarray, cov: np.ndarray) -> list[np.ndarray]:
     """Directions along which the position may be unobservable (world frame).
 
     The weakest axis of the bearing configuration (and the largest axis of the linearised
@@ -103,7 +209,7 @@ def weak_directions(est, R: np.ndarray, t: np.ndarray, in2d: np.ndarray, cov: np
     p = est.p
     c = -R.T @ t
     A = np.zeros((3, 3))
-    for k in supporting_pairs(p, in2d):
+    for k in support:
         d = c - (-p.ref_R[k].T @ p.ref_t[k])
         n2 = float(d @ d)
         if n2 < 1e-12:
@@ -145,11 +251,10 @@ def profile_std(est, R: np.ndarray, t: np.ndarray, in2d: np.ndarray, in3d: np.nd
 def map_covariance(est, R: np.ndarray, t: np.ndarray, in2d: np.ndarray, in3d: np.ndarray) -> np.ndarray:
     """(3, 3) position covariance caused by the map's pose uncertainty (options.map_*_std)."""
     p, o = est.p, est.options
-    H, M, var = map_uncertainty_covariance(
+    return map_centre_covariance(
         np.ascontiguousarray(R), np.ascontiguousarray(t), p.xq, p.xr, p.pair, np.flatnonzero(in2d),
         p.f_query, p.f_ref, p.ref_R, p.ref_t, p.xq3d, p.X3d, np.flatnonzero(in3d), o.threshold_px,
         float(np.radians(o.map_rotation_std_deg)), float(o.map_position_std_m))
-    return map_covariance_from_parts(H, M, var)
 
 
 @dataclass(frozen=True)
@@ -172,82 +277,80 @@ class Jackknife:
     worst_reference: int
 
 
+@njit(cache=True, error_model="numpy")
+def jackknife_kernel(
+    R: np.ndarray, t: np.ndarray, xq: np.ndarray, xr: np.ndarray, pair: np.ndarray, offsets: np.ndarray,
+    f_query: np.ndarray, f_ref: np.ndarray, ref_R: np.ndarray, ref_t: np.ndarray, xq3d: np.ndarray,
+    X3d: np.ndarray, in2d: np.ndarray, in3d: np.ndarray, support: np.ndarray, loss_scale: float,
+    max_iterations: int, sigma_floor: float,
+) -> tuple[float, float, float, int]:
+    """The numbers of :func:`reference_jackknife` in one compiled call (one refinement per
+    supporting reference with its rows left out, started at the full estimate).
+
+    Returns:
+        (jackknife position std, largest centre shift, largest rotation in degrees, index into
+        ``support`` of the reference whose removal moves the pose most).
+    """
+    n = support.shape[0]
+    c = -m3.t_vec(R, t)
+    idx3d = np.flatnonzero(in3d)
+    all2d = np.flatnonzero(in2d)
+    centres = np.empty((n, 3))
+    mean = np.zeros(3)
+    max_rot = 0.0
+    eye = np.eye(3)
+    free = np.zeros(6, dtype=np.bool_)
+    for i in range(n):
+        k = support[i]
+        keep = all2d[(all2d < offsets[k]) | (all2d >= offsets[k + 1])]
+        Rk, tk, _, _, _ = refine_pose_core(R, t, xq, xr, pair, keep, f_query, f_ref, ref_R, ref_t, xq3d, X3d, idx3d,
+                                       loss_scale, max_iterations, sigma_floor, c, eye, free, False)
+        ck = -m3.t_vec(Rk, tk)
+        for a in range(3):
+            centres[i, a] = ck[a]
+            mean[a] += ck[a] / n
+        tr = 0.0
+        for a in range(3):
+            for b in range(3):
+                tr += Rk[a, b] * R[a, b]
+        max_rot = max(max_rot, np.degrees(np.arccos(min(1.0, max(-1.0, (tr - 1.0) / 2.0)))))
+    cov = np.zeros((3, 3))
+    worst, max_shift = 0, -1.0
+    for i in range(n):
+        shift = 0.0
+        for a in range(3):
+            shift += (centres[i, a] - c[a]) ** 2
+            for b in range(3):
+                cov[a, b] += (n - 1.0) / n * (centres[i, a] - mean[a]) * (centres[i, b] - mean[b])
+        if shift > max_shift:
+            worst, max_shift = i, shift
+    lam, _, _ = m3.sym_eigvals(cov)
+    return np.sqrt(max(lam, 0.0)), np.sqrt(max(max_shift, 0.0)), max_rot, worst
+
+
 def reference_jackknife(est, R: np.ndarray, t: np.ndarray, in2d: np.ndarray, in3d: np.ndarray,
-                        max_iterations: int = 2) -> Jackknife:
+                        max_iterations: int = 2, support: np.ndarray | None = None) -> Jackknife:
     """Refine the pose once per supporting reference with that reference's matches left out.
 
     2D-3D constraints (tracks, depth) stay in every refinement: they tie the query to world
     points, not to one reference. Each refinement starts at the full estimate, so a few
-    Gauss-Newton steps reach the leave-one-out optimum (``max_iterations``). With fewer than 3 supporting references nothing is left
-    to compare and the spread is nan.
+    Gauss-Newton steps reach the leave-one-out optimum (``max_iterations``). With fewer than
+    3 supporting references nothing is left to compare and the spread is nan.
+
+    Args:
+        support: the supporting pairs when the caller has them (:func:`supporting_pairs`).
 
     References:
         Efron & Stein (1981), the jackknife estimate of variance; used here per reference
         because map-pose errors and wrong matches are correlated within a reference.
     """
     p = est.p
-    support = supporting_pairs(p, in2d)
+    support = supporting_pairs(p, in2d) if support is None else support
     n = len(support)
     if n < 3:
         return Jackknife(n, float("nan"), float("nan"), float("nan"), -1)
-    c = -R.T @ t
-    centres = np.empty((n, 3))
-    rots = np.empty(n)
-    for i, k in enumerate(support):
-        keep = in2d.copy()
-        keep[p.offsets[k]:p.offsets[k + 1]] = False
-        Rk, tk, *_ = est._refine(R, c, keep, in3d, max_iterations)
-        centres[i] = -Rk.T @ tk
-        rots[i] = np.degrees(np.arccos(np.clip((np.trace(Rk @ R.T) - 1.0) / 2.0, -1.0, 1.0)))
-    d = centres - centres.mean(axis=0)
-    cov = (n - 1) / n * d.T @ d
-    shifts = np.linalg.norm(centres - c, axis=1)
-    worst = int(np.argmax(shifts))
-    return Jackknife(n, float(np.sqrt(max(np.linalg.eigvalsh(cov).max(), 0.0))), float(shifts[worst]),
-                     float(rots.max()), int(support[worst]))
-
-
-@dataclass(frozen=True)
-class PlanarFit:
-    """How well a pose fits the planar model relative to its references.
-
-    Attributes:
-        tilt_deg: angle between the query gravity the pose implies (``R · g_world``) and the
-            query gravity assumed for the planar hypotheses.
-        elevation_deg: the query's median height offset from the supporting references over
-            the median horizontal baseline length, as an angle (0 for a query at their height).
-    """
-
-    tilt_deg: float
-    elevation_deg: float
-
-    def holds(self, tolerance_deg: float) -> bool:
-        return self.tilt_deg <= tolerance_deg and self.elevation_deg <= tolerance_deg
-
-
-def planar_fit(problem, R: np.ndarray, t: np.ndarray, in2d: np.ndarray, gravity_world: np.ndarray,
-               query_gravity: np.ndarray) -> PlanarFit:
-    """:class:`PlanarFit` of ``cam_from_world = (R, t)``.
-
-    Args:
-        gravity_world: (3,) unit gravity (down) in the world frame (from the references).
-        query_gravity: (3,) unit gravity assumed in the query camera frame.
-    """
-    # Scalar math (math module): this runs once per estimate, on 3-vectors, where numpy's
-    # per-call overhead dominates.
-    g_pred = R @ gravity_world
-    cos_t = float(g_pred @ query_gravity) / max(math.sqrt(float(g_pred @ g_pred) * float(query_gravity @ query_gravity)),
-                                             1e-300)
-    tilt = math.degrees(math.acos(min(1.0, max(-1.0, cos_t))))
-    support = supporting_pairs(problem, in2d)
-    if len(support) == 0:
-        return PlanarFit(tilt, 0.0)
-    b = (-R.T @ t) - reference_centres(problem)[support]             # (S, 3) baselines
-    heights = b @ gravity_world                                        # query above/below each reference
-    horizontal = np.sqrt(np.maximum((b * b).sum(axis=1) - heights * heights, 0.0))
-    # The query's height offset from the references' level plane over the typical baseline
-    # length: robust to one short baseline (collinear sequences) where a per-baseline angle
-    # would be dominated by centimetres of noise.
-    elev = math.degrees(math.atan2(abs(statistics.median(heights.tolist())),
-                                   max(statistics.median(horizontal.tolist()), 1e-9)))
-    return PlanarFit(tilt, elev)
+    std, shift, rot, worst = jackknife_kernel(
+        np.ascontiguousarray(R), np.ascontiguousarray(t), p.xq, p.xr, p.pair, p.offsets, p.f_query, p.f_ref,
+        p.ref_R, p.ref_t, p.xq3d, p.X3d, in2d, in3d, np.asarray(support, dtype=np.int64),
+        est.options.threshold_px, max_iterations, SIGMA_FLOOR_PX)
+    return Jackknife(n, float(std), float(shift), float(rot), int(support[worst]))

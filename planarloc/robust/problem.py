@@ -7,7 +7,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from planarloc.geometry.camera import Camera
+from planarloc.geometry.camera import Camera, CameraModel
 from planarloc.geometry.validation import InputError
 from planarloc.robust.pair_matches import PairMatches
 
@@ -60,6 +60,34 @@ class AbsolutePoseProblem:
         )
 
 
+def _rays(camera: Camera, pixels: np.ndarray) -> np.ndarray:
+    """(N, 3) rays ``(x, y, 1)`` of validated (N, 2) pixels (``PairMatches`` checked them).
+
+    Cameras without distortion take the direct affine map: ``Camera.bearings_from_img``
+    re-validates its input and stacks, which costs more than the arithmetic for the few
+    hundred points of one pair."""
+    if camera.model == CameraModel.OPENCV and np.any(camera.distortion):
+        return camera.bearings_from_img(pixels)
+    (fx, fy), (cx, cy) = camera.focal, camera.principal_point
+    out = np.empty((len(pixels), 3))
+    out[:, 0] = (pixels[:, 0] - cx) / fx
+    out[:, 1] = (pixels[:, 1] - cy) / fy
+    out[:, 2] = 1.0
+    return out
+
+
+def _check_rays(rays: np.ndarray, offsets: np.ndarray, name: str) -> None:
+    """InputError naming the first pixel whose undistortion did not converge (NaN ray)."""
+    if np.isfinite(rays.sum()):
+        return
+    bad = int(np.flatnonzero(~np.isfinite(rays).all(axis=1))[0])
+    p_idx = int(np.searchsorted(offsets, bad, side="right") - 1)
+    raise InputError(
+        f"pairs[{p_idx}].{name}[{bad - int(offsets[p_idx])}]: pixel outside the valid range of the camera's "
+        "distortion model (undistortion does not converge); drop such keypoints or check the intrinsics"
+    )
+
+
 def build_problem(query_camera: Camera, pairs: Sequence[PairMatches]) -> AbsolutePoseProblem:
     """Validate the estimator's input and flatten it.
 
@@ -78,38 +106,38 @@ def build_problem(query_camera: Camera, pairs: Sequence[PairMatches]) -> Absolut
             f"pairs: need matches to at least 2 reference images to fix the scale, got {len(pairs)}; "
             "hint: retrieve more reference images (top-n >= 2)"
         )
-    xr, pair, qids, xq3, X3, src = [], [], [], [], [], []
-    offsets = [0]
-    base = 0
+    xq3, X3, src = [], [], []
+    counts = [len(p) for p in pairs]
+    offsets = np.zeros(len(pairs) + 1, dtype=np.int64)
+    np.cumsum(counts, out=offsets[1:])
     # One undistortion call for all query points (same camera); references may differ.
-    xq_all = query_camera.bearings_from_img(np.vstack([p.query_points for p in pairs]))
+    xq_all = _rays(query_camera, np.concatenate([p.query_points for p in pairs]))
+    _check_rays(xq_all, offsets, "query_points")
+    cam0 = pairs[0].ref_camera
+    if all(p.ref_camera is cam0 or p.ref_camera == cam0 for p in pairs):  # one map camera: one call
+        xr_all = _rays(cam0, np.concatenate([p.ref_points for p in pairs]))
+    else:
+        xr_all = np.concatenate([_rays(p.ref_camera, p.ref_points) if len(p) else np.zeros((0, 3)) for p in pairs])
     for p_idx, p in enumerate(pairs):
-        n = len(p)
-        q = xq_all[base:base + n]
-        r = p.ref_camera.bearings_from_img(p.ref_points) if n else np.zeros((0, 3))
-        for name, rays in (("query_points", q), ("ref_points", r)):
-            if not np.isfinite(rays).all():
-                bad = int(np.flatnonzero(~np.isfinite(rays).all(axis=1))[0])
-                raise InputError(
-                    f"pairs[{p_idx}].{name}[{bad}]: pixel outside the valid range of the camera's distortion "
-                    "model (undistortion does not converge); drop such keypoints or check the intrinsics"
-                )
-        xr.append(r)
-        pair.append(np.full(n, p_idx, dtype=np.int64))
-        qids.append(p.query_indices if p.query_indices is not None else np.full(n, -1, dtype=np.int64))
+        base, n = int(offsets[p_idx]), counts[p_idx]
         if p.ref_points3d is not None and n:
             has = ~np.isnan(p.ref_points3d[:, 0])
-            xq3.append(q[has])
+            xq3.append(xq_all[base:base + n][has])
             X3.append(p.ref_points3d[has])
             src.append(base + np.flatnonzero(has))
-        base += n
-        offsets.append(base)
+    _check_rays(xr_all, offsets, "ref_points")
+    pair = np.repeat(np.arange(len(pairs), dtype=np.int64), counts)
+    if all(p.query_indices is None for p in pairs):
+        qids = np.full(len(xq_all), -1, dtype=np.int64)
+    else:
+        qids = np.concatenate([p.query_indices if p.query_indices is not None else np.full(len(p), -1, dtype=np.int64)
+                               for p in pairs]).astype(np.int64)
     return AbsolutePoseProblem(
-        xq=np.ascontiguousarray(xq_all),
-        xr=np.ascontiguousarray(np.vstack(xr)),
-        pair=np.concatenate(pair),
-        offsets=np.asarray(offsets, dtype=np.int64),
-        query_ids=np.concatenate(qids).astype(np.int64),
+        xq=xq_all,
+        xr=xr_all,
+        pair=pair,
+        offsets=offsets,
+        query_ids=qids,
         f_query=np.asarray(query_camera.focal, dtype=float),
         f_ref=np.asarray([p.ref_camera.focal for p in pairs], dtype=float),
         ref_R=np.ascontiguousarray(np.stack([p.ref_pose.R for p in pairs])),
