@@ -19,6 +19,7 @@ import numpy as np
 
 from planarloc.geometry.camera import Camera
 from planarloc.geometry.gravity import mean_direction, upright_from_gravity
+from planarloc.geometry.mat3 import sym_eigvals
 from planarloc.geometry.pose import Pose
 from planarloc.robust import observability as obs
 from planarloc.robust.estimators import (
@@ -48,6 +49,7 @@ PLANAR = (Method.P2P1, Method.P2P2)
 FAMILIES = {Method.AUTO: (Method.P2P1, Method.NISTER), Method.P2P1: (Method.P2P1,), Method.P2P2: (Method.P2P2,),
             Method.NISTER: (Method.NISTER,), Method.STEWENIUS: (Method.STEWENIUS,), Method.EIGHT: (Method.EIGHT,)}
 E_Y = np.array([0.0, 1.0, 0.0])
+E_Y.setflags(write=False)
 # An explicit planar method fails when a 6DoF pose elsewhere has less than this share of its cost.
 PLANAR_VIOLATION_RATIO = 0.8
 # Another search's refined pose within this cost ratio of the best one is a rival answer.
@@ -79,8 +81,9 @@ def _is_upright(g: np.ndarray) -> bool:
 
 def _gravity(pairs: Sequence[PairMatches], problem: AbsolutePoseProblem, query_gravity: object | None) -> _Gravity:
     if query_gravity is None and all(p.ref_gravity is None for p in pairs):  # the paper's case: all upright
-        g_refs = np.tile(E_Y, (len(pairs), 1))
-        return _Gravity(g_refs, mean_direction(problem.ref_R[:, 1, :]), E_Y.copy(), False, True)
+        # World gravity = mean of R_kᵀ e_y = the references' second rows (unit already).
+        s = problem.ref_R[:, 1, :].sum(axis=0)
+        return _Gravity(np.broadcast_to(E_Y, (len(pairs), 3)), s / math.sqrt(float(s @ s)), E_Y, False, True)
     given = [p.ref_gravity for p in pairs if p.ref_gravity is not None]
     g_refs = np.array([E_Y if p.ref_gravity is None else p.ref_gravity for p in pairs], dtype=float)
     g_world = mean_direction(np.einsum("pji,pj->pi", problem.ref_R, g_refs))
@@ -296,7 +299,7 @@ def _judge(estimator, problem: AbsolutePoseProblem, options: RansacOptions, grav
         finite = bool(np.isfinite(cov).all())
         if finite:
             cov = cov + np.eye(3) * rigid
-    std = math.sqrt(max(float(np.linalg.eigvalsh(cov)[-1]), 0.0)) if finite else math.inf
+    std = math.sqrt(max(sym_eigvals(cov)[0], 0.0)) if finite else math.inf
     if math.isfinite(std) and near_collinear:
         # Near-collinear geometry: the linearised covariance is over-confident in the curved
         # valley of the cost; profile the cost along the weak directions.

@@ -32,7 +32,13 @@ from numba import njit
 
 from planarloc.geometry import mat3 as m3
 from planarloc.robust.estimators import SIGMA_FLOOR_PX
-from planarloc.robust.refinement import refine_pose_core, map_centre_covariance
+from planarloc.robust.refinement import (
+    exp_so3,
+    map_centre_covariance,
+    refine_pose_core,
+    residuals_jacobian,
+    solve_spd,
+)
 
 MIN_PAIR_INLIERS = 5  # a reference "supports" a pose with at least this many 2D-2D inliers
 # Independent constraints one reference image is worth for the covariance (see correlation_inflation).
@@ -295,16 +301,50 @@ def jackknife_kernel(
     c = -m3.t_vec(R, t)
     idx3d = np.flatnonzero(in3d)
     all2d = np.flatnonzero(in2d)
+    # First Gauss-Newton step of every leave-one-out problem from one pass over the inliers:
+    # at the full estimate, the normal equations without reference k are the full ones minus
+    # k's share (H - H_k, g - g_k), so the step costs a 6x6 solve instead of a residual and
+    # Jacobian pass per reference. The remaining iterations refine from there.
+    m = all2d.shape[0] + 2 * idx3d.shape[0]
+    r = np.empty(m)
+    J = np.empty((m, 6))
+    eye = np.eye(3)
+    residuals_jacobian(R, c, eye, xq, xr, pair, all2d, f_query, f_ref, ref_R, ref_t, xq3d, X3d, idx3d, r, J,
+                       np.empty((0, 3)))
+    P = offsets.shape[0] - 1
+    Hp = np.zeros((P + 1, 6, 6))  # per pair; row P: the 2D-3D constraints (kept in every problem)
+    gp = np.zeros((P + 1, 6))
+    s2 = loss_scale * loss_scale
+    for row in range(m):
+        q = pair[all2d[row]] if row < all2d.shape[0] else P
+        w = 1.0 / (1.0 + r[row] * r[row] / s2)
+        for a in range(6):
+            wa = w * J[row, a]
+            gp[q, a] += wa * r[row]
+            for b in range(6):
+                Hp[q, a, b] += wa * J[row, b]
+    Ht = np.zeros((6, 6))
+    gt = np.zeros(6)
+    for q in range(P + 1):
+        Ht += Hp[q]
+        gt += gp[q]
     centres = np.empty((n, 3))
     mean = np.zeros(3)
     max_rot = 0.0
-    eye = np.eye(3)
     free = np.zeros(6, dtype=np.bool_)
+    step = np.zeros(6)
     for i in range(n):
         k = support[i]
         keep = all2d[(all2d < offsets[k]) | (all2d >= offsets[k + 1])]
-        Rk, tk, _, _, _ = refine_pose_core(R, t, xq, xr, pair, keep, f_query, f_ref, ref_R, ref_t, xq3d, X3d, idx3d,
-                                       loss_scale, max_iterations, sigma_floor, c, eye, free, False)
+        A = Ht - Hp[k]
+        for a in range(6):
+            A[a, a] += 1e-4 * max(A[a, a], 1e-12)  # the refinement's initial LM damping
+        R1, c1 = R, c
+        if max_iterations >= 1 and solve_spd(A, gp[k] - gt, step):
+            R1 = m3.mul(exp_so3(step[:3]), R)
+            c1 = c + step[3:]
+        Rk, tk, _, _, _ = refine_pose_core(R1, t, xq, xr, pair, keep, f_query, f_ref, ref_R, ref_t, xq3d, X3d,
+                                           idx3d, loss_scale, max(max_iterations - 1, 0), sigma_floor, c1, eye, free, False)
         ck = -m3.t_vec(Rk, tk)
         for a in range(3):
             centres[i, a] = ck[a]

@@ -9,7 +9,7 @@ matrix: ``Σ_c = σ̂² (JᵀWJ)⁻¹[3:, 3:]``. Its largest eigenvalue gives ``
 with 2D-2D constraints only and the query collinear with the reference centres it blows up
 (the scale along the line is unobservable), which is how degeneracy is detected.
 
-The Jacobian is analytic (:func:`_residuals_jacobian`); the map-uncertainty propagation
+The Jacobian is analytic (:func:`residuals_jacobian`); the map-uncertainty propagation
 uses finite differences over the reference poses, once per query.
 """
 
@@ -28,7 +28,7 @@ _FAST = {"contract", "reassoc", "arcp", "nsz"}
 
 
 @njit(cache=True, error_model="numpy")
-def _exp_so3(w: np.ndarray) -> np.ndarray:
+def exp_so3(w: np.ndarray) -> np.ndarray:
     th = np.sqrt(w[0] * w[0] + w[1] * w[1] + w[2] * w[2])
     K = np.zeros((3, 3))
     K[0, 1], K[0, 2], K[1, 0], K[1, 2], K[2, 0], K[2, 1] = -w[2], w[1], w[2], -w[0], -w[1], w[0]
@@ -47,7 +47,7 @@ def _residuals(
 
     Scalar code without array views in the loops: this runs ~10⁵ times per query.
     """
-    Rq = m3.mul(_exp_so3(params[:3]), R0)
+    Rq = m3.mul(exp_so3(params[:3]), R0)
     c = c0 + m3.vec(B, params[3:])
     tq = -m3.vec(Rq, c)
     P = ref_R.shape[0]
@@ -82,7 +82,7 @@ def _residuals(
 
 
 @njit(cache=True, error_model="numpy", fastmath=_FAST)
-def _residuals_jacobian(
+def residuals_jacobian(
     R: np.ndarray, c: np.ndarray, B: np.ndarray, xq: np.ndarray, xr: np.ndarray, pair: np.ndarray,
     idx2d: np.ndarray, f_query: np.ndarray, f_ref: np.ndarray, ref_R: np.ndarray, ref_t: np.ndarray,
     xq3d: np.ndarray, X3d: np.ndarray, idx3d: np.ndarray, r: np.ndarray, J: np.ndarray, Jrot: np.ndarray,
@@ -197,7 +197,7 @@ def _residuals_jacobian(
 
 
 @njit(cache=True, error_model="numpy")
-def _solve_spd(A: np.ndarray, b: np.ndarray, x: np.ndarray) -> bool:
+def solve_spd(A: np.ndarray, b: np.ndarray, x: np.ndarray) -> bool:
     """Solve ``A x = b`` for a small symmetric positive-definite A by Cholesky; False if not SPD.
 
     Hand-written: numba's ``np.linalg.solve`` pulls in LAPACK bindings that take tens of
@@ -252,7 +252,7 @@ def refine_pose_core(
     s2 = loss_scale * loss_scale
     lam = 1e-4
     no_ref = np.empty((0, 3))
-    _residuals_jacobian(R, c, B, xq, xr, pair, idx2d, f_query, f_ref, ref_R, ref_t, xq3d, X3d, idx3d, r, J, no_ref)
+    residuals_jacobian(R, c, B, xq, xr, pair, idx2d, f_query, f_ref, ref_R, ref_t, xq3d, X3d, idx3d, r, J, no_ref)
     cost = 0.5 * s2 * np.sum(np.log1p(r * r / s2))
     wr2 = 0.0
     for it in range(max_iterations + 1):
@@ -283,10 +283,10 @@ def refine_pose_core(
                 A[k, k] += lam * max(H[k, k], 1e-12)
                 if fixed[k]:
                     A[k, k] = 1.0
-            if not _solve_spd(A, -g, step):
+            if not solve_spd(A, -g, step):
                 lam *= 10.0
                 continue
-            R_new = m3.mul(_exp_so3(step[:3]), R)
+            R_new = m3.mul(exp_so3(step[:3]), R)
             c_new = c + m3.vec(B, step[3:])
             _residuals(zero, R_new, c_new, B, xq, xr, pair, idx2d, f_query, f_ref, ref_R, ref_t, xq3d, X3d, idx3d, rp)
             new_cost = 0.5 * s2 * np.sum(np.log1p(rp * rp / s2))
@@ -304,7 +304,7 @@ def refine_pose_core(
         if not final_normal and it == max_iterations - 1:
             break  # the pose is what the caller wants; H and σ̂ stay those of the last pass
         if improved or _try < 6:
-            _residuals_jacobian(R, c, B, xq, xr, pair, idx2d, f_query, f_ref, ref_R, ref_t, xq3d, X3d, idx3d, r, J,
+            residuals_jacobian(R, c, B, xq, xr, pair, idx2d, f_query, f_ref, ref_R, ref_t, xq3d, X3d, idx3d, r, J,
                                 no_ref)
         if not improved or np.sqrt(np.sum(step * step)) < 1e-9:
             max_iterations = it + 1  # one more pass to evaluate H at the solution
@@ -402,7 +402,7 @@ def map_uncertainty_covariance(
     r = np.empty(m)
     J = np.empty((m, 6))
     Jrot = np.empty((m, 3))
-    _residuals_jacobian(Rq, c0, np.eye(3), xq, xr, pair, idx2d, f_query, f_ref, ref_R, ref_t, xq3d, X3d, idx3d, r,
+    residuals_jacobian(Rq, c0, np.eye(3), xq, xr, pair, idx2d, f_query, f_ref, ref_R, ref_t, xq3d, X3d, idx3d, r,
                         J, Jrot)
     s2 = loss_scale * loss_scale
     P = ref_R.shape[0]
