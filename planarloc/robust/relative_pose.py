@@ -19,14 +19,14 @@ import numpy as np
 from numba import njit
 
 from planarloc.geometry.camera import Camera
-from planarloc.geometry.epipolar import essential_from_relpose
+from planarloc.geometry.epipolar import essential_from_relpose, sampson_error_sq
+from planarloc.geometry.epipolar_kernels import essential_into, sampson_sq
 from planarloc.geometry.pose import Pose
 from planarloc.geometry.validation import InputError, check_array
 from planarloc.robust.options import RansacOptions
 from planarloc.robust.pose_graph import so3_exp
 from planarloc.robust.ransac import ransac
 from planarloc.robust.result import RansacStatistics
-from planarloc.robust.scoring import _sampson_sq as sampson_sq
 
 #: the 6DoF model replaces the planar one only if it has this many times its inliers
 SIX_DOF_MARGIN = 1.15
@@ -61,12 +61,7 @@ class RelativePoseEstimate:
 def _sampson_sq(R: np.ndarray, t: np.ndarray, xa: np.ndarray, xb: np.ndarray, fa: np.ndarray,
                 fb: np.ndarray) -> np.ndarray:
     """(K, N) squared Sampson errors in pixels of K poses ``b_from_a`` on N ray pairs (N, 3)."""
-    E = essential_from_relpose(R, t)                    # x_bᵀ E x_a = 0
-    Ea = np.einsum("kij,nj->kni", E, xa)                 # E x_a
-    Eb = np.einsum("kji,nj->kni", E, xb)                 # Eᵀ x_b
-    num = np.einsum("ni,kni->kn", xb, Ea) ** 2
-    den = (Ea[..., 0] / fb[0]) ** 2 + (Ea[..., 1] / fb[1]) ** 2 + (Eb[..., 0] / fa[0]) ** 2 + (Eb[..., 1] / fa[1]) ** 2
-    return num / np.maximum(den, 1e-300)
+    return np.stack([sampson_error_sq(E, xa, xb, fa, fb) for E in essential_from_relpose(R, t)])
 
 
 @njit(cache=True, error_model="numpy")
@@ -78,11 +73,7 @@ def _msac_kernel(R: np.ndarray, t: np.ndarray, xa: np.ndarray, xb: np.ndarray, f
     count = np.zeros(K, dtype=np.int64)
     E = np.empty((3, 3))
     for k in range(K):
-        Rk, tk = R[k], t[k]
-        for j in range(3):
-            E[0, j] = -tk[2] * Rk[1, j] + tk[1] * Rk[2, j]
-            E[1, j] = tk[2] * Rk[0, j] - tk[0] * Rk[2, j]
-            E[2, j] = -tk[1] * Rk[0, j] + tk[0] * Rk[1, j]
+        essential_into(R[k], t[k], E)
         c, n = 0.0, 0
         for i in range(xa.shape[0]):
             e = sampson_sq(E, xa[i], xb[i], fa[0], fa[1], fb[0], fb[1])

@@ -12,46 +12,10 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from planarloc.geometry import mat3 as m3
+from planarloc.geometry.epipolar_kernels import essential_into, relative_essential_into, reprojection_sq, sampson_sq
 
-
-@njit(cache=True, error_model="numpy", inline="always")
-def _relative_essential(Rp: np.ndarray, tp: np.ndarray, Rq: np.ndarray, tq: np.ndarray, E: np.ndarray) -> None:
-    """E = [t]x R for p_from_query = (Rp Rqᵀ, tp - Rp Rqᵀ tq), written into E (3, 3)."""
-    R = m3.mul_t(Rp, Rq)
-    t0 = tp[0] - (R[0, 0] * tq[0] + R[0, 1] * tq[1] + R[0, 2] * tq[2])
-    t1 = tp[1] - (R[1, 0] * tq[0] + R[1, 1] * tq[1] + R[1, 2] * tq[2])
-    t2 = tp[2] - (R[2, 0] * tq[0] + R[2, 1] * tq[1] + R[2, 2] * tq[2])
-    for j in range(3):
-        E[0, j] = -t2 * R[1, j] + t1 * R[2, j]
-        E[1, j] = t2 * R[0, j] - t0 * R[2, j]
-        E[2, j] = -t1 * R[0, j] + t0 * R[1, j]
-
-
-@njit(cache=True, error_model="numpy", inline="always")
-def _sampson_sq(E: np.ndarray, q: np.ndarray, r: np.ndarray, fq0: float, fq1: float, fr0: float, fr1: float) -> float:
-    Ex0 = E[0, 0] * q[0] + E[0, 1] * q[1] + E[0, 2] * q[2]
-    Ex1 = E[1, 0] * q[0] + E[1, 1] * q[1] + E[1, 2] * q[2]
-    Ex2 = E[2, 0] * q[0] + E[2, 1] * q[1] + E[2, 2] * q[2]
-    Etx0 = E[0, 0] * r[0] + E[1, 0] * r[1] + E[2, 0] * r[2]
-    Etx1 = E[0, 1] * r[0] + E[1, 1] * r[1] + E[2, 1] * r[2]
-    res = r[0] * Ex0 + r[1] * Ex1 + r[2] * Ex2
-    den = (Ex0 / fr0) ** 2 + (Ex1 / fr1) ** 2 + (Etx0 / fq0) ** 2 + (Etx1 / fq1) ** 2
-    if den < 1e-300:
-        return 1e300
-    return res * res / den
-
-
-@njit(cache=True, error_model="numpy", inline="always")
-def _reproj_sq(Rq: np.ndarray, tq: np.ndarray, X: np.ndarray, x: np.ndarray, fq0: float, fq1: float) -> float:
-    z = Rq[2, 0] * X[0] + Rq[2, 1] * X[1] + Rq[2, 2] * X[2] + tq[2]
-    if z <= 1e-9:
-        return 1e300
-    u = (Rq[0, 0] * X[0] + Rq[0, 1] * X[1] + Rq[0, 2] * X[2] + tq[0]) / z
-    v = (Rq[1, 0] * X[0] + Rq[1, 1] * X[1] + Rq[1, 2] * X[2] + tq[1]) / z
-    du = (u - x[0] / x[2]) * fq0
-    dv = (v - x[1] / x[2]) * fq1
-    return du * du + dv * dv
+# Kept for hypotheses.py until it imports the shared kernel directly.
+_sampson_sq = sampson_sq
 
 
 @njit(cache=True, error_model="numpy")
@@ -65,12 +29,12 @@ def errors_sq(
     e2d = np.empty(n)
     E = np.empty((3, 3))
     for p in range(offsets.shape[0] - 1):
-        _relative_essential(ref_R[p], ref_t[p], Rq, tq, E)
+        relative_essential_into(ref_R[p], ref_t[p], Rq, tq, E)
         for i in range(offsets[p], offsets[p + 1]):
-            e2d[i] = _sampson_sq(E, xq[i], xr[i], f_query[0], f_query[1], f_ref[p, 0], f_ref[p, 1])
+            e2d[i] = sampson_sq(E, xq[i], xr[i], f_query[0], f_query[1], f_ref[p, 0], f_ref[p, 1])
     e3d = np.empty(X3d.shape[0])
     for i in range(X3d.shape[0]):
-        e3d[i] = _reproj_sq(Rq, tq, X3d[i], xq3d[i], f_query[0], f_query[1])
+        e3d[i] = reprojection_sq(Rq, tq, X3d[i], xq3d[i], f_query[0], f_query[1])
     return e2d, e3d
 
 
@@ -103,9 +67,9 @@ def msac_scores(
         Rq = Rs[h]
         tq = ts[h]
         for p in range(offsets.shape[0] - 1):
-            _relative_essential(ref_R[p], ref_t[p], Rq, tq, E)
+            relative_essential_into(ref_R[p], ref_t[p], Rq, tq, E)
             for i in range(offsets[p], offsets[p + 1]):
-                e = _sampson_sq(E, xq[i], xr[i], f_query[0], f_query[1], f_ref[p, 0], f_ref[p, 1])
+                e = sampson_sq(E, xq[i], xr[i], f_query[0], f_query[1], f_ref[p, 0], f_ref[p, 1])
                 if e < threshold_sq:
                     c += e
                     k += 1
@@ -118,7 +82,7 @@ def msac_scores(
             inl[h] = k
             continue
         for i in range(X3d.shape[0]):
-            e = _reproj_sq(Rq, tq, X3d[i], xq3d[i], f_query[0], f_query[1])
+            e = reprojection_sq(Rq, tq, X3d[i], xq3d[i], f_query[0], f_query[1])
             if e < threshold_sq:
                 c += e
                 k += 1
@@ -153,14 +117,10 @@ def relative_msac_scores(
         for a in range(A):
             if not valid[s, a]:
                 continue
-            Ra, ta = R[s, a], t[s, a]
-            for j in range(3):
-                E[0, j] = -ta[2] * Ra[1, j] + ta[1] * Ra[2, j]
-                E[1, j] = ta[2] * Ra[0, j] - ta[0] * Ra[2, j]
-                E[2, j] = -ta[1] * Ra[0, j] + ta[0] * Ra[1, j]
+            essential_into(R[s, a], t[s, a], E)
             c = 0.0
             for i in range(offsets[p], offsets[p + 1]):
-                e = _sampson_sq(E, xq[i], xr[i], f_query[0], f_query[1], f_ref[p, 0], f_ref[p, 1])
+                e = sampson_sq(E, xq[i], xr[i], f_query[0], f_query[1], f_ref[p, 0], f_ref[p, 1])
                 c += e if e < threshold_sq else threshold_sq
             cost[s, a] = c
     return cost
