@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -70,8 +71,9 @@ def _rays(camera: Camera, pixels: np.ndarray) -> np.ndarray:
         return camera.bearings_from_img(pixels)
     (fx, fy), (cx, cy) = camera.focal, camera.principal_point
     out = np.empty((len(pixels), 3))
-    out[:, 0] = (pixels[:, 0] - cx) / fx
-    out[:, 1] = (pixels[:, 1] - cy) / fy
+    xy = out[:, :2]
+    np.subtract(pixels, (cx, cy), out=xy)
+    xy /= (fx, fy)
     out[:, 2] = 1.0
     return out
 
@@ -107,9 +109,8 @@ def build_problem(query_camera: Camera, pairs: Sequence[PairMatches]) -> Absolut
             "hint: retrieve more reference images (top-n >= 2)"
         )
     xq3, X3, src = [], [], []
-    counts = [len(p) for p in pairs]
-    offsets = np.zeros(len(pairs) + 1, dtype=np.int64)
-    np.cumsum(counts, out=offsets[1:])
+    counts = [len(p.query_points) for p in pairs]
+    offsets = np.array([0, *itertools.accumulate(counts)], dtype=np.int64)
     # One undistortion call for all query points (same camera); references may differ.
     xq_all = _rays(query_camera, np.concatenate([p.query_points for p in pairs]))
     _check_rays(xq_all, offsets, "query_points")
@@ -140,8 +141,8 @@ def build_problem(query_camera: Camera, pairs: Sequence[PairMatches]) -> Absolut
         query_ids=qids,
         f_query=np.asarray(query_camera.focal, dtype=float),
         f_ref=np.asarray([p.ref_camera.focal for p in pairs], dtype=float),
-        ref_R=np.ascontiguousarray(np.stack([p.ref_pose.R for p in pairs])),
-        ref_t=np.ascontiguousarray(np.stack([p.ref_pose.t for p in pairs])),
+        ref_R=np.array([p.ref_pose.R for p in pairs]),
+        ref_t=np.array([p.ref_pose.t for p in pairs]),
         xq3d=np.ascontiguousarray(np.vstack(xq3)) if xq3 else np.zeros((0, 3)),
         X3d=np.ascontiguousarray(np.vstack(X3)) if X3 else np.zeros((0, 3)),
         source3d=np.concatenate(src).astype(np.int64) if src else np.zeros(0, dtype=np.int64),
