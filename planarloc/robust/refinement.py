@@ -39,7 +39,7 @@ def exp_so3(w: np.ndarray) -> np.ndarray:
 
 
 @njit(cache=True, error_model="numpy", fastmath=_FAST)
-def _residuals(
+def residuals(
     params: np.ndarray, R0: np.ndarray, c0: np.ndarray, B: np.ndarray, xq: np.ndarray, xr: np.ndarray,
     pair: np.ndarray, idx2d: np.ndarray, f_query: np.ndarray, f_ref: np.ndarray, ref_R: np.ndarray,
     ref_t: np.ndarray, xq3d: np.ndarray, X3d: np.ndarray, idx3d: np.ndarray, out: np.ndarray,
@@ -274,7 +274,7 @@ def refine_pose_core(
                 continue
             R_new = m3.mul(exp_so3(step[:3]), R)
             c_new = c + m3.vec(B, step[3:])
-            _residuals(zero, R_new, c_new, B, xq, xr, pair, idx2d, f_query, f_ref, ref_R, ref_t, xq3d, X3d, idx3d, rp)
+            residuals(zero, R_new, c_new, B, xq, xr, pair, idx2d, f_query, f_ref, ref_R, ref_t, xq3d, X3d, idx3d, rp)
             new_cost = 0.5 * s2 * np.sum(np.log1p(rp * rp / s2))
             if new_cost <= cost:
                 R, c = R_new, c_new
