@@ -2,9 +2,11 @@
 
 Stages: gravity levelling (planar families run on upright bearings), one RANSAC search per
 hypothesis family (``auto``: planar 2p1p and 6DoF 5-point), robust 6DoF refinement of each
-search's best, the lowest-cost pose wins; then :mod:`planarloc.robust.observability` judges
-it (collinear degeneracy, covariance with map uncertainty, leave-one-reference-out
-verification, planar fit) and only a pose that passes is a ``success``.
+search's best, the lowest-cost pose wins; then :func:`planarloc.robust.verification.judge_pose`
+judges it (collinear degeneracy, covariance with map uncertainty, leave-one-reference-out
+verification, planar fit; the numbers from :mod:`planarloc.robust.observability`) and only a
+pose that passes is a ``success``. An explicit planar method is also checked against the 6DoF
+search (``planar_model_violated``).
 """
 
 from __future__ import annotations
@@ -19,8 +21,6 @@ import numpy as np
 
 from planarloc.geometry.camera import Camera
 from planarloc.geometry.gravity import mean_direction, upright_from_gravity
-from planarloc.geometry.mat3 import sym_eigvals
-from planarloc.geometry.pose import Pose
 from planarloc.robust import observability as obs
 from planarloc.robust.estimators import (
     SIGMA_FLOOR_PX,
@@ -35,12 +35,12 @@ from planarloc.robust.problem import AbsolutePoseProblem, build_problem
 from planarloc.robust.ransac import ransac
 from planarloc.robust.refinement import centre_covariance, refine_until_stable
 from planarloc.robust.result import PoseEstimate, RansacStatistics
+from planarloc.robust.verification import RefinedPose, failed_estimate, judge_pose
 from planarloc.robust.sampling import eligible_pairs
 from planarloc.robust.structure import triangulate_tracks
 
 logger = logging.getLogger(__name__)
 
-PROFILE_BELOW_RATIO = 0.15  # centre collinearity ratio under which the cost profile is checked
 
 MIN_SAMPLE = {Method.AUTO: (2, 1), Method.P2P1: (2, 1), Method.P2P2: (2, 2), Method.NISTER: (5, 5),
               Method.STEWENIUS: (5, 5), Method.EIGHT: (8, 8)}
@@ -56,10 +56,6 @@ PLANAR_VIOLATION_RATIO = 0.8
 RIVAL_COST_RATIO = 1.25
 FINAL_REFINEMENT_ROUNDS = 4
 TILT_SEARCH_SCALE = 0.0  # planar hypotheses are scored at τ + scale·f·tan(planar_tolerance_deg)
-
-
-def _split(mask: np.ndarray, offsets: np.ndarray) -> list[np.ndarray]:
-    return [mask[offsets[p]:offsets[p + 1]].copy() for p in range(len(offsets) - 1)]
 
 
 @dataclass(frozen=True)
@@ -116,22 +112,7 @@ def _eligible(problem: AbsolutePoseProblem, family: Method) -> bool:
     return bool(eligible_pairs(problem.counts, m1, m2) or (has_3d and (problem.counts >= m1).any()))
 
 
-@dataclass(frozen=True)
-class _Refined:
-    """One search's final pose: refined (R, t), centre covariance from the pixel noise, σ̂,
-    robust cost, MSAC score at τ and the inlier masks at the pose."""
-
-    R: np.ndarray
-    t: np.ndarray
-    cov: np.ndarray
-    sigma: float
-    cost: float
-    score: float
-    in2d: np.ndarray
-    in3d: np.ndarray
-
-
-def _refine(scorer, R: np.ndarray, t: np.ndarray, options: RansacOptions) -> _Refined:
+def _refine(scorer, R: np.ndarray, t: np.ndarray, options: RansacOptions) -> RefinedPose:
     """Final robust refinement, repeated on the refined pose's inliers while they change
     (one compiled call, :func:`refine_until_stable`)."""
     p = scorer.p
@@ -139,7 +120,7 @@ def _refine(scorer, R: np.ndarray, t: np.ndarray, options: RansacOptions) -> _Re
         np.ascontiguousarray(R), np.ascontiguousarray(t), p.xq, p.xr, p.pair, p.offsets, p.f_query, p.f_ref,
         p.ref_R, p.ref_t, p.xq3d, p.X3d, scorer.threshold_sq, options.threshold_px,
         6 if options.refine else 0, FINAL_REFINEMENT_ROUNDS if options.refine else 1, SIGMA_FLOOR_PX)
-    return _Refined(R, t, centre_covariance(H, sigma), sigma, cost, score, in2d, in3d)
+    return RefinedPose(R, t, centre_covariance(H, sigma), sigma, cost, score, in2d, in3d)
 
 
 def estimate_absolute_pose(
@@ -190,12 +171,9 @@ def estimate_absolute_pose(
         problem = problem.with_points3d(xq3, X3, np.full(len(X3), -1))
         stats.add_time("structure", time.perf_counter() - t0)
     stats.add_time("setup", time.perf_counter() - t_start)
-    empty = _split(np.zeros(len(problem.xq), dtype=bool), problem.offsets)
 
-    def failure(status: str, message: str, **kw) -> PoseEstimate:
-        stats.add_time("total", time.perf_counter() - t_start)
-        return PoseEstimate(None, False, status, message, kw.pop("inliers", empty), iterations=stats.iterations,
-                            stats=stats, **kw)
+    def failure(status: str, message: str) -> PoseEstimate:
+        return failed_estimate(problem, stats, t_start, status, message)
 
     families = [f for f in FAMILIES[method] if _eligible(problem, f)]
     check_6dof = method in PLANAR and options.verify_planar and _eligible(problem, Method.NISTER)
@@ -243,7 +221,7 @@ def estimate_absolute_pose(
     # elsewhere, the data do not single out one position (a flat or multi-modal cost), and the
     # distance between the answers is a lower bound of the position's uncertainty.
     rivals = [-c[2].R.T @ c[2].t for c in candidates if c[0] <= RIVAL_COST_RATIO * best_score and c[2] is not ref]
-    est = _judge(scorer, problem, options, gravity, ref, stats, t_start, failure, rivals)
+    est = judge_pose(scorer, problem, options, gravity.world, gravity.query, ref, stats, t_start, rivals)
     if est.success and method in PLANAR and options.verify_planar and est.model != "planar":
         return PoseEstimate(None, False, "planar_model_violated",
                             f"the {method.value} pose does not fit the planar model it assumes (it implies a tilt or "
@@ -268,90 +246,3 @@ def _different(problem: AbsolutePoseProblem, a: tuple, b: tuple) -> bool:
     scale = np.linalg.norm(obs.reference_centres(problem) - ca, axis=1).min()
     angle = np.degrees(np.arccos(np.clip((np.trace(a[0] @ b[0].T) - 1.0) / 2.0, -1.0, 1.0)))
     return bool(np.linalg.norm(ca - cb) > 0.05 * scale or angle > 2.0)
-
-
-def _judge(estimator, problem: AbsolutePoseProblem, options: RansacOptions, gravity: _Gravity, ref: _Refined,
-           stats: RansacStatistics, t_start: float, failure, rivals: Sequence[np.ndarray] = ()) -> PoseEstimate:
-    """Uncertainty and verification of the refined pose; a success only if it passes.
-
-    ``rivals``: (3,) centres of other searches' refined poses of nearly the same cost."""
-    t0 = time.perf_counter()
-    R, t, in2d, in3d = ref.R, ref.t, ref.in2d, ref.in3d
-    inliers = _split(in2d, problem.offsets)
-    n2d, n3d = int(np.count_nonzero(in2d)), int(np.count_nonzero(in3d))
-    support = obs.pose_support(problem, R, t, in2d, gravity.world, gravity.query)
-    spread = support.collinearity
-    near_collinear = spread < PROFILE_BELOW_RATIO and n3d < options.min_inliers
-    # Residuals within one reference are correlated (its pose error, calibration, model
-    # errors): thousands of matches are not thousands of independent constraints.
-    correlation = obs.correlation_inflation(n2d + n3d, len(support.supporting))
-    cov = ref.cov * correlation**2
-    finite = bool(np.isfinite(cov).all())
-    if finite and (options.map_rotation_std_deg > 0 or options.map_position_std_m > 0):
-        # Map errors through the full model, always: weak geometry amplifies them (a 0.1° error
-        # of a reference's rotation moves a 2D-2D position by metres when the query is almost
-        # collinear with the references), and triangulated tracks inherit them (KITTI, tracks:
-        # 95 % -> 100 % of successes within 3σ + 5 cm with the full model); never less than the
-        # references' own error moved rigidly with the query.
-        d = support.median_distance_m
-        rigid = options.map_position_std_m**2 + (d * math.radians(options.map_rotation_std_deg)) ** 2
-        cov = cov + obs.map_covariance(estimator, R, t, in2d, in3d)
-        finite = bool(np.isfinite(cov).all())
-        if finite:
-            cov = cov + np.eye(3) * rigid
-    std = math.sqrt(max(sym_eigvals(cov)[0], 0.0)) if finite else math.inf
-    if math.isfinite(std) and near_collinear:
-        # Near-collinear geometry: the linearised covariance is over-confident in the curved
-        # valley of the cost; profile the cost along the weak directions.
-        # Probe at 3σ (does the quadratic model hold?) and at the decision scale.
-        probes = {min(max(3.0 * std, 0.02), 2.0), min(options.max_position_std_m, 2.0)}
-        for u in obs.weak_directions(estimator, R, t, support.supporting, cov):
-            for d in probes:
-                std = max(std, correlation * obs.profile_std(estimator, R, t, in2d, in3d, ref.sigma, ref.cost, u, d))
-    if rivals:
-        c = -R.T @ t
-        for other in rivals:
-            std = max(std, float(np.linalg.norm(other - c)))
-    fit = support.fit
-    model = "planar" if fit.holds(options.planar_tolerance_deg) else "6dof"
-    pose = Pose._unchecked(R, t)  # a refined rotation (exp map of a rotation): valid by construction
-    common = dict(inliers=inliers, num_inliers=n2d, num_inliers_3d=n3d, model=model)
-    if n2d + n3d < options.min_inliers:
-        stats.add_time("verification", time.perf_counter() - t0)
-        return failure("too_few_inliers", f"best pose has {n2d + n3d} inliers, fewer than min_inliers="
-                       f"{options.min_inliers}", position_std_m=std, **common)
-    supporting = support.supporting
-    if len(supporting) < 2 and n3d < options.min_inliers:
-        stats.add_time("verification", time.perf_counter() - t0)
-        return failure("single_reference",
-                       f"only {len(supporting)} reference image(s) support the pose with >= {obs.MIN_PAIR_INLIERS} "
-                       "inliers: the position along the baseline cannot be verified; retrieve more map images",
-                       position_std_m=std, unreliable_pose=pose, **common)
-    collinear = n3d < options.min_inliers and spread < options.min_collinearity_ratio
-    if collinear or not std <= options.max_position_std_m:
-        hint = "" if options.structure == Structure.TRACKS else "; try structure='tracks'"
-        why = (f"the query and reference centres are nearly collinear (ratio {spread:.2g} < "
-               f"min_collinearity_ratio = {options.min_collinearity_ratio})") if collinear else (
-               f"std {std:.3g} m > max_position_std_m = {options.max_position_std_m} m")
-        stats.add_time("verification", time.perf_counter() - t0)
-        return failure("degenerate_scale", f"position unobservable from the inliers: {why}{hint}",
-                       position_std_m=std, unreliable_pose=pose, **common)
-    if options.refine:
-        jk = obs.reference_jackknife(estimator, R, t, in2d, in3d, support=supporting)
-        if math.isfinite(jk.position_std_m):
-            std = max(std, jk.position_std_m)
-            limit = min(options.max_reference_shift_std * std, options.max_position_std_m)
-            if jk.max_shift_m > limit or jk.max_rotation_deg > 5.0:
-                stats.add_time("verification", time.perf_counter() - t0)
-                return failure("inconsistent_references",
-                               f"leaving out reference {jk.worst_reference} moves the pose by {jk.max_shift_m:.3g} m / "
-                               f"{jk.max_rotation_deg:.2g}° (limit {limit:.3g} m / 5°): the references disagree",
-                               position_std_m=std, unreliable_pose=pose, **common)
-    stats.add_time("verification", time.perf_counter() - t0)
-    if not std <= options.max_position_std_m:
-        return failure("degenerate_scale", f"position std {std:.3g} m > max_position_std_m = "
-                       f"{options.max_position_std_m} m after leave-one-reference-out verification",
-                       position_std_m=std, unreliable_pose=pose, **common)
-    stats.add_time("total", time.perf_counter() - t_start)
-    return PoseEstimate(pose, True, "success", f"{n2d} 2D-2D and {n3d} 2D-3D inliers, position std {std:.3g} m, "
-                        f"{model} model", inliers, n2d, n3d, stats.iterations, std, None, stats, model=model)
