@@ -11,6 +11,9 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 import numpy as np
+from numba import njit
+
+_FLOAT64 = np.dtype(np.float64)
 
 
 class InputError(ValueError):
@@ -85,6 +88,50 @@ def check_array_fast(name: str, value: object, shape: Sequence[int | None], min_
     if not np.isfinite(arr.sum()):
         return check_array(name, value, shape, min_rows=min_rows)
     return arr
+
+
+def is_plain_float64(value: object, ndim: int) -> bool:
+    """True if ``value`` is exactly a C-contiguous float64 ``ndarray`` with ``ndim`` dimensions.
+
+    The gate of the single-call solver APIs: such input goes straight to a compiled kernel
+    that validates the values itself (:func:`rays_invalid`); anything else (lists, other
+    dtypes, views with strides, subclasses) goes through :func:`check_array`, which converts
+    it or raises its usual message. Costs ~0.2 µs.
+    """
+    return (
+        type(value) is np.ndarray
+        and value.dtype is _FLOAT64  # type: ignore[attr-defined]
+        and value.ndim == ndim  # type: ignore[attr-defined]
+        and value.flags.c_contiguous  # type: ignore[attr-defined]
+    )
+
+
+@njit(cache=True)
+def rays_invalid(xq: np.ndarray, xr: np.ndarray, rows: int, min_rows: int, nonzero: bool) -> bool:
+    """Kernel twin of the correspondence checks: True if the two (N, 3) ray arrays are invalid.
+
+    Invalid: a second dimension other than 3, ``N != rows`` (if ``rows >= 0``), ``N <
+    min_rows``, different ``N``, a NaN/inf entry, or (if ``nonzero``) an all-zero row. These
+    are exactly the conditions under which
+    :func:`planarloc.geometry.essential_decomposition.check_correspondences` raises, so a
+    caller that gets True calls it for the message.
+    """
+    n = xq.shape[0]
+    if xq.shape[1] != 3 or xr.shape[1] != 3 or xr.shape[0] != n or n < min_rows or (rows >= 0 and n != rows):
+        return True
+    return _rows_invalid(xq, nonzero) or _rows_invalid(xr, nonzero)
+
+
+@njit(cache=True)
+def _rows_invalid(x: np.ndarray, nonzero: bool) -> bool:
+    """True if a row of the (N, 3) array x has a NaN/inf entry or (if ``nonzero``) is all zero."""
+    for i in range(x.shape[0]):
+        a, b, c = x[i, 0], x[i, 1], x[i, 2]
+        if not (np.isfinite(a) and np.isfinite(b) and np.isfinite(c)):
+            return True
+        if nonzero and a == 0.0 and b == 0.0 and c == 0.0:
+            return True
+    return False
 
 
 def check_rotation(name: str, R: object, tol: float = 1e-6) -> np.ndarray:
