@@ -19,7 +19,7 @@ from numba import njit
 
 from planarloc.geometry.epipolar import triangulation_depths
 from planarloc.geometry.pose import Pose
-from planarloc.geometry.validation import InputError, check_array, check_array_fast, is_plain_float64
+from planarloc.geometry.validation import InputError, check_array, is_plain_float64
 
 __all__ = [
     "check_correspondence_batch",
@@ -63,8 +63,8 @@ def check_correspondences(
         InputError: wrong shape, row-count mismatch, NaN/inf, or an all-zero row.
     """
     shape = (rows, 3)
-    xq = check_array_fast("x_query", x_query, shape, min_rows=min_rows)
-    xr = check_array_fast("x_ref", x_ref, shape, min_rows=min_rows)
+    xq = check_array("x_query", x_query, shape, min_rows=min_rows)
+    xr = check_array("x_ref", x_ref, shape, min_rows=min_rows)
     if xq.shape != xr.shape:
         raise InputError(
             f"x_query and x_ref must have the same number of rows, got {xq.shape[0]} and {xr.shape[0]}"

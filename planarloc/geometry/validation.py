@@ -48,7 +48,8 @@ def check_array(
         min_rows: if given, the first dimension must be at least this large.
 
     Returns:
-        The input as a contiguous array of ``dtype``.
+        The input as a contiguous array of ``dtype``; a writable copy if it was read-only (so
+        that the compiled kernels always see the same array type and never recompile).
 
     Raises:
         InputError: with expected vs. actual shape, or the index of the first non-finite entry.
@@ -57,6 +58,8 @@ def check_array(
         arr = np.ascontiguousarray(value, dtype=dtype)
     except (TypeError, ValueError) as exc:
         raise InputError(f"{name}: expected a numeric array, got {type(value).__name__} ({exc})") from None
+    if not arr.flags.writeable:
+        arr = arr.copy()
     if shape is not None:
         ok = arr.ndim == len(shape) and all(s is None or s == a for s, a in zip(shape, arr.shape))
         if not ok:
@@ -70,40 +73,19 @@ def check_array(
     return arr
 
 
-def check_array_fast(name: str, value: object, shape: Sequence[int | None], min_rows: int | None = None
-                     ) -> np.ndarray:
-    """:func:`check_array` (finite, float64) with a fast path for valid input.
-
-    For the single-call solver APIs, where the full check cost more than the solve: one
-    conversion, a shape comparison and one reduction (a finite sum means finite entries).
-    Anything unusual goes through :func:`check_array`, which raises its usual messages.
-    """
-    arr = value if type(value) is np.ndarray and value.dtype == np.float64 else None
-    if arr is None or not arr.flags.c_contiguous or arr.ndim != len(shape) or (
-            min_rows is not None and arr.shape[0] < min_rows):
-        return check_array(name, value, shape, min_rows=min_rows)
-    for s, a in zip(shape, arr.shape):
-        if s is not None and s != a:
-            return check_array(name, value, shape, min_rows=min_rows)
-    if not np.isfinite(arr.sum()):
-        return check_array(name, value, shape, min_rows=min_rows)
-    return arr
-
-
 def is_plain_float64(value: object, ndim: int) -> bool:
-    """True if ``value`` is exactly a C-contiguous float64 ``ndarray`` with ``ndim`` dimensions.
+    """True if ``value`` is exactly a writable C-contiguous float64 ``ndarray`` with ``ndim``
+    dimensions.
 
     The gate of the single-call solver APIs: such input goes straight to a compiled kernel
     that validates the values itself (:func:`rays_invalid`); anything else (lists, other
-    dtypes, views with strides, subclasses) goes through :func:`check_array`, which converts
-    it or raises its usual message. Costs ~0.2 µs.
+    dtypes, views with strides, read-only arrays, subclasses) goes through
+    :func:`check_array`, which converts it or raises its usual message. Costs ~0.2 µs.
     """
-    return (
-        type(value) is np.ndarray
-        and value.dtype is _FLOAT64  # type: ignore[attr-defined]
-        and value.ndim == ndim  # type: ignore[attr-defined]
-        and value.flags.c_contiguous  # type: ignore[attr-defined]
-    )
+    if type(value) is not np.ndarray or value.dtype is not _FLOAT64 or value.ndim != ndim:
+        return False
+    flags = value.flags
+    return flags.c_contiguous and flags.writeable
 
 
 @njit(cache=True)

@@ -28,7 +28,7 @@ import numpy as np
 from numba import njit, prange
 
 from planarloc.geometry.pose import Pose
-from planarloc.geometry.validation import InputError, check_array, check_array_fast, is_plain_float64
+from planarloc.geometry.validation import InputError, check_array, is_plain_float64
 
 _EPS_RANK = 1e-9
 _EPS_FORM = 1e-12
@@ -234,8 +234,7 @@ _PARALLEL_MIN_BATCH = 4096  # below this, thread start-up costs more than it sav
 
 
 def _check_points(name: str, x: object, shape: tuple) -> np.ndarray:
-    if type(x) is np.ndarray and x.shape[-1:] == (3,):
-        return check_array_fast(name, x, shape)
+    """Checked rays of ``shape`` (last axis 3); normalized points with a last axis of 2 get z = 1."""
     arr = check_array(name, x)
     if arr.ndim == len(shape) and arr.shape[-1] == 2 and all(
         s is None or s == a for s, a in zip(shape[:-1], arr.shape[:-1])
