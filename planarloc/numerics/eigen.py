@@ -21,7 +21,6 @@ __all__ = ["real_eigenvalues"]
 REAL_TOL = 1e-10  # |imaginary part| <= REAL_TOL max(1, |λ|): the eigenvalue counts as real
 
 
-
 @njit(cache=True)
 def _balance(a, n):
     """Similarity scaling by powers of 2 so that row and column norms are comparable."""

@@ -17,8 +17,6 @@ from numba import njit
 __all__ = ["polyval", "real_roots_sturm"]
 
 
-
-
 @njit(cache=True)
 def polyval(c: np.ndarray, deg: int, z: float) -> float:
     """Horner evaluation of ``c[0] + ... + c[deg] z^deg``."""

@@ -63,7 +63,6 @@ def monomial_permutation(order: list[tuple[int, int, int]]) -> np.ndarray:
     return np.array([_INDEX[m] for m in order], dtype=np.int64)
 
 
-
 # Floating-point contraction (FMA) and reassociation for the dense arithmetic kernels; never the
 # no-NaN/no-inf assumptions, so finiteness tests stay meaningful.
 _FASTMATH = {"contract", "reassoc"}
