@@ -21,9 +21,9 @@ What is timed (generated data only, noise-free, seeded):
   ``relpose_8pt`` on the same samples (unit bearings: PoseLib's cheirality test assumes them).
 
 Every timing repeats the whole loop k times and reports the best (minimum) and the median of
-the per-call times (wall clock unless the column says CPU). Numba functions are compiled and called once before timing. The load
-average is printed with the results because the machine may be shared; on a loaded machine the
-median moves much more than the best.
+the per-call times (wall clock unless the column says CPU). Numba functions are compiled and
+called once before timing. The load average is printed with the results because the machine
+may be shared; on a loaded machine the median moves much more than the best.
 
 PoseLib's README quotes ~0.12 µs for the C++ planar 2-point solver. That number is a
 reference constant, **not measured here**, and is labelled so in the table.
@@ -221,13 +221,14 @@ def run(quick: bool) -> tuple[list[Row], dict]:
         msg = f"  {row.name:<46s} {row.us_best:10.3f} µs wall, {row.cpu_best:.3f} CPU"
         if peer is not None:
             prow = Row(f"{peer_name} (with {name})", "peer", min(pwall), statistics.median(pwall), n, reps,
-                       note="Python binding, interleaved", cpu_best=min(pcpu), cpu_median=statistics.median(pcpu))
+                       note="Python binding, interleaved", cpu_best=min(pcpu),
+                       cpu_median=statistics.median(pcpu))
             row.peer = prow.name
             row.ratio_wall = row.us_best / prow.us_best
             row.ratio_cpu = row.cpu_best / prow.cpu_best
             rows.append(prow)
-            msg += f"   vs {peer_name} {prow.us_best:.3f} / {prow.cpu_best:.3f}: ratio {row.ratio_wall:.2f} wall, "
-            msg += f"{row.ratio_cpu:.2f} CPU"
+            msg += f"   vs {peer_name} {prow.us_best:.3f} / {prow.cpu_best:.3f}: "
+            msg += f"ratio {row.ratio_wall:.2f} wall, {row.ratio_cpu:.2f} CPU"
         print(msg, file=sys.stderr, flush=True)
         return row
 
@@ -248,7 +249,8 @@ def run(quick: bool) -> tuple[list[Row], dict]:
         peer_2p = poselib.relpose_upright_planar_2pt
         peer_2p(uq2[0], ur2[0])
     single_2p = add_single("relpose_planar_2p", lambda i: relpose_planar_2p(xq2[i], xr2[i]),
-                           "poselib.relpose_upright_planar_2pt", None if peer_2p is None else lambda i: peer_2p(uq2[i], ur2[i]))
+                           "poselib.relpose_upright_planar_2pt",
+                           None if peer_2p is None else lambda i: peer_2p(uq2[i], ur2[i]))
     add("relpose_planar_2p_batch (per sample)", "batch",
         time_batch(lambda: relpose_planar_2p_batch(xq2, xr2), n_batch_2p, reps), n_batch_2p,
         peer=single_2p.peer)
@@ -279,7 +281,8 @@ def run(quick: bool) -> tuple[list[Row], dict]:
     abspose_2p2p(*cases[0][:4])
     abspose_2p1p(cases[0][0], cases[0][2], cases[0][3], cases[0][4], cases[0][5])
     add_single("abspose_2p2p", lambda i: abspose_2p2p(*cases[i][:4]))
-    add_single("abspose_2p1p", lambda i: abspose_2p1p(cases[i][0], cases[i][2], cases[i][3], cases[i][4], cases[i][5]))
+    add_single("abspose_2p1p",
+               lambda i: abspose_2p1p(cases[i][0], cases[i][2], cases[i][3], cases[i][4], cases[i][5]))
     up2p = []  # (2, 3) query rays and their points in an upright frame
     while len(up2p) < n_single:
         query = random_planar_pose(rng)
@@ -329,7 +332,8 @@ def run(quick: bool) -> tuple[list[Row], dict]:
             f = getattr(poselib, peer.split(".")[1])
             f(uq[0], ur[0])
             peer_fn = lambda i, f=f, uq=uq, ur=ur: f(uq[i], ur[i])  # noqa: E731
-        row = add_single(single_name, lambda i, single=single, xq=xq, xr=xr: single(xq[i], xr[i]), peer, peer_fn)
+        row = add_single(single_name, lambda i, single=single, xq=xq, xr=xr: single(xq[i], xr[i]), peer,
+                         peer_fn)
         add(f"{batch_name} (per sample)", "batch", time_batch(lambda: batch(xq, xr), len(xq), reps), len(xq),
             peer=row.peer)
 
@@ -368,8 +372,8 @@ def format_table(rows: list[Row], load_before, load_after, meta) -> str:
             vs = r.peer
         samples = str(r.samples) if r.samples else "—"
         lines.append(
-            f"{r.name:<52s} {r.kind:<9s} {r.us_best:9.3f} {med:>10s} {cpu} {samples:>8s}  {ratio:>17s} {ratio_cpu:>5s}"
-            f"  {vs}"
+            f"{r.name:<52s} {r.kind:<9s} {r.us_best:9.3f} {med:>10s} {cpu} {samples:>8s}  {ratio:>17s}"
+            f" {ratio_cpu:>5s}  {vs}"
         )
         if r.note:
             lines.append(f"{'':<46s}   ↳ {r.note}")

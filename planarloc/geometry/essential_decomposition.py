@@ -75,7 +75,13 @@ def check_correspondences(
 
 
 def solve_correspondences(
-    kernel, x_query: object, x_ref: object, out: np.ndarray, *, rows: int | None = None, min_rows: int = 1
+    kernel,
+    x_query: object,
+    x_ref: object,
+    out: np.ndarray | None,
+    *,
+    rows: int | None = None,
+    min_rows: int = 1,
 ) -> tuple[int, np.ndarray, np.ndarray]:
     """Run a validating single-call solver kernel, with :func:`check_correspondences` as fallback.
 

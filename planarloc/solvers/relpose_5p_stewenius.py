@@ -31,8 +31,9 @@ Deviations from the paper:
 
 * Eigenvalues by our own numba port of the classic EISPACK/Numerical Recipes route
   (balancing, reduction to Hessenberg form by stabilised elimination, shifted double-step QR,
-  ``hqr``; :func:`planarloc.numerics.eigen.real_eigenvalues`). Reason: numba's ``np.linalg.eig`` needs complex input and costs ~150 µs per
-  10 × 10 matrix, ten times the whole solver. An eigenvalue counts as real if its imaginary
+  ``hqr``; :func:`planarloc.numerics.eigen.real_eigenvalues`). Reason: numba's
+  ``np.linalg.eig`` needs complex input and costs ~150 µs per 10 × 10 matrix, ten times the
+  whole solver. An eigenvalue counts as real if its imaginary
   part is below 1e-10 ``max(1, |λ|)`` (rounding can split a double real root into a pair).
 * Eigenvectors of the *real* eigenvalues only, from the structure of the action matrix: with
   ``b₉ = 1`` its identity rows fix ``b₀, b₁, b₂, b₆`` and the other six rows are a 6 × 5

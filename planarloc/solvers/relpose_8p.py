@@ -36,7 +36,6 @@ from numba import njit
 
 from planarloc.geometry.essential_decomposition import (
     check_correspondence_batch,
-    check_correspondences,
     mask_invalid,
     relpose_from_essential_kernel,
     relposes_closed_form,
@@ -170,8 +169,8 @@ def _null_vector_8(A, e) -> bool:
 @njit(cache=True)
 def _scratch_8p():
     """Work buffers of :func:`_solve_8p` (allocated once per batch)."""
-    return (np.empty((8, 3)), np.empty((8, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty((8, 9)), np.empty(9),
-            np.empty((3, 3)), np.empty((3, 3)), np.empty((4, 3, 3)))
+    return (np.empty((8, 3)), np.empty((8, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty((8, 9)),
+            np.empty(9), np.empty((3, 3)), np.empty((3, 3)), np.empty((4, 3, 3)))
 
 
 @njit(cache=True)
@@ -208,6 +207,12 @@ def _batch_8p(xq, xr, R, t, valid):
     scratch = _scratch_8p()
     for m in range(xq.shape[0]):
         valid[m, 0] = _solve_8p(xq[m], xr[m], R[m, 0], t[m, 0], scratch)
+
+
+@njit(cache=True)
+def _validate(xq, xr, out) -> int:
+    """-1 for invalid input (as :func:`_relpose_8p_minimal`), else 0; ``out`` is unused."""
+    return -1 if rays_invalid(xq, xr, -1, 8, True) else 0
 
 
 @njit(cache=True)
@@ -249,7 +254,7 @@ def essential_8p(x_query: object, x_ref: object) -> list[np.ndarray]:
     References:
         Hartley, TPAMI 1997; Hartley & Zisserman Alg. 11.1 and Sec. 9.6.1.
     """
-    xq, xr = check_correspondences(x_query, x_ref, min_rows=8)
+    _, xq, xr = solve_correspondences(_validate, x_query, x_ref, None, min_rows=8)
     return _essential_8p_unchecked(xq, xr)
 
 

@@ -25,11 +25,12 @@ RELPOSE = {  # name: (function, number of matches, planar scene)
     "relpose_8p (12)": (S.relpose_8p, 12, False),
     "essentials_5p_nister": (S.essentials_5p_nister, 5, False),
     "essentials_5p_stewenius": (S.essentials_5p_stewenius, 5, False),
+    "essential_8p": (S.essential_8p, 9, False),
 }
 
 
 def _arrays(result: list) -> list[np.ndarray]:
-    return [np.concatenate([p.R.ravel(), p.t]) if isinstance(p, Pose) else np.asarray(p).ravel() for p in result]
+    return [np.concatenate([r.R.ravel(), r.t]) if isinstance(r, Pose) else np.asarray(r).ravel() for r in result]
 
 
 def _same(a: list, b: list) -> None:
@@ -64,7 +65,8 @@ def test_fast_and_slow_path_give_identical_results(name: str) -> None:
         vqs, vrs = _variants(xq), _variants(xr)
         for kind in vqs:
             if kind == "float32":  # rounded values: compare to the same values in float64
-                _same(fn(vqs[kind], vrs[kind]), fn(vqs[kind].astype(np.float64), vrs[kind].astype(np.float64)))
+                as64 = fn(vqs[kind].astype(np.float64), vrs[kind].astype(np.float64))
+                _same(fn(vqs[kind], vrs[kind]), as64)
             else:
                 _same(fn(vqs[kind], vrs[kind]), fast)
 
@@ -158,7 +160,8 @@ def test_abspose_2p2p_matches_pose_algebra() -> None:
         res = S.abspose_2p2p(rel, rel2, ref.inverse().inverse(), ref2)  # inverse(): transposed arrays
         j_from_j2 = ref @ ref2.inverse()
         t2_in_1 = rel.R @ rel2.R.T @ rel2.t
-        assert res.rcheck_deg == pytest.approx(rotation_error_deg(j_from_j2.R, rel.R @ rel2.R.T), abs=1e-5)  # arccos near 1
+        rcheck = rotation_error_deg(j_from_j2.R, rel.R @ rel2.R.T)
+        assert res.rcheck_deg == pytest.approx(rcheck, abs=1e-5)  # ~0: arccos near 1 amplifies rounding
         assert res.sin_parallax == pytest.approx(np.linalg.norm(np.cross(rel.t, t2_in_1)), abs=1e-12)
         np.testing.assert_allclose(res.pose.R, query.R, atol=1e-9)
         np.testing.assert_allclose(res.pose.center, query.center, atol=1e-7)
@@ -183,8 +186,8 @@ def test_abspose_2p1p_matches_pose_algebra_and_its_checks() -> None:
         np.testing.assert_allclose(res.pose.R, query.R, atol=1e-9)
         np.testing.assert_allclose(res.pose.center, query.center, atol=1e-7)
         j2_from_q = ref2 @ res.pose.inverse()
-        np.testing.assert_allclose(res.depths, triangulation_depths(j2_from_q.R, j2_from_q.t, xq[None], x2[None])[0],
-                                   rtol=1e-9)
+        depths = triangulation_depths(j2_from_q.R, j2_from_q.t, xq[None], x2[None])[0]
+        np.testing.assert_allclose(res.depths, depths, rtol=1e-9)
         (slow,) = S.abspose_2p1p(rel, ref, ref2, xq.tolist(), list(x2))
         np.testing.assert_array_equal(slow.pose.R, res.pose.R)
         assert slow.rho == res.rho
