@@ -145,13 +145,16 @@ def time_interleaved(
     return wall, cpu, peer_wall, peer_cpu
 
 
-def time_batch(fn: Callable[[], object], n: int, repeats: int) -> tuple[float, float]:
-    per = []
+def time_batch(fn: Callable[[], object], n: int, repeats: int) -> tuple[float, float, float]:
+    """Best and median wall µs and best CPU µs per sample of ``fn()`` over n samples."""
+    per, cpu = [], []
     for _ in range(repeats):
-        t0 = time.perf_counter()
+        c0, t0 = time.process_time(), time.perf_counter()
         fn()
-        per.append((time.perf_counter() - t0) / n * 1e6)
-    return min(per), statistics.median(per)
+        t1, c1 = time.perf_counter(), time.process_time()
+        per.append((t1 - t0) / n * 1e6)
+        cpu.append((c1 - c0) / n * 1e6)
+    return min(per), statistics.median(per), min(cpu)
 
 
 @njit(cache=True)
@@ -208,8 +211,9 @@ def run(quick: bool) -> tuple[list[Row], dict]:
     rows: list[Row] = []
 
     def add(name, kind, best_med, samples, repeats=reps, peer=None, note=""):
-        best, med = best_med
-        rows.append(Row(name, kind, best, med, samples, repeats, peer, note))
+        best, med = best_med[:2]
+        rows.append(Row(name, kind, best, med, samples, repeats, peer, note,
+                        cpu_best=best_med[2] if len(best_med) > 2 else None))
         print(f"  {name:<46s} {best:10.3f} µs (median {med:.3f})", file=sys.stderr, flush=True)
 
     def add_single(name, ours, peer_name=None, peer=None, n=n_single):
@@ -368,7 +372,10 @@ def format_table(rows: list[Row], load_before, load_after, meta) -> str:
         if r.peer and r.peer in by_name:
             p = by_name[r.peer]
             ratio = f"{r.ratio_wall if r.ratio_wall is not None else r.us_best / p.us_best:17.2f}"
-            ratio_cpu = f"{r.ratio_cpu:5.2f}" if r.ratio_cpu is not None else ""
+            if r.ratio_cpu is not None:
+                ratio_cpu = f"{r.ratio_cpu:5.2f}"
+            elif r.cpu_best is not None and p.cpu_best is not None:
+                ratio_cpu = f"{r.cpu_best / p.cpu_best:5.2f}"
             vs = r.peer
         samples = str(r.samples) if r.samples else "—"
         lines.append(
@@ -382,7 +389,7 @@ def format_table(rows: list[Row], load_before, load_after, meta) -> str:
         "ratios: best ours / best PoseLib (Python binding unless the row says README). Single calls of the",
         "Python APIs include input validation and Pose construction and are interleaved with their PoseLib",
         "peer per repetition (wall and CPU ratios from the same run); batch rows are amortized per sample",
-        "and compared with the wall time of the peer's single call.",
+        "and compared with the peer's single call (wall with wall, CPU with CPU).",
     ]
     return "\n".join(lines)
 
