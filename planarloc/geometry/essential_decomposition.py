@@ -19,7 +19,7 @@ from numba import njit
 
 from planarloc.geometry.epipolar import triangulation_depths
 from planarloc.geometry.pose import Pose
-from planarloc.geometry.validation import InputError, check_array, is_plain_float64
+from planarloc.geometry.validation import InputError, are_plain_float64, check_array
 
 __all__ = [
     "check_correspondence_batch",
@@ -94,7 +94,7 @@ def solve_correspondences(
     Returns:
         ``(n, xq, xr)``: the kernel's result and the arrays it ran on.
     """
-    if is_plain_float64(x_query, 2) and is_plain_float64(x_ref, 2):
+    if are_plain_float64(x_query, x_ref, 2):
         n = kernel(x_query, x_ref, out)
         if n != -1:
             return n, x_query, x_ref  # type: ignore[return-value]

@@ -73,19 +73,21 @@ def check_array(
     return arr
 
 
-def is_plain_float64(value: object, ndim: int) -> bool:
-    """True if ``value`` is exactly a writable C-contiguous float64 ``ndarray`` with ``ndim``
-    dimensions.
+def are_plain_float64(a: object, b: object, ndim: int) -> bool:
+    """True if ``a`` and ``b`` are both exactly writable C-contiguous float64 ``ndarray``s with
+    ``ndim`` dimensions.
 
-    The gate of the single-call solver APIs: such input goes straight to a compiled kernel
-    that validates the values itself (:func:`rays_invalid`); anything else (lists, other
-    dtypes, views with strides, read-only arrays, subclasses) goes through
-    :func:`check_array`, which converts it or raises its usual message. Costs ~0.2 µs.
+    The gate of the single-call solver APIs (which all take two arrays): such input goes
+    straight to a compiled kernel that validates the values itself (:func:`rays_invalid`);
+    anything else (lists, other dtypes, views with strides, read-only arrays, subclasses) goes
+    through :func:`check_array`, which converts it or raises its usual message. Costs ~0.35 µs.
     """
-    if type(value) is not np.ndarray or value.dtype is not _FLOAT64 or value.ndim != ndim:
+    if type(a) is not np.ndarray or type(b) is not np.ndarray:
         return False
-    flags = value.flags
-    return flags.c_contiguous and flags.writeable
+    if a.dtype is not _FLOAT64 or b.dtype is not _FLOAT64 or a.ndim != ndim or b.ndim != ndim:
+        return False
+    fa, fb = a.flags, b.flags
+    return fa.c_contiguous and fb.c_contiguous and fa.writeable and fb.writeable
 
 
 @njit(cache=True)

@@ -25,7 +25,7 @@ from numba import njit
 from planarloc.geometry import mat3 as m3
 from planarloc.geometry.essential_decomposition import midpoint_depths
 from planarloc.geometry.pose import Pose
-from planarloc.geometry.validation import check_array, is_plain_float64
+from planarloc.geometry.validation import are_plain_float64, check_array
 
 
 @dataclass(frozen=True)
@@ -160,7 +160,7 @@ def abspose_2p1p(
              ref2_cam_from_world.R, ref2_cam_from_world.t)
     out = np.empty((1, 4, 3))
     n = -1
-    if is_plain_float64(x_query, 1) and is_plain_float64(x_ref2, 1):
+    if are_plain_float64(x_query, x_ref2, 1):
         n, rho, lq, lr = _abspose(*poses, x_query, x_ref2, out)
     if n == -1:  # not a plain float64 array, or invalid: convert, or raise the usual message
         xq = check_array("x_query", x_query, (3,))
