@@ -12,6 +12,11 @@ module                 holds
                        Hessenberg reduction, shifted double-step QR ``hqr``)
 =====================  =========================================================================
 
+What is specific to one problem stays with its solver: the eigenvectors of Stewénius' action
+matrix (:func:`planarloc.solvers.relpose_5p_stewenius.action_eigenvector`) use the structure of
+its monomial basis, and the five-point polynomial system lives in
+:mod:`planarloc.solvers._five_point`.
+
 All functions are numba kernels on validated, finite input: they return counts or success
 flags instead of raising, so that a batched caller never aborts a batch for one bad sample.
 After editing a kernel here, delete the ``*.nbi``/``*.nbc`` files under
