@@ -8,7 +8,12 @@ Usage::
 
 What is timed (generated data only, noise-free, seeded):
 
-* single calls through the public Python API (input validation and ``Pose`` objects included);
+* single calls through the public Python API (input validation and ``Pose`` objects included),
+  each **interleaved with its PoseLib peer**: every repetition runs our loop, then PoseLib's
+  loop on the same samples, so that load from other processes hits both alike. Both are timed
+  by wall clock (``perf_counter``) and by this process's CPU time (``process_time``); the
+  ratio is printed per row for both clocks. ``abspose_2p2p`` / ``abspose_2p1p`` /
+  ``abspose_up2p`` have no PoseLib peer and are timed alone;
 * batched APIs, amortized per sample over M samples (100k for the 2-point solver);
 * the numba kernels the RANSAC hypotheses call (``solve_planar_2p``, ``triangulate_scales``,
   ``scale_2p1p``), timed inside a compiled loop so that Python dispatch is not counted;
@@ -16,9 +21,9 @@ What is timed (generated data only, noise-free, seeded):
   ``relpose_8pt`` on the same samples (unit bearings: PoseLib's cheirality test assumes them).
 
 Every timing repeats the whole loop k times and reports the best (minimum) and the median of
-the per-call times. Numba functions are compiled and called once before timing. The load
-average is printed with the results because the machine may be shared; on a loaded machine the
-median moves much more than the best.
+the per-call times (wall clock unless the column says CPU). Numba functions are compiled and
+called once before timing. The load average is printed with the results because the machine
+may be shared; on a loaded machine the median moves much more than the best.
 
 PoseLib's README quotes ~0.12 µs for the C++ planar 2-point solver. That number is a
 reference constant, **not measured here**, and is labelled so in the table.
@@ -43,6 +48,7 @@ from planarloc.geometry.planar import rotation_from_yaw
 from planarloc.geometry.pose import Pose
 from planarloc.solvers.abspose_2p1p import abspose_2p1p, scale_2p1p
 from planarloc.solvers.abspose_2p2p import abspose_2p2p, triangulate_scales
+from planarloc.solvers.abspose_up2p import abspose_up2p
 from planarloc.solvers.relpose_planar_2p import relpose_planar_2p, relpose_planar_2p_batch, solve_planar_2p
 
 POSELIB_README_PLANAR_2PT_US = 0.12  # C++ figure from PoseLib's README: NOT measured here
@@ -58,6 +64,10 @@ class Row:
     repeats: int
     peer: str | None = None  # name of the PoseLib row to compare with
     note: str = ""
+    cpu_best: float | None = None  # process_time, µs per call (single calls only)
+    cpu_median: float | None = None
+    ratio_wall: float | None = None  # best ours / best peer of the same interleaved run
+    ratio_cpu: float | None = None
 
 
 # ---- data -------------------------------------------------------------------------------------
@@ -113,13 +123,38 @@ def time_loop(fn: Callable[[int], object], n: int, repeats: int) -> tuple[float,
     return min(per), statistics.median(per)
 
 
-def time_batch(fn: Callable[[], object], n: int, repeats: int) -> tuple[float, float]:
-    per = []
+def time_interleaved(
+    ours: Callable[[int], object], peer: Callable[[int], object] | None, n: int, repeats: int
+) -> tuple[list[float], list[float], list[float], list[float]]:
+    """Per-call µs of ``ours(i)`` and ``peer(i)`` (i = 0..n-1), alternating per repetition.
+
+    Returns the lists (wall ours, CPU ours, wall peer, CPU peer), one entry per repetition
+    (the peer lists are empty without a peer).
+    """
+    wall, cpu, peer_wall, peer_cpu = [], [], [], []
     for _ in range(repeats):
-        t0 = time.perf_counter()
+        for fn, w, c in ((ours, wall, cpu), (peer, peer_wall, peer_cpu)):
+            if fn is None:
+                continue
+            c0, t0 = time.process_time(), time.perf_counter()
+            for i in range(n):
+                fn(i)
+            t1, c1 = time.perf_counter(), time.process_time()
+            w.append((t1 - t0) / n * 1e6)
+            c.append((c1 - c0) / n * 1e6)
+    return wall, cpu, peer_wall, peer_cpu
+
+
+def time_batch(fn: Callable[[], object], n: int, repeats: int) -> tuple[float, float, float]:
+    """Best and median wall µs and best CPU µs per sample of ``fn()`` over n samples."""
+    per, cpu = [], []
+    for _ in range(repeats):
+        c0, t0 = time.process_time(), time.perf_counter()
         fn()
-        per.append((time.perf_counter() - t0) / n * 1e6)
-    return min(per), statistics.median(per)
+        t1, c1 = time.perf_counter(), time.process_time()
+        per.append((t1 - t0) / n * 1e6)
+        cpu.append((c1 - c0) / n * 1e6)
+    return min(per), statistics.median(per), min(cpu)
 
 
 @njit(cache=True)
@@ -176,20 +211,53 @@ def run(quick: bool) -> tuple[list[Row], dict]:
     rows: list[Row] = []
 
     def add(name, kind, best_med, samples, repeats=reps, peer=None, note=""):
-        best, med = best_med
-        rows.append(Row(name, kind, best, med, samples, repeats, peer, note))
+        best, med = best_med[:2]
+        rows.append(Row(name, kind, best, med, samples, repeats, peer, note,
+                        cpu_best=best_med[2] if len(best_med) > 2 else None))
         print(f"  {name:<46s} {best:10.3f} µs (median {med:.3f})", file=sys.stderr, flush=True)
 
+    def add_single(name, ours, peer_name=None, peer=None, n=n_single):
+        """Our single call interleaved with its PoseLib peer (if any); one row each."""
+        wall, cpu, pwall, pcpu = time_interleaved(ours, peer, n, reps)
+        row = Row(f"{name} (single)", "single", min(wall), statistics.median(wall), n, reps,
+                  cpu_best=min(cpu), cpu_median=statistics.median(cpu))
+        rows.append(row)
+        msg = f"  {row.name:<46s} {row.us_best:10.3f} µs wall, {row.cpu_best:.3f} CPU"
+        if peer is not None:
+            prow = Row(f"{peer_name} (with {name})", "peer", min(pwall), statistics.median(pwall), n, reps,
+                       note="Python binding, interleaved", cpu_best=min(pcpu),
+                       cpu_median=statistics.median(pcpu))
+            row.peer = prow.name
+            row.ratio_wall = row.us_best / prow.us_best
+            row.ratio_cpu = row.cpu_best / prow.cpu_best
+            rows.append(prow)
+            msg += f"   vs {peer_name} {prow.us_best:.3f} / {prow.cpu_best:.3f}: "
+            msg += f"ratio {row.ratio_wall:.2f} wall, {row.ratio_cpu:.2f} CPU"
+        print(msg, file=sys.stderr, flush=True)
+        return row
+
     # -- planar 2-point ---------------------------------------------------------------------
+    try:
+        import poselib
+
+        poselib_version = getattr(poselib, "__version__", "?")
+    except ImportError:
+        poselib = None
+        poselib_version = None
     xq2, xr2 = planar_samples(rng, n_batch_2p, 2)
+    uq2, ur2 = unit(xq2), unit(xr2)
     relpose_planar_2p(xq2[0], xr2[0])
     relpose_planar_2p_batch(xq2[:4], xr2[:4])
-    add("relpose_planar_2p (single)", "single",
-        time_loop(lambda i: relpose_planar_2p(xq2[i], xr2[i]), n_single, reps), n_single,
-        peer="poselib.relpose_upright_planar_2pt")
+    peer_2p = None
+    if poselib is not None:
+        peer_2p = poselib.relpose_upright_planar_2pt
+        peer_2p(uq2[0], ur2[0])
+    single_2p = add_single("relpose_planar_2p", lambda i: relpose_planar_2p(xq2[i], xr2[i]),
+                           "poselib.relpose_upright_planar_2pt",
+                           None if peer_2p is None else lambda i: peer_2p(uq2[i], ur2[i]))
     add("relpose_planar_2p_batch (per sample)", "batch",
         time_batch(lambda: relpose_planar_2p_batch(xq2, xr2), n_batch_2p, reps), n_batch_2p,
-        peer="poselib.relpose_upright_planar_2pt")
+        peer=single_2p.peer)
     th, ph = np.empty(2), np.empty(2)
     add("solve_planar_2p kernel (numba dispatch)", "kernel",
         time_loop(lambda i: solve_planar_2p(xq2[i], xr2[i], th, ph), n_single, reps), n_single,
@@ -197,18 +265,6 @@ def run(quick: bool) -> tuple[list[Row], dict]:
     add("solve_planar_2p kernel (in numba loop)", "kernel",
         time_kernel(_loop_planar_2p, (xq2, xr2), n_batch_2p, reps), n_batch_2p,
         peer="PoseLib C++ planar 2pt (README)", note="what RANSAC hypotheses call")
-    uq2, ur2 = unit(xq2), unit(xr2)
-    try:
-        import poselib
-
-        poselib_version = getattr(poselib, "__version__", "?")
-        f = poselib.relpose_upright_planar_2pt
-        f(uq2[0], ur2[0])
-        add("poselib.relpose_upright_planar_2pt", "peer",
-            time_loop(lambda i: f(uq2[i], ur2[i]), n_single, reps), n_single, note="Python binding")
-    except ImportError:
-        poselib = None
-        poselib_version = None
     rows.append(Row("PoseLib C++ planar 2pt (README)", "reference", POSELIB_README_PLANAR_2PT_US, None, 0, 0,
                     note="NOT MEASURED: constant quoted from PoseLib's README"))
 
@@ -228,11 +284,18 @@ def run(quick: bool) -> tuple[list[Row], dict]:
         cases.append((rel, rel2, ref, ref2, Yq / Yq[2], Y2 / Y2[2]))
     abspose_2p2p(*cases[0][:4])
     abspose_2p1p(cases[0][0], cases[0][2], cases[0][3], cases[0][4], cases[0][5])
-    add("abspose_2p2p (single)", "single", time_loop(lambda i: abspose_2p2p(*cases[i][:4]), n_single, reps),
-        n_single)
-    add("abspose_2p1p (single)", "single",
-        time_loop(lambda i: abspose_2p1p(cases[i][0], cases[i][2], cases[i][3], cases[i][4], cases[i][5]),
-                  n_single, reps), n_single)
+    add_single("abspose_2p2p", lambda i: abspose_2p2p(*cases[i][:4]))
+    add_single("abspose_2p1p",
+               lambda i: abspose_2p1p(cases[i][0], cases[i][2], cases[i][3], cases[i][4], cases[i][5]))
+    up2p = []  # (2, 3) query rays and their points in an upright frame
+    while len(up2p) < n_single:
+        query = random_planar_pose(rng)
+        X = rng.uniform(-10, 10, (2, 3))
+        Xc = query.transform(X)
+        if np.all(Xc[:, 2] > 0.5):
+            up2p.append((Xc / Xc[:, 2:], X))
+    abspose_up2p(*up2p[0])
+    add_single("abspose_up2p", lambda i: abspose_up2p(*up2p[i]))
     t1 = np.array([c[0].t for c in cases])
     t2 = np.array([c[0].R @ c[1].R.T @ c[1].t for c in cases])
     b = np.array([(c[2] @ c[3].inverse()).t for c in cases])
@@ -267,19 +330,16 @@ def run(quick: bool) -> tuple[list[Row], dict]:
             continue
         single(xq[0], xr[0])
         batch(xq[:4], xr[:4])
-        add(f"{single_name} (single)", "single", time_loop(lambda i: single(xq[i], xr[i]), n_single, reps),
-            n_single, peer=peer)
+        uq, ur = unit(xq), unit(xr)
+        peer_fn = None
+        if poselib is not None:
+            f = getattr(poselib, peer.split(".")[1])
+            f(uq[0], ur[0])
+            peer_fn = lambda i, f=f, uq=uq, ur=ur: f(uq[i], ur[i])  # noqa: E731
+        row = add_single(single_name, lambda i, single=single, xq=xq, xr=xr: single(xq[i], xr[i]), peer,
+                         peer_fn)
         add(f"{batch_name} (per sample)", "batch", time_batch(lambda: batch(xq, xr), len(xq), reps), len(xq),
-            peer=peer)
-    if poselib is not None:
-        uq5, ur5, uq8, ur8 = unit(xq5), unit(xr5), unit(xq8), unit(xr8)
-        f5, f8 = poselib.relpose_5pt, poselib.relpose_8pt
-        f5(uq5[0], ur5[0])
-        f8(uq8[0], ur8[0])
-        add("poselib.relpose_5pt", "peer", time_loop(lambda i: f5(uq5[i], ur5[i]), n_single, reps), n_single,
-            note="Python binding")
-        add("poselib.relpose_8pt", "peer", time_loop(lambda i: f8(uq8[i], ur8[i]), n_single, reps), n_single,
-            note="Python binding")
+            peer=row.peer)
 
     meta = {
         "python": platform.python_version(),
@@ -301,27 +361,35 @@ def format_table(rows: list[Row], load_before, load_after, meta) -> str:
         f"   after: {load_after[0]:.2f} {load_after[1]:.2f} {load_after[2]:.2f}"
         f"   on {meta['cpu_count']} CPUs",
         "",
-        f"{'solver':<46s} {'kind':<9s} {'best µs':>10s} {'(median)':>10s} {'samples':>8s}"
-        f"  {'ours/PoseLib':>12s}  vs",
-        "-" * 120,
+        f"{'solver':<52s} {'kind':<9s} {'best µs':>9s} {'(median)':>10s} {'CPU µs':>8s} {'samples':>8s}"
+        f"  {'ours/PoseLib wall':>17s} {'CPU':>5s}  vs",
+        "-" * 140,
     ]
     for r in rows:
         med = f"({r.us_median:.3f})" if r.us_median is not None else "—"
-        ratio, vs = "", ""
+        cpu = f"{r.cpu_best:8.3f}" if r.cpu_best is not None else f"{'':8s}"
+        ratio, ratio_cpu, vs = "", "", ""
         if r.peer and r.peer in by_name:
             p = by_name[r.peer]
-            ratio = f"{r.us_best / p.us_best:12.2f}"
+            ratio = f"{r.ratio_wall if r.ratio_wall is not None else r.us_best / p.us_best:17.2f}"
+            if r.ratio_cpu is not None:
+                ratio_cpu = f"{r.ratio_cpu:5.2f}"
+            elif r.cpu_best is not None and p.cpu_best is not None:
+                ratio_cpu = f"{r.cpu_best / p.cpu_best:5.2f}"
             vs = r.peer
         samples = str(r.samples) if r.samples else "—"
         lines.append(
-            f"{r.name:<46s} {r.kind:<9s} {r.us_best:10.3f} {med:>10s} {samples:>8s}  {ratio:>12s}  {vs}"
+            f"{r.name:<52s} {r.kind:<9s} {r.us_best:9.3f} {med:>10s} {cpu} {samples:>8s}  {ratio:>17s}"
+            f" {ratio_cpu:>5s}  {vs}"
         )
         if r.note:
             lines.append(f"{'':<46s}   ↳ {r.note}")
     lines += [
         "",
         "ratios: best ours / best PoseLib (Python binding unless the row says README). Single calls of the",
-        "Python APIs include input validation and Pose construction; batch rows are amortized per sample.",
+        "Python APIs include input validation and Pose construction and are interleaved with their PoseLib",
+        "peer per repetition (wall and CPU ratios from the same run); batch rows are amortized per sample",
+        "and compared with the peer's single call (wall with wall, CPU with CPU).",
     ]
     return "\n".join(lines)
 

@@ -19,11 +19,12 @@ from numba import njit
 
 from planarloc.geometry.epipolar import triangulation_depths
 from planarloc.geometry.pose import Pose
-from planarloc.geometry.validation import InputError, check_array, check_array_fast
+from planarloc.geometry.validation import InputError, are_plain_float64, check_array
 
 __all__ = [
     "check_correspondence_batch",
     "check_correspondences",
+    "solve_correspondences",
     "motion_from_essential",
     "relposes_from_essential",
 ]
@@ -62,8 +63,8 @@ def check_correspondences(
         InputError: wrong shape, row-count mismatch, NaN/inf, or an all-zero row.
     """
     shape = (rows, 3)
-    xq = check_array_fast("x_query", x_query, shape, min_rows=min_rows)
-    xr = check_array_fast("x_ref", x_ref, shape, min_rows=min_rows)
+    xq = check_array("x_query", x_query, shape, min_rows=min_rows)
+    xr = check_array("x_ref", x_ref, shape, min_rows=min_rows)
     if xq.shape != xr.shape:
         raise InputError(
             f"x_query and x_ref must have the same number of rows, got {xq.shape[0]} and {xr.shape[0]}"
@@ -71,6 +72,37 @@ def check_correspondences(
     _check_nonzero_rays("x_query", xq)
     _check_nonzero_rays("x_ref", xr)
     return xq, xr
+
+
+def solve_correspondences(
+    kernel,
+    x_query: object,
+    x_ref: object,
+    out: np.ndarray | None,
+    *,
+    rows: int | None = None,
+    min_rows: int = 1,
+) -> tuple[int, np.ndarray, np.ndarray]:
+    """Run a validating single-call solver kernel, with :func:`check_correspondences` as fallback.
+
+    ``kernel(xq, xr, out) -> n`` takes two 2-D float64 arrays, validates them itself
+    (:func:`planarloc.geometry.validation.rays_invalid`) and returns -1 for invalid input,
+    else its result. Plain C-contiguous float64 input goes straight in (one compiled call);
+    anything else, and input the kernel rejects, goes through :func:`check_correspondences`,
+    which converts it or raises the usual one-line message.
+
+    Returns:
+        ``(n, xq, xr)``: the kernel's result and the arrays it ran on.
+    """
+    if are_plain_float64(x_query, x_ref, 2):
+        n = kernel(x_query, x_ref, out)
+        if n != -1:
+            return n, x_query, x_ref  # type: ignore[return-value]
+    xq, xr = check_correspondences(x_query, x_ref, rows=rows, min_rows=min_rows)
+    n = kernel(xq, xr, out)
+    if n == -1:  # pragma: no cover - the kernel and the checks reject the same input
+        raise InputError("x_query, x_ref: rejected by the solver kernel although the checks passed")
+    return n, xq, xr
 
 
 def check_correspondence_batch(x_query: object, x_ref: object, rows: int) -> tuple[np.ndarray, np.ndarray]:
@@ -185,7 +217,7 @@ def relposes_from_essential(E: object, x_query: object, x_ref: object) -> list[P
 
 
 @njit(cache=True)
-def _depths(R, t, xq, xr, i):
+def midpoint_depths(R, t, xq, xr, i):
     """Midpoint depths (λ_query, λ_ref) of point i for (R, t), as triangulation_depths.
 
     Returns (ok, λ_query, λ_ref); ok is False for (near-)parallel rays.
@@ -292,7 +324,7 @@ def relpose_from_essential_kernel(E, xq, xr, R_out, t_out, work) -> bool:
             return False  # E is not an essential matrix
         _polar_step(Rc, R_out)
         _polar_step(R_out, Rc)
-        ok, lq, lr = _depths(Rc, t, xq, xr, 0)
+        ok, lq, lr = midpoint_depths(Rc, t, xq, xr, 0)
         if not ok:
             continue
         if lq > 0.0 and lr > 0.0:
@@ -304,7 +336,7 @@ def relpose_from_essential_kernel(E, xq, xr, R_out, t_out, work) -> bool:
         for j in range(3):
             t[j] *= sign
         for i in range(1, xq.shape[0]):
-            ok, lq, lr = _depths(Rc, t, xq, xr, i)
+            ok, lq, lr = midpoint_depths(Rc, t, xq, xr, i)
             if not (ok and lq > 0.0 and lr > 0.0):
                 return False
         for i in range(3):
@@ -331,6 +363,27 @@ def relpose_batch_kernel(Es, n, xq, xr, R_out, t_out, valid_out) -> int:
     return k
 
 
+@njit(cache=True)
+def relposes_into(Es, n, xq, xr, out) -> int:
+    """:func:`relpose_batch_kernel` writing pose k as ``out[k, :3] = R``, ``out[k, 3] = t``.
+
+    ``out`` (≥ n, 4, 3) is the buffer layout of :meth:`planarloc.geometry.pose.Pose._from_buffer`
+    (single-call solver APIs). Returns the number of poses written.
+    """
+    work = np.empty((4, 3, 3))
+    R = np.empty((3, 3))
+    t = np.empty(3)
+    k = 0
+    for s in range(n):
+        if relpose_from_essential_kernel(Es[s], xq, xr, R, t, work):
+            for i in range(3):
+                for j in range(3):
+                    out[k, i, j] = R[i, j]
+                out[k, 3, i] = t[i]
+            k += 1
+    return k
+
+
 def relposes_closed_form(Es: np.ndarray, x_query: np.ndarray, x_ref: np.ndarray) -> list[Pose]:
     """Internal, unchecked: poses of several essential matrices passing cheirality on all points.
 
@@ -339,12 +392,8 @@ def relposes_closed_form(Es: np.ndarray, x_query: np.ndarray, x_ref: np.ndarray)
     solvers: the closed form of Horn (1990) instead of the SVD, and the cheirality test of
     :func:`planarloc.geometry.epipolar.triangulation_depths` re-implemented point by point.
     """
-    K = Es.shape[0]
-    R = np.empty((max(K, 1), 3, 3))
-    t = np.empty((max(K, 1), 3))
-    valid = np.zeros(max(K, 1), dtype=np.bool_)
-    k = relpose_batch_kernel(np.ascontiguousarray(Es), K, x_query, x_ref, R, t, valid)
-    return [Pose._unchecked(R[i], t[i]) for i in range(k)]
+    out = np.empty((max(Es.shape[0], 1), 4, 3))
+    return Pose._from_buffer(out, relposes_into(np.ascontiguousarray(Es), Es.shape[0], x_query, x_ref, out))
 
 
 def mask_invalid(R: np.ndarray, t: np.ndarray, valid: np.ndarray) -> None:

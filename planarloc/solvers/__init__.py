@@ -21,6 +21,13 @@ Relative poses are ``ref_from_query`` (``x_ref = R x_query + t``, ``x_refᵀ E x
 absolute poses are the query's ``cam_from_world``. Every solver returns all real solutions
 that pass the stated checks (an empty list on degenerate input).
 
+Single calls validate cheaply: a plain C-contiguous float64 array goes straight into one
+compiled kernel that checks the values itself; any other input, and any value it rejects, goes
+through :func:`planarloc.geometry.validation.check_array` for the usual one-line message.
+Generic numerics (real roots by Sturm sequences, real eigenvalues) live one layer below, in
+:mod:`planarloc.numerics`; the five-point machinery shared by Nistér's and Stewénius' solvers
+in :mod:`planarloc.solvers._five_point`.
+
 Every submodule is imported here, before the names are bound to the functions: a submodule
 imported later would otherwise rebind the package attribute to itself.
 """

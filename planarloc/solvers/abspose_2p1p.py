@@ -22,9 +22,10 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit
 
-from planarloc.geometry.epipolar import triangulation_depths
+from planarloc.geometry import mat3 as m3
+from planarloc.geometry.essential_decomposition import midpoint_depths
 from planarloc.geometry.pose import Pose
-from planarloc.geometry.validation import check_array
+from planarloc.geometry.validation import are_plain_float64, check_array
 
 
 @dataclass(frozen=True)
@@ -96,6 +97,44 @@ def scale_from_point3d(t_unit: np.ndarray, X_ref: np.ndarray, v: np.ndarray) -> 
     return (tv0 * xv0 + tv1 * xv1 + tv2 * xv2) / den
 
 
+@njit(cache=True, error_model="numpy")
+def _abspose(R, t, Rj, tj, Rj2, tj2, xq, x2, out) -> tuple[int, float, float, float]:
+    """The whole of :func:`abspose_2p1p` on the poses' arrays in one compiled call.
+
+    Returns ``(n, ρ, λ_query, λ_j₂)``: n = -1 unless xq, x2 are (3,) and finite, 0 when
+    degenerate, 1 with the query ``cam_from_world`` written as ``out[0, :3] = R``,
+    ``out[0, 3] = t``. The depths are NaN for parallel rays (as
+    :func:`planarloc.geometry.epipolar.triangulation_depths`).
+    """
+    if xq.shape[0] != 3 or x2.shape[0] != 3:
+        return -1, 0.0, 0.0, 0.0
+    for i in range(3):
+        if not (np.isfinite(xq[i]) and np.isfinite(x2[i])):
+            return -1, 0.0, 0.0, 0.0
+    n = np.sqrt(t[0] * t[0] + t[1] * t[1] + t[2] * t[2])
+    if n < 1e-12:
+        return 0, 0.0, 0.0, 0.0
+    tu = t / n
+    R21 = m3.mul_t(Rj2, Rj)  # j₂_from_j = ref2_cam_from_world ∘ ref_cam_from_world⁻¹
+    t21 = tj2 - m3.vec(R21, tj)
+    rho = scale_2p1p(m3.vec(R21, tu), t21, m3.vec(R21, m3.vec(R, xq)), x2)
+    if not np.isfinite(rho):
+        return 0, 0.0, 0.0, 0.0
+    # query_from_world = (R, ρ t̃)⁻¹ ∘ ref_cam_from_world, then j₂_from_query for the depths
+    Rq = m3.t_mul(R, Rj)
+    tq = m3.t_vec(R, tj - rho * tu)
+    R2q = m3.mul_t(Rj2, Rq)
+    t2q = tj2 - m3.vec(R2q, tq)
+    ok, lq, lr = midpoint_depths(R2q, t2q, xq.reshape((1, 3)), x2.reshape((1, 3)), 0)
+    if not ok:
+        lq = lr = np.nan
+    for i in range(3):
+        for j in range(3):
+            out[0, i, j] = Rq[i, j]
+        out[0, 3, i] = tq[i]
+    return 1, rho, lq, lr
+
+
 def abspose_2p1p(
     ref_from_query: Pose,
     ref_cam_from_world: Pose,
@@ -117,21 +156,15 @@ def abspose_2p1p(
         the two reference centres collinear, or the match on the epipolar plane). The
         scale may be negative: Pdcheck is the caller's (``rho`` and ``depths`` are returned).
     """
-    xq = check_array("x_query", x_query, (3,))
-    x2 = check_array("x_ref2", x_ref2, (3,))
-    t = ref_from_query.t
-    n = np.linalg.norm(t)
-    if n < 1e-12:
+    poses = (ref_from_query.R, ref_from_query.t, ref_cam_from_world.R, ref_cam_from_world.t,
+             ref2_cam_from_world.R, ref2_cam_from_world.t)
+    out = np.empty((1, 4, 3))
+    n = -1
+    if are_plain_float64(x_query, x_ref2, 1):
+        n, rho, lq, lr = _abspose(*poses, x_query, x_ref2, out)
+    if n == -1:  # not a plain float64 array, or invalid: convert, or raise the usual message
+        xq = check_array("x_query", x_query, (3,))
+        n, rho, lq, lr = _abspose(*poses, xq, check_array("x_ref2", x_ref2, (3,)), out)
+    if n <= 0:
         return []
-    t = t / n
-    j2_from_j = ref2_cam_from_world @ ref_cam_from_world.inverse()
-    a = j2_from_j.R @ t
-    y = j2_from_j.R @ ref_from_query.R @ xq
-    rho = scale_2p1p(a, j2_from_j.t, y, x2)
-    if not np.isfinite(rho):
-        return []
-    query_from_j = Pose._unchecked(ref_from_query.R.T, -ref_from_query.R.T @ (rho * t))
-    pose = query_from_j @ ref_cam_from_world
-    j2_from_q = ref2_cam_from_world @ pose.inverse()
-    depths = triangulation_depths(j2_from_q.R, j2_from_q.t, xq[None], x2[None])[0]
-    return [AbsPose2p1p(pose, float(rho), depths)]
+    return [AbsPose2p1p(Pose._from_buffer(out, 1)[0], rho, np.array([lq, lr]))]

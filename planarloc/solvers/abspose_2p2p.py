@@ -21,7 +21,8 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit
 
-from planarloc.geometry.pose import Pose, rotation_error_deg
+from planarloc.geometry import mat3 as m3
+from planarloc.geometry.pose import Pose
 
 
 @dataclass(frozen=True)
@@ -68,6 +69,43 @@ def triangulate_scales(
     return rho, rho2, regularised
 
 
+@njit(cache=True, error_model="numpy")
+def _abspose(R, t, R2, t2, Rj, tj, Rj2, tj2, out) -> tuple[bool, float, float, float, bool, float]:
+    """The whole of :func:`abspose_2p2p` on the poses' arrays in one compiled call.
+
+    Writes the query ``cam_from_world`` as ``out[0, :3] = R``, ``out[0, 3] = t``; returns
+    ``(ok, ρ, ρ₂, rcheck_deg, regularised, sin_parallax)``, ``ok`` False for a zero relative
+    translation.
+    """
+    n1 = np.sqrt(t[0] * t[0] + t[1] * t[1] + t[2] * t[2])
+    n2 = np.sqrt(t2[0] * t2[0] + t2[1] * t2[1] + t2[2] * t2[2])
+    if n1 < 1e-12 or n2 < 1e-12:
+        return False, 0.0, 0.0, 0.0, False, 0.0
+    t1u = t / n1
+    t2u = t2 / n2
+    R12 = m3.mul_t(Rj, Rj2)  # j_from_j2 = ref_cam_from_world ∘ ref2_cam_from_world⁻¹ (T_jj2 of eq. 12)
+    t12 = tj - m3.vec(R12, tj2)
+    RR2 = m3.mul_t(R, R2)
+    tr = 0.0
+    for i in range(3):
+        tr += R12[i, 0] * RR2[i, 0] + R12[i, 1] * RR2[i, 1] + R12[i, 2] * RR2[i, 2]
+    c = (tr - 1.0) / 2.0  # Rcheck, as planarloc.geometry.pose.rotation_error_deg
+    rcheck = np.degrees(np.arccos(min(max(c, -1.0), 1.0)))
+    t2_in_1 = m3.vec(RR2, t2u)
+    rho, rho2, reg = triangulate_scales(t1u, t2_in_1, t12)
+    # query_from_world = (R, ρ t̃)⁻¹ ∘ ref_cam_from_world
+    Rq = m3.t_mul(R, Rj)
+    tq = m3.t_vec(R, tj - rho * t1u)
+    for i in range(3):
+        for j in range(3):
+            out[0, i, j] = Rq[i, j]
+        out[0, 3, i] = tq[i]
+    c0 = t1u[1] * t2_in_1[2] - t1u[2] * t2_in_1[1]
+    c1 = t1u[2] * t2_in_1[0] - t1u[0] * t2_in_1[2]
+    c2 = t1u[0] * t2_in_1[1] - t1u[1] * t2_in_1[0]
+    return True, rho, rho2, rcheck, reg, np.sqrt(c0 * c0 + c1 * c1 + c2 * c2)
+
+
 def abspose_2p2p(
     ref_from_query: Pose,
     ref2_from_query: Pose,
@@ -88,17 +126,11 @@ def abspose_2p2p(
     Raises:
         ValueError: if a relative translation is zero (no direction to triangulate).
     """
-    t1 = ref_from_query.t
-    t2 = ref2_from_query.t
-    n1, n2 = np.linalg.norm(t1), np.linalg.norm(t2)
-    if n1 < 1e-12 or n2 < 1e-12:
+    out = np.empty((1, 4, 3))
+    ok, rho, rho2, rcheck, reg, sin_par = _abspose(
+        ref_from_query.R, ref_from_query.t, ref2_from_query.R, ref2_from_query.t,
+        ref_cam_from_world.R, ref_cam_from_world.t, ref2_cam_from_world.R, ref2_cam_from_world.t, out,
+    )
+    if not ok:
         raise ValueError("abspose_2p2p: relative translations must be non-zero unit directions")
-    t1, t2 = t1 / n1, t2 / n2
-    j_from_j2 = ref_cam_from_world @ ref2_cam_from_world.inverse()  # T_jj2 of eq. (12)
-    R, R2 = ref_from_query.R, ref2_from_query.R
-    rcheck = rotation_error_deg(j_from_j2.R, R @ R2.T)
-    t2_in_1 = R @ R2.T @ t2
-    rho, rho2, reg = triangulate_scales(t1, t2_in_1, j_from_j2.t)
-    query_from_j = Pose._unchecked(R.T, -R.T @ (rho * t1))
-    sin_par = float(np.linalg.norm(np.cross(t1, t2_in_1)))
-    return AbsPose2p2p(query_from_j @ ref_cam_from_world, float(rho), float(rho2), rcheck, bool(reg), sin_par)
+    return AbsPose2p2p(Pose._from_buffer(out, 1)[0], rho, rho2, rcheck, reg, sin_par)

@@ -16,9 +16,8 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from planarloc.geometry.planar import rotation_from_yaw
 from planarloc.geometry.pose import Pose
-from planarloc.geometry.validation import check_array
+from planarloc.geometry.validation import are_plain_float64, check_array, rays_invalid
 
 
 @njit(cache=True, error_model="numpy")
@@ -77,6 +76,24 @@ def solve_up2p(x: np.ndarray, X: np.ndarray, thetas: np.ndarray, ts: np.ndarray)
     return count
 
 
+@njit(cache=True, error_model="numpy")
+def _poses(x: np.ndarray, X: np.ndarray, out: np.ndarray) -> int:
+    """Validated single call: -1 unless x, X are (2, 3) and finite, else the number of poses
+    written as ``out[k, :3] = R_y(θ)`` (eq. 1 of the paper), ``out[k, 3] = t`` into out (2, 4, 3)."""
+    if rays_invalid(x, X, 2, 2, False):
+        return -1
+    th = np.empty(2)
+    ts = np.empty((2, 3))
+    n = solve_up2p(x, X, th, ts)
+    for k in range(n):
+        c, s = np.cos(th[k]), np.sin(th[k])
+        out[k, 0, 0], out[k, 0, 1], out[k, 0, 2] = c, 0.0, -s
+        out[k, 1, 0], out[k, 1, 1], out[k, 1, 2] = 0.0, 1.0, 0.0
+        out[k, 2, 0], out[k, 2, 1], out[k, 2, 2] = s, 0.0, c
+        out[k, 3, 0], out[k, 3, 1], out[k, 3, 2] = ts[k, 0], ts[k, 1], ts[k, 2]
+    return n
+
+
 def abspose_up2p(x_query: object, points: object) -> list[Pose]:
     """Upright poses ``query_from_frame`` from two 2D-3D correspondences.
 
@@ -89,9 +106,8 @@ def abspose_up2p(x_query: object, points: object) -> list[Pose]:
         Up to 2 poses with ``R = R_y(θ)`` placing both points in front of the query; empty
         when degenerate (identical rays or points, no real solution).
     """
-    x = check_array("x_query", x_query, (2, 3))
-    X = check_array("points", points, (2, 3))
-    th = np.empty(2)
-    ts = np.empty((2, 3))
-    n = solve_up2p(x, X, th, ts)
-    return [Pose._unchecked(rotation_from_yaw(th[i]), ts[i]) for i in range(n)]
+    out = np.empty((2, 4, 3))
+    n = _poses(x_query, points, out) if are_plain_float64(x_query, points, 2) else -1
+    if n == -1:  # not a plain float64 array, or invalid: convert, or raise the usual message
+        n = _poses(check_array("x_query", x_query, (2, 3)), check_array("points", points, (2, 3)), out)
+    return Pose._from_buffer(out, n)

@@ -34,7 +34,7 @@ Deviations from the paper:
   conditioning for wide-angle bearings).
 * Each root ``(x, y, z)`` whose residual in the ten cubic constraints shows lost digits is
   polished by Gauss-Newton on those constraints
-  (:func:`planarloc.solvers._polynomial.refine_five_point_root`): the hidden-variable
+  (:func:`planarloc.solvers._five_point.refine_five_point_root`): the hidden-variable
   elimination loses up to ~6 digits on ill-conditioned samples (about 5 % of random scenes
   have errors above 1e-8 without it, none with it). Single calls polish to rounding level
   (≤ 5 steps, until the residual is 1e-15 of its terms), the batched kernel only roots above
@@ -63,33 +63,33 @@ from numba import njit, prange
 
 from planarloc.geometry.essential_decomposition import (
     check_correspondence_batch,
-    check_correspondences,
     mask_invalid,
-    relpose_batch_kernel,
-    relposes_closed_form,
+    solve_correspondences,
 )
 from planarloc.geometry.pose import Pose
-from planarloc.solvers._polynomial import (
+from planarloc.numerics.sturm import polyval, real_roots_sturm
+from planarloc.solvers._five_point import (
     BATCH_REFINE_ITERS,
     BATCH_REFINE_RTOL,
+    MAX_SOLUTIONS,
     RANK_TOL,
     REFINE_ITERS,
     REFINE_RTOL,
     ROTATION_ONLY_TOL,
+    five_point_batch,
     five_point_constraints,
+    five_point_essentials,
     five_point_nullspace,
+    five_point_relposes,
+    five_point_sample,
     gauss_jordan,
     is_rotation_only,
     monomial_permutation,
-    polyval,
-    real_roots_sturm,
     refine_five_point_root,
     unit_rows,
 )
 
 __all__ = ["essentials_5p_nister", "relpose_5p_nister", "relpose_5p_nister_batch"]
-
-MAX_SOLUTIONS = 10
 
 # Nistér 2004, Sec. 3, monomial order of the 10 x 20 matrix.
 _NISTER_ORDER = [
@@ -195,20 +195,30 @@ def nister_essentials(
     return count
 
 
+# ---- the shared five-point drivers bound to this solver's kernel --------------------------------
+
+
 @njit(cache=True)
-def _nister_batch(xq, xr, R, t, valid, refine_iters, refine_rtol):
-    Es = np.empty((MAX_SOLUTIONS, 3, 3))
-    for m in range(xq.shape[0]):
-        n = nister_essentials(xq[m], xr[m], Es, refine_iters, refine_rtol)
-        relpose_batch_kernel(Es, n, xq[m], xr[m], R[m], t[m], valid[m])
+def _essentials(xq, xr, E_out):
+    return five_point_essentials(nister_essentials, xq, xr, E_out, REFINE_ITERS, REFINE_RTOL)
+
+
+@njit(cache=True)
+def _relposes(xq, xr, out):
+    return five_point_relposes(nister_essentials, xq, xr, out, REFINE_ITERS, REFINE_RTOL)
+
+
+@njit(cache=True)
+def _batch(xq, xr, R, t, valid):
+    five_point_batch(nister_essentials, xq, xr, R, t, valid, BATCH_REFINE_ITERS, BATCH_REFINE_RTOL)
 
 
 @njit(cache=True, parallel=True)
-def _nister_batch_parallel(xq, xr, R, t, valid, refine_iters, refine_rtol):
+def _batch_parallel(xq, xr, R, t, valid):
     for m in prange(xq.shape[0]):
         Es = np.empty((MAX_SOLUTIONS, 3, 3))
-        n = nister_essentials(xq[m], xr[m], Es, refine_iters, refine_rtol)
-        relpose_batch_kernel(Es, n, xq[m], xr[m], R[m], t[m], valid[m])
+        five_point_sample(nister_essentials, xq[m], xr[m], Es, R[m], t[m], valid[m], BATCH_REFINE_ITERS,
+                          BATCH_REFINE_RTOL)
 
 
 def essentials_5p_nister(x_query: object, x_ref: object) -> list[np.ndarray]:
@@ -233,10 +243,9 @@ def essentials_5p_nister(x_query: object, x_ref: object) -> list[np.ndarray]:
     Example:
         >>> Es = essentials_5p_nister(x_query, x_ref)   # doctest: +SKIP
     """
-    xq, xr = check_correspondences(x_query, x_ref, rows=5)
     Es = np.empty((MAX_SOLUTIONS, 3, 3))
-    n = nister_essentials(xq, xr, Es, REFINE_ITERS, REFINE_RTOL)
-    return [Es[i].copy() for i in range(n)]
+    n, _, _ = solve_correspondences(_essentials, x_query, x_ref, Es, rows=5)
+    return list(Es[:n])
 
 
 def relpose_5p_nister(x_query: object, x_ref: object) -> list[Pose]:
@@ -263,10 +272,8 @@ def relpose_5p_nister(x_query: object, x_ref: object) -> list[Pose]:
     References:
         Nistér, TPAMI 2004, Sec. 3; deviations listed in the module docstring.
     """
-    xq, xr = check_correspondences(x_query, x_ref, min_rows=5)
-    Es = np.empty((MAX_SOLUTIONS, 3, 3))
-    n = nister_essentials(xq[:5].copy(), xr[:5].copy(), Es, REFINE_ITERS, REFINE_RTOL)
-    return relposes_closed_form(Es[:n], xq, xr)
+    out = np.empty((MAX_SOLUTIONS, 4, 3))
+    return Pose._from_buffer(out, solve_correspondences(_relposes, x_query, x_ref, out, min_rows=5)[0])
 
 
 def relpose_5p_nister_batch(
@@ -300,7 +307,6 @@ def relpose_5p_nister_batch(
     R = np.full((M, MAX_SOLUTIONS, 3, 3), np.nan)
     t = np.full((M, MAX_SOLUTIONS, 3), np.nan)
     valid = np.zeros((M, MAX_SOLUTIONS), dtype=np.bool_)
-    kernel = _nister_batch_parallel if parallel else _nister_batch
-    kernel(xq, xr, R, t, valid, BATCH_REFINE_ITERS, BATCH_REFINE_RTOL)
+    (_batch_parallel if parallel else _batch)(xq, xr, R, t, valid)
     mask_invalid(R, t, valid)
     return R, t, valid

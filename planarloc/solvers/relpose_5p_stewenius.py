@@ -10,7 +10,7 @@ solver by a Gröbner basis and the action matrix, followed step by step):
 
 1. Null space ``E = x X + y Y + z Z + W`` of the five epipolar constraints and the ten cubic
    constraints ``det E = 0``, ``2 E Eᵀ E − tr(E Eᵀ) E = 0`` — shared with Nistér's solver
-   (:mod:`planarloc.solvers._polynomial`).
+   (:mod:`planarloc.solvers._five_point`).
 2. The 10 × 20 *elimination template*: the constraint coefficients with the monomials in graded
    reverse lexicographic order ``x³ x²y x²z xy² xyz xz² y³ y²z yz² z³ | x² xy xz y² yz z² x y z 1``.
    Gauss-Jordan elimination (partial pivoting) of the ten cubic columns gives the reduced
@@ -31,8 +31,9 @@ Deviations from the paper:
 
 * Eigenvalues by our own numba port of the classic EISPACK/Numerical Recipes route
   (balancing, reduction to Hessenberg form by stabilised elimination, shifted double-step QR,
-  ``hqr``). Reason: numba's ``np.linalg.eig`` needs complex input and costs ~150 µs per
-  10 × 10 matrix, ten times the whole solver. An eigenvalue counts as real if its imaginary
+  ``hqr``; :func:`planarloc.numerics.eigen.real_eigenvalues`). Reason: numba's
+  ``np.linalg.eig`` needs complex input and costs ~150 µs per 10 × 10 matrix, ten times the
+  whole solver. An eigenvalue counts as real if its imaginary
   part is below 1e-10 ``max(1, |λ|)`` (rounding can split a double real root into a pair).
 * Eigenvectors of the *real* eigenvalues only, from the structure of the action matrix: with
   ``b₉ = 1`` its identity rows fix ``b₀, b₁, b₂, b₆`` and the other six rows are a 6 × 5
@@ -42,7 +43,7 @@ Deviations from the paper:
   pure rotation, tiny elimination pivot); an eigenvalue whose 6 × 5 system is rank deficient
   (two solutions with the same ``x``, or one at infinity) is skipped.
 * Each root is polished by Gauss-Newton on the ten cubic constraints when its residual is
-  above rounding level (:func:`planarloc.solvers._polynomial.refine_five_point_root`).
+  above rounding level (:func:`planarloc.solvers._five_point.refine_five_point_root`).
 * The pose recovery is the closed form shared with the batched kernels, not the paper's.
 """
 
@@ -53,21 +54,25 @@ from numba import njit, prange
 
 from planarloc.geometry.essential_decomposition import (
     check_correspondence_batch,
-    check_correspondences,
     mask_invalid,
-    relpose_batch_kernel,
-    relposes_closed_form,
+    solve_correspondences,
 )
 from planarloc.geometry.pose import Pose
-from planarloc.solvers._polynomial import (
+from planarloc.numerics.eigen import real_eigenvalues
+from planarloc.solvers._five_point import (
     BATCH_REFINE_ITERS,
     BATCH_REFINE_RTOL,
+    MAX_SOLUTIONS,
     RANK_TOL,
     REFINE_ITERS,
     REFINE_RTOL,
     ROTATION_ONLY_TOL,
+    five_point_batch,
     five_point_constraints,
+    five_point_essentials,
     five_point_nullspace,
+    five_point_relposes,
+    five_point_sample,
     gauss_jordan,
     is_rotation_only,
     refine_five_point_root,
@@ -76,229 +81,7 @@ from planarloc.solvers._polynomial import (
 
 __all__ = ["essentials_5p_stewenius", "relpose_5p_stewenius", "relpose_5p_stewenius_batch"]
 
-MAX_SOLUTIONS = 10
 _PIVOT_TOL = 1e-12
-_REAL_TOL = 1e-10
-
-
-# ---- real nonsymmetric eigenvalues (1-based arrays of size (n + 1, n + 1), as in EISPACK) ---------
-
-
-@njit(cache=True)
-def _balance(a, n):
-    """Similarity scaling by powers of 2 so that row and column norms are comparable."""
-    radix = 2.0
-    sqrdx = radix * radix
-    done = False
-    while not done:
-        done = True
-        for i in range(1, n + 1):
-            r = 0.0
-            c = 0.0
-            for j in range(1, n + 1):
-                if j != i:
-                    c += abs(a[j, i])
-                    r += abs(a[i, j])
-            if c != 0.0 and r != 0.0:
-                g = r / radix
-                f = 1.0
-                s = c + r
-                while c < g:
-                    f *= radix
-                    c *= sqrdx
-                g = r * radix
-                while c > g:
-                    f /= radix
-                    c /= sqrdx
-                if (c + r) / f < 0.95 * s:
-                    done = False
-                    g = 1.0 / f
-                    for j in range(1, n + 1):
-                        a[i, j] *= g
-                    for j in range(1, n + 1):
-                        a[j, i] *= f
-
-
-@njit(cache=True)
-def _hessenberg(a, n):
-    """Reduction to upper Hessenberg form by Gaussian elimination with pivoting."""
-    for m in range(2, n):
-        x = 0.0
-        i = m
-        for j in range(m, n + 1):
-            if abs(a[j, m - 1]) > abs(x):
-                x = a[j, m - 1]
-                i = j
-        if i != m:
-            for j in range(m - 1, n + 1):
-                a[i, j], a[m, j] = a[m, j], a[i, j]
-            for j in range(1, n + 1):
-                a[j, i], a[j, m] = a[j, m], a[j, i]
-        if x != 0.0:
-            for i in range(m + 1, n + 1):
-                y = a[i, m - 1]
-                if y != 0.0:
-                    y /= x
-                    a[i, m - 1] = 0.0  # (EISPACK keeps the multiplier here; we do not need it)
-                    for j in range(m, n + 1):
-                        a[i, j] -= y * a[m, j]
-                    for j in range(1, n + 1):
-                        a[j, m] += y * a[j, i]
-
-
-@njit(cache=True)
-def _hqr(a, n, wr, wi) -> bool:
-    """All eigenvalues of an upper Hessenberg matrix by the shifted double-step QR algorithm.
-
-    EISPACK ``hqr`` (Wilkinson & Reinsch, Handbook vol. II); a is destroyed. Returns False if
-    an eigenvalue needs more than 30 iterations.
-    """
-    anorm = 0.0
-    for i in range(1, n + 1):
-        for j in range(max(i - 1, 1), n + 1):
-            anorm += abs(a[i, j])
-    nn = n
-    t = 0.0
-    p = q = r = s = w = x = y = z = 0.0
-    while nn >= 1:
-        its = 0
-        while True:
-            l = nn
-            while l >= 2:
-                s = abs(a[l - 1, l - 1]) + abs(a[l, l])
-                if s == 0.0:
-                    s = anorm
-                if abs(a[l, l - 1]) + s == s:
-                    a[l, l - 1] = 0.0
-                    break
-                l -= 1
-            x = a[nn, nn]
-            if l == nn:  # one root found
-                wr[nn] = x + t
-                wi[nn] = 0.0
-                nn -= 1
-            else:
-                y = a[nn - 1, nn - 1]
-                w = a[nn, nn - 1] * a[nn - 1, nn]
-                if l == nn - 1:  # two roots found
-                    p = 0.5 * (y - x)
-                    q = p * p + w
-                    z = np.sqrt(abs(q))
-                    x += t
-                    if q >= 0.0:
-                        z = p + (z if p >= 0.0 else -z)
-                        wr[nn - 1] = wr[nn] = x + z
-                        if z != 0.0:
-                            wr[nn] = x - w / z
-                        wi[nn - 1] = wi[nn] = 0.0
-                    else:
-                        wr[nn - 1] = wr[nn] = x + p
-                        wi[nn - 1] = -z
-                        wi[nn] = z
-                    nn -= 2
-                else:
-                    if its == 30:
-                        return False
-                    if its == 10 or its == 20:  # exceptional shift
-                        t += x
-                        for i in range(1, nn + 1):
-                            a[i, i] -= x
-                        s = abs(a[nn, nn - 1]) + abs(a[nn - 1, nn - 2])
-                        x = y = 0.75 * s
-                        w = -0.4375 * s * s
-                    its += 1
-                    m = nn - 2
-                    while m >= l:
-                        z = a[m, m]
-                        r = x - z
-                        s = y - z
-                        p = (r * s - w) / a[m + 1, m] + a[m, m + 1]
-                        q = a[m + 1, m + 1] - z - r - s
-                        r = a[m + 2, m + 1]
-                        s = abs(p) + abs(q) + abs(r)
-                        p /= s
-                        q /= s
-                        r /= s
-                        if m == l:
-                            break
-                        u = abs(a[m, m - 1]) * (abs(q) + abs(r))
-                        v = abs(p) * (abs(a[m - 1, m - 1]) + abs(z) + abs(a[m + 1, m + 1]))
-                        if u + v == v:
-                            break
-                        m -= 1
-                    for i in range(m + 2, nn + 1):
-                        a[i, i - 2] = 0.0
-                        if i != m + 2:
-                            a[i, i - 3] = 0.0
-                    for k in range(m, nn):
-                        if k != m:
-                            p = a[k, k - 1]
-                            q = a[k + 1, k - 1]
-                            r = 0.0
-                            if k != nn - 1:
-                                r = a[k + 2, k - 1]
-                            x = abs(p) + abs(q) + abs(r)
-                            if x != 0.0:
-                                p /= x
-                                q /= x
-                                r /= x
-                        s = np.sqrt(p * p + q * q + r * r)
-                        if p < 0.0:
-                            s = -s
-                        if s != 0.0:
-                            if k == m:
-                                if l != m:
-                                    a[k, k - 1] = -a[k, k - 1]
-                            else:
-                                a[k, k - 1] = -s * x
-                            p += s
-                            x = p / s
-                            y = q / s
-                            z = r / s
-                            q /= p
-                            r /= p
-                            for j in range(k, nn + 1):
-                                p = a[k, j] + q * a[k + 1, j]
-                                if k != nn - 1:
-                                    p += r * a[k + 2, j]
-                                    a[k + 2, j] -= p * z
-                                a[k + 1, j] -= p * y
-                                a[k, j] -= p * x
-                            mmin = nn if nn < k + 3 else k + 3
-                            for i in range(l, mmin + 1):
-                                p = x * a[i, k] + y * a[i, k + 1]
-                                if k != nn - 1:
-                                    p += z * a[i, k + 2]
-                                    a[i, k + 2] -= p * r
-                                a[i, k + 1] -= p * q
-                                a[i, k] -= p
-            if nn < 1 or l >= nn - 1:
-                break
-    return True
-
-
-@njit(cache=True)
-def real_eigenvalues(M: np.ndarray, out: np.ndarray) -> int:
-    """Real eigenvalues of a square matrix (balance, Hessenberg, hqr); returns their count."""
-    n = M.shape[0]
-    a = np.zeros((n + 1, n + 1))
-    for i in range(n):
-        for j in range(n):
-            a[i + 1, j + 1] = M[i, j]
-    _balance(a, n)
-    _hessenberg(a, n)
-    wr = np.zeros(n + 1)
-    wi = np.zeros(n + 1)
-    if not _hqr(a, n, wr, wi):
-        return 0
-    count = 0
-    for i in range(1, n + 1):
-        if abs(wi[i]) <= _REAL_TOL * max(1.0, abs(wr[i])):
-            if wi[i] != 0.0 and wi[i] < 0.0:
-                continue  # a split double root: keep one of the conjugate pair
-            out[count] = wr[i]
-            count += 1
-    return count
 
 
 @njit(cache=True)
@@ -428,20 +211,30 @@ def stewenius_essentials(
     return count
 
 
+# ---- the shared five-point drivers bound to this solver's kernel --------------------------------
+
+
 @njit(cache=True)
-def _stewenius_batch(xq, xr, R, t, valid, refine_iters, refine_rtol):
-    Es = np.empty((MAX_SOLUTIONS, 3, 3))
-    for m in range(xq.shape[0]):
-        n = stewenius_essentials(xq[m], xr[m], Es, refine_iters, refine_rtol)
-        relpose_batch_kernel(Es, n, xq[m], xr[m], R[m], t[m], valid[m])
+def _essentials(xq, xr, E_out):
+    return five_point_essentials(stewenius_essentials, xq, xr, E_out, REFINE_ITERS, REFINE_RTOL)
+
+
+@njit(cache=True)
+def _relposes(xq, xr, out):
+    return five_point_relposes(stewenius_essentials, xq, xr, out, REFINE_ITERS, REFINE_RTOL)
+
+
+@njit(cache=True)
+def _batch(xq, xr, R, t, valid):
+    five_point_batch(stewenius_essentials, xq, xr, R, t, valid, BATCH_REFINE_ITERS, BATCH_REFINE_RTOL)
 
 
 @njit(cache=True, parallel=True)
-def _stewenius_batch_parallel(xq, xr, R, t, valid, refine_iters, refine_rtol):
+def _batch_parallel(xq, xr, R, t, valid):
     for m in prange(xq.shape[0]):
         Es = np.empty((MAX_SOLUTIONS, 3, 3))
-        n = stewenius_essentials(xq[m], xr[m], Es, refine_iters, refine_rtol)
-        relpose_batch_kernel(Es, n, xq[m], xr[m], R[m], t[m], valid[m])
+        five_point_sample(stewenius_essentials, xq[m], xr[m], Es, R[m], t[m], valid[m], BATCH_REFINE_ITERS,
+                          BATCH_REFINE_RTOL)
 
 
 def essentials_5p_stewenius(x_query: object, x_ref: object) -> list[np.ndarray]:
@@ -464,10 +257,9 @@ def essentials_5p_stewenius(x_query: object, x_ref: object) -> list[np.ndarray]:
         Stewénius, Engels & Nistér, ISPRS J. 2006 (Gröbner basis, action matrix); deviations in
         the module docstring.
     """
-    xq, xr = check_correspondences(x_query, x_ref, rows=5)
     Es = np.empty((MAX_SOLUTIONS, 3, 3))
-    n = stewenius_essentials(xq, xr, Es, REFINE_ITERS, REFINE_RTOL)
-    return [Es[i].copy() for i in range(n)]
+    n, _, _ = solve_correspondences(_essentials, x_query, x_ref, Es, rows=5)
+    return list(Es[:n])
 
 
 def relpose_5p_stewenius(x_query: object, x_ref: object) -> list[Pose]:
@@ -492,10 +284,8 @@ def relpose_5p_stewenius(x_query: object, x_ref: object) -> list[Pose]:
         Stewénius, Engels & Nistér, ISPRS J. 2006 (Gröbner basis, action matrix); deviations in
         the module docstring.
     """
-    xq, xr = check_correspondences(x_query, x_ref, min_rows=5)
-    Es = np.empty((MAX_SOLUTIONS, 3, 3))
-    n = stewenius_essentials(xq[:5].copy(), xr[:5].copy(), Es, REFINE_ITERS, REFINE_RTOL)
-    return relposes_closed_form(Es[:n], xq, xr)
+    out = np.empty((MAX_SOLUTIONS, 4, 3))
+    return Pose._from_buffer(out, solve_correspondences(_relposes, x_query, x_ref, out, min_rows=5)[0])
 
 
 def relpose_5p_stewenius_batch(
@@ -529,7 +319,6 @@ def relpose_5p_stewenius_batch(
     R = np.full((M, MAX_SOLUTIONS, 3, 3), np.nan)
     t = np.full((M, MAX_SOLUTIONS, 3), np.nan)
     valid = np.zeros((M, MAX_SOLUTIONS), dtype=np.bool_)
-    kernel = _stewenius_batch_parallel if parallel else _stewenius_batch
-    kernel(xq, xr, R, t, valid, BATCH_REFINE_ITERS, BATCH_REFINE_RTOL)
+    (_batch_parallel if parallel else _batch)(xq, xr, R, t, valid)
     mask_invalid(R, t, valid)
     return R, t, valid

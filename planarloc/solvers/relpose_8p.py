@@ -36,12 +36,13 @@ from numba import njit
 
 from planarloc.geometry.essential_decomposition import (
     check_correspondence_batch,
-    check_correspondences,
     mask_invalid,
     relpose_from_essential_kernel,
     relposes_closed_form,
+    solve_correspondences,
 )
 from planarloc.geometry.pose import Pose
+from planarloc.geometry.validation import rays_invalid
 
 __all__ = ["essential_8p", "relpose_8p", "relpose_8p_batch"]
 
@@ -166,43 +167,71 @@ def _null_vector_8(A, e) -> bool:
 
 
 @njit(cache=True)
+def _scratch_8p():
+    """Work buffers of :func:`_solve_8p` (allocated once per batch)."""
+    return (np.empty((8, 3)), np.empty((8, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty((8, 9)),
+            np.empty(9), np.empty((3, 3)), np.empty((3, 3)), np.empty((4, 3, 3)))
+
+
+@njit(cache=True)
+def _solve_8p(xq, xr, R, t, scratch) -> bool:
+    """One sample of exactly eight matches: the pose into R (3, 3), t (3,); False if none."""
+    nq, nr, Tq, Tr, A, e, En, E, work = scratch
+    if not (_normalize(xq, nq, Tq) and _normalize(xr, nr, Tr)):
+        return False
+    for k in range(8):
+        for i in range(3):
+            for j in range(3):
+                A[k, 3 * i + j] = nr[k, i] * nq[k, j]
+    if not _null_vector_8(A, e):
+        return False
+    for i in range(3):
+        for j in range(3):
+            En[i, j] = e[3 * i + j]
+    _denormalize(En, Tq, Tr, E)
+    for i in range(3):
+        for j in range(3):
+            if not np.isfinite(E[i, j]):
+                return False
+    U, S, Vt = np.linalg.svd(E)
+    if not S[1] > RANK_TOL * S[0]:
+        return False
+    for i in range(3):
+        for j in range(3):
+            E[i, j] = U[i, 0] * Vt[0, j] + U[i, 1] * Vt[1, j]
+    return relpose_from_essential_kernel(E, xq, xr, R, t, work)
+
+
+@njit(cache=True)
 def _batch_8p(xq, xr, R, t, valid):
-    nq = np.empty((8, 3))
-    nr = np.empty((8, 3))
-    Tq = np.empty((3, 3))
-    Tr = np.empty((3, 3))
-    A = np.empty((8, 9))
-    e = np.empty(9)
-    En = np.empty((3, 3))
-    E = np.empty((3, 3))
-    work = np.empty((4, 3, 3))
+    scratch = _scratch_8p()
     for m in range(xq.shape[0]):
-        if not (_normalize(xq[m], nq, Tq) and _normalize(xr[m], nr, Tr)):
-            continue
-        for k in range(8):
-            for i in range(3):
-                for j in range(3):
-                    A[k, 3 * i + j] = nr[k, i] * nq[k, j]
-        if not _null_vector_8(A, e):
-            continue
-        for i in range(3):
-            for j in range(3):
-                En[i, j] = e[3 * i + j]
-        _denormalize(En, Tq, Tr, E)
-        finite = True
-        for i in range(3):
-            for j in range(3):
-                finite = finite and np.isfinite(E[i, j])
-        if not finite:
-            continue
-        U, S, Vt = np.linalg.svd(E)
-        if not S[1] > RANK_TOL * S[0]:
-            continue
-        for i in range(3):
-            for j in range(3):
-                E[i, j] = U[i, 0] * Vt[0, j] + U[i, 1] * Vt[1, j]
-        if relpose_from_essential_kernel(E, xq[m], xr[m], R[m, 0], t[m, 0], work):
-            valid[m, 0] = True
+        valid[m, 0] = _solve_8p(xq[m], xr[m], R[m, 0], t[m, 0], scratch)
+
+
+@njit(cache=True)
+def _validate(xq, xr, out) -> int:
+    """-1 for invalid input (as :func:`_relpose_8p_minimal`), else 0; ``out`` is unused."""
+    return -1 if rays_invalid(xq, xr, -1, 8, True) else 0
+
+
+@njit(cache=True)
+def _relpose_8p_minimal(xq, xr, out) -> int:
+    """Validated single call: -1 invalid input, -2 more than eight matches (not handled here),
+    else the number of poses (0 or 1) written as ``out[0, :3] = R``, ``out[0, 3] = t``."""
+    if rays_invalid(xq, xr, -1, 8, True):
+        return -1
+    if xq.shape[0] != 8:
+        return -2
+    R = np.empty((3, 3))
+    t = np.empty(3)
+    if not _solve_8p(xq, xr, R, t, _scratch_8p()):
+        return 0
+    for i in range(3):
+        for j in range(3):
+            out[0, i, j] = R[i, j]
+        out[0, 3, i] = t[i]
+    return 1
 
 
 def essential_8p(x_query: object, x_ref: object) -> list[np.ndarray]:
@@ -225,7 +254,7 @@ def essential_8p(x_query: object, x_ref: object) -> list[np.ndarray]:
     References:
         Hartley, TPAMI 1997; Hartley & Zisserman Alg. 11.1 and Sec. 9.6.1.
     """
-    xq, xr = check_correspondences(x_query, x_ref, min_rows=8)
+    _, xq, xr = solve_correspondences(_validate, x_query, x_ref, None, min_rows=8)
     return _essential_8p_unchecked(xq, xr)
 
 
@@ -272,12 +301,11 @@ def relpose_8p(x_query: object, x_ref: object) -> list[Pose]:
     References:
         Hartley, TPAMI 1997; Hartley & Zisserman Alg. 11.1, Sec. 9.6.
     """
-    xq, xr = check_correspondences(x_query, x_ref, min_rows=8)
-    if xq.shape[0] == 8:  # minimal: the batch kernel (QR null vector), one compiled call
-        R, t, valid = np.empty((1, 1, 3, 3)), np.empty((1, 1, 3)), np.zeros((1, 1), dtype=np.bool_)
-        _batch_8p(xq[None], xr[None], R, t, valid)
-        return [Pose._unchecked(R[0, 0], t[0, 0])] if valid[0, 0] else []
-    Es = _essential_8p_unchecked(xq, xr)
+    out = np.empty((1, 4, 3))
+    n, xq, xr = solve_correspondences(_relpose_8p_minimal, x_query, x_ref, out, min_rows=8)
+    if n >= 0:  # minimal: the batch kernel (QR null vector), one compiled call
+        return Pose._from_buffer(out, n)
+    Es = _essential_8p_unchecked(xq, xr)  # more than eight matches (validated): SVD of the N x 9 system
     return relposes_closed_form(np.array(Es).reshape(-1, 3, 3), xq, xr)
 
 

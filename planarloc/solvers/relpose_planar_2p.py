@@ -28,7 +28,7 @@ import numpy as np
 from numba import njit, prange
 
 from planarloc.geometry.pose import Pose
-from planarloc.geometry.validation import InputError, check_array, check_array_fast
+from planarloc.geometry.validation import InputError, are_plain_float64, check_array
 
 _EPS_RANK = 1e-9
 _EPS_FORM = 1e-12
@@ -199,13 +199,20 @@ def planar_pose_into(theta: float, phi: float, R: np.ndarray, t: np.ndarray) -> 
 
 
 @njit(cache=True, error_model="numpy")
-def _solve_Rt(xq: np.ndarray, xr: np.ndarray, R: np.ndarray, t: np.ndarray) -> int:
-    """:func:`solve_planar_2p` with the poses written as R (2, 3, 3), t (2, 3) (eq. 1)."""
+def _relposes(xq: np.ndarray, xr: np.ndarray, out: np.ndarray) -> int:
+    """Validated single call: -1 unless xq, xr are (2, 3) and finite, else the number of poses
+    written as ``out[k, :3] = R``, ``out[k, 3] = t`` (eq. 1) into out (2, 4, 3)."""
+    if xq.shape[0] != 2 or xq.shape[1] != 3 or xr.shape[0] != 2 or xr.shape[1] != 3:
+        return -1
+    for i in range(2):
+        for j in range(3):
+            if not (np.isfinite(xq[i, j]) and np.isfinite(xr[i, j])):
+                return -1
     thetas = np.empty(2)
     phis = np.empty(2)
     n = solve_planar_2p(xq, xr, thetas, phis)
-    for i in range(n):
-        planar_pose_into(thetas[i], phis[i], R[i], t[i])
+    for k in range(n):
+        planar_pose_into(thetas[k], phis[k], out[k, :3], out[k, 3])
     return n
 
 
@@ -227,8 +234,7 @@ _PARALLEL_MIN_BATCH = 4096  # below this, thread start-up costs more than it sav
 
 
 def _check_points(name: str, x: object, shape: tuple) -> np.ndarray:
-    if type(x) is np.ndarray and x.shape[-1:] == (3,):
-        return check_array_fast(name, x, shape)
+    """Checked rays of ``shape`` (last axis 3); normalized points with a last axis of 2 get z = 1."""
     arr = check_array(name, x)
     if arr.ndim == len(shape) and arr.shape[-1] == 2 and all(
         s is None or s == a for s, a in zip(shape[:-1], arr.shape[:-1])
@@ -265,11 +271,11 @@ def relpose_planar_2p(x_query: object, x_ref: object) -> list[Pose]:
         >>> xq = X / X[:, 2:]; Xr = X @ truth.R.T + truth.t; xr = Xr / Xr[:, 2:]
         >>> [round(float(p.t @ truth.t), 6) for p in relpose_planar_2p(xq, xr)]  # doctest: +SKIP
     """
-    xq = _check_points("x_query", x_query, (2, 3))
-    xr = _check_points("x_ref", x_ref, (2, 3))
-    R, t = np.empty((2, 3, 3)), np.empty((2, 3))
-    n = _solve_Rt(xq, xr, R, t)
-    return [Pose._unchecked(R[i], t[i]) for i in range(n)]
+    out = np.empty((2, 4, 3))
+    n = _relposes(x_query, x_ref, out) if are_plain_float64(x_query, x_ref, 2) else -1
+    if n == -1:  # not a plain float64 array, (2, 2) points, or invalid: convert, or raise the message
+        n = _relposes(_check_points("x_query", x_query, (2, 3)), _check_points("x_ref", x_ref, (2, 3)), out)
+    return Pose._from_buffer(out, n)
 
 
 def relpose_planar_2p_batch(x_query: object, x_ref: object) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -14,7 +14,7 @@ from two_view_scenes import make_scene, pose_error, random_relpose
 
 from planarloc.geometry.epipolar import essential_from_relpose, triangulation_depths
 from planarloc.geometry.validation import InputError
-from planarloc.solvers._polynomial import MONOMIALS, five_point_constraints, real_roots_sturm
+from planarloc.solvers._five_point import MONOMIALS, five_point_constraints
 from planarloc.solvers.relpose_5p_nister import (
     essentials_5p_nister,
     relpose_5p_nister,
@@ -22,7 +22,6 @@ from planarloc.solvers.relpose_5p_nister import (
 )
 from planarloc.solvers.relpose_5p_stewenius import (
     essentials_5p_stewenius,
-    real_eigenvalues,
     relpose_5p_stewenius,
     relpose_5p_stewenius_batch,
 )
@@ -340,38 +339,3 @@ def test_cubic_constraints_match_direct_evaluation():
             direct = np.concatenate([(2 * EEt @ E - np.trace(EEt) * E).ravel(), [np.linalg.det(E)]])
             monomials = np.array([x**a * y**b * z**c for a, b, c in MONOMIALS])
             assert np.allclose(C @ monomials, direct, rtol=1e-12, atol=1e-12)
-
-
-def test_sturm_real_roots():
-    rng = np.random.default_rng(17)
-    out = np.empty(10)
-    for k in range(200):
-        n_real = 2 * rng.integers(0, 6)  # 0, 2, ..., 10 real roots; the rest complex pairs
-        roots = rng.normal(scale=3, size=n_real)
-        coeffs = np.poly1d([rng.uniform(0.1, 10) * rng.choice([-1, 1])])
-        for r in roots:
-            coeffs *= np.poly1d([1.0, -r])
-        for _ in range((10 - n_real) // 2):
-            a, b = rng.normal(), rng.uniform(0.5, 2)
-            coeffs *= np.poly1d([1.0, -2 * a, a * a + b * b])
-        c = coeffs.coeffs[::-1].copy()  # ascending
-        count = real_roots_sturm(c, out)
-        if np.min(np.diff(np.sort(roots)), initial=np.inf) > 1e-3:
-            assert count == n_real
-            assert np.allclose(np.sort(out[:count]), np.sort(roots), atol=1e-8)
-    # a double root is reported once; a constant or zero polynomial has no roots
-    assert real_roots_sturm(np.array([1.0, -2.0, 1.0]), out) == 1 and out[0] == pytest.approx(1.0, abs=1e-6)
-    assert real_roots_sturm(np.array([3.0, 0.0, 0.0]), out) == 0
-    assert real_roots_sturm(np.zeros(11), out) == 0
-
-
-def test_real_eigenvalues_match_numpy():
-    rng = np.random.default_rng(18)
-    out = np.empty(10)
-    for _ in range(100):
-        M = rng.normal(size=(10, 10)) * rng.uniform(0.1, 100)
-        ref = np.linalg.eigvals(M)
-        ref = np.sort(ref.real[np.abs(ref.imag) <= 1e-10 * np.maximum(1, np.abs(ref.real))])
-        count = real_eigenvalues(M, out)
-        assert count == len(ref)
-        assert np.allclose(np.sort(out[:count]), ref, rtol=1e-9, atol=1e-9)

@@ -1,0 +1,24 @@
+"""Numerical kernels below the solvers: real roots of polynomials and real eigenvalues.
+
+Layer: ``numerics`` sits beside ``geometry`` at the bottom (numpy and numba only, no
+planarloc imports) and is used by ``solvers``. Nothing here knows about cameras or poses:
+
+=====================  =========================================================================
+module                 holds
+=====================  =========================================================================
+``sturm``              all distinct real roots of a univariate polynomial (Sturm sequences,
+                       bisection, Newton safeguarded by bisection); Horner evaluation
+``eigen``              real eigenvalues of a small dense nonsymmetric matrix (balancing,
+                       Hessenberg reduction, shifted double-step QR ``hqr``)
+=====================  =========================================================================
+
+What is specific to one problem stays with its solver: the eigenvectors of Stewénius' action
+matrix (:func:`planarloc.solvers.relpose_5p_stewenius.action_eigenvector`) use the structure of
+its monomial basis, and the five-point polynomial system lives in
+:mod:`planarloc.solvers._five_point`.
+
+All functions are numba kernels on validated, finite input: they return counts or success
+flags instead of raising, so that a batched caller never aborts a batch for one bad sample.
+After editing a kernel here, delete the ``*.nbi``/``*.nbc`` files under
+``planarloc/solvers/__pycache__`` too (numba's cache does not track calls across modules).
+"""
