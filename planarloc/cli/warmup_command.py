@@ -15,6 +15,7 @@ import time
 import numpy as np
 
 from planarloc.cli.progress import console, progress_bar
+from planarloc.geometry.pose import Pose
 from planarloc.robust.absolute_pose import estimate_absolute_pose
 from planarloc.robust.options import Method, RansacOptions
 from planarloc.synthetic.scenes import make_scene
@@ -41,9 +42,14 @@ def warm_up(update=None) -> dict[str, float]:
     xq = np.array([[0.1, 0.2, 1.0], [-0.3, 0.1, 1.0], [0.2, -0.1, 1.0], [0.05, 0.3, 1.0], [-0.2, -0.2, 1.0],
                    [0.3, 0.25, 1.0], [-0.1, 0.05, 1.0], [0.15, -0.3, 1.0]])
     xr = xq + np.array([0.02, 0.0, 0.0])
+    rel = Pose.from_center(np.eye(3), np.array([1.0, 0.0, 0.0]))  # unit baseline to a reference
+    ref1, ref2 = Pose.identity(), Pose.from_center(np.eye(3), np.array([0.0, 0.0, 2.0]))
     steps.append(("solvers", lambda: (S.relpose_planar_2p(xq[:2], xr[:2]), S.relpose_5p_nister(xq[:5], xr[:5]),
                                       S.relpose_5p_stewenius(xq[:5], xr[:5]), S.relpose_8p(xq, xr),
-                                      S.abspose_up2p(xq[:2], 5 * xq[:2]))))
+                                      S.essentials_5p_nister(xq[:5], xr[:5]),
+                                      S.essentials_5p_stewenius(xq[:5], xr[:5]), S.essential_8p(xq, xr),
+                                      S.abspose_up2p(xq[:2], 5 * xq[:2]), S.abspose_2p2p(rel, rel, ref1, ref2),
+                                      S.abspose_2p1p(rel, ref1, ref2, xq[0], xr[0]))))
     times = {}
     for i, (name, fn) in enumerate(steps):
         t0 = time.perf_counter()
