@@ -108,7 +108,7 @@ def run_trial(task: tuple[int, int, int, int, tuple[str, ...], bool, str]) -> di
             dc, dr = pose_errors(pose, sc.query_pose)
             good = dc < MAX_CENTRE_ERROR_M and dr < MAX_ROTATION_ERROR_DEG
             r.update(centre_m=dc, rotation_deg=dr, ok=bool(est.success and good),
-                     gated_correct=bool(not est.success and good))
+                     gated_correct=bool(not est.success and good), wrong_success=bool(est.success and not good))
         out["methods"][method] = r
     if with_peer:
         peer = estimate_query_pose_poselib(sc.query_camera, sc.pairs, iterations=ITERATIONS,
@@ -117,8 +117,8 @@ def run_trial(task: tuple[int, int, int, int, tuple[str, ...], bool, str]) -> di
              "cpu_s": peer.cpu_s, "ok": False}
         if peer.pose is not None:
             dc, dr = pose_errors(peer.pose, sc.query_pose)
-            r.update(centre_m=dc, rotation_deg=dr,
-                     ok=bool(dc < MAX_CENTRE_ERROR_M and dr < MAX_ROTATION_ERROR_DEG))
+            good = dc < MAX_CENTRE_ERROR_M and dr < MAX_ROTATION_ERROR_DEG
+            r.update(centre_m=dc, rotation_deg=dr, ok=bool(good), wrong_success=not good)  # PoseLib reports no failure
         out["methods"][PEER] = r
     return out
 
@@ -162,6 +162,7 @@ def summarise(results: list[dict], names: tuple[str, ...], protocol: str = "pape
                     "median_centre_error_m": float(np.median(centre)) if centre else None,
                     "status": dict(Counter(v["status"] for v in rs)),
                     "gated_but_correct": int(sum(v.get("gated_correct", False) for v in rs)),
+                    "wrong_successes": int(sum(v.get("wrong_success", False) for v in rs)),
                     "median_stage_s": {k: float(np.median([v["stage_s"].get(k, 0.0) for v in rs]))
                                        for k in stage_keys},
                 }
@@ -181,6 +182,13 @@ def print_tables(cells: dict, names: tuple[str, ...], trials: int, protocol: str
         for name in names:
             rates = [cells[f"{m}x{r:.1f}"]["methods"][name]["success_rate"] for r in OUTLIERS]
             vals = "".join(f"{100 * v:>7.0f}" for v in rates)
+            print(f"  {name:<{w}}{vals}")
+    print(f"\nWrong successes (reported a pose, but centre >= {MAX_CENTRE_ERROR_M} m or R >= "
+          f"{MAX_ROTATION_ERROR_DEG} deg), count per cell of {trials}:")
+    for m in matches:
+        print(f"\n  matches/pair = {m}\n  {'method':<{w}}{head}")
+        for name in names:
+            vals = "".join(f"{cells[f'{m}x{r:.1f}']['methods'][name]['wrong_successes']:>7d}" for r in OUTLIERS)
             print(f"  {name:<{w}}{vals}")
     for key, label in (("median_cpu_s", "CPU"), ("median_time_s", "wall")):
         print(f"\nMedian {label} time per query (ms), by matches/pair (median of the per-cell medians):")
