@@ -60,8 +60,8 @@ class LineEstimator:
     def score(self, R: np.ndarray, t: np.ndarray, bound: float = np.inf) -> tuple[np.ndarray, np.ndarray]:
         return self._cost(R[:, 0], R[:, 1])
 
-    def distinct(self, Ra: np.ndarray, ta: np.ndarray, Rb: np.ndarray, tb: np.ndarray) -> bool:
-        return False  # one line model: local optimisation refines only each batch's best
+    def distinct(self, R: np.ndarray, t: np.ndarray, Rb: np.ndarray, tb: np.ndarray) -> np.ndarray:
+        return np.zeros(len(R), dtype=bool)  # one line model: local optimisation refines only each batch's best
 
     def refine(self, R: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         self.refine_inputs.append((R.copy(), float(self.score(R[None], t[None])[0][0])))
