@@ -57,8 +57,8 @@ class _ProblemEstimator:
         self.num_data = len(problem.xq) + len(problem.X3d)
         self.counters = np.zeros(5, dtype=np.int64)
         self._ref_centres = -np.einsum("pji,pj->pi", problem.ref_R, problem.ref_t)
-        self._level = level_plane(problem.ref_R, options.planar_tolerance_deg)
-        self._cos_level = np.cos(np.radians(options.planar_tolerance_deg))
+        self._cos_level = float(np.cos(np.radians(options.planar_tolerance_deg)))
+        self._level = level_plane(problem.ref_R, self._cos_level)
 
     def score(self, R: np.ndarray, t: np.ndarray, bound: float = np.inf) -> tuple[np.ndarray, np.ndarray]:
         p = self.p

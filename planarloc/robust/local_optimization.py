@@ -28,26 +28,35 @@ PLANAR_FIXED = np.array([True, False, True, False, True, False])
 _FREE = np.zeros(6, dtype=np.bool_)
 
 
-def level_plane(ref_R: np.ndarray, tolerance_deg: float) -> np.ndarray:
+@njit(cache=True, error_model="numpy")
+def level_plane(ref_R: np.ndarray, cos_tolerance: float) -> np.ndarray:
     """Orthonormal basis of the world whose column 1 is the references' common y axis.
 
     Args:
         ref_R: (P, 3, 3) rotations of ``ref_from_world``; row 1 of each is the reference's
             y axis (down, for an upright camera) in world coordinates.
-        tolerance_deg: largest angle between any reference's y axis and their mean.
+        cos_tolerance: cosine of the largest angle allowed between any reference's y axis
+            and their mean.
 
     Returns:
         (3, 3) basis ``B`` (columns: a level direction, the mean y axis, the other level
         direction), or a (0, 3) array when the references are not level with each other.
     """
-    up = ref_R[:, 1, :]
-    g = up.mean(axis=0)
-    g /= np.linalg.norm(g)
-    if (up @ g).min() < np.cos(np.radians(tolerance_deg)):
-        return np.zeros((0, 3))
-    u = np.cross(g, np.eye(3)[int(np.argmin(np.abs(g)))])
-    u /= np.linalg.norm(u)
-    return np.ascontiguousarray(np.stack([u, g, np.cross(u, g)], axis=1))
+    g = np.zeros(3)
+    for p in range(ref_R.shape[0]):
+        g += ref_R[p, 1]
+    g /= np.sqrt(g[0] * g[0] + g[1] * g[1] + g[2] * g[2])
+    for p in range(ref_R.shape[0]):
+        if ref_R[p, 1, 0] * g[0] + ref_R[p, 1, 1] * g[1] + ref_R[p, 1, 2] * g[2] < cos_tolerance:
+            return np.zeros((0, 3))
+    e = np.zeros(3)
+    e[np.argmin(np.abs(g))] = 1.0  # the world axis most orthogonal to g
+    u = np.array([g[1] * e[2] - g[2] * e[1], g[2] * e[0] - g[0] * e[2], g[0] * e[1] - g[1] * e[0]])
+    u /= np.sqrt(u[0] * u[0] + u[1] * u[1] + u[2] * u[2])
+    v = np.array([u[1] * g[2] - u[2] * g[1], u[2] * g[0] - u[0] * g[2], u[0] * g[1] - u[1] * g[0]])
+    B = np.empty((3, 3))
+    B[:, 0], B[:, 1], B[:, 2] = u, g, v
+    return B
 
 
 @njit(cache=True, error_model="numpy")
