@@ -384,6 +384,13 @@ def hypotheses_2p1p_consensus(
     Rkq_all = np.empty((P, 3, 3))
     a_all = np.empty((P, 3))
     b_all = np.empty((P, 3))
+    # k_from_j of every two references (R_kj, t_kj): shared by all relative poses of pair j.
+    R_kj = np.empty((P, P, 3, 3))
+    t_kj = np.empty((P, P, 3))
+    for j in range(P):
+        for k in range(P):
+            R_kj[j, k] = m3.mul_t(ref_R[k], ref_R[j])
+            t_kj[j, k] = ref_t[k] - m3.vec(R_kj[j, k], ref_t[j])
     fq0, fq1 = f_query[0], f_query[1]
     tau2 = threshold_sq
     out = 0
@@ -398,16 +405,26 @@ def hypotheses_2p1p_consensus(
         for k in range(P):
             if k == j:
                 continue
-            R21 = m3.mul_t(ref_R[k], Rj)
-            b = ref_t[k] - m3.vec(R21, tj)
-            a = m3.vec(R21, tt)
-            Rkq = m3.mul(R21, R)
-            Rkq_all[k] = Rkq
-            a_all[k] = a
-            b_all[k] = b
+            R21 = R_kj[j, k]
+            Rkq = Rkq_all[k]
+            for r in range(3):  # Rkq = R21 R, a = R21 t̃ (in place: no allocation per pair)
+                a_all[k, r] = R21[r, 0] * tt[0] + R21[r, 1] * tt[1] + R21[r, 2] * tt[2]
+                for q in range(3):
+                    Rkq[r, q] = R21[r, 0] * R[0, q] + R21[r, 1] * R[1, q] + R21[r, 2] * R[2, q]
+            b_all[k] = t_kj[j, k]
+            a, b = a_all[k], b_all[k]
             a0, a1, a2 = a[0], a[1], a[2]
             b0, b1, b2 = b[0], b[1], b[2]
-            fr0, fr1 = f_ref[k, 0], f_ref[k, 1]
+            ifr0, ifr1 = 1.0 / f_ref[k, 0], 1.0 / f_ref[k, 1]
+            # Eᵀ x_k = Rkqᵀ (x_k × t), t = ρ a + b: only its first two entries enter den, and
+            # column c of Rkq dotted with x × a is x · (a × Rkq[:, c]): per pair, 4 vectors.
+            ifq0, ifq1 = 1.0 / fq0, 1.0 / fq1
+            c00, c10, c20 = Rkq[0, 0] * ifq0, Rkq[1, 0] * ifq0, Rkq[2, 0] * ifq0
+            c01, c11, c21 = Rkq[0, 1] * ifq1, Rkq[1, 1] * ifq1, Rkq[2, 1] * ifq1
+            ga0, ga1, ga2 = a1 * c20 - a2 * c10, a2 * c00 - a0 * c20, a0 * c10 - a1 * c00
+            gb0, gb1, gb2 = a1 * c21 - a2 * c11, a2 * c01 - a0 * c21, a0 * c11 - a1 * c01
+            ha0, ha1, ha2 = b1 * c20 - b2 * c10, b2 * c00 - b0 * c20, b0 * c10 - b1 * c00
+            hb0, hb1, hb2 = b1 * c21 - b2 * c11, b2 * c01 - b0 * c21, b0 * c11 - b1 * c01
             for i in range(offsets[k], offsets[k + 1], stride):
                 q0, q1, q2 = xq[i, 0], xq[i, 1], xq[i, 2]
                 y0 = Rkq[0, 0] * q0 + Rkq[0, 1] * q1 + Rkq[0, 2] * q2
@@ -418,15 +435,12 @@ def hypotheses_2p1p_consensus(
                 by0, by1, by2 = b1 * y2 - b2 * y1, b2 * y0 - b0 * y2, b0 * y1 - b1 * y0
                 beta = x0 * ay0 + x1 * ay1 + x2 * ay2
                 alpha = x0 * by0 + x1 * by1 + x2 * by2
-                # Eᵀ x_k = Rkqᵀ (x_k × t), t = ρ a + b: only its first two entries enter den.
-                xa0, xa1, xa2 = x1 * a2 - x2 * a1, x2 * a0 - x0 * a2, x0 * a1 - x1 * a0
-                xb0, xb1, xb2 = x1 * b2 - x2 * b1, x2 * b0 - x0 * b2, x0 * b1 - x1 * b0
-                g0 = (Rkq[0, 0] * xa0 + Rkq[1, 0] * xa1 + Rkq[2, 0] * xa2) / fq0
-                g1 = (Rkq[0, 1] * xa0 + Rkq[1, 1] * xa1 + Rkq[2, 1] * xa2) / fq1
-                h0 = (Rkq[0, 0] * xb0 + Rkq[1, 0] * xb1 + Rkq[2, 0] * xb2) / fq0
-                h1 = (Rkq[0, 1] * xb0 + Rkq[1, 1] * xb1 + Rkq[2, 1] * xb2) / fq1
-                v0, v1 = ay0 / fr0, ay1 / fr1
-                u0, u1 = by0 / fr0, by1 / fr1
+                g0 = x0 * ga0 + x1 * ga1 + x2 * ga2
+                g1 = x0 * gb0 + x1 * gb1 + x2 * gb2
+                h0 = x0 * ha0 + x1 * ha1 + x2 * ha2
+                h1 = x0 * hb0 + x1 * hb1 + x2 * hb2
+                v0, v1 = ay0 * ifr0, ay1 * ifr1
+                u0, u1 = by0 * ifr0, by1 * ifr1
                 vv = v0 * v0 + v1 * v1 + g0 * g0 + g1 * g1
                 uv = u0 * v0 + u1 * v1 + h0 * g0 + h1 * g1
                 uu = u0 * u0 + u1 * u1 + h0 * h0 + h1 * h1
