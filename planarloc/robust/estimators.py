@@ -7,7 +7,8 @@
   5p5p-Stewénius and 8p8p: a relative pose per pair from a minimal (or 8-point) sample,
   then Rcheck, triangulation, Pdcheck and the consistency check.
 
-All share the scoring (MSAC over every match of every pair plus 2D-3D constraints) and the
+All share the scoring (MSAC over every match of every pair plus 2D-3D constraints), the local
+optimisation (planar, then 6DoF: :mod:`planarloc.robust.local_optimization`) and the
 refinement (robust 6DoF) of the problem. :class:`RectifiedHypotheses` runs a planar family on
 gravity-levelled bearings (:mod:`planarloc.geometry.gravity`) and scores on the original ones.
 What a refined pose's matches can tell about it lives in :mod:`planarloc.robust.observability`.
