@@ -37,6 +37,26 @@ def _positive_depths(R: np.ndarray, t: np.ndarray, xq: np.ndarray, xr: np.ndarra
     return (-at * bb + ab * bt) / det > 0 and (aa * bt - ab * at) / det > 0
 
 
+@njit(cache=True, error_model="numpy", inline="always")
+def _emit_planar(rho: float, in_front: bool, R: np.ndarray, tt: np.ndarray, Rj: np.ndarray, tj: np.ndarray,
+                 out_R: np.ndarray, out_t: np.ndarray, out: int, counters: np.ndarray) -> int:
+    """Pdcheck of a scaled planar relative pose, then its ``query_from_world`` at ``out``.
+
+    ``j_from_query = (R, ρ t̃)`` with reference ``j_from_world = (Rj, tj)`` gives
+    ``query_from_world = (Rᵀ Rj, Rᵀ (tj − ρ t̃))``. Rejected (counted as Pdcheck) unless ρ > 0
+    and ``in_front`` (the caller's cheirality test).
+
+    Returns:
+        the next free output row.
+    """
+    if not (rho > 0.0 and in_front):
+        counters[PDCHECK] += 1
+        return out
+    out_R[out] = m3.t_mul(R, Rj)
+    out_t[out] = m3.t_vec(R, tj - rho * tt)
+    return out + 1
+
+
 @njit(cache=True, error_model="numpy")
 def hypotheses_2p1p(
     samples: np.ndarray, third_is_3d: np.ndarray, pj: np.ndarray, pk: np.ndarray,
@@ -85,13 +105,7 @@ def hypotheses_2p1p(
                 Xref = m3.vec(Rj, X3d[i3]) + tj
                 v = m3.vec(R, xq3d[i3])
                 rho = scale_from_point3d(tt, Xref, v)
-                if rho != rho:
-                    counters[DEGENERATE] += 1
-                    continue
-                Xq = m3.t_vec(R, Xref - rho * tt)
-                if rho <= 0 or Xq[2] <= 0:
-                    counters[PDCHECK] += 1
-                    continue
+                in_front = rho > 0 and m3.t_vec(R, Xref - rho * tt)[2] > 0
             else:
                 k = pk[s]
                 R21 = m3.mul_t(ref_R[k], Rj)
@@ -99,15 +113,11 @@ def hypotheses_2p1p(
                 a = m3.vec(R21, tt)
                 y = m3.vec(R21, m3.vec(R, xq[i3]))
                 rho = scale_2p1p(a, t21, y, xr[i3])
-                if rho != rho:
-                    counters[DEGENERATE] += 1
-                    continue
-                if rho <= 0 or not _positive_depths(m3.mul(R21, R), rho * a + t21, xq[i3], xr[i3]):
-                    counters[PDCHECK] += 1
-                    continue
-            out_R[out] = m3.t_mul(R, Rj)
-            out_t[out] = m3.t_vec(R, tj - rho * tt)
-            out += 1
+                in_front = rho > 0 and _positive_depths(m3.mul(R21, R), rho * a + t21, xq[i3], xr[i3])
+            if rho != rho:
+                counters[DEGENERATE] += 1
+                continue
+            out = _emit_planar(rho, in_front, R, tt, Rj, tj, out_R, out_t, out, counters)
     return out
 
 
@@ -374,8 +384,13 @@ def hypotheses_2p1p_consensus(
     Rkq_all = np.empty((P, 3, 3))
     a_all = np.empty((P, 3))
     b_all = np.empty((P, 3))
-    ev = np.empty(2 * N)
-    delta = np.empty(2 * N, dtype=np.int64)
+    # k_from_j of every two references (R_kj, t_kj): shared by all relative poses of pair j.
+    R_kj = np.empty((P, P, 3, 3))
+    t_kj = np.empty((P, P, 3))
+    for j in range(P):
+        for k in range(P):
+            R_kj[j, k] = m3.mul_t(ref_R[k], ref_R[j])
+            t_kj[j, k] = ref_t[k] - m3.vec(R_kj[j, k], ref_t[j])
     fq0, fq1 = f_query[0], f_query[1]
     tau2 = threshold_sq
     out = 0
@@ -390,16 +405,26 @@ def hypotheses_2p1p_consensus(
         for k in range(P):
             if k == j:
                 continue
-            R21 = m3.mul_t(ref_R[k], Rj)
-            b = ref_t[k] - m3.vec(R21, tj)
-            a = m3.vec(R21, tt)
-            Rkq = m3.mul(R21, R)
-            Rkq_all[k] = Rkq
-            a_all[k] = a
-            b_all[k] = b
+            R21 = R_kj[j, k]
+            Rkq = Rkq_all[k]
+            for r in range(3):  # Rkq = R21 R, a = R21 t̃ (in place: no allocation per pair)
+                a_all[k, r] = R21[r, 0] * tt[0] + R21[r, 1] * tt[1] + R21[r, 2] * tt[2]
+                for q in range(3):
+                    Rkq[r, q] = R21[r, 0] * R[0, q] + R21[r, 1] * R[1, q] + R21[r, 2] * R[2, q]
+            b_all[k] = t_kj[j, k]
+            a, b = a_all[k], b_all[k]
             a0, a1, a2 = a[0], a[1], a[2]
             b0, b1, b2 = b[0], b[1], b[2]
-            fr0, fr1 = f_ref[k, 0], f_ref[k, 1]
+            ifr0, ifr1 = 1.0 / f_ref[k, 0], 1.0 / f_ref[k, 1]
+            # Eᵀ x_k = Rkqᵀ (x_k × t), t = ρ a + b: only its first two entries enter den, and
+            # column c of Rkq dotted with x × a is x · (a × Rkq[:, c]): per pair, 4 vectors.
+            ifq0, ifq1 = 1.0 / fq0, 1.0 / fq1
+            c00, c10, c20 = Rkq[0, 0] * ifq0, Rkq[1, 0] * ifq0, Rkq[2, 0] * ifq0
+            c01, c11, c21 = Rkq[0, 1] * ifq1, Rkq[1, 1] * ifq1, Rkq[2, 1] * ifq1
+            ga0, ga1, ga2 = a1 * c20 - a2 * c10, a2 * c00 - a0 * c20, a0 * c10 - a1 * c00
+            gb0, gb1, gb2 = a1 * c21 - a2 * c11, a2 * c01 - a0 * c21, a0 * c11 - a1 * c01
+            ha0, ha1, ha2 = b1 * c20 - b2 * c10, b2 * c00 - b0 * c20, b0 * c10 - b1 * c00
+            hb0, hb1, hb2 = b1 * c21 - b2 * c11, b2 * c01 - b0 * c21, b0 * c11 - b1 * c01
             for i in range(offsets[k], offsets[k + 1], stride):
                 q0, q1, q2 = xq[i, 0], xq[i, 1], xq[i, 2]
                 y0 = Rkq[0, 0] * q0 + Rkq[0, 1] * q1 + Rkq[0, 2] * q2
@@ -410,15 +435,12 @@ def hypotheses_2p1p_consensus(
                 by0, by1, by2 = b1 * y2 - b2 * y1, b2 * y0 - b0 * y2, b0 * y1 - b1 * y0
                 beta = x0 * ay0 + x1 * ay1 + x2 * ay2
                 alpha = x0 * by0 + x1 * by1 + x2 * by2
-                # Eᵀ x_k = Rkqᵀ (x_k × t), t = ρ a + b: only its first two entries enter den.
-                xa0, xa1, xa2 = x1 * a2 - x2 * a1, x2 * a0 - x0 * a2, x0 * a1 - x1 * a0
-                xb0, xb1, xb2 = x1 * b2 - x2 * b1, x2 * b0 - x0 * b2, x0 * b1 - x1 * b0
-                g0 = (Rkq[0, 0] * xa0 + Rkq[1, 0] * xa1 + Rkq[2, 0] * xa2) / fq0
-                g1 = (Rkq[0, 1] * xa0 + Rkq[1, 1] * xa1 + Rkq[2, 1] * xa2) / fq1
-                h0 = (Rkq[0, 0] * xb0 + Rkq[1, 0] * xb1 + Rkq[2, 0] * xb2) / fq0
-                h1 = (Rkq[0, 1] * xb0 + Rkq[1, 1] * xb1 + Rkq[2, 1] * xb2) / fq1
-                v0, v1 = ay0 / fr0, ay1 / fr1
-                u0, u1 = by0 / fr0, by1 / fr1
+                g0 = x0 * ga0 + x1 * ga1 + x2 * ga2
+                g1 = x0 * gb0 + x1 * gb1 + x2 * gb2
+                h0 = x0 * ha0 + x1 * ha1 + x2 * ha2
+                h1 = x0 * hb0 + x1 * hb1 + x2 * hb2
+                v0, v1 = ay0 * ifr0, ay1 * ifr1
+                u0, u1 = by0 * ifr0, by1 * ifr1
                 vv = v0 * v0 + v1 * v1 + g0 * g0 + g1 * g1
                 uv = u0 * v0 + u1 * v1 + h0 * g0 + h1 * g1
                 uu = u0 * u0 + u1 * u1 + h0 * h0 + h1 * h1
@@ -443,24 +465,29 @@ def hypotheses_2p1p_consensus(
             counters[HYPOTHESES] += 1
             counters[DEGENERATE] += 1
             continue
-        for q in range(m):
-            ev[2 * q] = lo[q]
-            delta[2 * q] = 1
-            ev[2 * q + 1] = hi[q]
-            delta[2 * q + 1] = -1
-        order = np.argsort(ev[:2 * m])
-        # depth of the segment after each event; ties: an end before a start at the same ρ
+        # Sweep the sorted starts and ends (two sorts of m values: cheaper than sorting 2m
+        # events); the depth after a start is the number of intervals covering the segment
+        # up to the next event. Ties: an end before a start at the same ρ.
+        slo = np.sort(lo[:m])
+        shi = np.sort(hi[:m])
         best_found = 0
         for _peak in range(peaks):
             depth = 0
             best = 0
             best_lo = 0.0
             best_hi = 0.0
-            for e in range(2 * m - 1):
-                depth += delta[order[e]]
+            i = 0
+            e = 0
+            while i < m:
+                if not slo[i] < shi[e]:
+                    depth -= 1
+                    e += 1
+                    continue
+                depth += 1
+                a_lo = slo[i]
+                i += 1
                 if depth > best:
-                    a_lo = ev[order[e]]
-                    a_hi = ev[order[e + 1]]
+                    a_hi = shi[e] if i == m else min(slo[i], shi[e])
                     mid = 0.5 * (a_lo + a_hi)
                     clash = False
                     for u in range(best_found):
@@ -479,11 +506,7 @@ def hypotheses_2p1p_consensus(
             used_hi[best_found] = rho * 1.1
             best_found += 1
             counters[HYPOTHESES] += 1
-            if not rho > 0.0 or not _majority_in_front(rho, lo[:m], hi[:m], row[:m], row_pair[:m], Rkq_all, a_all,
-                                                        b_all, xq, xr):
-                counters[PDCHECK] += 1
-                continue
-            out_R[out] = m3.t_mul(R, Rj)
-            out_t[out] = m3.t_vec(R, tj - rho * tt)
-            out += 1
+            in_front = rho > 0.0 and _majority_in_front(rho, lo[:m], hi[:m], row[:m], row_pair[:m], Rkq_all, a_all,
+                                                        b_all, xq, xr)
+            out = _emit_planar(rho, in_front, R, tt, Rj, tj, out_R, out_t, out, counters)
     return out

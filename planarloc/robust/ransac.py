@@ -27,8 +27,9 @@ class Estimator(Protocol):
     and returns the hypotheses that passed the solver's checks; ``score`` returns MSAC costs (above ``bound``
     possibly partial lower bounds)
     and inlier counts; ``refine`` improves one model on its inliers (local optimisation);
-    ``distinct`` says whether two models are different solutions (not the same one found
-    twice), which picks the near-ties that local optimisation also refines.
+    ``distinct(R, t, Rb, tb)`` says which of the models ``(R, t)`` (leading dimension n) are
+    different solutions from the one model ``(Rb, tb)`` (not the same one found twice), as an
+    (n,) bool array; it picks the near-ties that local optimisation also refines.
     """
 
     sample_size: int
@@ -40,7 +41,7 @@ class Estimator(Protocol):
 
     def refine(self, R: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]: ...
 
-    def distinct(self, Ra: np.ndarray, ta: np.ndarray, Rb: np.ndarray, tb: np.ndarray) -> bool: ...
+    def distinct(self, R: np.ndarray, t: np.ndarray, Rb: np.ndarray, tb: np.ndarray) -> np.ndarray: ...
 
 
 @dataclass
@@ -70,12 +71,16 @@ def _lo_candidates(estimator: Estimator, R: np.ndarray, t: np.ndarray, cost: np.
     """The batch's best hypothesis and up to ``LO_CANDIDATES - 1`` near-ties (cost within
     ``LO_NEAR_TIE``) that the estimator calls distinct models (``estimator.distinct``)."""
     chosen = [k]
-    distinct = estimator.distinct
-    for i in np.argsort(cost)[1:]:
-        if len(chosen) == LO_CANDIDATES or cost[i] > LO_NEAR_TIE * cost[k]:
-            break
-        if all(distinct(R[i], t[i], R[j], t[j]) for j in chosen):
-            chosen.append(int(i))
+    order = np.argsort(cost)
+    near = order[cost[order] <= LO_NEAR_TIE * cost[k]]
+    near = near[near != k]
+    # One vectorised ``distinct`` per chosen model: the same model found from several pairs
+    # makes most near-ties duplicates, and pairwise calls cost more than the refinement.
+    while len(chosen) < LO_CANDIDATES and len(near):
+        near = near[estimator.distinct(R[near], t[near], R[chosen[-1]], t[chosen[-1]])]
+        if len(near):
+            chosen.append(int(near[0]))
+            near = near[1:]
     return chosen
 
 

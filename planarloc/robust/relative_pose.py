@@ -111,12 +111,13 @@ class _RelativeEstimator:
         stats.hypotheses += int(valid.sum())
         return np.asarray(R)[valid], np.asarray(t)[valid]
 
-    def distinct(self, Ra: np.ndarray, ta: np.ndarray, Rb: np.ndarray, tb: np.ndarray) -> bool:
-        """Different relative poses: rotations more than 1° or translation directions more than 2° apart."""
-        cos_r = (np.trace(Ra @ Rb.T) - 1.0) / 2.0
-        na, nb = np.linalg.norm(ta), np.linalg.norm(tb)
-        cos_t = float(ta @ tb) / (na * nb) if na > 0 and nb > 0 else 1.0
-        return bool(cos_r < np.cos(np.radians(1.0)) or cos_t < np.cos(np.radians(2.0)))
+    def distinct(self, R: np.ndarray, t: np.ndarray, Rb: np.ndarray, tb: np.ndarray) -> np.ndarray:
+        """Which relative poses (R (n, 3, 3), t (n, 3)) differ from (Rb, tb): rotations more than
+        1° or translation directions more than 2° apart. (n,) bool."""
+        cos_r = ((R * Rb).sum(axis=(1, 2)) - 1.0) / 2.0  # tr(R Rbᵀ)
+        nn = np.linalg.norm(t, axis=1) * np.linalg.norm(tb)
+        cos_t = np.where(nn > 0, t @ tb / np.where(nn > 0, nn, 1.0), 1.0)
+        return (cos_r < np.cos(np.radians(1.0))) | (cos_t < np.cos(np.radians(2.0)))
 
     def score(self, R: np.ndarray, t: np.ndarray, bound: float = np.inf) -> tuple[np.ndarray, np.ndarray]:
         return _msac_kernel(np.ascontiguousarray(R, dtype=float), np.ascontiguousarray(t, dtype=float),

@@ -12,7 +12,8 @@ import numpy as np
 import pytest
 
 from planarloc.robust.options import RansacOptions
-from planarloc.robust.ransac import ransac, required_iterations
+from planarloc.robust import ransac as ransac_module
+from planarloc.robust.ransac import _lo_candidates, ransac, required_iterations
 from planarloc.robust.result import RansacStatistics
 
 LINE = (0.7, -1.3)
@@ -60,8 +61,8 @@ class LineEstimator:
     def score(self, R: np.ndarray, t: np.ndarray, bound: float = np.inf) -> tuple[np.ndarray, np.ndarray]:
         return self._cost(R[:, 0], R[:, 1])
 
-    def distinct(self, Ra: np.ndarray, ta: np.ndarray, Rb: np.ndarray, tb: np.ndarray) -> bool:
-        return False  # one line model: local optimisation refines only each batch's best
+    def distinct(self, R: np.ndarray, t: np.ndarray, Rb: np.ndarray, tb: np.ndarray) -> np.ndarray:
+        return np.zeros(len(R), dtype=bool)  # one line model: local optimisation refines only each batch's best
 
     def refine(self, R: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         self.refine_inputs.append((R.copy(), float(self.score(R[None], t[None])[0][0])))
@@ -206,3 +207,20 @@ def test_non_integral_max_iterations_is_rejected() -> None:
     """A fractional budget would make a batch of int(0.5) = 0 samples and never finish."""
     with pytest.raises(ValueError, match="max_iterations"):
         opts(max_iterations=2.5, min_iterations=1)
+
+
+class ScalarModels:
+    """Models are numbers (R[:, 0]); two are distinct when they differ by more than 1."""
+
+    def distinct(self, R: np.ndarray, t: np.ndarray, Rb: np.ndarray, tb: np.ndarray) -> np.ndarray:
+        return np.abs(R[:, 0] - Rb[0]) > 1.0
+
+
+@pytest.mark.parametrize("limit", [2, 3])
+def test_lo_candidates_are_the_best_and_distinct_near_ties(monkeypatch, limit: int) -> None:
+    monkeypatch.setattr(ransac_module, "LO_CANDIDATES", limit)
+    R = np.array([[5.05], [0.0], [0.1], [5.0], [9.0], [20.0]])
+    cost = np.array([1.02, 1.0, 1.01, 1.05, 1.5, 1.09])
+    # 2 duplicates the best, 3 duplicates 0 (a cheaper near-tie), 4 is no near-tie (cost > 1.1×)
+    chosen = _lo_candidates(ScalarModels(), R, np.zeros((6, 3)), cost, 1)
+    assert chosen == [1, 0, 5][:limit]
