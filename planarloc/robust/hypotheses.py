@@ -11,7 +11,7 @@ import numpy as np
 from numba import njit
 
 from planarloc.geometry import mat3 as m3
-from planarloc.robust.scoring import _sampson_sq
+from planarloc.geometry.epipolar_kernels import sampson_sq
 from planarloc.solvers.abspose_2p1p import scale_2p1p, scale_from_point3d
 from planarloc.solvers.abspose_2p2p import triangulate_scales
 from planarloc.solvers.abspose_up2p import solve_up2p
@@ -278,7 +278,7 @@ def planar_relative_candidates(
             worst = bound[p, top_k - 1]
             n_p = offsets[p + 1] - offsets[p]
             for i in range(offsets[p], offsets[p + 1], max(1, (n_p + max_scored - 1) // max_scored)):
-                e = _sampson_sq(E, xq[i], xr[i], f_query[0], f_query[1], f_ref[p, 0], f_ref[p, 1])
+                e = sampson_sq(E, xq[i], xr[i], f_query[0], f_query[1], f_ref[p, 0], f_ref[p, 1])
                 acc += e if e < threshold_sq else threshold_sq
                 if acc > worst:
                     break

@@ -18,7 +18,7 @@ import numpy as np
 from numba import njit
 
 from planarloc.geometry import mat3 as m3
-from planarloc.robust.refinement import refine_pose
+from planarloc.robust.refinement import refine_pose_core
 from planarloc.robust.scoring import errors_sq
 
 # Planar motion in refine_pose's parameters (rotation increment Exp(δ) R in the camera frame,
@@ -99,8 +99,9 @@ def _refine_stage(R: np.ndarray, t: np.ndarray, xq: np.ndarray, xr: np.ndarray, 
     stride = (n + max_data - 1) // max_data
     if stride > 1:
         idx2d, idx3d = idx2d[::stride].copy(), idx3d[::stride].copy()
-    R2, t2, _, _, _ = refine_pose(R, t, xq, xr, pair, idx2d, f_query, f_ref, ref_R, ref_t, xq3d, X3d, idx3d,
-                                  loss_scale, iterations, sigma_floor, -m3.t_vec(R, t), B, fixed)
+    # Only the pose is wanted: no normal matrix after the last step.
+    R2, t2, _, _, _ = refine_pose_core(R, t, xq, xr, pair, idx2d, f_query, f_ref, ref_R, ref_t, xq3d, X3d, idx3d,
+                                       loss_scale, iterations, sigma_floor, -m3.t_vec(R, t), B, fixed, False)
     return R2, t2
 
 

@@ -14,9 +14,6 @@ from numba import njit
 
 from planarloc.geometry.epipolar_kernels import essential_into, relative_essential_into, reprojection_sq, sampson_sq
 
-# Kept for hypotheses.py until it imports the shared kernel directly.
-_sampson_sq = sampson_sq
-
 
 @njit(cache=True, error_model="numpy")
 def errors_sq(
