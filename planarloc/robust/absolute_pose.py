@@ -109,7 +109,8 @@ def _estimator(problem: AbsolutePoseProblem, options: RansacOptions, family: Met
 def _eligible(problem: AbsolutePoseProblem, family: Method) -> bool:
     m1, m2 = MIN_SAMPLE[family]
     has_3d = len(problem.X3d) > 0 and family in PLANAR
-    return bool(eligible_pairs(problem.counts, m1, m2) or (has_3d and (problem.counts >= m1).any()))
+    counts = problem.counts.tolist()
+    return eligible_pairs(counts, m1, m2) or (has_3d and max(counts, default=0) >= m1)
 
 
 def _refine(scorer, R: np.ndarray, t: np.ndarray, options: RansacOptions) -> RefinedPose:

@@ -7,6 +7,8 @@ so results are reproducible and independent of numba's own generator.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import numpy as np
 from numba import njit
 
@@ -84,11 +86,13 @@ def draw_pair_samples(
             _distinct(u[s, 2 + m_first:], offsets[k + 1] - offsets[k], samples[s], m_first, m_second, offsets[k])
 
 
-def eligible_pairs(counts: np.ndarray, m_first: int, m_second: int) -> bool:
+def eligible_pairs(counts: Sequence[int] | np.ndarray, m_first: int, m_second: int) -> bool:
     """True if some pair has ``m_first`` matches and a different one ``m_second``."""
-    first = np.flatnonzero(counts >= m_first)
-    second = np.flatnonzero(counts >= m_second)
-    return any(((second != j).any()) for j in first)
+    # Plain Python on a few pair counts: called per query and family, where numpy's per-call
+    # overhead was most of the cost.
+    first = [j for j, c in enumerate(counts) if c >= m_first]
+    second = [k for k, c in enumerate(counts) if c >= m_second]
+    return bool(first) and bool(second) and not (len(first) == 1 and second == first)
 
 
 @njit(cache=True)
