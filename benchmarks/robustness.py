@@ -107,8 +107,11 @@ def run_trial(task: tuple[int, int, int, int, tuple[str, ...], bool, str]) -> di
         if pose is not None:
             dc, dr = pose_errors(pose, sc.query_pose)
             good = dc < MAX_CENTRE_ERROR_M and dr < MAX_ROTATION_ERROR_DEG
+            # A success promises the centre within its reported std (benchmarks/trust.py: 3σ + 5 cm).
+            broken = bool(est.success and dc > 3.0 * est.position_std_m + 0.05)
             r.update(centre_m=dc, rotation_deg=dr, ok=bool(est.success and good),
-                     gated_correct=bool(not est.success and good), wrong_success=bool(est.success and not good))
+                     gated_correct=bool(not est.success and good), wrong_success=bool(est.success and not good),
+                     broken_promise=broken)
         out["methods"][method] = r
     if with_peer:
         peer = estimate_query_pose_poselib(sc.query_camera, sc.pairs, iterations=ITERATIONS,
@@ -163,6 +166,7 @@ def summarise(results: list[dict], names: tuple[str, ...], protocol: str = "pape
                     "status": dict(Counter(v["status"] for v in rs)),
                     "gated_but_correct": int(sum(v.get("gated_correct", False) for v in rs)),
                     "wrong_successes": int(sum(v.get("wrong_success", False) for v in rs)),
+                    "broken_promises": int(sum(v.get("broken_promise", False) for v in rs)),
                     "median_stage_s": {k: float(np.median([v["stage_s"].get(k, 0.0) for v in rs]))
                                        for k in stage_keys},
                 }
@@ -189,6 +193,13 @@ def print_tables(cells: dict, names: tuple[str, ...], trials: int, protocol: str
         print(f"\n  matches/pair = {m}\n  {'method':<{w}}{head}")
         for name in names:
             vals = "".join(f"{cells[f'{m}x{r:.1f}']['methods'][name]['wrong_successes']:>7d}" for r in OUTLIERS)
+            print(f"  {name:<{w}}{vals}")
+    ours = [n for n in names if n != PEER]
+    print(f"\nBroken promises (success with centre error > 3 x its position_std_m + 5 cm), count per cell of {trials}:")
+    for m in matches:
+        print(f"\n  matches/pair = {m}\n  {'method':<{w}}{head}")
+        for name in ours:
+            vals = "".join(f"{cells[f'{m}x{r:.1f}']['methods'][name]['broken_promises']:>7d}" for r in OUTLIERS)
             print(f"  {name:<{w}}{vals}")
     for key, label in (("median_cpu_s", "CPU"), ("median_time_s", "wall")):
         print(f"\nMedian {label} time per query (ms), by matches/pair (median of the per-cell medians):")

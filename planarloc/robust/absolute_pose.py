@@ -117,10 +117,11 @@ def _refine(scorer, R: np.ndarray, t: np.ndarray, options: RansacOptions) -> Ref
     """Final robust refinement, repeated on the refined pose's inliers while they change
     (one compiled call, :func:`refine_until_stable`)."""
     p = scorer.p
+    iterations, rounds = 6, FINAL_REFINEMENT_ROUNDS
     R, t, H, sigma, cost, in2d, in3d, score = refine_until_stable(
         np.ascontiguousarray(R), np.ascontiguousarray(t), p.xq, p.xr, p.pair, p.offsets, p.f_query, p.f_ref,
         p.ref_R, p.ref_t, p.xq3d, p.X3d, scorer.threshold_sq, options.threshold_px,
-        6 if options.refine else 0, FINAL_REFINEMENT_ROUNDS if options.refine else 1, SIGMA_FLOOR_PX)
+        iterations if options.refine else 0, rounds if options.refine else 1, SIGMA_FLOOR_PX)
     return RefinedPose(R, t, centre_covariance(H, sigma), sigma, cost, score, in2d, in3d)
 
 
@@ -201,7 +202,8 @@ def estimate_absolute_pose(
         t0 = time.perf_counter()
         ref = _refine(scorer, out.R, out.t, options)
         stats.add_time("refinement", time.perf_counter() - t0)
-        candidates.append((ref.score, family, ref))
+        candidates.append((ref.score, family, ref, list(zip(out.alt_R, out.alt_t, out.alt_cost)),
+                           (out.pool_R, out.pool_t), scorer))
     if not candidates:
         if stats.rejected_degenerate > 0 and stats.rejected_degenerate >= (
                 stats.rejected_rcheck + stats.rejected_pdcheck + stats.rejected_consistency):
@@ -216,13 +218,15 @@ def estimate_absolute_pose(
     if not planar:
         return failure("no_consistent_hypothesis", f"the {method.value} search found no hypothesis that passed "
                        f"the checks ({stats.hypotheses} hypotheses)")
-    best_score, family, ref = min(planar if method != Method.AUTO else candidates, key=lambda c: c[0])
+    best_score, family, ref, alternatives, pool, best_scorer = min(
+        planar if method != Method.AUTO else candidates, key=lambda c: c[0])
     R, t = ref.R, ref.t
     # Other searches' refined poses that explain the matches almost as well: where they lie
     # elsewhere, the data do not single out one position (a flat or multi-modal cost), and the
     # distance between the answers is a lower bound of the position's uncertainty.
     rivals = [-c[2].R.T @ c[2].t for c in candidates if c[0] <= RIVAL_COST_RATIO * best_score and c[2] is not ref]
-    est = judge_pose(scorer, problem, options, gravity.world, gravity.query, ref, stats, t_start, rivals)
+    est = judge_pose(scorer, problem, options, gravity.world, gravity.query, ref, stats, t_start, rivals,
+                     alternatives, pool, lambda R_alt, t_alt: _refine(best_scorer, R_alt, t_alt, options))
     if est.success and method in PLANAR and options.verify_planar and est.model != "planar":
         return PoseEstimate(None, False, "planar_model_violated",
                             f"the {method.value} pose does not fit the planar model it assumes (it implies a tilt or "

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Protocol
 
 import numpy as np
@@ -46,11 +46,34 @@ class Estimator(Protocol):
 
 @dataclass
 class RansacOutput:
+    """The best model, and the runner-ups a verifier may want to look at.
+
+    ``alt_R``, ``alt_t``, ``alt_cost``: (k, 3, 3), (k, 3), (k,) the other locally optimised
+    models (the near-ties of :func:`_lo_candidates`, and earlier bests) and their MSAC costs,
+    within ``ALTERNATIVE_MARGIN_INLIERS · τ²`` of the best cost, lowest first, at most
+    ``MAX_ALTERNATIVES``: where one of them refines to a different pose of nearly the same
+    cost, the data do not single out one answer. They cost nothing extra to keep.
+    ``pool_R``, ``pool_t``: the raw hypotheses whose (possibly partial) cost was within that
+    margin of ``raw_cost`` when scored, for a verifier that wants to look further.
+    """
+
     R: np.ndarray | None
     t: np.ndarray | None
     cost: float
     num_inliers: int
     stats: RansacStatistics
+    alt_R: np.ndarray = field(default_factory=lambda: np.zeros((0, 3, 3)))
+    alt_t: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    alt_cost: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    raw_cost: float = math.inf  # the best hypothesis' cost before local optimisation
+    pool_R: np.ndarray = field(default_factory=lambda: np.zeros((0, 3, 3)))
+    pool_t: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+
+
+# Runner-ups kept for the verifier: MSAC cost within this many inliers' worth (τ² each) of the
+# best (planarloc.robust.verification refines them and calls a rival one within half of it).
+ALTERNATIVE_MARGIN_INLIERS = 8
+MAX_ALTERNATIVES = 8
 
 
 def required_iterations(inlier_ratio: float, sample_size: int, confidence: float) -> float:
@@ -97,6 +120,10 @@ def ransac(estimator: Estimator, options: RansacOptions, rng: np.random.Generato
     stats = stats or RansacStatistics()
     best_R = best_t = None
     best_cost, best_inl = math.inf, 0
+    best_raw = math.inf  # best cost of a hypothesis as generated (before local optimisation)
+    margin = ALTERNATIVE_MARGIN_INLIERS * options.threshold_px**2
+    optimised = []  # (cost, R, t) of every locally optimised model: the runner-ups
+    pool_R, pool_t = [], []  # raw hypotheses within the margin (partial costs are lower bounds)
     needed = float(options.max_iterations)
     while stats.iterations < options.max_iterations:
         todo = min(options.min_iterations - stats.iterations, first_batch) if stats.iterations < options.min_iterations else batch_size
@@ -110,6 +137,10 @@ def ransac(estimator: Estimator, options: RansacOptions, rng: np.random.Generato
             cost, inl = estimator.score(R, t, best_cost)
             stats.scored += len(R)
             k = int(np.argmin(cost))
+            best_raw = min(best_raw, float(cost[k]))
+            keep = np.flatnonzero(cost <= best_raw + margin)
+            pool_R.append(R[keep])
+            pool_t.append(t[keep])
             stats.add_time("scoring", time.perf_counter() - t1)
             if cost[k] < best_cost:
                 best_R, best_t, best_cost, best_inl = R[k], t[k], float(cost[k]), int(inl[k])
@@ -119,6 +150,7 @@ def ransac(estimator: Estimator, options: RansacOptions, rng: np.random.Generato
                         R_lo, t_lo = estimator.refine(R[c], t[c])
                         c_lo, i_lo = estimator.score(R_lo[None], t_lo[None])
                         stats.local_optimizations += 1
+                        optimised.append((float(c_lo[0]), R_lo, t_lo))
                         if c_lo[0] < best_cost:
                             best_R, best_t, best_cost, best_inl = R_lo, t_lo, float(c_lo[0]), int(i_lo[0])
                     stats.add_time("local_optimization", time.perf_counter() - t2)
@@ -126,4 +158,15 @@ def ransac(estimator: Estimator, options: RansacOptions, rng: np.random.Generato
                 needed = required_iterations(ratio, estimator.sample_size, options.confidence)
         if stats.iterations >= options.min_iterations and stats.iterations >= needed:
             break
-    return RansacOutput(best_R, best_t, best_cost, best_inl, stats)
+    # Runner-ups: the other locally optimised models within the margin of the best, lowest first.
+    alts = sorted((a for a in optimised if a[1] is not best_R and a[0] <= best_cost + margin),
+                  key=lambda a: a[0])[:MAX_ALTERNATIVES]
+    shape_R = (0, *np.shape(best_R)) if best_R is not None else (0, 3, 3)  # the loop is model-agnostic
+    shape_t = (0, *np.shape(best_t)) if best_t is not None else (0, 3)
+    alt_R = np.array([a[1] for a in alts]) if alts else np.zeros(shape_R)
+    alt_t = np.array([a[2] for a in alts]) if alts else np.zeros(shape_t)
+    return RansacOutput(best_R, best_t, best_cost, best_inl, stats, alt_R, alt_t, np.array([a[0] for a in alts]),
+                        best_raw, np.concatenate(pool_R) if pool_R else np.zeros(shape_R),
+                        np.concatenate(pool_t) if pool_t else np.zeros(shape_t))
+
+
