@@ -64,7 +64,7 @@ class _Gravity:
 
     ``levelled``: every camera is already upright (no rectification needed)."""
 
-    refs: np.ndarray          # (P, 3) unit, reference camera frames
+    refs: np.ndarray | None   # (P, 3) unit, reference camera frames (None when all are upright)
     world: np.ndarray         # (3,) unit, world frame (mean over references)
     query: np.ndarray         # (3,) unit, query camera frame (given, or the references' mount)
     query_given: bool
@@ -79,7 +79,7 @@ def _gravity(pairs: Sequence[PairMatches], problem: AbsolutePoseProblem, query_g
     if query_gravity is None and all(p.ref_gravity is None for p in pairs):  # the paper's case: all upright
         # World gravity = mean of R_kᵀ e_y = the references' second rows (unit already).
         s = problem.ref_R[:, 1, :].sum(axis=0)
-        return _Gravity(np.broadcast_to(E_Y, (len(pairs), 3)), s / math.sqrt(float(s @ s)), E_Y, False, True)
+        return _Gravity(None, s / math.sqrt(float(s @ s)), E_Y, False, True)  # refs unused when levelled
     given = [p.ref_gravity for p in pairs if p.ref_gravity is not None]
     g_refs = np.array([E_Y if p.ref_gravity is None else p.ref_gravity for p in pairs], dtype=float)
     g_world = mean_direction(np.einsum("pji,pj->pi", problem.ref_R, g_refs))

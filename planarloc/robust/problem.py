@@ -5,8 +5,10 @@ from __future__ import annotations
 import itertools
 from collections.abc import Sequence
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
+from numba import njit
 
 from planarloc.geometry.camera import Camera, CameraModel
 from planarloc.geometry.validation import InputError
@@ -47,8 +49,9 @@ class AbsolutePoseProblem:
     def num_pairs(self) -> int:
         return len(self.offsets) - 1
 
-    @property
+    @cached_property
     def counts(self) -> np.ndarray:
+        """(P,) matches per pair."""
         return np.diff(self.offsets)
 
     def with_points3d(self, xq3d: np.ndarray, X3d: np.ndarray, source3d: np.ndarray) -> AbsolutePoseProblem:
@@ -61,21 +64,26 @@ class AbsolutePoseProblem:
         )
 
 
+@njit(cache=True)
+def _affine_rays(pixels: np.ndarray, fx: float, fy: float, cx: float, cy: float) -> np.ndarray:
+    out = np.empty((pixels.shape[0], 3))
+    for i in range(pixels.shape[0]):
+        out[i, 0] = (pixels[i, 0] - cx) / fx
+        out[i, 1] = (pixels[i, 1] - cy) / fy
+        out[i, 2] = 1.0
+    return out
+
+
 def _rays(camera: Camera, pixels: np.ndarray) -> np.ndarray:
     """(N, 3) rays ``(x, y, 1)`` of validated (N, 2) pixels (``PairMatches`` checked them).
 
-    Cameras without distortion take the direct affine map: ``Camera.bearings_from_img``
-    re-validates its input and stacks, which costs more than the arithmetic for the few
-    hundred points of one pair."""
+    Cameras without distortion take the direct affine map in one compiled call:
+    ``Camera.bearings_from_img`` re-validates its input and stacks, which costs more than the
+    arithmetic for the few hundred points of one query."""
     if camera.model == CameraModel.OPENCV and np.any(camera.distortion):
         return camera.bearings_from_img(pixels)
     (fx, fy), (cx, cy) = camera.focal, camera.principal_point
-    out = np.empty((len(pixels), 3))
-    xy = out[:, :2]
-    np.subtract(pixels, (cx, cy), out=xy)
-    xy /= (fx, fy)
-    out[:, 2] = 1.0
-    return out
+    return _affine_rays(pixels, float(fx), float(fy), float(cx), float(cy))
 
 
 def _check_rays(rays: np.ndarray, offsets: np.ndarray, name: str) -> None:

@@ -90,7 +90,8 @@ def _rival_distance(estimator, ref: RefinedPose, num_inliers: int,
 
 def split_by_pair(mask: np.ndarray, offsets: np.ndarray) -> list[np.ndarray]:
     """(N,) mask over all matches -> one (N_p,) mask per pair (views of ``mask``)."""
-    return np.split(mask, offsets[1:-1])
+    bounds = offsets.tolist()
+    return [mask[a:b] for a, b in zip(bounds[:-1], bounds[1:])]
 
 
 def failed_estimate(problem: AbsolutePoseProblem, stats: RansacStatistics, t_start: float, status: str, message: str,
