@@ -113,11 +113,11 @@ def _eligible(problem: AbsolutePoseProblem, family: Method) -> bool:
     return eligible_pairs(counts, m1, m2) or (has_3d and max(counts, default=0) >= m1)
 
 
-def _refine(scorer, R: np.ndarray, t: np.ndarray, options: RansacOptions) -> RefinedPose:
+def _refine(scorer, R: np.ndarray, t: np.ndarray, options: RansacOptions, quick: bool = False) -> RefinedPose:
     """Final robust refinement, repeated on the refined pose's inliers while they change
-    (one compiled call, :func:`refine_until_stable`)."""
+    (one compiled call, :func:`refine_until_stable`); ``quick``: one round of two iterations."""
     p = scorer.p
-    iterations, rounds = 6, FINAL_REFINEMENT_ROUNDS
+    iterations, rounds = (2, 1) if quick else (6, FINAL_REFINEMENT_ROUNDS)
     R, t, H, sigma, cost, in2d, in3d, score = refine_until_stable(
         np.ascontiguousarray(R), np.ascontiguousarray(t), p.xq, p.xr, p.pair, p.offsets, p.f_query, p.f_ref,
         p.ref_R, p.ref_t, p.xq3d, p.X3d, scorer.threshold_sq, options.threshold_px,
@@ -226,7 +226,7 @@ def estimate_absolute_pose(
     # distance between the answers is a lower bound of the position's uncertainty.
     rivals = [-c[2].R.T @ c[2].t for c in candidates if c[0] <= RIVAL_COST_RATIO * best_score and c[2] is not ref]
     est = judge_pose(scorer, problem, options, gravity.world, gravity.query, ref, stats, t_start, rivals,
-                     alternatives, pool, lambda R_alt, t_alt: _refine(best_scorer, R_alt, t_alt, options))
+                     alternatives, pool, lambda R_alt, t_alt, quick: _refine(best_scorer, R_alt, t_alt, options, quick))
     if est.success and method in PLANAR and options.verify_planar and est.model != "planar":
         return PoseEstimate(None, False, "planar_model_violated",
                             f"the {method.value} pose does not fit the planar model it assumes (it implies a tilt or "

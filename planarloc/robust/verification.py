@@ -52,7 +52,7 @@ class RefinedPose:
 
 def _rival_distance(estimator, ref: RefinedPose, num_inliers: int,
                     alternatives: Sequence[tuple[np.ndarray, np.ndarray, float]], pool: tuple[np.ndarray, np.ndarray],
-                    refine: Callable[[np.ndarray, np.ndarray], RefinedPose], beyond: float) -> float:
+                    refine: Callable[[np.ndarray, np.ndarray, bool], RefinedPose], beyond: float) -> float:
     """Largest distance (> ``beyond``) from ``ref``'s centre of a refined runner-up that explains
     the matches as well as ``ref`` but for ``RIVAL_MARGIN_INLIERS`` inliers' worth of MSAC cost
     (``score − ref.score ≤ margin·τ²``); 0 if none.
@@ -81,7 +81,11 @@ def _rival_distance(estimator, ref: RefinedPose, num_inliers: int,
         if np.linalg.norm(-R.T @ t - c) <= beyond:
             continue
         tried += 1
-        alt = refine(R, t)
+        alt = refine(R, t, True)  # a quick look first: most runner-ups settle clearly worse or back home
+        d = float(np.linalg.norm(-alt.R.T @ alt.t - c))
+        if alt.score - ref.score > 2.0 * margin or d <= beyond:
+            continue
+        alt = refine(R, t, False)
         d = float(np.linalg.norm(-alt.R.T @ alt.t - c))
         if alt.score - ref.score <= margin and d > beyond:
             found = max(found, d)
@@ -108,7 +112,7 @@ def judge_pose(estimator, problem: AbsolutePoseProblem, options: RansacOptions, 
                query_gravity: np.ndarray, ref: RefinedPose, stats: RansacStatistics, t_start: float,
                rivals: Sequence[np.ndarray] = (), alternatives: Sequence[tuple[np.ndarray, np.ndarray, float]] = (),
                pool: tuple[np.ndarray, np.ndarray] = (np.zeros((0, 3, 3)), np.zeros((0, 3))),
-               refine: Callable[[np.ndarray, np.ndarray], RefinedPose] | None = None) -> PoseEstimate:
+               refine: Callable[[np.ndarray, np.ndarray, bool], RefinedPose] | None = None) -> PoseEstimate:
     """Uncertainty and verification of a refined pose; a ``success`` only if it passes.
 
     Args:
@@ -119,7 +123,8 @@ def judge_pose(estimator, problem: AbsolutePoseProblem, options: RansacOptions, 
         rivals: (3,) centres of other searches' refined poses of nearly the same cost.
         alternatives: the search's other locally optimised models ``(R, t, MSAC cost)``;
             ``pool``: its raw hypotheses near the best cost ``(R (k, 3, 3), t (k, 3))``;
-            ``refine(R, t)`` refines one like ``ref``. A runner-up that refines to a pose beyond
+            ``refine(R, t, quick)`` refines one like ``ref`` (``quick``: one round of two
+            iterations, a first look). A runner-up that refines to a pose beyond
             ``3·std + 5 cm`` explaining the matches as well but for ``RIVAL_MARGIN_INLIERS``
             inliers is a rival answer (:func:`_rival_distance`): the distance bounds the std
             from below (``ambiguous_pose`` when that exceeds the limit).

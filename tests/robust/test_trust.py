@@ -174,7 +174,7 @@ def test_rival_distance_margin_in_inliers() -> None:
     calls = []
 
     def refine_to(centre, score):
-        def refine(R, t):
+        def refine(R, t, quick):
             calls.append(1)
             return _refined(centre, score)
         return refine
