@@ -31,7 +31,7 @@ RIVAL_MARGIN_INLIERS = ALTERNATIVE_MARGIN_INLIERS // 2  # within this many inlie
 # Raw runner-up hypotheses are examined too for poses on fewer inliers than this: that is where
 # benchmarks/robustness.py --protocol hard found successes 0.2-3 m off with std 0.04-0.2 m (3
 # references x 20 matches, 12-31 inliers); the paper protocol's 40-200 inliers had none.
-RIVAL_POOL_BELOW_INLIERS = 40
+RIVAL_POOL_BELOW_INLIERS = 32
 MAX_POOL_CANDIDATES = 8
 
 
