@@ -72,7 +72,7 @@ class RansacOutput:
 
 # Runner-ups kept for the verifier: MSAC cost within this many inliers' worth (τ² each) of the
 # best (planarloc.robust.verification refines them and calls a rival one within half of it).
-ALTERNATIVE_MARGIN_INLIERS = 8
+ALTERNATIVE_MARGIN_INLIERS = 4
 MAX_ALTERNATIVES = 8
 
 

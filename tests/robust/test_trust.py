@@ -198,11 +198,11 @@ def test_rival_distance_margin_in_inliers() -> None:
     assert _rival_distance(_Scorer(), ref, 400, [], pool, refine_to([2, 0, 0], 100.0), 0.2) == 0.0
 
 
-@pytest.mark.parametrize("case", [(2, 4, 77), (3, 3, 56), (1, 3, 10), (2, 2, 109)])
+@pytest.mark.parametrize("case", [(2, 4, 77), (3, 3, 56), (1, 4, 86)])
 def test_few_inliers_far_runner_up_is_not_a_confident_success(case) -> None:
     """Scenes (3 references x 20 matches, 1.5 px noise, 40-60 % outliers) where 2p1p used to
-    report success 0.2-0.45 m off with a std of 0.04-0.12 m: a runner-up pose explained the
-    matches within a few inliers' worth of cost."""
+    report success 0.2-0.3 m off with a std of 0.04 m: a runner-up pose explained the matches
+    within two inliers' worth of MSAC cost."""
     seed, ri, trial = case
     ss = np.random.SeedSequence([seed, 1, ri, trial])
     rng, ransac_seed = np.random.default_rng(ss), int(ss.generate_state(1)[0])
