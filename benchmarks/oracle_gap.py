@@ -71,8 +71,7 @@ def run_scene(task: tuple[int, int, int, float, bool]) -> dict:
             r["class"] = f"no pose ({est.status})"
         else:
             scorer = Planar2p1pEstimator(build_problem(sc.query_camera, sc.pairs), opts)
-            R, t, *_ = _refine(scorer, sc.query_pose.R, sc.query_pose.t, opts)
-            truth = float(scorer.score(R[None], t[None])[0][0])
+            truth = _refine(scorer, sc.query_pose.R, sc.query_pose.t, opts).score
             ours = float(scorer.score(pose.R[None], pose.t[None])[0][0])
             r["class"] = "search" if ours > truth else "objective"
     return r
