@@ -54,7 +54,7 @@ class RansacOutput:
     ``MAX_ALTERNATIVES``: where one of them refines to a different pose of nearly the same
     cost, the data do not single out one answer. They cost nothing extra to keep.
     ``pool_R``, ``pool_t``: the raw hypotheses whose (possibly partial) cost was within that
-    margin of ``raw_cost`` when scored, for a verifier that wants to look further.
+    margin of the best raw hypothesis' when scored, for a verifier that wants to look further.
     """
 
     R: np.ndarray | None
@@ -65,7 +65,6 @@ class RansacOutput:
     alt_R: np.ndarray = field(default_factory=lambda: np.zeros((0, 3, 3)))
     alt_t: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
     alt_cost: np.ndarray = field(default_factory=lambda: np.zeros(0))
-    raw_cost: float = math.inf  # the best hypothesis' cost before local optimisation
     pool_R: np.ndarray = field(default_factory=lambda: np.zeros((0, 3, 3)))
     pool_t: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
 
@@ -166,7 +165,7 @@ def ransac(estimator: Estimator, options: RansacOptions, rng: np.random.Generato
     alt_R = np.array([a[1] for a in alts]) if alts else np.zeros(shape_R)
     alt_t = np.array([a[2] for a in alts]) if alts else np.zeros(shape_t)
     return RansacOutput(best_R, best_t, best_cost, best_inl, stats, alt_R, alt_t, np.array([a[0] for a in alts]),
-                        best_raw, np.concatenate(pool_R) if pool_R else np.zeros(shape_R),
+                        np.concatenate(pool_R) if pool_R else np.zeros(shape_R),
                         np.concatenate(pool_t) if pool_t else np.zeros(shape_t))
 
 

@@ -189,30 +189,10 @@ def solve_spd(A: np.ndarray, b: np.ndarray, x: np.ndarray) -> bool:
     Hand-written: numba's ``np.linalg.solve`` pulls in LAPACK bindings that take tens of
     seconds to compile, for a 6x6 system that this solves in ~100 ns.
     """
-    n = A.shape[0]
-    L = np.zeros((n, n))
-    for i in range(n):
-        for j in range(i + 1):
-            acc = A[i, j]
-            for k in range(j):
-                acc -= L[i, k] * L[j, k]
-            if i == j:
-                if not acc > 0.0:
-                    return False
-                L[i, i] = np.sqrt(acc)
-            else:
-                L[i, j] = acc / L[j, j]
-    y = np.empty(n)
-    for i in range(n):
-        acc = b[i]
-        for k in range(i):
-            acc -= L[i, k] * y[k]
-        y[i] = acc / L[i, i]
-    for i in range(n - 1, -1, -1):
-        acc = y[i]
-        for k in range(i + 1, n):
-            acc -= L[k, i] * x[k]
-        x[i] = acc / L[i, i]
+    L = np.empty(A.shape)
+    if not _cholesky(A, L, 0.0):
+        return False
+    _cholesky_solve(L, b, x)
     return True
 
 
@@ -494,6 +474,24 @@ def _cholesky(A: np.ndarray, L: np.ndarray, rel_tol: float) -> bool:
 
 
 @njit(cache=True, error_model="numpy")
+def _cholesky_solve(L: np.ndarray, b: np.ndarray, x: np.ndarray) -> None:
+    """Solve ``L Lᵀ x = b`` (x (n,)) by forward and back substitution with the factor of
+    :func:`_cholesky`."""
+    n = L.shape[0]
+    y = np.empty(n)
+    for i in range(n):
+        acc = b[i]
+        for k in range(i):
+            acc -= L[i, k] * y[k]
+        y[i] = acc / L[i, i]
+    for i in range(n - 1, -1, -1):
+        acc = y[i]
+        for k in range(i + 1, n):
+            acc -= L[k, i] * x[k]
+        x[i] = acc / L[i, i]
+
+
+@njit(cache=True, error_model="numpy")
 def map_centre_covariance(
     Rq: np.ndarray, tq: np.ndarray, xq: np.ndarray, xr: np.ndarray, pair: np.ndarray, idx2d: np.ndarray,
     f_query: np.ndarray, f_ref: np.ndarray, ref_R: np.ndarray, ref_t: np.ndarray,
@@ -511,24 +509,14 @@ def map_centre_covariance(
     if not _cholesky(H, L, 1e-12):
         return out
     cols = M.shape[1]
-    Bm = np.empty((6, cols))
-    y = np.empty(6)
+    Bm = np.empty((cols, 6))  # row c: H⁻¹ M[:, c]
     for c in range(cols):
-        for i in range(6):
-            acc = M[i, c]
-            for k in range(i):
-                acc -= L[i, k] * y[k]
-            y[i] = acc / L[i, i]
-        for i in range(5, -1, -1):
-            acc = y[i]
-            for k in range(i + 1, 6):
-                acc -= L[k, i] * Bm[k, c]
-            Bm[i, c] = acc / L[i, i]
+        _cholesky_solve(L, M[:, c].copy(), Bm[c])
     for a in range(3):
         for b in range(3):
             acc = 0.0
             for c in range(cols):
-                acc += Bm[3 + a, c] * var[c] * Bm[3 + b, c]
+                acc += Bm[c, 3 + a] * var[c] * Bm[c, 3 + b]
             out[a, b] = acc
     return out
 
@@ -539,23 +527,15 @@ def _centre_covariance(H: np.ndarray, sigma: float, B: np.ndarray) -> np.ndarray
     out = np.full((3, 3), np.inf)
     if not _cholesky(H, L, 1e-12):
         return out
-    X = np.zeros((6, 3))  # columns 3..5 of H⁻¹: solve H X = [0; I]
-    y = np.empty(6)
-    for col in range(3):
-        for i in range(6):
-            acc = 1.0 if i == 3 + col else 0.0
-            for k in range(i):
-                acc -= L[i, k] * y[k]
-            y[i] = acc / L[i, i]
-        for i in range(5, -1, -1):
-            acc = y[i]
-            for k in range(i + 1, 6):
-                acc -= L[k, i] * X[k, col]
-            X[i, col] = acc / L[i, i]
+    X = np.empty((3, 6))  # row k: column 3 + k of H⁻¹ (solve H x = e_{3+k})
+    for k in range(3):
+        e = np.zeros(6)
+        e[3 + k] = 1.0
+        _cholesky_solve(L, e, X[k])
     C = np.empty((3, 3))
     for a in range(3):
         for b in range(3):
-            C[a, b] = 0.5 * (X[3 + a, b] + X[3 + b, a])
+            C[a, b] = 0.5 * (X[b, 3 + a] + X[a, 3 + b])
     s2 = sigma * sigma
     for a in range(3):
         for b in range(3):

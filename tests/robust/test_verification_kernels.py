@@ -17,6 +17,7 @@ from planarloc.robust.estimators import SIGMA_FLOOR_PX, Planar2p1pEstimator
 from planarloc.robust.options import RansacOptions
 from planarloc.robust.problem import build_problem
 from planarloc.robust.refinement import (
+    map_centre_covariance,
     map_uncertainty_covariance,
     refine_pose,
     refine_until_stable,
@@ -111,6 +112,16 @@ def test_map_propagation_predicts_the_refined_shift(scene) -> None:
         moved = refine_to_convergence(replace(pb, ref_R=Rp, ref_t=tp), sc.query_pose, idx2d)
         shift = (moved.center - sc.query_pose.center) / h
         np.testing.assert_allclose(shift, Bm[3:, 6 * p + k], rtol=2e-3, atol=2e-3 * np.abs(Bm[3:, 6 * p + k]).max())
+
+
+def test_map_centre_covariance_matches_numpy(scene) -> None:
+    sc = scene(12, num_refs=3, matches_per_pair=40, noise_px=0.0, outlier_ratio=0.0)
+    pb = build_problem(sc.query_camera, sc.pairs)
+    args = (sc.query_pose.R, sc.query_pose.t, pb.xq, pb.xr, pb.pair, np.arange(len(pb.xq)), pb.f_query, pb.f_ref,
+            pb.ref_R, pb.ref_t, pb.xq3d, pb.X3d, NO3D, 2.0, np.radians(0.1), 0.05)
+    H, M, var = map_uncertainty_covariance(*args)
+    Bm = np.linalg.solve(H, M)
+    np.testing.assert_allclose(map_centre_covariance(*args), ((Bm * var) @ Bm.T)[3:, 3:], rtol=1e-9)
 
 
 def test_jackknife_matches_explicit_leave_one_out(scene) -> None:
