@@ -146,14 +146,18 @@ def test_worker_killed_mid_request_fails_cleanly_and_the_pool_recovers(server) -
             except ServiceError as exc:
                 result["error"] = exc
 
+    # Freeze the workers first, so that the request is still in flight when they die: a fast
+    # estimate could otherwise finish between "admitted" and the kill.
+    for pid in pids:
+        os.kill(pid, signal.SIGSTOP)
     t = threading.Thread(target=one)
     t.start()
-    # Kill only once the request is admitted (running on a worker): under load the upload
+    # Kill only once the request is admitted (handed to a worker): under load the upload
     # and parsing alone can take longer than any fixed sleep.
     deadline = time.monotonic() + 30
     while time.monotonic() < deadline and httpx.get(server.url + "/healthz").json()["admitted"] < 1:
         time.sleep(0.01)
-    for pid in pids:  # whichever runs the request
+    for pid in pids:  # whichever holds the request
         os.kill(pid, signal.SIGKILL)
     t.join(60)
     assert "error" in result and result["error"].status == 503 and "died" in result["error"].reason
