@@ -115,3 +115,51 @@ def triangulate_points(
     bad = ~np.all(depths > 0, axis=1)
     X_world[bad] = np.nan
     return X_world, angle
+
+
+def projection_jacobians(X: np.ndarray, R: np.ndarray, t: np.ndarray, focal: tuple[float, float] | np.ndarray
+                         ) -> np.ndarray:
+    """(N, 2, 3) derivatives of the pixel projections of world points X (N, 3) w.r.t. X.
+
+    For the pinhole camera ``cam_from_world = (R, t)`` with focal lengths ``(fx, fy)``:
+    ``∂u/∂X = f/z [1, 0, −x/z] R`` and likewise for v (lens distortion not included).
+    """
+    Xc = X @ R.T + t
+    fx, fy = float(focal[0]), float(focal[1])
+    z = Xc[:, 2]
+    J = np.zeros((len(X), 2, 3))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        J[:, 0, 0] = fx / z
+        J[:, 0, 2] = -fx * Xc[:, 0] / (z * z)
+        J[:, 1, 1] = fy / z
+        J[:, 1, 2] = -fy * Xc[:, 1] / (z * z)
+    return J @ R
+
+
+def triangulation_covariance(
+    X: np.ndarray,
+    cam_from_world_a: tuple[np.ndarray, np.ndarray],
+    cam_from_world_b: tuple[np.ndarray, np.ndarray],
+    focal_a: tuple[float, float] | np.ndarray,
+    focal_b: tuple[float, float] | np.ndarray,
+    keypoint_std_px: float,
+) -> np.ndarray:
+    """(N, 3, 3) first-order covariance of points X (N, 3) triangulated from two views.
+
+    ``Σ = σ² (J_aᵀ J_a + J_bᵀ J_b)⁻¹`` with ``J`` the pixel projection Jacobians in the two views
+    (:func:`projection_jacobians`) and σ the keypoint noise in pixels (Hartley & Zisserman,
+    *Multiple View Geometry*, 2nd ed., Sec. 5.2.3, backward propagation of covariance). NaN rows
+    for points on the baseline (singular information). A far point seen at a small angle has a
+    covariance elongated along the viewing rays: its depth is uncertain.
+    """
+    Ja = projection_jacobians(X, *cam_from_world_a, focal_a)
+    Jb = projection_jacobians(X, *cam_from_world_b, focal_b)
+    info = np.einsum("nki,nkj->nij", Ja, Ja) + np.einsum("nki,nkj->nij", Jb, Jb)
+    out = np.full((len(X), 3, 3), np.nan)
+    ok = np.isfinite(info).all(axis=(1, 2))
+    if ok.any():
+        det = np.linalg.det(info[ok])
+        scale = np.einsum("nii->n", info[ok]) ** 3
+        good = np.flatnonzero(ok)[det > 1e-12 * scale]
+        out[good] = keypoint_std_px**2 * np.linalg.inv(info[good])
+    return out

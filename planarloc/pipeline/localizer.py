@@ -24,13 +24,14 @@ import numpy as np
 from planarloc.geometry.camera import Camera
 from planarloc.geometry.validation import InputError
 from planarloc.pipeline.features import Features, extract_features
+from planarloc.pipeline.local_structure import MapView, PairMatchCache, view_points
 from planarloc.pipeline.map_builder import VOCABULARY_BLOB, feature_config_from_map, map_gravity, read_gray
 from planarloc.pipeline.map_database import MapDatabase
 from planarloc.pipeline.matching import DEFAULT_RATIO, match_query_to_refs
 from planarloc.pipeline.posed_image import PosedImage
 from planarloc.pipeline.retrieval import DEFAULT_TOP_N, GlobalIndex, VladVocabulary, vlad_descriptor
 from planarloc.robust.absolute_pose import estimate_absolute_pose
-from planarloc.robust.options import Method, RansacOptions
+from planarloc.robust.options import Method, RansacOptions, Structure
 from planarloc.robust.pair_matches import PairMatches, unit_gravity
 from planarloc.robust.result import PoseEstimate
 
@@ -93,6 +94,8 @@ class Localizer:
         self._posed = {p.name: p for p in self.db.posed_images()}
         self._by_id = {self.db.image_id(n): n for n in self._posed}
         self._depth_cache: OrderedDict[str, np.ndarray | None] = OrderedDict()
+        self.pair_cache = PairMatchCache()
+        """Matches between map images (local structure), kept across queries."""
         self.gravity = map_gravity(self.db)
         """The map's :class:`~planarloc.pipeline.gravity.GravityReport` (``g_world``, mount tilt)."""
         self._g_world = self.gravity.g_world_array
@@ -144,8 +147,9 @@ class Localizer:
         """
         refs = [self.db.get_features(n) for n in references]
         matches = match_query_to_refs(features, refs, ratio=self.config.ratio)
+        points3d = self._local_structure(references, refs, matches)
         pairs, names = [], []
-        for name, ref, m in zip(references, refs, matches):
+        for name, ref, m, local in zip(references, refs, matches, points3d):
             if len(m) < self.config.min_matches:
                 continue
             posed = self._posed[name]
@@ -158,12 +162,44 @@ class Localizer:
                 continue
             ref_pts = np.asarray(ref.keypoints[m[:, 1]], dtype=float)
             X = self._points3d(name, ref_pts) if self.config.use_depth else None
+            cov = None
+            if local is not None:
+                X_local, cov = local.X[ok], local.cov[ok]
+                if X is not None:  # measured depth first
+                    take = np.isnan(X[:, 0])
+                    X_local, cov = np.where(take[:, None], X_local, X), np.where(take[:, None, None], cov, 0.0)
+                X = X_local
             pairs.append(PairMatches(posed.cam_from_world, posed.camera,
                                      np.asarray(features.keypoints[m[:, 0]], dtype=float), ref_pts,
                                      query_indices=m[:, 0], ref_points3d=X,
-                                     ref_gravity=posed.cam_from_world.R @ self._g_world))
+                                     ref_gravity=posed.cam_from_world.R @ self._g_world, ref_points3d_cov=cov))
             names.append(name)
         return pairs, names
+
+    def _local_structure(self, references: Sequence[str], refs: Sequence[Features],
+                         matches: Sequence[np.ndarray]) -> list:
+        """Per reference, 3D points of its matched keypoints triangulated with the other
+        references (:mod:`planarloc.pipeline.local_structure`), one per query keypoint (the
+        widest angle over its matches); ``None`` per reference without structure mode."""
+        if self.config.ransac.structure != Structure.TRACKS or len(references) < 2:
+            return [None] * len(references)
+        views = [MapView(n, f, self._posed[n].cam_from_world, self._posed[n].camera) for n, f in zip(references, refs)]
+        points = view_points(views, [m[:, 1] for m in matches], self.pair_cache, ratio=self.config.ratio,
+                             max_error_px=self.config.ransac.threshold_px)
+        # One 2D-3D constraint per query keypoint: the widest-angle point among its matches.
+        best: dict[int, tuple[float, int, int]] = {}
+        for k, (m, pts) in enumerate(zip(matches, points)):
+            for row in np.flatnonzero(pts.partner >= 0):
+                q, a = int(m[row, 0]), float(pts.angle_deg[row])
+                if q not in best or a > best[q][0]:
+                    best[q] = (a, k, int(row))
+        keep = [np.zeros(len(m), dtype=bool) for m in matches]
+        for _, k, row in best.values():
+            keep[k][row] = True
+        for pts, kp in zip(points, keep):
+            pts.X[~kp] = np.nan
+            pts.cov[~kp] = np.nan
+        return points
 
     # ---- whole pipeline ------------------------------------------------------------------
     def localize_features(self, features: Features, camera: Camera,

@@ -29,11 +29,12 @@ from planarloc.robust.estimators import (
     RelativePairEstimator,
     rectify_problem,
 )
-from planarloc.robust.options import Method, RansacOptions, Structure, parse_method
+from planarloc.robust.options import Method, RansacOptions, Structure, parse_method, reprojection_threshold_px
 from planarloc.robust.pair_matches import PairMatches, unit_gravity
 from planarloc.robust.problem import AbsolutePoseProblem, build_problem
 from planarloc.robust.ransac import ransac
-from planarloc.robust.refinement import centre_covariance, refine_until_stable
+from planarloc.robust.final_refinement import refine_until_stable
+from planarloc.robust.refinement import centre_covariance
 from planarloc.robust.result import PoseEstimate, RansacStatistics
 from planarloc.robust.verification import RefinedPose, failed_estimate, judge_pose
 from planarloc.robust.sampling import eligible_pairs
@@ -108,8 +109,10 @@ def _estimator(problem: AbsolutePoseProblem, options: RansacOptions, family: Met
 
 def _eligible(problem: AbsolutePoseProblem, family: Method) -> bool:
     m1, m2 = MIN_SAMPLE[family]
-    has_3d = len(problem.X3d) > 0 and family in PLANAR
     counts = problem.counts.tolist()
+    if family not in PLANAR and len(problem.X3d) >= 3:
+        return True  # P3P samples
+    has_3d = len(problem.X3d) > 0 and family in PLANAR
     return eligible_pairs(counts, m1, m2) or (has_3d and max(counts, default=0) >= m1)
 
 
@@ -121,7 +124,8 @@ def _refine(scorer, R: np.ndarray, t: np.ndarray, options: RansacOptions, quick:
     R, t, H, sigma, cost, in2d, in3d, score = refine_until_stable(
         np.ascontiguousarray(R), np.ascontiguousarray(t), p.xq, p.xr, p.pair, p.offsets, p.f_query, p.f_ref,
         p.ref_R, p.ref_t, p.xq3d, p.X3d, scorer.threshold_sq, options.threshold_px,
-        iterations if options.refine else 0, rounds if options.refine else 1, SIGMA_FLOOR_PX)
+        iterations if options.refine else 0, rounds if options.refine else 1, SIGMA_FLOOR_PX,
+        math.radians(options.map_rotation_std_deg), options.map_position_std_m)
     return RefinedPose(R, t, centre_covariance(H, sigma), sigma, cost, score, in2d, in3d)
 
 
@@ -169,9 +173,10 @@ def estimate_absolute_pose(
     stats = RansacStatistics()
     if options.structure == Structure.TRACKS:
         t0 = time.perf_counter()
-        xq3, X3 = triangulate_tracks(problem, options.threshold_px, options.track_min_angle_deg)
-        problem = problem.with_points3d(xq3, X3, np.full(len(X3), -1))
+        xq3, X3, C3 = triangulate_tracks(problem, options.threshold_px, options.track_min_angle_deg)
+        problem = problem.with_points3d(xq3, X3, np.full(len(X3), -1), C3)
         stats.add_time("structure", time.perf_counter() - t0)
+    problem = problem.with_reprojection_threshold(options.threshold_px / reprojection_threshold_px(options))
     stats.add_time("setup", time.perf_counter() - t_start)
 
     def failure(status: str, message: str) -> PoseEstimate:

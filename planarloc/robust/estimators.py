@@ -25,6 +25,7 @@ from planarloc.robust.hypotheses import (
     hypotheses_2p1p,
     hypotheses_2p1p_consensus,
     hypotheses_from_relative_poses,
+    hypotheses_p3p,
     hypotheses_up2p,
     planar_relative_candidates,
 )
@@ -33,7 +34,7 @@ from planarloc.robust.options import Method, RansacOptions
 from planarloc.robust.problem import AbsolutePoseProblem
 from planarloc.robust.refinement import centre_covariance, refine_on_inliers, refine_pose
 from planarloc.robust.result import RansacStatistics
-from planarloc.robust.sampling import draw_pair_samples
+from planarloc.robust.sampling import draw_pair_samples, draw_within_pairs
 from planarloc.robust.scoring import errors_sq, msac_scores
 from planarloc.solvers.relpose_planar_2p import planar_2p_batch_unchecked
 
@@ -267,6 +268,9 @@ class RelativePairEstimator(_ProblemEstimator):
         self.cos_consistency = float(np.cos(np.radians(options.consistency_deg)))
         self.fallback_3d = method == Method.P2P2 and len(problem.X3d) > 0
         self._planar = Planar2p1pEstimator(problem, options) if self.fallback_3d else None
+        # 6DoF families with 2D-3D constraints also draw P3P samples (PoseLib's hybrid estimator
+        # samples its 2D-3D and 2D-2D solvers side by side).
+        self.p3p = method != Method.P2P2 and len(problem.X3d) >= 3
 
     def _best_relative(self, rng: np.random.Generator, n: int) -> list[tuple[np.ndarray, np.ndarray]]:
         """Stage 1: per pair, up to ``top_k`` distinct best relative poses (R (K,3,3), t (K,3))."""
@@ -274,7 +278,6 @@ class RelativePairEstimator(_ProblemEstimator):
         eligible = np.flatnonzero(p.counts >= m)
         sample_pair = np.repeat(eligible, n)
         samples = np.empty((len(sample_pair), m), dtype=np.int64)
-        from planarloc.robust.sampling import draw_within_pairs
         from planarloc.robust.scoring import relative_msac_scores
 
         draw_within_pairs(rng.random((len(sample_pair), m)), p.offsets, sample_pair, m, samples)
@@ -329,7 +332,22 @@ class RelativePairEstimator(_ProblemEstimator):
             # constraint survives collinear geometry, where eq. (15) is singular.
             R3, t3 = self._planar.generate(rng, n, stats)
             R, t = np.concatenate([R, R3]), np.concatenate([t, t3])
+        if self.p3p:
+            R3, t3 = self._generate_p3p(rng, n, stats)
+            R, t = np.concatenate([R, R3]), np.concatenate([t, t3])
         return R, t
+
+    def _generate_p3p(self, rng: np.random.Generator, n: int, stats: RansacStatistics
+                      ) -> tuple[np.ndarray, np.ndarray]:
+        """P3P hypotheses from ``n`` samples of three distinct 2D-3D constraints."""
+        p = self.p
+        samples = np.empty((n, 3), dtype=np.int64)
+        draw_within_pairs(rng.random((n, 3)), np.array([0, len(p.X3d)], dtype=np.int64), np.zeros(n, dtype=np.int64),
+                          3, samples)
+        out_R, out_t = np.empty((4 * n, 3, 3)), np.empty((4 * n, 3))
+        m = hypotheses_p3p(samples, p.xq3d, p.X3d, out_R, out_t, self.counters)
+        self._flush(stats)
+        return out_R[:m], out_t[:m]
 
 
 class RectifiedHypotheses:
@@ -417,5 +435,5 @@ def rectify_problem(p: AbsolutePoseProblem, upright_from_query: np.ndarray,
         p.f_query, p.f_ref,
         np.ascontiguousarray(upright_from_refs @ p.ref_R),
         np.ascontiguousarray(np.einsum("pij,pj->pi", upright_from_refs, p.ref_t)),
-        _rotate_rays(p.xq3d, upright_from_query) if len(p.xq3d) else p.xq3d, p.X3d, p.source3d,
+        _rotate_rays(p.xq3d, upright_from_query) if len(p.xq3d) else p.xq3d, p.X3d, p.source3d, p.X3d_cov,
     )

@@ -14,6 +14,8 @@ from planarloc.geometry import mat3 as m3
 from planarloc.geometry.epipolar_kernels import sampson_sq
 from planarloc.solvers.abspose_2p1p import scale_2p1p, scale_from_point3d
 from planarloc.solvers.abspose_2p2p import triangulate_scales
+from planarloc.solvers.abspose_p3p import MAX_SOLUTIONS as P3P_MAX_SOLUTIONS
+from planarloc.solvers.abspose_p3p import solve_p3p
 from planarloc.solvers.abspose_up2p import solve_up2p
 from planarloc.solvers.relpose_planar_2p import planar_pose_into, solve_planar_2p
 
@@ -220,6 +222,39 @@ def hypotheses_up2p(
             R[0, 0], R[0, 2], R[2, 0], R[2, 2] = c, -sn, sn, c
             out_R[out] = m3.mul(R, Rj)
             out_t[out] = m3.vec(R, tj) + ts[m]
+            out += 1
+    return out
+
+
+@njit(cache=True, error_model="numpy")
+def hypotheses_p3p(samples: np.ndarray, xq3d: np.ndarray, X3d: np.ndarray, out_R: np.ndarray, out_t: np.ndarray,
+                   counters: np.ndarray) -> int:
+    """6DoF P3P hypotheses from three 2D-3D constraints (:mod:`planarloc.solvers.abspose_p3p`).
+
+    Args:
+        samples: (S, 3) rows of ``xq3d`` / ``X3d``.
+        out_R, out_t: (4S, 3, 3), (4S, 3) ``query_from_world`` outputs.
+
+    Returns:
+        number of hypotheses written.
+    """
+    x = np.empty((3, 3))
+    X = np.empty((3, 3))
+    Rs = np.empty((P3P_MAX_SOLUTIONS, 3, 3))
+    ts = np.empty((P3P_MAX_SOLUTIONS, 3))
+    out = 0
+    for s in range(samples.shape[0]):
+        for k in range(3):
+            x[k] = xq3d[samples[s, k]]
+            X[k] = X3d[samples[s, k]]
+        n = solve_p3p(x, X, Rs, ts)
+        if n == 0:
+            counters[DEGENERATE] += 1
+            continue
+        for m in range(n):
+            counters[HYPOTHESES] += 1
+            out_R[out] = Rs[m]
+            out_t[out] = ts[m]
             out += 1
     return out
 

@@ -47,8 +47,11 @@ class RansacOptions:
     Attributes:
         max_iterations: upper bound on minimal samples drawn.
         min_iterations: lower bound; set both to 100 to reproduce the paper's fixed 100.
-        threshold_px: inlier threshold on the Sampson error (and reprojection error of
-            2D-3D constraints), in pixels.
+        threshold_px: inlier threshold on the Sampson error of 2D-2D matches, in pixels.
+        threshold_3d_px: inlier threshold on the reprojection error of 2D-3D constraints, in
+            pixels; None (default) is ``2 · threshold_px``: a point triangulated from two map
+            images carries the keypoint errors of both (the triangulate-and-PnP peer of NOTES.md
+            uses 4 px).
         confidence: RANSAC confidence for adaptive termination.
         rcheck_deg: Rcheck threshold ``e_th`` of eq. (12), degrees (2p2p and baselines).
         consistency_deg: consistency check threshold ``α_th``, degrees.
@@ -92,6 +95,7 @@ class RansacOptions:
     max_iterations: int = 1000
     min_iterations: int = 100
     threshold_px: float = 2.0
+    threshold_3d_px: float | None = None
     confidence: float = 0.9999
     rcheck_deg: float = 2.0
     consistency_deg: float = 2.0
@@ -127,6 +131,9 @@ class RansacOptions:
             v = getattr(self, name)
             if not np.isfinite(v) and name != "max_position_std_m":
                 raise InputError(f"RansacOptions.{name}: must be finite, got {v}")
+        if self.threshold_3d_px is not None and not (np.isfinite(self.threshold_3d_px) and self.threshold_3d_px > 0):
+            raise InputError(f"RansacOptions.threshold_3d_px: must be a finite number > 0 or None, got "
+                             f"{self.threshold_3d_px}")
         if not (1 <= self.min_iterations <= self.max_iterations):
             raise InputError(
                 f"RansacOptions: need 1 <= min_iterations <= max_iterations, got {self.min_iterations}, "
@@ -144,6 +151,11 @@ class RansacOptions:
                              f"got {self.min_collinearity_ratio}")
         if not (0.0 < self.confidence < 1.0):
             raise InputError(f"RansacOptions.confidence: must be in (0, 1), got {self.confidence}")
+
+
+def reprojection_threshold_px(options: RansacOptions) -> float:
+    """The 2D-3D inlier threshold τ₃ of ``options`` (``threshold_3d_px``, default 2τ)."""
+    return 2.0 * options.threshold_px if options.threshold_3d_px is None else float(options.threshold_3d_px)
 
 
 def parse_method(method: Method | str) -> Method:

@@ -32,8 +32,12 @@ class PairMatches:
         query_indices: (N,) ids of the query keypoints, or None. The same id in several
             pairs means the same query keypoint, which links matches into tracks
             (``structure="tracks"``). Must be unique within one pair.
-        ref_points3d: (N, 3) world points where the reference has depth, NaN rows where
-            it has none; or None.
+        ref_points3d: (N, 3) world points of the matched reference keypoints where they are
+            known (depth, or local structure triangulated from the retrieved map images), NaN
+            rows elsewhere; or None. Each becomes a 2D-3D constraint on the query.
+        ref_points3d_cov: (N, 3, 3) covariance (m²) of ``ref_points3d`` (NaN rows where there
+            is no point), or None for exact points. Propagated into the query's position
+            uncertainty (a point triangulated at a small angle is uncertain in depth).
         ref_gravity: (3,) direction of gravity (pointing down) in the reference camera frame,
             or None for an upright reference (camera y-axis = gravity, the paper's assumption).
             Normalised on construction. The planar solvers run on bearings rotated so that
@@ -50,6 +54,7 @@ class PairMatches:
     query_indices: np.ndarray | None = None
     ref_points3d: np.ndarray | None = None
     ref_gravity: np.ndarray | None = None
+    ref_points3d_cov: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         if not isinstance(self.ref_pose, Pose):
@@ -80,6 +85,19 @@ class PairMatches:
             if partial.any():
                 raise InputError("PairMatches.ref_points3d: rows must be all finite or all NaN")
             object.__setattr__(self, "ref_points3d", X)
+        if self.ref_points3d_cov is not None:
+            if self.ref_points3d is None:
+                raise InputError("PairMatches.ref_points3d_cov: given without ref_points3d")
+            C = check_array("PairMatches.ref_points3d_cov", self.ref_points3d_cov, (n, 3, 3), finite=False)
+            has = ~np.isnan(self.ref_points3d[:, 0])
+            if not np.isfinite(C[has]).all():
+                raise InputError("PairMatches.ref_points3d_cov: must be finite where ref_points3d has a point")
+            sym = C[has]
+            if np.any(np.abs(sym - sym.transpose(0, 2, 1)) > 1e-9 * (1.0 + np.abs(sym).max(initial=0.0))) or \
+                    np.any(np.einsum("nii->n", sym) < 0):
+                raise InputError("PairMatches.ref_points3d_cov: expected symmetric positive semi-definite (3, 3) "
+                                 "covariances")
+            object.__setattr__(self, "ref_points3d_cov", C)
 
         if self.ref_gravity is not None:
             object.__setattr__(self, "ref_gravity", unit_gravity("PairMatches.ref_gravity", self.ref_gravity))

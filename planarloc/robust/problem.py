@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -25,11 +26,16 @@ class AbsolutePoseProblem:
         pair: (N,) pair index of each match.
         offsets: (P + 1,) row offsets of the pairs.
         query_ids: (N,) query keypoint ids (-1 when unknown).
-        f_query: (2,) query focal lengths (fx, fy) for errors in pixels.
+        f_query: (4,) pixel scales of the query's errors: (fx, fy) of the 2D-2D (Sampson)
+            errors, then (fx, fy)·s of the 2D-3D reprojection errors, with ``s = τ / τ₃``
+            (:meth:`with_reprojection_threshold`) so that every kernel's one threshold τ and
+            loss scale apply to a reprojection error at τ₃ (default s = 1).
         f_ref: (P, 2) reference focal lengths.
         ref_R, ref_t: (P, 3, 3), (P, 3) reference ``cam_from_world``.
         xq3d: (M, 3) query rays of 2D-3D constraints; X3d: (M, 3) their world points.
-        source3d: (M,) -1 for a triangulated track, else the match row whose depth gave it.
+        source3d: (M,) -1 for a triangulated track, else the match row whose reference
+            gave it (depth or local structure).
+        X3d_cov: (M, 3, 3) covariance of the world points (m²; zeros for exact points).
     """
 
     xq: np.ndarray
@@ -44,6 +50,7 @@ class AbsolutePoseProblem:
     xq3d: np.ndarray
     X3d: np.ndarray
     source3d: np.ndarray
+    X3d_cov: np.ndarray
 
     @property
     def num_pairs(self) -> int:
@@ -54,13 +61,24 @@ class AbsolutePoseProblem:
         """(P,) matches per pair."""
         return np.diff(self.offsets)
 
-    def with_points3d(self, xq3d: np.ndarray, X3d: np.ndarray, source3d: np.ndarray) -> AbsolutePoseProblem:
+    def with_reprojection_threshold(self, ratio: float) -> AbsolutePoseProblem:
+        """This problem with 2D-3D errors scaled by ``ratio`` = τ / τ₃ (2D-2D threshold over the
+        2D-3D one): kernels that threshold at τ then threshold reprojection errors at τ₃."""
+        f = self.f_query.copy()
+        f[2:] = f[:2] * float(ratio)
+        return dataclasses.replace(self, f_query=f)
+
+    def with_points3d(self, xq3d: np.ndarray, X3d: np.ndarray, source3d: np.ndarray,
+                      X3d_cov: np.ndarray | None = None) -> AbsolutePoseProblem:
+        """This problem with more 2D-3D constraints appended (``X3d_cov`` None: exact points)."""
+        cov = np.zeros((len(X3d), 3, 3)) if X3d_cov is None else X3d_cov
         return AbsolutePoseProblem(
             self.xq, self.xr, self.pair, self.offsets, self.query_ids, self.f_query, self.f_ref,
             self.ref_R, self.ref_t,
             np.ascontiguousarray(np.vstack([self.xq3d, xq3d])),
             np.ascontiguousarray(np.vstack([self.X3d, X3d])),
             np.concatenate([self.source3d, source3d]).astype(np.int64),
+            np.ascontiguousarray(np.concatenate([self.X3d_cov, cov])),
         )
 
 
@@ -116,7 +134,7 @@ def build_problem(query_camera: Camera, pairs: Sequence[PairMatches]) -> Absolut
             f"pairs: need matches to at least 2 reference images to fix the scale, got {len(pairs)}; "
             "hint: retrieve more reference images (top-n >= 2)"
         )
-    xq3, X3, src = [], [], []
+    xq3, X3, src, cov3 = [], [], [], []
     counts = [len(p.query_points) for p in pairs]
     offsets = np.array([0, *itertools.accumulate(counts)], dtype=np.int64)
     # One undistortion call for all query points (same camera); references may differ.
@@ -134,6 +152,7 @@ def build_problem(query_camera: Camera, pairs: Sequence[PairMatches]) -> Absolut
             xq3.append(xq_all[base:base + n][has])
             X3.append(p.ref_points3d[has])
             src.append(base + np.flatnonzero(has))
+            cov3.append(np.zeros((int(has.sum()), 3, 3)) if p.ref_points3d_cov is None else p.ref_points3d_cov[has])
     _check_rays(xr_all, offsets, "ref_points")
     pair = np.repeat(np.arange(len(pairs), dtype=np.int64), counts)
     if all(p.query_indices is None for p in pairs):
@@ -147,11 +166,12 @@ def build_problem(query_camera: Camera, pairs: Sequence[PairMatches]) -> Absolut
         pair=pair,
         offsets=offsets,
         query_ids=qids,
-        f_query=np.asarray(query_camera.focal, dtype=float),
+        f_query=np.asarray(query_camera.focal * 2, dtype=float),
         f_ref=np.asarray([p.ref_camera.focal for p in pairs], dtype=float),
         ref_R=np.array([p.ref_pose.R for p in pairs]),
         ref_t=np.array([p.ref_pose.t for p in pairs]),
         xq3d=np.ascontiguousarray(np.vstack(xq3)) if xq3 else np.zeros((0, 3)),
         X3d=np.ascontiguousarray(np.vstack(X3)) if X3 else np.zeros((0, 3)),
         source3d=np.concatenate(src).astype(np.int64) if src else np.zeros(0, dtype=np.int64),
+        X3d_cov=np.ascontiguousarray(np.concatenate(cov3)) if cov3 else np.zeros((0, 3, 3)),
     )

@@ -60,11 +60,12 @@ def residuals(
         p = pair[i]
         out[n] = sampson_signed(Es[p], xq[i], xr[i], fq0, fq1, f_ref[p, 0], f_ref[p, 1])
     m0 = idx2d.shape[0]
+    f30, f31 = f_query[2], f_query[3]
     for n in range(idx3d.shape[0]):
         i = idx3d[n]
         u, v, _ = project(Rq, tq, X3d[i])
-        out[m0 + 2 * n] = (u - xq3d[i, 0] / xq3d[i, 2]) * fq0
-        out[m0 + 2 * n + 1] = (v - xq3d[i, 1] / xq3d[i, 2]) * fq1
+        out[m0 + 2 * n] = (u - xq3d[i, 0] / xq3d[i, 2]) * f30
+        out[m0 + 2 * n + 1] = (v - xq3d[i, 1] / xq3d[i, 2]) * f31
 
 
 @njit(cache=True, error_model="numpy", fastmath=_FAST)
@@ -156,6 +157,7 @@ def residuals_jacobian(
             Jrot[n, 2] = -(g00 * e1[0] + g01 * e1[1] + g02 * e1[2]) + (g10 * e0[0] + g11 * e0[1] + g12 * e0[2])
     m0 = idx2d.shape[0]
     RB = m3.mul(R, B)
+    fq0, fq1 = f_query[2], f_query[3]  # reprojection errors' scale (AbsolutePoseProblem.f_query)
     for n in range(idx3d.shape[0]):
         i = idx3d[n]
         D0, D1, D2 = X3d[i, 0] - c[0], X3d[i, 1] - c[1], X3d[i, 2] - c[2]
@@ -393,59 +395,6 @@ def map_uncertainty_covariance(
 
 
 _EYE3 = np.eye(3)
-LATER_ROUND_ITERATIONS = 3  # LM iterations of the rounds after the first in refine_until_stable
-
-
-@njit(cache=True, error_model="numpy")
-def refine_until_stable(
-    Rq: np.ndarray, tq: np.ndarray, xq: np.ndarray, xr: np.ndarray, pair: np.ndarray, offsets: np.ndarray,
-    f_query: np.ndarray, f_ref: np.ndarray, ref_R: np.ndarray, ref_t: np.ndarray,
-    xq3d: np.ndarray, X3d: np.ndarray, inlier_threshold_sq: float, loss_scale: float, max_iterations: int,
-    rounds: int, sigma_floor: float,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, float, float, np.ndarray, np.ndarray, float]:
-    """The final refinement: :func:`refine_pose` on the inliers of the current pose, repeated on
-    the refined pose's inliers while they change (at most ``rounds`` times), in one call.
-
-    Args:
-        Rq, tq: the RANSAC winner ``query_from_world``.
-        inlier_threshold_sq: τ² (pixels²) defining the inliers.
-        max_iterations: LM iterations of the first round (0: only evaluate H and the cost at
-            the pose); later rounds take at most ``LATER_ROUND_ITERATIONS``.
-        rounds: at most this many refinements (≥ 1).
-
-    Returns:
-        R, t, H, σ̂, robust cost (as :func:`refine_pose`), the inlier masks (N,), (M,) at the
-        returned pose, and its MSAC cost ``Σ min(e², τ²)`` (the score every search is judged by).
-    """
-    R, t = Rq.copy(), tq.copy()
-    e2d, e3d = errors_sq(R, t, xq, xr, offsets, f_query, f_ref, ref_R, ref_t, xq3d, X3d)
-    in2d = e2d < inlier_threshold_sq
-    in3d = e3d < inlier_threshold_sq
-    eye = np.eye(3)
-    free = np.zeros(6, dtype=np.bool_)
-    H = np.zeros((6, 6))
-    sigma = np.inf
-    cost = np.inf
-    for rnd in range(max(rounds, 1)):
-        # Later rounds start at an optimum whose inlier set changed by a few matches: a couple of
-        # iterations reach the new one (the first round may start a few pixels away).
-        its = max_iterations if rnd == 0 else min(max_iterations, LATER_ROUND_ITERATIONS)
-        R, t, H, sigma, cost = refine_pose(R, t, xq, xr, pair, np.flatnonzero(in2d), f_query, f_ref, ref_R, ref_t,
-                                           xq3d, X3d, np.flatnonzero(in3d), loss_scale, its,
-                                           sigma_floor, -m3.t_vec(R, t), eye, free)
-        e2d, e3d = errors_sq(R, t, xq, xr, offsets, f_query, f_ref, ref_R, ref_t, xq3d, X3d)
-        new2d = e2d < inlier_threshold_sq
-        new3d = e3d < inlier_threshold_sq
-        same = np.array_equal(new2d, in2d) and np.array_equal(new3d, in3d)
-        in2d, in3d = new2d, new3d
-        if same:
-            break
-    msac = 0.0
-    for i in range(e2d.shape[0]):
-        msac += min(e2d[i], inlier_threshold_sq)
-    for i in range(e3d.shape[0]):
-        msac += min(e3d[i], inlier_threshold_sq)
-    return R, t, H, sigma, cost, in2d, in3d, msac
 
 
 @njit(cache=True, error_model="numpy")

@@ -21,7 +21,8 @@ def errors_sq(
     f_query: np.ndarray, f_ref: np.ndarray, ref_R: np.ndarray, ref_t: np.ndarray,
     xq3d: np.ndarray, X3d: np.ndarray,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Squared pixel errors of one hypothesis: (N,) Sampson and (M,) reprojection."""
+    """Squared pixel errors of one hypothesis: (N,) Sampson and (M,) reprojection (scaled by
+    ``f_query[2:]``, see :class:`planarloc.robust.problem.AbsolutePoseProblem`)."""
     n = xq.shape[0]
     e2d = np.empty(n)
     E = np.empty((3, 3))
@@ -31,7 +32,7 @@ def errors_sq(
             e2d[i] = sampson_sq(E, xq[i], xr[i], f_query[0], f_query[1], f_ref[p, 0], f_ref[p, 1])
     e3d = np.empty(X3d.shape[0])
     for i in range(X3d.shape[0]):
-        e3d[i] = reprojection_sq(Rq, tq, X3d[i], xq3d[i], f_query[0], f_query[1])
+        e3d[i] = reprojection_sq(Rq, tq, X3d[i], xq3d[i], f_query[2], f_query[3])
     return e2d, e3d
 
 
@@ -79,7 +80,7 @@ def msac_scores(
             inl[h] = k
             continue
         for i in range(X3d.shape[0]):
-            e = reprojection_sq(Rq, tq, X3d[i], xq3d[i], f_query[0], f_query[1])
+            e = reprojection_sq(Rq, tq, X3d[i], xq3d[i], f_query[2], f_query[3])
             if e < threshold_sq:
                 c += e
                 k += 1

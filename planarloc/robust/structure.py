@@ -11,14 +11,21 @@ from __future__ import annotations
 
 import numpy as np
 
-from planarloc.geometry.epipolar import triangulate_points
+from planarloc.geometry.epipolar import triangulate_points, triangulation_covariance
 from planarloc.robust.problem import AbsolutePoseProblem
+
+KEYPOINT_STD_PX = 1.0
+"""Assumed localisation noise of a map keypoint (pixels, per axis): the covariance of every
+point triangulated from map images (tracks here, local structure in the localizer)."""
 
 
 def triangulate_tracks(
     problem: AbsolutePoseProblem, max_reproj_px: float, min_angle_deg: float
-) -> tuple[np.ndarray, np.ndarray]:
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Triangulate every query keypoint seen in two or more references.
+
+    Query keypoints that already have a 2D-3D constraint (``problem.source3d`` rows: depth or
+    local structure) are skipped: one constraint per query keypoint.
 
     For each track, all pairs of its reference observations are triangulated (midpoint) and
     the one with the widest triangulation angle whose point reprojects within
@@ -30,12 +37,17 @@ def triangulate_tracks(
         min_angle_deg: minimum triangulation angle.
 
     Returns:
-        xq3d (T, 3) query rays and X3d (T, 3) world points of the accepted tracks.
+        xq3d (T, 3) query rays, X3d (T, 3) world points and their covariance (T, 3, 3) (from
+        ``KEYPOINT_STD_PX``) of the accepted tracks.
     """
+    none = np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((0, 3, 3))
     ids = problem.query_ids
     rows = np.flatnonzero(ids >= 0)
+    src = problem.source3d[problem.source3d >= 0]
+    if len(src):
+        rows = rows[~np.isin(ids[rows], ids[src])]
     if len(rows) == 0:
-        return np.zeros((0, 3)), np.zeros((0, 3))
+        return none
     order = rows[np.argsort(ids[rows], kind="stable")]
     sid = ids[order]
     starts = np.flatnonzero(np.r_[True, sid[1:] != sid[:-1]])
@@ -51,7 +63,7 @@ def triangulate_tracks(
                     a_idx.append(members[i])
                     b_idx.append(members[j])
     if not a_idx:
-        return np.zeros((0, 3)), np.zeros((0, 3))
+        return none
     a = np.asarray(a_idx)
     b = np.asarray(b_idx)
     pa, pb = problem.pair[a], problem.pair[b]
@@ -75,11 +87,20 @@ def triangulate_tracks(
             err[sel] = e
     ok = np.isfinite(X).all(axis=1) & (angle >= min_angle_deg) & (err <= max_reproj_px)
     if not ok.any():
-        return np.zeros((0, 3)), np.zeros((0, 3))
+        return none
     # Keep the widest-angle valid triangulation per track.
     track = problem.query_ids[a]
     cand = np.flatnonzero(ok)
     cand = cand[np.lexsort((-angle[cand], track[cand]))]
     first = np.r_[True, track[cand][1:] != track[cand][:-1]]
     keep = cand[first]
-    return np.ascontiguousarray(problem.xq[a[keep]]), np.ascontiguousarray(X[keep])
+    cov = np.empty((len(keep), 3, 3))
+    pa, pb = problem.pair[a[keep]], problem.pair[b[keep]]
+    for p1, p2 in set(zip(pa.tolist(), pb.tolist())):
+        sel = (pa == p1) & (pb == p2)
+        cov[sel] = triangulation_covariance(X[keep][sel], (problem.ref_R[p1], problem.ref_t[p1]),
+                                            (problem.ref_R[p2], problem.ref_t[p2]), problem.f_ref[p1],
+                                            problem.f_ref[p2], KEYPOINT_STD_PX)
+    good = np.isfinite(cov).all(axis=(1, 2))
+    keep, cov = keep[good], cov[good]
+    return np.ascontiguousarray(problem.xq[a[keep]]), np.ascontiguousarray(X[keep]), np.ascontiguousarray(cov)

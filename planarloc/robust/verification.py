@@ -156,6 +156,8 @@ def judge_pose(estimator, problem: AbsolutePoseProblem, options: RansacOptions, 
     cov = ref.cov * correlation**2
     finite = bool(np.isfinite(cov).all())
     if finite and (options.map_rotation_std_deg > 0 or options.map_position_std_m > 0):
+        # With 2D-3D inliers the final refinement estimated the reference poses under the map
+        # prior (planarloc.robust.map_prior): its covariance holds the map's share already.
         # Map errors through the full model, always: weak geometry amplifies them (a 0.1° error
         # of a reference's rotation moves a 2D-2D position by metres when the query is almost
         # collinear with the references), and triangulated tracks inherit them (KITTI, tracks:
@@ -163,7 +165,8 @@ def judge_pose(estimator, problem: AbsolutePoseProblem, options: RansacOptions, 
         # references' own error moved rigidly with the query.
         d = support.median_distance_m
         rigid = options.map_position_std_m**2 + (d * math.radians(options.map_rotation_std_deg)) ** 2
-        cov = cov + obs.map_covariance(estimator, R, t, in2d, in3d)
+        if n3d == 0:
+            cov = cov + obs.map_covariance(estimator, R, t, in2d, in3d)
         finite = bool(np.isfinite(cov).all())
         if finite:
             cov = cov + np.eye(3) * rigid

@@ -157,7 +157,7 @@ def test_eligible_pairs() -> None:
 def test_triangulate_tracks_recovers_points(scene) -> None:
     sc = scene(8, num_refs=3, matches_per_pair=60, noise_px=0.0, outlier_ratio=0.0, track_pool=1.5)
     pb = build_problem(sc.query_camera, sc.pairs)
-    xq3, X3 = triangulate_tracks(pb, 2.0, 1.0)
+    xq3, X3, C3 = triangulate_tracks(pb, 2.0, 1.0)
     ids, counts = np.unique(pb.query_ids, return_counts=True)
     assert 0 < len(X3) <= (counts >= 2).sum()
     # Each triangulated point is a true scene point seen by the query along its ray.

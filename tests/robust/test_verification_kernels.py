@@ -20,10 +20,10 @@ from planarloc.robust.refinement import (
     map_centre_covariance,
     map_uncertainty_covariance,
     refine_pose,
-    refine_until_stable,
     residuals,
     residuals_jacobian,
 )
+from planarloc.robust.final_refinement import refine_until_stable
 from planarloc.robust.scoring import errors_sq
 
 NO3D = np.zeros(0, dtype=np.int64)

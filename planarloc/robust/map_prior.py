@@ -1,0 +1,248 @@
+"""Refinement with the map's pose uncertainty: the reference poses as nuisance parameters.
+
+A map pose error is systematic: every match of that reference sees it. When the query is nearly
+collinear with the reference centres (roads, corridors), a 0.1° rotation error of one reference
+moves the 2D-2D optimum by metres along the line, so thousands of 2D-2D matches must not
+outvote a few hundred 2D-3D constraints that pin the position. Generalised least squares does
+exactly that: each reference ``p`` gets a correction ``δ_p = (ω_p, d_p)`` (rotation increment
+``R_p' = Exp(ω_p) R_p`` and centre shift ``d_p``) with the prior ``δ_p ~ N(0, diag(σ_rot², σ_pos²))``
+(``RansacOptions.map_rotation_std_deg``, ``map_position_std_m``), and the query pose is estimated
+jointly with them. The corrections enter only the 2D-2D residuals of their own pair, so the
+normal equations are solved by the Schur complement of the block-diagonal correction part
+(Triggs, McLauchlan, Hartley & Fitzgibbon, "Bundle adjustment — a modern synthesis", 1999,
+Sec. 6.1): per pair only 6x6 matrices. The returned normal matrix is that Schur complement, the
+marginal information of the query pose, so ``σ̂² H⁻¹`` already holds the map's share of the
+position uncertainty of the 2D-2D constraints. 2D-3D points are held fixed (their own
+uncertainty is propagated separately, :func:`planarloc.robust.observability.points_covariance`).
+Not in the paper.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+from planarloc.geometry import mat3 as m3
+from planarloc.robust.refinement import _FAST, exp_so3, residuals, residuals_jacobian, solve_spd
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _perturbed_refs(ref_R: np.ndarray, ref_c: np.ndarray, omega: np.ndarray, d: np.ndarray, R_out: np.ndarray,
+                    t_out: np.ndarray) -> None:
+    """``R_p' = Exp(ω_p) R_p``, ``t_p' = −R_p' (c_p + d_p)`` for every pair."""
+    for p in range(ref_R.shape[0]):
+        Rp = m3.mul(exp_so3(omega[p]), ref_R[p])
+        R_out[p] = Rp
+        t_out[p] = -m3.vec(Rp, ref_c[p] + d[p])
+
+
+@njit(cache=True, error_model="numpy")
+def _prior_cost(omega: np.ndarray, d: np.ndarray, lam_rot: float, lam_pos: float) -> float:
+    """``½ Σ_p δ_pᵀ Λ δ_p`` of the corrections ω (P, 3), d (P, 3)."""
+    acc = 0.0
+    for p in range(omega.shape[0]):
+        for k in range(3):
+            acc += lam_rot * omega[p, k] * omega[p, k] + lam_pos * d[p, k] * d[p, k]
+    return 0.5 * acc
+
+
+@njit(cache=True, error_model="numpy", fastmath=_FAST)
+def refine_with_map_prior(
+    Rq: np.ndarray, tq: np.ndarray, xq: np.ndarray, xr: np.ndarray, pair: np.ndarray, idx2d: np.ndarray,
+    f_query: np.ndarray, f_ref: np.ndarray, ref_R: np.ndarray, ref_t: np.ndarray,
+    xq3d: np.ndarray, X3d: np.ndarray, idx3d: np.ndarray, loss_scale: float, max_iterations: int,
+    sigma_floor: float, rotation_std_rad: float, position_std_m: float,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, float, float]:
+    """Levenberg-Marquardt (IRLS, Cauchy loss at ``loss_scale``) of the query pose and one pose
+    correction per reference with the map prior; same arguments and returns as
+    :func:`planarloc.robust.refinement.refine_pose` with ``c0`` the initial centre and B = I,
+    except that H is the Schur complement (marginal information of the query's 6 parameters)
+    and the cost includes the prior. The prior's pixel scale is σ̂ at the initial pose (floored
+    at ``sigma_floor``): ``Λ = σ̂² diag(1/σ_rot², 1/σ_pos²)``.
+    """
+    P = ref_R.shape[0]
+    m = idx2d.shape[0] + 2 * idx3d.shape[0]
+    n2 = idx2d.shape[0]
+    R = Rq.copy()
+    c = -m3.t_vec(Rq, tq)
+    ref_c = np.empty((P, 3))
+    for p in range(P):
+        ref_c[p] = -m3.t_vec(ref_R[p], ref_t[p])
+    omega = np.zeros((P, 3))
+    dvec = np.zeros((P, 3))
+    cur_R, cur_t = ref_R.copy(), ref_t.copy()
+    r = np.empty(m)
+    rp = np.empty(m)
+    J = np.empty((m, 6))
+    Jrot = np.empty((m, 3))
+    zero = np.zeros(6)
+    eye = np.eye(3)
+    s2 = loss_scale * loss_scale
+    residuals_jacobian(R, c, eye, xq, xr, pair, idx2d, f_query, f_ref, cur_R, cur_t, xq3d, X3d, idx3d, r, J, Jrot)
+    wr2 = 0.0
+    for i in range(m):
+        wr2 += r[i] * r[i] / (1.0 + r[i] * r[i] / s2)
+    sig2 = max(wr2 / max(m - 6, 1), sigma_floor * sigma_floor)
+    lam_rot = sig2 / max(rotation_std_rad, 1e-9) ** 2
+    lam_pos = sig2 / max(position_std_m, 1e-9) ** 2
+
+    cost = 0.5 * s2 * np.sum(np.log1p(r * r / s2)) + _prior_cost(omega, dvec, lam_rot, lam_pos)
+    H = np.zeros((6, 6))
+    g = np.zeros(6)
+    Bp = np.zeros((P, 6, 6))
+    Dp = np.zeros((P, 6, 6))
+    hp = np.zeros((P, 6))
+    Hm = np.zeros((6, 6))
+    K = np.empty(6)
+    lam = 1e-4
+    for it in range(max_iterations + 1):
+        H[:] = 0.0
+        g[:] = 0.0
+        Bp[:] = 0.0
+        Dp[:] = 0.0
+        hp[:] = 0.0
+        wr2 = 0.0
+        for i in range(m):
+            w = 1.0 / (1.0 + r[i] * r[i] / s2)
+            wr2 += w * r[i] * r[i]
+            for a in range(6):
+                wa = w * J[i, a]
+                g[a] += wa * r[i]
+                for b in range(a, 6):
+                    H[a, b] += wa * J[i, b]
+            if i < n2:
+                q = pair[idx2d[i]]
+                K[0], K[1], K[2] = Jrot[i, 0], Jrot[i, 1], Jrot[i, 2]
+                K[3], K[4], K[5] = -J[i, 3], -J[i, 4], -J[i, 5]  # a reference centre shift = opposite query shift
+                for a in range(6):
+                    wk = w * K[a]
+                    hp[q, a] += wk * r[i]
+                    for b in range(6):
+                        Bp[q, b, a] += w * J[i, b] * K[a]
+                    for b in range(a, 6):
+                        Dp[q, a, b] += wk * K[b]
+        for a in range(6):
+            for b in range(a):
+                H[a, b] = H[b, a]
+        for p in range(P):
+            for a in range(6):
+                for b in range(a):
+                    Dp[p, a, b] = Dp[p, b, a]
+            for k in range(3):
+                Dp[p, k, k] += lam_rot
+                Dp[p, 3 + k, 3 + k] += lam_pos
+                hp[p, k] += lam_rot * omega[p, k]
+                hp[p, 3 + k] += lam_pos * dvec[p, k]
+        # Marginal information of the query (undamped Schur complement), kept for the caller.
+        Hm[:] = H
+        col = np.empty(6)
+        Dinv = np.empty((P, 6, 6))
+        ok_all = True
+        for p in range(P):
+            for b in range(6):
+                e = np.zeros(6)
+                e[b] = 1.0
+                if not solve_spd(Dp[p], e, col):
+                    ok_all = False
+                    break
+                Dinv[p, :, b] = col
+            if not ok_all:
+                break
+        if not ok_all:
+            break
+        for p in range(P):
+            BD = np.empty((6, 6))
+            for a in range(6):
+                for b in range(6):
+                    acc = 0.0
+                    for k in range(6):
+                        acc += Bp[p, a, k] * Dinv[p, k, b]
+                    BD[a, b] = acc
+            for a in range(6):
+                for b in range(6):
+                    acc = 0.0
+                    for k in range(6):
+                        acc += BD[a, k] * Bp[p, b, k]
+                    Hm[a, b] -= acc
+        if it == max_iterations:
+            break
+        improved = False
+        step = np.zeros(6)
+        steps_p = np.zeros((P, 6))
+        for _try in range(6):
+            S = H.copy()
+            rhs = -g.copy()
+            for k in range(6):
+                S[k, k] += lam * max(H[k, k], 1e-12)
+            Dl = np.empty((P, 6, 6))
+            solvable = True
+            for p in range(P):
+                Dl[p] = Dp[p]
+                for k in range(6):
+                    Dl[p, k, k] += lam * Dp[p, k, k]
+                for b in range(6):
+                    e = np.zeros(6)
+                    e[b] = 1.0
+                    if not solve_spd(Dl[p], e, col):
+                        solvable = False
+                        break
+                    Dinv[p, :, b] = col
+                if not solvable:
+                    break
+                # S -= B D⁻¹ Bᵀ, rhs += B D⁻¹ h
+                for a in range(6):
+                    for b in range(6):
+                        acc = 0.0
+                        for k in range(6):
+                            for l2 in range(6):
+                                acc += Bp[p, a, k] * Dinv[p, k, l2] * Bp[p, b, l2]
+                        S[a, b] -= acc
+                    acc = 0.0
+                    for k in range(6):
+                        for l2 in range(6):
+                            acc += Bp[p, a, k] * Dinv[p, k, l2] * hp[p, l2]
+                    rhs[a] += acc
+            if not solvable or not solve_spd(S, rhs, step):
+                lam *= 10.0
+                continue
+            om_new = omega.copy()
+            d_new = dvec.copy()
+            for p in range(P):
+                for a in range(6):
+                    acc = -hp[p, a]
+                    for k in range(6):
+                        acc -= Bp[p, k, a] * step[k]
+                    steps_p[p, a] = acc
+                for a in range(6):
+                    acc = 0.0
+                    for k in range(6):
+                        acc += Dinv[p, a, k] * steps_p[p, k]
+                    if a < 3:
+                        om_new[p, a] += acc
+                    else:
+                        d_new[p, a - 3] += acc
+            R_new = m3.mul(exp_so3(step[:3]), R)
+            c_new = c + step[3:]
+            new_R, new_t = np.empty_like(ref_R), np.empty_like(ref_t)
+            _perturbed_refs(ref_R, ref_c, om_new, d_new, new_R, new_t)
+            residuals(zero, R_new, c_new, eye, xq, xr, pair, idx2d, f_query, f_ref, new_R, new_t, xq3d, X3d,
+                      idx3d, rp)
+            new_cost = 0.5 * s2 * np.sum(np.log1p(rp * rp / s2)) + _prior_cost(om_new, d_new, lam_rot, lam_pos)
+            if new_cost <= cost:
+                R, c, omega, dvec, cur_R, cur_t = R_new, c_new, om_new, d_new, new_R, new_t
+                improved = cost - new_cost > max(1e-6 * cost, 5e-4 * wr2 / max(m - 6, 1))
+                cost = new_cost
+                lam = max(lam * 0.1, 1e-9)
+                break
+            lam *= 10.0
+        residuals_jacobian(R, c, eye, xq, xr, pair, idx2d, f_query, f_ref, cur_R, cur_t, xq3d, X3d, idx3d, r, J,
+                           Jrot)
+        if not improved or np.sqrt(np.sum(step * step)) < 1e-9:
+            max_iterations = it + 1  # one more pass to evaluate H at the solution
+    sigma2 = max(wr2 / max(m - 6, 1), sigma_floor * sigma_floor)
+    for a in range(6):
+        for b in range(a):
+            v = 0.5 * (Hm[a, b] + Hm[b, a])
+            Hm[a, b] = v
+            Hm[b, a] = v
+    return R, -m3.vec(R, c), Hm, np.sqrt(sigma2), cost
