@@ -98,7 +98,7 @@ def _rays(camera: Camera, pixels: np.ndarray) -> np.ndarray:
     Cameras without distortion take the direct affine map in one compiled call:
     ``Camera.bearings_from_img`` re-validates its input and stacks, which costs more than the
     arithmetic for the few hundred points of one query."""
-    if camera.model == CameraModel.OPENCV and np.any(camera.distortion):
+    if camera.has_distortion:
         return camera.bearings_from_img(pixels)
     (fx, fy), (cx, cy) = camera.focal, camera.principal_point
     return _affine_rays(pixels, float(fx), float(fy), float(cx), float(cy))

@@ -5,6 +5,7 @@ from __future__ import annotations
 import pytest
 
 from planarloc.io import FormatError, read_colmap
+from planarloc.io.colmap_text import read_colmap_cameras
 
 CAMERAS = """# Camera list with one line of data per camera:
 #   CAMERA_ID, MODEL, WIDTH, HEIGHT, PARAMS[]
@@ -66,12 +67,22 @@ def test_points_line_omitted(tmp_path, write_image, random_poses, pose_close):
     pose_close(frames[1].cam_from_world, poses[1])
 
 
+def test_radial_and_fisheye_models_are_read_with_the_pixel_shift(tmp_path, write_image, random_poses):
+    cameras = "1 SIMPLE_RADIAL 64 48 50 32 24 0.01\n2 OPENCV_FISHEYE 64 48 20 21 32 24 0.1 0.01 0.001 0.0001\n"
+    model = write_model(tmp_path, random_poses(1), write_image, cameras=cameras)
+    cams = read_colmap_cameras(model / "cameras.txt")
+    assert cams[1].params == (50.0, 31.5, 23.5, 0.01)
+    assert cams[2].params == (20.0, 21.0, 31.5, 23.5, 0.1, 0.01, 0.001, 0.0001)
+    (frame,) = read_colmap(model)
+    assert frame.camera == cams[1]
+
+
 def test_unsupported_model_named(tmp_path, write_image, random_poses):
     model = write_model(
-        tmp_path, random_poses(1), write_image, cameras="# cams\n1 SIMPLE_RADIAL 64 48 50 32 24 0.01\n"
+        tmp_path, random_poses(1), write_image, cameras="# cams\n1 FOV 64 48 50 50 32 24 0.01\n"
     )
     with pytest.raises(
-        FormatError, match=r"cameras\.txt:2: camera model SIMPLE_RADIAL is not supported .*PINHOLE"
+        FormatError, match=r"cameras\.txt:2: camera model FOV is not supported .*PINHOLE"
     ):
         read_colmap(model)
     (model / "cameras.txt").write_text("1 FISHY 64 48 50 32 24\n")

@@ -83,8 +83,8 @@ def test_rig(tmp_path, write_image, random_poses, pose_close):
     "sensors, pattern",
     [
         (
-            "cam0, , camera, SIMPLE_RADIAL, 64, 48, 50, 32, 24, 0.1\n",
-            r"sensors\.txt:3: camera model SIMPLE_RADIAL is not supported",
+            "cam0, , camera, FULL_OPENCV, 64, 48, 50, 50, 32, 24, 0.1, 0, 0, 0, 0, 0, 0, 0\n",
+            r"sensors\.txt:3: camera model FULL_OPENCV is not supported",
         ),
         ("cam0, , camera, PINHOLE, 64, 48, 50, 51, 32\n", r"sensors\.txt:3: expected 4 parameters"),
         (
