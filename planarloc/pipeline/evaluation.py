@@ -59,7 +59,7 @@ class QueryResult:
     estimate_quat_wxyz: tuple[float, float, float, float] | None = None
     truth_quat_wxyz: tuple[float, float, float, float] | None = None
     references: tuple[str, ...] = ()
-    reason: str = ""  # why a query could not be processed (status "error"), e.g. unreadable image
+    reason: str = ""  # why a query failed: the estimator's message, or why it could not be processed (status "error")
 
 
 def split_map_queries(images: Sequence[PosedImage], map_every: int) -> tuple[list[PosedImage], list[PosedImage]]:
@@ -79,7 +79,8 @@ def query_result(query: PosedImage, est: PoseEstimate, seconds: float) -> QueryR
     return QueryResult(query.name, est.status, bool(est.success), t_err, r_err, float(est.position_std_m),
                        int(est.num_inliers), int(est.num_inliers_3d), seconds, c,
                        tuple(float(v) for v in query.cam_from_world.center), query.timestamp, q,
-                       tuple(float(v) for v in query.cam_from_world.quat_wxyz), tuple(est.references))
+                       tuple(float(v) for v in query.cam_from_world.quat_wxyz), tuple(est.references),
+                       reason="" if est.success else est.message)
 
 
 def _error_result(query: PosedImage, seconds: float, reason: str) -> QueryResult:

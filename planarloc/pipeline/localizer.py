@@ -187,18 +187,19 @@ class Localizer:
         points = view_points(views, [m[:, 1] for m in matches], self.pair_cache, ratio=self.config.ratio,
                              max_error_px=self.config.ransac.threshold_px)
         # One 2D-3D constraint per query keypoint: the widest-angle point among its matches.
-        best: dict[int, tuple[float, int, int]] = {}
-        for k, (m, pts) in enumerate(zip(matches, points)):
-            for row in np.flatnonzero(pts.partner >= 0):
-                q, a = int(m[row, 0]), float(pts.angle_deg[row])
-                if q not in best or a > best[q][0]:
-                    best[q] = (a, k, int(row))
-        keep = [np.zeros(len(m), dtype=bool) for m in matches]
-        for _, k, row in best.values():
-            keep[k][row] = True
-        for pts, kp in zip(points, keep):
-            pts.X[~kp] = np.nan
-            pts.cov[~kp] = np.nan
+        query_kp = np.concatenate([m[:, 0] for m in matches])
+        angle = np.concatenate([np.where(p.partner >= 0, p.angle_deg, -1.0) for p in points])
+        order = np.lexsort((-angle, query_kp))
+        first = np.r_[True, query_kp[order][1:] != query_kp[order][:-1]]
+        keep = np.zeros(len(query_kp), dtype=bool)
+        keep[order[first]] = True
+        keep &= angle >= 0
+        start = 0
+        for pts in points:
+            drop = ~keep[start:start + len(pts.X)]
+            pts.X[drop] = np.nan
+            pts.cov[drop] = np.nan
+            start += len(pts.X)
         return points
 
     # ---- whole pipeline ------------------------------------------------------------------

@@ -36,7 +36,7 @@ from planarloc.robust.ransac import ransac
 from planarloc.robust.final_refinement import refine_until_stable
 from planarloc.robust.refinement import centre_covariance
 from planarloc.robust.result import PoseEstimate, RansacStatistics
-from planarloc.robust.verification import RefinedPose, failed_estimate, judge_pose
+from planarloc.robust.verification import RIVAL_MARGIN_INLIERS, RefinedPose, failed_estimate, judge_pose
 from planarloc.robust.sampling import eligible_pairs
 from planarloc.robust.structure import triangulate_tracks
 
@@ -56,7 +56,6 @@ PLANAR_VIOLATION_RATIO = 0.8
 # Another search's refined pose within this cost ratio of the best one is a rival answer.
 RIVAL_COST_RATIO = 1.25
 FINAL_REFINEMENT_ROUNDS = 4
-TILT_SEARCH_SCALE = 0.0  # planar hypotheses are scored at τ + scale·f·tan(planar_tolerance_deg)
 
 
 @dataclass(frozen=True)
@@ -90,21 +89,17 @@ def _gravity(pairs: Sequence[PairMatches], problem: AbsolutePoseProblem, query_g
 
 
 def _estimator(problem: AbsolutePoseProblem, options: RansacOptions, family: Method, gravity: _Gravity):
+    """The estimator of one hypothesis family; planar families run on levelled bearings."""
     if family not in PLANAR:
         return RelativePairEstimator(problem, options, family)
     make = Planar2p1pEstimator if family == Method.P2P1 else (
         lambda prob, opt: RelativePairEstimator(prob, opt, Method.P2P2))
     scorer = make(problem, options)
-    f = float(np.mean(problem.f_query))
-    widen = TILT_SEARCH_SCALE * f * math.tan(math.radians(options.planar_tolerance_deg))
     if gravity.levelled:
-        if widen == 0.0:
-            return scorer  # upright cameras, hypotheses scored at τ: nothing to rectify
-        Uq, upright = np.eye(3), scorer
-    else:
-        Uq = upright_from_gravity(gravity.query)
-        upright = make(rectify_problem(problem, Uq, upright_from_gravity(gravity.refs)), options)
-    return RectifiedHypotheses(upright, scorer, Uq, options.threshold_px + widen)
+        return scorer  # upright cameras: nothing to rectify
+    Uq = upright_from_gravity(gravity.query)
+    upright = make(rectify_problem(problem, Uq, upright_from_gravity(gravity.refs)), options)
+    return RectifiedHypotheses(upright, scorer, Uq)
 
 
 def _eligible(problem: AbsolutePoseProblem, family: Method) -> bool:
@@ -121,12 +116,12 @@ def _refine(scorer, R: np.ndarray, t: np.ndarray, options: RansacOptions, quick:
     (one compiled call, :func:`refine_until_stable`); ``quick``: one round of two iterations."""
     p = scorer.p
     iterations, rounds = (2, 1) if quick else (6, FINAL_REFINEMENT_ROUNDS)
-    R, t, H, sigma, cost, in2d, in3d, score = refine_until_stable(
+    R, t, H, sigma, cost, in2d, in3d, score, score3d = refine_until_stable(
         np.ascontiguousarray(R), np.ascontiguousarray(t), p.xq, p.xr, p.pair, p.offsets, p.f_query, p.f_ref,
         p.ref_R, p.ref_t, p.xq3d, p.X3d, scorer.threshold_sq, options.threshold_px,
         iterations if options.refine else 0, rounds if options.refine else 1, SIGMA_FLOOR_PX,
         math.radians(options.map_rotation_std_deg), options.map_position_std_m)
-    return RefinedPose(R, t, centre_covariance(H, sigma), sigma, cost, score, in2d, in3d)
+    return RefinedPose(R, t, centre_covariance(H, sigma), sigma, cost, score, in2d, in3d, score3d, H)
 
 
 def estimate_absolute_pose(
@@ -168,85 +163,136 @@ def estimate_absolute_pose(
     options = RansacOptions() if options is None else options
     if not isinstance(options, RansacOptions):
         raise ValueError(f"options: expected RansacOptions, got {type(options).__name__}")
-    problem = build_problem(query_camera, pairs)
-    gravity = _gravity(pairs, problem, query_gravity)
     stats = RansacStatistics()
-    if options.structure == Structure.TRACKS:
-        t0 = time.perf_counter()
-        xq3, X3, C3 = triangulate_tracks(problem, options.threshold_px, options.track_min_angle_deg)
-        problem = problem.with_points3d(xq3, X3, np.full(len(X3), -1), C3)
-        stats.add_time("structure", time.perf_counter() - t0)
-    problem = problem.with_reprojection_threshold(options.threshold_px / reprojection_threshold_px(options))
+    problem, gravity = _prepare(query_camera, pairs, options, query_gravity, stats)
     stats.add_time("setup", time.perf_counter() - t_start)
 
     def failure(status: str, message: str) -> PoseEstimate:
         return failed_estimate(problem, stats, t_start, status, message)
 
     families = [f for f in FAMILIES[method] if _eligible(problem, f)]
-    check_6dof = method in PLANAR and options.verify_planar and _eligible(problem, Method.NISTER)
     if not families:
         m1, m2 = MIN_SAMPLE[method]
         return failure("too_few_matches",
-                       f"{method.value} needs {m1} matches in one pair and {m2} in another; "
-                       f"got {problem.counts.tolist()} matches per pair")
-
+                       f"{method.value} needs {m1} matches in one map image and {m2} in another, or 2D-3D "
+                       f"constraints; got {problem.counts.tolist()} matches per map image and {len(problem.X3d)} "
+                       "2D-3D constraints: retrieve more map images or check the intrinsics")
+    check_6dof = method in PLANAR and options.verify_planar and _eligible(problem, Method.NISTER)
     rng = np.random.default_rng(options.seed)
-    candidates = []
-    scorer = None
-    for family in families + ([Method.NISTER] if check_6dof and families else []):
-        estimator = _estimator(problem, options, family, gravity)
-        scorer = getattr(estimator, "scorer", estimator)
-        search = RansacStatistics()  # each family gets the full iteration budget
-        out = ransac(estimator, options, rng, search)
-        if family in FAMILIES[method]:
-            stats.merge(search)
-        else:  # the 6DoF check of an explicit planar method: its time, not its counters
-            stats.add_time("planar_verification", sum(search.time_s.values()))
-        if out.R is None:
-            continue
-        t0 = time.perf_counter()
-        ref = _refine(scorer, out.R, out.t, options)
-        stats.add_time("refinement", time.perf_counter() - t0)
-        candidates.append((ref.score, family, ref, list(zip(out.alt_R, out.alt_t, out.alt_cost)),
-                           (out.pool_R, out.pool_t), scorer))
-    if not candidates:
-        if stats.rejected_degenerate > 0 and stats.rejected_degenerate >= (
-                stats.rejected_rcheck + stats.rejected_pdcheck + stats.rejected_consistency):
-            return failure("degenerate_scale",
-                           f"no hypothesis: {stats.rejected_degenerate} samples were degenerate (triangulation "
-                           "singular: query collinear with the reference centres); try structure='tracks'")
-        return failure("no_consistent_hypothesis",
-                       f"none of {stats.hypotheses} hypotheses passed the checks (Rcheck {stats.rejected_rcheck}, "
-                       f"Pdcheck {stats.rejected_pdcheck}, consistency {stats.rejected_consistency}, "
-                       f"degenerate {stats.rejected_degenerate})")
-    planar = [c for c in candidates if c[1] in FAMILIES[method]]
-    if not planar:
-        return failure("no_consistent_hypothesis", f"the {method.value} search found no hypothesis that passed "
-                       f"the checks ({stats.hypotheses} hypotheses)")
-    best_score, family, ref, alternatives, pool, best_scorer = min(
-        planar if method != Method.AUTO else candidates, key=lambda c: c[0])
-    R, t = ref.R, ref.t
-    # Other searches' refined poses that explain the matches almost as well: where they lie
-    # elsewhere, the data do not single out one position (a flat or multi-modal cost), and the
-    # distance between the answers is a lower bound of the position's uncertainty.
-    rivals = [-c[2].R.T @ c[2].t for c in candidates if c[0] <= RIVAL_COST_RATIO * best_score and c[2] is not ref]
-    est = judge_pose(scorer, problem, options, gravity.world, gravity.query, ref, stats, t_start, rivals,
-                     alternatives, pool, lambda R_alt, t_alt, quick: _refine(best_scorer, R_alt, t_alt, options, quick))
-    if est.success and method in PLANAR and options.verify_planar and est.model != "planar":
-        return PoseEstimate(None, False, "planar_model_violated",
-                            f"the {method.value} pose does not fit the planar model it assumes (it implies a tilt or "
-                            f"an elevation above {options.planar_tolerance_deg}° relative to the references); use "
-                            "method='auto'", est.inliers, est.num_inliers, est.num_inliers_3d, est.iterations,
-                            est.position_std_m, est.pose, est.stats, model="6dof")
-    # A 6DoF pose elsewhere that explains the matches clearly better: the planar model failed.
-    better = [c for c in candidates if c[1] not in FAMILIES[method] and c[0] < PLANAR_VIOLATION_RATIO * planar[0][0]]
-    if est.success and better and _different(problem, (R, t), (better[0][2].R, better[0][2].t)):
-        return PoseEstimate(None, False, "planar_model_violated",
-                            f"a 6DoF pose explains the matches better than the {method.value} pose (MSAC cost "
-                            f"{better[0][0]:.4g} < {planar[0][0]:.4g}) and lies elsewhere: the query is tilted or "
-                            "off the map's plane; use method='auto'", est.inliers, est.num_inliers,
-                            est.num_inliers_3d, est.iterations, est.position_std_m, est.pose, est.stats, model="6dof")
+    searches = [_search(problem, options, family, gravity, rng, stats, counted=True) for family in families]
+    checks = [_search(problem, options, Method.NISTER, gravity, rng, stats, counted=False)] if check_6dof else []
+    found = [s for s in searches if s is not None]
+    others = [s for s in checks if s is not None]
+    if not found:
+        return failure(*_no_hypothesis(stats, method, options))
+    best = min(found, key=lambda s: s.refined.score)
+    est = judge_pose(best.scorer, problem, options, gravity.world, gravity.query, best.refined, stats, t_start,
+                     _rivals(best, found + others), best.alternatives, best.pool,
+                     lambda R_alt, t_alt, quick: _refine(best.scorer, R_alt, t_alt, options, quick))
+    if method in PLANAR and est.success:
+        return _planar_model_check(est, method, options, problem, best, others)
     return est
+
+
+@dataclass(frozen=True)
+class _Search:
+    """One hypothesis family's result: its refined best pose, and what a verifier may inspect.
+
+    ``alternatives``: the other locally optimised models ``(R, t, MSAC cost)``; ``pool``: raw
+    hypotheses near the best cost ``(R (k, 3, 3), t (k, 3))``; ``scorer``: the estimator that
+    scores and refines on the original (not levelled) problem."""
+
+    family: Method
+    refined: RefinedPose
+    alternatives: list
+    pool: tuple[np.ndarray, np.ndarray]
+    scorer: object
+
+
+def _prepare(query_camera: Camera, pairs: Sequence[PairMatches], options: RansacOptions, query_gravity: object | None,
+             stats: RansacStatistics) -> tuple[AbsolutePoseProblem, _Gravity]:
+    """Validated, flattened problem with its tracks (structure mode) and 2D-3D error scale."""
+    problem = build_problem(query_camera, pairs)
+    gravity = _gravity(pairs, problem, query_gravity)
+    if options.structure == Structure.TRACKS:
+        t0 = time.perf_counter()
+        xq3, X3, C3 = triangulate_tracks(problem, options.threshold_px, options.track_min_angle_deg)
+        problem = problem.with_points3d(xq3, X3, np.full(len(X3), -1), C3)
+        stats.add_time("structure", time.perf_counter() - t0)
+    return problem.with_reprojection_threshold(options.threshold_px / reprojection_threshold_px(options)), gravity
+
+
+def _search(problem: AbsolutePoseProblem, options: RansacOptions, family: Method, gravity: _Gravity,
+            rng: np.random.Generator, stats: RansacStatistics, counted: bool) -> _Search | None:
+    """RANSAC of one family (its own full iteration budget), then the final refinement of its best.
+
+    ``counted``: its counters join the estimate's statistics (False for the 6DoF check of an
+    explicit planar method, whose time alone is recorded)."""
+    estimator = _estimator(problem, options, family, gravity)
+    scorer = getattr(estimator, "scorer", estimator)
+    search = RansacStatistics()
+    out = ransac(estimator, options, rng, search)
+    if counted:
+        stats.merge(search)
+    else:
+        stats.add_time("planar_verification", sum(search.time_s.values()))
+    if out.R is None:
+        return None
+    t0 = time.perf_counter()
+    refined = _refine(scorer, out.R, out.t, options)
+    stats.add_time("refinement", time.perf_counter() - t0)
+    return _Search(family, refined, list(zip(out.alt_R, out.alt_t, out.alt_cost)), (out.pool_R, out.pool_t), scorer)
+
+
+def _no_hypothesis(stats: RansacStatistics, method: Method, options: RansacOptions) -> tuple[str, str]:
+    """Status and message when no search produced a pose."""
+    if stats.rejected_degenerate > 0 and stats.rejected_degenerate >= (
+            stats.rejected_rcheck + stats.rejected_pdcheck + stats.rejected_consistency):
+        hint = "" if options.structure == Structure.TRACKS else "; try structure='tracks'"
+        return "degenerate_scale", (f"no hypothesis: {stats.rejected_degenerate} samples were degenerate "
+                                    "(triangulation singular: query collinear with the map images)" + hint)
+    return "no_consistent_hypothesis", (
+        f"none of the {stats.hypotheses} {method.value} hypotheses passed the checks (Rcheck {stats.rejected_rcheck}, "
+        f"Pdcheck {stats.rejected_pdcheck}, consistency {stats.rejected_consistency}, degenerate "
+        f"{stats.rejected_degenerate}): check the intrinsics and that the retrieved map images show the query's scene")
+
+
+def _rivals(best: _Search, searches: Sequence[_Search]) -> list[np.ndarray]:
+    """Centres of other searches' refined poses that explain the matches almost as well.
+
+    Where they lie elsewhere, the data do not single out one position (a flat or multi-modal
+    cost), and the distance between the answers is a lower bound of the position's uncertainty.
+    "Almost as well" holds for each kind of constraint: within ``RIVAL_COST_RATIO`` of the best
+    MSAC cost, and with a 2D-3D share within that ratio (plus a couple of inliers' worth) of the
+    best's: a pose that keeps the 2D-2D matches of a road but loses hundreds of 2D-3D
+    constraints is no rival (2D-2D constraints barely see the position along the road)."""
+    b = best.refined
+    margin = RIVAL_MARGIN_INLIERS * best.scorer.threshold_sq
+    return [-s.refined.R.T @ s.refined.t for s in searches
+            if s is not best and s.refined.score <= RIVAL_COST_RATIO * b.score
+            and s.refined.score3d <= RIVAL_COST_RATIO * b.score3d + margin]
+
+
+def _planar_model_check(est: PoseEstimate, method: Method, options: RansacOptions, problem: AbsolutePoseProblem,
+                        best: _Search, checks: Sequence[_Search]) -> PoseEstimate:
+    """An explicit planar method's verified pose, or ``planar_model_violated`` where its model fails."""
+    if not options.verify_planar:
+        return est
+    if est.model != "planar":
+        why = (f"the {method.value} pose does not fit the planar model it assumes (it implies a tilt or an elevation "
+               f"above {options.planar_tolerance_deg}° relative to the map images)")
+    else:
+        # A 6DoF pose elsewhere that explains the matches clearly better: the planar model failed.
+        better = [c for c in checks if c.refined.score < PLANAR_VIOLATION_RATIO * best.refined.score
+                  and _different(problem, (est.pose.R, est.pose.t), (c.refined.R, c.refined.t))]
+        if not better:
+            return est
+        why = (f"a 6DoF pose explains the matches better than the {method.value} pose (MSAC cost "
+               f"{better[0].refined.score:.4g} < {best.refined.score:.4g}) and lies elsewhere: the query is tilted or "
+               "off the map's plane")
+    return PoseEstimate(None, False, "planar_model_violated", why + "; use method='auto'", est.inliers,
+                        est.num_inliers, est.num_inliers_3d, est.iterations, est.position_std_m, est.pose, est.stats,
+                        model="6dof")
 
 
 def _different(problem: AbsolutePoseProblem, a: tuple, b: tuple) -> bool:

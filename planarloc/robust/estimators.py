@@ -356,19 +356,13 @@ class RectifiedHypotheses:
     ``hypotheses`` works on the same problem with query bearings ``U_q x``, reference
     bearings ``U_k x`` and reference poses ``U_k · ref_from_world`` (:func:`rectify_problem`),
     so upright frames are related by the planar model; a hypothesis ``upright_from_world`` of
-    the query is returned as ``cam_from_world = U_qᵀ · upright_from_world``.
-
-    Tilt tolerance: a planar hypothesis from a clean sample is right up to the query's
-    residual pitch/roll (uneven floor, IMU error), which moves points by up to ``f·tan(tilt)``
-    pixels — far beyond the inlier threshold τ for a few degrees. Scored at τ, such
-    hypotheses lose to wrong poses that happen to fit a few matches exactly (a search
-    failure, not geometry). Hypotheses are therefore scored at ``search_threshold_px``
-    (``τ + f·tan(planar_tolerance)``), and local optimisation walks a 6DoF refinement down
-    from that threshold to τ, so the basin of the truth is kept and the tilt is refined away.
+    the query is returned as ``cam_from_world = U_qᵀ · upright_from_world``. Scoring, local
+    optimisation (planar, then 6DoF, which refines a residual tilt away) and refinement are the
+    original problem's (``scorer``).
     """
 
-    def __init__(self, hypotheses: _ProblemEstimator, scorer: _ProblemEstimator, upright_from_query: np.ndarray,
-                 search_threshold_px: float | None = None) -> None:
+    def __init__(self, hypotheses: _ProblemEstimator, scorer: _ProblemEstimator, upright_from_query: np.ndarray
+                 ) -> None:
         self.hypotheses = hypotheses
         self.scorer = scorer
         self.p = scorer.p
@@ -376,36 +370,12 @@ class RectifiedHypotheses:
         self.sample_size = hypotheses.sample_size
         self.num_data = scorer.num_data
         self.Uq_T = np.ascontiguousarray(upright_from_query.T)
-        tau = scorer.options.threshold_px
-        self.search_threshold_px = max(tau, search_threshold_px or tau)
-        self.wide = scorer if self.search_threshold_px == tau else _ProblemEstimator(
-            scorer.p, replace(scorer.options, threshold_px=self.search_threshold_px))
 
     def generate(self, rng: np.random.Generator, n: int, stats: RansacStatistics) -> tuple[np.ndarray, np.ndarray]:
         R, t = self.hypotheses.generate(rng, n, stats)
         return np.ascontiguousarray(self.Uq_T @ R), np.ascontiguousarray(t @ self.Uq_T.T)
 
-    def score(self, R: np.ndarray, t: np.ndarray, bound: float = np.inf) -> tuple[np.ndarray, np.ndarray]:
-        return self.wide.score(R, t, bound)
-
-    def refine(self, R: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Local optimisation: the scorer's own when hypotheses are scored at τ, else from the
-        search threshold down to 2τ (halving each stage)."""
-        tau = self.scorer.options.threshold_px
-        if self.search_threshold_px <= tau:
-            return self.scorer.refine(R, t)
-        th = max(self.search_threshold_px, 2.0 * tau)
-        while True:
-            in2d, in3d = self.scorer.inliers(R, t, th * th)
-            if in2d.sum() + in3d.sum() < 6:
-                break
-            R, t, *_ = self.scorer._refine(R, -R.T @ t, in2d, in3d, 3)
-            if th <= 2.0 * tau:
-                break
-            th = max(th / 2.0, 2.0 * tau)
-        return R, t
-
-    def __getattr__(self, name: str):  # inliers, distinct, _refine, refine_full: the original problem's
+    def __getattr__(self, name: str):  # score, refine, inliers, distinct, _refine, refine_full: the original problem's
         return getattr(self.scorer, name)
 
 

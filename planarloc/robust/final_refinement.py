@@ -25,7 +25,7 @@ def refine_until_stable(
     f_query: np.ndarray, f_ref: np.ndarray, ref_R: np.ndarray, ref_t: np.ndarray,
     xq3d: np.ndarray, X3d: np.ndarray, inlier_threshold_sq: float, loss_scale: float, max_iterations: int,
     rounds: int, sigma_floor: float, map_rotation_std_rad: float = 0.0, map_position_std_m: float = 0.0,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, float, float, np.ndarray, np.ndarray, float]:
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, float, float, np.ndarray, np.ndarray, float, float]:
     """The final refinement: :func:`refine_pose` on the inliers of the current pose, repeated on
     the refined pose's inliers while they change (at most ``rounds`` times), in one call.
 
@@ -41,7 +41,8 @@ def refine_until_stable(
 
     Returns:
         R, t, H, σ̂, robust cost (as :func:`refine_pose`), the inlier masks (N,), (M,) at the
-        returned pose, and its MSAC cost ``Σ min(e², τ²)`` (the score every search is judged by).
+        returned pose, its MSAC cost ``Σ min(e², τ²)`` (the score every search is judged by) and
+        the 2D-3D constraints' share of that cost.
     """
     R, t = Rq.copy(), tq.copy()
     e2d, e3d = errors_sq(R, t, xq, xr, offsets, f_query, f_ref, ref_R, ref_t, xq3d, X3d)
@@ -72,9 +73,10 @@ def refine_until_stable(
         in2d, in3d = new2d, new3d
         if same:
             break
-    msac = 0.0
+    msac2d = 0.0
     for i in range(e2d.shape[0]):
-        msac += min(e2d[i], inlier_threshold_sq)
+        msac2d += min(e2d[i], inlier_threshold_sq)
+    msac3d = 0.0
     for i in range(e3d.shape[0]):
-        msac += min(e3d[i], inlier_threshold_sq)
-    return R, t, H, sigma, cost, in2d, in3d, msac
+        msac3d += min(e3d[i], inlier_threshold_sq)
+    return R, t, H, sigma, cost, in2d, in3d, msac2d + msac3d, msac3d

@@ -11,6 +11,7 @@ function takes the problem (or its estimator, for refinement) and a refined pose
 * :func:`weak_directions`, :func:`profile_std` — a secant profile of the cost along weakly
   observed directions of near-collinear geometry;
 * :func:`map_covariance` — the map's pose uncertainty propagated into the query position;
+* :func:`points_covariance` — the uncertainty of triangulated 2D-3D points propagated into it;
 * :func:`correlation_inflation` — residuals correlated within one reference;
 * :func:`reference_jackknife` — leave-one-reference-out refinements: an empirical spread that
   sees what the linearised covariance cannot (one reference with a wrong pose, a wrong
@@ -32,6 +33,7 @@ from numba import njit
 
 from planarloc.geometry import mat3 as m3
 from planarloc.robust.estimators import SIGMA_FLOOR_PX
+from planarloc.robust.map_prior import refine_with_map_prior
 from planarloc.robust.refinement import (
     exp_so3,
     map_centre_covariance,
@@ -229,7 +231,7 @@ def weak_directions(est, R: np.ndarray, t: np.ndarray, support: np.ndarray, cov:
 
 
 def profile_std(est, R: np.ndarray, t: np.ndarray, in2d: np.ndarray, in3d: np.ndarray, sigma: float,
-                cost: float, direction: np.ndarray, distance: float) -> float:
+                cost: float | None, direction: np.ndarray, distance: float) -> float:
     """Secant estimate of the position std along ``direction`` (unit, world frame).
 
     The centre is moved by ``±distance`` along ``direction`` and held there while the
@@ -237,7 +239,12 @@ def profile_std(est, R: np.ndarray, t: np.ndarray, in2d: np.ndarray, in3d: np.nd
     If the robust cost rises by ``ΔC``, a quadratic profile ``ΔC/σ̂² = d²/(2 std²)``
     gives ``std = d / sqrt(2 ΔC / σ̂²)``; a flat profile (ΔC ≈ 0) gives inf. Unlike the
     linearised covariance, this sees curved, banana-shaped valleys of near-degenerate
-    geometry (query almost collinear with the reference centres).
+    geometry (query almost collinear with the reference centres) and a second minimum
+    nearby (a distant scene, where rotation and translation trade off).
+
+    ``cost``: the robust cost at the optimum under the same objective, or None to evaluate it
+    here (with the profile's own refinement held at distance 0: needed when the pose came from
+    another objective, e.g. the map-prior refinement).
     """
     u = direction / np.linalg.norm(direction)
     a = np.array([1.0, 0.0, 0.0]) if abs(u[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
@@ -246,6 +253,8 @@ def profile_std(est, R: np.ndarray, t: np.ndarray, in2d: np.ndarray, in3d: np.nd
     B = np.ascontiguousarray(np.stack([u, v1, np.cross(u, v1)], axis=1))
     fixed = np.array([False, False, False, True, False, False])
     c = -R.T @ t
+    if cost is None:
+        *_, cost = est._refine(R, c, in2d, in3d, 6, B, fixed)
     worst = 0.0
     for sgn in (1.0, -1.0):
         *_, c_moved = est._refine(R, c + sgn * distance * u, in2d, in3d, 6, B, fixed)
@@ -394,3 +403,103 @@ def reference_jackknife(est, R: np.ndarray, t: np.ndarray, in2d: np.ndarray, in3
         p.ref_R, p.ref_t, p.xq3d, p.X3d, in2d, in3d, np.asarray(support, dtype=np.int64),
         est.options.threshold_px, max_iterations, SIGMA_FLOOR_PX)
     return Jackknife(n, float(std), float(shift), float(rot), int(support[worst]))
+
+
+def reference_jackknife_with_prior(est, R: np.ndarray, t: np.ndarray, in2d: np.ndarray, in3d: np.ndarray,
+                                   support: np.ndarray, max_iterations: int = 3) -> Jackknife:
+    """:func:`reference_jackknife` for a pose refined under the map prior
+    (:func:`planarloc.robust.map_prior.refine_with_map_prior`): each leave-one-out refinement
+    minimises the same objective, and leaving a reference out also leaves out the 2D-3D points
+    it gave (``problem.source3d`` rows of its pair: a wrong map pose corrupts its points too).
+    """
+    p, o = est.p, est.options
+    n = len(support)
+    if n < 3:
+        return Jackknife(n, float("nan"), float("nan"), float("nan"), -1)
+    owner = np.where(p.source3d >= 0, p.pair[np.maximum(p.source3d, 0)], -1)
+    c = -R.T @ t
+    centres = np.empty((n, 3))
+    max_rot = 0.0
+    rot_std, pos_std = math.radians(o.map_rotation_std_deg), float(o.map_position_std_m)
+    for i, k in enumerate(support):
+        idx2d = np.flatnonzero(in2d & (p.pair != k))
+        idx3d = np.flatnonzero(in3d & (owner != k))
+        Rk, tk, *_ = refine_with_map_prior(np.ascontiguousarray(R), np.ascontiguousarray(t), p.xq, p.xr, p.pair,
+                                           idx2d, p.f_query, p.f_ref, p.ref_R, p.ref_t, p.xq3d, p.X3d, idx3d,
+                                           o.threshold_px, max_iterations, SIGMA_FLOOR_PX, rot_std, pos_std)
+        centres[i] = -Rk.T @ tk
+        max_rot = max(max_rot, math.degrees(math.acos(min(1.0, max(-1.0, (float(np.sum(Rk * R)) - 1.0) / 2.0)))))
+    dev = centres - centres.mean(axis=0)
+    cov = (n - 1.0) / n * dev.T @ dev
+    shifts = np.linalg.norm(centres - c, axis=1)
+    worst = int(np.argmax(shifts))
+    return Jackknife(n, float(np.sqrt(max(np.linalg.eigvalsh(cov)[-1], 0.0))), float(shifts[worst]), max_rot,
+                     int(support[worst]))
+
+
+@njit(cache=True, error_model="numpy")
+def points_centre_covariance(R: np.ndarray, t: np.ndarray, xq3d: np.ndarray, X3d: np.ndarray, X3d_cov: np.ndarray,
+                             idx3d: np.ndarray, f_query: np.ndarray, f_ref: np.ndarray, ref_R: np.ndarray,
+                             ref_t: np.ndarray, H: np.ndarray, loss_scale: float) -> np.ndarray:
+    """(3, 3) covariance of the query centre caused by the 2D-3D points' own uncertainty.
+
+    The refinement solves ``Σ w Jᵀ r = 0``; a point moved by ``δX`` moves its residuals by
+    ``J_X δX`` and the pose by ``δq = −H⁻¹ Σ w Jᵀ J_X δX``, so
+    ``Σ_q = H⁻¹ (Σ_i w_i² J_iᵀ J_X,i Σ_X,i J_X,iᵀ J_i) H⁻¹`` (first order, points independent).
+    For a reprojection residual ``J_X = −J_c`` (the point and the centre enter as ``X − c``).
+    ``H`` is the refinement's normal matrix (the marginal one with the map prior, which leaves
+    2D-3D rows alone). Inf-filled when H is singular.
+    """
+    m = 2 * idx3d.shape[0]
+    r = np.empty(m)
+    J = np.empty((m, 6))
+    c = -m3.t_vec(R, t)
+    residuals_jacobian(R, c, np.eye(3), xq3d[:0], xq3d[:0], np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64),
+                       f_query, f_ref, ref_R, ref_t, xq3d, X3d, idx3d, r, J, np.empty((0, 3)))
+    s2 = loss_scale * loss_scale
+    M = np.zeros((6, 6))
+    for n in range(idx3d.shape[0]):
+        S = X3d_cov[idx3d[n]]
+        for a in range(6):
+            for b in range(6):
+                acc = 0.0
+                for u in range(2):
+                    ru = 2 * n + u
+                    wu = 1.0 / (1.0 + r[ru] * r[ru] / s2)
+                    for v in range(2):
+                        rv = 2 * n + v
+                        wv = 1.0 / (1.0 + r[rv] * r[rv] / s2)
+                        # (J_X Σ J_Xᵀ)[u, v] with J_X = −J_c
+                        jsj = 0.0
+                        for k in range(3):
+                            for l2 in range(3):
+                                jsj += J[ru, 3 + k] * S[k, l2] * J[rv, 3 + l2]
+                        acc += wu * J[ru, a] * jsj * wv * J[rv, b]
+                M[a, b] += acc
+    Hi = np.empty((6, 6))
+    eye = np.eye(6)
+    col = np.empty(6)
+    for b in range(6):
+        if not solve_spd(H, eye[:, b].copy(), col):
+            return np.full((3, 3), np.inf)
+        Hi[:, b] = col
+    out = np.empty((3, 3))
+    for a in range(3):
+        for b in range(3):
+            acc = 0.0
+            for k in range(6):
+                for l2 in range(6):
+                    acc += Hi[3 + a, k] * M[k, l2] * Hi[l2, 3 + b]
+            out[a, b] = acc
+    return out
+
+
+def points_covariance(est, R: np.ndarray, t: np.ndarray, in3d: np.ndarray, H: np.ndarray) -> np.ndarray:
+    """(3, 3) centre covariance from the 2D-3D points' covariance (:func:`points_centre_covariance`)."""
+    p = est.p
+    idx3d = np.flatnonzero(in3d)
+    if len(idx3d) == 0 or not np.any(p.X3d_cov[idx3d]):
+        return np.zeros((3, 3))
+    return points_centre_covariance(np.ascontiguousarray(R), np.ascontiguousarray(t), p.xq3d, p.X3d, p.X3d_cov, idx3d,
+                                    p.f_query, p.f_ref, p.ref_R, p.ref_t, np.ascontiguousarray(H),
+                                    est.options.threshold_px)

@@ -19,6 +19,7 @@ import numpy as np
 
 from planarloc.geometry.mat3 import sym_eigvals
 from planarloc.geometry.pose import Pose
+from planarloc.robust.refinement import exp_so3
 from planarloc.robust import observability as obs
 from planarloc.robust.options import RansacOptions, Structure
 from planarloc.robust.problem import AbsolutePoseProblem
@@ -26,6 +27,7 @@ from planarloc.robust.ransac import ALTERNATIVE_MARGIN_INLIERS
 from planarloc.robust.result import PoseEstimate, RansacStatistics
 
 PROFILE_BELOW_RATIO = 0.15  # centre collinearity ratio under which the cost profile is checked
+PROFILE_BELOW_INLIERS = 400  # ... and the number of inliers under which it is checked along the weakest axis
 MAX_ALTERNATIVE_REFINEMENTS = 2  # runner-up hypotheses refined per verified pose
 # A runner-up within this many inliers' worth of MSAC cost is a rival. 2, not more: at 3 x 20
 # matches / 60 % outliers a margin of 4 removed 6 of 8 broken promises of 2p1p but refused 9 % of
@@ -41,7 +43,8 @@ MAX_POOL_CANDIDATES = 8
 @dataclass(frozen=True)
 class RefinedPose:
     """One search's final pose: refined (R, t), centre covariance from the pixel noise, σ̂,
-    robust cost, MSAC score at τ and the inlier masks at the pose."""
+    robust cost, MSAC score at τ, the inlier masks at the pose, the 2D-3D share of the score and
+    the refinement's (6, 6) normal matrix."""
 
     R: np.ndarray
     t: np.ndarray
@@ -51,6 +54,8 @@ class RefinedPose:
     score: float
     in2d: np.ndarray
     in3d: np.ndarray
+    score3d: float = 0.0
+    H: np.ndarray | None = None
 
 
 def _rival_distance(estimator, ref: RefinedPose, num_inliers: int,
@@ -91,6 +96,74 @@ def _rival_distance(estimator, ref: RefinedPose, num_inliers: int,
         alt = refine(R, t, False)
         d = float(np.linalg.norm(-alt.R.T @ alt.t - c))
         if alt.score - ref.score <= margin and d > beyond:
+            found = max(found, d)
+    return found
+
+
+def _position_covariance(estimator, options: RansacOptions, ref: RefinedPose, support: obs.PoseSupport,
+                         correlation: float) -> np.ndarray:
+    """(3, 3) position covariance of a refined pose, from every source of error.
+
+    * pixel noise, ``σ̂² H⁻¹``, inflated by ``correlation`` (residuals within one reference are
+      correlated: its pose error, calibration, model errors);
+    * the map's pose errors: with 2D-3D inliers the final refinement estimated the reference
+      poses under the map prior (:mod:`planarloc.robust.map_prior`), so H holds their share of
+      the 2D-2D constraints; in the 2D-2D mode they are propagated through the full model
+      (weak geometry amplifies them: a 0.1° error of a reference's rotation moves a 2D-2D
+      position by metres when the query is almost collinear with the references). Never less
+      than the references' own error moved rigidly with the query (triangulated points inherit
+      it: KITTI, tracks, 95 % -> 100 % of successes within 3σ + 5 cm with it);
+    * the 2D-3D points' own uncertainty (far points seen at a small angle are uncertain in
+      depth; a query seen from elsewhere inherits that, and over few points it does not
+      average out like pixel noise).
+    """
+    cov = ref.cov * correlation**2
+    if not np.isfinite(cov).all():
+        return cov
+    n3d = int(np.count_nonzero(ref.in3d))
+    if options.map_rotation_std_deg > 0 or options.map_position_std_m > 0:
+        if n3d == 0:
+            cov = cov + obs.map_covariance(estimator, ref.R, ref.t, ref.in2d, ref.in3d)
+        rigid = options.map_position_std_m**2 + (support.median_distance_m * math.radians(options.map_rotation_std_deg)) ** 2
+        cov = cov + np.eye(3) * rigid
+    if n3d and ref.H is not None:
+        cov = cov + obs.points_covariance(estimator, ref.R, ref.t, ref.in3d, ref.H)
+    return cov
+
+
+def _basin_distance(estimator, ref: RefinedPose, refine: Callable[[np.ndarray, np.ndarray, bool], RefinedPose],
+                    beyond: float) -> float:
+    """Distance (> ``beyond``) of another basin of the cost found by restarting the refinement
+    just outside the promise, along the weakest axis of the pose covariance; 0 if none.
+
+    The refinement re-selects its inliers, so a restart can fall into a basin with another
+    inlier set, which the curvature at ``ref`` cannot know about. The start is ``ref`` moved
+    along ±v, the top eigenvector of ``σ̂² H⁻¹`` (rotation and centre coupled as the data
+    couple them: a distant scene trades rotation for translation), scaled so that the centre
+    moves by ``beyond``. A restart that lands beyond ``beyond`` with an MSAC cost within
+    ``RIVAL_MARGIN_INLIERS`` inliers' worth of ``ref``'s (or lower) is another answer the data
+    support as well.
+    """
+    if ref.H is None or not np.isfinite(ref.H).all():
+        return 0.0
+    try:
+        w, V = np.linalg.eigh(np.linalg.inv(ref.H))
+    except np.linalg.LinAlgError:
+        return 0.0
+    v = V[:, -1]
+    nc = float(np.linalg.norm(v[3:]))
+    if not (w[-1] > 0 and nc > 1e-12):
+        return 0.0
+    margin = RIVAL_MARGIN_INLIERS * estimator.threshold_sq
+    c = -ref.R.T @ ref.t
+    found = 0.0
+    for sgn in (1.0, -1.0):
+        step = sgn * (beyond / nc) * v
+        R0 = exp_so3(np.ascontiguousarray(step[:3])) @ ref.R
+        c0 = c + step[3:]
+        alt = refine(np.ascontiguousarray(R0), -R0 @ c0, False)
+        d = float(np.linalg.norm(-alt.R.T @ alt.t - c))
+        if d > beyond and alt.score - ref.score <= margin:
             found = max(found, d)
     return found
 
@@ -153,32 +226,25 @@ def judge_pose(estimator, problem: AbsolutePoseProblem, options: RansacOptions, 
     # Residuals within one reference are correlated (its pose error, calibration, model
     # errors): thousands of matches are not thousands of independent constraints.
     correlation = obs.correlation_inflation(n2d + n3d, len(support.supporting))
-    cov = ref.cov * correlation**2
+    cov = _position_covariance(estimator, options, ref, support, correlation)
     finite = bool(np.isfinite(cov).all())
-    if finite and (options.map_rotation_std_deg > 0 or options.map_position_std_m > 0):
-        # With 2D-3D inliers the final refinement estimated the reference poses under the map
-        # prior (planarloc.robust.map_prior): its covariance holds the map's share already.
-        # Map errors through the full model, always: weak geometry amplifies them (a 0.1° error
-        # of a reference's rotation moves a 2D-2D position by metres when the query is almost
-        # collinear with the references), and triangulated tracks inherit them (KITTI, tracks:
-        # 95 % -> 100 % of successes within 3σ + 5 cm with the full model); never less than the
-        # references' own error moved rigidly with the query.
-        d = support.median_distance_m
-        rigid = options.map_position_std_m**2 + (d * math.radians(options.map_rotation_std_deg)) ** 2
-        if n3d == 0:
-            cov = cov + obs.map_covariance(estimator, R, t, in2d, in3d)
-        finite = bool(np.isfinite(cov).all())
-        if finite:
-            cov = cov + np.eye(3) * rigid
     std = math.sqrt(max(sym_eigvals(cov)[0], 0.0)) if finite else math.inf
-    if math.isfinite(std) and near_collinear:
-        # Near-collinear geometry: the linearised covariance is over-confident in the curved
-        # valley of the cost; profile the cost along the weak directions.
-        # Probe at 3σ (does the quadratic model hold?) and at the decision scale.
-        probes = {min(max(3.0 * std, 0.02), 2.0), min(options.max_position_std_m, 2.0)}
-        for u in obs.weak_directions(estimator, R, t, support.supporting, cov):
+    if math.isfinite(std) and options.refine and (near_collinear or n2d + n3d < PROFILE_BELOW_INLIERS):
+        # The linearised covariance is over-confident where the cost is not quadratic: in the
+        # curved valley of near-collinear geometry, and where few constraints on a distant scene
+        # let rotation and translation trade off into a second minimum nearby (Strecha
+        # entry_p10 queries against the fountain_p11 map: 0.95 m off with a linearised 0.23 m).
+        # Profile the cost along the weak directions, at 3σ (does the quadratic model hold?)
+        # and, near-collinear, at the decision scale.
+        probes = {min(max(3.0 * std, 0.02), 2.0)}
+        directions = [np.linalg.eigh(cov)[1][:, -1]]
+        if near_collinear:
+            probes.add(min(options.max_position_std_m, 2.0))
+            directions = obs.weak_directions(estimator, R, t, support.supporting, cov)
+        baseline = ref.cost if n3d == 0 else None  # the map-prior refinement minimised another cost
+        for u in directions:
             for d in probes:
-                std = max(std, correlation * obs.profile_std(estimator, R, t, in2d, in3d, ref.sigma, ref.cost, u, d))
+                std = max(std, correlation * obs.profile_std(estimator, R, t, in2d, in3d, ref.sigma, baseline, u, d))
     if rivals:
         c = -R.T @ t
         for other in rivals:
@@ -205,7 +271,9 @@ def judge_pose(estimator, problem: AbsolutePoseProblem, options: RansacOptions, 
         return failure("degenerate_scale", f"position unobservable from the inliers: {why}{hint}",
                        position_std_m=std, unreliable_pose=pose, **common)
     if options.refine:
-        jk = obs.reference_jackknife(estimator, R, t, in2d, in3d, support=supporting)
+        prior = n3d > 0 and (options.map_rotation_std_deg > 0 or options.map_position_std_m > 0)
+        jk = (obs.reference_jackknife_with_prior(estimator, R, t, in2d, in3d, supporting) if prior
+              else obs.reference_jackknife(estimator, R, t, in2d, in3d, support=supporting))
         if math.isfinite(jk.position_std_m):
             std = max(std, jk.position_std_m)
             limit = min(options.max_reference_shift_std * std, options.max_position_std_m)
@@ -231,6 +299,18 @@ def judge_pose(estimator, problem: AbsolutePoseProblem, options: RansacOptions, 
                                f"(within {RIVAL_MARGIN_INLIERS} inliers' worth of MSAC cost): the data do not single "
                                "out one position; "
                                "more matches or map images, or structure='tracks'",
+                               position_std_m=std, unreliable_pose=pose, **common)
+    if refine is not None and n2d + n3d < PROFILE_BELOW_INLIERS:
+        # Few constraints: other basins of the cost, with other inlier sets, may explain the
+        # matches as well (Strecha entry_p10 against the fountain_p11 map: a pose 0.95 m off with
+        # std 0.23 m, while restarts 0.7 m away found lower costs).
+        d = _basin_distance(estimator, ref, refine, 3.0 * std + 0.05)
+        if d > 0.0:
+            std = max(std, d)
+            if not std <= options.max_position_std_m:
+                return failure("ambiguous_pose", f"a restart of the refinement {d:.3g} m away converged to a pose that "
+                               f"explains the matches as well (within {RIVAL_MARGIN_INLIERS} inliers' worth of MSAC "
+                               "cost): the data do not single out one position; more matches or map images",
                                position_std_m=std, unreliable_pose=pose, **common)
     stats.add_time("verification", time.perf_counter() - t0)
     stats.add_time("total", time.perf_counter() - t_start)

@@ -189,7 +189,7 @@ def test_refine_until_stable_returns_consistent_inliers_and_score(scene) -> None
     start = Pose.from_center(Rotation.from_rotvec(rng.normal(0, 0.003, 3)).as_matrix() @ sc.query_pose.R,
                              sc.query_pose.center + rng.normal(0, 0.03, 3))
     th2 = 4.0
-    R, t, H, sigma, cost, in2d, in3d, score = refine_until_stable(
+    R, t, H, sigma, cost, in2d, in3d, score, _ = refine_until_stable(
         start.R, start.t, pb.xq, pb.xr, pb.pair, pb.offsets, pb.f_query, pb.f_ref, pb.ref_R, pb.ref_t, pb.xq3d,
         pb.X3d, th2, 2.0, 6, 4, SIGMA_FLOOR_PX)
     e2d, _ = errors_sq(R, t, pb.xq, pb.xr, pb.offsets, pb.f_query, pb.f_ref, pb.ref_R, pb.ref_t, pb.xq3d, pb.X3d)
