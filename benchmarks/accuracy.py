@@ -98,7 +98,7 @@ def run_trial(task: tuple[int, int, int, int, tuple[str, ...], bool, float, bool
     refs = [p.ref_pose for p in sc.pairs]
     # The paper's methods as published (no 6DoF cross-check of planar poses, see robustness.py).
     opts = RansacOptions(max_iterations=ITERATIONS, min_iterations=ITERATIONS, threshold_px=threshold,
-                         seed=ransac_seed, refine=refine, structure="none", verify_planar=False)
+                         seed=ransac_seed, refine=refine, structure="none", cross_check=False)
     out: dict = {"cell": (ni, mi), "methods": {}}
     for method in methods:
         try:

@@ -48,7 +48,7 @@ def run_scene(task: tuple[int, int, int, float, bool]) -> dict:
     sc = make_scene(np.random.default_rng(ss), num_refs=3, matches_per_pair=matches, noise_px=1.5,
                     outlier_ratio=outliers)
     opts = RansacOptions(max_iterations=ITERATIONS, min_iterations=ITERATIONS, threshold_px=THRESHOLD_PX,
-                         seed=int(ss.generate_state(1)[0]), structure="none", verify_planar=False)
+                         seed=int(ss.generate_state(1)[0]), structure="none", cross_check=False)
 
     def judged(est) -> tuple[bool, bool, object]:
         pose = est.pose if est.success else est.unreliable_pose

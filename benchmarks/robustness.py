@@ -86,9 +86,9 @@ def run_trial(task: tuple[int, int, int, int, tuple[str, ...], bool, str]) -> di
                     outlier_ratio=OUTLIERS[ri])
     out: dict = {"cell": (mi, ri), "scene_cpu_s": time.process_time() - c0, "methods": {}}
     # The paper's methods as published: no 6DoF cross-check of the planar pose (the library's
-    # default verify_planar=True adds one 5-point search per query; see BENCHMARKS.md, "Trust").
+    # default cross_check=True adds one 5-point search per query; see BENCHMARKS.md, "Trust").
     opts = RansacOptions(max_iterations=ITERATIONS, min_iterations=ITERATIONS, threshold_px=THRESHOLD_PX,
-                         seed=ransac_seed, structure="none", verify_planar=False)
+                         seed=ransac_seed, structure="none", cross_check=False)
     for method in methods:
         try:
             t, c = time.perf_counter(), time.process_time()

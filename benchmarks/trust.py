@@ -17,16 +17,21 @@ Data sets (map / queries):
   3° of per-frame pitch/roll jitter, cameras pitched 10° down); the ``pitched`` preset (map camera
   pitched 11°, query camera 14° and 1° roll) and the ``offplane`` preset (hand-held queries
   0.2–0.7 m lower, tilted up to 4°); map = map trajectory, queries = query trajectory;
-- the shared KITTI sequence: map = every 4th frame (``kitti-every4``) or every 2nd, queries the rest;
-- the Strecha sets ``fountain_p11`` and ``entry_p10`` (kapture): map = even frames, queries = odd.
+- the shared KITTI sequences: ``kitti_seq2`` (a turn) as ``kitti-every4`` / ``kitti-every2`` and
+  ``kitti_seq1`` (a straight road) as ``kitti1-every4`` / ``kitti1-every2``: map = every 4th (2nd)
+  frame, queries the rest;
+- the Strecha sets ``fountain_p11`` and ``entry_p10`` (kapture): map = even frames, queries = odd;
+- one site, two captures (issue 17): ``fountain-to-entry`` (map = all of fountain_p11, queries =
+  all of entry_p10, whose facade stands far in the background of the fountain images) and
+  ``entry-to-fountain``.
 
 Queries are localized with the default Localizer (VLAD top-5) and no query gravity, unless
 ``--query-gravity truth`` (generated worlds only: the true gravity of ``gravity.txt``; needs a
 Localizer whose ``localize_features`` accepts ``gravity=``). Worlds and maps are cached under
 ``--cache-dir`` (default ``$TMPDIR/planarloc-bench``), keyed by content (``_datasets.py``).
 
-``--quick`` (CI, a few minutes on 2 cores): ``office-tilt3-pitch10``, ``kitti-every4`` and
-``fountain_p11`` with the default method and both structure modes; the exit code is 1 when any
+``--quick`` (CI, a few minutes on 2 cores): ``office-tilt3-pitch10``, ``kitti-every4``,
+``fountain_p11`` and ``fountain-to-entry`` with the default method and both structure modes; the exit code is 1 when any
 success is off by more than 1 m or 20° (each offending query is printed), 0 otherwise. Without
 ``--quick`` the exit code only reports crashes and bad options (2).
 
@@ -77,7 +82,7 @@ from planarloc.synthetic.world.presets import get_preset, robot_variant  # noqa:
 DATA_ROOT = Path(__file__).resolve().parents[2] / "shared" / "data"
 AUTO = "auto"
 HAS_AUTO = AUTO in {m.value for m in Method}
-DEFAULT_METHODS = [*([AUTO] if HAS_AUTO else []), "2p1p", "2p2p", "5p5p-nister"]
+DEFAULT_METHODS = [m.value for m in Method]  # every method by name
 QUICK_METHOD = AUTO if HAS_AUTO else "2p1p"
 STRUCTURES = ["none", "tracks"]
 SIGMAS = (1, 2, 3)
@@ -86,7 +91,9 @@ WORLD_SEED = 0
 WORLD_FRAMES = (40, 30)  # map, query frames of a generated world (the office preset's)
 FLOOR_TILTS_DEG = (0.0, 1.0, 3.0)
 MOUNT_PITCHES_DEG = (0.0, 10.0)
-QUICK_DATASETS = ["office-tilt3-pitch10", "kitti-every4", "fountain_p11"]
+QUICK_DATASETS = ["office-tilt3-pitch10", "kitti-every4", "fountain_p11", "fountain-to-entry"]
+KITTI = {"kitti": "kitti_seq2", "kitti1": "kitti_seq1"}  # data set name prefix -> shared folder
+CROSS_SESSION = {"fountain-to-entry": ("fountain_p11", "entry_p10"), "entry-to-fountain": ("entry_p10", "fountain_p11")}
 
 
 # ---- data sets ------------------------------------------------------------------------------------
@@ -118,7 +125,8 @@ def world_configs(n_map: int, n_query: int) -> dict[str, object]:
 
 
 def dataset_names(world_frames: tuple[int, int] = WORLD_FRAMES) -> list[str]:
-    return [*world_configs(*world_frames), "kitti-every4", "kitti-every2", "fountain_p11", "entry_p10"]
+    return [*world_configs(*world_frames), *(f"{k}-every{e}" for k in KITTI for e in (4, 2)), "fountain_p11",
+            "entry_p10", *CROSS_SESSION]
 
 
 def load_dataset(name: str, args: argparse.Namespace, root: Path,
@@ -132,8 +140,17 @@ def load_dataset(name: str, args: argparse.Namespace, root: Path,
         g = read_gravity(folder / "query" / "gravity.txt")
         return DataSet(name, read_dataset(folder / "map", "tum"), queries,
                        {q.name: g[Path(q.name).stem] for q in queries}, str(folder))
-    if name.startswith("kitti-every"):
-        folder, fmt, every = args.data_root / "kitti_seq2", "kitti", int(name.removeprefix("kitti-every"))
+    if name in CROSS_SESSION:
+        folders = [args.data_root / d for d in CROSS_SESSION[name]]
+        missing = [f for f in folders if not f.is_dir()]
+        if missing:
+            peer.log(f"{name}: {missing[0]} not found, skipped")
+            return None
+        return DataSet(name, read_dataset(folders[0], "kapture"), read_dataset(folders[1], "kapture"), None,
+                       " -> ".join(str(f) for f in folders))
+    prefix, _, every_text = name.partition("-every")
+    if prefix in KITTI and every_text.isdigit():
+        folder, fmt, every = args.data_root / KITTI[prefix], "kitti", int(every_text)
     else:
         folder, fmt, every = args.data_root / name, "kapture", 2
     if not folder.is_dir():

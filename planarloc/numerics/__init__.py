@@ -1,7 +1,7 @@
-"""Numerical kernels below the solvers: real roots of polynomials and real eigenvalues.
+"""Numerical kernels below the solvers: real roots of polynomials, real eigenvalues, SPD solves.
 
 Layer: ``numerics`` sits beside ``geometry`` at the bottom (numpy and numba only, no
-planarloc imports) and is used by ``solvers``. Nothing here knows about cameras or poses:
+planarloc imports) and is used by ``solvers`` and ``robust``. Nothing here knows about cameras or poses:
 
 =====================  =========================================================================
 module                 holds
@@ -10,6 +10,7 @@ module                 holds
                        bisection, Newton safeguarded by bisection); Horner evaluation
 ``eigen``              real eigenvalues of a small dense nonsymmetric matrix (balancing,
                        Hessenberg reduction, shifted double-step QR ``hqr``)
+``cholesky``           Cholesky factor and solves of small symmetric positive-definite matrices
 =====================  =========================================================================
 
 What is specific to one problem stays with its solver: the eigenvectors of Stewénius' action

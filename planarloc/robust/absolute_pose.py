@@ -36,7 +36,13 @@ from planarloc.robust.ransac import ransac
 from planarloc.robust.final_refinement import refine_until_stable
 from planarloc.robust.refinement import centre_covariance
 from planarloc.robust.result import PoseEstimate, RansacStatistics
-from planarloc.robust.verification import RIVAL_MARGIN_INLIERS, RefinedPose, failed_estimate, judge_pose
+from planarloc.robust.verification import (
+    RIVAL_COST_RATIO,
+    RIVAL_MARGIN_INLIERS,
+    RefinedPose,
+    failed_estimate,
+    judge_pose,
+)
 from planarloc.robust.sampling import eligible_pairs
 from planarloc.robust.structure import triangulate_tracks
 
@@ -53,8 +59,6 @@ E_Y = np.array([0.0, 1.0, 0.0])
 E_Y.setflags(write=False)
 # An explicit planar method fails when a 6DoF pose elsewhere has less than this share of its cost.
 PLANAR_VIOLATION_RATIO = 0.8
-# Another search's refined pose within this cost ratio of the best one is a rival answer.
-RIVAL_COST_RATIO = 1.25
 FINAL_REFINEMENT_ROUNDS = 4
 
 
@@ -100,6 +104,20 @@ def _estimator(problem: AbsolutePoseProblem, options: RansacOptions, family: Met
     Uq = upright_from_gravity(gravity.query)
     upright = make(rectify_problem(problem, Uq, upright_from_gravity(gravity.refs)), options)
     return RectifiedHypotheses(upright, scorer, Uq)
+
+
+def _cross_check_families(method: Method, options: RansacOptions, problem: AbsolutePoseProblem) -> list[Method]:
+    """The searches that check a method chosen by name (``options.cross_check``): the other motion
+    model's, and for a 6DoF baseline a second run of its own search (its own random samples).
+
+    A 6DoF 2D-2D search has no planar model to fall back on when the query is tilted (another
+    capture of the site), and on repeated facade windows the search can settle in one of
+    several basins tens of metres apart whose costs differ by a few inliers (Strecha entry_p10
+    against the fountain_p11 map); a second run that lands elsewhere is a rival answer."""
+    if not options.cross_check or method == Method.AUTO:
+        return []
+    others = [Method.NISTER] if method in PLANAR else [Method.P2P1, method]
+    return [f for f in others if _eligible(problem, f)]
 
 
 def _eligible(problem: AbsolutePoseProblem, family: Method) -> bool:
@@ -177,10 +195,10 @@ def estimate_absolute_pose(
                        f"{method.value} needs {m1} matches in one map image and {m2} in another, or 2D-3D "
                        f"constraints; got {problem.counts.tolist()} matches per map image and {len(problem.X3d)} "
                        "2D-3D constraints: retrieve more map images or check the intrinsics")
-    check_6dof = method in PLANAR and options.verify_planar and _eligible(problem, Method.NISTER)
     rng = np.random.default_rng(options.seed)
     searches = [_search(problem, options, family, gravity, rng, stats, counted=True) for family in families]
-    checks = [_search(problem, options, Method.NISTER, gravity, rng, stats, counted=False)] if check_6dof else []
+    checks = [_search(problem, options, family, gravity, rng, stats, counted=False)
+              for family in _cross_check_families(method, options, problem)]
     found = [s for s in searches if s is not None]
     others = [s for s in checks if s is not None]
     if not found:
@@ -226,8 +244,8 @@ def _search(problem: AbsolutePoseProblem, options: RansacOptions, family: Method
             rng: np.random.Generator, stats: RansacStatistics, counted: bool) -> _Search | None:
     """RANSAC of one family (its own full iteration budget), then the final refinement of its best.
 
-    ``counted``: its counters join the estimate's statistics (False for the 6DoF check of an
-    explicit planar method, whose time alone is recorded)."""
+    ``counted``: its counters join the estimate's statistics (False for the cross-check of a
+    method chosen by name, whose time alone is recorded)."""
     estimator = _estimator(problem, options, family, gravity)
     scorer = getattr(estimator, "scorer", estimator)
     search = RansacStatistics()
@@ -235,7 +253,7 @@ def _search(problem: AbsolutePoseProblem, options: RansacOptions, family: Method
     if counted:
         stats.merge(search)
     else:
-        stats.add_time("planar_verification", sum(search.time_s.values()))
+        stats.add_time("cross_check", sum(search.time_s.values()))
     if out.R is None:
         return None
     t0 = time.perf_counter()
@@ -276,7 +294,7 @@ def _rivals(best: _Search, searches: Sequence[_Search]) -> list[np.ndarray]:
 def _planar_model_check(est: PoseEstimate, method: Method, options: RansacOptions, problem: AbsolutePoseProblem,
                         best: _Search, checks: Sequence[_Search]) -> PoseEstimate:
     """An explicit planar method's verified pose, or ``planar_model_violated`` where its model fails."""
-    if not options.verify_planar:
+    if not options.cross_check:
         return est
     if est.model != "planar":
         why = (f"the {method.value} pose does not fit the planar model it assumes (it implies a tilt or an elevation "

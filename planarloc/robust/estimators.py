@@ -30,6 +30,7 @@ from planarloc.robust.hypotheses import (
     planar_relative_candidates,
 )
 from planarloc.robust.local_optimization import distinct_centres, level_plane, refine_planar_then_6dof
+from planarloc.robust.map_prior import refine_with_map_prior
 from planarloc.robust.options import Method, RansacOptions
 from planarloc.robust.problem import AbsolutePoseProblem
 from planarloc.robust.refinement import centre_covariance, refine_on_inliers, refine_pose
@@ -87,6 +88,16 @@ class _ProblemEstimator:
             p.f_query, p.f_ref, p.ref_R, p.ref_t, p.xq3d, p.X3d, np.flatnonzero(in3d),
             self.options.threshold_px, max_iterations, SIGMA_FLOOR_PX, np.ascontiguousarray(c0), B, fixed,
         )
+
+    def _refine_with_map_prior(self, R: np.ndarray, c0: np.ndarray, in2d: np.ndarray, in3d: np.ndarray,
+                               max_iterations: int, B: np.ndarray = _IDENTITY, fixed: np.ndarray = _FREE) -> tuple:
+        """:meth:`_refine` under the map prior (:func:`planarloc.robust.map_prior.refine_with_map_prior`)."""
+        p, o = self.p, self.options
+        return refine_with_map_prior(
+            np.ascontiguousarray(R), -R @ c0, p.xq, p.xr, p.pair, np.flatnonzero(in2d), p.f_query, p.f_ref, p.ref_R,
+            p.ref_t, p.xq3d, p.X3d, np.flatnonzero(in3d), o.threshold_px, max_iterations, SIGMA_FLOOR_PX,
+            float(np.radians(o.map_rotation_std_deg)), float(o.map_position_std_m), np.ascontiguousarray(c0), B,
+            fixed)
 
     def _refine_on_inliers(self, R: np.ndarray, t: np.ndarray, threshold_sq: float, max_iterations: int) -> tuple:
         p = self.p

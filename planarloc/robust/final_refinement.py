@@ -61,7 +61,8 @@ def refine_until_stable(
         if prior and in3d.any():
             R, t, H, sigma, cost = refine_with_map_prior(R, t, xq, xr, pair, np.flatnonzero(in2d), f_query, f_ref,
                                                          ref_R, ref_t, xq3d, X3d, np.flatnonzero(in3d), loss_scale,
-                                                         its, sigma_floor, map_rotation_std_rad, map_position_std_m)
+                                                         its, sigma_floor, map_rotation_std_rad, map_position_std_m,
+                                                         -m3.t_vec(R, t), eye, free)
         else:
             R, t, H, sigma, cost = refine_pose(R, t, xq, xr, pair, np.flatnonzero(in2d), f_query, f_ref, ref_R,
                                                ref_t, xq3d, X3d, np.flatnonzero(in3d), loss_scale, its,

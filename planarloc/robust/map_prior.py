@@ -23,17 +23,18 @@ import numpy as np
 from numba import njit
 
 from planarloc.geometry import mat3 as m3
-from planarloc.robust.refinement import _FAST, exp_so3, residuals, residuals_jacobian, solve_spd
+from planarloc.numerics.cholesky import solve_spd
+from planarloc.robust.refinement import FASTMATH, exp_so3, residuals, residuals_jacobian
 
 
 @njit(cache=True, error_model="numpy", inline="always")
-def _perturbed_refs(ref_R: np.ndarray, ref_c: np.ndarray, omega: np.ndarray, d: np.ndarray, R_out: np.ndarray,
-                    t_out: np.ndarray) -> None:
-    """``R_p' = Exp(ω_p) R_p``, ``t_p' = −R_p' (c_p + d_p)`` for every pair."""
+def _perturbed_refs(ref_R: np.ndarray, ref_c: np.ndarray, omega: np.ndarray, d: np.ndarray, B: np.ndarray,
+                    R_out: np.ndarray, t_out: np.ndarray) -> None:
+    """``R_p' = Exp(ω_p) R_p``, ``t_p' = −R_p' (c_p + B d_p)`` for every pair."""
     for p in range(ref_R.shape[0]):
         Rp = m3.mul(exp_so3(omega[p]), ref_R[p])
         R_out[p] = Rp
-        t_out[p] = -m3.vec(Rp, ref_c[p] + d[p])
+        t_out[p] = -m3.vec(Rp, ref_c[p] + m3.vec(B, d[p]))
 
 
 @njit(cache=True, error_model="numpy")
@@ -46,25 +47,27 @@ def _prior_cost(omega: np.ndarray, d: np.ndarray, lam_rot: float, lam_pos: float
     return 0.5 * acc
 
 
-@njit(cache=True, error_model="numpy", fastmath=_FAST)
+@njit(cache=True, error_model="numpy", fastmath=FASTMATH)
 def refine_with_map_prior(
     Rq: np.ndarray, tq: np.ndarray, xq: np.ndarray, xr: np.ndarray, pair: np.ndarray, idx2d: np.ndarray,
     f_query: np.ndarray, f_ref: np.ndarray, ref_R: np.ndarray, ref_t: np.ndarray,
     xq3d: np.ndarray, X3d: np.ndarray, idx3d: np.ndarray, loss_scale: float, max_iterations: int,
-    sigma_floor: float, rotation_std_rad: float, position_std_m: float,
+    sigma_floor: float, rotation_std_rad: float, position_std_m: float, c0: np.ndarray, B: np.ndarray,
+    fixed: np.ndarray,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, float, float]:
     """Levenberg-Marquardt (IRLS, Cauchy loss at ``loss_scale``) of the query pose and one pose
     correction per reference with the map prior; same arguments and returns as
-    :func:`planarloc.robust.refinement.refine_pose` with ``c0`` the initial centre and B = I,
-    except that H is the Schur complement (marginal information of the query's 6 parameters)
-    and the cost includes the prior. The prior's pixel scale is σ̂ at the initial pose (floored
-    at ``sigma_floor``): ``Λ = σ̂² diag(1/σ_rot², 1/σ_pos²)``.
+    :func:`planarloc.robust.refinement.refine_pose` (the centre ``c = c0 + B p``, ``fixed``
+    query parameters held), except that H is the Schur complement (marginal information of the
+    query's 6 parameters) and the cost includes the prior. The prior's pixel scale is σ̂ at the
+    initial pose (floored at ``sigma_floor``): ``Λ = σ̂² diag(1/σ_rot², 1/σ_pos²)``. Reference
+    centre shifts are expressed in the same orthonormal basis B (the prior is isotropic).
     """
     P = ref_R.shape[0]
     m = idx2d.shape[0] + 2 * idx3d.shape[0]
     n2 = idx2d.shape[0]
     R = Rq.copy()
-    c = -m3.t_vec(Rq, tq)
+    c = c0.copy()
     ref_c = np.empty((P, 3))
     for p in range(P):
         ref_c[p] = -m3.t_vec(ref_R[p], ref_t[p])
@@ -76,9 +79,8 @@ def refine_with_map_prior(
     J = np.empty((m, 6))
     Jrot = np.empty((m, 3))
     zero = np.zeros(6)
-    eye = np.eye(3)
     s2 = loss_scale * loss_scale
-    residuals_jacobian(R, c, eye, xq, xr, pair, idx2d, f_query, f_ref, cur_R, cur_t, xq3d, X3d, idx3d, r, J, Jrot)
+    residuals_jacobian(R, c, B, xq, xr, pair, idx2d, f_query, f_ref, cur_R, cur_t, xq3d, X3d, idx3d, r, J, Jrot)
     wr2 = 0.0
     for i in range(m):
         wr2 += r[i] * r[i] / (1.0 + r[i] * r[i] / s2)
@@ -105,6 +107,12 @@ def refine_with_map_prior(
         for i in range(m):
             w = 1.0 / (1.0 + r[i] * r[i] / s2)
             wr2 += w * r[i] * r[i]
+            if i < n2:  # before the fixed columns are zeroed: a reference centre moves in every direction
+                K[0], K[1], K[2] = Jrot[i, 0], Jrot[i, 1], Jrot[i, 2]
+                K[3], K[4], K[5] = -J[i, 3], -J[i, 4], -J[i, 5]  # a reference centre shift = opposite query shift
+            for k in range(6):
+                if fixed[k]:
+                    J[i, k] = 0.0
             for a in range(6):
                 wa = w * J[i, a]
                 g[a] += wa * r[i]
@@ -112,8 +120,6 @@ def refine_with_map_prior(
                     H[a, b] += wa * J[i, b]
             if i < n2:
                 q = pair[idx2d[i]]
-                K[0], K[1], K[2] = Jrot[i, 0], Jrot[i, 1], Jrot[i, 2]
-                K[3], K[4], K[5] = -J[i, 3], -J[i, 4], -J[i, 5]  # a reference centre shift = opposite query shift
                 for a in range(6):
                     wk = w * K[a]
                     hp[q, a] += wk * r[i]
@@ -174,6 +180,8 @@ def refine_with_map_prior(
             rhs = -g.copy()
             for k in range(6):
                 S[k, k] += lam * max(H[k, k], 1e-12)
+                if fixed[k]:
+                    S[k, k] = 1.0
             Dl = np.empty((P, 6, 6))
             solvable = True
             for p in range(P):
@@ -222,10 +230,10 @@ def refine_with_map_prior(
                     else:
                         d_new[p, a - 3] += acc
             R_new = m3.mul(exp_so3(step[:3]), R)
-            c_new = c + step[3:]
+            c_new = c + m3.vec(B, step[3:])
             new_R, new_t = np.empty_like(ref_R), np.empty_like(ref_t)
-            _perturbed_refs(ref_R, ref_c, om_new, d_new, new_R, new_t)
-            residuals(zero, R_new, c_new, eye, xq, xr, pair, idx2d, f_query, f_ref, new_R, new_t, xq3d, X3d,
+            _perturbed_refs(ref_R, ref_c, om_new, d_new, B, new_R, new_t)
+            residuals(zero, R_new, c_new, B, xq, xr, pair, idx2d, f_query, f_ref, new_R, new_t, xq3d, X3d,
                       idx3d, rp)
             new_cost = 0.5 * s2 * np.sum(np.log1p(rp * rp / s2)) + _prior_cost(om_new, d_new, lam_rot, lam_pos)
             if new_cost <= cost:
@@ -235,7 +243,7 @@ def refine_with_map_prior(
                 lam = max(lam * 0.1, 1e-9)
                 break
             lam *= 10.0
-        residuals_jacobian(R, c, eye, xq, xr, pair, idx2d, f_query, f_ref, cur_R, cur_t, xq3d, X3d, idx3d, r, J,
+        residuals_jacobian(R, c, B, xq, xr, pair, idx2d, f_query, f_ref, cur_R, cur_t, xq3d, X3d, idx3d, r, J,
                            Jrot)
         if not improved or np.sqrt(np.sum(step * step)) < 1e-9:
             max_iterations = it + 1  # one more pass to evaluate H at the solution

@@ -33,13 +33,13 @@ from numba import njit
 
 from planarloc.geometry import mat3 as m3
 from planarloc.robust.estimators import SIGMA_FLOOR_PX
+from planarloc.numerics.cholesky import solve_spd
 from planarloc.robust.map_prior import refine_with_map_prior
 from planarloc.robust.refinement import (
     exp_so3,
     map_centre_covariance,
     refine_pose_core,
     residuals_jacobian,
-    solve_spd,
 )
 
 MIN_PAIR_INLIERS = 5  # a reference "supports" a pose with at least this many 2D-2D inliers
@@ -231,7 +231,7 @@ def weak_directions(est, R: np.ndarray, t: np.ndarray, support: np.ndarray, cov:
 
 
 def profile_std(est, R: np.ndarray, t: np.ndarray, in2d: np.ndarray, in3d: np.ndarray, sigma: float,
-                cost: float | None, direction: np.ndarray, distance: float) -> float:
+                cost: float | None, direction: np.ndarray, distance: float, map_prior: bool = False) -> float:
     """Secant estimate of the position std along ``direction`` (unit, world frame).
 
     The centre is moved by ``±distance`` along ``direction`` and held there while the
@@ -243,8 +243,9 @@ def profile_std(est, R: np.ndarray, t: np.ndarray, in2d: np.ndarray, in3d: np.nd
     nearby (a distant scene, where rotation and translation trade off).
 
     ``cost``: the robust cost at the optimum under the same objective, or None to evaluate it
-    here (with the profile's own refinement held at distance 0: needed when the pose came from
-    another objective, e.g. the map-prior refinement).
+    here (the profile's own refinement held at distance 0). ``map_prior``: profile the
+    objective of :func:`planarloc.robust.map_prior.refine_with_map_prior` (the pose came from
+    it), with the reference poses free under the map prior.
     """
     u = direction / np.linalg.norm(direction)
     a = np.array([1.0, 0.0, 0.0]) if abs(u[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
@@ -253,11 +254,12 @@ def profile_std(est, R: np.ndarray, t: np.ndarray, in2d: np.ndarray, in3d: np.nd
     B = np.ascontiguousarray(np.stack([u, v1, np.cross(u, v1)], axis=1))
     fixed = np.array([False, False, False, True, False, False])
     c = -R.T @ t
+    refine = est._refine_with_map_prior if map_prior else est._refine
     if cost is None:
-        *_, cost = est._refine(R, c, in2d, in3d, 6, B, fixed)
+        *_, cost = refine(R, c, in2d, in3d, 6, B, fixed)
     worst = 0.0
     for sgn in (1.0, -1.0):
-        *_, c_moved = est._refine(R, c + sgn * distance * u, in2d, in3d, 6, B, fixed)
+        *_, c_moved = refine(R, c + sgn * distance * u, in2d, in3d, 6, B, fixed)
         rise = max(c_moved - cost, 0.0) / (sigma * sigma)
         worst = max(worst, distance / np.sqrt(2.0 * rise) if rise > 0 else np.inf)
     return worst
@@ -409,24 +411,26 @@ def reference_jackknife_with_prior(est, R: np.ndarray, t: np.ndarray, in2d: np.n
                                    support: np.ndarray, max_iterations: int = 3) -> Jackknife:
     """:func:`reference_jackknife` for a pose refined under the map prior
     (:func:`planarloc.robust.map_prior.refine_with_map_prior`): each leave-one-out refinement
-    minimises the same objective, and leaving a reference out also leaves out the 2D-3D points
-    it gave (``problem.source3d`` rows of its pair: a wrong map pose corrupts its points too).
+    minimises the same objective. The 2D-3D points stay in every refinement, as in
+    :func:`reference_jackknife`: a point was triangulated from two map images whose poses agreed
+    on it, and it ties the query to the world, not to one reference.
     """
     p, o = est.p, est.options
     n = len(support)
     if n < 3:
         return Jackknife(n, float("nan"), float("nan"), float("nan"), -1)
-    owner = np.where(p.source3d >= 0, p.pair[np.maximum(p.source3d, 0)], -1)
     c = -R.T @ t
+    eye, free = np.eye(3), np.zeros(6, dtype=np.bool_)
+    idx3d = np.flatnonzero(in3d)
     centres = np.empty((n, 3))
     max_rot = 0.0
     rot_std, pos_std = math.radians(o.map_rotation_std_deg), float(o.map_position_std_m)
     for i, k in enumerate(support):
         idx2d = np.flatnonzero(in2d & (p.pair != k))
-        idx3d = np.flatnonzero(in3d & (owner != k))
         Rk, tk, *_ = refine_with_map_prior(np.ascontiguousarray(R), np.ascontiguousarray(t), p.xq, p.xr, p.pair,
                                            idx2d, p.f_query, p.f_ref, p.ref_R, p.ref_t, p.xq3d, p.X3d, idx3d,
-                                           o.threshold_px, max_iterations, SIGMA_FLOOR_PX, rot_std, pos_std)
+                                           o.threshold_px, max_iterations, SIGMA_FLOOR_PX, rot_std, pos_std, c, eye,
+                                           free)
         centres[i] = -Rk.T @ tk
         max_rot = max(max_rot, math.degrees(math.acos(min(1.0, max(-1.0, (float(np.sum(Rk * R)) - 1.0) / 2.0)))))
     dev = centres - centres.mean(axis=0)

@@ -20,12 +20,13 @@ from numba import njit
 
 from planarloc.geometry import mat3 as m3
 from planarloc.geometry.epipolar_kernels import project, relative_essential_into, sampson_signed
+from planarloc.numerics.cholesky import cholesky_factor, cholesky_solve, solve_spd
 from planarloc.robust.scoring import errors_sq
 
 
 # Floating-point contraction and reassociation for the Jacobian's sums of products, but not
 # the no-NaN/no-inf assumptions (the kernels test for degenerate values).
-_FAST = {"contract", "reassoc", "arcp", "nsz"}
+FASTMATH = {"contract", "reassoc", "arcp", "nsz"}
 
 
 @njit(cache=True, error_model="numpy")
@@ -38,7 +39,7 @@ def exp_so3(w: np.ndarray) -> np.ndarray:
     return np.eye(3) + np.sin(th) / th * K + (1.0 - np.cos(th)) / (th * th) * m3.mul(K, K)
 
 
-@njit(cache=True, error_model="numpy", fastmath=_FAST)
+@njit(cache=True, error_model="numpy", fastmath=FASTMATH)
 def residuals(
     params: np.ndarray, R0: np.ndarray, c0: np.ndarray, B: np.ndarray, xq: np.ndarray, xr: np.ndarray,
     pair: np.ndarray, idx2d: np.ndarray, f_query: np.ndarray, f_ref: np.ndarray, ref_R: np.ndarray,
@@ -68,7 +69,7 @@ def residuals(
         out[m0 + 2 * n + 1] = (v - xq3d[i, 1] / xq3d[i, 2]) * f31
 
 
-@njit(cache=True, error_model="numpy", fastmath=_FAST)
+@njit(cache=True, error_model="numpy", fastmath=FASTMATH)
 def residuals_jacobian(
     R: np.ndarray, c: np.ndarray, B: np.ndarray, xq: np.ndarray, xr: np.ndarray, pair: np.ndarray,
     idx2d: np.ndarray, f_query: np.ndarray, f_ref: np.ndarray, ref_R: np.ndarray, ref_t: np.ndarray,
@@ -184,21 +185,7 @@ def residuals_jacobian(
             J[m0 + 2 * n + 1, k] = (g1 - v * g2) / z * fq1
 
 
-@njit(cache=True, error_model="numpy")
-def solve_spd(A: np.ndarray, b: np.ndarray, x: np.ndarray) -> bool:
-    """Solve ``A x = b`` for a small symmetric positive-definite A by Cholesky; False if not SPD.
-
-    Hand-written: numba's ``np.linalg.solve`` pulls in LAPACK bindings that take tens of
-    seconds to compile, for a 6x6 system that this solves in ~100 ns.
-    """
-    L = np.empty(A.shape)
-    if not _cholesky(A, L, 0.0):
-        return False
-    _cholesky_solve(L, b, x)
-    return True
-
-
-@njit(cache=True, error_model="numpy", fastmath=_FAST)
+@njit(cache=True, error_model="numpy", fastmath=FASTMATH)
 def refine_pose_core(
     Rq: np.ndarray, tq: np.ndarray, xq: np.ndarray, xr: np.ndarray, pair: np.ndarray, idx2d: np.ndarray,
     f_query: np.ndarray, f_ref: np.ndarray, ref_R: np.ndarray, ref_t: np.ndarray,
@@ -398,49 +385,6 @@ _EYE3 = np.eye(3)
 
 
 @njit(cache=True, error_model="numpy")
-def _cholesky(A: np.ndarray, L: np.ndarray, rel_tol: float) -> bool:
-    """Lower Cholesky factor of a small SPD matrix into L; False when a pivot falls below
-    ``rel_tol`` times the largest diagonal entry (singular relative to its scale)."""
-    n = A.shape[0]
-    scale = 0.0
-    for i in range(n):
-        scale = max(scale, A[i, i])
-    if not scale > 0.0:
-        return False
-    L[:] = 0.0
-    for i in range(n):
-        for j in range(i + 1):
-            acc = A[i, j]
-            for k in range(j):
-                acc -= L[i, k] * L[j, k]
-            if i == j:
-                if not acc > rel_tol * scale:
-                    return False
-                L[i, i] = np.sqrt(acc)
-            else:
-                L[i, j] = acc / L[j, j]
-    return True
-
-
-@njit(cache=True, error_model="numpy")
-def _cholesky_solve(L: np.ndarray, b: np.ndarray, x: np.ndarray) -> None:
-    """Solve ``L Lᵀ x = b`` (x (n,)) by forward and back substitution with the factor of
-    :func:`_cholesky`."""
-    n = L.shape[0]
-    y = np.empty(n)
-    for i in range(n):
-        acc = b[i]
-        for k in range(i):
-            acc -= L[i, k] * y[k]
-        y[i] = acc / L[i, i]
-    for i in range(n - 1, -1, -1):
-        acc = y[i]
-        for k in range(i + 1, n):
-            acc -= L[k, i] * x[k]
-        x[i] = acc / L[i, i]
-
-
-@njit(cache=True, error_model="numpy")
 def map_centre_covariance(
     Rq: np.ndarray, tq: np.ndarray, xq: np.ndarray, xr: np.ndarray, pair: np.ndarray, idx2d: np.ndarray,
     f_query: np.ndarray, f_ref: np.ndarray, ref_R: np.ndarray, ref_t: np.ndarray,
@@ -455,12 +399,12 @@ def map_centre_covariance(
                                            idx3d, loss_scale, rotation_std_rad, position_std_m)
     L = np.empty((6, 6))
     out = np.full((3, 3), np.inf)
-    if not _cholesky(H, L, 1e-12):
+    if not cholesky_factor(H, L, 1e-12):
         return out
     cols = M.shape[1]
     Bm = np.empty((cols, 6))  # row c: H⁻¹ M[:, c]
     for c in range(cols):
-        _cholesky_solve(L, M[:, c].copy(), Bm[c])
+        cholesky_solve(L, M[:, c].copy(), Bm[c])
     for a in range(3):
         for b in range(3):
             acc = 0.0
@@ -474,13 +418,13 @@ def map_centre_covariance(
 def _centre_covariance(H: np.ndarray, sigma: float, B: np.ndarray) -> np.ndarray:
     L = np.empty((6, 6))
     out = np.full((3, 3), np.inf)
-    if not _cholesky(H, L, 1e-12):
+    if not cholesky_factor(H, L, 1e-12):
         return out
     X = np.empty((3, 6))  # row k: column 3 + k of H⁻¹ (solve H x = e_{3+k})
     for k in range(3):
         e = np.zeros(6)
         e[3 + k] = 1.0
-        _cholesky_solve(L, e, X[k])
+        cholesky_solve(L, e, X[k])
     C = np.empty((3, 3))
     for a in range(3):
         for b in range(3):

@@ -19,15 +19,21 @@ import numpy as np
 
 from planarloc.geometry.mat3 import sym_eigvals
 from planarloc.geometry.pose import Pose
-from planarloc.robust.refinement import exp_so3
+from planarloc.robust.refinement import centre_covariance, exp_so3
 from planarloc.robust import observability as obs
 from planarloc.robust.options import RansacOptions, Structure
+from planarloc.robust.planar_scene import distant_planar_pairs
 from planarloc.robust.problem import AbsolutePoseProblem
 from planarloc.robust.ransac import ALTERNATIVE_MARGIN_INLIERS
 from planarloc.robust.result import PoseEstimate, RansacStatistics
 
 PROFILE_BELOW_RATIO = 0.15  # centre collinearity ratio under which the cost profile is checked
-PROFILE_BELOW_INLIERS = 400  # ... and the number of inliers under which it is checked along the weakest axis
+PROFILE_BELOW_INLIERS = 400  # fewer inliers than this: restarts look for other basins of the cost
+# Another search's refined pose within this ratio of the best MSAC cost is a rival answer
+# (planarloc.robust.absolute_pose compares the searches).
+RIVAL_COST_RATIO = 1.25
+# Homography transfer tolerance in units of the epipolar threshold (both keypoints are noisy).
+PLANAR_TRANSFER_SCALE = 2.0
 MAX_ALTERNATIVE_REFINEMENTS = 2  # runner-up hypotheses refined per verified pose
 # A runner-up within this many inliers' worth of MSAC cost is a rival. 2, not more: at 3 x 20
 # matches / 60 % outliers a margin of 4 removed 6 of 8 broken promises of 2p1p but refused 9 % of
@@ -229,26 +235,16 @@ def judge_pose(estimator, problem: AbsolutePoseProblem, options: RansacOptions, 
     cov = _position_covariance(estimator, options, ref, support, correlation)
     finite = bool(np.isfinite(cov).all())
     std = math.sqrt(max(sym_eigvals(cov)[0], 0.0)) if finite else math.inf
-    if math.isfinite(std) and options.refine and (near_collinear or n2d + n3d < PROFILE_BELOW_INLIERS):
-        # The linearised covariance is over-confident where the cost is not quadratic: in the
-        # curved valley of near-collinear geometry, and where few constraints on a distant scene
-        # let rotation and translation trade off into a second minimum nearby (Strecha
-        # entry_p10 queries against the fountain_p11 map: 0.95 m off with a linearised 0.23 m).
-        # Profile the cost along the weak directions, at 3σ (does the quadratic model hold?)
-        # and, near-collinear, at the decision scale.
-        probes = {min(max(3.0 * std, 0.02), 2.0)}
-        directions = [np.linalg.eigh(cov)[1][:, -1]]
-        if near_collinear:
-            probes.add(min(options.max_position_std_m, 2.0))
-            directions = obs.weak_directions(estimator, R, t, support.supporting, cov)
-        baseline = ref.cost if n3d == 0 else None  # the map-prior refinement minimised another cost
-        for u in directions:
+    if math.isfinite(std) and near_collinear:
+        # Near-collinear geometry: the linearised covariance is over-confident in the curved
+        # valley of the cost; profile the cost along the weak directions, at 3σ (does the
+        # quadratic model hold?) and at the decision scale.
+        probes = {min(max(3.0 * std, 0.02), 2.0), min(options.max_position_std_m, 2.0)}
+        for u in obs.weak_directions(estimator, R, t, support.supporting, cov):
             for d in probes:
-                std = max(std, correlation * obs.profile_std(estimator, R, t, in2d, in3d, ref.sigma, baseline, u, d))
-    if rivals:
-        c = -R.T @ t
-        for other in rivals:
-            std = max(std, float(np.linalg.norm(other - c)))
+                std = max(std, correlation * obs.profile_std(estimator, R, t, in2d, in3d, ref.sigma, ref.cost, u, d))
+    rival = max((float(np.linalg.norm(other - (-R.T @ t))) for other in rivals), default=0.0)
+    linear_std, std = std, max(std, rival)
     fit = support.fit
     model = "planar" if fit.holds(options.planar_tolerance_deg) else "6dof"
     pose = Pose._unchecked(R, t)  # a refined rotation (exp map of a rotation): valid by construction
@@ -262,7 +258,33 @@ def judge_pose(estimator, problem: AbsolutePoseProblem, options: RansacOptions, 
                        f"only {len(supporting)} reference image(s) support the pose with >= {obs.MIN_PAIR_INLIERS} "
                        "inliers: the position along the baseline cannot be verified; retrieve more map images",
                        position_std_m=std, unreliable_pose=pose, **common)
+    planar = distant_planar_pairs(problem, R, t, in2d, supporting, PLANAR_TRANSFER_SCALE * options.threshold_px)
+    if planar.any():
+        # A distant plane: one homography explains a pair's matches and the map images stand
+        # close together relative to it; rotation and translation are entangled far beyond what
+        # the linearised covariance says. Such pairs are no evidence of the position on their
+        # own: with fewer than two others and no 2D-3D constraints the pose is refused;
+        # otherwise the pose without them, and its uncertainty, bound the std.
+        if n3d < options.min_inliers and len(supporting) - int(planar.sum()) < 2:
+            return failure("degenerate_structure",
+                           f"{int(planar.sum())} of the {len(supporting)} supporting map images see a distant plane (one "
+                           "homography explains their matches, far beyond the map images' spread): rotation and "
+                           "translation cannot be told apart; add map images that see the scene from closer or from "
+                           "other directions",
+                           position_std_m=std, unreliable_pose=pose, **common)
+        keep2d = in2d & ~np.isin(problem.pair, supporting[planar])
+        prior = n3d > 0 and (options.map_rotation_std_deg > 0 or options.map_position_std_m > 0)
+        R_w, t_w, H_w, sigma_w, cost_w = (estimator._refine_with_map_prior if prior else estimator._refine)(
+            R, -R.T @ t, keep2d, in3d, 6)
+        alone = RefinedPose(R_w, t_w, centre_covariance(H_w, sigma_w), sigma_w, cost_w, ref.score, keep2d, in3d, H=H_w)
+        cov_w = _position_covariance(estimator, options, alone, support, correlation)
+        std_w = math.sqrt(max(sym_eigvals(cov_w)[0], 0.0)) if np.isfinite(cov_w).all() else math.inf
+        std = max(std, float(np.linalg.norm(-R_w.T @ t_w - (-R.T @ t))), std_w)
     collinear = n3d < options.min_inliers and spread < options.min_collinearity_ratio
+    if not collinear and rival > options.max_position_std_m and linear_std <= options.max_position_std_m:
+        return failure("ambiguous_pose", f"another search's pose {rival:.3g} m away explains the matches nearly as "
+                       f"well (MSAC cost within {100 * (RIVAL_COST_RATIO - 1):.0f} %): the data do not single out one position; more "
+                       "matches or map images", position_std_m=std, unreliable_pose=pose, **common)
     if collinear or not std <= options.max_position_std_m:
         hint = "" if options.structure == Structure.TRACKS else "; try structure='tracks'"
         why = (f"the query and reference centres are nearly collinear (ratio {spread:.2g} < "

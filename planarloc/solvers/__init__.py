@@ -15,6 +15,7 @@ function                   solver
 ``abspose_2p2p``           query pose from two relative poses (eq. 12-15)
 ``abspose_2p1p``           query pose from one relative pose and one match (eq. 16-18)
 ``abspose_up2p``           upright 2-point absolute pose from 2D-3D (structure mode)
+``abspose_p3p``            6DoF three-point absolute pose from 2D-3D (Grunert; structure mode)
 =========================  =====================================================================
 
 Relative poses are ``ref_from_query`` (``x_ref = R x_query + t``, ``x_refᵀ E x_query = 0``);
@@ -35,6 +36,7 @@ imported later would otherwise rebind the package attribute to itself.
 from planarloc.solvers import (  # noqa: F401  (load every submodule first, see above)
     abspose_2p1p as _m_abspose_2p1p,
     abspose_2p2p as _m_abspose_2p2p,
+    abspose_p3p as _m_abspose_p3p,
     abspose_up2p as _m_abspose_up2p,
     relpose_5p_nister as _m_relpose_5p_nister,
     relpose_5p_stewenius as _m_relpose_5p_stewenius,
@@ -43,6 +45,7 @@ from planarloc.solvers import (  # noqa: F401  (load every submodule first, see 
 )
 from planarloc.solvers.abspose_2p1p import abspose_2p1p
 from planarloc.solvers.abspose_2p2p import abspose_2p2p
+from planarloc.solvers.abspose_p3p import abspose_p3p
 from planarloc.solvers.abspose_up2p import abspose_up2p
 from planarloc.solvers.relpose_5p_nister import essentials_5p_nister, relpose_5p_nister, relpose_5p_nister_batch
 from planarloc.solvers.relpose_5p_stewenius import (
@@ -54,7 +57,7 @@ from planarloc.solvers.relpose_8p import essential_8p, relpose_8p, relpose_8p_ba
 from planarloc.solvers.relpose_planar_2p import relpose_planar_2p, relpose_planar_2p_batch
 
 __all__ = [
-    "abspose_2p1p", "abspose_2p2p", "abspose_up2p",
+    "abspose_2p1p", "abspose_2p2p", "abspose_p3p", "abspose_up2p",
     "essential_8p", "essentials_5p_nister", "essentials_5p_stewenius",
     "relpose_5p_nister", "relpose_5p_nister_batch", "relpose_5p_stewenius", "relpose_5p_stewenius_batch",
     "relpose_8p", "relpose_8p_batch", "relpose_planar_2p", "relpose_planar_2p_batch",

@@ -208,7 +208,7 @@ def test_few_inliers_far_runner_up_is_not_a_confident_success(case) -> None:
     rng, ransac_seed = np.random.default_rng(ss), int(ss.generate_state(1)[0])
     sc = make_scene(rng, num_refs=3, matches_per_pair=20, noise_px=1.5, outlier_ratio=(0.0, 0.2, 0.4, 0.5, 0.6)[ri])
     opts = RansacOptions(max_iterations=100, min_iterations=100, threshold_px=2.0, seed=ransac_seed, structure="none",
-                         verify_planar=False)
+                         cross_check=False)
     est = estimate_absolute_pose(sc.query_camera, sc.pairs, "2p1p", opts)
     if est.success:
         err, _ = pose_errors(est.pose, sc.query_pose)

@@ -1,0 +1,174 @@
+"""Does a reference's support show a distant plane? The homography test of two-view geometry.
+
+When the matched points of a query-reference pair lie on one plane, or so far away that the
+translation hardly moves them, one homography explains the matches (Hartley & Zisserman,
+*Multiple View Geometry*, 2nd ed., Sec. 13.1 and 11.9.2): the epipolar geometry then leaves
+rotation and translation of that pair entangled — a continuum of relative poses fits within
+the noise — and the linearised covariance of a pose resting on such pairs is far too small
+(a generated facade 20 m away seen by four map images 2 m apart: poses 0.6 m / 2.5° off with
+a position std of 0.13 m). COLMAP's two-view geometry makes the same test
+(``TwoViewGeometry::PLANAR_OR_PANORAMIC`` when the homography inliers exceed 80 % of the
+epipolar ones). Not in the paper.
+
+The homography is fitted to the pair's epipolar inliers by the normalised DLT (Hartley &
+Zisserman Alg. 4.2), refitted twice on its own inliers; its smallest right singular vector is
+found by inverse iteration on the 9x9 normal matrix (the repository avoids numba's LAPACK
+bindings, which cost tens of seconds of compile time).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+from planarloc.geometry.epipolar import triangulation_depths
+from planarloc.numerics.cholesky import solve_spd
+
+PLANAR_INLIER_RATIO = 0.9
+"""A pair whose epipolar inliers are at least this share homography inliers is a planar scene."""
+
+FAR_RATIO = 3.5
+"""... and a distant one when its median depth from the query exceeds this many times the spread
+of the supporting map images' centres. A plane seen by map images that stand close together
+relative to it fixes neither rotation nor translation of the query alone (generated facades
+20-30 m away, map images within 2-4 m: ratios 3.5-10; rendered offices, whose posters are planar
+too but near: 0.9-3.0, and their poses are right)."""
+
+_REFITS = 2
+
+
+@njit(cache=True, error_model="numpy")
+def _normalizer(x: np.ndarray, rows: np.ndarray, keep: np.ndarray) -> tuple[float, float, float]:
+    """Centroid and scale (mean distance √2) of the kept points (Hartley's normalisation)."""
+    mx = my = 0.0
+    n = 0
+    for i in range(rows.shape[0]):
+        if keep[i]:
+            mx += x[rows[i], 0] / x[rows[i], 2]
+            my += x[rows[i], 1] / x[rows[i], 2]
+            n += 1
+    mx /= max(n, 1)
+    my /= max(n, 1)
+    d = 0.0
+    for i in range(rows.shape[0]):
+        if keep[i]:
+            d += np.sqrt((x[rows[i], 0] / x[rows[i], 2] - mx) ** 2 + (x[rows[i], 1] / x[rows[i], 2] - my) ** 2)
+    d /= max(n, 1)
+    return mx, my, np.sqrt(2.0) / max(d, 1e-12)
+
+
+@njit(cache=True, error_model="numpy")
+def _fit(xq: np.ndarray, xr: np.ndarray, rows: np.ndarray, keep: np.ndarray, H: np.ndarray) -> bool:
+    """Normalised DLT of ``x_r ∝ H x_q`` on the kept rows; H (3, 3) written in place."""
+    qx, qy, qs = _normalizer(xq, rows, keep)
+    rx, ry, rs = _normalizer(xr, rows, keep)
+    A = np.zeros((9, 9))
+    row = np.empty(9)
+    for i in range(rows.shape[0]):
+        if not keep[i]:
+            continue
+        k = rows[i]
+        u, v = (xq[k, 0] / xq[k, 2] - qx) * qs, (xq[k, 1] / xq[k, 2] - qy) * qs
+        up, vp = (xr[k, 0] / xr[k, 2] - rx) * rs, (xr[k, 1] / xr[k, 2] - ry) * rs
+        for eq in range(2):
+            if eq == 0:
+                row[0], row[1], row[2] = -u, -v, -1.0
+                row[3], row[4], row[5] = 0.0, 0.0, 0.0
+                row[6], row[7], row[8] = up * u, up * v, up
+            else:
+                row[0], row[1], row[2] = 0.0, 0.0, 0.0
+                row[3], row[4], row[5] = -u, -v, -1.0
+                row[6], row[7], row[8] = vp * u, vp * v, vp
+            for a in range(9):
+                for b in range(9):
+                    A[a, b] += row[a] * row[b]
+    # Smallest eigenvector of AᵀA by inverse iteration with a small shift.
+    scale = 0.0
+    for a in range(9):
+        scale = max(scale, A[a, a])
+    if not scale > 0.0:
+        return False
+    S = A.copy()
+    for a in range(9):
+        S[a, a] += 1e-10 * scale
+    h = np.ones(9) / 3.0
+    nxt = np.empty(9)
+    for _ in range(30):
+        if not solve_spd(S, h, nxt):
+            return False
+        norm = np.sqrt(np.sum(nxt * nxt))
+        if not norm > 0.0:
+            return False
+        h = nxt / norm
+    Hn = h.reshape(3, 3)
+    # Undo the normalisations: H = T_r⁻¹ Hn T_q.
+    Tq = np.array([[qs, 0.0, -qs * qx], [0.0, qs, -qs * qy], [0.0, 0.0, 1.0]])
+    Tr_inv = np.array([[1.0 / rs, 0.0, rx], [0.0, 1.0 / rs, ry], [0.0, 0.0, 1.0]])
+    H[:] = Tr_inv @ Hn @ Tq
+    return True
+
+
+@njit(cache=True, error_model="numpy")
+def homography_inlier_ratio(xq: np.ndarray, xr: np.ndarray, rows: np.ndarray, f_ref: np.ndarray,
+                            threshold_px: float) -> float:
+    """Share of the matches ``rows`` that one homography maps within ``threshold_px``.
+
+    Args:
+        xq, xr: (N, 3) normalized homogeneous query and reference points.
+        rows: (K,) the pair's (epipolar) inliers, K ≥ 8 for a meaningful answer (else 0).
+        f_ref: (2,) the reference's focal lengths: errors are measured in its pixels.
+        threshold_px: transfer error tolerance (both keypoints are noisy: about twice the
+            epipolar threshold).
+
+    Returns:
+        the inlier share of the best of the fit and its refits on their own inliers.
+    """
+    n = rows.shape[0]
+    if n < 8:
+        return 0.0
+    keep = np.ones(n, dtype=np.bool_)
+    H = np.empty((3, 3))
+    best = 0.0
+    th2 = threshold_px * threshold_px
+    for _ in range(_REFITS + 1):
+        if not _fit(xq, xr, rows, keep, H):
+            break
+        count = 0
+        for i in range(n):
+            k = rows[i]
+            a = H[0, 0] * xq[k, 0] + H[0, 1] * xq[k, 1] + H[0, 2] * xq[k, 2]
+            b = H[1, 0] * xq[k, 0] + H[1, 1] * xq[k, 1] + H[1, 2] * xq[k, 2]
+            c = H[2, 0] * xq[k, 0] + H[2, 1] * xq[k, 1] + H[2, 2] * xq[k, 2]
+            if c == 0.0:
+                keep[i] = False
+                continue
+            du = (a / c - xr[k, 0] / xr[k, 2]) * f_ref[0]
+            dv = (b / c - xr[k, 1] / xr[k, 2]) * f_ref[1]
+            keep[i] = du * du + dv * dv <= th2
+            count += keep[i]
+        best = max(best, count / n)
+        if count < 8:
+            break
+    return best
+
+
+def distant_planar_pairs(problem, R: np.ndarray, t: np.ndarray, in2d: np.ndarray, pairs: np.ndarray,
+                         threshold_px: float) -> np.ndarray:
+    """(len(pairs),) bool: which of the given pairs see a distant plane from the pose ``(R, t)``.
+
+    A pair qualifies when one homography explains its inliers (share ≥
+    :data:`PLANAR_INLIER_RATIO`, transfer error within ``threshold_px``) and their median depth
+    from the query exceeds :data:`FAR_RATIO` times the spread (largest distance) of the centres
+    of ``pairs``."""
+    out = np.zeros(len(pairs), dtype=bool)
+    centres = -np.einsum("pji,pj->pi", problem.ref_R[pairs], problem.ref_t[pairs])
+    spread = max((float(np.linalg.norm(a - b)) for a in centres for b in centres), default=0.0)
+    for i, k in enumerate(pairs):
+        rows = np.flatnonzero(in2d[problem.offsets[k]:problem.offsets[k + 1]]) + problem.offsets[k]
+        if homography_inlier_ratio(problem.xq, problem.xr, rows, problem.f_ref[k], threshold_px) < PLANAR_INLIER_RATIO:
+            continue
+        R_rq = problem.ref_R[k] @ R.T
+        depths = triangulation_depths(R_rq, problem.ref_t[k] - R_rq @ t, problem.xq[rows], problem.xr[rows])[:, 0]
+        depth = float(np.nanmedian(depths * np.linalg.norm(problem.xq[rows], axis=1)))
+        out[i] = depth > FAR_RATIO * spread
+    return out
