@@ -27,10 +27,10 @@ import _peer_pipeline as peer
 import numpy as np
 
 import planarloc
-from planarloc.pipeline.features import FeatureConfig
-from planarloc.pipeline.map_builder import build_map
-from planarloc.pipeline.map_database import MapDatabase
-from planarloc.pipeline.posed_image import PosedImage
+from planarloc.features.extract import FeatureConfig
+from planarloc.map.builder import build_map
+from planarloc.map.posed_image import PosedImage
+from planarloc.map.store import MapDatabase
 from planarloc.synthetic.world.config import WorldConfig
 from planarloc.synthetic.world.export import generate
 

@@ -15,7 +15,7 @@ __version__ = "0.1.0"
 def __getattr__(name: str):
     # The pipeline (OpenCV, faiss, SQLite) loads only when used, keeping `import planarloc` light.
     if name in ("Localizer", "LocalizerConfig"):
-        from planarloc.pipeline import localizer
+        from planarloc.localize import localizer as localizer
 
         return getattr(localizer, name)
     raise AttributeError(f"module 'planarloc' has no attribute {name!r}")

@@ -7,10 +7,10 @@ import argparse
 from pathlib import Path
 
 from planarloc.cli.map_command import parse_dataset_options
+from planarloc.evaluation.queries import default_map_path, split_map_queries
 from planarloc.io.datasets import FORMATS, read_dataset
 from planarloc.io.sessions import read_sessions, session_labels, sessions_map_path
-from planarloc.pipeline.evaluation import default_map_path, split_map_queries
-from planarloc.pipeline.posed_image import PosedImage
+from planarloc.map.posed_image import PosedImage
 
 
 def add_cross_session_args(p: argparse.ArgumentParser) -> None:

@@ -11,12 +11,12 @@ import numpy as np
 from planarloc.cli.output_paths import atomic_output, check_output_dir
 from planarloc.cli.progress import console, progress_bar
 from planarloc.cli.report import print_summary_table, write_json
+from planarloc.evaluation.queries import config_label, evaluate_configs, summarize
+from planarloc.features.extract import FeatureConfig
 from planarloc.io.datasets import read_dataset
-from planarloc.pipeline.evaluation import config_label, evaluate_configs, summarize
-from planarloc.pipeline.features import FeatureConfig
-from planarloc.pipeline.localizer import LocalizerConfig
-from planarloc.pipeline.map_builder import build_map
-from planarloc.pipeline.map_database import MapDatabase
+from planarloc.localize.localizer import LocalizerConfig
+from planarloc.map.builder import build_map
+from planarloc.map.store import MapDatabase
 from planarloc.robust.options import RansacOptions
 from planarloc.synthetic.world.export import generate
 from planarloc.synthetic.world.presets import preset_names

@@ -26,12 +26,13 @@ from planarloc.cli.report import print_summary_table, write_json
 from planarloc.cli.result_outputs import EstimateOutputs, add_output_args, write_evaluation_tum
 from planarloc.cli.sequence_cli import add_sequence_args, check_sequential_args, evaluate_sequential
 from planarloc.distributed.ray_backend import ray_session
+from planarloc.evaluation.queries import config_label, evaluate_queries, gravity_from_truth, summarize
 from planarloc.io.gravity_file import read_gravity_file
 from planarloc.io.hloc_pairs import read_hloc_pairs
-from planarloc.pipeline.evaluation import config_label, evaluate_queries, gravity_from_truth, summarize
-from planarloc.pipeline.localizer import Localizer
-from planarloc.pipeline.map_builder import build_map, check_map_settings, map_gravity
-from planarloc.pipeline.map_database import MapDatabase
+from planarloc.localize.localizer import Localizer
+from planarloc.map.builder import build_map, check_map_settings
+from planarloc.map.gravity import map_gravity
+from planarloc.map.store import MapDatabase
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:

@@ -25,17 +25,17 @@ from planarloc.cli.query_sources import QuerySource, dataset_queries
 from planarloc.cli.remote_localize import add_server_args, run_remote
 from planarloc.cli.result_outputs import EstimateOutputs, add_output_args, write_localize_tum
 from planarloc.cli.sequence_cli import add_sequence_args, localize_sequence
+from planarloc.features.images import read_gray
+from planarloc.features.retrieval import retrieve_from_pairs
 from planarloc.geometry.camera import Camera
 from planarloc.geometry.validation import InputError
 from planarloc.io.datasets import FORMATS
 from planarloc.io.gravity_file import read_gravity_file
 from planarloc.io.hloc_pairs import read_hloc_pairs
 from planarloc.io.pose_list import write_pose_list
-from planarloc.io.query_json import query_record, query_record_filename
-from planarloc.pipeline.localizer import Localizer
-from planarloc.pipeline.map_builder import read_gray
-from planarloc.pipeline.map_database import MapFormatError
-from planarloc.pipeline.retrieval import retrieve_from_pairs
+from planarloc.localize.localizer import Localizer
+from planarloc.localize.records import query_record, query_record_filename
+from planarloc.map.schema import MapFormatError
 
 IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".ppm", ".pgm"}
 

@@ -16,8 +16,7 @@ from planarloc.cli import (
     serve_command,
     warmup_command,
 )
-from planarloc.cli.exit_codes import EXIT_ERROR, EXIT_INTERRUPTED
-from planarloc.cli.exit_codes import HELP as EXIT_CODES_HELP
+from planarloc.cli.exit_codes import EXIT_ERROR, EXIT_INTERRUPTED, HELP as EXIT_CODES_HELP
 from planarloc.cli.output_paths import os_error_message, sqlite_error_message
 from planarloc.extras import MissingExtraError
 

@@ -11,9 +11,10 @@ from planarloc.cli.output_paths import check_output_file, dataset_files, input_f
 from planarloc.cli.progress import console, notify, progress_bar
 from planarloc.distributed.ray_backend import ray_session
 from planarloc.io.datasets import read_dataset
-from planarloc.pipeline.map_builder import build_map, check_map_settings, map_gravity
-from planarloc.pipeline.map_database import MapDatabase
-from planarloc.pipeline.map_integrity import check_map
+from planarloc.map.builder import build_map, check_map_settings
+from planarloc.map.gravity import map_gravity
+from planarloc.map.integrity import check_map
+from planarloc.map.store import MapDatabase
 
 
 def parse_dataset_options(items: list[str] | None) -> dict:

@@ -8,11 +8,11 @@ from pathlib import Path
 
 import numpy as np
 
+from planarloc.features.extract import DEFAULT_FEATURE_CONFIG, FeatureConfig
+from planarloc.features.retrieval import DEFAULT_NUM_WORDS
 from planarloc.geometry.camera import Camera
 from planarloc.io.datasets import FORMATS
-from planarloc.pipeline.features import DEFAULT_FEATURE_CONFIG, FeatureConfig
-from planarloc.pipeline.localizer import LocalizerConfig
-from planarloc.pipeline.retrieval import DEFAULT_NUM_WORDS
+from planarloc.localize.localizer import LocalizerConfig
 from planarloc.robust.options import Method, RansacOptions, Structure
 
 _RANSAC = RansacOptions()

@@ -19,7 +19,7 @@ from collections.abc import Iterable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
-from planarloc.io._parsing import write_text_atomic as _write_lines_atomic
+from planarloc.io.lines import write_text_atomic as _write_lines_atomic
 
 
 class OutputPathError(ValueError):

@@ -12,9 +12,9 @@ import json
 from planarloc.cli.options import parse_gravity
 from planarloc.cli.progress import console, progress_bar
 from planarloc.geometry.pose import Pose
-from planarloc.io._parsing import write_text_atomic
-from planarloc.io.query_json import query_record_filename
-from planarloc.pipeline.localizer import LocalizerConfig
+from planarloc.io.lines import write_text_atomic
+from planarloc.localize.localizer import LocalizerConfig
+from planarloc.localize.records import query_record_filename
 
 _LOC = LocalizerConfig()
 #: Options the service takes per request; the others are the server's and cannot be changed remotely.

@@ -11,13 +11,13 @@ from pathlib import Path
 import numpy as np
 
 from planarloc.cli.progress import console
+from planarloc.features.extract import Features, extract_features
+from planarloc.features.images import read_gray
 from planarloc.geometry.camera import Camera
 from planarloc.geometry.pose import Pose
 from planarloc.io.tum import write_tum_trajectory
-from planarloc.pipeline.features import Features, extract_features
-from planarloc.pipeline.localizer import Localizer
-from planarloc.pipeline.map_builder import read_gray
-from planarloc.pipeline.posed_image import PosedImage
+from planarloc.localize.localizer import Localizer
+from planarloc.map.posed_image import PosedImage
 from planarloc.robust.result import PoseEstimate
 
 
@@ -115,7 +115,7 @@ def write_evaluation_tum(out_dir: Path, results: Sequence) -> dict:
     if not rows:
         return {}
     try:
-        from planarloc.pipeline.trajectory_metrics import evo_errors
+        from planarloc.evaluation.trajectory import evo_errors
 
         metrics = evo_errors(ts, np.array([r.estimate_center for r in rows]),
                              np.array([r.estimate_quat_wxyz for r in rows]),

@@ -11,7 +11,7 @@ import numpy as np
 from rich.table import Table
 
 from planarloc.cli.progress import console, progress_bar
-from planarloc.pipeline.sequence import SequenceConfig, SequenceLocalizer
+from planarloc.localize.sequence import SequenceConfig, SequenceLocalizer
 from planarloc.robust.relative_pose import MODELS
 
 _SEQ = SequenceConfig()
@@ -102,10 +102,10 @@ def localize_sequence(args: argparse.Namespace) -> int:
     """`planarloc localize --sequence`: one pose, covariance and status per frame."""
     from planarloc.cli.localize_command import _default_camera
     from planarloc.cli.options import localizer_config, parse_camera
+    from planarloc.features.images import read_gray
     from planarloc.io.odometry import read_odometry
     from planarloc.io.pose_list import write_pose_list
-    from planarloc.pipeline.localizer import Localizer
-    from planarloc.pipeline.map_builder import read_gray
+    from planarloc.localize.localizer import Localizer
 
     if args.pairs:
         raise ValueError("--pairs: not used with --sequence (retrieval follows the predicted pose)")
@@ -161,9 +161,9 @@ def check_sequential_args(args: argparse.Namespace) -> None:
 def evaluate_sequential(args: argparse.Namespace, map_path: Path, queries: list, localizer_config: object) -> int:
     """`planarloc evaluate --sequential`: the queries in order as one stream; prints and writes the summary."""
     from planarloc.cli.report import write_json
+    from planarloc.evaluation.sequence import evaluate_stream, summarize_sequence
     from planarloc.io.odometry import read_odometry
-    from planarloc.pipeline.localizer import Localizer
-    from planarloc.pipeline.sequence_evaluation import evaluate_stream, summarize_sequence
+    from planarloc.localize.localizer import Localizer
     from planarloc.synthetic.stream import make_stream, stream_order
 
     n = len(queries)

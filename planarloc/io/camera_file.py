@@ -20,8 +20,8 @@ from pathlib import Path
 
 from planarloc.geometry.camera import NUM_PARAMS, Camera, CameraModel
 from planarloc.geometry.validation import InputError
-from planarloc.io._parsing import iter_data_lines, parse_floats, parse_int
 from planarloc.io.format_error import FormatError
+from planarloc.io.lines import iter_data_lines, parse_floats, parse_int
 
 #: Every model name COLMAP knows (so that an unsupported one is reported as such, not as garbage).
 COLMAP_MODELS = frozenset(

@@ -21,10 +21,10 @@ from __future__ import annotations
 from pathlib import Path
 
 from planarloc.geometry.camera import Camera
-from planarloc.io._parsing import parse_floats, parse_int, pose_from_quat_wxyz, read_text, resolve_image
 from planarloc.io.camera_file import read_camera_file
 from planarloc.io.format_error import FormatError
-from planarloc.pipeline.posed_image import PosedImage
+from planarloc.io.lines import parse_floats, parse_int, pose_from_quat_wxyz, read_text, resolve_image
+from planarloc.map.posed_image import PosedImage
 
 FORMAT = "COLMAP text model"
 

@@ -15,8 +15,8 @@ from pathlib import Path
 
 import numpy as np
 
-from planarloc.io._parsing import iter_named_lines, parse_floats
 from planarloc.io.format_error import FormatError
+from planarloc.io.lines import iter_named_lines, parse_floats
 
 FORMAT = "gravity file"
 LINE = "'name gx gy gz'"

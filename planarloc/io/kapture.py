@@ -28,10 +28,10 @@ from pathlib import Path
 
 from planarloc.geometry.camera import Camera
 from planarloc.geometry.pose import Pose
-from planarloc.io._parsing import iter_data_lines, parse_floats, pose_from_quat_wxyz, resolve_image
 from planarloc.io.camera_file import camera_from_tokens
 from planarloc.io.format_error import FormatError
-from planarloc.pipeline.posed_image import PosedImage
+from planarloc.io.lines import iter_data_lines, parse_floats, pose_from_quat_wxyz, resolve_image
+from planarloc.map.posed_image import PosedImage
 
 logger = logging.getLogger(__name__)
 

@@ -26,8 +26,8 @@ from pathlib import Path
 import numpy as np
 
 from planarloc.geometry.pose import Pose
-from planarloc.io._parsing import iter_data_lines, parse_floats
 from planarloc.io.format_error import FormatError
+from planarloc.io.lines import iter_data_lines, parse_floats
 from planarloc.io.tum import associate_timestamps, read_tum_trajectory
 
 logger = logging.getLogger(__name__)

@@ -29,9 +29,9 @@ from pathlib import Path
 
 from planarloc.geometry.camera import Camera
 from planarloc.geometry.pose import Pose
+from planarloc.gravity.world import WorldDown
 from planarloc.io.tum import DEFAULT_MAX_DT, read_rgbd_sequence, resolve_camera
-from planarloc.pipeline.gravity import WorldDown
-from planarloc.pipeline.posed_image import PosedImage
+from planarloc.map.posed_image import PosedImage
 
 FORMAT = "OpenLORIS-Scene"
 #: base_link <- colour camera (x_base = R x_cam + t): t = (0.2265, -0.0511, 0.916) m,

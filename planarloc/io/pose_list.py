@@ -23,16 +23,16 @@ from pathlib import Path
 from planarloc.geometry.camera import Camera
 from planarloc.geometry.pose import Pose
 from planarloc.geometry.validation import InputError
-from planarloc.io._parsing import (
+from planarloc.io.camera_file import read_camera_file
+from planarloc.io.format_error import FormatError
+from planarloc.io.lines import (
     iter_named_lines,
     parse_floats,
     pose_from_quat_wxyz,
     resolve_image,
     write_text_atomic,
 )
-from planarloc.io.camera_file import read_camera_file
-from planarloc.io.format_error import FormatError
-from planarloc.pipeline.posed_image import PosedImage
+from planarloc.map.posed_image import PosedImage
 
 FORMAT = "pose list"
 LINE = "'name qw qx qy qz tx ty tz'"

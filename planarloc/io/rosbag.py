@@ -52,7 +52,7 @@ from planarloc.geometry.validation import InputError
 from planarloc.io.camera_file import camera_from_tokens
 from planarloc.io.format_error import FormatError
 from planarloc.io.tum import associate_timestamps
-from planarloc.pipeline.posed_image import PosedImage
+from planarloc.map.posed_image import PosedImage
 
 logger = logging.getLogger(__name__)
 

@@ -5,7 +5,7 @@ Endpoints:
 - ``POST /v1/localize`` — multipart form: ``image`` (JPEG/PNG file), ``camera`` (``MODEL W H
   PARAMS...``), optional ``map``, ``gravity`` (``gx gy gz``), ``session``, ``method``,
   ``structure``, ``seed``. Answers the JSON ``planarloc localize`` writes per query
-  (:func:`planarloc.io.query_json.query_record`). A failed localization is a 200 with
+  (:func:`planarloc.localize.records.query_record`). A failed localization is a 200 with
   ``success: false`` and its status; a bad request is a 4xx with ``{"error": "<one line>"}``;
   overload is a 503 with ``Retry-After``; a worker that died mid-request is a 503 too.
 - ``GET /v1/maps`` — the served maps (name, images, cameras, complete).
@@ -25,7 +25,7 @@ from dataclasses import dataclass
 
 from planarloc.extras import require
 from planarloc.geometry.validation import InputError
-from planarloc.pipeline.map_database import MapDatabase
+from planarloc.map.store import MapDatabase
 from planarloc.serve import worker
 from planarloc.serve.form import read_localize_form
 from planarloc.serve.metrics import ServiceMetrics

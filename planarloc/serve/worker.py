@@ -2,7 +2,7 @@
 
 Runs in a worker process of the service (:mod:`planarloc.serve.worker_pool`) or in a Ray Serve
 replica. Each process opens its maps once, read-only (:func:`open_localizers`), and keeps them.
-The record is :func:`planarloc.io.query_json.query_record`, the one ``planarloc localize``
+The record is :func:`planarloc.localize.records.query_record`, the one ``planarloc localize``
 writes, and the configuration is built by the CLI's own option parser, so a served pose
 equals the CLI's pose for the same image, camera and seed.
 """
@@ -22,8 +22,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from planarloc.io.query_json import query_record
-from planarloc.pipeline.localizer import Localizer, LocalizerConfig
+from planarloc.localize.localizer import Localizer, LocalizerConfig
+from planarloc.localize.records import query_record
 from planarloc.serve.requests import LocalizeRequest, RequestError
 
 logger = logging.getLogger(__name__)

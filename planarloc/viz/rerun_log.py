@@ -24,7 +24,7 @@ import numpy as np
 from planarloc.geometry.camera import Camera
 from planarloc.geometry.pose import Pose
 from planarloc.geometry.validation import InputError
-from planarloc.pipeline.posed_image import PosedImage
+from planarloc.map.posed_image import PosedImage
 from planarloc.robust.pair_matches import PairMatches
 from planarloc.robust.result import PoseEstimate
 

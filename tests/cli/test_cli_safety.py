@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 
 from planarloc.cli.main import build_parser, main
+from planarloc.evaluation.queries import default_map_path
 from planarloc.io.datasets import read_dataset
-from planarloc.pipeline.evaluation import default_map_path
-from planarloc.pipeline.map_database import MapDatabase
+from planarloc.map.store import MapDatabase
 
 
 def run(argv: list[object]) -> int:
@@ -256,7 +256,7 @@ def test_evaluate_records_a_broken_query_and_goes_on(tiny_world: Path, tmp_path:
 
 def test_interrupted_batch_keeps_the_poses_so_far(world_map: Path, queries, tmp_path: Path,
                                                   monkeypatch: pytest.MonkeyPatch) -> None:
-    from planarloc.pipeline.localizer import Localizer
+    from planarloc.localize.localizer import Localizer
 
     images, cam = queries
     real, calls = Localizer.localize, []

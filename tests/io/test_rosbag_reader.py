@@ -17,7 +17,7 @@ from planarloc.geometry.pose import Pose  # noqa: E402
 from planarloc.geometry.validation import InputError  # noqa: E402
 from planarloc.io import FormatError, read_dataset  # noqa: E402
 from planarloc.io.rosbag import read_rosbag, read_rosbag_images, write_rosbag  # noqa: E402
-from planarloc.pipeline.posed_image import PosedImage  # noqa: E402
+from planarloc.map.posed_image import PosedImage  # noqa: E402
 
 CAMERA = Camera("PINHOLE", 32, 24, (30.0, 31.0, 15.5, 11.5))
 #: camera optical frame in base_link: 0.2 m ahead, 0.9 m up, looking along the base's x axis

@@ -1,0 +1,251 @@
+"""Localize query images against a map: retrieval, matching, robust absolute pose (paper Fig. 2).
+
+The core works in memory on one live frame (:meth:`Localizer.localize`); nothing is written
+to disk. File-based batch helpers sit on top (:func:`localize_posed_images`).
+
+Gravity: every reference gets ``ref_gravity = R_ref · g_world`` from the map's gravity
+(:func:`planarloc.map.builder.map_gravity`); a query's own gravity (an IMU's, in its
+camera frame) is passed as ``gravity=``, otherwise the estimator assumes the query is mounted like
+the map cameras (docs/conventions.md, "Gravity").
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections import OrderedDict
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from planarloc.features.extract import Features, extract_features
+from planarloc.features.images import read_gray
+from planarloc.features.matching import DEFAULT_RATIO, match_query_to_refs
+from planarloc.features.retrieval import DEFAULT_TOP_N, GlobalIndex, VladVocabulary, vlad_descriptor
+from planarloc.geometry.camera import Camera
+from planarloc.geometry.validation import InputError
+from planarloc.map.gravity import map_gravity
+from planarloc.map.posed_image import PosedImage
+from planarloc.map.schema import VOCABULARY_BLOB
+from planarloc.map.settings import feature_config_from_map
+from planarloc.map.store import MapDatabase
+from planarloc.robust.absolute_pose import estimate_absolute_pose
+from planarloc.robust.options import Method, RansacOptions
+from planarloc.robust.pair_matches import PairMatches, unit_gravity
+from planarloc.robust.result import PoseEstimate
+
+logger = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class LocalizerConfig:
+    """Settings of the localization pipeline; the CLI uses these defaults.
+
+    Attributes:
+        top_n: number of retrieved map images (paper: 5).
+        method: hypothesis families (``"auto"`` default: planar where it holds, 6DoF
+            otherwise; the paper's ``"2p1p"`` etc. by name, see :class:`Method`).
+        ransac: estimator options (structure mode, thresholds, iterations).
+        ratio: ratio-test threshold of the matcher.
+        use_depth: use the map images' depth maps (if any) as 2D-3D constraints.
+        min_matches: references with fewer matches are dropped before estimation.
+    """
+
+    top_n: int = DEFAULT_TOP_N
+    method: Method | str = Method.AUTO
+    ransac: RansacOptions = field(default_factory=RansacOptions)
+    ratio: float = DEFAULT_RATIO
+    use_depth: bool = False
+    min_matches: int = 3
+
+    def __post_init__(self) -> None:
+        if int(self.top_n) < 2:
+            raise InputError(f"top_n: need at least 2 reference images to fix the scale, got {self.top_n}")
+
+
+class Localizer:
+    """Localizes images against one map.
+
+    Args:
+        map_db: an open :class:`MapDatabase` or the path of a map file.
+        config: :class:`LocalizerConfig`.
+
+    Example:
+        >>> loc = Localizer("office.db")                      # doctest: +SKIP
+        >>> est = loc.localize(gray_image, camera)              # doctest: +SKIP
+        >>> est.pose if est.success else est.status             # doctest: +SKIP
+        >>> est = loc.localize(gray_image, camera, gravity=(0.0, 0.99, 0.14))  # IMU: pitched 8°  # doctest: +SKIP
+    """
+
+    def __init__(self, map_db: MapDatabase | str | Path, config: LocalizerConfig | None = None) -> None:
+        self.db = map_db if isinstance(map_db, MapDatabase) else MapDatabase.open(map_db, mode="r")
+        self.config = config or LocalizerConfig()
+        if not self.db.is_complete:
+            logger.warning("%s: the map build is not complete; localizing with what it holds", self.db.path)
+        self.features = replace(feature_config_from_map(self.db), tilt=False)  # queries are not tilted
+        blob = self.db.get_blob(VOCABULARY_BLOB)
+        ids, descs = self.db.get_global_descriptors()
+        if blob is None or len(ids) == 0:
+            raise InputError(f"{self.db.path}: the map has no retrieval index; re-run `planarloc map build` on it")
+        self.vocabulary = VladVocabulary.from_bytes(blob)
+        self.index_ids = ids
+        self.index = GlobalIndex(descs)
+        self._posed = {p.name: p for p in self.db.posed_images()}
+        self._by_id = {self.db.image_id(n): n for n in self._posed}
+        self._depth_cache: OrderedDict[str, np.ndarray | None] = OrderedDict()
+        self.gravity = map_gravity(self.db)
+        """The map's :class:`~planarloc.gravity.world.GravityReport` (``g_world``, mount tilt)."""
+        self._g_world = self.gravity.g_world_array
+
+    # ---- steps ---------------------------------------------------------------------------
+    def retrieve(self, features: Features, top_n: int | None = None) -> list[str]:
+        """Names of the ``top_n`` most similar map images (VLAD, cosine similarity)."""
+        if len(features) == 0:
+            return []
+        idx, _ = self.index.search(vlad_descriptor(self.vocabulary, features.descriptors), top_n or self.config.top_n)
+        return [self._by_id[int(self.index_ids[i])] for i in idx]
+
+    def _depth(self, name: str) -> np.ndarray | None:
+        if name in self._depth_cache:
+            return self._depth_cache[name]
+        posed = self._posed[name]
+        depth = None
+        if posed.depth_path is not None:
+            raw = cv2.imread(str(posed.depth_path), cv2.IMREAD_UNCHANGED)
+            depth = None if raw is None else raw.astype(np.float32) / float(posed.depth_scale)
+        self._depth_cache[name] = depth
+        if len(self._depth_cache) > 32:
+            self._depth_cache.popitem(last=False)
+        return depth
+
+    def _points3d(self, name: str, ref_points: np.ndarray) -> np.ndarray | None:
+        depth = self._depth(name)
+        if depth is None:
+            return None
+        posed = self._posed[name]
+        h, w = depth.shape[:2]
+        uv = np.rint(ref_points).astype(int)
+        ok = (uv[:, 0] >= 0) & (uv[:, 0] < w) & (uv[:, 1] >= 0) & (uv[:, 1] < h)
+        z = np.full(len(uv), np.nan)
+        z[ok] = depth[uv[ok, 1], uv[ok, 0]]
+        z[~(z > 0)] = np.nan
+        X_cam = posed.camera.bearings_from_img(ref_points) * z[:, None]
+        pose = posed.cam_from_world
+        return (X_cam - pose.t) @ pose.R
+
+    def pairs_for(self, features: Features, references: Sequence[str],
+                  camera: Camera | None = None) -> tuple[list[PairMatches], list[str]]:
+        """Match the query to each reference and package the matches for the estimator.
+
+        ``camera`` (the query's) lets keypoints outside its distortion model's range be dropped.
+
+        Returns:
+            the pairs with at least ``min_matches`` matches, and the names of their references.
+        """
+        refs = [self.db.get_features(n) for n in references]
+        matches = match_query_to_refs(features, refs, ratio=self.config.ratio)
+        pairs, names = [], []
+        for name, ref, m in zip(references, refs, matches):
+            if len(m) < self.config.min_matches:
+                continue
+            posed = self._posed[name]
+            # Keypoints outside the valid range of a distortion model cannot be undistorted.
+            ok = np.isfinite(posed.camera.cam_from_img(ref.keypoints[m[:, 1]])).all(axis=1)
+            if camera is not None:
+                ok &= np.isfinite(camera.cam_from_img(features.keypoints[m[:, 0]])).all(axis=1)
+            m = m[ok]
+            if len(m) < self.config.min_matches:
+                continue
+            ref_pts = np.asarray(ref.keypoints[m[:, 1]], dtype=float)
+            X = self._points3d(name, ref_pts) if self.config.use_depth else None
+            pairs.append(PairMatches(posed.cam_from_world, posed.camera,
+                                     np.asarray(features.keypoints[m[:, 0]], dtype=float), ref_pts,
+                                     query_indices=m[:, 0], ref_points3d=X,
+                                     ref_gravity=posed.cam_from_world.R @ self._g_world))
+            names.append(name)
+        return pairs, names
+
+    # ---- whole pipeline ------------------------------------------------------------------
+    def localize_features(self, features: Features, camera: Camera,
+                          references: Sequence[str] | None = None, *, gravity: object | None = None) -> PoseEstimate:
+        """Localize from already extracted query features (retrieval unless ``references``).
+
+        ``gravity``: see :meth:`localize`.
+        """
+        t0 = time.perf_counter()
+        query_gravity = None if gravity is None else unit_gravity("gravity", gravity)
+        refs = list(references) if references is not None else self.retrieve(features)
+        unknown = [r for r in refs if r not in self._posed]
+        if unknown:
+            raise InputError(f"references not in the map: {unknown[:3]}{'...' if len(unknown) > 3 else ''}")
+        t1 = time.perf_counter()
+        pairs, used = self.pairs_for(features, refs, camera)
+        t2 = time.perf_counter()
+        if len(pairs) < 2:
+            est = PoseEstimate(None, False, "too_few_matches",
+                               f"fewer than 2 of the {len(refs)} retrieved map images have >= "
+                               f"{self.config.min_matches} matches", [np.zeros(0, bool)] * len(pairs))
+        else:
+            est = estimate_absolute_pose(camera, pairs, self.config.method, self.config.ransac,
+                                         query_gravity=query_gravity)
+        est.references = used
+        est.stats.add_time("retrieval", t1 - t0)
+        est.stats.add_time("matching", t2 - t1)
+        return est
+
+    def localize(self, image: np.ndarray, camera: Camera, references: Sequence[str] | None = None, *,
+                 gravity: object | None = None) -> PoseEstimate:
+        """Localize one live frame (grayscale or BGR uint8 array) taken with ``camera``.
+
+        Args:
+            image: (H, W) or (H, W, 3) uint8.
+            camera: the query's intrinsics.
+            references: map image names to match against instead of retrieval.
+            gravity: (3,) direction of gravity (pointing down) in the query camera frame
+                (x right, y down, z forward), e.g. an IMU's accelerometer reading negated
+                (it measures the reaction, i.e. up) and rotated into the camera frame; any
+                non-zero length. None: the query is assumed mounted like the map cameras.
+        """
+        t0 = time.perf_counter()
+        if not isinstance(camera, Camera):
+            raise InputError(f"camera: expected a planarloc.Camera, got {type(camera).__name__}")
+        if gravity is not None:
+            unit_gravity("gravity", gravity)  # bad input fails before feature extraction
+        shape = np.shape(image)[:2]
+        if shape != (camera.height, camera.width):
+            raise InputError(f"image is {shape[1] if len(shape) > 1 else '?'}x{shape[0] if shape else '?'} but its "
+                             f"camera is {camera.width}x{camera.height}; pass the intrinsics of this image size")
+        features = extract_features(image, self.features)
+        est = self.localize_features(features, camera, references, gravity=gravity)
+        est.stats.add_time("features", time.perf_counter() - t0 - sum(
+            est.stats.time_s.get(k, 0.0) for k in ("retrieval", "matching", "total")))
+        est.stats.time_s["end_to_end"] = time.perf_counter() - t0
+        return est
+
+
+def localize_posed_images(
+    localizer: Localizer,
+    queries: Sequence[PosedImage],
+    pairs: dict[str, list[str]] | None = None,
+    progress: Callable[[int, int], None] | None = None,
+    *,
+    gravity: dict[str, np.ndarray] | None = None,
+) -> list[PoseEstimate]:
+    """Localize image files (e.g. a dataset's query frames); ``pairs`` overrides retrieval
+    with an hloc-style ``{query name: [map names]}`` mapping; ``gravity`` gives the (3,) gravity
+    of some queries in their camera frame (``{query name: g}``, see :meth:`Localizer.localize`)."""
+    out = []
+    for i, q in enumerate(queries):
+        refs = None
+        if pairs is not None:
+            from planarloc.features.retrieval import retrieve_from_pairs
+
+            refs = retrieve_from_pairs(pairs, q.name, localizer.config.top_n)
+        g = None if gravity is None else gravity.get(q.name)
+        out.append(localizer.localize(read_gray(q.path), q.camera, refs, gravity=g))
+        if progress:
+            progress(i + 1, len(queries))
+    return out
