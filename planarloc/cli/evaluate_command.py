@@ -9,8 +9,9 @@ from pathlib import Path
 
 import numpy as np
 
+from planarloc.cli.console import info, note, notify, progress_bar
 from planarloc.cli.cross_session import add_cross_session_args, read_map_and_queries
-from planarloc.cli.exit_codes import EXIT_OK, EXIT_PARTIAL
+from planarloc.cli.exit_codes import EVALUATE_RESUMES, EXIT_OK, EXIT_PARTIAL
 from planarloc.cli.options import (
     add_dataset_args,
     add_feature_args,
@@ -18,10 +19,8 @@ from planarloc.cli.options import (
     add_localizer_args,
     check_vocabulary_size,
     feature_config,
-    localizer_config,
+    localizer_config_of,
 )
-from planarloc.cli.output_paths import atomic_output, check_output_file, dataset_files, input_files
-from planarloc.cli.progress import console, notify, progress_bar
 from planarloc.cli.report import print_summary_table, write_json
 from planarloc.cli.result_outputs import EstimateOutputs, add_output_args, write_evaluation_tum
 from planarloc.cli.sequence_cli import add_sequence_args, check_sequential_args, evaluate_sequential
@@ -29,6 +28,7 @@ from planarloc.distributed.ray_backend import ray_session
 from planarloc.evaluation.queries import config_label, evaluate_queries, gravity_from_truth, summarize
 from planarloc.io.gravity_file import read_gravity_file
 from planarloc.io.hloc_pairs import read_hloc_pairs
+from planarloc.io.output import atomic_output, check_output_file, dataset_files, input_files
 from planarloc.localize.localizer import Localizer
 from planarloc.map.builder import build_map, check_map_settings
 from planarloc.map.gravity import map_gravity
@@ -39,7 +39,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "evaluate", help="evaluate localization on posed data (map = every N-th frame, or cross-session --queries)",
         formatter_class=argparse.RawDescriptionHelpFormatter,
-        description="Builds a map from the frames with index %% N == 0 (cached, or --map), localizes every other "
+        description="Builds a map from the frames with index % N == 0 (cached, or --map), localizes every other "
                     "frame and compares with its ground truth. Success thresholds are the paper's: "
                     "0.25 m/10°, 0.5 m/10°, 1.0 m/20°. A failed query counts as a failure.\n\n"
                     "Cross-session (map on Monday, localize on Friday; the paper's OpenLORIS protocol): give one "
@@ -73,7 +73,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    help="distribute over a Ray cluster (auto, HOST:PORT, ray://HOST:PORT; a local one without "
                         "ADDRESS); needs pip install 'planarloc[ray]'")
     add_sequence_args(p, evaluate=True)
-    p.set_defaults(func=run)
+    p.set_defaults(func=run, interrupted=EVALUATE_RESUMES)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -87,7 +87,7 @@ def run(args: argparse.Namespace) -> int:
                          "options; drop them")
     features = feature_config(args)
     num_words = check_vocabulary_size(args.vocabulary_size)
-    config = localizer_config(args)
+    config = localizer_config_of(args)
     pairs = read_hloc_pairs(args.pairs) if args.pairs else None
     gravity = read_gravity_file(args.gravity_file) if args.gravity_file else None
     outputs_paths = {"--map": args.map, "--json": args.json, "--plot": args.plot}
@@ -104,7 +104,7 @@ def run(args: argparse.Namespace) -> int:
     image_paths = [im.path for im in [*map_images, *queries]]
     for option, path in outputs_paths.items():
         check_output_file(path, option, image_paths)
-    console.print(f"map: {len(map_images)} frames -> {map_path}; queries: {len(queries)} frames")
+    note(f"map: {len(map_images)} frames -> {map_path}; queries: {len(queries)} frames")
     if args.sequential:
         with progress_bar() as update:
             build_map(map_images, map_path, features, num_words=num_words, progress=update, notify=notify)
@@ -141,11 +141,11 @@ def run(args: argparse.Namespace) -> int:
         centers = np.array([m.cam_from_world.center for m in map_images])
         with atomic_output(args.plot) as tmp:
             save_localization_plot(tmp, centers, results, f"{title}: {method}, {structure}")
-        console.print(f"wrote {args.plot}")
+        info(f"wrote {args.plot}")
     errors = [r for r in results if r.status == "error"]
     if errors:
-        console.print(f"[yellow]{len(errors)} of {len(results)} queries could not be processed[/] "
-                      f"(e.g. {errors[0].reason}); they count as failed")
+        note(f"{len(errors)} of {len(results)} queries could not be processed (e.g. {errors[0].reason}); they count "
+             "as failed")
         return EXIT_PARTIAL
     return EXIT_OK
 

@@ -3,32 +3,24 @@
 from __future__ import annotations
 
 import argparse
-import json
 from pathlib import Path
 
-from planarloc.cli.options import add_dataset_args, add_feature_args, check_vocabulary_size, feature_config
-from planarloc.cli.output_paths import check_output_file, dataset_files, input_files
-from planarloc.cli.progress import console, notify, progress_bar
+from planarloc.cli.console import info, note, notify, progress_bar
+from planarloc.cli.exit_codes import BUILD_RESUMES
+from planarloc.cli.options import (
+    add_dataset_args,
+    add_feature_args,
+    check_vocabulary_size,
+    feature_config,
+    parse_dataset_options,
+)
 from planarloc.distributed.ray_backend import ray_session
 from planarloc.io.datasets import read_dataset
+from planarloc.io.output import check_output_file, dataset_files, input_files
 from planarloc.map.builder import build_map, check_map_settings
 from planarloc.map.gravity import map_gravity
 from planarloc.map.integrity import check_map
 from planarloc.map.store import MapDatabase
-
-
-def parse_dataset_options(items: list[str] | None) -> dict:
-    """KEY=VALUE pairs -> dict with JSON-decoded values where possible (numbers, true/false)."""
-    out = {}
-    for item in items or []:
-        if "=" not in item:
-            raise ValueError(f"--dataset-option {item!r}: expected KEY=VALUE, e.g. tum_camera=fr1")
-        k, v = item.split("=", 1)
-        try:
-            out[k] = json.loads(v)
-        except json.JSONDecodeError:
-            out[k] = v
-    return out
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -63,7 +55,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     b.add_argument("--ray", nargs="?", const="local", metavar="ADDRESS",
                    help="distribute over a Ray cluster (auto, HOST:PORT, ray://HOST:PORT; a local one without "
                         "ADDRESS); needs pip install 'planarloc[ray]'")
-    b.set_defaults(func=run_build)
+    b.set_defaults(func=run_build, interrupted=BUILD_RESUMES)
     i = msub.add_parser("info", help="summarise a map (images, features, gravity, camera mount tilt) and check "
                                      "its integrity",
                         formatter_class=argparse.RawDescriptionHelpFormatter,
@@ -100,7 +92,7 @@ def run_build(args: argparse.Namespace) -> int:
         raise ValueError(f"--every {args.every}: no frame of {args.dataset} has an index divisible by it")
     check_output_file(args.out, "--out", input_files(im.path for im in images))
     check_map_settings(args.out, features, num_words)  # before the first image is read
-    console.print(f"building map [bold]{args.out}[/] from {len(images)} images of {args.dataset}")
+    note(f"building map {args.out} from {len(images)} images of {args.dataset}")
     with ray_session(args.ray) as ray_backend, progress_bar() as update:
         build_map(images, args.out, features, num_words=num_words, progress=update, notify=notify,
                   mapper=ray_backend.map if ray_backend else None)
@@ -116,20 +108,20 @@ def run_info(args: argparse.Namespace) -> int:
     with MapDatabase.open(args.map) as db:
         n = db.num_images()
         cfg = db.config
-        console.print(f"{args.map}: {n} images, features {cfg.get('feature_name', '?')}, "
-                      f"{'complete' if db.is_complete else '[yellow]incomplete build[/]'}, integrity ok")
+        info(f"{args.map}: {n} images, features {cfg.get('feature_name', '?')}, "
+             f"{'complete' if db.is_complete else 'incomplete build'}, integrity ok")
         if n:
             for line in map_gravity(db).summary_lines():
-                console.print(line, markup=False, highlight=False, soft_wrap=True)
+                info(line)
     return 0
 
 
 def run_check(args: argparse.Namespace) -> int:
     report = check_map(args.map)
     for line in report.problems:
-        print(f"{args.map}: {line}")
+        note(f"{args.map}: {line}")
     if not report.ok:
-        raise ValueError(f"{args.map}: damaged map, {len(report.problems)} problem(s) listed on stdout; "
+        raise ValueError(f"{args.map}: damaged map, {len(report.problems)} problem(s) listed above; "
                          "rebuild the map (planarloc map build ... --out NEW.db)")
-    print(f"{args.map}: ok ({report.num_images} images, {'complete' if report.complete else 'incomplete build'})")
+    info(f"{args.map}: ok ({report.num_images} images, {'complete' if report.complete else 'incomplete build'})")
     return 0

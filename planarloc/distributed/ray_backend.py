@@ -63,7 +63,8 @@ class _QueryEvaluator:
     """Ray actor: a Localizer on the map, opened read-only once per actor."""
 
     def __init__(self, map_path: str, configs: Sequence[LocalizerConfig]) -> None:
-        self.localizers = [Localizer(Path(map_path), c) for c in configs]
+        base = Localizer(Path(map_path), configs[0])
+        self.localizers = [base.with_config(c) for c in configs]  # one open map and index
 
     def evaluate(self, query: PosedImage, pairs: dict[str, list[str]] | None,
                  gravity: np.ndarray | None = None) -> list[QueryResult]:

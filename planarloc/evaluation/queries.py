@@ -16,7 +16,6 @@ from pathlib import Path
 import numpy as np
 
 from planarloc.features.extract import Features, extract_features
-from planarloc.features.images import read_gray
 from planarloc.features.retrieval import retrieve_from_pairs
 from planarloc.geometry.pose import pose_errors
 from planarloc.geometry.validation import InputError
@@ -153,12 +152,12 @@ def evaluate_queries(
 ) -> list[QueryResult]:
     """Localize every query image and compare with its ground truth (``on_estimate``, ``gravity``:
     see :func:`evaluate_configs`)."""
-    return evaluate_configs(localizer.db, [localizer.config], queries, progress, pairs, on_estimate,
+    return evaluate_configs(localizer, [localizer.config], queries, progress, pairs, on_estimate,
                             gravity=gravity)[0]
 
 
 def evaluate_configs(
-    map_db: MapDatabase,
+    map_db: MapDatabase | Localizer,
     configs: Sequence[LocalizerConfig],
     queries: Sequence[PosedImage],
     progress: Callable[[int, int], None] | None = None,
@@ -178,7 +177,8 @@ def evaluate_configs(
         one list of :class:`QueryResult` per configuration. ``seconds`` of a result is the
         feature extraction time plus that configuration's retrieval, matching and estimation.
     """
-    localizers = [Localizer(map_db, c) for c in configs]
+    base = map_db if isinstance(map_db, Localizer) else Localizer(map_db, configs[0])
+    localizers = [base.with_config(c) for c in configs]  # one open map and index for all
     out: list[list[QueryResult]] = [[] for _ in configs]
     for i, q in enumerate(queries):
         for results, r in zip(out, evaluate_query(localizers, q, pairs, on_estimate,
@@ -201,11 +201,8 @@ def evaluate_query(localizers: Sequence[Localizer], query: PosedImage,
     """
     t0 = time.perf_counter()
     try:
-        image = read_gray(query.path)
-        if image.shape[:2] != (query.camera.height, query.camera.width):
-            raise InputError(f"{query.path}: image is {image.shape[1]}x{image.shape[0]} but its camera is "
-                             f"{query.camera.width}x{query.camera.height}")
-        features = extract_features(image, localizers[0].features)
+        prepared = localizers[0].prepare(query.path, query.camera, name=query.name, gravity=gravity)
+        features = extract_features(prepared.image, localizers[0].features)
     except MapFormatError:
         raise
     except InputError as exc:
@@ -216,7 +213,7 @@ def evaluate_query(localizers: Sequence[Localizer], query: PosedImage,
         t1 = time.perf_counter()
         try:
             refs = retrieve_from_pairs(pairs, query.name, loc.config.top_n) if pairs is not None else None
-            est = loc.localize_features(features, query.camera, refs, gravity=gravity)
+            est = loc.localize_features(features, query.camera, refs, gravity=prepared.gravity)
         except MapFormatError:
             raise
         except InputError as exc:

@@ -17,7 +17,6 @@ from dataclasses import asdict, dataclass
 import numpy as np
 
 from planarloc.evaluation.queries import THRESHOLDS, threshold_name
-from planarloc.features.images import read_gray
 from planarloc.geometry.pose import Pose, pose_errors
 from planarloc.localize.sequence import FrameStatus, SequenceEstimate, SequenceLocalizer
 from planarloc.map.posed_image import PosedImage
@@ -144,7 +143,7 @@ def evaluate_stream(
     kidnapped = list(kidnapped) if kidnapped is not None else ground_truth_jumps([i.cam_from_world for i in images])
     out = []
     for k, image in enumerate(images):
-        est = seq.step(read_gray(image.path), image.camera, stamps[k], None if odometry is None else odometry[k])
+        est = seq.step(image.path, image.camera, stamps[k], None if odometry is None else odometry[k])
         out.append(frame_result(image, est, kidnapped[k]))
         if progress:
             progress(k + 1, len(images))

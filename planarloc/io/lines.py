@@ -1,14 +1,14 @@
-"""Shared helpers of the text-format readers: line iteration, numbers, poses, image files.
+"""Helpers of the file readers: line iteration, fields at a file position, image files.
 
-Private to :mod:`planarloc.io`; every helper raises :class:`FormatError` naming file and line.
+Every helper raises :class:`FormatError` naming file and line; the fields themselves are parsed
+by :mod:`planarloc.io.text` (one parser per text format).
 """
 
 from __future__ import annotations
 
-import os
 import struct
-import tempfile
-from collections.abc import Iterable, Iterator, Sequence
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -16,11 +16,8 @@ import numpy as np
 from planarloc.geometry.pose import Pose
 from planarloc.geometry.validation import InputError
 from planarloc.io.format_error import FormatError, missing_file_error
+from planarloc.io.text import WXYZ_T, TextError, numbers, pose_from_numbers
 
-#: Largest accepted deviation ``| |q| - 1 |`` of a stored quaternion before it is normalised.
-#: Files store quaternions with 4-6 decimals (norm off by <= 1e-4); a larger deviation means the
-#: columns are not a quaternion at all.
-QUAT_NORM_TOL = 5e-3
 #: Largest accepted ``max |R Rᵀ - I|`` of a stored rotation matrix before it is projected onto
 #: the nearest rotation (KITTI stores 7 significant digits, i.e. errors of ~1e-7).
 ROTATION_TOL = 1e-3
@@ -81,23 +78,29 @@ def expect_count(path: Path, lineno: int, tokens: Sequence[str], n: int, what: s
         raise FormatError(path, lineno, f"expected {n} {what}, found {len(tokens)} field(s)")
 
 
+@contextmanager
+def located(path: Path, lineno: int | None, first_column: int = 1) -> Iterator[None]:
+    """Turn a :class:`~planarloc.io.text.TextError` of the fields starting at column
+    ``first_column`` of line ``lineno`` into a :class:`FormatError` naming file and line."""
+    try:
+        yield
+    except TextError as exc:
+        raise FormatError(path, lineno, exc.at(first_column)) from None
+
+
 def parse_floats(
     path: Path, lineno: int, tokens: Sequence[str], what: str, first_column: int = 1
 ) -> np.ndarray:
     """Parse fields as finite floats; ``first_column`` is the 1-based column of ``tokens[0]``."""
-    out = np.empty(len(tokens))
-    for i, tok in enumerate(tokens):
-        try:
-            out[i] = float(tok)
-        except ValueError:
-            raise FormatError(
-                path, lineno, f"expected a number in column {first_column + i} ({what}), found {tok!r}"
-            ) from None
-        if not np.isfinite(out[i]):
-            raise FormatError(
-                path, lineno, f"expected a finite number in column {first_column + i} ({what}), found {tok!r}"
-            )
-    return out
+    with located(path, lineno, first_column):
+        return numbers(tokens, what)
+
+
+def parse_pose_fields(path: Path, lineno: int, tokens: Sequence[str], layout: str = WXYZ_T,
+                      first_column: int = 1) -> Pose:
+    """A pose from 7 fields of a line in ``layout`` (:mod:`planarloc.io.text`)."""
+    with located(path, lineno, first_column):
+        return pose_from_numbers(numbers(tokens, "quaternion or translation"), layout)
 
 
 def parse_int(path: Path, lineno: int, token: str, what: str, column: int) -> int:
@@ -107,19 +110,6 @@ def parse_int(path: Path, lineno: int, token: str, what: str, column: int) -> in
         raise FormatError(
             path, lineno, f"expected an integer in column {column} ({what}), found {token!r}"
         ) from None
-
-
-def pose_from_quat_wxyz(path: Path, lineno: int, quat_wxyz: np.ndarray, t: np.ndarray) -> Pose:
-    """A pose from a stored quaternion (w, x, y, z) that must have unit norm within QUAT_NORM_TOL."""
-    norm = float(np.linalg.norm(quat_wxyz))
-    if abs(norm - 1.0) > QUAT_NORM_TOL:
-        raise FormatError(
-            path,
-            lineno,
-            f"expected a unit quaternion (norm 1 +- {QUAT_NORM_TOL:g}), found norm {norm:.6g}; "
-            "check the column order of the file",
-        )
-    return Pose.from_quat_wxyz(np.asarray(quat_wxyz) / norm, t)
 
 
 def pose_from_matrix34(path: Path, lineno: int, M: np.ndarray) -> Pose:
@@ -171,20 +161,3 @@ def image_size(path: Path) -> tuple[int, int]:
     if img is None:
         raise FormatError(path, None, "cannot decode image to determine its size (not an image file?)")
     return int(img.shape[1]), int(img.shape[0])
-
-
-def write_text_atomic(path: Path, lines: Iterable[str]) -> None:
-    """Write lines to ``path`` via a temporary file and a rename (never a truncated file).
-
-    Parent directories are created.
-    """
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as f:
-            f.writelines(lines)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise

@@ -44,13 +44,9 @@ from planarloc.geometry.validation import InputError
 from planarloc.gravity.world import WorldDown
 from planarloc.io.camera_file import read_camera_file
 from planarloc.io.format_error import FormatError
-from planarloc.io.lines import (
-    iter_data_lines,
-    parse_floats,
-    pose_from_quat_wxyz,
-    resolve_image,
-    write_text_atomic,
-)
+from planarloc.io.lines import iter_data_lines, parse_floats, parse_pose_fields, resolve_image
+from planarloc.io.output import write_text_atomic
+from planarloc.io.text import T_XYZW
 from planarloc.map.posed_image import PosedImage
 
 logger = logging.getLogger(__name__)
@@ -133,9 +129,8 @@ def read_tum_trajectory(path: Path, fmt: str = FORMAT) -> tuple[np.ndarray, list
             raise FormatError(
                 path, lineno, f"expected 8 fields 'timestamp tx ty tz qx qy qz qw', found {len(tokens)}"
             )
-        v = parse_floats(path, lineno, tokens, "timestamp, translation or quaternion")
-        times.append(v[0])
-        poses.append(pose_from_quat_wxyz(path, lineno, v[[7, 4, 5, 6]], v[1:4]))
+        times.append(float(parse_floats(path, lineno, tokens[:1], "timestamp in seconds")[0]))
+        poses.append(parse_pose_fields(path, lineno, tokens[1:], T_XYZW, 2))
     if not poses:
         raise FormatError(path, None, "expected poses 'timestamp tx ty tz qx qy qz qw', found none")
     return np.array(times), poses

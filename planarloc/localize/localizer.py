@@ -1,20 +1,23 @@
 """Localize query images against a map: retrieval, matching, robust absolute pose (paper Fig. 2).
 
 The core works in memory on one live frame (:meth:`Localizer.localize`); nothing is written
-to disk. File-based batch helpers sit on top (:func:`localize_posed_images`).
+to disk. Every front door prepares its input once with :meth:`Localizer.prepare` (image, camera
+defaulting to the map's, gravity, references: :mod:`planarloc.localize.query`) and configures
+with :func:`localizer_config` (one source of defaults).
 
 Gravity: every reference gets ``ref_gravity = R_ref · g_world`` from the map's gravity
-(:func:`planarloc.map.builder.map_gravity`); a query's own gravity (an IMU's, in its
+(:func:`planarloc.map.gravity.map_gravity`); a query's own gravity (an IMU's, in its
 camera frame) is passed as ``gravity=``, otherwise the estimator assumes the query is mounted like
 the map cameras (docs/conventions.md, "Gravity").
 """
 
 from __future__ import annotations
 
+import copy
 import logging
 import time
 from collections import OrderedDict
-from collections.abc import Callable, Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -22,18 +25,18 @@ import cv2
 import numpy as np
 
 from planarloc.features.extract import Features, extract_features
-from planarloc.features.images import read_gray
 from planarloc.features.matching import DEFAULT_RATIO, match_query_to_refs
 from planarloc.features.retrieval import DEFAULT_TOP_N, GlobalIndex, VladVocabulary, vlad_descriptor
 from planarloc.geometry.camera import Camera
 from planarloc.geometry.validation import InputError
+from planarloc.localize.query import ImageSource, Query, prepare_query
 from planarloc.map.gravity import map_gravity
 from planarloc.map.posed_image import PosedImage
 from planarloc.map.schema import VOCABULARY_BLOB
 from planarloc.map.settings import feature_config_from_map
 from planarloc.map.store import MapDatabase
 from planarloc.robust.absolute_pose import estimate_absolute_pose
-from planarloc.robust.options import Method, RansacOptions
+from planarloc.robust.options import Method, RansacOptions, Structure
 from planarloc.robust.pair_matches import PairMatches, unit_gravity
 from planarloc.robust.result import PoseEstimate
 
@@ -64,6 +67,33 @@ class LocalizerConfig:
     def __post_init__(self) -> None:
         if int(self.top_n) < 2:
             raise InputError(f"top_n: need at least 2 reference images to fix the scale, got {self.top_n}")
+
+
+def localizer_config(*, method: Method | str | None = None, structure: Structure | str | None = None,
+                     seed: int | None = None, top_n: int | None = None, iterations: int | None = None,
+                     threshold_px: float | None = None, max_position_std_m: float | None = None,
+                     use_depth: bool | None = None) -> LocalizerConfig:
+    """A :class:`LocalizerConfig` from the settings a front door lets its user choose.
+
+    Every argument left None keeps the default of :class:`LocalizerConfig` /
+    :class:`~planarloc.robust.options.RansacOptions`, so the CLI, the service and a ROS node
+    configure alike. ``iterations`` fixes the number of RANSAC iterations (the paper: 100).
+
+    Raises:
+        InputError: a value the options refuse (unknown method or structure, out of range).
+    """
+    ransac: dict[str, object] = {}
+    for key, value in (("structure", structure), ("seed", seed), ("threshold_px", threshold_px),
+                       ("max_position_std_m", max_position_std_m)):
+        if value is not None:
+            ransac[key] = value
+    if iterations is not None:
+        ransac.update(min_iterations=iterations, max_iterations=iterations)
+    config: dict[str, object] = {"ransac": RansacOptions(**ransac)}  # type: ignore[arg-type]
+    for key, value in (("method", method), ("top_n", top_n), ("use_depth", use_depth)):
+        if value is not None:
+            config[key] = value
+    return LocalizerConfig(**config)  # type: ignore[arg-type]
 
 
 class Localizer:
@@ -99,6 +129,41 @@ class Localizer:
         self.gravity = map_gravity(self.db)
         """The map's :class:`~planarloc.gravity.world.GravityReport` (``g_world``, mount tilt)."""
         self._g_world = self.gravity.g_world_array
+
+    def with_config(self, config: LocalizerConfig) -> Localizer:
+        """A localizer on the same open map, index and caches, with another configuration
+        (e.g. one request's method and seed)."""
+        other = copy.copy(self)
+        other.config = config
+        return other
+
+    # ---- the map ------------------------------------------------------------------------
+    @property
+    def map_images(self) -> list[PosedImage]:
+        """The map's image records (poses, cameras, files), in map order."""
+        return list(self._posed.values())
+
+    @property
+    def map_cameras(self) -> set[Camera]:
+        """The map's distinct cameras (a query without a camera takes the only one)."""
+        return {p.camera for p in self._posed.values()}
+
+    def prepare(self, image: ImageSource, camera: Camera | None = None, *, name: str = "query",
+                gravity: object | None = None, references: Sequence[str] | None = None,
+                pairs: Mapping[str, Sequence[str]] | None = None) -> Query:
+        """Check and prepare one query against this map (:func:`planarloc.localize.query.prepare_query`).
+
+        Args:
+            image: (H, W) / (H, W, 3) BGR uint8 array, JPEG/PNG bytes or an image file.
+            camera: the query's intrinsics; None: the map's (when it has exactly one camera).
+            name: the query's name (looked up in ``pairs``).
+            gravity: see :meth:`localize`.
+            references: map images to match against instead of retrieval.
+            pairs: hloc pairs ``{query name: [map names]}``: the first ``config.top_n`` of
+                this query's are its references.
+        """
+        return prepare_query(image, camera, map_cameras=self.map_cameras, map_names=self._posed.keys(), name=name,
+                             gravity=gravity, references=references, pairs=pairs, top_n=self.config.top_n)
 
     # ---- steps ---------------------------------------------------------------------------
     def retrieve(self, features: Features, top_n: int | None = None) -> list[str]:
@@ -196,13 +261,13 @@ class Localizer:
         est.stats.add_time("matching", t2 - t1)
         return est
 
-    def localize(self, image: np.ndarray, camera: Camera, references: Sequence[str] | None = None, *,
-                 gravity: object | None = None) -> PoseEstimate:
-        """Localize one live frame (grayscale or BGR uint8 array) taken with ``camera``.
+    def localize(self, image: ImageSource, camera: Camera | None = None, references: Sequence[str] | None = None,
+                 *, gravity: object | None = None) -> PoseEstimate:
+        """Localize one live frame taken with ``camera``.
 
         Args:
-            image: (H, W) or (H, W, 3) uint8.
-            camera: the query's intrinsics.
+            image: (H, W) or (H, W, 3) BGR uint8 array (or JPEG/PNG bytes, or a file).
+            camera: the query's intrinsics; None: the map's, when the map has exactly one camera.
             references: map image names to match against instead of retrieval.
             gravity: (3,) direction of gravity (pointing down) in the query camera frame
                 (x right, y down, z forward), e.g. an IMU's accelerometer reading negated
@@ -210,42 +275,16 @@ class Localizer:
                 non-zero length. None: the query is assumed mounted like the map cameras.
         """
         t0 = time.perf_counter()
-        if not isinstance(camera, Camera):
-            raise InputError(f"camera: expected a planarloc.Camera, got {type(camera).__name__}")
-        if gravity is not None:
-            unit_gravity("gravity", gravity)  # bad input fails before feature extraction
-        shape = np.shape(image)[:2]
-        if shape != (camera.height, camera.width):
-            raise InputError(f"image is {shape[1] if len(shape) > 1 else '?'}x{shape[0] if shape else '?'} but its "
-                             f"camera is {camera.width}x{camera.height}; pass the intrinsics of this image size")
-        features = extract_features(image, self.features)
-        est = self.localize_features(features, camera, references, gravity=gravity)
-        est.stats.add_time("features", time.perf_counter() - t0 - sum(
+        return self.localize_query(self.prepare(image, camera, gravity=gravity, references=references), t0)
+
+    def localize_query(self, query: Query, started: float | None = None) -> PoseEstimate:
+        """Localize a prepared query (:meth:`prepare`); ``started``: its ``time.perf_counter()``
+        start, when preparing it counts in the end-to-end time."""
+        t0 = time.perf_counter() if started is None else started
+        t_features = time.perf_counter()
+        features = extract_features(query.image, self.features)
+        est = self.localize_features(features, query.camera, query.references, gravity=query.gravity)
+        est.stats.add_time("features", time.perf_counter() - t_features - sum(
             est.stats.time_s.get(k, 0.0) for k in ("retrieval", "matching", "total")))
         est.stats.time_s["end_to_end"] = time.perf_counter() - t0
         return est
-
-
-def localize_posed_images(
-    localizer: Localizer,
-    queries: Sequence[PosedImage],
-    pairs: dict[str, list[str]] | None = None,
-    progress: Callable[[int, int], None] | None = None,
-    *,
-    gravity: dict[str, np.ndarray] | None = None,
-) -> list[PoseEstimate]:
-    """Localize image files (e.g. a dataset's query frames); ``pairs`` overrides retrieval
-    with an hloc-style ``{query name: [map names]}`` mapping; ``gravity`` gives the (3,) gravity
-    of some queries in their camera frame (``{query name: g}``, see :meth:`Localizer.localize`)."""
-    out = []
-    for i, q in enumerate(queries):
-        refs = None
-        if pairs is not None:
-            from planarloc.features.retrieval import retrieve_from_pairs
-
-            refs = retrieve_from_pairs(pairs, q.name, localizer.config.top_n)
-        g = None if gravity is None else gravity.get(q.name)
-        out.append(localizer.localize(read_gray(q.path), q.camera, refs, gravity=g))
-        if progress:
-            progress(i + 1, len(queries))
-    return out

@@ -42,7 +42,6 @@ rotation error ``σ_map`` (``RansacOptions.map_rotation_std_deg``) adds to it �
 
 from __future__ import annotations
 
-import inspect
 import logging
 import time
 from dataclasses import dataclass, field
@@ -57,6 +56,7 @@ from planarloc.geometry.camera import Camera
 from planarloc.geometry.pose import Pose
 from planarloc.geometry.validation import InputError
 from planarloc.localize.localizer import Localizer
+from planarloc.localize.query import ImageSource, Query
 from planarloc.robust.pose_graph import (
     AbsoluteFactor,
     RelativeFactor,
@@ -210,7 +210,7 @@ class SequenceEstimate:
 
     def to_dict(self) -> dict:
         d = {
-            "stamp": self.stamp, "status": self.status,
+            "stamp": self.stamp, "success": self.success, "status": self.status,
             "position_std_m": _finite_or_none(self.position_std_m),
             "rotation_std_deg": _finite_or_none(self.rotation_std_deg),
             "fix_status": self.fix_status, "rejected": self.rejected,
@@ -280,8 +280,73 @@ class _Candidate:
     motion_cov: np.ndarray = field(default_factory=lambda: np.zeros((6, 6)))
 
 
+@dataclass(frozen=True)
+class Motion:
+    """The motion since the previous frame, ``cur_from_prev``, with its (6, 6) covariance.
+
+    ``source``: ``"odometry"``, ``"visual"``, ``"constant"``, ``"none"`` (first frame) or
+    ``"visual_rejected"``; ``model``: ``"planar"`` / ``"6dof"`` for visual odometry, else empty.
+    """
+
+    cur_from_prev: Pose
+    covariance: np.ndarray
+    source: str
+    model: str = ""
+
+
+@dataclass(frozen=True)
+class Prediction:
+    """The pose of the new frame predicted from the last one and the motion (``pose`` None:
+    nothing to predict from; ``covariance`` inf then)."""
+
+    pose: Pose | None
+    covariance: np.ndarray
+    motion: Motion
+    position_std_m: float
+    usable: bool  # a pose whose position std is at most SequenceConfig.lost_std_m
+
+
+@dataclass(frozen=True)
+class FixAttempt:
+    """One absolute fix of a frame: the single-frame estimate, its covariance (None: failed or
+    without a usable std), the retrieval that gave its references, its distance to the prediction."""
+
+    estimate: PoseEstimate
+    covariance: np.ndarray | None
+    global_retrieval: bool
+    mahalanobis_sq: float = float("nan")
+
+    @property
+    def pose(self) -> Pose:
+        assert self.estimate.pose is not None  # only read for attempts with a covariance
+        return self.estimate.pose
+
+    def report(self) -> dict:
+        """The entry of :attr:`SequenceEstimate.rejected`."""
+        return {"center": [float(v) for v in self.pose.center], "mahalanobis_sq": self.mahalanobis_sq,
+                "retrieval": "global" if self.global_retrieval else "local"}
+
+
+@dataclass
+class FixOutcome:
+    """What the absolute fixes of one frame gave: the accepted pose and covariance (None: no
+    fix accepted), the rejected attempts, the last estimate tried and its status."""
+
+    accepted: tuple[Pose, np.ndarray] | None = None
+    rejected: list[FixAttempt] = field(default_factory=list)
+    last: PoseEstimate | None = None
+    status: str = "none"
+    mahalanobis_sq: float = float("nan")
+    global_retrieval: bool = False
+
+
 class SequenceLocalizer:
     """Localizes an ordered camera stream against a map, one frame per :meth:`step`.
+
+    A step runs the stages of the module docstring, each a method with a named result:
+    :meth:`_motion` (:class:`Motion`), :meth:`_predict` (:class:`Prediction`), :meth:`_fixes`
+    (:class:`FixOutcome`), :meth:`_reject_visual_odometry`, :meth:`_track_kidnap` and
+    :meth:`_fuse` (the frame's status).
 
     Args:
         localizer: a single-frame :class:`Localizer` (its config sets method and structure).
@@ -299,13 +364,11 @@ class SequenceLocalizer:
             raise InputError(f"localizer: expected a planarloc Localizer, got {type(localizer).__name__}")
         self.localizer = localizer
         self.config = config or SequenceConfig()
-        posed = localizer.db.posed_images()
+        posed = localizer.map_images
         self._map_names = [p.name for p in posed]
         self._map_centers = np.array([p.cam_from_world.center for p in posed]).reshape(-1, 3)
         self._map_R = np.array([p.cam_from_world.R for p in posed]).reshape(-1, 3, 3)
         self._gate = float(chi2.ppf(self.config.gate_probability, 6))
-        params = inspect.signature(localizer.localize_features).parameters
-        self._gravity_arg = "gravity" if "gravity" in params else None
         self._map_rotation_std = np.radians(localizer.config.ransac.map_rotation_std_deg)
         self.reset()
 
@@ -324,15 +387,13 @@ class SequenceLocalizer:
 
     # ---- motion ---------------------------------------------------------------------------
     def _dt(self, stamp: float) -> float:
-        assert self._prev is not None
-        dt = stamp - self._prev[2]
+        dt = stamp - self._prev[2] if self._prev is not None else 0.0
         return dt if dt > 0 else self.config.frame_period_s
 
-    def _motion(self, features: Features, camera: Camera, stamp: float,
-                odometry: Pose | None) -> tuple[Pose, np.ndarray, str, str]:
-        """(cur_from_prev, covariance, source, model) of the motion since the previous frame."""
+    def _motion(self, features: Features, camera: Camera, stamp: float, odometry: Pose | None) -> Motion:
+        """The motion since the previous frame (odometry, else visual odometry, else constant velocity)."""
         cfg = self.config
-        prev_features, prev_camera, _, prev_odometry = self._prev
+        prev_features, prev_camera, _, prev_odometry = self._prev  # type: ignore[misc]
         dt = self._dt(stamp)
         if odometry is not None and prev_odometry is not None:
             motion = odometry @ prev_odometry.inverse()
@@ -341,29 +402,27 @@ class SequenceLocalizer:
             angle = float(np.linalg.norm(so3_log(motion.R[None])[0]))
             along = cfg.odometry_translation_std * dist + cfg.odometry_min_std_m
             rot = cfg.odometry_rotation_std * angle + np.radians(cfg.odometry_min_rotation_std_deg)
-            return motion, _motion_covariance(d, along, along, rot), "odometry", ""
+            return Motion(motion, _motion_covariance(d, along, along, rot), "odometry")
         vo = None
         if len(features) and len(prev_features):
             m = match_features(features, prev_features, ratio=self.localizer.config.ratio)
             if len(m) >= 15:
                 vo = estimate_relative_pose(prev_camera, camera, prev_features.keypoints[m[:, 1]],
                                             features.keypoints[m[:, 0]], model=cfg.vo_model)
-        speed_sigma = cfg.max_speed_mps * dt
         if vo is not None and vo.success:
             u = vo.pose.inverse().t                   # direction of the centre of cur in prev's frame
             if self._speed is None:
-                dist, along = 0.0, speed_sigma
+                dist, along = 0.0, cfg.max_speed_mps * dt
             else:
                 dist = self._speed * dt
                 along = cfg.vo_scale_std * dist + 0.05
             across = dist * np.radians(cfg.vo_direction_std_deg) + 0.02
-            d = u * dist
-            motion = Pose(vo.pose.R, -vo.pose.R @ d)
+            motion = Pose(vo.pose.R, -vo.pose.R @ (u * dist))
             cov = _motion_covariance(u, along, across, np.radians(cfg.vo_rotation_std_deg))
-            return motion, cov, "visual", vo.model
-        return (*self._constant_motion(dt), "constant", "")
+            return Motion(motion, cov, "visual", vo.model)
+        return self._constant_motion(dt)
 
-    def _constant_motion(self, dt: float) -> tuple[Pose, np.ndarray]:
+    def _constant_motion(self, dt: float) -> Motion:
         """Constant velocity from the last two nodes, with a large covariance (a weak motion
         model: position std ``max_speed_mps · dt / 5`` plus half the step, rotation 20°)."""
         motion, d = Pose.identity(), np.zeros(3)
@@ -375,7 +434,35 @@ class SequenceLocalizer:
                 d = d / n * self._speed * dt
             motion = Pose(last.R, -last.R @ d)
         along = 0.5 * float(np.linalg.norm(d)) + 0.2 * self.config.max_speed_mps * dt
-        return motion, _motion_covariance(d, along, along, np.radians(20.0))
+        return Motion(motion, _motion_covariance(d, along, along, np.radians(20.0)), "constant")
+
+    def _predict(self, features: Features, camera: Camera, stamp: float, odometry: Pose | None) -> Prediction:
+        """Stages 1-2: the motion since the previous frame and the new node of the window it predicts."""
+        if not self._poses or self._prev is None:
+            none = Motion(Pose.identity(), np.zeros((6, 6)), "none")
+            return Prediction(None, np.full((6, 6), np.inf), none, float("inf"), False)
+        motion = self._motion(features, camera, stamp, odometry)
+        pose = motion.cur_from_prev @ self._poses[-1]
+        n = len(self._poses)
+        self._poses.append(pose)
+        self._stamps.append(stamp)
+        self._localized.append(False)
+        self._relative.append(RelativeFactor(n - 1, n, motion.cur_from_prev, motion.covariance))
+        cov = marginal_covariances(self._poses, self._absolute, self._relative)[-1]
+        std, _ = _stds(cov)
+        return Prediction(pose, cov, motion, std, std <= self.config.lost_std_m)
+
+    def _carry_candidate(self, motion: Motion, stamp: float) -> None:
+        """Move a kidnap candidate along with the motion. Wheel odometry is trusted across a
+        kidnap check; visual odometry may be wrong exactly there, so agreeing fixes then need
+        only agree within the weak motion model."""
+        c = self._candidate
+        if c is None:
+            return
+        c.cur_from_cand = motion.cur_from_prev @ c.cur_from_cand
+        c.motion_cov = c.motion_cov + motion.covariance
+        if motion.source != "odometry":
+            c.motion_cov = c.motion_cov + self._constant_motion(self._dt(stamp)).covariance
 
     # ---- retrieval prior ------------------------------------------------------------------
     def references_near(self, pose: Pose, position_std_m: float) -> list[str] | None:
@@ -394,20 +481,19 @@ class SequenceLocalizer:
 
     # ---- absolute fixes -------------------------------------------------------------------
     def _fix(self, features: Features, camera: Camera, references: list[str] | None,
-             gravity: object | None) -> PoseEstimate:
+             gravity: np.ndarray | None) -> PoseEstimate:
         """Single-frame fix from ``references``; with None, global retrieval followed by a
         second estimate from the map images nearest to the first (nearer references, better
         conditioned geometry: on KITTI the 2 nearest map images give 2-5x smaller errors than
         the VLAD top 5), kept when it lies within ``refix_radius_m`` of the first."""
-        kw = {self._gravity_arg: gravity} if self._gravity_arg and gravity is not None else {}
-        est = self.localizer.localize_features(features, camera, references, **kw)
+        est = self.localizer.localize_features(features, camera, references, gravity=gravity)
         if references is not None or not est.success or est.pose is None:
             return est
         near = self.references_near(est.pose, 0.0)
         cov = self.fix_covariance(est, camera)
         if near is None or cov is None or set(near) <= set(est.references):
             return est
-        again = self.localizer.localize_features(features, camera, near, **kw)
+        again = self.localizer.localize_features(features, camera, near, gravity=gravity)
         cov2 = self.fix_covariance(again, camera) if again.success and again.pose is not None else None
         if cov2 is not None and np.linalg.norm(again.pose.center - est.pose.center) <= self.config.refix_radius_m:
             return again
@@ -426,6 +512,76 @@ class SequenceLocalizer:
         rot = np.sqrt((cfg.pixel_std / f) ** 2 / n + self._map_rotation_std**2)
         rot = max(rot, np.radians(cfg.min_rotation_std_deg))
         return np.diag([rot**2] * 3 + [pos**2] * 3)
+
+    def _fixes(self, features: Features, camera: Camera, gravity: np.ndarray | None,
+               prediction: Prediction) -> FixOutcome:
+        """Stages 3-4: a fix from the map images near a usable prediction, else (or when it is
+        rejected or fails) from global retrieval; the first that passes the gate is accepted."""
+        near = self.references_near(prediction.pose, prediction.position_std_m) if prediction.usable else None
+        attempts = ([near] if near is not None else []) + [None]  # None: global retrieval
+        out = FixOutcome()
+        for references in attempts:
+            out.global_retrieval |= references is None
+            est = self._fix(features, camera, references, gravity)
+            out.last = est
+            cov = self.fix_covariance(est, camera) if est.success and est.pose is not None else None
+            if cov is None:
+                out.status = "failed"
+                continue
+            if prediction.pose is None:
+                out.accepted, out.status = (est.pose, cov), "accepted"
+                break
+            out.mahalanobis_sq = mahalanobis_sq(est.pose, cov, prediction.pose, prediction.covariance)
+            if out.mahalanobis_sq <= self._gate:
+                out.accepted, out.status = (est.pose, cov), "accepted"
+                break
+            out.status = "rejected"
+            out.rejected.append(FixAttempt(est, cov, references is None, out.mahalanobis_sq))
+        return out
+
+    def _reject_visual_odometry(self, prediction: Prediction, fixes: FixOutcome, stamp: float) -> Prediction:
+        """Visual odometry can be wrong (few matches, bas-relief ambiguity). When two fixes
+        (local and global retrieval) agree with each other and with the weak motion model, the
+        visual factor is the outlier: it is replaced and the fix accepted (``fixes`` updated)."""
+        if fixes.accepted is not None or prediction.motion.source != "visual" or len(fixes.rejected) < 2:
+            return prediction
+        a, b = fixes.rejected[:2]
+        if mahalanobis_sq(a.pose, a.covariance, b.pose, b.covariance) > self._gate:
+            return prediction
+        weak = self._constant_motion(self._dt(stamp))
+        n = len(self._poses) - 1
+        alt = weak.cur_from_prev @ self._poses[n - 1]
+        alt_rel = RelativeFactor(n - 1, n, weak.cur_from_prev, weak.covariance)
+        alt_cov = marginal_covariances(self._poses[:-1] + [alt], self._absolute, self._relative[:-1] + [alt_rel])[-1]
+        d2 = mahalanobis_sq(b.pose, b.covariance, alt, alt_cov)
+        if d2 > self._gate:
+            return prediction
+        self._poses[-1], self._relative[-1] = alt, alt_rel
+        fixes.accepted, fixes.status, fixes.mahalanobis_sq, fixes.rejected = (b.pose, b.covariance), "accepted", d2, []
+        replaced = Motion(prediction.motion.cur_from_prev, prediction.motion.covariance, "visual_rejected",
+                          prediction.motion.model)
+        return Prediction(alt, alt_cov, replaced, prediction.position_std_m, prediction.usable)
+
+    def _track_kidnap(self, fixes: FixOutcome) -> None:
+        """Rejected global fixes that agree with each other (through the motion between them) over
+        consecutive frames confirm a kidnap."""
+        if fixes.accepted is not None:
+            return
+        for attempt in fixes.rejected:
+            if attempt.global_retrieval:
+                self._consider_kidnap(attempt.pose, attempt.covariance)
+
+    def _consider_kidnap(self, pose: Pose, cov: np.ndarray) -> None:
+        c = self._candidate
+        if c is not None:
+            predicted = c.cur_from_cand @ c.pose
+            motion_world = c.motion_cov.copy()
+            R = c.pose.R.T
+            motion_world[3:, 3:] = R @ c.motion_cov[3:, 3:] @ R.T
+            if mahalanobis_sq(pose, cov, predicted, c.covariance + motion_world) <= self._gate:
+                self._candidate = _Candidate(pose, cov, c.count + 1)
+                return
+        self._candidate = _Candidate(pose, cov, 1)
 
     # ---- the graph ------------------------------------------------------------------------
     def _solve(self) -> None:
@@ -461,25 +617,56 @@ class SequenceLocalizer:
         self._cov = cov
         self._candidate = None
 
+    def _fuse(self, prediction: Prediction, fixes: FixOutcome, stamp: float) -> tuple[FrameStatus, bool]:
+        """Stages 5-6: add the accepted fix and solve the window, re-initialise on a confirmed
+        kidnap, or keep the prediction. Returns the frame's status and whether it re-initialised."""
+        cfg = self.config
+        if fixes.accepted is not None:
+            if prediction.pose is None:
+                self._initialize(*fixes.accepted, stamp)
+            else:
+                self._absolute.append(AbsoluteFactor(len(self._poses) - 1, *fixes.accepted))
+                self._localized[-1] = True
+                self._fix_centers.append((stamp, fixes.accepted[0].center))
+                self._solve()
+            self._candidate = None
+            return FrameStatus.LOCALIZED, False
+        if self._candidate is not None and self._candidate.count >= cfg.kidnap_confirmations:
+            self._initialize(self._candidate.pose, self._candidate.covariance, stamp)
+            logger.info("stream re-initialised at t=%.3f from %d consistent global fixes", stamp,
+                        cfg.kidnap_confirmations)
+            fixes.status = "accepted"
+            return FrameStatus.LOCALIZED, True
+        if prediction.pose is not None:
+            self._cov = prediction.covariance
+            self._trim()
+        # One contradicting fix is not enough to doubt the prediction (kidnap_suspected says it),
+        # but with no measured motion (the stream jumped: no visual-odometry matches) and a
+        # contradicting global fix, the prediction is not a pose to act on.
+        doubt = prediction.motion.source == "constant" and any(a.global_retrieval for a in fixes.rejected)
+        return (FrameStatus.PREDICTED if prediction.usable and not doubt else FrameStatus.LOST), False
+
     # ---- one frame ------------------------------------------------------------------------
-    def step(self, image: np.ndarray, camera: Camera, stamp: float, odometry: Pose | None = None,
+    def step(self, image: ImageSource, camera: Camera | None, stamp: float, odometry: Pose | None = None,
              gravity: object | None = None) -> SequenceEstimate:
         """Localize the next frame of the stream.
 
         Args:
-            image: (H, W) grayscale or (H, W, 3) BGR uint8 image.
-            camera: its intrinsics.
+            image: (H, W) grayscale or (H, W, 3) BGR uint8 image (or JPEG/PNG bytes, or a file).
+            camera: its intrinsics; None: the map's (when the map has exactly one camera).
             stamp: time in seconds (increasing; used to scale visual odometry by speed).
             odometry: this frame's ``cam_from_odom`` pose from wheel odometry (any fixed
                 odometry frame; only differences between frames are used), or None.
-            gravity: (3,) gravity direction in the camera frame, passed to the single-frame
-                localizer when it accepts one (ignored otherwise).
+            gravity: (3,) gravity direction (down) in the camera frame, or None (mounted like the
+                map cameras); passed to the single-frame fixes.
 
         Returns:
             :class:`SequenceEstimate` — every frame gets one.
+
+        Raises:
+            InputError: a bad image, camera (e.g. of another size than the image), gravity,
+                odometry or stamp; the stream is unchanged.
         """
-        if not isinstance(camera, Camera):
-            raise InputError(f"camera: expected a planarloc.Camera, got {type(camera).__name__}")
         if odometry is not None and not isinstance(odometry, Pose):
             raise InputError(f"odometry: expected a planarloc Pose (cam_from_odom) or None, "
                              f"got {type(odometry).__name__}")
@@ -487,134 +674,30 @@ class SequenceLocalizer:
         if not np.isfinite(stamp):
             raise InputError(f"stamp: expected a finite time in seconds, got {stamp}")
         t0 = time.perf_counter()
-        features = extract_features(image, self.localizer.features)
-        out = self._step(features, camera, stamp, odometry, gravity)
-        self._prev = (features, camera, stamp, odometry)
-        out.seconds = time.perf_counter() - t0
-        return out
+        query = self.localizer.prepare(image, camera, gravity=gravity)
+        return self.step_query(query, stamp, odometry, t0)
 
-    def _step(self, features: Features, camera: Camera, stamp: float, odometry: Pose | None,
-              gravity: object | None) -> SequenceEstimate:
-        cfg = self.config
-        tracking = bool(self._poses) and self._prev is not None
-        source, model = "none", ""
-        pred, pred_cov = None, np.full((6, 6), np.inf)
-        motion, motion_cov = Pose.identity(), np.zeros((6, 6))
-        if tracking:
-            motion, motion_cov, source, model = self._motion(features, camera, stamp, odometry)
-            pred = motion @ self._poses[-1]
-            n = len(self._poses)
-            self._poses.append(pred)
-            self._stamps.append(stamp)
-            self._localized.append(False)
-            self._relative.append(RelativeFactor(n - 1, n, motion, motion_cov))
-            pred_cov = marginal_covariances(self._poses, self._absolute, self._relative)[-1]
-        if self._candidate is not None:
-            # wheel odometry is trusted across a kidnap check; visual odometry may be wrong exactly
-            # there, so agreeing fixes then need only agree within the weak motion model
-            self._candidate.cur_from_cand = motion @ self._candidate.cur_from_cand
-            self._candidate.motion_cov = self._candidate.motion_cov + motion_cov
-            if source != "odometry":
-                self._candidate.motion_cov = self._candidate.motion_cov + self._constant_motion(self._dt(stamp))[1]
-        pred_std, _ = _stds(pred_cov)
-        usable = pred is not None and pred_std <= cfg.lost_std_m
-
-        rejected: list[dict] = []
-        fix, fix_status, d2, used_global = None, "none", float("nan"), False
-        accepted: tuple[Pose, np.ndarray] | None = None
-        attempts: list[list[str] | None] = []
-        if usable:
-            attempts.append(self.references_near(pred, pred_std))
-        if not attempts or attempts[0] is not None:
-            attempts.append(None)  # global retrieval
-        candidates: list[tuple[Pose, np.ndarray, bool]] = []   # rejected fixes: pose, covariance, global
-        for refs in attempts:
-            used_global |= refs is None
-            fix = self._fix(features, camera, refs, gravity)
-            cov = self.fix_covariance(fix, camera) if fix.success and fix.pose is not None else None
-            if cov is None:
-                fix_status = "failed"
-                continue
-            if pred is None:
-                accepted = (fix.pose, cov)
-                fix_status = "accepted"
-                break
-            d2 = mahalanobis_sq(fix.pose, cov, pred, pred_cov)
-            if d2 <= self._gate:
-                accepted = (fix.pose, cov)
-                fix_status = "accepted"
-                break
-            fix_status = "rejected"
-            rejected.append({"center": [float(v) for v in fix.pose.center], "mahalanobis_sq": d2,
-                             "retrieval": "global" if refs is None else "local"})
-            candidates.append((fix.pose, cov, refs is None))
-        if accepted is None and source == "visual" and len(candidates) >= 2:
-            # Visual odometry can be wrong (few matches, bas-relief ambiguity). When two fixes
-            # (local and global retrieval) agree with each other and with the weak motion model,
-            # the visual factor is the outlier: replace it and accept the fix.
-            (pa, ca, _), (pb, cb, _) = candidates[:2]
-            if mahalanobis_sq(pa, ca, pb, cb) <= self._gate:
-                weak, weak_cov = self._constant_motion(self._dt(stamp))
-                n = len(self._poses) - 1
-                alt = weak @ self._poses[n - 1]
-                alt_rel = RelativeFactor(n - 1, n, weak, weak_cov)
-                alt_cov = marginal_covariances(self._poses[:-1] + [alt], self._absolute,
-                                               self._relative[:-1] + [alt_rel])[-1]
-                d2_alt = mahalanobis_sq(pb, cb, alt, alt_cov)
-                if d2_alt <= self._gate:
-                    self._poses[-1], self._relative[-1] = alt, alt_rel
-                    pred, pred_cov, d2, source = alt, alt_cov, d2_alt, "visual_rejected"
-                    accepted, fix_status = (pb, cb), "accepted"
-                    rejected = []
-        if accepted is None:
-            for pose_k, cov_k, is_global in candidates:
-                if is_global:
-                    self._consider_kidnap(pose_k, cov_k)
-
-        reinitialized = False
-        if accepted is not None:
-            if pred is None:
-                self._initialize(accepted[0], accepted[1], stamp)
-            else:
-                self._absolute.append(AbsoluteFactor(len(self._poses) - 1, *accepted))
-                self._localized[-1] = True
-                self._fix_centers.append((stamp, accepted[0].center))
-                self._solve()
-            self._candidate = None
-            status = FrameStatus.LOCALIZED
-        elif self._candidate is not None and self._candidate.count >= cfg.kidnap_confirmations:
-            self._initialize(self._candidate.pose, self._candidate.covariance, stamp)
-            logger.info("stream re-initialised at t=%.3f from %d consistent global fixes", stamp,
-                        cfg.kidnap_confirmations)
-            reinitialized = True
-            fix_status = "accepted"
-            status = FrameStatus.LOCALIZED
-        else:
-            if pred is not None:
-                self._cov = pred_cov
-                self._trim()
-            # one contradicting fix is not enough to doubt the prediction (kidnap_suspected says it)
-            # ... but with no measured motion (the stream jumped: no visual-odometry matches)
-            # and a contradicting global fix, the prediction is not a pose to act on.
-            doubt = source == "constant" and any(g for _, _, g in candidates)
-            status = FrameStatus.PREDICTED if usable and not doubt else FrameStatus.LOST
+    def step_query(self, query: Query, stamp: float, odometry: Pose | None = None,
+                   started: float | None = None) -> SequenceEstimate:
+        """Localize the next frame, prepared with :meth:`Localizer.prepare` (see :meth:`step`)."""
+        t0 = time.perf_counter() if started is None else started
+        features = extract_features(query.image, self.localizer.features)
+        prediction = self._predict(features, query.camera, stamp, odometry)
+        self._carry_candidate(prediction.motion, stamp)
+        fixes = self._fixes(features, query.camera, query.gravity, prediction)
+        prediction = self._reject_visual_odometry(prediction, fixes, stamp)
+        self._track_kidnap(fixes)
+        status, reinitialized = self._fuse(prediction, fixes, stamp)
+        self._prev = (features, query.camera, stamp, odometry)
         pose = self._poses[-1] if self._poses else None
         cov = self._cov if pose is not None else np.full((6, 6), np.inf)
         pos_std, rot_std = _stds(cov)
-        if status != FrameStatus.LOST and pos_std > cfg.lost_std_m:
+        if status != FrameStatus.LOST and pos_std > self.config.lost_std_m:
             status = FrameStatus.LOST   # never report a pose as usable beyond lost_std_m
-        return SequenceEstimate(stamp, status.value, pose, cov, pos_std, rot_std, fix, fix_status, rejected, d2,
-                                source, model, used_global, self._candidate is not None, reinitialized)
-
-    def _consider_kidnap(self, pose: Pose, cov: np.ndarray) -> None:
-        """Track rejected global fixes; consecutive ones consistent with each other confirm a kidnap."""
-        c = self._candidate
-        if c is not None:
-            predicted = c.cur_from_cand @ c.pose
-            motion_world = c.motion_cov.copy()
-            R = c.pose.R.T
-            motion_world[3:, 3:] = R @ c.motion_cov[3:, 3:] @ R.T
-            if mahalanobis_sq(pose, cov, predicted, c.covariance + motion_world) <= self._gate:
-                self._candidate = _Candidate(pose, cov, c.count + 1)
-                return
-        self._candidate = _Candidate(pose, cov, 1)
+        return SequenceEstimate(
+            stamp=stamp, status=status.value, pose=pose, covariance=cov, position_std_m=pos_std,
+            rotation_std_deg=rot_std, fix=fixes.last, fix_status=fixes.status,
+            rejected=[a.report() for a in fixes.rejected], mahalanobis_sq=fixes.mahalanobis_sq,
+            motion_source=prediction.motion.source, motion_model=prediction.motion.model,
+            global_retrieval=fixes.global_retrieval, kidnap_suspected=self._candidate is not None,
+            reinitialized=reinitialized, seconds=time.perf_counter() - t0)

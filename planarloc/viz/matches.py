@@ -154,7 +154,7 @@ class MatchPlotter:
     def _map_paths(self, localizer: Localizer) -> dict[str, Path]:
         key = id(localizer.db)
         if key not in self._paths:
-            self._paths[key] = {p.name: Path(p.path) for p in localizer.db.posed_images()}
+            self._paths[key] = {p.name: Path(p.path) for p in localizer.map_images}
         return self._paths[key]
 
     def plot(self, localizer: Localizer, name: str, query_path: Path | str, camera: Camera, features: Features,

@@ -68,10 +68,10 @@ def test_points_line_omitted(tmp_path, write_image, random_poses, pose_close):
 
 def test_unsupported_model_named(tmp_path, write_image, random_poses):
     model = write_model(
-        tmp_path, random_poses(1), write_image, cameras="# cams\n1 SIMPLE_RADIAL 64 48 50 32 24 0.01\n"
+        tmp_path, random_poses(1), write_image, cameras="# cams\n1 FOV 64 48 50 51 32 24 0.01\n"
     )
     with pytest.raises(
-        FormatError, match=r"cameras\.txt:2: camera model SIMPLE_RADIAL is not supported .*PINHOLE"
+        FormatError, match=r"cameras\.txt:2: camera model FOV is not supported .*PINHOLE"
     ):
         read_colmap(model)
     (model / "cameras.txt").write_text("1 FISHY 64 48 50 32 24\n")

@@ -156,6 +156,11 @@ def preset_names() -> tuple[str, ...]:
     return tuple(PRESETS)
 
 
+def preset_summaries() -> dict[str, str]:
+    """``{name: one line}`` of every preset (its docstring's first paragraph), e.g. for a help page."""
+    return {name: " ".join((fn.__doc__ or "").split("\n\n")[0].split()).replace("``", "") for name, fn in PRESETS.items()}
+
+
 def get_preset(name: str) -> WorldConfig:
     """The config of preset ``name``.
 
