@@ -3,9 +3,13 @@
 from __future__ import annotations
 
 import logging
-import multiprocessing
 import os
+import signal
 import sqlite3
+import subprocess
+import sys
+import threading
+import time
 from pathlib import Path
 
 import cv2
@@ -17,7 +21,7 @@ from textured_images import textured_image
 from planarloc.features.extract import FeatureConfig
 from planarloc.map.builder import build_map
 from planarloc.map.integrity import check_map
-from planarloc.map.lock import _HELD, MapBusyError, MapWriterLock, lock_path_of
+from planarloc.map.lock import MapBusyError, MapWriterLock, lock_path_of
 from planarloc.map.schema import MapCorruptError, MapFormatError
 from planarloc.map.store import MapDatabase
 
@@ -155,35 +159,69 @@ def test_garbage_in_the_middle_of_the_file_is_detected(built: Path) -> None:
 
 
 # ---- writers ------------------------------------------------------------------------------------
-def _build_worker(images, path: str) -> int:
-    build(images, Path(path))
-    return 0
+def _planarloc(*argv: object, **kw) -> subprocess.Popen:
+    """The real `planarloc` command in its own process (PYTHONPATH inherited: this checkout)."""
+    return subprocess.Popen([sys.executable, "-m", "planarloc.cli.main", *map(str, argv)], **kw)
 
 
-def test_concurrent_builds_serialize(tmp_path: Path) -> None:
-    images = posed_folder(tmp_path / "s", n=6, seed=3)
-    ctx = multiprocessing.get_context("spawn")
-    for rep in range(2):
-        path = tmp_path / f"m{rep}.db"
-        with ctx.Pool(2) as pool:
-            results = [pool.apply_async(_build_worker, (images, str(path))) for _ in range(2)]
-            assert [r.get(timeout=300) for r in results] == [0, 0]
-        report = check_map(path)
-        assert report.ok and report.num_images == 6 and report.complete, report.problems
-        assert not lock_path_of(path).exists()
+def _wait_for(condition, what: str, timeout: float = 120.0) -> None:
+    deadline = time.monotonic() + timeout
+    while not condition():
+        assert time.monotonic() < deadline, f"timed out waiting for {what}"
+        time.sleep(0.005)
+
+
+@pytest.mark.parametrize("first_builder", ["finishes", "is SIGKILLed"])
+def test_concurrent_builds_overlap_and_the_second_waits_on_the_lock(tiny_world: Path, tmp_path: Path,
+                                                                    first_builder: str) -> None:
+    """Two `planarloc map build` of one map at once: the second finds the first holding the lock
+    (mid-build, frozen there) and waits, naming its PID; the first then finishes or is killed
+    with SIGKILL; the second completes the map either way."""
+    path = tmp_path / "m.db"
+    build = ["map", "build", tiny_world / "map", "-f", "tum", "--out", path, "--vocabulary-size", "16"]
+    lock = lock_path_of(path)
+    a = _planarloc(*build, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        _wait_for(lambda: lock.is_file() and lock.read_text().strip() == str(a.pid), "the first builder's lock")
+        os.kill(a.pid, signal.SIGSTOP)  # frozen while it holds the lock: the builds must overlap
+        assert lock.read_text().strip() == str(a.pid) and a.poll() is None
+        b = _planarloc(*build, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+        waiting = f"is being built by PID {a.pid}; waiting for it to finish"
+        seen: list[str] = []
+        reader = threading.Thread(target=lambda: seen.extend(b.stderr))
+        reader.start()
+        _wait_for(lambda: any(waiting in line for line in seen), "the second builder to wait")
+        assert b.poll() is None  # it waits for the first, it does not build alongside
+        os.kill(a.pid, signal.SIGKILL if first_builder == "is SIGKILLed" else signal.SIGCONT)
+        assert b.wait(300) == 0, "".join(seen)
+        reader.join(10)
+        assert a.wait(60) == (-signal.SIGKILL if first_builder == "is SIGKILLed" else 0)
+    finally:
+        for proc in (a,):
+            if proc.poll() is None:
+                proc.kill()
+    report = check_map(path)
+    assert report.ok and report.num_images == 12 and report.complete, report.problems
+    assert not lock.exists()
 
 
 def test_second_writer_waits_or_names_the_pid(built: Path) -> None:
-    with MapWriterLock(built, timeout=0) as lock:  # as another process would hold it
-        _HELD.discard(lock._key)
-        with pytest.raises(MapBusyError, match=f"being built by PID {os.getpid()}"):
+    holder = subprocess.Popen(  # another process holds the map's writer lock until its stdin closes
+        [sys.executable, "-c", "import sys; from planarloc.map.lock import MapWriterLock; "
+         f"lock = MapWriterLock({str(built)!r}); lock.acquire(); print('held', flush=True); sys.stdin.read()"],
+        stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline().strip() == "held"
+        with pytest.raises(MapBusyError, match=f"being built by PID {holder.pid}"):
             MapDatabase.open(built, mode="a", lock_timeout=0.2)
-        _HELD.add(lock._key)
+        with MapDatabase.open(built, mode="r") as reader:  # readers never wait
+            assert reader.num_images() == 4
+    finally:
+        holder.stdin.close()
+        holder.wait(30)
     with MapDatabase.open(built, mode="a"):
         with pytest.raises(MapBusyError, match="already open for writing in this process"):
             MapDatabase.open(built, mode="a")
-        with MapDatabase.open(built, mode="r") as reader:  # readers never wait
-            assert reader.num_images() == 4
     with MapDatabase.open(built, mode="a", lock_timeout=0):  # released on close
         pass
 

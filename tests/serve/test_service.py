@@ -214,3 +214,41 @@ def test_workers_never_outlive_a_killed_server(served_world) -> None:
     while time.monotonic() < deadline and any(running(pid) for pid in workers):
         time.sleep(0.2)
     assert not any(running(pid) for pid in workers)
+
+
+def test_port_0_prints_the_bound_port_and_a_busy_port_is_one_line(server, served_world) -> None:
+    import socket
+    import subprocess
+    import sys
+
+    banner = next(line for line in server.process.output.lines if line.startswith("serving "))
+    port = int(server.url.rsplit(":", 1)[1])
+    assert port != 0 and f"on http://127.0.0.1:{port} (2 workers, queue 2)" in banner  # started with --port 0
+    assert httpx.get(f"http://127.0.0.1:{port}/healthz").status_code == 200
+    _world, map_path, _camera = served_world
+    with socket.socket() as busy:
+        busy.bind(("127.0.0.1", 0))
+        busy.listen()
+        taken = busy.getsockname()[1]
+        proc = subprocess.run([sys.executable, "-m", "planarloc.cli.main", "serve", "--map", str(map_path),
+                               "--port", str(taken)], capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 1 and proc.stdout == ""
+    assert proc.stderr.splitlines() == [f"planarloc serve: error: --port {taken}: 127.0.0.1:{taken} is already in "
+                                        "use (another server?); choose another port, or --port 0 for any free one"]
+
+
+def test_localize_server_records_an_undecodable_image_and_goes_on(server, tmp_path: Path) -> None:
+    images = queries(server, 2)
+    broken = tmp_path / "broken.png"
+    broken.write_bytes(images[0].read_bytes()[:3000])  # a PNG header, then nothing: undecodable
+    out = tmp_path / "poses.txt"
+    args = ["localize", "--server", server.url, "--token", server.token, "--map", "office", images[0], broken,
+            images[1], "--structure", "tracks", "--out", out]
+    assert main([str(a) for a in args]) == 3
+    records = {r["name"]: r for r in (json.loads(p.read_text()) for p in (tmp_path / "poses.txt.json.d").iterdir())}
+    assert records["broken.png"]["status"] == "error" and "cannot decode" in records["broken.png"]["reason"]
+    assert sorted(line.split()[0] for line in out.read_text().splitlines()) == sorted(p.name for p in images)
+    # A server that cannot be reached stops the run (exit 1) and leaves the results file as it was.
+    before = out.read_text()
+    dead = ["localize", "--server", "http://127.0.0.1:9", "--map", "office", images[0], "--out", out]
+    assert main([str(a) for a in dead]) == 1 and out.read_text() == before
