@@ -7,7 +7,7 @@ import logging
 import sqlite3
 import sys
 
-from planarloc import __version__
+from planarloc.version import __version__
 from planarloc.cli import (
     demo_command,
     evaluate_command,

@@ -168,7 +168,7 @@ class MapDatabase:
         for stale in path.parent.glob(f".{path.name}.*.creating*"):  # left by a killed create (we hold the lock)
             stale.unlink(missing_ok=True)
 
-        from planarloc import __version__
+        from planarloc.version import __version__
 
         meta = {
             "schema_version": str(schema.SCHEMA_VERSION),
