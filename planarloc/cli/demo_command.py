@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
+from planarloc.cli.commands import add_command
 from planarloc.cli.console import info, progress_bar
 from planarloc.cli.exit_codes import DEMO_RESUMES
 from planarloc.cli.report import print_summary_table, write_json
@@ -24,26 +25,23 @@ from planarloc.synthetic.world.presets import DEFAULT_PRESET, preset_names, pres
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser(
-        "demo", help="map and localize a generated indoor world in one go (no data needed)",
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-        description="Renders a small indoor world (textured rooms, furniture) seen by a wheeled robot along a map "
-                    "trajectory and a different query trajectory, builds the map from the map images and their "
-                    "poses, and localizes every query image with the paper's 2D-2D method (structure none) and "
-                    "with the structure-aware mode (tracks). Prints success rates at the paper's thresholds and "
-                    "writes a trajectory plot.\n\n"
-                    "presets:\n" + "".join(f"  {name:<9} {text}\n" for name, text in preset_summaries().items()) +
-                    "\n"
-                    "The generated world is in TUM RGB-D layout, so it also works with\n"
-                    "  planarloc map build DIR/world/map --format tum --out map.db\n\n"
-                    "example:\n  planarloc demo --preset corridor --out corridor-demo")
+    presets = "\n\npresets:" + "".join(f"\n  {name:<9} {text}" for name, text in preset_summaries().items())
+    p = add_command(
+        sub, "demo", "map and localize a generated indoor world in one go (no data needed)",
+        """Renders a small indoor world (textured rooms, furniture) seen by a wheeled robot along a map
+        trajectory and a different query trajectory, builds the map from the map images and their poses, and
+        localizes every query image with the paper's 2D-2D method (structure none) and with the structure-aware
+        mode (tracks). Prints success rates at the paper's thresholds (stdout) and writes a trajectory plot.
+
+        The generated world is in TUM RGB-D layout, so it also works with
+          planarloc map build DIR/world/map --format tum --out map.db""",
+        ["planarloc demo --preset corridor --out corridor-demo"], run, listing=presets, interrupted=DEMO_RESUMES)
     p.add_argument("--out", "-o", type=Path, default=Path("planarloc-demo"), help="output folder (default: %(default)s)")
     p.add_argument("--preset", default=DEFAULT_PRESET, choices=preset_names(), help="world preset (default: %(default)s)")
     p.add_argument("--seed", type=int, default=0, help="world seed (default: %(default)s)")
     p.add_argument("--method", "-m", default=Method(LocalizerConfig().method).value, choices=[m.value for m in Method],
                    help="solver for both runs (default: %(default)s)")
     p.add_argument("--tilt", action="store_true", help="tilt-augment the map features (paper Sec. III-B)")
-    p.set_defaults(func=run, interrupted=DEMO_RESUMES)
 
 
 def run(args: argparse.Namespace) -> int:

@@ -9,13 +9,14 @@ from pathlib import Path
 
 import numpy as np
 
+from planarloc.cli.commands import add_command
 from planarloc.cli.console import info, note, notify, progress_bar
 from planarloc.cli.cross_session import add_cross_session_args, read_map_and_queries
 from planarloc.cli.exit_codes import EVALUATE_RESUMES, EXIT_OK, EXIT_PARTIAL
 from planarloc.cli.options import (
     add_dataset_args,
     add_feature_args,
-    add_gravity_file_arg,
+    add_gravity_args,
     add_localizer_args,
     check_vocabulary_size,
     feature_config,
@@ -36,23 +37,24 @@ from planarloc.map.store import MapDatabase
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser(
-        "evaluate", help="evaluate localization on posed data (map = every N-th frame, or cross-session --queries)",
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-        description="Builds a map from the frames with index % N == 0 (cached, or --map), localizes every other "
-                    "frame and compares with its ground truth. Success thresholds are the paper's: "
-                    "0.25 m/10°, 0.5 m/10°, 1.0 m/20°. A failed query counts as a failure.\n\n"
-                    "Cross-session (map on Monday, localize on Friday; the paper's OpenLORIS protocol): give one "
-                    "or more map datasets and --queries QUERY_DATASET instead of --map-every. The JSON lists, per "
-                    "query, the map images it used (references).\n\n"
-                    "example:\n  planarloc evaluate data/kitti_seq2 --format kitti --map-every 2 "
-                    "--structure tracks --json kitti.json --plot kitti.png\n"
-                    "  planarloc evaluate worlds/office/map -f tum --map-every 3 --gravity-from-truth\n"
-                    "  planarloc evaluate home1 home3 -f openloris --queries home2 --json home2.json --tum home2-tum\n"
-                    "  planarloc evaluate monday/ -f tum --queries friday.bag --queries-format rosbag "
-                    "--queries-option pose_topic=/pose --plot-matches matches/\n"
-                    "  planarloc evaluate data/kitti_seq2 --format kitti --map-every 4 --structure tracks --sequential "
-                    "--kidnap-at 10 --json seq.json   # the queries as one stream")
+    p = add_command(
+        sub, "evaluate", "evaluate localization on posed data (map = every N-th frame, or cross-session --queries)",
+        """Builds a map from the frames with index % N == 0 (cached, or --map), localizes every other frame
+        and compares with its ground truth. Success thresholds are the paper's: 0.25 m/10°, 0.5 m/10°, 1.0
+        m/20°. A failed query counts as a failure. The table goes to stdout.
+
+        Cross-session (map on Monday, localize on Friday; the paper's OpenLORIS protocol): give one or more
+        map datasets and --queries QUERY_DATASET instead of --map-every. The JSON lists, per query, the map
+        images it used (references).""",
+        ["planarloc evaluate data/kitti_seq2 --format kitti --map-every 2 --structure tracks --json kitti.json "
+         "--plot kitti.png",
+         "planarloc evaluate worlds/office/map -f tum --map-every 3 --gravity-from-truth",
+         "planarloc evaluate home1 home3 -f openloris --queries home2 --json home2.json --tum home2-tum",
+         "planarloc evaluate monday/ -f tum --queries friday.bag --queries-format rosbag --queries-option "
+         "pose_topic=/pose --plot-matches matches/",
+         "planarloc evaluate data/kitti_seq2 --format kitti --map-every 4 --structure tracks --sequential "
+         "--kidnap-at 10 --json seq.json   # the queries as one stream"],
+        run, interrupted=EVALUATE_RESUMES)
     add_dataset_args(p, many=True)
     add_cross_session_args(p)
     p.add_argument("--map", type=Path, help="map file to build/reuse (default: a cache file in the temp folder)")
@@ -60,11 +62,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--plot", type=Path, help="write the trajectory plot (paper Fig. 8) here")
     p.add_argument("--dataset-option", action="append", metavar="KEY=VALUE",
                    help="importer option (repeatable); up=AXIS gives the world's up direction, e.g. up=z")
-    grav = p.add_mutually_exclusive_group()
-    grav.add_argument("--gravity-from-truth", action="store_true",
-                      help="simulate an IMU: give each query its true gravity (ground-truth rotation x the world's "
-                           "down direction: the format's, up=..., or the map's estimate; see `map info`)")
-    add_gravity_file_arg(grav)
+    add_gravity_args(p, "--gravity-from-truth", action="store_true",
+                     help="simulate an IMU: give each query its true gravity (ground-truth rotation x the world's "
+                          "down direction: the format's, up=..., or the map's estimate; see `map info`)")
     add_feature_args(p)
     add_localizer_args(p)
     add_output_args(p, "write DIR/estimate.txt and DIR/groundtruth.txt (TUM, camera-to-world, localized queries) "
@@ -73,7 +73,6 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    help="distribute over a Ray cluster (auto, HOST:PORT, ray://HOST:PORT; a local one without "
                         "ADDRESS); needs pip install 'planarloc[ray]'")
     add_sequence_args(p, evaluate=True)
-    p.set_defaults(func=run, interrupted=EVALUATE_RESUMES)
 
 
 def run(args: argparse.Namespace) -> int:

@@ -19,10 +19,11 @@ from collections.abc import Callable
 from contextlib import ExitStack, closing
 from pathlib import Path
 
+from planarloc.cli.commands import add_command
 from planarloc.cli.console import info, note, progress_bar, results_on_stdout
 from planarloc.cli.exit_codes import EXIT_OK, EXIT_PARTIAL, Interrupted
 from planarloc.cli.options import (
-    add_gravity_file_arg,
+    add_gravity_args,
     add_localizer_args,
     camera_option,
     gravity_option,
@@ -49,27 +50,28 @@ LocalizeOne = Callable[[QuerySource], dict]
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser(
-        "localize", help="localize query images against a map",
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-        description="Retrieve the top-n map images of each query, match RootSIFT features to them and solve the "
-                    "query's absolute pose from 2D-2D matches under local planar motion.\n\n"
-                    "Writes the poses of localized queries in the hloc format (name qw qx qy qz tx ty tz, "
-                    "world-to-camera) to --out ('-' = stdout; a device or FIFO is written through; an existing file "
-                    "that is not a results file is refused) and one JSON record per query with its status, inliers "
-                    "and position std. Failed queries are listed as failed, never replaced by a map pose. A query "
-                    "that cannot be processed (unreadable image, size different from the camera) is recorded with "
-                    "status error and its reason and the others go on (exit code 3); the same holds with --sequence "
-                    "and --server. Query names: the file name of an image given directly, the path relative to a "
-                    "folder or dataset given; parent folders are added to tell equal names apart.\n\n"
-                    "example:\n  planarloc localize --map kitti.db queries/*.png --camera 'PINHOLE 1241 376 "
-                    "718.856 718.856 607.19 185.22' --structure tracks --out poses.txt\n"
-                    "  planarloc localize --map office.db frame.png --gravity '0 0.996 0.087'   # camera pitched 5°\n"
-                    "  planarloc localize --map office.db run2.bag --format rosbag --dataset-option "
-                    "image_topic=/camera/image_raw --tum run2.tum --plot-matches matches/\n"
-                    "  planarloc localize --server http://127.0.0.1:8080 --map office frame.png --out -\n"
-                    "  planarloc localize --map kitti.db --sequence frames.txt --odometry odom.txt --out poses.txt"
-                    "   # a stream: pose, covariance and status (localized/predicted/lost) per frame")
+    p = add_command(
+        sub, "localize", "localize query images against a map",
+        """Retrieve the top-n map images of each query, match RootSIFT features to them and solve the query's
+        absolute pose from 2D-2D matches under local planar motion.
+
+        Writes the poses of localized queries in the hloc format (name qw qx qy qz tx ty tz, world-to-camera)
+        to --out ('-' = stdout; a device or FIFO is written through; an existing file that is not a results
+        file is refused) and one JSON record per query with its status, inliers and position std. Failed
+        queries are listed as failed, never replaced by a map pose. A query that cannot be processed
+        (unreadable image, size different from the camera) is recorded with status error and its reason and
+        the others go on (exit code 3); the same holds with --sequence and --server. Query names: the file
+        name of an image given directly, the path relative to a folder or dataset given; parent folders are
+        added to tell equal names apart.""",
+        ["planarloc localize --map kitti.db queries/*.png --camera 'PINHOLE 1241 376 718.856 718.856 607.19 185.22' "
+         "--structure tracks --out poses.txt",
+         "planarloc localize --map office.db frame.png --gravity '0 0.996 0.087'   # camera pitched 5°",
+         "planarloc localize --map office.db run2.bag --format rosbag --dataset-option image_topic=/camera/image_raw "
+         "--tum run2.tum --plot-matches matches/",
+         "planarloc localize --server http://127.0.0.1:8080 --map office frame.png --out -",
+         "planarloc localize --map kitti.db --sequence frames.txt --odometry odom.txt --out poses.txt"
+         "   # a stream: pose, covariance and status (localized/predicted/lost) per frame"],
+        run, interrupted=None)
     p.add_argument("--map", required=True, type=Path,
                    help="map file from `planarloc map build` (with --server: the served map's name)")
     p.add_argument("images", nargs="+", type=Path, help="query image files or folders of images, or one dataset "
@@ -85,17 +87,14 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--json-dir", type=Path,
                    help="folder for one JSON record per query (default: <out>.json.d; none with --out - "
                         "or a device unless given)")
-    grav = p.add_mutually_exclusive_group()
-    grav.add_argument("--gravity", metavar="'GX GY GZ'",
-                      help="gravity of all queries (direction, pointing down) in the query camera frame "
-                           "(x right, y down, z forward), e.g. from an IMU; default: the map cameras' mount tilt")
-    add_gravity_file_arg(grav)
+    add_gravity_args(p, "--gravity", metavar="'GX GY GZ'",
+                     help="gravity of all queries (direction, pointing down) in the query camera frame (x right, "
+                          "y down, z forward), e.g. from an IMU; default: the map cameras' mount tilt")
     add_localizer_args(p)
     add_output_args(p, "also write the localized queries as a TUM trajectory (timestamp tx ty tz qx qy qz qw, "
                        "camera-to-world) for evo")
     add_server_args(p)
     add_sequence_args(p, evaluate=False)
-    p.set_defaults(func=run, interrupted=None)
 
 
 def _check_outputs(args: argparse.Namespace, inputs: list[Path]) -> Path | None:

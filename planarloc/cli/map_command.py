@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from planarloc.cli.commands import add_command
 from planarloc.cli.console import info, note, notify, progress_bar
 from planarloc.cli.exit_codes import BUILD_RESUMES
 from planarloc.cli.options import (
@@ -24,26 +25,27 @@ from planarloc.map.store import MapDatabase
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("map", help="build or inspect a map (a SQLite file of posed images and their features)",
-                       formatter_class=argparse.RawDescriptionHelpFormatter,
-                       description="A map is just posed images with their features: no 3D model is built.\n\n"
-                                   "examples:\n  planarloc map build data/kitti_seq2 --format kitti --every 2 --out kitti.db\n"
-                                   "  planarloc map info kitti.db\n  planarloc map check kitti.db")
+    p = add_command(sub, "map", "build or inspect a map (a SQLite file of posed images and their features)",
+                    """A map is just posed images with their features: no 3D model is built.""",
+                    ["planarloc map build data/kitti_seq2 --format kitti --every 2 --out kitti.db",
+                     "planarloc map info kitti.db", "planarloc map check kitti.db"])
     msub = p.add_subparsers(dest="map_command", required=True)
-    b = msub.add_parser(
-        "build", help="build (or resume / extend) a map from a dataset",
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-        description="Extract RootSIFT features of every posed image and store them with the poses in MAP.db, "
-                    "then index the map for retrieval (VLAD).\n\n"
-                    "Re-running the same command resumes an interrupted build; running it on another "
-                    "dataset with the same --out appends those images. Images are identified by content: "
-                    "changed poses are updated, changed image files re-extracted, and another dataset's image "
-                    "with a name already in the map is stored as DATASET/NAME (each reported in one line). "
-                    "A second build of the same file waits for the first (it names its PID).\n\n"
-                    "The world's gravity is the format's (KITTI, OpenLORIS, generated worlds), the dataset option "
-                    "up=..., or estimated from the camera centres' plane; `map info` shows it.\n\n"
-                    "example:\n  planarloc map build data/kitti_seq2 --format kitti --every 2 --out kitti.db\n"
-                    "  planarloc map build data/fountain_p11 --format kapture --dataset-option up=-z --out f.db")
+    b = add_command(
+        msub, "build", "build (or resume / extend) a map from a dataset",
+        """Extract RootSIFT features of every posed image and store them with the poses in MAP.db, then index
+        the map for retrieval (VLAD); then print `map info` of it.
+
+        Re-running the same command resumes an interrupted build; running it on another dataset with the same
+        --out appends those images. Images are identified by content: changed poses are updated, changed image
+        files re-extracted, and another dataset's image with a name already in the map is stored as
+        DATASET/NAME (each reported in one line). A second build of the same file waits for the first (it
+        names its PID).
+
+        The world's gravity is the format's (KITTI, OpenLORIS, generated worlds), the dataset option up=...,
+        or estimated from the camera centres' plane; `map info` shows it.""",
+        ["planarloc map build data/kitti_seq2 --format kitti --every 2 --out kitti.db",
+         "planarloc map build data/fountain_p11 --format kapture --dataset-option up=-z --out f.db"],
+        run_build, interrupted=BUILD_RESUMES)
     add_dataset_args(b)
     b.add_argument("--every", type=int, default=1, help="only frames with index %% N == 0 go into the map (default: 1)")
     b.add_argument("--out", "-o", required=True, type=Path, help="map file to create or extend")
@@ -55,27 +57,20 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     b.add_argument("--ray", nargs="?", const="local", metavar="ADDRESS",
                    help="distribute over a Ray cluster (auto, HOST:PORT, ray://HOST:PORT; a local one without "
                         "ADDRESS); needs pip install 'planarloc[ray]'")
-    b.set_defaults(func=run_build, interrupted=BUILD_RESUMES)
-    i = msub.add_parser("info", help="summarise a map (images, features, gravity, camera mount tilt) and check "
-                                     "its integrity",
-                        formatter_class=argparse.RawDescriptionHelpFormatter,
-                        description="Prints the number of images, the feature settings, whether the build is "
-                                    "complete, and the map's gravity: where it comes from (declared by the "
-                                    "format, the up= option, or estimated from the camera centres' plane) and "
-                                    "the map cameras' mount pitch/roll relative to it; after the checks of "
-                                    "`planarloc map check` (exit code 1 if the map is damaged).\n\n"
-                                    "example:\n  planarloc map info kitti.db")
-    i.add_argument("map", type=Path, help="map file")
-    i.set_defaults(func=run_info)
-    c = msub.add_parser("check", help="verify every row of a map (SQLite integrity, blobs, checksums)",
-                        formatter_class=argparse.RawDescriptionHelpFormatter,
-                        description="Runs SQLite's integrity_check and then decodes every stored row: cameras, poses, "
-                                    "keypoint and descriptor blobs (lengths, finite values, checksums), global "
-                                    "descriptors and the retrieval vocabulary. Prints one line per problem naming "
-                                    "the row; exit code 0 if the map is sound, 1 if not (rebuild it with "
-                                    "`planarloc map build`).\n\nexample:\n  planarloc map check kitti.db")
-    c.add_argument("map", type=Path, help="map file")
-    c.set_defaults(func=run_check)
+    for name, summary, description, func in (
+        ("info", "summarise a map (images, features, gravity, camera mount tilt) and check its integrity",
+         "Prints (on stdout) the number of images, the feature settings, whether the build is complete, and the "
+         "map's gravity: where it comes from (declared by the format, the up= option, or estimated from the camera "
+         "centres' plane) and the map cameras' mount pitch/roll relative to it; after the checks of `planarloc map "
+         "check` (exit code 1 if the map is damaged).", run_info),
+        ("check", "verify every row of a map (SQLite integrity, blobs, checksums)",
+         "Runs SQLite's integrity_check and then decodes every stored row: cameras, poses, keypoint and descriptor "
+         "blobs (lengths, finite values, checksums), global descriptors and the retrieval vocabulary. Prints one "
+         "line per problem naming the row (on stderr); exit code 0 if the map is sound (one line on stdout), 1 if "
+         "not (rebuild it with `planarloc map build`).", run_check),
+    ):
+        m = add_command(msub, name, summary, description, [f"planarloc map {name} kitti.db"], func)
+        m.add_argument("map", type=Path, help="map file")
 
 
 def run_build(args: argparse.Namespace) -> int:

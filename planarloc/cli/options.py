@@ -5,7 +5,9 @@ from __future__ import annotations
 
 import argparse
 import json
+from collections.abc import Callable
 from pathlib import Path
+from typing import TypeVar
 
 import numpy as np
 
@@ -18,6 +20,7 @@ from planarloc.io.text import parse_camera, parse_gravity
 from planarloc.localize.localizer import LocalizerConfig, localizer_config
 from planarloc.robust.options import Method, RansacOptions, Structure
 
+T = TypeVar("T")
 _RANSAC = RansacOptions()
 _LOC = LocalizerConfig()
 
@@ -101,28 +104,32 @@ def localizer_config_of(args: argparse.Namespace) -> LocalizerConfig:
                             max_position_std_m=args.max_position_std, use_depth=args.use_depth)
 
 
-def add_gravity_file_arg(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--gravity-file", type=Path, metavar="FILE",
-                   help="per-query gravity (e.g. from an IMU), lines 'name gx gy gz': direction of gravity "
-                        "(down) in the query camera frame (x right, y down, z forward); queries not listed "
-                        "are assumed mounted like the map cameras")
+def add_gravity_args(p: argparse.ArgumentParser, option: str, **kwargs: object) -> None:
+    """The query-gravity options: ``option`` (for all queries) or ``--gravity-file`` (per query), not both."""
+    group = p.add_mutually_exclusive_group()
+    group.add_argument(option, **kwargs)  # type: ignore[arg-type]
+    group.add_argument("--gravity-file", type=Path, metavar="FILE",
+                       help="per-query gravity (e.g. from an IMU), lines 'name gx gy gz': direction of gravity "
+                            "(down) in the query camera frame (x right, y down, z forward); queries not listed "
+                            "are assumed mounted like the map cameras")
+
+
+def text_option(parse: Callable[[str], T], text: str | None, option: str) -> T | None:
+    """``parse(text)`` with one of the parsers of :mod:`planarloc.io.text` (None for an option not
+    given); a text that does not parse is one error line naming the option."""
+    if text is None:
+        return None
+    try:
+        return parse(text)
+    except InputError as exc:
+        raise ValueError(f"{option}: {exc}; got {text!r}") from None
 
 
 def gravity_option(text: str | None, option: str = "--gravity") -> np.ndarray | None:
-    """``'gx gy gz'`` -> (3,) unit gravity (:func:`planarloc.io.text.parse_gravity`); one line naming the option."""
-    if text is None:
-        return None
-    try:
-        return parse_gravity(text)
-    except InputError as exc:
-        raise ValueError(f"{option}: {exc}; got {text!r}") from None
+    """``'gx gy gz'`` -> (3,) unit gravity (:func:`planarloc.io.text.parse_gravity`)."""
+    return text_option(parse_gravity, text, option)
 
 
 def camera_option(text: str | None, option: str = "--camera") -> Camera | None:
-    """``'MODEL W H PARAMS...'`` -> Camera (:func:`planarloc.io.text.parse_camera`); one line naming the option."""
-    if text is None:
-        return None
-    try:
-        return parse_camera(text)
-    except InputError as exc:
-        raise ValueError(f"{option}: {exc}; got {text!r}") from None
+    """``'MODEL W H PARAMS...'`` -> Camera (:func:`planarloc.io.text.parse_camera`)."""
+    return text_option(parse_camera, text, option)

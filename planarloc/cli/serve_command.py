@@ -8,6 +8,7 @@ import ipaddress
 import logging
 import socket
 
+from planarloc.cli.commands import add_command
 from planarloc.cli.console import note
 from planarloc.serve.settings import DEFAULT_MAX_IMAGE_BYTES, DEFAULT_QUEUE, DEFAULT_WORKERS
 
@@ -15,20 +16,18 @@ logger = logging.getLogger(__name__)
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser(
-        "serve",
-        help="serve localization over HTTP for a fleet of robots",
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-        description="POST /v1/localize (multipart: image, and optionally camera 'MODEL W H PARAMS...' (default: "
-        "the map's camera), map, gravity 'gx gy gz', session, method, structure, seed) answers the record "
-        "`planarloc localize` writes per query. GET /v1/maps, /healthz, /metrics (Prometheus). Localization "
-        "runs in --workers processes that open every map once, read-only; at most --workers + --queue requests "
-        "are admitted, the others get 503 with Retry-After. The banner on stderr names the address bound "
-        "(with --port 0: the port chosen). Needs: pip install 'planarloc[serve]'.\n\n"
-        "example:\n  planarloc serve --map office=office.db --map lab=lab.db --workers 2 --port 8080\n"
-        "  curl -F image=@q.png -F 'camera=PINHOLE 640 480 525 525 320 240' -F map=office "
-        "http://127.0.0.1:8080/v1/localize",
-    )
+    p = add_command(
+        sub, "serve", "serve localization over HTTP for a fleet of robots",
+        """POST /v1/localize (multipart: image, and optionally camera 'MODEL W H PARAMS...' (default: the
+        map's camera), map, gravity 'gx gy gz', session, method, structure, seed) answers the record
+        `planarloc localize` writes per query. GET /v1/maps, /healthz, /metrics (Prometheus). Localization
+        runs in --workers processes that open every map once, read-only; at most --workers + --queue
+        requests are admitted, the others get 503 with Retry-After. The banner on stderr names the address
+        bound (with --port 0: the port chosen). Ctrl-C stops it. Needs: pip install 'planarloc[serve]'.""",
+        ["planarloc serve --map office=office.db --map lab=lab.db --workers 2 --port 8080",
+         "curl -F image=@q.png -F 'camera=PINHOLE 640 480 525 525 320 240' -F map=office "
+         "http://127.0.0.1:8080/v1/localize"],
+        run)
     p.add_argument(
         "--map",
         dest="maps",
@@ -56,7 +55,6 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         "--max-image-mb", type=float, default=DEFAULT_MAX_IMAGE_BYTES / (1024 * 1024),
         help="image upload limit in MB (default: %(default)s)"
     )
-    p.set_defaults(func=run)
 
 
 def bind(host: str, port: int) -> socket.socket:

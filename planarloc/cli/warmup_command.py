@@ -14,6 +14,7 @@ import time
 
 import numpy as np
 
+from planarloc.cli.commands import add_command
 from planarloc.cli.console import info, progress_bar
 from planarloc.cli.exit_codes import WARMUP_RESUMES
 from planarloc.geometry.pose import Pose
@@ -62,14 +63,12 @@ def warm_up(update=None) -> dict[str, float]:
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser(
-        "warmup", help="compile or load every numba kernel once (run at image build time)",
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-        description="Compile every numba kernel a query uses (or load it from numba's on-disk cache) by running "
-                    "each estimator once on small generated scenes. The first run on a machine takes tens of "
-                    "seconds; later runs, and queries, only load the cache.\n\n"
-                    "example (in a Dockerfile, after pip install):\n  RUN planarloc warmup")
-    p.set_defaults(func=run, interrupted=WARMUP_RESUMES)
+    add_command(sub, "warmup", "compile or load every numba kernel once (run at image build time)",
+                """Compile every numba kernel a query uses (or load it from numba's on-disk cache) by running
+                each estimator once on small generated scenes. The first run on a machine takes tens of
+                seconds; later runs, and queries, only load the cache. In a Dockerfile, after pip install:
+                RUN planarloc warmup""",
+                ["planarloc warmup"], run, interrupted=WARMUP_RESUMES)
 
 
 def run(args: argparse.Namespace) -> int:

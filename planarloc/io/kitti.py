@@ -120,13 +120,8 @@ def _read_times(path: Path) -> list[float]:
     return times
 
 
-def read_kitti(
-    root: Path,
-    *,
-    image_dir: str | None = None,
-    calib_key: str | None = None,
-    check_images: bool = True,
-) -> list[PosedImage]:
+def read_kitti(root: Path, *, image_dir: str | None = None, calib_key: str | None = None,
+               check_images: bool = True) -> list[PosedImage]:
     """Read a KITTI odometry sequence (format in the module docstring).
 
     Args:

@@ -42,6 +42,8 @@ from __future__ import annotations
 
 import os
 import sqlite3
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 from planarloc.geometry.validation import InputError
@@ -207,12 +209,19 @@ def open_connection(path: str | os.PathLike, writable: bool = False) -> sqlite3.
         conn = connect(path, writable)
     except sqlite3.Error as exc:
         raise MapFormatError(f"{path}: cannot open map ({exc})") from None
-    try:
+    with closed_on_error(conn, path):
         validate(conn, path)
+    return conn
+
+
+@contextmanager
+def closed_on_error(conn: sqlite3.Connection, path: Path) -> Iterator[None]:
+    """Close ``conn`` if the block fails; an SQLite error there means a damaged map file."""
+    try:
+        yield
     except sqlite3.DatabaseError as exc:
         conn.close()
         raise MapCorruptError(f"{path}: damaged map file ({exc}); run `planarloc map check {path}`") from None
     except BaseException:
         conn.close()
         raise
-    return conn

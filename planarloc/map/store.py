@@ -238,19 +238,13 @@ class MapDatabase:
         if not path.is_file():
             raise MapFormatError(f"{path}: no such map file (it was removed while waiting for its writer)")
         conn = schema.open_connection(path, writable=mode == "a")
-        try:
+        with schema.closed_on_error(conn, path):
             if mode == "a":
                 conn.execute("PRAGMA journal_mode = WAL")
                 conn.execute("PRAGMA synchronous = NORMAL")
                 conn.execute(SOURCES_TABLE)
             conn.execute("PRAGMA foreign_keys = ON")
             return cls(conn, path, mode == "a", cache_size, lock)
-        except sqlite3.DatabaseError as exc:
-            conn.close()
-            raise MapCorruptError(f"{path}: damaged map file ({exc}); run `planarloc map check {path}`") from None
-        except BaseException:
-            conn.close()
-            raise
 
     @classmethod
     def open_or_create(
