@@ -56,7 +56,7 @@ import _peer_pipeline as peer  # noqa: E402
 from rich.console import Console  # noqa: E402
 from rich.table import Table  # noqa: E402
 
-from planarloc.cli.progress import progress_bar  # noqa: E402
+from planarloc.cli.console import progress_bar  # noqa: E402
 from planarloc.evaluation.queries import (
     THRESHOLDS,
     config_label,

@@ -31,7 +31,6 @@ import _peer_pipeline as peer  # noqa: E402
 from _datasets import WRONG_R, WRONG_T, confident_wrong, is_wrong  # noqa: E402
 
 from planarloc.evaluation.queries import (  # noqa: E402
-from planarloc.io.datasets import read_dataset  # noqa: E402
     THRESHOLDS,
     config_label,
     evaluate_configs,
@@ -39,6 +38,7 @@ from planarloc.io.datasets import read_dataset  # noqa: E402
     threshold_name,
 )
 from planarloc.features.extract import FeatureConfig  # noqa: E402
+from planarloc.io.datasets import read_dataset  # noqa: E402
 from planarloc.localize.localizer import LocalizerConfig  # noqa: E402
 from planarloc.map.builder import build_map  # noqa: E402
 from planarloc.map.store import MapDatabase  # noqa: E402
