@@ -198,9 +198,9 @@ def run_queries(writer: ResultsWriter, queries: list[QuerySource], localize: Loc
                 update(stage, i + 1, len(queries))
     except KeyboardInterrupt:
         writer.close()
-        raise Interrupted(f"interrupted after {writer.queries} of {len(queries)} queries: their results are in "
-                          f"{writer.out} (the others have none); re-running the command localizes all "
-                          f"{len(queries)} again") from None
+        where = "on stdout" if str(writer.out) == STDOUT else f"in {writer.out}"
+        raise Interrupted(f"interrupted after {writer.queries} of {len(queries)} queries: their results are {where} "
+                          f"(the others have none); re-running the command localizes all {len(queries)} again") from None
     writer.close()
     return EXIT_PARTIAL if writer.errors else EXIT_OK
 
