@@ -86,12 +86,13 @@ def numbers(tokens: Sequence[str], what: str, first: int = 0) -> np.ndarray:
     """Fields as finite floats; ``first``: index of ``tokens[0]`` in the whole text (messages)."""
     out = np.empty(len(tokens))
     for i, tok in enumerate(tokens):
+        shown = repr(tok) if len(tok) <= 40 else repr(tok[:37] + "...")
         try:
             out[i] = float(tok)
         except ValueError:
-            raise TextError(f"expected a number in column {_COLUMN} ({what}), found {tok!r}", first + i) from None
+            raise TextError(f"expected a number in column {_COLUMN} ({what}), found {shown}", first + i) from None
         if not math.isfinite(out[i]):
-            raise TextError(f"expected a finite number in column {_COLUMN} ({what}), found {tok!r}", first + i)
+            raise TextError(f"expected a finite number in column {_COLUMN} ({what}), found {shown}", first + i)
     return out
 
 
