@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import os
+from contextlib import closing
 from pathlib import Path
 
 import numpy as np
@@ -27,10 +28,11 @@ from planarloc.cli.result_outputs import EstimateOutputs, add_output_args, write
 from planarloc.cli.sequence_cli import add_sequence_args, check_sequential_args, evaluate_sequential
 from planarloc.distributed.ray_backend import ray_session
 from planarloc.evaluation.queries import config_label, evaluate_queries, gravity_from_truth, summarize
+from planarloc.features.extract import FeatureConfig
 from planarloc.io.gravity_file import read_gravity_file
 from planarloc.io.hloc_pairs import read_hloc_pairs
 from planarloc.io.output import atomic_output, check_output_file, dataset_files, input_files
-from planarloc.localize.localizer import Localizer
+from planarloc.localize.localizer import Localizer, LocalizerConfig
 from planarloc.map.builder import build_map, check_map_settings
 from planarloc.map.gravity import map_gravity
 from planarloc.map.store import MapDatabase
@@ -77,6 +79,35 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     # Every option and output is checked before the first image is read.
+    _check_options(args)
+    features = feature_config(args)
+    num_words = check_vocabulary_size(args.vocabulary_size)
+    config = localizer_config_of(args)
+    pairs = read_hloc_pairs(args.pairs) if args.pairs else None
+    gravity = read_gravity_file(args.gravity_file) if args.gravity_file else None
+    outputs = {"--map": args.map, "--json": args.json, "--plot": args.plot}
+    _check_outputs(args, outputs)
+    if args.map is not None:
+        check_map_settings(args.map, features, num_words)
+    map_images, queries, map_path, extra, title = read_map_and_queries(args, features.name,
+                                                                       settings=f"words={num_words}|{features}")
+    image_paths = [im.path for im in [*map_images, *queries]]
+    for option, path in outputs.items():
+        check_output_file(path, option, image_paths)
+    note(f"map: {len(map_images)} frames -> {map_path}; queries: {len(queries)} frames")
+    if args.sequential:
+        with progress_bar() as update:
+            build_map(map_images, map_path, features, num_words=num_words, progress=update, notify=notify)
+        return evaluate_sequential(args, map_path, queries, config)
+    results, gravity = _build_and_localize(args, map_images, queries, map_path, features, num_words, config, pairs,
+                                           gravity)
+    method, structure = config_label(config)
+    summary = summarize(results, method, structure, **extra, top_n=config.top_n, tilt=features.tilt,
+                        query_gravity="truth" if args.gravity_from_truth else ("file" if gravity else "map"))
+    return _report(args, summary, results, map_images, title)
+
+
+def _check_options(args: argparse.Namespace) -> None:
     if args.map_every is not None and args.map_every < 2:
         raise ValueError(f"--map-every must be >= 2 (otherwise there are no queries), got {args.map_every}")
     check_sequential_args(args)
@@ -84,52 +115,42 @@ def run(args: argparse.Namespace) -> int:
                             or args.gravity_from_truth):
         raise ValueError("--sequential: --ray, --tum, --plot-matches, --rerun and query gravity are single-frame "
                          "options; drop them")
-    features = feature_config(args)
-    num_words = check_vocabulary_size(args.vocabulary_size)
-    config = localizer_config_of(args)
-    pairs = read_hloc_pairs(args.pairs) if args.pairs else None
-    gravity = read_gravity_file(args.gravity_file) if args.gravity_file else None
-    outputs_paths = {"--map": args.map, "--json": args.json, "--plot": args.plot}
-    _check_distinct(outputs_paths)
+    if args.ray and (args.plot_matches or args.rerun):
+        raise ValueError("--plot-matches and --rerun draw in this process: run them without --ray")
+
+
+def _check_outputs(args: argparse.Namespace, outputs: dict[str, Path | None]) -> None:
+    """The outputs differ from each other and from every input the command line names."""
+    _check_distinct(outputs)
     roots = [Path(d) for d in args.dataset] + ([Path(args.queries)] if args.queries is not None else [])
     inputs = input_files([*(f for r in roots for f in dataset_files(r)), *roots, args.pairs, args.gravity_file])
     for option in ("--json", "--plot"):
-        check_output_file(outputs_paths[option], option, input_files(inputs, with_map_sidecars=[args.map]))
+        check_output_file(outputs[option], option, input_files(inputs, with_map_sidecars=[args.map]))
     check_output_file(args.map, "--map", inputs)
-    if args.map is not None:
-        check_map_settings(args.map, features, num_words)
-    map_images, queries, map_path, extra, title = read_map_and_queries(args, features.name,
-                                                                       settings=f"words={num_words}|{features}")
-    image_paths = [im.path for im in [*map_images, *queries]]
-    for option, path in outputs_paths.items():
-        check_output_file(path, option, image_paths)
-    note(f"map: {len(map_images)} frames -> {map_path}; queries: {len(queries)} frames")
-    if args.sequential:
-        with progress_bar() as update:
-            build_map(map_images, map_path, features, num_words=num_words, progress=update, notify=notify)
-        return evaluate_sequential(args, map_path, queries, config)
+
+
+def _build_and_localize(args: argparse.Namespace, map_images: list, queries: list, map_path: Path,
+                        features: FeatureConfig, num_words: int, config: LocalizerConfig, pairs: dict | None,
+                        gravity: dict | None) -> tuple[list, dict | None]:
+    """Build (or resume) the map, then localize every query, here or on Ray; returns the results
+    and the query gravity used."""
     outputs = EstimateOutputs(args.plot_matches, args.rerun)
-    if args.ray and outputs.active:
-        raise ValueError("--plot-matches and --rerun draw in this process: run them without --ray")
-    try:
-        with ray_session(args.ray) as ray_backend, progress_bar() as update:
-            build_map(map_images, map_path, features, num_words=num_words, progress=update, notify=notify,
-                      mapper=ray_backend.map if ray_backend else None)
-            if args.gravity_from_truth:
-                # the dataset's declared down direction, else the map's (estimated) gravity
-                with MapDatabase.open(map_path) as db:
-                    gravity = gravity_from_truth(queries, map_gravity(db).g_world_array)
-            progress = lambda d, n: update("localize", d, n)  # noqa: E731
-            if ray_backend:
-                results = ray_backend.evaluate(map_path, config, queries, pairs, progress, gravity=gravity)
-            else:
-                results = evaluate_queries(Localizer(map_path, config), queries, progress, pairs,
-                                           outputs if outputs.active else None, gravity=gravity)
-    finally:
-        outputs.close()
-    method, structure = config_label(config)
-    summary = summarize(results, method, structure, **extra, top_n=config.top_n, tilt=features.tilt,
-                        query_gravity="truth" if args.gravity_from_truth else ("file" if gravity else "map"))
+    with closing(outputs), ray_session(args.ray) as ray_backend, progress_bar() as update:
+        build_map(map_images, map_path, features, num_words=num_words, progress=update, notify=notify,
+                  mapper=ray_backend.map if ray_backend else None)
+        if args.gravity_from_truth:
+            # the dataset's declared down direction, else the map's (estimated) gravity
+            with MapDatabase.open(map_path) as db:
+                gravity = gravity_from_truth(queries, map_gravity(db).g_world_array)
+        progress = lambda d, n: update("localize", d, n)  # noqa: E731
+        if ray_backend:
+            return ray_backend.evaluate(map_path, config, queries, pairs, progress, gravity=gravity), gravity
+        return evaluate_queries(Localizer(map_path, config), queries, progress, pairs,
+                                outputs if outputs.active else None, gravity=gravity), gravity
+
+
+def _report(args: argparse.Namespace, summary: dict, results: list, map_images: list, title: str) -> int:
+    """The table (stdout), the JSON, the TUM files and the plot; the exit code (3: queries not processed)."""
     if args.tum:
         summary["evo"] = write_evaluation_tum(args.tum, results)
     print_summary_table([summary], title)
@@ -139,7 +160,7 @@ def run(args: argparse.Namespace) -> int:
 
         centers = np.array([m.cam_from_world.center for m in map_images])
         with atomic_output(args.plot) as tmp:
-            save_localization_plot(tmp, centers, results, f"{title}: {method}, {structure}")
+            save_localization_plot(tmp, centers, results, f"{title}: {summary['method']}, {summary['structure']}")
         info(f"wrote {args.plot}")
     errors = [r for r in results if r.status == "error"]
     if errors:

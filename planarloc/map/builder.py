@@ -27,8 +27,9 @@ from planarloc.features.extract import DEFAULT_FEATURE_CONFIG, FeatureConfig, Fe
 from planarloc.features.images import png_size, read_gray
 from planarloc.features.retrieval import DEFAULT_NUM_WORDS, VladVocabulary, vlad_descriptor
 from planarloc.geometry.validation import InputError
+from planarloc.gravity.world import WorldDown
 from planarloc.map.gravity import declared_world_down, resolve_world_down, store_map_gravity
-from planarloc.map.identity import file_sha256, plan_map_update
+from planarloc.map.identity import MapUpdatePlan, file_sha256, plan_map_update
 from planarloc.map.posed_image import PosedImage
 from planarloc.map.schema import GRAVITY_META, VOCABULARY_BLOB, WORLD_DOWN_META
 from planarloc.map.settings import check_num_words, map_config, settings_mismatch_error
@@ -129,13 +130,8 @@ def build_map(
         raise InputError("images: expected PosedImage records (e.g. from planarloc.io.datasets.read_dataset)")
     config = map_config(features, num_words)
     declared = declared_world_down(images)
-    n_workers = workers or os.cpu_count() or 1
-    with ThreadPoolExecutor(max_workers=n_workers) as pool:
-        hashes = []
-        for i, h in enumerate(pool.map(_hash_checked, images)):  # reads every file once, before any work
-            hashes.append(h)
-            if progress:
-                progress("check images", i + 1, len(images))
+    with ThreadPoolExecutor(max_workers=workers or os.cpu_count() or 1) as pool:
+        hashes = _hash_images(images, pool, progress)
         try:
             db = MapDatabase.open_or_create(path, config, lock_timeout=lock_timeout)
         except OSError as exc:
@@ -153,28 +149,52 @@ def build_map(
                     logger.warning("%s", line)
             if plan.keep:
                 logger.info("%s: %d of %d images already in the map, resuming", path, len(plan.keep), len(images))
-            for record, sha in plan.update:
-                db.update_image_record(record.name, record, sha)
-            todo = plan.replace + plan.add
-            # Reading and SIFT run in worker threads (OpenCV releases the GIL) or on the given
-            # mapper (e.g. a Ray cluster); the database is written in this thread, in order, one
-            # transaction per image (resumable).
-            extract = functools.partial(extract_image_features, features=features)
-            extracted = (mapper or pool.map)(extract, [record for record, _ in todo])
-            for i, feats in enumerate(extracted):
-                record, sha = todo[i]
-                if db.has_image(record.name):  # replaced: old features out, new in, one image at a time
-                    db.remove_image(record.name)
-                db.add_image(record, feats, content_sha256=sha)
-                if progress:
-                    progress("features", i + 1, len(todo))
-            if plan.changes_map or not db.is_complete or db.get_blob(VOCABULARY_BLOB) is None:
-                index_map(db, num_words=num_words, seed=seed, progress=progress)
-                store_map_gravity(db, declared)
-                db.mark_complete()
-            elif db.get_meta(GRAVITY_META) is None or (declared is not None and db.get_meta(WORLD_DOWN_META) is None):
-                store_map_gravity(db, declared)  # a map built before gravity was stored
+            _store_images(db, plan, features, mapper or pool.map, progress)
+            _finish(db, plan, declared, num_words, seed, progress)
     return path
+
+
+def _hash_images(images: Sequence[PosedImage], pool: ThreadPoolExecutor, progress: Progress | None) -> list[str]:
+    """Stage 1: every image file read once (size checked, SHA-256), before the map is touched."""
+    hashes = []
+    for i, h in enumerate(pool.map(_hash_checked, images)):
+        hashes.append(h)
+        if progress:
+            progress("check images", i + 1, len(images))
+    return hashes
+
+
+def _store_images(db: MapDatabase, plan: MapUpdatePlan, features: FeatureConfig, mapper: Mapper,
+                  progress: Progress | None) -> None:
+    """Stage 2: the plan's pose updates, then the new and changed images' features.
+
+    Reading and SIFT run in worker threads (OpenCV releases the GIL) or on the given mapper (e.g.
+    a Ray cluster); the database is written in this thread, in order, one transaction per image
+    (resumable)."""
+    for record, sha in plan.update:
+        db.update_image_record(record.name, record, sha)
+    todo = plan.replace + plan.add
+    extracted = mapper(functools.partial(extract_image_features, features=features), [r for r, _ in todo])
+    for i, feats in enumerate(extracted):
+        record, sha = todo[i]
+        if db.has_image(record.name):  # replaced: old features out, new in, one image at a time
+            db.remove_image(record.name)
+        db.add_image(record, feats, content_sha256=sha)
+        if progress:
+            progress("features", i + 1, len(todo))
+
+
+def _finish(db: MapDatabase, plan: MapUpdatePlan, declared: WorldDown | None, num_words: int, seed: int,
+            progress: Progress | None) -> None:
+    """Stage 3: when anything changed (or the last build did not finish), the retrieval index and
+    the map's gravity, then the map is marked complete; a map built before gravity was stored
+    gets it."""
+    if plan.changes_map or not db.is_complete or db.get_blob(VOCABULARY_BLOB) is None:
+        index_map(db, num_words=num_words, seed=seed, progress=progress)
+        store_map_gravity(db, declared)
+        db.mark_complete()
+    elif db.get_meta(GRAVITY_META) is None or (declared is not None and db.get_meta(WORLD_DOWN_META) is None):
+        store_map_gravity(db, declared)
 
 
 def _check_read_only_map_is_current(path: Path, config: dict, images: Sequence[PosedImage], hashes: Sequence[str],
