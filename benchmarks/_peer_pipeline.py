@@ -25,10 +25,10 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from planarloc.evaluation.queries import THRESHOLDS, threshold_name
 from planarloc.geometry.camera import Camera
 from planarloc.geometry.pose import Pose, pose_errors
-from planarloc.pipeline.evaluation import THRESHOLDS, threshold_name
-from planarloc.pipeline.posed_image import PosedImage
+from planarloc.map.posed_image import PosedImage
 
 try:
     import poselib

@@ -4,7 +4,7 @@ Protocol (the issues'): frames with ``index % N == 0`` form the map, the others 
 N = ``--map-every`` (2 and 4). The map is built once per N (default FeatureConfig, and the
 tilt-augmented one with ``--tilt``); every query is localized with each method × structure
 using the pipeline's own VLAD retrieval (top-5); query features are extracted once per query
-(:func:`planarloc.pipeline.evaluation.evaluate_configs`).
+(:func:`planarloc.evaluation.queries.evaluate_configs`).
 
 The peer, in the same run: PoseLib ``estimate_generalized_relative_pose`` (6DoF, 2D-2D only,
 PoseLib's default options) on the ORACLE top-5 map frames (nearest ground-truth centres) with
@@ -35,8 +35,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import _peer_pipeline as peer  # noqa: E402
 from _datasets import build_or_reuse, confident_wrong  # noqa: E402
 
-from planarloc.io.datasets import read_dataset  # noqa: E402
-from planarloc.pipeline.evaluation import (  # noqa: E402
+from planarloc.evaluation.queries import (
     THRESHOLDS,
     config_label,
     evaluate_configs,
@@ -44,11 +43,12 @@ from planarloc.pipeline.evaluation import (  # noqa: E402
     summarize,
     threshold_name,
 )
-from planarloc.pipeline.features import FeatureConfig, extract_features  # noqa: E402
-from planarloc.pipeline.localizer import LocalizerConfig  # noqa: E402
-from planarloc.pipeline.map_builder import read_gray  # noqa: E402
-from planarloc.pipeline.map_database import MapDatabase  # noqa: E402
-from planarloc.pipeline.matching import match_query_to_refs  # noqa: E402
+from planarloc.features.extract import FeatureConfig, extract_features  # noqa: E402
+from planarloc.features.images import read_gray  # noqa: E402
+from planarloc.features.matching import match_query_to_refs  # noqa: E402
+from planarloc.io.datasets import read_dataset  # noqa: E402
+from planarloc.localize.localizer import LocalizerConfig  # noqa: E402
+from planarloc.map.store import MapDatabase  # noqa: E402
 from planarloc.robust.options import Method, RansacOptions  # noqa: E402
 
 DEFAULT_DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "kitti_seq2"

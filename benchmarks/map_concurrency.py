@@ -4,7 +4,7 @@ Each repetition starts two real `planarloc map build` processes on the same (new
 small generated world (12 map images, TUM layout), a few milliseconds apart. Every third
 repetition additionally kills the first builder with SIGKILL at a random moment and then runs a
 third build to completion (resume after a crash while another writer is active). After each
-repetition the map must pass `planarloc.pipeline.map_integrity.check_map`, hold all 12 images,
+repetition the map must pass `planarloc.map.integrity.check_map`, hold all 12 images,
 be marked complete, and every builder that was not killed must have exited 0.
 
     python benchmarks/map_concurrency.py                 # 30 repetitions
@@ -25,8 +25,8 @@ from pathlib import Path
 
 import numpy as np
 
-from planarloc.pipeline.map_database import MapDatabase
-from planarloc.pipeline.map_integrity import check_map
+from planarloc.map.integrity import check_map
+from planarloc.map.store import MapDatabase
 from planarloc.synthetic.world.export import generate
 from planarloc.synthetic.world.presets import get_preset, shrunk
 

@@ -4,7 +4,7 @@
    random RootSIFT-like features (4000 per image: non-negative, L1-normalised then square-rooted,
    so every row has unit L2 norm, as RootSIFT), posed along a random planar trajectory
    (yaw + x-z translation, camera height fixed), PINHOLE 640x480 cameras; then
-   :func:`planarloc.pipeline.map_builder.index_map` (VLAD vocabulary + global descriptors).
+   :func:`planarloc.map.builder.index_map` (VLAD vocabulary + global descriptors).
 2. In a FRESH subprocess: opens the map with ``Localizer`` and localizes a few queries made
    from map images' features (keypoints moved by 1 px noise, descriptors perturbed and
    re-normalised) with ``localize_features`` — the pose result does not matter here, the
@@ -77,11 +77,11 @@ def planar_trajectory(rng: np.random.Generator, n: int, step_m: float = 0.5):
 
 
 def build_random_map(path: Path, num_images: int, num_features: int, seed: int) -> dict:
+    from planarloc.features.extract import FeatureConfig, Features
     from planarloc.geometry.camera import Camera
-    from planarloc.pipeline.features import FeatureConfig, Features
-    from planarloc.pipeline.map_builder import index_map
-    from planarloc.pipeline.map_database import MapDatabase
-    from planarloc.pipeline.posed_image import PosedImage
+    from planarloc.map.builder import index_map
+    from planarloc.map.posed_image import PosedImage
+    from planarloc.map.store import MapDatabase
 
     rng = np.random.default_rng(seed)
     camera = Camera(*CAMERA)
@@ -105,7 +105,7 @@ def build_random_map(path: Path, num_images: int, num_features: int, seed: int) 
 
 
 def map_is_reusable(path: Path, num_images: int) -> bool:
-    from planarloc.pipeline.map_database import MapDatabase
+    from planarloc.map.store import MapDatabase
 
     if not path.is_file():
         return False
@@ -131,8 +131,8 @@ def rss_mb(field: str) -> float:
 def child(map_path: Path, num_queries: int, seed: int) -> int:
     """Open the map, serve queries, print one JSON line with the measurements."""
     out: dict = {}
-    from planarloc.pipeline.features import Features
-    from planarloc.pipeline.localizer import Localizer
+    from planarloc.features.extract import Features
+    from planarloc.localize.localizer import Localizer
 
     out["rss_after_imports_mb"] = rss_mb("VmRSS")
     t0 = time.perf_counter()

@@ -42,12 +42,13 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import _peer_pipeline as peer  # noqa: E402
 
+from planarloc.evaluation.queries import split_map_queries  # noqa: E402
+from planarloc.features.extract import FeatureConfig, extract_features  # noqa: E402
+from planarloc.features.images import read_gray  # noqa: E402
 from planarloc.io.datasets import read_dataset  # noqa: E402
-from planarloc.pipeline.evaluation import split_map_queries  # noqa: E402
-from planarloc.pipeline.features import FeatureConfig, extract_features  # noqa: E402
-from planarloc.pipeline.localizer import Localizer, LocalizerConfig  # noqa: E402
-from planarloc.pipeline.map_builder import build_map, read_gray  # noqa: E402
-from planarloc.pipeline.map_database import MapDatabase  # noqa: E402
+from planarloc.localize.localizer import Localizer, LocalizerConfig  # noqa: E402
+from planarloc.map.builder import build_map
+from planarloc.map.store import MapDatabase  # noqa: E402
 from planarloc.robust.options import RansacOptions  # noqa: E402
 
 DEFAULT_DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "kitti_seq2"

@@ -38,13 +38,14 @@ from pathlib import Path
 
 import numpy as np
 
+from planarloc.evaluation.queries import split_map_queries
+from planarloc.evaluation.sequence import FrameResult, frame_result, summarize_sequence
+from planarloc.features.images import read_gray
 from planarloc.geometry.pose import Pose, pose_errors
 from planarloc.io.datasets import read_dataset
-from planarloc.pipeline.evaluation import split_map_queries
-from planarloc.pipeline.localizer import Localizer, LocalizerConfig
-from planarloc.pipeline.map_builder import build_map, read_gray
-from planarloc.pipeline.sequence import SequenceConfig, SequenceLocalizer
-from planarloc.pipeline.sequence_evaluation import FrameResult, frame_result, summarize_sequence
+from planarloc.localize.localizer import Localizer, LocalizerConfig
+from planarloc.localize.sequence import SequenceConfig, SequenceLocalizer
+from planarloc.map.builder import build_map
 from planarloc.robust.options import RansacOptions
 from planarloc.robust.pose_graph import AbsoluteFactor, RelativeFactor, so3_exp, solve_pose_graph
 from planarloc.synthetic.stream import make_stream, stream_order
@@ -55,7 +56,7 @@ STRICT = "0.25m/10deg"
 
 def _single_frame(loc: Localizer, frames: list) -> list[FrameResult]:
     """Single-frame localization of the stream, as FrameResults (success -> localized)."""
-    from planarloc.pipeline.sequence import SequenceEstimate
+    from planarloc.localize.sequence import SequenceEstimate
 
     out = []
     for f in frames:

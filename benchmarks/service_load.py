@@ -35,7 +35,7 @@ import httpx
 import numpy as np
 
 from planarloc.io.datasets import read_dataset
-from planarloc.pipeline.map_builder import build_map
+from planarloc.map.builder import build_map
 from planarloc.serve.launcher import rss_bytes, start_server, stop_server, worker_pids
 from planarloc.synthetic.world.export import generate
 from planarloc.synthetic.world.presets import get_preset, shrunk
@@ -109,8 +109,8 @@ class Load:
 
 def in_process_latency(map_path: Path, images: list[Path], camera: str, n: int) -> dict:
     """The peer: the same localization in this process, without the service."""
-    from planarloc.pipeline.localizer import Localizer
-    from planarloc.pipeline.map_builder import read_gray
+    from planarloc.features.images import read_gray
+    from planarloc.localize.localizer import Localizer
     from planarloc.serve.requests import parse_camera_field
 
     loc, cam = Localizer(map_path), parse_camera_field(camera)

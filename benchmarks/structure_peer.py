@@ -43,12 +43,12 @@ from _datasets import build_or_reuse  # noqa: E402
 
 from planarloc.geometry.pose import Pose  # noqa: E402
 from planarloc.io.datasets import read_dataset  # noqa: E402
-from planarloc.pipeline.evaluation import THRESHOLDS, split_map_queries, threshold_name  # noqa: E402
-from planarloc.pipeline.features import FeatureConfig, extract_features  # noqa: E402
-from planarloc.pipeline.localizer import Localizer  # noqa: E402
-from planarloc.pipeline.map_builder import read_gray  # noqa: E402
-from planarloc.pipeline.map_database import MapDatabase  # noqa: E402
-from planarloc.pipeline.posed_image import PosedImage  # noqa: E402
+from planarloc.evaluation.queries import THRESHOLDS, split_map_queries, threshold_name  # noqa: E402
+from planarloc.features.extract import FeatureConfig, extract_features  # noqa: E402
+from planarloc.localize.localizer import Localizer  # noqa: E402
+from planarloc.features.images import read_gray  # noqa: E402
+from planarloc.map.store import MapDatabase  # noqa: E402
+from planarloc.map.posed_image import PosedImage  # noqa: E402
 
 DATA_ROOT = Path(__file__).resolve().parents[2] / "shared" / "data"
 SEQUENCES = ["kitti_seq1", "kitti_seq2"]

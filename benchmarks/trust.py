@@ -61,20 +61,20 @@ import _peer_pipeline as peer  # noqa: E402
 from rich.console import Console  # noqa: E402
 from rich.table import Table  # noqa: E402
 
-from planarloc.cli.progress import progress_bar  # noqa: E402
-from planarloc.io.datasets import read_dataset  # noqa: E402
-from planarloc.pipeline.evaluation import (  # noqa: E402
+from planarloc.cli.console import progress_bar  # noqa: E402
+from planarloc.evaluation.queries import (
     THRESHOLDS,
     config_label,
     query_result,
     split_map_queries,
     threshold_name,
 )
-from planarloc.pipeline.features import extract_features  # noqa: E402
-from planarloc.pipeline.localizer import Localizer, LocalizerConfig  # noqa: E402
-from planarloc.pipeline.map_builder import read_gray  # noqa: E402
-from planarloc.pipeline.map_database import MapDatabase  # noqa: E402
-from planarloc.pipeline.posed_image import PosedImage  # noqa: E402
+from planarloc.features.extract import extract_features  # noqa: E402
+from planarloc.features.images import read_gray  # noqa: E402
+from planarloc.io.datasets import read_dataset  # noqa: E402
+from planarloc.localize.localizer import Localizer, LocalizerConfig  # noqa: E402
+from planarloc.map.posed_image import PosedImage  # noqa: E402
+from planarloc.map.store import MapDatabase  # noqa: E402
 from planarloc.robust.options import Method, RansacOptions  # noqa: E402
 from planarloc.synthetic.world.export import read_gravity  # noqa: E402
 from planarloc.synthetic.world.presets import get_preset, robot_variant  # noqa: E402

@@ -30,12 +30,18 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import _peer_pipeline as peer  # noqa: E402
 from _datasets import WRONG_R, WRONG_T, confident_wrong, is_wrong  # noqa: E402
 
+from planarloc.evaluation.queries import (  # noqa: E402
+    THRESHOLDS,
+    config_label,
+    evaluate_configs,
+    summarize,
+    threshold_name,
+)
+from planarloc.features.extract import FeatureConfig  # noqa: E402
 from planarloc.io.datasets import read_dataset  # noqa: E402
-from planarloc.pipeline.evaluation import THRESHOLDS, config_label, evaluate_configs, summarize, threshold_name  # noqa: E402
-from planarloc.pipeline.features import FeatureConfig  # noqa: E402
-from planarloc.pipeline.localizer import LocalizerConfig  # noqa: E402
-from planarloc.pipeline.map_builder import build_map  # noqa: E402
-from planarloc.pipeline.map_database import MapDatabase  # noqa: E402
+from planarloc.localize.localizer import LocalizerConfig  # noqa: E402
+from planarloc.map.builder import build_map  # noqa: E402
+from planarloc.map.store import MapDatabase  # noqa: E402
 from planarloc.robust.options import RansacOptions  # noqa: E402
 from planarloc.synthetic.world.export import generate  # noqa: E402
 from planarloc.synthetic.world.presets import preset_names  # noqa: E402

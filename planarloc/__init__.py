@@ -8,14 +8,13 @@ from planarloc.robust.absolute_pose import estimate_absolute_pose
 from planarloc.robust.options import Method, RansacOptions, Structure
 from planarloc.robust.pair_matches import PairMatches
 from planarloc.robust.result import PoseEstimate
-
-__version__ = "0.1.0"
+from planarloc.version import __version__
 
 
 def __getattr__(name: str):
     # The pipeline (OpenCV, faiss, SQLite) loads only when used, keeping `import planarloc` light.
     if name in ("Localizer", "LocalizerConfig"):
-        from planarloc.pipeline import localizer
+        from planarloc.localize import localizer
 
         return getattr(localizer, name)
     raise AttributeError(f"module 'planarloc' has no attribute {name!r}")

@@ -14,6 +14,7 @@ from pathlib import Path
 
 from planarloc.extras import require
 from planarloc.geometry.camera import Camera
+from planarloc.io.text import camera_text
 
 
 class ServiceError(RuntimeError):
@@ -22,15 +23,6 @@ class ServiceError(RuntimeError):
     def __init__(self, status: int, reason: str, retry_after_s: float | None = None) -> None:
         super().__init__(f"HTTP {status}: {reason}" if status else reason)
         self.status, self.reason, self.retry_after_s = status, reason, retry_after_s
-
-
-def camera_text(camera: Camera | str) -> str:
-    """COLMAP syntax ``MODEL W H PARAMS...`` of a camera (strings pass through)."""
-    if isinstance(camera, str):
-        return camera
-    return " ".join(
-        [camera.model.value, str(camera.width), str(camera.height), *(repr(p) for p in camera.params)]
-    )
 
 
 class Client:
@@ -93,7 +85,7 @@ class Client:
     def localize(
         self,
         image: str | Path | bytes,
-        camera: Camera | str,
+        camera: Camera | str | None = None,
         *,
         map: str | None = None,
         name: str | None = None,
@@ -107,7 +99,8 @@ class Client:
 
         Args:
             image: a JPEG/PNG file path or its bytes.
-            camera: the query intrinsics (a :class:`Camera` or ``"MODEL W H PARAMS..."``).
+            camera: the query intrinsics (a :class:`Camera` or ``"MODEL W H PARAMS..."``); None: the
+                served map's camera (when it has exactly one).
             map: map name (needed when the server serves several).
             name: the record's ``name`` (default: the file name, or ``"query.png"`` for bytes).
             gravity, session, method, structure, seed: optional fields (see ``planarloc serve --help``).
@@ -120,7 +113,7 @@ class Client:
         else:
             data, fname = Path(image).read_bytes(), name or Path(image).name
         fields = {
-            "camera": camera_text(camera),
+            "camera": camera if camera is None or isinstance(camera, str) else camera_text(camera),
             "map": map,
             "session": session,
             "method": method,

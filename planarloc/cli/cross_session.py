@@ -6,11 +6,11 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from planarloc.cli.map_command import parse_dataset_options
+from planarloc.cli.options import parse_dataset_options
+from planarloc.evaluation.queries import default_map_path, split_map_queries
 from planarloc.io.datasets import FORMATS, read_dataset
 from planarloc.io.sessions import read_sessions, session_labels, sessions_map_path
-from planarloc.pipeline.evaluation import default_map_path, split_map_queries
-from planarloc.pipeline.posed_image import PosedImage
+from planarloc.map.posed_image import PosedImage
 
 
 def add_cross_session_args(p: argparse.ArgumentParser) -> None:
@@ -42,7 +42,7 @@ def read_map_and_queries(
                 f"{Path(args.dataset[0]).name}, map every {args.map_every}")
     map_images = read_sessions(args.dataset, args.format, **map_options)
     queries = read_dataset(Path(args.queries), args.queries_format or args.format,
-                           **parse_dataset_options(args.queries_option))
+                           **parse_dataset_options(args.queries_option, "--queries-option"))
     map_path = args.map or sessions_map_path(args.dataset, args.format, map_options, f"{features_name}|{settings}")
     extra = {"map_datasets": [str(d) for d in args.dataset], "map_format": args.format,
              "queries_dataset": str(args.queries), "queries_format": args.queries_format or args.format}

@@ -8,40 +8,40 @@ from pathlib import Path
 
 import numpy as np
 
-from planarloc.cli.output_paths import atomic_output, check_output_dir
-from planarloc.cli.progress import console, progress_bar
+from planarloc.cli.commands import add_command
+from planarloc.cli.console import info, progress_bar
+from planarloc.cli.exit_codes import DEMO_RESUMES
 from planarloc.cli.report import print_summary_table, write_json
+from planarloc.evaluation.queries import config_label, evaluate_configs, summarize
+from planarloc.features.extract import FeatureConfig
 from planarloc.io.datasets import read_dataset
-from planarloc.pipeline.evaluation import config_label, evaluate_configs, summarize
-from planarloc.pipeline.features import FeatureConfig
-from planarloc.pipeline.localizer import LocalizerConfig
-from planarloc.pipeline.map_builder import build_map
-from planarloc.pipeline.map_database import MapDatabase
-from planarloc.robust.options import RansacOptions
+from planarloc.io.output import atomic_output, check_output_dir
+from planarloc.localize.localizer import LocalizerConfig
+from planarloc.map.builder import build_map
+from planarloc.map.store import MapDatabase
+from planarloc.robust.options import Method, RansacOptions
 from planarloc.synthetic.world.export import generate
-from planarloc.synthetic.world.presets import preset_names
+from planarloc.synthetic.world.presets import DEFAULT_PRESET, preset_names, preset_summaries
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser(
-        "demo", help="map and localize a generated indoor world in one go (no data needed)",
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-        description="Renders a small indoor world (textured rooms, furniture) seen by a wheeled robot along a map "
-                    "trajectory and a different query trajectory, builds the map from the map images and their "
-                    "poses, and localizes every query image with the paper's 2D-2D method (structure none) and "
-                    "with the structure-aware mode (tracks). Prints success rates at the paper's thresholds and "
-                    "writes a trajectory plot.\n\n"
-                    "presets: office (default), corridor (straight: the 2D-2D-only mode must report degenerate "
-                    "queries), lifelong (lighting change and moved objects).\n\n"
-                    "The generated world is in TUM RGB-D layout, so it also works with\n"
-                    "  planarloc map build DIR/world/map --format tum --out map.db\n\n"
-                    "example:\n  planarloc demo --preset corridor --out corridor-demo")
+    presets = "\n\npresets:" + "".join(f"\n  {name:<9} {text}" for name, text in preset_summaries().items())
+    p = add_command(
+        sub, "demo", "map and localize a generated indoor world in one go (no data needed)",
+        """Renders a small indoor world (textured rooms, furniture) seen by a wheeled robot along a map
+        trajectory and a different query trajectory, builds the map from the map images and their poses, and
+        localizes every query image with the paper's 2D-2D method (structure none) and with the structure-aware
+        mode (tracks). Prints success rates at the paper's thresholds (stdout) and writes a trajectory plot.
+
+        The generated world is in TUM RGB-D layout, so it also works with
+          planarloc map build DIR/world/map --format tum --out map.db""",
+        ["planarloc demo --preset corridor --out corridor-demo"], run, listing=presets, interrupted=DEMO_RESUMES)
     p.add_argument("--out", "-o", type=Path, default=Path("planarloc-demo"), help="output folder (default: %(default)s)")
-    p.add_argument("--preset", default="office", choices=preset_names(), help="world preset (default: %(default)s)")
+    p.add_argument("--preset", default=DEFAULT_PRESET, choices=preset_names(), help="world preset (default: %(default)s)")
     p.add_argument("--seed", type=int, default=0, help="world seed (default: %(default)s)")
-    p.add_argument("--method", "-m", default="auto", help="solver for both runs (default: %(default)s)")
+    p.add_argument("--method", "-m", default=Method(LocalizerConfig().method).value, choices=[m.value for m in Method],
+                   help="solver for both runs (default: %(default)s)")
     p.add_argument("--tilt", action="store_true", help="tilt-augment the map features (paper Sec. III-B)")
-    p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -71,6 +71,6 @@ def run(args: argparse.Namespace) -> int:
         path = out / f"trajectory-{method}-{structure}.png"
         with atomic_output(path) as tmp:
             save_localization_plot(tmp, centers, r, f"{args.preset}: {method}, structure={structure}")
-        console.print(f"wrote {path}")
-    console.print(f"done in {time.perf_counter() - t_start:.0f} s")
+        info(f"wrote {path}")
+    info(f"done in {time.perf_counter() - t_start:.0f} s")
     return 0

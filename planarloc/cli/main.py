@@ -7,7 +7,7 @@ import logging
 import sqlite3
 import sys
 
-from planarloc import __version__
+from planarloc.version import __version__
 from planarloc.cli import (
     demo_command,
     evaluate_command,
@@ -16,9 +16,8 @@ from planarloc.cli import (
     serve_command,
     warmup_command,
 )
-from planarloc.cli.exit_codes import EXIT_ERROR, EXIT_INTERRUPTED
-from planarloc.cli.exit_codes import HELP as EXIT_CODES_HELP
-from planarloc.cli.output_paths import os_error_message, sqlite_error_message
+from planarloc.cli.errors import os_error_message, sqlite_error_message
+from planarloc.cli.exit_codes import EXIT_ERROR, EXIT_INTERRUPTED, HELP as EXIT_CODES_HELP
 from planarloc.extras import MissingExtraError
 
 
@@ -64,8 +63,9 @@ def main(argv: list[str] | None = None) -> int:
             text = str(exc)
         print(f"planarloc {command}: error: {' '.join(text.split())}", file=sys.stderr)
         return EXIT_ERROR
-    except KeyboardInterrupt:
-        print("interrupted; re-run the same command to resume", file=sys.stderr)
+    except KeyboardInterrupt as exc:
+        # Each command says what Ctrl-C leaves: its own message, its `interrupted` default, or nothing kept.
+        print(str(exc) or getattr(args, "interrupted", None) or "interrupted", file=sys.stderr)
         return EXIT_INTERRUPTED
 
 

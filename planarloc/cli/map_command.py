@@ -3,54 +3,49 @@
 from __future__ import annotations
 
 import argparse
-import json
 from pathlib import Path
 
-from planarloc.cli.options import add_dataset_args, add_feature_args, check_vocabulary_size, feature_config
-from planarloc.cli.output_paths import check_output_file, dataset_files, input_files
-from planarloc.cli.progress import console, notify, progress_bar
+from planarloc.cli.commands import add_command
+from planarloc.cli.console import info, note, notify, progress_bar
+from planarloc.cli.exit_codes import BUILD_RESUMES
+from planarloc.cli.options import (
+    add_dataset_args,
+    add_feature_args,
+    check_vocabulary_size,
+    feature_config,
+    parse_dataset_options,
+)
 from planarloc.distributed.ray_backend import ray_session
 from planarloc.io.datasets import read_dataset
-from planarloc.pipeline.map_builder import build_map, check_map_settings, map_gravity
-from planarloc.pipeline.map_database import MapDatabase
-from planarloc.pipeline.map_integrity import check_map
-
-
-def parse_dataset_options(items: list[str] | None) -> dict:
-    """KEY=VALUE pairs -> dict with JSON-decoded values where possible (numbers, true/false)."""
-    out = {}
-    for item in items or []:
-        if "=" not in item:
-            raise ValueError(f"--dataset-option {item!r}: expected KEY=VALUE, e.g. tum_camera=fr1")
-        k, v = item.split("=", 1)
-        try:
-            out[k] = json.loads(v)
-        except json.JSONDecodeError:
-            out[k] = v
-    return out
+from planarloc.io.output import check_output_file, dataset_files, input_files
+from planarloc.map.builder import build_map, check_map_settings
+from planarloc.map.gravity import map_gravity
+from planarloc.map.integrity import check_map
+from planarloc.map.store import MapDatabase
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("map", help="build or inspect a map (a SQLite file of posed images and their features)",
-                       formatter_class=argparse.RawDescriptionHelpFormatter,
-                       description="A map is just posed images with their features: no 3D model is built.\n\n"
-                                   "examples:\n  planarloc map build data/kitti_seq2 --format kitti --every 2 --out kitti.db\n"
-                                   "  planarloc map info kitti.db\n  planarloc map check kitti.db")
+    p = add_command(sub, "map", "build or inspect a map (a SQLite file of posed images and their features)",
+                    """A map is just posed images with their features: no 3D model is built.""",
+                    ["planarloc map build data/kitti_seq2 --format kitti --every 2 --out kitti.db",
+                     "planarloc map info kitti.db", "planarloc map check kitti.db"])
     msub = p.add_subparsers(dest="map_command", required=True)
-    b = msub.add_parser(
-        "build", help="build (or resume / extend) a map from a dataset",
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-        description="Extract RootSIFT features of every posed image and store them with the poses in MAP.db, "
-                    "then index the map for retrieval (VLAD).\n\n"
-                    "Re-running the same command resumes an interrupted build; running it on another "
-                    "dataset with the same --out appends those images. Images are identified by content: "
-                    "changed poses are updated, changed image files re-extracted, and another dataset's image "
-                    "with a name already in the map is stored as DATASET/NAME (each reported in one line). "
-                    "A second build of the same file waits for the first (it names its PID).\n\n"
-                    "The world's gravity is the format's (KITTI, OpenLORIS, generated worlds), the dataset option "
-                    "up=..., or estimated from the camera centres' plane; `map info` shows it.\n\n"
-                    "example:\n  planarloc map build data/kitti_seq2 --format kitti --every 2 --out kitti.db\n"
-                    "  planarloc map build data/fountain_p11 --format kapture --dataset-option up=-z --out f.db")
+    b = add_command(
+        msub, "build", "build (or resume / extend) a map from a dataset",
+        """Extract RootSIFT features of every posed image and store them with the poses in MAP.db, then index
+        the map for retrieval (VLAD); then print `map info` of it.
+
+        Re-running the same command resumes an interrupted build; running it on another dataset with the same
+        --out appends those images. Images are identified by content: changed poses are updated, changed image
+        files re-extracted, and another dataset's image with a name already in the map is stored as
+        DATASET/NAME (each reported in one line). A second build of the same file waits for the first (it
+        names its PID).
+
+        The world's gravity is the format's (KITTI, OpenLORIS, generated worlds), the dataset option up=...,
+        or estimated from the camera centres' plane; `map info` shows it.""",
+        ["planarloc map build data/kitti_seq2 --format kitti --every 2 --out kitti.db",
+         "planarloc map build data/fountain_p11 --format kapture --dataset-option up=-z --out f.db"],
+        run_build, interrupted=BUILD_RESUMES)
     add_dataset_args(b)
     b.add_argument("--every", type=int, default=1, help="only frames with index %% N == 0 go into the map (default: 1)")
     b.add_argument("--out", "-o", required=True, type=Path, help="map file to create or extend")
@@ -62,27 +57,20 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     b.add_argument("--ray", nargs="?", const="local", metavar="ADDRESS",
                    help="distribute over a Ray cluster (auto, HOST:PORT, ray://HOST:PORT; a local one without "
                         "ADDRESS); needs pip install 'planarloc[ray]'")
-    b.set_defaults(func=run_build)
-    i = msub.add_parser("info", help="summarise a map (images, features, gravity, camera mount tilt) and check "
-                                     "its integrity",
-                        formatter_class=argparse.RawDescriptionHelpFormatter,
-                        description="Prints the number of images, the feature settings, whether the build is "
-                                    "complete, and the map's gravity: where it comes from (declared by the "
-                                    "format, the up= option, or estimated from the camera centres' plane) and "
-                                    "the map cameras' mount pitch/roll relative to it; after the checks of "
-                                    "`planarloc map check` (exit code 1 if the map is damaged).\n\n"
-                                    "example:\n  planarloc map info kitti.db")
-    i.add_argument("map", type=Path, help="map file")
-    i.set_defaults(func=run_info)
-    c = msub.add_parser("check", help="verify every row of a map (SQLite integrity, blobs, checksums)",
-                        formatter_class=argparse.RawDescriptionHelpFormatter,
-                        description="Runs SQLite's integrity_check and then decodes every stored row: cameras, poses, "
-                                    "keypoint and descriptor blobs (lengths, finite values, checksums), global "
-                                    "descriptors and the retrieval vocabulary. Prints one line per problem naming "
-                                    "the row; exit code 0 if the map is sound, 1 if not (rebuild it with "
-                                    "`planarloc map build`).\n\nexample:\n  planarloc map check kitti.db")
-    c.add_argument("map", type=Path, help="map file")
-    c.set_defaults(func=run_check)
+    for name, summary, description, func in (
+        ("info", "summarise a map (images, features, gravity, camera mount tilt) and check its integrity",
+         "Prints (on stdout) the number of images, the feature settings, whether the build is complete, and the "
+         "map's gravity: where it comes from (declared by the format, the up= option, or estimated from the camera "
+         "centres' plane) and the map cameras' mount pitch/roll relative to it; after the checks of `planarloc map "
+         "check` (exit code 1 if the map is damaged).", run_info),
+        ("check", "verify every row of a map (SQLite integrity, blobs, checksums)",
+         "Runs SQLite's integrity_check and then decodes every stored row: cameras, poses, keypoint and descriptor "
+         "blobs (lengths, finite values, checksums), global descriptors and the retrieval vocabulary. Prints one "
+         "line per problem naming the row (on stderr); exit code 0 if the map is sound (one line on stdout), 1 if "
+         "not (rebuild it with `planarloc map build`).", run_check),
+    ):
+        m = add_command(msub, name, summary, description, [f"planarloc map {name} kitti.db"], func)
+        m.add_argument("map", type=Path, help="map file")
 
 
 def run_build(args: argparse.Namespace) -> int:
@@ -99,7 +87,7 @@ def run_build(args: argparse.Namespace) -> int:
         raise ValueError(f"--every {args.every}: no frame of {args.dataset} has an index divisible by it")
     check_output_file(args.out, "--out", input_files(im.path for im in images))
     check_map_settings(args.out, features, num_words)  # before the first image is read
-    console.print(f"building map [bold]{args.out}[/] from {len(images)} images of {args.dataset}")
+    note(f"building map {args.out} from {len(images)} images of {args.dataset}")
     with ray_session(args.ray) as ray_backend, progress_bar() as update:
         build_map(images, args.out, features, num_words=num_words, progress=update, notify=notify,
                   mapper=ray_backend.map if ray_backend else None)
@@ -115,20 +103,20 @@ def run_info(args: argparse.Namespace) -> int:
     with MapDatabase.open(args.map) as db:
         n = db.num_images()
         cfg = db.config
-        console.print(f"{args.map}: {n} images, features {cfg.get('feature_name', '?')}, "
-                      f"{'complete' if db.is_complete else '[yellow]incomplete build[/]'}, integrity ok")
+        info(f"{args.map}: {n} images, features {cfg.get('feature_name', '?')}, "
+             f"{'complete' if db.is_complete else 'incomplete build'}, integrity ok")
         if n:
             for line in map_gravity(db).summary_lines():
-                console.print(line, markup=False, highlight=False, soft_wrap=True)
+                info(line)
     return 0
 
 
 def run_check(args: argparse.Namespace) -> int:
     report = check_map(args.map)
     for line in report.problems:
-        print(f"{args.map}: {line}")
+        note(f"{args.map}: {line}")
     if not report.ok:
-        raise ValueError(f"{args.map}: damaged map, {len(report.problems)} problem(s) listed on stdout; "
+        raise ValueError(f"{args.map}: damaged map, {len(report.problems)} problem(s) listed above; "
                          "rebuild the map (planarloc map build ... --out NEW.db)")
-    print(f"{args.map}: ok ({report.num_images} images, {'complete' if report.complete else 'incomplete build'})")
+    info(f"{args.map}: ok ({report.num_images} images, {'complete' if report.complete else 'incomplete build'})")
     return 0

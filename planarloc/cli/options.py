@@ -1,20 +1,26 @@
 """Command-line options shared by subcommands, with defaults taken from the library's configs
-(one source of defaults for API and CLI)."""
+(one source of defaults for API and CLI), and the option texts parsed by the library's parsers."""
 
 from __future__ import annotations
 
 import argparse
+import json
+from collections.abc import Callable
 from pathlib import Path
+from typing import TypeVar
 
 import numpy as np
 
+from planarloc.features.extract import DEFAULT_FEATURE_CONFIG, FeatureConfig
+from planarloc.features.retrieval import DEFAULT_NUM_WORDS
 from planarloc.geometry.camera import Camera
+from planarloc.geometry.validation import InputError
 from planarloc.io.datasets import FORMATS
-from planarloc.pipeline.features import DEFAULT_FEATURE_CONFIG, FeatureConfig
-from planarloc.pipeline.localizer import LocalizerConfig
-from planarloc.pipeline.retrieval import DEFAULT_NUM_WORDS
+from planarloc.io.text import parse_camera, parse_gravity
+from planarloc.localize.localizer import LocalizerConfig, localizer_config
 from planarloc.robust.options import Method, RansacOptions, Structure
 
+T = TypeVar("T")
 _RANSAC = RansacOptions()
 _LOC = LocalizerConfig()
 
@@ -31,6 +37,20 @@ def add_dataset_args(p: argparse.ArgumentParser, many: bool = False) -> None:
     else:
         p.add_argument("dataset", help="dataset folder (see --format)")
     p.add_argument("--format", "-f", required=True, choices=sorted(FORMATS), help=FORMAT_HELP)
+
+
+def parse_dataset_options(items: list[str] | None, option: str = "--dataset-option") -> dict:
+    """KEY=VALUE pairs -> dict with JSON-decoded values where possible (numbers, true/false)."""
+    out = {}
+    for item in items or []:
+        if "=" not in item:
+            raise ValueError(f"{option} {item!r}: expected KEY=VALUE, e.g. tum_camera=fr1")
+        k, v = item.split("=", 1)
+        try:
+            out[k] = json.loads(v)
+        except json.JSONDecodeError:
+            out[k] = v
+    return out
 
 
 def add_feature_args(p: argparse.ArgumentParser) -> None:
@@ -74,43 +94,42 @@ def add_localizer_args(p: argparse.ArgumentParser) -> None:
                    help="inlier threshold, Sampson error in pixels (default: %(default)s)")
     g.add_argument("--max-position-std", type=float, default=_RANSAC.max_position_std_m,
                    help="report degenerate_scale above this position std in metres (default: %(default)s)")
-    g.add_argument("--seed", type=int, default=0, help="RANSAC seed (default: %(default)s)")
+    g.add_argument("--seed", type=int, default=_RANSAC.seed, help="RANSAC seed (default: %(default)s)")
 
 
-def localizer_config(args: argparse.Namespace) -> LocalizerConfig:
-    it = {} if args.iterations is None else {"min_iterations": args.iterations, "max_iterations": args.iterations}
-    ransac = RansacOptions(structure=args.structure, threshold_px=args.threshold,
-                           max_position_std_m=args.max_position_std, seed=args.seed, **it)
-    return LocalizerConfig(top_n=args.top_n, method=args.method, ransac=ransac, use_depth=args.use_depth)
+def localizer_config_of(args: argparse.Namespace) -> LocalizerConfig:
+    """The :class:`LocalizerConfig` of the localization options (:func:`localizer_config`)."""
+    return localizer_config(method=args.method, structure=args.structure, seed=args.seed, top_n=args.top_n,
+                            iterations=args.iterations, threshold_px=args.threshold,
+                            max_position_std_m=args.max_position_std, use_depth=args.use_depth)
 
 
-def add_gravity_file_arg(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--gravity-file", type=Path, metavar="FILE",
-                   help="per-query gravity (e.g. from an IMU), lines 'name gx gy gz': direction of gravity "
-                        "(down) in the query camera frame (x right, y down, z forward); queries not listed "
-                        "are assumed mounted like the map cameras")
+def add_gravity_args(p: argparse.ArgumentParser, option: str, **kwargs: object) -> None:
+    """The query-gravity options: ``option`` (for all queries) or ``--gravity-file`` (per query), not both."""
+    group = p.add_mutually_exclusive_group()
+    group.add_argument(option, **kwargs)  # type: ignore[arg-type]
+    group.add_argument("--gravity-file", type=Path, metavar="FILE",
+                       help="per-query gravity (e.g. from an IMU), lines 'name gx gy gz': direction of gravity "
+                            "(down) in the query camera frame (x right, y down, z forward); queries not listed "
+                            "are assumed mounted like the map cameras")
 
 
-def parse_gravity(text: str) -> np.ndarray:
-    """'gx gy gz' (spaces or commas) -> (3,) unit gravity direction; ValueError naming --gravity."""
-    tok = text.replace(",", " ").split()
+def text_option(parse: Callable[[str], T], text: str | None, option: str) -> T | None:
+    """``parse(text)`` with one of the parsers of :mod:`planarloc.io.text` (None for an option not
+    given); a text that does not parse is one error line naming the option."""
+    if text is None:
+        return None
     try:
-        g = np.array([float(v) for v in tok])
-    except ValueError:
-        g = np.zeros(0)
-    if g.shape != (3,) or not np.all(np.isfinite(g)) or not np.linalg.norm(g) > 1e-9:
-        raise ValueError(f"--gravity: expected three numbers 'gx gy gz' (gravity pointing down in the query "
-                         f"camera frame, not zero), e.g. '0 1 0' for an upright camera, got {text!r}")
-    return g / np.linalg.norm(g)
+        return parse(text)
+    except InputError as exc:
+        raise ValueError(f"{option}: {exc}; got {text!r}") from None
 
 
-def parse_camera(text: str) -> Camera:
-    """'MODEL W H P1 P2 ...' (COLMAP syntax) -> Camera."""
-    tok = text.replace(",", " ").split()
-    if len(tok) < 4:
-        raise ValueError(f"--camera: expected 'MODEL WIDTH HEIGHT PARAMS...', e.g. 'PINHOLE 640 480 500 500 320 240', "
-                         f"got {text!r}")
-    try:
-        return Camera(tok[0], tok[1], tok[2], tuple(float(v) for v in tok[3:]))
-    except ValueError as exc:
-        raise ValueError(f"--camera {text!r}: {exc}") from None
+def gravity_option(text: str | None, option: str = "--gravity") -> np.ndarray | None:
+    """``'gx gy gz'`` -> (3,) unit gravity (:func:`planarloc.io.text.parse_gravity`)."""
+    return text_option(parse_gravity, text, option)
+
+
+def camera_option(text: str | None, option: str = "--camera") -> Camera | None:
+    """``'MODEL W H PARAMS...'`` -> Camera (:func:`planarloc.io.text.parse_camera`)."""
+    return text_option(parse_camera, text, option)

@@ -1,20 +1,23 @@
-"""`planarloc localize --server URL`: localize image files through a running `planarloc serve`.
+"""`planarloc localize --server URL`: the queries of a `planarloc localize` run, localized by a
+running `planarloc serve` instead of in this process.
 
-Writes the same outputs as a local run (pose list and one JSON record per query), from the
-records the server returns.
+The run is the same as a local one (:mod:`planarloc.cli.localize_command`): the same queries and
+names, the same results and records written by the same writer, the same exit codes. A query the
+server refuses as bad input (4xx: an undecodable image, a camera that does not fit) is recorded
+as not processed with the server's reason and the run goes on (exit code 3); a server that cannot
+be reached, refuses the token or fails (5xx after the client's retries) stops the run (exit 1,
+the results file is left as it was).
 """
 
 from __future__ import annotations
 
 import argparse
-import json
+from collections.abc import Callable
 
-from planarloc.cli.options import parse_gravity
-from planarloc.cli.progress import console, progress_bar
-from planarloc.geometry.pose import Pose
-from planarloc.io._parsing import write_text_atomic
-from planarloc.io.query_json import query_record_filename
-from planarloc.pipeline.localizer import LocalizerConfig
+from planarloc.cli.query_sources import QuerySource
+from planarloc.geometry.camera import Camera
+from planarloc.localize.localizer import LocalizerConfig
+from planarloc.localize.records import error_record
 
 _LOC = LocalizerConfig()
 #: Options the service takes per request; the others are the server's and cannot be changed remotely.
@@ -30,6 +33,8 @@ _LOCAL_ONLY = {
     "plot_matches": None,
     "rerun": None,
 }
+#: Answers that are about one query (recorded, the run goes on), not about the server or the run.
+_QUERY_ERRORS = {400, 413, 415, 422}
 
 
 def add_server_args(p: argparse.ArgumentParser) -> None:
@@ -44,69 +49,47 @@ def add_server_args(p: argparse.ArgumentParser) -> None:
     g.add_argument("--token", help="bearer token of the service (planarloc serve --token)")
 
 
-def _served_camera(client, map_name: str) -> str:
-    """The camera of a served map that has exactly one (like the local default), else an error."""
-    from planarloc.client import ServiceError
-
-    try:
-        maps = {m["name"]: m for m in client.maps()}
-    except ServiceError as exc:
-        raise ValueError(f"--server: {exc}") from None
-    cameras = maps.get(map_name, {}).get("cameras", [])
-    if len(cameras) != 1:
-        raise ValueError(
-            f"--server: map {map_name!r} has {len(cameras)} cameras: pass the query intrinsics with --camera"
-        )
-    return cameras[0]
-
-
-def run_remote(args: argparse.Namespace, queries: list[tuple[str, object]]) -> int:
-    """Send every query to ``args.server``; same result files as the local run."""
-    from planarloc.client import Client, ServiceError
-
-    changed = [
-        k.replace("_", "-") for k, default in _LOCAL_ONLY.items() if getattr(args, k, default) != default
-    ]
+def check_remote_args(args: argparse.Namespace) -> None:
+    """Refuse, before any work, the options a server cannot take per request."""
+    changed = [k.replace("_", "-") for k, default in _LOCAL_ONLY.items() if getattr(args, k, default) != default]
     if changed:
         raise ValueError(
             f"--server: --{', --'.join(changed)} cannot be set per request (the server uses its "
             "defaults); drop them or localize locally"
         )
-    json_dir = args.json_dir or args.out.with_name(args.out.name + ".json.d")
-    json_dir.mkdir(parents=True, exist_ok=True)
-    poses, failed = [], 0
-    with Client(args.server, token=args.token) as client, progress_bar() as update:
-        camera = args.camera or _served_camera(client, str(args.map))
-        gravity = tuple(float(v) for v in parse_gravity(args.gravity)) if getattr(args, "gravity", None) else None
-        for i, (name, path) in enumerate(queries):
-            try:
-                record = client.localize(
-                    path,
-                    camera,
-                    map=str(args.map),
-                    name=name.replace("/", "__"),
-                    method=args.method,
-                    structure=args.structure,
-                    seed=args.seed,
-                    gravity=gravity,
-                )
-            except ServiceError as exc:
-                raise ValueError(f"{path}: {args.server} answered {exc}") from None
-            record["name"] = name
-            (json_dir / query_record_filename(name)).write_text(json.dumps(record, indent=1))
-            if record["success"]:
-                Pose.from_quat_wxyz(record["quat_wxyz"], record["t"])  # validates the server's answer
-                # The record's own numbers, not a quaternion -> matrix -> quaternion round trip, so the
-                # file is byte-identical to a local run's.
-                poses.append(
-                    " ".join([name, *(repr(float(v)) for v in (*record["quat_wxyz"], *record["t"]))]) + "\n"
-                )
-            else:
-                failed += 1
-            update("localize", i + 1, len(queries))
-    write_text_atomic(args.out, poses)
-    console.print(
-        f"localized {len(poses)} of {len(queries)} queries ({failed} failed) via {args.server} -> "
-        f"{args.out}, details in {json_dir}/"
-    )
-    return 0
+
+
+def remote_localizer(client, args: argparse.Namespace, camera: Camera | None,
+                     gravity: object | None) -> Callable[[QuerySource], dict]:
+    """``localize(query) -> record`` through ``client`` (a :class:`planarloc.client.Client`),
+    after checking that the served map exists and, without ``camera``, has exactly one camera."""
+    from planarloc.client import ServiceError
+
+    map_name = str(args.map)
+    try:
+        maps = {m["name"]: m for m in client.maps()}
+    except ServiceError as exc:
+        raise ValueError(f"--server {args.server}: {exc}") from None
+    if map_name not in maps:
+        raise ValueError(f"--map {map_name}: the server serves no such map (it serves {', '.join(sorted(maps))})")
+    cameras = maps[map_name].get("cameras", [])
+    if camera is None and len(cameras) != 1:
+        raise ValueError(f"--server: map {map_name!r} has {len(cameras)} cameras: pass the query intrinsics "
+                         "with --camera")
+    g = None if gravity is None else tuple(float(v) for v in gravity)
+
+    def localize(q: QuerySource) -> dict:
+        try:
+            data = q.path.read_bytes()
+        except OSError as exc:
+            return error_record(q.name, f"{q.path}: {exc.strerror or exc}")
+        try:
+            record = client.localize(data, camera or q.camera, map=map_name, name=q.name.replace("/", "__"),
+                                     method=args.method, structure=args.structure, seed=args.seed, gravity=g)
+        except ServiceError as exc:
+            if exc.status in _QUERY_ERRORS:
+                return error_record(q.name, f"{q.path}: the server answered {exc}")
+            raise ValueError(f"{q.path}: {args.server} answered {exc}") from None
+        return {**record, "name": q.name}
+
+    return localize

@@ -8,8 +8,8 @@ from pathlib import Path
 
 from rich.table import Table
 
-from planarloc.cli.output_paths import write_text_atomic
-from planarloc.cli.progress import console
+from planarloc.cli.console import info
+from planarloc.io.output import write_text_atomic
 
 
 def print_summary_table(summaries: Sequence[dict], title: str) -> None:
@@ -29,11 +29,11 @@ def print_summary_table(summaries: Sequence[dict], title: str) -> None:
                       "-" if mt is None else f"{mt:.3f}", "-" if mr is None else f"{mr:.2f}",
                       f"{s['failed_queries']}/{s['queries']}", str(s["status_counts"].get("degenerate_scale", 0)),
                       f"{s['seconds_per_query']:.2f}")
-    console.print(table)
+    info(table)
 
 
 def write_json(path: Path | None, data: object) -> None:
     if path is None:
         return
     write_text_atomic(Path(path), json.dumps(data, indent=1))
-    console.print(f"wrote {path}")
+    info(f"wrote {path}")

@@ -4,20 +4,19 @@ APE/RPE from evo, match plots (``--plot-matches``) and a Rerun recording (``--re
 from __future__ import annotations
 
 import argparse
-import re
 from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
 
-from planarloc.cli.progress import console
+from planarloc.cli.console import info, note
+from planarloc.features.extract import Features, extract_features
 from planarloc.geometry.camera import Camera
 from planarloc.geometry.pose import Pose
+from planarloc.io.results import query_timestamp
 from planarloc.io.tum import write_tum_trajectory
-from planarloc.pipeline.features import Features, extract_features
-from planarloc.pipeline.localizer import Localizer
-from planarloc.pipeline.map_builder import read_gray
-from planarloc.pipeline.posed_image import PosedImage
+from planarloc.localize.localizer import Localizer
+from planarloc.map.posed_image import PosedImage
 from planarloc.robust.result import PoseEstimate
 
 
@@ -30,15 +29,6 @@ def add_output_args(p: argparse.ArgumentParser, tum_help: str) -> None:
     g.add_argument("--rerun", type=Path, metavar="FILE.rrd",
                    help="log map cameras, estimates with uncertainty, ground truth and matches to a Rerun "
                         "recording (needs: pip install 'planarloc[rerun]'; view with `rerun FILE.rrd`)")
-
-
-def query_timestamp(name: str, timestamp: float | None, index: int) -> float:
-    """A query's TUM timestamp: its own, else a number in its file name (``1305031102.17.png``,
-    ``000012.png``), else its position in the list."""
-    if timestamp is not None:
-        return float(timestamp)
-    m = re.fullmatch(r"(\d+(?:\.\d+)?)", Path(name).stem)
-    return float(m.group(1)) if m else float(index)
 
 
 class EstimateOutputs:
@@ -66,12 +56,12 @@ class EstimateOutputs:
         from planarloc.viz.matches import query_pairs
 
         if features is None:
-            features = extract_features(read_gray(path), loc.features)
+            features = extract_features(loc.prepare(path, camera).image, loc.features)
         if self.plotter is not None:
             self.plotter.plot(loc, name, path, camera, features, estimate, truth)
         if self.rerun is not None:
             if not self._map_logged:
-                self.rerun.log_map(loc.db.posed_images())
+                self.rerun.log_map(loc.map_images)
                 self._map_logged = True
             pairs, inliers = query_pairs(loc, features, camera, estimate)
             self.rerun.log_query(name, path, camera, estimate, truth, pairs, inliers)
@@ -82,9 +72,9 @@ class EstimateOutputs:
     def close(self) -> None:
         if self.rerun is not None:
             self.rerun.close()
-            console.print(f"wrote {self.rerun.path}")
+            info(f"wrote {self.rerun.path}")
         if self.plotter is not None and self.plotter.written:
-            console.print(f"wrote {len(self.plotter.written)} match plots to {self.plotter.out_dir}/")
+            info(f"wrote {len(self.plotter.written)} match plots to {self.plotter.out_dir}/")
 
 
 def _world_from_cam(quat_wxyz: Sequence[float], center: Sequence[float]) -> Pose:
@@ -110,31 +100,21 @@ def write_evaluation_tum(out_dir: Path, results: Sequence) -> dict:
     out_dir = Path(out_dir)
     write_tum_trajectory(out_dir / "estimate.txt", ts, est)
     write_tum_trajectory(out_dir / "groundtruth.txt", ts, gt)
-    console.print(f"wrote {out_dir}/estimate.txt and groundtruth.txt ({len(rows)} localized queries); "
+    info(f"wrote {out_dir}/estimate.txt and groundtruth.txt ({len(rows)} localized queries); "
                   f"try: evo_ape tum {out_dir}/groundtruth.txt {out_dir}/estimate.txt")
     if not rows:
         return {}
     try:
-        from planarloc.pipeline.trajectory_metrics import evo_errors
+        from planarloc.evaluation.trajectory import evo_errors
 
         metrics = evo_errors(ts, np.array([r.estimate_center for r in rows]),
                              np.array([r.estimate_quat_wxyz for r in rows]),
                              np.array([r.truth_center for r in rows]), np.array([r.truth_quat_wxyz for r in rows]))
     except ValueError as exc:  # evo not installed: the files are still useful
-        console.print(f"[yellow]{exc}[/]")
+        note(str(exc))
         return {"note": str(exc)}
     ape, rpe = metrics["ape_translation_m"], metrics["rpe_translation_m"]
-    console.print(f"evo: APE translation rmse {ape['rmse']:.3f} m (max {ape['max']:.3f} m), APE rotation rmse "
+    info(f"evo: APE translation rmse {ape['rmse']:.3f} m (max {ape['max']:.3f} m), APE rotation rmse "
                   f"{metrics['ape_rotation_deg']['rmse']:.2f}°" +
                   (f", RPE translation rmse {rpe['rmse']:.3f} m" if rpe else ""))
     return metrics
-
-
-def write_localize_tum(path: Path, records: Sequence[tuple[str, float | None, Pose]]) -> None:
-    """TUM file of localized queries: ``(name, timestamp or None, cam_from_world)`` records."""
-    rows = sorted((query_timestamp(n, t, i), n, p) for i, (n, t, p) in enumerate(records))
-    ts = np.array([t for t, _, _ in rows])
-    if len(ts) > 1 and np.any(np.diff(ts) <= 0):
-        raise ValueError("--tum: two localized queries share a timestamp; TUM files need unique times")
-    write_tum_trajectory(path, ts, [p.inverse() for _, _, p in rows])
-    console.print(f"wrote {path} ({len(rows)} poses, camera-to-world, TUM format)")

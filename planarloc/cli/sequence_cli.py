@@ -1,17 +1,17 @@
 """The sequential modes of `planarloc localize --sequence` and `planarloc evaluate --sequential`:
-their options (defaults from :class:`SequenceConfig`), runs and result table."""
+their options (defaults from :class:`SequenceConfig`), the evaluation run and its result table.
+(`localize --sequence` runs in :mod:`planarloc.cli.localize_command`, like the other localize paths.)"""
 
 from __future__ import annotations
 
 import argparse
-import json
 from pathlib import Path
 
 import numpy as np
 from rich.table import Table
 
-from planarloc.cli.progress import console, progress_bar
-from planarloc.pipeline.sequence import SequenceConfig, SequenceLocalizer
+from planarloc.cli.console import info, progress_bar
+from planarloc.localize.sequence import SequenceConfig, SequenceLocalizer
 from planarloc.robust.relative_pose import MODELS
 
 _SEQ = SequenceConfig()
@@ -74,67 +74,7 @@ def print_sequence_table(summaries: list[tuple[str, dict]], title: str) -> None:
                       f"{c.get('localized', 0)}/{c.get('predicted', 0)}/{c.get('lost', 0)}",
                       str(s["confident_wrong"]), str(s["rejected_fixes"]), start, after,
                       "-" if fps is None else f"{fps:.2f}")
-    console.print(table)
-
-
-def _stream_inputs(args: argparse.Namespace) -> tuple[list[str], list[Path], list[float], bool]:
-    """Names, paths and stamps of the stream, and whether the stamps came from the list."""
-    from planarloc.cli.localize_command import _collect
-    from planarloc.io.odometry import read_image_list
-
-    if len(args.images) == 1 and args.images[0].is_file() and args.images[0].suffix.lower() == ".txt":
-        entries = read_image_list(args.images[0])
-        paths = [p for _, p in entries]
-        names = [str(p.relative_to(args.images[0].parent)) if p.is_relative_to(args.images[0].parent) else p.name
-                 for p in paths]
-        if entries[0][0] is not None:
-            stamps = [float(s) for s, _ in entries]
-            if np.any(np.diff(stamps) <= 0):
-                raise ValueError(f"{args.images[0]}: timestamps must increase along the list")
-            return names, paths, stamps, True
-    else:
-        named = _collect(args.images)
-        names, paths = [n for n, _ in named], [p for _, p in named]
-    return names, paths, [k * args.frame_period for k in range(len(paths))], False
-
-
-def localize_sequence(args: argparse.Namespace) -> int:
-    """`planarloc localize --sequence`: one pose, covariance and status per frame."""
-    from planarloc.cli.localize_command import _default_camera
-    from planarloc.cli.options import localizer_config, parse_camera
-    from planarloc.io.odometry import read_odometry
-    from planarloc.io.pose_list import write_pose_list
-    from planarloc.pipeline.localizer import Localizer
-    from planarloc.pipeline.map_builder import read_gray
-
-    if args.pairs:
-        raise ValueError("--pairs: not used with --sequence (retrieval follows the predicted pose)")
-    names, paths, stamps, timed = _stream_inputs(args)
-    config = sequence_config(args)
-    odometry = read_odometry(args.odometry, stamps if timed else None) if args.odometry else None
-    if odometry is not None and len(odometry) != len(paths):
-        raise ValueError(f"{args.odometry}: {len(odometry)} odometry poses for {len(paths)} frames (without "
-                         "timestamps in the image list the file must have one line per frame)")
-    seq = SequenceLocalizer(Localizer(args.map, localizer_config(args)), config)
-    json_dir = args.json_dir or args.out.with_name(args.out.name + ".json.d")
-    json_dir.mkdir(parents=True, exist_ok=True)
-    camera = parse_camera(args.camera) if args.camera else None
-    poses, counts = [], {}
-    with progress_bar() as update:
-        for k, (name, path) in enumerate(zip(names, paths)):
-            image = read_gray(path)
-            cam = camera or _default_camera(seq.localizer, image.shape[:2])
-            est = seq.step(image, cam, stamps[k], None if odometry is None else odometry[k])
-            (json_dir / (name.replace("/", "__") + ".json")).write_text(json.dumps({"name": name, **est.to_dict()},
-                                                                                  indent=1))
-            counts[est.status] = counts.get(est.status, 0) + 1
-            if est.success:
-                poses.append((name, est.pose))
-            update("localize stream", k + 1, len(paths))
-    write_pose_list(args.out, poses)
-    console.print(f"{len(paths)} frames: " + ", ".join(f"{v} {k}" for k, v in sorted(counts.items())) +
-                  f" -> {args.out} (localized and predicted poses), status and covariance per frame in {json_dir}/")
-    return 0
+    info(table)
 
 
 def check_sequential_args(args: argparse.Namespace) -> None:
@@ -161,9 +101,9 @@ def check_sequential_args(args: argparse.Namespace) -> None:
 def evaluate_sequential(args: argparse.Namespace, map_path: Path, queries: list, localizer_config: object) -> int:
     """`planarloc evaluate --sequential`: the queries in order as one stream; prints and writes the summary."""
     from planarloc.cli.report import write_json
+    from planarloc.evaluation.sequence import evaluate_stream, summarize_sequence
     from planarloc.io.odometry import read_odometry
-    from planarloc.pipeline.localizer import Localizer
-    from planarloc.pipeline.sequence_evaluation import evaluate_stream, summarize_sequence
+    from planarloc.localize.localizer import Localizer
     from planarloc.synthetic.stream import make_stream, stream_order
 
     n = len(queries)

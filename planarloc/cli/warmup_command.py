@@ -14,7 +14,9 @@ import time
 
 import numpy as np
 
-from planarloc.cli.progress import console, progress_bar
+from planarloc.cli.commands import add_command
+from planarloc.cli.console import info, progress_bar
+from planarloc.cli.exit_codes import WARMUP_RESUMES
 from planarloc.geometry.pose import Pose
 from planarloc.robust.absolute_pose import estimate_absolute_pose
 from planarloc.robust.options import Method, RansacOptions
@@ -61,14 +63,12 @@ def warm_up(update=None) -> dict[str, float]:
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser(
-        "warmup", help="compile or load every numba kernel once (run at image build time)",
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-        description="Compile every numba kernel a query uses (or load it from numba's on-disk cache) by running "
-                    "each estimator once on small generated scenes. The first run on a machine takes tens of "
-                    "seconds; later runs, and queries, only load the cache.\n\n"
-                    "example (in a Dockerfile, after pip install):\n  RUN planarloc warmup")
-    p.set_defaults(func=run)
+    add_command(sub, "warmup", "compile or load every numba kernel once (run at image build time)",
+                """Compile every numba kernel a query uses (or load it from numba's on-disk cache) by running
+                each estimator once on small generated scenes. The first run on a machine takes tens of
+                seconds; later runs, and queries, only load the cache. In a Dockerfile, after pip install:
+                RUN planarloc warmup""",
+                ["planarloc warmup"], run, interrupted=WARMUP_RESUMES)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -76,6 +76,6 @@ def run(args: argparse.Namespace) -> int:
     with progress_bar() as update:
         times = warm_up(update)
     slowest = max(times, key=times.get)
-    console.print(f"warm-up done in {time.perf_counter() - t0:.1f} s (slowest step: {slowest}, "
+    info(f"warm-up done in {time.perf_counter() - t0:.1f} s (slowest step: {slowest}, "
                   f"{times[slowest]:.1f} s)")
     return 0

@@ -1,5 +1,3 @@
-"""Running planarloc on a cluster (optional extra ``planarloc[ray]``).
-
-:mod:`~planarloc.distributed.ray_backend`: map building and evaluation on Ray;
-:mod:`~planarloc.distributed.ray_serve`: a fleet-facing Ray Serve deployment of the localizer.
-"""
+"""Running map building and evaluation on a Ray cluster (optional extra ``planarloc[ray]``):
+:mod:`~planarloc.distributed.ray_backend`. The fleet-facing Ray Serve deployment of the service
+is :mod:`planarloc.serve.ray_serve`."""

@@ -1,7 +1,7 @@
 """Map building and evaluation on a Ray cluster (optional extra ``planarloc[ray]``).
 
 - Map building: feature extraction of every map image runs as Ray tasks
-  (:meth:`RayBackend.map`, passed to :func:`planarloc.pipeline.map_builder.build_map` as its
+  (:meth:`RayBackend.map`, passed to :func:`planarloc.map.builder.build_map` as its
   ``mapper``); the driver writes the map in input order, so the map holds the same content as a
   local build (same features, same vocabulary seed, same retrieval index).
 - Evaluation: one actor per CPU opens the map read-only once and localizes queries
@@ -30,10 +30,10 @@ from typing import Any, TypeVar
 
 import numpy as np
 
+from planarloc.evaluation.queries import QueryResult, evaluate_query
 from planarloc.extras import require
-from planarloc.pipeline.evaluation import QueryResult, evaluate_query
-from planarloc.pipeline.localizer import Localizer, LocalizerConfig
-from planarloc.pipeline.posed_image import PosedImage
+from planarloc.localize.localizer import Localizer, LocalizerConfig
+from planarloc.map.posed_image import PosedImage
 
 logger = logging.getLogger(__name__)
 
@@ -63,7 +63,8 @@ class _QueryEvaluator:
     """Ray actor: a Localizer on the map, opened read-only once per actor."""
 
     def __init__(self, map_path: str, configs: Sequence[LocalizerConfig]) -> None:
-        self.localizers = [Localizer(Path(map_path), c) for c in configs]
+        base = Localizer(Path(map_path), configs[0])
+        self.localizers = [base.with_config(c) for c in configs]  # one open map and index
 
     def evaluate(self, query: PosedImage, pairs: dict[str, list[str]] | None,
                  gravity: np.ndarray | None = None) -> list[QueryResult]:
@@ -132,7 +133,7 @@ class RayBackend:
         *,
         gravity: dict[str, np.ndarray] | None = None,
     ) -> list[list[QueryResult]]:
-        """Like :func:`planarloc.pipeline.evaluation.evaluate_configs`, with one actor per CPU."""
+        """Like :func:`planarloc.evaluation.queries.evaluate_configs`, with one actor per CPU."""
         from ray.util import ActorPool
 
         actor = self.ray.remote(num_cpus=1)(_QueryEvaluator)

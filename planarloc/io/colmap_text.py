@@ -21,10 +21,11 @@ from __future__ import annotations
 from pathlib import Path
 
 from planarloc.geometry.camera import Camera
-from planarloc.io._parsing import parse_floats, parse_int, pose_from_quat_wxyz, read_text, resolve_image
 from planarloc.io.camera_file import read_camera_file
 from planarloc.io.format_error import FormatError
-from planarloc.pipeline.posed_image import PosedImage
+from planarloc.io.lines import parse_int, parse_pose_fields, read_text, resolve_image
+from planarloc.io.text import WXYZ_T
+from planarloc.map.posed_image import PosedImage
 
 FORMAT = "COLMAP text model"
 
@@ -106,7 +107,7 @@ def read_colmap(root: Path, *, image_dir: Path | None = None, check_images: bool
                 f"expected 10 fields 'IMAGE_ID QW QX QY QZ TX TY TZ CAMERA_ID NAME', found {len(tokens)}",
             )
         parse_int(images_path, lineno, tokens[0], "IMAGE_ID", 1)
-        v = parse_floats(images_path, lineno, tokens[1:8], "quaternion or translation", 2)
+        pose = parse_pose_fields(images_path, lineno, tokens[1:8], WXYZ_T, 2)
         cam_id = parse_int(images_path, lineno, tokens[8], "CAMERA_ID", 9)
         if cam_id not in cameras:
             raise FormatError(images_path, lineno, f"expected a CAMERA_ID of cameras.txt, found {cam_id}")
@@ -116,7 +117,6 @@ def read_colmap(root: Path, *, image_dir: Path | None = None, check_images: bool
                 images_path, lineno, f"expected unique image names, found {name!r} again (line {names[name]})"
             )
         names[name] = lineno
-        pose = pose_from_quat_wxyz(images_path, lineno, v[:4], v[4:])
         path = resolve_image(images_path, lineno, img_root, name, check=check_images)
         records.append((name, path, pose, cameras[cam_id]))
         expect_points = True

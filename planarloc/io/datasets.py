@@ -13,7 +13,7 @@ rosbag     :func:`planarloc.io.rosbag.read_rosbag`        .bag file or ROS 2 bag
 ========== ======================================= ==========================================
 
 Every format also accepts the option ``up``: the world's up direction (``"z"``, ``"-y"``,
-``"0,0,1"``, see :func:`planarloc.pipeline.gravity.parse_up`) or ``estimate`` (estimate it from
+``"0,0,1"``, see :func:`planarloc.gravity.world.parse_up`) or ``estimate`` (estimate it from
 the map's poses); it replaces the format's declared gravity (``PosedImage.world_down``) on every
 image.
 """
@@ -26,6 +26,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 from planarloc.geometry.validation import InputError
+from planarloc.gravity.world import world_down_from_up
 from planarloc.io.colmap_text import read_colmap
 from planarloc.io.format_error import FormatError
 from planarloc.io.kapture import read_kapture
@@ -34,8 +35,7 @@ from planarloc.io.openloris import read_openloris
 from planarloc.io.pose_list import read_pose_list
 from planarloc.io.rosbag import read_rosbag
 from planarloc.io.tum import read_tum
-from planarloc.pipeline.gravity import world_down_from_up
-from planarloc.pipeline.posed_image import PosedImage
+from planarloc.map.posed_image import PosedImage
 
 FORMATS: dict[str, Callable[..., list[PosedImage]]] = {
     "kitti": read_kitti,

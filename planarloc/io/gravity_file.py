@@ -15,8 +15,8 @@ from pathlib import Path
 
 import numpy as np
 
-from planarloc.io._parsing import iter_named_lines, parse_floats
-from planarloc.io.format_error import FormatError
+from planarloc.io.lines import iter_named_lines, located
+from planarloc.io.text import parse_gravity
 
 FORMAT = "gravity file"
 LINE = "'name gx gy gz'"
@@ -35,9 +35,6 @@ def read_gravity_file(path: Path) -> dict[str, np.ndarray]:
     path = Path(path)
     out: dict[str, np.ndarray] = {}
     for lineno, name, fields in iter_named_lines(Path(path), FORMAT, LINE, 4):
-        g = parse_floats(path, lineno, fields, "gravity component", 2)
-        norm = float(np.linalg.norm(g))
-        if not norm > 1e-9:
-            raise FormatError(path, lineno, f"expected a non-zero gravity direction, found {g.tolist()}")
-        out[name] = g / norm
+        with located(path, lineno, 2):
+            out[name] = parse_gravity(fields)
     return out

@@ -11,8 +11,9 @@ from collections.abc import Iterable, Mapping
 from pathlib import Path
 
 from planarloc.geometry.validation import InputError
-from planarloc.io._parsing import iter_data_lines, write_text_atomic
 from planarloc.io.format_error import FormatError
+from planarloc.io.lines import iter_data_lines
+from planarloc.io.output import write_text_atomic
 
 FORMAT = "hloc pairs"
 

@@ -28,10 +28,11 @@ from pathlib import Path
 
 from planarloc.geometry.camera import Camera
 from planarloc.geometry.pose import Pose
-from planarloc.io._parsing import iter_data_lines, parse_floats, pose_from_quat_wxyz, resolve_image
 from planarloc.io.camera_file import camera_from_tokens
 from planarloc.io.format_error import FormatError
-from planarloc.pipeline.posed_image import PosedImage
+from planarloc.io.lines import iter_data_lines, parse_floats, parse_pose_fields, resolve_image
+from planarloc.io.text import WXYZ_T
+from planarloc.map.posed_image import PosedImage
 
 logger = logging.getLogger(__name__)
 
@@ -52,9 +53,7 @@ def _read_poses(path: Path, fields: str) -> dict[tuple[str, str], tuple[int, Pos
     for lineno, tokens in iter_data_lines(path, FORMAT, f"poses {fields}", sep=","):
         if len(tokens) != 9:
             raise FormatError(path, lineno, f"expected 9 fields {fields}, found {len(tokens)}")
-        v = parse_floats(path, lineno, tokens[2:], "quaternion or translation", 3)
-        key = (tokens[0], tokens[1])
-        poses[key] = (lineno, pose_from_quat_wxyz(path, lineno, v[:4], v[4:]))
+        poses[(tokens[0], tokens[1])] = (lineno, parse_pose_fields(path, lineno, tokens[2:], WXYZ_T, 3))
     return poses
 
 

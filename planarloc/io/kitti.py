@@ -35,10 +35,10 @@ import numpy as np
 
 from planarloc.geometry.camera import Camera
 from planarloc.geometry.pose import Pose
-from planarloc.io._parsing import image_size, iter_data_lines, parse_floats, pose_from_matrix34, read_text
+from planarloc.gravity.world import WorldDown
 from planarloc.io.format_error import FormatError
-from planarloc.pipeline.gravity import WorldDown
-from planarloc.pipeline.posed_image import PosedImage
+from planarloc.io.lines import image_size, iter_data_lines, parse_floats, pose_from_matrix34, read_text
+from planarloc.map.posed_image import PosedImage
 
 logger = logging.getLogger(__name__)
 
@@ -120,13 +120,8 @@ def _read_times(path: Path) -> list[float]:
     return times
 
 
-def read_kitti(
-    root: Path,
-    *,
-    image_dir: str | None = None,
-    calib_key: str | None = None,
-    check_images: bool = True,
-) -> list[PosedImage]:
+def read_kitti(root: Path, *, image_dir: str | None = None, calib_key: str | None = None,
+               check_images: bool = True) -> list[PosedImage]:
     """Read a KITTI odometry sequence (format in the module docstring).
 
     Args:

@@ -26,8 +26,8 @@ from pathlib import Path
 import numpy as np
 
 from planarloc.geometry.pose import Pose
-from planarloc.io._parsing import iter_data_lines, parse_floats
 from planarloc.io.format_error import FormatError
+from planarloc.io.lines import iter_data_lines, parse_floats
 from planarloc.io.tum import associate_timestamps, read_tum_trajectory
 
 logger = logging.getLogger(__name__)
@@ -60,7 +60,7 @@ def read_odometry(path: Path, stamps: Sequence[float] | None = None, max_dt: flo
     missing = int((idx < 0).sum())
     if missing == len(idx) and len(idx):
         raise FormatError(path, None, f"no odometry sample within {max_dt} s of any of the {len(idx)} frames; "
-                                      "check that the timestamps use the same clock (or pass --odometry-max-dt)")
+                                      "check that the odometry and the frames use the same clock")
     if missing:
         logger.warning("%s: %d of %d frames have no odometry sample within %g s", path, missing, len(idx), max_dt)
     return [poses[i] if i >= 0 else None for i in idx]

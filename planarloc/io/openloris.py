@@ -29,9 +29,9 @@ from pathlib import Path
 
 from planarloc.geometry.camera import Camera
 from planarloc.geometry.pose import Pose
-from planarloc.io.tum import DEFAULT_MAX_DT, read_rgbd_sequence, resolve_camera
-from planarloc.pipeline.gravity import WorldDown
-from planarloc.pipeline.posed_image import PosedImage
+from planarloc.gravity.world import WorldDown
+from planarloc.io.tum import DEFAULT_MAX_DT, RgbdLayout, read_rgbd_sequence, resolve_camera
+from planarloc.map.posed_image import PosedImage
 
 FORMAT = "OpenLORIS-Scene"
 #: base_link <- colour camera (x_base = R x_cam + t): t = (0.2265, -0.0511, 0.916) m,
@@ -42,6 +42,7 @@ D400_COLOR_CAMERA = Camera("PINHOLE", 848, 480, (611.4510, 611.4857, 433.2040, 2
 OPENLORIS_DEPTH_SCALE = 1000.0
 #: The ground-truth world of OpenLORIS-Scene has z up (planar base motion in x-y): down = −z.
 WORLD_DOWN = WorldDown((0.0, 0.0, -1.0), "declared", "OpenLORIS-Scene: world z up, down = -z")
+LAYOUT = RgbdLayout(FORMAT, "color.txt", "aligned_depth.txt", "aligned_depth")
 
 
 def read_openloris(
@@ -71,17 +72,5 @@ def read_openloris(
     root = Path(root)
     preset = None if (root / "camera.txt").is_file() else D400_COLOR_CAMERA
     cam = resolve_camera(root, FORMAT, camera, preset, "pass camera=Camera(...)")
-    return read_rgbd_sequence(
-        root,
-        fmt=FORMAT,
-        image_list="color.txt",
-        pose_file="groundtruth.txt",
-        camera=cam,
-        depth_list="aligned_depth.txt",
-        depth_dir="aligned_depth",
-        depth_scale=depth_scale,
-        base_from_camera=base_from_camera,
-        max_dt=max_dt,
-        check_images=check_images,
-        world_down=WORLD_DOWN,
-    )
+    return read_rgbd_sequence(root, LAYOUT, cam, depth_scale=depth_scale, base_from_camera=base_from_camera,
+                              max_dt=max_dt, check_images=check_images, world_down=WORLD_DOWN)

@@ -17,22 +17,18 @@ estimates it from its poses, or the user gives it with the dataset option ``up=`
 
 from __future__ import annotations
 
-from collections.abc import Iterable
+from collections.abc import Iterable, Sequence
 from pathlib import Path
 
 from planarloc.geometry.camera import Camera
 from planarloc.geometry.pose import Pose
 from planarloc.geometry.validation import InputError
-from planarloc.io._parsing import (
-    iter_named_lines,
-    parse_floats,
-    pose_from_quat_wxyz,
-    resolve_image,
-    write_text_atomic,
-)
 from planarloc.io.camera_file import read_camera_file
 from planarloc.io.format_error import FormatError
-from planarloc.pipeline.posed_image import PosedImage
+from planarloc.io.lines import iter_named_lines, parse_pose_fields, resolve_image
+from planarloc.io.output import write_text_atomic
+from planarloc.io.text import WXYZ_T
+from planarloc.map.posed_image import PosedImage
 
 FORMAT = "pose list"
 LINE = "'name qw qx qy qz tx ty tz'"
@@ -90,7 +86,7 @@ def read_pose_list(
 
     out: list[PosedImage] = []
     for lineno, name, fields in iter_named_lines(list_path, FORMAT, LINE, 8):
-        v = parse_floats(list_path, lineno, fields, "quaternion or translation", 2)
+        pose = parse_pose_fields(list_path, lineno, fields, WXYZ_T, 2)
         cam = cams.get(name, fallback) if camera is None else camera
         if cam is None:
             raise FormatError(
@@ -103,7 +99,7 @@ def read_pose_list(
             PosedImage(
                 name=name,
                 path=resolve_image(list_path, lineno, img_root, name, check=check_images),
-                cam_from_world=pose_from_quat_wxyz(list_path, lineno, v[:4], v[4:]),
+                cam_from_world=pose,
                 camera=cam,
                 index=len(out),
             )
@@ -113,16 +109,23 @@ def read_pose_list(
     return out
 
 
-def format_pose_line(name: str, cam_from_world: Pose) -> str:
-    """One line ``name qw qx qy qz tx ty tz`` (no newline)."""
+def pose_line(name: str, values: Sequence[float]) -> str:
+    """One line ``name qw qx qy qz tx ty tz`` (no newline) from the 7 numbers, written as the
+    shortest round-trip floats (so a record's numbers are written exactly as they are)."""
     if not isinstance(name, str) or not name or any(c.isspace() for c in name):
         raise InputError(f"pose list: image names must be non-empty without whitespace, got {name!r}")
+    if len(values) != 7:
+        raise InputError(f"pose list: expected 7 numbers 'qw qx qy qz tx ty tz' for {name!r}, got {len(values)}")
+    return name + " " + " ".join(repr(float(v)) for v in values)
+
+
+def format_pose_line(name: str, cam_from_world: Pose) -> str:
+    """One line ``name qw qx qy qz tx ty tz`` (no newline)."""
     if not isinstance(cam_from_world, Pose):
         raise InputError(
             f"pose list: expected a planarloc Pose for {name!r}, got {type(cam_from_world).__name__}"
         )
-    values = (*cam_from_world.quat_wxyz, *cam_from_world.t)
-    return name + " " + " ".join(repr(float(v)) for v in values)
+    return pose_line(name, [*cam_from_world.quat_wxyz, *cam_from_world.t])
 
 
 def write_pose_list(path: Path, items: Iterable[tuple[str, Pose]]) -> None:

@@ -49,10 +49,11 @@ import numpy as np
 from planarloc.geometry.camera import Camera
 from planarloc.geometry.pose import Pose
 from planarloc.geometry.validation import InputError
-from planarloc.io.camera_file import camera_from_tokens
 from planarloc.io.format_error import FormatError
+from planarloc.io.output import write_file
+from planarloc.io.text import T_XYZW, parse_camera, parse_pose, pose_from_numbers
 from planarloc.io.tum import associate_timestamps
-from planarloc.pipeline.posed_image import PosedImage
+from planarloc.map.posed_image import PosedImage
 
 logger = logging.getLogger(__name__)
 
@@ -158,23 +159,22 @@ def parse_transform(value: object, option: str) -> Pose:
     """``'x y z qx qy qz qw'`` (or 7 numbers): the child's pose in the parent frame -> ``parent_from_child``."""
     if isinstance(value, Pose):
         return value
-    tokens = value.replace(",", " ").split() if isinstance(value, str) else list(value)  # type: ignore[arg-type]
     try:
-        v = np.array([float(x) for x in tokens], dtype=float)
-    except (TypeError, ValueError):
-        v = np.zeros(0)
-    if v.shape != (7,) or not np.isfinite(v).all():
-        raise InputError(f"{option}: expected 7 numbers 'x y z qx qy qz qw', got {value!r}")
-    return Pose.from_quat_wxyz(v[[6, 3, 4, 5]], v[:3])
+        if isinstance(value, str):
+            return parse_pose(value, T_XYZW)
+        return pose_from_numbers([float(v) for v in value], T_XYZW)  # type: ignore[union-attr]
+    except (TypeError, ValueError) as exc:
+        raise InputError(f"{option}: {exc}, got {value!r}") from None
 
 
 def parse_camera_option(value: object) -> Camera:
-    """A Camera, or a line ``'MODEL W H PARAMS...'`` (COLMAP syntax) -> Camera."""
+    """A Camera, or a line ``'MODEL W H PARAMS...'`` (:func:`planarloc.io.text.parse_camera`)."""
     if isinstance(value, Camera):
         return value
-    if not isinstance(value, str):
-        raise InputError(f"camera: expected 'MODEL WIDTH HEIGHT PARAMS...', got {value!r}")
-    return camera_from_tokens(Path("camera option"), 1, value.replace(",", " ").split())
+    try:
+        return parse_camera(value if isinstance(value, str) else "")
+    except InputError as exc:
+        raise InputError(f"camera={value!r}: {exc}") from None
 
 
 def camera_from_info(msg: Any, rectified: bool) -> Camera:
@@ -212,18 +212,6 @@ def decode_image(msg: Any) -> np.ndarray:
     img = rows.view(np.dtype(dtype).newbyteorder(order)).astype(dtype).reshape(h, w, channels)
     img = img[:, :, 0] if channels == 1 else img
     return cv2.cvtColor(img, conversion) if conversion is not None else img
-
-
-def _write_atomic(path: Path, data: bytes) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
 
 
 def default_image_dir(paths: Sequence[Path], image_topic: str) -> Path:
@@ -453,7 +441,7 @@ def _store_image(out_dir: Path, name: str, msg: Any, msgtype: str, root: Path) -
             raise FormatError(root, None, f"compressed depth images ({msg.format!r}) are not colour images")
         path = out_dir / (name + (".png" if "png" in fmt else ".jpg"))
         if not path.is_file():
-            _write_atomic(path, bytes(msg.data))
+            write_file(path, bytes(msg.data))
         return path
     path = out_dir / (name + ".png")
     if not path.is_file():
@@ -464,7 +452,7 @@ def _store_image(out_dir: Path, name: str, msg: Any, msgtype: str, root: Path) -
         ok, buf = cv2.imencode(".png", img, _PNG)
         if not ok:
             raise FormatError(root, None, f"cannot encode {name} as PNG")
-        _write_atomic(path, buf.tobytes())
+        write_file(path, buf.tobytes())
     return path
 
 

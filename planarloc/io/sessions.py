@@ -16,7 +16,7 @@ from pathlib import Path
 
 from planarloc.geometry.validation import InputError
 from planarloc.io.datasets import read_dataset
-from planarloc.pipeline.posed_image import PosedImage
+from planarloc.map.posed_image import PosedImage
 
 
 def session_labels(roots: Sequence[str | Path]) -> list[str]:

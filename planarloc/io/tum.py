@@ -41,17 +41,13 @@ import numpy as np
 from planarloc.geometry.camera import Camera
 from planarloc.geometry.pose import Pose
 from planarloc.geometry.validation import InputError
-from planarloc.io._parsing import (
-    iter_data_lines,
-    parse_floats,
-    pose_from_quat_wxyz,
-    resolve_image,
-    write_text_atomic,
-)
+from planarloc.gravity.world import WorldDown
 from planarloc.io.camera_file import read_camera_file
 from planarloc.io.format_error import FormatError
-from planarloc.pipeline.gravity import WorldDown
-from planarloc.pipeline.posed_image import PosedImage
+from planarloc.io.lines import iter_data_lines, parse_floats, parse_pose_fields, resolve_image
+from planarloc.io.output import write_text_atomic
+from planarloc.io.text import T_XYZW
+from planarloc.map.posed_image import PosedImage
 
 logger = logging.getLogger(__name__)
 
@@ -133,9 +129,8 @@ def read_tum_trajectory(path: Path, fmt: str = FORMAT) -> tuple[np.ndarray, list
             raise FormatError(
                 path, lineno, f"expected 8 fields 'timestamp tx ty tz qx qy qz qw', found {len(tokens)}"
             )
-        v = parse_floats(path, lineno, tokens, "timestamp, translation or quaternion")
-        times.append(v[0])
-        poses.append(pose_from_quat_wxyz(path, lineno, v[[7, 4, 5, 6]], v[1:4]))
+        times.append(float(parse_floats(path, lineno, tokens[:1], "timestamp in seconds")[0]))
+        poses.append(parse_pose_fields(path, lineno, tokens[1:], T_XYZW, 2))
     if not poses:
         raise FormatError(path, None, "expected poses 'timestamp tx ty tz qx qy qz qw', found none")
     return np.array(times), poses
@@ -173,32 +168,38 @@ def generated_world_down(root: Path) -> WorldDown | None:
     return GENERATED_WORLD_DOWN if generated else None
 
 
-def read_rgbd_sequence(
-    root: Path,
-    *,
-    fmt: str,
-    image_list: str,
-    pose_file: str,
-    camera: Camera,
-    depth_list: str | None,
-    depth_dir: str | None,
-    depth_scale: float,
-    base_from_camera: Pose | None,
-    max_dt: float,
-    check_images: bool,
-    world_down: WorldDown | None = None,
-) -> list[PosedImage]:
+@dataclass(frozen=True)
+class RgbdLayout:
+    """The files of a timestamped RGB(-D) sequence with a TUM-style trajectory.
+
+    Attributes:
+        fmt: format name for messages.
+        image_list: 'timestamp filename' list of the colour images (relative to the root).
+        depth_list: optional 'timestamp filename' list of depth images (used if it exists).
+        depth_dir: optional depth directory whose file stems are timestamps (used if
+            ``depth_list`` does not exist).
+        pose_file: TUM trajectory file of the camera or, with ``base_from_camera``, of a body.
+    """
+
+    fmt: str
+    image_list: str
+    depth_list: str | None = None
+    depth_dir: str | None = None
+    pose_file: str = "groundtruth.txt"
+
+
+TUM_LAYOUT = RgbdLayout(FORMAT, "rgb.txt", "depth.txt")
+
+
+def read_rgbd_sequence(root: Path, layout: RgbdLayout, camera: Camera, *, depth_scale: float,
+                       base_from_camera: Pose | None, max_dt: float, check_images: bool,
+                       world_down: WorldDown | None = None) -> list[PosedImage]:
     """The shared reader of timestamped RGB(-D) sequences with a TUM-style trajectory.
 
     Args:
         root: sequence directory.
-        fmt: format name for messages.
-        image_list: 'timestamp filename' list of the colour images (relative to root).
-        pose_file: TUM trajectory file of the camera or, with ``base_from_camera``, of a body.
+        layout: its files (:class:`RgbdLayout`).
         camera: intrinsics of every image.
-        depth_list: optional 'timestamp filename' list of depth images (used if it exists).
-        depth_dir: optional depth directory whose file stems are timestamps (used if
-            ``depth_list`` does not exist).
         depth_scale: stored depth value per metre.
         base_from_camera: extrinsic of the camera in the trajectory's body frame; ``None`` if
             the trajectory is the camera's.
@@ -210,6 +211,8 @@ def read_rgbd_sequence(
         raise InputError(
             f"base_from_camera: expected a planarloc Pose, got {type(base_from_camera).__name__}"
         )
+    fmt, image_list, pose_file = layout.fmt, layout.image_list, layout.pose_file
+    depth_list, depth_dir = layout.depth_list, layout.depth_dir
     list_path = root / image_list
     entries = read_timestamped_list(list_path, fmt, "'timestamp filename' per colour image")
     gt_times, world_from_body = read_tum_trajectory(root / pose_file, fmt)
@@ -332,20 +335,8 @@ def read_tum(
         "pass camera=Camera(...) or tum_camera='fr1'|'fr2'|'fr3', or write camera.txt "
         "('PINHOLE width height fx fy cx cy')",
     )
-    return read_rgbd_sequence(
-        root,
-        fmt=FORMAT,
-        image_list="rgb.txt",
-        pose_file="groundtruth.txt",
-        camera=cam,
-        depth_list="depth.txt",
-        depth_dir=None,
-        depth_scale=depth_scale,
-        base_from_camera=base_from_camera,
-        max_dt=max_dt,
-        check_images=check_images,
-        world_down=generated_world_down(root),
-    )
+    return read_rgbd_sequence(root, TUM_LAYOUT, cam, depth_scale=depth_scale, base_from_camera=base_from_camera,
+                              max_dt=max_dt, check_images=check_images, world_down=generated_world_down(root))
 
 
 def tum_lines(timestamps: object, world_from_cam: list[Pose]) -> list[str]:

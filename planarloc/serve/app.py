@@ -2,10 +2,10 @@
 
 Endpoints:
 
-- ``POST /v1/localize`` — multipart form: ``image`` (JPEG/PNG file), ``camera`` (``MODEL W H
-  PARAMS...``), optional ``map``, ``gravity`` (``gx gy gz``), ``session``, ``method``,
-  ``structure``, ``seed``. Answers the JSON ``planarloc localize`` writes per query
-  (:func:`planarloc.io.query_json.query_record`). A failed localization is a 200 with
+- ``POST /v1/localize`` — multipart form: ``image`` (JPEG/PNG file), and optionally ``camera``
+  (``MODEL W H PARAMS...``; default: the map's, when it has one), ``map``, ``gravity``
+  (``gx gy gz``), ``session``, ``method``, ``structure``, ``seed``. Answers the JSON
+  ``planarloc localize`` writes per query (:func:`planarloc.localize.records.query_record`). A failed localization is a 200 with
   ``success: false`` and its status; a bad request is a 4xx with ``{"error": "<one line>"}``;
   overload is a 503 with ``Retry-After``; a worker that died mid-request is a 503 too.
 - ``GET /v1/maps`` — the served maps (name, images, cameras, complete).
@@ -21,15 +21,16 @@ import json
 import logging
 import time
 from contextlib import asynccontextmanager
-from dataclasses import dataclass
 
 from planarloc.extras import require
 from planarloc.geometry.validation import InputError
-from planarloc.pipeline.map_database import MapDatabase
+from planarloc.io.text import camera_text
+from planarloc.map.store import MapDatabase
 from planarloc.serve import worker
 from planarloc.serve.form import read_localize_form
 from planarloc.serve.metrics import ServiceMetrics
-from planarloc.serve.requests import DEFAULT_MAX_IMAGE_BYTES, MapSet, RequestError
+from planarloc.serve.requests import MapSet, RequestError
+from planarloc.serve.settings import ServeSettings
 from planarloc.serve.worker_pool import Overloaded, WorkerDied, WorkerPool
 
 logger = logging.getLogger(__name__)
@@ -37,36 +38,13 @@ logger = logging.getLogger(__name__)
 ENDPOINTS = ("/v1/localize", "/v1/maps", "/healthz", "/metrics")
 
 
-@dataclass(frozen=True)
-class ServeSettings:
-    """Settings of ``planarloc serve`` (the CLI's defaults)."""
-
-    maps: MapSet
-    workers: int = 2
-    queue_size: int = 8
-    token: str | None = None
-    max_image_bytes: int = DEFAULT_MAX_IMAGE_BYTES
-
-
 def map_summaries(maps: MapSet) -> list[dict]:
     """Name, image count, cameras and completeness of each served map (never its path)."""
     out = []
     for name, path in maps.paths.items():
         with MapDatabase.open(path, mode="r") as db:
-            cams = sorted(
-                {
-                    (p.camera.model.value, p.camera.width, p.camera.height, p.camera.params)
-                    for p in db.posed_images()
-                }
-            )
-            out.append(
-                {
-                    "name": name,
-                    "images": db.num_images(),
-                    "complete": bool(db.is_complete),
-                    "cameras": [f"{m} {w} {h} " + " ".join(repr(v) for v in prm) for m, w, h, prm in cams],
-                }
-            )
+            cameras = sorted({camera_text(p.camera) for p in db.posed_images()})
+            out.append({"name": name, "images": db.num_images(), "complete": bool(db.is_complete), "cameras": cameras})
     return out
 
 

@@ -1,58 +1,80 @@
-"""Start a `planarloc serve` subprocess on a free loopback port (for scripts, tests and benchmarks)."""
+"""Start a `planarloc serve` subprocess on a free loopback port (for scripts, tests and benchmarks);
+find its worker processes and their memory."""
 
 from __future__ import annotations
 
 import os
-import socket
+import re
 import subprocess
 import sys
+import threading
 import time
+from collections import deque
 from pathlib import Path
 
 from planarloc.extras import require
 
 
-def free_loopback_port() -> int:
-    """A TCP port that was free on 127.0.0.1 a moment ago."""
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
+#: The banner ``planarloc serve`` prints on stderr once its socket is bound.
+BANNER = re.compile(r"^serving .* on http://(?P<host>[^\s]+):(?P<port>\d+) ")
+
+
+class ServerOutput:
+    """The output of a server process, read by a thread (the pipe never fills up); the last lines kept."""
+
+    def __init__(self, proc: subprocess.Popen) -> None:
+        self.lines: deque[str] = deque(maxlen=200)
+        self.port: int | None = None
+        self.bound = threading.Event()
+        self._thread = threading.Thread(target=self._read, args=(proc,), daemon=True)
+        self._thread.start()
+
+    def _read(self, proc: subprocess.Popen) -> None:
+        for raw in proc.stdout:  # type: ignore[union-attr]
+            line = raw.decode("utf-8", "replace").rstrip("\n")
+            self.lines.append(line)
+            m = BANNER.match(line)
+            if m and self.port is None:
+                self.port = int(m.group("port"))
+                self.bound.set()
+        self.bound.set()
+
+    def text(self) -> str:
+        return "\n".join(self.lines)
 
 
 def start_server(args: list[str], timeout_s: float = 120.0) -> tuple[str, subprocess.Popen]:
-    """Run ``planarloc serve ARGS --host 127.0.0.1 --port <free>`` and wait until ``/healthz`` answers.
+    """Run ``planarloc serve ARGS --host 127.0.0.1 --port 0`` and wait until ``/healthz`` answers.
+
+    The server binds any free port and names it in its banner, so two servers never race for one.
 
     Returns:
-        the base URL and the process (stop it with :func:`stop_server`).
+        the base URL and the process (stop it with :func:`stop_server`; its output is
+        ``proc.output``, a :class:`ServerOutput`).
 
     Raises:
         RuntimeError: the server exited or did not answer within ``timeout_s`` (its output attached).
     """
     httpx = require("httpx", "serve")
-    port = free_loopback_port()
     root = str(Path(__file__).resolve().parents[2])
     env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [root, os.environ.get("PYTHONPATH")]))}
     proc = subprocess.Popen(
-        [
-            sys.executable,
-            "-m",
-            "planarloc.cli.main",
-            "serve",
-            *args,
-            "--host",
-            "127.0.0.1",
-            "--port",
-            str(port),
-        ],
+        [sys.executable, "-m", "planarloc.cli.main", "serve", *args, "--host", "127.0.0.1", "--port", "0"],
         env=env,
         stdout=subprocess.PIPE,
         stderr=subprocess.STDOUT,
     )
-    url = f"http://127.0.0.1:{port}"
+    output = ServerOutput(proc)
+    proc.output = output  # type: ignore[attr-defined]
     deadline = time.monotonic() + timeout_s
+    output.bound.wait(timeout_s)
+    if output.port is None:
+        stop_server(proc)
+        raise RuntimeError(f"planarloc serve did not start: {output.text()[-2000:]}")
+    url = f"http://127.0.0.1:{output.port}"
     while time.monotonic() < deadline:
         if proc.poll() is not None:
-            raise RuntimeError(f"planarloc serve exited: {proc.stdout.read().decode()[-2000:]}")
+            raise RuntimeError(f"planarloc serve exited: {output.text()[-2000:]}")
         try:
             if httpx.get(url + "/healthz", timeout=1.0).status_code == 200:
                 return url, proc

@@ -2,20 +2,24 @@
 
 Everything a client sends is checked here, before any CPU-heavy work: the map name (looked up in
 the configured maps, never used as a path), the image (JPEG or PNG by its signature, size limit,
-dimensions read from the header without decoding), the camera (COLMAP syntax, must fit the
-image), gravity, method, structure and seed. A bad field raises :class:`RequestError` with an
-HTTP status and a one-line reason.
+dimensions read from the header without decoding), the camera (``MODEL W H PARAMS...``, must fit
+the image; optional: the map's camera when the map has one), gravity (``gx gy gz``, returned as a
+unit vector, as the CLI's ``--gravity``), method, structure and seed. The texts are parsed by
+:mod:`planarloc.io.text`, the parsers of the CLI and the file readers. A bad field raises
+:class:`RequestError` with an HTTP status and a one-line reason.
 """
 
 from __future__ import annotations
 
 import re
-import struct
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from planarloc.features.images import ImageFormatError, image_size_from_header
 from planarloc.geometry.camera import Camera
+from planarloc.geometry.validation import InputError
+from planarloc.io.text import parse_camera, parse_gravity
 from planarloc.robust.options import Method, Structure
 
 #: Default upper bound of an uploaded image (bytes).
@@ -91,7 +95,7 @@ class LocalizeRequest:
     map_name: str
     name: str
     image: bytes
-    camera: Camera
+    camera: Camera | None
     gravity: tuple[float, float, float] | None = None
     session: str | None = None
     method: str | None = None
@@ -106,57 +110,26 @@ def image_size(data: bytes) -> tuple[str, int, int]:
     Raises:
         RequestError: 415 for anything that is not a PNG or JPEG, 400 for a broken header.
     """
-    if data[:8] == b"\x89PNG\r\n\x1a\n":
-        if len(data) < 24 or data[12:16] != b"IHDR":
-            raise RequestError(400, "image: truncated PNG header")
-        w, h = struct.unpack(">II", data[16:24])
-        return "png", int(w), int(h)
-    if data[:3] == b"\xff\xd8\xff":
-        i = 2
-        while i + 9 < len(data):
-            if data[i] != 0xFF:
-                raise RequestError(400, "image: corrupt JPEG (bad marker sequence)")
-            marker = data[i + 1]
-            if marker == 0xFF:  # fill byte
-                i += 1
-                continue
-            if marker in (0xD8, 0x01) or 0xD0 <= marker <= 0xD7:
-                i += 2
-                continue
-            length = struct.unpack(">H", data[i + 2 : i + 4])[0]
-            if 0xC0 <= marker <= 0xCF and marker not in (0xC4, 0xC8, 0xCC):
-                h, w = struct.unpack(">HH", data[i + 5 : i + 9])
-                return "jpeg", int(w), int(h)
-            i += 2 + length
-        raise RequestError(400, "image: corrupt JPEG (no frame header)")
-    raise RequestError(415, "image: not a JPEG or PNG file")
+    try:
+        return image_size_from_header(data)
+    except ImageFormatError as exc:
+        raise RequestError(415 if exc.unsupported else 400, f"image: {exc}") from None
 
 
 def parse_camera_field(text: str) -> Camera:
-    """``MODEL WIDTH HEIGHT PARAMS...`` (COLMAP syntax) -> :class:`Camera`, else a 400."""
-    tok = text.replace(",", " ").split()
-    if len(tok) < 4:
-        raise RequestError(
-            400, f"camera: expected 'MODEL WIDTH HEIGHT PARAMS...' (COLMAP syntax), got {text[:80]!r}"
-        )
+    """``MODEL WIDTH HEIGHT PARAMS...`` (:func:`planarloc.io.text.parse_camera`), else a 400."""
     try:
-        return Camera(tok[0], int(tok[1]), int(tok[2]), tuple(float(v) for v in tok[3:]))
-    except ValueError as exc:
-        raise RequestError(400, f"camera {text[:80]!r}: {exc}") from None
+        return parse_camera(text)
+    except InputError as exc:
+        raise RequestError(400, f"camera {text[:80]!r}: {str(exc)[:200]}") from None
 
 
-def _parse_gravity(text: str) -> tuple[float, float, float]:
+def parse_gravity_field(text: str) -> tuple[float, float, float]:
+    """``gx gy gz`` (:func:`planarloc.io.text.parse_gravity`) as a unit vector, else a 400."""
     try:
-        g = tuple(float(v) for v in text.replace(",", " ").split())
-    except ValueError:
-        g = ()
-    if len(g) != 3 or not all(abs(v) < float("inf") for v in g) or sum(v * v for v in g) == 0:
-        raise RequestError(
-            400,
-            f"gravity: expected three finite numbers 'gx gy gz' (camera frame, not all zero), "
-            f"got {text[:80]!r}",
-        )
-    return g  # type: ignore[return-value]
+        return tuple(float(v) for v in parse_gravity(text))  # type: ignore[return-value]
+    except InputError as exc:
+        raise RequestError(400, f"gravity {text[:80]!r}: {exc}") from None
 
 
 def _choice(name: str, text: str | None, choices: Sequence[str]) -> str | None:
@@ -196,10 +169,8 @@ def parse_localize_request(
     _fmt, w, h = image_size(image)
     if w <= 0 or h <= 0 or w * h > MAX_IMAGE_PIXELS:
         raise RequestError(413, f"image: {w}x{h} pixels is outside 1..{MAX_IMAGE_PIXELS} pixels")
-    if not fields.get("camera"):
-        raise RequestError(400, "camera: missing (form field 'MODEL WIDTH HEIGHT PARAMS...', COLMAP syntax)")
-    camera = parse_camera_field(fields["camera"])
-    if (camera.width, camera.height) != (w, h):
+    camera = parse_camera_field(fields["camera"]) if fields.get("camera") else None
+    if camera is not None and (camera.width, camera.height) != (w, h):
         raise RequestError(400, f"camera: {camera.width}x{camera.height} does not fit the {w}x{h} image")
     session = fields.get("session") or None
     if session is not None and not SESSION.match(session):
@@ -216,7 +187,7 @@ def parse_localize_request(
         name=name,
         image=bytes(image),
         camera=camera,
-        gravity=_parse_gravity(fields["gravity"]) if fields.get("gravity") else None,
+        gravity=parse_gravity_field(fields["gravity"]) if fields.get("gravity") else None,
         session=session,
         method=_choice("method", fields.get("method"), [m.value for m in Method]),
         structure=_choice("structure", fields.get("structure"), [s.value for s in Structure]),

@@ -1,17 +1,16 @@
-"""The CPU side of a localization request: decode the image, localize, build the per-query record.
+"""The CPU side of a localization request: prepare the query, localize, build the per-query record.
 
 Runs in a worker process of the service (:mod:`planarloc.serve.worker_pool`) or in a Ray Serve
 replica. Each process opens its maps once, read-only (:func:`open_localizers`), and keeps them.
-The record is :func:`planarloc.io.query_json.query_record`, the one ``planarloc localize``
-writes, and the configuration is built by the CLI's own option parser, so a served pose
-equals the CLI's pose for the same image, camera and seed.
+A request is prepared and configured like a `planarloc localize` query
+(:meth:`~planarloc.localize.localizer.Localizer.prepare`,
+:func:`~planarloc.localize.localizer.localizer_config`) and answered with the record it writes
+(:func:`planarloc.localize.records.query_record`), so a served pose equals the CLI's pose for the
+same image, camera and seed.
 """
 
 from __future__ import annotations
 
-import argparse
-import copy
-import functools
 import logging
 import os
 import threading
@@ -19,11 +18,8 @@ import time
 from collections.abc import Mapping
 from pathlib import Path
 
-import cv2
-import numpy as np
-
-from planarloc.io.query_json import query_record
-from planarloc.pipeline.localizer import Localizer, LocalizerConfig
+from planarloc.localize.localizer import Localizer, localizer_config
+from planarloc.localize.records import query_record
 from planarloc.serve.requests import LocalizeRequest, RequestError
 
 logger = logging.getLogger(__name__)
@@ -50,59 +46,16 @@ def open_localizers(maps: Mapping[str, str | Path]) -> dict[str, Localizer]:
     return _LOCALIZERS
 
 
-@functools.cache
-def _cli_localizer_parser() -> argparse.ArgumentParser:
-    from planarloc.cli.options import add_localizer_args
-
-    parser = argparse.ArgumentParser(add_help=False)
-    add_localizer_args(parser)
-    return parser
-
-
-def request_config(req: LocalizeRequest) -> LocalizerConfig:
-    """The configuration `planarloc localize` builds for ``--method M --structure S --seed N``.
-
-    Built by the CLI's own option parser and ``localizer_config``, so every other setting has the
-    CLI's default by construction (a served pose equals the CLI's for the same input and seed).
-    """
-    from planarloc.cli.options import localizer_config
-
-    argv = []
-    for option, value in (("--method", req.method), ("--structure", req.structure), ("--seed", req.seed)):
-        if value is not None:
-            argv += [option, str(value)]
-    return localizer_config(_cli_localizer_parser().parse_args(argv))
-
-
-def decode_gray(req: LocalizeRequest) -> np.ndarray:
-    """The request's image as (H, W) uint8, decoded like ``cv2.imread(..., IMREAD_GRAYSCALE)``."""
-    image = cv2.imdecode(np.frombuffer(req.image, np.uint8), cv2.IMREAD_GRAYSCALE)
-    if image is None:
-        raise RequestError(400, "image: cannot decode (corrupt or truncated JPEG/PNG)")
-    if (image.shape[1], image.shape[0]) != (req.camera.width, req.camera.height):
-        raise RequestError(
-            400,
-            f"camera: {req.camera.width}x{req.camera.height} does not fit the "
-            f"{image.shape[1]}x{image.shape[0]} image",
-        )
-    return image
-
-
 def localize_with(base: Localizer, req: LocalizeRequest) -> dict:
     """Localize one request with an open map; returns the per-query record (JSON-serialisable).
 
     Raises:
-        RequestError: undecodable image, invalid options.
+        InputError: an undecodable image, a camera that does not fit it, invalid options (the
+            service answers 400).
     """
-    image = decode_gray(req)
-    try:
-        loc = copy.copy(base)  # shares the open map, index and caches; only the configuration differs
-        loc.config = request_config(req)
-    except ValueError as exc:
-        raise RequestError(400, str(exc)) from None
-    gravity = None if req.gravity is None else np.asarray(req.gravity, dtype=float)
-    est = loc.localize(image, req.camera, gravity=gravity)
-    return query_record(req.name, est, gravity)
+    loc = base.with_config(localizer_config(method=req.method, structure=req.structure, seed=req.seed))
+    query = loc.prepare(req.image, req.camera, name=req.name, gravity=req.gravity)
+    return query_record(req.name, loc.localize_query(query), query.gravity)
 
 
 def localize_request(req: LocalizeRequest) -> dict:

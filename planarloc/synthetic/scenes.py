@@ -17,7 +17,7 @@ import numpy as np
 from planarloc.geometry.camera import Camera
 from planarloc.geometry.planar import rotation_from_yaw
 from planarloc.geometry.pose import Pose
-from planarloc.pipeline.upright import upright_from_cam_rotation
+from planarloc.gravity.upright import upright_from_cam_rotation
 from planarloc.robust.pair_matches import PairMatches
 
 PAPER_CAMERA = Camera("PINHOLE", 1280, 1080, (800.0, 800.0, 640.0, 540.0))
@@ -121,7 +121,7 @@ def make_scene(
             ``track_pool * matches_per_pair`` visible points, so pairs share query keypoints
             (as with real matching); None draws every pair from all visible points.
         mount_pitch_deg, mount_roll_deg: every camera (query and references) is mounted with
-            this pitch (looking down for > 0) and roll (:mod:`planarloc.pipeline.upright`).
+            this pitch (looking down for > 0) and roll (:mod:`planarloc.gravity.upright`).
         query_tilt_deg: the query gets an extra random pitch and roll of this standard
             deviation (uneven floor, handheld camera) that the map does not share.
         query_height_m: the query centre is this far below (> 0) the references' plane.

@@ -16,7 +16,7 @@ from scipy.spatial.transform import Rotation
 
 from planarloc.geometry.pose import Pose
 from planarloc.geometry.validation import InputError
-from planarloc.pipeline.posed_image import PosedImage
+from planarloc.map.posed_image import PosedImage
 
 
 @dataclass(frozen=True)

@@ -15,10 +15,10 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from planarloc.features.extract import Features
 from planarloc.geometry.camera import Camera
 from planarloc.geometry.pose import Pose, pose_errors
-from planarloc.pipeline.features import Features
-from planarloc.pipeline.localizer import Localizer
+from planarloc.localize.localizer import Localizer
 from planarloc.robust.pair_matches import PairMatches
 from planarloc.robust.result import PoseEstimate
 
@@ -144,7 +144,7 @@ def match_plot_name(query_name: str) -> str:
 
 class MatchPlotter:
     """Writes :func:`save_match_plot` figures to ``out_dir`` for each estimate it is given
-    (an ``on_estimate`` callback of :func:`planarloc.pipeline.evaluation.evaluate_configs`)."""
+    (an ``on_estimate`` callback of :func:`planarloc.evaluation.queries.evaluate_configs`)."""
 
     def __init__(self, out_dir: Path | str) -> None:
         self.out_dir = Path(out_dir)
@@ -154,7 +154,7 @@ class MatchPlotter:
     def _map_paths(self, localizer: Localizer) -> dict[str, Path]:
         key = id(localizer.db)
         if key not in self._paths:
-            self._paths[key] = {p.name: Path(p.path) for p in localizer.db.posed_images()}
+            self._paths[key] = {p.name: Path(p.path) for p in localizer.map_images}
         return self._paths[key]
 
     def plot(self, localizer: Localizer, name: str, query_path: Path | str, camera: Camera, features: Features,

@@ -24,7 +24,7 @@ import numpy as np
 from planarloc.geometry.camera import Camera
 from planarloc.geometry.pose import Pose
 from planarloc.geometry.validation import InputError
-from planarloc.pipeline.posed_image import PosedImage
+from planarloc.map.posed_image import PosedImage
 from planarloc.robust.pair_matches import PairMatches
 from planarloc.robust.result import PoseEstimate
 
@@ -41,7 +41,7 @@ def _rerun():  # noqa: ANN202
 
 
 class RerunLogger:
-    """Writes a Rerun recording to ``path`` (use as a context manager; ``close`` flushes it)."""
+    """Writes a Rerun recording to ``path``; :meth:`close` flushes it (``with closing(...)``)."""
 
     def __init__(self, path: Path | str, application_id: str = "planarloc") -> None:
         self.rr = _rerun()
@@ -52,12 +52,6 @@ class RerunLogger:
         self.rec.log("world", self.rr.ViewCoordinates.RIGHT_HAND_Y_DOWN, static=True)
         self._map_centers: dict[str, np.ndarray] = {}
         self._step = 0
-
-    def __enter__(self) -> RerunLogger:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
 
     def close(self) -> None:
         self.rec.flush()

@@ -18,7 +18,7 @@ def plot_localization(ax, map_centers: np.ndarray, results: Sequence, max_error_
     Args:
         ax: a matplotlib Axes.
         map_centers: (M, 3) map camera centres (world).
-        results: :class:`planarloc.pipeline.evaluation.QueryResult` items.
+        results: :class:`planarloc.evaluation.queries.QueryResult` items.
         max_error_m: upper end of the colour scale (errors above are clipped).
 
     Returns:

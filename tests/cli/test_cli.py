@@ -57,3 +57,32 @@ def test_known_errors_print_one_line_and_exit_1(tmp_path: Path, capsys: pytest.C
     (tmp_path / "not_a_map.db").write_text("hello")
     assert run(["map", "info", tmp_path / "not_a_map.db"]) == 1
     assert "not a planarloc map" in capsys.readouterr().err
+
+
+def test_help_pages_say_what_the_code_does(capsys: pytest.CaptureFixture[str]) -> None:
+    from planarloc.synthetic.world.presets import preset_names
+
+    def page(*argv: str) -> str:
+        with pytest.raises(SystemExit):
+            build_parser().parse_args([*argv, "--help"])
+        return capsys.readouterr().out
+
+    assert "%%" not in page("evaluate") and "index % N == 0" in page("evaluate")
+    demo = page("demo")
+    assert all(f"\n  {name} " in demo for name in preset_names())  # every preset, described
+    serve = page("serve")
+    assert "optionally camera" in serve and "--port 0" in serve and "422" not in serve
+    assert "'-' for stdout" in page("localize")
+
+
+def test_map_build_interrupted_says_it_resumes(tiny_world: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+                                               capsys: pytest.CaptureFixture[str]) -> None:
+    from planarloc.cli import map_command
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(map_command, "build_map", interrupted)
+    assert run(["map", "build", tiny_world / "map", "-f", "tum", "--out", tmp_path / "m.db"]) == 130
+    assert capsys.readouterr().err.strip().splitlines()[-1].startswith("interrupted; re-run the same command to "
+                                                                       "resume the build")

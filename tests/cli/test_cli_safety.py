@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 
 from planarloc.cli.main import build_parser, main
+from planarloc.evaluation.queries import default_map_path
 from planarloc.io.datasets import read_dataset
-from planarloc.pipeline.evaluation import default_map_path
-from planarloc.pipeline.map_database import MapDatabase
+from planarloc.map.store import MapDatabase
 
 
 def run(argv: list[object]) -> int:
@@ -108,7 +108,9 @@ def test_bad_queries_are_recorded_and_the_batch_goes_on(world_map: Path, queries
     records = {r["name"]: r for r in (json.loads(p.read_text()) for p in (tmp_path / "poses.txt.json.d").glob("*"))}
     assert records["broken.png"]["status"] == "error" and "cannot read image" in records["broken.png"]["reason"]
     assert records["small.png"]["status"] == "error" and "80x60" in records["small.png"]["reason"]
-    assert "could not be processed" in capsys.readouterr().err
+    captured = capsys.readouterr()
+    assert "localized 2 of 4 queries (2 failed, 2 could not be processed)" in captured.out
+    assert "query broken.png not processed: " in captured.err and "query small.png not processed: " in captured.err
 
 
 def test_camera_of_another_size_is_not_silently_used(world_map: Path, queries, tmp_path: Path) -> None:
@@ -206,8 +208,9 @@ def test_damaged_map_fails_info_and_check_with_the_row_named(world_map: Path, tm
     assert run(["map", "info", db]) == 1
     one_error_line(capsys, "damaged map", "images row 3")
     assert run(["map", "check", db]) == 1
-    captured = capsys.readouterr()
-    assert "images row 3" in captured.out and len(captured.err.strip().splitlines()) == 1
+    captured = capsys.readouterr()  # the problems are diagnostics (stderr), then one error line
+    assert "images row 3" in captured.err and captured.out == ""
+    assert captured.err.strip().splitlines()[-1].startswith("planarloc map check: error:")
     assert run(["map", "check", world_map]) == 0
 
 
@@ -255,11 +258,11 @@ def test_evaluate_records_a_broken_query_and_goes_on(tiny_world: Path, tmp_path:
 
 
 def test_interrupted_batch_keeps_the_poses_so_far(world_map: Path, queries, tmp_path: Path,
-                                                  monkeypatch: pytest.MonkeyPatch) -> None:
-    from planarloc.pipeline.localizer import Localizer
+                                                  monkeypatch: pytest.MonkeyPatch, capsys) -> None:
+    from planarloc.localize.localizer import Localizer
 
     images, cam = queries
-    real, calls = Localizer.localize, []
+    real, calls = Localizer.localize_query, []
 
     def interrupt_second(self, *args, **kwargs):
         calls.append(1)
@@ -267,7 +270,11 @@ def test_interrupted_batch_keeps_the_poses_so_far(world_map: Path, queries, tmp_
             raise KeyboardInterrupt
         return real(self, *args, **kwargs)
 
-    monkeypatch.setattr(Localizer, "localize", interrupt_second)
+    monkeypatch.setattr(Localizer, "localize_query", interrupt_second)
     out = tmp_path / "poses.txt"
     assert run(["localize", "--map", world_map, *images, "--camera", cam, "--structure", "tracks", "--out", out]) == 130
     assert [line.split()[0] for line in out.read_text().splitlines()] == [images[0].name]
+    # The message tells the truth: what is in the results file, and that localize does not resume.
+    last = capsys.readouterr().err.strip().splitlines()[-1]
+    assert last.startswith("interrupted after 1 of 2 queries: their results are in ") and str(out) in last
+    assert "localizes all 2 again" in last and "resume" not in last

@@ -25,7 +25,7 @@ def cli_map(tiny_world: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
 def test_map_info_reports_gravity(cli_map: Path, capsys: pytest.CaptureFixture[str]) -> None:
     capsys.readouterr()
     assert run(["map", "info", cli_map]) == 0
-    out = capsys.readouterr().err  # the console writes to stderr
+    out = capsys.readouterr().out  # information goes to stdout
     assert "gravity (down, world frame): (+0.0000, +1.0000, +0.0000)  source: option" in out
     assert "up=-y" in out and "mount tilt of the 6 map cameras: pitch" in out
 
@@ -61,7 +61,7 @@ def test_localize_with_gravity(cli_map: Path, tiny_world: Path, tmp_path: Path,
 @pytest.mark.parametrize(
     ("args", "message"),
     [(["--gravity", "0 1"], "--gravity: expected three numbers"),
-     (["--gravity", "0 0 0"], "--gravity: expected three numbers"),
+     (["--gravity", "0 0 0"], "--gravity: expected a non-zero gravity direction"),
      (["--gravity-file", "BAD"], "gravity.txt:2: expected 4 fields 'name gx gy gz', found 3"),
      (["--gravity-file", "ZERO"], "gravity.txt:1: expected a non-zero gravity direction")],
 )

@@ -80,6 +80,30 @@ def test_cross_session_with_bag_queries_equals_all_tum(tiny_world: Path, query_b
     assert img is not None and img.shape[0] > 300 and img.std() > 10
 
 
+@pytest.mark.parametrize("storage", ["rosbag1", "sqlite3"])
+def test_a_dataset_and_the_same_dataset_as_a_bag_give_the_same_results(tiny_world: Path, tmp_path: Path,
+                                                                       storage: str) -> None:
+    """The whole dataset (map and queries) read from its TUM folder and from a bag written of it:
+    same map images, same estimates, same statuses, same success rates."""
+    dataset = read_dataset(tiny_world / "map", "tum")
+    bag = write_rosbag(tmp_path / ("data.bag" if storage == "rosbag1" else "data"), dataset, storage=storage)
+    common = ["--map-every", "2", "--structure", "tracks", "--vocabulary-size", "16", "--seed", "3",
+              "--dataset-option", "up=-y"]  # the generated world's gravity, declared by its folder only
+    assert run(["evaluate", tiny_world / "map", "-f", "tum", *common, "--map", tmp_path / "tum.db",
+                "--json", tmp_path / "tum.json"]) == 0
+    assert run(["evaluate", bag, "-f", "rosbag", "--dataset-option", "pose_topic=/pose",
+                "--dataset-option", f"image_dir={tmp_path / 'images'}", *common, "--map", tmp_path / "bag.db",
+                "--json", tmp_path / "bag.json"]) == 0
+    tum, from_bag = (json.loads((tmp_path / f"{k}.json").read_text()) for k in ("tum", "bag"))
+    assert tum["queries"] == from_bag["queries"] == 6 and tum["success"] == from_bag["success"]
+    assert tum["status_counts"] == from_bag["status_counts"] and tum["localized"] >= 5
+    for a, b in zip(tum["per_query"], from_bag["per_query"]):
+        assert a["status"] == b["status"] and a["num_inliers"] == b["num_inliers"]
+        assert b["name"] == f"camera_image_raw/{a['timestamp']:.9f}.png"  # the bag names frames by stamp
+        if a["success"]:
+            np.testing.assert_allclose(a["estimate_center"], b["estimate_center"], atol=1e-6)
+
+
 def test_bags_into_map_build_and_localize(tiny_world: Path, query_bag: Path, tmp_path: Path,
                                           capsys: pytest.CaptureFixture[str]) -> None:
     map_bag = write_rosbag(tmp_path / "map.bag", read_dataset(tiny_world / "map", "tum"), storage="rosbag1",

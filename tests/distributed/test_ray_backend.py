@@ -13,11 +13,11 @@ ray = pytest.importorskip("ray", reason="the ray extra is not installed (pip ins
 
 from planarloc.cli.main import main  # noqa: E402
 from planarloc.distributed.ray_backend import RayBackend, check_address  # noqa: E402
+from planarloc.evaluation.queries import evaluate_queries, split_map_queries  # noqa: E402
 from planarloc.io.datasets import read_dataset  # noqa: E402
-from planarloc.pipeline.evaluation import evaluate_queries, split_map_queries  # noqa: E402
-from planarloc.pipeline.localizer import Localizer, LocalizerConfig  # noqa: E402
-from planarloc.pipeline.map_builder import build_map  # noqa: E402
-from planarloc.pipeline.map_database import MapDatabase  # noqa: E402
+from planarloc.localize.localizer import Localizer, LocalizerConfig  # noqa: E402
+from planarloc.map.builder import build_map  # noqa: E402
+from planarloc.map.store import MapDatabase  # noqa: E402
 from planarloc.robust.options import RansacOptions  # noqa: E402
 from planarloc.synthetic.world.export import generate  # noqa: E402
 from planarloc.synthetic.world.presets import get_preset, shrunk  # noqa: E402
@@ -108,7 +108,7 @@ def check_ray_serve_deployment_serves_the_cli_pose(world: Path, tmp_path: Path) 
     httpx = pytest.importorskip("httpx", reason="the serve extra is not installed")
     from ray import serve
 
-    from planarloc.distributed.ray_serve import deploy_fleet
+    from planarloc.serve.ray_serve import deploy_fleet
 
     db = build_map(read_dataset(world / "map", "tum"), tmp_path / "fleet.db")
     query = sorted((world / "query" / "rgb").glob("*.png"))[0]

@@ -79,7 +79,7 @@ def test_radial_and_fisheye_models_are_read_with_the_pixel_shift(tmp_path, write
 
 def test_unsupported_model_named(tmp_path, write_image, random_poses):
     model = write_model(
-        tmp_path, random_poses(1), write_image, cameras="# cams\n1 FOV 64 48 50 50 32 24 0.01\n"
+        tmp_path, random_poses(1), write_image, cameras="# cams\n1 FOV 64 48 50 51 32 24 0.01\n"
     )
     with pytest.raises(
         FormatError, match=r"cameras\.txt:2: camera model FOV is not supported .*PINHOLE"

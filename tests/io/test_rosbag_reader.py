@@ -17,7 +17,7 @@ from planarloc.geometry.pose import Pose  # noqa: E402
 from planarloc.geometry.validation import InputError  # noqa: E402
 from planarloc.io import FormatError, read_dataset  # noqa: E402
 from planarloc.io.rosbag import read_rosbag, read_rosbag_images, write_rosbag  # noqa: E402
-from planarloc.pipeline.posed_image import PosedImage  # noqa: E402
+from planarloc.map.posed_image import PosedImage  # noqa: E402
 
 CAMERA = Camera("PINHOLE", 32, 24, (30.0, 31.0, 15.5, 11.5))
 #: camera optical frame in base_link: 0.2 m ahead, 0.9 m up, looking along the base's x axis
@@ -143,3 +143,65 @@ def test_pose_of_the_base_without_extrinsic_warns(tmp_path, random_poses, caplog
     with caplog.at_level(logging.WARNING):
         read_rosbag(bag, pose_topic="/pose", image_dir=tmp_path / "i")
     assert "pass base_to_camera" in caplog.text
+
+
+def _rosbags_own_bag(path: Path, truth: list[PosedImage]) -> Path:
+    """A ROS 1 bag written with rosbags' own Writer and message classes, as a robot's driver
+    stack records one: rgb8 images on their topic, a CameraInfo per frame, nav_msgs/Odometry of
+    the camera's optical frame in the map, bag times after the header stamps."""
+    from rosbags.rosbag1 import Writer
+    from rosbags.typesys import Stores, get_typestore
+
+    ts = get_typestore(Stores.ROS1_NOETIC)
+    T = ts.types
+    Header, Time = T["std_msgs/msg/Header"], T["builtin_interfaces/msg/Time"]
+
+    def header(ns: int, frame: str, seq: int) -> object:
+        return Header(seq=seq, stamp=Time(sec=ns // 10**9, nanosec=ns % 10**9), frame_id=frame)
+
+    with Writer(path) as writer:
+        images = writer.add_connection("/cam/image_color", "sensor_msgs/msg/Image", typestore=ts)
+        infos = writer.add_connection("/cam/camera_info", "sensor_msgs/msg/CameraInfo", typestore=ts)
+        odom = writer.add_connection("/odom", "nav_msgs/msg/Odometry", typestore=ts)
+        (fx, fy), (cx, cy) = CAMERA.focal, CAMERA.principal_point
+        for seq, im in enumerate(truth):
+            ns = int(round(im.timestamp * 1e9))
+            rgb = cv2.cvtColor(cv2.imread(str(im.path), cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB)
+            world_from_cam = im.cam_from_world.inverse()
+            q, t = world_from_cam.quat_wxyz, world_from_cam.t
+            pose = T["geometry_msgs/msg/Pose"](
+                position=T["geometry_msgs/msg/Point"](x=t[0], y=t[1], z=t[2]),
+                orientation=T["geometry_msgs/msg/Quaternion"](x=q[1], y=q[2], z=q[3], w=q[0]))
+            zero = T["geometry_msgs/msg/Vector3"](x=0.0, y=0.0, z=0.0)
+            msgs = [
+                (odom, ns + 2_000_000, T["nav_msgs/msg/Odometry"](
+                    header=header(ns + 1_000_000, "map", seq), child_frame_id="cam_optical",
+                    pose=T["geometry_msgs/msg/PoseWithCovariance"](pose=pose, covariance=np.zeros(36)),
+                    twist=T["geometry_msgs/msg/TwistWithCovariance"](
+                        twist=T["geometry_msgs/msg/Twist"](linear=zero, angular=zero), covariance=np.zeros(36)))),
+                (infos, ns + 3_000_000, T["sensor_msgs/msg/CameraInfo"](
+                    header=header(ns, "cam_optical", seq), height=CAMERA.height, width=CAMERA.width,
+                    distortion_model="plumb_bob", D=np.zeros(5), K=np.array([fx, 0, cx, 0, fy, cy, 0, 0, 1.0]),
+                    R=np.eye(3).reshape(-1), P=np.array([fx, 0, cx, 0, 0, fy, cy, 0, 0, 0, 1.0, 0]),
+                    binning_x=0, binning_y=0, roi=T["sensor_msgs/msg/RegionOfInterest"](
+                        x_offset=0, y_offset=0, height=0, width=0, do_rectify=False))),
+                (images, ns + 4_000_000, T["sensor_msgs/msg/Image"](
+                    header=header(ns, "cam_optical", seq), height=rgb.shape[0], width=rgb.shape[1],
+                    encoding="rgb8", is_bigendian=0, step=3 * rgb.shape[1], data=rgb.reshape(-1))),
+            ]
+            for conn, bag_ns, msg in msgs:
+                writer.write(conn, bag_ns, ts.serialize_ros1(msg, conn.msgtype))
+    return path
+
+
+def test_a_bag_written_by_rosbags_itself_and_its_ros2_conversion_read_as_the_truth(tmp_path, random_poses):
+    from rosbags.convert import convert
+
+    truth = posed_images(tmp_path, random_poses, n=4)
+    bag = _rosbags_own_bag(tmp_path / "driver.bag", truth)
+    read = read_rosbag(bag, pose_topic="/odom", max_dt=0.002, image_dir=tmp_path / "i1")
+    assert_same(read, truth)  # poses, CameraInfo intrinsics, stamps and rgb8 pixels (as BGR)
+    assert read[0].name.startswith("cam_image_color/100.")
+    ros2 = tmp_path / "driver-ros2"
+    convert([bag], ros2, "sqlite3", 8, None, "file", None, None, [], [], [], [])  # rosbags' own converter
+    assert_same(read_rosbag(ros2, pose_topic="/odom", max_dt=0.002, image_dir=tmp_path / "i2"), truth)

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from planarloc.io.sessions import read_sessions, session_labels, sessions_map_path
 from planarloc.io.pose_list import write_pose_list
+from planarloc.io.sessions import read_sessions, session_labels, sessions_map_path
 
 
 def write_session(root, write_image, random_poses, n, seed):

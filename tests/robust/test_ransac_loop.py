@@ -11,8 +11,8 @@ import math
 import numpy as np
 import pytest
 
-from planarloc.robust.options import RansacOptions
 from planarloc.robust import ransac as ransac_module
+from planarloc.robust.options import RansacOptions
 from planarloc.robust.ransac import _lo_candidates, ransac, required_iterations
 from planarloc.robust.result import RansacStatistics
 

@@ -48,11 +48,18 @@ def test_query_gravity_from_an_imu_is_used() -> None:
     assert t_err < 1e-6 and r_err < 1e-4  # degrees: arccos resolution near 0
 
 
-@pytest.mark.parametrize("condition", [dict(query_tilt_deg=3.0), dict(query_height_m=0.5),
-                                       dict(mount_pitch_deg=10.0)])
-def test_auto_falls_back_to_6dof_and_explicit_planar_is_never_confidently_wrong(condition: dict) -> None:
+@pytest.mark.parametrize(("condition", "planar_failures"), [
+    # 3° of tilt is within reach of the planar search on some scenes: a pose within its
+    # uncertainty, or one of the two statuses that say why not.
+    (dict(query_tilt_deg=3.0), ("planar_model_violated", "degenerate_scale")),
+    # 0.5 m off the map's plane, or a 10° pitch without gravity: the planar model cannot hold.
+    (dict(query_height_m=0.5), ("planar_model_violated",)),
+    (dict(mount_pitch_deg=10.0), ("planar_model_violated",)),
+])
+def test_auto_falls_back_to_6dof_and_explicit_planar_is_never_confidently_wrong(condition: dict,
+                                                                                 planar_failures: tuple) -> None:
     # Tilted query, query below the map's plane, or a pitched mount without gravity: the
-    # planar model does not hold. auto localizes them; the paper's 2p1p either returns a
+    # planar model does not hold. auto localizes every one; the paper's 2p1p either returns a
     # pose within its uncertainty or says that the planar model is violated.
     auto_ok = 0
     for seed in range(8):
@@ -68,9 +75,8 @@ def test_auto_falls_back_to_6dof_and_explicit_planar_is_never_confidently_wrong(
             t_err, r_err = pose_errors(planar.pose, sc.query_pose)
             assert t_err <= 3 * planar.position_std_m + 0.05 and r_err < 1.0, (seed, t_err, planar.position_std_m)
         else:
-            assert planar.status in ("planar_model_violated", "inconsistent_references", "single_reference",
-                                     "degenerate_scale", "ambiguous_pose"), planar.status
-    assert auto_ok >= 7
+            assert planar.status in planar_failures, (seed, planar.status)
+    assert auto_ok == 8
 
 
 def test_auto_reports_the_model() -> None:
@@ -94,11 +100,11 @@ def test_a_reference_with_a_wrong_pose_is_caught() -> None:
         moved = Pose(bad.ref_pose.R, bad.ref_pose.t + bad.ref_pose.R @ np.array([1.5, 0.0, 0.0]))
         pairs = [sc.pairs[0], PairMatches(moved, bad.ref_camera, bad.query_points, bad.ref_points), *sc.pairs[2:]]
         est = estimate_absolute_pose(sc.query_camera, pairs, "auto", RansacOptions(**PERFECT_MAP))
-        if est.success:
+        if est.success:  # the bad reference dropped
             t_err, _ = pose_errors(est.pose, sc.query_pose)
             assert t_err <= 3 * est.position_std_m + 0.05, (seed, t_err, est.position_std_m)
-        else:
-            assert est.status in ("inconsistent_references", "degenerate_scale"), est.status
+        else:  # the status a wrong map pose earns (README, "What a success promises")
+            assert est.status == "inconsistent_references", est.status
 
 
 def test_one_supporting_reference_is_not_a_pose() -> None:
@@ -109,7 +115,7 @@ def test_one_supporting_reference_is_not_a_pose() -> None:
                                          rng.uniform(0, 1000, p.ref_points.shape)) for p in sc.pairs[1:]]
     est = estimate_absolute_pose(sc.query_camera, pairs, "2p1p", RansacOptions(**PERFECT_MAP))
     assert not est.success and est.pose is None
-    assert est.status in ("single_reference", "no_consistent_hypothesis", "too_few_inliers", "degenerate_scale")
+    assert est.status == "single_reference", est.status
 
 
 def test_bad_gravity_is_a_clear_error() -> None:
@@ -213,5 +219,5 @@ def test_few_inliers_far_runner_up_is_not_a_confident_success(case) -> None:
     if est.success:
         err, _ = pose_errors(est.pose, sc.query_pose)
         assert err <= 3 * est.position_std_m + 0.05, (err, est.position_std_m)
-    else:
-        assert est.status in ("ambiguous_pose", "degenerate_scale", "inconsistent_references")
+    else:  # the status of a runner-up pose explaining the matches about as well
+        assert est.status == "ambiguous_pose", est.status

@@ -13,7 +13,7 @@ pytest.importorskip("fastapi", reason="the serve extra is not installed (pip ins
 pytest.importorskip("httpx", reason="the serve extra is not installed (pip install 'planarloc[serve]')")
 
 from planarloc.io.datasets import read_dataset  # noqa: E402
-from planarloc.pipeline.map_builder import build_map  # noqa: E402
+from planarloc.map.builder import build_map  # noqa: E402
 from planarloc.serve.launcher import start_server, stop_server  # noqa: E402
 from planarloc.synthetic.world.export import generate  # noqa: E402
 from planarloc.synthetic.world.presets import get_preset, shrunk  # noqa: E402

@@ -60,7 +60,6 @@ def test_malformed_requests_get_one_line_4xx_and_the_server_stays_up(server) -> 
         ("camera garbage", form(camera="hello"), 400),
         ("camera model", form(camera="FISHEYE 320 240 1 2 3"), 400),
         ("camera size", form(camera="PINHOLE 640 480 500 500 320 240"), 400),
-        ("no camera", form(camera=None), 400),
         ("no image", form(None), 400),
         ("image as text", form(None, image="abc"), 400),
         ("no map of two", form(map=None), 400),
@@ -90,20 +89,29 @@ def test_malformed_requests_get_one_line_4xx_and_the_server_stays_up(server) -> 
     assert server.process.poll() is None
     assert httpx.get(server.url + "/healthz").json()["status"] == "ok"
     with Client(server.url, token=server.token) as client:
-        assert client.localize(image, cam, map="office")["name"] == image.name
+        given = client.localize(image, cam, map="office", seed=3)
+        assert given["name"] == image.name
+        # Without a camera the map's only camera is used, as by `planarloc localize`.
+        default = client.localize(image, None, map="office", seed=3)
+        assert default["success"] and default["quat_wxyz"] == given["quat_wxyz"] and default["t"] == given["t"]
         with pytest.raises(ServiceError) as exc:
             client.localize(b"not an image", cam, map="office")
         assert exc.value.status == 415
+        with pytest.raises(ServiceError) as exc:  # decodes as nothing: refused by the worker, not a 500
+            client.localize(png[:2000], cam, map="office")
+        assert exc.value.status == 400 and "cannot decode" in exc.value.reason
 
 
 def test_overload_answers_503_with_retry_after_and_nothing_else(server) -> None:
+    import os
+    import signal
+
     image = queries(server, 1)[0]
+    capacity, extra = 2 + 2, 3  # 2 workers + queue 2 (conftest), and 3 requests more
     statuses: list[tuple[int, str | None]] = []
-    barrier = threading.Barrier(12)
 
     def one() -> None:
         with httpx.Client(timeout=120, headers={"Authorization": f"Bearer {server.token}"}) as http:
-            barrier.wait()
             r = http.post(
                 server.url + "/v1/localize",
                 files={"image": (image.name, image.read_bytes())},
@@ -111,23 +119,36 @@ def test_overload_answers_503_with_retry_after_and_nothing_else(server) -> None:
             )
             statuses.append((r.status_code, r.headers.get("retry-after")))
 
-    threads = [threading.Thread(target=one) for _ in range(12)]
-    for t in threads:
-        t.start()
+    # Frozen workers finish nothing: the first `capacity` requests stay admitted, so every
+    # request beyond them must be refused at once with a 503 (not queued, not failed otherwise).
+    pids = worker_pids(server.process.pid)
+    for pid in pids:
+        os.kill(pid, signal.SIGSTOP)
+    threads = [threading.Thread(target=one) for _ in range(capacity + extra)]
+    try:
+        for t in threads:
+            t.start()
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline and len(statuses) < extra:
+            time.sleep(0.05)
+        assert sorted(statuses) == [(503, statuses[0][1])] * extra, statuses
+        assert httpx.get(server.url + "/healthz").json()["admitted"] == capacity
+    finally:
+        for pid in pids:
+            os.kill(pid, signal.SIGCONT)
     for t in threads:
         t.join(180)
     codes = [s for s, _ in statuses]
-    assert len(codes) == 12 and set(codes) <= {200, 503}, codes
-    assert codes.count(200) >= 4  # capacity: 2 workers + queue 2
+    assert sorted(codes) == [200] * capacity + [503] * extra, codes
     assert all(ra and int(ra) >= 1 for s, ra in statuses if s == 503)
     metrics = httpx.get(server.url + "/metrics", headers={"Authorization": f"Bearer {server.token}"}).text
     assert 'planarloc_requests_total{code="200",endpoint="/v1/localize"}' in metrics
+    assert 'planarloc_requests_total{code="503",endpoint="/v1/localize"}' in metrics
+    assert 'planarloc_rejected_total{reason="overloaded"} 3.0' in metrics
     assert (
         "planarloc_request_seconds_bucket" in metrics
         and 'planarloc_localize_total{status="success"}' in metrics
     )
-    if 503 in codes:
-        assert 'planarloc_rejected_total{reason="overloaded"}' in metrics
 
 
 def test_worker_killed_mid_request_fails_cleanly_and_the_pool_recovers(server) -> None:
@@ -193,3 +214,41 @@ def test_workers_never_outlive_a_killed_server(served_world) -> None:
     while time.monotonic() < deadline and any(running(pid) for pid in workers):
         time.sleep(0.2)
     assert not any(running(pid) for pid in workers)
+
+
+def test_port_0_prints_the_bound_port_and_a_busy_port_is_one_line(server, served_world) -> None:
+    import socket
+    import subprocess
+    import sys
+
+    banner = next(line for line in server.process.output.lines if line.startswith("serving "))
+    port = int(server.url.rsplit(":", 1)[1])
+    assert port != 0 and f"on http://127.0.0.1:{port} (2 workers, queue 2)" in banner  # started with --port 0
+    assert httpx.get(f"http://127.0.0.1:{port}/healthz").status_code == 200
+    _world, map_path, _camera = served_world
+    with socket.socket() as busy:
+        busy.bind(("127.0.0.1", 0))
+        busy.listen()
+        taken = busy.getsockname()[1]
+        proc = subprocess.run([sys.executable, "-m", "planarloc.cli.main", "serve", "--map", str(map_path),
+                               "--port", str(taken)], capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 1 and proc.stdout == ""
+    assert proc.stderr.splitlines() == [f"planarloc serve: error: --port {taken}: 127.0.0.1:{taken} is already in "
+                                        "use (another server?); choose another port, or --port 0 for any free one"]
+
+
+def test_localize_server_records_an_undecodable_image_and_goes_on(server, tmp_path: Path) -> None:
+    images = queries(server, 2)
+    broken = tmp_path / "broken.png"
+    broken.write_bytes(images[0].read_bytes()[:3000])  # a PNG header, then nothing: undecodable
+    out = tmp_path / "poses.txt"
+    args = ["localize", "--server", server.url, "--token", server.token, "--map", "office", images[0], broken,
+            images[1], "--structure", "tracks", "--out", out]
+    assert main([str(a) for a in args]) == 3
+    records = {r["name"]: r for r in (json.loads(p.read_text()) for p in (tmp_path / "poses.txt.json.d").iterdir())}
+    assert records["broken.png"]["status"] == "error" and "cannot decode" in records["broken.png"]["reason"]
+    assert sorted(line.split()[0] for line in out.read_text().splitlines()) == sorted(p.name for p in images)
+    # A server that cannot be reached stops the run (exit 1) and leaves the results file as it was.
+    before = out.read_text()
+    dead = ["localize", "--server", "http://127.0.0.1:9", "--map", "office", images[0], "--out", out]
+    assert main([str(a) for a in dead]) == 1 and out.read_text() == before

@@ -237,13 +237,14 @@ def test_invalid_reference_and_batch_input() -> None:
         relpose_planar_2p_batch(np.full((4, 2, 3), np.nan), np.ones((4, 2, 3)))
 
 
-def test_zero_rays_never_give_a_pose() -> None:
-    """All-zero rays are not rays: either rejected or no solution (never a pose)."""
+def test_zero_rays_are_degenerate_input_with_no_solution() -> None:
+    """All-zero rays are finite arrays of the right shape, so not invalid input (that raises):
+    degenerate input, for which the contract is an empty list (and invalid batch rows)."""
     xr = project(TRUTH, X_GOOD)
-    try:
-        assert relpose_planar_2p(np.zeros((2, 3)), xr) == []
-    except ValueError:
-        pass
+    assert relpose_planar_2p(np.zeros((2, 3)), xr) == []
+    assert relpose_planar_2p(xr, np.zeros((2, 3))) == []
+    _, _, valid = relpose_planar_2p_batch(np.zeros((1, 2, 3)), xr[None])
+    assert not valid.any()
 
 
 # ---- peer libraries ---------------------------------------------------------------------------

@@ -10,7 +10,7 @@ import pytest
 from planarloc.geometry.camera import Camera
 from planarloc.geometry.pose import Pose, pose_errors
 from planarloc.geometry.validation import InputError
-from planarloc.pipeline.posed_image import PosedImage
+from planarloc.map.posed_image import PosedImage
 from planarloc.robust.pose_graph import so3_exp
 from planarloc.synthetic.stream import make_stream, simulate_odometry, stream_order
 

@@ -25,6 +25,10 @@ def _finite(*values: float) -> bool:
     return all(isinstance(v, (int, float)) and math.isfinite(v) for v in values)
 
 
+def _ints_at_least(low: int, *values: object) -> bool:
+    return all(isinstance(v, int) and v >= low for v in values)
+
+
 @dataclass(frozen=True)
 class CameraConfig:
     """Pinhole intrinsics, OpenCV pixel convention (top-left pixel centre at (0, 0)).
@@ -40,13 +44,8 @@ class CameraConfig:
     cy: float | None = None
 
     def __post_init__(self) -> None:
-        _require(
-            isinstance(self.width, int)
-            and isinstance(self.height, int)
-            and self.width >= 16
-            and self.height >= 16,
-            f"camera size must be integers >= 16, got {self.width}x{self.height}",
-        )
+        _require(_ints_at_least(16, self.width, self.height),
+                 f"camera size must be integers >= 16, got {self.width}x{self.height}")
         _require(
             _finite(self.fx, self.fy) and self.fx > 0 and self.fy > 0,
             f"camera focal lengths must be positive, got {self.fx}, {self.fy}",
@@ -179,13 +178,8 @@ class TrajectoryConfig:
         _require(
             self.shape in ("loop", "line"), f"trajectory shape must be 'loop' or 'line', got {self.shape!r}"
         )
-        _require(
-            isinstance(self.n_map, int)
-            and isinstance(self.n_query, int)
-            and self.n_map >= 2
-            and self.n_query >= 2,
-            f"n_map and n_query must be integers >= 2, got {self.n_map}, {self.n_query}",
-        )
+        _require(_ints_at_least(2, self.n_map, self.n_query),
+                 f"n_map and n_query must be integers >= 2, got {self.n_map}, {self.n_query}")
         _require(
             _finite(self.camera_height) and self.camera_height >= 0.1,
             f"camera_height must be >= 0.1 m, got {self.camera_height}",

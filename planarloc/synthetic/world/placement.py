@@ -5,6 +5,8 @@ All geometry here is 2D in the world x-z (floor) plane, in metres.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 from planarloc.synthetic.world.scene import Box, Room, room_walls
@@ -114,19 +116,21 @@ def _fits(
     return not (len(keep_out_xz) and polygon_distance(keep_out_xz, fp).min() < clearance_m)
 
 
-def place_boxes(
-    rng: np.random.Generator,
-    room: Room,
-    count: int,
-    keep_out_xz: np.ndarray,
-    clearance_m: float,
-    size_min: tuple[float, float, float],
-    size_max: tuple[float, float, float],
-    existing: tuple[Box, ...] = (),
-    against_wall_fraction: float = 0.6,
-    gap_m: float = 0.1,
-) -> tuple[Box, ...]:
-    """Randomly place ``count`` boxes in ``room``, clear of the (M, 2) ``keep_out_xz`` points and each other.
+@dataclass(frozen=True, eq=False)
+class FreeFloor:
+    """Where boxes may stand: ``room``, at least ``clearance_m`` from the (M, 2) ``keep_out_xz``
+    points (the trajectories) and within box sizes (width, height, depth) ``size_min..size_max``."""
+
+    room: Room
+    keep_out_xz: np.ndarray
+    clearance_m: float
+    size_min: tuple[float, float, float]
+    size_max: tuple[float, float, float]
+
+
+def place_boxes(rng: np.random.Generator, floor: FreeFloor, count: int, existing: tuple[Box, ...] = (),
+                against_wall_fraction: float = 0.6, gap_m: float = 0.1) -> tuple[Box, ...]:
+    """Randomly place ``count`` boxes on the free floor, clear of its keep-out points and each other.
 
     A fraction of the boxes stands against a wall facing into the room, the rest anywhere at a
     random yaw. Sizes (width, height, depth) are uniform in [size_min, size_max].
@@ -137,7 +141,8 @@ def place_boxes(
     Raises:
         ValueError: if no free spot is found (too many or too large boxes for the room).
     """
-    keep_out_xz = np.asarray(keep_out_xz, dtype=np.float64).reshape(-1, 2)
+    room, size_min, size_max, clearance_m = floor.room, floor.size_min, floor.size_max, floor.clearance_m
+    keep_out_xz = np.asarray(floor.keep_out_xz, dtype=np.float64).reshape(-1, 2)
     placed: list[Box] = []
     tries = 0
     while len(placed) < count:
@@ -154,17 +159,8 @@ def place_boxes(
     return tuple(placed)
 
 
-def rearrange_boxes(
-    rng: np.random.Generator,
-    room: Room,
-    boxes: tuple[Box, ...],
-    n_move: int,
-    n_add: int,
-    keep_out_xz: np.ndarray,
-    clearance_m: float,
-    size_min: tuple[float, float, float],
-    size_max: tuple[float, float, float],
-) -> tuple[Box, ...]:
+def rearrange_boxes(rng: np.random.Generator, floor: FreeFloor, boxes: tuple[Box, ...], n_move: int,
+                    n_add: int) -> tuple[Box, ...]:
     """Move ``n_move`` of ``boxes`` to new random spots (same size and look) and add ``n_add`` new boxes.
 
     Returns:
@@ -172,7 +168,8 @@ def rearrange_boxes(
     """
     if n_move > len(boxes) or n_move < 0 or n_add < 0:
         raise ValueError(f"cannot move {n_move} of {len(boxes)} boxes and add {n_add}")
-    keep_out_xz = np.asarray(keep_out_xz, dtype=np.float64).reshape(-1, 2)
+    room, clearance_m = floor.room, floor.clearance_m
+    keep_out_xz = np.asarray(floor.keep_out_xz, dtype=np.float64).reshape(-1, 2)
     moved_idx = {int(i) for i in rng.choice(len(boxes), size=n_move, replace=False)} if n_move else set()
     kept = [b for i, b in enumerate(boxes) if i not in moved_idx]
     moved: list[Box] = []
@@ -187,5 +184,5 @@ def rearrange_boxes(
                 break
         else:
             raise ValueError(f"cannot find a new spot for box {i}; use fewer boxes or move fewer")
-    added = place_boxes(rng, room, n_add, keep_out_xz, clearance_m, size_min, size_max, tuple(kept + moved))
+    added = place_boxes(rng, floor, n_add, tuple(kept + moved))
     return tuple(kept + moved) + added

@@ -15,7 +15,7 @@ import numpy as np
 from planarloc.synthetic.world import trajectory as traj
 from planarloc.synthetic.world.config import EffectsConfig, WorldConfig
 from planarloc.synthetic.world.effects import apply_image_effects, mount_poses, tilt_poses
-from planarloc.synthetic.world.placement import check_clearance, place_boxes, rearrange_boxes
+from planarloc.synthetic.world.placement import FreeFloor, check_clearance, place_boxes, rearrange_boxes
 from planarloc.synthetic.world.render import render
 from planarloc.synthetic.world.scene import (
     Box,
@@ -137,21 +137,12 @@ def build_sessions(config: WorldConfig, seed: int = 0) -> tuple[Session, Session
     keep_out = np.vstack([traj.densify(map_path[0], closed), traj.densify(query_path[0], closed)])
 
     box_gap = max(sc.box_clearance, tc.min_clearance)
-    boxes = place_boxes(layout_rng, room, sc.n_boxes, keep_out, box_gap, sc.box_size_min, sc.box_size_max)
+    floor = FreeFloor(room, keep_out, box_gap, sc.box_size_min, sc.box_size_max)
+    boxes = place_boxes(layout_rng, floor, sc.n_boxes)
     qe = config.query_effects
     query_boxes = boxes
     if qe.moved_boxes or qe.added_boxes:
-        query_boxes = rearrange_boxes(
-            change_rng,
-            room,
-            boxes,
-            qe.moved_boxes,
-            qe.added_boxes,
-            keep_out,
-            box_gap,
-            sc.box_size_min,
-            sc.box_size_max,
-        )
+        query_boxes = rearrange_boxes(change_rng, floor, boxes, qe.moved_boxes, qe.added_boxes)
     check_clearance(map_path[0], room, boxes, tc.min_clearance, "map trajectory")
     check_clearance(query_path[0], room, query_boxes, tc.min_clearance, "query trajectory")
 

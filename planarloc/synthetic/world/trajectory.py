@@ -16,18 +16,13 @@ from __future__ import annotations
 
 import numpy as np
 
+from planarloc.geometry.planar import rotation_from_yaw
+
 
 def yaw_rotation(yaw: float | np.ndarray) -> np.ndarray:
-    """(..., 3, 3) ``cam_from_world`` rotations R_y(yaw) of upright cameras (see module docstring)."""
-    yaw = np.asarray(yaw, dtype=np.float64)
-    c, s = np.cos(yaw), np.sin(yaw)
-    R = np.zeros((*yaw.shape, 3, 3))
-    R[..., 0, 0] = c
-    R[..., 0, 2] = -s
-    R[..., 1, 1] = 1.0
-    R[..., 2, 0] = s
-    R[..., 2, 2] = c
-    return R
+    """(..., 3, 3) ``cam_from_world`` rotations R_y(yaw) of upright cameras (see module docstring):
+    the paper's eq. (1), checked against SciPy in ``tests/geometry``."""
+    return rotation_from_yaw(np.asarray(yaw, dtype=np.float64))
 
 
 def heading_of(R: np.ndarray) -> np.ndarray:

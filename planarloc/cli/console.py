@@ -1,0 +1,70 @@
+"""Where the command line writes: results and information to stdout, progress and diagnostics to stderr.
+
+- :func:`info`: what a command is for — summaries, ``map info``, the tables of ``evaluate`` and
+  ``demo``, the files it wrote. When the results themselves go to stdout (``--out -``),
+  :func:`results_on_stdout` sends information to stderr, so that stdout holds only the results.
+- :func:`note`: warnings and diagnostics (a query that could not be processed, ``map check``'s
+  problems, the ``serve`` banner), on stderr.
+- :func:`progress_bar`: one bar per stage, on stderr.
+
+Lines are never hard-wrapped (paths and commands stay copy-pasteable); tables are laid out for
+at least 120 columns when the output is not a terminal. Library code only receives plain
+callbacks (``progress(stage, done, total)``, ``notify(line)``).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+
+from rich.console import Console
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
+
+#: Columns of a table when the output is a file or a pipe (rich would assume 80).
+MIN_TABLE_WIDTH = 120
+
+
+def _console(stderr: bool) -> Console:
+    c = Console(stderr=stderr, soft_wrap=True, highlight=False)
+    if not c.is_terminal:
+        c.width = max(c.width, MIN_TABLE_WIDTH)  # logs and CI: do not squeeze tables to 80 columns
+    return c
+
+
+stderr_console = _console(stderr=True)
+_info = {"console": _console(stderr=False)}
+
+
+def results_on_stdout() -> None:
+    """The results go to stdout: send information to stderr from now on."""
+    _info["console"] = stderr_console
+
+
+def info(*objects: object, markup: bool = False) -> None:
+    """Print information (stdout, or stderr while results use stdout); ``markup``: rich markup."""
+    _info["console"].print(*objects, markup=markup)
+
+
+def note(*objects: object, markup: bool = False) -> None:
+    """Print a diagnostic on stderr (``markup``: the text uses rich markup, e.g. ``[yellow]``)."""
+    stderr_console.print(*objects, markup=markup)
+
+
+def notify(line: str) -> None:
+    """Print one notice line from the library (e.g. what a map build updated) on stderr, as is."""
+    note(line)
+
+
+@contextmanager
+def progress_bar() -> Iterator[Callable[[str, int, int], None]]:
+    """Yield ``update(stage, done, total)``; one bar per stage, shown on stderr."""
+    with Progress(TextColumn("[bold]{task.description:<16}"), BarColumn(), MofNCompleteColumn(),
+                  TimeElapsedColumn(), TimeRemainingColumn(), console=stderr_console, transient=False) as prog:
+        tasks: dict[str, int] = {}
+
+        def update(stage: str, done: int, total: int) -> None:
+            if stage not in tasks:
+                tasks[stage] = prog.add_task(stage, total=total)
+            prog.update(tasks[stage], completed=done, total=total)
+
+        yield update

@@ -1,0 +1,327 @@
+"""Localize query images against a map: retrieval, matching, robust absolute pose (paper Fig. 2).
+
+The core works in memory on one live frame (:meth:`Localizer.localize`); nothing is written
+to disk. Every front door prepares its input once with :meth:`Localizer.prepare` (image, camera
+defaulting to the map's, gravity, references: :mod:`planarloc.localize.query`) and configures
+with :func:`localizer_config` (one source of defaults).
+
+Gravity: every reference gets ``ref_gravity = R_ref · g_world`` from the map's gravity
+(:func:`planarloc.map.gravity.map_gravity`); a query's own gravity (an IMU's, in its
+camera frame) is passed as ``gravity=``, otherwise the estimator assumes the query is mounted like
+the map cameras (docs/conventions.md, "Gravity").
+"""
+
+from __future__ import annotations
+
+import copy
+import logging
+import time
+from collections import OrderedDict
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from planarloc.features.extract import Features, extract_features
+from planarloc.features.matching import DEFAULT_RATIO, match_query_to_refs
+from planarloc.features.retrieval import DEFAULT_TOP_N, GlobalIndex, VladVocabulary, vlad_descriptor
+from planarloc.geometry.camera import Camera
+from planarloc.geometry.validation import InputError
+from planarloc.localize.local_structure import MapView, PairMatchCache, view_points
+from planarloc.localize.query import ImageSource, Query, prepare_query
+from planarloc.map.gravity import map_gravity
+from planarloc.map.posed_image import PosedImage
+from planarloc.map.schema import VOCABULARY_BLOB
+from planarloc.map.settings import feature_config_from_map
+from planarloc.map.store import MapDatabase
+from planarloc.robust.absolute_pose import estimate_absolute_pose
+from planarloc.robust.options import Method, RansacOptions, Structure
+from planarloc.robust.pair_matches import PairMatches, unit_gravity
+from planarloc.robust.result import PoseEstimate
+
+logger = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class LocalizerConfig:
+    """Settings of the localization pipeline; the CLI uses these defaults.
+
+    Attributes:
+        top_n: number of retrieved map images (paper: 5).
+        method: hypothesis families (``"auto"`` default: planar where it holds, 6DoF
+            otherwise; the paper's ``"2p1p"`` etc. by name, see :class:`Method`).
+        ransac: estimator options (structure mode, thresholds, iterations).
+        ratio: ratio-test threshold of the matcher.
+        use_depth: use the map images' depth maps (if any) as 2D-3D constraints.
+        min_matches: references with fewer matches are dropped before estimation.
+    """
+
+    top_n: int = DEFAULT_TOP_N
+    method: Method | str = Method.AUTO
+    ransac: RansacOptions = field(default_factory=RansacOptions)
+    ratio: float = DEFAULT_RATIO
+    use_depth: bool = False
+    min_matches: int = 3
+
+    def __post_init__(self) -> None:
+        if int(self.top_n) < 2:
+            raise InputError(f"top_n: need at least 2 reference images to fix the scale, got {self.top_n}")
+
+
+def localizer_config(*, method: Method | str | None = None, structure: Structure | str | None = None,
+                     seed: int | None = None, top_n: int | None = None, iterations: int | None = None,
+                     threshold_px: float | None = None, max_position_std_m: float | None = None,
+                     use_depth: bool | None = None) -> LocalizerConfig:
+    """A :class:`LocalizerConfig` from the settings a front door lets its user choose.
+
+    Every argument left None keeps the default of :class:`LocalizerConfig` /
+    :class:`~planarloc.robust.options.RansacOptions`, so the CLI, the service and a ROS node
+    configure alike. ``iterations`` fixes the number of RANSAC iterations (the paper: 100).
+
+    Raises:
+        InputError: a value the options refuse (unknown method or structure, out of range).
+    """
+    ransac: dict[str, object] = {}
+    for key, value in (("structure", structure), ("seed", seed), ("threshold_px", threshold_px),
+                       ("max_position_std_m", max_position_std_m)):
+        if value is not None:
+            ransac[key] = value
+    if iterations is not None:
+        ransac.update(min_iterations=iterations, max_iterations=iterations)
+    config: dict[str, object] = {"ransac": RansacOptions(**ransac)}  # type: ignore[arg-type]
+    for key, value in (("method", method), ("top_n", top_n), ("use_depth", use_depth)):
+        if value is not None:
+            config[key] = value
+    return LocalizerConfig(**config)  # type: ignore[arg-type]
+
+
+class Localizer:
+    """Localizes images against one map.
+
+    Args:
+        map_db: an open :class:`MapDatabase` or the path of a map file.
+        config: :class:`LocalizerConfig`.
+
+    Example:
+        >>> loc = Localizer("office.db")                      # doctest: +SKIP
+        >>> est = loc.localize(gray_image, camera)              # doctest: +SKIP
+        >>> est.pose if est.success else est.status             # doctest: +SKIP
+        >>> est = loc.localize(gray_image, camera, gravity=(0.0, 0.99, 0.14))  # IMU: pitched 8°  # doctest: +SKIP
+    """
+
+    def __init__(self, map_db: MapDatabase | str | Path, config: LocalizerConfig | None = None) -> None:
+        self.db = map_db if isinstance(map_db, MapDatabase) else MapDatabase.open(map_db, mode="r")
+        self.config = config or LocalizerConfig()
+        if not self.db.is_complete:
+            logger.warning("%s: the map build is not complete; localizing with what it holds", self.db.path)
+        self.features = replace(feature_config_from_map(self.db), tilt=False)  # queries are not tilted
+        blob = self.db.get_blob(VOCABULARY_BLOB)
+        ids, descs = self.db.get_global_descriptors()
+        if blob is None or len(ids) == 0:
+            raise InputError(f"{self.db.path}: the map has no retrieval index; re-run `planarloc map build` on it")
+        self.vocabulary = VladVocabulary.from_bytes(blob)
+        self.index_ids = ids
+        self.index = GlobalIndex(descs)
+        self._posed = {p.name: p for p in self.db.posed_images()}
+        self._by_id = {self.db.image_id(n): n for n in self._posed}
+        self._depth_cache: OrderedDict[str, np.ndarray | None] = OrderedDict()
+        self.pair_cache = PairMatchCache()
+        """Matches between map images (local structure), kept across queries."""
+        self.gravity = map_gravity(self.db)
+        """The map's :class:`~planarloc.gravity.world.GravityReport` (``g_world``, mount tilt)."""
+        self._g_world = self.gravity.g_world_array
+
+    def with_config(self, config: LocalizerConfig) -> Localizer:
+        """A localizer on the same open map, index and caches, with another configuration
+        (e.g. one request's method and seed)."""
+        other = copy.copy(self)
+        other.config = config
+        return other
+
+    # ---- the map ------------------------------------------------------------------------
+    @property
+    def map_images(self) -> list[PosedImage]:
+        """The map's image records (poses, cameras, files), in map order."""
+        return list(self._posed.values())
+
+    @property
+    def map_cameras(self) -> set[Camera]:
+        """The map's distinct cameras (a query without a camera takes the only one)."""
+        return {p.camera for p in self._posed.values()}
+
+    def prepare(self, image: ImageSource, camera: Camera | None = None, *, name: str = "query",
+                gravity: object | None = None, references: Sequence[str] | None = None,
+                pairs: Mapping[str, Sequence[str]] | None = None) -> Query:
+        """Check and prepare one query against this map (:func:`planarloc.localize.query.prepare_query`).
+
+        Args:
+            image: (H, W) / (H, W, 3) BGR uint8 array, JPEG/PNG bytes or an image file.
+            camera: the query's intrinsics; None: the map's (when it has exactly one camera).
+            name: the query's name (looked up in ``pairs``).
+            gravity: see :meth:`localize`.
+            references: map images to match against instead of retrieval.
+            pairs: hloc pairs ``{query name: [map names]}``: the first ``config.top_n`` of
+                this query's are its references.
+        """
+        return prepare_query(image, camera, map_cameras=self.map_cameras, map_names=self._posed.keys(), name=name,
+                             gravity=gravity, references=references, pairs=pairs, top_n=self.config.top_n)
+
+    # ---- steps ---------------------------------------------------------------------------
+    def retrieve(self, features: Features, top_n: int | None = None) -> list[str]:
+        """Names of the ``top_n`` most similar map images (VLAD, cosine similarity)."""
+        if len(features) == 0:
+            return []
+        idx, _ = self.index.search(vlad_descriptor(self.vocabulary, features.descriptors), top_n or self.config.top_n)
+        return [self._by_id[int(self.index_ids[i])] for i in idx]
+
+    def _depth(self, name: str) -> np.ndarray | None:
+        if name in self._depth_cache:
+            return self._depth_cache[name]
+        posed = self._posed[name]
+        depth = None
+        if posed.depth_path is not None:
+            raw = cv2.imread(str(posed.depth_path), cv2.IMREAD_UNCHANGED)
+            depth = None if raw is None else raw.astype(np.float32) / float(posed.depth_scale)
+        self._depth_cache[name] = depth
+        if len(self._depth_cache) > 32:
+            self._depth_cache.popitem(last=False)
+        return depth
+
+    def _points3d(self, name: str, ref_points: np.ndarray) -> np.ndarray | None:
+        depth = self._depth(name)
+        if depth is None:
+            return None
+        posed = self._posed[name]
+        h, w = depth.shape[:2]
+        uv = np.rint(ref_points).astype(int)
+        ok = (uv[:, 0] >= 0) & (uv[:, 0] < w) & (uv[:, 1] >= 0) & (uv[:, 1] < h)
+        z = np.full(len(uv), np.nan)
+        z[ok] = depth[uv[ok, 1], uv[ok, 0]]
+        z[~(z > 0)] = np.nan
+        X_cam = posed.camera.bearings_from_img(ref_points) * z[:, None]
+        pose = posed.cam_from_world
+        return (X_cam - pose.t) @ pose.R
+
+    def pairs_for(self, features: Features, references: Sequence[str],
+                  camera: Camera | None = None) -> tuple[list[PairMatches], list[str]]:
+        """Match the query to each reference and package the matches for the estimator.
+
+        ``camera`` (the query's) lets keypoints outside its distortion model's range be dropped.
+
+        Returns:
+            the pairs with at least ``min_matches`` matches, and the names of their references.
+        """
+        refs = [self.db.get_features(n) for n in references]
+        matches = match_query_to_refs(features, refs, ratio=self.config.ratio)
+        points3d = self._local_structure(references, refs, matches)
+        pairs, names = [], []
+        for name, ref, m, local in zip(references, refs, matches, points3d):
+            if len(m) < self.config.min_matches:
+                continue
+            posed = self._posed[name]
+            # Keypoints outside the valid range of a distortion model cannot be undistorted.
+            ok = np.isfinite(posed.camera.cam_from_img(ref.keypoints[m[:, 1]])).all(axis=1)
+            if camera is not None:
+                ok &= np.isfinite(camera.cam_from_img(features.keypoints[m[:, 0]])).all(axis=1)
+            m = m[ok]
+            if len(m) < self.config.min_matches:
+                continue
+            ref_pts = np.asarray(ref.keypoints[m[:, 1]], dtype=float)
+            X = self._points3d(name, ref_pts) if self.config.use_depth else None
+            cov = None
+            if local is not None:
+                X_local, cov = local.X[ok], local.cov[ok]
+                if X is not None:  # measured depth first
+                    take = np.isnan(X[:, 0])
+                    X_local, cov = np.where(take[:, None], X_local, X), np.where(take[:, None, None], cov, 0.0)
+                X = X_local
+            pairs.append(PairMatches(posed.cam_from_world, posed.camera,
+                                     np.asarray(features.keypoints[m[:, 0]], dtype=float), ref_pts,
+                                     query_indices=m[:, 0], ref_points3d=X,
+                                     ref_gravity=posed.cam_from_world.R @ self._g_world, ref_points3d_cov=cov))
+            names.append(name)
+        return pairs, names
+
+    def _local_structure(self, references: Sequence[str], refs: Sequence[Features],
+                         matches: Sequence[np.ndarray]) -> list:
+        """Per reference, 3D points of its matched keypoints triangulated with the other
+        references (:mod:`planarloc.localize.local_structure`), one per query keypoint (the
+        widest angle over its matches); ``None`` per reference without structure mode."""
+        if self.config.ransac.structure != Structure.TRACKS or len(references) < 2:
+            return [None] * len(references)
+        views = [MapView(n, f, self._posed[n].cam_from_world, self._posed[n].camera) for n, f in zip(references, refs)]
+        points = view_points(views, [m[:, 1] for m in matches], self.pair_cache, ratio=self.config.ratio,
+                             max_error_px=self.config.ransac.threshold_px)
+        # One 2D-3D constraint per query keypoint: the widest-angle point among its matches.
+        query_kp = np.concatenate([m[:, 0] for m in matches])
+        angle = np.concatenate([np.where(p.partner >= 0, p.angle_deg, -1.0) for p in points])
+        order = np.lexsort((-angle, query_kp))
+        first = np.r_[True, query_kp[order][1:] != query_kp[order][:-1]]
+        keep = np.zeros(len(query_kp), dtype=bool)
+        keep[order[first]] = True
+        keep &= angle >= 0
+        start = 0
+        for pts in points:
+            drop = ~keep[start:start + len(pts.X)]
+            pts.X[drop] = np.nan
+            pts.cov[drop] = np.nan
+            start += len(pts.X)
+        return points
+
+    # ---- whole pipeline ------------------------------------------------------------------
+    def localize_features(self, features: Features, camera: Camera,
+                          references: Sequence[str] | None = None, *, gravity: object | None = None) -> PoseEstimate:
+        """Localize from already extracted query features (retrieval unless ``references``).
+
+        ``gravity``: see :meth:`localize`.
+        """
+        t0 = time.perf_counter()
+        query_gravity = None if gravity is None else unit_gravity("gravity", gravity)
+        refs = list(references) if references is not None else self.retrieve(features)
+        unknown = [r for r in refs if r not in self._posed]
+        if unknown:
+            raise InputError(f"references not in the map: {unknown[:3]}{'...' if len(unknown) > 3 else ''}")
+        t1 = time.perf_counter()
+        pairs, used = self.pairs_for(features, refs, camera)
+        t2 = time.perf_counter()
+        if len(pairs) < 2:
+            est = PoseEstimate(None, False, "too_few_matches",
+                               f"fewer than 2 of the {len(refs)} retrieved map images have >= "
+                               f"{self.config.min_matches} matches", [np.zeros(0, bool)] * len(pairs))
+        else:
+            est = estimate_absolute_pose(camera, pairs, self.config.method, self.config.ransac,
+                                         query_gravity=query_gravity)
+        est.references = used
+        est.stats.add_time("retrieval", t1 - t0)
+        est.stats.add_time("matching", t2 - t1)
+        return est
+
+    def localize(self, image: ImageSource, camera: Camera | None = None, references: Sequence[str] | None = None,
+                 *, gravity: object | None = None) -> PoseEstimate:
+        """Localize one live frame taken with ``camera``.
+
+        Args:
+            image: (H, W) or (H, W, 3) BGR uint8 array (or JPEG/PNG bytes, or a file).
+            camera: the query's intrinsics; None: the map's, when the map has exactly one camera.
+            references: map image names to match against instead of retrieval.
+            gravity: (3,) direction of gravity (pointing down) in the query camera frame
+                (x right, y down, z forward), e.g. an IMU's accelerometer reading negated
+                (it measures the reaction, i.e. up) and rotated into the camera frame; any
+                non-zero length. None: the query is assumed mounted like the map cameras.
+        """
+        t0 = time.perf_counter()
+        return self.localize_query(self.prepare(image, camera, gravity=gravity, references=references), t0)
+
+    def localize_query(self, query: Query, started: float | None = None) -> PoseEstimate:
+        """Localize a prepared query (:meth:`prepare`); ``started``: its ``time.perf_counter()``
+        start, when preparing it counts in the end-to-end time."""
+        t0 = time.perf_counter() if started is None else started
+        t_features = time.perf_counter()
+        features = extract_features(query.image, self.features)
+        est = self.localize_features(features, query.camera, query.references, gravity=query.gravity)
+        est.stats.add_time("features", time.perf_counter() - t_features - sum(
+            est.stats.time_s.get(k, 0.0) for k in ("retrieval", "matching", "total")))
+        est.stats.time_s["end_to_end"] = time.perf_counter() - t0
+        return est

@@ -1,0 +1,239 @@
+"""Build a map: extract local features of posed images, store them, index them for retrieval.
+
+Building a map is inserting posed images (the paper's point: no 3D model). The build is
+resumable: images already in the map are skipped, so re-running after a crash or Ctrl-C
+continues; appending images to an existing map works the same way. Identity is by content
+(:mod:`planarloc.map.identity`): a changed pose is updated, a changed image file is
+re-extracted, another dataset's image with a stored name is namespaced. The retrieval
+vocabulary and the global descriptors are (re)computed when anything changed, then the map is
+marked complete, and its gravity is stored (:mod:`planarloc.map.gravity`). Only one process
+builds a map at a time (the others wait, see :mod:`planarloc.map.lock`).
+"""
+
+from __future__ import annotations
+
+import errno
+import functools
+import json
+import logging
+import os
+from collections.abc import Callable, Iterable, Sequence
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+import numpy as np
+
+from planarloc.features.extract import DEFAULT_FEATURE_CONFIG, FeatureConfig, Features, extract_features
+from planarloc.features.images import png_size, read_gray
+from planarloc.features.retrieval import DEFAULT_NUM_WORDS, VladVocabulary, vlad_descriptor
+from planarloc.geometry.validation import InputError
+from planarloc.gravity.world import WorldDown
+from planarloc.map.gravity import declared_world_down, resolve_world_down, store_map_gravity
+from planarloc.map.identity import MapUpdatePlan, file_sha256, plan_map_update
+from planarloc.map.posed_image import PosedImage
+from planarloc.map.schema import GRAVITY_META, VOCABULARY_BLOB, WORLD_DOWN_META
+from planarloc.map.settings import check_num_words, map_config, settings_mismatch_error
+from planarloc.map.store import MapDatabase
+
+logger = logging.getLogger(__name__)
+
+Progress = Callable[[str, int, int], None]  # (stage, done, total)
+#: ``mapper(fn, items)`` -> ``fn(item)`` for each item, in order (like the builtin ``map``).
+Mapper = Callable[[Callable[[PosedImage], Features], Sequence[PosedImage]], Iterable[Features]]
+
+
+def _hash_checked(image: PosedImage) -> str:
+    """SHA-256 of an image file, after a cheap size check against its camera (PNG headers)."""
+    size = png_size(image.path)
+    if size is not None and size != (image.camera.width, image.camera.height):
+        raise InputError(f"{image.path}: image is {size[0]}x{size[1]} but its camera is "
+                         f"{image.camera.width}x{image.camera.height}; fix the dataset's intrinsics")
+    return file_sha256(image.path)
+
+
+def read_map_image(image: PosedImage) -> np.ndarray:
+    """Read a map image as (H, W) uint8 and check it has its camera's size."""
+    gray = read_gray(image.path)
+    if gray.shape[:2] != (image.camera.height, image.camera.width):
+        raise InputError(
+            f"{image.path}: image is {gray.shape[1]}x{gray.shape[0]} but its camera is "
+            f"{image.camera.width}x{image.camera.height}; fix the dataset's intrinsics"
+        )
+    return gray
+
+
+def extract_image_features(image: PosedImage, features: FeatureConfig) -> Features:
+    """Read a posed image's file and extract its local features (one map-building task)."""
+    return extract_features(read_map_image(image), features)
+
+
+def check_map_settings(path: str | Path, features: FeatureConfig, num_words: int) -> None:
+    """Before any work: an existing map at ``path`` must have been built with these settings
+    (an empty unfinished one is replaced by :func:`build_map`, so it passes)."""
+    path = Path(path)
+    if not path.exists():
+        return
+    with MapDatabase.open(path) as db:
+        stored = db.config
+        empty = db.num_images() == 0 and not db.is_complete
+    config = map_config(features, check_num_words(num_words))
+    if not empty and json.dumps(stored, sort_keys=True) != json.dumps(config, sort_keys=True):
+        raise settings_mismatch_error(path, stored, config)
+
+
+def build_map(
+    images: Sequence[PosedImage],
+    path: str | Path,
+    features: FeatureConfig = DEFAULT_FEATURE_CONFIG,
+    num_words: int = DEFAULT_NUM_WORDS,
+    seed: int = 0,
+    progress: Progress | None = None,
+    workers: int | None = None,
+    lock_timeout: float | None = None,
+    notify: Callable[[str], None] | None = None,
+    mapper: Mapper | None = None,
+) -> Path:
+    """Create (or resume / append to) the map at ``path`` from posed images.
+
+    Args:
+        images: posed map images (e.g. from :func:`planarloc.io.datasets.read_dataset`).
+        path: the map file (SQLite).
+        features: local feature settings; ``features.tilt`` enables the paper's tilt
+            augmentation for map images. Must equal the settings of an existing map.
+        num_words: VLAD vocabulary size.
+        seed: seeds the vocabulary training.
+        progress: optional ``(stage, done, total)`` callback.
+        workers: feature extraction threads (default: one per core).
+        lock_timeout: seconds to wait while another process builds the same map (None: wait).
+        notify: receives one line per identity action (updated poses, re-extracted or
+            namespaced images); default: logged as warnings.
+        mapper: runs the feature extraction instead of the threads: ``mapper(fn, images)`` yields
+            ``fn(image)`` in input order (e.g. :func:`planarloc.distributed.ray_backend.RayBackend.map`).
+
+    Returns:
+        The map path.
+
+    Raises:
+        InputError: an existing map built with different settings, unreadable images, an
+            image whose size differs from its camera's, images that declare a different world
+            gravity than the map, bad options (checked before any work).
+        MapBusyError: another process still builds the map after ``lock_timeout``.
+    """
+    path = Path(path)
+    num_words = check_num_words(num_words)
+    if not isinstance(features, FeatureConfig):
+        raise InputError(f"features: expected a FeatureConfig, got {type(features).__name__}")
+    images = list(images)
+    if not images:
+        raise InputError(f"{path}: no images to build the map from")
+    if not all(isinstance(im, PosedImage) for im in images):
+        raise InputError("images: expected PosedImage records (e.g. from planarloc.io.datasets.read_dataset)")
+    config = map_config(features, num_words)
+    declared = declared_world_down(images)
+    with ThreadPoolExecutor(max_workers=workers or os.cpu_count() or 1) as pool:
+        hashes = _hash_images(images, pool, progress)
+        try:
+            db = MapDatabase.open_or_create(path, config, lock_timeout=lock_timeout)
+        except OSError as exc:
+            if exc.errno not in (errno.EACCES, errno.EPERM, errno.EROFS) or not path.is_file():
+                raise
+            _check_read_only_map_is_current(path, config, images, hashes, exc)
+            return path
+        with db:
+            resolve_world_down(db, declared)  # a contradicting declaration fails before any work
+            plan = plan_map_update(db, images, hashes)
+            for line in plan.summary_lines(path):
+                if notify is not None:
+                    notify(line)
+                else:
+                    logger.warning("%s", line)
+            if plan.keep:
+                logger.info("%s: %d of %d images already in the map, resuming", path, len(plan.keep), len(images))
+            _store_images(db, plan, features, mapper or pool.map, progress)
+            _finish(db, plan, declared, num_words, seed, progress)
+    return path
+
+
+def _hash_images(images: Sequence[PosedImage], pool: ThreadPoolExecutor, progress: Progress | None) -> list[str]:
+    """Stage 1: every image file read once (size checked, SHA-256), before the map is touched."""
+    hashes = []
+    for i, h in enumerate(pool.map(_hash_checked, images)):
+        hashes.append(h)
+        if progress:
+            progress("check images", i + 1, len(images))
+    return hashes
+
+
+def _store_images(db: MapDatabase, plan: MapUpdatePlan, features: FeatureConfig, mapper: Mapper,
+                  progress: Progress | None) -> None:
+    """Stage 2: the plan's pose updates, then the new and changed images' features.
+
+    Reading and SIFT run in worker threads (OpenCV releases the GIL) or on the given mapper (e.g.
+    a Ray cluster); the database is written in this thread, in order, one transaction per image
+    (resumable)."""
+    for record, sha in plan.update:
+        db.update_image_record(record.name, record, sha)
+    todo = plan.replace + plan.add
+    extracted = mapper(functools.partial(extract_image_features, features=features), [r for r, _ in todo])
+    for i, feats in enumerate(extracted):
+        record, sha = todo[i]
+        if db.has_image(record.name):  # replaced: old features out, new in, one image at a time
+            db.remove_image(record.name)
+        db.add_image(record, feats, content_sha256=sha)
+        if progress:
+            progress("features", i + 1, len(todo))
+
+
+def _finish(db: MapDatabase, plan: MapUpdatePlan, declared: WorldDown | None, num_words: int, seed: int,
+            progress: Progress | None) -> None:
+    """Stage 3: when anything changed (or the last build did not finish), the retrieval index and
+    the map's gravity, then the map is marked complete; a map built before gravity was stored
+    gets it."""
+    if plan.changes_map or not db.is_complete or db.get_blob(VOCABULARY_BLOB) is None:
+        index_map(db, num_words=num_words, seed=seed, progress=progress)
+        store_map_gravity(db, declared)
+        db.mark_complete()
+    elif db.get_meta(GRAVITY_META) is None or (declared is not None and db.get_meta(WORLD_DOWN_META) is None):
+        store_map_gravity(db, declared)
+
+
+def _check_read_only_map_is_current(path: Path, config: dict, images: Sequence[PosedImage], hashes: Sequence[str],
+                                    exc: OSError) -> None:
+    """A map that cannot be written (read-only media) is fine if it already is this build."""
+    with MapDatabase.open(path) as db:
+        if json.dumps(db.config, sort_keys=True) != json.dumps(config, sort_keys=True):
+            raise settings_mismatch_error(path, db.config, config)
+        plan = plan_map_update(db, images, hashes)
+        if db.is_complete and not plan.changes_map:
+            logger.info("%s: read-only and already complete with these images; nothing to do", path)
+            return
+    need = len(plan.add) + len(plan.replace) + len(plan.update)
+    raise InputError(f"{path}: cannot write the map ({exc.strerror}: {exc.filename}) but {need} image(s) must be "
+                     "added or updated; copy it to a writable location or build a new map there")
+
+
+def index_map(db: MapDatabase, num_words: int = DEFAULT_NUM_WORDS, seed: int = 0,
+              progress: Progress | None = None) -> None:
+    """Train the VLAD vocabulary on the map's descriptors and store every image's VLAD vector."""
+    ids = db.image_ids()
+    if not ids:
+        raise InputError(f"{db.path}: the map has no images")
+    rng = np.random.default_rng(seed)
+    # Subsample per image so vocabulary training memory stays bounded on large maps.
+    per_image = max(64, (256 * num_words) // len(ids) + 1)
+    sample = []
+    for _id, _name, f in db.iter_features():
+        d = f.descriptors
+        if len(d) > per_image:
+            d = d[rng.choice(len(d), per_image, replace=False)]
+        sample.append(d)
+    k = int(min(num_words, max(1, sum(len(s) for s in sample) // 8)))
+    vocab = VladVocabulary.train(sample, k=k, seed=seed)
+    db.put_blob(VOCABULARY_BLOB, vocab.to_bytes())
+    keys, vecs = [], []
+    for i, (image_id, _name, f) in enumerate(db.iter_features()):
+        keys.append(image_id)
+        vecs.append(vlad_descriptor(vocab, f.descriptors))
+        if progress:
+            progress("retrieval index", i + 1, len(ids))
+    db.set_global_descriptors((keys, np.stack(vecs)))

@@ -1,0 +1,192 @@
+"""Check a map file row by row: what ``planarloc map check`` (and ``map info``) run.
+
+Checks, in order: SQLite's ``PRAGMA integrity_check`` (pages, indexes, free lists); the meta
+table (config JSON, descriptor dimension); every camera row (a valid model and size); every
+image row (finite unit quaternion and translation, existing camera, keypoint and descriptor
+rows present, blob lengths matching their counts, finite decoded values, and the stored
+record checksum: name, camera, pose and both blobs); every global descriptor (length,
+finite); the retrieval vocabulary (decodes). Each problem is one line naming the row.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import sqlite3
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from planarloc.features.retrieval import VladVocabulary
+from planarloc.geometry.camera import Camera
+from planarloc.map.codec import decode_features, record_digest
+from planarloc.map.schema import BLOB_SHA_PREFIX, VOCABULARY_BLOB, MapFormatError, open_connection
+
+MAX_PROBLEMS = 50
+
+
+@dataclass
+class MapCheckReport:
+    """Result of :func:`check_map`: ``problems`` is empty for a sound map."""
+
+    path: Path
+    num_images: int = 0
+    complete: bool = False
+    problems: list[str] = field(default_factory=list)
+
+    @property
+    def ok(self) -> bool:
+        return not self.problems
+
+    def add(self, problem: str) -> None:
+        if len(self.problems) < MAX_PROBLEMS:
+            self.problems.append(problem)
+        elif len(self.problems) == MAX_PROBLEMS:
+            self.problems.append("... (more problems not listed)")
+
+
+def check_map(path: str | Path, progress: Callable[[int, int], None] | None = None) -> MapCheckReport:
+    """Check every row of the map at ``path``.
+
+    Args:
+        path: the map file.
+        progress: optional ``(done, total)`` callback over the image rows.
+
+    Returns:
+        A :class:`MapCheckReport` (problems as one line each, naming table and row).
+
+    Raises:
+        MapFormatError: the file is not a planarloc map at all (cannot be opened as one).
+    """
+    path = Path(path)
+    report = MapCheckReport(path)
+    conn = open_connection(path)
+    try:
+        try:
+            rows = conn.execute("PRAGMA integrity_check(20)").fetchall()
+            if [r[0] for r in rows] != ["ok"]:
+                for (msg,) in rows:
+                    for line in str(msg).splitlines():
+                        if line.strip() and not line.startswith("*** in database"):
+                            report.add(f"SQLite integrity_check: {line.strip()}")
+        except sqlite3.DatabaseError as exc:
+            report.add(f"SQLite integrity_check: {exc}")
+        try:
+            _check_rows(conn, report, progress)
+        except sqlite3.DatabaseError as exc:
+            report.add(f"reading the map failed: {exc}")
+    finally:
+        conn.close()
+    return report
+
+
+def _check_rows(conn: sqlite3.Connection, report: MapCheckReport,
+                progress: Callable[[int, int], None] | None) -> None:
+    meta = dict(conn.execute("SELECT key, value FROM meta"))
+    report.complete = meta.get("build_complete") == "1"
+    try:
+        cfg = json.loads(meta.get("config", "{}"))
+        if not isinstance(cfg, dict):
+            raise ValueError("not a JSON object")
+    except ValueError as exc:
+        report.add(f"meta.config: not valid JSON ({exc})")
+    dim_meta = meta.get("descriptor_dim")
+    if dim_meta is not None and not dim_meta.isdigit():
+        report.add(f"meta.descriptor_dim: {dim_meta!r} is not an integer")
+
+    cameras: dict[int, tuple] = {}
+    for cam_id, model, w, h, params in conn.execute("SELECT id, model, width, height, params FROM cameras"):
+        try:
+            Camera(model, w, h, tuple(json.loads(params)))
+            cameras[cam_id] = (model, w, h, params)
+        except (ValueError, TypeError) as exc:
+            report.add(f"cameras row {cam_id}: damaged ({exc})")
+
+    has_sources = conn.execute(
+        "SELECT 1 FROM sqlite_master WHERE type = 'table' AND name = 'image_sources'").fetchone() is not None
+    digests, global_sums = {}, {}
+    if has_sources:
+        for image_id, rec, glob in conn.execute("SELECT image_id, record_sha256, global_sha256 FROM image_sources"):
+            digests[image_id], global_sums[image_id] = rec, glob
+    total = int(conn.execute("SELECT COUNT(*) FROM images").fetchone()[0])
+    report.num_images = total
+    names_seen: set[str] = set()
+    cursor = conn.execute(
+        "SELECT i.id, i.name, i.camera_id, i.qw, i.qx, i.qy, i.qz, i.tx, i.ty, i.tz, "
+        "k.num, k.data, d.num, d.dim, d.encoding, d.data FROM images i "
+        "LEFT JOIN keypoints k ON k.image_id = i.id LEFT JOIN descriptors d ON d.image_id = i.id ORDER BY i.id")
+    for done, row in enumerate(cursor, 1):
+        image_id, name, cam_id = row[0], row[1], row[2]
+        pose7, (kp_num, kp_blob, d_num, dim, encoding, d_blob) = row[3:10], row[10:]
+        where = f"images row {image_id} ({name!r})"
+        if not isinstance(name, str) or name in names_seen:
+            report.add(f"{where}: bad or duplicate name")
+        names_seen.add(str(name))
+        if cam_id not in cameras:
+            report.add(f"{where}: camera {cam_id} is missing or damaged")
+        try:
+            p = np.asarray(pose7, dtype=float)
+            if not np.isfinite(p).all() or abs(np.linalg.norm(p[:4]) - 1.0) > 1e-6:
+                raise ValueError("not a finite unit quaternion and translation")
+        except (ValueError, TypeError) as exc:
+            report.add(f"{where}: damaged pose ({exc})")
+        if kp_blob is None or d_blob is None:
+            report.add(f"{where}: keypoint or descriptor row missing")
+        elif not isinstance(kp_blob, bytes) or not isinstance(d_blob, bytes):
+            report.add(f"{where}: feature data is not a blob")
+        else:
+            problem = _check_features(kp_num, kp_blob, d_num, dim, encoding, d_blob, meta)
+            if problem:
+                report.add(f"{where}: {problem}")
+            elif image_id in digests and cam_id in cameras:
+                digest = record_digest(name, cameras[cam_id], pose7, kp_num, kp_blob, dim, encoding, d_blob)
+                if digest != digests[image_id]:
+                    report.add(f"{where}: checksum mismatch (name, camera, pose or features changed on disk)")
+        if progress:
+            progress(done, total)
+
+    for image_id, gdim, data in conn.execute("SELECT image_id, dim, data FROM global_descriptors"):
+        if not isinstance(data, bytes) or not isinstance(gdim, int) or len(data) != 4 * gdim:
+            report.add(f"global_descriptors row {image_id}: blob length does not match dim {gdim}")
+        elif not np.isfinite(np.frombuffer(data, dtype="<f4")).all():
+            report.add(f"global_descriptors row {image_id}: non-finite values")
+        elif global_sums.get(image_id) not in (None, hashlib.sha256(data).hexdigest()):
+            report.add(f"global_descriptors row {image_id}: checksum mismatch")
+    orphans = conn.execute("SELECT COUNT(*) FROM global_descriptors WHERE image_id NOT IN (SELECT id FROM images)")
+    if (n := orphans.fetchone()[0]) > 0:
+        report.add(f"global_descriptors: {n} row(s) of images that are not in the map")
+    for key, data in conn.execute("SELECT key, data FROM blobs"):
+        expected = meta.get(BLOB_SHA_PREFIX + str(key))
+        if not isinstance(data, bytes):
+            report.add(f"blobs row {key!r}: not a blob")
+        elif expected is not None and hashlib.sha256(data).hexdigest() != expected:
+            report.add(f"blobs row {key!r}: checksum mismatch")
+    vocab = conn.execute("SELECT data FROM blobs WHERE key = ?", (VOCABULARY_BLOB,)).fetchone()
+    if vocab is not None:
+        try:
+            VladVocabulary.from_bytes(vocab[0])
+        except (ValueError, TypeError) as exc:
+            report.add(f"blobs row {VOCABULARY_BLOB!r}: {exc}")
+    elif report.complete:
+        report.add("the map is marked complete but has no retrieval vocabulary")
+    if report.complete and total:
+        n_global = conn.execute("SELECT COUNT(*) FROM global_descriptors").fetchone()[0]
+        if n_global != total:
+            report.add(f"the map is marked complete but {total - n_global} image(s) lack a global descriptor")
+
+
+def _check_features(kp_num: object, kp_blob: bytes, d_num: object, dim: object, encoding: object,
+                    d_blob: bytes, meta: dict) -> str | None:
+    if not all(isinstance(v, int) for v in (kp_num, d_num, dim)) or not isinstance(encoding, str):
+        return "damaged feature counts"
+    if kp_num != d_num:
+        return f"{kp_num} keypoints but {d_num} descriptors"
+    if meta.get("descriptor_dim") not in (None, str(dim)):
+        return f"descriptor dimension {dim}, the map's is {meta.get('descriptor_dim')}"
+    try:
+        decode_features(kp_num, kp_blob, dim, encoding, d_blob)
+    except MapFormatError as exc:
+        return str(exc)
+    return None

@@ -1,0 +1,132 @@
+"""Local structure: map keypoints triangulated between retrieved map images with known poses."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from planarloc.geometry.camera import Camera
+from planarloc.geometry.epipolar import triangulation_covariance
+from planarloc.geometry.planar import rotation_from_yaw
+from planarloc.geometry.pose import Pose
+from planarloc.features.extract import Features
+from planarloc.localize.local_structure import MapView, PairMatchCache, view_points
+
+CAMERA = Camera("PINHOLE", 640, 480, (500.0, 500.0, 320.0, 240.0))
+
+
+def pose_at(x: float, z: float, yaw: float) -> Pose:
+    R = rotation_from_yaw(yaw)
+    return Pose(R, -R @ np.array([x, 0.0, z]))
+
+
+def views_of(points: np.ndarray, poses: list[Pose], rng: np.random.Generator, noise_px: float = 0.0,
+             distractors: int = 50) -> tuple[list[MapView], list[np.ndarray]]:
+    """One MapView per pose: the visible points' projections with a descriptor per point (the
+    same in every view), plus distractor keypoints; and per view the keypoint index of each point
+    (-1 where not visible)."""
+    desc = rng.normal(size=(len(points), 128)).astype(np.float32)
+    desc /= np.linalg.norm(desc, axis=1, keepdims=True)
+    views, index = [], []
+    for k, pose in enumerate(poses):
+        Xc = points @ pose.R.T + pose.t
+        uv = CAMERA.img_from_cam(np.where(Xc[:, 2:] > 0, Xc, 1.0))
+        vis = (Xc[:, 2] > 0.5) & (uv[:, 0] > 0) & (uv[:, 0] < 640) & (uv[:, 1] > 0) & (uv[:, 1] < 480)
+        ids = np.flatnonzero(vis)
+        kp = uv[ids] + rng.normal(0.0, noise_px, (len(ids), 2))
+        extra = rng.normal(size=(distractors, 128)).astype(np.float32)
+        extra /= np.linalg.norm(extra, axis=1, keepdims=True)
+        kp = np.vstack([kp, rng.uniform([0, 0], [640, 480], (distractors, 2))]).astype(np.float32)
+        d = np.vstack([desc[ids], extra])
+        views.append(MapView(f"map{k}", Features(kp, d, np.ones(len(kp), np.float32)), pose, CAMERA))
+        where = np.full(len(points), -1)
+        where[ids] = np.arange(len(ids))
+        index.append(where)
+    return views, index
+
+
+def scene(rng: np.random.Generator, n: int = 300) -> np.ndarray:
+    return np.c_[rng.uniform(-6, 6, n), rng.uniform(-2, 2, n), rng.uniform(6, 20, n)]
+
+
+def test_points_are_exact_on_noise_free_views_and_come_from_the_widest_partner() -> None:
+    rng = np.random.default_rng(0)
+    X = scene(rng)
+    views, index = views_of(X, [pose_at(0, 0, 0), pose_at(0.5, 1.5, 0.05), pose_at(-0.4, 3.0, -0.05)], rng)
+    rows = [np.flatnonzero(np.isin(np.arange(len(v.features)), ix[ix >= 0])) for v, ix in zip(views, index)]
+    out = view_points(views, rows, PairMatchCache())
+    for k, (pts, ix) in enumerate(zip(out, index)):
+        point_of = {int(kp): i for i, kp in enumerate(ix) if kp >= 0}
+        has = np.flatnonzero(np.isfinite(pts.X[:, 0]))
+        assert len(has) > 0.5 * len(rows[k])  # most points seen twice get a point
+        truth = X[[point_of[int(r)] for r in rows[k][has]]]
+        np.testing.assert_allclose(pts.X[has], truth, atol=1e-4)  # float32 keypoints
+        assert np.all(pts.partner[has] != k) and np.all(pts.angle_deg[has] >= 1.0)
+        assert np.isfinite(pts.cov[has]).all() and np.all(np.linalg.eigvalsh(pts.cov[has]) > 0)
+        # The partner is the view that sees the point at the widest triangulation angle.
+        centres = [v.cam_from_world.center for v in views]
+        for i, Xi in zip(has, truth):
+            angles = {j: np.degrees(np.arccos(np.clip(
+                (Xi - centres[k]) @ (Xi - centres[j]) / np.linalg.norm(Xi - centres[k]) / np.linalg.norm(Xi - centres[j]),
+                -1, 1))) for j in range(len(views)) if j != k and index[j][point_of[int(rows[k][i])]] >= 0}
+            assert pts.partner[i] == max(angles, key=angles.get)
+            assert pts.angle_deg[i] == pytest.approx(angles[pts.partner[i]], abs=1e-3)
+
+
+def test_wrong_matches_are_refused_by_the_known_poses() -> None:
+    """A descriptor match that breaks the two views' epipolar geometry gives no point."""
+    rng = np.random.default_rng(1)
+    X = scene(rng)
+    views, index = views_of(X, [pose_at(0, 0, 0), pose_at(0.6, 2.0, 0.0)], rng, distractors=0)
+    # Swap the descriptors of pairs of points in the second view: a perfect descriptor match
+    # to the wrong place.
+    d = views[1].features.descriptors.copy()
+    both = np.flatnonzero((index[0] >= 0) & (index[1] >= 0))
+    a, b = both[:40:2], both[1:40:2]
+    d[index[1][a]], d[index[1][b]] = views[1].features.descriptors[index[1][b]], views[1].features.descriptors[index[1][a]]
+    views[1] = MapView(views[1].name, Features(views[1].features.keypoints, d, views[1].features.scales),
+                       views[1].cam_from_world, CAMERA)
+    swapped = index[0][np.r_[a, b]]
+    out = view_points(views, [swapped, np.zeros(0, dtype=np.int64)], PairMatchCache())
+    assert not np.isfinite(out[0].X[:, 0]).any()
+
+
+def test_the_cache_computes_each_keypoint_once() -> None:
+    rng = np.random.default_rng(2)
+    X = scene(rng)
+    views, index = views_of(X, [pose_at(0, 0, 0), pose_at(0.5, 1.5, 0.0), pose_at(0.0, 3.0, 0.0)], rng)
+    cache = PairMatchCache()
+    rows = [np.arange(0, len(v.features), 2) for v in views]
+    first = view_points(views, rows, cache)
+    computed = cache.computed
+    again = view_points(views, rows, cache)
+    assert cache.computed == computed and cache.hits >= sum(len(r) for r in rows) * (len(views) - 1)
+    for a, b in zip(first, again):
+        np.testing.assert_array_equal(a.X, b.X)
+    view_points(views, [np.arange(1, len(v.features), 2) for v in views], cache)  # new keypoints only
+    assert cache.computed > computed
+
+
+def test_triangulation_covariance_matches_monte_carlo() -> None:
+    rng = np.random.default_rng(3)
+    X = np.array([[1.0, 0.5, 15.0], [-2.0, -0.5, 8.0]])
+    a, b = pose_at(0, 0, 0), pose_at(1.0, 1.0, 0.05)
+    sigma = 1.0
+    predicted = triangulation_covariance(X, (a.R, a.t), (b.R, b.t), CAMERA.focal, CAMERA.focal, sigma)
+    from planarloc.geometry.epipolar import triangulate_points
+
+    samples = []
+    for _ in range(4000):
+        xs = []
+        for pose in (a, b):
+            uv = CAMERA.img_from_cam(X @ pose.R.T + pose.t) + rng.normal(0.0, sigma, (len(X), 2))
+            xs.append(CAMERA.bearings_from_img(uv))
+        samples.append(triangulate_points((a.R, a.t), (b.R, b.t), *xs)[0])
+    samples = np.array(samples)
+    for i in range(len(X)):
+        empirical = np.cov(samples[:, i].T)
+        # the dominant (depth) variance within 15 %, the directions agree
+        lp, le = np.linalg.eigvalsh(predicted[i])[-1], np.linalg.eigvalsh(empirical)[-1]
+        assert lp == pytest.approx(le, rel=0.15)
+        vp, ve = np.linalg.eigh(predicted[i])[1][:, -1], np.linalg.eigh(empirical)[1][:, -1]
+        assert abs(vp @ ve) > 0.99

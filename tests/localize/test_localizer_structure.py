@@ -1,0 +1,71 @@
+"""The localizer's local structure on rendered worlds: 2D-3D constraints from the map images."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from planarloc.geometry.pose import pose_errors
+from planarloc.io.datasets import read_dataset
+from planarloc.features.extract import extract_features
+from planarloc.localize.localizer import Localizer, LocalizerConfig
+from planarloc.features.images import read_gray
+from planarloc.map.builder import build_map
+from planarloc.robust.options import RansacOptions
+
+
+@pytest.fixture(scope="module")
+def corridor_map(straight_corridor: Path, tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, list]:
+    path = tmp_path_factory.mktemp("map") / "corridor.db"
+    build_map(read_dataset(straight_corridor / "map", "tum"), path)
+    return path, read_dataset(straight_corridor / "query", "tum")
+
+
+def test_straight_corridor_is_degenerate_in_2d2d_and_exact_with_structure(corridor_map: tuple) -> None:
+    path, queries = corridor_map
+    flat = Localizer(path, LocalizerConfig(ransac=RansacOptions(structure="none")))
+    default = Localizer(path)
+    for q in queries:
+        image = read_gray(q.path)
+        est = flat.localize(image, q.camera)
+        assert not est.success and est.status in ("degenerate_scale", "degenerate_structure", "inconsistent_references"), \
+            est.status
+        assert est.message  # a reason a user can act on
+        est = default.localize(image, q.camera)
+        assert est.success, (q.name, est.status, est.message)
+        t_err, r_err = pose_errors(est.pose, q.cam_from_world)
+        assert t_err < 0.05 and r_err < 1.0 and t_err <= 3 * est.position_std_m + 0.05
+        assert est.num_inliers_3d >= 10
+
+
+def test_map_images_give_points_to_keypoints_the_query_matched_only_once(tiny_world: Path, tmp_path: Path) -> None:
+    """Tracks need a query keypoint matched in two map images; local structure triangulates a
+    map keypoint with another map image, so a keypoint the query matched once gets a point too,
+    and the points project onto the query's keypoints at its true pose."""
+    path = tmp_path / "map.db"
+    build_map(read_dataset(tiny_world / "map", "tum"), path)
+    loc = Localizer(path)
+    once_with_point, residuals = 0, []
+    for q in read_dataset(tiny_world / "query", "tum"):
+        features = extract_features(read_gray(q.path), loc.features)
+        pairs, _ = loc.pairs_for(features, loc.retrieve(features), q.camera)
+        ids, counts = np.unique(np.concatenate([p.query_indices for p in pairs]), return_counts=True)
+        single = set(ids[counts == 1].tolist())
+        seen = set()
+        for p in pairs:
+            has = ~np.isnan(p.ref_points3d[:, 0])
+            assert np.isfinite(p.ref_points3d_cov[has]).all()
+            once_with_point += sum(int(i) in single for i in p.query_indices[has])
+            seen_now = set(p.query_indices[has].tolist())
+            assert not seen & seen_now  # one 2D-3D constraint per query keypoint
+            seen |= seen_now
+            Xc = p.ref_points3d[has] @ q.cam_from_world.R.T + q.cam_from_world.t
+            front = Xc[:, 2] > 0  # a wrong match may triangulate anywhere; RANSAC's business
+            residuals += list(np.linalg.norm(q.camera.img_from_cam(Xc[front]) - p.query_points[has][front], axis=1))
+    assert once_with_point > 20
+    assert np.median(residuals) < 2.0
+    none = Localizer(path, LocalizerConfig(ransac=RansacOptions(structure="none")))
+    pairs, _ = none.pairs_for(features, none.retrieve(features), q.camera)
+    assert all(p.ref_points3d is None for p in pairs)
