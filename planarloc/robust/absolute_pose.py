@@ -206,7 +206,8 @@ def estimate_absolute_pose(
     best = min(found, key=lambda s: s.refined.score)
     est = judge_pose(best.scorer, problem, options, gravity.world, gravity.query, best.refined, stats, t_start,
                      _rivals(best, found + others), best.alternatives, best.pool,
-                     lambda R_alt, t_alt, quick: _refine(best.scorer, R_alt, t_alt, options, quick))
+                     lambda R_alt, t_alt, quick: _refine(best.scorer, R_alt, t_alt, options, quick),
+                     any_plane_degenerate=best.family == Method.EIGHT)
     if method in PLANAR and est.success:
         return _planar_model_check(est, method, options, problem, best, others)
     return est

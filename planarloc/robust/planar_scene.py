@@ -158,23 +158,27 @@ def homography_inlier_ratio(xq: np.ndarray, xr: np.ndarray, rows: np.ndarray, f_
 
 
 def distant_planar_pairs(problem, R: np.ndarray, t: np.ndarray, in2d: np.ndarray, pairs: np.ndarray,
-                         threshold_px: float) -> np.ndarray:
+                         threshold_px: float, any_plane: bool = False) -> np.ndarray:
     """(len(pairs),) bool: which of the given pairs see a distant plane through few inliers from
     the pose ``(R, t)``.
 
     A pair qualifies when it has fewer than :data:`FEW_INLIERS` inliers, one homography explains
     them (share ≥ :data:`PLANAR_INLIER_RATIO`, transfer error within ``threshold_px``) and their
     median depth from the query exceeds :data:`FAR_RATIO` times the spread (largest distance) of
-    the centres of ``pairs``."""
+    the centres of ``pairs``. ``any_plane``: every pair whose inliers one homography explains,
+    near or far, however many: the pose came from the 8-point algorithm, which is degenerate on
+    a plane (Hartley & Zisserman Sec. 11.9.2: the epipolar geometry of points on a plane is not
+    unique; generated offices seen 0.8 m from the map images gave 8-point poses 15-21° off
+    with a 0.1 m position std)."""
     out = np.zeros(len(pairs), dtype=bool)
     centres = -np.einsum("pji,pj->pi", problem.ref_R[pairs], problem.ref_t[pairs])
     spread = max((float(np.linalg.norm(a - b)) for a in centres for b in centres), default=0.0)
     for i, k in enumerate(pairs):
         rows = np.flatnonzero(in2d[problem.offsets[k]:problem.offsets[k + 1]]) + problem.offsets[k]
-        if len(rows) >= FEW_INLIERS or homography_inlier_ratio(problem.xq, problem.xr, rows, problem.f_ref[k], threshold_px) < PLANAR_INLIER_RATIO:
+        if (len(rows) >= FEW_INLIERS and not any_plane) or homography_inlier_ratio(problem.xq, problem.xr, rows, problem.f_ref[k], threshold_px) < PLANAR_INLIER_RATIO:
             continue
         R_rq = problem.ref_R[k] @ R.T
         depths = triangulation_depths(R_rq, problem.ref_t[k] - R_rq @ t, problem.xq[rows], problem.xr[rows])[:, 0]
         depth = float(np.nanmedian(depths * np.linalg.norm(problem.xq[rows], axis=1)))
-        out[i] = depth > FAR_RATIO * spread
+        out[i] = any_plane or depth > FAR_RATIO * spread
     return out

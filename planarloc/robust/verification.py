@@ -194,7 +194,8 @@ def judge_pose(estimator, problem: AbsolutePoseProblem, options: RansacOptions, 
                query_gravity: np.ndarray, ref: RefinedPose, stats: RansacStatistics, t_start: float,
                rivals: Sequence[np.ndarray] = (), alternatives: Sequence[tuple[np.ndarray, np.ndarray, float]] = (),
                pool: tuple[np.ndarray, np.ndarray] = (np.zeros((0, 3, 3)), np.zeros((0, 3))),
-               refine: Callable[[np.ndarray, np.ndarray, bool], RefinedPose] | None = None) -> PoseEstimate:
+               refine: Callable[[np.ndarray, np.ndarray, bool], RefinedPose] | None = None,
+               any_plane_degenerate: bool = False) -> PoseEstimate:
     """Uncertainty and verification of a refined pose; a ``success`` only if it passes.
 
     Args:
@@ -239,10 +240,15 @@ def judge_pose(estimator, problem: AbsolutePoseProblem, options: RansacOptions, 
         # Near-collinear geometry: the linearised covariance is over-confident in the curved
         # valley of the cost; profile the cost along the weak directions, at 3σ (does the
         # quadratic model hold?) and at the decision scale.
+        # With a map pose uncertainty the profile is of the map-prior objective: the reference
+        # poses follow the probe within their prior, as map errors bend the valley (KITTI, 2D-2D
+        # mode, 2p1p: a pose 1.38 m off had a std of 0.255 m profiled with the map held exact).
         probes = {min(max(3.0 * std, 0.02), 2.0), min(options.max_position_std_m, 2.0)}
+        prior = options.map_rotation_std_deg > 0 or options.map_position_std_m > 0
         for u in obs.weak_directions(estimator, R, t, support.supporting, cov):
             for d in probes:
-                std = max(std, correlation * obs.profile_std(estimator, R, t, in2d, in3d, ref.sigma, ref.cost, u, d))
+                std = max(std, correlation * obs.profile_std(estimator, R, t, in2d, in3d, ref.sigma,
+                                                             None if prior else ref.cost, u, d, map_prior=prior))
     rival = max((float(np.linalg.norm(other - (-R.T @ t))) for other in rivals), default=0.0)
     linear_std, std = std, max(std, rival)
     fit = support.fit
@@ -258,7 +264,8 @@ def judge_pose(estimator, problem: AbsolutePoseProblem, options: RansacOptions, 
                        f"only {len(supporting)} reference image(s) support the pose with >= {obs.MIN_PAIR_INLIERS} "
                        "inliers: the position along the baseline cannot be verified; retrieve more map images",
                        position_std_m=std, unreliable_pose=pose, **common)
-    planar = distant_planar_pairs(problem, R, t, in2d, supporting, PLANAR_TRANSFER_SCALE * options.threshold_px)
+    planar = distant_planar_pairs(problem, R, t, in2d, supporting, PLANAR_TRANSFER_SCALE * options.threshold_px,
+                                  any_plane=any_plane_degenerate)
     if planar.any():
         # A distant plane: one homography explains a pair's matches and the map images stand
         # close together relative to it; rotation and translation are entangled far beyond what
@@ -266,11 +273,13 @@ def judge_pose(estimator, problem: AbsolutePoseProblem, options: RansacOptions, 
         # own: with fewer than two others and no 2D-3D constraints the pose is refused;
         # otherwise the pose without them, and its uncertainty, bound the std.
         if n3d < options.min_inliers and len(supporting) - int(planar.sum()) < 2:
-            return failure("degenerate_structure",
-                           f"{int(planar.sum())} of the {len(supporting)} supporting map images see a distant plane (one "
-                           "homography explains their matches, far beyond the map images' spread): rotation and "
-                           "translation cannot be told apart; add map images that see the scene from closer or from "
-                           "other directions",
+            why = ("(one homography explains their matches: a plane, or too little parallax), on which the "
+                   "8-point algorithm cannot tell the epipolar geometry; use method='auto'") if any_plane_degenerate else (
+                   "(one homography explains their matches, far beyond the map images' spread): rotation and "
+                   "translation cannot be told apart; add map images that see the scene from closer or from other "
+                   "directions")
+            return failure("degenerate_structure", f"{int(planar.sum())} of the {len(supporting)} supporting map "
+                           f"images see {'a plane' if any_plane_degenerate else 'a distant plane'} {why}",
                            position_std_m=std, unreliable_pose=pose, **common)
         keep2d = in2d & ~np.isin(problem.pair, supporting[planar])
         prior = n3d > 0 and (options.map_rotation_std_deg > 0 or options.map_position_std_m > 0)
