@@ -208,7 +208,7 @@ def estimate_absolute_pose(
                      _rivals(best, found + others), best.alternatives, best.pool,
                      lambda R_alt, t_alt, quick: _refine(best.scorer, R_alt, t_alt, options, quick),
                      any_plane_degenerate=best.family == Method.EIGHT)
-    if method in PLANAR and est.success:
+    if method in PLANAR:
         return _planar_model_check(est, method, options, problem, best, others)
     return est
 
@@ -294,8 +294,11 @@ def _rivals(best: _Search, searches: Sequence[_Search]) -> list[np.ndarray]:
 
 def _planar_model_check(est: PoseEstimate, method: Method, options: RansacOptions, problem: AbsolutePoseProblem,
                         best: _Search, checks: Sequence[_Search]) -> PoseEstimate:
-    """An explicit planar method's verified pose, or ``planar_model_violated`` where its model fails."""
-    if not options.cross_check:
+    """An explicit planar method's estimate, or ``planar_model_violated`` where its model fails:
+    the more useful reason, also when the pose failed another check (a rival 6DoF pose can make
+    it look ambiguous when the real trouble is the model)."""
+    pose = est.pose if est.success else est.unreliable_pose
+    if not options.cross_check or pose is None:
         return est
     if est.model != "planar":
         why = (f"the {method.value} pose does not fit the planar model it assumes (it implies a tilt or an elevation "
@@ -303,14 +306,14 @@ def _planar_model_check(est: PoseEstimate, method: Method, options: RansacOption
     else:
         # A 6DoF pose elsewhere that explains the matches clearly better: the planar model failed.
         better = [c for c in checks if c.refined.score < PLANAR_VIOLATION_RATIO * best.refined.score
-                  and _different(problem, (est.pose.R, est.pose.t), (c.refined.R, c.refined.t))]
+                  and _different(problem, (pose.R, pose.t), (c.refined.R, c.refined.t))]
         if not better:
             return est
         why = (f"a 6DoF pose explains the matches better than the {method.value} pose (MSAC cost "
                f"{better[0].refined.score:.4g} < {best.refined.score:.4g}) and lies elsewhere: the query is tilted or "
                "off the map's plane")
     return PoseEstimate(None, False, "planar_model_violated", why + "; use method='auto'", est.inliers,
-                        est.num_inliers, est.num_inliers_3d, est.iterations, est.position_std_m, est.pose, est.stats,
+                        est.num_inliers, est.num_inliers_3d, est.iterations, est.position_std_m, pose, est.stats,
                         model="6dof")
 
 
