@@ -305,7 +305,9 @@ def _planar_model_check(est: PoseEstimate, method: Method, options: RansacOption
                f"above {options.planar_tolerance_deg}° relative to the map images)")
     else:
         # A 6DoF pose elsewhere that explains the matches clearly better: the planar model failed.
-        better = [c for c in checks if c.refined.score < PLANAR_VIOLATION_RATIO * best.refined.score
+        # "Clearly": by a share of the cost and by a few inliers' worth (noise-free data cost ~0).
+        margin = RIVAL_MARGIN_INLIERS * best.scorer.threshold_sq
+        better = [c for c in checks if c.refined.score < PLANAR_VIOLATION_RATIO * best.refined.score - margin
                   and _different(problem, (pose.R, pose.t), (c.refined.R, c.refined.t))]
         if not better:
             return est
