@@ -62,6 +62,11 @@ class PoseEstimate:
             diagnostics only; None otherwise.
         stats: counters per check and time per stage.
         references: names of the reference images used (filled by the Localizer).
+        covariance: for a success, the (6, 6) covariance of ``world_from_camera`` in the order of
+            ROS' ``PoseWithCovariance``: the camera centre (x, y, z in the map's world frame,
+            metres), then the rotation (a rotation vector about the world axes, radians):
+            ``world_from_camera' = (Exp(φ) R_wc, c + δc)``. Its position block's largest
+            eigenvalue is ``position_std_m²``. None otherwise.
         model: motion model of the returned pose: ``"planar"`` (yaw + translation in the
             gravity-levelled plane of the references, the paper's model) or ``"6dof"`` (the
             planar model did not fit and 6DoF hypotheses won); empty on failure before a
@@ -81,6 +86,7 @@ class PoseEstimate:
     stats: RansacStatistics = field(default_factory=RansacStatistics)
     references: list[str] = field(default_factory=list)
     model: str = ""
+    covariance: np.ndarray | None = None
 
     def to_dict(self) -> dict:
         """JSON-serialisable summary (for result files)."""
@@ -101,4 +107,6 @@ class PoseEstimate:
         if self.pose is not None:
             d["quat_wxyz"] = [float(v) for v in self.pose.quat_wxyz]
             d["t"] = [float(v) for v in self.pose.t]
+        if self.covariance is not None:
+            d["covariance_xyz_rotvec"] = [[float(v) for v in row] for row in self.covariance]
         return d

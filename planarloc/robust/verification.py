@@ -137,6 +137,43 @@ def _position_covariance(estimator, options: RansacOptions, ref: RefinedPose, su
     return cov
 
 
+def pose_covariance(ref: RefinedPose, position_cov: np.ndarray, std: float, correlation: float,
+                    options: RansacOptions) -> np.ndarray | None:
+    """(6, 6) covariance of ``world_from_camera`` in ROS order (centre x y z, rotation vector about
+    the world axes; :attr:`PoseEstimate.covariance`).
+
+    The refinement's ``σ̂² H⁻¹`` (parameters ``δ``, the rotation increment in the camera frame,
+    ``R_cw' = Exp(δ) R_cw``, and the centre) inflated by ``correlation``; its rotation block gets
+    the map's rotation error as a floor. ``world_from_camera`` rotates by ``φ = −R_cwᵀ δ``. The
+    position block is replaced by ``position_cov`` (every source of error) scaled so that its
+    largest eigenvalue is ``std²`` (the checks may have raised the std), the cross terms scaled
+    alike.
+    """
+    if ref.H is None or not np.isfinite(ref.H).all():
+        return None
+    try:
+        C = ref.sigma**2 * np.linalg.inv(ref.H) * correlation**2
+    except np.linalg.LinAlgError:
+        return None
+    J = np.zeros((6, 6))  # (φ, c) from (δ, c)
+    J[:3, :3] = -ref.R.T
+    J[3:, 3:] = np.eye(3)
+    C = J @ C @ J.T
+    lam = float(np.linalg.eigvalsh(position_cov)[-1]) if np.isfinite(position_cov).all() else 0.0
+    if not lam > 0:
+        return None
+    pos = position_cov * max(1.0, std * std / lam)
+    scale = math.sqrt(max(float(np.trace(pos)) / max(float(np.trace(C[3:, 3:])), 1e-300), 0.0))
+    out = np.empty((6, 6))
+    out[:3, :3] = pos
+    out[:3, 3:] = C[3:, :3] * scale
+    out[3:, :3] = out[:3, 3:].T
+    out[3:, 3:] = C[:3, :3] + np.eye(3) * math.radians(options.map_rotation_std_deg) ** 2
+    # Keep it positive definite after the replacement (cross terms scaled with the position block).
+    w, V = np.linalg.eigh(0.5 * (out + out.T))
+    return (V * np.maximum(w, 1e-18)) @ V.T
+
+
 def _basin_distance(estimator, ref: RefinedPose, refine: Callable[[np.ndarray, np.ndarray, bool], RefinedPose],
                     beyond: float) -> float:
     """Distance (> ``beyond``) of another basin of the cost found by restarting the refinement
@@ -345,5 +382,7 @@ def judge_pose(estimator, problem: AbsolutePoseProblem, options: RansacOptions, 
                                position_std_m=std, unreliable_pose=pose, **common)
     stats.add_time("verification", time.perf_counter() - t0)
     stats.add_time("total", time.perf_counter() - t_start)
+    covariance = pose_covariance(ref, cov, std, correlation, options)
     return PoseEstimate(pose, True, "success", f"{n2d} 2D-2D and {n3d} 2D-3D inliers, position std {std:.3g} m, "
-                        f"{model} model", inliers, n2d, n3d, stats.iterations, std, None, stats, model=model)
+                        f"{model} model", inliers, n2d, n3d, stats.iterations, std, None, stats, model=model,
+                        covariance=covariance)
