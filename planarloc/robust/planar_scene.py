@@ -27,12 +27,13 @@ from planarloc.numerics.cholesky import solve_spd
 PLANAR_INLIER_RATIO = 0.9
 """A pair whose epipolar inliers are at least this share homography inliers is a planar scene."""
 
-FAR_RATIO = 3.5
+FAR_RATIO = 3.0
 """... and a distant one when its median depth from the query exceeds this many times the spread
 of the supporting map images' centres. A plane seen by map images that stand close together
 relative to it fixes neither rotation nor translation of the query alone (generated facades
-20-30 m away, map images within 2-4 m: ratios 3.5-10; rendered offices, whose posters are planar
-too but near: 0.9-3.0, and their poses are right)."""
+20-30 m away, map images within 2-5 m: ratios 3.1-10; rendered offices, whose posters are planar
+too, 0.9-3.0, and their poses are right: they are seen through hundreds of inliers, see
+:data:`FEW_INLIERS`)."""
 
 FEW_INLIERS = 100
 """... seen through fewer inliers than this. With hundreds of matches even a small relief of the
@@ -172,13 +173,16 @@ def distant_planar_pairs(problem, R: np.ndarray, t: np.ndarray, in2d: np.ndarray
     with a 0.1 m position std)."""
     out = np.zeros(len(pairs), dtype=bool)
     centres = -np.einsum("pji,pj->pi", problem.ref_R[pairs], problem.ref_t[pairs])
-    spread = max((float(np.linalg.norm(a - b)) for a in centres for b in centres), default=0.0)
+    spread = float(np.linalg.norm(centres[:, None] - centres[None], axis=2).max(initial=0.0))
     for i, k in enumerate(pairs):
         rows = np.flatnonzero(in2d[problem.offsets[k]:problem.offsets[k + 1]]) + problem.offsets[k]
-        if (len(rows) >= FEW_INLIERS and not any_plane) or homography_inlier_ratio(problem.xq, problem.xr, rows, problem.f_ref[k], threshold_px) < PLANAR_INLIER_RATIO:
-            continue
-        R_rq = problem.ref_R[k] @ R.T
-        depths = triangulation_depths(R_rq, problem.ref_t[k] - R_rq @ t, problem.xq[rows], problem.xr[rows])[:, 0]
-        depth = float(np.nanmedian(depths * np.linalg.norm(problem.xq[rows], axis=1)))
-        out[i] = any_plane or depth > FAR_RATIO * spread
+        if not any_plane:  # the cheap tests first: few inliers, far
+            if len(rows) >= FEW_INLIERS:
+                continue
+            R_rq = problem.ref_R[k] @ R.T
+            depths = triangulation_depths(R_rq, problem.ref_t[k] - R_rq @ t, problem.xq[rows], problem.xr[rows])[:, 0]
+            if not float(np.nanmedian(depths * np.linalg.norm(problem.xq[rows], axis=1))) > FAR_RATIO * spread:
+                continue
+        out[i] = homography_inlier_ratio(problem.xq, problem.xr, rows, problem.f_ref[k],
+                                         threshold_px) >= PLANAR_INLIER_RATIO
     return out

@@ -16,7 +16,9 @@ class RansacStatistics:
     ``hypotheses`` counts solver outputs; each check counts the hypotheses it rejected:
     ``rejected_rcheck`` (eq. 12), ``rejected_pdcheck`` (ρ ≤ 0 or negative depth),
     ``rejected_consistency`` (direction mismatch), ``rejected_degenerate`` (a solver had no
-    finite solution for the sample). ``scored`` = hypotheses that reached scoring.
+    finite solution for the sample). ``scored`` = hypotheses that reached scoring. ``searches_skipped``: hypothesis
+    families not searched because the planar pose passed every check (``auto`` and the planar
+    methods' cross-check run the 6DoF search only when the planar answer is in doubt).
     """
 
     iterations: int = 0
@@ -27,6 +29,7 @@ class RansacStatistics:
     rejected_degenerate: int = 0
     scored: int = 0
     local_optimizations: int = 0
+    searches_skipped: int = 0
     time_s: dict[str, float] = field(default_factory=dict)
 
     def add_time(self, stage: str, seconds: float) -> None:
