@@ -36,6 +36,7 @@ import sys
 import time
 import traceback
 from collections import Counter
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -52,6 +53,10 @@ from planarloc.synthetic.scenes import make_scene  # noqa: E402
 
 METHODS = ("2p1p", "2p2p", "5p5p-nister", "5p5p-stewenius", "8p8p")
 ORACLE = "2p1p-oracle"  # 2p1p on the true inliers only
+# The library's defaults (issue 17): "auto", and "2p1p" with its cross-check (the paper's methods
+# above run without it); "auto-oracle" is auto on the true inliers only.
+DEFAULTS = {"auto": ("auto", True, False), "2p1p-checked": ("2p1p", True, False), "auto-oracle": ("auto", True, True)}
+CHOICES = METHODS + (ORACLE,) + tuple(DEFAULTS)
 PEER = "poselib-gen"
 OUTLIERS = (0.0, 0.2, 0.4, 0.5, 0.6)
 # name: (references, pixel noise, matches per pair)
@@ -90,12 +95,11 @@ def run_trial(task: tuple[int, int, int, int, tuple[str, ...], bool, str]) -> di
     opts = RansacOptions(max_iterations=ITERATIONS, min_iterations=ITERATIONS, threshold_px=THRESHOLD_PX,
                          seed=ransac_seed, structure="none", cross_check=False)
     for method in methods:
+        name, checked, oracle = DEFAULTS.get(method, ("2p1p" if method == ORACLE else method, False, method == ORACLE))
+        o = replace(opts, cross_check=checked)
         try:
             t, c = time.perf_counter(), time.process_time()
-            if method == ORACLE:
-                est = estimate_absolute_pose(sc.query_camera, inlier_pairs(sc), "2p1p", opts)
-            else:
-                est = estimate_absolute_pose(sc.query_camera, sc.pairs, method, opts)
+            est = estimate_absolute_pose(sc.query_camera, inlier_pairs(sc) if oracle else sc.pairs, name, o)
             dt, dc = time.perf_counter() - t, time.process_time() - c
         except Exception as exc:  # a crash is a failure to report, not a reason to lose the run
             out["methods"][method] = {"ok": False, "status": f"error: {type(exc).__name__}: {exc}",
@@ -127,12 +131,16 @@ def run_trial(task: tuple[int, int, int, int, tuple[str, ...], bool, str]) -> di
 
 
 def warm_up(methods: tuple[str, ...] = METHODS) -> None:
-    """Load the numba caches (or compile) of every method before anything is timed."""
-    sc = make_scene(np.random.default_rng(12345), num_refs=3, matches_per_pair=20, noise_px=1.0,
-                    outlier_ratio=0.2)
-    for method in methods:
-        estimate_absolute_pose(sc.query_camera, sc.pairs, "2p1p" if method == ORACLE else method,
-                               RansacOptions(max_iterations=20, min_iterations=20))
+    """Load the numba caches (or compile) of every method and every verification path before
+    anything is timed (several scenes: some paths run only on some scenes)."""
+    for k in range(12):
+        sc = make_scene(np.random.default_rng(12345 + k), num_refs=3, matches_per_pair=20, noise_px=1.5,
+                        outlier_ratio=0.2 + 0.04 * k)
+        for method in methods:
+            name, checked, _ = DEFAULTS.get(method, ("2p1p" if method == ORACLE else method, False, False))
+            estimate_absolute_pose(sc.query_camera, sc.pairs, name,
+                                   RansacOptions(max_iterations=100, min_iterations=100, structure="none",
+                                                 cross_check=checked))
     estimate_query_pose_poselib(sc.query_camera, sc.pairs, iterations=20)
 
 
@@ -162,6 +170,7 @@ def summarise(results: list[dict], names: tuple[str, ...], protocol: str = "pape
                     "success_rate": float(np.mean([v["ok"] for v in rs])) if rs else float("nan"),
                     "median_time_s": float(np.median(times)) if times else float("nan"),
                     "median_cpu_s": float(np.median(cpus)) if cpus else float("nan"),
+                    "mean_cpu_s": float(np.mean(cpus)) if cpus else float("nan"),
                     "median_centre_error_m": float(np.median(centre)) if centre else None,
                     "status": dict(Counter(v["status"] for v in rs)),
                     "gated_but_correct": int(sum(v.get("gated_correct", False) for v in rs)),
@@ -172,6 +181,15 @@ def summarise(results: list[dict], names: tuple[str, ...], protocol: str = "pape
                 }
             cells[f"{m}x{r:.1f}"] = cell
     return cells
+
+
+def cells_ratio(cells: dict, matches: int | None, name: str) -> float:
+    """Mean CPU time of ``name`` over the mean CPU time of the peer, over the cells of ``matches``
+    matches per pair (all cells when None), weighting each cell by its trials."""
+    keys = [k for k, c in cells.items() if matches is None or c["matches_per_pair"] == matches]
+    ours = sum(cells[k]["methods"][name]["mean_cpu_s"] * cells[k]["trials"] for k in keys)
+    peer = sum(cells[k]["methods"][PEER]["mean_cpu_s"] * cells[k]["trials"] for k in keys)
+    return ours / peer if peer > 0 else float("nan")
 
 
 def print_tables(cells: dict, names: tuple[str, ...], trials: int, protocol: str = "paper") -> None:
@@ -224,6 +242,12 @@ def print_tables(cells: dict, names: tuple[str, ...], trials: int, protocol: str
             if st:
                 print(f"  2p1p stages at {m} matches, {int(100 * r)}% outliers (median wall ms): "
                       + ", ".join(f"{k} {1e3 * v:.2f}" for k, v in st.items()))
+    if PEER in names:
+        print(f"\nCPU time per query, ours / {PEER} (ratio of the means over every scene of each matches/pair):")
+        print(f"  {'method':<{w}}" + "".join(f"{m:>8d}" for m in matches) + f"{'all':>8}")
+        for name in ours:
+            vals = [cells_ratio(cells, m, name) for m in matches]
+            print(f"  {name:<{w}}" + "".join(f"{v:>8.2f}" for v in vals) + f"{cells_ratio(cells, None, name):>8.2f}")
     errors = {n: sum(v for s, v in cells[c]["methods"][n]["status"].items() if s.startswith("error"))
               for c in cells for n in names}
     if any(errors.values()):
@@ -241,7 +265,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--json", type=Path, help="write the per-cell summary to this file")
     ap.add_argument("--jobs", type=int, default=min(2, os.cpu_count() or 1),
                     help="worker processes (default: min(2, cores)); 1 for the cleanest timings")
-    ap.add_argument("--methods", nargs="+", default=list(METHODS), choices=METHODS + (ORACLE,),
+    ap.add_argument("--methods", nargs="+", default=list(METHODS), choices=CHOICES,
                     help=f"methods to run (default: all but {ORACLE})")
     ap.add_argument("--protocol", choices=tuple(PROTOCOLS), default="paper",
                     help="paper: 5 refs, 1 px, 100/50/20 matches; hard: 3 refs, 1.5 px, 50/20 matches")

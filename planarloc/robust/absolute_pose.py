@@ -15,7 +15,7 @@ import logging
 import math
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -60,8 +60,6 @@ E_Y.setflags(write=False)
 # An explicit planar method fails when a 6DoF pose elsewhere has less than this share of its cost.
 PLANAR_VIOLATION_RATIO = 0.8
 FINAL_REFINEMENT_ROUNDS = 4
-# Iterations of the short 6DoF search that looks for a rival of a verified planar pose.
-RIVAL_CHECK_ITERATIONS = 20
 # Failures of a planar pose that say the matches cannot single out a position, whatever the model.
 DATA_LIMITED = ("degenerate_scale", "degenerate_structure", "single_reference", "inconsistent_references",
                 "ambiguous_pose")
@@ -202,10 +200,8 @@ def estimate_absolute_pose(
                        "2D-3D constraints: retrieve more map images or check the intrinsics")
     rng = np.random.default_rng(options.seed)
 
-    def search(family: Method, counted: bool, iterations: int | None = None) -> _Search | None:
-        budget = options if iterations is None else replace(
-            options, min_iterations=min(iterations, options.max_iterations), max_iterations=min(iterations, options.max_iterations))
-        return _search(problem, budget, family, gravity, rng, stats, counted)
+    def search(family: Method, counted: bool) -> _Search | None:
+        return _search(problem, options, family, gravity, rng, stats, counted)
 
     def judge(best: _Search, searches: Sequence[_Search]) -> PoseEstimate:
         return judge_pose(best.scorer, problem, options, gravity.world, gravity.query, best.refined, stats, t_start,
@@ -227,18 +223,8 @@ def estimate_absolute_pose(
         best = min(found, key=lambda s: s.refined.score)
         est = judge(best, found)
         if est.model == "planar" and (est.success or est.status in DATA_LIMITED):
-            if not est.success or not (method == Method.AUTO or options.cross_check):
-                stats.searches_skipped += 1
-                return est
-            # A short 6DoF search still looks for a rival answer elsewhere (a distant facade: a
-            # planar pose 0.5 m off with a 0.14 m std, a 6DoF pose near the truth).
-            check = search(Method.NISTER, counted=False, iterations=RIVAL_CHECK_ITERATIONS) \
-                if _eligible(problem, Method.NISTER) else None
             stats.searches_skipped += 1
-            if check is None or not _rivals(best, [best, check]):
-                return est
-            est = judge(best, found + [check])
-            return _planar_model_check(est, method, options, problem, best, [check]) if method in PLANAR else est
+            return est
     for family in families:
         if family not in first:
             found += [r for r in [search(family, counted=True)] if r is not None]

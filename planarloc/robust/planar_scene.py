@@ -21,7 +21,6 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from planarloc.geometry.epipolar import triangulation_depths
 from planarloc.numerics.cholesky import solve_spd
 
 PLANAR_INLIER_RATIO = 0.9
@@ -158,6 +157,31 @@ def homography_inlier_ratio(xq: np.ndarray, xr: np.ndarray, rows: np.ndarray, f_
     return best
 
 
+@njit(cache=True, error_model="numpy")
+def median_depth(R: np.ndarray, t: np.ndarray, xq: np.ndarray, xr: np.ndarray, rows: np.ndarray,
+                 ref_R: np.ndarray, ref_t: np.ndarray) -> float:
+    """Median distance from the query centre of the midpoint triangulations of the matches
+    ``rows`` of one pair (query ``cam_from_world = (R, t)``, reference ``(ref_R, ref_t)``);
+    NaN if none triangulates in front of the query."""
+    R_rq = ref_R @ R.T
+    t_rq = ref_t - R_rq @ t
+    depth = np.empty(rows.shape[0])
+    k = 0
+    for n in range(rows.shape[0]):
+        i = rows[n]
+        a = R_rq @ xq[i]
+        b = xr[i]
+        aa, bb, ab = a @ a, b @ b, a @ b
+        det = aa * bb - ab * ab
+        if det <= 1e-12 * aa * bb:
+            continue
+        lq = (-(a @ t_rq) * bb + ab * (b @ t_rq)) / det
+        if lq > 0:
+            depth[k] = lq * np.sqrt(xq[i] @ xq[i])
+            k += 1
+    return np.median(depth[:k]) if k else np.nan
+
+
 def distant_planar_pairs(problem, R: np.ndarray, t: np.ndarray, in2d: np.ndarray, pairs: np.ndarray,
                          threshold_px: float, any_plane: bool = False) -> np.ndarray:
     """(len(pairs),) bool: which of the given pairs see a distant plane through few inliers from
@@ -165,23 +189,22 @@ def distant_planar_pairs(problem, R: np.ndarray, t: np.ndarray, in2d: np.ndarray
 
     A pair qualifies when it has fewer than :data:`FEW_INLIERS` inliers, one homography explains
     them (share ≥ :data:`PLANAR_INLIER_RATIO`, transfer error within ``threshold_px``) and their
-    median depth from the query exceeds :data:`FAR_RATIO` times the spread (largest distance) of
-    the centres of ``pairs``. ``any_plane``: every pair whose inliers one homography explains,
-    near or far, however many: the pose came from the 8-point algorithm, which is degenerate on
-    a plane (Hartley & Zisserman Sec. 11.9.2: the epipolar geometry of points on a plane is not
-    unique; generated offices seen 0.8 m from the map images gave 8-point poses 15-21° off
-    with a 0.1 m position std)."""
+    median depth from the query (:func:`median_depth`) exceeds :data:`FAR_RATIO` times the
+    spread (largest distance) of the centres of ``pairs``. ``any_plane``: every pair whose
+    inliers one homography explains, near or far, however many: the pose came from the 8-point
+    algorithm, which is degenerate on a plane (Hartley & Zisserman Sec. 11.9.2: the epipolar
+    geometry of points on a plane is not unique; generated offices seen 0.8 m from the map images
+    gave 8-point poses 15-21° off with a 0.1 m position std)."""
     out = np.zeros(len(pairs), dtype=bool)
     centres = -np.einsum("pji,pj->pi", problem.ref_R[pairs], problem.ref_t[pairs])
     spread = float(np.linalg.norm(centres[:, None] - centres[None], axis=2).max(initial=0.0))
-    for i, k in enumerate(pairs):
-        rows = np.flatnonzero(in2d[problem.offsets[k]:problem.offsets[k + 1]]) + problem.offsets[k]
+    R, t = np.ascontiguousarray(R, dtype=float), np.ascontiguousarray(t, dtype=float)
+    for i, k in enumerate(pairs.tolist()):
+        lo, hi = int(problem.offsets[k]), int(problem.offsets[k + 1])
+        rows = np.flatnonzero(in2d[lo:hi]) + lo
         if not any_plane:  # the cheap tests first: few inliers, far
-            if len(rows) >= FEW_INLIERS:
-                continue
-            R_rq = problem.ref_R[k] @ R.T
-            depths = triangulation_depths(R_rq, problem.ref_t[k] - R_rq @ t, problem.xq[rows], problem.xr[rows])[:, 0]
-            if not float(np.nanmedian(depths * np.linalg.norm(problem.xq[rows], axis=1))) > FAR_RATIO * spread:
+            if len(rows) >= FEW_INLIERS or not median_depth(R, t, problem.xq, problem.xr, rows, problem.ref_R[k],
+                                                            problem.ref_t[k]) > FAR_RATIO * spread:
                 continue
         out[i] = homography_inlier_ratio(problem.xq, problem.xr, rows, problem.f_ref[k],
                                          threshold_px) >= PLANAR_INLIER_RATIO

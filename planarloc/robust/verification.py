@@ -159,7 +159,7 @@ def pose_covariance(ref: RefinedPose, position_cov: np.ndarray, std: float, corr
     J[:3, :3] = -ref.R.T
     J[3:, 3:] = np.eye(3)
     C = J @ C @ J.T
-    lam = float(np.linalg.eigvalsh(position_cov)[-1]) if np.isfinite(position_cov).all() else 0.0
+    lam = float(sym_eigvals(position_cov)[0]) if np.isfinite(position_cov).all() else 0.0
     if not lam > 0:
         return None
     pos = position_cov * max(1.0, std * std / lam)
@@ -170,8 +170,13 @@ def pose_covariance(ref: RefinedPose, position_cov: np.ndarray, std: float, corr
     out[3:, :3] = out[:3, 3:].T
     out[3:, 3:] = C[:3, :3] + np.eye(3) * math.radians(options.map_rotation_std_deg) ** 2
     # Keep it positive definite after the replacement (cross terms scaled with the position block).
-    w, V = np.linalg.eigh(0.5 * (out + out.T))
-    return (V * np.maximum(w, 1e-18)) @ V.T
+    out = 0.5 * (out + out.T)
+    try:
+        np.linalg.cholesky(out)
+        return out
+    except np.linalg.LinAlgError:
+        w, V = np.linalg.eigh(out)
+        return (V * np.maximum(w, 1e-18)) @ V.T
 
 
 def _basin_distance(estimator, ref: RefinedPose, refine: Callable[[np.ndarray, np.ndarray, bool], RefinedPose],
@@ -282,12 +287,15 @@ def judge_pose(estimator, problem: AbsolutePoseProblem, options: RansacOptions, 
         # With a map pose uncertainty the profile is of the map-prior objective: the reference
         # poses follow the probe within their prior, as map errors bend the valley (KITTI, 2D-2D
         # mode, 2p1p: a pose 1.38 m off had a std of 0.255 m profiled with the map held exact).
-        probes = {min(max(3.0 * std, 0.02), 2.0), min(options.max_position_std_m, 2.0)}
+        # The 3σ probe profiles the refinement's own objective; the decision-scale probe, with a
+        # map pose uncertainty, the map-prior objective.
         prior = options.map_rotation_std_deg > 0 or options.map_position_std_m > 0
+        probes = [(min(max(3.0 * std, 0.02), 2.0), False), (min(options.max_position_std_m, 2.0), prior)]
         for u in obs.weak_directions(estimator, R, t, support.supporting, cov):
-            for d in probes:
+            for d, with_prior in probes:
                 std = max(std, correlation * obs.profile_std(estimator, R, t, in2d, in3d, ref.sigma,
-                                                             None if prior else ref.cost, u, d, map_prior=prior))
+                                                             None if with_prior else ref.cost, u, d,
+                                                             map_prior=with_prior))
     rival = max((float(np.linalg.norm(other - (-R.T @ t))) for other in rivals), default=0.0)
     linear_std, std = std, max(std, rival)
     fit = support.fit
