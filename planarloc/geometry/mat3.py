@@ -11,6 +11,18 @@ from numba import njit
 
 
 @njit(cache=True, inline="always")
+def dot(a: np.ndarray, b: np.ndarray) -> float:
+    """``a · b`` for 3-vectors (numba lowers ``a @ b`` to a BLAS call)."""
+    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+
+
+@njit(cache=True, inline="always")
+def cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """``a × b`` for 3-vectors."""
+    return np.array([a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]])
+
+
+@njit(cache=True, inline="always")
 def mul(A: np.ndarray, B: np.ndarray) -> np.ndarray:
     """``A @ B`` for (3, 3) matrices."""
     C = np.empty((3, 3))

@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-__all__ = ["cholesky_factor", "cholesky_solve", "solve_spd"]
+__all__ = ["cholesky_factor", "cholesky_solve", "solve_spd", "spd_inverse"]
 
 
 @njit(cache=True, error_model="numpy")
@@ -67,4 +67,24 @@ def solve_spd(A: np.ndarray, b: np.ndarray, x: np.ndarray) -> bool:
     if not cholesky_factor(A, L, 0.0):
         return False
     cholesky_solve(L, b, x)
+    return True
+
+
+@njit(cache=True, error_model="numpy")
+def spd_inverse(A: np.ndarray, out: np.ndarray, rel_tol: float = 0.0) -> bool:
+    """Inverse of a small symmetric positive-definite A into ``out`` (n, n) by one Cholesky
+    factorisation and n solves; False (``out`` undefined) if A is not SPD, or singular relative
+    to its scale: a pivot below ``rel_tol`` times its largest diagonal entry
+    (:func:`cholesky_factor`)."""
+    n = A.shape[0]
+    L = np.empty((n, n))
+    if not cholesky_factor(A, L, rel_tol):
+        return False
+    e = np.zeros(n)
+    col = np.empty(n)
+    for b in range(n):
+        e[:] = 0.0
+        e[b] = 1.0
+        cholesky_solve(L, e, col)
+        out[:, b] = col
     return True

@@ -238,24 +238,18 @@ def hypotheses_p3p(samples: np.ndarray, xq3d: np.ndarray, X3d: np.ndarray, out_R
     Returns:
         number of hypotheses written.
     """
-    x = np.empty((3, 3))
-    X = np.empty((3, 3))
     Rs = np.empty((P3P_MAX_SOLUTIONS, 3, 3))
     ts = np.empty((P3P_MAX_SOLUTIONS, 3))
     out = 0
     for s in range(samples.shape[0]):
-        for k in range(3):
-            x[k] = xq3d[samples[s, k]]
-            X[k] = X3d[samples[s, k]]
-        n = solve_p3p(x, X, Rs, ts)
+        n = solve_p3p(xq3d[samples[s]], X3d[samples[s]], Rs, ts)
         if n == 0:
             counters[DEGENERATE] += 1
             continue
-        for m in range(n):
-            counters[HYPOTHESES] += 1
-            out_R[out] = Rs[m]
-            out_t[out] = ts[m]
-            out += 1
+        counters[HYPOTHESES] += n
+        out_R[out:out + n] = Rs[:n]
+        out_t[out:out + n] = ts[:n]
+        out += n
     return out
 
 

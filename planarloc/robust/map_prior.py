@@ -23,8 +23,8 @@ import numpy as np
 from numba import njit
 
 from planarloc.geometry import mat3 as m3
-from planarloc.numerics.cholesky import solve_spd
-from planarloc.robust.refinement import FASTMATH, exp_so3, residuals, residuals_jacobian
+from planarloc.numerics.cholesky import solve_spd, spd_inverse
+from planarloc.robust.refinement import FASTMATH, exp_so3, irls_normal_equations, residuals, residuals_jacobian
 
 
 @njit(cache=True, error_model="numpy", inline="always")
@@ -95,41 +95,31 @@ def refine_with_map_prior(
     Dp = np.zeros((P, 6, 6))
     hp = np.zeros((P, 6))
     Hm = np.zeros((6, 6))
-    K = np.empty(6)
     lam = 1e-4
+    Kr = np.empty((n2, 6))
     for it in range(max_iterations + 1):
-        H[:] = 0.0
-        g[:] = 0.0
+        # Reference parameters' Jacobian before the fixed query columns are zeroed: a reference
+        # centre moves in every direction (its shift acts as the opposite query shift).
+        for i in range(n2):
+            Kr[i, 0], Kr[i, 1], Kr[i, 2] = Jrot[i, 0], Jrot[i, 1], Jrot[i, 2]
+            Kr[i, 3], Kr[i, 4], Kr[i, 5] = -J[i, 3], -J[i, 4], -J[i, 5]
+        for k in range(6):
+            if fixed[k]:
+                J[:, k] = 0.0
+        wr2 = irls_normal_equations(J, r, s2, H, g)
         Bp[:] = 0.0
         Dp[:] = 0.0
         hp[:] = 0.0
-        wr2 = 0.0
-        for i in range(m):
+        for i in range(n2):
             w = 1.0 / (1.0 + r[i] * r[i] / s2)
-            wr2 += w * r[i] * r[i]
-            if i < n2:  # before the fixed columns are zeroed: a reference centre moves in every direction
-                K[0], K[1], K[2] = Jrot[i, 0], Jrot[i, 1], Jrot[i, 2]
-                K[3], K[4], K[5] = -J[i, 3], -J[i, 4], -J[i, 5]  # a reference centre shift = opposite query shift
-            for k in range(6):
-                if fixed[k]:
-                    J[i, k] = 0.0
+            q = pair[idx2d[i]]
             for a in range(6):
-                wa = w * J[i, a]
-                g[a] += wa * r[i]
+                wk = w * Kr[i, a]
+                hp[q, a] += wk * r[i]
+                for b in range(6):
+                    Bp[q, b, a] += w * J[i, b] * Kr[i, a]
                 for b in range(a, 6):
-                    H[a, b] += wa * J[i, b]
-            if i < n2:
-                q = pair[idx2d[i]]
-                for a in range(6):
-                    wk = w * K[a]
-                    hp[q, a] += wk * r[i]
-                    for b in range(6):
-                        Bp[q, b, a] += w * J[i, b] * K[a]
-                    for b in range(a, 6):
-                        Dp[q, a, b] += wk * K[b]
-        for a in range(6):
-            for b in range(a):
-                H[a, b] = H[b, a]
+                    Dp[q, a, b] += wk * Kr[i, b]
         for p in range(P):
             for a in range(6):
                 for b in range(a):
@@ -141,19 +131,10 @@ def refine_with_map_prior(
                 hp[p, 3 + k] += lam_pos * dvec[p, k]
         # Marginal information of the query (undamped Schur complement), kept for the caller.
         Hm[:] = H
-        col = np.empty(6)
         Dinv = np.empty((P, 6, 6))
         ok_all = True
         for p in range(P):
-            for b in range(6):
-                e = np.zeros(6)
-                e[b] = 1.0
-                if not solve_spd(Dp[p], e, col):
-                    ok_all = False
-                    break
-                Dinv[p, :, b] = col
-            if not ok_all:
-                break
+            ok_all = ok_all and spd_inverse(Dp[p], Dinv[p])
         if not ok_all:
             break
         for p in range(P):
@@ -188,14 +169,8 @@ def refine_with_map_prior(
                 Dl[p] = Dp[p]
                 for k in range(6):
                     Dl[p, k, k] += lam * Dp[p, k, k]
-                for b in range(6):
-                    e = np.zeros(6)
-                    e[b] = 1.0
-                    if not solve_spd(Dl[p], e, col):
-                        solvable = False
-                        break
-                    Dinv[p, :, b] = col
-                if not solvable:
+                if not spd_inverse(Dl[p], Dinv[p]):
+                    solvable = False
                     break
                 # S -= B D⁻¹ Bᵀ, rhs += B D⁻¹ h
                 for a in range(6):

@@ -33,11 +33,12 @@ from numba import njit
 
 from planarloc.geometry import mat3 as m3
 from planarloc.robust.estimators import SIGMA_FLOOR_PX
-from planarloc.numerics.cholesky import solve_spd
+from planarloc.numerics.cholesky import solve_spd, spd_inverse
 from planarloc.robust.map_prior import refine_with_map_prior
 from planarloc.robust.refinement import (
     exp_so3,
     map_centre_covariance,
+    map_uncertainty_covariance,
     refine_pose_core,
     residuals_jacobian,
 )
@@ -268,10 +269,10 @@ def profile_std(est, R: np.ndarray, t: np.ndarray, in2d: np.ndarray, in3d: np.nd
 def map_covariance(est, R: np.ndarray, t: np.ndarray, in2d: np.ndarray, in3d: np.ndarray) -> np.ndarray:
     """(3, 3) position covariance caused by the map's pose uncertainty (options.map_*_std)."""
     p, o = est.p, est.options
-    return map_centre_covariance(
+    return map_centre_covariance(*map_uncertainty_covariance(
         np.ascontiguousarray(R), np.ascontiguousarray(t), p.xq, p.xr, p.pair, np.flatnonzero(in2d),
         p.f_query, p.f_ref, p.ref_R, p.ref_t, p.xq3d, p.X3d, np.flatnonzero(in3d), o.threshold_px,
-        float(np.radians(o.map_rotation_std_deg)), float(o.map_position_std_m))
+        float(np.radians(o.map_rotation_std_deg)), float(o.map_position_std_m)))
 
 
 @dataclass(frozen=True)
@@ -481,12 +482,8 @@ def points_centre_covariance(R: np.ndarray, t: np.ndarray, xq3d: np.ndarray, X3d
                         acc += wu * J[ru, a] * jsj * wv * J[rv, b]
                 M[a, b] += acc
     Hi = np.empty((6, 6))
-    eye = np.eye(6)
-    col = np.empty(6)
-    for b in range(6):
-        if not solve_spd(H, eye[:, b].copy(), col):
-            return np.full((3, 3), np.inf)
-        Hi[:, b] = col
+    if not spd_inverse(H, Hi):
+        return np.full((3, 3), np.inf)
     out = np.empty((3, 3))
     for a in range(3):
         for b in range(3):

@@ -21,6 +21,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+from planarloc.geometry import mat3 as m3
 from planarloc.numerics.cholesky import solve_spd
 
 PLANAR_INLIER_RATIO = 0.9
@@ -163,21 +164,21 @@ def median_depth(R: np.ndarray, t: np.ndarray, xq: np.ndarray, xr: np.ndarray, r
     """Median distance from the query centre of the midpoint triangulations of the matches
     ``rows`` of one pair (query ``cam_from_world = (R, t)``, reference ``(ref_R, ref_t)``);
     NaN if none triangulates in front of the query."""
-    R_rq = ref_R @ R.T
-    t_rq = ref_t - R_rq @ t
+    R_rq = m3.mul_t(ref_R, R)
+    t_rq = ref_t - m3.vec(R_rq, t)
     depth = np.empty(rows.shape[0])
     k = 0
     for n in range(rows.shape[0]):
         i = rows[n]
-        a = R_rq @ xq[i]
+        a = m3.vec(R_rq, xq[i])
         b = xr[i]
-        aa, bb, ab = a @ a, b @ b, a @ b
+        aa, bb, ab = m3.dot(a, a), m3.dot(b, b), m3.dot(a, b)
         det = aa * bb - ab * ab
         if det <= 1e-12 * aa * bb:
             continue
-        lq = (-(a @ t_rq) * bb + ab * (b @ t_rq)) / det
+        lq = (-m3.dot(a, t_rq) * bb + ab * m3.dot(b, t_rq)) / det
         if lq > 0:
-            depth[k] = lq * np.sqrt(xq[i] @ xq[i])
+            depth[k] = lq * np.sqrt(m3.dot(xq[i], xq[i]))
             k += 1
     return np.median(depth[:k]) if k else np.nan
 

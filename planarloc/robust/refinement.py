@@ -20,7 +20,7 @@ from numba import njit
 
 from planarloc.geometry import mat3 as m3
 from planarloc.geometry.epipolar_kernels import project, relative_essential_into, sampson_signed
-from planarloc.numerics.cholesky import cholesky_factor, cholesky_solve, solve_spd
+from planarloc.numerics.cholesky import solve_spd, spd_inverse
 from planarloc.robust.scoring import errors_sq
 
 
@@ -186,6 +186,27 @@ def residuals_jacobian(
 
 
 @njit(cache=True, error_model="numpy", fastmath=FASTMATH)
+def irls_normal_equations(J: np.ndarray, r: np.ndarray, s2: float, H: np.ndarray, g: np.ndarray) -> float:
+    """``H = Jᵀ W J`` (6, 6) and ``g = Jᵀ W r`` (6,) in place, with the Cauchy IRLS weights
+    ``w = 1 / (1 + r² / s²)`` of residuals r (m,) and Jacobian J (m, 6); returns ``Σ w r²``."""
+    H[:] = 0.0
+    g[:] = 0.0
+    wr2 = 0.0
+    for i in range(r.shape[0]):
+        w = 1.0 / (1.0 + r[i] * r[i] / s2)
+        wr2 += w * r[i] * r[i]
+        for a in range(6):
+            wa = w * J[i, a]
+            g[a] += wa * r[i]
+            for b in range(a, 6):
+                H[a, b] += wa * J[i, b]
+    for a in range(6):
+        for b in range(a):
+            H[a, b] = H[b, a]
+    return wr2
+
+
+@njit(cache=True, error_model="numpy", fastmath=FASTMATH)
 def refine_pose_core(
     Rq: np.ndarray, tq: np.ndarray, xq: np.ndarray, xr: np.ndarray, pair: np.ndarray, idx2d: np.ndarray,
     f_query: np.ndarray, f_ref: np.ndarray, ref_R: np.ndarray, ref_t: np.ndarray,
@@ -214,20 +235,7 @@ def refine_pose_core(
         for k in range(6):
             if fixed[k]:
                 J[:, k] = 0.0
-        H[:] = 0.0
-        g[:] = 0.0
-        wr2 = 0.0
-        for i in range(m):
-            w = 1.0 / (1.0 + r[i] * r[i] / s2)
-            wr2 += w * r[i] * r[i]
-            for a in range(6):
-                wa = w * J[i, a]
-                g[a] += wa * r[i]
-                for b in range(a, 6):
-                    H[a, b] += wa * J[i, b]
-        for a in range(6):
-            for b in range(a):
-                H[a, b] = H[b, a]
+        wr2 = irls_normal_equations(J, r, s2, H, g)
         if it == max_iterations:
             break
         improved = False
@@ -385,57 +393,32 @@ _EYE3 = np.eye(3)
 
 
 @njit(cache=True, error_model="numpy")
-def map_centre_covariance(
-    Rq: np.ndarray, tq: np.ndarray, xq: np.ndarray, xr: np.ndarray, pair: np.ndarray, idx2d: np.ndarray,
-    f_query: np.ndarray, f_ref: np.ndarray, ref_R: np.ndarray, ref_t: np.ndarray,
-    xq3d: np.ndarray, X3d: np.ndarray, idx3d: np.ndarray, loss_scale: float,
-    rotation_std_rad: float, position_std_m: float,
-) -> np.ndarray:
-    """(3, 3) covariance of the query centre from the map's pose errors, in one call:
-    :func:`map_uncertainty_covariance`'s parts combined as ``B diag(var) Bᵀ`` with
-    ``B = H⁻¹ M`` (centre block), H factored once by Cholesky. Inf-filled when H is singular
-    relative to its scale (pivot below 1e-12 of its largest diagonal entry)."""
-    H, M, var = map_uncertainty_covariance(Rq, tq, xq, xr, pair, idx2d, f_query, f_ref, ref_R, ref_t, xq3d, X3d,
-                                           idx3d, loss_scale, rotation_std_rad, position_std_m)
-    L = np.empty((6, 6))
+def map_centre_covariance(H: np.ndarray, M: np.ndarray, var: np.ndarray) -> np.ndarray:
+    """(3, 3) covariance of the query centre from the map's pose errors: the parts of
+    :func:`map_uncertainty_covariance` combined as ``B diag(var) Bᵀ`` with ``B = H⁻¹ M`` (centre
+    block), H factored once by Cholesky. Inf-filled when H is singular relative to its scale
+    (pivot below 1e-12 of its largest diagonal entry)."""
+    Hi = np.empty((6, 6))
     out = np.full((3, 3), np.inf)
-    if not cholesky_factor(H, L, 1e-12):
+    if not spd_inverse(H, Hi, 1e-12):
         return out
-    cols = M.shape[1]
-    Bm = np.empty((cols, 6))  # row c: H⁻¹ M[:, c]
-    for c in range(cols):
-        cholesky_solve(L, M[:, c].copy(), Bm[c])
-    for a in range(3):
-        for b in range(3):
-            acc = 0.0
-            for c in range(cols):
-                acc += Bm[c, 3 + a] * var[c] * Bm[c, 3 + b]
-            out[a, b] = acc
-    return out
+    Bc = (Hi @ M)[3:]  # (3, 6P): the centre's response to each reference parameter
+    return (Bc * var) @ Bc.T
 
 
 @njit(cache=True, error_model="numpy")
 def _centre_covariance(H: np.ndarray, sigma: float, B: np.ndarray) -> np.ndarray:
-    L = np.empty((6, 6))
+    Hi = np.empty((6, 6))
     out = np.full((3, 3), np.inf)
-    if not cholesky_factor(H, L, 1e-12):
+    if not spd_inverse(H, Hi, 1e-12):
         return out
-    X = np.empty((3, 6))  # row k: column 3 + k of H⁻¹ (solve H x = e_{3+k})
-    for k in range(3):
-        e = np.zeros(6)
-        e[3 + k] = 1.0
-        cholesky_solve(L, e, X[k])
-    C = np.empty((3, 3))
-    for a in range(3):
-        for b in range(3):
-            C[a, b] = 0.5 * (X[b, 3 + a] + X[a, 3 + b])
     s2 = sigma * sigma
     for a in range(3):
         for b in range(3):
             acc = 0.0
             for u in range(3):
                 for v in range(3):
-                    acc += B[a, u] * C[u, v] * B[b, v]
+                    acc += B[a, u] * 0.5 * (Hi[3 + u, 3 + v] + Hi[3 + v, 3 + u]) * B[b, v]
             out[a, b] = s2 * acc
     return out
 

@@ -52,22 +52,12 @@ def scale_2p1p(a: np.ndarray, b: np.ndarray, y: np.ndarray, x2: np.ndarray) -> f
     on the line through both reference centres, where every match yields ``ρ`` placing the
     query on the centre of ``j₂`` regardless of the data.
     """
-    ab0 = a[1] * b[2] - a[2] * b[1]
-    ab1 = a[2] * b[0] - a[0] * b[2]
-    ab2 = a[0] * b[1] - a[1] * b[0]
-    na2 = a[0] ** 2 + a[1] ** 2 + a[2] ** 2
-    nb2 = b[0] ** 2 + b[1] ** 2 + b[2] ** 2
-    if ab0 * ab0 + ab1 * ab1 + ab2 * ab2 <= 1e-18 * na2 * nb2:
+    ab = m3.cross(a, b)
+    if m3.dot(ab, ab) <= 1e-18 * m3.dot(a, a) * m3.dot(b, b):
         return np.nan
-    ay0 = a[1] * y[2] - a[2] * y[1]
-    ay1 = a[2] * y[0] - a[0] * y[2]
-    ay2 = a[0] * y[1] - a[1] * y[0]
-    by0 = b[1] * y[2] - b[2] * y[1]
-    by1 = b[2] * y[0] - b[0] * y[2]
-    by2 = b[0] * y[1] - b[1] * y[0]
-    den = x2[0] * ay0 + x2[1] * ay1 + x2[2] * ay2
-    num = x2[0] * by0 + x2[1] * by1 + x2[2] * by2
-    mag = np.sqrt(x2[0] ** 2 + x2[1] ** 2 + x2[2] ** 2) * np.sqrt(y[0] ** 2 + y[1] ** 2 + y[2] ** 2)
+    den = m3.dot(x2, m3.cross(a, y))
+    num = m3.dot(x2, m3.cross(b, y))
+    mag = np.sqrt(m3.dot(x2, x2)) * np.sqrt(m3.dot(y, y))
     if abs(den) <= 1e-12 * mag:
         return np.nan
     return -num / den
@@ -85,16 +75,11 @@ def scale_from_point3d(t_unit: np.ndarray, X_ref: np.ndarray, v: np.ndarray) -> 
     Returns:
         ``ρ``, NaN when ``t̃ ∥ v`` (the ray runs along the baseline: no information).
     """
-    tv0 = t_unit[1] * v[2] - t_unit[2] * v[1]
-    tv1 = t_unit[2] * v[0] - t_unit[0] * v[2]
-    tv2 = t_unit[0] * v[1] - t_unit[1] * v[0]
-    xv0 = X_ref[1] * v[2] - X_ref[2] * v[1]
-    xv1 = X_ref[2] * v[0] - X_ref[0] * v[2]
-    xv2 = X_ref[0] * v[1] - X_ref[1] * v[0]
-    den = tv0 * tv0 + tv1 * tv1 + tv2 * tv2
-    if den <= 1e-12 * (v[0] ** 2 + v[1] ** 2 + v[2] ** 2):
+    tv = m3.cross(t_unit, v)
+    den = m3.dot(tv, tv)
+    if den <= 1e-12 * m3.dot(v, v):
         return np.nan
-    return (tv0 * xv0 + tv1 * xv1 + tv2 * xv2) / den
+    return m3.dot(tv, m3.cross(X_ref, v)) / den
 
 
 @njit(cache=True, error_model="numpy")

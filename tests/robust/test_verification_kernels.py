@@ -121,7 +121,7 @@ def test_map_centre_covariance_matches_numpy(scene) -> None:
             pb.ref_R, pb.ref_t, pb.xq3d, pb.X3d, NO3D, 2.0, np.radians(0.1), 0.05)
     H, M, var = map_uncertainty_covariance(*args)
     Bm = np.linalg.solve(H, M)
-    np.testing.assert_allclose(map_centre_covariance(*args), ((Bm * var) @ Bm.T)[3:, 3:], rtol=1e-9)
+    np.testing.assert_allclose(map_centre_covariance(H, M, var), ((Bm * var) @ Bm.T)[3:, 3:], rtol=1e-9)
 
 
 def test_jackknife_matches_explicit_leave_one_out(scene) -> None:
