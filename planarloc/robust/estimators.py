@@ -26,6 +26,7 @@ from planarloc.robust.hypotheses import (
     hypotheses_2p1p_consensus,
     hypotheses_from_relative_poses,
     hypotheses_p3p,
+    top_distinct_relative,
     hypotheses_up2p,
     planar_relative_candidates,
 )
@@ -36,7 +37,7 @@ from planarloc.robust.problem import AbsolutePoseProblem
 from planarloc.robust.refinement import centre_covariance, refine_on_inliers, refine_pose
 from planarloc.robust.result import RansacStatistics
 from planarloc.robust.sampling import draw_pair_samples, draw_within_pairs
-from planarloc.robust.scoring import errors_sq, msac_scores
+from planarloc.robust.scoring import errors_sq, msac_scores, relative_msac_scores
 from planarloc.solvers.relpose_planar_2p import planar_2p_batch_unchecked
 
 SIGMA_FLOOR_PX = 0.5  # lower bound of the pixel noise assumed for covariances
@@ -283,55 +284,35 @@ class RelativePairEstimator(_ProblemEstimator):
         # samples its 2D-3D and 2D-2D solvers side by side).
         self.p3p = method != Method.P2P2 and len(problem.X3d) >= 3
 
-    def _best_relative(self, rng: np.random.Generator, n: int) -> list[tuple[np.ndarray, np.ndarray]]:
-        """Stage 1: per pair, up to ``top_k`` distinct best relative poses (R (K,3,3), t (K,3))."""
+    def _best_relative(self, rng: np.random.Generator, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Stage 1: per pair, up to ``top_k`` distinct best relative poses: R (P, K, 3, 3),
+        t (P, K, 3) and their count per pair (P,) (:func:`top_distinct_relative`)."""
         p, m = self.p, self.m
         eligible = np.flatnonzero(p.counts >= m)
         sample_pair = np.repeat(eligible, n)
         samples = np.empty((len(sample_pair), m), dtype=np.int64)
-        from planarloc.robust.scoring import relative_msac_scores
-
         draw_within_pairs(rng.random((len(sample_pair), m)), p.offsets, sample_pair, m, samples)
         R, t, valid = self.solver(p.xq[samples], p.xr[samples])
         R, t, valid = np.ascontiguousarray(R), np.ascontiguousarray(t), np.ascontiguousarray(valid)
         cost = relative_msac_scores(R, t, valid, sample_pair, p.xq, p.xr, p.offsets, p.f_query, p.f_ref,
                                     self.threshold_sq)
-        best: list[tuple[np.ndarray, np.ndarray]] = [(np.zeros((0, 3, 3)), np.zeros((0, 3)))] * p.num_pairs
-        A = valid.shape[1]
-        for idx, pair in enumerate(eligible):
-            c = cost[idx * n:(idx + 1) * n].ravel()
-            order = np.argsort(c)
-            Rs, ts = [], []
-            for o in order:
-                if not np.isfinite(c[o]) or len(Rs) == self.top_k:
-                    break
-                Rc, tc = R[idx * n + o // A, o % A], t[idx * n + o // A, o % A]
-                if any(np.sum(Rc * Rk) > 3.0 - 1e-4 and tc @ tk > 0.9998 for Rk, tk in zip(Rs, ts)):
-                    continue  # same pose found by another sample
-                Rs.append(Rc)
-                ts.append(tc)
-            if Rs:
-                best[pair] = (np.array(Rs), np.array(ts))
-        return best
+        K = self.top_k
+        top_R, top_t = np.zeros((p.num_pairs, K, 3, 3)), np.zeros((p.num_pairs, K, 3))
+        count = np.zeros(p.num_pairs, dtype=np.int64)
+        top_distinct_relative(R, t, cost, eligible.astype(np.int64), n, K, top_R, top_t, count)
+        return top_R, top_t, count
 
     def generate(self, rng: np.random.Generator, n: int, stats: RansacStatistics) -> tuple[np.ndarray, np.ndarray]:
         p = self.p
-        best = self._best_relative(rng, n)
+        top_R, top_t, count = self._best_relative(rng, n)
         K = self.top_k
-        combos = [(j, k) for j in range(p.num_pairs) for k in range(j + 1, p.num_pairs)
-                  if len(best[j][0]) and len(best[k][0])]
-        C = len(combos)
-        Ra = np.zeros((C, K, 3, 3))
-        ta = np.zeros((C, K, 3))
-        va = np.zeros((C, K), dtype=np.bool_)
-        Rb, tb, vb = Ra.copy(), ta.copy(), va.copy()
-        for c, (j, k) in enumerate(combos):
-            for (Rs, ts), (Rx, tx, vx) in ((best[j], (Ra, ta, va)), (best[k], (Rb, tb, vb))):
-                Rx[c, :len(Rs)] = Rs
-                tx[c, :len(Rs)] = ts
-                vx[c, :len(Rs)] = True
-        pj = np.array([j for j, _ in combos], dtype=np.int64)
-        pk = np.array([k for _, k in combos], dtype=np.int64)
+        pj, pk = np.triu_indices(p.num_pairs, 1)
+        use = (count[pj] > 0) & (count[pk] > 0)
+        pj, pk = pj[use].astype(np.int64), pk[use].astype(np.int64)
+        C = len(pj)
+        slots = np.arange(K)
+        Ra, ta, va = top_R[pj], top_t[pj], slots[None, :] < count[pj][:, None]
+        Rb, tb, vb = top_R[pk], top_t[pk], slots[None, :] < count[pk][:, None]
         out_R = np.empty((C * K * K, 3, 3))
         out_t = np.empty((C * K * K, 3))
         cnt = hypotheses_from_relative_poses(Ra, ta, va, Rb, tb, vb, pj, pk, p.ref_R, p.ref_t, self.cos_rcheck,

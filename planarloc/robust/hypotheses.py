@@ -254,6 +254,45 @@ def hypotheses_p3p(samples: np.ndarray, xq3d: np.ndarray, X3d: np.ndarray, out_R
 
 
 @njit(cache=True, error_model="numpy")
+def top_distinct_relative(R: np.ndarray, t: np.ndarray, cost: np.ndarray, eligible: np.ndarray, n: int, top_k: int,
+                          out_R: np.ndarray, out_t: np.ndarray, out_count: np.ndarray) -> None:
+    """Stage 1 of the relative-pose families: per pair, the ``top_k`` cheapest distinct relative poses.
+
+    Args:
+        R, t: (S, A, 3, 3), (S, A, 3) candidates of S = len(eligible)·n samples, ``n`` per pair
+            in the order of ``eligible`` (the solver's outputs, A per sample).
+        cost: (S, A) their MSAC cost over their own pair (inf where not valid).
+        eligible: (E,) the pairs that were sampled.
+        out_R, out_t: (P, top_k, 3, 3), (P, top_k, 3) outputs; out_count (P,) how many per pair.
+
+    Two candidates are the same pose (found by two samples) when their rotations agree to
+    ``tr(R_a R_bᵀ) > 3 − 1e-4`` and their unit translations to a cosine above 0.9998.
+    """
+    A = R.shape[1]
+    out_count[:] = 0
+    for e in range(eligible.shape[0]):
+        pair = eligible[e]
+        c = cost[e * n:(e + 1) * n].ravel()
+        order = np.argsort(c)
+        k = 0
+        for o in order:
+            if not np.isfinite(c[o]) or k == top_k:
+                break
+            s_, a_ = e * n + o // A, o % A
+            same = False
+            for q in range(k):
+                if np.sum(R[s_, a_] * out_R[pair, q]) > 3.0 - 1e-4 and m3.dot(t[s_, a_], out_t[pair, q]) > 0.9998:
+                    same = True
+                    break
+            if same:
+                continue
+            out_R[pair, k] = R[s_, a_]
+            out_t[pair, k] = t[s_, a_]
+            k += 1
+        out_count[pair] = k
+
+
+@njit(cache=True, error_model="numpy")
 def planar_relative_candidates(
     samples: np.ndarray, sample_pair: np.ndarray, xq: np.ndarray, xr: np.ndarray, offsets: np.ndarray,
     f_query: np.ndarray, f_ref: np.ndarray, threshold_sq: float, top_k: int, max_scored: int,
