@@ -57,7 +57,7 @@ def camera_from_camera_info(msg: Any, rectified: bool = False) -> Camera:
     if model not in ("", PLUMB_BOB) and np.any(D) and not rectified:
         raise InputError(f"CameraInfo distortion model {model!r} is not supported (plumb_bob, equidistant, or "
                          "rational_polynomial with k3..k6 = 0); use a rectified image topic")
-    return camera_from_info(_PlumbBob(msg) if model != PLUMB_BOB else msg, rectified)
+    return camera_from_info(msg if str(msg.distortion_model) == PLUMB_BOB else _PlumbBob(msg), rectified)
 
 
 @dataclass(frozen=True)

@@ -42,6 +42,7 @@ from planarloc.geometry.validation import InputError
 from planarloc.io.rosbag import decode_image, parse_transform
 from planarloc.localize.localizer import Localizer, localizer_config
 from planarloc.localize.sequence import FrameStatus, SequenceConfig, SequenceEstimate, SequenceLocalizer
+from planarloc.robust.options import Method
 from planarloc.ros2.conversions import (
     OdometryBuffer,
     TransformTree,
@@ -117,6 +118,9 @@ class NodeSettings:
     def __post_init__(self) -> None:
         if not self.map:
             raise InputError("parameter map: give the map file (--map MAP.db or -p map:=MAP.db)")
+        methods = [m.value for m in Method]
+        if self.method not in methods:
+            raise InputError(f"parameter method: expected one of {', '.join(methods)}, got {self.method!r}")
         if self.image_qos not in ("sensor_data", "reliable"):
             raise InputError(f"parameter image_qos: expected 'sensor_data' or 'reliable', got {self.image_qos!r}")
         for name in ("odom_tolerance_s", "max_position_std_m"):
@@ -306,12 +310,9 @@ class LocalizerNode:
                 if self._stop:
                     return
                 msg, received = self._pending  # type: ignore[misc]
-                self._pending = None
-                if self._reset:
-                    self.sequence.reset()  # type: ignore[union-attr]
-                    self._map_from_odom, self._reset = None, False
+                self._pending, reset, self._reset = None, self._reset, False
             try:
-                self._process(msg, received)
+                self._process(msg, received, reset)
             except Exception as exc:  # a bug must not stop the node silently: log it, count and report the frame
                 logger.exception("frame at %.3f failed", stamp_seconds(msg.header.stamp))
                 self.counts.failed += 1
@@ -335,7 +336,7 @@ class LocalizerNode:
             pose = self._base_from_camera_param
         return pose
 
-    def _process(self, msg: Any, received: float) -> None:
+    def _process(self, msg: Any, received: float, reset: bool = False) -> None:
         stamp = stamp_seconds(msg.header.stamp)
         camera_frame = (self.settings.camera_frame or msg.header.frame_id).lstrip("/")
         camera = self._camera
@@ -350,11 +351,14 @@ class LocalizerNode:
             self._diagnose(msg.header.stamp, "failed", f"image: {exc}", received)
             return
         notes = []
-        if self._last_stamp is not None and stamp < self._last_stamp:  # a bag played again, a clock reset
-            self.sequence.reset()  # type: ignore[union-attr]
-            self._map_from_odom = None
+        if reset:
+            notes.append("restarted by the initial pose")
+        elif self._last_stamp is not None and stamp < self._last_stamp:  # a bag played again, a clock reset
             notes.append(f"time went back from {self._last_stamp:.3f} s: the stream restarts")
             logger.warning("%s", notes[-1])
+        if notes:
+            self.sequence.reset()  # type: ignore[union-attr]
+            self._map_from_odom = None
         self._last_stamp = stamp
         # Odometry at the image's stamp, as cam_from_odom for the stream.
         odom_from_child, child_from_camera = None, None
@@ -459,15 +463,26 @@ class LocalizerNode:
 def declare_settings(node: Any, defaults: NodeSettings | dict) -> NodeSettings:
     """Declare every :class:`NodeSettings` field as a ROS parameter (command-line overrides apply)
     and read the settings back."""
+    from rcl_interfaces.msg import ParameterDescriptor
+
     base = defaults if isinstance(defaults, dict) else {f.name: getattr(defaults, f.name) for f in fields(defaults)}
     values = {}
     for f in fields(NodeSettings):
         default = base.get(f.name, f.default)
-        try:
-            values[f.name] = node.declare_parameter(f.name, default).value
-        except Exception as exc:  # rclpy's InvalidParameterTypeException and kin: a wrong type on the command line
-            raise InputError(f"parameter {f.name}: {' '.join(str(exc).split())}") from None
+        # Typed by the default, but `-p odom_tolerance_s:=1` (an integer) is a fine number of seconds.
+        value = node.declare_parameter(f.name, default, ParameterDescriptor(dynamic_typing=True)).value
+        values[f.name] = _coerce(f.name, value, type(f.default))
     return NodeSettings(**values)
+
+
+def _coerce(name: str, value: object, kind: type) -> object:
+    """``value`` of a ROS parameter as the setting's type (int -> float; no other conversion)."""
+    if kind is float and isinstance(value, int) and not isinstance(value, bool):
+        return float(value)
+    if isinstance(value, kind) and not (kind is int and isinstance(value, bool)):
+        return value
+    expected = {str: "a string", int: "an integer", float: "a number", bool: "true or false"}[kind]
+    raise InputError(f"parameter {name}: expected {expected}, got {value!r}")
 
 
 def run(map_path: str | None, ros_args: Sequence[str]) -> int:

@@ -70,8 +70,12 @@ def replay(frames: Sequence[ReplayFrame], *, camera_frame: str = "camera_optical
            odom_frame: str = "odom", base_from_camera: Pose | None = None, image_topic: str = "/camera/image_raw",
            camera_info_topic: str = "/camera/camera_info", odom_topic: str = "/odom",
            pose_topic: str = "/planarloc/pose", diagnostics_topic: str = "/diagnostics", lockstep: bool = True,
-           rate_hz: float = 10.0, wait_s: float = 120.0, settle_s: float = 2.0) -> ReplayResult:
+           rate_hz: float = 10.0, wait_s: float = 120.0, settle_s: float = 2.0,
+           initialpose_before: int | None = None) -> ReplayResult:
     """Publish ``frames`` in order to a running ``planarloc ros2`` and collect its answers.
+
+    ``initialpose_before``: publish an identity pose on ``/initialpose`` before that frame, as
+    rviz's "2D Pose Estimate" does (the node restarts its stream).
 
     ``image_topic`` ending in ``/compressed`` sends PNG ``CompressedImage`` messages. Waits up to
     ``wait_s`` for the node's subscription (and, in lockstep, for each frame's diagnostic).
@@ -99,6 +103,7 @@ def replay(frames: Sequence[ReplayFrame], *, camera_frame: str = "camera_optical
         image_pub = node.create_publisher(CompressedImage if compressed else Image, image_topic, reliable)
         info_pub = node.create_publisher(CameraInfo, camera_info_topic, reliable)
         odom_pub = node.create_publisher(Odometry, odom_topic, reliable)
+        initial_pub = node.create_publisher(PoseWithCovarianceStamped, "/initialpose", reliable)
         static_pub = node.create_publisher(TFMessage, "/tf_static", QoSProfile(
             depth=10, durability=DurabilityPolicy.TRANSIENT_LOCAL, reliability=ReliabilityPolicy.RELIABLE))
 
@@ -141,6 +146,14 @@ def replay(frames: Sequence[ReplayFrame], *, camera_frame: str = "camera_optical
         t0 = time.perf_counter()
         for i, frame in enumerate(frames):
             sec, nanosec = stamp_parts(frame.stamp)
+            if i == initialpose_before:
+                initial = PoseWithCovarianceStamped()
+                initial.header.frame_id = "map"
+                initial.header.stamp.sec, initial.header.stamp.nanosec = sec, nanosec
+                initial.pose.pose.orientation.w = 1.0
+                initial_pub.publish(initial)
+                for _ in range(10):
+                    rclpy.spin_once(node, timeout_sec=0.02)
             if frame.odom_from_base is not None:
                 odom = Odometry()
                 odom.header.stamp.sec, odom.header.stamp.nanosec = sec, nanosec

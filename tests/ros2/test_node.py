@@ -4,6 +4,8 @@ world's query frames on loopback, a subscriber checks the poses against the grou
 
 from __future__ import annotations
 
+import os
+import subprocess
 from pathlib import Path
 
 import numpy as np
@@ -15,6 +17,7 @@ from planarloc.geometry.pose import Pose, pose_errors  # noqa: E402
 from planarloc.io.datasets import read_dataset  # noqa: E402
 from planarloc.ros2.replay import ReplayFrame, replay  # noqa: E402
 from planarloc.synthetic.stream import make_stream, stream_order  # noqa: E402
+from ros2_node import planarloc_command, ros_env  # noqa: E402
 
 #: a base_link (x forward, y left, z up) with the optical camera 0.2 m ahead and 0.5 m up
 BASE_FROM_CAMERA = Pose.from_quat_wxyz([0.5, -0.5, 0.5, -0.5], [0.2, 0.0, 0.5])
@@ -89,6 +92,39 @@ def test_compressed_images_without_odometry_give_the_camera_pose_and_no_transfor
     assert not result.map_from_odom
     assert node.interrupt() == 0
     assert "Traceback" not in "".join(node.stderr)
+
+
+def test_initial_pose_and_time_going_back_restart_the_stream(tiny_world: Path, world_map: Path, start_node) -> None:
+    node = start_node("--map", world_map)
+    frames, truths = _frames(tiny_world, odometry=True)
+    first = replay(frames[:3], base_from_camera=BASE_FROM_CAMERA, wait_s=WAIT_S, initialpose_before=2)
+    assert first.diagnostics[round(frames[2].stamp, 9)]["note"] == "restarted by the initial pose"
+    assert first.diagnostics[round(frames[2].stamp, 9)]["motion_source"] == "none"   # a new stream
+    again = replay(frames[:2], base_from_camera=BASE_FROM_CAMERA, wait_s=WAIT_S)     # a bag played again
+    assert again.diagnostics[round(frames[0].stamp, 9)]["note"].startswith("time went back")
+    assert _check_poses(again, truths[:2], frames[:2], BASE_FROM_CAMERA) >= 1
+    assert node.interrupt() == 0
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--ros-args", "-p", "nosuch:=1"], "unknown parameter 'nosuch'"),
+    (["--ros-args", "-p", "method:=bogus"], "parameter method: expected one of auto"),
+    (["--ros-args", "-p", "top_n:=abc"], "parameter top_n: expected an integer"),
+    (["--ros-args", "-p", "image_qos:=fast"], "parameter image_qos"),
+    (["--ros-args", "-p", "base_to_camera:=1 2 3"], "parameter base_to_camera"),
+])
+def test_bad_parameters_are_one_line_errors(world_map: Path, ros_domain: int, args: list, message: str) -> None:
+    proc = subprocess.run([*planarloc_command(), "ros2", "--map", str(world_map), *args], capture_output=True,
+                          text=True, timeout=300, env={**os.environ, **ros_env(ros_domain)})
+    assert proc.returncode == 1
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and message in lines[0], proc.stderr
+
+
+def test_a_missing_map_is_a_one_line_error(tmp_path: Path, ros_domain: int) -> None:
+    proc = subprocess.run([*planarloc_command(), "ros2", "--map", str(tmp_path / "none.db")], capture_output=True,
+                          text=True, timeout=300, env={**os.environ, **ros_env(ros_domain)})
+    assert proc.returncode == 1 and proc.stderr.strip() == f"planarloc ros2: error: {tmp_path / 'none.db'}: no such map file"
 
 
 def test_sigint_before_any_frame_exits_cleanly(world_map: Path, start_node) -> None:
