@@ -5,14 +5,26 @@
 base → camera transform, and records the node's poses, ``map → odom`` transforms and
 diagnostics. ``lockstep`` waits for each frame's diagnostic before the next frame (every frame
 is localized, whatever the machine's speed); otherwise frames go out at ``rate_hz`` and the node
-drops what it cannot keep up with (its diagnostics count them).
+drops what it cannot keep up with (its diagnostics count them). :class:`NodeProcess` runs
+``planarloc ros2`` as a subprocess.
 """
 
 from __future__ import annotations
 
+import contextlib
+import os
+import random
+import shutil
+import signal
+import subprocess
+import sys
+import tempfile
+import threading
 import time
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -201,3 +213,93 @@ def replay(frames: Sequence[ReplayFrame], *, camera_frame: str = "camera_optical
         node.destroy_node()
         if own_context:
             rclpy.try_shutdown()
+
+
+@contextlib.contextmanager
+def exclusive_domain() -> Iterator[int]:
+    """A ROS domain (1..101) that no other user of this function on the machine holds (a test, a
+    benchmark): a lock file per domain in the temp folder, taken over when its process is gone."""
+    lock_dir = Path(tempfile.gettempdir()) / "planarloc-ros-domains"
+    lock_dir.mkdir(exist_ok=True)
+    for domain in random.Random(os.getpid() + time.monotonic_ns()).sample(range(1, 102), 101):
+        lock = lock_dir / f"{domain}.lock"
+        try:
+            fd = os.open(lock, os.O_CREAT | os.O_EXCL | os.O_WRONLY)
+        except FileExistsError:
+            try:
+                os.kill(int(lock.read_text() or 0), 0)
+                continue  # held by a live process
+            except (ProcessLookupError, ValueError):
+                lock.unlink(missing_ok=True)  # stale: its process is gone
+                continue
+            except PermissionError:
+                continue
+        os.write(fd, str(os.getpid()).encode())
+        os.close(fd)
+        try:
+            yield domain
+        finally:
+            lock.unlink(missing_ok=True)
+        return
+    raise RuntimeError("every ROS domain 1..101 is held by another process")
+
+
+def loopback_env(domain: int) -> dict[str, str]:
+    """The environment of a ROS 2 process that discovers peers on this machine only, on ``domain``
+    (Fast DDS), so that parallel runs on one machine never meet."""
+    return {"ROS_DOMAIN_ID": str(domain), "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST",
+            "RMW_IMPLEMENTATION": "rmw_fastrtps_cpp"}
+
+
+def planarloc_command() -> list[str]:
+    """The ``planarloc`` console script of this Python (``python -m planarloc.cli.main`` without one)."""
+    exe = Path(sys.executable).with_name("planarloc")
+    return [str(exe)] if exe.exists() else [shutil.which("planarloc") or sys.executable, "-m", "planarloc.cli.main"]
+
+
+class NodeProcess:
+    """``planarloc ros2 ARGS`` running as a subprocess with ``env`` added; its output is collected."""
+
+    def __init__(self, args: list[str], env: dict[str, str]) -> None:
+        self.proc = subprocess.Popen([*planarloc_command(), "ros2", *args], stdout=subprocess.PIPE,
+                                     stderr=subprocess.PIPE, text=True, env={**os.environ, **env})
+        self.stderr: list[str] = []
+        self.stdout: list[str] = []
+        self._threads = [threading.Thread(target=self._read, args=(s, out), daemon=True)
+                         for s, out in ((self.proc.stderr, self.stderr), (self.proc.stdout, self.stdout))]
+        for t in self._threads:
+            t.start()
+
+    @staticmethod
+    def _read(stream: Any, out: list[str]) -> None:
+        for line in stream:
+            out.append(line)
+
+    def wait_ready(self, timeout: float = 240.0) -> None:
+        """Wait for the node's banner (its map is open and it subscribes).
+
+        Raises:
+            RuntimeError: the node exited or did not start within ``timeout``.
+        """
+        end = time.monotonic() + timeout
+        while not any("planarloc ros2: localizing" in line for line in self.stderr):
+            if self.proc.poll() is not None:
+                time.sleep(0.2)
+                raise RuntimeError(f"the node exited with {self.proc.returncode}: {''.join(self.stderr)}")
+            if time.monotonic() > end:
+                raise RuntimeError(f"the node did not start within {timeout} s: {''.join(self.stderr)}")
+            time.sleep(0.1)
+
+    def interrupt(self, timeout: float = 60.0) -> int:
+        """Ctrl-C: send SIGINT and return the exit code."""
+        self.proc.send_signal(signal.SIGINT)
+        rc = self.proc.wait(timeout=timeout)
+        for t in self._threads:
+            t.join(timeout=5)
+        return rc
+
+    def kill(self) -> None:
+        """SIGKILL, if still running."""
+        if self.proc.poll() is None:
+            self.proc.kill()
+            self.proc.wait(timeout=30)

@@ -1,5 +1,5 @@
 """The ROS 2 node's fixtures: a map of the tiny world, a loopback-only ROS domain per test, and
-`planarloc ros2` as a real subprocess (tests/support/ros2_node.py)."""
+`planarloc ros2` as a real subprocess."""
 
 from __future__ import annotations
 
@@ -7,17 +7,17 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
-from ros2_node import NodeProcess, exclusive_domain, ros_env
 
 from planarloc.io.datasets import read_dataset
 from planarloc.map.builder import build_map
+from planarloc.ros2.replay import NodeProcess, exclusive_domain, loopback_env
+
 
 @pytest.fixture
 def ros_domain(monkeypatch: pytest.MonkeyPatch) -> Iterator[int]:
-    """A ROS domain held by this test alone (tests/support/ros2_node.py), set in this process's
-    environment for rclpy."""
+    """A ROS domain held by this test alone, set in this process's environment for rclpy."""
     with exclusive_domain() as domain:
-        for key, value in ros_env(domain).items():
+        for key, value in loopback_env(domain).items():
             monkeypatch.setenv(key, value)
         yield domain
 
@@ -34,7 +34,7 @@ def start_node(ros_domain: int) -> Iterator:
     started: list[NodeProcess] = []
 
     def start(*args: object) -> NodeProcess:
-        node = NodeProcess([str(a) for a in args], ros_env(ros_domain))
+        node = NodeProcess([str(a) for a in args], loopback_env(ros_domain))
         started.append(node)
         node.wait_ready()
         return node

@@ -15,9 +15,8 @@ pytest.importorskip("rclpy", reason="rclpy is not installed (pip install 'planar
 
 from planarloc.geometry.pose import Pose, pose_errors  # noqa: E402
 from planarloc.io.datasets import read_dataset  # noqa: E402
-from planarloc.ros2.replay import ReplayFrame, replay  # noqa: E402
+from planarloc.ros2.replay import ReplayFrame, loopback_env, planarloc_command, replay  # noqa: E402
 from planarloc.synthetic.stream import make_stream, stream_order  # noqa: E402
-from ros2_node import planarloc_command, ros_env  # noqa: E402
 
 #: a base_link (x forward, y left, z up) with the optical camera 0.2 m ahead and 0.5 m up
 BASE_FROM_CAMERA = Pose.from_quat_wxyz([0.5, -0.5, 0.5, -0.5], [0.2, 0.0, 0.5])
@@ -115,7 +114,7 @@ def test_initial_pose_and_time_going_back_restart_the_stream(tiny_world: Path, w
 ])
 def test_bad_parameters_are_one_line_errors(world_map: Path, ros_domain: int, args: list, message: str) -> None:
     proc = subprocess.run([*planarloc_command(), "ros2", "--map", str(world_map), *args], capture_output=True,
-                          text=True, timeout=300, env={**os.environ, **ros_env(ros_domain)})
+                          text=True, timeout=300, env={**os.environ, **loopback_env(ros_domain)})
     assert proc.returncode == 1
     lines = proc.stderr.strip().splitlines()
     assert len(lines) == 1 and message in lines[0], proc.stderr
@@ -123,7 +122,7 @@ def test_bad_parameters_are_one_line_errors(world_map: Path, ros_domain: int, ar
 
 def test_a_missing_map_is_a_one_line_error(tmp_path: Path, ros_domain: int) -> None:
     proc = subprocess.run([*planarloc_command(), "ros2", "--map", str(tmp_path / "none.db")], capture_output=True,
-                          text=True, timeout=300, env={**os.environ, **ros_env(ros_domain)})
+                          text=True, timeout=300, env={**os.environ, **loopback_env(ros_domain)})
     assert proc.returncode == 1 and proc.stderr.strip() == f"planarloc ros2: error: {tmp_path / 'none.db'}: no such map file"
 
 
