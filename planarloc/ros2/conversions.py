@@ -171,6 +171,7 @@ class OdometryBuffer:
         if not self.stamps:
             return None
         i = bisect.bisect_left(self.stamps, stamp)
+        tolerance_s += 1e-9  # stamps are nanoseconds: 0.3 - 0.2 is within 0.1
         if 0 < i < len(self.stamps) and self.stamps[i] - self.stamps[i - 1] <= 2 * tolerance_s:
             t0, t1 = self.stamps[i - 1], self.stamps[i]
             a, b = self.poses[i - 1], self.poses[i]

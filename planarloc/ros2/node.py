@@ -249,7 +249,7 @@ class LocalizerNode:
             if self._pending is not None:
                 self.counts.dropped += 1
             self._pending = (msg, time.perf_counter())
-            self._cond.notify()
+            self._cond.notify_all()
 
     def _on_camera_info(self, msg: Any) -> None:
         try:
@@ -269,6 +269,7 @@ class LocalizerNode:
         with self._cond:
             self.odometry.add(stamp_seconds(msg.header.stamp), pose, msg.header.frame_id.lstrip("/"),
                               msg.child_frame_id.lstrip("/"))
+            self._cond.notify_all()  # a frame may wait for the odometry at its stamp
 
     def _on_initialpose(self, msg: Any) -> None:
         with self._cond:
@@ -322,7 +323,7 @@ class LocalizerNode:
         """Stop the worker after the frame it is localizing."""
         with self._cond:
             self._stop = True
-            self._cond.notify()
+            self._cond.notify_all()
         self._worker.join(timeout=30)
 
     def _frame_from_camera(self, frame: str, camera_frame: str) -> Pose | None:
@@ -364,6 +365,14 @@ class LocalizerNode:
         odom_from_child, child_from_camera = None, None
         if self.settings.odom_topic:
             with self._cond:
+                # Odometry flowing but not yet at the image's stamp (topics arrive in any order):
+                # wait for it up to odom_tolerance_s, so that it is interpolated, not stale.
+                deadline = time.monotonic() + self.settings.odom_tolerance_s
+                while self.odometry.stamps and self.odometry.stamps[-1] < stamp and not self._stop:
+                    left = deadline - time.monotonic()
+                    if left <= 0:
+                        break
+                    self._cond.wait(timeout=left)
                 odom_from_child = self.odometry.at(stamp, self.settings.odom_tolerance_s)
                 child = self.odometry.child_frame
             if odom_from_child is not None:

@@ -291,9 +291,19 @@ class NodeProcess:
             time.sleep(0.1)
 
     def interrupt(self, timeout: float = 60.0) -> int:
-        """Ctrl-C: send SIGINT and return the exit code."""
+        """Ctrl-C: send SIGINT and return the exit code.
+
+        Raises:
+            RuntimeError: the node did not exit within ``timeout`` (it is killed; the message has
+                the end of its stderr).
+        """
         self.proc.send_signal(signal.SIGINT)
-        rc = self.proc.wait(timeout=timeout)
+        try:
+            rc = self.proc.wait(timeout=timeout)
+        except subprocess.TimeoutExpired:
+            self.kill()
+            raise RuntimeError(f"the node did not exit within {timeout:.0f} s of SIGINT: "
+                               f"{''.join(self.stderr)[-2000:]}") from None
         for t in self._threads:
             t.join(timeout=5)
         return rc
