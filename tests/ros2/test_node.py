@@ -131,3 +131,12 @@ def test_sigint_before_any_frame_exits_cleanly(world_map: Path, start_node) -> N
     assert node.interrupt() == 0
     err = "".join(node.stderr)
     assert "Traceback" not in err and "stopped after 0 frames" in err
+
+
+def test_tf2_msgs_that_cannot_be_built_is_a_one_line_error(world_map: Path, tmp_path: Path, ros_domain: int) -> None:
+    env = {**os.environ, **loopback_env(ros_domain), "PLANARLOC_CACHE": str(tmp_path), "CC": "no-such-cc"}
+    proc = subprocess.run([*planarloc_command(), "ros2", "--map", str(world_map)], capture_output=True, text=True,
+                          timeout=300, env=env)
+    lines = proc.stderr.strip().splitlines()
+    assert proc.returncode == 1 and len(lines) == 1, proc.stderr
+    assert "tf2_msgs" in lines[0] and "no C/C++ compiler (CC=no-such-cc)" in lines[0]
