@@ -138,6 +138,11 @@ class NodeSettings:
         return parse_transform(self.base_to_camera, "parameter base_to_camera") if self.base_to_camera else None
 
     @property
+    def rectified(self) -> bool:
+        """An ``image_rect*`` topic (image_proc's): undistorted, its CameraInfo's ``P`` applies."""
+        return any(part.startswith("image_rect") for part in self.image_topic.split("/"))
+
+    @property
     def compressed(self) -> bool:
         return self.image_topic.rstrip("/").endswith("/compressed")
 
@@ -253,7 +258,7 @@ class LocalizerNode:
 
     def _on_camera_info(self, msg: Any) -> None:
         try:
-            camera = camera_from_camera_info(msg, rectified="rect" in self.settings.image_topic)
+            camera = camera_from_camera_info(msg, rectified=self.settings.rectified)
         except (InputError, ValueError) as exc:
             self._camera, self._camera_error = None, f"CameraInfo: {exc}"
             self._warn_once(self._camera_error)
