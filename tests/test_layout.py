@@ -24,10 +24,11 @@ LAYERS = {
     "io": 7, "synthetic": 7,
     "distributed": 8, "viz": 8, "client": 8,   # libraries of the front doors
     "serve": 9,                                 # the service (FastAPI app, Ray Serve deployment)
+    "ros2": 9,                                  # the ROS 2 node
     "cli": 10,                                  # the command line, which also launches the service
 }
 EXTRAS = ("fastapi", "uvicorn", "starlette", "multipart", "prometheus_client", "httpx", "ray", "rosbags", "evo",
-          "rerun")
+          "rerun", "rclpy")
 
 
 def _modules() -> dict[str, Path]:
@@ -147,7 +148,8 @@ def test_no_private_name_crosses_a_package() -> None:
 
 @pytest.mark.parametrize("entry", ["planarloc", "planarloc.cli.main", "planarloc.localize.sequence",
                                    "planarloc.evaluation.queries", "planarloc.io.datasets", "planarloc.io.results",
-                                   "planarloc.map.builder", "planarloc.serve.settings"])
+                                   "planarloc.map.builder", "planarloc.serve.settings",
+                                   "planarloc.ros2.node"])
 def test_the_base_install_imports_no_extra(entry: str) -> None:
     code = (f"import sys, {entry}; "
             f"print(' '.join(m for m in {EXTRAS!r} if m in sys.modules or any(k.startswith(m + '.') for k in sys.modules)))")

@@ -1,0 +1,535 @@
+"""The ROS 2 node of ``planarloc ros2``: camera frames in, map poses, ``map → odom`` and diagnostics out.
+
+Topics (names are parameters, see :class:`NodeSettings`):
+
+- in: ``sensor_msgs/Image`` on ``image_topic`` (``sensor_msgs/CompressedImage`` when the name
+  ends in ``/compressed``) with ``sensor_msgs/CameraInfo`` on ``camera_info_topic``; optional
+  ``nav_msgs/Odometry`` (``odom_topic``), ``/tf`` and ``/tf_static`` (base → camera) and
+  ``geometry_msgs/PoseWithCovarianceStamped`` on ``initialpose_topic``.
+- out: ``geometry_msgs/PoseWithCovarianceStamped`` on ``pose_topic`` in ``map_frame`` (the map's
+  world), stamped with the image's stamp: the pose of ``base_frame`` when base → camera is known
+  (TF or the ``base_to_camera`` parameter), else of the image's frame; the ``map_frame →
+  odom_frame`` transform on ``/tf`` when odometry is given (AMCL's contract: ``map_from_odom =
+  map_from_base · odom_from_base⁻¹`` at the image's stamp); ``diagnostic_msgs/DiagnosticArray``
+  on ``diagnostics_topic`` for every frame.
+
+What is published (the node is never confidently wrong): a frame the stream calls
+``localized`` (an absolute fix accepted in this frame), and with ``publish_predicted`` a
+``predicted`` one, each only when its position std is at most ``max_position_std_m``. A
+``lost`` frame publishes only its diagnostic. ``map → odom`` is re-sent with each localized or
+predicted frame's stamp (as AMCL re-sends its last transform) and never after ``lost``.
+
+Frames: the image callback only stores the newest frame; a worker thread localizes it. A frame
+that arrives while the previous one still waits is dropped and counted (``frames_dropped``),
+never queued behind a slow one. ``/initialpose`` restarts the stream: the window is forgotten and
+the next pose comes from a global fix (planarloc localizes absolutely; the given pose is not
+used as a prior).
+"""
+
+from __future__ import annotations
+
+import logging
+import sys
+import threading
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, fields
+from typing import Any
+
+from planarloc.extras import require
+from planarloc.geometry.pose import Pose
+from planarloc.geometry.validation import InputError
+from planarloc.io.rosbag import decode_image, parse_transform
+from planarloc.localize.localizer import Localizer, localizer_config
+from planarloc.localize.sequence import FrameStatus, SequenceConfig, SequenceEstimate, SequenceLocalizer
+from planarloc.robust.options import Method
+from planarloc.ros2.conversions import (
+    OdometryBuffer,
+    TransformTree,
+    camera_from_camera_info,
+    map_from_odom,
+    pose_from_ros,
+    ros_covariance_from_sequence,
+    ros_covariance_of_child,
+    ros_from_pose,
+    stamp_parts,
+    stamp_seconds,
+)
+from planarloc.ros2.interfaces import tf_message_type
+
+logger = logging.getLogger(__name__)
+
+_SEQ = SequenceConfig()
+NODE_NAME = "planarloc"
+
+
+@dataclass(frozen=True)
+class NodeSettings:
+    """The node's ROS parameters (``--ros-args -p name:=value``) and their defaults.
+
+    Attributes:
+        map: the map file (``--map``).
+        image_topic, camera_info_topic: camera input (``…/compressed``: CompressedImage).
+        image_qos: ``sensor_data`` (best effort; takes reliable publishers too) or ``reliable``.
+        odom_topic: ``nav_msgs/Odometry`` input; empty: no odometry.
+        initialpose_topic, pose_topic, diagnostics_topic: the other topics.
+        map_frame, odom_frame, base_frame: frame names (``map_frame`` is the map's world).
+        camera_frame: the image's frame; empty: the image's ``header.frame_id``.
+        base_to_camera: ``'x y z qx qy qz qw'``, the camera's pose in ``base_frame`` (as
+            ``static_transform_publisher``), used when TF has no base → camera; empty: TF only.
+        odom_tolerance_s: odometry is interpolated at the image's stamp from samples at most
+            ``2 odom_tolerance_s`` apart, else taken from one within ``odom_tolerance_s``.
+        transform_tolerance_s: ``map → odom`` is stamped this much after the image (AMCL's
+            ``transform_tolerance``) so that TF lookups at the current time succeed.
+        publish_predicted: also publish ``predicted`` frames (their covariance has grown with the
+            motion since the last fix).
+        max_position_std_m: no pose with a larger position std (worst axis) is published; also the
+            single-frame estimator's limit (``RansacOptions.max_position_std_m``).
+        method, structure, top_n, seed: the localizer's settings (``planarloc localize``'s options).
+        window, local_top_n, vo_model, kidnap_confirmations: the stream's (``SequenceConfig``).
+    """
+
+    map: str = ""
+    image_topic: str = "/camera/image_raw"
+    camera_info_topic: str = "/camera/camera_info"
+    image_qos: str = "sensor_data"
+    odom_topic: str = "/odom"
+    initialpose_topic: str = "/initialpose"
+    pose_topic: str = "/planarloc/pose"
+    diagnostics_topic: str = "/diagnostics"
+    map_frame: str = "map"
+    odom_frame: str = "odom"
+    base_frame: str = "base_link"
+    camera_frame: str = ""
+    base_to_camera: str = ""
+    odom_tolerance_s: float = 0.1
+    transform_tolerance_s: float = 0.0
+    publish_predicted: bool = False
+    max_position_std_m: float = 0.3
+    method: str = "auto"
+    structure: str = "tracks"
+    top_n: int = 5
+    seed: int = 0
+    window: int = _SEQ.window
+    local_top_n: int = _SEQ.local_top_n
+    vo_model: str = _SEQ.vo_model
+    kidnap_confirmations: int = _SEQ.kidnap_confirmations
+
+    def __post_init__(self) -> None:
+        if not self.map:
+            raise InputError("parameter map: give the map file (--map MAP.db or -p map:=MAP.db)")
+        methods = [m.value for m in Method]
+        if self.method not in methods:
+            raise InputError(f"parameter method: expected one of {', '.join(methods)}, got {self.method!r}")
+        if self.image_qos not in ("sensor_data", "reliable"):
+            raise InputError(f"parameter image_qos: expected 'sensor_data' or 'reliable', got {self.image_qos!r}")
+        for name in ("odom_tolerance_s", "max_position_std_m"):
+            if not getattr(self, name) > 0:
+                raise InputError(f"parameter {name}: expected a number > 0, got {getattr(self, name)}")
+        if self.transform_tolerance_s < 0:
+            raise InputError(f"parameter transform_tolerance_s: expected >= 0, got {self.transform_tolerance_s}")
+        for name in ("image_topic", "camera_info_topic", "pose_topic", "diagnostics_topic", "map_frame",
+                     "odom_frame", "base_frame"):
+            if not getattr(self, name):
+                raise InputError(f"parameter {name}: must not be empty")
+
+    @property
+    def base_from_camera(self) -> Pose | None:
+        return parse_transform(self.base_to_camera, "parameter base_to_camera") if self.base_to_camera else None
+
+    @property
+    def rectified(self) -> bool:
+        """An ``image_rect*`` topic (image_proc's): undistorted, its CameraInfo's ``P`` applies."""
+        return any(part.startswith("image_rect") for part in self.image_topic.split("/"))
+
+    @property
+    def compressed(self) -> bool:
+        return self.image_topic.rstrip("/").endswith("/compressed")
+
+
+PARAMETERS = tuple(f.name for f in fields(NodeSettings))
+
+
+def check_parameter_names(ros_args: Sequence[str]) -> None:
+    """Reject ``-p name:=value`` overrides of parameters the node does not have (ROS ignores them)."""
+    for flag, value in zip(ros_args, ros_args[1:]):
+        if flag in ("-p", "--param"):
+            name = value.split(":=", 1)[0]
+            if ":=" not in value or not value.split(":=", 1)[1]:
+                raise InputError(f"--ros-args {flag} {value}: expected name:=value (an empty string: name:='')")
+            if name.rpartition(".")[2] not in PARAMETERS and name not in ("use_sim_time",):
+                raise InputError(f"--ros-args {flag} {value}: unknown parameter {name!r}; parameters: "
+                                 f"{', '.join(PARAMETERS)}")
+
+
+@dataclass
+class FrameCounts:
+    """What the node has done with the frames it received."""
+
+    received: int = 0
+    processed: int = 0
+    dropped: int = 0     # replaced by a newer frame before the worker took it
+    failed: int = 0      # not localizable: no CameraInfo yet, a bad image or camera
+    localized: int = 0
+    predicted: int = 0
+    lost: int = 0
+    published: int = 0
+
+    @property
+    def fix_rate(self) -> float:
+        """Share of the processed frames that were localized."""
+        return self.localized / self.processed if self.processed else 0.0
+
+
+class LocalizerNode:
+    """The rclpy node: subscriptions, a worker thread around a :class:`SequenceLocalizer`, publishers.
+
+    Args:
+        node: an rclpy ``Node`` whose parameters are declared by :func:`declare_settings`.
+        settings: the node's settings.
+    """
+
+    def __init__(self, node: Any, settings: NodeSettings) -> None:
+        from diagnostic_msgs.msg import DiagnosticArray
+        from geometry_msgs.msg import PoseWithCovarianceStamped
+        from nav_msgs.msg import Odometry
+        from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
+        from sensor_msgs.msg import CameraInfo, CompressedImage, Image
+
+        self.node, self.settings = node, settings
+        self.TFMessage = tf_message_type()
+        self.sequence: SequenceLocalizer | None = None
+        self.tf = TransformTree()
+        self.odometry = OdometryBuffer()
+        self.counts = FrameCounts()
+        self._base_from_camera_param = settings.base_from_camera
+        self._camera: Any = None
+        self._camera_error = "no CameraInfo received yet"
+        self._pending: tuple[Any, float] | None = None
+        self._reset = False
+        self._map_from_odom: Pose | None = None
+        self._last_stamp: float | None = None
+        self._cond = threading.Condition()
+        self._stop = False
+        self._warned: set[str] = set()
+
+        reliable = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
+        image_qos = qos_profile_sensor_data if settings.image_qos == "sensor_data" else reliable
+        node.create_subscription(CompressedImage if settings.compressed else Image, settings.image_topic,
+                                 self._on_image, image_qos)
+        node.create_subscription(CameraInfo, settings.camera_info_topic, self._on_camera_info, qos_profile_sensor_data)
+        if settings.odom_topic:
+            node.create_subscription(Odometry, settings.odom_topic, self._on_odometry,
+                                     QoSProfile(depth=100, reliability=ReliabilityPolicy.BEST_EFFORT))
+        node.create_subscription(PoseWithCovarianceStamped, settings.initialpose_topic, self._on_initialpose, reliable)
+        node.create_subscription(self.TFMessage, "/tf", self._on_tf, QoSProfile(depth=100))
+        node.create_subscription(self.TFMessage, "/tf_static", self._on_tf, QoSProfile(
+            depth=100, durability=DurabilityPolicy.TRANSIENT_LOCAL, reliability=ReliabilityPolicy.RELIABLE))
+        self.pose_pub = node.create_publisher(PoseWithCovarianceStamped, settings.pose_topic, reliable)
+        self.tf_pub = node.create_publisher(self.TFMessage, "/tf", QoSProfile(depth=100))
+        self.diag_pub = node.create_publisher(DiagnosticArray, settings.diagnostics_topic, reliable)
+        # The map (SQLite) is opened by the thread that localizes; its errors are raised here.
+        self._opened = threading.Event()
+        self._open_error: BaseException | None = None
+        self._worker = threading.Thread(target=self._work, name="planarloc-localize", daemon=True)
+        self._worker.start()
+        self._opened.wait()
+        if self._open_error is not None:
+            self._worker.join()
+            raise self._open_error
+
+    def _open(self) -> None:
+        s = self.settings
+        config = localizer_config(method=s.method, structure=s.structure, seed=s.seed, top_n=s.top_n,
+                                  max_position_std_m=s.max_position_std_m)
+        self.sequence = SequenceLocalizer(
+            Localizer(s.map, config),
+            SequenceConfig(window=s.window, local_top_n=s.local_top_n, vo_model=s.vo_model,
+                           kidnap_confirmations=s.kidnap_confirmations))
+
+    # ---- callbacks (executor thread: cheap) -------------------------------------------------
+    def _on_image(self, msg: Any) -> None:
+        with self._cond:
+            self.counts.received += 1
+            if self._pending is not None:
+                self.counts.dropped += 1
+            self._pending = (msg, time.perf_counter())
+            self._cond.notify_all()
+
+    def _on_camera_info(self, msg: Any) -> None:
+        try:
+            camera = camera_from_camera_info(msg, rectified=self.settings.rectified)
+        except (InputError, ValueError) as exc:
+            self._camera, self._camera_error = None, f"CameraInfo: {exc}"
+            self._warn_once(self._camera_error)
+            return
+        self._camera, self._camera_error = camera, ""
+
+    def _on_odometry(self, msg: Any) -> None:
+        try:
+            pose = pose_from_ros(msg.pose.pose.position, msg.pose.pose.orientation)
+        except InputError as exc:
+            self._warn_once(f"odometry: {exc}")
+            return
+        with self._cond:
+            self.odometry.add(stamp_seconds(msg.header.stamp), pose, msg.header.frame_id.lstrip("/"),
+                              msg.child_frame_id.lstrip("/"))
+            self._cond.notify_all()  # a frame may wait for the odometry at its stamp
+
+    def _on_initialpose(self, msg: Any) -> None:
+        with self._cond:
+            self._reset = True
+        logger.info("initial pose received: the stream restarts from a global fix")
+
+    def _on_tf(self, msg: Any) -> None:
+        edges = []
+        for tf in msg.transforms:
+            if tf.child_frame_id.lstrip("/") == self.settings.odom_frame and \
+                    tf.header.frame_id.lstrip("/") == self.settings.map_frame:
+                continue  # our own map -> odom
+            try:
+                edges.append((tf.header.frame_id, tf.child_frame_id,
+                              pose_from_ros(tf.transform.translation, tf.transform.rotation)))
+            except InputError as exc:
+                self._warn_once(f"/tf {tf.header.frame_id} -> {tf.child_frame_id}: {exc}")
+        with self._cond:
+            self.tf.add_many(edges)
+
+    def _warn_once(self, text: str) -> None:
+        if text not in self._warned:
+            self._warned.add(text)
+            logger.warning("%s", text)
+
+    # ---- the worker --------------------------------------------------------------------------
+    def _work(self) -> None:
+        try:
+            self._open()
+        except BaseException as exc:  # raised again by __init__ in the caller's thread
+            self._open_error = exc
+            return
+        finally:
+            self._opened.set()
+        while True:
+            with self._cond:
+                while self._pending is None and not self._stop:
+                    self._cond.wait()
+                if self._stop:
+                    return
+                msg, received = self._pending  # type: ignore[misc]
+                self._pending, reset, self._reset = None, self._reset, False
+            try:
+                self._process(msg, received, reset)
+            except Exception as exc:  # a bug must not stop the node silently: log it, count and report the frame
+                logger.exception("frame at %.3f failed", stamp_seconds(msg.header.stamp))
+                self.counts.failed += 1
+                self._diagnose(msg.header.stamp, "failed", f"internal error: {type(exc).__name__}: {exc}", received)
+
+    def stop(self) -> None:
+        """Stop the worker after the frame it is localizing."""
+        with self._cond:
+            self._stop = True
+            self._cond.notify_all()
+        self._worker.join(timeout=30)
+
+    def _frame_from_camera(self, frame: str, camera_frame: str) -> Pose | None:
+        """``frame_from_camera`` (identity for the camera's own frame): TF, else ``base_to_camera``
+        for the base frame."""
+        if frame.lstrip("/") == camera_frame:
+            return Pose.identity()
+        with self._cond:
+            pose = self.tf.lookup(frame, camera_frame)
+        if pose is None and frame.lstrip("/") == self.settings.base_frame:
+            pose = self._base_from_camera_param
+        return pose
+
+    def _process(self, msg: Any, received: float, reset: bool = False) -> None:
+        stamp = stamp_seconds(msg.header.stamp)
+        camera_frame = (self.settings.camera_frame or msg.header.frame_id).lstrip("/")
+        camera = self._camera
+        if camera is None:
+            self.counts.failed += 1
+            self._diagnose(msg.header.stamp, "failed", self._camera_error, received)
+            return
+        try:
+            image = bytes(msg.data) if self.settings.compressed else decode_image(msg)
+        except (InputError, ValueError) as exc:
+            self.counts.failed += 1
+            self._diagnose(msg.header.stamp, "failed", f"image: {exc}", received)
+            return
+        notes = []
+        if reset:
+            notes.append("restarted by the initial pose")
+        elif self._last_stamp is not None and stamp < self._last_stamp:  # a bag played again, a clock reset
+            notes.append(f"time went back from {self._last_stamp:.3f} s: the stream restarts")
+            logger.warning("%s", notes[-1])
+        if notes:
+            self.sequence.reset()  # type: ignore[union-attr]
+            self._map_from_odom = None
+        self._last_stamp = stamp
+        # Odometry at the image's stamp, as cam_from_odom for the stream.
+        odom_from_child, child_from_camera = None, None
+        if self.settings.odom_topic:
+            with self._cond:
+                # Odometry flowing but not yet at the image's stamp (topics arrive in any order):
+                # wait for it up to odom_tolerance_s, so that it is interpolated, not stale.
+                deadline = time.monotonic() + self.settings.odom_tolerance_s
+                while self.odometry.stamps and self.odometry.stamps[-1] < stamp and not self._stop:
+                    left = deadline - time.monotonic()
+                    if left <= 0:
+                        break
+                    self._cond.wait(timeout=left)
+                odom_from_child = self.odometry.at(stamp, self.settings.odom_tolerance_s)
+                child = self.odometry.child_frame
+            if odom_from_child is not None:
+                child_from_camera = self._frame_from_camera(child or camera_frame, camera_frame)
+                if child_from_camera is None:
+                    notes.append(f"odometry ignored: no transform {child} -> {camera_frame}")
+                    odom_from_child = None
+            elif self.odometry.stamps:
+                notes.append("no odometry at the image's stamp")
+        odometry = None if odom_from_child is None else (odom_from_child @ child_from_camera).inverse()
+        try:
+            est = self.sequence.step(image, camera, stamp, odometry=odometry)  # type: ignore[union-attr]
+        except InputError as exc:
+            self.counts.failed += 1
+            self._diagnose(msg.header.stamp, "failed", str(exc), received)
+            return
+        self.counts.processed += 1
+        status = est.status
+        setattr(self.counts, status, getattr(self.counts, status) + 1)
+        published = self._publish(msg.header.stamp, est, camera_frame, odom_from_child, child_from_camera)
+        self._diagnose(msg.header.stamp, status, "; ".join(notes), received, est, published)
+
+    def _publishable(self, est: SequenceEstimate) -> bool:
+        if est.pose is None or not est.position_std_m <= self.settings.max_position_std_m:
+            return False
+        return est.status == FrameStatus.LOCALIZED.value or (
+            est.status == FrameStatus.PREDICTED.value and self.settings.publish_predicted)
+
+    def _publish(self, stamp: Any, est: SequenceEstimate, camera_frame: str, odom_from_child: Pose | None,
+                 child_from_camera: Pose | None) -> bool:
+        from geometry_msgs.msg import PoseWithCovarianceStamped, TransformStamped
+
+        if est.status == FrameStatus.LOST.value:
+            self._map_from_odom = None
+        if not self._publishable(est):
+            return False
+        world_from_camera = est.pose.inverse()  # type: ignore[union-attr]
+        cov = ros_covariance_from_sequence(est.pose, est.covariance)  # type: ignore[arg-type]
+        base_from_camera = self._frame_from_camera(self.settings.base_frame, camera_frame)
+        if base_from_camera is not None:
+            camera_from_base = base_from_camera.inverse()
+            pose, cov = world_from_camera @ camera_from_base, ros_covariance_of_child(world_from_camera, cov,
+                                                                                       camera_from_base)
+        else:
+            pose = world_from_camera
+            self._warn_once(f"no transform {self.settings.base_frame} -> {camera_frame}: publishing the pose of "
+                            f"{camera_frame}")
+        out = PoseWithCovarianceStamped()
+        out.header.stamp, out.header.frame_id = stamp, self.settings.map_frame
+        (out.pose.pose.position.x, out.pose.pose.position.y, out.pose.pose.position.z), q = ros_from_pose(pose)
+        o = out.pose.pose.orientation
+        o.x, o.y, o.z, o.w = q
+        out.pose.covariance = [float(v) for v in cov.ravel()]
+        self.pose_pub.publish(out)
+        self.counts.published += 1
+        if odom_from_child is not None and child_from_camera is not None:
+            self._map_from_odom = map_from_odom(world_from_camera @ child_from_camera.inverse(), odom_from_child)
+        if self._map_from_odom is not None:
+            tf = TransformStamped()
+            sec, nanosec = stamp_parts(stamp_seconds(stamp) + self.settings.transform_tolerance_s)
+            tf.header.stamp.sec, tf.header.stamp.nanosec = sec, nanosec
+            tf.header.frame_id, tf.child_frame_id = self.settings.map_frame, self.settings.odom_frame
+            t, q = ros_from_pose(self._map_from_odom)
+            tf.transform.translation.x, tf.transform.translation.y, tf.transform.translation.z = t
+            r = tf.transform.rotation
+            r.x, r.y, r.z, r.w = q
+            self.tf_pub.publish(self.TFMessage(transforms=[tf]))
+        return True
+
+    def _diagnose(self, stamp: Any, status: str, note: str, received: float, est: SequenceEstimate | None = None,
+                  published: bool = False) -> None:
+        from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+
+        level = {"localized": DiagnosticStatus.OK, "predicted": DiagnosticStatus.WARN}.get(status,
+                                                                                            DiagnosticStatus.ERROR)
+        c = self.counts
+        values = {
+            "status": status, "published": str(published).lower(), "stamp": f"{stamp_seconds(stamp):.9f}",
+            "frames_received": c.received, "frames_processed": c.processed, "frames_dropped": c.dropped,
+            "frames_failed": c.failed, "frames_localized": c.localized, "frames_predicted": c.predicted,
+            "frames_lost": c.lost, "poses_published": c.published, "fix_rate": f"{c.fix_rate:.4f}",
+            "latency_ms": f"{1000 * (time.perf_counter() - received):.1f}",
+        }
+        if est is not None:
+            values.update(fix_status=est.fix_status, motion_source=est.motion_source,
+                          position_std_m=f"{est.position_std_m:.4g}", rotation_std_deg=f"{est.rotation_std_deg:.4g}")
+        if note:
+            values["note"] = note
+        d = DiagnosticStatus(level=level, name=f"{NODE_NAME}: localization", hardware_id=self.settings.map,
+                             message=f"{status}{': ' + note if note else ''}",
+                             values=[KeyValue(key=k, value=str(v)) for k, v in values.items()])
+        out = DiagnosticArray(status=[d])
+        out.header.stamp = stamp
+        self.diag_pub.publish(out)
+
+
+def declare_settings(node: Any, defaults: NodeSettings | dict) -> NodeSettings:
+    """Declare every :class:`NodeSettings` field as a ROS parameter (command-line overrides apply)
+    and read the settings back."""
+    from rcl_interfaces.msg import ParameterDescriptor
+
+    base = defaults if isinstance(defaults, dict) else {f.name: getattr(defaults, f.name) for f in fields(defaults)}
+    values = {}
+    for f in fields(NodeSettings):
+        default = base.get(f.name, f.default)
+        # Typed by the default, but `-p odom_tolerance_s:=1` (an integer) is a fine number of seconds.
+        value = node.declare_parameter(f.name, default, ParameterDescriptor(dynamic_typing=True)).value
+        values[f.name] = _coerce(f.name, value, type(f.default))
+    return NodeSettings(**values)
+
+
+def _coerce(name: str, value: object, kind: type) -> object:
+    """``value`` of a ROS parameter as the setting's type (int -> float; no other conversion)."""
+    if kind is float and isinstance(value, int) and not isinstance(value, bool):
+        return float(value)
+    if isinstance(value, kind) and not (kind is int and isinstance(value, bool)):
+        return value
+    expected = {str: "a string", int: "an integer", float: "a number", bool: "true or false"}[kind]
+    raise InputError(f"parameter {name}: expected {expected}, got {value!r}")
+
+
+def run(map_path: str | None, ros_args: Sequence[str]) -> int:
+    """``planarloc ros2``: run the node until SIGINT or SIGTERM (exit 0)."""
+    rclpy = require("rclpy", "ros2")
+    from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+
+    check_parameter_names(ros_args)
+    try:
+        rclpy.init(args=[NODE_NAME, "--ros-args", *ros_args] if ros_args else [NODE_NAME])
+    except Exception as exc:  # rclpy's RCLError for malformed --ros-args
+        raise InputError(f"--ros-args: {' '.join(str(exc).split()[:30])}") from None
+    node = worker = None
+    try:
+        node = rclpy.create_node(NODE_NAME)
+        settings = declare_settings(node, {"map": map_path or ""})
+        worker = LocalizerNode(node, settings)
+        print(f"planarloc ros2: localizing {settings.image_topic} against {settings.map}; poses on "
+              f"{settings.pose_topic} in {settings.map_frame} (Ctrl-C stops)", file=sys.stderr, flush=True)
+        executor = SingleThreadedExecutor()
+        executor.add_node(node)
+        try:
+            executor.spin()
+        except (KeyboardInterrupt, ExternalShutdownException):
+            pass
+        c = worker.counts
+        print(f"planarloc ros2: stopped after {c.received} frames: {c.localized} localized, {c.predicted} "
+              f"predicted, {c.lost} lost, {c.dropped} dropped, {c.failed} failed; {c.published} poses published",
+              file=sys.stderr, flush=True)
+        return 0
+    finally:
+        if worker is not None:
+            worker.stop()
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()

@@ -1,0 +1,315 @@
+"""Replay posed images to the ROS 2 node and collect what it publishes (tests, benchmarks, demos).
+
+:func:`replay` is an rclpy node that publishes each frame's image (``sensor_msgs/Image`` mono8, or
+``CompressedImage`` PNG) with its ``CameraInfo``, optional ``nav_msgs/Odometry`` and a static
+base → camera transform, and records the node's poses, ``map → odom`` transforms and
+diagnostics. ``lockstep`` waits for each frame's diagnostic before the next frame (every frame
+is localized, whatever the machine's speed); otherwise frames go out at ``rate_hz`` and the node
+drops what it cannot keep up with (its diagnostics count them). :class:`NodeProcess` runs
+``planarloc ros2`` as a subprocess.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import random
+import shutil
+import signal
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+
+from planarloc.extras import require
+from planarloc.features.images import read_gray
+from planarloc.geometry.camera import Camera
+from planarloc.geometry.pose import Pose
+from planarloc.geometry.validation import InputError
+from planarloc.ros2.conversions import pose_from_ros, ros_from_pose, stamp_parts, stamp_seconds
+from planarloc.ros2.interfaces import tf_message_type
+
+
+@dataclass(frozen=True)
+class ReplayFrame:
+    """One frame to replay: an image file or array, its camera, stamp and optional odometry.
+
+    ``odom_from_base``: the odometry's pose of the base at this stamp (None: no Odometry message).
+    """
+
+    image: object
+    camera: Camera
+    stamp: float
+    odom_from_base: Pose | None = None
+
+
+@dataclass
+class ReplayResult:
+    """What the node published, keyed by the image stamp (seconds, rounded to the nanosecond)."""
+
+    poses: dict[float, tuple[Pose, np.ndarray, str]] = field(default_factory=dict)  # parent_from_child, cov, frame
+    map_from_odom: dict[float, tuple[Pose, str, str]] = field(default_factory=dict)  # pose, parent, child
+    diagnostics: dict[float, dict[str, str]] = field(default_factory=dict)
+    published: int = 0
+    seconds: float = 0.0
+
+
+def _key(stamp: object) -> float:
+    return round(stamp_seconds(stamp), 9)
+
+
+def _camera_info(msg: object, camera: Camera) -> None:
+    K = camera.K
+    msg.width, msg.height = camera.width, camera.height  # type: ignore[attr-defined]
+    msg.k = [float(v) for v in K.ravel()]  # type: ignore[attr-defined]
+    fisheye = camera.model.value == "OPENCV_FISHEYE"
+    msg.distortion_model = "equidistant" if fisheye else "plumb_bob"  # type: ignore[attr-defined]
+    msg.d = [float(v) for v in camera.distortion] + ([] if fisheye else [0.0])  # type: ignore[attr-defined]
+    msg.r = [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0]  # type: ignore[attr-defined]
+    msg.p = [float(K[0, 0]), 0.0, float(K[0, 2]), 0.0, 0.0, float(K[1, 1]), float(K[1, 2]), 0.0,  # type: ignore
+             0.0, 0.0, 1.0, 0.0]
+
+
+def replay(frames: Sequence[ReplayFrame], *, camera_frame: str = "camera_optical", base_frame: str = "base_link",
+           odom_frame: str = "odom", base_from_camera: Pose | None = None, image_topic: str = "/camera/image_raw",
+           camera_info_topic: str = "/camera/camera_info", odom_topic: str = "/odom",
+           pose_topic: str = "/planarloc/pose", diagnostics_topic: str = "/diagnostics", lockstep: bool = True,
+           rate_hz: float = 10.0, wait_s: float = 120.0, settle_s: float = 2.0,
+           initialpose_before: int | None = None) -> ReplayResult:
+    """Publish ``frames`` in order to a running ``planarloc ros2`` and collect its answers.
+
+    ``initialpose_before``: publish an identity pose on ``/initialpose`` before that frame, as
+    rviz's "2D Pose Estimate" does (the node restarts its stream).
+
+    ``image_topic`` ending in ``/compressed`` sends PNG ``CompressedImage`` messages. Waits up to
+    ``wait_s`` for the node's subscription (and, in lockstep, for each frame's diagnostic).
+
+    Raises:
+        InputError: no node subscribes to ``image_topic`` within ``wait_s``, or (lockstep) a
+            frame got no diagnostic within ``wait_s``.
+    """
+    rclpy = require("rclpy", "ros2")
+    from diagnostic_msgs.msg import DiagnosticArray
+    from geometry_msgs.msg import PoseWithCovarianceStamped, TransformStamped
+    from nav_msgs.msg import Odometry
+    from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+    from sensor_msgs.msg import CameraInfo, CompressedImage, Image
+
+    TFMessage = tf_message_type()
+    own_context = not rclpy.ok()
+    if own_context:
+        rclpy.init(args=["planarloc_replay"])
+    node = rclpy.create_node("planarloc_replay")
+    result = ReplayResult()
+    try:
+        reliable = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
+        compressed = image_topic.rstrip("/").endswith("/compressed")
+        image_pub = node.create_publisher(CompressedImage if compressed else Image, image_topic, reliable)
+        info_pub = node.create_publisher(CameraInfo, camera_info_topic, reliable)
+        odom_pub = node.create_publisher(Odometry, odom_topic, reliable)
+        initial_pub = node.create_publisher(PoseWithCovarianceStamped, "/initialpose", reliable)
+        static_pub = node.create_publisher(TFMessage, "/tf_static", QoSProfile(
+            depth=10, durability=DurabilityPolicy.TRANSIENT_LOCAL, reliability=ReliabilityPolicy.RELIABLE))
+
+        def on_pose(msg: PoseWithCovarianceStamped) -> None:
+            p = msg.pose.pose
+            result.poses[_key(msg.header.stamp)] = (pose_from_ros(p.position, p.orientation),
+                                                     np.asarray(msg.pose.covariance, dtype=float).reshape(6, 6),
+                                                     msg.header.frame_id)
+
+        def on_tf(msg: object) -> None:
+            for tf in msg.transforms:  # type: ignore[attr-defined]
+                result.map_from_odom[_key(tf.header.stamp)] = (
+                    pose_from_ros(tf.transform.translation, tf.transform.rotation), tf.header.frame_id,
+                    tf.child_frame_id)
+
+        def on_diagnostics(msg: DiagnosticArray) -> None:
+            for status in msg.status:
+                result.diagnostics[_key(msg.header.stamp)] = {kv.key: kv.value for kv in status.values}
+
+        node.create_subscription(PoseWithCovarianceStamped, pose_topic, on_pose, reliable)
+        node.create_subscription(TFMessage, "/tf", on_tf, QoSProfile(depth=100))
+        node.create_subscription(DiagnosticArray, diagnostics_topic, on_diagnostics, reliable)
+
+        deadline = time.monotonic() + wait_s
+        while image_pub.get_subscription_count() == 0 or node.count_publishers(diagnostics_topic) == 0:
+            if time.monotonic() > deadline:
+                raise InputError(f"no planarloc node subscribes to {image_topic} within {wait_s:.0f} s")
+            rclpy.spin_once(node, timeout_sec=0.1)
+        if base_from_camera is not None:
+            tf = TransformStamped()
+            tf.header.frame_id, tf.child_frame_id = base_frame, camera_frame
+            t, q = ros_from_pose(base_from_camera)
+            tf.transform.translation.x, tf.transform.translation.y, tf.transform.translation.z = t
+            r = tf.transform.rotation
+            r.x, r.y, r.z, r.w = q
+            static_pub.publish(TFMessage(transforms=[tf]))
+        for _ in range(10):  # let the subscriptions of both sides match
+            rclpy.spin_once(node, timeout_sec=0.05)
+
+        t0 = time.perf_counter()
+        for i, frame in enumerate(frames):
+            sec, nanosec = stamp_parts(frame.stamp)
+            if i == initialpose_before:
+                initial = PoseWithCovarianceStamped()
+                initial.header.frame_id = "map"
+                initial.header.stamp.sec, initial.header.stamp.nanosec = sec, nanosec
+                initial.pose.pose.orientation.w = 1.0
+                initial_pub.publish(initial)
+                for _ in range(10):
+                    rclpy.spin_once(node, timeout_sec=0.02)
+            if frame.odom_from_base is not None:
+                odom = Odometry()
+                odom.header.stamp.sec, odom.header.stamp.nanosec = sec, nanosec
+                odom.header.frame_id, odom.child_frame_id = odom_frame, base_frame
+                t, q = ros_from_pose(frame.odom_from_base)
+                odom.pose.pose.position.x, odom.pose.pose.position.y, odom.pose.pose.position.z = t
+                o = odom.pose.pose.orientation
+                o.x, o.y, o.z, o.w = q
+                odom_pub.publish(odom)
+            info = CameraInfo()
+            info.header.stamp.sec, info.header.stamp.nanosec = sec, nanosec
+            info.header.frame_id = camera_frame
+            _camera_info(info, frame.camera)
+            info_pub.publish(info)
+            gray = read_gray(frame.image) if not isinstance(frame.image, np.ndarray) else frame.image
+            if compressed:
+                msg = CompressedImage(format="png", data=cv2.imencode(".png", gray)[1].tobytes())
+            else:
+                msg = Image(height=gray.shape[0], width=gray.shape[1], encoding="mono8", step=gray.shape[1],
+                            data=np.ascontiguousarray(gray).tobytes())
+            msg.header.stamp.sec, msg.header.stamp.nanosec = sec, nanosec
+            msg.header.frame_id = camera_frame
+            if i == 0:  # the CameraInfo must be there before the first image
+                for _ in range(5):
+                    rclpy.spin_once(node, timeout_sec=0.02)
+            image_pub.publish(msg)
+            key = round(frame.stamp, 9)
+            if lockstep:
+                deadline = time.monotonic() + wait_s
+                while key not in result.diagnostics:
+                    if time.monotonic() > deadline:
+                        raise InputError(f"frame {i} (stamp {frame.stamp:.3f}): no diagnostic within {wait_s:.0f} s")
+                    rclpy.spin_once(node, timeout_sec=0.05)
+            else:
+                next_at = t0 + (i + 1) / rate_hz
+                while time.perf_counter() < next_at:
+                    rclpy.spin_once(node, timeout_sec=max(0.0, min(0.01, next_at - time.perf_counter())))
+        result.seconds = time.perf_counter() - t0
+        end = time.monotonic() + settle_s
+        while time.monotonic() < end:  # the last answers (poses after their diagnostics, trailing frames)
+            rclpy.spin_once(node, timeout_sec=0.05)
+        result.published = len(result.poses)
+        return result
+    finally:
+        node.destroy_node()
+        if own_context:
+            rclpy.try_shutdown()
+
+
+@contextlib.contextmanager
+def exclusive_domain() -> Iterator[int]:
+    """A ROS domain (1..101) that no other user of this function on the machine holds (a test, a
+    benchmark): a lock file per domain in the temp folder, taken over when its process is gone."""
+    lock_dir = Path(tempfile.gettempdir()) / "planarloc-ros-domains"
+    lock_dir.mkdir(exist_ok=True)
+    for domain in random.Random(os.getpid() + time.monotonic_ns()).sample(range(1, 102), 101):
+        lock = lock_dir / f"{domain}.lock"
+        try:
+            fd = os.open(lock, os.O_CREAT | os.O_EXCL | os.O_WRONLY)
+        except FileExistsError:
+            try:
+                os.kill(int(lock.read_text() or 0), 0)
+                continue  # held by a live process
+            except (ProcessLookupError, ValueError):
+                lock.unlink(missing_ok=True)  # stale: its process is gone
+                continue
+            except PermissionError:
+                continue
+        os.write(fd, str(os.getpid()).encode())
+        os.close(fd)
+        try:
+            yield domain
+        finally:
+            lock.unlink(missing_ok=True)
+        return
+    raise RuntimeError("every ROS domain 1..101 is held by another process")
+
+
+def loopback_env(domain: int) -> dict[str, str]:
+    """The environment of a ROS 2 process that discovers peers on this machine only, on ``domain``
+    (Fast DDS), so that parallel runs on one machine never meet."""
+    return {"ROS_DOMAIN_ID": str(domain), "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST",
+            "RMW_IMPLEMENTATION": "rmw_fastrtps_cpp"}
+
+
+def planarloc_command() -> list[str]:
+    """The ``planarloc`` console script of this Python (``python -m planarloc.cli.main`` without one)."""
+    exe = Path(sys.executable).with_name("planarloc")
+    return [str(exe)] if exe.exists() else [shutil.which("planarloc") or sys.executable, "-m", "planarloc.cli.main"]
+
+
+class NodeProcess:
+    """``planarloc ros2 ARGS`` running as a subprocess with ``env`` added; its output is collected."""
+
+    def __init__(self, args: list[str], env: dict[str, str]) -> None:
+        self.proc = subprocess.Popen([*planarloc_command(), "ros2", *args], stdout=subprocess.PIPE,
+                                     stderr=subprocess.PIPE, text=True, env={**os.environ, **env})
+        self.stderr: list[str] = []
+        self.stdout: list[str] = []
+        self._threads = [threading.Thread(target=self._read, args=(s, out), daemon=True)
+                         for s, out in ((self.proc.stderr, self.stderr), (self.proc.stdout, self.stdout))]
+        for t in self._threads:
+            t.start()
+
+    @staticmethod
+    def _read(stream: Any, out: list[str]) -> None:
+        for line in stream:
+            out.append(line)
+
+    def wait_ready(self, timeout: float = 240.0) -> None:
+        """Wait for the node's banner (its map is open and it subscribes).
+
+        Raises:
+            RuntimeError: the node exited or did not start within ``timeout``.
+        """
+        end = time.monotonic() + timeout
+        while not any("planarloc ros2: localizing" in line for line in self.stderr):
+            if self.proc.poll() is not None:
+                time.sleep(0.2)
+                raise RuntimeError(f"the node exited with {self.proc.returncode}: {''.join(self.stderr)}")
+            if time.monotonic() > end:
+                raise RuntimeError(f"the node did not start within {timeout} s: {''.join(self.stderr)}")
+            time.sleep(0.1)
+
+    def interrupt(self, timeout: float = 60.0) -> int:
+        """Ctrl-C: send SIGINT and return the exit code.
+
+        Raises:
+            RuntimeError: the node did not exit within ``timeout`` (it is killed; the message has
+                the end of its stderr).
+        """
+        self.proc.send_signal(signal.SIGINT)
+        try:
+            rc = self.proc.wait(timeout=timeout)
+        except subprocess.TimeoutExpired:
+            self.kill()
+            raise RuntimeError(f"the node did not exit within {timeout:.0f} s of SIGINT: "
+                               f"{''.join(self.stderr)[-2000:]}") from None
+        for t in self._threads:
+            t.join(timeout=5)
+        return rc
+
+    def kill(self) -> None:
+        """SIGKILL, if still running."""
+        if self.proc.poll() is None:
+            self.proc.kill()
+            self.proc.wait(timeout=30)
