@@ -154,9 +154,9 @@ def run(args: argparse.Namespace) -> int:
         raise ValueError(f"{args.images[0]}: timestamps must increase along the list")
     with ExitStack() as stack:
         if args.server:
-            from planarloc.client import Client
+            from planarloc.client import Client, resolve_token
 
-            client = stack.enter_context(Client(args.server, token=args.token))
+            client = stack.enter_context(Client(args.server, token=resolve_token(args.token, args.token_file)))
             localize = remote_localizer(client, args, camera, gravity)
             where = f" via {args.server}"
         else:

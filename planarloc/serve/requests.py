@@ -25,6 +25,7 @@ from planarloc.geometry.camera import Camera
 from planarloc.geometry.pose import Pose
 from planarloc.geometry.validation import InputError
 from planarloc.io.text import T_XYZW, parse_camera, parse_gravity, parse_pose
+from planarloc.localize.localizer import localizer_config
 from planarloc.map.schema import MapFormatError
 from planarloc.robust.options import Method, Structure
 
@@ -151,9 +152,12 @@ class LocalizeRequest:
     odometry: Pose | None = None  # a session frame's cam_from_odom, or None
 
     @property
-    def settings(self) -> tuple[str | None, str | None, int | None]:
-        """What configures the localizer: ``(method, structure, seed)`` (a session keeps its first)."""
-        return self.method, self.structure, self.seed
+    def settings(self) -> tuple[str, str, int]:
+        """What configures the localizer: ``(method, structure, seed)``, defaults filled in (a
+        session keeps those of its first frame)."""
+        config = localizer_config(method=self.method, structure=self.structure, seed=self.seed)
+        return (str(getattr(config.method, "value", config.method)),
+                str(getattr(config.ransac.structure, "value", config.ransac.structure)), int(config.ransac.seed))
 
 
 def image_size(data: bytes) -> tuple[str, int, int]:
