@@ -36,8 +36,10 @@ MAX_IMAGE_PIXELS = 64 * 1024 * 1024
 MAP_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")
 SESSION = re.compile(r"^[\x21-\x7e]{1,128}$")
 SEED = re.compile(r"^[0-9]{1,18}$")
-#: A stamp in seconds: a plain decimal number (no hex, no underscores, no exponent beyond 1e12 s).
-STAMP = re.compile(r"^[+-]?([0-9]{1,13}(\.[0-9]{0,12})?|\.[0-9]{1,12})$")
+#: A stamp in seconds: a decimal number as Python or C print it (no hex, underscores, nan or inf).
+STAMP = re.compile(r"^[+-]?([0-9]+\.?[0-9]*|\.[0-9]+)([eE][+-]?[0-9]{1,3})?$")
+#: Largest stamp magnitude accepted (s): beyond ~3e4 years a float no longer resolves milliseconds.
+MAX_STAMP_S = 1e12
 FIELDS = ("image", "camera", "map", "gravity", "session", "stamp", "odometry", "method", "structure", "seed")
 
 
@@ -190,7 +192,8 @@ def parse_gravity_field(text: str) -> tuple[float, float, float]:
 
 def parse_stamp_field(text: str) -> float:
     """A session frame's ``stamp``: seconds as a plain decimal number, else a 400."""
-    if not STAMP.match(text.strip()):
+    text = text.strip()
+    if len(text) > 40 or not STAMP.match(text) or not abs(float(text)) <= MAX_STAMP_S:
         raise RequestError(400, f"stamp: expected the frame's time in seconds (e.g. 1305031102.175), got {text[:40]!r}")
     return float(text)
 
