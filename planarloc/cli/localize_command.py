@@ -115,7 +115,8 @@ def _check_outputs(args: argparse.Namespace, inputs: list[Path]) -> Path | None:
 def _queries(args: argparse.Namespace, camera: Camera | None) -> tuple[list[QuerySource], bool]:
     """The run's queries (named by the naming rule) and whether their stamps came from an image list."""
     if args.format:
-        return dataset_queries(args.images, args.format, parse_dataset_options(args.dataset_option), camera), False
+        options = parse_dataset_options(args.dataset_option, fmt=args.format)
+        return dataset_queries(args.images, args.format, options, camera), False
     if args.sequence and len(args.images) == 1 and args.images[0].is_file() and args.images[0].suffix.lower() == ".txt":
         return list_queries(args.images[0], args.frame_period)
     queries = image_queries(args.images)

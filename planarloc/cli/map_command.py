@@ -81,7 +81,7 @@ def run_build(args: argparse.Namespace) -> int:
         raise ValueError(f"--every must be >= 1, got {args.every}")
     features = feature_config(args)
     num_words = check_vocabulary_size(args.vocabulary_size)
-    dataset_options = parse_dataset_options(args.dataset_option)
+    dataset_options = parse_dataset_options(args.dataset_option, fmt=args.format)
     check_output_file(args.out, "--out", input_files([args.dataset, *dataset_files(args.dataset)]))
     images = read_dataset(args.dataset, args.format, **dataset_options)
     images = [im for im in images if im.index % args.every == 0]

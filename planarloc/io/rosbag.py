@@ -46,6 +46,7 @@ from __future__ import annotations
 
 import hashlib
 import logging
+import math
 import os
 import tempfile
 from collections.abc import Sequence
@@ -616,7 +617,11 @@ def read_rosbag(
         )
     if pose_topic is None and (tf_parent is None or tf_child is None):
         raise InputError("rosbag: the tf chain needs both tf_parent=FRAME (the world) and tf_child=FRAME")
-    if not np.isfinite(float(max_dt)) or float(max_dt) < 0:
+    try:
+        max_dt = float(max_dt)
+    except (TypeError, ValueError):
+        max_dt = math.nan
+    if not np.isfinite(max_dt) or max_dt < 0:
         raise InputError(f"max_dt: expected a number of seconds >= 0, got {max_dt!r}")
     base_from_camera = parse_transform(base_to_camera, "base_to_camera") if base_to_camera is not None else None
     content = _read_bag(root, image_topic=image_topic, camera_info_topic=camera_info_topic, camera=camera,
