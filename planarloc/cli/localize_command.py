@@ -202,6 +202,9 @@ def run_queries(writer: ResultsWriter, queries: list[QuerySource], localize: Loc
         where = "on stdout" if str(writer.out) == STDOUT else f"in {writer.out}"
         raise Interrupted(f"interrupted after {writer.queries} of {len(queries)} queries: their results are {where} "
                           f"(the others have none); re-running the command localizes all {len(queries)} again") from None
+    except BaseException:
+        writer.abort()  # a failed run: the earlier results file and records stay as they were
+        raise
     writer.close()
     return EXIT_PARTIAL if writer.errors else EXIT_OK
 
