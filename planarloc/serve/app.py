@@ -9,7 +9,8 @@ Endpoints:
   ``planarloc localize`` writes per query (:func:`planarloc.localize.records.query_record`), or
   per frame for a session (:func:`planarloc.localize.records.frame_record`). A failed
   localization is a 200 with ``success: false`` and its status.
-- ``GET /v1/maps`` — the served maps (name, images, cameras, complete).
+- ``GET /v1/maps`` — the served maps (name, images, cameras, complete, and ``status``: ``ok``, or
+  what happened to the file since the server started).
 - ``GET /healthz`` — the pool and the maps as they are now (no token needed): 200 ``ok`` or
   ``degraded`` (a worker down or restarting, a map refused), 503 ``failing`` (no worker alive, or
   no map servable).
@@ -293,7 +294,7 @@ def create_app(settings: ServeSettings):  # -> fastapi.FastAPI
 
     @app.get("/v1/maps")
     async def maps():
-        return {"maps": service.summaries}
+        return {"maps": [{**m, "status": service.watch.check(m["name"]) or "ok"} for m in service.summaries]}
 
     @app.get("/healthz")
     async def healthz():
