@@ -316,8 +316,8 @@ def _shared_stamps(images: Sequence[BagImage], topic: str, action: str) -> set[i
     shared = {i for i, im in enumerate(images) if count[im.timestamp] > 1}
     for i in sorted(shared):
         im = images[i]
-        logger.warning("%s (%s): %d images share this header stamp; %s", at_stamp(topic, int(round(im.timestamp * 1e9))),
-                       im.name, count[im.timestamp], action)
+        where = at_stamp(topic, int(round(im.timestamp * 1e9)))
+        logger.warning("%s (%s): %d images share this header stamp; %s", where, im.name, count[im.timestamp], action)
     return shared
 
 

@@ -91,7 +91,8 @@ class _Parts:
         multipart = require("python_multipart.multipart", "serve")
         disposition, options = multipart.parse_options_header(self._headers.get(b"content-disposition", b""))
         if disposition != b"form-data" or b"name" not in options:
-            raise RequestError(400, "malformed multipart form: a part without 'Content-Disposition: form-data; name=...'")
+            raise RequestError(400, "malformed multipart form: a part without 'Content-Disposition: form-data; "
+                                    "name=...'")
         name = options[b"name"].decode("utf-8", "replace")
         if name not in FIELDS:
             raise RequestError(400, f"unknown form field {name[:40]!r}; expected {', '.join(FIELDS)}")

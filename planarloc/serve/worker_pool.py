@@ -228,7 +228,7 @@ class WorkerPool:
                 try:
                     await self._boot(slot)
                     self.restarts += 1
-                    logger.info("worker %d restarted (pid %s)", slot, self._current[slot].pid)  # type: ignore[union-attr]
+                    logger.info("worker %d restarted (pid %s)", slot, self.pids[slot])
                     return
                 except ValueError as exc:
                     delay = min(30.0, max(1.0, 2 * delay))

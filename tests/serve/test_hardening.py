@@ -186,7 +186,8 @@ def test_slow_clients_cannot_lock_others_out(strict) -> None:
     (408 for a body after 3 s, the connection closed for headers after 2 s)."""
     stop = threading.Event()
     results: list = []
-    slow = [threading.Thread(target=trickle, args=(strict, stop, what, results)) for what in ["body"] * 6 + ["head"] * 6]
+    kinds = ["body"] * 6 + ["head"] * 6
+    slow = [threading.Thread(target=trickle, args=(strict, stop, what, results)) for what in kinds]
     for t in slow:
         t.start()
     try:
