@@ -28,7 +28,7 @@ def read_map_and_queries(
 ) -> tuple[list[PosedImage], list[PosedImage], Path, dict, str]:
     """Map images, queries, map path, extra JSON fields and a title, for both protocols
     (``settings``: the map settings that key the cached map, with the map images' content)."""
-    map_options = parse_dataset_options(args.dataset_option)
+    map_options = parse_dataset_options(args.dataset_option, fmt=args.format)
     if (args.queries is None) == (args.map_every is None):
         raise ValueError("give either --map-every N (split one dataset) or --queries QUERY_DATASET (cross-session)")
     if args.queries is None:
@@ -42,7 +42,8 @@ def read_map_and_queries(
                 f"{Path(args.dataset[0]).name}, map every {args.map_every}")
     map_images = read_sessions(args.dataset, args.format, **map_options)
     queries = read_dataset(Path(args.queries), args.queries_format or args.format,
-                           **parse_dataset_options(args.queries_option, "--queries-option"))
+                           **parse_dataset_options(args.queries_option, "--queries-option",
+                                                   args.queries_format or args.format))
     map_path = args.map or sessions_map_path(args.dataset, args.format, map_options, f"{features_name}|{settings}")
     extra = {"map_datasets": [str(d) for d in args.dataset], "map_format": args.format,
              "queries_dataset": str(args.queries), "queries_format": args.queries_format or args.format}

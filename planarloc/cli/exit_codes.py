@@ -3,7 +3,7 @@
 EXIT_OK = 0
 EXIT_ERROR = 1  # bad input, bad file, damaged map: one line on stderr says which and why
 EXIT_USAGE = 2  # bad command line (argparse)
-EXIT_PARTIAL = 3  # some items (query images) could not be processed; results of all others written
+EXIT_PARTIAL = 3  # some items (query or map images) could not be processed; results of all others written
 EXIT_INTERRUPTED = 130
 
 #: What Ctrl-C leaves, per command (the command's ``interrupted`` default; localize says it itself).
@@ -19,8 +19,9 @@ HELP = ("exit codes:\n"
         "  1    error: bad input, bad file, damaged map, unusable output; one line on stderr says\n"
         "       which and why; an earlier results file is left as it was\n"
         "  2    bad command line (usage)\n"
-        "  3    partly done: some query images could not be processed; the results of all others\n"
-        "       are written and each failure is recorded with its reason\n"
+        "  3    partly done: some query images could not be processed (the results of all others\n"
+        "       are written and each failure is recorded with its reason), or some map images were\n"
+        "       left out of a map build (listed at the end)\n"
         "  130  interrupted (Ctrl-C); the message says what was kept (map build resumes when re-run)")
 
 

@@ -115,7 +115,8 @@ def _check_outputs(args: argparse.Namespace, inputs: list[Path]) -> Path | None:
 def _queries(args: argparse.Namespace, camera: Camera | None) -> tuple[list[QuerySource], bool]:
     """The run's queries (named by the naming rule) and whether their stamps came from an image list."""
     if args.format:
-        return dataset_queries(args.images, args.format, parse_dataset_options(args.dataset_option), camera), False
+        options = parse_dataset_options(args.dataset_option, fmt=args.format)
+        return dataset_queries(args.images, args.format, options, camera), False
     if args.sequence and len(args.images) == 1 and args.images[0].is_file() and args.images[0].suffix.lower() == ".txt":
         return list_queries(args.images[0], args.frame_period)
     queries = image_queries(args.images)
@@ -154,9 +155,9 @@ def run(args: argparse.Namespace) -> int:
         raise ValueError(f"{args.images[0]}: timestamps must increase along the list")
     with ExitStack() as stack:
         if args.server:
-            from planarloc.client import Client
+            from planarloc.client import Client, resolve_token
 
-            client = stack.enter_context(Client(args.server, token=args.token))
+            client = stack.enter_context(Client(args.server, token=resolve_token(args.token, args.token_file)))
             localize = remote_localizer(client, args, camera, gravity)
             where = f" via {args.server}"
         else:
@@ -201,6 +202,9 @@ def run_queries(writer: ResultsWriter, queries: list[QuerySource], localize: Loc
         where = "on stdout" if str(writer.out) == STDOUT else f"in {writer.out}"
         raise Interrupted(f"interrupted after {writer.queries} of {len(queries)} queries: their results are {where} "
                           f"(the others have none); re-running the command localizes all {len(queries)} again") from None
+    except BaseException:
+        writer.abort()  # a failed run: the earlier results file and records stay as they were
+        raise
     writer.close()
     return EXIT_PARTIAL if writer.errors else EXIT_OK
 

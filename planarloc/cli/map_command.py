@@ -7,7 +7,7 @@ from pathlib import Path
 
 from planarloc.cli.commands import add_command
 from planarloc.cli.console import info, note, notify, progress_bar
-from planarloc.cli.exit_codes import BUILD_RESUMES
+from planarloc.cli.exit_codes import BUILD_RESUMES, EXIT_PARTIAL
 from planarloc.cli.options import (
     add_dataset_args,
     add_feature_args,
@@ -36,7 +36,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         the map for retrieval (VLAD); then print `map info` of it.
 
         Re-running the same command resumes an interrupted build; running it on another dataset with the same
-        --out appends those images. Images are identified by content: changed poses are updated, changed image
+        --out appends those images. An image that cannot be used (missing, truncated or damaged, undecodable, of
+        another size than its camera) is left out and named, the build goes on, and the list of them ends the
+        output (exit code 3, "partly done"). Images are identified by content: changed poses are updated, changed image
         files re-extracted, and another dataset's image with a name already in the map is stored as
         DATASET/NAME (each reported in one line). A second build of the same file waits for the first (it
         names its PID).
@@ -79,7 +81,7 @@ def run_build(args: argparse.Namespace) -> int:
         raise ValueError(f"--every must be >= 1, got {args.every}")
     features = feature_config(args)
     num_words = check_vocabulary_size(args.vocabulary_size)
-    dataset_options = parse_dataset_options(args.dataset_option)
+    dataset_options = parse_dataset_options(args.dataset_option, fmt=args.format)
     check_output_file(args.out, "--out", input_files([args.dataset, *dataset_files(args.dataset)]))
     images = read_dataset(args.dataset, args.format, **dataset_options)
     images = [im for im in images if im.index % args.every == 0]
@@ -88,10 +90,23 @@ def run_build(args: argparse.Namespace) -> int:
     check_output_file(args.out, "--out", input_files(im.path for im in images))
     check_map_settings(args.out, features, num_words)  # before the first image is read
     note(f"building map {args.out} from {len(images)} images of {args.dataset}")
+    left_out: list[tuple[str, str]] = []
+
+    def skipped(image, reason: str) -> None:
+        left_out.append((image.name, reason))
+        note(f"image {image.name} left out of the map: {reason}")
+
     with ray_session(args.ray) as ray_backend, progress_bar() as update:
         build_map(images, args.out, features, num_words=num_words, progress=update, notify=notify,
-                  mapper=ray_backend.map if ray_backend else None)
-    return run_info(argparse.Namespace(map=args.out))
+                  mapper=ray_backend.map if ray_backend else None, skipped=skipped)
+    code = run_info(argparse.Namespace(map=args.out))
+    if left_out:
+        note(f"{len(left_out)} of {len(images)} images were left out of the map (fix or remove them, then re-run "
+             "the same command to add them):")
+        for name, reason in left_out:
+            note(f"  {name}: {reason}")
+        return EXIT_PARTIAL
+    return code
 
 
 def run_info(args: argparse.Namespace) -> int:

@@ -15,7 +15,7 @@ from planarloc.features.extract import DEFAULT_FEATURE_CONFIG, FeatureConfig
 from planarloc.features.retrieval import DEFAULT_NUM_WORDS
 from planarloc.geometry.camera import Camera
 from planarloc.geometry.validation import InputError
-from planarloc.io.datasets import FORMATS
+from planarloc.io.datasets import FORMATS, format_options, parse_option_text
 from planarloc.io.text import parse_camera, parse_gravity
 from planarloc.localize.localizer import LocalizerConfig, localizer_config
 from planarloc.robust.options import Method, RansacOptions, Structure
@@ -39,13 +39,26 @@ def add_dataset_args(p: argparse.ArgumentParser, many: bool = False) -> None:
     p.add_argument("--format", "-f", required=True, choices=sorted(FORMATS), help=FORMAT_HELP)
 
 
-def parse_dataset_options(items: list[str] | None, option: str = "--dataset-option") -> dict:
-    """KEY=VALUE pairs -> dict with JSON-decoded values where possible (numbers, true/false)."""
+def parse_dataset_options(items: list[str] | None, option: str = "--dataset-option", fmt: str | None = None) -> dict:
+    """KEY=VALUE pairs -> dict. With the format ``fmt``, each key must be one of its reader's options
+    and each value of the option's kind (:func:`planarloc.io.datasets.parse_option_text`: an
+    integer, a number, true/false or a text); an error names ``option`` and the pair. Without it,
+    values are JSON-decoded where possible (numbers, true/false)."""
     out = {}
     for item in items or []:
         if "=" not in item:
             raise ValueError(f"{option} {item!r}: expected KEY=VALUE, e.g. tum_camera=fr1")
         k, v = item.split("=", 1)
+        if fmt is not None:
+            allowed = format_options(fmt)
+            if k not in allowed:
+                raise ValueError(f"{option} {item}: format {fmt} has no option {k!r}; its options: "
+                                 f"{', '.join(allowed)}")
+            try:
+                out[k] = parse_option_text(fmt, k, v)
+            except InputError as exc:
+                raise ValueError(f"{option} {exc}") from None
+            continue
         try:
             out[k] = json.loads(v)
         except json.JSONDecodeError:

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import argparse
 from collections.abc import Callable
+from pathlib import Path
 
 from planarloc.cli.query_sources import QuerySource
 from planarloc.geometry.camera import Camera
@@ -46,7 +47,11 @@ def add_server_args(p: argparse.ArgumentParser) -> None:
         "the served map's name; example: planarloc localize --server http://127.0.0.1:8080 --map office "
         "q/*.png --camera 'PINHOLE 640 480 525 525 320 240'",
     )
-    g.add_argument("--token", help="bearer token of the service (planarloc serve --token)")
+    token = g.add_mutually_exclusive_group()
+    token.add_argument("--token", help="bearer token of the service (visible in the process list: prefer "
+                                       "--token-file or $PLANARLOC_TOKEN)")
+    token.add_argument("--token-file", type=Path, metavar="FILE",
+                       help="read the service's token from the first line of FILE (default: $PLANARLOC_TOKEN)")
 
 
 def check_remote_args(args: argparse.Namespace) -> None:

@@ -14,7 +14,8 @@ from planarloc.features.extract import Features, extract_features
 from planarloc.geometry.camera import Camera
 from planarloc.geometry.pose import Pose
 from planarloc.io.results import query_timestamp
-from planarloc.io.tum import write_tum_trajectory
+from planarloc.io.output import StagedFiles
+from planarloc.io.tum import tum_trajectory_text
 from planarloc.localize.localizer import Localizer
 from planarloc.map.posed_image import PosedImage
 from planarloc.robust.result import PoseEstimate
@@ -98,8 +99,10 @@ def write_evaluation_tum(out_dir: Path, results: Sequence) -> dict:
     est = [_world_from_cam(r.estimate_quat_wxyz, r.estimate_center) for r in rows]
     gt = [_world_from_cam(r.truth_quat_wxyz, r.truth_center) for r in rows]
     out_dir = Path(out_dir)
-    write_tum_trajectory(out_dir / "estimate.txt", ts, est)
-    write_tum_trajectory(out_dir / "groundtruth.txt", ts, gt)
+    both = StagedFiles()  # the pair is replaced together, or neither
+    both.add(out_dir / "estimate.txt", tum_trajectory_text(out_dir / "estimate.txt", ts, est))
+    both.add(out_dir / "groundtruth.txt", tum_trajectory_text(out_dir / "groundtruth.txt", ts, gt))
+    both.commit()
     info(f"wrote {out_dir}/estimate.txt and groundtruth.txt ({len(rows)} localized queries); "
                   f"try: evo_ape tum {out_dir}/groundtruth.txt {out_dir}/estimate.txt")
     if not rows:

@@ -3,14 +3,27 @@
 from __future__ import annotations
 
 import argparse
+import asyncio
 import errno
 import ipaddress
 import logging
+import math
 import socket
+from pathlib import Path
 
 from planarloc.cli.commands import add_command
 from planarloc.cli.console import note
-from planarloc.serve.settings import DEFAULT_MAX_IMAGE_BYTES, DEFAULT_QUEUE, DEFAULT_WORKERS
+from planarloc.serve.settings import (
+    DEFAULT_BODY_TIMEOUT_S,
+    DEFAULT_HEADER_TIMEOUT_S,
+    DEFAULT_JOB_TIMEOUT_S,
+    DEFAULT_MAX_IMAGE_BYTES,
+    DEFAULT_MAX_SESSIONS,
+    DEFAULT_QUEUE,
+    DEFAULT_QUEUE_TIMEOUT_S,
+    DEFAULT_SESSION_IDLE_S,
+    DEFAULT_WORKERS,
+)
 
 logger = logging.getLogger(__name__)
 
@@ -19,11 +32,15 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p = add_command(
         sub, "serve", "serve localization over HTTP for a fleet of robots",
         """POST /v1/localize (multipart: image, and optionally camera 'MODEL W H PARAMS...' (default: the
-        map's camera), map, gravity 'gx gy gz', session, method, structure, seed) answers the record
-        `planarloc localize` writes per query. GET /v1/maps, /healthz, /metrics (Prometheus). Localization
-        runs in --workers processes that open every map once, read-only; at most --workers + --queue
-        requests are admitted, the others get 503 with Retry-After. The banner on stderr names the address
-        bound (with --port 0: the port chosen). Ctrl-C stops it. Needs: pip install 'planarloc[serve]'.""",
+        map's camera), map, gravity 'gx gy gz', method, structure, seed) answers the record `planarloc
+        localize` writes per query; with session=ROBOT_ID, stamp=SECONDS and optionally odometry='tx ty tz qx
+        qy qz qw' it is a frame of that robot's stream and answers the record of `planarloc localize
+        --sequence` (status localized/predicted/lost, covariance). GET /v1/maps, /healthz, /metrics
+        (Prometheus). Localization runs in --workers processes that open every map once, read-only; a
+        request is admitted once its body has arrived, at most --workers + --queue at a time, the others get
+        503 with Retry-After. A map file changed on disk is refused until restart. The banner on stderr
+        names the address bound (with --port 0: the port chosen) once the workers are ready. Ctrl-C stops
+        it. Needs: pip install 'planarloc[serve]'.""",
         ["planarloc serve --map office=office.db --map lab=lab.db --workers 2 --port 8080",
          "curl -F image=@q.png -F 'camera=PINHOLE 640 480 525 525 320 240' -F map=office "
          "http://127.0.0.1:8080/v1/localize"],
@@ -50,11 +67,28 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         "--queue", type=int, default=DEFAULT_QUEUE,
         help="requests waiting for a worker before 503 (default: %(default)s)"
     )
-    p.add_argument("--token", help="require 'Authorization: Bearer TOKEN' on /v1/* and /metrics")
+    token = p.add_mutually_exclusive_group()
+    token.add_argument("--token", help="require 'Authorization: Bearer TOKEN' on /v1/* and /metrics (visible in "
+                                       "the process list: prefer --token-file or $PLANARLOC_TOKEN)")
+    token.add_argument("--token-file", type=Path, metavar="FILE",
+                       help="read the token from the first line of FILE (default: $PLANARLOC_TOKEN if set)")
     p.add_argument(
         "--max-image-mb", type=float, default=DEFAULT_MAX_IMAGE_BYTES / (1024 * 1024),
-        help="image upload limit in MB (default: %(default)s)"
+        help="image upload limit in MB, for every transfer encoding (default: %(default)s)"
     )
+    limits = p.add_argument_group("limits (seconds unless stated)")
+    for option, default, text in (
+        ("--header-timeout", DEFAULT_HEADER_TIMEOUT_S, "time for a request's headers once connected"),
+        ("--body-timeout", DEFAULT_BODY_TIMEOUT_S, "time for a request's body (408 beyond; slow clients hold no "
+                                                   "worker or queue place meanwhile)"),
+        ("--queue-timeout", DEFAULT_QUEUE_TIMEOUT_S, "longest wait of an admitted request for a worker (503 beyond)"),
+        ("--job-timeout", DEFAULT_JOB_TIMEOUT_S, "longest localization; beyond it the worker is replaced (503)"),
+        ("--session-idle", DEFAULT_SESSION_IDLE_S, "a session without a frame for this long is evicted"),
+    ):
+        limits.add_argument(option, type=float, default=default, help=f"{text} (default: %(default)s)")
+    limits.add_argument("--max-sessions", type=int, default=DEFAULT_MAX_SESSIONS,
+                        help="robot sessions kept at once; a new one evicts the least recently used idle one "
+                             "(default: %(default)s)")
 
 
 def bind(host: str, port: int) -> socket.socket:
@@ -77,40 +111,70 @@ def bind(host: str, port: int) -> socket.socket:
     return sock
 
 
+def check_settings(args: argparse.Namespace) -> None:
+    """Every numeric option, before anything starts."""
+    if not 0 <= args.port < 65536:
+        raise ValueError(f"--port: expected 0..65535, got {args.port}")
+    if not args.max_image_mb > 0 or not math.isfinite(args.max_image_mb):
+        raise ValueError(f"--max-image-mb: must be a positive number, got {args.max_image_mb}")
+    if args.workers < 1 or args.queue < 0:
+        raise ValueError(f"--workers must be >= 1 and --queue >= 0, got {args.workers} and {args.queue}")
+    if args.max_sessions < 1:
+        raise ValueError(f"--max-sessions: must be >= 1, got {args.max_sessions}")
+    for option in ("header_timeout", "body_timeout", "queue_timeout", "job_timeout", "session_idle"):
+        value = getattr(args, option)
+        if not value > 0 or not math.isfinite(value):
+            raise ValueError(f"--{option.replace('_', '-')}: must be a positive number of seconds, got {value}")
+
+
 def run(args: argparse.Namespace) -> int:
+    from planarloc.client import resolve_token
     from planarloc.extras import require
-    from planarloc.serve.app import ServeSettings, create_app
+    from planarloc.serve.app import ServeSettings, create_app, header_timeout_protocol
     from planarloc.serve.requests import MapSet
 
     uvicorn = require("uvicorn", "serve")
-    if not 0 <= args.port < 65536:
-        raise ValueError(f"--port: expected 0..65535, got {args.port}")
-    if args.max_image_mb <= 0:
-        raise ValueError(f"--max-image-mb: must be positive, got {args.max_image_mb}")
-    if args.workers < 1 or args.queue < 0:
-        raise ValueError(f"--workers must be >= 1 and --queue >= 0, got {args.workers} and {args.queue}")
+    check_settings(args)
+    token = resolve_token(args.token, args.token_file)
     try:
         loopback = ipaddress.ip_address(args.host).is_loopback
     except ValueError:
         loopback = args.host == "localhost"
-    if not loopback and not args.token:
-        logger.warning("serving on %s without --token: anyone who can reach it can use it", args.host)
+    if not loopback and not token:
+        logger.warning("serving on %s without a token: anyone who can reach it can use it", args.host)
     settings = ServeSettings(
         MapSet.from_specs(args.maps),
         workers=args.workers,
         queue_size=args.queue,
-        token=args.token,
+        token=token,
         max_image_bytes=int(args.max_image_mb * 1024 * 1024),
+        header_timeout_s=args.header_timeout,
+        body_timeout_s=args.body_timeout,
+        queue_timeout_s=args.queue_timeout,
+        job_timeout_s=args.job_timeout,
+        max_sessions=args.max_sessions,
+        session_idle_s=args.session_idle,
     )
     sock = bind(args.host, args.port)  # before the workers start: a busy port fails at once
     port = sock.getsockname()[1]
     host = f"[{args.host}]" if ":" in args.host else args.host
-    app = create_app(settings)
-    note(f"serving {', '.join(settings.maps.paths)} on http://{host}:{port} "
-         f"({settings.workers} workers, queue {settings.queue_size})")
-    server = uvicorn.Server(uvicorn.Config(app, log_level="warning", timeout_graceful_shutdown=5))
     try:
-        server.run(sockets=[sock])
+        app = create_app(settings)
+        service = app.state.service
+        config = uvicorn.Config(app, log_level="warning", timeout_graceful_shutdown=5,
+                                http=header_timeout_protocol(settings.header_timeout_s))
+        server = uvicorn.Server(config)
+
+        async def serve() -> None:
+            await service.start()  # workers up and maps open before the banner: failures are one line
+            try:
+                note(f"serving {', '.join(settings.maps.paths)} on http://{host}:{port} "
+                     f"({settings.workers} workers, queue {settings.queue_size})")
+                await server.serve(sockets=[sock])
+            finally:
+                await service.close()
+
+        asyncio.run(serve())
     finally:
         sock.close()
     return 0

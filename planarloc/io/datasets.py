@@ -22,6 +22,10 @@ from __future__ import annotations
 
 import dataclasses
 import inspect
+import math
+import numbers
+import re
+import typing
 from collections.abc import Callable
 from pathlib import Path
 
@@ -95,6 +99,67 @@ def format_options(fmt: str) -> list[str]:
     ] + [UP_OPTION]
 
 
+_KINDS = {bool: "bool", int: "int", float: "float"}
+
+
+def option_kind(fmt: str, key: str) -> str:
+    """What the option ``key`` of format ``fmt`` takes: ``"bool"``, ``"int"``, ``"float"`` (a
+    number) or ``"text"`` (anything else: paths, topics, cameras, poses; their readers parse them)."""
+    if key == UP_OPTION:
+        return "text"
+    hint = typing.get_type_hints(_reader(fmt)).get(key)
+    args = set(typing.get_args(hint)) - {type(None)} if typing.get_args(hint) else {hint}
+    kinds = {_KINDS.get(a, "text") for a in args}
+    return kinds.pop() if len(kinds) == 1 else "text"
+
+
+_INT = re.compile(r"^[+-]?[0-9]{1,18}$")
+_BOOLS = {"true": True, "false": False, "1": True, "0": False, "yes": True, "no": False}
+
+
+def parse_option_text(fmt: str, key: str, text: str) -> object:
+    """The value of ``KEY=TEXT`` (command line) for format ``fmt``, by :func:`option_kind`.
+
+    Raises:
+        InputError: a text that is not of the option's kind, naming the option and the kind.
+    """
+    kind = option_kind(fmt, key)
+    text = str(text).strip()
+    if kind == "bool":
+        if text.lower() not in _BOOLS:
+            raise InputError(f"{key}={text!r}: expected true or false")
+        return _BOOLS[text.lower()]
+    if kind == "int":
+        if not _INT.match(text):
+            raise InputError(f"{key}={text!r}: expected an integer, e.g. {key}=2")
+        return int(text)
+    if kind == "float":
+        try:
+            value = float(text)
+        except ValueError:
+            value = math.nan
+        if not math.isfinite(value) or "_" in text:
+            raise InputError(f"{key}={text!r}: expected a finite number, e.g. {key}=0.05")
+        return value
+    return text
+
+
+def check_option_value(fmt: str, key: str, value: object) -> object:
+    """An option value given to :func:`read_dataset` (Python), checked against its kind like
+    :func:`parse_option_text` (a text is parsed by it)."""
+    if isinstance(value, str):
+        return parse_option_text(fmt, key, value)
+    kind = option_kind(fmt, key)
+    if kind == "bool" and not isinstance(value, bool):
+        raise InputError(f"{key}={value!r}: expected true or false")
+    if kind == "int" and (isinstance(value, bool) or not isinstance(value, numbers.Integral)):
+        raise InputError(f"{key}={value!r}: expected an integer, e.g. {key}=2")
+    if kind == "float" and (isinstance(value, bool) or not isinstance(value, numbers.Real)
+                            or not math.isfinite(float(value))):
+        raise InputError(f"{key}={value!r}: expected a finite number, e.g. {key}=0.05")
+    return value
+
+
 def _reader(fmt: str) -> Callable[..., list[PosedImage]]:
     try:
         return FORMATS[str(fmt).lower()]
@@ -128,6 +193,7 @@ def read_dataset(root: Path, fmt: str, **options: object) -> list[PosedImage]:
         raise InputError(
             f"format {fmt!r}: unknown option(s) {', '.join(unknown)}; accepted: {', '.join(allowed) or 'none'}"
         )
+    options = {k: check_option_value(fmt, k, v) for k, v in options.items()}
     up = options.pop(UP_OPTION, None)
     world_down = None if up is None else world_down_from_up(up)  # a bad value fails before reading
     _check_layout(Path(root), str(fmt).lower())

@@ -17,11 +17,16 @@ Writing (:func:`write_file`, :func:`atomic_output`), by the kind of target (:fun
   is renamed over the target; a write that fails (a full disk, Ctrl-C) removes the temporary file
   and leaves the previous file as it was. New files get the permissions of the umask, like any
   file the shell creates.
+
+Several files that belong together (a results file, its TUM trajectory, its records) are
+replaced together with :class:`StagedFiles`: all are written and flushed first, then renamed; a
+run that fails before the renames leaves every earlier file as it was.
 """
 
 from __future__ import annotations
 
 import os
+import re
 import secrets
 import stat
 import sys
@@ -181,6 +186,34 @@ def _temporary(path: Path) -> Path:
     return path.with_name(f".{path.stem}.{os.getpid()}.{secrets.token_hex(4)}.tmp{path.suffix}")
 
 
+_TEMPORARY = re.compile(r"^\..*\.(?P<pid>[0-9]+)\.[0-9a-f]{8}\.tmp(\.[^.]*)?$")
+
+
+def _running(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def remove_dead_temporaries(folder: Path) -> list[Path]:
+    """Remove the temporary files that killed runs left in ``folder`` (their process is gone)."""
+    removed = []
+    try:
+        entries = list(Path(folder).iterdir())
+    except OSError:
+        return removed
+    for p in entries:
+        m = _TEMPORARY.match(p.name)
+        if m and int(m.group("pid")) != os.getpid() and not _running(int(m.group("pid"))) and p.is_file():
+            p.unlink(missing_ok=True)
+            removed.append(p)
+    return removed
+
+
 def _fsync_dir(folder: Path) -> None:
     try:
         fd = os.open(folder, os.O_RDONLY)
@@ -200,24 +233,9 @@ def _write_through(path: str | os.PathLike, data: bytes) -> None:
         f.flush()
 
 
-def write_file(path: str | os.PathLike, data: bytes | str) -> None:
-    """Write ``data`` to ``path`` by its kind (module docstring): ``-``, through, or atomically.
-
-    Parent folders of a new file are created.
-
-    Raises:
-        OSError: the write failed; a regular file at ``path`` is then unchanged.
-    """
-    raw = data.encode("utf-8") if isinstance(data, str) else bytes(data)
-    kind = output_kind(path)
-    if kind == "stdout":
-        sys.stdout.flush()
-        sys.stdout.buffer.write(raw)
-        sys.stdout.buffer.flush()
-        return
-    if kind == "through":
-        _write_through(path, raw)
-        return
+def _write_temporary(path: str | os.PathLike, raw: bytes) -> tuple[Path, Path]:
+    """``(temporary, target)``: ``raw`` written and flushed to disk next to the regular file
+    ``path`` (through a symlink), not yet renamed. On failure nothing is left behind."""
     target = Path(os.path.realpath(path))  # a symlink to a regular file stays a symlink
     target.parent.mkdir(parents=True, exist_ok=True)
     tmp = _temporary(target)
@@ -230,7 +248,6 @@ def write_file(path: str | os.PathLike, data: bytes | str) -> None:
             os.fsync(fd)
         finally:
             os.close(fd)
-        os.replace(tmp, target)
     except OSError as exc:
         tmp.unlink(missing_ok=True)
         if exc.filename is None:  # os.write names no file: name the target
@@ -239,7 +256,83 @@ def write_file(path: str | os.PathLike, data: bytes | str) -> None:
     except BaseException:
         tmp.unlink(missing_ok=True)
         raise
+    return tmp, target
+
+
+def _write_direct(path: str | os.PathLike, raw: bytes, kind: str) -> None:
+    if kind == "stdout":
+        sys.stdout.flush()
+        sys.stdout.buffer.write(raw)
+        sys.stdout.buffer.flush()
+    else:
+        _write_through(path, raw)
+
+
+def _raw(data: bytes | str) -> bytes:
+    return data.encode("utf-8") if isinstance(data, str) else bytes(data)
+
+
+def write_file(path: str | os.PathLike, data: bytes | str) -> None:
+    """Write ``data`` to ``path`` by its kind (module docstring): ``-``, through, or atomically.
+
+    Parent folders of a new file are created.
+
+    Raises:
+        OSError: the write failed; a regular file at ``path`` is then unchanged.
+    """
+    raw = _raw(data)
+    kind = output_kind(path)
+    if kind != "file":
+        _write_direct(path, raw, kind)
+        return
+    tmp, target = _write_temporary(path, raw)
+    try:
+        os.replace(tmp, target)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
     _fsync_dir(target.parent)
+
+
+class StagedFiles:
+    """Several output files replaced together: each is written to a temporary file and flushed
+    (:meth:`add`, where a full disk fails), and only :meth:`commit` renames them all over their
+    targets; :meth:`discard` (or a failed :meth:`add`) removes the temporaries, so that a run
+    that fails leaves every earlier file as it was. ``-`` and devices are written at commit."""
+
+    def __init__(self) -> None:
+        self._files: list[tuple[Path, Path]] = []
+        self._direct: list[tuple[str | os.PathLike, bytes, str]] = []
+
+    def add(self, path: str | os.PathLike, data: bytes | str) -> None:
+        kind = output_kind(path)
+        if kind != "file":
+            self._direct.append((path, _raw(data), kind))
+            return
+        try:
+            self._files.append(_write_temporary(path, _raw(data)))
+        except BaseException:
+            self.discard()
+            raise
+
+    def stage(self, tmp: Path, target: Path) -> None:
+        """Adopt a temporary file already written and flushed (e.g. a record), renamed at commit."""
+        self._files.append((Path(tmp), Path(target)))
+
+    def commit(self) -> None:
+        for tmp, target in self._files:
+            os.replace(tmp, target)
+        for folder in {target.parent for _, target in self._files}:
+            _fsync_dir(folder)
+        self._files = []
+        for path, raw, kind in self._direct:
+            _write_direct(path, raw, kind)
+        self._direct = []
+
+    def discard(self) -> None:
+        for tmp, _ in self._files:
+            tmp.unlink(missing_ok=True)
+        self._files, self._direct = [], []
 
 
 def write_text_atomic(path: Path, text: str | Iterable[str]) -> None:

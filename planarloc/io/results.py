@@ -9,9 +9,16 @@ A run writes two things:
   standard output, a device or FIFO is written through, a regular file is replaced atomically;
 - one **record** per query or frame (:mod:`planarloc.localize.records`), a JSON file in the
   records folder (``--json-dir``; default ``<out>.json.d`` next to a regular results file, none for
-  ``-`` or a device), each written atomically as soon as it is known (:func:`record_filename`).
+  ``-`` or a device) (:func:`record_filename`).
 
 Optionally (``tum``) the successful poses also go to a TUM trajectory (camera-to-world) for evo.
+
+All of a run's files are replaced together (:class:`planarloc.io.output.StagedFiles`): each record
+is written and flushed to a hidden temporary file as soon as it is known, the results file and
+the TUM trajectory when the run ends, and only then are all renamed over their targets — the
+results file last. A run that fails (a full disk, a server gone, any error) leaves the earlier
+results file, trajectory and records exactly as they were (:meth:`ResultsWriter.abort`); a run
+that ends or is interrupted (:meth:`ResultsWriter.close`) replaces them.
 """
 
 from __future__ import annotations
@@ -20,12 +27,10 @@ import json
 import re
 from pathlib import Path
 
-import numpy as np
-
 from planarloc.geometry.validation import InputError
-from planarloc.io.output import STDOUT, output_kind, write_file
+from planarloc.io.output import STDOUT, StagedFiles, output_kind, remove_dead_temporaries
 from planarloc.io.pose_list import pose_line
-from planarloc.io.tum import tum_lines
+from planarloc.io.tum import tum_trajectory_text
 from planarloc.localize.records import record_pose
 
 
@@ -60,8 +65,9 @@ class ResultsWriter:
         tum: optional TUM trajectory file of the successful poses.
 
     Use: :meth:`add` per query (in order), then :meth:`close` once (also after an interruption,
-    to keep the results so far); a run that fails calls neither, so an earlier results file
-    stays as it was.
+    to keep the results so far); a run that fails calls :meth:`abort` (or neither), so the
+    earlier results file and records stay as they were. As a context manager, an exception
+    aborts.
     """
 
     def __init__(self, out: str | Path, records_dir: Path | None = None, tum: Path | None = None) -> None:
@@ -72,8 +78,17 @@ class ResultsWriter:
         self.statuses: dict[str, int] = {}
         self.names: list[str] = []
         self._tum: list[tuple[float, object]] = []
+        self._staged = StagedFiles()
         if self.records_dir is not None:
             self.records_dir.mkdir(parents=True, exist_ok=True)
+            remove_dead_temporaries(self.records_dir)
+
+    def __enter__(self) -> ResultsWriter:
+        return self
+
+    def __exit__(self, kind: object, *_: object) -> None:
+        if kind is not None:
+            self.abort()
 
     @property
     def queries(self) -> int:
@@ -101,7 +116,7 @@ class ResultsWriter:
         except (KeyError, TypeError, ValueError) as exc:
             raise InputError(f"{name}: the record's pose is not a pose ({exc})") from None
         if self.records_dir is not None:
-            write_file(self.records_dir / record_filename(name), json.dumps(record, indent=1))
+            self._staged.add(self.records_dir / record_filename(name), json.dumps(record, indent=1))
         self.names.append(name)
         self.statuses[str(record.get("status"))] = self.statuses.get(str(record.get("status")), 0) + 1
         if pose is not None:
@@ -116,15 +131,27 @@ class ResultsWriter:
         if self.records_dir is None:
             return []
         ours = {record_filename(n) for n in self.names}
-        return sorted(p.name for p in self.records_dir.glob("*.json") if p.name not in ours)
+        return sorted(p.name for p in self.records_dir.glob("*.json") if p.name not in ours
+                      and not p.name.startswith("."))
 
     def close(self) -> None:
-        """Write the results file (and the TUM trajectory)."""
-        write_file(self.out, "".join(self.lines))
-        if self.tum is not None:
-            rows = sorted(self._tum, key=lambda r: r[0])
-            ts = np.array([t for t, _ in rows])
-            if len(ts) > 1 and np.any(np.diff(ts) <= 0):
-                raise InputError(f"{self.tum}: two localized queries share a timestamp; TUM files need unique times")
-            write_file(self.tum, "".join(["# timestamp tx ty tz qx qy qz qw (camera-to-world)\n",
-                                          *tum_lines(ts, [p.inverse() for _, p in rows])]))
+        """Replace the results file, the TUM trajectory and the records, together (module docstring).
+
+        Raises:
+            InputError: the TUM trajectory would have two poses at one time (nothing is replaced).
+            OSError: a file cannot be written, e.g. a full disk (nothing is replaced).
+        """
+        try:
+            if self.tum is not None:
+                rows = sorted(self._tum, key=lambda r: r[0])
+                self._staged.add(self.tum, tum_trajectory_text(self.tum, [t for t, _ in rows],
+                                                               [p.inverse() for _, p in rows]))
+            self._staged.add(self.out, "".join(self.lines))
+        except BaseException:
+            self.abort()
+            raise
+        self._staged.commit()
+
+    def abort(self) -> None:
+        """Drop this run's files: the earlier ones stay as they were."""
+        self._staged.discard()

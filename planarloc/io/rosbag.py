@@ -5,22 +5,32 @@ Needs the optional ``rosbags`` package (pure Python, no ROS install): ``pip inst
 What is read (``root`` is a ``.bag`` file, a folder of ``.bag`` files read as one recording, a
 ROS 2 bag folder with ``metadata.yaml``, or a ``.db3`` / ``.mcap`` file inside one):
 
-- images: ``image_topic`` (``sensor_msgs/Image`` in mono8, mono16, rgb8, bgr8, rgba8, bgra8, or
-  ``sensor_msgs/CompressedImage`` jpeg/png). Optional when the bag has a single image topic.
+- images: ``image_topic`` (``sensor_msgs/Image`` in a camera encoding — mono8, mono16, rgb8,
+  bgr8, rgba8, bgra8, or the generic 8UC1 / 8UC3 — or ``sensor_msgs/CompressedImage`` jpeg/png).
+  Depth and other non-camera encodings (16UC1, 32FC1, ``compressedDepth``, ...) are refused with
+  the topic named. Optional when the bag has a single image topic.
   Each image is written once to ``image_dir`` (default: a cache folder in the temp directory
   keyed by the bag's path, size and mtime): raw images as lossless PNG, compressed images as
   their stored bytes (no re-encoding). The name of a frame is ``<topic>/<sec>.<nanosec>.<ext>``
   with the header stamp (the bag's receive time when the stamp is zero).
 - intrinsics, first that applies: the ``camera`` option (a Camera or a line
   ``'PINHOLE W H fx fy cx cy'``); the first ``sensor_msgs/CameraInfo`` of ``camera_info_topic``
-  (or of the bag's only CameraInfo topic). A CameraInfo becomes PINHOLE (no distortion) or
-  OPENCV (plumb_bob with k3 = 0); for an image topic whose name contains ``rect`` the
-  projection matrix P is used (rectified images have no distortion).
+  (or of the bag's only CameraInfo topic). A CameraInfo becomes PINHOLE (no distortion),
+  OPENCV (``plumb_bob`` or ``rational_polynomial`` with k3..k6 = 0) or OPENCV_FISHEYE
+  (``equidistant`` or ``fisheye``: D = k1 k2 k3 k4, OpenCV's ``cv2.fisheye``); for an image topic
+  whose name contains ``rect`` the projection matrix P is used (rectified images have no
+  distortion).
 - poses, either ``pose_topic`` (``geometry_msgs/PoseStamped``, ``PoseWithCovarianceStamped`` or
   ``nav_msgs/Odometry``: the pose of a frame in the world, x_world = R x_frame + t), or the
   ``/tf`` + ``/tf_static`` chain from ``tf_parent`` (the world, e.g. ``map``) down to ``tf_child``.
   Each image takes, per transform, the sample with the nearest header stamp within ``max_dt``
   seconds (no interpolation, as the TUM reader); frames without one are skipped with a warning.
+
+Pairing by stamps can only be right when stamps tell frames apart, so duplicates are never
+guessed: images that share a header stamp are skipped (a warning per message, naming its topic
+and stamp), and pose samples (of the pose topic or of a ``/tf`` edge) that share a stamp but not
+their pose are dropped (a warning per message); equal duplicates count once. Every error about a
+message names its topic and stamp.
 
 The camera pose: when the posed frame is the robot base rather than the camera's optical frame
 (z forward, x right, y down; ROS ``*_optical_frame``), the base-to-camera transform is composed
@@ -36,6 +46,7 @@ from __future__ import annotations
 
 import hashlib
 import logging
+import math
 import os
 import tempfile
 from collections.abc import Sequence
@@ -46,7 +57,8 @@ from typing import Any
 import cv2
 import numpy as np
 
-from planarloc.geometry.camera import Camera
+from planarloc.features.images import ImageFormatError, image_size_from_header
+from planarloc.geometry.camera import Camera, CameraModel
 from planarloc.geometry.pose import Pose
 from planarloc.geometry.validation import InputError
 from planarloc.io.format_error import FormatError
@@ -67,12 +79,11 @@ POSE_WITH_COVARIANCE = "geometry_msgs/msg/PoseWithCovarianceStamped"
 ODOMETRY = "nav_msgs/msg/Odometry"
 TF_MESSAGE = "tf2_msgs/msg/TFMessage"
 POSE_TYPES = (POSE_STAMPED, POSE_WITH_COVARIANCE, ODOMETRY)
-#: raw encodings read: name -> (channels, dtype, cv2 conversion to BGR or None)
+#: camera encodings read: name -> (channels, dtype, cv2 conversion to BGR or None)
 _ENCODINGS = {
     "mono8": (1, np.uint8, None),
     "8uc1": (1, np.uint8, None),
     "mono16": (1, np.uint16, None),
-    "16uc1": (1, np.uint16, None),
     "bgr8": (3, np.uint8, None),
     "8uc3": (3, np.uint8, None),
     "rgb8": (3, np.uint8, cv2.COLOR_RGB2BGR),
@@ -80,6 +91,20 @@ _ENCODINGS = {
     "rgba8": (4, np.uint8, cv2.COLOR_RGBA2BGR),
 }
 _PNG = [cv2.IMWRITE_PNG_COMPRESSION, 1]
+#: CameraInfo distortion models: plumb_bob / rational_polynomial (OpenCV), equidistant / fisheye (cv2.fisheye).
+_RADTAN_MODELS = ("plumb_bob", "rational_polynomial")
+_FISHEYE_MODELS = ("equidistant", "fisheye")
+
+
+def _is_depth_encoding(enc: str) -> bool:
+    """16UC1, 32FC1 and the other generic encodings that are not 8-bit (depth maps, disparities)."""
+    enc = enc.strip().lower()
+    return enc[:1].isdigit() and enc not in ("8uc1", "8uc3")
+
+
+def at_stamp(topic: str, ns: int) -> str:
+    """``TOPIC at stamp SEC.NANOSEC``: how a message is named in errors and warnings."""
+    return f"{topic} at stamp {ns // 1_000_000_000}.{ns % 1_000_000_000:09d}"
 
 
 def _rosbags() -> Any:
@@ -178,34 +203,48 @@ def parse_camera_option(value: object) -> Camera:
 
 
 def camera_from_info(msg: Any, rectified: bool) -> Camera:
-    """A Camera from a ``sensor_msgs/CameraInfo`` (ROS 1 upper- or ROS 2 lower-case fields)."""
+    """A Camera from a ``sensor_msgs/CameraInfo`` (ROS 1 upper- or ROS 2 lower-case fields).
+
+    ``plumb_bob`` / ``rational_polynomial`` (D = k1 k2 p1 p2 [k3 [k4 k5 k6]]) become PINHOLE or
+    OPENCV (k3..k6 must be 0); ``equidistant`` / ``fisheye`` (D = k1 k2 k3 k4) become
+    OPENCV_FISHEYE; ``rectified``: the projection matrix P as a PINHOLE.
+    """
     K = np.asarray(getattr(msg, "k", getattr(msg, "K", None)), dtype=float).reshape(3, 3)
     P = np.asarray(getattr(msg, "p", getattr(msg, "P", None)), dtype=float).reshape(3, 4)
     D = np.asarray(getattr(msg, "d", getattr(msg, "D", [])), dtype=float).reshape(-1)
     w, h = int(msg.width), int(msg.height)
+    model = str(msg.distortion_model).strip().lower()
     if rectified and P[0, 0] > 0:
         return Camera.from_K(P[:, :3], w, h)
+    if model in _FISHEYE_MODELS:
+        if D.size < 4 or np.any(D[4:]):
+            raise InputError(f"CameraInfo distortion model {model!r} needs D = k1 k2 k3 k4, got {D.tolist()}")
+        (fx, _, cx), (_, fy, cy) = K[0], K[1]
+        return Camera("OPENCV_FISHEYE", w, h, (fx, fy, cx, cy, *D[:4]))
     if D.size == 0 or not np.any(D):
         return Camera.from_K(K, w, h)
-    model = str(msg.distortion_model)
-    if model == "plumb_bob" and (D.size < 5 or not np.any(D[4:])):
+    if model in _RADTAN_MODELS and D.size >= 4 and not np.any(D[4:]):
         return Camera.from_K(K, w, h, D[:4])
     raise InputError(
-        f"CameraInfo distortion model {model!r} with D = {D.tolist()} is not supported (PINHOLE, or plumb_bob "
-        "with k3 = 0); use a rectified image topic or pass the option camera='OPENCV W H fx fy cx cy k1 k2 p1 p2'"
+        f"CameraInfo distortion model {model!r} with D = {D.tolist()} is not supported (plumb_bob or "
+        "rational_polynomial with k3..k6 = 0, equidistant/fisheye with 4 coefficients); use a rectified image "
+        "topic or pass the option camera='OPENCV W H fx fy cx cy k1 k2 p1 p2'"
     )
 
 
 def decode_image(msg: Any) -> np.ndarray:
     """A ``sensor_msgs/Image`` as (H, W) gray or (H, W, 3) BGR array (uint8, or uint16 for mono16)."""
     enc = str(msg.encoding).lower()
+    if _is_depth_encoding(enc):
+        raise InputError(f"encoding {msg.encoding!r} is a depth (or other non-camera) image, not a camera image; "
+                         "choose the camera's image topic with image_topic=TOPIC")
     if enc not in _ENCODINGS:
         raise InputError(f"image encoding {msg.encoding!r} is not supported (supported: {', '.join(_ENCODINGS)})")
     channels, dtype, conversion = _ENCODINGS[enc]
     h, w, step = int(msg.height), int(msg.width), int(msg.step)
     item = np.dtype(dtype).itemsize
     data = np.frombuffer(bytes(msg.data), dtype=np.uint8)
-    if data.size < h * step or step < w * channels * item:
+    if h < 1 or w < 1 or data.size < h * step or step < w * channels * item:
         raise InputError(f"image message: {data.size} bytes do not hold {h} rows of step {step} ({w}x{h} {enc})")
     rows = np.ascontiguousarray(data[: h * step].reshape(h, step)[:, : w * channels * item])
     order = ">" if int(getattr(msg, "is_bigendian", 0)) else "<"
@@ -246,6 +285,42 @@ def _pick_topic(topics: dict[str, str], wanted: str | None, types: Sequence[str]
     )
 
 
+def _same_pose(a: Pose, b: Pose, tol: float = 1e-9) -> bool:
+    return bool(np.allclose(a.matrix, b.matrix, atol=tol))
+
+
+def distinct_samples(times: Sequence[float], poses: Sequence[Pose], what: str) -> tuple[list[float], list[Pose]]:
+    """The pose samples of one source (a pose topic, a ``/tf`` edge) without ambiguous stamps:
+    samples sharing a stamp count once if their poses agree, else all of them are dropped with a
+    warning per message (a frame at that time cannot be given the right one)."""
+    by_stamp: dict[float, list[int]] = {}
+    for i, t in enumerate(times):
+        by_stamp.setdefault(float(t), []).append(i)
+    keep = []
+    for t, idx in by_stamp.items():
+        if len(idx) == 1 or all(_same_pose(poses[idx[0]], poses[i]) for i in idx[1:]):
+            keep.append(idx[0])
+            continue
+        for i in idx:
+            logger.warning("%s: %d pose samples share this stamp with different poses; none of them is used",
+                           at_stamp(what, int(round(t * 1e9))), len(idx))
+    keep.sort()
+    return [float(times[i]) for i in keep], [poses[i] for i in keep]
+
+
+def _shared_stamps(images: Sequence[BagImage], topic: str, action: str) -> set[int]:
+    """Indices of the images whose header stamp another image has too (each warned, with ``action``)."""
+    count: dict[float, int] = {}
+    for im in images:
+        count[im.timestamp] = count.get(im.timestamp, 0) + 1
+    shared = {i for i, im in enumerate(images) if count[im.timestamp] > 1}
+    for i in sorted(shared):
+        im = images[i]
+        where = at_stamp(topic, int(round(im.timestamp * 1e9)))
+        logger.warning("%s (%s): %d images share this header stamp; %s", where, im.name, count[im.timestamp], action)
+    return shared
+
+
 def _topic_list(topics: dict[str, str]) -> str:
     return ", ".join(f"{t} ({ty})" for t, ty in sorted(topics.items())) or "none"
 
@@ -262,6 +337,9 @@ class _TfBuffer:
             parent, child = _frame(tf.header.frame_id), _frame(tf.child_frame_id)
             pose = _pose_of(tf.transform.translation, tf.transform.rotation)
             if static:
+                if child in self.static and not _same_pose(self.static[child][1], pose):
+                    logger.warning("/tf_static: %s -> %s is published twice with different transforms; the later "
+                                   "is used", parent, child)
                 self.static[child] = (parent, pose)
             else:
                 entry = self.dynamic.setdefault(child, (parent, [], []))
@@ -315,7 +393,8 @@ class _TfBuffer:
                 edge = self.static[frame][1]
                 out = [None if p is None else edge @ p for p in out]
                 continue
-            _, stamps, poses = self.dynamic[frame]
+            parent, stamps, poses = self.dynamic[frame]
+            stamps, poses = distinct_samples(stamps, poses, f"/tf {parent} -> {frame}")
             idx = associate_timestamps(times, stamps, max_dt)
             out = [None if p is None or i < 0 else poses[i] @ p for p, i in zip(out, idx)]
         return out
@@ -323,6 +402,7 @@ class _TfBuffer:
 
 @dataclass
 class _BagContent:
+    image_topic: str
     images: list[BagImage]
     pose_times: list[float]
     poses: list[Pose]
@@ -345,8 +425,9 @@ def _read_bag(
     from rosbags.highlevel import AnyReader
     from rosbags.typesys import Stores, get_typestore
 
-    if int(every) < 1:
+    if isinstance(every, bool) or not isinstance(every, (int, np.integer)) or every < 1:
         raise InputError(f"every: expected an integer >= 1, got {every!r}")
+    every = int(every)
     paths = bag_paths(Path(root))
     try:
         reader = AnyReader(paths, default_typestore=get_typestore(Stores.ROS2_HUMBLE))
@@ -384,38 +465,38 @@ def _read_bag(
             if conn.topic == img_topic:
                 index = n_image
                 n_image += 1
-                if index % int(every):
+                if index % every:
                     continue
+            elif conn.topic == info_topic and cam is not None:
+                continue
+            where = at_stamp(conn.topic, int(bag_ns))
+            try:
                 msg = reader.deserialize(raw, conn.msgtype)
-                ns = _stamp_ns(msg, bag_ns)
-                name = f"{slug}/{ns // 1_000_000_000}.{ns % 1_000_000_000:09d}"
-                while name in names:
-                    name += "_"
-                names.add(name)
-                path = _store_image(out_dir, name, msg, conn.msgtype, root)
-                name = str(path.relative_to(out_dir))
-                pending.append((name, path, index, ns, _frame(msg.header.frame_id)))
-            elif conn.topic == info_topic and cam is None:
-                msg = reader.deserialize(raw, conn.msgtype)
-                try:
+            except Exception as exc:  # noqa: BLE001 - rosbags raises many kinds for a damaged message
+                raise FormatError(root, None, f"{where} (bag time): cannot decode the {conn.msgtype} message "
+                                              f"({type(exc).__name__}: {exc})") from None
+            ns = _stamp_ns(msg, bag_ns)
+            where = at_stamp(conn.topic, ns)
+            try:
+                if conn.topic == img_topic:
+                    name = f"{slug}/{ns // 1_000_000_000}.{ns % 1_000_000_000:09d}"
+                    while name in names:
+                        name += "_"
+                    names.add(name)
+                    path = _store_image(out_dir, name, msg, conn.msgtype)
+                    pending.append((str(path.relative_to(out_dir)), path, index, ns, _frame(msg.header.frame_id)))
+                elif conn.topic == info_topic and cam is None:
                     cam = camera_from_info(msg, "rect" in img_topic)
-                except InputError as exc:
-                    raise FormatError(root, None, f"{info_topic}: {exc}") from None
-            elif conn.topic == pose_topic:
-                msg = reader.deserialize(raw, conn.msgtype)
-                p = msg.pose if conn.msgtype == POSE_STAMPED else msg.pose.pose
-                try:
+                elif conn.topic == pose_topic:
+                    p = msg.pose if conn.msgtype == POSE_STAMPED else msg.pose.pose
                     poses.append(_pose_of(p.position, p.orientation))
-                except InputError as exc:
-                    raise FormatError(root, None, f"{pose_topic} at t = {_stamp_ns(msg, bag_ns) * 1e-9:.9f}: {exc}")
-                pose_times.append(_stamp_ns(msg, bag_ns) * 1e-9)
-                if conn.msgtype == ODOMETRY:
-                    pose_frame = _frame(msg.child_frame_id)
-            elif conn.msgtype == TF_MESSAGE:
-                try:
-                    tf.add(reader.deserialize(raw, conn.msgtype), conn.topic == "/tf_static", bag_ns)
-                except InputError as exc:
-                    raise FormatError(root, None, f"{conn.topic}: {exc}") from None
+                    pose_times.append(ns * 1e-9)
+                    if conn.msgtype == ODOMETRY:
+                        pose_frame = _frame(msg.child_frame_id)
+                elif conn.msgtype == TF_MESSAGE:
+                    tf.add(msg, conn.topic == "/tf_static", bag_ns)
+            except InputError as exc:
+                raise FormatError(root, None, f"{where}: {exc}") from None
     finally:
         reader.close()
     if cam is None:
@@ -425,33 +506,40 @@ def _read_bag(
         raise FormatError(root, None, f"expected messages on {img_topic}, found none")
     first = cv2.imread(str(images[0].path), cv2.IMREAD_UNCHANGED)
     if first is None:
-        raise FormatError(root, None, f"{img_topic}: cannot decode the first image ({images[0].path})")
+        raise FormatError(root, None, f"{at_stamp(img_topic, pending[0][3])}: cannot decode the first image "
+                                      f"({images[0].path})")
     if (first.shape[1], first.shape[0]) != (images[0].camera.width, images[0].camera.height):
         raise FormatError(
             root, None, f"{img_topic}: images are {first.shape[1]}x{first.shape[0]} but the camera is "
             f"{images[0].camera.width}x{images[0].camera.height}; check camera_info_topic / camera"
         )
-    return _BagContent(images, pose_times, poses, pose_frame, tf)
+    return _BagContent(img_topic, images, pose_times, poses, pose_frame, tf)
 
 
-def _store_image(out_dir: Path, name: str, msg: Any, msgtype: str, root: Path) -> Path:
+def _store_image(out_dir: Path, name: str, msg: Any, msgtype: str) -> Path:
+    """Write one image message to ``out_dir`` (once); InputError for a message that is no camera image."""
     if msgtype == COMPRESSED_IMAGE:
         fmt = str(msg.format).lower()
-        if "compresseddepth" in fmt:
-            raise FormatError(root, None, f"compressed depth images ({msg.format!r}) are not colour images")
-        path = out_dir / (name + (".png" if "png" in fmt else ".jpg"))
+        encoding = fmt.split(";")[0].strip()
+        if "compresseddepth" in fmt or _is_depth_encoding(encoding):
+            raise InputError(f"compressed depth images ({msg.format!r}) are not camera images; choose the camera's "
+                             "image topic with image_topic=TOPIC")
+        data = bytes(msg.data)
+        try:
+            kind, _w, _h = image_size_from_header(data)
+        except ImageFormatError as exc:
+            raise InputError(f"the CompressedImage data ({msg.format!r}, {len(data)} bytes) is not a readable JPEG or "
+                             f"PNG: {exc}") from None
+        path = out_dir / (name + (".png" if kind == "png" else ".jpg"))
         if not path.is_file():
-            write_file(path, bytes(msg.data))
+            write_file(path, data)
         return path
     path = out_dir / (name + ".png")
     if not path.is_file():
-        try:
-            img = decode_image(msg)
-        except InputError as exc:
-            raise FormatError(root, None, str(exc)) from None
+        img = decode_image(msg)
         ok, buf = cv2.imencode(".png", img, _PNG)
         if not ok:
-            raise FormatError(root, None, f"cannot encode {name} as PNG")
+            raise InputError(f"cannot encode {name} as PNG")
         write_file(path, buf.tobytes())
     return path
 
@@ -474,6 +562,8 @@ def read_rosbag_images(
     """
     content = _read_bag(Path(root), image_topic=image_topic, camera_info_topic=camera_info_topic, camera=camera,
                         pose_topic=None, with_tf=False, every=every, image_dir=image_dir)
+    _shared_stamps(content.images, content.image_topic, "kept under distinct names (their stamps do not tell them "
+                                                         "apart in time)")
     return content.images
 
 
@@ -527,18 +617,24 @@ def read_rosbag(
         )
     if pose_topic is None and (tf_parent is None or tf_child is None):
         raise InputError("rosbag: the tf chain needs both tf_parent=FRAME (the world) and tf_child=FRAME")
-    if not np.isfinite(float(max_dt)) or float(max_dt) < 0:
+    try:
+        max_dt = float(max_dt)
+    except (TypeError, ValueError):
+        max_dt = math.nan
+    if not np.isfinite(max_dt) or max_dt < 0:
         raise InputError(f"max_dt: expected a number of seconds >= 0, got {max_dt!r}")
     base_from_camera = parse_transform(base_to_camera, "base_to_camera") if base_to_camera is not None else None
     content = _read_bag(root, image_topic=image_topic, camera_info_topic=camera_info_topic, camera=camera,
                         pose_topic=pose_topic, with_tf=True, every=every, image_dir=image_dir)
     images = content.images
+    ambiguous = _shared_stamps(images, content.image_topic, "skipped: a pose cannot be paired with one of them")
     times = np.array([im.timestamp for im in images])
     if pose_topic is not None:
         if not content.poses:
             raise FormatError(root, None, f"expected pose messages on {pose_topic}, found none")
-        idx = associate_timestamps(times, content.pose_times, float(max_dt))
-        world_from_posed = [content.poses[i] if i >= 0 else None for i in idx]
+        pose_times, poses = distinct_samples(content.pose_times, content.poses, pose_topic)
+        idx = associate_timestamps(times, pose_times, float(max_dt))
+        world_from_posed = [poses[i] if i >= 0 else None for i in idx]
         posed_frame = content.pose_frame
     else:
         world_from_posed = content.tf.poses_at(_frame(tf_parent), _frame(tf_child), times, float(max_dt), root)
@@ -561,13 +657,13 @@ def read_rosbag(
             root, pose_topic, images[0].frame_id, content.tf.static[images[0].frame_id][0],
         )
     out = []
-    for im, w_from_p in zip(images, world_from_posed):
-        if w_from_p is None:
+    for k, (im, w_from_p) in enumerate(zip(images, world_from_posed)):
+        if w_from_p is None or k in ambiguous:
             continue
         world_from_cam = w_from_p if extrinsic is None else w_from_p @ extrinsic
         out.append(PosedImage(name=im.name, path=im.path, cam_from_world=world_from_cam.inverse(), camera=im.camera,
                               index=im.index, timestamp=im.timestamp))
-    skipped = len(images) - len(out)
+    skipped = sum(w is None for k, w in enumerate(world_from_posed) if k not in ambiguous)
     source = pose_topic or f"tf {tf_parent} -> {tf_child}"
     if not out:
         raise FormatError(
@@ -611,7 +707,7 @@ def write_rosbag(
         compressed: write ``sensor_msgs/CompressedImage`` (the image files' PNG/JPEG bytes)
             instead of ``sensor_msgs/Image`` (mono8 or bgr8).
         image_topic, camera_info_topic: image and CameraInfo topics (CameraInfo skipped if None;
-            PINHOLE and OPENCV cameras only).
+            the distortion model of :func:`camera_info_distortion`, every camera model).
         pose_topic, pose_message: topic and type (``PoseStamped``, ``PoseWithCovarianceStamped``,
             ``Odometry``) of the poses, or ``"tf"``: the poses go to ``/tf`` as
             ``world_frame -> base_frame`` (``pose_topic`` unused).
@@ -731,17 +827,25 @@ def _stamp_of(im: PosedImage) -> int:
     return int(round(float(t) * 1e9))
 
 
+def camera_info_distortion(cam: Camera) -> tuple[str, np.ndarray]:
+    """``(distortion_model, D)`` of a CameraInfo for a camera: ``plumb_bob`` with
+    ``k1 k2 p1 p2 k3`` (k3 = 0) for the pinhole, radial and OPENCV models, ``equidistant`` with
+    ``k1 k2 k3 k4`` for OPENCV_FISHEYE (what :func:`camera_from_info` reads back)."""
+    if cam.model == CameraModel.OPENCV_FISHEYE:
+        return "equidistant", np.asarray(cam.distortion, dtype=float).reshape(4)
+    return "plumb_bob", np.concatenate([np.asarray(cam.distortion, dtype=float).reshape(4), np.zeros(1)])
+
+
 def _camera_info_msg(T: Any, header: Any, cam: Camera, ros1: bool) -> Any:
     fx, fy = cam.focal
     cx, cy = cam.principal_point
     K = np.array([fx, 0, cx, 0, fy, cy, 0, 0, 1], dtype=float)
     P = np.array([fx, 0, cx, 0, 0, fy, cy, 0, 0, 0, 1, 0], dtype=float)
-    D = np.asarray(cam.distortion, dtype=float).reshape(-1)
-    D = np.concatenate([D, np.zeros(1)]) if D.size == 4 else np.zeros(5)
+    model, D = camera_info_distortion(cam)
     roi = T["sensor_msgs/msg/RegionOfInterest"](x_offset=0, y_offset=0, height=0, width=0, do_rectify=False)
     fields = {"D": D, "K": K, "R": np.eye(3).reshape(-1), "P": P} if ros1 else \
         {"d": D, "k": K, "r": np.eye(3).reshape(-1), "p": P}
-    return T[CAMERA_INFO](header=header, height=cam.height, width=cam.width, distortion_model="plumb_bob",
+    return T[CAMERA_INFO](header=header, height=cam.height, width=cam.width, distortion_model=model,
                           binning_x=0, binning_y=0, roi=roi, **fields)
 
 

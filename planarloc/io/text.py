@@ -149,6 +149,9 @@ def parse_gravity(text: str | Sequence[str] | np.ndarray) -> np.ndarray:
     if g.shape != (3,):
         raise TextError("expected three numbers 'gx gy gz' (gravity pointing down in the camera frame, not all "
                         f"zero), e.g. '0 1 0' for an upright camera, found {g.size}")
+    big = float(np.max(np.abs(g)))
+    if big > 1.0:  # |g|² overflows beyond ~1e154: scale first (a direction is wanted)
+        g = g / big
     try:
         return unit_gravity("gravity", g)
     except InputError:

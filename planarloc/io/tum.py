@@ -356,14 +356,20 @@ def tum_lines(timestamps: object, world_from_cam: list[Pose]) -> list[str]:
     return out
 
 
-def write_tum_trajectory(path: Path, timestamps: object, world_from_cam: list[Pose]) -> None:
-    """Write a TUM trajectory file (see :func:`tum_lines`; ``evo_ape tum gt.txt est.txt`` reads it).
+def tum_trajectory_text(path: Path | str, timestamps: object, world_from_cam: list[Pose]) -> str:
+    """The text of a TUM trajectory file: a header line and :func:`tum_lines`.
 
-    Timestamps must be strictly increasing (evo rejects anything else); the file is written
-    atomically (never half a file).
+    Raises:
+        InputError: timestamps not strictly increasing (evo rejects anything else), naming ``path``.
     """
     ts = np.asarray(timestamps, dtype=float).reshape(-1)
     if len(ts) > 1 and not np.all(np.diff(ts) > 0):
-        raise InputError(f"{path}: TUM timestamps must be strictly increasing (evo requires it)")
-    write_text_atomic(Path(path), ["# timestamp tx ty tz qx qy qz qw (camera-to-world)\n",
-                                   *tum_lines(ts, world_from_cam)])
+        raise InputError(f"{path}: TUM timestamps must be strictly increasing (evo requires it); two localized "
+                         "queries share a timestamp or come out of order")
+    return "".join(["# timestamp tx ty tz qx qy qz qw (camera-to-world)\n", *tum_lines(ts, world_from_cam)])
+
+
+def write_tum_trajectory(path: Path, timestamps: object, world_from_cam: list[Pose]) -> None:
+    """Write a TUM trajectory file (:func:`tum_trajectory_text`; ``evo_ape tum gt.txt est.txt``
+    reads it), atomically (never half a file)."""
+    write_text_atomic(Path(path), tum_trajectory_text(path, timestamps, world_from_cam))

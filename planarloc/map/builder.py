@@ -8,12 +8,18 @@ re-extracted, another dataset's image with a stored name is namespaced. The retr
 vocabulary and the global descriptors are (re)computed when anything changed, then the map is
 marked complete, and its gravity is stored (:mod:`planarloc.map.gravity`). Only one process
 builds a map at a time (the others wait, see :mod:`planarloc.map.lock`).
+
+An image that cannot go into the map — missing or unreadable, truncated or damaged
+(:func:`planarloc.features.images.image_problem`), undecodable, or of another size than its
+camera — is left out and reported (``skipped``, default: a warning each); the build goes on with
+the others. Only when no image is usable does the build fail (before the map is touched).
 """
 
 from __future__ import annotations
 
 import errno
 import functools
+import hashlib
 import json
 import logging
 import os
@@ -24,12 +30,12 @@ from pathlib import Path
 import numpy as np
 
 from planarloc.features.extract import DEFAULT_FEATURE_CONFIG, FeatureConfig, Features, extract_features
-from planarloc.features.images import png_size, read_gray
+from planarloc.features.images import ImageFormatError, image_problem, image_size_from_header, read_gray
 from planarloc.features.retrieval import DEFAULT_NUM_WORDS, VladVocabulary, vlad_descriptor
 from planarloc.geometry.validation import InputError
 from planarloc.gravity.world import WorldDown
 from planarloc.map.gravity import declared_world_down, resolve_world_down, store_map_gravity
-from planarloc.map.identity import MapUpdatePlan, file_sha256, plan_map_update
+from planarloc.map.identity import MapUpdatePlan, plan_map_update
 from planarloc.map.posed_image import PosedImage
 from planarloc.map.schema import GRAVITY_META, VOCABULARY_BLOB, WORLD_DOWN_META
 from planarloc.map.settings import check_num_words, map_config, settings_mismatch_error
@@ -38,17 +44,41 @@ from planarloc.map.store import MapDatabase
 logger = logging.getLogger(__name__)
 
 Progress = Callable[[str, int, int], None]  # (stage, done, total)
+#: ``skipped(image, reason)``: an image left out of the map, and why (one line).
+Skipped = Callable[[PosedImage, str], None]
 #: ``mapper(fn, items)`` -> ``fn(item)`` for each item, in order (like the builtin ``map``).
-Mapper = Callable[[Callable[[PosedImage], Features], Sequence[PosedImage]], Iterable[Features]]
+Mapper = Callable[[Callable[[PosedImage], "Features | str"], Sequence[PosedImage]], Iterable["Features | str"]]
 
 
 def _hash_checked(image: PosedImage) -> str:
-    """SHA-256 of an image file, after a cheap size check against its camera (PNG headers)."""
-    size = png_size(image.path)
-    if size is not None and size != (image.camera.width, image.camera.height):
-        raise InputError(f"{image.path}: image is {size[0]}x{size[1]} but its camera is "
+    """SHA-256 of an image file, after cheap checks: a whole PNG/JPEG file, of its camera's size
+    (from the header).
+
+    Raises:
+        InputError: the file is missing, unreadable, truncated, damaged or of another size.
+    """
+    try:
+        data = Path(image.path).read_bytes()
+    except OSError as exc:
+        raise InputError(f"{image.path}: cannot read image ({exc.strerror or exc})") from None
+    problem = image_problem(data)
+    if problem is not None:
+        raise InputError(f"{image.path}: {problem}")
+    try:
+        _fmt, w, h = image_size_from_header(data)
+    except ImageFormatError:
+        w = h = None  # another format: its size is checked once it is decoded
+    if w is not None and (w, h) != (image.camera.width, image.camera.height):
+        raise InputError(f"{image.path}: image is {w}x{h} but its camera is "
                          f"{image.camera.width}x{image.camera.height}; fix the dataset's intrinsics")
-    return file_sha256(image.path)
+    return hashlib.sha256(data).hexdigest()
+
+
+def _hash_or_reason(image: PosedImage) -> tuple[str | None, str | None]:
+    try:
+        return _hash_checked(image), None
+    except InputError as exc:
+        return None, str(exc)
 
 
 def read_map_image(image: PosedImage) -> np.ndarray:
@@ -62,9 +92,14 @@ def read_map_image(image: PosedImage) -> np.ndarray:
     return gray
 
 
-def extract_image_features(image: PosedImage, features: FeatureConfig) -> Features:
-    """Read a posed image's file and extract its local features (one map-building task)."""
-    return extract_features(read_map_image(image), features)
+def extract_image_features(image: PosedImage, features: FeatureConfig) -> Features | str:
+    """Read a posed image's file and extract its local features (one map-building task); an image
+    that cannot be read gives the reason instead (a string: it is left out of the map)."""
+    try:
+        gray = read_map_image(image)
+    except InputError as exc:
+        return str(exc)
+    return extract_features(gray, features)
 
 
 def check_map_settings(path: str | Path, features: FeatureConfig, num_words: int) -> None:
@@ -92,6 +127,7 @@ def build_map(
     lock_timeout: float | None = None,
     notify: Callable[[str], None] | None = None,
     mapper: Mapper | None = None,
+    skipped: Skipped | None = None,
 ) -> Path:
     """Create (or resume / append to) the map at ``path`` from posed images.
 
@@ -109,14 +145,17 @@ def build_map(
             namespaced images); default: logged as warnings.
         mapper: runs the feature extraction instead of the threads: ``mapper(fn, images)`` yields
             ``fn(image)`` in input order (e.g. :func:`planarloc.distributed.ray_backend.RayBackend.map`).
+        skipped: receives each image left out of the map (missing, unreadable, truncated,
+            damaged, undecodable, or of another size than its camera) and the reason; default:
+            logged as warnings. The build goes on with the other images.
 
     Returns:
         The map path.
 
     Raises:
-        InputError: an existing map built with different settings, unreadable images, an
-            image whose size differs from its camera's, images that declare a different world
-            gravity than the map, bad options (checked before any work).
+        InputError: an existing map built with different settings, no usable image at all,
+            images that declare a different world gravity than the map, bad options (checked
+            before any work).
         MapBusyError: another process still builds the map after ``lock_timeout``.
     """
     path = Path(path)
@@ -130,8 +169,22 @@ def build_map(
         raise InputError("images: expected PosedImage records (e.g. from planarloc.io.datasets.read_dataset)")
     config = map_config(features, num_words)
     declared = declared_world_down(images)
+
+    def skip(image: PosedImage, reason: str) -> None:
+        if skipped is not None:
+            skipped(image, reason)
+        else:
+            logger.warning("%s: left out of the map: %s", image.name, reason)
+
     with ThreadPoolExecutor(max_workers=workers or os.cpu_count() or 1) as pool:
-        hashes = _hash_images(images, pool, progress)
+        checked = _hash_images(images, pool, progress)
+        bad = [(im, reason) for im, (_, reason) in zip(images, checked) if reason is not None]
+        if len(bad) == len(images):
+            raise InputError(f"{path}: none of the {len(images)} images can go into the map; the first: {bad[0][1]}")
+        for im, reason in bad:
+            skip(im, reason)  # type: ignore[arg-type]
+        images = [im for im, (sha, _) in zip(images, checked) if sha is not None]
+        hashes = [sha for sha, _ in checked if sha is not None]
         try:
             db = MapDatabase.open_or_create(path, config, lock_timeout=lock_timeout)
         except OSError as exc:
@@ -149,23 +202,28 @@ def build_map(
                     logger.warning("%s", line)
             if plan.keep:
                 logger.info("%s: %d of %d images already in the map, resuming", path, len(plan.keep), len(images))
-            _store_images(db, plan, features, mapper or pool.map, progress)
+            _store_images(db, plan, features, mapper or pool.map, progress, skip)
+            if db.num_images() == 0:
+                raise InputError(f"{path}: none of the {len(images) + len(bad)} images could be decoded; see the "
+                                 "reasons above")
             _finish(db, plan, declared, num_words, seed, progress)
     return path
 
 
-def _hash_images(images: Sequence[PosedImage], pool: ThreadPoolExecutor, progress: Progress | None) -> list[str]:
-    """Stage 1: every image file read once (size checked, SHA-256), before the map is touched."""
-    hashes = []
-    for i, h in enumerate(pool.map(_hash_checked, images)):
-        hashes.append(h)
+def _hash_images(images: Sequence[PosedImage], pool: ThreadPoolExecutor,
+                 progress: Progress | None) -> list[tuple[str | None, str | None]]:
+    """Stage 1: every image file read once (whole, size checked, SHA-256), before the map is
+    touched: ``(sha256, None)`` or ``(None, reason)`` per image."""
+    out = []
+    for i, checked in enumerate(pool.map(_hash_or_reason, images)):
+        out.append(checked)
         if progress:
             progress("check images", i + 1, len(images))
-    return hashes
+    return out
 
 
 def _store_images(db: MapDatabase, plan: MapUpdatePlan, features: FeatureConfig, mapper: Mapper,
-                  progress: Progress | None) -> None:
+                  progress: Progress | None, skip: Skipped) -> None:
     """Stage 2: the plan's pose updates, then the new and changed images' features.
 
     Reading and SIFT run in worker threads (OpenCV releases the GIL) or on the given mapper (e.g.
@@ -177,6 +235,9 @@ def _store_images(db: MapDatabase, plan: MapUpdatePlan, features: FeatureConfig,
     extracted = mapper(functools.partial(extract_image_features, features=features), [r for r, _ in todo])
     for i, feats in enumerate(extracted):
         record, sha = todo[i]
+        if isinstance(feats, str):  # unreadable after all (e.g. a damaged JPEG): left out, the rest goes on
+            skip(record, feats)
+            continue
         if db.has_image(record.name):  # replaced: old features out, new in, one image at a time
             db.remove_image(record.name)
         db.add_image(record, feats, content_sha256=sha)

@@ -43,10 +43,12 @@ class ServerOutput:
         return "\n".join(self.lines)
 
 
-def start_server(args: list[str], timeout_s: float = 120.0) -> tuple[str, subprocess.Popen]:
+def start_server(args: list[str], timeout_s: float = 120.0,
+                 env: dict[str, str] | None = None) -> tuple[str, subprocess.Popen]:
     """Run ``planarloc serve ARGS --host 127.0.0.1 --port 0`` and wait until ``/healthz`` answers.
 
     The server binds any free port and names it in its banner, so two servers never race for one.
+    ``env``: variables added to the server's environment (e.g. ``PLANARLOC_TOKEN``, ``TMPDIR``).
 
     Returns:
         the base URL and the process (stop it with :func:`stop_server`; its output is
@@ -57,7 +59,8 @@ def start_server(args: list[str], timeout_s: float = 120.0) -> tuple[str, subpro
     """
     httpx = require("httpx", "serve")
     root = str(Path(__file__).resolve().parents[2])
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [root, os.environ.get("PYTHONPATH")]))}
+    env = {**os.environ, **(env or {}),
+           "PYTHONPATH": os.pathsep.join(filter(None, [root, os.environ.get("PYTHONPATH")]))}
     proc = subprocess.Popen(
         [sys.executable, "-m", "planarloc.cli.main", "serve", *args, "--host", "127.0.0.1", "--port", "0"],
         env=env,

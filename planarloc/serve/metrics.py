@@ -15,12 +15,18 @@ class ServiceMetrics:
     - ``planarloc_request_seconds{endpoint}``: latency histogram.
     - ``planarloc_localize_total{status}``: localization outcomes (``success``, ``too_few_matches``...).
     - ``planarloc_rejected_total{reason}``: requests refused (``overloaded``, ``bad_request``,
-      ``unauthorized``, ``worker_died``).
-    - ``planarloc_queue_admitted`` / ``planarloc_workers_busy``: gauges read at scrape time.
-    - ``planarloc_worker_restarts_total``.
+      ``too_large``, ``timeout``, ``unauthorized``, ``worker_died``, ``map_changed``,
+      ``session_gone``, ``server_fault``).
+    - ``planarloc_queue_admitted`` / ``planarloc_workers_busy`` / ``planarloc_workers_alive``: gauges
+      read at scrape time (``workers_alive`` asks the processes then, as ``/healthz`` does).
+    - ``planarloc_worker_restarts_total``, ``planarloc_worker_deaths_total``.
+    - ``planarloc_map_ok{map}``: 1 while the map file is the version the server started with, 0
+      once it was deleted, replaced or modified (checked at scrape time).
+    - ``planarloc_sessions`` (open) and ``planarloc_sessions_evicted_total{reason}`` (``idle``,
+      ``limit``, ``worker_died``, ``fault``).
     """
 
-    def __init__(self, pool_state) -> None:  # pool_state: object with admitted, busy, restarts
+    def __init__(self, service) -> None:  # service: planarloc.serve.app.Service (pool, watch, sessions)
         prom = require("prometheus_client", "serve")
         prom.disable_created_metrics()  # no *_created series: counters and histograms only
         self.registry = prom.CollectorRegistry()
@@ -40,16 +46,25 @@ class ServiceMetrics:
         self.rejected = prom.Counter(
             "planarloc_rejected", "refused requests", ["reason"], registry=self.registry
         )
-        admitted = prom.Gauge(
-            "planarloc_queue_admitted", "requests running or waiting", registry=self.registry
-        )
-        busy = prom.Gauge("planarloc_workers_busy", "workers running a request", registry=self.registry)
-        restarts = prom.Gauge(
-            "planarloc_worker_restarts_total", "worker processes replaced after dying", registry=self.registry
-        )
-        admitted.set_function(lambda: pool_state.admitted)
-        busy.set_function(lambda: pool_state.busy)
-        restarts.set_function(lambda: pool_state.restarts)
+        pool, watch, sessions = service.pool, service.watch, service.sessions
+        gauges = {
+            "planarloc_queue_admitted": ("requests running or waiting", lambda: pool.admitted),
+            "planarloc_workers_busy": ("workers running a request", lambda: pool.busy),
+            "planarloc_workers_alive": ("worker processes alive with their maps open", lambda: sum(pool.alive())),
+            "planarloc_worker_restarts_total": ("worker processes replaced after dying", lambda: pool.restarts),
+            "planarloc_worker_deaths_total": ("worker processes that died", lambda: pool.deaths),
+            "planarloc_sessions": ("open sessions", lambda: sessions.count),
+        }
+        for name, (doc, fn) in gauges.items():
+            prom.Gauge(name, doc, registry=self.registry).set_function(fn)
+        map_ok = prom.Gauge("planarloc_map_ok", "1 while the map file is the version served", ["map"],
+                            registry=self.registry)
+        for name in watch.paths:
+            map_ok.labels(name).set_function(lambda name=name: float(watch.check(name) is None))
+        evicted = prom.Gauge("planarloc_sessions_evicted_total", "sessions evicted or lost", ["reason"],
+                             registry=self.registry)
+        for reason in ("idle", "limit", "worker_died", "fault"):
+            evicted.labels(reason).set_function(lambda reason=reason: sessions.evicted.get(reason, 0))
         self._prom = prom
 
     def observe(self, endpoint: str, code: int, seconds: float) -> None:

@@ -4,22 +4,29 @@ Everything a client sends is checked here, before any CPU-heavy work: the map na
 the configured maps, never used as a path), the image (JPEG or PNG by its signature, size limit,
 dimensions read from the header without decoding), the camera (``MODEL W H PARAMS...``, must fit
 the image; optional: the map's camera when the map has one), gravity (``gx gy gz``, returned as a
-unit vector, as the CLI's ``--gravity``), method, structure and seed. The texts are parsed by
-:mod:`planarloc.io.text`, the parsers of the CLI and the file readers. A bad field raises
-:class:`RequestError` with an HTTP status and a one-line reason.
+unit vector, as the CLI's ``--gravity``), method, structure and seed, and for a frame of a
+session (``session``, one stream per robot) its ``stamp`` (seconds, required) and ``odometry``
+(``tx ty tz qx qy qz qw``: the camera's pose in the odometry frame, the layout of a
+``--odometry`` file line). The texts are parsed by :mod:`planarloc.io.text`, the parsers of the
+CLI and the file readers. A bad field raises :class:`RequestError` with an HTTP status (4xx) and a
+one-line reason; no client text can raise anything else.
 """
 
 from __future__ import annotations
 
 import re
+import sqlite3
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from planarloc.features.images import ImageFormatError, image_size_from_header
 from planarloc.geometry.camera import Camera
+from planarloc.geometry.pose import Pose
 from planarloc.geometry.validation import InputError
-from planarloc.io.text import parse_camera, parse_gravity
+from planarloc.io.text import T_XYZW, parse_camera, parse_gravity, parse_pose
+from planarloc.localize.localizer import localizer_config
+from planarloc.map.schema import MapFormatError
 from planarloc.robust.options import Method, Structure
 
 #: Default upper bound of an uploaded image (bytes).
@@ -28,19 +35,60 @@ DEFAULT_MAX_IMAGE_BYTES = 20 * 1024 * 1024
 MAX_IMAGE_PIXELS = 64 * 1024 * 1024
 MAP_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")
 SESSION = re.compile(r"^[\x21-\x7e]{1,128}$")
-FIELDS = ("image", "camera", "map", "gravity", "session", "method", "structure", "seed")
+SEED = re.compile(r"^[0-9]{1,18}$")
+#: A stamp in seconds: a decimal number as Python or C print it (no hex, underscores, nan or inf).
+STAMP = re.compile(r"^[+-]?([0-9]+\.?[0-9]*|\.[0-9]+)([eE][+-]?[0-9]{1,3})?$")
+#: Largest stamp magnitude accepted (s): beyond ~3e4 years a float no longer resolves milliseconds.
+MAX_STAMP_S = 1e12
+FIELDS = ("image", "camera", "map", "gravity", "session", "stamp", "odometry", "method", "structure", "seed")
 
 
 class RequestError(ValueError):
-    """A request that cannot be served; ``status`` is the HTTP status, the message one line."""
+    """A request that cannot be served; ``status`` is the HTTP status, the message one line;
+    ``retry_after_s`` (503) how long the client should wait before retrying."""
 
-    def __init__(self, status: int, message: str) -> None:
-        super().__init__(status, message)
+    def __init__(self, status: int, message: str, retry_after_s: int | None = None) -> None:
+        super().__init__(status, message, retry_after_s)
         self.status = int(status)
         self.message = " ".join(str(message).split())
+        self.retry_after_s = retry_after_s
 
     def __str__(self) -> str:
         return self.message
+
+
+class ServerFault(RuntimeError):
+    """A fault of the server, not of the request (a damaged map, a bug): answered 500 with the
+    one-line ``public`` reason (no paths, no internals); ``detail`` goes to the server's log."""
+
+    def __init__(self, public: str, detail: str = "") -> None:
+        super().__init__(public, detail)
+        self.public = " ".join(str(public).split())
+        self.detail = detail
+
+    def __str__(self) -> str:
+        return self.public
+
+
+def classify_error(exc: BaseException, what: str = "request") -> RequestError | ServerFault:
+    """Whose fault an exception raised while serving a request is.
+
+    The request's (a :class:`RequestError`, 4xx): what :func:`parse_localize_request` or the
+    localizer's query checks refuse (:class:`InputError`: an undecodable image, a camera that does
+    not fit it, bad options). The server's (:class:`ServerFault`, 500): a damaged or unreadable map
+    (``MapFormatError``, SQLite or file errors) and anything else (a bug).
+    """
+    if isinstance(exc, (RequestError, ServerFault)):
+        return exc
+    detail = f"{what}: {type(exc).__name__}: {exc}"
+    if isinstance(exc, MapFormatError):
+        return ServerFault("the map is damaged or unreadable on the server (logged there); the operator must check "
+                           "it with `planarloc map check`", detail)
+    if isinstance(exc, InputError):
+        return RequestError(400, f"{what}: {exc}")
+    if isinstance(exc, (sqlite3.Error, OSError)):
+        return ServerFault("the server cannot read its map (logged there)", detail)
+    return ServerFault(f"internal error ({type(exc).__name__}, logged on the server)", detail)
 
 
 @dataclass(frozen=True)
@@ -102,6 +150,16 @@ class LocalizeRequest:
     structure: str | None = None
     seed: int | None = None
     image_size: tuple[int, int] = field(default=(0, 0))  # (width, height) from the header
+    stamp: float | None = None  # a session frame's time (s)
+    odometry: Pose | None = None  # a session frame's cam_from_odom, or None
+
+    @property
+    def settings(self) -> tuple[str, str, int]:
+        """What configures the localizer: ``(method, structure, seed)``, defaults filled in (a
+        session keeps those of its first frame)."""
+        config = localizer_config(method=self.method, structure=self.structure, seed=self.seed)
+        return (str(getattr(config.method, "value", config.method)),
+                str(getattr(config.ransac.structure, "value", config.ransac.structure)), int(config.ransac.seed))
 
 
 def image_size(data: bytes) -> tuple[str, int, int]:
@@ -130,6 +188,23 @@ def parse_gravity_field(text: str) -> tuple[float, float, float]:
         return tuple(float(v) for v in parse_gravity(text))  # type: ignore[return-value]
     except InputError as exc:
         raise RequestError(400, f"gravity {text[:80]!r}: {exc}") from None
+
+
+def parse_stamp_field(text: str) -> float:
+    """A session frame's ``stamp``: seconds as a plain decimal number, else a 400."""
+    text = text.strip()
+    if len(text) > 40 or not STAMP.match(text) or not abs(float(text)) <= MAX_STAMP_S:
+        raise RequestError(400, f"stamp: expected the frame's time in seconds (e.g. 1305031102.175), got {text[:40]!r}")
+    return float(text)
+
+
+def parse_odometry_field(text: str) -> Pose:
+    """``tx ty tz qx qy qz qw`` (the camera's pose in the odometry frame, an ``--odometry`` file
+    line without its timestamp) -> ``cam_from_odom``, else a 400."""
+    try:
+        return parse_pose(text, T_XYZW).inverse()
+    except InputError as exc:
+        raise RequestError(400, f"odometry {text[:80]!r}: {str(exc)[:200]}") from None
 
 
 def _choice(name: str, text: str | None, choices: Sequence[str]) -> str | None:
@@ -175,13 +250,18 @@ def parse_localize_request(
     session = fields.get("session") or None
     if session is not None and not SESSION.match(session):
         raise RequestError(400, "session: expected 1-128 printable ASCII characters without spaces")
+    stamp = parse_stamp_field(fields["stamp"]) if fields.get("stamp") else None
+    odometry = parse_odometry_field(fields["odometry"]) if fields.get("odometry") else None
+    if session is None and (stamp is not None or odometry is not None):
+        raise RequestError(400, "stamp, odometry: only for a frame of a session (give the field session=ROBOT_ID)")
+    if session is not None and stamp is None:
+        raise RequestError(400, "stamp: required with session (the frame's time in seconds)")
     seed = fields.get("seed") or None
-    if seed is not None:
-        if not seed.isdigit() or len(seed) > 18:
-            raise RequestError(400, f"seed: expected a non-negative integer, got {seed[:40]!r}")
+    if seed is not None and not SEED.match(seed):
+        raise RequestError(400, f"seed: expected a non-negative integer of at most 18 digits, got {seed[:40]!r}")
     name = Path(filename or "query").name or "query"
-    if any(c.isspace() for c in name) or len(name) > 255:
-        raise RequestError(400, "image: the file name must be at most 255 characters without whitespace")
+    if len(name) > 255 or not name.isprintable() or any(c.isspace() for c in name):
+        raise RequestError(400, "image: the file name must be at most 255 printable characters without whitespace")
     return LocalizeRequest(
         map_name=map_name,
         name=name,
@@ -193,4 +273,6 @@ def parse_localize_request(
         structure=_choice("structure", fields.get("structure"), [s.value for s in Structure]),
         seed=None if seed is None else int(seed),
         image_size=(w, h),
+        stamp=stamp,
+        odometry=odometry,
     )

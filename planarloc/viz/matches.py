@@ -16,6 +16,7 @@ import cv2
 import numpy as np
 
 from planarloc.features.extract import Features
+from planarloc.features.images import read_bgr
 from planarloc.geometry.camera import Camera
 from planarloc.geometry.pose import Pose, pose_errors
 from planarloc.localize.localizer import Localizer
@@ -46,10 +47,7 @@ def query_pairs(localizer: Localizer, features: Features, camera: Camera,
 
 
 def _rgb(path: Path | str) -> np.ndarray:
-    img = cv2.imread(str(path), cv2.IMREAD_COLOR)
-    if img is None:
-        raise ValueError(f"{path}: cannot read image")
-    return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
+    return cv2.cvtColor(read_bgr(path), cv2.COLOR_BGR2RGB)  # pixels as stored, as the keypoints
 
 
 def plot_pair(ax, query_image: np.ndarray, ref_image: np.ndarray, pair: PairMatches, inliers: np.ndarray | None,

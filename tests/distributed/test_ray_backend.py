@@ -108,7 +108,7 @@ def check_ray_serve_deployment_serves_the_cli_pose(world: Path, tmp_path: Path) 
     httpx = pytest.importorskip("httpx", reason="the serve extra is not installed")
     from ray import serve
 
-    from planarloc.serve.ray_serve import deploy_fleet
+    from planarloc.serve.ray_serve import deploy_fleet, session_shard
 
     db = build_map(read_dataset(world / "map", "tum"), tmp_path / "fleet.db")
     query = sorted((world / "query" / "rgb").glob("*.png"))[0]
@@ -120,7 +120,7 @@ def check_ray_serve_deployment_serves_the_cli_pose(world: Path, tmp_path: Path) 
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
     try:
-        deploy_fleet({"office": db}, replicas=2, host="127.0.0.1", port=port)
+        deploy_fleet({"office": db}, replicas=2, host="127.0.0.1", port=port, session_shards=2)
         url = f"http://127.0.0.1:{port}/v1/maps/office/localize"
         r = httpx.post(
             url, files={"image": (query.name, query.read_bytes())}, data={"camera": camera}, timeout=120
@@ -130,17 +130,36 @@ def check_ray_serve_deployment_serves_the_cli_pose(world: Path, tmp_path: Path) 
         assert served["quat_wxyz"] == local["quat_wxyz"] and served["t"] == local["t"]
         bad = httpx.post(url, files={"image": ("x.png", b"nope")}, data={"camera": camera}, timeout=60)
         assert bad.status_code == 415 and "JPEG or PNG" in bad.json()["error"]
+        # Sessions: each robot's frames are answered by one stream (frame numbers 1, 2, 3 of one
+        # state), whichever shard its id hashes to; the shards of 4 robots are not all the same.
+        frames = sorted((world / "query" / "rgb").glob("*.png"))[:3]
+        robots = ["robot-1", "robot-2", "robot-3", "robot-4"]
+        assert len({session_shard(r, 2) for r in robots}) == 2
+        for robot in robots:
+            numbers = []
+            for k, image in enumerate(frames):
+                r = httpx.post(url, files={"image": (image.name, image.read_bytes())},
+                               data={"camera": camera, "session": robot, "stamp": str(0.1 * k)}, timeout=120)
+                assert r.status_code == 200, r.text
+                assert r.json()["status"] in ("localized", "predicted", "lost")
+                numbers.append(r.json()["session"]["frame"])
+            assert numbers == [1, 2, 3], (robot, numbers)
+        r = httpx.post(url, files={"image": (frames[0].name, frames[0].read_bytes())},
+                       data={"camera": camera, "session": "robot-1", "stamp": "0"}, timeout=120)
+        assert r.status_code == 409
         status = serve.status().applications["planarloc-office"]
         assert status.status == "RUNNING"
         replicas = status.deployments["localizer-office"].replica_states
         assert replicas.get("RUNNING", 0) == 2
+        assert all(status.deployments[f"sessions-office-{k}"].replica_states.get("RUNNING", 0) == 1 for k in (0, 1))
     finally:
         serve.shutdown()
 
 
 def test_ray_on_one_local_instance(world: Path, tmp_path: Path) -> None:
-    """One test, so that pytest-xdist never starts two Ray instances (each takes ~20 s to start)."""
-    with RayBackend(num_cpus=2) as backend:
+    """One test, so that pytest-xdist never starts two Ray instances (each takes ~20 s to start).
+    4 logical CPUs (on any machine): the Serve check deploys 2 pool replicas and 2 session shards."""
+    with RayBackend(num_cpus=4) as backend:
         check_map_build_on_ray_equals_local_build(world, tmp_path, backend)
         check_evaluate_on_ray_equals_local(world, tmp_path)
         check_ray_serve_deployment_serves_the_cli_pose(world, tmp_path)

@@ -94,11 +94,16 @@ def test_resume_unchanged_does_not_rebuild_index(seq_a, built: Path) -> None:
     test_finished_map_is_one_file_outside_wal(built)
 
 
-def test_image_size_differing_from_camera_is_refused_before_storing(tmp_path: Path) -> None:
-    images = posed_folder(tmp_path / "s", n=2)
+def test_image_size_differing_from_camera_is_left_out_before_storing(tmp_path: Path) -> None:
+    images = posed_folder(tmp_path / "s", n=3)
     cv2.imwrite(str(images[1].path), np.zeros((50, 60), np.uint8))
-    with pytest.raises(ValueError, match="image is 60x50 but its camera is 160x120"):
-        build(images, tmp_path / "m.db")
+    left_out: list[tuple[str, str]] = []
+    build_map(images, tmp_path / "m.db", FEATURES, num_words=WORDS, workers=1,
+              skipped=lambda im, why: left_out.append((im.name, why)))
+    assert len(left_out) == 1 and left_out[0][0] == images[1].name
+    assert "image is 60x50 but its camera is 160x120" in left_out[0][1]
+    with MapDatabase.open(tmp_path / "m.db") as db:
+        assert sorted(db.image_names()) == sorted([images[0].name, images[2].name])
 
 
 @pytest.mark.parametrize("num_words", [0, -1, 2.5])
