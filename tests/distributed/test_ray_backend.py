@@ -101,7 +101,10 @@ def check_evaluate_on_ray_equals_local(world: Path, tmp_path: Path) -> None:
     assert [q["name"] for q in per_query] == [r.name for r in local]
     for q, r in zip(per_query, local):  # same poses as the local run, query by query
         assert (q["status"], q["num_inliers"]) == (r.status, r.num_inliers)
-        assert q["estimate_center"] == (list(r.estimate_center) if r.estimate_center else None)
+        # Equal up to the last bits: Ray workers may sum in another order (alignment, threads).
+        assert (q["estimate_center"] is None) == (r.estimate_center is None)
+        if r.estimate_center is not None:
+            np.testing.assert_allclose(q["estimate_center"], r.estimate_center, rtol=1e-9, atol=1e-12)
 
 
 def check_ray_serve_deployment_serves_the_cli_pose(world: Path, tmp_path: Path) -> None:
@@ -127,7 +130,8 @@ def check_ray_serve_deployment_serves_the_cli_pose(world: Path, tmp_path: Path) 
         )
         assert r.status_code == 200, r.text
         served = r.json()
-        assert served["quat_wxyz"] == local["quat_wxyz"] and served["t"] == local["t"]
+        np.testing.assert_allclose(served["quat_wxyz"], local["quat_wxyz"], rtol=1e-9, atol=1e-12)
+        np.testing.assert_allclose(served["t"], local["t"], rtol=1e-9, atol=1e-12)
         bad = httpx.post(url, files={"image": ("x.png", b"nope")}, data={"camera": camera}, timeout=60)
         assert bad.status_code == 415 and "JPEG or PNG" in bad.json()["error"]
         # Sessions: each robot's frames are answered by one stream (frame numbers 1, 2, 3 of one
