@@ -22,6 +22,7 @@ from planarloc.geometry.mat3 import sym_eigvals
 from planarloc.geometry.pose import Pose
 from planarloc.robust.refinement import centre_covariance, exp_so3
 from planarloc.robust import observability as obs
+from planarloc.robust.chance_support import beyond_chance, chance_inliers
 from planarloc.robust.options import RansacOptions, Structure
 from planarloc.robust.planar_scene import distant_planar_pairs
 from planarloc.robust.problem import AbsolutePoseProblem
@@ -339,6 +340,18 @@ def judge_pose(estimator, problem: AbsolutePoseProblem, options: RansacOptions, 
                        f"only {len(supporting)} reference image(s) support the pose with >= {obs.MIN_PAIR_INLIERS} "
                        "inliers: the position along the baseline cannot be verified; retrieve more map images",
                        position_std_m=std, unreliable_pose=pose, **common)
+    if n3d < options.min_inliers:
+        # Without 2D-3D constraints the pose rests on its 2D-2D inliers alone: at least two map
+        # images must support it beyond what random matches would give it.
+        chance = chance_inliers(problem, R, t, options.threshold_px)
+        real = beyond_chance(support.pair_inliers[supporting], chance[supporting])
+        if int(real.sum()) < 2:
+            detail = ", ".join(f"{int(support.pair_inliers[k])} vs {chance[k]:.1f}" for k in supporting)
+            return failure("too_few_inliers",
+                           f"{int(real.sum())} of the {len(supporting)} supporting map images have more inliers than "
+                           f"random matches would give this pose (inliers vs chance: {detail}): the matches do not "
+                           "see the same scene; retrieve other map images or add map images of this place",
+                           position_std_m=std, unreliable_pose=pose, **common)
     planar = distant_planar_pairs(problem, R, t, in2d, supporting, PLANAR_TRANSFER_SCALE * options.threshold_px,
                                   any_plane=any_plane_degenerate)
     if planar.any():
