@@ -61,8 +61,11 @@ E_Y.setflags(write=False)
 # An explicit planar method fails when a 6DoF pose elsewhere has less than this share of its cost.
 PLANAR_VIOLATION_RATIO = 0.8
 FINAL_REFINEMENT_ROUNDS = 4
-# Samples per map image of the short 6DoF search that checks a planar pose.
+# Samples per map image of the short 6DoF search that checks a planar pose: at most this many,
+# fewer where the planar pose's inlier ratio says a clean 5-point sample comes sooner
+# (:func:`rival_check_samples`).
 RIVAL_CHECK_ITERATIONS = 10
+RIVAL_CHECK_CONFIDENCE = 0.9  # chance of one all-inlier sample per map image the budget aims at
 # Failures of a planar pose that say the matches cannot single out a position, whatever the model.
 DATA_LIMITED = ("degenerate_scale", "degenerate_structure", "single_reference", "inconsistent_references",
                 "ambiguous_pose")
@@ -218,8 +221,8 @@ def estimate_absolute_pose(
 
     # The planar model first. Where its refined pose fits the plane and either passes every
     # check or fails one that says the data are weak (an unobservable position, disagreeing
-    # map images, a rival answer), a short 6DoF search (RIVAL_CHECK_ITERATIONS samples per map
-    # image, a quick refinement) only checks it: a pose of clearly lower cost means the planar search failed (a
+    # map images, a rival answer), a short 6DoF search (rival_check_samples per map image, a
+    # quick refinement) only checks it: a pose of clearly lower cost means the planar search failed (a
     # generated office tilted 1°: a planar pose 6.6° off on 993 inliers, the 6DoF one right on
     # 1,184 at a seventh of the cost), one elsewhere of about the same cost is a rival; at 60 %
     # outliers the short search rarely finds anything, and costs little. The full 6DoF search
@@ -233,7 +236,8 @@ def estimate_absolute_pose(
         best = min(found, key=lambda s: s.refined.score)
         est = judge(best, found)
         if est.model == "planar" and (est.success or est.status in DATA_LIMITED):
-            check = search(Method.NISTER, counted=False, iterations=RIVAL_CHECK_ITERATIONS) \
+            samples = rival_check_samples(np.array([np.count_nonzero(m) for m in est.inliers]), problem.counts)
+            check = search(Method.NISTER, counted=False, iterations=samples) \
                 if _eligible(problem, Method.NISTER) else None
             margin = RIVAL_MARGIN_INLIERS * best.scorer.threshold_sq
             if check is None or check.refined.score >= best.refined.score - margin:
@@ -307,6 +311,30 @@ def _search(problem: AbsolutePoseProblem, options: RansacOptions, family: Method
     refined = _refine(scorer, out.R, out.t, options, quick)
     stats.add_time("refinement", time.perf_counter() - t0)
     return _Search(family, refined, list(zip(out.alt_R, out.alt_t, out.alt_cost)), (out.pool_R, out.pool_t), scorer)
+
+
+def rival_check_samples(inliers: np.ndarray, counts: np.ndarray, sample_size: int = 5) -> int:
+    """Samples per map image of the short 6DoF check of a planar pose.
+
+    Enough for an all-inlier ``sample_size`` sample with probability ``RIVAL_CHECK_CONFIDENCE``
+    in the map image with the second-highest inlier ratio ``w`` of the planar pose (stage 2
+    needs two map images): ``log(1 − c) / log(1 − w^m)`` (the RANSAC bound), between 2 and
+    ``RIVAL_CHECK_ITERATIONS``. A 6DoF pose clearly better than the planar one has at least
+    its inliers, so ``w`` errs on the side of more samples.
+
+    Args:
+        inliers: (P,) inliers per map image of the planar pose; counts: (P,) matches per map image.
+    """
+    ratios = sorted((i / c for i, c in zip(inliers.tolist(), counts.tolist()) if c >= sample_size), reverse=True)
+    if len(ratios) < 2:
+        return RIVAL_CHECK_ITERATIONS
+    clean = ratios[1] ** sample_size
+    if clean >= 1.0:
+        return 2
+    if clean <= 0.0:
+        return RIVAL_CHECK_ITERATIONS
+    needed = math.log(1.0 - RIVAL_CHECK_CONFIDENCE) / math.log1p(-clean)
+    return int(min(max(math.ceil(needed), 2), RIVAL_CHECK_ITERATIONS))
 
 
 def _no_hypothesis(stats: RansacStatistics, method: Method, options: RansacOptions) -> tuple[str, str]:

@@ -196,17 +196,39 @@ def distant_planar_pairs(problem, R: np.ndarray, t: np.ndarray, in2d: np.ndarray
     algorithm, which is degenerate on a plane (Hartley & Zisserman Sec. 11.9.2: the epipolar
     geometry of points on a plane is not unique; generated offices seen 0.8 m from the map images
     gave 8-point poses 15-21° off with a 0.1 m position std)."""
-    out = np.zeros(len(pairs), dtype=bool)
-    centres = -np.einsum("pji,pj->pi", problem.ref_R[pairs], problem.ref_t[pairs])
-    spread = float(np.linalg.norm(centres[:, None] - centres[None], axis=2).max(initial=0.0))
-    R, t = np.ascontiguousarray(R, dtype=float), np.ascontiguousarray(t, dtype=float)
-    for i, k in enumerate(pairs.tolist()):
-        lo, hi = int(problem.offsets[k]), int(problem.offsets[k + 1])
-        rows = np.flatnonzero(in2d[lo:hi]) + lo
-        if not any_plane:  # the cheap tests first: few inliers, far
-            if len(rows) >= FEW_INLIERS or not median_depth(R, t, problem.xq, problem.xr, rows, problem.ref_R[k],
-                                                            problem.ref_t[k]) > FAR_RATIO * spread:
-                continue
-        out[i] = homography_inlier_ratio(problem.xq, problem.xr, rows, problem.f_ref[k],
-                                         threshold_px) >= PLANAR_INLIER_RATIO
+    out = np.zeros(len(pairs), dtype=np.bool_)
+    _distant_planar_kernel(np.ascontiguousarray(R, dtype=float), np.ascontiguousarray(t, dtype=float), problem.xq,
+                           problem.xr, problem.offsets, np.ascontiguousarray(in2d), np.asarray(pairs, dtype=np.int64),
+                           problem.ref_R, problem.ref_t, problem.f_ref, float(threshold_px), bool(any_plane), out)
     return out
+
+
+@njit(cache=True, error_model="numpy")
+def _distant_planar_kernel(R: np.ndarray, t: np.ndarray, xq: np.ndarray, xr: np.ndarray, offsets: np.ndarray,
+                           in2d: np.ndarray, pairs: np.ndarray, ref_R: np.ndarray, ref_t: np.ndarray,
+                           f_ref: np.ndarray, threshold_px: float, any_plane: bool, out: np.ndarray) -> None:
+    """The loop of :func:`distant_planar_pairs` over ``pairs`` (K,) into ``out`` (K,) bool, in one
+    compiled call (the cheap tests first: few inliers, far; then the homography)."""
+    K = pairs.shape[0]
+    spread = 0.0  # largest distance between the centres of the pairs' map images
+    for a in range(K):
+        ca = -(ref_R[pairs[a]].T @ ref_t[pairs[a]])
+        for b in range(a + 1, K):
+            cb = -(ref_R[pairs[b]].T @ ref_t[pairs[b]])
+            spread = max(spread, np.sqrt(np.sum((ca - cb) ** 2)))
+    for i in range(K):
+        k = pairs[i]
+        lo, hi = offsets[k], offsets[k + 1]
+        n = 0
+        for j in range(lo, hi):
+            n += in2d[j]
+        rows = np.empty(n, dtype=np.int64)
+        n = 0
+        for j in range(lo, hi):
+            if in2d[j]:
+                rows[n] = j
+                n += 1
+        if not any_plane:
+            if n >= FEW_INLIERS or not median_depth(R, t, xq, xr, rows, ref_R[k], ref_t[k]) > FAR_RATIO * spread:
+                continue
+        out[i] = homography_inlier_ratio(xq, xr, rows, f_ref[k], threshold_px) >= PLANAR_INLIER_RATIO

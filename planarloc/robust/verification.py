@@ -17,10 +17,12 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
+from numba import njit
 
 from planarloc.geometry.mat3 import sym_eigvals
 from planarloc.geometry.pose import Pose
 from planarloc.robust.refinement import centre_covariance, exp_so3
+from planarloc.numerics.cholesky import cholesky_factor, spd_inverse
 from planarloc.robust import observability as obs
 from planarloc.robust.chance_support import beyond_chance, chance_inliers
 from planarloc.robust.options import RansacOptions, Structure
@@ -176,36 +178,60 @@ def pose_covariance(ref: RefinedPose, position_cov: np.ndarray, std: float, corr
     the map's rotation error as a floor. ``world_from_camera`` rotates by ``φ = −R_cwᵀ δ``. The
     position block is replaced by ``position_cov`` (every source of error) scaled so that its
     largest eigenvalue is ``std²`` (the checks may have raised the std), the cross terms scaled
-    alike.
+    alike. None when H is singular or the position covariance is not positive.
     """
-    if ref.H is None or not np.isfinite(ref.H).all():
+    if ref.H is None or not (np.isfinite(ref.H).all() and np.isfinite(position_cov).all()):
         return None
-    try:
-        C = ref.sigma**2 * np.linalg.inv(ref.H) * correlation**2
-    except np.linalg.LinAlgError:
-        return None
-    J = np.zeros((6, 6))  # (φ, c) from (δ, c)
-    J[:3, :3] = -ref.R.T
-    J[3:, 3:] = np.eye(3)
-    C = J @ C @ J.T
-    lam = float(sym_eigvals(position_cov)[0]) if np.isfinite(position_cov).all() else 0.0
-    if not lam > 0:
-        return None
-    pos = position_cov * max(1.0, std * std / lam)
-    scale = math.sqrt(max(float(np.trace(pos)) / max(float(np.trace(C[3:, 3:])), 1e-300), 0.0))
     out = np.empty((6, 6))
-    out[:3, :3] = pos
-    out[:3, 3:] = C[3:, :3] * scale
-    out[3:, :3] = out[:3, 3:].T
-    out[3:, 3:] = C[:3, :3] + np.eye(3) * math.radians(options.map_rotation_std_deg) ** 2
-    # Keep it positive definite after the replacement (cross terms scaled with the position block).
-    out = 0.5 * (out + out.T)
-    try:
-        np.linalg.cholesky(out)
-        return out
-    except np.linalg.LinAlgError:
+    status = _pose_covariance_kernel(np.ascontiguousarray(ref.H), ref.sigma * correlation, ref.R,
+                                     np.ascontiguousarray(position_cov), std,
+                                     math.radians(options.map_rotation_std_deg) ** 2, out)
+    if status == 0:
+        return None
+    if status == 2:  # not positive definite after the replacement: clip the eigenvalues
         w, V = np.linalg.eigh(out)
         return (V * np.maximum(w, 1e-18)) @ V.T
+    return out
+
+
+@njit(cache=True, error_model="numpy")
+def _pose_covariance_kernel(H: np.ndarray, noise: float, R: np.ndarray, position_cov: np.ndarray, std: float,
+                            rotation_var: float, out: np.ndarray) -> int:
+    """:func:`pose_covariance` into ``out`` (6, 6): 0 if H (6, 6) is singular or the position
+    covariance (3, 3) not positive, 2 if ``out`` is not positive definite, else 1. ``noise``:
+    σ̂ times the correlation inflation; ``rotation_var``: the map's rotation variance (rad²).
+    One compiled call: the numpy version spent ~70 µs on a dozen 6 x 6 calls per estimate."""
+    C = np.empty((6, 6))
+    if not spd_inverse(H, C, 0.0):
+        return 0
+    lam = sym_eigvals(position_cov)[0]
+    if not lam > 0.0:
+        return 0
+    gain = max(1.0, std * std / lam)
+    trace_pos, trace_c = 0.0, 0.0
+    for i in range(3):
+        trace_pos += position_cov[i, i] * gain
+        trace_c += C[3 + i, 3 + i] * noise * noise
+    scale = np.sqrt(max(trace_pos / max(trace_c, 1e-300), 0.0))
+    # J = diag(−Rᵀ, I) maps (δ, c) to (φ, c): rotation block −Rᵀ C_δδ (−Rᵀ)ᵀ, cross block C_cδ (−Rᵀ)ᵀ.
+    for i in range(3):
+        for j in range(3):
+            out[i, j] = position_cov[i, j] * gain
+            rot, cross = 0.0, 0.0
+            for a in range(3):
+                cross -= C[3 + i, a] * R[a, j]
+                for b in range(3):
+                    rot += R[a, i] * C[a, b] * R[b, j]
+            out[3 + i, 3 + j] = rot * noise * noise + (rotation_var if i == j else 0.0)
+            out[i, 3 + j] = cross * noise * noise * scale
+    for i in range(3):
+        for j in range(3):
+            out[3 + j, i] = out[i, 3 + j]
+    for i in range(6):  # symmetric to rounding
+        for j in range(i + 1, 6):
+            out[i, j] = out[j, i] = 0.5 * (out[i, j] + out[j, i])
+    L = np.empty((6, 6))
+    return 1 if cholesky_factor(out, L, 0.0) else 2
 
 
 def _basin_distance(estimator, ref: RefinedPose, refine: Callable[[np.ndarray, np.ndarray, bool], RefinedPose],
