@@ -186,7 +186,9 @@ class Camera:
         """True when pixels are not an affine map of ``(x/z, y/z)``: a distortion coefficient
         is non-zero, or the model is ``OPENCV_FISHEYE`` (its equidistant projection bends rays
         even with ``k1 = … = k4 = 0``)."""
-        return self.model == CameraModel.OPENCV_FISHEYE or bool(np.any(self.distortion != 0.0))
+        # Plain Python on the few parameters: called per query, where numpy's overhead dominated.
+        extra = self.params[self._principal_point_index + 2:]
+        return self.model == CameraModel.OPENCV_FISHEYE or any(p != 0.0 for p in extra)
 
     def scaled(self, sx: float, sy: float | None = None) -> Camera:
         """The same camera for an image resized by (sx, sy) (as ``cv2.resize`` does).
