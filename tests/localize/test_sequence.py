@@ -42,7 +42,7 @@ def _stream(queries: list):
 
 def _run(map_path: Path, frames: list, structure: str, odometry: bool, **config) -> list:
     loc = Localizer(map_path, LocalizerConfig(ransac=RansacOptions(structure=structure, **PERFECT_MAP)))
-    seq = SequenceLocalizer(loc, SequenceConfig(**config))
+    seq = SequenceLocalizer(loc, SequenceConfig(**{"fixes": "wait", **config}))
     return evaluate_stream(seq, [f.image for f in frames], [f.stamp for f in frames],
                            [f.odometry for f in frames] if odometry else None, [f.kidnapped for f in frames])
 
@@ -73,7 +73,7 @@ def test_outlier_fix_is_rejected_and_the_stream_continues(stream_world: tuple, m
     map_path, queries = stream_world
     frames = make_stream(queries, list(range(6)), np.random.default_rng(1))
     loc = Localizer(map_path, LocalizerConfig(ransac=RansacOptions(structure="tracks", **PERFECT_MAP)))
-    seq = SequenceLocalizer(loc)
+    seq = SequenceLocalizer(loc, SequenceConfig(fixes="wait"))
     real = loc.localize_features
     calls = {"n": 0}
 
@@ -102,7 +102,7 @@ def test_without_fixes_the_prediction_grows_until_lost(stream_world: tuple, monk
     map_path, queries = stream_world
     frames = make_stream(queries, list(range(8)), np.random.default_rng(2))
     loc = Localizer(map_path)
-    seq = SequenceLocalizer(loc, SequenceConfig(lost_std_m=0.2))
+    seq = SequenceLocalizer(loc, SequenceConfig(lost_std_m=0.2, fixes="wait"))
     first = seq.step(read_gray(frames[0].image.path), frames[0].image.camera, frames[0].stamp, frames[0].odometry)
     assert first.status == "localized" and first.motion_source == "none", (first.status, first.position_std_m)
     monkeypatch.setattr(loc, "localize_features", lambda *a, **k: PoseEstimate(None, False, "too_few_matches", "x", []))
