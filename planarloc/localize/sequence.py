@@ -16,24 +16,28 @@ returns a :class:`SequenceEstimate` for every frame: a pose, its (6, 6) covarian
 A single contradicting fix does not make a frame ``lost`` (the frame says ``kidnap_suspected``):
 one wrong fix is more likely than a kidnap.
 
-**The frame path** (every frame; ~40 ms of CPU at 1241×376, :mod:`planarloc.localize.tracking`):
+**The frame path** (every frame; ~45 ms of CPU at 1241×376, :mod:`planarloc.localize.tracking`):
 
 1. **Motion** from the previous frame: wheel odometry when given (``odometry`` = ``cam_from_odom``
    pose of this frame in the odometry frame, e.g. a TUM pose file), otherwise visual odometry:
    corners of the previous frame tracked by pyramidal Lucas-Kanade, the relative pose of the
    tracks (planar 2-point solver, 6DoF when the planar model does not fit). Visual odometry has
-   no scale: its translation is scaled by the speed measured over the accepted fixes, and right
-   after the first fix (no speed yet) by the fix's world points tracked into the next frame
-   (:func:`~planarloc.localize.tracking.scale_from_points`). Without either, a constant-velocity
-   guess with a large covariance.
-2. **Prediction**: the new node of the window with its marginal covariance.
+   no scale: its translation is scaled by the speed measured over the accepted fixes (a line
+   through their speeds, so that an accelerating robot is not extrapolated too slow); when a
+   later fix changes that speed, the window's visual motions are scaled again. Without either,
+   a constant-velocity guess with a large covariance.
+2. **Prediction**: the new node of the window.
 3. **Fusion** of the fix results that have arrived: each refers to an older frame; it is added at
    that frame's node and the window is solved again, which re-predicts the current node.
-4. **A fix job** for this frame when the fix worker is idle (and ``fix_every`` frames have
+4. **Tracked map points**: an accepted fix also brings the 3D points of its inlier keypoints
+   (the map's local structure, else triangulated with the map image), tracked on to the current
+   frame; every frame then gets a pose from them (PnP), an absolute factor whose std grows with
+   the frames they were tracked through. This is what keeps the position metric between fixes.
+5. **A fix job** for this frame when the fix worker is idle (and ``fix_every`` frames have
    passed).
 
-**Fixes** (:mod:`planarloc.localize.fixes`; ~270 ms of CPU: SIFT, matching and the single-frame
-estimator): against the map images nearest to the frame's prediction, else global retrieval,
+**Fixes** (:mod:`planarloc.localize.fixes`; ~100 ms of CPU at 1241×376: SIFT on the frame at half
+resolution, matching and the single-frame estimator): against the map images nearest to the frame's prediction, else global retrieval,
 gated by the χ²(6) Mahalanobis test against the frame's prediction. With
 ``SequenceConfig.fixes = "background"`` (default) they run in a worker thread and the frame path
 never waits for them, except for the first frame (and until a first fix is accepted): there is
@@ -92,6 +96,7 @@ from planarloc.localize.tracking import (
     FrameTracker,
     Tracked,
     TrackerOptions,
+    direction_basis,
     pose_from_points,
 )
 from planarloc.robust.pose_graph import (
@@ -482,15 +487,15 @@ class Motion:
 
     ``source``: ``"odometry"``, ``"visual"``, ``"constant"``, ``"none"`` (first frame) or
     ``"visual_rejected"``; ``model``: ``"planar"`` / ``"6dof"`` for visual odometry, else empty.
-    ``unscaled``: visual odometry scaled by the speed: its rotation, unit direction, stamp and
-    time step, to scale it again when the speed estimate changes.
+    ``unscaled``: visual odometry scaled by the speed: its rotation, unit direction, stamp, time
+    step and (5, 5) covariance (or None), to scale it again when the speed estimate changes.
     """
 
     cur_from_prev: Pose
     covariance: np.ndarray
     source: str
     model: str = ""
-    unscaled: tuple[np.ndarray, np.ndarray, float, float] | None = None
+    unscaled: tuple | None = None
 
 
 @dataclass
@@ -555,7 +560,7 @@ class SequenceLocalizer:
         self._stamps: list[float] = []
         self._localized: list[bool] = []
         self._sources: list[str] = []
-        self._unscaled: list[tuple[np.ndarray, np.ndarray, float, float] | None] = []
+        self._unscaled: list[tuple | None] = []
         self._absolute: list[AbsoluteFactor] = []
         self._relative: list[RelativeFactor] = []
         self._cov = np.full((6, 6), np.inf)
@@ -613,12 +618,18 @@ class SequenceLocalizer:
         vo = tracked.relative
         if vo is not None and vo.success and vo.pose is not None:
             # u: the direction of the centre of cur in prev's frame
-            return self._visual(vo.pose.R, vo.pose.inverse().t, stamp, dt, vo.model)
+            return self._visual(vo.pose.R, vo.pose.inverse().t, stamp, dt, vo.model, tracked.covariance)
         return self._constant_motion(len(self._poses) - 1, dt)
 
-    def _visual(self, R: np.ndarray, u: np.ndarray, stamp: float, dt: float, model: str) -> Motion:
+    def _visual(self, R: np.ndarray, u: np.ndarray, stamp: float, dt: float, model: str,
+                cov5: np.ndarray | None) -> Motion:
         """Visual odometry ``(R, u)`` over the ``dt`` seconds up to ``stamp``, scaled by the speed
-        then (``unscaled`` keeps it for a later speed model); without a speed, a weak length."""
+        then (``unscaled`` keeps it for a later speed model); without a speed, a weak length.
+
+        Covariance over (rotation, centre displacement ``d = dist · u``): the tracks' own
+        (5, 5) covariance of rotation and direction (:func:`~planarloc.localize.tracking.
+        relative_pose_covariance`, with their correlation), plus ``vo_rotation_std_deg`` and
+        ``vo_direction_std_deg`` per axis and 2 cm across, and the speed's uncertainty along."""
         cfg = self.config
         speed = self._speed_at(stamp - dt / 2)
         if speed is None:
@@ -628,7 +639,13 @@ class SequenceLocalizer:
             along = cfg.vo_scale_std * dist + 0.05
         across = dist * np.radians(cfg.vo_direction_std_deg) + 0.02
         cov = _motion_covariance(u, along, across, np.radians(cfg.vo_rotation_std_deg))
-        return Motion(Pose(R, -R @ (u * dist)), cov, "visual", model, (R, u, stamp, dt))
+        if cov5 is not None:
+            B = direction_basis(u) * dist
+            cov[:3, :3] += cov5[:3, :3]
+            cov[:3, 3:] += cov5[:3, 3:] @ B.T
+            cov[3:, :3] += B @ cov5[3:, :3]
+            cov[3:, 3:] += B @ cov5[3:, 3:] @ B.T
+        return Motion(Pose(R, -R @ (u * dist)), cov, "visual", model, (R, u, stamp, dt, cov5))
 
     def _constant_motion(self, last: int, dt: float) -> Motion:
         """Constant velocity from nodes ``last − 1`` and ``last``, with a large covariance (a weak
@@ -732,7 +749,8 @@ class SequenceLocalizer:
         for k, f in enumerate(self._relative):
             raw = self._unscaled[f.j] if f.j == f.i + 1 and self._sources[f.j] == "visual" else None
             if raw is not None:
-                m = self._visual(*raw, model="")
+                R, u, stamp, dt, cov5 = raw
+                m = self._visual(R, u, stamp, dt, "", cov5)
                 self._relative[k] = RelativeFactor(f.i, f.j, m.cur_from_prev, m.covariance)
 
     def _trim(self) -> None:
@@ -886,6 +904,25 @@ class SequenceLocalizer:
                 return
         self._candidate = _Candidate(attempt.pose, attempt.covariance, 1, self._stamps[node])
 
+    def _replace_visual(self, pose: Pose, cov: np.ndarray) -> bool:
+        """The current node's pose from its tracked map points contradicts a prediction made
+        with visual odometry: when it agrees with the constant-velocity model instead, the
+        visual factor is the outlier (2D-2D motion has wrong basins that explain the tracks as
+        well as the truth: a small step next to a turn) and is replaced. Returns whether it was."""
+        n = len(self._poses) - 1
+        if n < 1 or self._sources[n] != "visual":
+            return False
+        weak = self._constant_motion(n - 1, self._stamps[n] - self._stamps[n - 1])
+        relative = [f if f.j != n else RelativeFactor(n - 1, n, weak.cur_from_prev, weak.covariance)
+                    for f in self._relative]
+        poses = self._poses[:-1] + [weak.cur_from_prev @ self._poses[n - 1]]
+        alt_cov = marginal_covariances(poses, self._absolute, relative)[n]
+        if not mahalanobis_sq(pose, cov, poses[n], alt_cov) <= self._gate:
+            return False
+        self._poses, self._relative, self._cov = poses, relative, alt_cov
+        self._sources[n], self._unscaled[n] = "visual_rejected", None
+        return True
+
     def _point_fix(self, stamp: float, camera: Camera) -> None:
         """The current node's pose from the world points tracked into this frame
         (:func:`~planarloc.localize.tracking.pose_from_points`), gated by χ²(6) against the
@@ -902,7 +939,7 @@ class SequenceLocalizer:
         grow = (1.0 + cfg.point_fix_std_per_frame * points.hops) * np.sqrt(max(1.0, POINT_FIX_FULL_SUPPORT / fit[1]))
         cov = np.diag([np.radians(cfg.point_fix_rotation_std_deg * grow) ** 2] * 3
                       + [(cfg.point_fix_min_std_m * grow) ** 2] * 3)
-        if not mahalanobis_sq(fit[0], cov, prior, self._cov) <= self._gate:
+        if not mahalanobis_sq(fit[0], cov, prior, self._cov) <= self._gate and not self._replace_visual(fit[0], cov):
             self._tracker.set_points(None)
             self.stats.point_fixes_rejected += 1
             return

@@ -39,9 +39,11 @@ import cv2
 import numpy as np
 
 from planarloc.geometry.camera import Camera
+from planarloc.geometry.epipolar import essential_from_relpose
 from planarloc.geometry.pose import Pose
 from planarloc.geometry.validation import InputError
 from planarloc.robust.options import RansacOptions
+from planarloc.robust.pose_graph import so3_exp
 from planarloc.robust.relative_pose import RelativePoseEstimate, estimate_relative_pose
 
 #: a grid cell is about this many pixels wide and high (corners are spread over the cells)
@@ -50,6 +52,8 @@ CELL_PX = 120
 CORNER_QUALITY, CORNER_MIN_DISTANCE_PX = 0.01, 8
 #: minimal samples of the relative-pose RANSAC on tracks (see the module docstring)
 VO_MIN_ITERATIONS, VO_MAX_ITERATIONS = 300, 1000
+#: the residual std behind a relative pose's covariance: at least this (pixels), times this
+MIN_TRACK_STD_PX, TRACK_STD_INFLATION = 0.3, 2.0
 #: forward-backward check of tracked world points (pixels)
 FB_MAX_ERROR_PX = 0.5
 #: a pose from tracked points needs this many inlier points and this inlier fraction
@@ -242,6 +246,65 @@ class FrameHistory:
         return []
 
 
+def _signed_sampson(R: np.ndarray, t: np.ndarray, xa: np.ndarray, xb: np.ndarray, focal: float) -> np.ndarray:
+    """(N,) signed Sampson distances (pixels) of ``x_bᵀ E x_a = 0`` for ``E = [t]× R``."""
+    E = essential_from_relpose(R, t)
+    Ex, Etx = xa @ E.T, xb @ E
+    num = np.einsum("ni,ni->n", xb, Ex)
+    return focal * num / np.sqrt(Ex[:, 0] ** 2 + Ex[:, 1] ** 2 + Etx[:, 0] ** 2 + Etx[:, 1] ** 2)
+
+
+def relative_pose_covariance(rel: RelativePoseEstimate, camera_a: Camera, camera_b: Camera, points_a: np.ndarray,
+                             points_b: np.ndarray) -> np.ndarray | None:
+    """(5, 5) covariance of a relative pose ``b_from_a`` from its inlier tracks: of ``(δ, β)``
+    with ``R' = exp([δ]×) R`` and the direction of camera b's centre in camera a's frame
+    ``u' ∝ u + B β`` (``B``: (3, 2) orthonormal, ⊥ ``u``, from :func:`direction_basis`).
+
+    Gauss-Newton: ``σ² (JᵀJ)⁻¹`` with ``J`` the derivatives of the signed Sampson distances
+    (pixels) and ``σ`` their robust std (at least ``MIN_TRACK_STD_PX``) times
+    ``TRACK_STD_INFLATION``. A small baseline next to a rotation is where 2D-2D motion is
+    ambiguous (a yaw and a sideways step move distant points alike); the covariance says so
+    instead of the fixed std of a good case. None when it cannot be computed.
+    """
+    if rel.pose is None:
+        return None
+    m = np.asarray(rel.inliers, bool)
+    xa = np.concatenate([camera_a.cam_from_img(np.asarray(points_a, float)[m]), np.ones((int(m.sum()), 1))], axis=1)
+    xb = np.concatenate([camera_b.cam_from_img(np.asarray(points_b, float)[m]), np.ones((int(m.sum()), 1))], axis=1)
+    if len(xa) < 6:
+        return None
+    focal = float(np.mean(camera_b.focal))
+    R0 = np.asarray(rel.pose.R, float)
+    u0 = rel.pose.inverse().t
+    B = direction_basis(u0)
+
+    def residuals(p: np.ndarray) -> np.ndarray:
+        R = so3_exp(p[None, :3])[0] @ R0
+        u = u0 + B @ p[3:]
+        return _signed_sampson(R, -R @ (u / np.linalg.norm(u)), xa, xb, focal)
+
+    r0 = residuals(np.zeros(5))
+    h = 1e-6
+    J = np.stack([(residuals(h * e) - r0) / h for e in np.eye(5)], axis=1)
+    sigma = TRACK_STD_INFLATION * max(1.4826 * float(np.median(np.abs(r0))), MIN_TRACK_STD_PX)
+    try:
+        cov = sigma**2 * np.linalg.inv(J.T @ J)
+    except np.linalg.LinAlgError:
+        return None
+    if not np.all(np.isfinite(cov)):
+        return None
+    return 0.5 * (cov + cov.T)
+
+
+def direction_basis(u: np.ndarray) -> np.ndarray:
+    """(3, 2) orthonormal directions perpendicular to the unit vector ``u`` (deterministic)."""
+    u = np.asarray(u, float) / np.linalg.norm(u)
+    a = np.eye(3)[int(np.argmin(np.abs(u)))]
+    b1 = np.cross(u, a)
+    b1 /= np.linalg.norm(b1)
+    return np.stack([b1, np.cross(u, b1)], axis=1)
+
+
 @dataclass(frozen=True)
 class Tracked:
     """The outcome of :meth:`FrameTracker.track` for one frame.
@@ -251,11 +314,13 @@ class Tracked:
             when the motion was not estimated.
         tracks: corners tracked from the previous frame.
         points: the world points still tracked into this frame, or None.
+        covariance: (5, 5) covariance of ``relative`` (:func:`relative_pose_covariance`), or None.
     """
 
     relative: RelativePoseEstimate | None
     tracks: int = 0
     points: TrackedPoints | None = None
+    covariance: np.ndarray | None = None
 
 
 class FrameTracker:
@@ -309,8 +374,10 @@ class FrameTracker:
                 if rel.success and rel.num_inliers < self.options.min_inlier_ratio * found.sum():
                     rel = RelativePoseEstimate(None, False, "too_few_inliers", inliers=rel.inliers,
                                                num_inliers=rel.num_inliers, stats=rel.stats)
-                out = Tracked(rel, int(found.sum()))
+                cov = relative_pose_covariance(rel, prev_camera, camera, corners[found], nxt[found]) \
+                    if rel.success else None
+                out = Tracked(rel, int(found.sum()), covariance=cov)
         elif self.points is not None and self.points.stamp != stamp:
             self.points = None
         self._prev = (gray, camera, detect_corners(gray, self.options.corners))
-        return Tracked(out.relative, out.tracks, self.points)
+        return Tracked(out.relative, out.tracks, self.points, out.covariance)
