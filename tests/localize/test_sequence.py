@@ -28,14 +28,19 @@ from planarloc.synthetic.world.presets import get_preset, shrunk
 PERFECT_MAP = {"map_rotation_std_deg": 0.0, "map_position_std_m": 0.0}
 
 
-@pytest.fixture(scope="module")
-def stream_world(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, list]:
-    """office at 320x240: 16 map frames, 14 query frames around the loop (~1 m, ~25° apart)."""
-    root = generate(shrunk(get_preset("office"), scale=0.5, n_map=16, n_query=14),
+def _office(tmp_path_factory: pytest.TempPathFactory, n_query: int) -> tuple[Path, list]:
+    """office at 320x240, 16 map frames and ``n_query`` query frames around the loop: its map and queries."""
+    root = generate(shrunk(get_preset("office"), scale=0.5, n_map=16, n_query=n_query),
                     tmp_path_factory.mktemp("world") / "office", seed=0)
     path = root.parent / "map.db"
     build_map(read_dataset(root / "map", "tum"), path)
     return path, read_dataset(root / "query", "tum")
+
+
+@pytest.fixture(scope="module")
+def stream_world(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, list]:
+    """14 query frames around the loop (~1 m, ~25° apart)."""
+    return _office(tmp_path_factory, 14)
 
 
 def _stream(queries: list):
@@ -157,12 +162,8 @@ def test_retrieval_prior_prefers_map_images_near_the_prediction(stream_world: tu
 # ---- camera rate: background fixes, deterministic fixes with a delay ------------------------------
 @pytest.fixture(scope="module")
 def dense_world(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, list]:
-    """office at 320x240: 16 map frames, 40 query frames ~0.26 m and ~7° apart (a camera-rate stream)."""
-    root = generate(shrunk(get_preset("office"), scale=0.5, n_map=16, n_query=40),
-                    tmp_path_factory.mktemp("dense") / "office", seed=0)
-    path = root.parent / "map.db"
-    build_map(read_dataset(root / "map", "tum"), path)
-    return path, read_dataset(root / "query", "tum")
+    """40 query frames ~0.35 m and ~9° apart (a camera-rate stream)."""
+    return _office(tmp_path_factory, 40)
 
 
 def _dense(map_path: Path, queries: list, **config) -> tuple[list, dict]:
