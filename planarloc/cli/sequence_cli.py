@@ -12,7 +12,8 @@ import numpy as np
 from rich.table import Table
 
 from planarloc.cli.console import info, progress_bar
-from planarloc.localize.sequence import FIX_MODES, SequenceConfig, SequenceLocalizer
+from planarloc.localize.sequence import SequenceLocalizer
+from planarloc.localize.stream_config import FIX_MODES, SequenceConfig
 from planarloc.robust.relative_pose import MODELS
 
 _SEQ = SequenceConfig()

@@ -44,8 +44,6 @@ import queue
 import threading
 import time
 from dataclasses import dataclass, field, replace
-from typing import TYPE_CHECKING
-
 import numpy as np
 from scipy.stats import chi2
 
@@ -54,12 +52,10 @@ from planarloc.geometry.camera import Camera
 from planarloc.geometry.epipolar import triangulate_points
 from planarloc.geometry.pose import Pose
 from planarloc.localize.localizer import Localizer
+from planarloc.localize.stream_config import SequenceConfig
 from planarloc.localize.tracking import FrameHistory, TrackedPoints, TrackerOptions, track_through
 from planarloc.robust.pose_graph import so3_log
 from planarloc.robust.result import PoseEstimate
-
-if TYPE_CHECKING:
-    from planarloc.localize.sequence import SequenceConfig
 
 logger = logging.getLogger(__name__)
 
