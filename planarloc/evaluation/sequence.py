@@ -16,7 +16,8 @@ queue of one: the newest frame wins) — a ``dropped`` frame has no pose and fai
 threshold. ``frames_per_second`` is the sustained rate after the first frame (frames posed
 after the first, over the time from the first pose to the last); ``latency_ms`` (arrival →
 pose) is over the frames after the first, whose latency (it waits for the stream's first fix) is
-reported apart.
+reported apart; ``cpu_ms_per_frame`` is the CPU time of those steps in the calling thread (with
+background fixes: the frame path alone).
 """
 
 from __future__ import annotations
@@ -46,7 +47,8 @@ class FrameResult:
     the rotation. ``latency_s``: arrival → pose; ``finished_s``: when the pose was returned
     (seconds since the stream started); ``late``: the stream said the pose came too late;
     ``success``: the pose is usable (``localized`` or ``predicted``); ``timestamp``: the stamp
-    (for TUM files); ``reason``: why a frame could not be processed (status ``error``).
+    (for TUM files); ``reason``: why a frame could not be processed (status ``error``); ``cpu_s``:
+    the CPU time of its step in the calling thread.
     """
 
     name: str
@@ -69,6 +71,7 @@ class FrameResult:
     success: bool = False
     timestamp: float | None = None
     reason: str = ""
+    cpu_s: float = float("nan")
 
 
 def frame_result(image: PosedImage, est: SequenceEstimate, kidnapped: bool, finished_s: float = float("nan")
@@ -85,7 +88,8 @@ def frame_result(image: PosedImage, est: SequenceEstimate, kidnapped: bool, fini
     return FrameResult(image.name, est.stamp, est.status, est.fix_status, est.motion_source, bool(kidnapped),
                        t_err, r_err, float(est.position_std_m), float(est.seconds), c,
                        tuple(float(v) for v in truth.center), q, tuple(float(v) for v in truth.quat_wxyz),
-                       float(est.latency_s), float(finished_s), bool(est.late), bool(est.success), float(est.stamp))
+                       float(est.latency_s), float(finished_s), bool(est.late), bool(est.success), float(est.stamp),
+                       cpu_s=float(est.cpu_s))
 
 
 def unposed_result(image: PosedImage, stamp: float, kidnapped: bool, status: str = "dropped",
@@ -147,6 +151,7 @@ def _speed(results: Sequence[FrameResult]) -> dict:
         "latency_ms": ({"p50": 1e3 * float(np.percentile(lat, 50)), "p99": 1e3 * float(np.percentile(lat, 99)),
                         "max": 1e3 * float(lat.max())} if len(lat) else None),
         "first_frame_latency_ms": 1e3 * done[0].latency_s if done else None,
+        "cpu_ms_per_frame": 1e3 * float(np.mean([r.cpu_s for r in done[1:]])) if len(done) > 1 else None,
         "late_frames": int(sum(r.late for r in done[1:])),
         "dropped_frames": int(sum(r.status == DROPPED for r in results)),
     }

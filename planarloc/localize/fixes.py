@@ -39,10 +39,12 @@ Order ``(rotation, camera centre)`` of the pose graph (docs/conventions.md, "Pos
 
 from __future__ import annotations
 
+import atexit
 import logging
 import queue
 import threading
 import time
+import weakref
 from dataclasses import dataclass, field, replace
 import numpy as np
 from scipy.stats import chi2
@@ -144,13 +146,15 @@ class FixJob:
 @dataclass(frozen=True, eq=False)
 class FixResult:
     """A job's outcome: :class:`FixOutcome`, the world points its frame sees (an accepted fix;
-    tracked on to the latest frame they could be: ``points.stamp``), the seconds it took."""
+    tracked on to the latest frame they could be: ``points.stamp``), the seconds it took (wall and
+    CPU of its thread)."""
 
     stamp: float
     outcome: FixOutcome
     points: TrackedPoints | None
     seconds: float
     generation: int
+    cpu_s: float = 0.0
 
     def tracked_to(self, history: FrameHistory, options: TrackerOptions) -> FixResult:
         """The result with its points tracked on through the frames ``history`` holds after theirs."""
@@ -160,7 +164,7 @@ class FixResult:
         if len(frames) < 2:
             return self
         return FixResult(self.stamp, self.outcome, track_through(frames, self.points, options), self.seconds,
-                         self.generation)
+                         self.generation, self.cpu_s)
 
 
 class FixSolver:
@@ -293,13 +297,14 @@ class FixSolver:
 
     def solve(self, job: FixJob) -> FixResult:
         """Run one job: features, the attempts, and the world points of an accepted fix."""
-        t0 = time.perf_counter()
+        t0, cpu0 = time.perf_counter(), time.thread_time()
         features = extract_features(job.image, self.features)
         outcome = self.attempts(features, job.camera, job.gravity, job)
         points = None
         if outcome.accepted is not None and outcome.last is not None:
             points = self.world_points(features, job.camera, outcome.last, job.stamp)
-        return FixResult(job.stamp, outcome, points, time.perf_counter() - t0, job.generation)
+        return FixResult(job.stamp, outcome, points, time.perf_counter() - t0, job.generation,
+                         time.thread_time() - cpu0)
 
 
 class ImmediateFixes:
@@ -332,11 +337,22 @@ class ImmediateFixes:
         self._pending = []
 
 
+#: workers still running; stopped at exit (a daemon thread killed inside OpenCV aborts the process)
+_WORKERS: weakref.WeakSet[BackgroundFixes] = weakref.WeakSet()
+
+
+@atexit.register
+def _stop_workers() -> None:
+    for worker in list(_WORKERS):
+        worker.close()
+
+
 class BackgroundFixes:
     """Fixes in one worker thread with its own :class:`Localizer` (module docstring).
 
     An exception raised by a job (e.g. a damaged map) is raised again by the next
-    :meth:`collect` or :meth:`solve_now` in the calling thread.
+    :meth:`collect` or :meth:`solve_now` in the calling thread. :meth:`close` stops the thread
+    (also done at interpreter exit for workers left open).
     """
 
     def __init__(self, localizer: Localizer, config: SequenceConfig, history: FrameHistory,
@@ -350,6 +366,7 @@ class BackgroundFixes:
         self._in_flight = 0
         self._thread = threading.Thread(target=self._run, name="planarloc-fixes", daemon=True)
         self._thread.start()
+        _WORKERS.add(self)
 
     def _run(self) -> None:
         try:
@@ -401,6 +418,7 @@ class BackgroundFixes:
         return self._take(block=True)[-1]
 
     def close(self) -> None:
+        _WORKERS.discard(self)
         if self._thread.is_alive():
             self._jobs.put(None)
             self._thread.join(timeout=30.0)

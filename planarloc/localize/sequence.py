@@ -240,6 +240,8 @@ class SequenceEstimate:
         late: ``latency_s`` exceeded ``SequenceConfig.max_latency_s``.
         missing_frames: frames missing before this one, judged from the gap since the previous
             stamp (more than 1.5 times the recent median frame period).
+        cpu_s: CPU time of the step in the calling thread (``time.thread_time``; a fix computed
+            in the step included, a background one not).
         graph_covariance: (6, 6) covariance in the pose graph's order ``(rotation, centre)``
             (docs/conventions.md, "Pose covariances").
     """
@@ -265,6 +267,7 @@ class SequenceEstimate:
     latency_s: float = 0.0
     late: bool = False
     missing_frames: int = 0
+    cpu_s: float = 0.0
     graph_covariance: np.ndarray | None = None
 
     @property
@@ -285,7 +288,7 @@ class SequenceEstimate:
             "motion_source": self.motion_source, "motion_model": self.motion_model, "tracks": self.tracks,
             "global_retrieval": self.global_retrieval, "kidnap_suspected": self.kidnap_suspected,
             "reinitialized": self.reinitialized, "seconds": self.seconds, "latency_s": self.latency_s,
-            "late": self.late, "missing_frames": self.missing_frames,
+            "late": self.late, "missing_frames": self.missing_frames, "cpu_s": self.cpu_s,
             "fix": None if self.fix is None else self.fix.to_dict(),
         }
         if self.pose is not None:
@@ -307,6 +310,7 @@ class StreamStats:
     fixes_rejected: int = 0
     fixes_failed: int = 0
     fixes_stale: int = 0
+    fix_cpu_s: float = 0.0
     point_fixes: int = 0
     point_fixes_rejected: int = 0
     reinitializations: int = 0
@@ -682,6 +686,7 @@ class SequenceLocalizer:
             return
         out = result.outcome
         handled.result = result
+        self.stats.fix_cpu_s += result.cpu_s
         if not self._poses:          # the stream starts: the result belongs to the current frame
             if out.accepted is not None:
                 self._initialize(*out.accepted, result.stamp)
@@ -887,7 +892,7 @@ class SequenceLocalizer:
                    started: float | None = None) -> SequenceEstimate:
         """Localize the next frame, prepared with :meth:`Localizer.prepare` (see :meth:`step`;
         ``started`` is its ``arrival``)."""
-        t_call = time.perf_counter()
+        t_call, cpu0 = time.perf_counter(), time.thread_time()
         t0 = t_call if started is None else started
         if not isinstance(query, Query):
             raise InputError(f"query: expected a prepared planarloc Query, got {type(query).__name__}")
@@ -925,7 +930,7 @@ class SequenceLocalizer:
             self._refresh()
         self._prev = (stamp, odometry)
         self._frame += 1
-        return self._report(stamp, motion, tracked, handled, missing, t_call, t0)
+        return self._report(stamp, motion, tracked, handled, missing, t_call, t0, cpu0)
 
     def _status(self) -> FrameStatus:
         pos_std, _ = _stds(self._cov)
@@ -938,7 +943,7 @@ class SequenceLocalizer:
         return FrameStatus.PREDICTED
 
     def _report(self, stamp: float, motion: Motion, tracked: Tracked, handled: _Handled, missing: int,
-                t_call: float, t0: float) -> SequenceEstimate:
+                t_call: float, t0: float, cpu0: float) -> SequenceEstimate:
         pose = self._poses[-1] if self._poses else None
         cov = self._cov if pose is not None else np.full((6, 6), np.inf)
         pos_std, rot_std = _stds(cov)
@@ -965,4 +970,4 @@ class SequenceLocalizer:
             motion_source=source, motion_model=motion.model, tracks=tracked.tracks,
             global_retrieval=out.global_retrieval, kidnap_suspected=self._candidate is not None,
             reinitialized=handled.reinitialized, seconds=now - t_call, latency_s=latency, late=late,
-            missing_frames=missing, graph_covariance=cov.copy())
+            missing_frames=missing, cpu_s=time.thread_time() - cpu0, graph_covariance=cov.copy())
