@@ -333,6 +333,10 @@ class ImmediateFixes:
     def solve_now(self, job: FixJob) -> FixResult:
         return self.solver.solve(job).tracked_to(self._history, self._options)
 
+    def discard(self) -> None:
+        """Forget the results not handed back yet (the stream was reset)."""
+        self._pending = []
+
     def close(self) -> None:
         self._pending = []
 
@@ -409,6 +413,9 @@ class BackgroundFixes:
     def collect(self, frame: int, wait: bool = False) -> list[FixResult]:
         """The results that have arrived (with ``wait``: also the one in flight)."""
         return self._take(block=wait)
+
+    def discard(self) -> None:
+        """Nothing to do: a result still in flight comes back with an old generation and is dropped."""
 
     def solve_now(self, job: FixJob) -> FixResult:
         """Run ``job`` and wait for it (results still in flight are dropped: the caller has

@@ -5,8 +5,9 @@ fixes off it, fused into a sliding-window pose graph when they arrive.
 returns a :class:`SequenceEstimate` for every frame: a pose, its (6, 6) covariance and a status —
 
 - ``localized``: the pose is anchored by an accepted absolute fix in the window, the motion
-  since that fix was measured (wheel or visual odometry), and the latest fix result was an
-  acceptance;
+  since that fix was measured (wheel or visual odometry), the latest fix result was an
+  acceptance, and its position std is at most ``SequenceConfig.localized_std_m`` (0.3 m, as a
+  single fix's ``max_position_std_m``);
 - ``predicted``: a usable pose (position std at most ``SequenceConfig.lost_std_m``) that is not
   ``localized`` (the latest fix failed or was rejected, a constant-velocity guess since the last
   fix, or no fix left in the window);
@@ -112,9 +113,9 @@ from planarloc.robust.result import PoseEstimate
 logger = logging.getLogger(__name__)
 
 #: visual-odometry speed: from this many of the latest fixes (see ``_update_speed``)
-SPEED_FIXES = 5
-#: the speed model's acceleration is at most this (m/s²)
-MAX_ACCELERATION = 5.0
+SPEED_FIXES = 4
+#: the speed model's acceleration is at most this (m/s²), and applied at most this far from its data (s)
+MAX_ACCELERATION, MAX_EXTRAPOLATION_S = 5.0, 1.0
 #: motions that count as measured (a pose after them may be ``localized``)
 MEASURED = ("odometry", "visual")
 #: a pose from fewer tracked points than this has its std scaled by sqrt(this / inliers)
@@ -430,6 +431,7 @@ class SequenceLocalizer:
     def reset(self) -> None:
         """Forget the stream (e.g. before a new sequence); fixes still in flight are ignored."""
         self._generation += 1
+        self._fixes.discard()
         self._tracker.reset()
         self._history.clear()
         self._dirty = False
@@ -513,7 +515,8 @@ class SequenceLocalizer:
             dist, along = 0.0, cfg.max_speed_mps * dt
         else:
             dist = speed * dt
-            along = cfg.vo_scale_std * dist + 0.05
+            scale_std = cfg.vo_scale_std if self._speed_model is not None else cfg.vo_first_scale_std
+            along = scale_std * dist + 0.05
         across = dist * np.radians(cfg.vo_direction_std_deg) + 0.02
         cov = _motion_covariance(u, along, across, np.radians(cfg.vo_rotation_std_deg))
         if cov5 is not None:
@@ -618,7 +621,7 @@ class SequenceLocalizer:
         if self._speed_model is None:
             return self._speed
         t_ref, v, accel = self._speed_model
-        return max(v + accel * (stamp - t_ref), 0.0)
+        return max(v + accel * float(np.clip(stamp - t_ref, -MAX_EXTRAPOLATION_S, MAX_EXTRAPOLATION_S)), 0.0)
 
     def _rescale_visual(self) -> None:
         """Scale the window's speed-scaled visual odometry by the current speed: a speed found
@@ -658,11 +661,13 @@ class SequenceLocalizer:
         relative = [RelativeFactor(f.i - node, f.j - node, f.j_from_i, f.covariance)
                     for f in self._relative if f.i >= node]
         self._initialize(pose, cov, stamps[0])
-        for f in relative:
-            self._poses.append(f.j_from_i @ self._poses[-1])
+        self._speed_model = None   # the last speed stays a guess until two fixes measure it again
         self._stamps, self._sources, self._unscaled = stamps, sources, unscaled
         self._localized = [True] + [False] * (len(stamps) - 1)
         self._relative = relative
+        self._rescale_visual()     # with the guessed speed's larger std
+        self._poses += [Pose.identity()] * len(relative)
+        self._rechain(0)
         self._dirty = bool(relative)
         self._tracker.set_points(None)
         self.stats.reinitializations += 1
@@ -937,7 +942,7 @@ class SequenceLocalizer:
         if not self._poses or pos_std > self.config.lost_std_m or self._doubt:
             return FrameStatus.LOST  # never report a pose as usable beyond lost_std_m
         anchor = max((k for k, loc in enumerate(self._localized) if loc), default=None)
-        if (anchor is not None and self._latest_fix == "accepted"
+        if (anchor is not None and self._latest_fix == "accepted" and pos_std <= self.config.localized_std_m
                 and all(s in MEASURED for s in self._sources[anchor + 1:])):
             return FrameStatus.LOCALIZED
         return FrameStatus.PREDICTED

@@ -47,6 +47,8 @@ class SequenceConfig:
         vo_model: ``"planar"``, ``"6dof"`` or ``"auto"`` (see :func:`estimate_relative_pose`).
         vo_direction_std_deg, vo_rotation_std_deg: visual-odometry direction and rotation std.
         vo_scale_std: relative std of the speed used to scale visual odometry.
+        vo_first_scale_std: the same while no two fixes have measured the speed yet (the first
+            frames of a stream, after a re-initialisation: a kidnapped robot may move otherwise).
         point_fix_min_std_m, point_fix_rotation_std_deg, point_fix_std_per_frame: a pose from
             tracked world points (PnP) has the position std ``point_fix_min_std_m · g`` and the
             rotation std ``point_fix_rotation_std_deg · g``, ``g = (1 + point_fix_std_per_frame · k)
@@ -56,6 +58,8 @@ class SequenceConfig:
             (:class:`~planarloc.localize.tracking.TrackerOptions`).
         max_speed_mps: std of the distance per second while the speed is unknown.
         lost_std_m: a frame whose position std (fused or predicted) is above this is ``lost``.
+        localized_std_m: a frame whose position std is above this is not ``localized`` (at most
+            ``predicted``).
         kidnap_confirmations: consistent rejected fixes needed to re-initialise.
         refix_radius_m: a global fix is re-estimated from the map images nearest to it; the
             second estimate replaces the first when within this distance.
@@ -90,6 +94,7 @@ class SequenceConfig:
     vo_direction_std_deg: float = 3.0
     vo_rotation_std_deg: float = 0.5
     vo_scale_std: float = 0.1
+    vo_first_scale_std: float = 0.3
     point_fix_min_std_m: float = 0.05
     point_fix_rotation_std_deg: float = 0.2
     point_fix_std_per_frame: float = 0.5
@@ -99,6 +104,7 @@ class SequenceConfig:
     track_threshold_px: float = 1.0
     max_speed_mps: float = 15.0
     lost_std_m: float = 1.0
+    localized_std_m: float = 0.3
     kidnap_confirmations: int = 2
     frame_period_s: float = 0.1
     refix_radius_m: float = 1.0
@@ -125,9 +131,10 @@ class SequenceConfig:
         for name in ("max_latency_s", "local_radius_m", "local_max_angle_deg", "fix_std_scale", "fix_std_scale_2d",
                      "min_fix_std_m", "pixel_std", "min_rotation_std_deg", "odometry_translation_std",
                      "odometry_min_std_m", "odometry_rotation_std", "odometry_min_rotation_std_deg",
-                     "vo_direction_std_deg", "vo_rotation_std_deg", "vo_scale_std", "point_fix_min_std_m",
+                     "vo_direction_std_deg", "vo_rotation_std_deg", "vo_scale_std", "vo_first_scale_std",
+                     "point_fix_min_std_m",
                      "point_fix_std_per_frame", "point_fix_rotation_std_deg",
-                     "track_threshold_px", "max_speed_mps", "lost_std_m", "frame_period_s", "refix_radius_m"):
+                     "track_threshold_px", "max_speed_mps", "lost_std_m", "localized_std_m", "frame_period_s", "refix_radius_m"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, (int, float, np.floating, np.integer)) or not (
                     np.isfinite(v) and v > 0):
