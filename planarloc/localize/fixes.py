@@ -18,7 +18,7 @@ Two schedulers run the jobs for :class:`planarloc.localize.sequence.SequenceLoca
   job in flight. SIFT and the compiled kernels release the GIL for most of their time, so the
   frame path keeps running while a fix is computed.
 
-An accepted fix also brings the world points its frame sees (:meth:`FixSolver.world_points`),
+An accepted fix (and a rejected global one) also brings the world points its frame sees (:meth:`FixSolver.world_points`),
 tracked on through the frames that came since (:func:`~planarloc.localize.tracking.track_through`
 over the stream's :class:`~planarloc.localize.tracking.FrameHistory`; by the worker for
 background fixes), so that the stream can go on tracking them from its current frame.
@@ -145,7 +145,8 @@ class FixJob:
 
 @dataclass(frozen=True, eq=False)
 class FixResult:
-    """A job's outcome: :class:`FixOutcome`, the world points its frame sees (an accepted fix;
+    """A job's outcome: :class:`FixOutcome`, the world points its frame sees (those of an
+    accepted fix, or of a rejected global one, from which a confirmed kidnap re-initialises;
     tracked on to the latest frame they could be: ``points.stamp``), the seconds it took (wall and
     CPU of its thread)."""
 
@@ -303,6 +304,8 @@ class FixSolver:
         points = None
         if outcome.accepted is not None and outcome.last is not None:
             points = self.world_points(features, job.camera, outcome.last, job.stamp)
+        elif outcome.rejected and outcome.rejected[-1].global_retrieval:   # a kidnap may restart from it
+            points = self.world_points(features, job.camera, outcome.rejected[-1].estimate, job.stamp)
         return FixResult(job.stamp, outcome, points, time.perf_counter() - t0, job.generation,
                          time.thread_time() - cpu0)
 

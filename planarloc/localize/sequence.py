@@ -30,7 +30,8 @@ one wrong fix is more likely than a kidnap.
 2. **Prediction**: the new node of the window.
 3. **Fusion** of the fix results that have arrived: each refers to an older frame; it is added at
    that frame's node and the window is solved again, which re-predicts the current node.
-4. **Tracked map points**: an accepted fix also brings the 3D points of its inlier keypoints
+4. **Tracked map points**: an accepted fix (and the global fix a confirmed kidnap restarts from)
+   also brings the 3D points of its inlier keypoints
    (the map's local structure, else triangulated with the map image), tracked on to the current
    frame; every frame then gets a pose from them (PnP), an absolute factor whose std grows with
    the frames they were tracked through. This is what keeps the position metric between fixes.
@@ -718,6 +719,8 @@ class SequenceLocalizer:
                 self._tracker.set_points(result.tracked_to(self._history, self.config.tracker).points)
         else:
             self._track_kidnap(node, out, handled)
+            if handled.reinitialized and result.points is not None:   # the points of the fix restarted from
+                self._tracker.set_points(result.tracked_to(self._history, self.config.tracker).points)
         handled.status = out.status
         self._latest_fix = "accepted" if handled.reinitialized else out.status
         self.stats.count_fix(out.status)

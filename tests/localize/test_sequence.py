@@ -210,6 +210,28 @@ def test_waiting_for_fixes_is_deterministic_and_delays_them(dense_world: tuple) 
     assert stats["fixes_submitted"] == 8
 
 
+
+def test_a_kidnap_with_delayed_fixes_restarts_from_the_fix_and_tracks_its_points(dense_world: tuple) -> None:
+    """Fixes two frames late (as a worker delivers them): two agreeing global fixes re-initialise
+    the window at the node of the later one, and the world points of that fix, tracked on to the
+    current frame, pose it at once (a point fix in the same step), so the re-initialised frame
+    is not left on motion scaled by a guessed speed."""
+    map_path, queries = dense_world
+    loc = Localizer(map_path, LocalizerConfig(ransac=RansacOptions(structure="tracks")))
+    frames = make_stream(queries, stream_order(len(queries), kidnap_at=10), np.random.default_rng(0))
+    with SequenceLocalizer(loc, SequenceConfig(fixes="wait", fix_every=2, fix_delay=2)) as seq:
+        run = []
+        for f in frames:
+            before = seq.stats.point_fixes
+            e = seq.step(read_gray(f.image.path), f.image.camera, f.stamp)
+            run.append((f, e, seq.stats.point_fixes - before))
+    restarts = [(f, e, points) for f, e, points in run if e.reinitialized]
+    assert len(restarts) == 2 and all(e.fix_stamp < e.stamp for _, e, _ in restarts)
+    for f, e, points in restarts:
+        assert points == 1 and pose_errors(e.pose, f.image.cam_from_world)[0] < 0.1
+    assert not any(e.status == "localized" and pose_errors(e.pose, f.image.cam_from_world)[0] > 1.0
+                   for f, e, _ in run)
+
 def test_stamps_and_sizes_are_checked_and_the_stream_goes_on(stream_world: tuple) -> None:
     map_path, queries = stream_world
     seq = SequenceLocalizer(Localizer(map_path), SequenceConfig(fixes="wait"))
