@@ -24,6 +24,8 @@ sustained, after the first frame (frames posed after the first over the time fro
 to the last); latency = arrival -> pose, over the frames after the first (the first waits for its
 fix); CPU = process time per frame, all threads (the worker's fixes included). BLAS is held to one
 thread for every run (the stream does it itself; the single-frame peer runs under the same limit).
+The machine's 1-minute load average at the start of each run is printed with it: on a shared
+machine, wall-clock rates and latencies are only comparable between runs at a similar load.
 
 Targets (issue 19, PASS/FAIL lines): camera-rate on KITTI: 100 % within 0.25 m/10 deg, no frame
 localized beyond 1 m, >= 10 frames/s sustained and latency p99 <= 100 ms.
@@ -36,6 +38,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 import tempfile
 import time
@@ -96,6 +99,7 @@ def run_sequence(name: str, map_path: Path, queries: list, kidnap: bool) -> list
         runs.append(("camera-rate kidnap", lambda: _stream(loc, SequenceConfig(), kid, None)))
     rows = []
     for label, fn in runs:
+        load = os.getloadavg()[0]
         c0, t0 = time.process_time(), time.perf_counter()
         with threadpool_limits(limits=1, user_api="blas"):
             results, stats = fn()
@@ -103,7 +107,7 @@ def run_sequence(name: str, map_path: Path, queries: list, kidnap: bool) -> list
         s = summarize_sequence(results)
         s.pop("per_frame")
         s.update(dataset=name, run=label, wall_s=time.perf_counter() - t0, cpu_seconds_per_frame=cpu / len(results),
-                 stream=stats)
+                 stream=stats, load_average=load)
         rows.append(s)
         print(_row(s), flush=True)
     return rows
@@ -119,13 +123,14 @@ def _row(s: dict) -> str:
             f"{c.get('localized', 0)}/{c.get('predicted', 0)}/{c.get('lost', 0)}/{c.get('dropped', 0)} | "
             f"{s['confident_wrong']} | {s['predicted_wrong']} | {after} | {fixes or '-'} | "
             f"{s['frames_per_second']:.1f} | {lat['p50']:.0f} / {lat['p99']:.0f} | {s['late_frames']} | "
-            f"{1e3 * s['cpu_seconds_per_frame']:.0f} | {s['cpu_ms_per_frame']:.0f} | {fix_cpu} |")
+            f"{1e3 * s['cpu_seconds_per_frame']:.0f} | {s['cpu_ms_per_frame']:.0f} | {fix_cpu} | "
+            f"{s['load_average']:.1f} |")
 
 
 HEADER = ("| sequence | run | 0.25 m/10° | max error [m] | localized/predicted/lost/dropped | localized beyond 1 m | "
           "predicted beyond 1 m | frames to recover after kidnap | fixes computed | frames/s | latency p50 / p99 [ms] | "
-          "late (> 100 ms) | CPU per frame, all threads [ms] | CPU per frame, calling thread [ms] | CPU per fix [ms] |"
-          "\n|" + "---|" * 15)
+          "late (> 100 ms) | CPU per frame, all threads [ms] | CPU per frame, calling thread [ms] | CPU per fix [ms] | "
+          "load average at start |\n|" + "---|" * 16)
 
 
 # ---- pose-graph solver: ours (scipy) vs GTSAM on the same windows ---------------------------
