@@ -68,7 +68,7 @@ def plot_localization(ax, map_centers: np.ndarray, results: Sequence, max_error_
     ax.plot(map_xy[:, 0], map_xy[:, 1], "-", color="0.6", lw=2, label="map")
     ax.plot(gt[:, 0], gt[:, 1], "-", color="tab:green", lw=1, alpha=0.6, label="query ground truth")
     sc = ax.scatter(gt[ok, 0], gt[ok, 1], c=np.clip(err[ok], 0, max_error_m), cmap="viridis", vmin=0,
-                    vmax=max_error_m, s=25, zorder=3, label="localized (colour = error)")
+                    vmax=max_error_m, s=25, zorder=3, label="with a pose (colour = error)")
     if (~ok).any():
         ax.scatter(gt[~ok, 0], gt[~ok, 1], marker="x", color="tab:red", s=40, zorder=4, label="failed")
     ax.set_aspect("equal", adjustable="datalim")
