@@ -8,12 +8,10 @@ import os
 from contextlib import closing
 from pathlib import Path
 
-import numpy as np
-
 from planarloc.cli.commands import add_command
-from planarloc.cli.console import info, note, notify, progress_bar
+from planarloc.cli.console import note, notify, progress_bar
 from planarloc.cli.cross_session import add_cross_session_args, read_map_and_queries
-from planarloc.cli.exit_codes import EVALUATE_RESUMES, EXIT_OK, EXIT_PARTIAL
+from planarloc.cli.exit_codes import EVALUATE_RESUMES
 from planarloc.cli.options import (
     add_dataset_args,
     add_feature_args,
@@ -23,7 +21,7 @@ from planarloc.cli.options import (
     feature_config,
     localizer_config_of,
 )
-from planarloc.cli.report import print_summary_table, write_json
+from planarloc.cli.report import partial_exit, print_summary_table, write_json, write_trajectory_plot
 from planarloc.cli.result_outputs import EstimateOutputs, add_output_args, write_evaluation_tum
 from planarloc.cli.sequence_cli import add_sequence_args, check_sequential_args, evaluate_sequential
 from planarloc.distributed.ray_backend import ray_session
@@ -31,7 +29,7 @@ from planarloc.evaluation.queries import config_label, evaluate_queries, gravity
 from planarloc.features.extract import FeatureConfig
 from planarloc.io.gravity_file import read_gravity_file
 from planarloc.io.hloc_pairs import read_hloc_pairs
-from planarloc.io.output import atomic_output, check_output_file, dataset_files, input_files
+from planarloc.io.output import check_output_file, dataset_files, input_files
 from planarloc.localize.localizer import Localizer, LocalizerConfig
 from planarloc.map.builder import build_map, check_map_settings
 from planarloc.map.gravity import map_gravity
@@ -61,7 +59,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     add_cross_session_args(p)
     p.add_argument("--map", type=Path, help="map file to build/reuse (default: a cache file in the temp folder)")
     p.add_argument("--json", type=Path, help="write the summary and per-query results here")
-    p.add_argument("--plot", type=Path, help="write the trajectory plot (paper Fig. 8) here")
+    p.add_argument("--plot", type=Path, help="write the trajectory plot (paper Fig. 8; top view in the plane "
+                                             "perpendicular to the map's gravity) here")
     p.add_argument("--dataset-option", action="append", metavar="KEY=VALUE",
                    help="importer option (repeatable); up=AXIS gives the world's up direction, e.g. up=z")
     add_gravity_args(p, "--gravity-from-truth", action="store_true",
@@ -98,23 +97,21 @@ def run(args: argparse.Namespace) -> int:
     if args.sequential:
         with progress_bar() as update:
             build_map(map_images, map_path, features, num_words=num_words, progress=update, notify=notify)
-        return evaluate_sequential(args, map_path, queries, config)
+        return evaluate_sequential(args, map_path, map_images, queries, config)
     results, gravity = _build_and_localize(args, map_images, queries, map_path, features, num_words, config, pairs,
                                            gravity)
     method, structure = config_label(config)
     summary = summarize(results, method, structure, **extra, top_n=config.top_n, tilt=features.tilt,
                         query_gravity="truth" if args.gravity_from_truth else ("file" if gravity else "map"))
-    return _report(args, summary, results, map_images, title)
+    return _report(args, summary, results, map_images, map_path, title)
 
 
 def _check_options(args: argparse.Namespace) -> None:
     if args.map_every is not None and args.map_every < 2:
         raise ValueError(f"--map-every must be >= 2 (otherwise there are no queries), got {args.map_every}")
     check_sequential_args(args)
-    if args.sequential and (args.ray or args.tum or args.plot_matches or args.rerun or args.gravity_file
-                            or args.gravity_from_truth):
-        raise ValueError("--sequential: --ray, --tum, --plot-matches, --rerun and query gravity are single-frame "
-                         "options; drop them")
+    if args.sequential and (args.ray or args.plot_matches or args.gravity_file or args.gravity_from_truth):
+        raise ValueError("--sequential: --ray, --plot-matches and query gravity are single-frame options; drop them")
     if args.ray and (args.plot_matches or args.rerun):
         raise ValueError("--plot-matches and --rerun draw in this process: run them without --ray")
 
@@ -149,25 +146,19 @@ def _build_and_localize(args: argparse.Namespace, map_images: list, queries: lis
                                 outputs if outputs.active else None, gravity=gravity), gravity
 
 
-def _report(args: argparse.Namespace, summary: dict, results: list, map_images: list, title: str) -> int:
+def _report(args: argparse.Namespace, summary: dict, results: list, map_images: list, map_path: Path,
+            title: str) -> int:
     """The table (stdout), the JSON, the TUM files and the plot; the exit code (3: queries not processed)."""
     if args.tum:
         summary["evo"] = write_evaluation_tum(args.tum, results)
     print_summary_table([summary], title)
     write_json(args.json, summary)
     if args.plot:
-        from planarloc.viz.trajectory import save_localization_plot
-
-        centers = np.array([m.cam_from_world.center for m in map_images])
-        with atomic_output(args.plot) as tmp:
-            save_localization_plot(tmp, centers, results, f"{title}: {summary['method']}, {summary['structure']}")
-        info(f"wrote {args.plot}")
-    errors = [r for r in results if r.status == "error"]
-    if errors:
-        note(f"{len(errors)} of {len(results)} queries could not be processed (e.g. {errors[0].reason}); they count "
-             "as failed")
-        return EXIT_PARTIAL
-    return EXIT_OK
+        with MapDatabase.open(map_path) as db:
+            g_world = map_gravity(db).g_world_array
+        write_trajectory_plot(args.plot, map_images, results, f"{title}: {summary['method']}, {summary['structure']}",
+                              g_world)
+    return partial_exit(results, "queries")
 
 
 def _check_distinct(outputs: dict[str, Path | None]) -> None:

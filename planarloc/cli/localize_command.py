@@ -33,7 +33,7 @@ from planarloc.cli.options import (
 from planarloc.cli.query_sources import QuerySource, dataset_queries, image_queries, list_queries
 from planarloc.cli.remote_localize import add_server_args, check_remote_args, remote_localizer
 from planarloc.cli.result_outputs import EstimateOutputs, add_output_args
-from planarloc.cli.sequence_cli import add_sequence_args, sequence_config
+from planarloc.cli.sequence_cli import add_sequence_args, check_stream_args, sequence_config, stream_rerun
 from planarloc.geometry.camera import Camera
 from planarloc.geometry.validation import InputError
 from planarloc.io.datasets import FORMATS
@@ -119,6 +119,14 @@ def _queries(args: argparse.Namespace, camera: Camera | None) -> tuple[list[Quer
         return dataset_queries(args.images, args.format, options, camera), False
     if args.sequence and len(args.images) == 1 and args.images[0].is_file() and args.images[0].suffix.lower() == ".txt":
         return list_queries(args.images[0], args.frame_period)
+    if args.sequence:
+        files = [p for p in args.images if not p.is_dir()]
+        seen = {}
+        for p in files:
+            if os.path.realpath(p) in seen:
+                raise ValueError(f"--sequence: {p} is given twice (as {seen[os.path.realpath(p)]} before); a stream "
+                                 "shows each frame once")
+            seen[os.path.realpath(p)] = p
     queries = image_queries(args.images)
     if args.sequence:
         queries = [QuerySource(q.name, q.path, timestamp=k * args.frame_period) for k, q in enumerate(queries)]
@@ -127,15 +135,14 @@ def _queries(args: argparse.Namespace, camera: Camera | None) -> tuple[list[Quer
 
 def _check_options(args: argparse.Namespace) -> None:
     """Option combinations, refused before any work."""
+    check_stream_args(args, args.sequence, "--sequence")
     if args.sequence:
-        used = [o for o, v in (("--server", args.server), ("--format", args.format), ("--tum", args.tum),
-                               ("--plot-matches", args.plot_matches), ("--rerun", args.rerun),
-                               ("--gravity-file", args.gravity_file), ("--pairs", args.pairs)) if v]
+        used = [o for o, v in (("--server", args.server), ("--format", args.format),
+                               ("--plot-matches", args.plot_matches), ("--gravity-file", args.gravity_file),
+                               ("--pairs", args.pairs)) if v]
         if used:
             raise ValueError(f"--sequence: {', '.join(used)} are single-frame options; drop them (retrieval and "
                              "gravity follow the stream)")
-    elif args.odometry:
-        raise ValueError("--odometry: only used with --sequence")
     if args.server:
         check_remote_args(args)
 
@@ -151,8 +158,6 @@ def run(args: argparse.Namespace) -> int:
     inputs = input_files([q.path for q in queries] + [args.pairs, args.gravity_file, args.odometry,
                                                      *args.images], with_map_sidecars=[] if args.server else [args.map])
     records_dir = _check_outputs(args, inputs)
-    if args.sequence and timed and any(b.timestamp <= a.timestamp for a, b in zip(queries, queries[1:])):
-        raise ValueError(f"{args.images[0]}: timestamps must increase along the list")
     with ExitStack() as stack:
         if args.server:
             from planarloc.client import Client, resolve_token
@@ -169,7 +174,7 @@ def run(args: argparse.Namespace) -> int:
                 note(f"map gravity: {rep.source}; queries without their own gravity are assumed mounted like the "
                      f"map cameras (pitch {rep.pitch_deg:+.1f}°, roll {rep.roll_deg:+.1f}°)")
             if args.sequence:
-                localize = _stream_localizer(loc, args, camera, gravity, queries, timed)
+                localize = _stream_localizer(loc, args, camera, gravity, queries, timed, stack)
             else:
                 outputs = stack.enter_context(closing(EstimateOutputs(args.plot_matches, args.rerun)))
                 localize = _batch_localizer(loc, camera, gravity, gravity_file, pairs, outputs)
@@ -227,7 +232,7 @@ def _batch_localizer(loc: Localizer, camera: Camera | None, gravity: object | No
 
 
 def _stream_localizer(loc: Localizer, args: argparse.Namespace, camera: Camera | None, gravity: object | None,
-                      queries: list[QuerySource], timed: bool) -> LocalizeOne:
+                      queries: list[QuerySource], timed: bool, stack: ExitStack) -> LocalizeOne:
     from planarloc.io.odometry import read_odometry
     from planarloc.localize.sequence import SequenceLocalizer
 
@@ -236,7 +241,8 @@ def _stream_localizer(loc: Localizer, args: argparse.Namespace, camera: Camera |
     if odometry is not None and len(odometry) != len(queries):
         raise ValueError(f"{args.odometry}: {len(odometry)} odometry poses for {len(queries)} frames (without "
                          "timestamps in the image list the file must have one line per frame)")
-    seq = SequenceLocalizer(loc, sequence_config(args))
+    seq = stack.enter_context(SequenceLocalizer(loc, sequence_config(args)))
+    rerun = stream_rerun(args.rerun, loc, stack)
     frames = iter(range(len(queries)))  # the run localizes the queries once, in order
 
     def localize(q: QuerySource) -> dict:
@@ -249,7 +255,10 @@ def _stream_localizer(loc: Localizer, args: argparse.Namespace, camera: Camera |
         except (InputError, OSError) as exc:
             reason = f"{q.path}: {exc.strerror or exc}" if isinstance(exc, OSError) else str(exc)
             return error_record(q.name, reason, stamp=q.timestamp)
-        return frame_record(q.name, est)
+        record = frame_record(q.name, est)
+        if rerun is not None:
+            rerun.log_frame(q.name, record, query.camera, q.path)
+        return record
 
     return localize
 

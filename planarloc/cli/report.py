@@ -8,8 +8,11 @@ from pathlib import Path
 
 from rich.table import Table
 
-from planarloc.cli.console import info
-from planarloc.io.output import write_text_atomic
+import numpy as np
+
+from planarloc.cli.console import info, note
+from planarloc.cli.exit_codes import EXIT_OK, EXIT_PARTIAL
+from planarloc.io.output import atomic_output, write_text_atomic
 
 
 def print_summary_table(summaries: Sequence[dict], title: str) -> None:
@@ -37,3 +40,26 @@ def write_json(path: Path | None, data: object) -> None:
         return
     write_text_atomic(Path(path), json.dumps(data, indent=1))
     info(f"wrote {path}")
+
+
+def write_trajectory_plot(path: Path | None, map_images: Sequence, results: Sequence, title: str,
+                          g_world: object) -> None:
+    """The trajectory plot (``--plot``) in the map's gravity plane (:mod:`planarloc.viz.trajectory`)."""
+    if path is None:
+        return
+    from planarloc.viz.trajectory import save_localization_plot
+
+    centers = np.array([m.cam_from_world.center for m in map_images])
+    with atomic_output(path) as tmp:
+        save_localization_plot(tmp, centers, results, title, g_world=g_world)
+    info(f"wrote {path}")
+
+
+def partial_exit(results: Sequence, what: str) -> int:
+    """3 (and a note) when some of the ``results`` could not be processed (status ``error``), else 0."""
+    errors = [r for r in results if r.status == "error"]
+    if errors:
+        note(f"{len(errors)} of {len(results)} {what} could not be processed (e.g. {errors[0].reason}); they count "
+             "as failed")
+        return EXIT_PARTIAL
+    return EXIT_OK

@@ -14,12 +14,14 @@ associated by nearest timestamp within ``max_dt``; a frame without a sample gets
 sequence localizer then uses visual odometry for it).
 
 Image list for ``localize --sequence``: one frame per line, ``path`` or ``timestamp path``
-(paths relative to the list's folder), in stream order; ``#`` starts a comment.
+(paths relative to the list's folder), in stream order; ``#`` starts a comment. Each image once,
+timestamps increasing (an error names the line otherwise).
 """
 
 from __future__ import annotations
 
 import logging
+import os
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -70,6 +72,8 @@ def read_image_list(path: Path) -> list[tuple[float | None, Path]]:
     """``(timestamp or None, image path)`` per line of an image list (module docstring)."""
     path = Path(path)
     out: list[tuple[float | None, Path]] = []
+    seen: dict[str, int] = {}
+    last: tuple[float, int] | None = None
     for lineno, tokens in iter_data_lines(path, "image list", "one 'path' or 'timestamp path' per line"):
         if len(tokens) == 1:
             stamp, name = None, tokens[0]
@@ -80,6 +84,16 @@ def read_image_list(path: Path) -> list[tuple[float | None, Path]]:
         image = Path(name) if Path(name).is_absolute() else path.parent / name
         if not image.is_file():
             raise FormatError(path, lineno, f"image {image} does not exist")
+        key = os.path.realpath(image)
+        if key in seen:
+            raise FormatError(path, lineno, f"image {image} is already listed on line {seen[key]}; a stream shows "
+                                            "each frame once")
+        seen[key] = lineno
+        if stamp is not None:
+            if last is not None and stamp <= last[0]:
+                raise FormatError(path, lineno, f"timestamp {stamp:.6f} is not after line {last[1]}'s {last[0]:.6f}; "
+                                                "a stream's frames come in time order")
+            last = (stamp, lineno)
         out.append((stamp, image))
     if not out:
         raise FormatError(path, None, "expected one image per line, found none")

@@ -9,12 +9,16 @@ Schema: ``{"name": <query name>, "success": bool, "status": str, ...}``:
 - a query (:func:`query_record`): ``**PoseEstimate.to_dict()`` — ``message``, ``num_inliers``, ...,
   and ``query_gravity``, the unit gravity it was given (None: assumed mounted like the map cameras);
 - a stream frame (:func:`frame_record`): ``**SequenceEstimate.to_dict()`` — ``stamp``, ``status``
-  ``localized``/``predicted``/``lost``, ``covariance``, ``fix_status``, ...;
+  ``localized``/``predicted``/``lost``, ``covariance_xyz_rotvec``, ``fix_status``, ``latency_s``,
+  ``late``, ...;
 - a query or frame that could not be processed (:func:`error_record`): ``status`` ``"error"``
   and its ``reason`` (an unreadable image, a size different from its camera's).
 
 A returned pose is ``quat_wxyz`` (w, x, y, z) and ``t`` of ``cam_from_world``
-(x_cam = R·x_world + t); ``success`` says whether it may be used (:func:`record_pose`).
+(x_cam = R·x_world + t); ``success`` says whether it may be used (:func:`record_pose`). Its
+covariance, ``covariance_xyz_rotvec`` (6 × 6 nested lists; a query's only on success), is in ROS
+order for ``world_from_camera``: the camera centre (x, y, z in the map's world, metres), then a
+rotation vector about the world axes (radians) (docs/conventions.md, "Pose covariances").
 """
 
 from __future__ import annotations

@@ -12,6 +12,16 @@ Entities (timeline ``query`` = query number; the map is static):
     world/query/truth            ground-truth camera centre, and a line to the estimate
     world/query/references       lines from the estimate (or truth) to the used map images
     query/image                  the query image with its matches: inliers green, outliers red
+
+A stream (``localize --sequence``, ``evaluate --sequential``; :meth:`RerunLogger.log_frame`) uses
+the timeline ``stamp`` (the frame's time in seconds):
+
+    world/stream/estimate        the frame's camera (frustum) when it has a usable pose
+    world/stream/uncertainty     the 3-sigma ellipsoid of its position (covariance, ROS order)
+    world/stream/trajectory      the usable poses so far (line)
+    world/stream/truth           ground-truth centre, and a line to the estimate
+    stream/status                status, fix, motion, latency
+    stream/image                 the frame
 """
 
 from __future__ import annotations
@@ -20,6 +30,7 @@ from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from planarloc.geometry.camera import Camera
 from planarloc.geometry.pose import Pose
@@ -52,6 +63,7 @@ class RerunLogger:
         self.rec.log("world", self.rr.ViewCoordinates.RIGHT_HAND_Y_DOWN, static=True)
         self._map_centers: dict[str, np.ndarray] = {}
         self._step = 0
+        self._track: list[np.ndarray] = []
 
     def close(self) -> None:
         self.rec.flush()
@@ -65,6 +77,15 @@ class RerunLogger:
         self.rec.log(entity, rr.Pinhole(image_from_camera=camera.K, resolution=[camera.width, camera.height],
                                         camera_xyz=rr.ViewCoordinates.RDF, image_plane_distance=0.3, color=color),
                      static=static)
+
+    def _truth(self, entity: str, truth: Pose, anchor: np.ndarray | None) -> None:
+        """The ground-truth centre at ``entity``, and a line to the estimate's centre ``anchor``."""
+        rr = self.rr
+        self.rec.log(entity, rr.Points3D([truth.center], colors=GREEN, radii=0.05))
+        if anchor is not None:
+            self.rec.log(f"{entity}/error", rr.LineStrips3D([[anchor, truth.center]], colors=RED))
+        else:
+            self.rec.log(f"{entity}/error", rr.Clear(recursive=False))
 
     def log_map(self, images: Sequence[PosedImage]) -> None:
         """The map cameras (static): all centres, and frusta of up to MAX_MAP_FRUSTA of them."""
@@ -101,11 +122,7 @@ class RerunLogger:
             self.rec.log("world/query/estimate", rr.Clear(recursive=True))
             self.rec.log("world/query/uncertainty", rr.Clear(recursive=False))
         if truth is not None:
-            self.rec.log("world/query/truth", rr.Points3D([truth.center], colors=GREEN, radii=0.05))
-            if anchor is not None:
-                self.rec.log("world/query/truth/error", rr.LineStrips3D([[anchor, truth.center]], colors=RED))
-            else:
-                self.rec.log("world/query/truth/error", rr.Clear(recursive=False))
+            self._truth("world/query/truth", truth, anchor)
             anchor = anchor if anchor is not None else truth.center
         refs = [self._map_centers[n] for n in estimate.references if n in self._map_centers]
         if anchor is not None and refs:
@@ -120,3 +137,36 @@ class RerunLogger:
             if pairs:
                 self.rec.log("query/image/inliers", rr.Points2D(np.concatenate(q_in), colors=GREEN, radii=2.0))
                 self.rec.log("query/image/outliers", rr.Points2D(np.concatenate(q_out), colors=RED, radii=1.5))
+
+    def log_frame(self, name: str, record: dict, camera: Camera, image_path: Path | str | None = None,
+                  truth: Pose | None = None) -> None:
+        """One frame of a stream, from its record (``SequenceEstimate.to_dict()``), at its stamp."""
+        rr = self.rr
+        self.rec.set_time("stamp", duration=float(record["stamp"]))
+        latency = record.get("latency_s")
+        self.rec.log("stream/status", rr.TextDocument(
+            f"{name}: {record['status']}, fix {record.get('fix_status')}, motion {record.get('motion_source')}"
+            + ("" if latency is None else f", latency {1e3 * float(latency):.0f} ms")))
+        anchor = None
+        if record.get("success"):
+            pose = Pose.from_quat_wxyz(record["quat_wxyz"], record["t"])
+            anchor = pose.center
+            self._camera("world/stream/estimate", pose, camera, BLUE)
+            self._track.append(anchor)
+            self.rec.log("world/stream/trajectory", rr.LineStrips3D([np.array(self._track)], colors=BLUE))
+            cov = np.array(record["covariance_xyz_rotvec"], dtype=float)[:3, :3]
+            w, V = np.linalg.eigh(0.5 * (cov + cov.T))
+            if np.all(np.isfinite(w)):
+                if np.linalg.det(V) < 0:
+                    V[:, 0] = -V[:, 0]
+                q = Rotation.from_matrix(V).as_quat()  # x, y, z, w
+                self.rec.log("world/stream/uncertainty", rr.Ellipsoids3D(
+                    centers=[anchor], half_sizes=[3.0 * np.sqrt(np.maximum(w, 0.0))],
+                    quaternions=[rr.Quaternion(xyzw=q)], colors=ORANGE))
+        else:
+            self.rec.log("world/stream/estimate", rr.Clear(recursive=True))
+            self.rec.log("world/stream/uncertainty", rr.Clear(recursive=False))
+        if truth is not None:
+            self._truth("world/stream/truth", truth, anchor)
+        if image_path is not None:
+            self.rec.log("stream/image", rr.EncodedImage(path=str(image_path)))
