@@ -211,7 +211,8 @@ class Session:
 
     Every frame's answer is the record ``planarloc localize --sequence`` writes per frame (``status``
     ``localized`` / ``predicted`` / ``lost``, ``quat_wxyz`` and ``t`` of ``cam_from_world``, the
-    (6, 6) ``covariance`` of (rotation, centre), ...) with ``session`` ``{"id", "frame"}``.
+    (6, 6) ``covariance_xyz_rotvec`` in ROS order (docs/conventions.md), ...) with ``session``
+    ``{"id", "frame"}``. The server answers each frame with its own fix (``fixes="wait"``).
 
     Frames must come in time order (a stamp not after the last is refused with HTTP 409). When
     the server no longer holds the stream (evicted, or its worker died), :meth:`localize` raises

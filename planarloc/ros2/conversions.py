@@ -100,25 +100,6 @@ def ros_from_pose(pose: Pose) -> tuple[tuple[float, float, float], tuple[float, 
     return (float(pose.t[0]), float(pose.t[1]), float(pose.t[2])), (x, y, z, w)
 
 
-def ros_covariance_from_sequence(cam_from_world: Pose, covariance: np.ndarray) -> np.ndarray:
-    """(6, 6) ROS-order covariance of ``world_from_camera`` from a
-    :class:`~planarloc.localize.sequence.SequenceEstimate` covariance.
-
-    The stream's covariance is over ``(ω, δc)`` with ``R_cw = Exp(ω) R₀`` (a rotation about the
-    camera's axes) and the camera centre ``c`` (docs/conventions.md, "Pose covariances").
-    ``world_from_camera`` then rotates by ``φ = −R_wc ω`` about the world's axes, so
-    ``(δc, φ) = J (ω, δc)`` with ``J = [[0, I], [−R_wc, 0]]``.
-    """
-    cov = np.asarray(covariance, dtype=float)
-    if cov.shape != (6, 6) or not np.isfinite(cov).all():
-        raise InputError(f"covariance: expected a finite (6, 6) matrix, got shape {cov.shape}")
-    J = np.zeros((6, 6))
-    J[:3, 3:] = np.eye(3)
-    J[3:, :3] = -cam_from_world.R.T
-    out = J @ cov @ J.T
-    return 0.5 * (out + out.T)
-
-
 def ros_covariance_of_child(parent_from_frame: Pose, covariance: np.ndarray, frame_from_child: Pose) -> np.ndarray:
     """ROS-order covariance of ``parent_from_child = parent_from_frame · frame_from_child`` (a rigid
     offset, e.g. the base of a camera) from that of ``parent_from_frame``.

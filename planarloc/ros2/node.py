@@ -36,12 +36,15 @@ from collections.abc import Sequence
 from dataclasses import dataclass, fields
 from typing import Any
 
+import numpy as np
+
 from planarloc.extras import require
 from planarloc.geometry.pose import Pose
 from planarloc.geometry.validation import InputError
 from planarloc.io.rosbag import decode_image, parse_transform
 from planarloc.localize.localizer import Localizer, localizer_config
 from planarloc.localize.sequence import FrameStatus, SequenceConfig, SequenceEstimate, SequenceLocalizer
+from planarloc.localize.stream_config import FIX_MODES
 from planarloc.robust.options import Method
 from planarloc.ros2.conversions import (
     OdometryBuffer,
@@ -49,7 +52,6 @@ from planarloc.ros2.conversions import (
     camera_from_camera_info,
     map_from_odom,
     pose_from_ros,
-    ros_covariance_from_sequence,
     ros_covariance_of_child,
     ros_from_pose,
     stamp_parts,
@@ -87,6 +89,9 @@ class NodeSettings:
             single-frame estimator's limit (``RansacOptions.max_position_std_m``).
         method, structure, top_n, seed: the localizer's settings (``planarloc localize``'s options).
         window, local_top_n, vo_model, kidnap_confirmations: the stream's (``SequenceConfig``).
+        fixes: ``"background"`` (default: absolute fixes in a worker thread, frames posed by
+            tracking meanwhile) or ``"wait"`` (each frame waits for its fix: deterministic, for
+            replays and tests; ``SequenceConfig.fixes``).
     """
 
     map: str = ""
@@ -114,6 +119,7 @@ class NodeSettings:
     local_top_n: int = _SEQ.local_top_n
     vo_model: str = _SEQ.vo_model
     kidnap_confirmations: int = _SEQ.kidnap_confirmations
+    fixes: str = _SEQ.fixes
 
     def __post_init__(self) -> None:
         if not self.map:
@@ -121,6 +127,8 @@ class NodeSettings:
         methods = [m.value for m in Method]
         if self.method not in methods:
             raise InputError(f"parameter method: expected one of {', '.join(methods)}, got {self.method!r}")
+        if self.fixes not in FIX_MODES:
+            raise InputError(f"parameter fixes: expected one of {', '.join(FIX_MODES)}, got {self.fixes!r}")
         if self.image_qos not in ("sensor_data", "reliable"):
             raise InputError(f"parameter image_qos: expected 'sensor_data' or 'reliable', got {self.image_qos!r}")
         for name in ("odom_tolerance_s", "max_position_std_m"):
@@ -245,7 +253,7 @@ class LocalizerNode:
         self.sequence = SequenceLocalizer(
             Localizer(s.map, config),
             SequenceConfig(window=s.window, local_top_n=s.local_top_n, vo_model=s.vo_model,
-                           kidnap_confirmations=s.kidnap_confirmations))
+                           kidnap_confirmations=s.kidnap_confirmations, fixes=s.fixes))
 
     # ---- callbacks (executor thread: cheap) -------------------------------------------------
     def _on_image(self, msg: Any) -> None:
@@ -415,7 +423,9 @@ class LocalizerNode:
         if not self._publishable(est):
             return False
         world_from_camera = est.pose.inverse()  # type: ignore[union-attr]
-        cov = ros_covariance_from_sequence(est.pose, est.covariance)  # type: ignore[arg-type]
+        cov = np.asarray(est.covariance, dtype=float)  # (6, 6), ROS order already (SequenceEstimate.covariance)
+        if not np.isfinite(cov).all():
+            return False  # no promise without a finite covariance
         base_from_camera = self._frame_from_camera(self.settings.base_frame, camera_frame)
         if base_from_camera is not None:
             camera_from_base = base_from_camera.inverse()

@@ -37,7 +37,7 @@ from dataclasses import dataclass, field
 from planarloc.geometry.validation import InputError
 from planarloc.localize.localizer import Localizer, localizer_config
 from planarloc.localize.records import frame_record
-from planarloc.localize.sequence import SequenceLocalizer
+from planarloc.localize.sequence import SequenceConfig, SequenceLocalizer
 from planarloc.serve.requests import LocalizeRequest, RequestError, ServerFault, classify_error
 from planarloc.serve.settings import DEFAULT_MAX_SESSIONS, DEFAULT_SESSION_IDLE_S
 
@@ -221,7 +221,9 @@ class SessionStates:
                 config = localizer_config(method=method, structure=structure, seed=seed)
             except InputError as exc:
                 raise RequestError(400, str(exc)) from None
-            state = _State(generation, SequenceLocalizer(localizer.with_config(config)))
+            # Each request is answered with its frame's fix (``fixes="wait"``): a served frame has no
+            # frame path to keep at camera rate, and its answer is then the CLI's for the same frames.
+            state = _State(generation, SequenceLocalizer(localizer.with_config(config), SequenceConfig(fixes="wait")))
             self._states[sid] = state
         if state.last_stamp is not None and not req.stamp > state.last_stamp:
             raise RequestError(409, f"stamp: {req.stamp!r} is not after the last frame of session {sid!r} "

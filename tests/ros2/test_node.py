@@ -56,7 +56,8 @@ def _check_poses(result, truths: list[Pose], frames: list[ReplayFrame], child_fr
 
 def test_node_localizes_a_replayed_stream_with_odometry_and_publishes_map_to_odom(
         tiny_world: Path, world_map: Path, start_node) -> None:
-    node = start_node("--map", world_map, "--ros-args", "-p", "odom_topic:=/odom", "-p", "base_frame:=base_link")
+    node = start_node("--map", world_map, "--ros-args", "-p", "odom_topic:=/odom", "-p", "base_frame:=base_link",
+                      "-p", "fixes:=wait")  # a sparse stream: each frame needs its fix
     frames, truths = _frames(tiny_world, odometry=True)
     result = replay(frames, base_from_camera=BASE_FROM_CAMERA, wait_s=WAIT_S)
     good = _check_poses(result, truths, frames, BASE_FROM_CAMERA)
@@ -82,7 +83,7 @@ def test_node_localizes_a_replayed_stream_with_odometry_and_publishes_map_to_odo
 def test_compressed_images_without_odometry_give_the_camera_pose_and_no_transform(
         tiny_world: Path, world_map: Path, start_node) -> None:
     node = start_node("--map", world_map, "--ros-args", "-p", "image_topic:=/cam/image/compressed",
-                      "-p", "camera_info_topic:=/cam/camera_info", "-p", "odom_topic:=''")
+                      "-p", "camera_info_topic:=/cam/camera_info", "-p", "odom_topic:=''", "-p", "fixes:=wait")
     frames, truths = _frames(tiny_world, odometry=False)
     result = replay(frames, image_topic="/cam/image/compressed", camera_info_topic="/cam/camera_info",
                     wait_s=WAIT_S)

@@ -114,7 +114,7 @@ def test_a_robot_streams_its_frames_and_gets_the_sequence_record(fleet, tmp_path
     out = tmp_path / "poses.txt"
     odometry = fleet.world / "query" / "groundtruth.txt"  # the true motion as wheel odometry
     assert main(["localize", "--map", str(fleet.map_path), "--sequence", str(listing), "--odometry", str(odometry),
-                 "--camera", fleet.camera, "--out", str(out)]) == 0
+                 "--camera", fleet.camera, "--fixes", "wait", "--out", str(out)]) == 0
     local = [json.loads((tmp_path / "poses.txt.json.d" / f"{image.name}.json").read_text()) for _, image, _ in frames]
     with Client(fleet.url) as client:
         robot = client.session("robot-a", camera=fleet.camera)
@@ -127,7 +127,8 @@ def test_a_robot_streams_its_frames_and_gets_the_sequence_record(fleet, tmp_path
         if rec["success"]:
             np.testing.assert_allclose(rec["quat_wxyz"], loc["quat_wxyz"], atol=1e-6)
             np.testing.assert_allclose(rec["t"], loc["t"], atol=1e-6)
-            np.testing.assert_allclose(np.array(rec["covariance"], float), np.array(loc["covariance"], float),
+            np.testing.assert_allclose(np.array(rec["covariance_xyz_rotvec"], float),
+                                       np.array(loc["covariance_xyz_rotvec"], float),
                                        rtol=1e-4, atol=1e-9)
             assert np.linalg.norm(Pose.from_quat_wxyz(rec["quat_wxyz"], rec["t"]).center - truth.center) < 0.25
     assert all(r["status"] == "localized" for r in records) and robot.restarts == 0
