@@ -21,8 +21,21 @@ import numpy as np
 
 from planarloc.features.retrieval import VladVocabulary
 from planarloc.geometry.camera import Camera
-from planarloc.map.codec import decode_features, record_digest
-from planarloc.map.schema import BLOB_SHA_PREFIX, VOCABULARY_BLOB, MapFormatError, open_connection
+from planarloc.map.codec import (
+    KEYPOINT_LAYOUTS,
+    decode_basis,
+    decode_features,
+    decode_global,
+    global_row_problem,
+    record_digest,
+)
+from planarloc.map.schema import (
+    BLOB_SHA_PREFIX,
+    GLOBAL_BASIS_BLOB,
+    VOCABULARY_BLOB,
+    MapFormatError,
+    open_connection,
+)
 
 MAX_PROBLEMS = 50
 
@@ -147,10 +160,12 @@ def _check_rows(conn: sqlite3.Connection, report: MapCheckReport,
         if progress:
             progress(done, total)
 
+    global_encoding = meta.get("global_encoding", "float32")
     for image_id, gdim, data in conn.execute("SELECT image_id, dim, data FROM global_descriptors"):
-        if not isinstance(data, bytes) or not isinstance(gdim, int) or len(data) != 4 * gdim:
-            report.add(f"global_descriptors row {image_id}: blob length does not match dim {gdim}")
-        elif not np.isfinite(np.frombuffer(data, dtype="<f4")).all():
+        problem = global_row_problem(data, gdim, global_encoding)
+        if problem is not None:
+            report.add(f"global_descriptors row {image_id}: {problem}")
+        elif not np.isfinite(decode_global([data], gdim, global_encoding)).all():
             report.add(f"global_descriptors row {image_id}: non-finite values")
         elif global_sums.get(image_id) not in (None, hashlib.sha256(data).hexdigest()):
             report.add(f"global_descriptors row {image_id}: checksum mismatch")
@@ -163,6 +178,14 @@ def _check_rows(conn: sqlite3.Connection, report: MapCheckReport,
             report.add(f"blobs row {key!r}: not a blob")
         elif expected is not None and hashlib.sha256(data).hexdigest() != expected:
             report.add(f"blobs row {key!r}: checksum mismatch")
+    if global_encoding == "projected":
+        basis = conn.execute("SELECT data FROM blobs WHERE key = ?", (GLOBAL_BASIS_BLOB,)).fetchone()
+        try:
+            if basis is None:
+                raise MapFormatError("missing, but the global descriptors are projected on it")
+            decode_basis(basis[0])
+        except MapFormatError as exc:
+            report.add(f"blobs row {GLOBAL_BASIS_BLOB!r}: {exc}")
     vocab = conn.execute("SELECT data FROM blobs WHERE key = ?", (VOCABULARY_BLOB,)).fetchone()
     if vocab is not None:
         try:
@@ -186,7 +209,7 @@ def _check_features(kp_num: object, kp_blob: bytes, d_num: object, dim: object, 
     if meta.get("descriptor_dim") not in (None, str(dim)):
         return f"descriptor dimension {dim}, the map's is {meta.get('descriptor_dim')}"
     try:
-        decode_features(kp_num, kp_blob, dim, encoding, d_blob)
+        decode_features(kp_num, kp_blob, dim, encoding, d_blob, KEYPOINT_LAYOUTS.get(meta.get("storage", "full"), "?"))
     except MapFormatError as exc:
         return str(exc)
     return None

@@ -40,13 +40,25 @@ from planarloc.geometry.pose import Pose
 from planarloc.geometry.validation import InputError, check_array
 from planarloc.map import schema
 from planarloc.map.codec import (
+    DEFAULT_STORAGE,
     DESCRIPTOR_ENCODINGS,
+    GLOBAL_ENCODINGS,
+    KEYPOINT_LAYOUTS,
+    PROJECT_ABOVE,
+    PROJECTED_DIM,
+    STORAGE_LAYOUTS,
     camera_key,
     check_features,
+    check_storage,
     damaged_poses,
+    decode_basis,
     decode_features,
+    decode_global,
+    encode_basis,
     encode_descriptors,
+    encode_global,
     encode_keypoints,
+    global_row_problem,
     pose_columns,
     poses_from_columns,
     record_digest,
@@ -55,6 +67,7 @@ from planarloc.map.lock import MapWriterLock
 from planarloc.map.posed_image import PosedImage
 from planarloc.map.schema import (
     BLOB_SHA_PREFIX,
+    GLOBAL_BASIS_BLOB,
     IMAGE_COLUMNS,
     RESERVED_META,
     SOURCES_TABLE,
@@ -101,6 +114,12 @@ class MapDatabase:
         self._cameras: dict[int, Camera] = {}
         meta = dict(conn.execute("SELECT key, value FROM meta"))
         self._encoding = meta.get("descriptor_encoding", "auto")
+        self._storage = meta.get("storage", "full")  # maps from before storage layouts
+        self._global_encoding = meta.get("global_encoding", "float32")
+        if self._storage not in STORAGE_LAYOUTS or self._global_encoding not in GLOBAL_ENCODINGS:
+            raise MapCorruptError(f"{path}: meta.storage {self._storage!r} / meta.global_encoding "
+                                  f"{self._global_encoding!r} unknown; run `planarloc map check {path}`")
+        self._kp_layout = KEYPOINT_LAYOUTS[self._storage]
         try:
             self._dim: int | None = int(meta["descriptor_dim"]) if "descriptor_dim" in meta else None
             self._config: dict = json.loads(meta.get("config", "{}"))
@@ -117,6 +136,7 @@ class MapDatabase:
         config: Mapping[str, object],
         *,
         descriptor_encoding: str = "auto",
+        storage: str = DEFAULT_STORAGE,
         overwrite: bool = False,
         cache_size: int = DEFAULT_CACHE_SIZE,
         lock_timeout: float | None = None,
@@ -128,8 +148,12 @@ class MapDatabase:
             path: the map file to create (parent directories are created).
             config: feature configuration (JSON-serialisable dict, e.g. extractor name,
                 ``tilt`` flag, number of features), stored in ``meta.config``.
-            descriptor_encoding: ``"auto"`` (uint8 for non-negative descriptors, else
-                float16), ``"uint8"``, ``"float16"`` or ``"float32"``.
+            descriptor_encoding: ``"auto"`` (``uint4`` in compact maps, ``uint8`` in full ones,
+                for non-negative descriptors; else float16), ``"uint4"``, ``"uint8"``,
+                ``"float16"`` or ``"float32"`` (:mod:`planarloc.map.codec`).
+            storage: ``"compact"`` (default: about 55 bytes per RootSIFT feature, 8 KB per
+                global descriptor; ≤ 100 KB per KITTI image) or ``"full"`` (the layout of maps
+                before compact ones: 140 bytes per feature, 32 KB per global descriptor).
             overwrite: replace an existing file instead of raising.
             cache_size: number of images whose features :meth:`get_features` keeps in memory.
             lock_timeout: seconds to wait for another writer of the same file (None: for ever).
@@ -140,6 +164,7 @@ class MapDatabase:
         """
         path = Path(path)
         config_json = canonical_json(config)
+        storage = check_storage(storage)
         if descriptor_encoding not in DESCRIPTOR_ENCODINGS:
             raise InputError(
                 f"descriptor_encoding: expected one of {', '.join(DESCRIPTOR_ENCODINGS)}, got {descriptor_encoding!r}"
@@ -148,13 +173,13 @@ class MapDatabase:
         lock = _lock or MapWriterLock(path, timeout=lock_timeout)
         lock.acquire()
         try:
-            return cls._create_locked(path, config_json, descriptor_encoding, overwrite, cache_size, lock)
+            return cls._create_locked(path, config_json, descriptor_encoding, storage, overwrite, cache_size, lock)
         except BaseException:
             lock.release()
             raise
 
     @classmethod
-    def _create_locked(cls, path: Path, config_json: str, descriptor_encoding: str, overwrite: bool,
+    def _create_locked(cls, path: Path, config_json: str, descriptor_encoding: str, storage: str, overwrite: bool,
                        cache_size: int, lock: MapWriterLock) -> MapDatabase:
         if path.exists():
             if not overwrite:
@@ -177,6 +202,8 @@ class MapDatabase:
             "created_at": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
             "config": config_json,
             "descriptor_encoding": descriptor_encoding,
+            "storage": storage,
+            "global_encoding": "float32" if storage == "full" else "int8",
             "build_complete": "0",
         }
         # Build the schema in a temporary file and rename it: a crash never leaves a half-made map.
@@ -185,7 +212,7 @@ class MapDatabase:
             p.unlink(missing_ok=True)
         conn = sqlite3.connect(tmp, isolation_level=None)
         try:
-            conn.execute("PRAGMA page_size = 16384")
+            conn.execute("PRAGMA page_size = 4096")  # blobs fill whole overflow pages: small pages waste less
             conn.execute(f"PRAGMA application_id = {schema.APPLICATION_ID}")
             conn.execute("BEGIN")
             for stmt in schema.STATEMENTS:
@@ -349,6 +376,11 @@ class MapDatabase:
         return self.get_meta("build_complete") == "1"
 
     @property
+    def storage(self) -> str:
+        """The map's storage layout, ``"compact"`` or ``"full"`` (:mod:`planarloc.map.codec`)."""
+        return self._storage
+
+    @property
     def descriptor_dim(self) -> int | None:
         """Descriptor dimension D of the map, None while no image has features."""
         return self._dim
@@ -435,8 +467,8 @@ class MapDatabase:
             return existing
         kp, desc, scales = check_features(features, self._dim)
         n, dim = desc.shape
-        encoding, desc_blob = encode_descriptors(desc, self._encoding)
-        kp_blob = encode_keypoints(kp, scales)
+        encoding, desc_blob = encode_descriptors(desc, self._encoding, self._storage)
+        kp_blob = encode_keypoints(kp, scales, self._kp_layout)
         pose7 = pose_columns(posed.cam_from_world)
         digest = record_digest(posed.name, camera_key(posed.camera), pose7, n, kp_blob, dim, encoding, desc_blob)
         pending: dict = {}
@@ -550,7 +582,13 @@ class MapDatabase:
 
         Args:
             descriptors: ``{image name or id: (D,) vector}`` or ``(keys, (M, D) array)``.
-                Stored as float32 as given (normalise before if the retrieval needs it).
+                Normalise before if the retrieval needs it.
+
+        How they are stored (:mod:`planarloc.map.codec`): as given (float32) in a ``full`` map;
+        in a ``compact`` one as int8 (each value within ``max|v| / 254``), and, when vectors of
+        all images are given and there are more than ``PROJECT_ABOVE`` (2048) of them, as their
+        coordinates in the top-512 subspace of these vectors (:meth:`global_basis`); vectors
+        given later for some of the images are projected on that basis.
 
         Raises:
             InputError: unknown image, inconsistent dimensions, non-finite values.
@@ -573,24 +611,51 @@ class MapDatabase:
         ids = [self._resolve_id(k) for k in keys]
         if len(set(ids)) != len(ids):
             raise InputError("global descriptors: an image is given more than once")
-        existing = self._db.execute("SELECT dim FROM global_descriptors LIMIT 1").fetchone()
-        replace_all = existing is not None and mat.shape[1] != existing[0]
-        if replace_all:
-            stored = {r[0] for r in self._db.execute("SELECT image_id FROM global_descriptors")}
-            if not stored <= set(ids):
+        stored = {r[0] for r in self._db.execute("SELECT image_id FROM global_descriptors")}
+        replace_all = stored <= set(ids)
+        basis = self.global_basis()
+        if not replace_all:
+            dim = basis.shape[0] if basis is not None else self._db.execute(
+                "SELECT dim FROM global_descriptors LIMIT 1").fetchone()[0]
+            if mat.shape[1] != dim:
                 raise InputError(
-                    f"global descriptors: the map stores {existing[0]}-D vectors, got {mat.shape[1]}-D; "
+                    f"global descriptors: the map stores {dim}-D vectors, got {mat.shape[1]}-D; "
                     "give new vectors for all images to change the dimension"
                 )
-        rows = [(i, mat.shape[1], v.astype("<f4").tobytes()) for i, v in zip(ids, mat)]
+            encoding = self._global_encoding
+        elif self._storage == "full":
+            encoding, basis = "float32", None
+        elif len(ids) > PROJECT_ABOVE and mat.shape[1] > PROJECTED_DIM:
+            from planarloc.features.retrieval import subspace_basis
+
+            encoding, basis = "projected", subspace_basis(mat, PROJECTED_DIM)
+        else:
+            encoding, basis = "int8", None
+        values = mat @ basis if encoding == "projected" else mat
+        rows = [(i, values.shape[1], blob) for i, blob in zip(ids, encode_global(values, encoding))]
         with self._transaction() as conn:
             if replace_all:
                 conn.execute("DELETE FROM global_descriptors")
+                self._store_basis(conn, basis if encoding == "projected" else None)
+                conn.execute("INSERT OR REPLACE INTO meta (key, value) VALUES ('global_encoding', ?)", (encoding,))
             conn.executemany(
                 "INSERT OR REPLACE INTO global_descriptors (image_id, dim, data) VALUES (?, ?, ?)", rows
             )
             conn.executemany("UPDATE image_sources SET global_sha256 = ? WHERE image_id = ?",
                              [(hashlib.sha256(r[2]).hexdigest(), r[0]) for r in rows])
+        self._global_encoding = encoding
+
+    @staticmethod
+    def _store_basis(conn: sqlite3.Connection, basis: np.ndarray | None) -> None:
+        """Write (or remove) the projection basis blob inside the caller's transaction."""
+        if basis is None:
+            conn.execute("DELETE FROM blobs WHERE key = ?", (GLOBAL_BASIS_BLOB,))
+            conn.execute("DELETE FROM meta WHERE key = ?", (BLOB_SHA_PREFIX + GLOBAL_BASIS_BLOB,))
+            return
+        data = encode_basis(basis)
+        conn.execute("INSERT OR REPLACE INTO blobs (key, data) VALUES (?, ?)", (GLOBAL_BASIS_BLOB, data))
+        conn.execute("INSERT OR REPLACE INTO meta (key, value) VALUES (?, ?)",
+                     (BLOB_SHA_PREFIX + GLOBAL_BASIS_BLOB, hashlib.sha256(data).hexdigest()))
 
     def put_blob(self, key: str, data: bytes) -> None:
         """Store (replace) a named binary blob, e.g. a retrieval vocabulary or index."""
@@ -722,7 +787,7 @@ class MapDatabase:
     def _features_from_blobs(self, label: str, num: int, kp_blob: bytes, dim: int, encoding: str,
                              desc_blob: bytes) -> Features:
         try:
-            return decode_features(num, kp_blob, dim, encoding, desc_blob)
+            return decode_features(num, kp_blob, dim, encoding, desc_blob, self._kp_layout)
         except MapCorruptError as exc:
             raise row_error(self.path, label, str(exc)) from None
 
@@ -786,6 +851,8 @@ class MapDatabase:
 
         Returns:
             (M,) int64 image ids (ascending) and (M, D) float32 descriptors; (0,), (0, 0) if none.
+            In a map with a projection basis (:meth:`global_basis`), the (M, d) coordinates of
+            the descriptors in that basis.
         """
         rows = self._db.execute(
             "SELECT image_id, dim, data FROM global_descriptors ORDER BY image_id"
@@ -799,12 +866,29 @@ class MapDatabase:
             return np.zeros(0, dtype=np.int64), np.zeros((0, 0), dtype=np.float32)
         ids = np.array([r[0] for r in rows], dtype=np.int64)
         for image_id, dim, data in rows:
-            if dim != rows[0][1] or not isinstance(data, bytes) or len(data) != 4 * dim:
-                raise row_error(self.path, f"row id {image_id}", f"global descriptor blob is "
-                                  f"{len(data) if isinstance(data, bytes) else 'not a blob'} bytes, "
-                                  f"expected {4 * rows[0][1]}")
-        mat = np.frombuffer(b"".join(r[2] for r in rows), dtype="<f4").reshape(len(rows), rows[0][1])
-        return ids, mat.astype(np.float32)
+            problem = global_row_problem(data, dim, self._global_encoding)
+            if problem is None and dim != rows[0][1]:
+                problem = f"global descriptor of {dim} values, the others have {rows[0][1]}"
+            if problem is not None:
+                raise row_error(self.path, f"row id {image_id}", problem)
+        mat = decode_global([r[2] for r in rows], rows[0][1], self._global_encoding)
+        finite = np.isfinite(mat).all(axis=1)
+        if not finite.all():
+            raise row_error(self.path, f"row id {ids[np.argmin(finite)]}", "non-finite global descriptor")
+        return ids, mat
+
+    def global_basis(self) -> np.ndarray | None:
+        """The (D, d) orthonormal basis the global descriptors are coordinates in, or None when
+        they are stored whole (see :meth:`set_global_descriptors`)."""
+        if self._global_encoding != "projected":
+            return None
+        data = self.get_blob(GLOBAL_BASIS_BLOB)
+        if data is None:
+            raise row_error(self.path, f"blob {GLOBAL_BASIS_BLOB!r}", "missing (global descriptors are projected)")
+        try:
+            return decode_basis(data)
+        except MapCorruptError as exc:
+            raise row_error(self.path, f"blob {GLOBAL_BASIS_BLOB!r}", str(exc)) from None
 
     def get_blob(self, key: str) -> bytes | None:
         """A named blob, or None if it was never stored."""

@@ -64,11 +64,18 @@ def rng() -> np.random.Generator:
     return np.random.default_rng(7)
 
 
-def test_round_trip(tmp_path: Path, rng: np.random.Generator) -> None:
+# What each storage layout promises on a round trip: keypoint error (px, for a 640 px extent),
+# relative scale error, descriptor error per value (RootSIFT-like rows).
+ROUND_TRIP_TOL = {"full": (0.0, 0.0, 2e-3), "compact": (1 / 128, 2**-11, 0.04)}
+
+
+@pytest.mark.parametrize("storage", ["compact", "full"])
+def test_round_trip(tmp_path: Path, rng: np.random.Generator, storage: str) -> None:
     path = tmp_path / "maps" / "map.db"
     posed = [make_posed(i, CAM_A if i < 3 else CAM_B) for i in range(5)]
     feats = [make_features(rng, n) for n in (50, 0, 300, 7, 120)]
-    with MapDatabase.create(path, CONFIG) as db:
+    kp_tol, scale_rtol, desc_tol = ROUND_TRIP_TOL[storage]
+    with MapDatabase.create(path, CONFIG, storage=storage) as db:
         ids = [db.add_image(p, f) for p, f in zip(posed, feats)]
         assert not db.is_complete
         db.mark_complete()
@@ -76,7 +83,7 @@ def test_round_trip(tmp_path: Path, rng: np.random.Generator) -> None:
     assert len(set(ids)) == 5
 
     with MapDatabase.open(path) as db:
-        assert db.config == CONFIG
+        assert db.config == CONFIG and db.storage == storage
         assert db.is_complete and db.num_images() == 5 and db.descriptor_dim == 128
         assert db.image_names() == [p.name for p in posed]
         assert db.get_meta("schema_version") == str(SCHEMA_VERSION)
@@ -94,9 +101,9 @@ def test_round_trip(tmp_path: Path, rng: np.random.Generator) -> None:
                 got = db.get_features(key)
                 assert got.keypoints.dtype == got.descriptors.dtype == got.scales.dtype == np.float32
                 assert got.descriptors.shape == f.descriptors.shape
-                np.testing.assert_array_equal(got.keypoints, f.keypoints)
-                np.testing.assert_array_equal(got.scales, f.scales)
-                np.testing.assert_allclose(got.descriptors, f.descriptors, atol=2e-3)
+                np.testing.assert_allclose(got.keypoints, f.keypoints, rtol=0, atol=kp_tol)
+                np.testing.assert_allclose(got.scales, f.scales, rtol=scale_rtol, atol=0)
+                np.testing.assert_allclose(got.descriptors, f.descriptors, atol=desc_tol)
                 if len(got):
                     np.testing.assert_allclose(np.linalg.norm(got.descriptors, axis=1), 1.0, atol=1e-5)
             assert db.num_features(p.name) == len(f)
@@ -160,7 +167,7 @@ def test_resume_skips_existing_and_append(tmp_path: Path, rng: np.random.Generat
         db.mark_complete()
     with MapDatabase.open(path) as db:
         assert db.num_images() == 5 and db.is_complete
-        np.testing.assert_array_equal(db.get_features(make_posed(4).name).keypoints, feats[4].keypoints)
+        np.testing.assert_allclose(db.get_features(make_posed(4).name).keypoints, feats[4].keypoints, atol=1 / 64)
 
 
 def test_open_or_create_refuses_other_config(tmp_path: Path) -> None:
@@ -273,8 +280,9 @@ def test_newer_schema_asks_to_upgrade(tmp_path: Path) -> None:
         MapDatabase.open(path)
 
 
-def test_global_descriptors_blobs_meta(tmp_path: Path, rng: np.random.Generator) -> None:
-    with MapDatabase.create(tmp_path / "m.db", CONFIG) as db:
+@pytest.mark.parametrize("storage", ["full", "compact"])
+def test_global_descriptors_blobs_meta(tmp_path: Path, rng: np.random.Generator, storage: str) -> None:
+    with MapDatabase.create(tmp_path / "m.db", CONFIG, storage=storage) as db:
         ids = [db.add_image(make_posed(i), make_features(rng, 5)) for i in range(4)]
         ids0, empty = db.get_global_descriptors()
         assert ids0.shape == (0,) and empty.shape == (0, 0)
@@ -282,7 +290,9 @@ def test_global_descriptors_blobs_meta(tmp_path: Path, rng: np.random.Generator)
         db.set_global_descriptors((ids, g))
         got_ids, got = db.get_global_descriptors()
         np.testing.assert_array_equal(got_ids, ids)
-        np.testing.assert_array_equal(got, g)
+        # full: as given; compact: int8 with one scale per vector, within max|v| / 254
+        tol = 0.0 if storage == "full" else np.abs(g).max(axis=1, keepdims=True) / 254 * (1 + 1e-6)
+        assert np.all(np.abs(got - g) <= tol)
         db.set_global_descriptors({make_posed(1).name: np.zeros(16)})
         assert np.all(db.get_global_descriptors()[1][1] == 0)
         with pytest.raises(InputError, match="16-D"):
