@@ -9,6 +9,7 @@ import sys
 
 from planarloc.version import __version__
 from planarloc.cli import (
+    cache_command,
     demo_command,
     evaluate_command,
     localize_command,
@@ -37,7 +38,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--version", action="version", version=f"planarloc {__version__}")
     parser.add_argument("--verbose", "-v", action="count", default=0, help="more log output (-vv for debug)")
     sub = parser.add_subparsers(dest="command", required=True)
-    for module in (demo_command, map_command, localize_command, evaluate_command, serve_command, warmup_command):
+    for module in (demo_command, map_command, localize_command, evaluate_command, serve_command, warmup_command,
+                   cache_command):
         module.add_parser(sub)
     return parser
 

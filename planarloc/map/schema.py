@@ -7,10 +7,11 @@ A map is an embedded SQLite database (stdlib :mod:`sqlite3`). Schema (version 1)
         created_by       'planarloc'
         planarloc_version, created_at (ISO 8601 UTC)
         config           JSON of the feature configuration given at creation (map.settings)
-        descriptor_encoding  'auto' | 'uint4' | 'uint8' | 'float16' | 'float32' (map.codec)
+        descriptor_encoding  'auto' | 'uint4' | 'uint8' | 'float16' | 'float32' (map.codec; rows
+                         also 'klt', with the blob codec/descriptor_basis)
         storage          'compact' | 'full': the layout of keypoints and global descriptors
                          (map.codec); absent in maps from before layouts: 'full'
-        global_encoding  'float32' | 'int8' | 'projected' (map.codec); absent: 'float32'
+        global_encoding  'float32' | 'int4' | 'projected' (map.codec); absent: 'float32'
         descriptor_dim   D, set by the first image with features
         build_complete   '1' after mark_complete(), '0' while (re)building or appending
         blob_sha256/<key>  SHA-256 of each blob (checked when it is read)
@@ -29,7 +30,7 @@ A map is an embedded SQLite database (stdlib :mod:`sqlite3`). Schema (version 1)
                 encoding TEXT, data BLOB  -- N*D values, row-major (map.codec)
     global_descriptors(image_id PRIMARY KEY -> images.id, dim INTEGER,
                        data BLOB  -- (dim,) in meta.global_encoding (map.codec))
-    blobs(key TEXT PRIMARY KEY, data BLOB)   -- retrieval vocabulary, projection basis, any bytes
+    blobs(key TEXT PRIMARY KEY, data BLOB)   -- retrieval vocabulary, bases of the codecs, any bytes
     image_sources(image_id PRIMARY KEY -> images.id,
                   content_sha256 TEXT NULL  -- SHA-256 of the source image file's bytes
                   record_sha256 TEXT        -- SHA-256 of the stored row (map.codec.record_digest)
@@ -60,6 +61,8 @@ BLOB_SHA_PREFIX = "blob_sha256/"
 VOCABULARY_BLOB = "retrieval/vlad_vocabulary"
 #: The basis of projected global descriptors (``meta.global_encoding = 'projected'``).
 GLOBAL_BASIS_BLOB = "retrieval/global_basis"
+#: The transform of ``klt`` descriptor rows (compact maps; map.codec).
+DESCRIPTOR_BASIS_BLOB = "codec/descriptor_basis"
 #: Meta keys of the map's gravity (:mod:`planarloc.map.gravity`).
 GRAVITY_META = "gravity"
 WORLD_DOWN_META = "world_down"

@@ -48,16 +48,21 @@ from planarloc.map.codec import (
     PROJECTED_DIM,
     STORAGE_LAYOUTS,
     camera_key,
+    KLT_MIN_FEATURES,
+    DescriptorBasis,
     check_features,
     check_storage,
     damaged_poses,
     decode_basis,
+    decode_descriptor_basis,
     decode_features,
     decode_global,
     encode_basis,
+    encode_descriptor_basis,
     encode_descriptors,
     encode_global,
     encode_keypoints,
+    fit_descriptor_basis,
     global_row_problem,
     pose_columns,
     poses_from_columns,
@@ -67,6 +72,7 @@ from planarloc.map.lock import MapWriterLock
 from planarloc.map.posed_image import PosedImage
 from planarloc.map.schema import (
     BLOB_SHA_PREFIX,
+    DESCRIPTOR_BASIS_BLOB,
     GLOBAL_BASIS_BLOB,
     IMAGE_COLUMNS,
     RESERVED_META,
@@ -120,6 +126,7 @@ class MapDatabase:
             raise MapCorruptError(f"{path}: meta.storage {self._storage!r} / meta.global_encoding "
                                   f"{self._global_encoding!r} unknown; run `planarloc map check {path}`")
         self._kp_layout = KEYPOINT_LAYOUTS[self._storage]
+        self._basis: DescriptorBasis | None = None  # of klt rows, read on first use
         try:
             self._dim: int | None = int(meta["descriptor_dim"]) if "descriptor_dim" in meta else None
             self._config: dict = json.loads(meta.get("config", "{}"))
@@ -151,7 +158,7 @@ class MapDatabase:
             descriptor_encoding: ``"auto"`` (``uint4`` in compact maps, ``uint8`` in full ones,
                 for non-negative descriptors; else float16), ``"uint4"``, ``"uint8"``,
                 ``"float16"`` or ``"float32"`` (:mod:`planarloc.map.codec`).
-            storage: ``"compact"`` (default: about 55 bytes per RootSIFT feature, 8 KB per
+            storage: ``"compact"`` (default: about 29 bytes per RootSIFT feature, 4 KB per
                 global descriptor; ≤ 100 KB per KITTI image) or ``"full"`` (the layout of maps
                 before compact ones: 140 bytes per feature, 32 KB per global descriptor).
             overwrite: replace an existing file instead of raising.
@@ -203,7 +210,7 @@ class MapDatabase:
             "config": config_json,
             "descriptor_encoding": descriptor_encoding,
             "storage": storage,
-            "global_encoding": "float32" if storage == "full" else "int8",
+            "global_encoding": "float32" if storage == "full" else "int4",
             "build_complete": "0",
         }
         # Build the schema in a temporary file and rename it: a crash never leaves a half-made map.
@@ -212,7 +219,7 @@ class MapDatabase:
             p.unlink(missing_ok=True)
         conn = sqlite3.connect(tmp, isolation_level=None)
         try:
-            conn.execute("PRAGMA page_size = 4096")  # blobs fill whole overflow pages: small pages waste less
+            conn.execute("PRAGMA page_size = 1024")  # blobs fill whole overflow pages: small pages waste less
             conn.execute(f"PRAGMA application_id = {schema.APPLICATION_ID}")
             conn.execute("BEGIN")
             for stmt in schema.STATEMENTS:
@@ -467,12 +474,18 @@ class MapDatabase:
             return existing
         kp, desc, scales = check_features(features, self._dim)
         n, dim = desc.shape
-        encoding, desc_blob = encode_descriptors(desc, self._encoding, self._storage)
+        basis, new_basis = self.descriptor_basis(), None
+        if basis is None and self._storage == "compact" and self._encoding == "auto" and n >= KLT_MIN_FEATURES \
+                and bool(desc.min() >= 0):
+            basis = new_basis = fit_descriptor_basis(desc)  # the map's first image with enough features
+        encoding, desc_blob = encode_descriptors(desc, self._encoding, self._storage, basis)
         kp_blob = encode_keypoints(kp, scales, self._kp_layout)
         pose7 = pose_columns(posed.cam_from_world)
         digest = record_digest(posed.name, camera_key(posed.camera), pose7, n, kp_blob, dim, encoding, desc_blob)
         pending: dict = {}
         with self._transaction() as conn:
+            if new_basis is not None and encoding == "klt":
+                self._put_blob(conn, DESCRIPTOR_BASIS_BLOB, encode_descriptor_basis(new_basis))
             cam_id = self._camera_id(conn, posed.camera, pending)
             image_id = conn.execute(
                 f"INSERT INTO images ({IMAGE_COLUMNS}) VALUES (NULL, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
@@ -505,7 +518,21 @@ class MapDatabase:
             conn.execute("UPDATE meta SET value = '0' WHERE key = 'build_complete' AND value != '0'")
         self._camera_ids.update(pending)
         self._dim = dim
+        if new_basis is not None and encoding == "klt":
+            self._basis = new_basis
         return int(image_id)
+
+    def descriptor_basis(self) -> DescriptorBasis | None:
+        """The transform of the map's ``klt`` descriptor rows (:mod:`planarloc.map.codec`), None
+        while it has none."""
+        if self._basis is None:
+            data = self.get_blob(DESCRIPTOR_BASIS_BLOB)
+            if data is not None:
+                try:
+                    self._basis = decode_descriptor_basis(data)
+                except MapCorruptError as exc:
+                    raise row_error(self.path, f"blob {DESCRIPTOR_BASIS_BLOB!r}", str(exc)) from None
+        return self._basis
 
     def image_source(self, name: str) -> tuple[str | None, str | None] | None:
         """``(stored path, content SHA-256)`` of image ``name`` (None entries when unknown);
@@ -585,7 +612,7 @@ class MapDatabase:
                 Normalise before if the retrieval needs it.
 
         How they are stored (:mod:`planarloc.map.codec`): as given (float32) in a ``full`` map;
-        in a ``compact`` one as int8 (each value within ``max|v| / 254``), and, when vectors of
+        in a ``compact`` one with 4 bits a value (each within ``max|v| / 14``), and, when vectors of
         all images are given and there are more than ``PROJECT_ABOVE`` (2048) of them, as their
         coordinates in the top-512 subspace of these vectors (:meth:`global_basis`); vectors
         given later for some of the images are projected on that basis.
@@ -630,7 +657,7 @@ class MapDatabase:
 
             encoding, basis = "projected", subspace_basis(mat, PROJECTED_DIM)
         else:
-            encoding, basis = "int8", None
+            encoding, basis = "int4", None
         values = mat @ basis if encoding == "projected" else mat
         rows = [(i, values.shape[1], blob) for i, blob in zip(ids, encode_global(values, encoding))]
         with self._transaction() as conn:
@@ -652,18 +679,19 @@ class MapDatabase:
             conn.execute("DELETE FROM blobs WHERE key = ?", (GLOBAL_BASIS_BLOB,))
             conn.execute("DELETE FROM meta WHERE key = ?", (BLOB_SHA_PREFIX + GLOBAL_BASIS_BLOB,))
             return
-        data = encode_basis(basis)
-        conn.execute("INSERT OR REPLACE INTO blobs (key, data) VALUES (?, ?)", (GLOBAL_BASIS_BLOB, data))
-        conn.execute("INSERT OR REPLACE INTO meta (key, value) VALUES (?, ?)",
-                     (BLOB_SHA_PREFIX + GLOBAL_BASIS_BLOB, hashlib.sha256(data).hexdigest()))
+        MapDatabase._put_blob(conn, GLOBAL_BASIS_BLOB, encode_basis(basis))
 
     def put_blob(self, key: str, data: bytes) -> None:
         """Store (replace) a named binary blob, e.g. a retrieval vocabulary or index."""
-        data = bytes(data)
         with self._transaction() as conn:
-            conn.execute("INSERT OR REPLACE INTO blobs (key, data) VALUES (?, ?)", (str(key), data))
-            conn.execute("INSERT OR REPLACE INTO meta (key, value) VALUES (?, ?)",
-                         (BLOB_SHA_PREFIX + str(key), hashlib.sha256(data).hexdigest()))
+            self._put_blob(conn, str(key), bytes(data))
+
+    @staticmethod
+    def _put_blob(conn: sqlite3.Connection, key: str, data: bytes) -> None:
+        """Write a blob and its checksum inside the caller's transaction."""
+        conn.execute("INSERT OR REPLACE INTO blobs (key, data) VALUES (?, ?)", (key, data))
+        conn.execute("INSERT OR REPLACE INTO meta (key, value) VALUES (?, ?)",
+                     (BLOB_SHA_PREFIX + key, hashlib.sha256(data).hexdigest()))
 
     # ---- reading -------------------------------------------------------------------------------
     def _find_id(self, name: str) -> int | None:
@@ -787,7 +815,8 @@ class MapDatabase:
     def _features_from_blobs(self, label: str, num: int, kp_blob: bytes, dim: int, encoding: str,
                              desc_blob: bytes) -> Features:
         try:
-            return decode_features(num, kp_blob, dim, encoding, desc_blob, self._kp_layout)
+            return decode_features(num, kp_blob, dim, encoding, desc_blob, self._kp_layout,
+                                   self.descriptor_basis() if encoding == "klt" else None)
         except MapCorruptError as exc:
             raise row_error(self.path, label, str(exc)) from None
 
