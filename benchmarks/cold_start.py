@@ -82,7 +82,9 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     root.mkdir(parents=True, exist_ok=True)
     print("# Cold start: a fresh venv, the base install, the first pose")
-    print(peer.code_note())
+    head = subprocess.run(["git", "-C", str(REPO), "rev-parse", "--short", "HEAD"], check=True, capture_output=True,
+                          text=True).stdout.strip()
+    print(f"measured: the committed tree of {REPO} at git {head} (git archive HEAD)")
     print(peer.load_note("at start"))
     try:
         tree, venv = root / "tree", root / "venv"
@@ -135,7 +137,7 @@ def main(argv: list[str] | None = None) -> int:
         print(peer.verdict(ok, text))
     peer.write_json(args.json, {"steps": res, "cores": os.cpu_count(), "notice": notice, "warmup_lines": lines,
                                 "targets": [{"pass": ok, "text": t} for ok, t in checks], "load_average_end": load,
-                                "code": peer.code_version()})
+                                "git_head": head})
     return 0
 
 

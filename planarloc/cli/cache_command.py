@@ -26,7 +26,7 @@ from planarloc.map.schema import sidecars
 from planarloc.map.settings import CACHES, cache_dir
 
 KINDS = (*CACHES, "kernels")
-KERNELS = "numba's compiled kernels; `planarloc warmup` compiles them again (about a minute per core)"
+KERNELS = "numba's compiled kernels; `planarloc warmup` compiles them again (about 3 minutes of CPU, spread over every core)"
 
 
 @dataclass

@@ -1,7 +1,7 @@
 """`planarloc warmup`: compile every numba kernel a query uses into numba's on-disk cache, on all cores.
 
 numba compiles a kernel on its first call and caches the machine code next to the module
-(``__pycache__/*.nbi, *.nbc``). Compiling planarloc's kernels takes about 100 s of CPU, so a
+(``__pycache__/*.nbi, *.nbc``). Compiling planarloc's kernels takes about 170 s of CPU (kernels.json), so a
 fresh install or container would pay it on its first query; ``planarloc warmup`` at install or
 image-build time (``RUN planarloc warmup`` after ``pip install``) writes the cache once, and
 queries only load it.
@@ -432,8 +432,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p = add_command(sub, "warmup", "compile every numba kernel once, on all cores (run at install or image build time)",
                     """Compile every numba kernel a query uses into numba's on-disk cache: in parallel worker
                     processes (--jobs, default one per core), then by running each estimator once on small
-                    generated scenes, which loads them all. The first run on a machine takes about a minute of
-                    CPU per core; later runs, and queries, only load the cache. Progress goes to stderr (plain
+                    generated scenes, which loads them all. The first run on a machine takes about 3 minutes of
+                    CPU, spread over the cores; later runs, and queries, only load the cache. Progress goes to stderr (plain
                     lines without a terminal). In a Dockerfile, after pip install:
                     RUN planarloc warmup""",
                     ["planarloc warmup", "planarloc warmup --jobs 8"], run, interrupted=WARMUP_RESUMES)
