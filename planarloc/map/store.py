@@ -127,6 +127,7 @@ class MapDatabase:
                                   f"{self._global_encoding!r} unknown; run `planarloc map check {path}`")
         self._kp_layout = KEYPOINT_LAYOUTS[self._storage]
         self._basis: DescriptorBasis | None = None  # of klt rows, read on first use
+        self._poses: tuple[tuple[int, int], dict[int, Pose]] | None = None  # (map version, {id: pose})
         try:
             self._dim: int | None = int(meta["descriptor_dim"]) if "descriptor_dim" in meta else None
             self._config: dict = json.loads(meta.get("config", "{}"))
@@ -794,13 +795,26 @@ class MapDatabase:
     def posed_images(self) -> list[PosedImage]:
         """All image records (no features), in id order."""
         rows = self._db.execute(f"SELECT {IMAGE_COLUMNS} FROM images ORDER BY id").fetchall()
-        poses = self._poses_checked(rows, 3)
+        poses = self._poses_of(rows, 3)
         return [self._posed_from_row(r, pose) for r, pose in zip(rows, poses)]
 
     def load_all_poses(self) -> dict[str, Pose]:
         """``{name: cam_from_world}`` of all images, in id order."""
         rows = self._db.execute("SELECT id, name, qw, qx, qy, qz, tx, ty, tz FROM images ORDER BY id").fetchall()
-        return dict(zip((r[1] for r in rows), self._poses_checked(rows, 2)))
+        return dict(zip((r[1] for r in rows), self._poses_of(rows, 2)))
+
+    def _poses_of(self, rows: Sequence[tuple], first: int) -> list[Pose]:
+        """:meth:`_poses_checked`, reusing the poses already built while the map is unchanged (no
+        commit by this connection or another one since): the localizer reads all 20,000 poses of a
+        building-scale map twice when it opens (its images, then the map's gravity)."""
+        conn = self._db
+        version = (int(conn.execute("PRAGMA data_version").fetchone()[0]), conn.total_changes)
+        if self._poses is None or self._poses[0] != version:
+            self._poses = (version, {})
+        known = self._poses[1]
+        new = [r for r in rows if r[0] not in known]
+        known.update(zip((r[0] for r in new), self._poses_checked(new, first)))
+        return [known[r[0]] for r in rows]
 
     def _poses_checked(self, rows: Sequence[tuple], first: int) -> list[Pose]:
         """Poses of rows whose columns ``first:first + 7`` are (qw..tz); damaged rows are named."""

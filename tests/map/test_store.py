@@ -338,3 +338,25 @@ def test_lazy_open_and_cache(tmp_path: Path, rng: np.random.Generator) -> None:
         db.get_features(2)
         db.get_features(3)
         assert list(db._cache) == [2, 3]
+
+
+def test_poses_are_built_once_while_the_map_is_unchanged(tmp_path: Path, rng: np.random.Generator) -> None:
+    path = tmp_path / "map.db"
+    with MapDatabase.create(path, CONFIG) as db:
+        for i in range(3):
+            db.add_image(make_posed(i), make_features(rng, 20))
+    with MapDatabase.open(path) as reader:
+        first = {p.name: p.cam_from_world for p in reader.posed_images()}
+        again = reader.load_all_poses()
+        assert all(again[n] is first[n] for n in first)  # the same objects: validated once
+        with MapDatabase.open(path, "a") as writer:  # another connection commits: poses are read again
+            writer.add_image(make_posed(3), make_features(rng, 20))
+        after = reader.load_all_poses()
+        assert len(after) == 4
+        assert_pose_close(after[make_posed(3).name], make_posed(3).cam_from_world)
+        moved = Pose.identity()
+        with sqlite3.connect(path) as conn:  # a pose rewritten in place (same id)
+            conn.execute("UPDATE images SET qw = 1, qx = 0, qy = 0, qz = 0, tx = 0, ty = 0, tz = 0 WHERE name = ?",
+                         (make_posed(0).name,))
+        assert_pose_close(reader.load_all_poses()[make_posed(0).name], moved)
+        assert_pose_close(reader.posed_images()[0].cam_from_world, moved)
