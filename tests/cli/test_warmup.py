@@ -31,7 +31,10 @@ def test_the_kernel_list_names_real_cached_kernels_for_every_step() -> None:
     for key, kernel in manifest.kernels.items():
         d = _dispatcher(key)
         assert isinstance(d, Dispatcher) and hasattr(d._cache, "_cache_file"), key  # a cache=True kernel
-        assert kernel.signatures and all(parse_signature(s) is not None for s in kernel.signatures), key
+        # every signature parses but literal ones (``Literal[int](0)``: those specialisations compile with
+        # the kernels that call them, or when the steps run)
+        assert kernel.signatures and all(parse_signature(s) is not None for s in kernel.signatures
+                                         if "Literal[" not in s), key
         assert kernel.compile_s >= 0
 
 
