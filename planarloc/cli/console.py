@@ -5,7 +5,7 @@
   :func:`results_on_stdout` sends information to stderr, so that stdout holds only the results.
 - :func:`note`: warnings and diagnostics (a query that could not be processed, ``map check``'s
   problems, the ``serve`` banner), on stderr.
-- :func:`progress_bar`: one bar per stage, on stderr.
+- :func:`progress_bar`: one bar per stage on stderr (plain lines without a terminal).
 
 Lines are never hard-wrapped (paths and commands stay copy-pasteable); tables are laid out for
 at least 120 columns when the output is not a terminal. Library code only receives plain
@@ -18,7 +18,8 @@ from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 
 from rich.console import Console
-from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
+
+from planarloc.cli.progress import progress_reporter
 
 #: Columns of a table when the output is a file or a pipe (rich would assume 80).
 MIN_TABLE_WIDTH = 120
@@ -57,14 +58,7 @@ def notify(line: str) -> None:
 
 @contextmanager
 def progress_bar() -> Iterator[Callable[[str, int, int], None]]:
-    """Yield ``update(stage, done, total)``; one bar per stage, shown on stderr."""
-    with Progress(TextColumn("[bold]{task.description:<16}"), BarColumn(), MofNCompleteColumn(),
-                  TimeElapsedColumn(), TimeRemainingColumn(), console=stderr_console, transient=False) as prog:
-        tasks: dict[str, int] = {}
-
-        def update(stage: str, done: int, total: int) -> None:
-            if stage not in tasks:
-                tasks[stage] = prog.add_task(stage, total=total)
-            prog.update(tasks[stage], completed=done, total=total)
-
+    """Yield ``update(stage, done, total)``: one bar per stage on stderr, plain lines when stderr
+    is not a terminal (:mod:`planarloc.cli.progress`)."""
+    with progress_reporter(stderr_console) as update:
         yield update

@@ -12,6 +12,7 @@ from planarloc.cli.commands import add_command
 from planarloc.cli.console import info, progress_bar
 from planarloc.cli.exit_codes import DEMO_RESUMES
 from planarloc.cli.report import print_summary_table, write_json
+from planarloc.cli.warmup_command import compile_ahead, steps_for
 from planarloc.evaluation.queries import config_label, evaluate_configs, summarize
 from planarloc.features.extract import FeatureConfig
 from planarloc.io.datasets import read_dataset
@@ -49,13 +50,14 @@ def run(args: argparse.Namespace) -> int:
     out = args.out
     check_output_dir(out, "--out")  # before rendering anything
     features = FeatureConfig(tilt=args.tilt)
+    configs = [LocalizerConfig(method=args.method, ransac=RansacOptions(structure=s)) for s in ("none", "tracks")]
+    compile_ahead(steps_for(configs))
     with progress_bar() as update:
         world = generate(args.preset, out / "world", seed=args.seed, progress=lambda d, n: update("render world", d, n))
         map_images = read_dataset(world / "map", "tum")
         queries = read_dataset(world / "query", "tum")
         map_path = out / f"map-{features.name}.db"
         build_map(map_images, map_path, features, progress=update)
-        configs = [LocalizerConfig(method=args.method, ransac=RansacOptions(structure=s)) for s in ("none", "tracks")]
         with MapDatabase.open(map_path) as db:
             results = evaluate_configs(db, configs, queries, lambda d, n: update("localize", d, n))
     summaries = [summarize(r, *config_label(c), preset=args.preset, seed=args.seed, tilt=args.tilt)

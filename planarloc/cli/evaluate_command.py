@@ -9,7 +9,8 @@ from contextlib import closing
 from pathlib import Path
 
 from planarloc.cli.commands import add_command
-from planarloc.cli.console import note, notify, progress_bar
+from planarloc.cli.console import info, note, notify, progress_bar
+from planarloc.cli.warmup_command import compile_ahead, steps_for
 from planarloc.cli.cross_session import add_cross_session_args, read_map_and_queries
 from planarloc.cli.exit_codes import EVALUATE_RESUMES
 from planarloc.cli.options import (
@@ -94,6 +95,7 @@ def run(args: argparse.Namespace) -> int:
     for option, path in outputs.items():
         check_output_file(path, option, image_paths)
     note(f"map: {len(map_images)} frames -> {map_path}; queries: {len(queries)} frames")
+    compile_ahead(steps_for([config]))
     if args.sequential:
         with progress_bar() as update:
             build_map(map_images, map_path, features, num_words=num_words, progress=update, notify=notify)

@@ -34,6 +34,7 @@ from planarloc.cli.query_sources import QuerySource, dataset_queries, image_quer
 from planarloc.cli.remote_localize import add_server_args, check_remote_args, remote_localizer
 from planarloc.cli.result_outputs import EstimateOutputs, add_output_args
 from planarloc.cli.sequence_cli import add_sequence_args, check_stream_args, sequence_config, stream_rerun
+from planarloc.cli.warmup_command import compile_ahead, steps_for
 from planarloc.geometry.camera import Camera
 from planarloc.geometry.validation import InputError
 from planarloc.io.datasets import FORMATS
@@ -167,6 +168,7 @@ def run(args: argparse.Namespace) -> int:
             where = f" via {args.server}"
         else:
             loc = Localizer(args.map, localizer_config_of(args))
+            compile_ahead(steps_for([loc.config]))
             if camera is None and len(loc.map_cameras) != 1 and not all(q.camera for q in queries):
                 raise ValueError(f"the map has {len(loc.map_cameras)} cameras: pass the query intrinsics with --camera")
             if gravity is None and gravity_file is None:
@@ -196,6 +198,7 @@ def run_queries(writer: ResultsWriter, queries: list[QuerySource], localize: Loc
     interrupted). Returns the exit code: 3 if a query could not be processed, else 0."""
     try:
         with progress_bar() as update:
+            update(stage, 0, len(queries))  # the bar's time starts with the first query
             for i, q in enumerate(queries):
                 record = localize(q)
                 if record["status"] == "error":

@@ -9,6 +9,7 @@ import sys
 
 from planarloc.version import __version__
 from planarloc.cli import (
+    cache_command,
     demo_command,
     evaluate_command,
     localize_command,
@@ -39,7 +40,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--verbose", "-v", action="count", default=0, help="more log output (-vv for debug)")
     sub = parser.add_subparsers(dest="command", required=True)
     for module in (demo_command, map_command, localize_command, evaluate_command, serve_command, ros2_command,
-                   warmup_command):
+                   warmup_command, cache_command):
         module.add_parser(sub)
     return parser
 

@@ -23,6 +23,7 @@ from planarloc.gravity.world import gravity_in_camera
 from planarloc.localize.localizer import Localizer, LocalizerConfig
 from planarloc.map.posed_image import PosedImage
 from planarloc.map.schema import MapFormatError
+from planarloc.map.settings import cache_dir
 from planarloc.map.store import MapDatabase
 from planarloc.robust.result import PoseEstimate
 
@@ -243,7 +244,6 @@ def default_map_path(dataset_root: Path, map_every: int, feature_name: str,
     """
     import hashlib
     import os
-    import tempfile
 
     h = hashlib.sha1(f"{Path(dataset_root).resolve()}|{map_every}|{feature_name}|{settings}".encode())
     for im in map_images:
@@ -255,4 +255,4 @@ def default_map_path(dataset_root: Path, map_every: int, feature_name: str,
         h.update(f"|{im.name}|{Path(im.path).absolute()}|{size}|{im.camera}".encode())
         h.update(np.concatenate([pose.R.ravel(), pose.t]).astype("<f8").tobytes())
     key = h.hexdigest()[:12]
-    return Path(tempfile.gettempdir()) / "planarloc-maps" / f"{Path(dataset_root).name}-every{map_every}-{key}.db"
+    return cache_dir("maps") / f"{Path(dataset_root).name}-every{map_every}-{key}.db"

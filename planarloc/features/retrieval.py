@@ -9,6 +9,14 @@ intra-normalisation (L2 per word), the signed power law ``sign(v)·|v|^α`` with
 final L2 normalisation. Images are compared by
 the dot product (cosine similarity) in a faiss ``IndexFlatIP``.
 
+Large maps search a subspace: :func:`subspace_basis` gives an orthonormal basis (D, d) of the
+top-d singular subspace of the map's vectors (uncentred PCA, no whitening), and
+:class:`GlobalIndex` with ``basis`` compares ``basisᵀ q`` with the map's coordinates. For a map
+of at most d images the subspace holds every map vector and the scores are exact; beyond, the
+part of a vector outside the top-d subspace is dropped (Jégou et al., TPAMI 2012, Sec. 4: PCA
+to a few hundred dimensions keeps VLAD's retrieval quality). The map store decides when
+(:mod:`planarloc.map.codec`, ``projected``).
+
 Not done (on purpose): PCA-whitening. It must be learned from the map, whose few hundred
 images cannot estimate a covariance in k·D = 8192 dimensions beyond M − 1 components, and we
 have no held-out place-recognition set here to show a gain; NetVLAD (the paper's choice) needs
@@ -23,6 +31,7 @@ from collections.abc import Mapping, Sequence
 
 import faiss
 import numpy as np
+import scipy.linalg
 
 from planarloc.geometry.validation import InputError, check_array
 
@@ -201,18 +210,77 @@ def vlad_descriptor(vocab: VladVocabulary, descriptors: object, power: float = D
     return (v / n).astype(np.float32) if n > 0 else v.astype(np.float32)
 
 
+def _orthonormal(y: np.ndarray) -> np.ndarray:
+    """Orthonormal columns spanning ``y``'s (numerically non-null) range: CholeskyQR2 (Fukaya et
+    al. 2014: two Cholesky-QR passes; LAPACK's Householder QR of a tall 8192 x 522 matrix costs
+    10x more), through the Gram matrix' eigenvectors when ``y`` is rank deficient."""
+    for _ in range(2):
+        g = y.T.astype(np.float64) @ y.astype(np.float64)
+        try:
+            r = scipy.linalg.cholesky(g, lower=False)
+            y = scipy.linalg.solve_triangular(r, y.T.astype(np.float64), trans="T", lower=False).T.astype(np.float32)
+        except np.linalg.LinAlgError:
+            w, v = np.linalg.eigh(g)
+            keep = w > w[-1] * 1e-10
+            y = y @ (v[:, keep] / np.sqrt(w[keep])).astype(np.float32)
+    return y
+
+
+def subspace_basis(vectors: object, dim: int, seed: int = 0, max_rows: int = 4096,
+                   power_iterations: int = 2) -> np.ndarray:
+    """Orthonormal basis (D, d) of the top-``dim`` right singular subspace of (M, D) vectors.
+
+    Args:
+        vectors: (M, D) float32, e.g. the VLAD vectors of a map's images.
+        dim: d, the subspace dimension (clipped to min(M, D)).
+        seed: seeds the row sample and the random test matrix.
+        max_rows: at most this many rows (a uniform sample) estimate the subspace.
+        power_iterations: subspace iterations of the randomized range finder.
+
+    Returns:
+        (D, d) float32 with orthonormal columns, in order of decreasing singular value (fewer
+        than d when the vectors span fewer dimensions).
+
+    References:
+        Halko, Martinsson & Tropp, "Finding structure with randomness", SIAM Review 2011,
+        Alg. 4.4 (randomized subspace iteration) and Alg. 5.1 (direct SVD), applied to Xᵀ;
+        10 extra test vectors (their Sec. 4.2). Exact (up to rounding) when M ≤ d.
+    """
+    x = check_array("vectors", vectors, (None, None), dtype=np.float32)
+    if x.shape[0] < 1 or x.shape[1] < 1 or int(dim) < 1:
+        raise InputError(f"vectors: expected shape (M >= 1, D >= 1) and dim >= 1, got {x.shape} and {dim}")
+    rng = np.random.default_rng(seed)
+    if len(x) > max_rows:
+        x = x[np.sort(rng.choice(len(x), size=max_rows, replace=False))]
+    d = min(int(dim), *x.shape)
+    if len(x) <= d + 10:  # few rows: the exact thin SVD is cheap
+        _, sv, vt = np.linalg.svd(x, full_matrices=False)
+        d = min(d, int(np.sum(sv > sv[0] * 1e-6)))  # without the directions x does not span
+        return np.ascontiguousarray(vt[:d].T, dtype=np.float32)
+    q = _orthonormal(x.T @ rng.standard_normal((len(x), d + 10), dtype=np.float32))  # (D, d + 10): range of Xᵀ
+    for _ in range(power_iterations):
+        q = _orthonormal(x.T @ _orthonormal(x @ q))
+    b = x @ q
+    u, _, _ = np.linalg.svd(b.T @ b)  # (d + 10)²: the left singular vectors of qᵀ Xᵀ
+    return np.ascontiguousarray((q @ u[:, :d]), dtype=np.float32)
+
+
 class GlobalIndex:
     """Exact cosine-similarity search over global descriptors (faiss ``IndexFlatIP``).
 
     Args:
         descriptors: (M, D) float32 global descriptors of the map images, unit L2 norm
-            (e.g. from :func:`vlad_descriptor`); row ``i`` is map image ``i``.
+            (e.g. from :func:`vlad_descriptor`); row ``i`` is map image ``i``. With ``basis``:
+            (M, d) coordinates of those descriptors in the basis.
+        basis: optional (D, d) orthonormal basis (:func:`subspace_basis`); queries are projected
+            on it (``basisᵀ q``) before the search.
     """
 
-    def __init__(self, descriptors: object) -> None:
+    def __init__(self, descriptors: object, basis: object | None = None) -> None:
         d = check_array("descriptors", descriptors, (None, None), dtype=np.float32)
         if d.shape[0] < 1 or d.shape[1] < 1:
             raise InputError(f"descriptors: expected shape (M >= 1, D >= 1), got {d.shape}")
+        self._basis = None if basis is None else check_array("basis", basis, (None, d.shape[1]), dtype=np.float32)
         self._index = faiss.IndexFlatIP(d.shape[1])
         self._index.add(d)
 
@@ -221,7 +289,8 @@ class GlobalIndex:
 
     @property
     def dim(self) -> int:
-        return int(self._index.d)
+        """The dimension of the query descriptors (D; the basis' rows when projected)."""
+        return int(self._index.d if self._basis is None else self._basis.shape[0])
 
     def search(self, query_desc: object, top_n: int = DEFAULT_TOP_N) -> tuple[np.ndarray, np.ndarray]:
         """The ``top_n`` most similar map images.
@@ -245,6 +314,8 @@ class GlobalIndex:
                 f"query_desc: expected shape ({self.dim},) or (Q, {self.dim}), got {np.shape(query_desc)}"
             )
         n = min(int(top_n), len(self))
+        if self._basis is not None:
+            q = q @ self._basis
         scores, indices = self._index.search(np.ascontiguousarray(q), n)
         indices = indices.astype(np.int64)
         return (indices[0], scores[0]) if single else (indices, scores)

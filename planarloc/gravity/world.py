@@ -283,7 +283,7 @@ def _estimate(poses: list[Pose]) -> tuple[np.ndarray, str, str, float | None, np
     warnings: list[str] = []
     n = len(poses)
     if n >= 2:
-        _, s, vt = np.linalg.svd(centers - centers.mean(axis=0), full_matrices=True)
+        _, s, vt = np.linalg.svd(centers - centers.mean(axis=0), full_matrices=n < 3)  # vt is 3x3; no n x n U
         s = np.concatenate([s, np.zeros(3 - len(s))]) / math.sqrt(n)
     else:
         s, vt = np.zeros(3), np.eye(3)

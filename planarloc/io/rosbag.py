@@ -48,7 +48,6 @@ import hashlib
 import logging
 import math
 import os
-import tempfile
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -66,6 +65,7 @@ from planarloc.io.output import write_file
 from planarloc.io.text import T_XYZW, parse_camera, parse_pose, pose_from_numbers
 from planarloc.io.tum import associate_timestamps
 from planarloc.map.posed_image import PosedImage
+from planarloc.map.settings import cache_dir
 
 logger = logging.getLogger(__name__)
 
@@ -261,7 +261,7 @@ def default_image_dir(paths: Sequence[Path], image_topic: str) -> Path:
         for f in files:
             st = f.stat()
             h.update(f"{f.resolve()}|{st.st_size}|{st.st_mtime_ns}".encode())
-    return Path(tempfile.gettempdir()) / "planarloc-bags" / f"{Path(paths[0]).stem}-{h.hexdigest()[:12]}"
+    return cache_dir("bags") / f"{Path(paths[0]).stem}-{h.hexdigest()[:12]}"
 
 
 def _pick_topic(topics: dict[str, str], wanted: str | None, types: Sequence[str], option: str, root: Path,

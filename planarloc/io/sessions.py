@@ -9,7 +9,6 @@ that repeat get ``-2``, ``-3``, ... appended.
 from __future__ import annotations
 
 import hashlib
-import tempfile
 from collections.abc import Sequence
 from dataclasses import replace
 from pathlib import Path
@@ -17,6 +16,7 @@ from pathlib import Path
 from planarloc.geometry.validation import InputError
 from planarloc.io.datasets import read_dataset
 from planarloc.map.posed_image import PosedImage
+from planarloc.map.settings import cache_dir
 
 
 def session_labels(roots: Sequence[str | Path]) -> list[str]:
@@ -60,4 +60,4 @@ def sessions_map_path(roots: Sequence[str | Path], fmt: str, options: dict, feat
     key = "|".join([*(str(Path(r).resolve()) for r in roots), fmt, repr(sorted(options.items())), feature_name])
     digest = hashlib.sha1(key.encode()).hexdigest()[:12]
     name = "+".join(session_labels(roots))[:80]
-    return Path(tempfile.gettempdir()) / "planarloc-maps" / f"{name}-{digest}.db"
+    return cache_dir("maps") / f"{name}-{digest}.db"

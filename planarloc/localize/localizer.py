@@ -123,7 +123,7 @@ class Localizer:
             raise InputError(f"{self.db.path}: the map has no retrieval index; re-run `planarloc map build` on it")
         self.vocabulary = VladVocabulary.from_bytes(blob)
         self.index_ids = ids
-        self.index = GlobalIndex(descs)
+        self.index = GlobalIndex(descs, basis=self.db.global_basis())
         self._posed = {p.name: p for p in self.db.posed_images()}
         self._by_id = {self.db.image_id(n): n for n in self._posed}
         self._depth_cache: OrderedDict[str, np.ndarray | None] = OrderedDict()

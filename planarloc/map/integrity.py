@@ -21,8 +21,24 @@ import numpy as np
 
 from planarloc.features.retrieval import VladVocabulary
 from planarloc.geometry.camera import Camera
-from planarloc.map.codec import decode_features, record_digest
-from planarloc.map.schema import BLOB_SHA_PREFIX, VOCABULARY_BLOB, MapFormatError, open_connection
+from planarloc.map.codec import (
+    KEYPOINT_LAYOUTS,
+    DescriptorBasis,
+    decode_basis,
+    decode_descriptor_basis,
+    decode_features,
+    decode_global,
+    global_row_problem,
+    record_digest,
+)
+from planarloc.map.schema import (
+    BLOB_SHA_PREFIX,
+    DESCRIPTOR_BASIS_BLOB,
+    GLOBAL_BASIS_BLOB,
+    VOCABULARY_BLOB,
+    MapFormatError,
+    open_connection,
+)
 
 MAX_PROBLEMS = 50
 
@@ -104,6 +120,7 @@ def _check_rows(conn: sqlite3.Connection, report: MapCheckReport,
         except (ValueError, TypeError) as exc:
             report.add(f"cameras row {cam_id}: damaged ({exc})")
 
+    basis = _descriptor_basis(conn, report)
     has_sources = conn.execute(
         "SELECT 1 FROM sqlite_master WHERE type = 'table' AND name = 'image_sources'").fetchone() is not None
     digests, global_sums = {}, {}
@@ -137,7 +154,7 @@ def _check_rows(conn: sqlite3.Connection, report: MapCheckReport,
         elif not isinstance(kp_blob, bytes) or not isinstance(d_blob, bytes):
             report.add(f"{where}: feature data is not a blob")
         else:
-            problem = _check_features(kp_num, kp_blob, d_num, dim, encoding, d_blob, meta)
+            problem = _check_features(kp_num, kp_blob, d_num, dim, encoding, d_blob, meta, basis)
             if problem:
                 report.add(f"{where}: {problem}")
             elif image_id in digests and cam_id in cameras:
@@ -147,10 +164,12 @@ def _check_rows(conn: sqlite3.Connection, report: MapCheckReport,
         if progress:
             progress(done, total)
 
+    global_encoding = meta.get("global_encoding", "float32")
     for image_id, gdim, data in conn.execute("SELECT image_id, dim, data FROM global_descriptors"):
-        if not isinstance(data, bytes) or not isinstance(gdim, int) or len(data) != 4 * gdim:
-            report.add(f"global_descriptors row {image_id}: blob length does not match dim {gdim}")
-        elif not np.isfinite(np.frombuffer(data, dtype="<f4")).all():
+        problem = global_row_problem(data, gdim, global_encoding)
+        if problem is not None:
+            report.add(f"global_descriptors row {image_id}: {problem}")
+        elif not np.isfinite(decode_global([data], gdim, global_encoding)).all():
             report.add(f"global_descriptors row {image_id}: non-finite values")
         elif global_sums.get(image_id) not in (None, hashlib.sha256(data).hexdigest()):
             report.add(f"global_descriptors row {image_id}: checksum mismatch")
@@ -163,6 +182,14 @@ def _check_rows(conn: sqlite3.Connection, report: MapCheckReport,
             report.add(f"blobs row {key!r}: not a blob")
         elif expected is not None and hashlib.sha256(data).hexdigest() != expected:
             report.add(f"blobs row {key!r}: checksum mismatch")
+    if global_encoding == "projected":
+        basis = conn.execute("SELECT data FROM blobs WHERE key = ?", (GLOBAL_BASIS_BLOB,)).fetchone()
+        try:
+            if basis is None:
+                raise MapFormatError("missing, but the global descriptors are projected on it")
+            decode_basis(basis[0])
+        except MapFormatError as exc:
+            report.add(f"blobs row {GLOBAL_BASIS_BLOB!r}: {exc}")
     vocab = conn.execute("SELECT data FROM blobs WHERE key = ?", (VOCABULARY_BLOB,)).fetchone()
     if vocab is not None:
         try:
@@ -177,8 +204,19 @@ def _check_rows(conn: sqlite3.Connection, report: MapCheckReport,
             report.add(f"the map is marked complete but {total - n_global} image(s) lack a global descriptor")
 
 
+def _descriptor_basis(conn: sqlite3.Connection, report: MapCheckReport) -> DescriptorBasis | None:
+    row = conn.execute("SELECT data FROM blobs WHERE key = ?", (DESCRIPTOR_BASIS_BLOB,)).fetchone()
+    if row is None:
+        return None
+    try:
+        return decode_descriptor_basis(row[0] if isinstance(row[0], bytes) else b"")
+    except MapFormatError as exc:
+        report.add(f"blobs row {DESCRIPTOR_BASIS_BLOB!r}: {exc}")
+        return None
+
+
 def _check_features(kp_num: object, kp_blob: bytes, d_num: object, dim: object, encoding: object,
-                    d_blob: bytes, meta: dict) -> str | None:
+                    d_blob: bytes, meta: dict, basis: DescriptorBasis | None) -> str | None:
     if not all(isinstance(v, int) for v in (kp_num, d_num, dim)) or not isinstance(encoding, str):
         return "damaged feature counts"
     if kp_num != d_num:
@@ -186,7 +224,8 @@ def _check_features(kp_num: object, kp_blob: bytes, d_num: object, dim: object, 
     if meta.get("descriptor_dim") not in (None, str(dim)):
         return f"descriptor dimension {dim}, the map's is {meta.get('descriptor_dim')}"
     try:
-        decode_features(kp_num, kp_blob, dim, encoding, d_blob)
+        decode_features(kp_num, kp_blob, dim, encoding, d_blob, KEYPOINT_LAYOUTS.get(meta.get("storage", "full"), "?"),
+                        basis)
     except MapFormatError as exc:
         return str(exc)
     return None

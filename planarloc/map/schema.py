@@ -7,7 +7,11 @@ A map is an embedded SQLite database (stdlib :mod:`sqlite3`). Schema (version 1)
         created_by       'planarloc'
         planarloc_version, created_at (ISO 8601 UTC)
         config           JSON of the feature configuration given at creation (map.settings)
-        descriptor_encoding  'auto' | 'uint8' | 'float16' | 'float32' (map.codec)
+        descriptor_encoding  'auto' | 'uint4' | 'uint8' | 'float16' | 'float32' (map.codec; rows
+                         also 'klt', with the blob codec/descriptor_basis)
+        storage          'compact' | 'full': the layout of keypoints and global descriptors
+                         (map.codec); absent in maps from before layouts: 'full'
+        global_encoding  'float32' | 'int4' | 'projected' (map.codec); absent: 'float32'
         descriptor_dim   D, set by the first image with features
         build_complete   '1' after mark_complete(), '0' while (re)building or appending
         blob_sha256/<key>  SHA-256 of each blob (checked when it is read)
@@ -20,13 +24,13 @@ A map is an embedded SQLite database (stdlib :mod:`sqlite3`). Schema (version 1)
            frame_index INTEGER, timestamp REAL NULL, path TEXT NULL,
            depth_path TEXT NULL, depth_scale REAL)
     keypoints(image_id PRIMARY KEY -> images.id, num INTEGER,
-              data BLOB  -- float32 little-endian: N*2 keypoint coords (x0 y0 x1 y1 ...)
-                         -- followed by N scales)
+              data BLOB  -- 'full': float32 little-endian: N*2 keypoint coords (x0 y0 x1 y1 ...)
+                         -- followed by N scales; 'compact': fixed point (map.codec))
     descriptors(image_id PRIMARY KEY -> images.id, num INTEGER, dim INTEGER,
                 encoding TEXT, data BLOB  -- N*D values, row-major (map.codec)
     global_descriptors(image_id PRIMARY KEY -> images.id, dim INTEGER,
-                       data BLOB  -- float32 (D,))
-    blobs(key TEXT PRIMARY KEY, data BLOB)   -- retrieval vocabulary / index, any bytes
+                       data BLOB  -- (dim,) in meta.global_encoding (map.codec))
+    blobs(key TEXT PRIMARY KEY, data BLOB)   -- retrieval vocabulary, bases of the codecs, any bytes
     image_sources(image_id PRIMARY KEY -> images.id,
                   content_sha256 TEXT NULL  -- SHA-256 of the source image file's bytes
                   record_sha256 TEXT        -- SHA-256 of the stored row (map.codec.record_digest)
@@ -55,12 +59,17 @@ APPLICATION_ID = 0x504C4F43
 BLOB_SHA_PREFIX = "blob_sha256/"
 #: The retrieval vocabulary's blob key.
 VOCABULARY_BLOB = "retrieval/vlad_vocabulary"
+#: The basis of projected global descriptors (``meta.global_encoding = 'projected'``).
+GLOBAL_BASIS_BLOB = "retrieval/global_basis"
+#: The transform of ``klt`` descriptor rows (compact maps; map.codec).
+DESCRIPTOR_BASIS_BLOB = "codec/descriptor_basis"
 #: Meta keys of the map's gravity (:mod:`planarloc.map.gravity`).
 GRAVITY_META = "gravity"
 WORLD_DOWN_META = "world_down"
 #: Meta keys only :class:`~planarloc.map.store.MapDatabase` itself writes.
 RESERVED_META = frozenset(
-    {"schema_version", "created_by", "config", "descriptor_encoding", "descriptor_dim", "build_complete"}
+    {"schema_version", "created_by", "config", "descriptor_encoding", "descriptor_dim", "build_complete", "storage",
+     "global_encoding"}
 )
 
 SOURCES_TABLE = """CREATE TABLE IF NOT EXISTS image_sources (

@@ -5,12 +5,16 @@ A map stores the configuration it was created with: ``{"features": FeatureConfig
 Mixing features of two configurations in one map would silently break matching, so a build
 into an existing map must use its settings; :func:`settings_mismatch_error` names the keys
 that differ. Queries are extracted with the map's features (:func:`feature_config_from_map`).
+
+Caches: :func:`cache_dir` names the folders (in the temp folder) where planarloc keeps what it can
+rebuild: ``evaluate``'s maps and the images it unpacks from ROS bags (``planarloc cache``).
 """
 
 from __future__ import annotations
 
 import dataclasses
 import json
+import tempfile
 from collections.abc import Mapping
 from pathlib import Path
 
@@ -18,6 +22,20 @@ import numpy as np
 
 from planarloc.features.extract import FeatureConfig
 from planarloc.geometry.validation import InputError
+
+
+#: The caches planarloc keeps in the temp folder: what each holds.
+CACHES = {
+    "maps": "maps that `evaluate` builds (and `evaluate --queries` for map sessions); rebuilt when needed",
+    "bags": "images unpacked from ROS bags (`--format rosbag` without image_dir); unpacked again when needed",
+}
+
+
+def cache_dir(kind: str) -> Path:
+    """The folder of one of :data:`CACHES`: ``<temp folder>/planarloc-<kind>`` (``TMPDIR``)."""
+    if kind not in CACHES:
+        raise InputError(f"cache: expected one of {', '.join(CACHES)}, got {kind!r}")
+    return Path(tempfile.gettempdir()) / f"planarloc-{kind}"
 
 
 def canonical_json(config: Mapping[str, object]) -> str:

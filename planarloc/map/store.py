@@ -40,13 +40,30 @@ from planarloc.geometry.pose import Pose
 from planarloc.geometry.validation import InputError, check_array
 from planarloc.map import schema
 from planarloc.map.codec import (
+    DEFAULT_STORAGE,
     DESCRIPTOR_ENCODINGS,
+    GLOBAL_ENCODINGS,
+    KEYPOINT_LAYOUTS,
+    PROJECT_ABOVE,
+    PROJECTED_DIM,
+    STORAGE_LAYOUTS,
     camera_key,
+    KLT_MIN_FEATURES,
+    DescriptorBasis,
     check_features,
+    check_storage,
     damaged_poses,
+    decode_basis,
+    decode_descriptor_basis,
     decode_features,
+    decode_global,
+    encode_basis,
+    encode_descriptor_basis,
     encode_descriptors,
+    encode_global,
     encode_keypoints,
+    fit_descriptor_basis,
+    global_row_problem,
     pose_columns,
     poses_from_columns,
     record_digest,
@@ -55,6 +72,8 @@ from planarloc.map.lock import MapWriterLock
 from planarloc.map.posed_image import PosedImage
 from planarloc.map.schema import (
     BLOB_SHA_PREFIX,
+    DESCRIPTOR_BASIS_BLOB,
+    GLOBAL_BASIS_BLOB,
     IMAGE_COLUMNS,
     RESERVED_META,
     SOURCES_TABLE,
@@ -101,6 +120,14 @@ class MapDatabase:
         self._cameras: dict[int, Camera] = {}
         meta = dict(conn.execute("SELECT key, value FROM meta"))
         self._encoding = meta.get("descriptor_encoding", "auto")
+        self._storage = meta.get("storage", "full")  # maps from before storage layouts
+        self._global_encoding = meta.get("global_encoding", "float32")
+        if self._storage not in STORAGE_LAYOUTS or self._global_encoding not in GLOBAL_ENCODINGS:
+            raise MapCorruptError(f"{path}: meta.storage {self._storage!r} / meta.global_encoding "
+                                  f"{self._global_encoding!r} unknown; run `planarloc map check {path}`")
+        self._kp_layout = KEYPOINT_LAYOUTS[self._storage]
+        self._basis: DescriptorBasis | None = None  # of klt rows, read on first use
+        self._poses: tuple[tuple[int, int], dict[int, Pose]] | None = None  # (map version, {id: pose})
         try:
             self._dim: int | None = int(meta["descriptor_dim"]) if "descriptor_dim" in meta else None
             self._config: dict = json.loads(meta.get("config", "{}"))
@@ -117,6 +144,7 @@ class MapDatabase:
         config: Mapping[str, object],
         *,
         descriptor_encoding: str = "auto",
+        storage: str = DEFAULT_STORAGE,
         overwrite: bool = False,
         cache_size: int = DEFAULT_CACHE_SIZE,
         lock_timeout: float | None = None,
@@ -128,8 +156,12 @@ class MapDatabase:
             path: the map file to create (parent directories are created).
             config: feature configuration (JSON-serialisable dict, e.g. extractor name,
                 ``tilt`` flag, number of features), stored in ``meta.config``.
-            descriptor_encoding: ``"auto"`` (uint8 for non-negative descriptors, else
-                float16), ``"uint8"``, ``"float16"`` or ``"float32"``.
+            descriptor_encoding: ``"auto"`` (``uint4`` in compact maps, ``uint8`` in full ones,
+                for non-negative descriptors; else float16), ``"uint4"``, ``"uint8"``,
+                ``"float16"`` or ``"float32"`` (:mod:`planarloc.map.codec`).
+            storage: ``"compact"`` (default: about 29 bytes per RootSIFT feature, 4 KB per
+                global descriptor; ≤ 100 KB per KITTI image) or ``"full"`` (the layout of maps
+                before compact ones: 140 bytes per feature, 32 KB per global descriptor).
             overwrite: replace an existing file instead of raising.
             cache_size: number of images whose features :meth:`get_features` keeps in memory.
             lock_timeout: seconds to wait for another writer of the same file (None: for ever).
@@ -140,6 +172,7 @@ class MapDatabase:
         """
         path = Path(path)
         config_json = canonical_json(config)
+        storage = check_storage(storage)
         if descriptor_encoding not in DESCRIPTOR_ENCODINGS:
             raise InputError(
                 f"descriptor_encoding: expected one of {', '.join(DESCRIPTOR_ENCODINGS)}, got {descriptor_encoding!r}"
@@ -148,13 +181,13 @@ class MapDatabase:
         lock = _lock or MapWriterLock(path, timeout=lock_timeout)
         lock.acquire()
         try:
-            return cls._create_locked(path, config_json, descriptor_encoding, overwrite, cache_size, lock)
+            return cls._create_locked(path, config_json, descriptor_encoding, storage, overwrite, cache_size, lock)
         except BaseException:
             lock.release()
             raise
 
     @classmethod
-    def _create_locked(cls, path: Path, config_json: str, descriptor_encoding: str, overwrite: bool,
+    def _create_locked(cls, path: Path, config_json: str, descriptor_encoding: str, storage: str, overwrite: bool,
                        cache_size: int, lock: MapWriterLock) -> MapDatabase:
         if path.exists():
             if not overwrite:
@@ -177,6 +210,8 @@ class MapDatabase:
             "created_at": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
             "config": config_json,
             "descriptor_encoding": descriptor_encoding,
+            "storage": storage,
+            "global_encoding": "float32" if storage == "full" else "int4",
             "build_complete": "0",
         }
         # Build the schema in a temporary file and rename it: a crash never leaves a half-made map.
@@ -185,7 +220,7 @@ class MapDatabase:
             p.unlink(missing_ok=True)
         conn = sqlite3.connect(tmp, isolation_level=None)
         try:
-            conn.execute("PRAGMA page_size = 16384")
+            conn.execute("PRAGMA page_size = 1024")  # blobs fill whole overflow pages: small pages waste less
             conn.execute(f"PRAGMA application_id = {schema.APPLICATION_ID}")
             conn.execute("BEGIN")
             for stmt in schema.STATEMENTS:
@@ -349,6 +384,11 @@ class MapDatabase:
         return self.get_meta("build_complete") == "1"
 
     @property
+    def storage(self) -> str:
+        """The map's storage layout, ``"compact"`` or ``"full"`` (:mod:`planarloc.map.codec`)."""
+        return self._storage
+
+    @property
     def descriptor_dim(self) -> int | None:
         """Descriptor dimension D of the map, None while no image has features."""
         return self._dim
@@ -435,12 +475,18 @@ class MapDatabase:
             return existing
         kp, desc, scales = check_features(features, self._dim)
         n, dim = desc.shape
-        encoding, desc_blob = encode_descriptors(desc, self._encoding)
-        kp_blob = encode_keypoints(kp, scales)
+        basis, new_basis = self.descriptor_basis(), None
+        if basis is None and self._storage == "compact" and self._encoding == "auto" and n >= KLT_MIN_FEATURES \
+                and bool(desc.min() >= 0):
+            basis = new_basis = fit_descriptor_basis(desc)  # the map's first image with enough features
+        encoding, desc_blob = encode_descriptors(desc, self._encoding, self._storage, basis)
+        kp_blob = encode_keypoints(kp, scales, self._kp_layout)
         pose7 = pose_columns(posed.cam_from_world)
         digest = record_digest(posed.name, camera_key(posed.camera), pose7, n, kp_blob, dim, encoding, desc_blob)
         pending: dict = {}
         with self._transaction() as conn:
+            if new_basis is not None and encoding == "klt":
+                self._put_blob(conn, DESCRIPTOR_BASIS_BLOB, encode_descriptor_basis(new_basis))
             cam_id = self._camera_id(conn, posed.camera, pending)
             image_id = conn.execute(
                 f"INSERT INTO images ({IMAGE_COLUMNS}) VALUES (NULL, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
@@ -473,7 +519,21 @@ class MapDatabase:
             conn.execute("UPDATE meta SET value = '0' WHERE key = 'build_complete' AND value != '0'")
         self._camera_ids.update(pending)
         self._dim = dim
+        if new_basis is not None and encoding == "klt":
+            self._basis = new_basis
         return int(image_id)
+
+    def descriptor_basis(self) -> DescriptorBasis | None:
+        """The transform of the map's ``klt`` descriptor rows (:mod:`planarloc.map.codec`), None
+        while it has none."""
+        if self._basis is None:
+            data = self.get_blob(DESCRIPTOR_BASIS_BLOB)
+            if data is not None:
+                try:
+                    self._basis = decode_descriptor_basis(data)
+                except MapCorruptError as exc:
+                    raise row_error(self.path, f"blob {DESCRIPTOR_BASIS_BLOB!r}", str(exc)) from None
+        return self._basis
 
     def image_source(self, name: str) -> tuple[str | None, str | None] | None:
         """``(stored path, content SHA-256)`` of image ``name`` (None entries when unknown);
@@ -550,7 +610,13 @@ class MapDatabase:
 
         Args:
             descriptors: ``{image name or id: (D,) vector}`` or ``(keys, (M, D) array)``.
-                Stored as float32 as given (normalise before if the retrieval needs it).
+                Normalise before if the retrieval needs it.
+
+        How they are stored (:mod:`planarloc.map.codec`): as given (float32) in a ``full`` map;
+        in a ``compact`` one with 4 bits a value (each within ``max|v| / 14``), and, when vectors of
+        all images are given and there are more than ``PROJECT_ABOVE`` (2048) of them, as their
+        coordinates in the top-512 subspace of these vectors (:meth:`global_basis`); vectors
+        given later for some of the images are projected on that basis.
 
         Raises:
             InputError: unknown image, inconsistent dimensions, non-finite values.
@@ -573,32 +639,60 @@ class MapDatabase:
         ids = [self._resolve_id(k) for k in keys]
         if len(set(ids)) != len(ids):
             raise InputError("global descriptors: an image is given more than once")
-        existing = self._db.execute("SELECT dim FROM global_descriptors LIMIT 1").fetchone()
-        replace_all = existing is not None and mat.shape[1] != existing[0]
-        if replace_all:
-            stored = {r[0] for r in self._db.execute("SELECT image_id FROM global_descriptors")}
-            if not stored <= set(ids):
+        stored = {r[0] for r in self._db.execute("SELECT image_id FROM global_descriptors")}
+        replace_all = stored <= set(ids)
+        basis = self.global_basis()
+        if not replace_all:
+            dim = basis.shape[0] if basis is not None else self._db.execute(
+                "SELECT dim FROM global_descriptors LIMIT 1").fetchone()[0]
+            if mat.shape[1] != dim:
                 raise InputError(
-                    f"global descriptors: the map stores {existing[0]}-D vectors, got {mat.shape[1]}-D; "
+                    f"global descriptors: the map stores {dim}-D vectors, got {mat.shape[1]}-D; "
                     "give new vectors for all images to change the dimension"
                 )
-        rows = [(i, mat.shape[1], v.astype("<f4").tobytes()) for i, v in zip(ids, mat)]
+            encoding = self._global_encoding
+        elif self._storage == "full":
+            encoding, basis = "float32", None
+        elif len(ids) > PROJECT_ABOVE and mat.shape[1] > PROJECTED_DIM:
+            from planarloc.features.retrieval import subspace_basis
+
+            encoding, basis = "projected", subspace_basis(mat, PROJECTED_DIM)
+        else:
+            encoding, basis = "int4", None
+        values = mat @ basis if encoding == "projected" else mat
+        rows = [(i, values.shape[1], blob) for i, blob in zip(ids, encode_global(values, encoding))]
         with self._transaction() as conn:
             if replace_all:
                 conn.execute("DELETE FROM global_descriptors")
+                self._store_basis(conn, basis if encoding == "projected" else None)
+                conn.execute("INSERT OR REPLACE INTO meta (key, value) VALUES ('global_encoding', ?)", (encoding,))
             conn.executemany(
                 "INSERT OR REPLACE INTO global_descriptors (image_id, dim, data) VALUES (?, ?, ?)", rows
             )
             conn.executemany("UPDATE image_sources SET global_sha256 = ? WHERE image_id = ?",
                              [(hashlib.sha256(r[2]).hexdigest(), r[0]) for r in rows])
+        self._global_encoding = encoding
+
+    @staticmethod
+    def _store_basis(conn: sqlite3.Connection, basis: np.ndarray | None) -> None:
+        """Write (or remove) the projection basis blob inside the caller's transaction."""
+        if basis is None:
+            conn.execute("DELETE FROM blobs WHERE key = ?", (GLOBAL_BASIS_BLOB,))
+            conn.execute("DELETE FROM meta WHERE key = ?", (BLOB_SHA_PREFIX + GLOBAL_BASIS_BLOB,))
+            return
+        MapDatabase._put_blob(conn, GLOBAL_BASIS_BLOB, encode_basis(basis))
 
     def put_blob(self, key: str, data: bytes) -> None:
         """Store (replace) a named binary blob, e.g. a retrieval vocabulary or index."""
-        data = bytes(data)
         with self._transaction() as conn:
-            conn.execute("INSERT OR REPLACE INTO blobs (key, data) VALUES (?, ?)", (str(key), data))
-            conn.execute("INSERT OR REPLACE INTO meta (key, value) VALUES (?, ?)",
-                         (BLOB_SHA_PREFIX + str(key), hashlib.sha256(data).hexdigest()))
+            self._put_blob(conn, str(key), bytes(data))
+
+    @staticmethod
+    def _put_blob(conn: sqlite3.Connection, key: str, data: bytes) -> None:
+        """Write a blob and its checksum inside the caller's transaction."""
+        conn.execute("INSERT OR REPLACE INTO blobs (key, data) VALUES (?, ?)", (key, data))
+        conn.execute("INSERT OR REPLACE INTO meta (key, value) VALUES (?, ?)",
+                     (BLOB_SHA_PREFIX + key, hashlib.sha256(data).hexdigest()))
 
     # ---- reading -------------------------------------------------------------------------------
     def _find_id(self, name: str) -> int | None:
@@ -701,13 +795,26 @@ class MapDatabase:
     def posed_images(self) -> list[PosedImage]:
         """All image records (no features), in id order."""
         rows = self._db.execute(f"SELECT {IMAGE_COLUMNS} FROM images ORDER BY id").fetchall()
-        poses = self._poses_checked(rows, 3)
+        poses = self._poses_of(rows, 3)
         return [self._posed_from_row(r, pose) for r, pose in zip(rows, poses)]
 
     def load_all_poses(self) -> dict[str, Pose]:
         """``{name: cam_from_world}`` of all images, in id order."""
         rows = self._db.execute("SELECT id, name, qw, qx, qy, qz, tx, ty, tz FROM images ORDER BY id").fetchall()
-        return dict(zip((r[1] for r in rows), self._poses_checked(rows, 2)))
+        return dict(zip((r[1] for r in rows), self._poses_of(rows, 2)))
+
+    def _poses_of(self, rows: Sequence[tuple], first: int) -> list[Pose]:
+        """:meth:`_poses_checked`, reusing the poses already built while the map is unchanged (no
+        commit by this connection or another one since): the localizer reads all 20,000 poses of a
+        building-scale map twice when it opens (its images, then the map's gravity)."""
+        conn = self._db
+        version = (int(conn.execute("PRAGMA data_version").fetchone()[0]), conn.total_changes)
+        if self._poses is None or self._poses[0] != version:
+            self._poses = (version, {})
+        known = self._poses[1]
+        new = [r for r in rows if r[0] not in known]
+        known.update(zip((r[0] for r in new), self._poses_checked(new, first)))
+        return [known[r[0]] for r in rows]
 
     def _poses_checked(self, rows: Sequence[tuple], first: int) -> list[Pose]:
         """Poses of rows whose columns ``first:first + 7`` are (qw..tz); damaged rows are named."""
@@ -722,7 +829,8 @@ class MapDatabase:
     def _features_from_blobs(self, label: str, num: int, kp_blob: bytes, dim: int, encoding: str,
                              desc_blob: bytes) -> Features:
         try:
-            return decode_features(num, kp_blob, dim, encoding, desc_blob)
+            return decode_features(num, kp_blob, dim, encoding, desc_blob, self._kp_layout,
+                                   self.descriptor_basis() if encoding == "klt" else None)
         except MapCorruptError as exc:
             raise row_error(self.path, label, str(exc)) from None
 
@@ -786,6 +894,8 @@ class MapDatabase:
 
         Returns:
             (M,) int64 image ids (ascending) and (M, D) float32 descriptors; (0,), (0, 0) if none.
+            In a map with a projection basis (:meth:`global_basis`), the (M, d) coordinates of
+            the descriptors in that basis.
         """
         rows = self._db.execute(
             "SELECT image_id, dim, data FROM global_descriptors ORDER BY image_id"
@@ -799,12 +909,29 @@ class MapDatabase:
             return np.zeros(0, dtype=np.int64), np.zeros((0, 0), dtype=np.float32)
         ids = np.array([r[0] for r in rows], dtype=np.int64)
         for image_id, dim, data in rows:
-            if dim != rows[0][1] or not isinstance(data, bytes) or len(data) != 4 * dim:
-                raise row_error(self.path, f"row id {image_id}", f"global descriptor blob is "
-                                  f"{len(data) if isinstance(data, bytes) else 'not a blob'} bytes, "
-                                  f"expected {4 * rows[0][1]}")
-        mat = np.frombuffer(b"".join(r[2] for r in rows), dtype="<f4").reshape(len(rows), rows[0][1])
-        return ids, mat.astype(np.float32)
+            problem = global_row_problem(data, dim, self._global_encoding)
+            if problem is None and dim != rows[0][1]:
+                problem = f"global descriptor of {dim} values, the others have {rows[0][1]}"
+            if problem is not None:
+                raise row_error(self.path, f"row id {image_id}", problem)
+        mat = decode_global([r[2] for r in rows], rows[0][1], self._global_encoding)
+        finite = np.isfinite(mat).all(axis=1)
+        if not finite.all():
+            raise row_error(self.path, f"row id {ids[np.argmin(finite)]}", "non-finite global descriptor")
+        return ids, mat
+
+    def global_basis(self) -> np.ndarray | None:
+        """The (D, d) orthonormal basis the global descriptors are coordinates in, or None when
+        they are stored whole (see :meth:`set_global_descriptors`)."""
+        if self._global_encoding != "projected":
+            return None
+        data = self.get_blob(GLOBAL_BASIS_BLOB)
+        if data is None:
+            raise row_error(self.path, f"blob {GLOBAL_BASIS_BLOB!r}", "missing (global descriptors are projected)")
+        try:
+            return decode_basis(data)
+        except MapCorruptError as exc:
+            raise row_error(self.path, f"blob {GLOBAL_BASIS_BLOB!r}", str(exc)) from None
 
     def get_blob(self, key: str) -> bytes | None:
         """A named blob, or None if it was never stored."""

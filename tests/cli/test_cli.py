@@ -15,7 +15,7 @@ def run(argv: list[str]) -> int:
 
 
 @pytest.mark.parametrize("argv", [[], ["map"], ["map", "build"], ["map", "info"], ["localize"], ["evaluate"],
-                                  ["demo"], ["warmup"]])
+                                  ["demo"], ["warmup"], ["cache"], ["cache", "list"], ["cache", "clean"]])
 def test_help_teaches(argv: list[str], capsys: pytest.CaptureFixture[str]) -> None:
     with pytest.raises(SystemExit) as exc:
         build_parser().parse_args([*argv, "--help"])

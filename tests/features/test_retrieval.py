@@ -121,3 +121,27 @@ def test_retrieve_from_pairs():
     assert retrieve_from_pairs(pairs, "q/2.png") == ["db/1.png"]
     with pytest.raises(InputError, match="q/3.png"):
         retrieve_from_pairs(pairs, "q/3.png")
+
+
+def test_subspace_basis_matches_the_svd_and_is_exact_for_small_maps() -> None:
+    from planarloc.features.retrieval import subspace_basis
+
+    rng = np.random.default_rng(5)
+    # 600 vectors in 256-D: a 12-D signal plus noise; the top-12 subspace is the SVD's
+    x = (rng.normal(size=(600, 12)) @ rng.normal(size=(12, 256)) + 0.05 * rng.normal(size=(600, 256)))
+    x = x.astype(np.float32)
+    basis = subspace_basis(x, 12, max_rows=400)  # estimated from a sample of 400 rows
+    np.testing.assert_allclose(basis.T @ basis, np.eye(12), atol=1e-5)
+    vt = np.linalg.svd(x.astype(np.float64), full_matrices=False)[2][:12]
+    cosines = np.linalg.svd(vt @ basis, compute_uv=False)  # principal angles between the subspaces
+    assert cosines.min() > 0.999
+    # at most d vectors: the basis spans them all, so dot products with any query are unchanged
+    few = x[:9]
+    b = subspace_basis(few, 12)
+    assert b.shape == (256, 9)
+    q = rng.normal(size=(5, 256)).astype(np.float32)
+    np.testing.assert_allclose((q @ b) @ (few @ b).T, q @ few.T, rtol=1e-4, atol=1e-3)
+    idx, _ = GlobalIndex(few @ b, basis=b).search(q, 3)
+    np.testing.assert_array_equal(idx, np.argsort(-(q @ few.T), axis=1)[:, :3])
+    with pytest.raises(InputError, match="basis"):
+        GlobalIndex(few @ b, basis=b[:, :4])

@@ -176,3 +176,22 @@ def test_bad_input():
                                           ("1, 1, 0", (2 ** -0.5, 2 ** -0.5, 0))])
 def test_parse_up(text, up):
     np.testing.assert_allclose(parse_up(text), up, atol=1e-12)
+
+
+def test_building_scale_maps_estimate_gravity_in_bounded_memory(world_rotation):
+    # 20,000-image maps (issue 20): the centres' SVD must not form the N x N left factor (3.2 GB there)
+    import tracemalloc
+
+    rng = np.random.default_rng(3)
+    n = 4000  # a full left factor would be 128 MB
+    centers = np.column_stack([rng.uniform(-50, 50, n), np.full(n, -1.3), rng.uniform(-20, 80, n)])
+    poses = robot_poses(world_rotation, centers, rng.uniform(-np.pi, np.pi, n), 4.0, -1.0)
+    tracemalloc.start()
+    try:
+        g, rep = gravity_from_map_poses(poses)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert peak < 16 * 2**20, peak
+    np.testing.assert_allclose(g, world_rotation @ [0.0, 1.0, 0.0], atol=1e-9)
+    assert rep.method == "plane" and rep.pitch_deg == pytest.approx(4.0, abs=1e-7)

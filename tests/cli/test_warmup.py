@@ -1,0 +1,108 @@
+"""`planarloc warmup` and compiling ahead: the kernel list, the parallel compile into an empty
+numba cache (real worker processes), the one-line notice, and progress without a terminal."""
+
+from __future__ import annotations
+
+import os
+import re
+import subprocess
+import sys
+import threading
+from pathlib import Path
+
+import pytest
+
+from planarloc.cli.warmup_command import (
+    _Schedule,
+    load_manifest,
+    parse_signature,
+    warmup_steps,
+)
+
+
+def test_the_kernel_list_names_real_cached_kernels_for_every_step() -> None:
+    from numba.core.dispatcher import Dispatcher
+
+    from planarloc.cli.warmup_command import _dispatcher
+
+    manifest = load_manifest()
+    assert set(manifest.steps) == {name for name, _ in warmup_steps()}
+    assert all(manifest.steps.values()) and len(manifest.kernels) > 50
+    for key, kernel in manifest.kernels.items():
+        d = _dispatcher(key)
+        assert isinstance(d, Dispatcher) and hasattr(d._cache, "_cache_file"), key  # a cache=True kernel
+        # every signature parses but literal ones (``Literal[int](0)``: those specialisations compile with
+        # the kernels that call them, or when the steps run)
+        assert kernel.signatures and all(parse_signature(s) is not None for s in kernel.signatures
+                                         if "Literal[" not in s), key
+        assert kernel.compile_s >= 0
+
+
+def test_schedule_hands_out_callees_first_and_the_longest_chain_first() -> None:
+    # a <- b <- c (c calls b calls a), d alone, e calls a; costs make a->b->c the long chain
+    deps = {"a": set(), "b": {"a"}, "c": {"b"}, "d": set(), "e": {"a"}}
+    s = _Schedule(deps, {"a": 1.0, "b": 5.0, "c": 5.0, "d": 3.0, "e": 1.0})
+    assert s.take() == "a"  # chain 11 s through b and c, d only 3 s
+    assert s.take() == "d"  # b, e wait for a
+    got: list[str] = []
+    t = threading.Thread(target=lambda: got.append(s.take()))
+    t.start()
+    s.finish("a")
+    t.join(5)
+    assert got == ["b"]  # b (chain 10 s) before e (1 s)
+    cyclic = _Schedule({"x": {"y"}, "y": {"x"}}, {})
+    first = cyclic.take()  # nothing is ready in a call cycle: one is handed out anyway
+    cyclic.finish(first)
+    assert {first, cyclic.take()} == {"x", "y"}  # and the other once it is compiled
+    assert cyclic.take() is None
+
+
+def _python(code: str, env: dict) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=1800)
+
+
+def test_compile_ahead_says_so_and_fills_an_empty_cache_in_parallel(tmp_path: Path) -> None:
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path / "numba")}  # an empty cache: a fresh machine
+    ahead = "from planarloc.cli.warmup_command import compile_ahead; compile_ahead(['solvers'], jobs=2)"
+    first = _python(ahead, env)
+    assert first.returncode == 0, first.stderr
+    lines = first.stderr.splitlines()
+    notice = [x for x in lines if "for first use" in x]
+    assert len(notice) == 1 and re.fullmatch(
+        r"compiling planarloc's kernels for first use \(\d+ kernels, about \d+ s on 2 cores, once\); run "
+        r"`planarloc warmup` at install or image-build time to do it ahead", notice[0])
+    assert re.fullmatch(r"compile kernels: 0/\d+ \(0 s\)", lines[1])  # plain progress lines: no terminal here
+    assert re.fullmatch(r"compile kernels: (\d+)/\1, done in \d+ s", lines[-1])
+    assert sorted((tmp_path / "numba").rglob("*.nbi"))
+    # a new process finds everything cached: no notice, and the single-call solvers compile nothing
+    check = ("from numba.core import event\n"
+             "compiled = []\n"
+             "class L(event.Listener):\n"
+             "    def on_start(self, e): compiled.append(e.data['dispatcher'].py_func.__qualname__)\n"
+             "    def on_end(self, e): pass\n"
+             "event.register('numba:compile', L())\n"
+             f"{ahead}\n"
+             "from planarloc.cli.warmup_command import run_steps\n"
+             "run_steps(['solvers'])\n"
+             "print(compiled)\n")
+    second = _python(check, env)
+    assert second.returncode == 0, second.stderr
+    assert second.stdout.strip() == "[]" and "for first use" not in second.stderr
+
+
+def test_warmup_without_a_terminal_prints_plain_progress(tmp_path: Path) -> None:
+    proc = subprocess.run([sys.executable, "-m", "planarloc.cli.main", "warmup"], capture_output=True, text=True,
+                          timeout=3600)
+    assert proc.returncode == 0, proc.stderr
+    assert "\x1b[" not in proc.stderr  # no terminal: no bar, no escape codes
+    done = [x for x in proc.stderr.splitlines() if x.startswith("run steps: ")]
+    assert done[0] == f"run steps: 0/{len(warmup_steps())} (0 s)" and "done in" in done[-1]
+    assert re.fullmatch(r"warm-up done in \d+\.\d s \(.*slowest step: .*\)", proc.stdout.strip())
+
+
+@pytest.mark.parametrize("jobs", ["0", "-2"])
+def test_bad_jobs_is_one_line(jobs: str, capsys: pytest.CaptureFixture[str]) -> None:
+    from planarloc.cli.main import main
+
+    assert main(["warmup", "--jobs", jobs]) == 1
+    assert capsys.readouterr().err.strip() == f"planarloc warmup: error: --jobs: expected an integer >= 1, got {jobs}"
