@@ -19,6 +19,7 @@ from planarloc.distributed.ray_backend import ray_session
 from planarloc.io.datasets import read_dataset
 from planarloc.io.output import check_output_file, dataset_files, input_files
 from planarloc.map.builder import build_map, check_map_settings
+from planarloc.map.codec import DEFAULT_STORAGE, STORAGE_LAYOUTS
 from planarloc.map.gravity import map_gravity
 from planarloc.map.integrity import check_map
 from planarloc.map.store import MapDatabase
@@ -56,6 +57,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                         "world's up direction (e.g. up=z, up=-y, up=0,0,1; up=estimate: from the camera centres' plane "
                         "even if the format declares one)")
     add_feature_args(b)
+    b.add_argument("--storage", choices=STORAGE_LAYOUTS, default=DEFAULT_STORAGE,
+                   help=f"layout of a new map: full, or compact (about a fifth of the size: quantised descriptors and "
+                        f"keypoints; default: {DEFAULT_STORAGE}); an existing map keeps its own")
     b.add_argument("--ray", nargs="?", const="local", metavar="ADDRESS",
                    help="distribute over a Ray cluster (auto, HOST:PORT, ray://HOST:PORT; a local one without "
                         "ADDRESS); needs pip install 'planarloc[ray]'")
@@ -98,7 +102,7 @@ def run_build(args: argparse.Namespace) -> int:
 
     with ray_session(args.ray) as ray_backend, progress_bar() as update:
         build_map(images, args.out, features, num_words=num_words, progress=update, notify=notify,
-                  mapper=ray_backend.map if ray_backend else None, skipped=skipped)
+                  mapper=ray_backend.map if ray_backend else None, skipped=skipped, storage=args.storage)
     code = run_info(argparse.Namespace(map=args.out))
     if left_out:
         note(f"{len(left_out)} of {len(images)} images were left out of the map (fix or remove them, then re-run "

@@ -175,6 +175,22 @@ class VladVocabulary:
         return cls(c)
 
 
+_BLAS_CONTROLLER: list = []
+
+
+def _one_blas_thread():
+    """Context in which BLAS runs on one thread (``threadpoolctl``; ~5 µs to enter and leave).
+
+    One image's VLAD products are small: OpenBLAS' threads spin waiting for a busy core and cost
+    more than they share (0.73 ms with one thread against 49 ms with two, 2 cores at load 12;
+    benchmarks/map_scale.py: retrieval 9.3 ms per query with one thread, 123 ms with two)."""
+    if not _BLAS_CONTROLLER:
+        from threadpoolctl import ThreadpoolController
+
+        _BLAS_CONTROLLER.append(ThreadpoolController())
+    return _BLAS_CONTROLLER[0].limit(limits=1, user_api="blas")
+
+
 def vlad_descriptor(vocab: VladVocabulary, descriptors: object, power: float = DEFAULT_POWER) -> np.ndarray:
     """VLAD vector of one image.
 
@@ -196,11 +212,12 @@ def vlad_descriptor(vocab: VladVocabulary, descriptors: object, power: float = D
     k, dim = vocab.k, vocab.dim
     if len(x) == 0:
         return np.zeros(k * dim, dtype=np.float32)
-    words = vocab.assign(x)
-    one_hot = np.zeros((len(x), k), dtype=np.float32)
-    one_hot[np.arange(len(x)), words] = 1.0
-    counts = one_hot.sum(axis=0)
-    v = one_hot.T @ x - counts[:, None] * vocab.centroids  # (k, D) sums of residuals
+    with _one_blas_thread():
+        words = vocab.assign(x)
+        one_hot = np.zeros((len(x), k), dtype=np.float32)
+        one_hot[np.arange(len(x)), words] = 1.0
+        counts = one_hot.sum(axis=0)
+        v = one_hot.T @ x - counts[:, None] * vocab.centroids  # (k, D) sums of residuals
     norms = np.linalg.norm(v, axis=1, keepdims=True)
     v = np.divide(v, norms, out=np.zeros_like(v), where=norms > 0)  # intra-normalisation
     if power != 1.0:

@@ -34,6 +34,7 @@ from planarloc.features.images import ImageFormatError, image_problem, image_siz
 from planarloc.features.retrieval import DEFAULT_NUM_WORDS, VladVocabulary, vlad_descriptor
 from planarloc.geometry.validation import InputError
 from planarloc.gravity.world import WorldDown
+from planarloc.map.codec import DEFAULT_STORAGE
 from planarloc.map.gravity import declared_world_down, resolve_world_down, store_map_gravity
 from planarloc.map.identity import MapUpdatePlan, plan_map_update
 from planarloc.map.posed_image import PosedImage
@@ -128,6 +129,7 @@ def build_map(
     notify: Callable[[str], None] | None = None,
     mapper: Mapper | None = None,
     skipped: Skipped | None = None,
+    storage: str = DEFAULT_STORAGE,
 ) -> Path:
     """Create (or resume / append to) the map at ``path`` from posed images.
 
@@ -145,6 +147,8 @@ def build_map(
             namespaced images); default: logged as warnings.
         mapper: runs the feature extraction instead of the threads: ``mapper(fn, images)`` yields
             ``fn(image)`` in input order (e.g. :func:`planarloc.distributed.ray_backend.RayBackend.map`).
+        storage: the layout of a new map, ``"full"`` (default) or ``"compact"`` (about a fifth of
+            the size; :mod:`planarloc.map.codec`); an existing map keeps its own.
         skipped: receives each image left out of the map (missing, unreadable, truncated,
             damaged, undecodable, or of another size than its camera) and the reason; default:
             logged as warnings. The build goes on with the other images.
@@ -186,7 +190,7 @@ def build_map(
         images = [im for im, (sha, _) in zip(images, checked) if sha is not None]
         hashes = [sha for sha, _ in checked if sha is not None]
         try:
-            db = MapDatabase.open_or_create(path, config, lock_timeout=lock_timeout)
+            db = MapDatabase.open_or_create(path, config, lock_timeout=lock_timeout, storage=storage)
         except OSError as exc:
             if exc.errno not in (errno.EACCES, errno.EPERM, errno.EROFS) or not path.is_file():
                 raise

@@ -26,6 +26,26 @@ def test_help_teaches(argv: list[str], capsys: pytest.CaptureFixture[str]) -> No
     assert "example" in out and "planarloc " + " ".join(argv) in out
 
 
+def test_map_build_storage_compact_is_a_smaller_map_that_localizes(tiny_world: Path, tmp_path: Path) -> None:
+    from planarloc.map.store import MapDatabase
+
+    sizes = {}
+    for storage in ("full", "compact"):
+        db = tmp_path / f"{storage}.db"
+        assert run(["map", "build", tiny_world / "map", "--format", "tum", "--out", db, "--storage", storage]) == 0
+        with MapDatabase.open(db) as m:
+            assert m.storage == storage
+        sizes[storage] = db.stat().st_size
+    assert sizes["compact"] < 0.6 * sizes["full"]
+    query = sorted((tiny_world / "query" / "rgb").glob("*.png"))[0]
+    cam = (tiny_world / "query" / "camera.txt").read_text().splitlines()[-1]
+    out = tmp_path / "p.txt"
+    assert run(["localize", "--map", tmp_path / "compact.db", query, "--camera", cam, "--out", out]) == 0
+    assert len(out.read_text().splitlines()) == 1
+    with pytest.raises(SystemExit):
+        run(["map", "build", tiny_world / "map", "--format", "tum", "--out", tmp_path / "x.db", "--storage", "tiny"])
+
+
 def test_map_build_localize_evaluate(tiny_world: Path, tmp_path: Path) -> None:
     db = tmp_path / "map.db"
     assert run(["map", "build", tiny_world / "map", "--format", "tum", "--out", db]) == 0

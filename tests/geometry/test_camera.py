@@ -498,7 +498,9 @@ def test_fisheye_matches_cv2_fisheye(cam: Camera, seed: int) -> None:
     crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 200, 1e-15)
     und = cv2.fisheye.undistortPoints(uv.reshape(-1, 1, 2), cam.K, cam.distortion, criteria=crit).reshape(-1, 2)
     below = np.hypot(*((uv - cam.principal_point) / cam.focal).T) < 0.5 * np.pi
-    np.testing.assert_allclose(cam.cam_from_img(uv[below]), und[below], rtol=1e-9, atol=1e-9)
+    # OpenCV marks points its iteration gave up on with -1e6; ours must still invert them (above).
+    compared = below & (np.abs(und) < 1e5).all(axis=1)
+    np.testing.assert_allclose(cam.cam_from_img(uv[compared]), und[compared], rtol=1e-9, atol=1e-9)
 
 
 def test_fisheye_angle_inversion_reports_non_convergence_as_nan() -> None:

@@ -186,7 +186,7 @@ def test_projected_global_descriptors_search_like_the_full_vectors(tmp_path: Pat
     vectors = (rng.normal(size=(12, 5)) @ basis_true.T).astype(np.float32)
     vectors /= np.linalg.norm(vectors, axis=1, keepdims=True)
     path = tmp_path / "p.db"
-    with MapDatabase.create(path, CONFIG) as db:
+    with MapDatabase.create(path, CONFIG, storage="compact") as db:
         ids = [db.add_image(make_posed(i), make_features(rng, 3)) for i in range(12)]
         db.set_global_descriptors((ids, vectors))
         assert db.get_meta("global_encoding") == "projected"
