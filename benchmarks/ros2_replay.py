@@ -8,9 +8,11 @@ truth (3 % of the distance and 0.3° per axis of noise per frame). A subscriber 
 ``/planarloc/pose`` (the base's pose in ``map``) with the truth, and checks ``map → odom`` on ``/tf``:
 ``map_from_odom · odom_from_base`` must equal the published pose at the same stamp.
 
-Runs per sequence: ``lockstep`` (each frame waits for the node's diagnostic of the previous one:
-every frame is localized) with odometry and with visual odometry; ``10 Hz`` (the camera's rate;
-the node drops what it cannot keep up with, and counts it) with odometry. The peer in the same
+Runs per sequence: ``lockstep`` (each frame waits for the node's diagnostic of the previous one,
+the node with ``-p fixes:=wait``: every frame gets its own fix, an offline replay) with odometry
+and with visual odometry; ``10 Hz`` (the camera's rate, the node's default ``fixes=background``:
+frames posed by tracking, fixes in a worker; what it cannot keep up with is dropped and counted)
+with odometry. The peer in the same
 run: the same frames through :class:`SequenceLocalizer` in this process, no ROS (what the node
 adds is transport and conversions).
 
@@ -42,7 +44,7 @@ from planarloc.features.images import read_gray  # noqa: E402
 from planarloc.geometry.pose import Pose, pose_errors  # noqa: E402
 from planarloc.io.datasets import read_dataset  # noqa: E402
 from planarloc.localize.localizer import Localizer, localizer_config  # noqa: E402
-from planarloc.localize.sequence import SequenceLocalizer  # noqa: E402
+from planarloc.localize.sequence import SequenceConfig, SequenceLocalizer  # noqa: E402
 from planarloc.ros2.replay import NodeProcess, ReplayFrame, exclusive_domain, loopback_env, replay  # noqa: E402
 from planarloc.synthetic.stream import make_stream, stream_order  # noqa: E402
 
@@ -91,8 +93,9 @@ def _score(result, frames: list[ReplayFrame], truths: list[Pose]) -> dict:
 
 
 def _peer(map_path: Path, frames: list[ReplayFrame], truths: list[Pose]) -> dict:
-    """The same frames through SequenceLocalizer in this process (the node's configuration)."""
-    seq = SequenceLocalizer(Localizer(map_path, localizer_config(structure="tracks", seed=0)))
+    """The same frames through SequenceLocalizer in this process (the lockstep runs' configuration)."""
+    seq = SequenceLocalizer(Localizer(map_path, localizer_config(structure="tracks", seed=0)),
+                            SequenceConfig(fixes="wait"))
     good, posed, wall, cpu = 0, 0, [], []
     for frame, truth in zip(frames, truths):
         odometry = None if frame.odom_from_base is None else (frame.odom_from_base @ BASE_FROM_CAMERA).inverse()
@@ -123,6 +126,8 @@ def run_sequence(data: Path, rate: bool, root: Path) -> dict:
             env = loopback_env(domain)
             os.environ.update(env)
             args = ["--map", str(map_path), "--ros-args", "-p", f"odom_topic:={'/odom' if odometry else chr(39) * 2}"]
+            if lockstep:  # an offline replay: each frame waits for its fix (the node's default is background)
+                args += ["-p", "fixes:=wait"]
             node = NodeProcess(args, env)
             try:
                 node.wait_ready(timeout=600)
