@@ -4,6 +4,7 @@ takes its defaults from here."""
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
@@ -54,8 +55,8 @@ class SequenceConfig:
             rotation std ``point_fix_rotation_std_deg · g``, ``g = (1 + point_fix_std_per_frame · k)
             · sqrt(max(1, 60 / n))`` after ``k`` frames of tracking with ``n`` inlier points (the
             same points in every frame: their errors do not average out, and tracks drift).
-        track_corners, track_window_px, track_levels, track_threshold_px: the corner tracker
-            (:class:`~planarloc.localize.tracking.TrackerOptions`).
+        tracking: the corner tracker's settings
+            (:class:`~planarloc.localize.tracking.TrackerOptions`; its ``model`` is ``vo_model``).
         max_speed_mps: std of the distance per second while the speed is unknown.
         lost_std_m: a frame whose position std (fused or predicted) is above this is ``lost``.
         localized_std_m: a frame whose position std is above this is not ``localized`` (at most
@@ -98,10 +99,7 @@ class SequenceConfig:
     point_fix_min_std_m: float = 0.05
     point_fix_rotation_std_deg: float = 0.2
     point_fix_std_per_frame: float = 0.5
-    track_corners: int = 480
-    track_window_px: int = 15
-    track_levels: int = 4
-    track_threshold_px: float = 1.0
+    tracking: TrackerOptions = TrackerOptions()
     max_speed_mps: float = 15.0
     lost_std_m: float = 1.0
     localized_std_m: float = 0.3
@@ -113,8 +111,7 @@ class SequenceConfig:
     def __post_init__(self) -> None:
         if self.fixes not in FIX_MODES:
             raise InputError(f"SequenceConfig.fixes: expected one of {FIX_MODES}, got {self.fixes!r}")
-        minimum = {"window": 2, "local_top_n": 2, "kidnap_confirmations": 1, "fix_every": 1, "fix_delay": 0,
-                   "track_corners": 3, "track_window_px": 3, "track_levels": 0}
+        minimum = {"window": 2, "local_top_n": 2, "kidnap_confirmations": 1, "fix_every": 1, "fix_delay": 0}
         for name, lo in minimum.items():
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < lo:
@@ -123,6 +120,8 @@ class SequenceConfig:
                 self.fix_resize_max, (int, np.integer)) or self.fix_resize_max < 16):
             raise InputError(f"SequenceConfig.fix_resize_max: expected None or an integer >= 16, "
                              f"got {self.fix_resize_max!r}")
+        if not isinstance(self.tracking, TrackerOptions):
+            raise InputError(f"SequenceConfig.tracking: expected TrackerOptions, got {type(self.tracking).__name__}")
         if self.vo_model not in MODELS:
             raise InputError(f"SequenceConfig.vo_model: expected one of {MODELS}, got {self.vo_model!r}")
         if not 0.5 < self.gate_probability < 1:
@@ -134,7 +133,7 @@ class SequenceConfig:
                      "vo_direction_std_deg", "vo_rotation_std_deg", "vo_scale_std", "vo_first_scale_std",
                      "point_fix_min_std_m",
                      "point_fix_std_per_frame", "point_fix_rotation_std_deg",
-                     "track_threshold_px", "max_speed_mps", "lost_std_m", "localized_std_m", "frame_period_s", "refix_radius_m"):
+                     "max_speed_mps", "lost_std_m", "localized_std_m", "frame_period_s", "refix_radius_m"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, (int, float, np.floating, np.integer)) or not (
                     np.isfinite(v) and v > 0):
@@ -143,5 +142,4 @@ class SequenceConfig:
     @property
     def tracker(self) -> TrackerOptions:
         """The corner tracker's options."""
-        return TrackerOptions(corners=self.track_corners, window_px=self.track_window_px, levels=self.track_levels,
-                              threshold_px=self.track_threshold_px, model=self.vo_model)
+        return dataclasses.replace(self.tracking, model=self.vo_model)
