@@ -25,6 +25,7 @@ weights we cannot download. hloc pair files can be used instead via :func:`retri
 
 from __future__ import annotations
 
+import functools
 import logging
 import struct
 from collections.abc import Mapping, Sequence
@@ -175,20 +176,22 @@ class VladVocabulary:
         return cls(c)
 
 
-_BLAS_CONTROLLER: list = []
+@functools.cache
+def _blas_controller():
+    """The process's ``threadpoolctl`` controller (found once: inspecting the loaded libraries
+    takes ~0.1 ms, a limit through it ~5 µs)."""
+    from threadpoolctl import ThreadpoolController
+
+    return ThreadpoolController()
 
 
 def _one_blas_thread():
-    """Context in which BLAS runs on one thread (``threadpoolctl``; ~5 µs to enter and leave).
+    """Context in which BLAS runs on one thread.
 
     One image's VLAD products are small: OpenBLAS' threads spin waiting for a busy core and cost
     more than they share (0.73 ms with one thread against 49 ms with two, 2 cores at load 12;
     benchmarks/map_scale.py: retrieval 9.3 ms per query with one thread, 123 ms with two)."""
-    if not _BLAS_CONTROLLER:
-        from threadpoolctl import ThreadpoolController
-
-        _BLAS_CONTROLLER.append(ThreadpoolController())
-    return _BLAS_CONTROLLER[0].limit(limits=1, user_api="blas")
+    return _blas_controller().limit(limits=1, user_api="blas")
 
 
 def vlad_descriptor(vocab: VladVocabulary, descriptors: object, power: float = DEFAULT_POWER) -> np.ndarray:
