@@ -14,7 +14,7 @@ stream the robustness benchmark does not use.
 Every scene where the oracle succeeds and 2p1p does not is classified:
 
 * ``gate``: 2p1p's pose is within 0.1 m / 1° but the verification refused it;
-* ``search``: the truth, refined like our answer (:func:`absolute_pose._refine` from the true
+* ``search``: the truth, refined like our answer (:class:`final_refinement.FinalRefiner` from the true
   pose), has a lower MSAC cost than our answer: better sampling or local optimisation could
   have found it;
 * ``objective``: our answer has the lower cost: no search fixes it, only another objective.
@@ -39,7 +39,8 @@ from _trial_runner import run_trials  # noqa: E402
 from robustness import ITERATIONS, MAX_CENTRE_ERROR_M, MAX_ROTATION_ERROR_DEG, THRESHOLD_PX, inlier_pairs  # noqa: E402
 
 from planarloc.geometry.pose import pose_errors  # noqa: E402
-from planarloc.robust.absolute_pose import _refine, estimate_absolute_pose  # noqa: E402
+from planarloc.robust.absolute_pose import estimate_absolute_pose  # noqa: E402
+from planarloc.robust.final_refinement import FinalRefiner  # noqa: E402
 from planarloc.robust.estimators import Planar2p1pEstimator  # noqa: E402
 from planarloc.robust.options import RansacOptions  # noqa: E402
 from planarloc.robust.problem import build_problem  # noqa: E402
@@ -75,7 +76,7 @@ def run_scene(task: tuple[int, int, int, float, bool, str]) -> dict:
             r["class"] = f"no pose ({est.status})"
         else:
             scorer = Planar2p1pEstimator(build_problem(sc.query_camera, sc.pairs), opts)
-            truth = _refine(scorer, sc.query_pose.R, sc.query_pose.t, opts).score
+            truth = FinalRefiner(scorer, opts)(sc.query_pose.R, sc.query_pose.t).score
             ours = float(scorer.score(pose.R[None], pose.t[None])[0][0])
             r["class"] = "search" if ours > truth else "objective"
     return r

@@ -15,7 +15,7 @@ import logging
 import math
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -23,7 +23,6 @@ from planarloc.geometry.camera import Camera
 from planarloc.geometry.gravity import mean_direction, upright_from_gravity
 from planarloc.robust import observability as obs
 from planarloc.robust.estimators import (
-    SIGMA_FLOOR_PX,
     Planar2p1pEstimator,
     RectifiedHypotheses,
     RelativePairEstimator,
@@ -33,13 +32,11 @@ from planarloc.robust.options import Method, RansacOptions, Structure, parse_met
 from planarloc.robust.pair_matches import PairMatches, unit_gravity
 from planarloc.robust.problem import AbsolutePoseProblem, build_problem
 from planarloc.robust.ransac import ransac
-from planarloc.robust.final_refinement import refine_until_stable
-from planarloc.robust.refinement import centre_covariance
+from planarloc.robust.final_refinement import FinalRefiner, RefinedPose
 from planarloc.robust.result import PoseEstimate, RansacStatistics
 from planarloc.robust.verification import (
     RIVAL_COST_RATIO,
     RIVAL_MARGIN_INLIERS,
-    RefinedPose,
     failed_estimate,
     judge_pose,
     with_rival,
@@ -60,7 +57,6 @@ E_Y = np.array([0.0, 1.0, 0.0])
 E_Y.setflags(write=False)
 # An explicit planar method fails when a 6DoF pose elsewhere has less than this share of its cost.
 PLANAR_VIOLATION_RATIO = 0.8
-FINAL_REFINEMENT_ROUNDS = 4
 # Samples per map image of the short 6DoF search that checks a planar pose: at most this many,
 # fewer where the planar pose's inlier ratio says a clean 5-point sample comes sooner
 # (:func:`rival_check_samples`).
@@ -138,19 +134,6 @@ def _eligible(problem: AbsolutePoseProblem, family: Method) -> bool:
     return eligible_pairs(counts, m1, m2) or (has_3d and max(counts, default=0) >= m1)
 
 
-def _refine(scorer, R: np.ndarray, t: np.ndarray, options: RansacOptions, quick: bool = False) -> RefinedPose:
-    """Final robust refinement, repeated on the refined pose's inliers while they change
-    (one compiled call, :func:`refine_until_stable`); ``quick``: one round of two iterations."""
-    p = scorer.p
-    iterations, rounds = (2, 1) if quick else (6, FINAL_REFINEMENT_ROUNDS)
-    R, t, H, sigma, cost, in2d, in3d, score, score3d = refine_until_stable(
-        np.ascontiguousarray(R), np.ascontiguousarray(t), p.xq, p.xr, p.pair, p.offsets, p.f_query, p.f_ref,
-        p.ref_R, p.ref_t, p.xq3d, p.X3d, scorer.threshold_sq, options.threshold_px,
-        iterations if options.refine else 0, rounds if options.refine else 1, SIGMA_FLOOR_PX,
-        math.radians(options.map_rotation_std_deg), options.map_position_std_m)
-    return RefinedPose(R, t, centre_covariance(H, sigma), sigma, cost, score, in2d, in3d, score3d, H)
-
-
 def estimate_absolute_pose(
     query_camera: Camera,
     pairs: Sequence[PairMatches],
@@ -208,15 +191,13 @@ def estimate_absolute_pose(
 
     def search(family: Method, counted: bool, iterations: int | None = None) -> _Search | None:
         """One family's search; ``iterations``: a short check, refined with a quick look only."""
-        budget = options if iterations is None else replace(
-            options, min_iterations=min(iterations, options.max_iterations),
-            max_iterations=min(iterations, options.max_iterations))
+        budget = options if iterations is None else options.with_iterations(iterations)
         return _search(problem, budget, family, gravity, rng, stats, counted, quick=iterations is not None)
 
     def judge(best: _Search, searches: Sequence[_Search]) -> PoseEstimate:
         return judge_pose(best.scorer, problem, options, gravity.world, gravity.query, best.refined, stats, t_start,
                           _rivals(best, searches), best.alternatives, best.pool,
-                          lambda R_alt, t_alt, quick: _refine(best.scorer, R_alt, t_alt, options, quick),
+                          FinalRefiner(best.scorer, options),
                           any_plane_degenerate=best.family == Method.EIGHT)
 
     # The planar model first. Where its refined pose fits the plane and either passes every
@@ -308,7 +289,7 @@ def _search(problem: AbsolutePoseProblem, options: RansacOptions, family: Method
     if out.R is None:
         return None
     t0 = time.perf_counter()
-    refined = _refine(scorer, out.R, out.t, options, quick)
+    refined = FinalRefiner(scorer, options)(out.R, out.t, quick)
     stats.add_time("refinement", time.perf_counter() - t0)
     return _Search(family, refined, list(zip(out.alt_R, out.alt_t, out.alt_cost)), (out.pool_R, out.pool_t), scorer)
 

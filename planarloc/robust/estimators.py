@@ -17,7 +17,6 @@ What a refined pose's matches can tell about it lives in :mod:`planarloc.robust.
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import replace
 
 import numpy as np
 

@@ -8,15 +8,106 @@ map-error share of the uncertainty is propagated afterwards).
 
 from __future__ import annotations
 
+import math
+from dataclasses import dataclass
+
 import numpy as np
 from numba import njit
 
 from planarloc.geometry import mat3 as m3
+from planarloc.numerics.symmetric_eigen import symmetric_eigen
+from planarloc.robust.estimators import SIGMA_FLOOR_PX
 from planarloc.robust.map_prior import refine_with_map_prior
-from planarloc.robust.refinement import refine_pose
+from planarloc.robust.options import RansacOptions
+from planarloc.robust.refinement import centre_covariance, exp_so3, refine_pose
 from planarloc.robust.scoring import errors_sq
 
 LATER_ROUND_ITERATIONS = 3  # LM iterations of the rounds after the first in refine_until_stable
+FINAL_REFINEMENT_ROUNDS = 4  # inlier re-selections of the final refinement
+FINAL_ITERATIONS = 6  # LM iterations of its first round
+QUICK_ITERATIONS = 2  # a quick look: one round of this many iterations
+
+
+@dataclass(frozen=True)
+class RefinedPose:
+    """One search's final pose: refined (R, t), centre covariance from the pixel noise, σ̂,
+    robust cost, MSAC score at τ, the inlier masks at the pose, the 2D-3D share of the score and
+    the refinement's (6, 6) normal matrix."""
+
+    R: np.ndarray
+    t: np.ndarray
+    cov: np.ndarray
+    sigma: float
+    cost: float
+    score: float
+    in2d: np.ndarray
+    in3d: np.ndarray
+    score3d: float = 0.0
+    H: np.ndarray | None = None
+
+
+@dataclass(frozen=True)
+class FinalRefiner:
+    """The final refinement of poses of one problem with one set of options.
+
+    ``refiner(R, t, quick)`` refines a pose (:func:`refine_until_stable`; ``quick``: one round of
+    ``QUICK_ITERATIONS``, a first look); :meth:`restart_distance` restarts it around a refined pose
+    (:func:`restart_distance`). ``scorer``: the estimator holding the flattened problem ``p`` and
+    ``threshold_sq`` (τ², pixels²)."""
+
+    scorer: object
+    options: RansacOptions
+
+    def _budget(self, quick: bool) -> tuple[int, int]:
+        """(LM iterations of the first round, rounds); no iterations when refinement is off."""
+        iterations, rounds = (QUICK_ITERATIONS, 1) if quick else (FINAL_ITERATIONS, FINAL_REFINEMENT_ROUNDS)
+        return (iterations, rounds) if self.options.refine else (0, 1)
+
+    def _problem(self) -> tuple:
+        p, o = self.scorer.p, self.options
+        return (p.xq, p.xr, p.pair, p.offsets, p.f_query, p.f_ref, p.ref_R, p.ref_t, p.xq3d, p.X3d,
+                self.scorer.threshold_sq, o.threshold_px)
+
+    def _prior(self) -> tuple[float, float]:
+        return math.radians(self.options.map_rotation_std_deg), self.options.map_position_std_m
+
+    def __call__(self, R: np.ndarray, t: np.ndarray, quick: bool = False) -> RefinedPose:
+        iterations, rounds = self._budget(quick)
+        R, t, H, sigma, cost, in2d, in3d, score, score3d = refine_until_stable(
+            np.ascontiguousarray(R), np.ascontiguousarray(t), *self._problem(), iterations, rounds, SIGMA_FLOOR_PX,
+            *self._prior())
+        return RefinedPose(R, t, centre_covariance(H, sigma), sigma, cost, score, in2d, in3d, score3d, H)
+
+    def restart_distance(self, ref: RefinedPose, beyond: float, margin: float) -> float:
+        """Distance (> ``beyond``, m) of another basin of the cost around ``ref``; 0 if none.
+
+        The starts are ``ref`` moved along ±v, the eigenvector of the smallest eigenvalue of its
+        normal matrix H (6, 6) (the top one of the covariance ``σ̂² H⁻¹``: rotation and centre
+        coupled as the data couple them), scaled so that the centre moves by ``beyond``. Each is
+        refined in full like ``ref``; one that lands beyond ``beyond`` with an MSAC cost at most
+        ``margin`` (pixels²) above ``ref.score`` is another answer the data support as well.
+        Plain Python around two compiled refinements (~70 µs each): one kernel for the whole
+        would save ~30 µs per call but cost ~4 s of compilation on first use.
+        """
+        w, V = np.empty(6), np.empty((6, 6))
+        if ref.H is None or not symmetric_eigen(np.ascontiguousarray(ref.H), w, V) or not w[0] > 0.0:
+            return 0.0
+        v = V[:, 0]
+        nc = float(np.linalg.norm(v[3:]))
+        if not nc > 1e-12:
+            return 0.0
+        iterations, rounds = self._budget(False)
+        c = -ref.R.T @ ref.t
+        found = 0.0
+        for sgn in (1.0, -1.0):
+            step = sgn * (beyond / nc) * v
+            R0 = exp_so3(np.ascontiguousarray(step[:3])) @ ref.R
+            R1, t1, *_, score1, _ = refine_until_stable(
+                R0, -R0 @ (c + step[3:]), *self._problem(), iterations, rounds, SIGMA_FLOOR_PX, *self._prior())
+            d = float(np.linalg.norm(-R1.T @ t1 - c))
+            if d > beyond and score1 - ref.score <= margin:
+                found = max(found, d)
+        return found
 
 
 @njit(cache=True, error_model="numpy")
@@ -81,3 +172,4 @@ def refine_until_stable(
     for i in range(e3d.shape[0]):
         msac3d += min(e3d[i], inlier_threshold_sq)
     return R, t, H, sigma, cost, in2d, in3d, msac2d + msac3d, msac3d
+

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import copy
+import math
 from dataclasses import dataclass
 from enum import Enum
 
@@ -38,6 +40,11 @@ class Structure(str, Enum):
 
     NONE = "none"
     TRACKS = "tracks"
+
+
+_FINITE_FIELDS = ("threshold_px", "rcheck_deg", "consistency_deg", "max_position_std_m", "map_rotation_std_deg",
+                  "map_position_std_m", "min_collinearity_ratio", "track_min_angle_deg", "planar_tolerance_deg",
+                  "max_reference_shift_std")
 
 
 @dataclass(frozen=True)
@@ -128,13 +135,13 @@ class RansacOptions:
         if self.seed is not None and (isinstance(self.seed, bool) or not isinstance(self.seed, (int, np.integer))
                                       or self.seed < 0):
             raise InputError(f"RansacOptions.seed: expected a non-negative integer or None, got {self.seed!r}")
-        for name in ("threshold_px", "rcheck_deg", "consistency_deg", "max_position_std_m",
-                     "map_rotation_std_deg", "map_position_std_m", "min_collinearity_ratio", "track_min_angle_deg",
-                     "planar_tolerance_deg", "max_reference_shift_std"):
+        for name in _FINITE_FIELDS:
             v = getattr(self, name)
-            if not np.isfinite(v) and name != "max_position_std_m":
+            if isinstance(v, bool) or not isinstance(v, (int, float, np.integer, np.floating)):
+                raise InputError(f"RansacOptions.{name}: expected a number, got {v!r}")
+            if not math.isfinite(v) and name != "max_position_std_m":
                 raise InputError(f"RansacOptions.{name}: must be finite, got {v}")
-        if self.threshold_3d_px is not None and not (np.isfinite(self.threshold_3d_px) and self.threshold_3d_px > 0):
+        if self.threshold_3d_px is not None and not (math.isfinite(self.threshold_3d_px) and self.threshold_3d_px > 0):
             raise InputError(f"RansacOptions.threshold_3d_px: must be a finite number > 0 or None, got "
                              f"{self.threshold_3d_px}")
         if not (1 <= self.min_iterations <= self.max_iterations):
@@ -154,6 +161,19 @@ class RansacOptions:
                              f"got {self.min_collinearity_ratio}")
         if not (0.0 < self.confidence < 1.0):
             raise InputError(f"RansacOptions.confidence: must be in (0, 1), got {self.confidence}")
+
+    def with_iterations(self, iterations: int) -> RansacOptions:
+        """These options with exactly ``min(iterations, max_iterations)`` RANSAC iterations (a
+        short search); ``iterations`` >= 1. A copy that is not validated again (only the two
+        budgets change, to valid values): ``dataclasses.replace`` would re-run ``__post_init__``,
+        ~20 µs on every estimate that runs a short check."""
+        n = min(int(iterations), self.max_iterations)
+        if n < 1:
+            raise InputError(f"RansacOptions.with_iterations: need >= 1 iteration, got {iterations}")
+        out = copy.copy(self)
+        object.__setattr__(out, "min_iterations", n)
+        object.__setattr__(out, "max_iterations", n)
+        return out
 
 
 def reprojection_threshold_px(options: RansacOptions) -> float:

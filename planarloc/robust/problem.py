@@ -11,7 +11,7 @@ from functools import cached_property
 import numpy as np
 from numba import njit
 
-from planarloc.geometry.camera import Camera, CameraModel
+from planarloc.geometry.camera import Camera
 from planarloc.geometry.validation import InputError
 from planarloc.robust.pair_matches import PairMatches
 

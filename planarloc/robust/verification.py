@@ -14,17 +14,17 @@ import dataclasses
 import math
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
 
 import numpy as np
 from numba import njit
 
 from planarloc.geometry.mat3 import sym_eigvals
 from planarloc.geometry.pose import Pose
-from planarloc.robust.refinement import centre_covariance, exp_so3
+from planarloc.robust.refinement import centre_covariance
 from planarloc.numerics.cholesky import cholesky_factor, spd_inverse
 from planarloc.robust import observability as obs
 from planarloc.robust.chance_support import beyond_chance, chance_inliers
+from planarloc.robust.final_refinement import FinalRefiner, RefinedPose
 from planarloc.robust.options import RansacOptions, Structure
 from planarloc.robust.planar_scene import distant_planar_pairs
 from planarloc.robust.problem import AbsolutePoseProblem
@@ -52,24 +52,6 @@ RIVAL_POOL_BELOW_INLIERS = 32
 # refused most correct poses of the hard protocol (3 x 20 matches, 60 % outliers) at two.
 RESTART_MARGIN_INLIERS = 1
 MAX_POOL_CANDIDATES = 8
-
-
-@dataclass(frozen=True)
-class RefinedPose:
-    """One search's final pose: refined (R, t), centre covariance from the pixel noise, σ̂,
-    robust cost, MSAC score at τ, the inlier masks at the pose, the 2D-3D share of the score and
-    the refinement's (6, 6) normal matrix."""
-
-    R: np.ndarray
-    t: np.ndarray
-    cov: np.ndarray
-    sigma: float
-    cost: float
-    score: float
-    in2d: np.ndarray
-    in3d: np.ndarray
-    score3d: float = 0.0
-    H: np.ndarray | None = None
 
 
 def _rival_distance(estimator, ref: RefinedPose, num_inliers: int,
@@ -234,8 +216,7 @@ def _pose_covariance_kernel(H: np.ndarray, noise: float, R: np.ndarray, position
     return 1 if cholesky_factor(out, L, 0.0) else 2
 
 
-def _basin_distance(estimator, ref: RefinedPose, refine: Callable[[np.ndarray, np.ndarray, bool], RefinedPose],
-                    beyond: float) -> float:
+def _basin_distance(estimator, ref: RefinedPose, refine: FinalRefiner, beyond: float) -> float:
     """Distance (> ``beyond``) of another basin of the cost found by restarting the refinement
     just outside the promise, along the weakest axis of the pose covariance; 0 if none.
 
@@ -245,32 +226,11 @@ def _basin_distance(estimator, ref: RefinedPose, refine: Callable[[np.ndarray, n
     couple them: a distant scene trades rotation for translation), scaled so that the centre
     moves by ``beyond``. A restart that lands beyond ``beyond`` with an MSAC cost within
     ``RESTART_MARGIN_INLIERS`` inlier's worth of ``ref``'s (or lower) is another answer the data
-    support as well.
+    support as well. The restarts take the full refinement, not a quick look: falling into
+    another basin takes the rounds of inlier re-selection (a quick look missed a facade pose
+    0.5 m off with a 0.14 m std) (:meth:`FinalRefiner.restart_distance`).
     """
-    if ref.H is None or not np.isfinite(ref.H).all():
-        return 0.0
-    try:
-        w, V = np.linalg.eigh(np.linalg.inv(ref.H))
-    except np.linalg.LinAlgError:
-        return 0.0
-    v = V[:, -1]
-    nc = float(np.linalg.norm(v[3:]))
-    if not (w[-1] > 0 and nc > 1e-12):
-        return 0.0
-    margin = RESTART_MARGIN_INLIERS * estimator.threshold_sq
-    c = -ref.R.T @ ref.t
-    found = 0.0
-    for sgn in (1.0, -1.0):
-        step = sgn * (beyond / nc) * v
-        R0 = np.ascontiguousarray(exp_so3(np.ascontiguousarray(step[:3])) @ ref.R)
-        c0 = c + step[3:]
-        # The full refinement, not a quick look: falling into another basin takes the rounds of
-        # inlier re-selection (a quick look missed a facade pose 0.5 m off with a 0.14 m std).
-        alt = refine(R0, -R0 @ c0, False)
-        d = float(np.linalg.norm(-alt.R.T @ alt.t - c))
-        if d > beyond and alt.score - ref.score <= margin:
-            found = max(found, d)
-    return found
+    return refine.restart_distance(ref, beyond, RESTART_MARGIN_INLIERS * estimator.threshold_sq)
 
 
 def split_by_pair(mask: np.ndarray, offsets: np.ndarray) -> list[np.ndarray]:
@@ -293,7 +253,7 @@ def judge_pose(estimator, problem: AbsolutePoseProblem, options: RansacOptions, 
                query_gravity: np.ndarray, ref: RefinedPose, stats: RansacStatistics, t_start: float,
                rivals: Sequence[np.ndarray] = (), alternatives: Sequence[tuple[np.ndarray, np.ndarray, float]] = (),
                pool: tuple[np.ndarray, np.ndarray] = (np.zeros((0, 3, 3)), np.zeros((0, 3))),
-               refine: Callable[[np.ndarray, np.ndarray, bool], RefinedPose] | None = None,
+               refine: FinalRefiner | None = None,
                any_plane_degenerate: bool = False) -> PoseEstimate:
     """Uncertainty and verification of a refined pose; a ``success`` only if it passes.
 
@@ -305,7 +265,7 @@ def judge_pose(estimator, problem: AbsolutePoseProblem, options: RansacOptions, 
         rivals: (3,) centres of other searches' refined poses of nearly the same cost.
         alternatives: the search's other locally optimised models ``(R, t, MSAC cost)``;
             ``pool``: its raw hypotheses near the best cost ``(R (k, 3, 3), t (k, 3))``;
-            ``refine(R, t, quick)`` refines one like ``ref`` (``quick``: one round of two
+            ``refine``: the search's :class:`FinalRefiner`; ``refine(R, t, quick)`` refines one like ``ref`` (``quick``: one round of two
             iterations, a first look). A runner-up that refines to a pose beyond
             ``3·std + 5 cm`` explaining the matches as well but for ``RIVAL_MARGIN_INLIERS``
             inliers is a rival answer (:func:`_rival_distance`): the distance bounds the std

@@ -31,3 +31,20 @@ def test_fractional_query_indices_rejected() -> None:
     assert ok.query_indices.dtype == np.int64 and list(ok.query_indices) == [0, 1, 2, 3, 4]
     with pytest.raises(ValueError, match="whole numbers"):
         PairMatches(Pose.identity(), cam, pts, pts, query_indices=np.array([0, 1, 2.5, 3, 4]))
+
+
+def test_with_iterations_sets_exact_budget_on_a_copy() -> None:
+    base = RansacOptions(max_iterations=50, min_iterations=20, threshold_px=1.5, seed=3)
+    short = base.with_iterations(7)
+    assert (short.min_iterations, short.max_iterations) == (7, 7)
+    assert (base.min_iterations, base.max_iterations) == (20, 50)          # the original is untouched
+    assert short.threshold_px == 1.5 and short.seed == 3 and short.structure == base.structure
+    assert base.with_iterations(500).max_iterations == 50                  # clipped to the budget
+    with pytest.raises(ValueError, match="with_iterations"):
+        base.with_iterations(0)
+
+
+@pytest.mark.parametrize("value", ["2", None, True, [2.0]])
+def test_non_numeric_thresholds_rejected(value) -> None:
+    with pytest.raises(ValueError, match="threshold_px: expected a number"):
+        RansacOptions(threshold_px=value)
