@@ -25,6 +25,7 @@ __all__ = [
     "check_correspondence_batch",
     "check_correspondences",
     "solve_correspondences",
+    "solve_relpose_batch",
     "motion_from_essential",
     "relposes_from_essential",
 ]
@@ -396,7 +397,17 @@ def relposes_closed_form(Es: np.ndarray, x_query: np.ndarray, x_ref: np.ndarray)
     return Pose._from_buffer(out, relposes_into(np.ascontiguousarray(Es), Es.shape[0], x_query, x_ref, out))
 
 
-def mask_invalid(R: np.ndarray, t: np.ndarray, valid: np.ndarray) -> None:
-    """Set the invalid slots of batched solver output to NaN, in place."""
+def solve_relpose_batch(kernel, xq: np.ndarray, xr: np.ndarray,
+                        max_solutions: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Run a batched relative-pose kernel ``kernel(xq, xr, R, t, valid)`` on validated (M, k, 3)
+    float64 rays: R (M, max_solutions, 3, 3), t (M, max_solutions, 3), valid (M, max_solutions),
+    NaN in the invalid slots (the batch solvers' shared tail; RANSAC calls it on samples of a
+    problem validated once, where re-validating each batch cost ~100 µs per call)."""
+    M = xq.shape[0]
+    R = np.full((M, max_solutions, 3, 3), np.nan)
+    t = np.full((M, max_solutions, 3), np.nan)
+    valid = np.zeros((M, max_solutions), dtype=np.bool_)
+    kernel(xq, xr, R, t, valid)
     R[~valid] = np.nan
     t[~valid] = np.nan
+    return R, t, valid

@@ -244,17 +244,17 @@ def _baseline_solver(method: Method) -> tuple[int, RelposeBatchSolver]:
     if method == Method.P2P2:
         return 2, planar_2p_batch_unchecked
     if method == Method.NISTER:
-        from planarloc.solvers.relpose_5p_nister import relpose_5p_nister_batch
+        from planarloc.solvers.relpose_5p_nister import relpose_5p_nister_batch_unchecked
 
-        return 5, relpose_5p_nister_batch
+        return 5, relpose_5p_nister_batch_unchecked
     if method == Method.STEWENIUS:
-        from planarloc.solvers.relpose_5p_stewenius import relpose_5p_stewenius_batch
+        from planarloc.solvers.relpose_5p_stewenius import relpose_5p_stewenius_batch_unchecked
 
-        return 5, relpose_5p_stewenius_batch
+        return 5, relpose_5p_stewenius_batch_unchecked
     if method == Method.EIGHT:
-        from planarloc.solvers.relpose_8p import relpose_8p_batch
+        from planarloc.solvers.relpose_8p import relpose_8p_batch_unchecked
 
-        return 8, relpose_8p_batch
+        return 8, relpose_8p_batch_unchecked
     raise ValueError(f"no relative-pose solver for {method}")
 
 
@@ -282,6 +282,7 @@ class RelativePairEstimator(_ProblemEstimator):
         # 6DoF families with 2D-3D constraints also draw P3P samples (PoseLib's hybrid estimator
         # samples its 2D-3D and 2D-2D solvers side by side).
         self.p3p = method != Method.P2P2 and len(problem.X3d) >= 3
+        self._pair_pairs = np.triu_indices(problem.num_pairs, 1)  # every two pairs (j < k), stage 2
 
     def _best_relative(self, rng: np.random.Generator, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Stage 1: per pair, up to ``top_k`` distinct best relative poses: R (P, K, 3, 3),
@@ -305,7 +306,7 @@ class RelativePairEstimator(_ProblemEstimator):
         p = self.p
         top_R, top_t, count = self._best_relative(rng, n)
         K = self.top_k
-        pj, pk = np.triu_indices(p.num_pairs, 1)
+        pj, pk = self._pair_pairs
         use = (count[pj] > 0) & (count[pk] > 0)
         pj, pk = pj[use].astype(np.int64), pk[use].astype(np.int64)
         C = len(pj)

@@ -63,7 +63,7 @@ from numba import njit, prange
 
 from planarloc.geometry.essential_decomposition import (
     check_correspondence_batch,
-    mask_invalid,
+    solve_relpose_batch,
     solve_correspondences,
 )
 from planarloc.geometry.pose import Pose
@@ -89,7 +89,7 @@ from planarloc.solvers._five_point import (
     unit_rows,
 )
 
-__all__ = ["essentials_5p_nister", "relpose_5p_nister", "relpose_5p_nister_batch"]
+__all__ = ["essentials_5p_nister", "relpose_5p_nister", "relpose_5p_nister_batch", "relpose_5p_nister_batch_unchecked"]
 
 # Nistér 2004, Sec. 3, monomial order of the 10 x 20 matrix.
 _NISTER_ORDER = [
@@ -302,11 +302,11 @@ def relpose_5p_nister_batch(
         Nistér, TPAMI 2004, Sec. 3; the pose comes from the closed-form decomposition
         ``R = cof(E) ∓ [t]x E`` (Horn 1990) instead of the SVD of the single-call API.
     """
-    xq, xr = check_correspondence_batch(x_query, x_ref, 5)
-    M = xq.shape[0]
-    R = np.full((M, MAX_SOLUTIONS, 3, 3), np.nan)
-    t = np.full((M, MAX_SOLUTIONS, 3), np.nan)
-    valid = np.zeros((M, MAX_SOLUTIONS), dtype=np.bool_)
-    (_batch_parallel if parallel else _batch)(xq, xr, R, t, valid)
-    mask_invalid(R, t, valid)
-    return R, t, valid
+    return relpose_5p_nister_batch_unchecked(*check_correspondence_batch(x_query, x_ref, 5), parallel=parallel)
+
+
+def relpose_5p_nister_batch_unchecked(xq: np.ndarray, xr: np.ndarray, *,
+                                         parallel: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`relpose_5p_nister_batch` on validated contiguous float64 (M, 5, 3) rays (the RANSAC
+    estimators' entry point: their problem is validated once)."""
+    return solve_relpose_batch(_batch_parallel if parallel else _batch, xq, xr, MAX_SOLUTIONS)

@@ -36,7 +36,7 @@ from numba import njit
 
 from planarloc.geometry.essential_decomposition import (
     check_correspondence_batch,
-    mask_invalid,
+    solve_relpose_batch,
     relpose_from_essential_kernel,
     relposes_closed_form,
     solve_correspondences,
@@ -44,7 +44,7 @@ from planarloc.geometry.essential_decomposition import (
 from planarloc.geometry.pose import Pose
 from planarloc.geometry.validation import rays_invalid
 
-__all__ = ["essential_8p", "relpose_8p", "relpose_8p_batch"]
+__all__ = ["essential_8p", "relpose_8p", "relpose_8p_batch", "relpose_8p_batch_unchecked"]
 
 RANK_TOL = 1e-10
 MIN_COS_OPTICAL_AXIS = 0.1  # |z| / ‖x‖ below this for any ray: no Hartley normalization
@@ -329,11 +329,10 @@ def relpose_8p_batch(x_query: object, x_ref: object) -> tuple[np.ndarray, np.nda
         As :func:`relpose_8p`; null vector by Householder QR, pose by the closed form of
         :func:`planarloc.geometry.essential_decomposition.relpose_from_essential_kernel`.
     """
-    xq, xr = check_correspondence_batch(x_query, x_ref, 8)
-    M = xq.shape[0]
-    R = np.full((M, 1, 3, 3), np.nan)
-    t = np.full((M, 1, 3), np.nan)
-    valid = np.zeros((M, 1), dtype=np.bool_)
-    _batch_8p(xq, xr, R, t, valid)
-    mask_invalid(R, t, valid)
-    return R, t, valid
+    return relpose_8p_batch_unchecked(*check_correspondence_batch(x_query, x_ref, 8))
+
+
+def relpose_8p_batch_unchecked(xq: np.ndarray, xr: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`relpose_8p_batch` on validated contiguous float64 (M, 8, 3) rays (the RANSAC
+    estimators' entry point: their problem is validated once)."""
+    return solve_relpose_batch(_batch_8p, xq, xr, 1)
