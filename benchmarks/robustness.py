@@ -171,6 +171,7 @@ def summarise(results: list[dict], names: tuple[str, ...], protocol: str = "pape
                     "median_time_s": float(np.median(times)) if times else float("nan"),
                     "median_cpu_s": float(np.median(cpus)) if cpus else float("nan"),
                     "mean_cpu_s": float(np.mean(cpus)) if cpus else float("nan"),
+                    "mean_time_s": float(np.mean(times)) if times else float("nan"),
                     "median_centre_error_m": float(np.median(centre)) if centre else None,
                     "status": dict(Counter(v["status"] for v in rs)),
                     "gated_but_correct": int(sum(v.get("gated_correct", False) for v in rs)),
@@ -178,6 +179,7 @@ def summarise(results: list[dict], names: tuple[str, ...], protocol: str = "pape
                     "broken_promises": int(sum(v.get("broken_promise", False) for v in rs)),
                     "median_stage_s": {k: float(np.median([v["stage_s"].get(k, 0.0) for v in rs]))
                                        for k in stage_keys},
+                    "mean_stage_s": {k: float(np.mean([v["stage_s"].get(k, 0.0) for v in rs])) for k in stage_keys},
                 }
             cells[f"{m}x{r:.1f}"] = cell
     return cells
@@ -248,6 +250,22 @@ def print_tables(cells: dict, names: tuple[str, ...], trials: int, protocol: str
         for name in ours:
             vals = [cells_ratio(cells, m, name) for m in matches]
             print(f"  {name:<{w}}" + "".join(f"{v:>8.2f}" for v in vals) + f"{cells_ratio(cells, None, name):>8.2f}")
+    if PEER in names:
+        # Where the time goes: the search (setup, hypotheses, scoring, local optimisation, final
+        # refinement) and the checks that make a success a promise (verification; the cross-check
+        # search of a planar pose): each part's share of our wall time per query, applied to the
+        # CPU ratio above (wall-clock stage times, CPU-time ratio: robust to a loaded machine).
+        print(f"\nThe CPU ratio to {PEER} (all cells) split by part:")
+        for name in ours:
+            total = sum(c["methods"][name]["mean_time_s"] for c in cells.values())
+            st = [c["methods"][name].get("mean_stage_s", {}) for c in cells.values()]
+            part = {k: sum(x.get(k, 0.0) for x in st) / total for k in ("verification", "cross_check")}
+            search = sum(sum(v for k, v in x.items() if k not in ("verification", "cross_check", "total"))
+                         for x in st) / total
+            ratio = cells_ratio(cells, None, name)
+            print(f"  {name:<{w}}{ratio:.2f} = search {ratio * search:.2f} + verification "
+                  f"{ratio * part['verification']:.2f} + cross-check {ratio * part['cross_check']:.2f} + other "
+                  f"{ratio * (1 - search - part['verification'] - part['cross_check']):.2f}")
     errors = {n: sum(v for s, v in cells[c]["methods"][n]["status"].items() if s.startswith("error"))
               for c in cells for n in names}
     if any(errors.values()):

@@ -361,6 +361,30 @@ def refine_five_point_root(
         ss = ss_new
 
 
+@njit(cache=True)
+def store_essential(C: np.ndarray, basis: np.ndarray, sol: np.ndarray, refine_iters: int, refine_rtol: float,
+                    m: np.ndarray, dm: np.ndarray, E_out: np.ndarray, count: int) -> int:
+    """Polish the root ``sol`` (3,) of the constraints C (:func:`refine_five_point_root`), then
+    write ``E = x B₀ + y B₁ + z B₂ + B₃`` (``basis`` (9, 4), row-major E) with unit Frobenius
+    norm into ``E_out[count]``. Returns ``count + 1``, or ``count`` when E is zero or not
+    finite (the slot is then overwritten by the next root). ``m`` (20,), ``dm`` (3, 20): scratch."""
+    refine_five_point_root(C, sol, refine_iters, refine_rtol, m, dm)
+    norm = 0.0
+    for i in range(3):
+        for j in range(3):
+            r = 3 * i + j
+            v = sol[0] * basis[r, 0] + sol[1] * basis[r, 1] + sol[2] * basis[r, 2] + basis[r, 3]
+            E_out[count, i, j] = v
+            norm += v * v
+    if not (np.isfinite(norm) and norm > 0.0):
+        return count
+    norm = 1.0 / np.sqrt(norm)
+    for i in range(3):
+        for j in range(3):
+            E_out[count, i, j] *= norm
+    return count + 1
+
+
 @njit(cache=True, fastmath=_FASTMATH)
 def gauss_jordan(A: np.ndarray, ncols: int, pivot_tol: float, first_row: int) -> bool:
     """In-place Gauss-Jordan elimination with partial pivoting of the first ``ncols`` columns.

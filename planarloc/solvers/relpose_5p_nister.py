@@ -85,7 +85,7 @@ from planarloc.solvers._five_point import (
     gauss_jordan,
     is_rotation_only,
     monomial_permutation,
-    refine_five_point_root,
+    store_essential,
     unit_rows,
 )
 
@@ -177,21 +177,7 @@ def nister_essentials(
         sol[0] = polyval(P[0], 7, z) / d
         sol[1] = polyval(P[1], 7, z) / d
         sol[2] = z
-        refine_five_point_root(C, sol, refine_iters, refine_rtol, m, dm)
-        norm = 0.0
-        for i in range(3):
-            for j in range(3):
-                r = 3 * i + j
-                v = sol[0] * basis[r, 0] + sol[1] * basis[r, 1] + sol[2] * basis[r, 2] + basis[r, 3]
-                E_out[count, i, j] = v
-                norm += v * v
-        if not (np.isfinite(norm) and norm > 0.0):
-            continue
-        norm = 1.0 / np.sqrt(norm)
-        for i in range(3):
-            for j in range(3):
-                E_out[count, i, j] *= norm
-        count += 1
+        count = store_essential(C, basis, sol, refine_iters, refine_rtol, m, dm, E_out, count)
     return count
 
 

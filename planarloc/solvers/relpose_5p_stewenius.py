@@ -75,7 +75,7 @@ from planarloc.solvers._five_point import (
     five_point_sample,
     gauss_jordan,
     is_rotation_only,
-    refine_five_point_root,
+    store_essential,
     unit_rows,
 )
 
@@ -193,21 +193,7 @@ def stewenius_essentials(
         sol[0] = v[6]  # = lams[s]
         sol[1] = v[7]
         sol[2] = v[8]
-        refine_five_point_root(C, sol, refine_iters, refine_rtol, m, dm)
-        norm = 0.0
-        for i in range(3):
-            for j in range(3):
-                r = 3 * i + j
-                e = sol[0] * basis[r, 0] + sol[1] * basis[r, 1] + sol[2] * basis[r, 2] + basis[r, 3]
-                E_out[count, i, j] = e
-                norm += e * e
-        if not (np.isfinite(norm) and norm > 0.0):
-            continue
-        norm = 1.0 / np.sqrt(norm)
-        for i in range(3):
-            for j in range(3):
-                E_out[count, i, j] *= norm
-        count += 1
+        count = store_essential(C, basis, sol, refine_iters, refine_rtol, m, dm, E_out, count)
     return count
 
 
