@@ -128,7 +128,8 @@ class FixJob:
         gravity: (3,) unit gravity in the camera frame, or None.
         prediction: the frame's predicted ``cam_from_world`` and its (6, 6) covariance (pose-graph
             order), or None (nothing to predict from: the stream starts).
-        usable: the prediction's position std is at most ``SequenceConfig.lost_std_m``.
+        usable: the prediction may choose the map images to match (its position std is at most
+            ``SequenceConfig.lost_std_m`` and no kidnap is suspected); else global retrieval.
         position_std_m: the prediction's position std (worst axis).
         generation: the stream's generation (a reset discards older results).
     """

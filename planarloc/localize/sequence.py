@@ -53,7 +53,10 @@ later (``fix_every=1, fix_delay=0``: every frame waits for its own fix, the per-
   agree with each other and with a constant-velocity model, the visual-odometry factor is the
   outlier and is replaced.
 - ``kidnap_confirmations`` consecutive rejected global fixes that agree with each other (through
-  the motion between them) re-initialise the window at the latest of them.
+  the motion between them) re-initialise the window at the latest of them. The first of them
+  is carried along the window when its node is marginalised (fixes far apart still confirm
+  each other), and while a kidnap is suspected fix jobs go to global retrieval at once (the
+  map images near the doubted prediction are the wrong place to look).
 
 **Counted, never silent** (:attr:`SequenceLocalizer.stats` and per frame): a frame whose latency
 (arrival → pose) exceeds ``max_latency_s`` is ``late``; frames missing from the stream (a gap of
@@ -635,8 +638,13 @@ class SequenceLocalizer:
                 self._relative[k] = RelativeFactor(f.i, f.j, m.cur_from_prev, m.covariance)
 
     def _trim(self) -> None:
-        """Marginalise the oldest nodes beyond the window."""
+        """Marginalise the oldest nodes beyond the window (a kidnap candidate at the oldest node
+        is carried to the next one)."""
         while len(self._poses) > self.config.window:
+            c = self._candidate
+            if c is not None and c.stamp == self._stamps[0]:
+                # a kidnap candidate outlives its node: the next fix result may come after it left
+                self._candidate = _Candidate(*self._carried(c.pose, c.covariance, 0, 1), c.count, self._stamps[1])
             absolute, relative = marginalize_first(self._poses, self._absolute, self._relative)
             if not absolute:  # nothing anchored the oldest node: keep the current marginal as a prior
                 cov = marginal_covariances(self._poses, self._absolute, self._relative)[1]
@@ -769,23 +777,29 @@ class SequenceLocalizer:
             fixes.status = "accepted"
             handled.reinitialized = True
 
+    def _carried(self, pose: Pose, cov: np.ndarray, prev: int, node: int) -> tuple[Pose, np.ndarray]:
+        """A pose estimate of node ``prev`` moved to node ``node`` through the window's motion
+        between them, its covariance grown by those motions' (and, where the motion was not
+        wheel odometry, by the weak constant-velocity model's: visual odometry may be wrong
+        exactly across a kidnap, so agreeing fixes then need only agree within that model)."""
+        moved = (self._poses[node] @ self._poses[prev].inverse()) @ pose
+        motion_cov = np.zeros((6, 6))
+        for f in self._relative:
+            if prev < f.j <= node:
+                motion_cov += f.covariance
+                if self._sources[f.j] != "odometry":
+                    dt = self._stamps[f.j] - self._stamps[f.i]
+                    motion_cov += self._constant_motion(f.i, dt).covariance
+        R = pose.R.T
+        motion_cov[3:, 3:] = R @ motion_cov[3:, 3:] @ R.T
+        return moved, cov + motion_cov
+
     def _consider_kidnap(self, node: int, attempt: FixAttempt) -> None:
         c = self._candidate
         prev = self._node(c.stamp) if c is not None else None
         if c is not None and prev is not None and prev < node:
-            predicted = (self._poses[node] @ self._poses[prev].inverse()) @ c.pose
-            motion_cov = np.zeros((6, 6))
-            for f in self._relative:
-                if prev < f.j <= node:
-                    motion_cov += f.covariance
-                    if self._sources[f.j] != "odometry":
-                        # visual odometry may be wrong exactly here: agreeing fixes then need
-                        # only agree within the weak motion model
-                        dt = self._stamps[f.j] - self._stamps[f.i]
-                        motion_cov += self._constant_motion(f.i, dt).covariance
-            R = c.pose.R.T
-            motion_cov[3:, 3:] = R @ motion_cov[3:, 3:] @ R.T
-            if mahalanobis_sq(attempt.pose, attempt.covariance, predicted, c.covariance + motion_cov) <= self._gate:
+            predicted, cov = self._carried(c.pose, c.covariance, prev, node)
+            if mahalanobis_sq(attempt.pose, attempt.covariance, predicted, cov) <= self._gate:
                 self._candidate = _Candidate(attempt.pose, attempt.covariance, c.count + 1, self._stamps[node])
                 return
         self._candidate = _Candidate(attempt.pose, attempt.covariance, 1, self._stamps[node])
@@ -864,8 +878,10 @@ class SequenceLocalizer:
         if not self._poses:
             return FixJob(stamp, query.image, query.camera, query.gravity, None, False, float("inf"), self._generation)
         std, _ = _stds(self._cov)
+        # a suspected kidnap: the map images near the prediction are the wrong place to look
+        usable = std <= self.config.lost_std_m and self._candidate is None and not self._doubt
         return FixJob(stamp, query.image, query.camera, query.gravity, (self._poses[-1], self._cov),
-                      std <= self.config.lost_std_m, std, self._generation)
+                      usable, std, self._generation)
 
     def step(self, image: ImageSource, camera: Camera | None, stamp: float, odometry: Pose | None = None,
              gravity: object | None = None, arrival: float | None = None) -> SequenceEstimate:

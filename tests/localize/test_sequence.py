@@ -232,6 +232,30 @@ def test_a_kidnap_with_delayed_fixes_restarts_from_the_fix_and_tracks_its_points
     assert not any(e.status == "localized" and pose_errors(e.pose, f.image.cam_from_world)[0] > 1.0
                    for f, e, _ in run)
 
+def test_a_kidnap_is_confirmed_by_fixes_further_apart_than_the_window(dense_world: tuple) -> None:
+    """Fixes every 4th frame, 3 frames late, in a window of 6 nodes (as a worker delivers them
+    on a loaded machine): the node of the first contradicting global fix has left the window
+    when the second arrives; the first is carried along the window, the two agree, and the
+    stream re-anchors at the second within two fix periods of each kidnap."""
+    map_path, queries = dense_world
+    loc = Localizer(map_path, LocalizerConfig(ransac=RansacOptions(structure="tracks")))
+    frames = make_stream(queries, stream_order(len(queries), kidnap_at=10), np.random.default_rng(0))
+    restarts = []
+    with SequenceLocalizer(loc, SequenceConfig(fixes="wait", fix_every=4, fix_delay=3, window=6)) as seq:
+        results = evaluate_stream(seq, [f.image for f in frames], [f.stamp for f in frames],
+                                  kidnapped=[f.kidnapped for f in frames],
+                                  on_frame=lambda image, e: restarts.append(e.reinitialized))
+    kidnaps = [k for k, f in enumerate(frames) if f.kidnapped]
+    restarts = [k for k, r in enumerate(restarts) if r]
+    assert len(kidnaps) == 2 and len(restarts) == 2, (kidnaps, restarts)
+    for k, r in zip(kidnaps, restarts):
+        # the first job after the kidnap (<= 4 frames), its result (3), the next job's result (4)
+        assert k < r <= k + 11 and results[r].translation_error_m < 0.5, (k, r, results[r])
+    summary = summarize_sequence(results)
+    assert summary["confident_wrong"] == 0
+    assert all(d is not None and d["frames"] <= 15 for d in summary["relocalization"]["kidnaps"])
+
+
 def test_stamps_and_sizes_are_checked_and_the_stream_goes_on(stream_world: tuple) -> None:
     map_path, queries = stream_world
     seq = SequenceLocalizer(Localizer(map_path), SequenceConfig(fixes="wait"))
