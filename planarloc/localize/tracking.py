@@ -44,7 +44,7 @@ from planarloc.geometry.pose import Pose
 from planarloc.geometry.validation import InputError
 from planarloc.robust.options import RansacOptions
 from planarloc.robust.pose_graph import so3_exp
-from planarloc.robust.relative_pose import RelativePoseEstimate, estimate_relative_pose
+from planarloc.robust.relative_pose import RelativePoseEstimate, direction_basis, estimate_relative_pose
 
 #: a grid cell is about this many pixels wide and high (corners are spread over the cells)
 CELL_PX = 120
@@ -294,15 +294,6 @@ def relative_pose_covariance(rel: RelativePoseEstimate, camera_a: Camera, camera
     if not np.all(np.isfinite(cov)):
         return None
     return 0.5 * (cov + cov.T)
-
-
-def direction_basis(u: np.ndarray) -> np.ndarray:
-    """(3, 2) orthonormal directions perpendicular to the unit vector ``u`` (deterministic)."""
-    u = np.asarray(u, float) / np.linalg.norm(u)
-    a = np.eye(3)[int(np.argmin(np.abs(u)))]
-    b1 = np.cross(u, a)
-    b1 /= np.linalg.norm(b1)
-    return np.stack([b1, np.cross(u, b1)], axis=1)
 
 
 @dataclass(frozen=True)
