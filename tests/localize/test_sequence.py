@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from planarloc.evaluation.sequence import evaluate_stream, summarize_sequence
+from planarloc.evaluation.sequence import evaluate_stream, relocalization, summarize_sequence
 from planarloc.features.images import read_gray
 from planarloc.geometry.pose import Pose, pose_errors
 from planarloc.geometry.validation import InputError
@@ -251,9 +251,9 @@ def test_a_kidnap_is_confirmed_by_fixes_further_apart_than_the_window(dense_worl
     for k, r in zip(kidnaps, restarts):
         # the first job after the kidnap (<= 4 frames), its result (3), the next job's result (4)
         assert k < r <= k + 11 and results[r].translation_error_m < 0.5, (k, r, results[r])
-    summary = summarize_sequence(results)
-    assert summary["confident_wrong"] == 0
-    assert all(d is not None and d["frames"] <= 15 for d in summary["relocalization"]["kidnaps"])
+    assert summarize_sequence(results)["confident_wrong"] == 0
+    # rotation errors stay above 10° for some frames here (visual odometry fails on the office's turns)
+    assert all(d is not None and d["frames"] <= 11 for d in relocalization(results, (1.0, 20.0))["kidnaps"])
 
 
 def test_stamps_and_sizes_are_checked_and_the_stream_goes_on(stream_world: tuple) -> None:
