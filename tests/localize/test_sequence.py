@@ -256,6 +256,22 @@ def test_a_kidnap_is_confirmed_by_fixes_further_apart_than_the_window(dense_worl
     assert all(d is not None and d["frames"] <= 11 for d in relocalization(results, (1.0, 20.0))["kidnaps"])
 
 
+def test_with_background_fixes_a_lost_frame_waits_for_the_fix_in_flight(dense_world: tuple) -> None:
+    """A kidnapped stream with background fixes: a frame that would be ``lost`` has no pose to
+    give early, so it waits for the fix in flight (it handles a fix result, none stays
+    ``pending``); the kidnaps are then confirmed at the rate fixes are computed, not at the
+    rate the worker gets CPU next to the frame path."""
+    map_path, queries = dense_world
+    loc = Localizer(map_path, LocalizerConfig(ransac=RansacOptions(structure="tracks")))
+    frames = make_stream(queries, stream_order(len(queries), kidnap_at=10), np.random.default_rng(0))
+    with SequenceLocalizer(loc, SequenceConfig()) as seq:
+        run = [(f, seq.step(read_gray(f.image.path), f.image.camera, f.stamp)) for f in frames]
+    lost = [e for _, e in run[1:] if e.status == "lost"]
+    assert lost and all(e.fix_status != "pending" for e in lost), [(e.stamp, e.fix_status) for e in lost]
+    assert sum(e.reinitialized for _, e in run) == 2
+    assert not any(e.status == "localized" and pose_errors(e.pose, f.image.cam_from_world)[0] > 1.0 for f, e in run)
+
+
 def test_stamps_and_sizes_are_checked_and_the_stream_goes_on(stream_world: tuple) -> None:
     map_path, queries = stream_world
     seq = SequenceLocalizer(Localizer(map_path), SequenceConfig(fixes="wait"))
