@@ -44,9 +44,10 @@ resolution, matching and the single-frame estimator): against the map images nea
 gated by the χ²(6) Mahalanobis test against the frame's prediction. With
 ``SequenceConfig.fixes = "background"`` (default) they run in a worker thread and the frame path
 never waits for them, except for the first frame (and until a first fix is accepted): there is
-nothing to track from; and a frame that would be ``lost`` waits for the fix in flight (it has no
-pose to give early, and waiting confirms a kidnap within a few frames instead of at the rate the
-worker gets CPU next to the frame path). With ``"wait"`` they run inside :meth:`SequenceLocalizer.step`,
+nothing to track from; and a frame that doubts its pose (a rejected global fix after a motion
+that was not measured: a suspected kidnap, the frame is ``lost``) waits for the fix in flight: it
+has no pose to give early, and waiting confirms the kidnap within a few frames instead of at the
+rate the worker gets CPU next to the frame path. With ``"wait"`` they run inside :meth:`SequenceLocalizer.step`,
 deterministically: a job every ``fix_every`` frames whose result is fused ``fix_delay`` frames
 later (``fix_every=1, fix_delay=0``: every frame waits for its own fix, the per-frame design).
 
@@ -960,9 +961,11 @@ class SequenceLocalizer:
             for result in self._fixes.collect(frame):
                 self._handle(result, handled)
             self._refresh()
-            if self.config.fixes == "background" and self._fixes.busy and self._status() == FrameStatus.LOST:
-                # Nothing to give this frame either (as the first): it waits for the fix in flight,
-                # so that a kidnap is confirmed in a few frames, not at the rate the worker gets CPU.
+            if self.config.fixes == "background" and self._fixes.busy and self._doubt:
+                # A suspected kidnap (the frame is lost): nothing to give it either, it waits for the
+                # fix in flight, so that the kidnap is confirmed in a few frames, not at the rate the
+                # worker gets CPU. (Not for frames lost by a grown std: on a loaded machine waiting
+                # drops frames, whose gaps make visual odometry fail, which makes the std grow.)
                 for result in self._fixes.collect(frame, wait=True):
                     self._handle(result, handled)
                 self._refresh()
