@@ -15,8 +15,9 @@ Two schedulers run the jobs for :class:`planarloc.localize.sequence.SequenceLoca
   per-frame design: every frame waits for its own fix).
 - :class:`BackgroundFixes` (``"background"``): one worker thread with its own
   :class:`Localizer` on the same map file (SQLite connections belong to one thread); at most one
-  job in flight. SIFT and the compiled kernels release the GIL for most of their time, so the
-  frame path keeps running while a fix is computed.
+  job in flight. SIFT (OpenCV) and the descriptor matching (matrix products) release the GIL for
+  most of a fix's time, so the frame path keeps running while a fix is computed (the
+  numba kernels of the absolute-pose RANSAC, a few ms of a fix, hold it).
 
 An accepted fix (and a rejected global one) also brings the world points its frame sees (:meth:`FixSolver.world_points`),
 tracked on through the frames that came since (:func:`~planarloc.localize.tracking.track_through`
