@@ -5,9 +5,10 @@ fixes off it, fused into a sliding-window pose graph when they arrive.
 returns a :class:`SequenceEstimate` for every frame: a pose, its (6, 6) covariance and a status —
 
 - ``localized``: the pose is anchored by an accepted absolute fix in the window, the motion
-  since that fix was measured (wheel or visual odometry), the latest fix result was an
-  acceptance, and its position std is at most ``SequenceConfig.localized_std_m`` (0.3 m, as a
-  single fix's ``max_position_std_m``);
+  since that fix was measured (wheel or visual odometry), at most ``MAX_VISUAL_FRAMES`` visual
+  motions since the last absolute factor (a fix or the tracked map points), the latest fix
+  result was an acceptance, and its position std is at most ``SequenceConfig.localized_std_m``
+  (0.3 m, as a single fix's ``max_position_std_m``);
 - ``predicted``: a usable pose (position std at most ``SequenceConfig.lost_std_m``) that is not
   ``localized`` (the latest fix failed or was rejected, a constant-velocity guess since the last
   fix, or no fix left in the window);
@@ -43,7 +44,10 @@ resolution, matching and the single-frame estimator): against the map images nea
 gated by the χ²(6) Mahalanobis test against the frame's prediction. With
 ``SequenceConfig.fixes = "background"`` (default) they run in a worker thread and the frame path
 never waits for them, except for the first frame (and until a first fix is accepted): there is
-nothing to track from. With ``"wait"`` they run inside :meth:`SequenceLocalizer.step`,
+nothing to track from; and a frame that doubts its pose (a rejected global fix after a motion
+that was not measured: a suspected kidnap, the frame is ``lost``) waits for the fix in flight: it
+has no pose to give early, and waiting confirms the kidnap within a few frames instead of at the
+rate the worker gets CPU next to the frame path. With ``"wait"`` they run inside :meth:`SequenceLocalizer.step`,
 deterministically: a job every ``fix_every`` frames whose result is fused ``fix_delay`` frames
 later (``fix_every=1, fix_delay=0``: every frame waits for its own fix, the per-frame design).
 
@@ -53,7 +57,10 @@ later (``fix_every=1, fix_delay=0``: every frame waits for its own fix, the per-
   agree with each other and with a constant-velocity model, the visual-odometry factor is the
   outlier and is replaced.
 - ``kidnap_confirmations`` consecutive rejected global fixes that agree with each other (through
-  the motion between them) re-initialise the window at the latest of them.
+  the motion between them) re-initialise the window at the latest of them. The first of them
+  is carried along the window when its node is marginalised (fixes far apart still confirm
+  each other), and while a kidnap is suspected fix jobs go to global retrieval at once (the
+  map images near the doubted prediction are the wrong place to look).
 
 **Counted, never silent** (:attr:`SequenceLocalizer.stats` and per frame): a frame whose latency
 (arrival → pose) exceeds ``max_latency_s`` is ``late``; frames missing from the stream (a gap of
@@ -119,6 +126,11 @@ SPEED_FIXES = 4
 MAX_ACCELERATION, MAX_EXTRAPOLATION_S = 5.0, 1.0
 #: motions that count as measured (a pose after them may be ``localized``)
 MEASURED = ("odometry", "visual")
+#: a pose chained by visual odometry through more frames than this since the last node with an
+#: absolute factor (a fix or tracked map points) is not ``localized``: a wrong basin of 2D-2D
+#: motion explains the tracks as well as the truth and its covariance cannot say so (on the
+#: generated office world at 320x240, 4 in 39 motions are 5-15° off in rotation)
+MAX_VISUAL_FRAMES = 2
 #: a pose from fewer tracked points than this has its std scaled by sqrt(this / inliers)
 POINT_FIX_FULL_SUPPORT = 60
 #: recent frame periods used to tell missing frames
@@ -635,8 +647,13 @@ class SequenceLocalizer:
                 self._relative[k] = RelativeFactor(f.i, f.j, m.cur_from_prev, m.covariance)
 
     def _trim(self) -> None:
-        """Marginalise the oldest nodes beyond the window."""
+        """Marginalise the oldest nodes beyond the window (a kidnap candidate at the oldest node
+        is carried to the next one)."""
         while len(self._poses) > self.config.window:
+            c = self._candidate
+            if c is not None and c.stamp == self._stamps[0]:
+                # a kidnap candidate outlives its node: the next fix result may come after it left
+                self._candidate = _Candidate(*self._carried(c.pose, c.covariance, 0, 1), c.count, self._stamps[1])
             absolute, relative = marginalize_first(self._poses, self._absolute, self._relative)
             if not absolute:  # nothing anchored the oldest node: keep the current marginal as a prior
                 cov = marginal_covariances(self._poses, self._absolute, self._relative)[1]
@@ -769,23 +786,29 @@ class SequenceLocalizer:
             fixes.status = "accepted"
             handled.reinitialized = True
 
+    def _carried(self, pose: Pose, cov: np.ndarray, prev: int, node: int) -> tuple[Pose, np.ndarray]:
+        """A pose estimate of node ``prev`` moved to node ``node`` through the window's motion
+        between them, its covariance grown by those motions' (and, where the motion was not
+        wheel odometry, by the weak constant-velocity model's: visual odometry may be wrong
+        exactly across a kidnap, so agreeing fixes then need only agree within that model)."""
+        moved = (self._poses[node] @ self._poses[prev].inverse()) @ pose
+        motion_cov = np.zeros((6, 6))
+        for f in self._relative:
+            if prev < f.j <= node:
+                motion_cov += f.covariance
+                if self._sources[f.j] != "odometry":
+                    dt = self._stamps[f.j] - self._stamps[f.i]
+                    motion_cov += self._constant_motion(f.i, dt).covariance
+        R = pose.R.T
+        motion_cov[3:, 3:] = R @ motion_cov[3:, 3:] @ R.T
+        return moved, cov + motion_cov
+
     def _consider_kidnap(self, node: int, attempt: FixAttempt) -> None:
         c = self._candidate
         prev = self._node(c.stamp) if c is not None else None
         if c is not None and prev is not None and prev < node:
-            predicted = (self._poses[node] @ self._poses[prev].inverse()) @ c.pose
-            motion_cov = np.zeros((6, 6))
-            for f in self._relative:
-                if prev < f.j <= node:
-                    motion_cov += f.covariance
-                    if self._sources[f.j] != "odometry":
-                        # visual odometry may be wrong exactly here: agreeing fixes then need
-                        # only agree within the weak motion model
-                        dt = self._stamps[f.j] - self._stamps[f.i]
-                        motion_cov += self._constant_motion(f.i, dt).covariance
-            R = c.pose.R.T
-            motion_cov[3:, 3:] = R @ motion_cov[3:, 3:] @ R.T
-            if mahalanobis_sq(attempt.pose, attempt.covariance, predicted, c.covariance + motion_cov) <= self._gate:
+            predicted, cov = self._carried(c.pose, c.covariance, prev, node)
+            if mahalanobis_sq(attempt.pose, attempt.covariance, predicted, cov) <= self._gate:
                 self._candidate = _Candidate(attempt.pose, attempt.covariance, c.count + 1, self._stamps[node])
                 return
         self._candidate = _Candidate(attempt.pose, attempt.covariance, 1, self._stamps[node])
@@ -864,8 +887,10 @@ class SequenceLocalizer:
         if not self._poses:
             return FixJob(stamp, query.image, query.camera, query.gravity, None, False, float("inf"), self._generation)
         std, _ = _stds(self._cov)
+        # a suspected kidnap: the map images near the prediction are the wrong place to look
+        usable = std <= self.config.lost_std_m and self._candidate is None and not self._doubt
         return FixJob(stamp, query.image, query.camera, query.gravity, (self._poses[-1], self._cov),
-                      std <= self.config.lost_std_m, std, self._generation)
+                      usable, std, self._generation)
 
     def step(self, image: ImageSource, camera: Camera | None, stamp: float, odometry: Pose | None = None,
              gravity: object | None = None, arrival: float | None = None) -> SequenceEstimate:
@@ -936,6 +961,14 @@ class SequenceLocalizer:
             for result in self._fixes.collect(frame):
                 self._handle(result, handled)
             self._refresh()
+            if self.config.fixes == "background" and self._fixes.busy and self._doubt:
+                # A suspected kidnap (the frame is lost): nothing to give it either, it waits for the
+                # fix in flight, so that the kidnap is confirmed in a few frames, not at the rate the
+                # worker gets CPU. (Not for frames lost by a grown std: on a loaded machine waiting
+                # drops frames, whose gaps make visual odometry fail, which makes the std grow.)
+                for result in self._fixes.collect(frame, wait=True):
+                    self._handle(result, handled)
+                self._refresh()
         self._prev = (stamp, odometry)
         self._frame += 1
         return self._report(stamp, motion, tracked, handled, missing, t_call, t0, cpu0)
@@ -945,8 +978,10 @@ class SequenceLocalizer:
         if not self._poses or pos_std > self.config.lost_std_m or self._doubt:
             return FrameStatus.LOST  # never report a pose as usable beyond lost_std_m
         anchor = max((k for k, loc in enumerate(self._localized) if loc), default=None)
+        measured = max((f.node for f in self._absolute), default=-1)
+        visual = sum(s == "visual" for s in self._sources[measured + 1:])
         if (anchor is not None and self._latest_fix == "accepted" and pos_std <= self.config.localized_std_m
-                and all(s in MEASURED for s in self._sources[anchor + 1:])):
+                and all(s in MEASURED for s in self._sources[anchor + 1:]) and visual <= MAX_VISUAL_FRAMES):
             return FrameStatus.LOCALIZED
         return FrameStatus.PREDICTED
 

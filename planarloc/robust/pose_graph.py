@@ -14,9 +14,10 @@ The tangent space of a node is ``(ω, δc)`` with ``R = exp([ω]×) R₀``, ``c 
 covariances returned by :func:`solve_pose_graph` are in this space (world frame), so a
 position block is directly the covariance of the camera centre in metres².
 
-The graph is solved with ``scipy.optimize.least_squares`` (Levenberg-Marquardt, analytic
-Jacobians), re-linearised once around the first solution; marginal covariances are the
-blocks of ``(JᵀJ)⁻¹`` at the solution (Gauss-Newton approximation).
+The graph is solved by Levenberg-Marquardt on the normal equations (analytic Jacobians,
+re-linearised at every accepted step, dense: a window has at most a few dozen nodes);
+marginal covariances are the blocks of ``(JᵀJ)⁻¹`` at the solution (Gauss-Newton
+approximation).
 
 References:
     Grisetti et al., "A Tutorial on Graph-Based SLAM", IEEE ITS Magazine 2010 (factor form);
@@ -32,7 +33,6 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
 from planarloc.geometry.epipolar import skew
@@ -250,7 +250,7 @@ def solve_pose_graph(initial: Sequence[Pose], absolute: Sequence[AbsoluteFactor]
         initial: N initial ``cam_from_world`` poses (the linearisation point).
         absolute: fixes and priors; at least one is needed to anchor the graph.
         relative: motion factors.
-        max_evaluations: residual evaluations per linearisation.
+        max_evaluations: residual evaluations at most (one per Levenberg-Marquardt step tried).
 
     Returns:
         :class:`PoseGraphSolution`.
@@ -272,24 +272,32 @@ def solve_pose_graph(initial: Sequence[Pose], absolute: Sequence[AbsoluteFactor]
     if not absolute:
         raise InputError("solve_pose_graph: need at least one absolute factor to anchor the graph")
     packed = _Packed(n, absolute, relative)
-    R0, c0 = _unpack(initial)
-    evaluations = 0
-    for _ in range(2):  # solve, re-linearise at the solution, solve again (usually 1-2 evaluations)
-        def fun(x: np.ndarray) -> np.ndarray:
-            return packed.residuals(*_retract(R0, c0, x))[0]
-
-        def jac(x: np.ndarray) -> np.ndarray:
-            return packed.jacobian(*_retract(R0, c0, x))
-
-        res = least_squares(fun, np.zeros(6 * n), jac=jac, method="lm", max_nfev=max_evaluations,
-                            xtol=1e-7, ftol=1e-7)
-        evaluations += int(res.nfev)
-        R0, c0 = _retract(R0, c0, res.x)
-        if np.max(np.abs(res.x.reshape(-1, 6)[:, :3])) < 1e-3:
-            break  # rotation steps this small: the local Jacobian was already exact enough
-    r, _, _ = packed.residuals(R0, c0)
-    poses = [Pose.from_center(Rk, ck) for Rk, ck in zip(_orthonormalize(R0), c0)]
-    return PoseGraphSolution(poses, _covariances(packed.jacobian(R0, c0), n), 0.5 * float(r @ r), evaluations)
+    R, c = _unpack(initial)
+    r, _, _ = packed.residuals(R, c)
+    cost, lam, evaluations = float(r @ r), 1e-4, 1
+    J = packed.jacobian(R, c)
+    while evaluations < max_evaluations:
+        H, g = J.T @ J, J.T @ r
+        try:
+            step = -np.linalg.solve(H + lam * np.diag(np.diag(H) + 1e-12), g)
+        except np.linalg.LinAlgError:
+            break
+        R1, c1 = _retract(R, c, step)
+        r1, _, _ = packed.residuals(R1, c1)
+        evaluations += 1
+        cost1 = float(r1 @ r1)
+        if cost1 <= cost:
+            done = np.max(np.abs(step)) < 1e-7 or cost - cost1 <= 1e-10 * max(cost, 1.0)
+            R, c, r, cost, lam = R1, c1, r1, cost1, max(lam / 10.0, 1e-9)
+            J = packed.jacobian(R, c)
+            if done:
+                break
+        else:
+            lam *= 10.0
+            if lam > 1e8:
+                break
+    poses = [Pose.from_center(Rk, ck) for Rk, ck in zip(_orthonormalize(R), c)]
+    return PoseGraphSolution(poses, _covariances(J, n), 0.5 * cost, evaluations)
 
 
 def _orthonormalize(R: np.ndarray) -> np.ndarray:

@@ -31,8 +31,8 @@ from planarloc.robust.result import RansacStatistics
 #: the 6DoF model replaces the planar one only if it has this many times its inliers
 SIX_DOF_MARGIN = 1.15
 MODELS = ("planar", "6dof", "auto")
-#: refinement uses at most this many inliers, evenly spread over the match list
-REFINE_MAX_POINTS = 60
+#: refinement uses at most this many inliers, evenly spread over the match list, and this many steps
+REFINE_MAX_POINTS, REFINE_ITERATIONS = 60, 5
 
 
 @dataclass
@@ -64,14 +64,18 @@ def _sampson_sq(R: np.ndarray, t: np.ndarray, xa: np.ndarray, xb: np.ndarray, fa
     return np.stack([sampson_error_sq(E, xa, xb, fa, fb) for E in essential_from_relpose(R, t)])
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", nogil=True)
 def _msac_kernel(R: np.ndarray, t: np.ndarray, xa: np.ndarray, xb: np.ndarray, fa: np.ndarray, fb: np.ndarray,
-                 threshold_sq: float) -> tuple[np.ndarray, np.ndarray]:
-    """MSAC costs (K,) and inlier counts (K,) of K poses ``b_from_a`` on N ray pairs."""
+                 threshold_sq: float, bound: float) -> tuple[np.ndarray, np.ndarray]:
+    """MSAC costs (K,) and inlier counts (K,) of K poses ``b_from_a`` on N ray pairs.
+
+    A pose's scoring stops once its cost exceeds ``bound`` or the lowest cost of this call so
+    far: its cost and count are then partial (a lower bound and a count that cannot win)."""
     K = R.shape[0]
     cost = np.zeros(K)
     count = np.zeros(K, dtype=np.int64)
     E = np.empty((3, 3))
+    best = bound
     for k in range(K):
         essential_into(R[k], t[k], E)
         c, n = 0.0, 0
@@ -82,9 +86,30 @@ def _msac_kernel(R: np.ndarray, t: np.ndarray, xa: np.ndarray, xb: np.ndarray, f
                 n += 1
             else:
                 c += threshold_sq
+            if c > best:
+                break
         cost[k] = c
         count[k] = n
+        if c < best:
+            best = c
     return cost, count
+
+
+def distinct_samples(rng: np.random.Generator, n: int, num_data: int, size: int) -> np.ndarray:
+    """(n, size) minimal samples of ``size`` distinct indices in ``0..num_data-1``, uniform.
+
+    Rows with a repeated index are drawn again (with 2-5 of hundreds of tracks, a few in a
+    hundred): O(n · size) instead of ranking n × num_data random numbers.
+    """
+    if num_data < size:
+        raise InputError(f"distinct_samples: need at least {size} data, got {num_data}")
+    out = rng.integers(0, num_data, (n, size))
+    while True:
+        srt = np.sort(out, axis=1)
+        bad = np.flatnonzero((srt[:, 1:] == srt[:, :-1]).any(axis=1))
+        if not len(bad):
+            return out
+        out[bad] = rng.integers(0, num_data, (len(bad), size))
 
 
 class _RelativeEstimator:
@@ -105,8 +130,7 @@ class _RelativeEstimator:
             self.sample_size, self.solver = 5, relpose_5p_nister_batch
 
     def generate(self, rng: np.random.Generator, n: int, stats: RansacStatistics) -> tuple[np.ndarray, np.ndarray]:
-        m = self.sample_size
-        samples = np.argsort(rng.random((n, self.num_data)), axis=1)[:, :m]
+        samples = distinct_samples(rng, n, self.num_data, self.sample_size)
         R, t, valid = self.solver(self.xa[samples], self.xb[samples])   # b_from_a ("ref_from_query")
         stats.hypotheses += int(valid.sum())
         return np.asarray(R)[valid], np.asarray(t)[valid]
@@ -121,13 +145,13 @@ class _RelativeEstimator:
 
     def score(self, R: np.ndarray, t: np.ndarray, bound: float = np.inf) -> tuple[np.ndarray, np.ndarray]:
         return _msac_kernel(np.ascontiguousarray(R, dtype=float), np.ascontiguousarray(t, dtype=float),
-                            self.xa, self.xb, self.fa, self.fb, self.threshold_sq)
+                            self.xa, self.xb, self.fa, self.fb, self.threshold_sq, float(bound))
 
     def refine(self, R: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Least squares on the signed Sampson errors of the inliers, in the model's own
-        parameters (planar: yaw and heading of the translation; 6DoF: rotation and direction)."""
-        from scipy.optimize import least_squares
-
+        """Gauss-Newton on the Sampson errors (pixels) of the inliers, in the model's own
+        parameters (planar: yaw and heading of the translation; 6DoF: rotation and direction);
+        a step is kept only when it lowers the cost. The Jacobian is by forward differences,
+        all perturbed poses scored in one batch."""
         e = _sampson_sq(R[None], t[None], self.xa, self.xb, self.fa, self.fb)[0]
         inl = e < self.threshold_sq
         if inl.sum() < 2 * self.sample_size:
@@ -136,22 +160,47 @@ class _RelativeEstimator:
         idx = idx[np.linspace(0, len(idx) - 1, min(len(idx), REFINE_MAX_POINTS)).astype(int)]
         xa, xb = self.xa[idx], self.xb[idx]
         planar = self.sample_size == 2
+        p = 2 if planar else 5
+        B = None if planar else direction_basis(t)
 
-        def pose(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        def poses(X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+            """(K, p) parameter vectors -> K poses around (R, t)."""
             if planar:
-                Ry, Rt = so3_exp([[0, x[0], 0], [0, x[1], 0]])
+                Ry = so3_exp(np.stack([np.zeros(len(X)), X[:, 0], np.zeros(len(X))], axis=1))
+                Rt = so3_exp(np.stack([np.zeros(len(X)), X[:, 1], np.zeros(len(X))], axis=1))
                 return Ry @ R, Rt @ t
-            tt = t + x[3:]
-            return so3_exp(x[None, :3])[0] @ R, tt / np.linalg.norm(tt)
+            tt = t[None] + X[:, 3:] @ B.T
+            return so3_exp(X[:, :3]) @ R, tt / np.linalg.norm(tt, axis=1, keepdims=True)
 
-        def fun(x: np.ndarray) -> np.ndarray:
-            Rx, tx = pose(x)
-            r = _sampson_sq(Rx[None], tx[None], xa, xb, self.fa, self.fb)[0]
-            return np.sqrt(r)
+        def residuals(X: np.ndarray) -> np.ndarray:
+            return np.sqrt(_sampson_sq(*poses(X), xa, xb, self.fa, self.fb))
 
-        res = least_squares(fun, np.zeros(2 if planar else 6), method="lm", max_nfev=8, xtol=1e-6, ftol=1e-6)
-        Rr, tr = pose(res.x)
-        return Rr, tr
+        x, h = np.zeros(p), 1e-6
+        r = residuals(x[None])[0]
+        for _ in range(REFINE_ITERATIONS):
+            r_all = residuals(np.concatenate([x[None], x[None] + h * np.eye(p)]))
+            J = (r_all[1:] - r_all[0]).T / h
+            try:
+                step = np.linalg.lstsq(J, -r_all[0], rcond=None)[0]
+            except np.linalg.LinAlgError:
+                break
+            r_new = residuals((x + step)[None])[0]
+            if not r_new @ r_new < r @ r:
+                break
+            x, r = x + step, r_new
+            if np.max(np.abs(step)) < 1e-7:
+                break
+        Rr, tr = poses(x[None])
+        return Rr[0], tr[0]
+
+
+def direction_basis(u: np.ndarray) -> np.ndarray:
+    """(3, 2) orthonormal directions perpendicular to the unit vector ``u`` (deterministic)."""
+    u = np.asarray(u, float) / np.linalg.norm(u)
+    a = np.eye(3)[int(np.argmin(np.abs(u)))]
+    b1 = np.cross(u, a)
+    b1 /= np.linalg.norm(b1)
+    return np.stack([b1, np.cross(u, b1)], axis=1)
 
 
 def _depths_positive(R: np.ndarray, t: np.ndarray, xa: np.ndarray, xb: np.ndarray) -> int:
@@ -218,8 +267,13 @@ def estimate_relative_pose(
     stats = RansacStatistics()
     best: tuple[str, np.ndarray, np.ndarray, int] | None = None
     for m in (("planar", "6dof") if model == "auto" else (model,)):
+        if m == "6dof" and best is not None and SIX_DOF_MARGIN * best[3] >= len(idx):
+            stats.searches_skipped += 1   # more inliers than there are matches: 6DoF cannot win
+            continue
         est = _RelativeEstimator(xa, xb, fa, fb, m, options.threshold_px)
-        out = ransac(est, options, np.random.default_rng(options.seed), stats)
+        own = RansacStatistics()           # each model gets its own iteration budget
+        out = ransac(est, options, np.random.default_rng(options.seed), own)
+        stats.merge(own)
         if out.R is None:
             continue
         if best is None or out.num_inliers > SIX_DOF_MARGIN * best[3]:

@@ -60,3 +60,32 @@ def test_failures_are_statuses_and_bad_input_is_an_error() -> None:
         estimate_relative_pose(CAM, CAM, np.zeros((20, 2)), np.zeros((20, 2)), model="5pt")
     with pytest.raises(InputError, match="points_b"):
         estimate_relative_pose(CAM, CAM, np.zeros((20, 2)), np.zeros((19, 2)))
+
+
+def test_each_model_of_auto_gets_its_own_iteration_budget() -> None:
+    """``auto`` runs the 6DoF search with the full ``min_iterations`` after the planar one (a
+    shared counter left it the planar search's leftovers, none when the planar used them all);
+    when the planar inliers are so many that 6DoF cannot reach the margin, it is skipped."""
+    from planarloc.robust.options import RansacOptions
+
+    rng = np.random.default_rng(3)
+    truth = Pose.from_center(so3_exp([[0.08, 0.1, 0.05]])[0], [0.3, -0.4, 1.0])
+    pa, pb = _matches(truth, rng, outliers=0.3)
+    opts = RansacOptions(min_iterations=300, max_iterations=300)
+    est = estimate_relative_pose(CAM, CAM, pa, pb, model="auto", options=opts)
+    assert est.success and est.model == "6dof" and est.stats.iterations == 600
+    planar = Pose.from_center(so3_exp([[0, 0.15, 0]])[0], [0.2, 0, 1.0])
+    pa, pb = _matches(planar, rng, outliers=0.0, noise=0.1)
+    est = estimate_relative_pose(CAM, CAM, pa, pb, model="auto", options=opts)
+    assert est.success and est.model == "planar" and est.stats.searches_skipped == 1 and est.stats.iterations == 300
+
+
+def test_minimal_samples_are_distinct_and_uniform() -> None:
+    from planarloc.robust.relative_pose import distinct_samples
+
+    s = distinct_samples(np.random.default_rng(0), 20000, 7, 5)
+    assert s.shape == (20000, 5) and all(len(set(row)) == 5 for row in s[:2000])
+    counts = np.bincount(s.ravel(), minlength=7) / s.size
+    np.testing.assert_allclose(counts, 1 / 7, atol=0.01)
+    with pytest.raises(InputError, match="at least 5"):
+        distinct_samples(np.random.default_rng(0), 3, 4, 5)
