@@ -58,8 +58,10 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                         "even if the format declares one)")
     add_feature_args(b)
     b.add_argument("--storage", choices=STORAGE_LAYOUTS, default=DEFAULT_STORAGE,
-                   help=f"layout of a new map: full, or compact (about a fifth of the size: quantised descriptors and "
-                        f"keypoints; default: {DEFAULT_STORAGE}); an existing map keeps its own")
+                   help=f"layout of a new map: compact (about a fifth of the bytes of full: transform-coded "
+                        f"descriptors, fixed-point keypoints, 4-bit global descriptors; the same recall on KITTI) or "
+                        f"full (float32 keypoints, 8-bit descriptors); default: {DEFAULT_STORAGE}; an existing map "
+                        f"keeps its own")
     b.add_argument("--ray", nargs="?", const="local", metavar="ADDRESS",
                    help="distribute over a Ray cluster (auto, HOST:PORT, ray://HOST:PORT; a local one without "
                         "ADDRESS); needs pip install 'planarloc[ray]'")
