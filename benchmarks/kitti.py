@@ -19,6 +19,7 @@ Targets (printed as PASS/FAIL, never the exit code — this is a benchmark): str
     python benchmarks/kitti.py --quick             # CI: map-every 2, 2p1p and 2p2p, < 3 min on 2 cores
     python benchmarks/kitti.py --tilt --json kitti.json
     python benchmarks/kitti.py --storage full compact --methods auto --no-peer   # map layouts side by side
+    python benchmarks/kitti.py --storage full compact --methods auto --no-peer --seed 1   # another RANSAC seed
 
 With several ``--storage`` layouts (:mod:`planarloc.map.codec`) each map is built in each layout
 from the same map images and evaluated alike; a last table gives, per layout, the map file's KB
@@ -80,6 +81,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument("--no-peer", action="store_true", help="skip the PoseLib peer")
     p.add_argument("--storage", nargs="+", choices=STORAGE_LAYOUTS, default=[DEFAULT_STORAGE],
                    help="map storage layouts to build and evaluate, each in its own map (default: %(default)s)")
+    p.add_argument("--seed", type=int, default=0, help="RANSAC seed of our configurations (default: %(default)s)")
     p.add_argument("--map-dir", type=Path, default=None,
                    help="keep the maps here and reuse them when present (default: a fresh temporary folder)")
     p.add_argument("--json", type=Path, default=None, help="write all summaries and per-query results here")
@@ -144,7 +146,7 @@ def evaluate_map(args: argparse.Namespace, every: int, tilt: bool, map_images, q
     features = FeatureConfig(tilt=tilt)
     build_s = build_or_reuse(map_images, path, features, reuse=args.map_dir is not None, storage=storage)
     kb_per_image = path.stat().st_size / 1024 / len(map_images)
-    configs = [LocalizerConfig(top_n=TOP_N, method=m, ransac=RansacOptions(structure=s))
+    configs = [LocalizerConfig(top_n=TOP_N, method=m, ransac=RansacOptions(structure=s, seed=args.seed))
                for m in args.methods for s in STRUCTURES]
     t0 = time.perf_counter()
     with MapDatabase.open(path) as db:
@@ -250,7 +252,8 @@ def main(argv: list[str] | None = None) -> int:
           f"structures {', '.join(STRUCTURES)}; top-{TOP_N} retrieval")
     print(peer.code_note())
     print(peer.load_note("at start"))
-    report: dict = {"dataset": str(args.data), "frames": len(images), "quick": args.quick, "runs": [], "peer": [],
+    report: dict = {"dataset": str(args.data), "frames": len(images), "quick": args.quick, "seed": args.seed,
+                    "runs": [], "peer": [],
                     "targets": [], "code": peer.code_version(), "load_average_start": peer.load_average()}
     verdicts: list[tuple[bool, str]] = []
     tmp = None if args.map_dir else tempfile.TemporaryDirectory(prefix="planarloc-kitti-")

@@ -45,7 +45,11 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         names its PID).
 
         The world's gravity is the format's (KITTI, OpenLORIS, generated worlds), the dataset option up=...,
-        or estimated from the camera centres' plane; `map info` shows it.""",
+        or estimated from the camera centres' plane; `map info` shows it.
+
+        New maps are compact (--storage compact: 50-100 KB per KITTI image, the recall of full maps);
+        --storage full stores float32 keypoints and 8-bit descriptors (about 5 times the bytes). Maps of
+        either layout, and maps from before layouts existed (full), open alike.""",
         ["planarloc map build data/kitti_seq2 --format kitti --every 2 --out kitti.db",
          "planarloc map build data/fountain_p11 --format kapture --dataset-option up=-z --out f.db"],
         run_build, interrupted=BUILD_RESUMES)

@@ -28,35 +28,6 @@ logger = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True, eq=False)
-class DescriptorSubspace:
-    """An affine subspace ``mean + span(axes)`` that stored descriptors were coded in
-    (transform coding, :mod:`planarloc.map.codec`): their components outside it are lost.
-
-    Matching an uncoded descriptor against such rows compares it with a distance that also
-    holds its own energy outside the subspace, the same amount for every row: Lowe's ratio
-    ``d₁ / d₂`` moves towards 1 and good matches fail it (3.5 % of the ratio-test matches of
-    KITTI queries against transform-coded map images). :meth:`project` puts the other side in the
-    same subspace first (:func:`planarloc.features.matching.match_features`).
-
-    Attributes:
-        mean: (D,) float32.
-        axes: (D, K) float32 orthonormal columns.
-    """
-
-    mean: np.ndarray
-    axes: np.ndarray
-
-    def project(self, descriptors: np.ndarray) -> np.ndarray:
-        """(N, D) float32 descriptors as the subspace holds them: ``mean + axes · axesᵀ (d − mean)``,
-        negative values clipped (RootSIFT has none) and rows L2-normalised (zero rows stay zero)."""
-        d = (np.asarray(descriptors, dtype=np.float32) - self.mean) @ self.axes @ self.axes.T + self.mean
-        np.maximum(d, 0.0, out=d)
-        norm = np.sqrt(np.einsum("ij,ij->i", d, d))
-        d *= np.divide(1.0, norm, out=np.zeros_like(norm), where=norm > 0)[:, None]
-        return d
-
-
-@dataclass(frozen=True, eq=False)
 class Features:
     """Local features of one image.
 
@@ -65,21 +36,14 @@ class Features:
             in the ORIGINAL image (tilted extractions are mapped back).
         descriptors: (N, D) float32 descriptors, L2-normalised (RootSIFT: D = 128).
         scales: (N,) float32 keypoint sizes in pixels.
-        subspace: the :class:`DescriptorSubspace` the descriptors were coded in (map rows of a
-            compact map), None for descriptors as extracted.
     """
 
     keypoints: np.ndarray
     descriptors: np.ndarray
     scales: np.ndarray
-    subspace: DescriptorSubspace | None = None
 
     def __len__(self) -> int:
         return len(self.keypoints)
-
-    def subset(self, rows: np.ndarray) -> Features:
-        """The features at ``rows`` (indices or a mask), in the same subspace."""
-        return Features(self.keypoints[rows], self.descriptors[rows], self.scales[rows], self.subspace)
 
 
 @dataclass(frozen=True)

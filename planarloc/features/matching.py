@@ -21,12 +21,6 @@ matching", CVIU 2015): the second neighbour is the best reference feature at lea
 ``fginn_radius`` pixels away from the first one. With it the tilted pool kept 363 matches (plain
 features: 340); on plain features FGINN and Lowe agree within 1 % of the matches.
 ``fginn_radius=0`` gives Lowe's test exactly.
-
-Transform-coded reference descriptors (``Features.subspace``, compact maps) lost their components
-outside a subspace; the query's descriptors are projected into the same subspace before they are
-compared with them (:class:`~planarloc.features.extract.DescriptorSubspace`), so that both sides
-of every distance hold the same components: on KITTI the ratio test then keeps as many matches
-as against the uncoded descriptors (BENCHMARKS.md, "Compact maps").
 """
 
 from __future__ import annotations
@@ -146,17 +140,6 @@ def _match_checked(
     return np.stack([qi, j1[qi]], axis=1).astype(np.int64, copy=False)
 
 
-def _query_side(q: Features, dq: np.ndarray, r: Features, projected: dict[int, np.ndarray]) -> np.ndarray:
-    """The query descriptors to compare with ``r``'s: projected into ``r``'s subspace when only
-    ``r`` is coded in one (one projection per subspace, kept in ``projected``)."""
-    sub = r.subspace
-    if sub is None or sub is q.subspace or not len(dq) or sub.mean.shape[0] != dq.shape[1]:
-        return dq
-    if id(sub) not in projected:
-        projected[id(sub)] = sub.project(dq)
-    return projected[id(sub)]
-
-
 def _check_params(ratio: float | None, fginn_radius: float) -> None:
     if ratio is not None and not 0.0 < ratio <= 1.0:
         raise InputError(f"ratio: expected 0 < ratio <= 1 or None (no ratio test), got {ratio}")
@@ -177,8 +160,7 @@ def match_features(
     ``i`` is the nearest query descriptor of ``j`` (``mutual``), and
     ``‖d_i − d_j‖ < ratio · ‖d_i − d_k‖`` where ``k`` is the nearest reference descriptor whose
     keypoint lies at least ``fginn_radius`` pixels from keypoint ``j`` (FGINN; 0 = Lowe's second
-    nearest neighbour). When only ``r`` is coded in a subspace (``r.subspace``), the query's
-    descriptors are compared as projected into it (module docstring).
+    nearest neighbour).
 
     Args:
         q: query features, N descriptors (N, D) with unit L2 norm.
@@ -210,7 +192,7 @@ def match_features(
             f"descriptor dimensions differ: query D = {dq.shape[1]}, reference D = {dr.shape[1]}; "
             "hint: extract query and map features with the same FeatureConfig"
         )
-    return _match_checked(_query_side(q, dq, r, {}), r, dr, ratio, mutual, fginn_radius)
+    return _match_checked(dq, r, dr, ratio, mutual, fginn_radius)
 
 
 def match_query_to_refs(
@@ -235,7 +217,7 @@ def match_query_to_refs(
     """
     _check_params(ratio, fginn_radius)
     dq, _ = _check_features("q", q)
-    out, projected = [], {}
+    out = []
     for k, r in enumerate(refs):
         dr, _ = _check_features(f"refs[{k}]", r)
         if len(dq) and len(dr) and dq.shape[1] != dr.shape[1]:
@@ -243,6 +225,6 @@ def match_query_to_refs(
                 f"descriptor dimensions differ: query D = {dq.shape[1]}, refs[{k}] D = {dr.shape[1]}; "
                 "hint: extract query and map features with the same FeatureConfig"
             )
-        out.append(_match_checked(_query_side(q, dq, r, projected), r, dr, ratio, mutual, fginn_radius))
+        out.append(_match_checked(dq, r, dr, ratio, mutual, fginn_radius))
     logger.debug("matched %d query features to %d references: %s", len(dq), len(out), [len(m) for m in out])
     return out

@@ -128,7 +128,7 @@ def _match_and_triangulate(a: MapView, b: MapView, rows: np.ndarray, entry: _Dir
     """Fill ``entry`` for keypoints ``rows`` of a: match into b, keep those consistent with the
     two known poses (epipolar, in front, reprojection within ``max_error_px``, angle)."""
     fa = a.features
-    sub = fa.subset(rows)
+    sub = Features(fa.keypoints[rows], fa.descriptors[rows], fa.scales[rows])
     m = match_features(sub, b.features, ratio=ratio, mutual=False)
     entry.match[rows] = _NONE
     if len(m) == 0:

@@ -22,9 +22,7 @@ stay zero); ``encoding="auto"`` picks by layout and sign:
   :data:`planarloc.map.schema.DESCRIPTOR_BASIS_BLOB`, float16). Each descriptor is stored as its
   coordinates along those axes, rounded to multiples of :data:`KLT_STEP` (int8), column by
   column, Huffman-coded (zlib, ``Z_HUFFMAN_ONLY``): about 24 bytes per RootSIFT descriptor on
-  KITTI, and 95 % of the ratio-test matches unchanged (BENCHMARKS.md, "Compact maps"; decoded rows
-  carry the subspace, ``Features.subspace``, and queries are matched to them projected into it,
-  :mod:`planarloc.features.matching`; Goyal,
+  KITTI, and 95 % of the ratio-test matches unchanged (BENCHMARKS.md, "Compact maps"; Goyal,
   "Theoretical foundations of transform coding", IEEE SPM 2001: uniform quantisation of the
   Karhunen-Loève coefficients with one step size). Decoding rebuilds ``mean + basis · codes · step``,
   clips negative values (RootSIFT has none) and re-normalises. An image whose descriptors keep
@@ -69,12 +67,11 @@ import struct
 import zlib
 from collections.abc import Sequence
 from dataclasses import dataclass
-from functools import cached_property
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from planarloc.features.extract import DescriptorSubspace, Features
+from planarloc.features.extract import Features
 from planarloc.geometry.camera import Camera
 from planarloc.geometry.pose import Pose
 from planarloc.geometry.validation import InputError, check_array
@@ -226,12 +223,6 @@ class DescriptorBasis:
         d = (codes.astype(np.float32) * np.float32(self.step)) @ self.axes.T + self.mean
         np.maximum(d, 0.0, out=d)
         return _normalised(d.astype(np.float32))
-
-    @cached_property
-    def subspace(self) -> DescriptorSubspace:
-        """The subspace of the rebuilt rows (one object per basis: matching projects a query
-        into it once, :mod:`planarloc.features.matching`)."""
-        return DescriptorSubspace(self.mean.astype(np.float32), self.axes.astype(np.float32))
 
 
 def fit_descriptor_basis(descriptors: np.ndarray, variance: float = KLT_VARIANCE,
@@ -451,8 +442,7 @@ def decode_features(num: int, kp_blob: object, dim: int, encoding: str, desc_blo
         raise MapCorruptError("non-finite keypoints or descriptors")
     for a in (keypoints, scales, descriptors):
         a.setflags(write=False)
-    subspace = basis.subspace if encoding == "klt" and basis is not None else None
-    return Features(keypoints, descriptors, scales, subspace)
+    return Features(keypoints, descriptors, scales)
 
 
 # ---- global descriptors -----------------------------------------------------------------------

@@ -155,54 +155,6 @@ def test_transform_coding_of_real_sift(sift_images: list[Features]) -> None:
         decode_descriptor_basis(b"nonsense")
 
 
-def _warped_pair(rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """A KITTI-sized textured image, the same rotated by 12°, scaled by 0.8, shifted and noisy,
-    and the (2, 3) affine map from the first's pixels to the second's."""
-    import cv2
-    from textured_images import textured_image
-
-    a = textured_image(rng, 376, 1241)
-    M = cv2.getRotationMatrix2D((620.0, 188.0), 12.0, 0.8)
-    M[:, 2] += (7.0, -3.0)
-    b = cv2.warpAffine(a, M, (1241, 376), borderMode=cv2.BORDER_REFLECT)
-    return a, np.clip(b + rng.normal(0.0, 10.0, b.shape), 0, 255).astype(np.uint8), M
-
-
-def test_queries_match_transform_coded_rows_in_their_subspace(sift_images: list[Features]) -> None:
-    """Against decoded klt rows the query's energy outside the basis adds to every distance and
-    Lowe's ratio test drops good matches (KITTI: 3.5 %); matched in the rows' subspace, the
-    query keeps the matches (and the correct ones) of the uncoded descriptors."""
-    from planarloc.features.extract import FeatureConfig, extract_features
-    from planarloc.features.matching import match_features, match_query_to_refs
-    from planarloc.map.codec import decode_features
-
-    basis = fit_descriptor_basis(sift_images[0].descriptors)  # the map's first image fixes it
-    counts = np.zeros((2, 3))
-    for seed in (10, 11):
-        a, b, M = _warped_pair(np.random.default_rng(seed))
-        query, ref = extract_features(a, FeatureConfig()), extract_features(b, FeatureConfig())
-        encoding, blob = encode_descriptors(ref.descriptors, "auto", "compact", basis)
-        coded = decode_features(len(ref), encode_keypoints(ref.keypoints, ref.scales, "fixed"), 128, encoding,
-                                blob, "fixed", basis)
-        assert encoding == "klt" and coded.subspace is basis.subspace
-        unprojected = Features(coded.keypoints, coded.descriptors, coded.scales)
-        for k, r in enumerate((ref, coded, unprojected)):
-            m = match_features(query, r)
-            moved = query.keypoints[m[:, 0]] @ M[:, :2].T + M[:, 2]
-            counts[:, k] += len(m), np.sum(np.linalg.norm(moved - r.keypoints[m[:, 1]], axis=1) < 2.0)
-        together = match_query_to_refs(query, [ref, coded, unprojected])
-        assert [len(m) for m in together] == [len(match_features(query, r)) for r in (ref, coded, unprojected)]
-    ratio = counts / counts[:, :1]
-    assert (ratio[:, 1] > 0.99).all()       # in the subspace: the matches of the uncoded rows
-    assert (ratio[:, 2] < 0.985).all()      # the ratio test against the decoded rows alone loses them
-    sub = coded.subset(np.arange(10))
-    assert sub.subspace is coded.subspace and np.array_equal(sub.descriptors, coded.descriptors[:10])
-    p = basis.subspace.project(ref.descriptors)   # what the decoded rows are, but for their rounding
-    np.testing.assert_allclose(np.linalg.norm(p, axis=1), 1.0, atol=1e-5)
-    cos = np.einsum("ij,ij->i", p, coded.descriptors)
-    assert (p >= 0).all() and cos.mean() > 0.995 > np.einsum("ij,ij->i", ref.descriptors, coded.descriptors).mean()
-
-
 def _store(path: Path, features: list[Features], storage: str) -> None:
     rng = np.random.default_rng(2)
     with MapDatabase.create(path, CONFIG, storage=storage) as db:
@@ -223,9 +175,6 @@ def test_compact_map_is_under_100_kb_per_kitti_sized_image(tmp_path: Path, sift_
         assert encodings == ["klt"] * len(sift_images) and db.descriptor_basis() is not None
         f = db.get_features(make_posed(3).name)
         assert np.einsum("ij,ij->i", f.descriptors, sift_images[3].descriptors).mean() > 0.98
-        assert f.subspace is db.descriptor_basis().subspace is db.get_features(make_posed(4).name).subspace
-    with MapDatabase.open(tmp_path / "full.db") as db:
-        assert db.get_features(make_posed(3).name).subspace is None
     assert sizes["compact"] < 100_000 and sizes["full"] > 3.5 * sizes["compact"]
 
 
