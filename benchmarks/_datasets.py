@@ -6,7 +6,7 @@ Used by ``kitti.py``, ``world_presets.py`` and ``trust.py``. Caches live under o
 - worlds: ``worlds/<name>-<sha1 of config and seed>``; :func:`planarloc.synthetic.world.generate`
   itself reuses a complete generation of the same config and seed.
 - maps: ``maps/<label>-<sha1>.db`` where the hash covers the map images (names, files' sizes and
-  modification times, poses, cameras), the feature settings and the sources of the code that
+  modification times, poses, cameras), the feature settings, the storage layout and the sources of the code that
   builds maps (``planarloc/geometry``, ``planarloc/io``, ``planarloc/features``, ``planarloc/gravity``
   and ``planarloc/map``), so an edit of the map code rebuilds them and an edit of the estimator
   (or of ``planarloc/localize``, ``planarloc/evaluation``) does not.
@@ -29,6 +29,7 @@ import numpy as np
 import planarloc
 from planarloc.features.extract import FeatureConfig
 from planarloc.map.builder import build_map
+from planarloc.map.codec import DEFAULT_STORAGE
 from planarloc.map.posed_image import PosedImage
 from planarloc.map.store import MapDatabase
 from planarloc.synthetic.world.config import WorldConfig
@@ -51,6 +52,17 @@ def is_wrong(q: dict, t_max: float = WRONG_T, r_max: float = WRONG_R) -> bool:
 def confident_wrong(summary: dict, t_max: float = WRONG_T, r_max: float = WRONG_R) -> list[str]:
     """Names of the queries of an evaluation summary reported as success but off by >= (t_max, r_max)."""
     return [q["name"] for q in summary["per_query"] if q["success"] and is_wrong(q, t_max, r_max)]
+
+
+PROMISE_SIGMAS, PROMISE_MARGIN_M = 3.0, 0.05
+"""A success farther from the truth than ``PROMISE_SIGMAS · position_std_m + PROMISE_MARGIN_M`` is a broken promise."""
+
+
+def broken_promises(summary: dict) -> list[str]:
+    """Names of the queries of an evaluation summary reported as success but farther from the
+    truth than their own uncertainty allows (``PROMISE_SIGMAS`` position stds + ``PROMISE_MARGIN_M``)."""
+    return [q["name"] for q in summary["per_query"] if q["success"] and not
+            q["translation_error_m"] <= PROMISE_SIGMAS * q["position_std_m"] + PROMISE_MARGIN_M]
 
 
 def cache_root(path: Path | None = None) -> Path:
@@ -91,9 +103,14 @@ def images_key(images: Sequence[PosedImage]) -> list:
 
 
 def build_or_reuse(map_images: Sequence[PosedImage], path: Path, features: FeatureConfig, reuse: bool,
-                   progress: Callable[[str, int, int], None] | None = None) -> float:
-    """Build (or, with ``reuse``, reuse a complete) map at ``path``; returns the build time in seconds
-    (0 when reused). Without ``reuse`` an existing file is deleted first."""
+                   progress: Callable[[str, int, int], None] | None = None,
+                   storage: str = DEFAULT_STORAGE) -> float:
+    """Build (or, with ``reuse``, reuse a complete) map at ``path`` in the ``storage`` layout
+    (:mod:`planarloc.map.codec`); returns the build time in seconds (0 when reused). Without
+    ``reuse``, or when the file holds another layout, an existing file is deleted first."""
+    if path.exists() and reuse:
+        with MapDatabase.open(path) as db:
+            reuse = db.storage == storage
     if path.exists() and not reuse:
         for p in (path, *(path.with_name(path.name + s) for s in ("-wal", "-shm"))):
             p.unlink(missing_ok=True)
@@ -102,21 +119,22 @@ def build_or_reuse(map_images: Sequence[PosedImage], path: Path, features: Featu
             if db.is_complete and db.num_images() == len(map_images):
                 peer.log(f"reusing {path}")
                 return 0.0
-    peer.log(f"building {path.name}: {len(map_images)} images, features {features.name}")
+    peer.log(f"building {path.name}: {len(map_images)} images, features {features.name}, storage {storage}")
     t0 = time.perf_counter()
-    build_map(map_images, path, features, progress=progress or peer.Progress())
+    build_map(map_images, path, features, progress=progress or peer.Progress(), storage=storage)
     return time.perf_counter() - t0
 
 
 def cached_map(map_images: Sequence[PosedImage], label: str, root: Path,
                features: FeatureConfig | None = None,
-               progress: Callable[[str, int, int], None] | None = None) -> tuple[Path, float]:
+               progress: Callable[[str, int, int], None] | None = None,
+               storage: str = DEFAULT_STORAGE) -> tuple[Path, float]:
     """The map of ``map_images`` under ``root/maps``, keyed by content; (path, build seconds or 0)."""
     features = features or FeatureConfig()
-    key = content_key(images_key(map_images), features.name, map_code_key())
+    key = content_key(images_key(map_images), features.name, storage, map_code_key())
     path = root / "maps" / f"{label}-{key}.db"
     path.parent.mkdir(parents=True, exist_ok=True)
-    return path, build_or_reuse(map_images, path, features, reuse=True, progress=progress)
+    return path, build_or_reuse(map_images, path, features, reuse=True, progress=progress, storage=storage)
 
 
 def cached_world(config: WorldConfig, seed: int, root: Path,

@@ -18,6 +18,13 @@ Targets (printed as PASS/FAIL, never the exit code — this is a benchmark): str
     python benchmarks/kitti.py                     # full: map-every 2 and 4, 5 methods x 2 structures
     python benchmarks/kitti.py --quick             # CI: map-every 2, 2p1p and 2p2p, < 3 min on 2 cores
     python benchmarks/kitti.py --tilt --json kitti.json
+    python benchmarks/kitti.py --storage full compact --methods auto --no-peer   # map layouts side by side
+    python benchmarks/kitti.py --storage full compact --methods auto --no-peer --seed 1   # another RANSAC seed
+
+With several ``--storage`` layouts (:mod:`planarloc.map.codec`) each map is built in each layout
+from the same map images and evaluated alike; a last table gives, per layout, the map file's KB
+per image, the success rates, the successes more than 1 m off and the broken promises (successes
+farther than 3 position stds + 5 cm). The peer runs on the first layout's map.
 """
 
 from __future__ import annotations
@@ -33,7 +40,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import _peer_pipeline as peer  # noqa: E402
-from _datasets import build_or_reuse, confident_wrong  # noqa: E402
+from _datasets import broken_promises, build_or_reuse, confident_wrong  # noqa: E402
 
 from planarloc.evaluation.queries import (
     THRESHOLDS,
@@ -48,6 +55,7 @@ from planarloc.features.images import read_gray  # noqa: E402
 from planarloc.features.matching import match_query_to_refs  # noqa: E402
 from planarloc.io.datasets import read_dataset  # noqa: E402
 from planarloc.localize.localizer import LocalizerConfig  # noqa: E402
+from planarloc.map.codec import DEFAULT_STORAGE, STORAGE_LAYOUTS  # noqa: E402
 from planarloc.map.store import MapDatabase  # noqa: E402
 from planarloc.robust.options import Method, RansacOptions  # noqa: E402
 
@@ -71,6 +79,9 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument("--tilt", action="store_true", help="also evaluate a tilt-augmented map (paper Sec. III-B)")
     p.add_argument("--quick", action="store_true", help="CI mode: map-every 2 only, methods 2p1p and 2p2p")
     p.add_argument("--no-peer", action="store_true", help="skip the PoseLib peer")
+    p.add_argument("--storage", nargs="+", choices=STORAGE_LAYOUTS, default=[DEFAULT_STORAGE],
+                   help="map storage layouts to build and evaluate, each in its own map (default: %(default)s)")
+    p.add_argument("--seed", type=int, default=0, help="RANSAC seed of our configurations (default: %(default)s)")
     p.add_argument("--map-dir", type=Path, default=None,
                    help="keep the maps here and reuse them when present (default: a fresh temporary folder)")
     p.add_argument("--json", type=Path, default=None, help="write all summaries and per-query results here")
@@ -129,11 +140,13 @@ def run_peer(db: MapDatabase, map_images, queries) -> dict:
             "per_query": per_query}
 
 
-def evaluate_map(args: argparse.Namespace, every: int, tilt: bool, map_images, queries, path: Path) -> dict:
+def evaluate_map(args: argparse.Namespace, every: int, tilt: bool, map_images, queries, path: Path,
+                 storage: str = DEFAULT_STORAGE) -> dict:
     """Build (or reuse) one map and localize every query with each method x structure; print the table."""
     features = FeatureConfig(tilt=tilt)
-    build_s = build_or_reuse(map_images, path, features, reuse=args.map_dir is not None)
-    configs = [LocalizerConfig(top_n=TOP_N, method=m, ransac=RansacOptions(structure=s))
+    build_s = build_or_reuse(map_images, path, features, reuse=args.map_dir is not None, storage=storage)
+    kb_per_image = path.stat().st_size / 1024 / len(map_images)
+    configs = [LocalizerConfig(top_n=TOP_N, method=m, ransac=RansacOptions(structure=s, seed=args.seed))
                for m in args.methods for s in STRUCTURES]
     t0 = time.perf_counter()
     with MapDatabase.open(path) as db:
@@ -142,13 +155,14 @@ def evaluate_map(args: argparse.Namespace, every: int, tilt: bool, map_images, q
     summaries = [summarize(r, *config_label(c), map_every=every, tilt=tilt, top_n=TOP_N, retrieval="vlad")
                  for c, r in zip(configs, results)]
     title = (f"KITTI {args.data.name}, map every {every} ({len(map_images)} map / {len(queries)} queries), "
-             f"{'tilt' if tilt else 'no tilt'}, VLAD top-{TOP_N}")
+             f"{'tilt' if tilt else 'no tilt'}, {storage} map ({kb_per_image:.1f} KB/image), VLAD top-{TOP_N}")
     print()
     print(peer.markdown_table(HEADERS, [summary_row(s) for s in summaries], title))
     print(f"map build {build_s:.1f} s ({1000 * build_s / len(map_images):.0f} ms/image"
           f"{', reused' if build_s == 0 else ''}); localization of {len(configs)} configs {eval_s:.0f} s; "
           f"{peer.load_note()}")
-    return {"map_every": every, "tilt": tilt, "features": features.name, "map_images": len(map_images),
+    return {"map_every": every, "tilt": tilt, "storage": storage, "kb_per_image": kb_per_image,
+            "features": features.name, "map_images": len(map_images),
             "queries": len(queries), "build_seconds": build_s, "evaluate_seconds": eval_s,
             "load_average": peer.load_average(), "summaries": summaries}
 
@@ -176,6 +190,22 @@ def compare_with_peer(every: int, map_images, queries, path: Path) -> dict:
     return {"map_every": every, "peer": peer_summary, "ours_oracle": ours}
 
 
+STORAGE_HEADERS = ["map every", "storage", "KB/image", "method", "structure",
+                   *[threshold_name(t, r) for t, r in THRESHOLDS], "> 1 m", "broken promises"]
+
+
+def storage_rows(runs: list[dict]) -> list[list[str]]:
+    """One row per map layout x configuration: the map's size and what its successes promise."""
+    rows = []
+    for run in runs:
+        for s in run["summaries"]:
+            rows.append([str(run["map_every"]), run["storage"], f"{run['kb_per_image']:.1f}", s["method"],
+                         s["structure"],
+                         *[f"{round(v * s['queries'] / 100)}/{s['queries']}" for v in s["success"].values()],
+                         str(len(confident_wrong(s, 1.0, 180.0))), str(len(broken_promises(s)))])
+    return rows
+
+
 def tracks_verdicts(run: dict) -> list[tuple[bool, str]]:
     out = []
     for s in run["summaries"]:
@@ -183,7 +213,8 @@ def tracks_verdicts(run: dict) -> list[tuple[bool, str]]:
             continue
         med, v = s["median_translation_error_m"], s["success"][STRICT]
         ok = v >= TARGET_TRACKS_SUCCESS and med is not None and med < TARGET_TRACKS_MEDIAN_M
-        out.append((ok, f"map every {run['map_every']}, {s['method']} tracks: {v:.1f}% at {STRICT} (target >= "
+        out.append((ok, f"map every {run['map_every']}, {run['storage']} map, {s['method']} tracks: {v:.1f}% "
+                        f"at {STRICT} (target >= "
                         f"{TARGET_TRACKS_SUCCESS:g}%), median {peer.fmt_num(med)} m (target < "
                         f"{TARGET_TRACKS_MEDIAN_M:g} m)"))
     return out
@@ -221,7 +252,8 @@ def main(argv: list[str] | None = None) -> int:
           f"structures {', '.join(STRUCTURES)}; top-{TOP_N} retrieval")
     print(peer.code_note())
     print(peer.load_note("at start"))
-    report: dict = {"dataset": str(args.data), "frames": len(images), "quick": args.quick, "runs": [], "peer": [],
+    report: dict = {"dataset": str(args.data), "frames": len(images), "quick": args.quick, "seed": args.seed,
+                    "runs": [], "peer": [],
                     "targets": [], "code": peer.code_version(), "load_average_start": peer.load_average()}
     verdicts: list[tuple[bool, str]] = []
     tmp = None if args.map_dir else tempfile.TemporaryDirectory(prefix="planarloc-kitti-")
@@ -230,18 +262,25 @@ def main(argv: list[str] | None = None) -> int:
     try:
         for every in args.map_every:
             map_images, queries = split_map_queries(images, every)
-            path = {tilt: map_dir / f"kitti-every{every}-{FeatureConfig(tilt=tilt).name}.db" for tilt in (False, True)}
-            runs = [evaluate_map(args, every, tilt, map_images, queries, path[tilt])
-                    for tilt in ((False, True) if args.tilt else (False,))]
+            path = {(tilt, storage): map_dir / f"kitti-every{every}-{FeatureConfig(tilt=tilt).name}-{storage}.db"
+                    for tilt in (False, True) for storage in args.storage}
+            runs = [evaluate_map(args, every, tilt, map_images, queries, path[tilt, storage], storage)
+                    for storage in args.storage for tilt in ((False, True) if args.tilt else (False,))]
             report["runs"] += runs
-            verdicts += tracks_verdicts(runs[0])
+            for run in runs:
+                if not run["tilt"]:
+                    verdicts += tracks_verdicts(run)
             if not args.no_peer:
-                comparison = compare_with_peer(every, map_images, queries, path[False])
+                comparison = compare_with_peer(every, map_images, queries, path[False, args.storage[0]])
                 report["peer"].append(comparison)
                 verdicts += peer_verdicts(runs[0], comparison)
     finally:
         if tmp is not None:
             tmp.cleanup()
+    if len(args.storage) > 1:
+        print()
+        print(peer.markdown_table(STORAGE_HEADERS, storage_rows(report["runs"]),
+                                  f"Map layouts on {args.data.name}: successes, > 1 m off, broken promises"))
     print()
     print("## Targets")
     for ok, text in verdicts:

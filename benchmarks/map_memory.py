@@ -13,6 +13,7 @@
 
     python benchmarks/map_memory.py                       # 1000 images, temporary map
     python benchmarks/map_memory.py --map /tmp/m1000.db   # keep the map and reuse it next time
+    python benchmarks/map_memory.py --storage full        # the layout of maps before compact ones
 """
 
 from __future__ import annotations
@@ -33,6 +34,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import _peer_pipeline as peer  # noqa: E402
 
+from planarloc.map.codec import DEFAULT_STORAGE, STORAGE_LAYOUTS  # noqa: E402
+
 LIMIT_GB = 1.0
 CAMERA = ("PINHOLE", 640, 480, (500.0, 500.0, 320.0, 240.0))
 
@@ -43,6 +46,8 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument("--features", type=int, default=4000, help="features per image (default: %(default)s)")
     p.add_argument("--queries", type=int, default=5, help="queries served by the subprocess (default: %(default)s)")
     p.add_argument("--seed", type=int, default=0, help="seed of the random map (default: %(default)s)")
+    p.add_argument("--storage", choices=STORAGE_LAYOUTS, default=DEFAULT_STORAGE,
+                   help="storage layout of the map (planarloc.map.codec; default: %(default)s)")
     p.add_argument("--map", type=Path, default=None,
                    help="map file to build, or to reuse if it is complete with the same size (default: temporary)")
     p.add_argument("--json", type=Path, default=None, help="write the measurements here")
@@ -76,7 +81,8 @@ def planar_trajectory(rng: np.random.Generator, n: int, step_m: float = 0.5):
     return poses
 
 
-def build_random_map(path: Path, num_images: int, num_features: int, seed: int) -> dict:
+def build_random_map(path: Path, num_images: int, num_features: int, seed: int,
+                     storage: str = DEFAULT_STORAGE) -> dict:
     from planarloc.features.extract import FeatureConfig, Features
     from planarloc.geometry.camera import Camera
     from planarloc.map.builder import index_map
@@ -90,7 +96,7 @@ def build_random_map(path: Path, num_images: int, num_features: int, seed: int) 
     config = {"features": dataclasses.asdict(features_cfg), "feature_name": features_cfg.name,
               "retrieval": {"type": "vlad", "num_words": 64}, "synthetic": "benchmarks/map_memory.py"}
     t0 = time.perf_counter()
-    with MapDatabase.create(path, config, overwrite=True) as db:
+    with MapDatabase.create(path, config, overwrite=True, storage=storage) as db:
         for i, pose in enumerate(planar_trajectory(rng, num_images)):
             kp = (rng.random((num_features, 2), dtype=np.float32) * np.float32([CAMERA[1], CAMERA[2]]))
             scales = rng.uniform(2.0, 30.0, num_features).astype(np.float32)
@@ -104,14 +110,15 @@ def build_random_map(path: Path, num_images: int, num_features: int, seed: int) 
     return {"add_images_seconds": t1 - t0, "index_seconds": t2 - t1}
 
 
-def map_is_reusable(path: Path, num_images: int) -> bool:
+def map_is_reusable(path: Path, num_images: int, storage: str = DEFAULT_STORAGE) -> bool:
     from planarloc.map.store import MapDatabase
 
     if not path.is_file():
         return False
     try:
         with MapDatabase.open(path) as db:
-            return db.is_complete and db.num_images() == num_images and "synthetic" in db.config
+            return (db.is_complete and db.num_images() == num_images and "synthetic" in db.config
+                    and db.storage == storage)
     except Exception:  # noqa: BLE001 - anything unreadable is rebuilt
         return False
 
@@ -175,19 +182,20 @@ def main(argv: list[str] | None = None) -> int:
         return child(args.child, args.queries, args.seed)
     t_start = time.perf_counter()
     print(f"# Map memory: {args.images} images x {args.features} random RootSIFT-like features, "
-          f"{args.queries} queries in a fresh process")
+          f"{args.storage} storage, {args.queries} queries in a fresh process")
     print(peer.code_note())
     print(peer.load_note("at start"))
     tmp = None if args.map else tempfile.TemporaryDirectory(prefix="planarloc-memory-")
     path = args.map or Path(tmp.name) / f"random-{args.images}.db"
-    report: dict = {"images": args.images, "features_per_image": args.features, "code": peer.code_version(),
+    report: dict = {"images": args.images, "features_per_image": args.features, "storage": args.storage,
+                    "code": peer.code_version(),
                     "load_average_start": peer.load_average()}
     try:
-        if map_is_reusable(path, args.images):
+        if map_is_reusable(path, args.images, args.storage):
             peer.log(f"reusing {path}")
             report["build"] = None
         else:
-            report["build"] = build_random_map(path, args.images, args.features, args.seed)
+            report["build"] = build_random_map(path, args.images, args.features, args.seed, args.storage)
         size_mb = sum(p.stat().st_size for p in path.parent.glob(path.name + "*")) / 2**20
         report["map_file_mb"] = size_mb
         peer.log("opening the map in a fresh process")

@@ -45,7 +45,11 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         names its PID).
 
         The world's gravity is the format's (KITTI, OpenLORIS, generated worlds), the dataset option up=...,
-        or estimated from the camera centres' plane; `map info` shows it.""",
+        or estimated from the camera centres' plane; `map info` shows it.
+
+        New maps are compact (--storage compact: 50-100 KB per KITTI image, the recall of full maps);
+        --storage full stores float32 keypoints and 8-bit descriptors (about 5 times the bytes). Maps of
+        either layout, and maps from before layouts existed (full), open alike.""",
         ["planarloc map build data/kitti_seq2 --format kitti --every 2 --out kitti.db",
          "planarloc map build data/fountain_p11 --format kapture --dataset-option up=-z --out f.db"],
         run_build, interrupted=BUILD_RESUMES)
@@ -58,8 +62,10 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                         "even if the format declares one)")
     add_feature_args(b)
     b.add_argument("--storage", choices=STORAGE_LAYOUTS, default=DEFAULT_STORAGE,
-                   help=f"layout of a new map: full, or compact (about a fifth of the size: quantised descriptors and "
-                        f"keypoints; default: {DEFAULT_STORAGE}); an existing map keeps its own")
+                   help=f"layout of a new map: compact (about a fifth of the bytes of full: transform-coded "
+                        f"descriptors, fixed-point keypoints, 4-bit global descriptors; the same recall on KITTI) or "
+                        f"full (float32 keypoints, 8-bit descriptors); default: {DEFAULT_STORAGE}; an existing map "
+                        f"keeps its own")
     b.add_argument("--ray", nargs="?", const="local", metavar="ADDRESS",
                    help="distribute over a Ray cluster (auto, HOST:PORT, ray://HOST:PORT; a local one without "
                         "ADDRESS); needs pip install 'planarloc[ray]'")

@@ -78,11 +78,9 @@ from planarloc.geometry.validation import InputError, check_array
 from planarloc.map.schema import MapCorruptError
 
 STORAGE_LAYOUTS = ("compact", "full")
-#: The layout of new maps. ``compact`` keeps single-frame recall on KITTI (BENCHMARKS.md, issue 20)
-#: but a rendered stream's second frame came out 0.90 m off instead of 0.15 m
-#: (tests/localize/test_sequence.py::test_stream_with_kidnap_and_dropped_frames): opt in until
-#: the stream's use of the quantised keypoints is understood.
-DEFAULT_STORAGE = "full"
+#: The layout of new maps: ``compact`` keeps single-frame recall and promises on both shared KITTI
+#: sequences at a fifth of the bytes (BENCHMARKS.md, "Compact maps"); ``full`` stays available.
+DEFAULT_STORAGE = "compact"
 DESCRIPTOR_ENCODINGS = ("auto", "uint4", "uint8", "float16", "float32")
 KEYPOINT_LAYOUTS = {"full": "float32", "compact": "fixed"}
 GLOBAL_ENCODINGS = ("float32", "int4", "projected")

@@ -156,8 +156,8 @@ class MapDatabase:
             path: the map file to create (parent directories are created).
             config: feature configuration (JSON-serialisable dict, e.g. extractor name,
                 ``tilt`` flag, number of features), stored in ``meta.config``.
-            descriptor_encoding: ``"auto"`` (``uint4`` in compact maps, ``uint8`` in full ones,
-                for non-negative descriptors; else float16), ``"uint4"``, ``"uint8"``,
+            descriptor_encoding: ``"auto"`` (``klt``, else ``uint4``, in compact maps, ``uint8`` in
+                full ones, for non-negative descriptors; else float16), ``"uint4"``, ``"uint8"``,
                 ``"float16"`` or ``"float32"`` (:mod:`planarloc.map.codec`).
             storage: ``"compact"`` (default: about 29 bytes per RootSIFT feature, 4 KB per
                 global descriptor; ≤ 100 KB per KITTI image) or ``"full"`` (the layout of maps

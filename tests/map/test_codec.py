@@ -241,6 +241,15 @@ def _digest(a: np.ndarray) -> str:
     return hashlib.sha256(np.ascontiguousarray(a).tobytes()).hexdigest()
 
 
+def test_new_maps_are_compact_unless_full_is_asked_for(tmp_path: Path) -> None:
+    with MapDatabase.create(tmp_path / "default.db", CONFIG) as db:
+        assert db.storage == "compact" and db.get_meta("storage") == "compact"
+    with MapDatabase.create(tmp_path / "full.db", CONFIG, storage="full") as db:
+        assert db.storage == "full"
+    with MapDatabase.open(tmp_path / "default.db") as db:
+        assert db.storage == "compact"
+
+
 def test_map_written_before_compact_maps_reads_exactly_as_then(v1_map: Path) -> None:
     expected = json.loads((DATA / "map_v1.json").read_text())
     assert check_map(v1_map).ok
