@@ -542,7 +542,8 @@ class SequenceLocalizer:
 
     def _constant_motion(self, last: int, dt: float) -> Motion:
         """Constant velocity from nodes ``last − 1`` and ``last``, with a large covariance (a weak
-        motion model: position std ``max_speed_mps · dt / 5`` plus half the step, rotation 20°)."""
+        motion model: position std ``max_speed_mps · dt / 5`` plus half the step, rotation 20°);
+        before a speed is measured, no motion with std ``max_speed_mps · dt`` (as :meth:`_visual`)."""
         motion, d = Pose.identity(), np.zeros(3)
         if last >= 1 and self._speed is not None:
             step = self._poses[last] @ self._poses[last - 1].inverse()
@@ -551,7 +552,8 @@ class SequenceLocalizer:
             if n > 1e-9:
                 d = d / n * self._speed * dt
             motion = Pose(step.R, -step.R @ d)
-        along = 0.5 * float(np.linalg.norm(d)) + 0.2 * self.config.max_speed_mps * dt
+        known = last >= 1 and self._speed is not None
+        along = 0.5 * float(np.linalg.norm(d)) + (0.2 if known else 1.0) * self.config.max_speed_mps * dt
         return Motion(motion, _motion_covariance(d, along, along, np.radians(20.0)), "constant")
 
     def _add_node(self, motion: Motion, stamp: float) -> None:

@@ -33,11 +33,7 @@ def _office(tmp_path_factory: pytest.TempPathFactory, n_query: int) -> tuple[Pat
     root = generate(shrunk(get_preset("office"), scale=0.5, n_map=16, n_query=n_query),
                     tmp_path_factory.mktemp("world") / "office", seed=0)
     path = root.parent / "map.db"
-    # full, not the default compact: on compact maps frame 2 of test_stream_with_kidnap_and_dropped_frames
-    # [none-False] passes its near-collinear local fix (std 0.2 m) where full maps refuse it, and the fused
-    # pose follows the constant-velocity prediction (0.98 m off, std 0.30 m: SequenceLocalizer._constant_motion
-    # without a measured speed uses a fifth of max_speed_mps * dt) to 0.90 m off.
-    build_map(read_dataset(root / "map", "tum"), path, storage="full")
+    build_map(read_dataset(root / "map", "tum"), path)  # the default (compact) layout
     return path, read_dataset(root / "query", "tum")
 
 
