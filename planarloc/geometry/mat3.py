@@ -2,10 +2,6 @@
 
 Numba lowers ``A @ B`` on 2-D arrays to a BLAS call, whose fixed cost (~0.3 µs) dwarfs the 27
 multiply-adds of a 3x3 product; these scalar versions are what the hot loops use.
-
-They are ordinary compiled calls, not ``inline="always"``: numba would re-type and re-lower the
-body at every call site (compile time that grows with the caller), while LLVM inlines these
-small functions into their callers anyway (numba links a callee's code into each caller).
 """
 
 from __future__ import annotations
@@ -14,19 +10,19 @@ import numpy as np
 from numba import njit
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def dot(a: np.ndarray, b: np.ndarray) -> float:
     """``a · b`` for 3-vectors (numba lowers ``a @ b`` to a BLAS call)."""
     return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """``a × b`` for 3-vectors."""
     return np.array([a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]])
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def mul(A: np.ndarray, B: np.ndarray) -> np.ndarray:
     """``A @ B`` for (3, 3) matrices."""
     C = np.empty((3, 3))
@@ -36,7 +32,7 @@ def mul(A: np.ndarray, B: np.ndarray) -> np.ndarray:
     return C
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def mul_t(A: np.ndarray, B: np.ndarray) -> np.ndarray:
     """``A @ B.T`` for (3, 3) matrices."""
     C = np.empty((3, 3))
@@ -46,7 +42,7 @@ def mul_t(A: np.ndarray, B: np.ndarray) -> np.ndarray:
     return C
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def t_mul(A: np.ndarray, B: np.ndarray) -> np.ndarray:
     """``A.T @ B`` for (3, 3) matrices."""
     C = np.empty((3, 3))
@@ -56,7 +52,7 @@ def t_mul(A: np.ndarray, B: np.ndarray) -> np.ndarray:
     return C
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def vec(A: np.ndarray, v: np.ndarray) -> np.ndarray:
     """``A @ v`` for a (3, 3) matrix and a (3,) vector."""
     out = np.empty(3)
@@ -65,7 +61,7 @@ def vec(A: np.ndarray, v: np.ndarray) -> np.ndarray:
     return out
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def t_vec(A: np.ndarray, v: np.ndarray) -> np.ndarray:
     """``A.T @ v`` for a (3, 3) matrix and a (3,) vector."""
     out = np.empty(3)
@@ -74,7 +70,7 @@ def t_vec(A: np.ndarray, v: np.ndarray) -> np.ndarray:
     return out
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def sym_eigvals(A: np.ndarray) -> tuple[float, float, float]:
     """Eigenvalues ``λ1 ≥ λ2 ≥ λ3`` of a symmetric (3, 3) matrix, in closed form.
 
