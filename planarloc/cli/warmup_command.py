@@ -490,36 +490,60 @@ def kernel_cache_files() -> tuple[list[Path], list[Path]]:
     return sorted(folders), sorted(files)
 
 
+class CompileRecorder:
+    """Records numba's compile events (``numba:compile``) while registered: for each planarloc
+    kernel compiled (called from Python or from another kernel), the CPU seconds of each
+    signature's compilation without the planarloc kernels it compiled on the way (numba's own
+    overloads count for the kernel that needed them). Use as a context manager."""
+
+    def __init__(self) -> None:
+        self.kernels: dict[str, dict[str, float]] = {}  # module:qualname -> signature repr -> seconds
+        self.overloads: dict[str, float] = {}  # numba's own functions compiled for a planarloc kernel -> seconds
+        self._stack: list[list] = []
+        self._listener = None
+
+    def __enter__(self) -> "CompileRecorder":
+        from numba.core import event
+
+        recorder = self
+
+        class Listener(event.Listener):
+            def on_start(self, ev: event.Event) -> None:
+                recorder._stack.append([ev.data["dispatcher"], ev.data["args"], time.process_time(), 0.0])
+
+            def on_end(self, ev: event.Event) -> None:
+                d, sig, t0, inner = recorder._stack.pop()
+                total = time.process_time() - t0
+                mine = d.py_func.__module__.startswith("planarloc.")
+                key = f"{d.py_func.__module__}:{d.py_func.__qualname__}"
+                if mine:
+                    sigs = recorder.kernels.setdefault(key, {})
+                    text = repr(tuple(sig))
+                    sigs[text] = sigs.get(text, 0.0) + total - inner
+                elif recorder._stack and recorder._stack[-1][0].py_func.__module__.startswith("planarloc."):
+                    recorder.overloads[key] = recorder.overloads.get(key, 0.0) + total - inner
+                if recorder._stack and mine:
+                    recorder._stack[-1][3] += total
+
+        self._listener = Listener()
+        event.register("numba:compile", self._listener)
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        from numba.core import event
+
+        event.unregister("numba:compile", self._listener)
+
+    def manifest_entries(self) -> dict[str, dict]:
+        """``{kernel: {"signatures": [...], "compile_s": seconds}}``, as in ``kernels.json``."""
+        return {k: {"signatures": list(sigs), "compile_s": sum(sigs.values())} for k, sigs in self.kernels.items()}
+
+
 def _profile_steps(out: Path) -> None:
-    """Run every step with numba's compile events recorded: for each planarloc kernel compiled
-    (called from Python or from another kernel), its signatures and the CPU seconds of its
-    compilation without the planarloc kernels it compiled on the way (numba's own overloads count
-    for the kernel that needed them)."""
-    from numba.core import event
-
-    stack: list[list] = []
-    kernels: dict[str, dict] = {}
-
-    class Listener(event.Listener):
-        def on_start(self, ev: event.Event) -> None:
-            stack.append([ev.data["dispatcher"], ev.data["args"], time.process_time(), 0.0])
-
-        def on_end(self, ev: event.Event) -> None:
-            d, sig, t0, inner = stack.pop()
-            total = time.process_time() - t0
-            mine = d.py_func.__module__.startswith("planarloc.")
-            if mine:
-                k = kernels.setdefault(f"{d.py_func.__module__}:{d.py_func.__qualname__}",
-                                       {"signatures": [], "compile_s": 0.0})
-                k["compile_s"] += total - inner
-                if repr(tuple(sig)) not in k["signatures"]:
-                    k["signatures"].append(repr(tuple(sig)))
-            if stack and mine:
-                stack[-1][3] += total
-
-    event.register("numba:compile", Listener())
-    run_steps()
-    out.write_text(json.dumps(kernels))
+    """Run every step with numba's compile events recorded (:class:`CompileRecorder`)."""
+    with CompileRecorder() as rec:
+        run_steps()
+    out.write_text(json.dumps(rec.manifest_entries()))
 
 
 def _step_entries(name: str, out: Path) -> None:

@@ -325,7 +325,7 @@ def relpose_from_essential_kernel(E, xq, xr, R_out, t_out, work) -> bool:
             return False  # E is not an essential matrix
         _polar_step(Rc, R_out)
         _polar_step(R_out, Rc)
-        ok, lq, lr = midpoint_depths(Rc, t, xq, xr, 0)
+        ok, lq, lr = midpoint_depths(Rc, t, xq, xr, np.int64(0))  # typed, not a literal: one signature
         if not ok:
             continue
         if lq > 0.0 and lr > 0.0:

@@ -210,8 +210,8 @@ def real_roots_sturm(coeffs: np.ndarray, roots: np.ndarray) -> int:
     v_lo = _sign_changes(S, degs, ns, quot, linear, -bound)
     v_hi = _sign_changes(S, degs, ns, quot, linear, bound)
     # fall back to the counts at infinity if rounding put a root on the bound
-    v_inf_lo = _sign_changes_at_infinity(S, degs, ns, False)
-    v_inf_hi = _sign_changes_at_infinity(S, degs, ns, True)
+    v_inf_lo = _sign_changes_at_infinity(S, degs, ns, np.bool_(False))  # typed, not literals: one signature
+    v_inf_hi = _sign_changes_at_infinity(S, degs, ns, np.bool_(True))
     if v_lo != v_inf_lo or v_hi != v_inf_hi:
         bound *= 2.0
         v_lo = _sign_changes(S, degs, ns, quot, linear, -bound)

@@ -247,8 +247,11 @@ def hypotheses_p3p(samples: np.ndarray, xq3d: np.ndarray, X3d: np.ndarray, out_R
             counters[DEGENERATE] += 1
             continue
         counters[HYPOTHESES] += n
-        out_R[out:out + n] = Rs[:n]
-        out_t[out:out + n] = ts[:n]
+        for k in range(n):  # element loops: a 3-D slice assignment compiles numba's shape-error formatting
+            for a in range(3):
+                out_t[out + k, a] = ts[k, a]
+                for b in range(3):
+                    out_R[out + k, a, b] = Rs[k, a, b]
         out += n
     return out
 

@@ -101,7 +101,8 @@ def _refine_stage(R: np.ndarray, t: np.ndarray, xq: np.ndarray, xr: np.ndarray, 
         idx2d, idx3d = idx2d[::stride].copy(), idx3d[::stride].copy()
     # Only the pose is wanted: no normal matrix after the last step.
     R2, t2, _, _, _ = refine_pose_core(R, t, xq, xr, pair, idx2d, f_query, f_ref, ref_R, ref_t, xq3d, X3d, idx3d,
-                                       loss_scale, iterations, sigma_floor, -m3.t_vec(R, t), B, fixed, False)
+                                       loss_scale, iterations, sigma_floor, -m3.t_vec(R, t), B, fixed.copy(),
+                                       np.bool_(False))  # writable, typed: refine_pose's one signature
     return R2, t2
 
 
@@ -145,4 +146,4 @@ def refine_planar_then_6dof(
                              inlier_threshold_sq, loss_scale, planar_iterations, sigma_floor, level, PLANAR_FIXED,
                              max_data)
     return _refine_stage(R, t, xq, xr, pair, offsets, f_query, f_ref, ref_R, ref_t, xq3d, X3d, inlier_threshold_sq,
-                         loss_scale, iterations, sigma_floor, np.eye(3), _FREE, 1 << 62)
+                         loss_scale, iterations, sigma_floor, np.eye(3), _FREE, np.int64(1 << 62))

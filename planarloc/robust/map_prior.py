@@ -134,7 +134,7 @@ def refine_with_map_prior(
         Dinv = np.empty((P, 6, 6))
         ok_all = True
         for p in range(P):
-            ok_all = ok_all and spd_inverse(Dp[p], Dinv[p])
+            ok_all = ok_all and spd_inverse(Dp[p], Dinv[p], 0.0)
         if not ok_all:
             break
         for p in range(P):
@@ -169,7 +169,7 @@ def refine_with_map_prior(
                 Dl[p] = Dp[p]
                 for k in range(6):
                     Dl[p, k, k] += lam * Dp[p, k, k]
-                if not spd_inverse(Dl[p], Dinv[p]):
+                if not spd_inverse(Dl[p], Dinv[p], 0.0):
                     solvable = False
                     break
                 # S -= B D⁻¹ Bᵀ, rhs += B D⁻¹ h

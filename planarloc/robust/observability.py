@@ -356,7 +356,8 @@ def jackknife_kernel(
             R1 = m3.mul(exp_so3(step[:3]), R)
             c1 = c + step[3:]
         Rk, tk, _, _, _ = refine_pose_core(R1, t, xq, xr, pair, keep, f_query, f_ref, ref_R, ref_t, xq3d, X3d,
-                                           idx3d, loss_scale, max(max_iterations - 1, 0), sigma_floor, c1, eye, free, False)
+                                           idx3d, loss_scale, max(max_iterations - 1, 0), sigma_floor, c1, eye, free,
+                                           np.bool_(False))
         ck = -m3.t_vec(Rk, tk)
         for a in range(3):
             centres[i, a] = ck[a]
@@ -482,7 +483,7 @@ def points_centre_covariance(R: np.ndarray, t: np.ndarray, xq3d: np.ndarray, X3d
                         acc += wu * J[ru, a] * jsj * wv * J[rv, b]
                 M[a, b] += acc
     Hi = np.empty((6, 6))
-    if not spd_inverse(H, Hi):
+    if not spd_inverse(H, Hi, 0.0):
         return np.full((3, 3), np.inf)
     out = np.empty((3, 3))
     for a in range(3):

@@ -304,7 +304,7 @@ def refine_pose(
         final robust cost.
     """
     return refine_pose_core(Rq, tq, xq, xr, pair, idx2d, f_query, f_ref, ref_R, ref_t, xq3d, X3d, idx3d, loss_scale,
-                        max_iterations, sigma_floor, c0, B, fixed, True)
+                        max_iterations, sigma_floor, c0, B, fixed, np.bool_(True))
 
 
 @njit(cache=True, error_model="numpy")

@@ -77,11 +77,11 @@ def draw_pair_samples(
         if n >= m_second:
             w2[p] = n
     for s in range(u.shape[0]):
-        j = _pick_weighted(u[s, 0], w1, -1)
+        j = _pick_weighted(u[s, 0], w1, np.int64(-1))  # typed, not a literal: one compiled signature
         k = _pick_weighted(u[s, 1], w2, j)
         pj[s] = j
         pk[s] = k
-        _distinct(u[s, 2:2 + m_first], offsets[j + 1] - offsets[j], samples[s], 0, m_first, offsets[j])
+        _distinct(u[s, 2:2 + m_first], offsets[j + 1] - offsets[j], samples[s], np.int64(0), m_first, offsets[j])
         if m_second > 0 and k >= 0:
             _distinct(u[s, 2 + m_first:], offsets[k + 1] - offsets[k], samples[s], m_first, m_second, offsets[k])
 
@@ -104,4 +104,4 @@ def draw_within_pairs(u: np.ndarray, offsets: np.ndarray, sample_pair: np.ndarra
     """
     for s in range(u.shape[0]):
         p = sample_pair[s]
-        _distinct(u[s], offsets[p + 1] - offsets[p], samples[s], 0, m, offsets[p])
+        _distinct(u[s], offsets[p + 1] - offsets[p], samples[s], np.int64(0), m, offsets[p])

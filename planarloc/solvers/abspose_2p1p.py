@@ -110,7 +110,7 @@ def _abspose(R, t, Rj, tj, Rj2, tj2, xq, x2, out) -> tuple[int, float, float, fl
     tq = m3.t_vec(R, tj - rho * tu)
     R2q = m3.mul_t(Rj2, Rq)
     t2q = tj2 - m3.vec(R2q, tq)
-    ok, lq, lr = midpoint_depths(R2q, t2q, xq.reshape((1, 3)), x2.reshape((1, 3)), 0)
+    ok, lq, lr = midpoint_depths(R2q, t2q, xq.reshape((1, 3)), x2.reshape((1, 3)), np.int64(0))
     if not ok:
         lq = lr = np.nan
     for i in range(3):

@@ -171,11 +171,11 @@ def nister_essentials(
     count = 0
     for s in range(nroots):
         z = roots[s]
-        d = polyval(P[2], 6, z)
+        d = polyval(P[2], np.int64(6), z)  # typed degrees, not literals: polyval's one signature
         if abs(d) <= 1e-14 * p3_scale * max(1.0, abs(z)) ** 6:
             continue  # x, y at infinity
-        sol[0] = polyval(P[0], 7, z) / d
-        sol[1] = polyval(P[1], 7, z) / d
+        sol[0] = polyval(P[0], np.int64(7), z) / d
+        sol[1] = polyval(P[1], np.int64(7), z) / d
         sol[2] = z
         count = store_essential(C, basis, sol, refine_iters, refine_rtol, m, dm, E_out, count)
     return count

@@ -13,6 +13,7 @@ from pathlib import Path
 import pytest
 
 from planarloc.cli.warmup_command import (
+    CompileRecorder,
     _Schedule,
     load_manifest,
     parse_signature,
@@ -36,6 +37,28 @@ def test_the_kernel_list_names_real_cached_kernels_for_every_step() -> None:
         assert kernel.signatures and all(parse_signature(s) is not None for s in kernel.signatures
                                          if "Literal[" not in s), key
         assert kernel.compile_s >= 0
+
+
+def test_compile_recorder_times_each_signature_of_planarloc_kernels_only() -> None:
+    import numpy as np
+    from numba import njit
+
+    from planarloc.geometry import mat3
+
+    dot = njit(mat3.dot.py_func)  # a new dispatcher of a planarloc kernel: nothing compiled yet
+    other = njit(lambda a: a[0] + 1.0)  # not planarloc's: recorded only as an overload of a planarloc kernel
+    with CompileRecorder() as rec:
+        dot(np.ones(3), np.ones(3))
+        dot(np.ones(3, dtype=np.int64), np.ones(3, dtype=np.int64))
+        other(np.ones(3))
+    dot(np.ones(3, dtype=np.float32), np.ones(3, dtype=np.float32))  # after the recorder left: not seen
+    sigs = rec.kernels["planarloc.geometry.mat3:dot"]
+    assert sorted(sigs) == sorted(repr(tuple(s)) for s in dot.signatures[:2])
+    assert all(t > 0 for t in sigs.values())
+    assert list(rec.kernels) == ["planarloc.geometry.mat3:dot"]  # the lambda is not planarloc's
+    assert not any("lambda" in k for k in rec.overloads)  # nor compiled for a planarloc kernel
+    entry = rec.manifest_entries()["planarloc.geometry.mat3:dot"]
+    assert entry["signatures"] == list(sigs) and entry["compile_s"] == pytest.approx(sum(sigs.values()))
 
 
 def test_schedule_hands_out_callees_first_and_the_longest_chain_first() -> None:

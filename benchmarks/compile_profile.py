@@ -1,0 +1,146 @@
+"""Where the first use's numba compile time goes (issue 20): CPU per kernel and per signature.
+
+Runs one target in a new process with an empty numba cache (``NUMBA_CACHE_DIR`` pointed at a new
+temporary folder) and numba's compile events recorded (``numba:compile``, through
+:class:`planarloc.cli.warmup_command.CompileRecorder`): each planarloc kernel's signatures and the
+CPU seconds of each one's compilation, without the planarloc kernels compiled on the way.
+``compile_ahead`` (the parallel compile workers of the commands) is switched off in that process,
+so that every kernel compiles lazily where its events are seen — the CPU a cold first use needs.
+
+Targets:
+  localize  ``planarloc localize`` of one KITTI frame against a map of every 4th frame (built
+            first, in another process: no kernels involved)
+  demo      ``planarloc demo`` (render, map build, both structure modes)
+  STEP      a warm-up step of ``planarloc warmup`` by name, e.g. ``"auto tracks"``
+
+    python benchmarks/compile_profile.py localize demo
+    python benchmarks/compile_profile.py localize --opt 2 --top 15 --json prof.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import resource
+import subprocess
+import sys
+import tempfile
+import time
+from collections import defaultdict
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+import _peer_pipeline as peer  # noqa: E402
+
+REPO = Path(__file__).resolve().parent.parent
+KITTI = REPO.parent / "shared" / "data" / "kitti_seq2"
+
+
+def parse_args(argv: list[str] | None) -> argparse.Namespace:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("targets", nargs="*", help="localize, demo or a warm-up step name")
+    p.add_argument("--kitti", type=Path, default=KITTI, help="KITTI sequence of the localize target (default: %(default)s)")
+    p.add_argument("--opt", type=int, choices=(0, 1, 2, 3), default=None,
+                   help="NUMBA_OPT of the profiled process (default: numba's)")
+    p.add_argument("--top", type=int, default=25, help="kernels listed per target (default: %(default)s)")
+    p.add_argument("--json", type=Path, default=None, help="write the measurements here")
+    p.add_argument("--child", nargs=3, metavar=("TARGET", "WORK", "OUT"), help=argparse.SUPPRESS)
+    return p.parse_args(argv)
+
+
+def _child(target: str, work: Path, out: Path) -> int:
+    """The profiled process: run ``target`` with the compile events recorded."""
+    from planarloc.cli import demo_command, localize_command, main as cli
+    from planarloc.cli.warmup_command import CompileRecorder, run_steps
+
+    for module in (demo_command, localize_command):
+        module.compile_ahead = lambda steps, jobs=None: None  # lazy compilation, in this process
+    t0, c0 = time.perf_counter(), time.process_time()
+    with CompileRecorder() as rec:
+        if target == "localize":
+            frame = sorted((work / "kitti" / "image_l").glob("*.png"))[1]
+            code = cli.main(["localize", "--map", str(work / "map.db"), str(frame), "--out", str(work / "q.txt")])
+        elif target == "demo":
+            code = cli.main(["demo", "--out", str(work / "demo")])
+        else:
+            run_steps([target])
+            code = 0
+    out.write_text(json.dumps({"kernels": rec.kernels, "overloads": rec.overloads, "wall_s": time.perf_counter() - t0,
+                               "cpu_s": time.process_time() - c0, "exit_code": code}))
+    return int(code)
+
+
+def profile(target: str, args: argparse.Namespace, work: Path) -> dict:
+    """Run ``target`` in a new process with an empty numba cache; its compile record."""
+    env = {k: v for k, v in os.environ.items() if k != "NUMBA_OPT"}
+    env["NUMBA_CACHE_DIR"] = tempfile.mkdtemp(prefix="cache-", dir=work)
+    if args.opt is not None:
+        env["NUMBA_OPT"] = str(args.opt)
+    out = work / f"profile-{len(list(work.glob('profile-*')))}.json"
+    peer.log(f"{target}: profiling (NUMBA_OPT={env.get('NUMBA_OPT', 'default')}, {peer.load_note().strip()})")
+    subprocess.run([sys.executable, __file__, "--child", target, str(work), str(out)], env=env, check=True,
+                   stdout=subprocess.DEVNULL)
+    return json.loads(out.read_text())
+
+
+def report(target: str, rec: dict, top: int) -> None:
+    kernels = rec["kernels"]
+    total = sum(s for sigs in kernels.values() for s in sigs.values())
+    nsig = sum(len(sigs) for sigs in kernels.values())
+    rows = []
+    for k, sigs in sorted(kernels.items(), key=lambda kv: -sum(kv[1].values()))[:top]:
+        times = sorted(sigs.values(), reverse=True)
+        rows.append([k.removeprefix("planarloc."), len(sigs), f"{sum(times):.2f}",
+                     " + ".join(f"{t:.2f}" for t in times) if len(times) > 1 else ""])
+    print(peer.markdown_table(["kernel", "signatures", "compile CPU (s)", "per signature (s)"], rows,
+                              f"{target}: {len(kernels)} kernels, {nsig} signatures, {total:.1f} s of compile CPU "
+                              f"(process: {rec['cpu_s']:.1f} s CPU, {rec['wall_s']:.1f} s wall)"))
+    by_layer: dict[str, float] = defaultdict(float)
+    for k, sigs in kernels.items():
+        by_layer[k.split(".")[1]] += sum(sigs.values())
+    print("by layer: " + ", ".join(f"{layer} {s:.1f} s" for layer, s in sorted(by_layer.items(), key=lambda x: -x[1])))
+    ov = sorted(rec["overloads"].items(), key=lambda kv: -kv[1])
+    print(f"numba's own functions compiled for them: {sum(rec['overloads'].values()):.1f} s in all; largest: "
+          + ", ".join(f"{k.partition(':')[2]} ({k.partition(':')[0]}) {s:.1f} s" for k, s in ov[:6]))
+    multi = {k: len(s) for k, s in kernels.items() if len(s) > 1}
+    print(f"kernels with more than one signature: {multi or 'none'}\n")
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse_args(argv)
+    if args.child:
+        return _child(args.child[0], Path(args.child[1]), Path(args.child[2]))
+    if not args.targets:
+        print("give at least one target: localize, demo or a warm-up step name", file=sys.stderr)
+        return 2
+    print("# numba compile CPU of a cold first use, per kernel and signature")
+    print(peer.code_note())
+    print(peer.load_note("at start"))
+    results = {}
+    with tempfile.TemporaryDirectory(prefix="planarloc-compile-") as tmp:
+        work = Path(tmp)
+        if "localize" in args.targets:
+            if not (args.kitti / "image_l").is_dir():
+                print(f"--kitti {args.kitti}: not a KITTI sequence (image_l/ missing)", file=sys.stderr)
+                return 2
+            (work / "kitti").symlink_to(args.kitti.resolve())
+            subprocess.run([sys.executable, "-m", "planarloc.cli.main", "map", "build", str(args.kitti), "-f",
+                            "kitti", "--every", "4", "--out", str(work / "map.db")], check=True,
+                           stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        for target in args.targets:
+            before = resource.getrusage(resource.RUSAGE_CHILDREN)
+            rec = profile(target, args, work)
+            after = resource.getrusage(resource.RUSAGE_CHILDREN)
+            rec["child_cpu_s"] = after.ru_utime + after.ru_stime - before.ru_utime - before.ru_stime
+            rec["load_average_end"] = peer.load_average()
+            results[target] = rec
+            report(target, rec, args.top)
+    print(peer.load_note())
+    peer.write_json(args.json, {"opt": args.opt, "targets": results, "code": peer.code_version()})
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
