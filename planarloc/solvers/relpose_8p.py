@@ -41,6 +41,7 @@ from planarloc.geometry.essential_decomposition import (
     relposes_closed_form,
     solve_correspondences,
 )
+from planarloc.geometry import mat3 as m3
 from planarloc.geometry.pose import Pose
 from planarloc.geometry.validation import rays_invalid
 
@@ -100,19 +101,10 @@ def _normalize(x, out, T) -> bool:
 @njit(cache=True)
 def _denormalize(En, Tq, Tr, E):
     """E = Trᵀ En Tq."""
-    tmp = np.zeros((3, 3))
-    for i in range(3):
+    C = m3.t_mul(Tr, m3.mul(En, Tq))
+    for i in range(3):  # by element: a slice assignment compiles numba's shape-error overloads
         for j in range(3):
-            acc = 0.0
-            for k in range(3):
-                acc += En[i, k] * Tq[k, j]
-            tmp[i, j] = acc
-    for i in range(3):
-        for j in range(3):
-            acc = 0.0
-            for k in range(3):
-                acc += Tr[k, i] * tmp[k, j]
-            E[i, j] = acc
+            E[i, j] = C[i, j]
 
 
 @njit(cache=True)
