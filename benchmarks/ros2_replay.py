@@ -12,12 +12,14 @@ Runs per sequence: ``lockstep`` (each frame waits for the node's diagnostic of t
 the node with ``-p fixes:=wait``: every frame gets its own fix, an offline replay) with odometry
 and with visual odometry; ``10 Hz`` (the camera's rate, the node's default ``fixes=background``:
 frames posed by tracking, fixes in a worker; what it cannot keep up with is dropped and counted)
-with odometry. The peer in the same
+with odometry and with visual odometry. The peer in the same
 run: the same frames through :class:`SequenceLocalizer` in this process, no ROS (what the node
 adds is transport and conversions).
 
-Targets (issue 19, PASS/FAIL, never the exit code): lockstep runs ≥ 95 % of the frames posed within
+Targets (issue 19, PASS/FAIL, never the exit code), every run: ≥ 95 % of the frames posed within
 0.25 m / 10° and no pose beyond 1 m; ``map → odom`` consistent with every pose when odometry is given.
+The 10 Hz runs depend on the machine: the fixes' worker shares the cores with the frame path and
+the replay (print the load average with the results).
 
     python benchmarks/ros2_replay.py                          # both sequences
     python benchmarks/ros2_replay.py --data ../shared/data/kitti_seq2 --no-rate --json ros2.json
@@ -119,7 +121,7 @@ def run_sequence(data: Path, rate: bool, root: Path) -> dict:
     out: dict = {"dataset": data.name, "map_images": len(map_images), "queries": len(queries), "runs": {}}
     runs = [("lockstep odometry", True, True), ("lockstep visual odometry", False, True)]
     if rate:
-        runs.append(("10 Hz odometry", True, False))
+        runs += [("10 Hz odometry", True, False), ("10 Hz visual odometry", False, False)]
     for label, odometry, lockstep in runs:
         frames, truths = _frames(queries, odometry)
         with exclusive_domain() as domain:
@@ -131,7 +133,7 @@ def run_sequence(data: Path, rate: bool, root: Path) -> dict:
             node = NodeProcess(args, env)
             try:
                 node.wait_ready(timeout=600)
-                c0 = time.time()
+                c0, load = time.time(), os.getloadavg()[0]
                 result = replay(frames, base_from_camera=BASE_FROM_CAMERA, lockstep=lockstep, rate_hz=10.0,
                                 wait_s=900.0, settle_s=5.0)
                 score = _score(result, frames, truths)
@@ -145,6 +147,7 @@ def run_sequence(data: Path, rate: bool, root: Path) -> dict:
         score["exit_code_on_sigint"] = rc
         score["traceback"] = any("Traceback" in line for line in node.stderr)
         score["wall_s"] = time.time() - c0
+        score["load_average"] = load
         out["runs"][label] = score
         log(f"{data.name} {label}: {score['success_pct']:.1f}% within 0.25 m/10deg, {score['beyond_1m']} beyond 1 m, "
             f"{score['posed']}/{score['frames']} posed, {score['frames_dropped']} dropped")
@@ -163,8 +166,8 @@ def main() -> int:
     args = ap.parse_args()
     results = [run_sequence(d, not args.no_rate, cache_root(args.cache)) for d in (args.data or DEFAULT_DATA)]
     print("| sequence | run | frames | posed | within 0.25 m/10° | > 1 m | max error | map→odom checked (max "
-          "residual) | dropped | node latency p50 | SIGINT exit |")
-    print("|---|---|---|---|---|---|---|---|---|---|---|")
+          "residual) | dropped | node latency p50 | SIGINT exit | load average |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|")
     verdicts = []
     for r in results:
         for label, s in r["runs"].items():
@@ -172,16 +175,15 @@ def main() -> int:
             tf = "-" if not s["tf_checked"] else f"{s['tf_checked']} ({s['tf_max_residual']:.1e})"
             print(f"| {r['dataset']} | {label} | {s['frames']} | {s['posed']} | {s['success_pct']:.1f} % | "
                   f"{s['beyond_1m']} | {mx} | {tf} | {s['frames_dropped']} | {s['node_latency_ms_median']:.0f} ms | "
-                  f"{s['exit_code_on_sigint']}{' (traceback)' if s['traceback'] else ''} |")
-            if label.startswith("lockstep"):
-                ok = s["success_pct"] >= 95 and s["beyond_1m"] == 0 and s["exit_code_on_sigint"] == 0 \
-                    and not s["traceback"] and (s["frames"] == 0 or "visual" in label or
-                                                 (s["tf_checked"] == s["posed"] and s["tf_max_residual"] < 1e-6))
-                verdicts.append((f"{r['dataset']} {label}", ok))
+                  f"{s['exit_code_on_sigint']}{' (traceback)' if s['traceback'] else ''} | {s['load_average']:.1f} |")
+            ok = s["success_pct"] >= 95 and s["beyond_1m"] == 0 and s["exit_code_on_sigint"] == 0 \
+                and not s["traceback"] and (s["frames"] == 0 or "visual" in label or
+                                             (s["tf_checked"] == s["posed"] and s["tf_max_residual"] < 1e-6))
+            verdicts.append((f"{r['dataset']} {label}", ok))
         p = r["peer in-process odometry"]
         print(f"| {r['dataset']} | peer: SequenceLocalizer in-process, odometry | {p['frames']} | {p['posed']} | "
               f"{p['success_pct']:.1f} % | | | | | {p['ms_per_frame_median']:.0f} ms/frame "
-              f"(CPU {p['cpu_ms_per_frame_median']:.0f} ms) | |")
+              f"(CPU {p['cpu_ms_per_frame_median']:.0f} ms) | | |")
     for name, ok in verdicts:
         print(f"{'PASS' if ok else 'FAIL'} {name}: >= 95 % within 0.25 m/10deg, none beyond 1 m, map -> odom "
               "consistent, clean SIGINT")

@@ -19,9 +19,13 @@ What is published (the node is never confidently wrong): a frame the stream call
 ``lost`` frame publishes only its diagnostic. ``map → odom`` is re-sent with each localized or
 predicted frame's stamp (as AMCL re-sends its last transform) and never after ``lost``.
 
-Frames: the image callback only stores the newest frame; a worker thread localizes it. A frame
-that arrives while the previous one still waits is dropped and counted (``frames_dropped``),
-never queued behind a slow one. ``/initialpose`` restarts the stream: the window is forgotten and
+Frames: the image callback queues the frame; a worker thread localizes the queued frames in
+order. The queue holds at most ``queue_size`` frames: when the worker falls further behind (a
+slow first fix, a machine too slow for the camera), the oldest waiting frame is dropped and
+counted (``frames_dropped``), so that a frame never waits behind more than ``queue_size - 1``
+others. A short queue poses every frame through a one-off slow step (the tracking path catches
+up in a few frames) where a single slot would drop them, and a dropped frame also costs the
+next one (tracking across a gap is harder). ``/initialpose`` restarts the stream: the window is forgotten and
 the next pose comes from a global fix (planarloc localizes absolutely; the given pose is not
 used as a prior).
 """
@@ -32,6 +36,7 @@ import logging
 import sys
 import threading
 import time
+from collections import deque
 from collections.abc import Sequence
 from dataclasses import dataclass, fields
 from typing import Any
@@ -92,6 +97,8 @@ class NodeSettings:
         fixes: ``"background"`` (default: absolute fixes in a worker thread, frames posed by
             tracking meanwhile) or ``"wait"`` (each frame waits for its fix: deterministic, for
             replays and tests; ``SequenceConfig.fixes``).
+        queue_size: frames waiting for the worker at most (1: only the newest; see the module
+            docstring); its latency in the diagnostics includes the wait.
     """
 
     map: str = ""
@@ -120,6 +127,7 @@ class NodeSettings:
     vo_model: str = _SEQ.vo_model
     kidnap_confirmations: int = _SEQ.kidnap_confirmations
     fixes: str = _SEQ.fixes
+    queue_size: int = 5
 
     def __post_init__(self) -> None:
         if not self.map:
@@ -134,6 +142,8 @@ class NodeSettings:
         for name in ("odom_tolerance_s", "max_position_std_m"):
             if not getattr(self, name) > 0:
                 raise InputError(f"parameter {name}: expected a number > 0, got {getattr(self, name)}")
+        if self.queue_size < 1:
+            raise InputError(f"parameter queue_size: expected an integer >= 1, got {self.queue_size}")
         if self.transform_tolerance_s < 0:
             raise InputError(f"parameter transform_tolerance_s: expected >= 0, got {self.transform_tolerance_s}")
         for name in ("image_topic", "camera_info_topic", "pose_topic", "diagnostics_topic", "map_frame",
@@ -168,6 +178,46 @@ def check_parameter_names(ros_args: Sequence[str]) -> None:
             if name.rpartition(".")[2] not in PARAMETERS and name not in ("use_sim_time",):
                 raise InputError(f"--ros-args {flag} {value}: unknown parameter {name!r}; parameters: "
                                  f"{', '.join(PARAMETERS)}")
+
+
+class FrameQueue:
+    """The frames waiting for the node's worker, oldest first, at most ``size`` (not thread-safe:
+    the node holds its lock).
+
+    :meth:`push` drops the oldest waiting frame when full; :meth:`restart` (an ``/initialpose``)
+    marks the next frame pushed as the first of a new stream, and a restart survives the drop
+    of its frame (it moves to the next one).
+    """
+
+    def __init__(self, size: int) -> None:
+        if size < 1:
+            raise InputError(f"queue_size: expected an integer >= 1, got {size}")
+        self.size = size
+        self._items: deque[tuple[Any, float, bool]] = deque()   # frame, arrival time, restart before it
+        self._restart = False
+
+    def __len__(self) -> int:
+        return len(self._items)
+
+    def restart(self) -> None:
+        self._restart = True
+
+    def push(self, frame: Any, arrival: float) -> int:
+        """Queue ``frame``; returns how many frames were dropped to make room (0 or 1)."""
+        restart, self._restart = self._restart, False
+        dropped = 0
+        if len(self._items) >= self.size:
+            _, _, carried = self._items.popleft()
+            dropped = 1
+            if carried and self._items:
+                self._items[0] = (*self._items[0][:2], True)
+            restart = restart or (carried and not self._items)
+        self._items.append((frame, arrival, restart))
+        return dropped
+
+    def pop(self) -> tuple[Any, float, bool]:
+        """The oldest frame: ``(frame, arrival time, restart the stream before it)``."""
+        return self._items.popleft()
 
 
 @dataclass
@@ -213,8 +263,7 @@ class LocalizerNode:
         self._base_from_camera_param = settings.base_from_camera
         self._camera: Any = None
         self._camera_error = "no CameraInfo received yet"
-        self._pending: tuple[Any, float] | None = None
-        self._reset = False
+        self._pending = FrameQueue(settings.queue_size)
         self._map_from_odom: Pose | None = None
         self._last_stamp: float | None = None
         self._cond = threading.Condition()
@@ -247,6 +296,7 @@ class LocalizerNode:
             raise self._open_error
 
     def _open(self) -> None:
+        """Open the map and warm the localizer up (in the worker: SQLite stays in one thread)."""
         s = self.settings
         config = localizer_config(method=s.method, structure=s.structure, seed=s.seed, top_n=s.top_n,
                                   max_position_std_m=s.max_position_std_m)
@@ -254,14 +304,16 @@ class LocalizerNode:
             Localizer(s.map, config),
             SequenceConfig(window=s.window, local_top_n=s.local_top_n, vo_model=s.vo_model,
                            kidnap_confirmations=s.kidnap_confirmations, fixes=s.fixes))
+        # The first query of a process is ~10x slower than the next (kernels loaded from the compile
+        # cache, first calls into OpenCV): pay for it before the first frame, not with dropped frames.
+        logger.info("warming up the localizer on the map's own images")
+        logger.info("warm-up done in %.1f s", self.sequence.localizer.warm_up())
 
     # ---- callbacks (executor thread: cheap) -------------------------------------------------
     def _on_image(self, msg: Any) -> None:
         with self._cond:
             self.counts.received += 1
-            if self._pending is not None:
-                self.counts.dropped += 1
-            self._pending = (msg, time.perf_counter())
+            self.counts.dropped += self._pending.push(msg, time.perf_counter())
             self._cond.notify_all()
 
     def _on_camera_info(self, msg: Any) -> None:
@@ -286,7 +338,7 @@ class LocalizerNode:
 
     def _on_initialpose(self, msg: Any) -> None:
         with self._cond:
-            self._reset = True
+            self._pending.restart()
         logger.info("initial pose received: the stream restarts from a global fix")
 
     def _on_tf(self, msg: Any) -> None:
@@ -319,12 +371,11 @@ class LocalizerNode:
             self._opened.set()
         while True:
             with self._cond:
-                while self._pending is None and not self._stop:
+                while not self._pending and not self._stop:
                     self._cond.wait()
                 if self._stop:
                     return
-                msg, received = self._pending  # type: ignore[misc]
-                self._pending, reset, self._reset = None, self._reset, False
+                msg, received, reset = self._pending.pop()
             try:
                 self._process(msg, received, reset)
             except Exception as exc:  # a bug must not stop the node silently: log it, count and report the frame

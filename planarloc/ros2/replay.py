@@ -155,7 +155,7 @@ def replay(frames: Sequence[ReplayFrame], *, camera_frame: str = "camera_optical
         for _ in range(10):  # let the subscriptions of both sides match
             rclpy.spin_once(node, timeout_sec=0.05)
 
-        t0 = time.perf_counter()
+        t0 = None
         for i, frame in enumerate(frames):
             sec, nanosec = stamp_parts(frame.stamp)
             if i == initialpose_before:
@@ -191,6 +191,7 @@ def replay(frames: Sequence[ReplayFrame], *, camera_frame: str = "camera_optical
             if i == 0:  # the CameraInfo must be there before the first image
                 for _ in range(5):
                     rclpy.spin_once(node, timeout_sec=0.02)
+                t0 = time.perf_counter()  # the clock of the rate starts at the first image
             image_pub.publish(msg)
             key = round(frame.stamp, 9)
             if lockstep:
@@ -203,7 +204,7 @@ def replay(frames: Sequence[ReplayFrame], *, camera_frame: str = "camera_optical
                 next_at = t0 + (i + 1) / rate_hz
                 while time.perf_counter() < next_at:
                     rclpy.spin_once(node, timeout_sec=max(0.0, min(0.01, next_at - time.perf_counter())))
-        result.seconds = time.perf_counter() - t0
+        result.seconds = time.perf_counter() - t0 if t0 is not None else 0.0
         end = time.monotonic() + settle_s
         while time.monotonic() < end:  # the last answers (poses after their diagnostics, trailing frames)
             rclpy.spin_once(node, timeout_sec=0.05)

@@ -69,3 +69,16 @@ def test_map_images_give_points_to_keypoints_the_query_matched_only_once(tiny_wo
     none = Localizer(path, LocalizerConfig(ransac=RansacOptions(structure="none")))
     pairs, _ = none.pairs_for(features, none.retrieve(features), q.camera)
     assert all(p.ref_points3d is None for p in pairs)
+
+
+def test_warm_up_localizes_a_map_image_once_and_changes_no_answer(corridor_map: tuple) -> None:
+    """The ROS 2 node's warm-up runs the whole pipeline on the map's own features (its local
+    structure matches stay cached) and leaves every later answer as a cold localizer gives it."""
+    path, queries = corridor_map
+    warm, cold = Localizer(path), Localizer(path)
+    assert warm.warm_up() > 0 and warm.pair_cache.computed > 0
+    for q in queries[:2]:
+        image = read_gray(q.path)
+        a, b = warm.localize(image, q.camera), cold.localize(image, q.camera)
+        assert a.status == b.status and a.success
+        assert np.allclose(a.pose.matrix, b.pose.matrix) and a.position_std_m == pytest.approx(b.position_std_m)
