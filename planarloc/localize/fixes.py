@@ -58,6 +58,7 @@ from planarloc.localize.localizer import Localizer
 from planarloc.localize.stream_config import SequenceConfig
 from planarloc.localize.tracking import FrameHistory, TrackedPoints, TrackerOptions, track_through
 from planarloc.robust.pose_graph import so3_log
+from planarloc.robust.pair_matches import PairMatches
 from planarloc.robust.result import PoseEstimate
 
 logger = logging.getLogger(__name__)
@@ -96,6 +97,7 @@ class FixAttempt:
     covariance: np.ndarray | None
     global_retrieval: bool
     mahalanobis_sq: float = float("nan")
+    pairs: list[PairMatches] | None = None   # the matches it was estimated from (``estimate.references``)
 
     @property
     def pose(self) -> Pose:
@@ -118,6 +120,7 @@ class FixOutcome:
     accepted: tuple[Pose, np.ndarray] | None = None
     rejected: list[FixAttempt] = field(default_factory=list)
     last: PoseEstimate | None = None
+    last_pairs: list[PairMatches] | None = None   # the matches ``last`` was estimated from
     status: str = "none"
     mahalanobis_sq: float = float("nan")
     global_retrieval: bool = False
@@ -226,31 +229,31 @@ class FixSolver:
         return np.diag([rot**2] * 3 + [pos**2] * 3)
 
     def _fix(self, features: Features, camera: Camera, references: list[str] | None,
-             gravity: np.ndarray | None) -> PoseEstimate:
+             gravity: np.ndarray | None) -> tuple[PoseEstimate, list[PairMatches]]:
         """Single-frame fix from ``references``; with None, global retrieval followed by a
         second estimate from the map images nearest to the first (nearer references, better
         conditioned geometry: on KITTI the 2 nearest map images give 2-5x smaller errors than
         the VLAD top 5), kept when it lies within ``refix_radius_m`` of the first. Global
         retrieval matches the ``GLOBAL_TOP_N`` most similar map images first, all ``top_n`` of
-        the localizer only when that fails."""
+        the localizer only when that fails. Returns the estimate and the matches it came from."""
+        localize = self.localizer.localize_pairs
         if references is None and self.localizer.config.top_n > GLOBAL_TOP_N:
-            est = self.localizer.localize_features(features, camera, self.localizer.retrieve(features, GLOBAL_TOP_N),
-                                                   gravity=gravity)
+            est, pairs = localize(features, camera, self.localizer.retrieve(features, GLOBAL_TOP_N), gravity=gravity)
             if not est.success or est.pose is None:
-                est = self.localizer.localize_features(features, camera, None, gravity=gravity)
+                est, pairs = localize(features, camera, None, gravity=gravity)
         else:
-            est = self.localizer.localize_features(features, camera, references, gravity=gravity)
+            est, pairs = localize(features, camera, references, gravity=gravity)
         if references is not None or not est.success or est.pose is None:
-            return est
+            return est, pairs
         near = self.references_near(est.pose, 0.0)
         cov = self.fix_covariance(est, camera)
         if near is None or cov is None or set(near) <= set(est.references):
-            return est
-        again = self.localizer.localize_features(features, camera, near, gravity=gravity)
+            return est, pairs
+        again, again_pairs = localize(features, camera, near, gravity=gravity)
         cov2 = self.fix_covariance(again, camera) if again.success and again.pose is not None else None
         if cov2 is not None and np.linalg.norm(again.pose.center - est.pose.center) <= self.config.refix_radius_m:
-            return again
-        return est
+            return again, again_pairs
+        return est, pairs
 
     def attempts(self, features: Features, camera: Camera, gravity: np.ndarray | None, job: FixJob) -> FixOutcome:
         """A fix from the map images near a usable prediction, else (or when it is rejected or
@@ -259,8 +262,8 @@ class FixSolver:
         out = FixOutcome()
         for references in ([near] if near is not None else []) + [None]:  # None: global retrieval
             out.global_retrieval |= references is None
-            est = self._fix(features, camera, references, gravity)
-            out.last = est
+            est, pairs = self._fix(features, camera, references, gravity)
+            out.last, out.last_pairs = est, pairs
             cov = self.fix_covariance(est, camera) if est.success and est.pose is not None else None
             if cov is None:
                 out.status = "failed"
@@ -273,19 +276,23 @@ class FixSolver:
                 out.accepted, out.status = (est.pose, cov), "accepted"
                 break
             out.status = "rejected"
-            out.rejected.append(FixAttempt(est, cov, references is None, out.mahalanobis_sq))
+            out.rejected.append(FixAttempt(est, cov, references is None, out.mahalanobis_sq, pairs))
         return out
 
-    def world_points(self, features: Features, camera: Camera, est: PoseEstimate, stamp: float
-                     ) -> TrackedPoints | None:
+    def world_points(self, features: Features, camera: Camera, est: PoseEstimate, stamp: float,
+                     pairs: list[PairMatches] | None = None) -> TrackedPoints | None:
         """The fix's inlier query keypoints and their world points: the map's 3D points (local
         structure, depth) where it has them, else triangulated between the query (at the fix)
         and the map image (at least ``MIN_POINT_ANGLE_DEG`` apart); one per keypoint. None if
-        the matches cannot be recovered."""
+        the matches cannot be recovered. ``pairs``: the matches ``est`` came from (matched
+        again when None)."""
         if est.pose is None:
             return None
-        pairs, names = self.localizer.pairs_for(features, est.references, camera)
-        if names != list(est.references) or len(est.inliers) != len(pairs):
+        if pairs is None:
+            pairs, names = self.localizer.pairs_for(features, est.references, camera)
+            if names != list(est.references):
+                return None
+        if len(est.inliers) != len(pairs):
             return None
         ids, pixels, points = [], [], []
         for pair, mask in zip(pairs, est.inliers):
@@ -318,9 +325,10 @@ class FixSolver:
         outcome = self.attempts(features, job.camera, job.gravity, job)
         points = None
         if outcome.accepted is not None and outcome.last is not None:
-            points = self.world_points(features, job.camera, outcome.last, job.stamp)
+            points = self.world_points(features, job.camera, outcome.last, job.stamp, outcome.last_pairs)
         elif outcome.rejected and outcome.rejected[-1].global_retrieval:   # a kidnap may restart from it
-            points = self.world_points(features, job.camera, outcome.rejected[-1].estimate, job.stamp)
+            last = outcome.rejected[-1]
+            points = self.world_points(features, job.camera, last.estimate, job.stamp, last.pairs)
         return FixResult(job.stamp, outcome, points, time.perf_counter() - t0, job.generation,
                          time.thread_time() - cpu0)
 

@@ -299,6 +299,13 @@ class Localizer:
 
         ``gravity``: see :meth:`localize`.
         """
+        return self.localize_pairs(features, camera, references, gravity=gravity)[0]
+
+    def localize_pairs(self, features: Features, camera: Camera, references: Sequence[str] | None = None, *,
+                       gravity: object | None = None) -> tuple[PoseEstimate, list[PairMatches]]:
+        """:meth:`localize_features`, and the matched pairs it estimated from (one per name of
+        ``est.references``, in that order, as ``est.inliers``): callers that need the inliers'
+        matches (the stream's tracked map points) need not match again."""
         t0 = time.perf_counter()
         query_gravity = None if gravity is None else unit_gravity("gravity", gravity)
         refs = list(references) if references is not None else self.retrieve(features)
@@ -318,7 +325,7 @@ class Localizer:
         est.references = used
         est.stats.add_time("retrieval", t1 - t0)
         est.stats.add_time("matching", t2 - t1)
-        return est
+        return est, pairs
 
     def localize(self, image: ImageSource, camera: Camera | None = None, references: Sequence[str] | None = None,
                  *, gravity: object | None = None) -> PoseEstimate:

@@ -85,18 +85,18 @@ def test_outlier_fix_is_rejected_and_the_stream_continues(stream_world: tuple, m
     frames = make_stream(queries, list(range(6)), np.random.default_rng(1))
     loc = Localizer(map_path, LocalizerConfig(ransac=RansacOptions(structure="tracks", **PERFECT_MAP)))
     seq = SequenceLocalizer(loc, SequenceConfig(fixes="wait"))
-    real = loc.localize_features
+    real = loc.localize_pairs
     calls = {"n": 0}
 
     def wrong_at_frame_3(features, camera, references=None, **kw):
-        est = real(features, camera, references, **kw)
+        est, pairs = real(features, camera, references, **kw)
         if calls["frame"] == 3 and est.success:   # a confident fix 2 m off
             shifted = Pose.from_center(est.pose.R, est.pose.center + [2.0, 0, 0])
             est = PoseEstimate(shifted, True, "success", "injected", est.inliers, est.num_inliers,
                                est.num_inliers_3d, est.iterations, 0.02)
-        return est
+        return est, pairs
 
-    monkeypatch.setattr(loc, "localize_features", wrong_at_frame_3)
+    monkeypatch.setattr(loc, "localize_pairs", wrong_at_frame_3)
     out = []
     for k, f in enumerate(frames):
         calls["frame"] = k
@@ -116,7 +116,8 @@ def test_without_fixes_the_prediction_grows_until_lost(stream_world: tuple, monk
     seq = SequenceLocalizer(loc, SequenceConfig(lost_std_m=0.2, fixes="wait"))
     first = seq.step(read_gray(frames[0].image.path), frames[0].image.camera, frames[0].stamp, frames[0].odometry)
     assert first.status == "localized" and first.motion_source == "none", (first.status, first.position_std_m)
-    monkeypatch.setattr(loc, "localize_features", lambda *a, **k: PoseEstimate(None, False, "too_few_matches", "x", []))
+    monkeypatch.setattr(loc, "localize_pairs",
+                        lambda *a, **k: (PoseEstimate(None, False, "too_few_matches", "x", []), []))
     stds, statuses = [], []
     for f in frames[1:]:
         est = seq.step(read_gray(f.image.path), f.image.camera, f.stamp, f.odometry)
