@@ -34,22 +34,14 @@ def mul(A: np.ndarray, B: np.ndarray) -> np.ndarray:
 
 @njit(cache=True, inline="always")
 def mul_t(A: np.ndarray, B: np.ndarray) -> np.ndarray:
-    """``A @ B.T`` for (3, 3) matrices."""
-    C = np.empty((3, 3))
-    for i in range(3):
-        for j in range(3):
-            C[i, j] = A[i, 0] * B[j, 0] + A[i, 1] * B[j, 1] + A[i, 2] * B[j, 2]
-    return C
+    """``A @ B.T`` for (3, 3) matrices (a transposed view costs nothing once inlined)."""
+    return mul(A, B.T)
 
 
 @njit(cache=True, inline="always")
 def t_mul(A: np.ndarray, B: np.ndarray) -> np.ndarray:
     """``A.T @ B`` for (3, 3) matrices."""
-    C = np.empty((3, 3))
-    for i in range(3):
-        for j in range(3):
-            C[i, j] = A[0, i] * B[0, j] + A[1, i] * B[1, j] + A[2, i] * B[2, j]
-    return C
+    return mul(A.T, B)
 
 
 @njit(cache=True, inline="always")
@@ -64,10 +56,7 @@ def vec(A: np.ndarray, v: np.ndarray) -> np.ndarray:
 @njit(cache=True, inline="always")
 def t_vec(A: np.ndarray, v: np.ndarray) -> np.ndarray:
     """``A.T @ v`` for a (3, 3) matrix and a (3,) vector."""
-    out = np.empty(3)
-    for i in range(3):
-        out[i] = A[0, i] * v[0] + A[1, i] * v[1] + A[2, i] * v[2]
-    return out
+    return vec(A.T, v)
 
 
 @njit(cache=True, inline="always")

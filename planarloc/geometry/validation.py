@@ -3,7 +3,9 @@
 Every public function of planarloc validates its array arguments with :func:`check_array`
 so that bad input fails early with a message that names the argument, the expected shape
 and what was actually passed, instead of failing deep inside numpy or, worse, returning a
-wrong answer.
+wrong answer. Scalar options (the fields of the options dataclasses) go through
+:func:`check_integer` and :func:`check_positive`, whose messages name the option the same way
+(``TrackerOptions.corners: expected an integer >= 3, got 2``).
 """
 
 from __future__ import annotations
@@ -21,6 +23,33 @@ class InputError(ValueError):
 
     Subclasses :class:`ValueError`, so ``except ValueError`` catches it.
     """
+
+
+def check_integer(name: str, value: object, minimum: int, *, allow_none: bool = False) -> None:
+    """Raise :class:`InputError` naming ``name`` unless ``value`` is an integer ``>= minimum``.
+
+    Python and NumPy integers count, ``bool`` does not (``True`` is no count). With
+    ``allow_none``, None passes too (an optional setting).
+    """
+    if allow_none and value is None:
+        return
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < minimum:
+        expected = f"None or an integer >= {minimum}" if allow_none else f"an integer >= {minimum}"
+        raise InputError(f"{name}: expected {expected}, got {value!r}")
+
+
+def check_positive(name: str, value: object, *, allow_none: bool = False) -> None:
+    """Raise :class:`InputError` naming ``name`` unless ``value`` is a finite number ``> 0``.
+
+    Python and NumPy integers and floats count, ``bool`` does not. With ``allow_none``, None
+    passes too.
+    """
+    if allow_none and value is None:
+        return
+    if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)) or not (
+            np.isfinite(value) and value > 0):
+        expected = "None or a finite number > 0" if allow_none else "a finite number > 0"
+        raise InputError(f"{name}: expected {expected}, got {value!r}")
 
 
 def _shape_str(shape: Sequence[int | None]) -> str:

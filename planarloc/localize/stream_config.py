@@ -7,9 +7,7 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import dataclass
 
-import numpy as np
-
-from planarloc.geometry.validation import InputError
+from planarloc.geometry.validation import InputError, check_integer, check_positive
 from planarloc.localize.tracking import TrackerOptions
 from planarloc.robust.relative_pose import MODELS
 
@@ -113,13 +111,8 @@ class SequenceConfig:
             raise InputError(f"SequenceConfig.fixes: expected one of {FIX_MODES}, got {self.fixes!r}")
         minimum = {"window": 2, "local_top_n": 2, "kidnap_confirmations": 1, "fix_every": 1, "fix_delay": 0}
         for name, lo in minimum.items():
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < lo:
-                raise InputError(f"SequenceConfig.{name}: expected an integer >= {lo}, got {v!r}")
-        if self.fix_resize_max is not None and (isinstance(self.fix_resize_max, bool) or not isinstance(
-                self.fix_resize_max, (int, np.integer)) or self.fix_resize_max < 16):
-            raise InputError(f"SequenceConfig.fix_resize_max: expected None or an integer >= 16, "
-                             f"got {self.fix_resize_max!r}")
+            check_integer(f"SequenceConfig.{name}", getattr(self, name), lo)
+        check_integer("SequenceConfig.fix_resize_max", self.fix_resize_max, 16, allow_none=True)
         if not isinstance(self.tracking, TrackerOptions):
             raise InputError(f"SequenceConfig.tracking: expected TrackerOptions, got {type(self.tracking).__name__}")
         if self.vo_model not in MODELS:
@@ -134,10 +127,7 @@ class SequenceConfig:
                      "point_fix_min_std_m",
                      "point_fix_std_per_frame", "point_fix_rotation_std_deg",
                      "max_speed_mps", "lost_std_m", "localized_std_m", "frame_period_s", "refix_radius_m"):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, (int, float, np.floating, np.integer)) or not (
-                    np.isfinite(v) and v > 0):
-                raise InputError(f"SequenceConfig.{name}: expected a finite number > 0, got {v!r}")
+            check_positive(f"SequenceConfig.{name}", getattr(self, name))
 
     @property
     def tracker(self) -> TrackerOptions:

@@ -41,7 +41,7 @@ import numpy as np
 from planarloc.geometry.camera import Camera
 from planarloc.geometry.epipolar import essential_from_relpose
 from planarloc.geometry.pose import Pose
-from planarloc.geometry.validation import InputError
+from planarloc.geometry.validation import InputError, check_integer, check_positive
 from planarloc.robust.options import RansacOptions
 from planarloc.robust.pose_graph import so3_exp
 from planarloc.robust.relative_pose import RelativePoseEstimate, direction_basis, estimate_relative_pose
@@ -92,12 +92,8 @@ class TrackerOptions:
 
     def __post_init__(self) -> None:
         for name in ("corners", "window_px", "levels", "min_inliers"):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < (0 if name == "levels" else 3):
-                raise InputError(f"TrackerOptions.{name}: expected an integer >= {0 if name == 'levels' else 3}, "
-                                 f"got {v!r}")
-        if not (np.isfinite(self.threshold_px) and self.threshold_px > 0):
-            raise InputError(f"TrackerOptions.threshold_px: expected a finite number > 0, got {self.threshold_px!r}")
+            check_integer(f"TrackerOptions.{name}", getattr(self, name), 0 if name == "levels" else 3)
+        check_positive("TrackerOptions.threshold_px", self.threshold_px)
         if not 0 <= self.min_inlier_ratio < 1:
             raise InputError(f"TrackerOptions.min_inlier_ratio: expected a fraction in [0, 1), got "
                              f"{self.min_inlier_ratio!r}")

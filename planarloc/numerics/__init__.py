@@ -11,6 +11,8 @@ module                 holds
 ``eigen``              real eigenvalues of a small dense nonsymmetric matrix (balancing,
                        Hessenberg reduction, shifted double-step QR ``hqr``)
 ``cholesky``           Cholesky factor and solves of small symmetric positive-definite matrices
+``null_space``         orthonormal null-space basis of a small wide matrix (Householder QR of
+                       its transpose): the five-point and minimal 8-point linear steps
 =====================  =========================================================================
 
 What is specific to one problem stays with its solver: the eigenvectors of Stewénius' action

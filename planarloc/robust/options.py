@@ -9,7 +9,7 @@ from enum import Enum
 
 import numpy as np
 
-from planarloc.geometry.validation import InputError
+from planarloc.geometry.validation import InputError, check_integer, check_positive
 
 
 class Method(str, Enum):
@@ -129,21 +129,15 @@ class RansacOptions:
         except ValueError:
             raise InputError(f"RansacOptions.structure: expected 'none' or 'tracks', got {self.structure!r}") from None
         for name in ("max_iterations", "min_iterations", "min_inliers"):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 0:
-                raise InputError(f"RansacOptions.{name}: expected a non-negative integer, got {v!r}")
-        if self.seed is not None and (isinstance(self.seed, bool) or not isinstance(self.seed, (int, np.integer))
-                                      or self.seed < 0):
-            raise InputError(f"RansacOptions.seed: expected a non-negative integer or None, got {self.seed!r}")
+            check_integer(f"RansacOptions.{name}", getattr(self, name), 0)
+        check_integer("RansacOptions.seed", self.seed, 0, allow_none=True)
         for name in _FINITE_FIELDS:
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, (int, float, np.integer, np.floating)):
                 raise InputError(f"RansacOptions.{name}: expected a number, got {v!r}")
             if not math.isfinite(v) and name != "max_position_std_m":
                 raise InputError(f"RansacOptions.{name}: must be finite, got {v}")
-        if self.threshold_3d_px is not None and not (math.isfinite(self.threshold_3d_px) and self.threshold_3d_px > 0):
-            raise InputError(f"RansacOptions.threshold_3d_px: must be a finite number > 0 or None, got "
-                             f"{self.threshold_3d_px}")
+        check_positive("RansacOptions.threshold_3d_px", self.threshold_3d_px, allow_none=True)
         if not (1 <= self.min_iterations <= self.max_iterations):
             raise InputError(
                 f"RansacOptions: need 1 <= min_iterations <= max_iterations, got {self.min_iterations}, "

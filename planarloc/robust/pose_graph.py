@@ -89,8 +89,18 @@ def _whitener(name: str, cov: object) -> np.ndarray:
     return L.T
 
 
+class _Factor:
+    """What the factors share: a (6, 6) ``covariance``, checked and stored as a float64 array."""
+
+    covariance: np.ndarray
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "covariance",
+                           check_array(f"{type(self).__name__}.covariance", self.covariance, (6, 6)))
+
+
 @dataclass(frozen=True, eq=False)
-class AbsoluteFactor:
+class AbsoluteFactor(_Factor):
     """A measured pose of node ``node``.
 
     Attributes:
@@ -103,12 +113,9 @@ class AbsoluteFactor:
     pose: Pose
     covariance: np.ndarray
 
-    def __post_init__(self) -> None:
-        object.__setattr__(self, "covariance", check_array("AbsoluteFactor.covariance", self.covariance, (6, 6)))
-
 
 @dataclass(frozen=True, eq=False)
-class RelativeFactor:
+class RelativeFactor(_Factor):
     """A measured motion ``j_from_i`` (camera ``i`` to camera ``j``).
 
     Attributes:
@@ -121,9 +128,6 @@ class RelativeFactor:
     j: int
     j_from_i: Pose
     covariance: np.ndarray
-
-    def __post_init__(self) -> None:
-        object.__setattr__(self, "covariance", check_array("RelativeFactor.covariance", self.covariance, (6, 6)))
 
 
 @dataclass(frozen=True, eq=False)

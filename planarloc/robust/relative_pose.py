@@ -27,6 +27,7 @@ from planarloc.robust.options import RansacOptions
 from planarloc.robust.pose_graph import so3_exp
 from planarloc.robust.ransac import ransac
 from planarloc.robust.result import RansacStatistics
+from planarloc.robust.scoring import msac_add
 
 #: the 6DoF model replaces the planar one only if it has this many times its inliers
 SIX_DOF_MARGIN = 1.15
@@ -80,12 +81,7 @@ def _msac_kernel(R: np.ndarray, t: np.ndarray, xa: np.ndarray, xb: np.ndarray, f
         essential_into(R[k], t[k], E)
         c, n = 0.0, 0
         for i in range(xa.shape[0]):
-            e = sampson_sq(E, xa[i], xb[i], fa[0], fa[1], fb[0], fb[1])
-            if e < threshold_sq:
-                c += e
-                n += 1
-            else:
-                c += threshold_sq
+            c, n = msac_add(c, n, sampson_sq(E, xa[i], xb[i], fa[0], fa[1], fb[0], fb[1]), threshold_sq)
             if c > best:
                 break
         cost[k] = c

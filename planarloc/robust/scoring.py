@@ -15,6 +15,14 @@ from numba import njit
 from planarloc.geometry.epipolar_kernels import essential_into, relative_essential_into, reprojection_sq, sampson_sq
 
 
+@njit(cache=True, inline="always")
+def msac_add(cost: float, inliers: int, e: float, threshold_sq: float) -> tuple[float, int]:
+    """One datum of an MSAC sum: ``cost + min(e, τ²)``, and ``inliers + 1`` if ``e < τ²``."""
+    if e < threshold_sq:
+        return cost + e, inliers + 1
+    return cost + threshold_sq, inliers
+
+
 @njit(cache=True, error_model="numpy")
 def errors_sq(
     Rq: np.ndarray, tq: np.ndarray, xq: np.ndarray, xr: np.ndarray, offsets: np.ndarray,
@@ -68,11 +76,7 @@ def msac_scores(
             relative_essential_into(ref_R[p], ref_t[p], Rq, tq, E)
             for i in range(offsets[p], offsets[p + 1]):
                 e = sampson_sq(E, xq[i], xr[i], f_query[0], f_query[1], f_ref[p, 0], f_ref[p, 1])
-                if e < threshold_sq:
-                    c += e
-                    k += 1
-                else:
-                    c += threshold_sq
+                c, k = msac_add(c, k, e, threshold_sq)
             if c > best:
                 break
         if c > best:
@@ -81,11 +85,7 @@ def msac_scores(
             continue
         for i in range(X3d.shape[0]):
             e = reprojection_sq(Rq, tq, X3d[i], xq3d[i], f_query[2], f_query[3])
-            if e < threshold_sq:
-                c += e
-                k += 1
-            else:
-                c += threshold_sq
+            c, k = msac_add(c, k, e, threshold_sq)
         cost[h] = c
         inl[h] = k
         if c < best:

@@ -40,6 +40,7 @@ from numba import njit
 
 from planarloc.geometry.essential_decomposition import relpose_batch_kernel, relposes_into
 from planarloc.geometry.validation import rays_invalid
+from planarloc.numerics.null_space import null_space_qr
 
 MAX_SOLUTIONS = 10  # real solutions of the five-point problem, at most
 
@@ -111,8 +112,8 @@ def five_point_nullspace(uq: np.ndarray, ur: np.ndarray, basis: np.ndarray, rank
     """Orthonormal basis of the null space of the 5 x 9 epipolar constraint matrix.
 
     Row ``k`` of the constraint matrix is ``kron(x_ref_k, x_query_k)`` so that it dotted with
-    the row-major ``vec(E)`` gives ``x_refᵀ E x_query``. Householder QR of its 9 x 5 transpose;
-    the last four columns of ``Q`` span the null space (Nistér 2004 allows QR or SVD).
+    the row-major ``vec(E)`` gives ``x_refᵀ E x_query``. Householder QR of its 9 x 5 transpose
+    (:func:`planarloc.numerics.null_space.null_space_qr`; Nistér 2004 allows QR or SVD).
 
     Args:
         uq, ur: (5, 3) unit rays, query and reference.
@@ -123,51 +124,12 @@ def five_point_nullspace(uq: np.ndarray, ur: np.ndarray, basis: np.ndarray, rank
     Returns:
         False for a degenerate sample (``basis`` is then undefined).
     """
-    A = np.empty((9, 5))
+    At = np.empty((9, 5))
     for k in range(5):
         for i in range(3):
             for j in range(3):
-                A[3 * i + j, k] = ur[k, i] * uq[k, j]
-    V = np.zeros((9, 5))
-    beta = np.zeros(5)
-    for k in range(5):
-        norm = 0.0
-        for i in range(k, 9):
-            norm += A[i, k] * A[i, k]
-        norm = np.sqrt(norm)
-        if norm < rank_tol:
-            return False
-        alpha = -norm if A[k, k] >= 0.0 else norm
-        vnorm2 = 0.0
-        for i in range(k, 9):
-            V[i, k] = A[i, k]
-        V[k, k] -= alpha
-        for i in range(k, 9):
-            vnorm2 += V[i, k] * V[i, k]
-        beta[k] = 2.0 / vnorm2
-        A[k, k] = alpha
-        for j in range(k + 1, 5):
-            s = 0.0
-            for i in range(k, 9):
-                s += V[i, k] * A[i, j]
-            s *= beta[k]
-            for i in range(k, 9):
-                A[i, j] -= s * V[i, k]
-    q = np.empty(9)
-    for c in range(4):
-        for i in range(9):
-            q[i] = 0.0
-        q[5 + c] = 1.0
-        for k in range(4, -1, -1):
-            s = 0.0
-            for i in range(k, 9):
-                s += V[i, k] * q[i]
-            s *= beta[k]
-            for i in range(k, 9):
-                q[i] -= s * V[i, k]
-        for i in range(9):
-            basis[i, c] = q[i]
-    return True
+                At[3 * i + j, k] = ur[k, i] * uq[k, j]
+    return null_space_qr(At, basis, rank_tol)
 
 
 @njit(cache=True, fastmath=_FASTMATH)

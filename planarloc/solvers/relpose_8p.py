@@ -44,6 +44,7 @@ from planarloc.geometry.essential_decomposition import (
 from planarloc.geometry import mat3 as m3
 from planarloc.geometry.pose import Pose
 from planarloc.geometry.validation import rays_invalid
+from planarloc.numerics.null_space import null_space_qr
 
 __all__ = ["essential_8p", "relpose_8p", "relpose_8p_batch", "relpose_8p_batch_unchecked"]
 
@@ -109,7 +110,8 @@ def _denormalize(En, Tq, Tr, E):
 
 @njit(cache=True)
 def _null_vector_8(A, e) -> bool:
-    """Null vector of the 8 x 9 matrix A (rows scaled to unit length) by Householder QR of Aᵀ."""
+    """Null vector ``e`` (9, 1) of the 8 x 9 matrix A by Householder QR of Aᵀ (rows of A scaled to
+    unit length first)."""
     At = np.empty((9, 8))
     for k in range(8):
         norm = 0.0
@@ -120,49 +122,14 @@ def _null_vector_8(A, e) -> bool:
             return False
         for j in range(9):
             At[j, k] = A[k, j] / norm
-    V = np.zeros((9, 8))
-    beta = np.zeros(8)
-    for k in range(8):
-        norm = 0.0
-        for i in range(k, 9):
-            norm += At[i, k] * At[i, k]
-        norm = np.sqrt(norm)
-        if norm < RANK_TOL:
-            return False
-        alpha = -norm if At[k, k] >= 0.0 else norm
-        for i in range(k, 9):
-            V[i, k] = At[i, k]
-        V[k, k] -= alpha
-        vn = 0.0
-        for i in range(k, 9):
-            vn += V[i, k] * V[i, k]
-        beta[k] = 2.0 / vn
-        At[k, k] = alpha
-        for j in range(k + 1, 8):
-            s = 0.0
-            for i in range(k, 9):
-                s += V[i, k] * At[i, j]
-            s *= beta[k]
-            for i in range(k, 9):
-                At[i, j] -= s * V[i, k]
-    for i in range(9):
-        e[i] = 0.0
-    e[8] = 1.0
-    for k in range(7, -1, -1):
-        s = 0.0
-        for i in range(k, 9):
-            s += V[i, k] * e[i]
-        s *= beta[k]
-        for i in range(k, 9):
-            e[i] -= s * V[i, k]
-    return True
+    return null_space_qr(At, e, RANK_TOL)
 
 
 @njit(cache=True)
 def _scratch_8p():
     """Work buffers of :func:`_solve_8p` (allocated once per batch)."""
     return (np.empty((8, 3)), np.empty((8, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty((8, 9)),
-            np.empty(9), np.empty((3, 3)), np.empty((3, 3)), np.empty((4, 3, 3)))
+            np.empty((9, 1)), np.empty((3, 3)), np.empty((3, 3)), np.empty((4, 3, 3)))
 
 
 @njit(cache=True)
@@ -179,7 +146,7 @@ def _solve_8p(xq, xr, R, t, scratch) -> bool:
         return False
     for i in range(3):
         for j in range(3):
-            En[i, j] = e[3 * i + j]
+            En[i, j] = e[3 * i + j, 0]
     _denormalize(En, Tq, Tr, E)
     for i in range(3):
         for j in range(3):

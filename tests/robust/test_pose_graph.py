@@ -114,3 +114,12 @@ def test_bad_graphs_are_input_errors() -> None:
         solve_pose_graph([Pose.identity()], [AbsoluteFactor(3, Pose.identity(), np.eye(6))], [])
     with pytest.raises(InputError, match="positive definite"):
         solve_pose_graph([Pose.identity()], [AbsoluteFactor(0, Pose.identity(), -np.eye(6))], [])
+
+
+def test_a_factor_stores_its_covariance_as_an_array_and_names_it_when_it_is_wrong() -> None:
+    f = AbsoluteFactor(0, Pose.identity(), [[float(i == j) for j in range(6)] for i in range(6)])
+    assert isinstance(f.covariance, np.ndarray) and f.covariance.shape == (6, 6)
+    with pytest.raises(InputError, match=r"AbsoluteFactor\.covariance"):
+        AbsoluteFactor(0, Pose.identity(), np.eye(3))
+    with pytest.raises(InputError, match=r"RelativeFactor\.covariance"):
+        RelativeFactor(0, 1, Pose.identity(), np.full((6, 6), np.nan))
