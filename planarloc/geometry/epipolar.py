@@ -152,14 +152,62 @@ def triangulation_covariance(
     for points on the baseline (singular information). A far point seen at a small angle has a
     covariance elongated along the viewing rays: its depth is uncertain.
     """
-    Ja = projection_jacobians(X, *cam_from_world_a, focal_a)
-    Jb = projection_jacobians(X, *cam_from_world_b, focal_b)
+    return keypoint_std_px**2 * _triangulation_information_inverse(
+        projection_jacobians(X, *cam_from_world_a, focal_a), projection_jacobians(X, *cam_from_world_b, focal_b))
+
+
+def _triangulation_information_inverse(Ja: np.ndarray, Jb: np.ndarray) -> np.ndarray:
+    """(N, 3, 3) ``(J_aᵀ J_a + J_bᵀ J_b)⁻¹`` of (N, 2, 3) projection Jacobians; NaN rows where
+    it is singular (a point on the baseline)."""
     info = np.einsum("nki,nkj->nij", Ja, Ja) + np.einsum("nki,nkj->nij", Jb, Jb)
-    out = np.full((len(X), 3, 3), np.nan)
+    out = np.full((len(Ja), 3, 3), np.nan)
     ok = np.isfinite(info).all(axis=(1, 2))
     if ok.any():
         det = np.linalg.det(info[ok])
         scale = np.einsum("nii->n", info[ok]) ** 3
         good = np.flatnonzero(ok)[det > 1e-12 * scale]
-        out[good] = keypoint_std_px**2 * np.linalg.inv(info[good])
+        out[good] = np.linalg.inv(info[good])
     return out
+
+
+def triangulation_pose_jacobians(
+    X: np.ndarray,
+    cam_from_world_a: tuple[np.ndarray, np.ndarray],
+    cam_from_world_b: tuple[np.ndarray, np.ndarray],
+    focal_a: tuple[float, float] | np.ndarray,
+    focal_b: tuple[float, float] | np.ndarray,
+) -> np.ndarray:
+    """(N, 2, 3, 6) first-order motion of points X (N, 3) triangulated from two views when the
+    views' poses are corrected.
+
+    A view's correction is ``(ω, d)``: ``R' = Exp(ω) R`` (ω in the camera frame, radians) and the
+    centre moved by ``d`` (world frame, metres), the parametrisation of the map prior
+    (:mod:`planarloc.robust.map_prior`). ``out[:, 0]`` is ``∂X/∂(ω_a, d_a)``, ``out[:, 1]``
+    ``∂X/∂(ω_b, d_b)``. The point is the least-squares triangulation of its two observations,
+    ``min_X Σ_v |u_v(X) − ū_v|²``; by the implicit function theorem
+    ``∂X/∂θ_v = −(Σ_w J_wᵀ J_w)⁻¹ J_vᵀ ∂u_v/∂θ_v`` with ``J_v = ∂u_v/∂X`` (the Jacobians of
+    :func:`triangulation_covariance`), ``∂u_v/∂ω = −P_v [X_v]x`` and ``∂u_v/∂d = −J_v``
+    (``P_v`` the pixel Jacobian at the camera-frame point ``X_v``). Moving both centres by ``d``
+    moves the point by ``d``. A pose error is shared by every point triangulated from that view,
+    so unlike the pixel noise of :func:`triangulation_covariance` it does not average out over
+    points. NaN rows for points on the baseline.
+
+    References:
+        Hartley & Zisserman, *Multiple View Geometry*, 2nd ed., Sec. 5.2 (propagation of
+        covariance through an implicit function).
+    """
+    X = np.asarray(X, dtype=float)
+    views = []
+    for (R, t), focal in ((cam_from_world_a, focal_a), (cam_from_world_b, focal_b)):
+        Xc = X @ np.asarray(R).T + t
+        fx, fy = float(focal[0]), float(focal[1])
+        P = np.zeros((len(X), 2, 3))
+        with np.errstate(invalid="ignore", divide="ignore"):
+            z = Xc[:, 2]
+            P[:, 0, 0], P[:, 0, 2] = fx / z, -fx * Xc[:, 0] / (z * z)
+            P[:, 1, 1], P[:, 1, 2] = fy / z, -fy * Xc[:, 1] / (z * z)
+        J = P @ R
+        du = np.concatenate([-P @ skew(Xc), -J], axis=2)  # (N, 2, 6): ∂u/∂ω, ∂u/∂d
+        views.append((J, du))
+    Ainv = _triangulation_information_inverse(views[0][0], views[1][0])
+    return np.stack([-Ainv @ np.swapaxes(J, 1, 2) @ du for J, du in views], axis=1)
