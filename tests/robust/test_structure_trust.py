@@ -199,7 +199,9 @@ def test_a_distant_flat_facade_with_few_inliers_is_a_failure() -> None:
 @pytest.mark.parametrize("structure", ["none", "tracks"])
 def test_facade_successes_keep_their_promise(structure: str) -> None:
     """At 20 m a few queries are localized (tracks: points triangulated between the map images);
-    every success lies within 3 std + 5 cm."""
+    every success lies within 3 std + 5 cm. Tracks: 3 of 30 since the points carry their map
+    images' pose errors (7 before): the options' 0.1° of map rotation moves a point triangulated
+    over a 2 m baseline at 20 m by ~0.35 m, so four of the seven had a std beyond 0.3 m."""
     successes = 0
     for seed in range(30):
         query, pairs = facade(seed)
@@ -208,7 +210,7 @@ def test_facade_successes_keep_their_promise(structure: str) -> None:
             successes += 1
             err = pose_errors(est.pose, query)[0]
             assert err <= 3 * est.position_std_m + 0.05, (seed, err, est.position_std_m)
-    assert successes >= (1 if structure == "none" else 5)
+    assert successes >= (1 if structure == "none" else 3)
 
 
 def test_homography_inlier_ratio_tells_a_plane_from_depth() -> None:
