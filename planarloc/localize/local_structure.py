@@ -200,9 +200,16 @@ def view_points(views: Sequence[MapView], keypoints: Sequence[np.ndarray], cache
         for j in np.unique(partner[partner >= 0]):
             sel = partner == j
             other = views[int(j)]
-            poses = ((view.cam_from_world.R, view.cam_from_world.t), (other.cam_from_world.R, other.cam_from_world.t))
-            cov[sel] = triangulation_covariance(X[sel], *poses, view.camera.focal, other.camera.focal, KEYPOINT_STD_PX)
-            jac[sel] = triangulation_pose_jacobians(X[sel], *poses, view.camera.focal, other.camera.focal)
+            cov[sel] = triangulation_covariance(
+                X[sel], (view.cam_from_world.R, view.cam_from_world.t), (other.cam_from_world.R, other.cam_from_world.t),
+                view.camera.focal, other.camera.focal, KEYPOINT_STD_PX)
+        has = partner >= 0
+        if has.any():
+            others = [views[int(j)] for j in partner[has]]
+            jac[has] = triangulation_pose_jacobians(
+                X[has], (view.cam_from_world.R, view.cam_from_world.t),
+                (np.array([o.cam_from_world.R for o in others]), np.array([o.cam_from_world.t for o in others])),
+                view.camera.focal, np.array([o.camera.focal for o in others], dtype=float))
         bad = ~(np.isfinite(cov).all(axis=(1, 2)) & np.isfinite(jac).all(axis=(1, 2, 3)))
         X[bad], angle[bad], partner[bad], cov[bad], jac[bad] = np.nan, 0.0, -1, np.nan, np.nan
         out.append(ViewPoints(X, cov, angle, partner, jac))

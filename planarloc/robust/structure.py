@@ -98,13 +98,14 @@ def triangulate_tracks(
     first = np.r_[True, track[cand][1:] != track[cand][:-1]]
     keep = cand[first]
     cov = np.empty((len(keep), 3, 3))
-    jac = np.empty((len(keep), 2, 3, 6))
     pa, pb = problem.pair[a[keep]], problem.pair[b[keep]]
     for p1, p2 in set(zip(pa.tolist(), pb.tolist())):
         sel = (pa == p1) & (pb == p2)
-        poses = (problem.ref_R[p1], problem.ref_t[p1]), (problem.ref_R[p2], problem.ref_t[p2])
-        cov[sel] = triangulation_covariance(X[keep][sel], *poses, problem.f_ref[p1], problem.f_ref[p2], KEYPOINT_STD_PX)
-        jac[sel] = triangulation_pose_jacobians(X[keep][sel], *poses, problem.f_ref[p1], problem.f_ref[p2])
+        cov[sel] = triangulation_covariance(X[keep][sel], (problem.ref_R[p1], problem.ref_t[p1]),
+                                            (problem.ref_R[p2], problem.ref_t[p2]), problem.f_ref[p1],
+                                            problem.f_ref[p2], KEYPOINT_STD_PX)
+    jac = triangulation_pose_jacobians(X[keep], (problem.ref_R[pa], problem.ref_t[pa]),
+                                       (problem.ref_R[pb], problem.ref_t[pb]), problem.f_ref[pa], problem.f_ref[pb])
     good = np.isfinite(cov).all(axis=(1, 2)) & np.isfinite(jac).all(axis=(1, 2, 3))
     keep, cov, jac = keep[good], cov[good], jac[good]
     views = np.stack([pa[good], pb[good]], axis=1).astype(np.int64)
