@@ -20,6 +20,7 @@ matching and estimation; the peer's map features are extracted once and cached, 
 
     python benchmarks/structure_peer.py                       # kitti_seq1 and kitti_seq2, map every 2 and 4
     python benchmarks/structure_peer.py --sequences kitti_seq1 --map-every 4 --json out.json
+    python benchmarks/structure_peer.py --map-every 4 --seed 1    # our RANSAC seed (default 0)
 """
 
 from __future__ import annotations
@@ -45,7 +46,7 @@ from planarloc.geometry.pose import Pose  # noqa: E402
 from planarloc.io.datasets import read_dataset  # noqa: E402
 from planarloc.evaluation.queries import THRESHOLDS, split_map_queries, threshold_name  # noqa: E402
 from planarloc.features.extract import FeatureConfig, extract_features  # noqa: E402
-from planarloc.localize.localizer import Localizer  # noqa: E402
+from planarloc.localize.localizer import Localizer, localizer_config  # noqa: E402
 from planarloc.features.images import read_gray  # noqa: E402
 from planarloc.map.store import MapDatabase  # noqa: E402
 from planarloc.map.posed_image import PosedImage  # noqa: E402
@@ -140,7 +141,7 @@ def summarise(rows: Sequence[dict], with_std: bool) -> dict:
             "failures": dict(Counter(r["status"] for r in rows if not r["success"]))}
 
 
-def run_sequence(folder: Path, map_every: int, root: Path, progress: peer.Progress) -> dict:
+def run_sequence(folder: Path, map_every: int, root: Path, progress: peer.Progress, seed: int = 0) -> dict:
     images = read_dataset(folder, "kitti")
     map_images, queries = split_map_queries(images, map_every)
     by_name = {m.name: m for m in map_images}
@@ -149,7 +150,7 @@ def run_sequence(folder: Path, map_every: int, root: Path, progress: peer.Progre
     the_peer = TriangulatePnPPeer()
     ours, peer_ours, peer_oracle = [], [], []
     with MapDatabase.open(path) as db:
-        loc = Localizer(db)
+        loc = Localizer(db, localizer_config(seed=seed))
         for i, q in enumerate(queries):
             t0 = time.perf_counter()
             est = loc.localize(read_gray(q.path), q.camera)
@@ -178,6 +179,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--map-every", nargs="+", type=int, default=MAP_EVERY, help="map = every N-th frame")
     p.add_argument("--data-root", type=Path, default=DATA_ROOT)
     p.add_argument("--json", type=Path, default=None)
+    p.add_argument("--seed", type=int, default=0, help="RANSAC seed of planarloc (default 0, the library's)")
     p.add_argument("--cache-dir", type=Path, default=Path(tempfile.gettempdir()) / "planarloc-bench" / "structure")
     args = p.parse_args(argv)
     if not peer.have_poselib():
@@ -185,6 +187,7 @@ def main(argv: list[str] | None = None) -> int:
     args.cache_dir.mkdir(parents=True, exist_ok=True)
     print(peer.code_note())
     print(peer.load_note("at start"))
+    print(f"planarloc RANSAC seed {args.seed}")
     results = []
     progress = peer.Progress()
     for name in args.sequences:
@@ -193,7 +196,7 @@ def main(argv: list[str] | None = None) -> int:
             peer.log(f"{folder} not found, skipped")
             continue
         for every in args.map_every:
-            results.append(run_sequence(folder, every, args.cache_dir, progress))
+            results.append(run_sequence(folder, every, args.cache_dir, progress, args.seed))
     heads = ["sequence", "map", "who", *[threshold_name(t, r) for t, r in THRESHOLDS], "> 1m/20°", "broken promises",
              "median [m]", "s/query", "failures"]
     rows = []
@@ -213,7 +216,7 @@ def main(argv: list[str] | None = None) -> int:
                            f"{r['sequence']} every {r['map_every']}: planarloc within 1 point of the peer at "
                            f"{threshold_name(*THRESHOLDS[0])} (gap {gap:+.1f}) with no success beyond 1 m / 20°"))
     print(peer.load_note("at end"))
-    peer.write_json(args.json, {"code": peer.code_version(), "results": results})
+    peer.write_json(args.json, {"code": peer.code_version(), "seed": args.seed, "results": results})
     return 0
 
 

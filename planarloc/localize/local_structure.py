@@ -14,9 +14,10 @@ images, reuse it. Matching is the query matcher's (RootSIFT, FGINN ratio test); 
 must then satisfy the epipolar geometry of the two known poses, triangulate in front of both
 cameras with a reprojection error within the inlier threshold in both, and at a triangulation
 angle of at least ``min_angle_deg``. Each point carries its covariance from the keypoint noise
-(first order, ``KEYPOINT_STD_PX``), which the estimator propagates into the query's position
-uncertainty: a far point triangulated at a small angle is uncertain in depth, and a query seen
-from elsewhere inherits that.
+(first order, ``KEYPOINT_STD_PX``) and its motion under corrections of the two map images'
+poses, which the estimator propagates into the query's position uncertainty: a far point
+triangulated at a small angle is uncertain in depth, and a query seen from elsewhere inherits
+that; a map pose error moves every point of its image together (it does not average out).
 """
 
 from __future__ import annotations
@@ -29,7 +30,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from planarloc.geometry.camera import Camera
-from planarloc.geometry.epipolar import triangulate_points, triangulation_covariance
+from planarloc.geometry.epipolar import triangulate_points, triangulation_covariance, triangulation_pose_jacobians
 from planarloc.geometry.pose import Pose
 from planarloc.features.extract import Features
 from planarloc.features.matching import DEFAULT_RATIO, match_features
@@ -69,12 +70,17 @@ class ViewPoints:
         cov: (N, 3, 3) their covariance (m²), NaN rows where there is no point.
         angle_deg: (N,) triangulation angle (0 where there is no point).
         partner: (N,) index (into the views) of the view it was triangulated with, -1 if none.
+        pose_jac: (N, 2, 3, 6) motion of each point when the pose of this view (``[:, 0]``) or
+            of its partner (``[:, 1]``) is corrected
+            (:func:`~planarloc.geometry.epipolar.triangulation_pose_jacobians`), NaN rows where
+            there is no point: the map's pose errors, shared by every point of a view.
     """
 
     X: np.ndarray
     cov: np.ndarray
     angle_deg: np.ndarray
     partner: np.ndarray
+    pose_jac: np.ndarray
 
 
 @dataclass
@@ -190,13 +196,21 @@ def view_points(views: Sequence[MapView], keypoints: Sequence[np.ndarray], cache
             angle[better] = entry.angle[rows[better]]
             partner[better] = j
         cov = np.full((n, 3, 3), np.nan)
+        jac = np.full((n, 2, 3, 6), np.nan)
         for j in np.unique(partner[partner >= 0]):
             sel = partner == j
             other = views[int(j)]
             cov[sel] = triangulation_covariance(
                 X[sel], (view.cam_from_world.R, view.cam_from_world.t), (other.cam_from_world.R, other.cam_from_world.t),
                 view.camera.focal, other.camera.focal, KEYPOINT_STD_PX)
-        bad = ~np.isfinite(cov).all(axis=(1, 2))
-        X[bad], angle[bad], partner[bad] = np.nan, 0.0, -1
-        out.append(ViewPoints(X, cov, angle, partner))
+        has = partner >= 0
+        if has.any():
+            others = [views[int(j)] for j in partner[has]]
+            jac[has] = triangulation_pose_jacobians(
+                X[has], (view.cam_from_world.R, view.cam_from_world.t),
+                (np.array([o.cam_from_world.R for o in others]), np.array([o.cam_from_world.t for o in others])),
+                view.camera.focal, np.array([o.camera.focal for o in others], dtype=float))
+        bad = ~(np.isfinite(cov).all(axis=(1, 2)) & np.isfinite(jac).all(axis=(1, 2, 3)))
+        X[bad], angle[bad], partner[bad], cov[bad], jac[bad] = np.nan, 0.0, -1, np.nan, np.nan
+        out.append(ViewPoints(X, cov, angle, partner, jac))
     return out

@@ -97,6 +97,16 @@ def localizer_config(*, method: Method | str | None = None, structure: Structure
     return LocalizerConfig(**config)  # type: ignore[arg-type]
 
 
+def _partners_as_pairs(pairs: list[PairMatches], names: Sequence[str], references: Sequence[str]) -> list[PairMatches]:
+    """The local-structure partners of ``pairs`` (indices into ``references``) as the estimator
+    takes them: an index into ``pairs`` (``names``), or ``len(pairs) + j`` for reference ``j``
+    whose pair was dropped (its pose errors still move the points it triangulated)."""
+    slot = {n: i for i, n in enumerate(names)}
+    lookup = np.array([slot.get(n, len(names) + j) for j, n in enumerate(references)] + [-1], dtype=np.int64)
+    return [p if p.ref_points3d_partner is None else replace(p, ref_points3d_partner=lookup[p.ref_points3d_partner])
+            for p in pairs]
+
+
 class Localizer:
     """Localizes images against one map.
 
@@ -230,19 +240,21 @@ class Localizer:
                 continue
             ref_pts = np.asarray(ref.keypoints[m[:, 1]], dtype=float)
             X = self._points3d(name, ref_pts) if self.config.use_depth else None
-            cov = None
+            cov = partner = jac = None
             if local is not None:
-                X_local, cov = local.X[ok], local.cov[ok]
+                X_local, cov, partner, jac = local.X[ok], local.cov[ok], local.partner[ok], local.pose_jac[ok]
                 if X is not None:  # measured depth first
                     take = np.isnan(X[:, 0])
                     X_local, cov = np.where(take[:, None], X_local, X), np.where(take[:, None, None], cov, 0.0)
+                    partner = np.where(take, partner, -1)
                 X = X_local
             pairs.append(PairMatches(posed.cam_from_world, posed.camera,
                                      np.asarray(features.keypoints[m[:, 0]], dtype=float), ref_pts,
                                      query_indices=m[:, 0], ref_points3d=X,
-                                     ref_gravity=posed.cam_from_world.R @ self._g_world, ref_points3d_cov=cov))
+                                     ref_gravity=posed.cam_from_world.R @ self._g_world, ref_points3d_cov=cov,
+                                     ref_points3d_partner=partner, ref_points3d_pose_jac=jac))
             names.append(name)
-        return pairs, names
+        return _partners_as_pairs(pairs, names, references), names
 
     def _local_structure(self, references: Sequence[str], refs: Sequence[Features],
                          matches: Sequence[np.ndarray]) -> list:

@@ -265,8 +265,8 @@ def _prepare(query_camera: Camera, pairs: Sequence[PairMatches], options: Ransac
     gravity = _gravity(pairs, problem, query_gravity)
     if options.structure == Structure.TRACKS:
         t0 = time.perf_counter()
-        xq3, X3, C3 = triangulate_tracks(problem, options.threshold_px, options.track_min_angle_deg)
-        problem = problem.with_points3d(xq3, X3, np.full(len(X3), -1), C3)
+        xq3, X3, C3, V3, J3 = triangulate_tracks(problem, options.threshold_px, options.track_min_angle_deg)
+        problem = problem.with_points3d(xq3, X3, np.full(len(X3), -1), C3, V3, J3)
         stats.add_time("structure", time.perf_counter() - t0)
     return problem.with_reprojection_threshold(options.threshold_px / reprojection_threshold_px(options)), gravity
 

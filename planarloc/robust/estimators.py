@@ -398,4 +398,5 @@ def rectify_problem(p: AbsolutePoseProblem, upright_from_query: np.ndarray,
         np.ascontiguousarray(upright_from_refs @ p.ref_R),
         np.ascontiguousarray(np.einsum("pij,pj->pi", upright_from_refs, p.ref_t)),
         _rotate_rays(p.xq3d, upright_from_query) if len(p.xq3d) else p.xq3d, p.X3d, p.source3d, p.X3d_cov,
+        p.X3d_views, p.X3d_pose_jac,
     )

@@ -11,7 +11,8 @@ function takes the problem (or its estimator, for refinement) and a refined pose
 * :func:`weak_directions`, :func:`profile_std` — a secant profile of the cost along weakly
   observed directions of near-collinear geometry;
 * :func:`map_covariance` — the map's pose uncertainty propagated into the query position;
-* :func:`points_covariance` — the uncertainty of triangulated 2D-3D points propagated into it;
+* :func:`points_covariance` — the uncertainty of triangulated 2D-3D points (their keypoint noise
+  and their map images' pose errors) propagated into it;
 * :func:`correlation_inflation` — residuals correlated within one reference;
 * :func:`reference_jackknife` — leave-one-reference-out refinements: an empirical spread that
   sees what the linearised covariance cannot (one reference with a wrong pose, a wrong
@@ -445,14 +446,30 @@ def reference_jackknife_with_prior(est, R: np.ndarray, t: np.ndarray, in2d: np.n
 
 @njit(cache=True, error_model="numpy")
 def points_centre_covariance(R: np.ndarray, t: np.ndarray, xq3d: np.ndarray, X3d: np.ndarray, X3d_cov: np.ndarray,
-                             idx3d: np.ndarray, f_query: np.ndarray, f_ref: np.ndarray, ref_R: np.ndarray,
-                             ref_t: np.ndarray, H: np.ndarray, loss_scale: float) -> np.ndarray:
+                             X3d_views: np.ndarray, X3d_pose_jac: np.ndarray, idx3d: np.ndarray, f_query: np.ndarray,
+                             f_ref: np.ndarray, ref_R: np.ndarray, ref_t: np.ndarray, H: np.ndarray,
+                             loss_scale: float, map_rotation_var: float, map_position_var: float) -> np.ndarray:
     """(3, 3) covariance of the query centre caused by the 2D-3D points' own uncertainty.
 
     The refinement solves ``Σ w Jᵀ r = 0``; a point moved by ``δX`` moves its residuals by
-    ``J_X δX`` and the pose by ``δq = −H⁻¹ Σ w Jᵀ J_X δX``, so
-    ``Σ_q = H⁻¹ (Σ_i w_i² J_iᵀ J_X,i Σ_X,i J_X,iᵀ J_i) H⁻¹`` (first order, points independent).
-    For a reprojection residual ``J_X = −J_c`` (the point and the centre enter as ``X − c``).
+    ``J_X δX`` and the pose by ``δq = −H⁻¹ Σ w Jᵀ J_X δX``. For a reprojection residual
+    ``J_X = −J_c`` (the point and the centre enter as ``X − c``). Two sources move the points:
+
+    * the keypoint noise of their triangulation, independent per point:
+      ``Σ_q = H⁻¹ (Σ_i w_i² J_iᵀ J_X,i Σ_X,i J_X,iᵀ J_i) H⁻¹``;
+    * the pose errors of the map images they were triangulated from, ``δX_i = S_i δθ``
+      (``X3d_pose_jac``, views ``X3d_views``), shared by every point of a map image, so they
+      do not average out over points (a query nearly collinear with the map images of a road
+      sees its points' depths, and so its position along the road, move with a 0.1° yaw of
+      one of them): ``Σ_q = H⁻¹ (Σ_v B_v Λ B_vᵀ) H⁻¹`` with ``B_v = Σ_i w_i J_iᵀ J_X,i S_i,v``
+      and ``Λ = diag(map_rotation_var I₃, map_position_var I₃)`` (rad², m²; the map prior's).
+      The final refinement also estimates these poses from the 2D-2D matches under the same
+      prior (its H is the marginal one, so ``σ̂² H⁻¹`` holds the prior's share of the same
+      errors). The first-order cross terms between the two shares are left out: computed in
+      full (``σ̂² H⁻¹ (B_v C_vᵀ + C_v B_vᵀ) H⁻¹`` with ``C_v = H_qv H_vv⁻¹``, the pair's blocks of
+      the joint normal equations), they changed the std by under 0.5 % on KITTI and on the
+      generated roads of ``tests/robust/test_structure_trust.py``.
+
     ``H`` is the refinement's normal matrix (the marginal one with the map prior, which leaves
     2D-3D rows alone). Inf-filled when H is singular.
     """
@@ -463,6 +480,11 @@ def points_centre_covariance(R: np.ndarray, t: np.ndarray, xq3d: np.ndarray, X3d
     residuals_jacobian(R, c, np.eye(3), xq3d[:0], xq3d[:0], np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64),
                        f_query, f_ref, ref_R, ref_t, xq3d, X3d, idx3d, r, J, np.empty((0, 3)))
     s2 = loss_scale * loss_scale
+    n_views = 0
+    for n in range(idx3d.shape[0]):
+        for slot in range(2):
+            n_views = max(n_views, X3d_views[idx3d[n], slot] + 1)
+    Bv = np.zeros((n_views, 6, 6))
     M = np.zeros((6, 6))
     for n in range(idx3d.shape[0]):
         S = X3d_cov[idx3d[n]]
@@ -482,6 +504,27 @@ def points_centre_covariance(R: np.ndarray, t: np.ndarray, xq3d: np.ndarray, X3d
                                 jsj += J[ru, 3 + k] * S[k, l2] * J[rv, 3 + l2]
                         acc += wu * J[ru, a] * jsj * wv * J[rv, b]
                 M[a, b] += acc
+        for slot in range(2):
+            view = X3d_views[idx3d[n], slot]
+            if view < 0:
+                continue
+            Sv = X3d_pose_jac[idx3d[n], slot]
+            for u in range(2):
+                ru = 2 * n + u
+                wu = 1.0 / (1.0 + r[ru] * r[ru] / s2)
+                for k in range(6):
+                    jxs = 0.0  # (J_X S_v)[u, k]
+                    for l2 in range(3):
+                        jxs -= J[ru, 3 + l2] * Sv[l2, k]
+                    for a in range(6):
+                        Bv[view, a, k] += wu * J[ru, a] * jxs
+    for view in range(n_views):
+        for a in range(6):
+            for b in range(6):
+                acc = 0.0
+                for k in range(6):
+                    acc += Bv[view, a, k] * Bv[view, b, k] * (map_rotation_var if k < 3 else map_position_var)
+                M[a, b] += acc
     Hi = np.empty((6, 6))
     if not spd_inverse(H, Hi, 0.0):
         return np.full((3, 3), np.inf)
@@ -497,11 +540,13 @@ def points_centre_covariance(R: np.ndarray, t: np.ndarray, xq3d: np.ndarray, X3d
 
 
 def points_covariance(est, R: np.ndarray, t: np.ndarray, in3d: np.ndarray, H: np.ndarray) -> np.ndarray:
-    """(3, 3) centre covariance from the 2D-3D points' covariance (:func:`points_centre_covariance`)."""
-    p = est.p
+    """(3, 3) centre covariance from the 2D-3D points' covariance and their map images' pose
+    uncertainty (``options.map_*_std``; :func:`points_centre_covariance`)."""
+    p, o = est.p, est.options
     idx3d = np.flatnonzero(in3d)
-    if len(idx3d) == 0 or not np.any(p.X3d_cov[idx3d]):
+    if len(idx3d) == 0 or not (np.any(p.X3d_cov[idx3d]) or np.any(p.X3d_views[idx3d] >= 0)):
         return np.zeros((3, 3))
-    return points_centre_covariance(np.ascontiguousarray(R), np.ascontiguousarray(t), p.xq3d, p.X3d, p.X3d_cov, idx3d,
-                                    p.f_query, p.f_ref, p.ref_R, p.ref_t, np.ascontiguousarray(H),
-                                    est.options.threshold_px)
+    return points_centre_covariance(np.ascontiguousarray(R), np.ascontiguousarray(t), p.xq3d, p.X3d, p.X3d_cov,
+                                    p.X3d_views, p.X3d_pose_jac, idx3d, p.f_query, p.f_ref, p.ref_R, p.ref_t,
+                                    np.ascontiguousarray(H), o.threshold_px, math.radians(o.map_rotation_std_deg) ** 2,
+                                    float(o.map_position_std_m) ** 2)

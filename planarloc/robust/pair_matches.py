@@ -38,6 +38,18 @@ class PairMatches:
         ref_points3d_cov: (N, 3, 3) covariance (m²) of ``ref_points3d`` (NaN rows where there
             is no point), or None for exact points. Propagated into the query's position
             uncertainty (a point triangulated at a small angle is uncertain in depth).
+        ref_points3d_partner: (N,) the other map image each point of ``ref_points3d`` was
+            triangulated with: an index into the list of pairs given to the estimator, or a value
+            >= its length for a map image that is not among them (equal values: the same image);
+            -1 where the point does not depend on map poses (or there is none). None: no point
+            does.
+        ref_points3d_pose_jac: (N, 2, 3, 6) motion of each point under corrections ``(ω, d)`` of
+            the pose of this reference (``[:, 0]``) and of its partner (``[:, 1]``): rotation
+            ``R' = Exp(ω) R`` (radians, camera frame) and centre shift ``d`` (metres, world), as in
+            :func:`~planarloc.geometry.epipolar.triangulation_pose_jacobians`; rows without a
+            partner are ignored. Given with ``ref_points3d_partner``. The map's pose uncertainty
+            (``RansacOptions.map_rotation_std_deg``, ``map_position_std_m``) moves all points of
+            one map image together, and this is how the query's position inherits it.
         ref_gravity: (3,) direction of gravity (pointing down) in the reference camera frame,
             or None for an upright reference (camera y-axis = gravity, the paper's assumption).
             Normalised on construction. The planar solvers run on bearings rotated so that
@@ -55,6 +67,8 @@ class PairMatches:
     ref_points3d: np.ndarray | None = None
     ref_gravity: np.ndarray | None = None
     ref_points3d_cov: np.ndarray | None = None
+    ref_points3d_partner: np.ndarray | None = None
+    ref_points3d_pose_jac: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         if not isinstance(self.ref_pose, Pose):
@@ -98,6 +112,24 @@ class PairMatches:
                 raise InputError("PairMatches.ref_points3d_cov: expected symmetric positive semi-definite (3, 3) "
                                  "covariances")
             object.__setattr__(self, "ref_points3d_cov", C)
+        if (self.ref_points3d_partner is None) != (self.ref_points3d_pose_jac is None):
+            raise InputError("PairMatches.ref_points3d_partner and ref_points3d_pose_jac: give both or neither")
+        if self.ref_points3d_partner is not None:
+            if self.ref_points3d is None:
+                raise InputError("PairMatches.ref_points3d_partner: given without ref_points3d")
+            raw = check_array("PairMatches.ref_points3d_partner", self.ref_points3d_partner, (n,), dtype=np.float64)
+            partner = raw.astype(np.int64)
+            if np.any(partner != raw) or np.any(partner < -1):
+                bad = int(np.argmax((partner != raw) | (partner < -1)))
+                raise InputError(f"PairMatches.ref_points3d_partner: expected whole numbers >= -1, got {raw[bad]} at "
+                                 f"index {bad}")
+            jac = check_array("PairMatches.ref_points3d_pose_jac", self.ref_points3d_pose_jac, (n, 2, 3, 6),
+                              finite=False)
+            used = (partner >= 0) & ~np.isnan(self.ref_points3d[:, 0])
+            if not np.isfinite(jac[used]).all():
+                raise InputError("PairMatches.ref_points3d_pose_jac: must be finite where a point has a partner")
+            object.__setattr__(self, "ref_points3d_partner", partner)
+            object.__setattr__(self, "ref_points3d_pose_jac", jac)
 
         if self.ref_gravity is not None:
             object.__setattr__(self, "ref_gravity", unit_gravity("PairMatches.ref_gravity", self.ref_gravity))

@@ -36,6 +36,12 @@ class AbsolutePoseProblem:
         source3d: (M,) -1 for a triangulated track, else the match row whose reference
             gave it (depth or local structure).
         X3d_cov: (M, 3, 3) covariance of the world points (m²; zeros for exact points).
+        X3d_views: (M, 2) the map images each world point was triangulated from: a pair index
+            (< P), or an id >= P of a map image that is not among the pairs (equal ids, the same
+            image); -1 -1 for a point that does not depend on the map's poses.
+        X3d_pose_jac: (M, 2, 3, 6) the point's motion under pose corrections ``(ω, d)`` of those
+            two map images (:func:`~planarloc.geometry.epipolar.triangulation_pose_jacobians`;
+            zeros where ``X3d_views`` is -1).
     """
 
     xq: np.ndarray
@@ -51,6 +57,8 @@ class AbsolutePoseProblem:
     X3d: np.ndarray
     source3d: np.ndarray
     X3d_cov: np.ndarray
+    X3d_views: np.ndarray
+    X3d_pose_jac: np.ndarray
 
     @property
     def num_pairs(self) -> int:
@@ -69,9 +77,14 @@ class AbsolutePoseProblem:
         return dataclasses.replace(self, f_query=f)
 
     def with_points3d(self, xq3d: np.ndarray, X3d: np.ndarray, source3d: np.ndarray,
-                      X3d_cov: np.ndarray | None = None) -> AbsolutePoseProblem:
-        """This problem with more 2D-3D constraints appended (``X3d_cov`` None: exact points)."""
-        cov = np.zeros((len(X3d), 3, 3)) if X3d_cov is None else X3d_cov
+                      X3d_cov: np.ndarray | None = None, X3d_views: np.ndarray | None = None,
+                      X3d_pose_jac: np.ndarray | None = None) -> AbsolutePoseProblem:
+        """This problem with more 2D-3D constraints appended (``X3d_cov`` None: exact points;
+        ``X3d_views`` and ``X3d_pose_jac`` None: points that do not depend on the map's poses)."""
+        m = len(X3d)
+        cov = np.zeros((m, 3, 3)) if X3d_cov is None else X3d_cov
+        views = np.full((m, 2), -1, dtype=np.int64) if X3d_views is None else X3d_views
+        jac = np.zeros((m, 2, 3, 6)) if X3d_pose_jac is None else X3d_pose_jac
         return AbsolutePoseProblem(
             self.xq, self.xr, self.pair, self.offsets, self.query_ids, self.f_query, self.f_ref,
             self.ref_R, self.ref_t,
@@ -79,6 +92,8 @@ class AbsolutePoseProblem:
             np.ascontiguousarray(np.vstack([self.X3d, X3d])),
             np.concatenate([self.source3d, source3d]).astype(np.int64),
             np.ascontiguousarray(np.concatenate([self.X3d_cov, cov])),
+            np.ascontiguousarray(np.concatenate([self.X3d_views, views]).astype(np.int64)),
+            np.ascontiguousarray(np.concatenate([self.X3d_pose_jac, jac])),
         )
 
 
@@ -134,7 +149,7 @@ def build_problem(query_camera: Camera, pairs: Sequence[PairMatches]) -> Absolut
             f"pairs: need matches to at least 2 reference images to fix the scale, got {len(pairs)}; "
             "hint: retrieve more reference images (top-n >= 2)"
         )
-    xq3, X3, src, cov3 = [], [], [], []
+    xq3, X3, src, cov3, views3, jac3 = [], [], [], [], [], []
     counts = [len(p.query_points) for p in pairs]
     offsets = np.array([0, *itertools.accumulate(counts)], dtype=np.int64)
     # One undistortion call for all query points (same camera); references may differ.
@@ -152,7 +167,16 @@ def build_problem(query_camera: Camera, pairs: Sequence[PairMatches]) -> Absolut
             xq3.append(xq_all[base:base + n][has])
             X3.append(p.ref_points3d[has])
             src.append(base + np.flatnonzero(has))
-            cov3.append(np.zeros((int(has.sum()), 3, 3)) if p.ref_points3d_cov is None else p.ref_points3d_cov[has])
+            k = int(has.sum())
+            cov3.append(np.zeros((k, 3, 3)) if p.ref_points3d_cov is None else p.ref_points3d_cov[has])
+            views, jac = np.full((k, 2), -1, dtype=np.int64), np.zeros((k, 2, 3, 6))
+            if p.ref_points3d_partner is not None:
+                partner = p.ref_points3d_partner[has]
+                dep = partner >= 0
+                views[dep, 0], views[dep, 1] = p_idx, partner[dep]
+                jac[dep] = p.ref_points3d_pose_jac[has][dep]
+            views3.append(views)
+            jac3.append(jac)
     _check_rays(xr_all, offsets, "ref_points")
     pair = np.repeat(np.arange(len(pairs), dtype=np.int64), counts)
     if all(p.query_indices is None for p in pairs):
@@ -174,4 +198,6 @@ def build_problem(query_camera: Camera, pairs: Sequence[PairMatches]) -> Absolut
         X3d=np.ascontiguousarray(np.vstack(X3)) if X3 else np.zeros((0, 3)),
         source3d=np.concatenate(src).astype(np.int64) if src else np.zeros(0, dtype=np.int64),
         X3d_cov=np.ascontiguousarray(np.concatenate(cov3)) if cov3 else np.zeros((0, 3, 3)),
+        X3d_views=np.ascontiguousarray(np.concatenate(views3)) if views3 else np.zeros((0, 2), dtype=np.int64),
+        X3d_pose_jac=np.ascontiguousarray(np.concatenate(jac3)) if jac3 else np.zeros((0, 2, 3, 6)),
     )

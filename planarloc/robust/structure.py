@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from planarloc.geometry.epipolar import triangulate_points, triangulation_covariance
+from planarloc.geometry.epipolar import triangulate_points, triangulation_covariance, triangulation_pose_jacobians
 from planarloc.robust.problem import AbsolutePoseProblem
 
 KEYPOINT_STD_PX = 1.0
@@ -21,7 +21,7 @@ point triangulated from map images (tracks here, local structure in the localize
 
 def triangulate_tracks(
     problem: AbsolutePoseProblem, max_reproj_px: float, min_angle_deg: float
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Triangulate every query keypoint seen in two or more references.
 
     Query keypoints that already have a 2D-3D constraint (``problem.source3d`` rows: depth or
@@ -37,10 +37,13 @@ def triangulate_tracks(
         min_angle_deg: minimum triangulation angle.
 
     Returns:
-        xq3d (T, 3) query rays, X3d (T, 3) world points and their covariance (T, 3, 3) (from
-        ``KEYPOINT_STD_PX``) of the accepted tracks.
+        xq3d (T, 3) query rays, X3d (T, 3) world points, their covariance (T, 3, 3) (from
+        ``KEYPOINT_STD_PX``), the two pairs (T, 2) whose references triangulated each and the
+        points' motion under corrections of those references' poses (T, 2, 3, 6)
+        (:func:`~planarloc.geometry.epipolar.triangulation_pose_jacobians`) of the accepted tracks.
     """
-    none = np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((0, 3, 3))
+    none = np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((0, 3, 3)), np.zeros((0, 2), dtype=np.int64), \
+        np.zeros((0, 2, 3, 6))
     ids = problem.query_ids
     rows = np.flatnonzero(ids >= 0)
     src = problem.source3d[problem.source3d >= 0]
@@ -101,6 +104,10 @@ def triangulate_tracks(
         cov[sel] = triangulation_covariance(X[keep][sel], (problem.ref_R[p1], problem.ref_t[p1]),
                                             (problem.ref_R[p2], problem.ref_t[p2]), problem.f_ref[p1],
                                             problem.f_ref[p2], KEYPOINT_STD_PX)
-    good = np.isfinite(cov).all(axis=(1, 2))
-    keep, cov = keep[good], cov[good]
-    return np.ascontiguousarray(problem.xq[a[keep]]), np.ascontiguousarray(X[keep]), np.ascontiguousarray(cov)
+    jac = triangulation_pose_jacobians(X[keep], (problem.ref_R[pa], problem.ref_t[pa]),
+                                       (problem.ref_R[pb], problem.ref_t[pb]), problem.f_ref[pa], problem.f_ref[pb])
+    good = np.isfinite(cov).all(axis=(1, 2)) & np.isfinite(jac).all(axis=(1, 2, 3))
+    keep, cov, jac = keep[good], cov[good], jac[good]
+    views = np.stack([pa[good], pb[good]], axis=1).astype(np.int64)
+    return (np.ascontiguousarray(problem.xq[a[keep]]), np.ascontiguousarray(X[keep]), np.ascontiguousarray(cov),
+            np.ascontiguousarray(views), np.ascontiguousarray(jac))

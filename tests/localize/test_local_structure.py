@@ -6,7 +6,9 @@ import numpy as np
 import pytest
 
 from planarloc.geometry.camera import Camera
-from planarloc.geometry.epipolar import triangulation_covariance
+from scipy.spatial.transform import Rotation
+
+from planarloc.geometry.epipolar import projection_jacobians, triangulation_covariance, triangulation_pose_jacobians
 from planarloc.geometry.planar import rotation_from_yaw
 from planarloc.geometry.pose import Pose
 from planarloc.features.extract import Features
@@ -63,6 +65,10 @@ def test_points_are_exact_on_noise_free_views_and_come_from_the_widest_partner()
         np.testing.assert_allclose(pts.X[has], truth, atol=1e-4)  # float32 keypoints
         assert np.all(pts.partner[has] != k) and np.all(pts.angle_deg[has] >= 1.0)
         assert np.isfinite(pts.cov[has]).all() and np.all(np.linalg.eigvalsh(pts.cov[has]) > 0)
+        # Moving both map images' centres by d moves each point by d.
+        np.testing.assert_allclose(pts.pose_jac[has, 0, :, 3:] + pts.pose_jac[has, 1, :, 3:],
+                                   np.broadcast_to(np.eye(3), (len(has), 3, 3)), atol=1e-6)
+        assert np.isnan(pts.pose_jac[~np.isfinite(pts.X[:, 0])]).all()
         # The partner is the view that sees the point at the widest triangulation angle.
         centres = [v.cam_from_world.center for v in views]
         for i, Xi in zip(has, truth):
@@ -130,3 +136,37 @@ def test_triangulation_covariance_matches_monte_carlo() -> None:
         assert lp == pytest.approx(le, rel=0.15)
         vp, ve = np.linalg.eigh(predicted[i])[1][:, -1], np.linalg.eigh(empirical)[1][:, -1]
         assert abs(vp @ ve) > 0.99
+
+
+def _least_squares_point(poses: list[Pose], pixels: list[np.ndarray], X0: np.ndarray) -> np.ndarray:
+    """Gauss-Newton on the reprojection errors of one point in the given views."""
+    X = X0.copy()
+    for _ in range(30):
+        r = np.concatenate([CAMERA.img_from_cam((X @ p.R.T + p.t)[None])[0] - uv for p, uv in zip(poses, pixels)])
+        J = np.vstack([projection_jacobians(X[None], p.R, p.t, CAMERA.focal)[0] for p in poses])
+        X = X - np.linalg.lstsq(J, r, rcond=None)[0]
+    return X
+
+
+def test_pose_jacobians_follow_the_least_squares_point_when_a_map_pose_is_corrected() -> None:
+    """A map image's pose correction (ω, d) moves the point that best fits the fixed keypoints by
+    ``∂X/∂(ω, d)``; forward motion (the baseline along the viewing direction) makes it large."""
+    X = np.array([[2.0, 0.5, 20.0], [-3.0, 1.0, 15.0], [0.5, -0.2, 40.0]])
+    a, b = pose_at(0, 0, 0), pose_at(0.3, 3.0, 0.05)
+    pixels = [CAMERA.img_from_cam(X @ p.R.T + p.t) for p in (a, b)]
+    S = triangulation_pose_jacobians(X, (a.R, a.t), (b.R, b.t), CAMERA.focal, CAMERA.focal)
+    assert S.shape == (3, 2, 3, 6)
+    eps = 1e-6
+    for view in range(2):
+        for k in range(6):
+            step = np.zeros(6)
+            step[k] = eps
+            p = (a, b)[view]
+            R = Rotation.from_rotvec(step[:3]).as_matrix() @ p.R
+            moved = Pose.from_center(R, p.center + step[3:])
+            poses = [moved, b] if view == 0 else [a, moved]
+            numeric = np.array([(_least_squares_point(poses, [uv[i] for uv in pixels], X[i]) - X[i]) / eps
+                                for i in range(len(X))])
+            np.testing.assert_allclose(S[:, view, :, k], numeric, rtol=1e-3, atol=1e-3 * np.abs(numeric).max())
+    # 0.1° of yaw of one view moves a point 40 m ahead of a 3 m forward baseline by metres.
+    assert np.abs(S[2, 1, :, 1]).max() * np.radians(0.1) > 0.5

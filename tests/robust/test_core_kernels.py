@@ -157,9 +157,12 @@ def test_eligible_pairs() -> None:
 def test_triangulate_tracks_recovers_points(scene) -> None:
     sc = scene(8, num_refs=3, matches_per_pair=60, noise_px=0.0, outlier_ratio=0.0, track_pool=1.5)
     pb = build_problem(sc.query_camera, sc.pairs)
-    xq3, X3, C3 = triangulate_tracks(pb, 2.0, 1.0)
+    xq3, X3, C3, views, jac = triangulate_tracks(pb, 2.0, 1.0)
     ids, counts = np.unique(pb.query_ids, return_counts=True)
     assert 0 < len(X3) <= (counts >= 2).sum()
+    # Two different references triangulated each point; moving both of their centres by d moves it by d.
+    assert views.shape == (len(X3), 2) and np.all((views >= 0) & (views < pb.num_pairs)) and np.all(views[:, 0] != views[:, 1])
+    np.testing.assert_allclose(jac[:, 0, :, 3:] + jac[:, 1, :, 3:], np.broadcast_to(np.eye(3), (len(X3), 3, 3)), atol=1e-9)
     # Each triangulated point is a true scene point seen by the query along its ray.
     d = np.linalg.norm(X3[:, None] - sc.points[ids[counts >= 2]][None], axis=2).min(axis=1)
     assert d.max() < 1e-6

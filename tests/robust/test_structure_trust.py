@@ -58,6 +58,71 @@ def test_hundreds_of_2d3d_inliers_are_never_degenerate_scale(seed: int) -> None:
     assert err < 0.05 and err <= 3 * est.position_std_m + 0.05
 
 
+KITTI_CAMERA = Camera("PINHOLE", 1241, 376, (718.9, 718.9, 607.2, 185.2))
+
+
+def forward_road(seed: int, map_rotation_error_deg: float, matches_per_pair: int = 300) -> tuple[Pose, list[PairMatches]]:
+    """A straight road seen by a forward-looking KITTI camera: map images every 4 m along it, the
+    query 0.5-1.5 m past the first one (KITTI kitti_seq1 frame 000001 against the every-4th map),
+    house fronts 4-12 m to either side up to 60 m ahead. Query keypoints are matched in ~1.25 map
+    images on average, so a few hundred become tracks, triangulated by the estimator along the
+    viewing direction (small angles, depth uncertain). The map poses handed to the estimator are
+    off by ``map_rotation_error_deg`` per axis and 2 cm; pixels 0.5 px, 20 % wrong matches."""
+    rng = np.random.default_rng(seed)
+    n = 6000
+    X = np.c_[rng.choice([-1.0, 1.0], n) * rng.uniform(4, 12, n), rng.uniform(-4, 1.6, n), rng.uniform(2, 60, n)]
+
+    def on_road(z: float) -> Pose:
+        R = rotation_from_yaw(rng.uniform(-0.02, 0.02))
+        return Pose(R, -R @ np.array([0.0, 0.0, z]))
+
+    def seen(pose: Pose) -> tuple[np.ndarray, np.ndarray]:
+        Xc = X @ pose.R.T + pose.t
+        front = Xc[:, 2] > 1.0
+        uv = KITTI_CAMERA.img_from_cam(np.where(front[:, None], Xc, 1.0))
+        return uv, front & (uv >= 0).all(axis=1) & (uv < (KITTI_CAMERA.width, KITTI_CAMERA.height)).all(axis=1)
+
+    query = on_road(rng.uniform(0.5, 1.5))
+    uv_q, vis_q = seen(query)
+    pool = rng.choice(np.flatnonzero(vis_q), min(int(vis_q.sum()), 4 * matches_per_pair), replace=False)
+    pairs = []
+    for k in range(5):
+        ref = on_road(4.0 * k)
+        uv_r, vis_r = seen(ref)
+        common = pool[vis_r[pool]]
+        ids = rng.choice(common, min(matches_per_pair, len(common)), replace=False)
+        q = uv_q[ids] + rng.normal(0, 0.5, (len(ids), 2))
+        r = uv_r[ids] + rng.normal(0, 0.5, (len(ids), 2))
+        wrong = rng.random(len(ids)) < 0.2
+        r[wrong] = rng.uniform((0, 0), (KITTI_CAMERA.width, KITTI_CAMERA.height), (int(wrong.sum()), 2))
+        R = Rotation.from_rotvec(rng.normal(0, math.radians(map_rotation_error_deg), 3)).as_matrix() @ ref.R
+        pairs.append(PairMatches(Pose.from_center(R, ref.center + rng.normal(0, 0.02, 3)), KITTI_CAMERA, q, r,
+                                 query_indices=ids))
+    return query, pairs
+
+
+def test_points_triangulated_along_the_road_carry_their_map_images_pose_errors() -> None:
+    """Issue 17, promises: >= 99 % of successes within 3σ + 5 cm, here where the map's pose errors
+    (as large as the options say, 0.3°) reach the position through the points. Every track of one
+    map image shares that image's error, so it does not average out over hundreds of tracks like
+    pixel noise. Before the points' dependence on their map images' poses was propagated, 3 of 31
+    successes broke their promise (4.2, 7.9 and 6.3 σ off) and the mean (error / σ)² was 4.5."""
+    ratios = []
+    for seed in range(40):
+        truth, pairs = forward_road(seed, map_rotation_error_deg=0.3)
+        est = estimate_absolute_pose(KITTI_CAMERA, pairs, "auto", RansacOptions(seed=seed, map_rotation_std_deg=0.3))
+        if est.success:
+            err = pose_errors(est.pose, truth)[0]
+            assert err <= 3 * est.position_std_m + 0.05, (seed, err, est.position_std_m)
+            ratios.append(err / est.position_std_m)
+        else:
+            assert est.status in ("ambiguous_pose", "degenerate_scale"), est.status
+    assert len(ratios) >= 25
+    # Honest, not needlessly pessimistic (the worst-axis std of an elongated covariance is about
+    # 1.5x the median error; a std twice too large would put the median ratio near 0.3).
+    assert 0.3 < np.median(ratios) and np.mean(np.square(ratios)) < 1.0
+
+
 def test_map_prior_keeps_2d2d_from_outvoting_the_points() -> None:
     """On the collinear road with map errors and few 2D-3D points (5 % of ~1,600 matches), the final
     refinement with the map prior lands closer to the truth than the one that trusts the map poses."""
@@ -134,7 +199,9 @@ def test_a_distant_flat_facade_with_few_inliers_is_a_failure() -> None:
 @pytest.mark.parametrize("structure", ["none", "tracks"])
 def test_facade_successes_keep_their_promise(structure: str) -> None:
     """At 20 m a few queries are localized (tracks: points triangulated between the map images);
-    every success lies within 3 std + 5 cm."""
+    every success lies within 3 std + 5 cm. Tracks: 3 of 30 since the points carry their map
+    images' pose errors (7 before): the options' 0.1° of map rotation moves a point triangulated
+    over a 2 m baseline at 20 m by ~0.35 m, so four of the seven had a std beyond 0.3 m."""
     successes = 0
     for seed in range(30):
         query, pairs = facade(seed)
@@ -143,7 +210,7 @@ def test_facade_successes_keep_their_promise(structure: str) -> None:
             successes += 1
             err = pose_errors(est.pose, query)[0]
             assert err <= 3 * est.position_std_m + 0.05, (seed, err, est.position_std_m)
-    assert successes >= (1 if structure == "none" else 5)
+    assert successes >= (1 if structure == "none" else 3)
 
 
 def test_homography_inlier_ratio_tells_a_plane_from_depth() -> None:
@@ -172,6 +239,19 @@ def test_point_covariances_are_validated() -> None:
     nan = np.full((20, 3, 3), np.nan)
     with pytest.raises(InputError, match="finite where"):
         replace(p, ref_points3d_cov=nan)
+    partner, jac = np.ones(20), np.zeros((20, 2, 3, 6))
+    with pytest.raises(InputError, match="both or neither"):
+        replace(p, ref_points3d_partner=partner)
+    with pytest.raises(InputError, match="whole numbers >= -1"):
+        replace(p, ref_points3d_partner=np.full(20, -2), ref_points3d_pose_jac=jac)
+    with pytest.raises(InputError, match="ref_points3d_pose_jac"):
+        replace(p, ref_points3d_partner=partner, ref_points3d_pose_jac=np.zeros((20, 3, 6)))
+    with pytest.raises(InputError, match="finite where a point has a partner"):
+        replace(p, ref_points3d_partner=partner, ref_points3d_pose_jac=np.full((20, 2, 3, 6), np.nan))
+    replace(p, ref_points3d_partner=np.full(20, -1), ref_points3d_pose_jac=np.full((20, 2, 3, 6), np.nan))
+    with pytest.raises(InputError, match="without ref_points3d"):
+        PairMatches(p.ref_pose, p.ref_camera, p.query_points, p.ref_points, ref_points3d_partner=partner,
+                    ref_points3d_pose_jac=jac)
 
 
 @pytest.mark.parametrize("value", [0.0, -1.0, float("nan"), float("inf")])
