@@ -324,6 +324,7 @@ class StreamStats:
     fixes_rejected: int = 0
     fixes_failed: int = 0
     fixes_stale: int = 0
+    fix_waits: int = 0           # frames that waited for a fix more than ``max_fix_lag_s`` behind
     fix_cpu_s: float = 0.0
     point_fixes: int = 0
     point_fixes_rejected: int = 0
@@ -467,6 +468,7 @@ class SequenceLocalizer:
         self._doubt = False
         self._frame = 0
         self._last_job: int | None = None
+        self._last_job_stamp = float("-inf")
         self.stats = StreamStats()
 
     def close(self) -> None:
@@ -944,7 +946,7 @@ class SequenceLocalizer:
             # Nothing to track from: this frame waits for its fix.
             result = self._fixes.solve_now(self._job(query, stamp))
             self.stats.fixes_submitted += 1
-            self._last_job = frame
+            self._last_job, self._last_job_stamp = frame, stamp
             self._handle(result, handled)
             if self._poses:
                 self._tracker.set_points(result.points)
@@ -959,8 +961,12 @@ class SequenceLocalizer:
             if due and not self._fixes.busy:
                 self._fixes.submit(self._job(query, stamp), frame)
                 self.stats.fixes_submitted += 1
-                self._last_job = frame
-            for result in self._fixes.collect(frame):
+                self._last_job, self._last_job_stamp = frame, stamp
+            lagging = (self.config.fixes == "background" and self._fixes.busy
+                       and stamp - self._last_job_stamp > self.config.max_fix_lag_s)
+            if lagging:   # frames faster than the fixes: bound how far odometry chains from the last one
+                self.stats.fix_waits += 1
+            for result in self._fixes.collect(frame, wait=lagging):
                 self._handle(result, handled)
             self._refresh()
             if self.config.fixes == "background" and self._fixes.busy and self._doubt:

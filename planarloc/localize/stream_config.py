@@ -26,6 +26,11 @@ class SequenceConfig:
             worker is idle).
         fix_delay: ``"wait"`` only: frames between a fix job and the fusion of its result (0:
             the same frame).
+        max_fix_lag_s: ``"background"`` only: a frame more than this much stream time (stamps)
+            after the frame of the fix in flight waits for that fix. At camera rate on 2 cores a
+            fix comes back within a frame or two and nothing waits; frames that come faster than
+            the camera (a recording replayed as fast as it goes, a stalled worker) would
+            otherwise be chained by odometry ever farther from their last fix.
         max_latency_s: a frame whose pose comes later than this after its arrival is ``late``.
         fix_resize_max: fixes detect features on the frame downscaled to at most this many pixels
             (None: as the map's single-frame queries; :mod:`planarloc.localize.fixes`).
@@ -72,6 +77,7 @@ class SequenceConfig:
     fixes: str = "background"
     fix_every: int = 1
     fix_delay: int = 0
+    max_fix_lag_s: float = 0.3
     max_latency_s: float = 0.1
     fix_resize_max: int | None = 640
     window: int = 16
@@ -120,7 +126,7 @@ class SequenceConfig:
         if not 0.5 < self.gate_probability < 1:
             raise InputError(f"SequenceConfig.gate_probability: expected a probability in (0.5, 1), "
                              f"got {self.gate_probability}")
-        for name in ("max_latency_s", "local_radius_m", "local_max_angle_deg", "fix_std_scale", "fix_std_scale_2d",
+        for name in ("max_fix_lag_s", "max_latency_s", "local_radius_m", "local_max_angle_deg", "fix_std_scale", "fix_std_scale_2d",
                      "min_fix_std_m", "pixel_std", "min_rotation_std_deg", "odometry_translation_std",
                      "odometry_min_std_m", "odometry_rotation_std", "odometry_min_rotation_std_deg",
                      "vo_direction_std_deg", "vo_rotation_std_deg", "vo_scale_std", "vo_first_scale_std",

@@ -374,3 +374,30 @@ def test_a_fix_worker_error_reaches_the_caller(stream_world: tuple, tmp_path: Pa
         seq.step(read_gray(queries[0].path), queries[0].camera, 0.0)
     assert not isinstance(info.value, AssertionError)
     seq.close()
+
+
+def test_frames_faster_than_the_fixes_wait_once_the_fix_in_flight_is_too_old(
+        dense_world: tuple, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A recording replayed as fast as it goes against a slow fix worker: without a bound the
+    frames would be chained by tracking ever farther from their last fix; a frame more than
+    ``max_fix_lag_s`` of stream time after the fix in flight waits for it, so that fix results
+    keep coming every few frames."""
+    from planarloc.localize.fixes import FixSolver
+
+    solve = FixSolver.solve
+
+    def slow(self, job):
+        time.sleep(0.4)
+        return solve(self, job)
+
+    monkeypatch.setattr(FixSolver, "solve", slow)
+    map_path, queries = dense_world
+    run, stats = _dense(map_path, queries[:20], max_fix_lag_s=0.25)
+    period = float(np.median(np.diff([f.stamp for f, _ in run])))
+    pending, longest = 0, 0
+    for _, e in run[1:]:
+        pending = pending + 1 if e.fix_status == "pending" else 0
+        longest = max(longest, pending)
+    assert stats["fix_waits"] >= 2
+    assert longest <= int(np.ceil(0.25 / period)) + 1, (longest, period)
+    assert not any(e.status == "localized" and pose_errors(e.pose, f.image.cam_from_world)[0] > 1.0 for f, e in run)
