@@ -160,6 +160,7 @@ def evaluate_sequential(args: argparse.Namespace, map_path: Path, map_images: li
     loc = Localizer(map_path, localizer_config)
     with ExitStack() as stack:
         seq = stack.enter_context(SequenceLocalizer(loc, sequence_config(args)))
+        seq.warm_up()   # a camera's stream starts on a localizer that is up, not with a slow first frame
         rerun = stream_rerun(args.rerun, loc, stack)
         on_frame = None if rerun is None else (
             lambda image, est: rerun.log_frame(image.name, est.to_dict(), image.camera, image.path,

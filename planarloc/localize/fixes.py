@@ -394,6 +394,7 @@ class BackgroundFixes:
         self._jobs: queue.Queue[FixJob | None] = queue.Queue()
         self._results: queue.Queue[FixResult | BaseException] = queue.Queue()
         self._in_flight = 0
+        self._warm = threading.Event()   # set once the worker's localizer has warmed up (or failed to open)
         self._thread = threading.Thread(target=self._run, name="planarloc-fixes", daemon=True)
         self._thread.start()
         _WORKERS.add(self)
@@ -401,9 +402,14 @@ class BackgroundFixes:
     def _run(self) -> None:
         try:
             solver = FixSolver(Localizer(self._path, self._localizer_config), self._config)
+            # Its own localizer's first query is ~10x slower than the next (kernels, the map
+            # images' pair matches): paid now, while the caller opens its camera, not by a frame.
+            solver.localizer.warm_up()
         except BaseException as exc:  # noqa: BLE001 - handed to the caller's thread
             self._results.put(exc)
             return
+        finally:
+            self._warm.set()
         while True:
             job = self._jobs.get()
             if job is None:
@@ -417,6 +423,10 @@ class BackgroundFixes:
     @property
     def busy(self) -> bool:
         return self._in_flight > 0
+
+    def wait_warm(self, timeout: float | None = None) -> bool:
+        """Wait until the worker's localizer has warmed up; False on timeout."""
+        return self._warm.wait(timeout)
 
     def submit(self, job: FixJob, frame: int) -> None:
         if not self._thread.is_alive():

@@ -442,6 +442,18 @@ class SequenceLocalizer:
         self.reset()
 
     # ---- life cycle -----------------------------------------------------------------------
+    def warm_up(self) -> float:
+        """Pay before the first frame for what a process's first queries cost (~1 s: compiled
+        kernels loaded, the map images' pair matches; :meth:`Localizer.warm_up`), in the calling
+        thread and, with background fixes, in the fix worker (which starts on it when the
+        stream opens); returns the seconds it took. Front doors that take live frames call it
+        before their first one; without it the first frames wait (or are dropped) instead."""
+        t0 = time.perf_counter()
+        self.localizer.warm_up()
+        if isinstance(self._fixes, BackgroundFixes):
+            self._fixes.wait_warm()
+        return time.perf_counter() - t0
+
     def reset(self) -> None:
         """Forget the stream (e.g. before a new sequence); fixes still in flight are ignored."""
         self._generation += 1

@@ -307,7 +307,7 @@ class LocalizerNode:
         # The first query of a process is ~10x slower than the next (kernels loaded from the compile
         # cache, first calls into OpenCV): pay for it before the first frame, not with dropped frames.
         logger.info("warming up the localizer on the map's own images")
-        logger.info("warm-up done in %.1f s", self.sequence.localizer.warm_up())
+        logger.info("warm-up done in %.1f s", self.sequence.warm_up())
 
     # ---- callbacks (executor thread: cheap) -------------------------------------------------
     def _on_image(self, msg: Any) -> None:
