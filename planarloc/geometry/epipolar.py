@@ -8,6 +8,8 @@ broadcast.
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numpy as np
 from numba import njit
 
@@ -139,62 +141,48 @@ def projection_jacobians(X: np.ndarray, R: np.ndarray, t: np.ndarray, focal: tup
     return J @ R
 
 
-def triangulation_covariance(
+class TriangulationUncertainty(NamedTuple):
+    """First-order uncertainty of points triangulated from two views (:func:`triangulation_uncertainty`).
+
+    Attributes:
+        cov: (N, 3, 3) covariance of each point from its keypoints' pixel noise.
+        pose_jac: (N, 2, 3, 6) ``∂X/∂(ω, d)`` of each point for a correction of either view's pose.
+    """
+
+    cov: np.ndarray
+    pose_jac: np.ndarray
+
+
+def triangulation_uncertainty(
     X: np.ndarray,
     cam_from_world_a: tuple[np.ndarray, np.ndarray],
     cam_from_world_b: tuple[np.ndarray, np.ndarray],
     focal_a: tuple[float, float] | np.ndarray,
     focal_b: tuple[float, float] | np.ndarray,
     keypoint_std_px: float,
-) -> np.ndarray:
-    """(N, 3, 3) first-order covariance of points X (N, 3) triangulated from two views.
+) -> TriangulationUncertainty:
+    """How points X (N, 3) triangulated from two views move with the keypoint noise and with
+    corrections of the views' poses; poses and focal lengths are one per view or one per point
+    ((N, 3, 3), (N, 3), (N, 2)).
 
-    ``Σ = σ² (J_aᵀ J_a + J_bᵀ J_b)⁻¹`` with ``J`` the pixel projection Jacobians in the two views
-    (:func:`projection_jacobians`) and σ the keypoint noise in pixels (Hartley & Zisserman,
-    *Multiple View Geometry*, 2nd ed., Sec. 5.2.3, backward propagation of covariance). NaN rows
-    for points on the baseline (singular information). A far point seen at a small angle has a
-    covariance elongated along the viewing rays: its depth is uncertain.
-    """
-    Ja = projection_jacobians(X, *cam_from_world_a, focal_a)
-    Jb = projection_jacobians(X, *cam_from_world_b, focal_b)
-    info = np.einsum("nki,nkj->nij", Ja, Ja) + np.einsum("nki,nkj->nij", Jb, Jb)
-    return keypoint_std_px**2 * _information_inverse(info)
+    **Pixel noise**: ``Σ = σ² (J_aᵀ J_a + J_bᵀ J_b)⁻¹`` with ``J`` the pixel projection Jacobians
+    in the two views (:func:`projection_jacobians`) and σ = ``keypoint_std_px`` (Hartley &
+    Zisserman, *Multiple View Geometry*, 2nd ed., Sec. 5.2.3, backward propagation of covariance).
+    A far point seen at a small angle has a covariance elongated along the viewing rays: its depth
+    is uncertain.
 
+    **Pose corrections**: a view's correction is ``(ω, d)``: ``R' = Exp(ω) R`` (ω in the camera
+    frame, radians) and the centre moved by ``d`` (world frame, metres), the parametrisation of the
+    map prior (:mod:`planarloc.robust.map_prior`). ``pose_jac[:, 0]`` is ``∂X/∂(ω_a, d_a)``,
+    ``pose_jac[:, 1]`` ``∂X/∂(ω_b, d_b)``. The point is the least-squares triangulation of its two
+    observations, ``min_X Σ_v |u_v(X) − ū_v|²``; by the implicit function theorem
+    ``∂X/∂θ_v = −(Σ_w J_wᵀ J_w)⁻¹ J_vᵀ ∂u_v/∂θ_v``, ``∂u_v/∂ω = −P_v [X_v]x`` and
+    ``∂u_v/∂d = −J_v`` (``P_v`` the pixel Jacobian at the camera-frame point ``X_v``). Moving both
+    centres by ``d`` moves the point by ``d``. A pose error is shared by every point triangulated
+    from that view, so unlike the pixel noise it does not average out over points.
 
-def _information_inverse(info: np.ndarray) -> np.ndarray:
-    """(N, 3, 3) inverses of a point's triangulation information ``Σ_v J_vᵀ J_v`` (N, 3, 3); NaN
-    rows where it is singular (a point on the baseline)."""
-    out = np.full((len(info), 3, 3), np.nan)
-    ok = np.isfinite(info).all(axis=(1, 2))
-    if ok.any():
-        det = np.linalg.det(info[ok])
-        scale = np.einsum("nii->n", info[ok]) ** 3
-        good = np.flatnonzero(ok)[det > 1e-12 * scale]
-        out[good] = np.linalg.inv(info[good])
-    return out
-
-
-def triangulation_pose_jacobians(
-    X: np.ndarray,
-    cam_from_world_a: tuple[np.ndarray, np.ndarray],
-    cam_from_world_b: tuple[np.ndarray, np.ndarray],
-    focal_a: tuple[float, float] | np.ndarray,
-    focal_b: tuple[float, float] | np.ndarray,
-) -> np.ndarray:
-    """(N, 2, 3, 6) first-order motion of points X (N, 3) triangulated from two views when the
-    views' poses are corrected.
-
-    A view's correction is ``(ω, d)``: ``R' = Exp(ω) R`` (ω in the camera frame, radians) and the
-    centre moved by ``d`` (world frame, metres), the parametrisation of the map prior
-    (:mod:`planarloc.robust.map_prior`). ``out[:, 0]`` is ``∂X/∂(ω_a, d_a)``, ``out[:, 1]``
-    ``∂X/∂(ω_b, d_b)``. The point is the least-squares triangulation of its two observations,
-    ``min_X Σ_v |u_v(X) − ū_v|²``; by the implicit function theorem
-    ``∂X/∂θ_v = −(Σ_w J_wᵀ J_w)⁻¹ J_vᵀ ∂u_v/∂θ_v`` with ``J_v = ∂u_v/∂X`` (the Jacobians of
-    :func:`triangulation_covariance`), ``∂u_v/∂ω = −P_v [X_v]x`` and ``∂u_v/∂d = −J_v``
-    (``P_v`` the pixel Jacobian at the camera-frame point ``X_v``). Moving both centres by ``d``
-    moves the point by ``d``. A pose error is shared by every point triangulated from that view,
-    so unlike the pixel noise of :func:`triangulation_covariance` it does not average out over
-    points. NaN rows for points on the baseline.
+    Both come from the same information matrix, in one compiled pass. NaN rows for points on the
+    baseline (singular information).
 
     References:
         Hartley & Zisserman, *Multiple View Geometry*, 2nd ed., Sec. 5.2 (propagation of
@@ -206,19 +194,20 @@ def triangulation_pose_jacobians(
     def per_point(a: object, shape: tuple[int, ...]) -> np.ndarray:
         return np.broadcast_to(np.asarray(a, dtype=float), (n, *shape)).copy()  # writable, C order
 
-    out = np.empty((n, 2, 3, 6))
-    _pose_jacobians_kernel(X, per_point(cam_from_world_a[0], (3, 3)), per_point(cam_from_world_a[1], (3,)),
-                           per_point(focal_a, (2,)), per_point(cam_from_world_b[0], (3, 3)),
-                           per_point(cam_from_world_b[1], (3,)), per_point(focal_b, (2,)), out)
-    return out
+    cov, jac = np.empty((n, 3, 3)), np.empty((n, 2, 3, 6))
+    _uncertainty_kernel(X, per_point(cam_from_world_a[0], (3, 3)), per_point(cam_from_world_a[1], (3,)),
+                        per_point(focal_a, (2,)), per_point(cam_from_world_b[0], (3, 3)),
+                        per_point(cam_from_world_b[1], (3,)), per_point(focal_b, (2,)), float(keypoint_std_px) ** 2,
+                        cov, jac)
+    return TriangulationUncertainty(cov, jac)
 
 
 @njit(cache=True, error_model="numpy")
-def _pose_jacobians_kernel(X: np.ndarray, Ra: np.ndarray, ta: np.ndarray, fa: np.ndarray, Rb: np.ndarray,
-                           tb: np.ndarray, fb: np.ndarray, out: np.ndarray) -> None:
-    """:func:`triangulation_pose_jacobians` into ``out`` (N, 2, 3, 6) for per-point poses (N, 3, 3),
-    (N, 3) and focal lengths (N, 2): one compiled pass (numpy spent ~120 µs on the small arrays of
-    one query's points)."""
+def _uncertainty_kernel(X: np.ndarray, Ra: np.ndarray, ta: np.ndarray, fa: np.ndarray, Rb: np.ndarray,
+                        tb: np.ndarray, fb: np.ndarray, var_px: float, cov: np.ndarray, out: np.ndarray) -> None:
+    """:func:`triangulation_uncertainty` into ``cov`` (N, 3, 3) and ``out`` (N, 2, 3, 6) for
+    per-point poses (N, 3, 3), (N, 3), focal lengths (N, 2) and the pixel variance ``var_px``: one
+    compiled pass (numpy spent ~120 µs on the small arrays of one query's points)."""
     G = np.empty((2, 3, 3))  # J_vᵀ J_v
     K = np.empty((2, 3, 3))  # J_vᵀ P_v [X_v]x = −J_vᵀ ∂u_v/∂ω
     PtP = np.zeros((3, 3))
@@ -245,6 +234,7 @@ def _pose_jacobians_kernel(X: np.ndarray, Ra: np.ndarray, ta: np.ndarray, fa: np
         det = A[0, 0] * c00 + A[0, 1] * c01 + A[0, 2] * c02
         trace = A[0, 0] + A[1, 1] + A[2, 2]
         if not (np.isfinite(det) and det > 1e-12 * trace ** 3):  # a point on the baseline
+            cov[i] = np.nan
             out[i] = np.nan
             continue
         Ai = np.empty((3, 3))
@@ -255,6 +245,9 @@ def _pose_jacobians_kernel(X: np.ndarray, Ra: np.ndarray, ta: np.ndarray, fa: np
         Ai[0, 2] = (A[0, 1] * A[1, 2] - A[0, 2] * A[1, 1]) / det
         Ai[1, 2] = (A[0, 2] * A[1, 0] - A[0, 0] * A[1, 2]) / det
         Ai[2, 2] = (A[0, 0] * A[1, 1] - A[0, 1] * A[1, 0]) / det
+        for a in range(3):
+            for b in range(3):
+                cov[i, a, b] = 0.5 * var_px * (Ai[a, b] + Ai[b, a])  # exactly symmetric
         # ∂X/∂θ_v = −A⁻¹ J_vᵀ ∂u_v/∂θ_v = A⁻¹ [J_vᵀ P_v [X_v]x, J_vᵀ J_v]
         for v in range(2):
             AK, AG = m3.mul(Ai, K[v]), m3.mul(Ai, G[v])

@@ -30,7 +30,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from planarloc.geometry.camera import Camera
-from planarloc.geometry.epipolar import triangulate_points, triangulation_covariance, triangulation_pose_jacobians
+from planarloc.geometry.epipolar import triangulate_points, triangulation_uncertainty
 from planarloc.geometry.pose import Pose
 from planarloc.features.extract import Features
 from planarloc.features.matching import DEFAULT_RATIO, match_features
@@ -72,7 +72,7 @@ class ViewPoints:
         partner: (N,) index (into the views) of the view it was triangulated with, -1 if none.
         pose_jac: (N, 2, 3, 6) motion of each point when the pose of this view (``[:, 0]``) or
             of its partner (``[:, 1]``) is corrected
-            (:func:`~planarloc.geometry.epipolar.triangulation_pose_jacobians`), NaN rows where
+            (:func:`~planarloc.geometry.epipolar.triangulation_uncertainty`), NaN rows where
             there is no point: the map's pose errors, shared by every point of a view.
     """
 
@@ -197,19 +197,13 @@ def view_points(views: Sequence[MapView], keypoints: Sequence[np.ndarray], cache
             partner[better] = j
         cov = np.full((n, 3, 3), np.nan)
         jac = np.full((n, 2, 3, 6), np.nan)
-        for j in np.unique(partner[partner >= 0]):
-            sel = partner == j
-            other = views[int(j)]
-            cov[sel] = triangulation_covariance(
-                X[sel], (view.cam_from_world.R, view.cam_from_world.t), (other.cam_from_world.R, other.cam_from_world.t),
-                view.camera.focal, other.camera.focal, KEYPOINT_STD_PX)
         has = partner >= 0
         if has.any():
             others = [views[int(j)] for j in partner[has]]
-            jac[has] = triangulation_pose_jacobians(
+            cov[has], jac[has] = triangulation_uncertainty(
                 X[has], (view.cam_from_world.R, view.cam_from_world.t),
                 (np.array([o.cam_from_world.R for o in others]), np.array([o.cam_from_world.t for o in others])),
-                view.camera.focal, np.array([o.camera.focal for o in others], dtype=float))
+                view.camera.focal, np.array([o.camera.focal for o in others], dtype=float), KEYPOINT_STD_PX)
         bad = ~(np.isfinite(cov).all(axis=(1, 2)) & np.isfinite(jac).all(axis=(1, 2, 3)))
         X[bad], angle[bad], partner[bad], cov[bad], jac[bad] = np.nan, 0.0, -1, np.nan, np.nan
         out.append(ViewPoints(X, cov, angle, partner, jac))

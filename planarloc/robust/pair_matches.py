@@ -46,7 +46,7 @@ class PairMatches:
         ref_points3d_pose_jac: (N, 2, 3, 6) motion of each point under corrections ``(ω, d)`` of
             the pose of this reference (``[:, 0]``) and of its partner (``[:, 1]``): rotation
             ``R' = Exp(ω) R`` (radians, camera frame) and centre shift ``d`` (metres, world), as in
-            :func:`~planarloc.geometry.epipolar.triangulation_pose_jacobians`; rows without a
+            :func:`~planarloc.geometry.epipolar.triangulation_uncertainty`; rows without a
             partner are ignored. Given with ``ref_points3d_partner``. The map's pose uncertainty
             (``RansacOptions.map_rotation_std_deg``, ``map_position_std_m``) moves all points of
             one map image together, and this is how the query's position inherits it.

@@ -40,7 +40,7 @@ class AbsolutePoseProblem:
             (< P), or an id >= P of a map image that is not among the pairs (equal ids, the same
             image); -1 -1 for a point that does not depend on the map's poses.
         X3d_pose_jac: (M, 2, 3, 6) the point's motion under pose corrections ``(ω, d)`` of those
-            two map images (:func:`~planarloc.geometry.epipolar.triangulation_pose_jacobians`;
+            two map images (:func:`~planarloc.geometry.epipolar.triangulation_uncertainty`;
             zeros where ``X3d_views`` is -1).
     """
 

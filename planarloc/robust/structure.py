@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from planarloc.geometry.epipolar import triangulate_points, triangulation_covariance, triangulation_pose_jacobians
+from planarloc.geometry.epipolar import triangulate_points, triangulation_uncertainty
 from planarloc.robust.problem import AbsolutePoseProblem
 
 KEYPOINT_STD_PX = 1.0
@@ -40,7 +40,7 @@ def triangulate_tracks(
         xq3d (T, 3) query rays, X3d (T, 3) world points, their covariance (T, 3, 3) (from
         ``KEYPOINT_STD_PX``), the two pairs (T, 2) whose references triangulated each and the
         points' motion under corrections of those references' poses (T, 2, 3, 6)
-        (:func:`~planarloc.geometry.epipolar.triangulation_pose_jacobians`) of the accepted tracks.
+        (:func:`~planarloc.geometry.epipolar.triangulation_uncertainty`) of the accepted tracks.
     """
     none = np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((0, 3, 3)), np.zeros((0, 2), dtype=np.int64), \
         np.zeros((0, 2, 3, 6))
@@ -97,15 +97,10 @@ def triangulate_tracks(
     cand = cand[np.lexsort((-angle[cand], track[cand]))]
     first = np.r_[True, track[cand][1:] != track[cand][:-1]]
     keep = cand[first]
-    cov = np.empty((len(keep), 3, 3))
     pa, pb = problem.pair[a[keep]], problem.pair[b[keep]]
-    for p1, p2 in set(zip(pa.tolist(), pb.tolist())):
-        sel = (pa == p1) & (pb == p2)
-        cov[sel] = triangulation_covariance(X[keep][sel], (problem.ref_R[p1], problem.ref_t[p1]),
-                                            (problem.ref_R[p2], problem.ref_t[p2]), problem.f_ref[p1],
-                                            problem.f_ref[p2], KEYPOINT_STD_PX)
-    jac = triangulation_pose_jacobians(X[keep], (problem.ref_R[pa], problem.ref_t[pa]),
-                                       (problem.ref_R[pb], problem.ref_t[pb]), problem.f_ref[pa], problem.f_ref[pb])
+    cov, jac = triangulation_uncertainty(X[keep], (problem.ref_R[pa], problem.ref_t[pa]),
+                                         (problem.ref_R[pb], problem.ref_t[pb]), problem.f_ref[pa],
+                                         problem.f_ref[pb], KEYPOINT_STD_PX)
     good = np.isfinite(cov).all(axis=(1, 2)) & np.isfinite(jac).all(axis=(1, 2, 3))
     keep, cov, jac = keep[good], cov[good], jac[good]
     views = np.stack([pa[good], pb[good]], axis=1).astype(np.int64)

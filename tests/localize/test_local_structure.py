@@ -8,7 +8,7 @@ import pytest
 from planarloc.geometry.camera import Camera
 from scipy.spatial.transform import Rotation
 
-from planarloc.geometry.epipolar import projection_jacobians, triangulation_covariance, triangulation_pose_jacobians
+from planarloc.geometry.epipolar import projection_jacobians, triangulation_uncertainty
 from planarloc.geometry.planar import rotation_from_yaw
 from planarloc.geometry.pose import Pose
 from planarloc.features.extract import Features
@@ -118,7 +118,11 @@ def test_triangulation_covariance_matches_monte_carlo() -> None:
     X = np.array([[1.0, 0.5, 15.0], [-2.0, -0.5, 8.0]])
     a, b = pose_at(0, 0, 0), pose_at(1.0, 1.0, 0.05)
     sigma = 1.0
-    predicted = triangulation_covariance(X, (a.R, a.t), (b.R, b.t), CAMERA.focal, CAMERA.focal, sigma)
+    predicted = triangulation_uncertainty(X, (a.R, a.t), (b.R, b.t), CAMERA.focal, CAMERA.focal, sigma).cov
+    Ja, Jb = (projection_jacobians(X, p.R, p.t, CAMERA.focal) for p in (a, b))   # σ² (Σ_v J_vᵀ J_v)⁻¹
+    np.testing.assert_allclose(predicted, sigma**2 * np.linalg.inv(Ja.transpose(0, 2, 1) @ Ja + Jb.transpose(0, 2, 1) @ Jb),
+                               rtol=1e-9)
+    assert np.array_equal(predicted, predicted.transpose(0, 2, 1))
     from planarloc.geometry.epipolar import triangulate_points
 
     samples = []
@@ -154,7 +158,7 @@ def test_pose_jacobians_follow_the_least_squares_point_when_a_map_pose_is_correc
     X = np.array([[2.0, 0.5, 20.0], [-3.0, 1.0, 15.0], [0.5, -0.2, 40.0]])
     a, b = pose_at(0, 0, 0), pose_at(0.3, 3.0, 0.05)
     pixels = [CAMERA.img_from_cam(X @ p.R.T + p.t) for p in (a, b)]
-    S = triangulation_pose_jacobians(X, (a.R, a.t), (b.R, b.t), CAMERA.focal, CAMERA.focal)
+    S = triangulation_uncertainty(X, (a.R, a.t), (b.R, b.t), CAMERA.focal, CAMERA.focal, 1.0).pose_jac
     assert S.shape == (3, 2, 3, 6)
     eps = 1e-6
     for view in range(2):
