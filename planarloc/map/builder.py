@@ -23,6 +23,7 @@ import hashlib
 import json
 import logging
 import os
+import sqlite3
 from collections.abc import Callable, Iterable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
@@ -37,8 +38,9 @@ from planarloc.gravity.world import WorldDown
 from planarloc.map.codec import DEFAULT_STORAGE
 from planarloc.map.gravity import declared_world_down, resolve_world_down, store_map_gravity
 from planarloc.map.identity import MapUpdatePlan, plan_map_update
+from planarloc.map.lock import writer_of
 from planarloc.map.posed_image import PosedImage
-from planarloc.map.schema import GRAVITY_META, VOCABULARY_BLOB, WORLD_DOWN_META
+from planarloc.map.schema import GRAVITY_META, VOCABULARY_BLOB, WORLD_DOWN_META, MapFormatError
 from planarloc.map.settings import check_num_words, map_config, settings_mismatch_error
 from planarloc.map.store import MapDatabase
 
@@ -105,13 +107,20 @@ def extract_image_features(image: PosedImage, features: FeatureConfig) -> Featur
 
 def check_map_settings(path: str | Path, features: FeatureConfig, num_words: int) -> None:
     """Before any work: an existing map at ``path`` must have been built with these settings
-    (an empty unfinished one is replaced by :func:`build_map`, so it passes)."""
+    (an empty unfinished one is replaced by :func:`build_map`, so it passes). A map that another
+    process is writing now is not read: it may be half-created, and :func:`build_map` waits for
+    that writer and checks the settings under the lock."""
     path = Path(path)
-    if not path.exists():
+    if not path.exists() or writer_of(path) is not None:
         return
-    with MapDatabase.open(path) as db:
-        stored = db.config
-        empty = db.num_images() == 0 and not db.is_complete
+    try:
+        with MapDatabase.open(path) as db:
+            stored = db.config
+            empty = db.num_images() == 0 and not db.is_complete
+    except (MapFormatError, sqlite3.OperationalError):
+        if writer_of(path) is not None:  # a writer started meanwhile: build_map waits for it
+            return
+        raise
     config = map_config(features, check_num_words(num_words))
     if not empty and json.dumps(stored, sort_keys=True) != json.dumps(config, sort_keys=True):
         raise settings_mismatch_error(path, stored, config)

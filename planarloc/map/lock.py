@@ -47,6 +47,26 @@ def _read_owner(fd: int) -> str:
     return text or "?"
 
 
+def writer_of(map_path: Path) -> str | None:
+    """The PID (as text) of the process writing ``map_path`` now, or None when nobody holds its
+    writer lock. It only looks: it neither takes the lock nor creates the lock file."""
+    try:
+        fd = os.open(lock_path_of(map_path), os.O_RDONLY)
+    except FileNotFoundError:
+        return None
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+        except OSError as exc:
+            if exc.errno not in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES):
+                raise
+            return _read_owner(fd)
+        fcntl.flock(fd, fcntl.LOCK_UN)
+        return None
+    finally:
+        os.close(fd)
+
+
 class MapWriterLock:
     """Exclusive writer lock of one map file (a context manager).
 

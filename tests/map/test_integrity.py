@@ -19,9 +19,9 @@ from posed_folder import posed_folder, shifted
 from textured_images import textured_image
 
 from planarloc.features.extract import FeatureConfig
-from planarloc.map.builder import build_map
+from planarloc.map.builder import build_map, check_map_settings
 from planarloc.map.integrity import check_map
-from planarloc.map.lock import MapBusyError, MapWriterLock, lock_path_of
+from planarloc.map.lock import MapBusyError, MapWriterLock, lock_path_of, writer_of
 from planarloc.map.schema import MapCorruptError, MapFormatError
 from planarloc.map.store import MapDatabase
 
@@ -169,10 +169,15 @@ def _planarloc(*argv: object, **kw) -> subprocess.Popen:
     return subprocess.Popen([sys.executable, "-m", "planarloc.cli.main", *map(str, argv)], **kw)
 
 
-def _wait_for(condition, what: str, timeout: float = 120.0) -> None:
+def _wait_for(condition, what: str, timeout: float = 120.0, proc: subprocess.Popen | None = None,
+              output: list[str] | None = None) -> None:
+    """Poll ``condition``; fail at the timeout, or at once when ``proc`` exits first (with its output)."""
     deadline = time.monotonic() + timeout
     while not condition():
-        assert time.monotonic() < deadline, f"timed out waiting for {what}"
+        said = "".join(output or [])
+        assert proc is None or proc.poll() is None or condition(), \
+            f"{what}: the process exited ({proc.returncode}) first; it said: {said}"
+        assert time.monotonic() < deadline, f"timed out waiting for {what}; it said: {said}"
         time.sleep(0.005)
 
 
@@ -195,7 +200,7 @@ def test_concurrent_builds_overlap_and_the_second_waits_on_the_lock(tiny_world: 
         seen: list[str] = []
         reader = threading.Thread(target=lambda: seen.extend(b.stderr))
         reader.start()
-        _wait_for(lambda: any(waiting in line for line in seen), "the second builder to wait")
+        _wait_for(lambda: any(waiting in line for line in seen), "the second builder to wait", proc=b, output=seen)
         assert b.poll() is None  # it waits for the first, it does not build alongside
         os.kill(a.pid, signal.SIGKILL if first_builder == "is SIGKILLed" else signal.SIGCONT)
         assert b.wait(300) == 0, "".join(seen)
@@ -208,6 +213,28 @@ def test_concurrent_builds_overlap_and_the_second_waits_on_the_lock(tiny_world: 
     report = check_map(path)
     assert report.ok and report.num_images == 12 and report.complete, report.problems
     assert not lock.exists()
+
+
+def test_settings_check_leaves_a_map_another_process_is_writing_to_the_build(tmp_path: Path) -> None:
+    """`map build` checks an existing map's settings before it reads any image; a map another
+    process is creating right now (half-made, its writer holding the lock) is not read then: the
+    build waits for that writer and checks the settings under the lock."""
+    path = tmp_path / "m.db"
+    path.write_bytes(b"")  # what a reader may see while the writer is frozen mid-creation
+    holder = subprocess.Popen(
+        [sys.executable, "-c", "import sys; from planarloc.map.lock import MapWriterLock; "
+         f"lock = MapWriterLock({str(path)!r}); lock.acquire(); print('held', flush=True); sys.stdin.read()"],
+        stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline().strip() == "held"
+        assert writer_of(path) == str(holder.pid)
+        check_map_settings(path, FeatureConfig(), 16)  # no MapFormatError: the writer owns the file
+    finally:
+        holder.stdin.close()
+        holder.wait(30)
+    assert writer_of(path) is None
+    with pytest.raises(MapFormatError):  # nobody writes it: a broken file is named as such
+        check_map_settings(path, FeatureConfig(), 16)
 
 
 def test_second_writer_waits_or_names_the_pid(built: Path) -> None:
