@@ -16,6 +16,7 @@ What a refined pose's matches can tell about it lives in :mod:`planarloc.robust.
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable
 
 import numpy as np
@@ -240,6 +241,16 @@ class Planar2p1pEstimator(_ProblemEstimator):
 RelposeBatchSolver = Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray, np.ndarray]]
 
 
+@functools.lru_cache(maxsize=64)
+def _pairs_of_pairs(num_pairs: int) -> tuple[np.ndarray, np.ndarray]:
+    """(j, k) index arrays of every two of ``num_pairs`` pairs, j < k (read-only; cached: numpy's
+    ``triu_indices`` costs ~12 µs, a sizeable share of the short 6DoF check of a planar pose)."""
+    j, k = np.triu_indices(num_pairs, 1)
+    j.setflags(write=False)
+    k.setflags(write=False)
+    return j, k
+
+
 def _baseline_solver(method: Method) -> tuple[int, RelposeBatchSolver]:
     if method == Method.P2P2:
         return 2, planar_2p_batch_unchecked
@@ -282,7 +293,7 @@ class RelativePairEstimator(_ProblemEstimator):
         # 6DoF families with 2D-3D constraints also draw P3P samples (PoseLib's hybrid estimator
         # samples its 2D-3D and 2D-2D solvers side by side).
         self.p3p = method != Method.P2P2 and len(problem.X3d) >= 3
-        self._pair_pairs = np.triu_indices(problem.num_pairs, 1)  # every two pairs (j < k), stage 2
+        self._pair_pairs = _pairs_of_pairs(problem.num_pairs)  # every two pairs (j < k), stage 2
 
     def _best_relative(self, rng: np.random.Generator, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Stage 1: per pair, up to ``top_k`` distinct best relative poses: R (P, K, 3, 3),

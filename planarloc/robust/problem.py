@@ -76,6 +76,14 @@ class AbsolutePoseProblem:
         f[2:] = f[:2] * float(ratio)
         return dataclasses.replace(self, f_query=f)
 
+    def points_only(self) -> AbsolutePoseProblem:
+        """This problem with its 2D-3D constraints alone (no 2D-2D match in any pair): a search
+        on it is judged by the constraints that fix the position, not by 2D-2D ones that may
+        not (:func:`planarloc.robust.absolute_pose.estimate_absolute_pose`)."""
+        return dataclasses.replace(
+            self, xq=np.zeros((0, 3)), xr=np.zeros((0, 3)), pair=np.zeros(0, dtype=np.int64),
+            offsets=np.zeros_like(self.offsets), query_ids=np.zeros(0, dtype=np.int64))
+
     def with_points3d(self, xq3d: np.ndarray, X3d: np.ndarray, source3d: np.ndarray,
                       X3d_cov: np.ndarray | None = None, X3d_views: np.ndarray | None = None,
                       X3d_pose_jac: np.ndarray | None = None) -> AbsolutePoseProblem:

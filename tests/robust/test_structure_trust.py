@@ -123,6 +123,49 @@ def test_points_triangulated_along_the_road_carry_their_map_images_pose_errors()
     assert 0.3 < np.median(ratios) and np.mean(np.square(ratios)) < 1.0
 
 
+def with_ghost_matches(truth: Pose, pairs: list[PairMatches], seed: int, ghosts: int = 300,
+                       behind_m: float = 100.0) -> list[PairMatches]:
+    """``pairs`` plus ``ghosts`` wrong 2D-2D matches per map image that a pose ``behind_m`` back
+    along the road explains exactly (repeated structure along a road does this to real matches:
+    forward motion's epipolar lines all run through the image centre). They are query keypoints
+    of their own, so they give no 2D-3D constraint."""
+    rng = np.random.default_rng(1000 + seed)
+    far = Pose.from_center(truth.R, truth.center - np.array([0.0, 0.0, behind_m]))
+    size = np.array([KITTI_CAMERA.width, KITTI_CAMERA.height])
+    out, next_id = [], 100_000
+    for p in pairs:
+        q, r = [], []
+        while len(q) < ghosts:
+            X = np.array([rng.choice([-1.0, 1.0]) * rng.uniform(4, 12), rng.uniform(-4, 1.6), rng.uniform(2, 60)])
+            Xc = [pose.R @ X + pose.t for pose in (far, p.ref_pose)]
+            if min(x[2] for x in Xc) < 1.0:
+                continue
+            uv = [KITTI_CAMERA.img_from_cam(x[None])[0] for x in Xc]
+            if all((u >= 0).all() and (u < size).all() for u in uv):
+                q.append(uv[0] + rng.normal(0, 0.5, 2))
+                r.append(uv[1] + rng.normal(0, 0.5, 2))
+        out.append(replace(p, query_points=np.vstack([p.query_points, q]), ref_points=np.vstack([p.ref_points, r]),
+                           query_indices=np.concatenate([p.query_indices, np.arange(next_id, next_id + ghosts)])))
+        next_id += ghosts
+    return out
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_a_pose_the_points_fix_is_not_given_up_for_a_far_2d2d_pose(seed: int) -> None:
+    """Along a road 2D-2D constraints barely see the position: a pose far back along it can
+    explain more 2D-2D matches (here 300 wrong ones per map image) than the truth and win the
+    searches on cost, with none of the 2D-3D constraints; its position is unobservable. The pose
+    the points fix is then judged instead (a search on the points alone finds it), and kept when
+    it passes. Before, seeds 0, 1 and 2 came back degenerate_scale (poses 113-142 m off, 0 2D-3D
+    inliers; kitti_seq1 frame 000002 on a compact map, 146 m off)."""
+    truth, pairs = forward_road(seed, map_rotation_error_deg=0.0)
+    est = estimate_absolute_pose(KITTI_CAMERA, with_ghost_matches(truth, pairs, seed), "auto", RansacOptions(seed=seed))
+    assert est.success, f"{est.status}: {est.message}"
+    assert est.num_inliers_3d >= 200
+    err = pose_errors(est.pose, truth)[0]
+    assert err < 0.1 and err <= 3 * est.position_std_m + 0.05, (err, est.position_std_m)
+
+
 def test_map_prior_keeps_2d2d_from_outvoting_the_points() -> None:
     """On the collinear road with map errors and few 2D-3D points (5 % of ~1,600 matches), the final
     refinement with the map prior lands closer to the truth than the one that trusts the map poses."""
