@@ -48,6 +48,7 @@ from planarloc.evaluation.queries import THRESHOLDS, split_map_queries, threshol
 from planarloc.features.extract import FeatureConfig, extract_features  # noqa: E402
 from planarloc.localize.localizer import Localizer, localizer_config  # noqa: E402
 from planarloc.features.images import read_gray  # noqa: E402
+from planarloc.map.codec import DEFAULT_STORAGE, STORAGE_LAYOUTS  # noqa: E402
 from planarloc.map.store import MapDatabase  # noqa: E402
 from planarloc.map.posed_image import PosedImage  # noqa: E402
 
@@ -141,12 +142,13 @@ def summarise(rows: Sequence[dict], with_std: bool) -> dict:
             "failures": dict(Counter(r["status"] for r in rows if not r["success"]))}
 
 
-def run_sequence(folder: Path, map_every: int, root: Path, progress: peer.Progress, seed: int = 0) -> dict:
+def run_sequence(folder: Path, map_every: int, root: Path, progress: peer.Progress, seed: int = 0,
+                 storage: str = DEFAULT_STORAGE) -> dict:
     images = read_dataset(folder, "kitti")
     map_images, queries = split_map_queries(images, map_every)
     by_name = {m.name: m for m in map_images}
-    path = root / f"{folder.name}-every{map_every}.db"
-    build_or_reuse(map_images, path, FeatureConfig(), reuse=True)
+    path = root / f"{folder.name}-every{map_every}-{storage}.db"
+    build_or_reuse(map_images, path, FeatureConfig(), reuse=True, storage=storage)
     the_peer = TriangulatePnPPeer()
     ours, peer_ours, peer_oracle = [], [], []
     with MapDatabase.open(path) as db:
@@ -179,6 +181,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--map-every", nargs="+", type=int, default=MAP_EVERY, help="map = every N-th frame")
     p.add_argument("--data-root", type=Path, default=DATA_ROOT)
     p.add_argument("--json", type=Path, default=None)
+    p.add_argument("--storage", choices=STORAGE_LAYOUTS, default=DEFAULT_STORAGE,
+                   help="layout of the maps (default: %(default)s, the library's)")
     p.add_argument("--seed", type=int, default=0, help="RANSAC seed of planarloc (default 0, the library's)")
     p.add_argument("--cache-dir", type=Path, default=Path(tempfile.gettempdir()) / "planarloc-bench" / "structure")
     args = p.parse_args(argv)
@@ -196,7 +200,7 @@ def main(argv: list[str] | None = None) -> int:
             peer.log(f"{folder} not found, skipped")
             continue
         for every in args.map_every:
-            results.append(run_sequence(folder, every, args.cache_dir, progress, args.seed))
+            results.append(run_sequence(folder, every, args.cache_dir, progress, args.seed, args.storage))
     heads = ["sequence", "map", "who", *[threshold_name(t, r) for t, r in THRESHOLDS], "> 1m/20°", "broken promises",
              "median [m]", "s/query", "failures"]
     rows = []
