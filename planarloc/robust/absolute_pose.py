@@ -357,11 +357,18 @@ def _rivals(best: _Search, searches: Sequence[_Search]) -> list[np.ndarray]:
     MSAC cost, and with a 2D-3D share within that ratio (plus a couple of inliers' worth) of the
     best's: a pose that keeps the 2D-2D matches of a road but loses hundreds of 2D-3D
     constraints is no rival (2D-2D constraints barely see the position along the road)."""
-    b = best.refined
-    margin = RIVAL_MARGIN_INLIERS * best.scorer.threshold_sq
     return [-s.refined.R.T @ s.refined.t for s in searches
-            if s is not best and s.refined.score <= RIVAL_COST_RATIO * b.score
-            and s.refined.score3d <= RIVAL_COST_RATIO * b.score3d + margin]
+            if s is not best and s.refined.score <= RIVAL_COST_RATIO * best.refined.score
+            and _keeps_points(s, best)]
+
+
+def _keeps_points(a: _Search, b: _Search) -> bool:
+    """Whether ``a``'s pose keeps about the 2D-3D constraints ``b``'s does: a 2D-3D cost within
+    ``RIVAL_COST_RATIO`` of ``b``'s plus ``RIVAL_MARGIN_INLIERS`` inliers' worth. The one test
+    of the 2D-3D share for rivals (:func:`_rivals`) and, reversed, for the pose the points
+    support (:func:`_better_supported`)."""
+    margin = RIVAL_MARGIN_INLIERS * b.scorer.threshold_sq
+    return a.refined.score3d <= RIVAL_COST_RATIO * b.refined.score3d + margin
 
 
 def _points_search(problem: AbsolutePoseProblem, options: RansacOptions, gravity: _Gravity, rng: np.random.Generator,
@@ -391,9 +398,7 @@ def _better_supported(best: _Search, found: Sequence[_Search]) -> _Search | None
     pose 146 m behind the map, 1,650 2D-2D and 0 of 323 2D-3D inliers, beat the planar pose with
     1,432 and 215 on cost). A search whose 2D-3D share of the cost is so much lower that
     ``best`` would not count as its rival (:func:`_rivals`) is judged in its place."""
-    margin = RIVAL_MARGIN_INLIERS * best.scorer.threshold_sq
-    better = [s for s in found if s is not best
-              and best.refined.score3d > RIVAL_COST_RATIO * s.refined.score3d + margin]
+    better = [s for s in found if s is not best and not _keeps_points(best, s)]
     return min(better, key=lambda s: s.refined.score) if better else None
 
 

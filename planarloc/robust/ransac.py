@@ -87,6 +87,17 @@ def required_iterations(inlier_ratio: float, sample_size: int, confidence: float
 
 LO_CANDIDATES = 2
 LO_NEAR_TIE = 1.1
+#: Adaptive termination also waits for this many hypotheses (solver outputs that passed the
+#: checks), within ``max_iterations``. The bound of :func:`required_iterations` assumes that an
+#: all-inlier sample yields the true model; a minimal sample of points that nearly lie on one
+#: plane (a wall, a facade) yields the essential matrix's planar twin instead, and where most
+#: samples are refused by the checks, the few that survive can all be twins: the generated
+#: ``offplane`` world, a query 0.5 m below the map, matched to a wall: 100 samples, 5 5-point
+#: hypotheses, every one 15° off, locally optimised to a pose 0.54 m / 15.6° off at 2.6 times the
+#: cost of the true pose that 2 of the next seed's 6 hypotheses found; the estimate reported
+#: 0.10 m of position std (benchmarks/trust.py on a compact map). It costs nothing where samples
+#: pass (20 of 100 is a yield most searches exceed).
+MIN_HYPOTHESES = 20
 
 
 def _lo_candidates(estimator: Estimator, R: np.ndarray, t: np.ndarray, cost: np.ndarray, k: int) -> list[int]:
@@ -108,7 +119,8 @@ def _lo_candidates(estimator: Estimator, R: np.ndarray, t: np.ndarray, cost: np.
 
 def ransac(estimator: Estimator, options: RansacOptions, rng: np.random.Generator,
            stats: RansacStatistics | None = None, batch_size: int = 50, first_batch: int = 10**9) -> RansacOutput:
-    """Run MSAC with adaptive termination between ``min_iterations`` and ``max_iterations``.
+    """Run MSAC with adaptive termination between ``min_iterations`` and ``max_iterations``
+    (and not before :data:`MIN_HYPOTHESES` hypotheses).
 
     Local optimisation (``estimator.refine``) runs whenever a batch produces a new best model,
     on that model and on up to ``LO_CANDIDATES - 1`` other hypotheses of the batch whose cost is
@@ -124,6 +136,7 @@ def ransac(estimator: Estimator, options: RansacOptions, rng: np.random.Generato
     optimised = []  # (cost, R, t) of every locally optimised model: the runner-ups
     pool_R, pool_t = [], []  # raw hypotheses within the margin (partial costs are lower bounds)
     needed = float(options.max_iterations)
+    hypotheses = 0  # of this search (``stats`` may carry counts of earlier ones)
     while stats.iterations < options.max_iterations:
         todo = min(options.min_iterations - stats.iterations, first_batch) if stats.iterations < options.min_iterations else batch_size
         n = int(min(max(todo, 1), options.max_iterations - stats.iterations))
@@ -132,6 +145,7 @@ def ransac(estimator: Estimator, options: RansacOptions, rng: np.random.Generato
         stats.iterations += n
         t1 = time.perf_counter()
         stats.add_time("hypotheses", t1 - t0)
+        hypotheses += len(R)
         if len(R):
             cost, inl = estimator.score(R, t, best_cost)
             stats.scored += len(R)
@@ -155,7 +169,7 @@ def ransac(estimator: Estimator, options: RansacOptions, rng: np.random.Generato
                     stats.add_time("local_optimization", time.perf_counter() - t2)
                 ratio = best_inl / max(estimator.num_data, 1)
                 needed = required_iterations(ratio, estimator.sample_size, options.confidence)
-        if stats.iterations >= options.min_iterations and stats.iterations >= needed:
+        if stats.iterations >= options.min_iterations and stats.iterations >= needed and hypotheses >= MIN_HYPOTHESES:
             break
     # Runner-ups: the other locally optimised models within the margin of the best, lowest first.
     alts = sorted((a for a in optimised if a[1] is not best_R and a[0] <= best_cost + margin),

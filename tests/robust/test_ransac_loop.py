@@ -108,7 +108,7 @@ def test_required_iterations_formula() -> None:
 def test_clean_data_stops_early_and_fits() -> None:
     est = LineEstimator(*line_data(200, 0.0, 0.01))
     out = ransac(est, opts(), np.random.default_rng(0))
-    assert out.stats.iterations < 50
+    assert out.stats.iterations <= 51  # the first sample, then one batch for MIN_HYPOTHESES
     assert sum(est.generate_sizes) == out.stats.iterations
     np.testing.assert_allclose(out.R, LINE, atol=1e-2)
     assert out.num_inliers == 200
@@ -224,3 +224,42 @@ def test_lo_candidates_are_the_best_and_distinct_near_ties(monkeypatch, limit: i
     # 2 duplicates the best, 3 duplicates 0 (a cheaper near-tie), 4 is no near-tie (cost > 1.1×)
     chosen = _lo_candidates(ScalarModels(), R, np.zeros((6, 3)), cost, 1)
     assert chosen == [1, 0, 5][:limit]
+
+
+class MostlyRefused(LineEstimator):
+    """The solver's checks refuse 19 of 20 samples; data: 60 % on the true line, 40 % on a second
+    line, so that a hypothesis from an all-inlier sample of either is a model with support (the
+    5-point solver's planar twin is the case this stands for)."""
+
+    def generate(self, rng, n, stats):
+        R, t = super().generate(rng, n, stats)
+        keep = rng.random(len(R)) < 0.05
+        stats.hypotheses -= int((~keep).sum())
+        stats.rejected_rcheck += int((~keep).sum())
+        return R[keep], t[keep]
+
+
+def twin_lines(seed: int) -> tuple[np.ndarray, np.ndarray]:
+    rng = np.random.default_rng(seed)
+    x = rng.uniform(-10, 10, 200)
+    y = LINE[0] * x + LINE[1] + rng.normal(0, 0.01, 200)
+    y[120:] = -0.4 * x[120:] + 2.0 + rng.normal(0, 0.01, 80)  # the twin: 80 of 200
+    return x, y
+
+
+def test_termination_waits_for_enough_hypotheses_where_the_checks_refuse_most_samples(monkeypatch) -> None:
+    """The adaptive bound counts samples; where the checks refuse most of them, the few
+    hypotheses that survive can all be the wrong model with support. With the floor of
+    MIN_HYPOTHESES every seed finds the true line; without it some stop on the twin."""
+    def found_truth(seeds) -> list[bool]:
+        out = []
+        for seed in seeds:
+            est = MostlyRefused(*twin_lines(seed))
+            res = ransac(est, opts(confidence=0.99), np.random.default_rng(seed))
+            out.append(res.R is not None and np.allclose(res.R, LINE, atol=0.02))
+        return out
+
+    seeds = range(30)
+    assert all(found_truth(seeds))
+    monkeypatch.setattr(ransac_module, "MIN_HYPOTHESES", 0)
+    assert not all(found_truth(seeds))
