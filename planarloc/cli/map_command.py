@@ -47,9 +47,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         The world's gravity is the format's (KITTI, OpenLORIS, generated worlds), the dataset option up=...,
         or estimated from the camera centres' plane; `map info` shows it.
 
-        New maps are full (float32 keypoints, 8-bit descriptors); --storage compact stores 50-100 KB per
-        KITTI image (about a fifth), with the recall of full maps on KITTI (one more broken promise elsewhere).
-        Maps of either layout, and maps from before layouts existed (full), open alike.""",
+        New maps are compact (50-100 KB per KITTI image, the recall of full maps); --storage full stores
+        float32 keypoints and 8-bit descriptors (about 5 times the bytes). Maps of either layout, and
+        maps from before layouts existed (full), open alike.""",
         ["planarloc map build data/kitti_seq2 --format kitti --every 2 --out kitti.db",
          "planarloc map build data/fountain_p11 --format kapture --dataset-option up=-z --out f.db"],
         run_build, interrupted=BUILD_RESUMES)
@@ -63,7 +63,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     add_feature_args(b)
     b.add_argument("--storage", choices=STORAGE_LAYOUTS, default=DEFAULT_STORAGE,
                    help=f"layout of a new map: compact (about a fifth of the bytes of full: transform-coded "
-                        f"descriptors, fixed-point keypoints, 4-bit global descriptors; nearly the recall of full) or "
+                        f"descriptors, fixed-point keypoints, 4-bit global descriptors; the recall of full on KITTI) or "
                         f"full (float32 keypoints, 8-bit descriptors); default: {DEFAULT_STORAGE}; an existing map "
                         f"keeps its own")
     b.add_argument("--ray", nargs="?", const="local", metavar="ADDRESS",

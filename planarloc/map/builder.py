@@ -156,8 +156,8 @@ def build_map(
             namespaced images); default: logged as warnings.
         mapper: runs the feature extraction instead of the threads: ``mapper(fn, images)`` yields
             ``fn(image)`` in input order (e.g. :func:`planarloc.distributed.ray_backend.RayBackend.map`).
-        storage: the layout of a new map, ``"full"`` (default) or ``"compact"`` (about a fifth of
-            the size; :mod:`planarloc.map.codec`); an existing map keeps its own.
+        storage: the layout of a new map, ``"compact"`` (default: about a fifth of the size of
+            ``"full"``; :mod:`planarloc.map.codec`) or ``"full"``; an existing map keeps its own.
         skipped: receives each image left out of the map (missing, unreadable, truncated,
             damaged, undecodable, or of another size than its camera) and the reason; default:
             logged as warnings. The build goes on with the other images.

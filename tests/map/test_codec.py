@@ -241,12 +241,12 @@ def _digest(a: np.ndarray) -> str:
     return hashlib.sha256(np.ascontiguousarray(a).tobytes()).hexdigest()
 
 
-def test_new_maps_are_full_unless_compact_is_asked_for(tmp_path: Path) -> None:
+def test_new_maps_are_compact_unless_full_is_asked_for(tmp_path: Path) -> None:
     with MapDatabase.create(tmp_path / "default.db", CONFIG) as db:
-        assert db.storage == "full" and db.get_meta("storage") == "full"
-    with MapDatabase.create(tmp_path / "compact.db", CONFIG, storage="compact") as db:
-        assert db.storage == "compact"
-    with MapDatabase.open(tmp_path / "compact.db") as db:
+        assert db.storage == "compact" and db.get_meta("storage") == "compact"
+    with MapDatabase.create(tmp_path / "full.db", CONFIG, storage="full") as db:
+        assert db.storage == "full"
+    with MapDatabase.open(tmp_path / "default.db") as db:
         assert db.storage == "compact"
 
 
