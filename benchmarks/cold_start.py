@@ -12,10 +12,13 @@ processes (compile workers included):
    runs), then the first ``planarloc localize`` of a new process — the target: ≤ 20 s.
 5. The peer in the same run: ``planarloc warmup --jobs 1`` on an empty cache (one core: how the
    kernels compiled before issue 20).
-6. The README's first command after its install: ``planarloc demo`` on an empty kernel cache (≤ 60 s).
+6. The README's first command after its install and ``planarloc warmup``: ``planarloc demo``
+   (target ≤ 60 s), and the command's total (install + warmup + demo).
+7. ``planarloc demo`` on an empty kernel cache (``--skip demo-cold`` leaves it out): what a user
+   who skips the warmup gets.
 
     python benchmarks/cold_start.py --json cold.json
-    python benchmarks/cold_start.py --keep /tmp/cold --skip jobs1 demo     # keep the venv and the copy
+    python benchmarks/cold_start.py --keep /tmp/cold --skip jobs1 demo-cold     # keep the venv and the copy
 """
 
 from __future__ import annotations
@@ -38,7 +41,7 @@ import _peer_pipeline as peer  # noqa: E402
 REPO = Path(__file__).resolve().parent.parent
 KITTI = REPO.parent / "shared" / "data" / "kitti_seq2"
 TARGET_FIRST_POSE_S, TARGET_DEMO_S = 20.0, 60.0
-OPTIONAL = ("jobs1", "demo")
+OPTIONAL = ("jobs1", "demo", "demo-cold")
 
 
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
@@ -110,8 +113,10 @@ def main(argv: list[str] | None = None) -> int:
             steps.run("cache clean kernels (2)", [pl, "cache", "clean", "kernels"])
             steps.run("warmup --jobs 1 (peer: one core)", [pl, "warmup", "--jobs", "1"])
         if "demo" not in args.skip:
+            steps.run("demo after warmup (README's first command)", [pl, "demo", "--out", root / "demo"])
+        if "demo-cold" not in args.skip:
             steps.run("cache clean kernels (3)", [pl, "cache", "clean", "kernels"])
-            steps.run("demo, empty kernel cache", [pl, "demo", "--out", root / "demo"])
+            steps.run("demo, empty kernel cache", [pl, "demo", "--out", root / "demo-cold"])
         load = peer.load_average()
     finally:
         if args.keep is None:
@@ -129,9 +134,12 @@ def main(argv: list[str] | None = None) -> int:
     first = res["first localize after warmup"]["wall_s"]
     checks = [(first <= TARGET_FIRST_POSE_S, f"first localize after the install (+ warmup) {first:.1f} s "
                                              f"(target ≤ {TARGET_FIRST_POSE_S:g} s)")]
-    if "demo, empty kernel cache" in res:
-        demo = res["demo, empty kernel cache"]["wall_s"]
-        checks.append((demo <= TARGET_DEMO_S, f"demo after the base install {demo:.1f} s (target ≤ {TARGET_DEMO_S:g} s)"))
+    readme = "demo after warmup (README's first command)"
+    if readme in res:
+        demo = res[readme]["wall_s"]
+        checks.append((demo <= TARGET_DEMO_S, f"demo after the install + warmup {demo:.1f} s (target ≤ {TARGET_DEMO_S:g} s)"))
+        total = sum(res[k]["wall_s"] for k in ("venv", "pip install . (base)", "warmup (every core)", readme))
+        print(f"README's first command (venv, pip install, warmup, demo) in all: {total:.1f} s wall")
     print("\n## Targets")
     for ok, text in checks:
         print(peer.verdict(ok, text))
