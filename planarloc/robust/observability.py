@@ -197,10 +197,13 @@ def pose_support(problem, R: np.ndarray, t: np.ndarray, in2d: np.ndarray, gravit
     baseline: robust to one short baseline (collinear sequences), where a per-baseline angle
     would be dominated by centimetres of noise.
     """
+    # Writable copies (np.array copies): numba compiles a kernel once per readonly flag of each
+    # argument, and a readonly gravity or pose (a cached or broadcast array) made the first
+    # query after `planarloc warmup` compile this kernel again (6 s on KITTI; cold_start.py).
     counts, col, dist, tilt, elev = support_kernel(
-        np.ascontiguousarray(R, dtype=float), np.ascontiguousarray(t, dtype=float), in2d, problem.offsets,
-        problem.ref_R, problem.ref_t, np.ascontiguousarray(gravity_world, dtype=float),
-        np.ascontiguousarray(query_gravity, dtype=float), min_pair_inliers)
+        np.array(R, dtype=float), np.array(t, dtype=float), in2d, problem.offsets,
+        problem.ref_R, problem.ref_t, np.array(gravity_world, dtype=float),
+        np.array(query_gravity, dtype=float), min_pair_inliers)
     return PoseSupport(counts, np.flatnonzero(counts >= min_pair_inliers), float(col), float(dist),
                        PlanarFit(float(tilt), float(elev)))
 
