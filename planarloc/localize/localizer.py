@@ -29,7 +29,7 @@ from planarloc.features.matching import DEFAULT_RATIO, match_query_to_refs
 from planarloc.features.retrieval import DEFAULT_TOP_N, GlobalIndex, VladVocabulary, vlad_descriptor
 from planarloc.geometry.camera import Camera
 from planarloc.geometry.validation import InputError
-from planarloc.localize.local_structure import MapView, PairMatchCache, view_points
+from planarloc.localize.local_structure import MapView, PairMatchCache, map_rotation_std_deg, view_points
 from planarloc.localize.query import ImageSource, Query, prepare_query
 from planarloc.map.gravity import map_gravity
 from planarloc.map.posed_image import PosedImage
@@ -223,9 +223,18 @@ class Localizer:
         Returns:
             the pairs with at least ``min_matches`` matches, and the names of their references.
         """
+        pairs, names, _ = self._pairs_and_map_residual(features, references, camera)
+        return pairs, names
+
+    def _pairs_and_map_residual(self, features: Features, references: Sequence[str], camera: Camera | None
+                                ) -> tuple[list[PairMatches], list[str], tuple[float, float]]:
+        """:meth:`pairs_for`, and the worst disagreement of a map image that gave local structure
+        with its neighbours' poses: ``(median reprojection error px, focal px)`` (NaN, NaN without
+        structure)."""
         refs = [self.db.get_features(n) for n in references]
         matches = match_query_to_refs(features, refs, ratio=self.config.ratio)
         points3d = self._local_structure(references, refs, matches)
+        worst = (float("nan"), float("nan"))
         pairs, names = [], []
         for name, ref, m, local in zip(references, refs, matches, points3d):
             if len(m) < self.config.min_matches:
@@ -243,6 +252,8 @@ class Localizer:
             cov = partner = jac = None
             if local is not None:
                 X_local, cov, partner, jac = local.X[ok], local.cov[ok], local.partner[ok], local.pose_jac[ok]
+                if np.isfinite(X_local[:, 0]).any() and not local.pose_residual_px <= worst[0]:
+                    worst = (local.pose_residual_px, float(np.mean(posed.camera.focal)))
                 if X is not None:  # measured depth first
                     take = np.isnan(X[:, 0])
                     X_local, cov = np.where(take[:, None], X_local, X), np.where(take[:, None, None], cov, 0.0)
@@ -254,7 +265,7 @@ class Localizer:
                                      ref_gravity=posed.cam_from_world.R @ self._g_world, ref_points3d_cov=cov,
                                      ref_points3d_partner=partner, ref_points3d_pose_jac=jac))
             names.append(name)
-        return _partners_as_pairs(pairs, names, references), names
+        return _partners_as_pairs(pairs, names, references), names, worst
 
     def _local_structure(self, references: Sequence[str], refs: Sequence[Features],
                          matches: Sequence[np.ndarray]) -> list:
@@ -325,15 +336,24 @@ class Localizer:
         if unknown:
             raise InputError(f"references not in the map: {unknown[:3]}{'...' if len(unknown) > 3 else ''}")
         t1 = time.perf_counter()
-        pairs, used = self.pairs_for(features, refs, camera)
+        pairs, used, (residual_px, focal_px) = self._pairs_and_map_residual(features, refs, camera)
         t2 = time.perf_counter()
         if len(pairs) < 2:
             est = PoseEstimate(None, False, "too_few_matches",
                                f"fewer than 2 of the {len(refs)} retrieved map images have >= "
                                f"{self.config.min_matches} matches", [np.zeros(0, bool)] * len(pairs))
         else:
-            est = estimate_absolute_pose(camera, pairs, self.config.method, self.config.ransac,
-                                         query_gravity=query_gravity)
+            # Map poses that disagree with their images (KITTI's first seconds) move every point
+            # triangulated from them together: the map prior takes what the images measured.
+            ransac = self.config.ransac
+            measured = map_rotation_std_deg(residual_px, focal_px)
+            if measured > ransac.map_rotation_std_deg:
+                ransac = replace(ransac, map_rotation_std_deg=measured)
+            est = estimate_absolute_pose(camera, pairs, self.config.method, ransac, query_gravity=query_gravity)
+            if ransac is not self.config.ransac:
+                est.message += (f"; the retrieved map images' poses disagree with their images by {residual_px:.1f} px "
+                                f"(median): map rotation std taken as {measured:.2f}° instead of "
+                                f"{self.config.ransac.map_rotation_std_deg:g}°")
         est.references = used
         est.stats.add_time("retrieval", t1 - t0)
         est.stats.add_time("matching", t2 - t1)

@@ -12,7 +12,8 @@ from planarloc.geometry.epipolar import projection_jacobians, triangulation_unce
 from planarloc.geometry.planar import rotation_from_yaw
 from planarloc.geometry.pose import Pose
 from planarloc.features.extract import Features
-from planarloc.localize.local_structure import MapView, PairMatchCache, view_points
+from planarloc.localize.local_structure import (CONSISTENT_RESIDUAL_PX, MapView, PairMatchCache, map_rotation_std_deg,
+                                                view_points)
 
 CAMERA = Camera("PINHOLE", 640, 480, (500.0, 500.0, 320.0, 240.0))
 
@@ -174,3 +175,28 @@ def test_pose_jacobians_follow_the_least_squares_point_when_a_map_pose_is_correc
             np.testing.assert_allclose(S[:, view, :, k], numeric, rtol=1e-3, atol=1e-3 * np.abs(numeric).max())
     # 0.1° of yaw of one view moves a point 40 m ahead of a 3 m forward baseline by metres.
     assert np.abs(S[2, 1, :, 1]).max() * np.radians(0.1) > 0.5
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_a_map_pose_that_disagrees_with_its_image_is_measured(seed: int) -> None:
+    """The median reprojection error of map-image matches under their known poses is keypoint
+    noise where the poses agree with the images, and grows with a rotation error of one pose;
+    map_rotation_std_deg turns it into that error's size (KITTI's first seconds: 2 px)."""
+    rng = np.random.default_rng(seed)
+    X = scene(rng, 600)
+    poses = [pose_at(0, 0, 0), pose_at(0.3, 2.0, 0.02), pose_at(-0.3, 4.0, -0.02)]
+    views, index = views_of(X, poses, rng, noise_px=0.3)
+    rows = [ix[ix >= 0] for ix in index]
+    agree = view_points(views, rows, PairMatchCache())
+    assert all(p.pose_residual_px < CONSISTENT_RESIDUAL_PX for p in agree)
+    assert all(map_rotation_std_deg(p.pose_residual_px, 500.0) == 0.0 for p in agree)
+    error_deg = 0.5
+    axis = np.array([1.0, 1.0, 0.0]) / np.sqrt(2.0)
+    R = Rotation.from_rotvec(np.radians(error_deg) * axis).as_matrix() @ poses[0].R
+    stored = Pose(R, -R @ poses[0].center)  # the map says this; the image was taken at poses[0]
+    views[0] = MapView(views[0].name, views[0].features, stored, CAMERA)
+    off = view_points(views, rows, PairMatchCache())
+    assert off[0].pose_residual_px > 3 * max(p.pose_residual_px for p in agree)
+    measured = map_rotation_std_deg(off[0].pose_residual_px, 500.0)
+    assert 0.5 * error_deg < measured < 2.0 * error_deg
+    assert map_rotation_std_deg(float("nan"), 500.0) == 0.0
