@@ -44,6 +44,16 @@ from planarloc.robust.result import PoseEstimate
 logger = logging.getLogger(__name__)
 
 
+#: The share of a query's 2D-3D constraints whose map images' disagreement with their poses sets
+#: the query's map rotation std. A fifth: kitti_seq1 with the map every 8th frame, frames 1-5 take
+#: about half their points from frame 0, whose pose is 2 px off (the median of the points' value
+#: left frames 2 and 4 1.2 and 0.9 m off with stds of 0.22 and 0.19 m); one retrieved map image
+#: far down the road with a bad pose gives fewer and must not widen the poses its neighbours fix
+#: (the worst image's value did: position stds 0.04 -> 0.06 m from frame 13 on with the map every
+#: 4th frame, and the 10 Hz stream without odometry posed 34-36 of 38 frames instead of 37).
+MAP_DISAGREEMENT_SHARE = 0.2
+
+
 @dataclass(frozen=True)
 class LocalizerConfig:
     """Settings of the localization pipeline; the CLI uses these defaults.
@@ -228,13 +238,16 @@ class Localizer:
 
     def _pairs_and_map_residual(self, features: Features, references: Sequence[str], camera: Camera | None
                                 ) -> tuple[list[PairMatches], list[str], tuple[float, float]]:
-        """:meth:`pairs_for`, and the worst disagreement of a map image that gave local structure
-        with its neighbours' poses: ``(median reprojection error px, focal px)`` (NaN, NaN without
-        structure)."""
+        """:meth:`pairs_for`, and how much the map poses behind the query's 2D-3D constraints
+        disagree with their images: ``(px, focal px)``, the largest disagreement that at least
+        :data:`MAP_DISAGREEMENT_SHARE` of the constraints share (per constraint, the larger
+        :attr:`ViewPoints.pose_residual_px` of the two map images that triangulated it; NaN, NaN
+        without structure)."""
         refs = [self.db.get_features(n) for n in references]
         matches = match_query_to_refs(features, refs, ratio=self.config.ratio)
         points3d = self._local_structure(references, refs, matches)
-        worst = (float("nan"), float("nan"))
+        view_residual = np.array([np.nan if p is None else p.pose_residual_px for p in points3d])
+        point_residuals, focals = [], []
         pairs, names = [], []
         for name, ref, m, local in zip(references, refs, matches, points3d):
             if len(m) < self.config.min_matches:
@@ -252,8 +265,10 @@ class Localizer:
             cov = partner = jac = None
             if local is not None:
                 X_local, cov, partner, jac = local.X[ok], local.cov[ok], local.partner[ok], local.pose_jac[ok]
-                if np.isfinite(X_local[:, 0]).any() and not local.pose_residual_px <= worst[0]:
-                    worst = (local.pose_residual_px, float(np.mean(posed.camera.focal)))
+                has = np.isfinite(X_local[:, 0]) & (partner >= 0)
+                if has.any():
+                    point_residuals.append(np.fmax(local.pose_residual_px, view_residual[partner[has]]))
+                    focals.append(float(np.mean(posed.camera.focal)))
                 if X is not None:  # measured depth first
                     take = np.isnan(X[:, 0])
                     X_local, cov = np.where(take[:, None], X_local, X), np.where(take[:, None, None], cov, 0.0)
@@ -265,7 +280,11 @@ class Localizer:
                                      ref_gravity=posed.cam_from_world.R @ self._g_world, ref_points3d_cov=cov,
                                      ref_points3d_partner=partner, ref_points3d_pose_jac=jac))
             names.append(name)
-        return _partners_as_pairs(pairs, names, references), names, worst
+        residuals = np.concatenate(point_residuals) if point_residuals else np.zeros(0)
+        residuals = residuals[np.isfinite(residuals)]
+        disagreement = ((float(np.quantile(residuals, 1.0 - MAP_DISAGREEMENT_SHARE)), float(np.mean(focals)))
+                        if len(residuals) else (np.nan, np.nan))
+        return _partners_as_pairs(pairs, names, references), names, disagreement
 
     def _local_structure(self, references: Sequence[str], refs: Sequence[Features],
                          matches: Sequence[np.ndarray]) -> list:
