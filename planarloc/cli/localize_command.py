@@ -181,7 +181,7 @@ def run(args: argparse.Namespace) -> int:
                 outputs = stack.enter_context(closing(EstimateOutputs(args.plot_matches, args.rerun)))
                 localize = _batch_localizer(loc, camera, gravity, gravity_file, pairs, outputs)
             where = ""
-        writer = ResultsWriter(args.out, records_dir, tum=args.tum)
+        writer = ResultsWriter(args.out, records_dir, tum=args.tum, predicted=getattr(args, "predicted", "mark"))
         code = run_queries(writer, queries, localize, "localize stream" if args.sequence else "localize")
     if gravity_file is not None:
         _gravity_file_notes(args.gravity_file, gravity_file, {q.name for q in queries})
@@ -271,7 +271,9 @@ def _summary(writer: ResultsWriter, args: argparse.Namespace, records_dir: Path 
     errors = f", {writer.errors} could not be processed" if writer.errors else ""
     if args.sequence:
         counts = ", ".join(f"{v} {k}" for k, v in sorted(writer.statuses.items()))
-        info(f"{writer.queries} frames: {counts} -> {args.out} (localized and predicted poses){details}")
+        kept = "localized poses; predicted ones dropped" if writer.predicted == "drop" else \
+            "localized poses, predicted ones marked '# predicted'"
+        info(f"{writer.queries} frames: {counts} -> {args.out} ({kept}){details}")
     else:
         failed = writer.queries - writer.localized
         info(f"localized {writer.localized} of {writer.queries} queries ({failed} failed{errors}){where} -> "

@@ -12,6 +12,7 @@ import numpy as np
 from rich.table import Table
 
 from planarloc.cli.console import info, progress_bar
+from planarloc.io.results import PREDICTED_MODES
 from planarloc.localize.sequence import SequenceLocalizer
 from planarloc.localize.stream_config import FIX_MODES, SequenceConfig
 from planarloc.robust.relative_pose import MODELS
@@ -42,6 +43,11 @@ def add_sequence_args(p: argparse.ArgumentParser, evaluate: bool) -> None:
                             "image-list file 'path' / 'timestamp path' per line)")
         g.add_argument("--frame-period", type=float, default=_SEQ.frame_period_s,
                        help="seconds between frames when the list has no timestamps (default: %(default)s)")
+        g.add_argument("--predicted", choices=PREDICTED_MODES, default=PREDICTED_MODES[0],
+                       help="predicted frames (carried by the motion model, not fixed at their own time) in the "
+                            "--out and --tum pose files: 'mark' them with a '# predicted NAME position_std_m=S' "
+                            "comment line before the pose, or 'drop' them; the JSON records keep every frame "
+                            "(default: %(default)s)")
     g.add_argument("--odometry", type=Path, help="wheel odometry, TUM layout 'timestamp tx ty tz qx qy qz qw' "
                                                  "(camera-to-odometry), one line per frame or matched by timestamp")
     g.add_argument("--fixes", choices=FIX_MODES, default=_SEQ.fixes,

@@ -13,6 +13,12 @@ A run writes two things:
 
 Optionally (``tum``) the successful poses also go to a TUM trajectory (camera-to-world) for evo.
 
+A stream's ``predicted`` frames (a pose the motion model carries, not an absolute fix at the
+frame's own time) are marked in both pose files by default (``predicted="mark"``): a comment line
+``# predicted <name> position_std_m=<std>`` right before the pose (comment lines are skipped by
+planarloc's, hloc's and evo's readers); ``predicted="drop"`` leaves them out of both (the records
+keep every frame, with its status).
+
 All of a run's files are replaced together (:class:`planarloc.io.output.StagedFiles`): each record
 is written and flushed to a hidden temporary file as soon as it is known, the results file and
 the TUM trajectory when the run ends, and only then are all renamed over their targets — the
@@ -31,6 +37,9 @@ from planarloc.geometry.validation import InputError
 from planarloc.io.output import STDOUT, StagedFiles, output_kind, remove_dead_temporaries
 from planarloc.io.pose_list import pose_line
 from planarloc.io.tum import tum_trajectory_text
+
+#: what the pose files do with a stream's ``predicted`` frames (module docstring)
+PREDICTED_MODES = ("mark", "drop")
 from planarloc.localize.records import record_pose
 
 
@@ -63,6 +72,7 @@ class ResultsWriter:
         out: the results file, or ``-``.
         records_dir: the records folder, or None for no record files.
         tum: optional TUM trajectory file of the successful poses.
+        predicted: ``"mark"`` or ``"drop"`` a stream's predicted frames in the pose files.
 
     Use: :meth:`add` per query (in order), then :meth:`close` once (also after an interruption,
     to keep the results so far); a run that fails calls :meth:`abort` (or neither), so the
@@ -70,14 +80,18 @@ class ResultsWriter:
     aborts.
     """
 
-    def __init__(self, out: str | Path, records_dir: Path | None = None, tum: Path | None = None) -> None:
+    def __init__(self, out: str | Path, records_dir: Path | None = None, tum: Path | None = None,
+                 predicted: str = "mark") -> None:
+        if predicted not in PREDICTED_MODES:
+            raise InputError(f"predicted: expected one of {PREDICTED_MODES}, got {predicted!r}")
+        self.predicted = predicted
         self.out = out
         self.records_dir = None if records_dir is None else Path(records_dir)
         self.tum = tum
         self.lines: list[str] = []
         self.statuses: dict[str, int] = {}
         self.names: list[str] = []
-        self._tum: list[tuple[float, object]] = []
+        self._tum: list[tuple[float, object, str | None]] = []   # stamp, pose, the predicted mark
         self._staged = StagedFiles()
         if self.records_dir is not None:
             self.records_dir.mkdir(parents=True, exist_ok=True)
@@ -96,7 +110,8 @@ class ResultsWriter:
 
     @property
     def localized(self) -> int:
-        return len(self.lines)
+        """Poses written to the results file."""
+        return sum(not line.startswith("#") for line in self.lines)
 
     @property
     def errors(self) -> int:
@@ -119,12 +134,20 @@ class ResultsWriter:
             self._staged.add(self.records_dir / record_filename(name), json.dumps(record, indent=1))
         self.names.append(name)
         self.statuses[str(record.get("status"))] = self.statuses.get(str(record.get("status")), 0) + 1
+        mark = None
+        if pose is not None and record.get("status") == "predicted":
+            if self.predicted == "drop":
+                return
+            std = record.get("position_std_m")
+            mark = f"# predicted {name} position_std_m={'null' if std is None else f'{float(std):.4f}'}\n"
         if pose is not None:
             # The record's own numbers, not a quaternion -> matrix -> quaternion round trip: the
             # results of a served query are byte-identical to a local run's.
+            if mark is not None:
+                self.lines.append(mark)
             self.lines.append(pose_line(name, [*record["quat_wxyz"], *record["t"]]) + "\n")
             if self.tum is not None:
-                self._tum.append((query_timestamp(name, timestamp, len(self.names) - 1), pose))
+                self._tum.append((query_timestamp(name, timestamp, len(self.names) - 1), pose, mark))
 
     def stale_records(self) -> list[str]:
         """Files of the records folder that are not this run's (e.g. of an earlier run)."""
@@ -144,8 +167,9 @@ class ResultsWriter:
         try:
             if self.tum is not None:
                 rows = sorted(self._tum, key=lambda r: r[0])
-                self._staged.add(self.tum, tum_trajectory_text(self.tum, [t for t, _ in rows],
-                                                               [p.inverse() for _, p in rows]))
+                text = tum_trajectory_text(self.tum, [r[0] for r in rows], [r[1].inverse() for r in rows])
+                head, *body = text.splitlines(keepends=True)
+                self._staged.add(self.tum, head + "".join((r[2] or "") + line for r, line in zip(rows, body)))
             self._staged.add(self.out, "".join(self.lines))
         except BaseException:
             self.abort()

@@ -34,7 +34,8 @@ Covariance of a fix (the single-frame estimator's ``position_std_m`` is the std 
 axis): position ``(fix_std_scale · position_std_m)² I`` (floored at ``min_fix_std_m``); rotation
 ``σ_R² I`` with ``σ_R² = σ_px² / (f² N) + σ_map²`` — ``N`` bearings with ``σ_px`` pixel noise fix a
 rotation to about ``σ_px / (f √N)`` radians, and the map's own rotation error ``σ_map``
-(``RansacOptions.map_rotation_std_deg``) adds to it — floored at ``min_rotation_std_deg``.
+(``RansacOptions.map_rotation_std_deg``) adds to it — floored at ``min_rotation_std_deg``, plus the
+estimate's own rotation covariance (per axis) scaled like its position.
 Order ``(rotation, camera centre)`` of the pose graph (docs/conventions.md, "Pose covariances").
 """
 
@@ -47,6 +48,7 @@ import threading
 import time
 import weakref
 from dataclasses import dataclass, field, replace
+
 import numpy as np
 from scipy.stats import chi2
 
@@ -54,11 +56,12 @@ from planarloc.features.extract import Features, extract_features
 from planarloc.geometry.camera import Camera
 from planarloc.geometry.epipolar import triangulate_points
 from planarloc.geometry.pose import Pose
+from planarloc.geometry.pose_covariance import graph_covariance
 from planarloc.localize.localizer import Localizer
 from planarloc.localize.stream_config import SequenceConfig
 from planarloc.localize.tracking import FrameHistory, TrackedPoints, TrackerOptions, track_through
-from planarloc.robust.pose_graph import so3_log
 from planarloc.robust.pair_matches import PairMatches
+from planarloc.robust.pose_graph import so3_log
 from planarloc.robust.result import PoseEstimate
 
 logger = logging.getLogger(__name__)
@@ -226,7 +229,11 @@ class FixSolver:
         f = float(np.mean(camera.focal))
         rot = np.sqrt((cfg.pixel_std / f) ** 2 / n + self._map_rotation_std**2)
         rot = max(rot, np.radians(cfg.min_rotation_std_deg))
-        return np.diag([rot**2] * 3 + [pos**2] * 3)
+        cov = np.diag([rot**2] * 3 + [pos**2] * 3)
+        if est.covariance is not None and est.pose is not None and np.all(np.isfinite(est.covariance)):
+            # the estimate's own rotation covariance, per axis (yaw is usually the best known)
+            cov[:3, :3] += scale**2 * graph_covariance(est.pose, est.covariance)[:3, :3]
+        return cov
 
     def _fix(self, features: Features, camera: Camera, references: list[str] | None,
              gravity: np.ndarray | None) -> tuple[PoseEstimate, list[PairMatches]]:

@@ -123,6 +123,9 @@ class SequenceConfig:
             raise InputError(f"SequenceConfig.tracking: expected TrackerOptions, got {type(self.tracking).__name__}")
         if self.vo_model not in MODELS:
             raise InputError(f"SequenceConfig.vo_model: expected one of {MODELS}, got {self.vo_model!r}")
+        if self.tracking.model not in (TrackerOptions().model, self.vo_model):
+            raise InputError(f"SequenceConfig.tracking.model ({self.tracking.model!r}) is not used: the stream's "
+                             f"visual-odometry model is SequenceConfig.vo_model ({self.vo_model!r}); set that")
         if not 0.5 < self.gate_probability < 1:
             raise InputError(f"SequenceConfig.gate_probability: expected a probability in (0.5, 1), "
                              f"got {self.gate_probability}")

@@ -231,6 +231,94 @@ def pose_from_points(prior: Pose, points: np.ndarray, rays: np.ndarray, focal: f
     return pose, n
 
 
+#: a frame whose pixels vary less than this (std, grey levels) has nothing to track or match
+BLANK_PIXEL_STD = 2.0
+
+
+def is_blank(gray: np.ndarray) -> bool:
+    """Whether a frame is blank: black, white or uniform (lens cap, a dropped exposure, a
+    driver's filler frame); its pixel std is below ``BLANK_PIXEL_STD`` grey levels."""
+    _, std = cv2.meanStdDev(gray)
+    return float(std.ravel()[0]) < BLANK_PIXEL_STD
+
+
+def points_pose_covariance(cam_from_world: Pose, points: np.ndarray, rays: np.ndarray, ray_std: float
+                           ) -> np.ndarray | None:
+    """The (6, 6) pose-graph covariance ``(ω, δc)`` of a pose from world points (PnP), measured
+    from the points' geometry: ``σ² (JᵀJ)⁻¹`` with ``J`` the Jacobian of the normalized
+    reprojections (2N, 6) and ``σ`` the larger of ``ray_std`` and the residuals' own RMS (with
+    6 degrees of freedom taken out). Points far away and bunched together give a large std along
+    the viewing direction; a spread, near set a small one.
+
+    Args:
+        cam_from_world: the pose.
+        points: (N, 3) world points (the inliers).
+        rays: (N, 2) their undistorted normalized coordinates.
+        ray_std: the measurement noise of a ray (normalized units, e.g. pixels / focal).
+
+    Returns:
+        (6, 6), or None with fewer than 4 points in front of the camera or a singular geometry.
+    """
+    Xc = cam_from_world.transform(np.asarray(points, dtype=float).reshape(-1, 3))
+    x = np.asarray(rays, dtype=float).reshape(-1, 2)
+    ok = Xc[:, 2] > 1e-6
+    Xc, x = Xc[ok], x[ok]
+    if len(Xc) < 4:
+        return None
+    z = Xc[:, 2]
+    proj = Xc[:, :2] / z[:, None]
+    # d proj / d Xc: (N, 2, 3)
+    P = np.zeros((len(Xc), 2, 3))
+    P[:, 0, 0] = P[:, 1, 1] = 1.0 / z
+    P[:, :, 2] = -proj / z[:, None]
+    # Xc' = exp([ω]×) Xc  → d Xc / d ω = −[Xc]×;  Xc = R (X − c) → d Xc / d c = −R
+    skew = np.zeros((len(Xc), 3, 3))
+    skew[:, 0, 1], skew[:, 0, 2], skew[:, 1, 2] = -Xc[:, 2], Xc[:, 1], -Xc[:, 0]
+    skew[:, 1, 0], skew[:, 2, 0], skew[:, 2, 1] = Xc[:, 2], -Xc[:, 1], Xc[:, 0]
+    J = np.concatenate([P @ -skew, P @ -cam_from_world.R], axis=2).reshape(-1, 6)
+    dof = max(2 * len(Xc) - 6, 1)
+    sigma = max(float(ray_std), float(np.sqrt(np.sum((proj - x) ** 2) / dof)))
+    try:
+        cov = np.linalg.inv(J.T @ J) * sigma**2
+    except np.linalg.LinAlgError:
+        return None
+    if not np.all(np.isfinite(cov)):
+        return None
+    return 0.5 * (cov + cov.T)
+
+
+#: a pose from fewer tracked points than this has its std scaled by sqrt(this / inliers)
+POINT_FIX_FULL_SUPPORT = 60
+
+
+def tracked_points_covariance(pose: Pose, points: np.ndarray, rays: np.ndarray, focal: float, inliers: int,
+                              hops: int, *, pixel_std: float, min_std_m: float, rotation_std_deg: float,
+                              std_per_frame: float) -> np.ndarray:
+    """The (6, 6) pose-graph covariance of a pose from tracked map points (:func:`pose_from_points`).
+
+    The geometry's own (:func:`points_pose_covariance` on the points within ``PNP_THRESHOLD_PX``:
+    far, bunched points are weak along the view) plus a floor of ``min_std_m`` and
+    ``rotation_std_deg`` (the points' own errors are shared by all of them and do not show in the
+    residuals), both grown by ``g = (1 + std_per_frame · hops) · sqrt(max(1, 60 / inliers))``:
+    tracks drift with each frame they are followed through, and few points are weak.
+
+    Args:
+        pose: the PnP pose (``cam_from_world``).
+        points: (N, 3) world points; rays: (N, 2) their normalized coordinates.
+        focal: focal length (pixels); inliers: the PnP inliers; hops: frames the points were tracked.
+    """
+    grow = (1.0 + std_per_frame * hops) * np.sqrt(max(1.0, POINT_FIX_FULL_SUPPORT / max(inliers, 1)))
+    cov = np.diag([np.radians(rotation_std_deg) ** 2] * 3 + [min_std_m**2] * 3)
+    Xc = pose.transform(points)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        err = np.linalg.norm(Xc[:, :2] / Xc[:, 2:] - rays, axis=1)
+    keep = (Xc[:, 2] > 0) & (err < PNP_THRESHOLD_PX / focal)
+    measured = points_pose_covariance(pose, points[keep], rays[keep], pixel_std / focal)
+    if measured is not None:
+        cov = cov + measured
+    return cov * grow**2
+
+
 class FrameHistory:
     """The last frames of a stream, ``(stamp, gray)`` in order, shared with a fix worker: the
     stream appends, a worker reads a snapshot (a new list each time, never changed in place)."""

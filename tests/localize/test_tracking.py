@@ -13,6 +13,7 @@ from planarloc.geometry.camera import Camera
 from planarloc.geometry.pose import Pose, pose_errors
 from planarloc.geometry.validation import InputError
 from planarloc.io.datasets import read_dataset
+from planarloc.robust.pose_graph import so3_exp
 from planarloc.localize.tracking import (
     FrameHistory,
     FrameTracker,
@@ -20,6 +21,8 @@ from planarloc.localize.tracking import (
     TrackerOptions,
     detect_corners,
     direction_basis,
+    is_blank,
+    points_pose_covariance,
     pose_from_points,
     track_checked,
     track_points,
@@ -154,3 +157,47 @@ def test_direction_basis_is_orthonormal_and_options_are_checked() -> None:
         TrackerOptions(min_inlier_ratio=1.5)
     with pytest.raises(InputError, match="corners"):
         TrackerOptions(corners=True)
+
+
+def _project(pose: Pose, X: np.ndarray) -> np.ndarray:
+    Xc = pose.transform(X)
+    return Xc[:, :2] / Xc[:, 2:]
+
+
+def test_points_pose_covariance_is_the_inverse_information_of_the_reprojections() -> None:
+    rng = np.random.default_rng(3)
+    pose = Pose.from_center(so3_exp(np.array([[0.02, 0.3, -0.01]]))[0], [1.0, 0.5, -2.0])
+    X = pose.inverse().transform(np.column_stack([rng.uniform(-3, 3, (40, 2)), rng.uniform(4, 12, 40)]))
+    x = _project(pose, X)
+    sigma = 1.0 / 500.0
+    cov = points_pose_covariance(pose, X, x, sigma)
+    # the same by finite differences of the model (ω: R' = exp(ω) R; δc: c' = c + δc)
+    J = np.zeros((2 * len(X), 6))
+    h = 1e-6
+    for k in range(6):
+        d = np.zeros(6)
+        d[k] = h
+        moved = Pose.from_center(so3_exp(d[None, :3])[0] @ pose.R, pose.center + d[3:])
+        J[:, k] = ((_project(moved, X) - x) / h).ravel()
+    expected = np.linalg.inv(J.T @ J) * sigma**2
+    assert np.allclose(cov, expected, rtol=1e-4, atol=1e-12)
+    # noisier rays (residuals above sigma) widen it by their RMS
+    noisy = x + rng.normal(0, 5 * sigma, x.shape)
+    assert np.trace(points_pose_covariance(pose, X, noisy, sigma)) > 10 * np.trace(cov)
+
+
+def test_far_bunched_points_are_weak_along_the_view() -> None:
+    rng = np.random.default_rng(4)
+    pose = Pose.identity()
+    near = np.column_stack([rng.uniform(-4, 4, (30, 2)), rng.uniform(3, 8, 30)])
+    far = np.column_stack([rng.uniform(-1, 1, (30, 2)), rng.uniform(60, 70, 30)])
+    std = [np.sqrt(points_pose_covariance(pose, X, _project(pose, X), 1e-3)[5, 5]) for X in (near, far)]
+    assert std[1] > 20 * std[0]
+    assert points_pose_covariance(pose, near[:3], _project(pose, near[:3]), 1e-3) is None
+
+
+def test_blank_frames_are_told_from_dark_textured_ones() -> None:
+    assert is_blank(np.zeros((120, 160), np.uint8))
+    assert is_blank(np.full((120, 160), 255, np.uint8))
+    dark = (np.random.default_rng(0).random((120, 160)) * 12).astype(np.uint8)   # underexposed, not blank
+    assert not is_blank(dark)

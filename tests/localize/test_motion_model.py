@@ -1,0 +1,126 @@
+"""The stream's motion model: visual odometry's length and how sure it is, stamps that lie,
+disputed visual steps, the scale doubt, constant velocity and odometry covariances."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from planarloc.geometry.pose import Pose
+from planarloc.geometry.validation import InputError
+from planarloc.localize.motion_model import (
+    DOUBTED_STAMPS_SCALE_STD,
+    MotionModel,
+    ScaleDoubt,
+    SpeedFit,
+    VisualStep,
+)
+from planarloc.localize.stream_config import SequenceConfig
+from planarloc.localize.tracking import TrackerOptions
+from planarloc.robust.pose_graph import so3_exp
+
+FORWARD = np.array([0.0, 0.0, 1.0])
+
+
+def _along_std(motion) -> float:
+    u = motion.cur_from_prev.inverse().t
+    u = u / np.linalg.norm(u)
+    return float(np.sqrt(u @ motion.covariance[3:, 3:] @ u))
+
+
+def _model_with_fixes(stamps: list[float], positions: list[float], std: float = 0.02) -> MotionModel:
+    m = MotionModel(SequenceConfig())
+    m.restart(stamps[0], np.array([0.0, 0.0, positions[0]]))
+    for t, z in zip(stamps[1:], positions[1:]):
+        m.add_fix(t, np.array([0.0, 0.0, z]), std)
+    m.update_speed(stamps[-1])
+    return m
+
+
+def test_speed_fit_extrapolates_at_most_a_second_and_never_backwards() -> None:
+    fit = SpeedFit(t_ref=10.0, speed=2.0, acceleration=-1.0)
+    assert fit.at(10.5) == pytest.approx(1.5)
+    assert fit.at(30.0) == pytest.approx(1.0)       # clipped to 1 s of extrapolation
+    assert SpeedFit(0.0, 0.5, -5.0).at(1.0) == 0.0
+
+
+def test_honest_stamps_give_the_speed_and_a_small_length_std() -> None:
+    # 10 m/s, a fix every 0.1 s with consistent stamps
+    m = _model_with_fixes([0.0, 0.1, 0.2, 0.3, 0.4], [0.0, 1.0, 2.0, 3.0, 4.0])
+    assert m.speed == pytest.approx(10.0, rel=1e-6)
+    assert not m.stamps_doubted
+    motion = m.visual(VisualStep(np.eye(3), FORWARD, 0.5, 0.1))
+    assert np.allclose(motion.cur_from_prev.inverse().t, [0, 0, 1.0])
+    assert _along_std(motion) < 0.25
+
+
+def test_stamps_that_lie_about_lost_frames_make_the_length_unsure() -> None:
+    # nominal 0.1 s stamps, but a frame was lost between the 2nd and 3rd fix (2 m in "0.1 s")
+    m = _model_with_fixes([0.0, 0.1, 0.2, 0.3, 0.4], [0.0, 1.0, 3.0, 4.0, 5.0])
+    assert m.stamps_doubted
+    assert m.scale_std >= DOUBTED_STAMPS_SCALE_STD
+    motion = m.visual(VisualStep(np.eye(3), FORWARD, 0.5, 0.1))
+    length = float(np.linalg.norm(motion.cur_from_prev.t))
+    # a step twice the predicted length is within 3 std
+    assert 2 * length - length <= 3 * _along_std(motion)
+
+
+def test_the_first_fixes_cannot_vouch_for_the_stamps() -> None:
+    m = _model_with_fixes([0.0, 0.1], [0.0, 1.0])
+    assert m.stamps_doubted
+    assert not _model_with_fixes([0.0, 0.1, 0.2, 0.3], [0.0, 1.0, 2.0, 3.0]).stamps_doubted
+
+
+def test_a_visual_step_the_constant_velocity_model_disputes_is_not_surer_than_the_dispute() -> None:
+    m = _model_with_fixes([0.0, 0.1, 0.2, 0.3, 0.4], [0.0, 1.0, 2.0, 3.0, 4.0])
+    weak = m.constant(Pose(np.eye(3), [0.0, 0.0, -1.0]), 0.1)             # 1 m forward again
+    sideways = np.array([np.sin(np.radians(60)), 0.0, np.cos(np.radians(60))])
+    visual = m.visual(VisualStep(np.eye(3), sideways, 0.5, 0.1))
+    disputed = m.disputed(visual, weak)
+    gap = np.linalg.norm(visual.cur_from_prev.inverse().t - weak.cur_from_prev.inverse().t)
+    assert np.linalg.eigvalsh(disputed.covariance[3:, 3:])[0] >= gap**2
+    # the dispute survives a new speed (visual steps are scaled again from their record)
+    assert disputed.visual is not None and disputed.visual.disputed_m == pytest.approx(gap)
+    again = m.visual(disputed.visual)
+    assert np.allclose(again.covariance, disputed.covariance)
+    # an agreeing step is left alone
+    ahead = m.visual(VisualStep(np.eye(3), FORWARD, 0.5, 0.1))
+    assert m.disputed(ahead, weak) is ahead
+
+
+def test_the_scale_doubt_grows_with_contradictions_and_forgets_them() -> None:
+    d = ScaleDoubt(0.1, window=4)
+    assert d.std == 0.1
+    d.observe(measured_m=2.0, predicted_m=1.0, std_m=0.05)
+    assert d.std == pytest.approx(0.95)
+    for _ in range(4):
+        d.observe(1.0, 1.0, 0.05)
+    assert d.std == 0.1
+    d.observe(1.04, 1.0, 0.05)       # within the measurement's own std: agreement
+    assert d.std == 0.1
+
+
+def test_without_a_speed_visual_odometry_has_no_length_and_a_wide_std() -> None:
+    m = MotionModel(SequenceConfig(max_speed_mps=10.0))
+    motion = m.visual(VisualStep(so3_exp(np.array([[0.0, 0.1, 0.0]]))[0], FORWARD, 0.1, 0.1))
+    assert np.allclose(motion.cur_from_prev.t, 0)
+    assert motion.covariance[5, 5] == pytest.approx(1.0)      # max_speed_mps · dt along the direction
+
+
+def test_odometry_motion_and_its_std_grow_with_distance_and_angle() -> None:
+    cfg = SequenceConfig()
+    m = MotionModel(cfg)
+    prev = Pose.identity()
+    cur = Pose(so3_exp(np.array([[0.0, 0.2, 0.0]]))[0], [0.0, 0.0, -2.0])
+    motion = m.odometry(cur, prev)
+    assert np.allclose((motion.cur_from_prev @ prev).matrix, cur.matrix)
+    along = cfg.odometry_translation_std * np.linalg.norm(cur.inverse().t) + cfg.odometry_min_std_m
+    assert np.sqrt(motion.covariance[5, 5]) == pytest.approx(along, rel=1e-6)
+    rot = cfg.odometry_rotation_std * 0.2 + np.radians(cfg.odometry_min_rotation_std_deg)
+    assert np.sqrt(motion.covariance[0, 0]) == pytest.approx(rot, rel=1e-6)
+
+
+def test_the_visual_odometry_model_is_set_in_one_place() -> None:
+    assert SequenceConfig(vo_model="planar").tracker.model == "planar"
+    with pytest.raises(InputError, match="vo_model"):
+        SequenceConfig(tracking=TrackerOptions(model="planar"))
