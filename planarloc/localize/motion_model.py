@@ -38,16 +38,18 @@ SPEED_FIXES = 4
 MAX_ACCELERATION, MAX_EXTRAPOLATION_S = 5.0, 1.0
 #: rotation std of the constant-velocity guess (degrees)
 CONSTANT_ROTATION_STD_DEG = 20.0
-#: two consecutive fix-to-fix speeds that differ by more than this fraction (beyond the fixes' own
-#: noise and ``MAX_ACCELERATION``) say that the stamp gaps are not the times between the frames
-STAMP_DOUBT_RATIO = 0.15
+#: fix-to-fix speeds whose second difference exceeds this fraction of the speed (beyond the fixes'
+#: noise) say that the stamp gaps are not the times between the frames
+STAMP_DOUBT_RATIO = 0.2
 #: the relative std of visual odometry's length while the stamps are in doubt: a lost frame under
 #: a nominal-rate stamp doubles a step's true length
 DOUBTED_STAMPS_SCALE_STD = 1.0
+#: the same before four fixes have shown that the stamp gaps are the times the camera moved
+UNVOUCHED_STAMPS_SCALE_STD = 0.5
 #: fix-to-fix speeds kept to judge the stamps
 SPEEDS_KEPT = 8
-#: a visual step's relative length std is at least this many times the fix-to-fix speeds'
-#: relative scatter about their line (a step is shorter than a fix-to-fix segment, and noisier)
+#: a visual step's relative length std is at least this many times the relative jumps between
+#: consecutive fix-to-fix speeds (a step is shorter than a fix-to-fix segment, and noisier)
 SCATTER_SCALE = 2.0
 #: stamps that lied once stay in doubt for this many accepted fixes (a driver that stamps at its
 #: nominal rate over lost frames does it again)
@@ -166,22 +168,26 @@ class MotionModel:
         self.fit: SpeedFit | None = None
         self.fixes: list[tuple[float, np.ndarray, float]] = []   # stamp, centre, position std
         self.doubt.reset()
-        self.stamps_doubted = True       # until three fixes have shown that stamp gaps are times
-        self.speed_scatter = 0.0         # relative scatter of the fix-to-fix speeds about their line
+        self.stamps_doubted = True       # until four fixes have shown that stamp gaps are times
+        self.speed_scatter = 0.0         # relative jumps between consecutive fix-to-fix speeds
+        self.recent_speed: float | None = None   # the largest of the recent fix-to-fix speeds
         self._doubted_fixes = 0
+        self._vouched = False
 
     @property
     def scale_std(self) -> float:
         """The relative std of a visual step's length now (module docstring)."""
         std = self.doubt.std if self.fit is not None else max(self.config.vo_first_scale_std, self.doubt.std)
         std = max(std, SCATTER_SCALE * self.speed_scatter)
-        return max(std, DOUBTED_STAMPS_SCALE_STD) if self.stamps_doubted else std
+        if self._doubted_fixes > 0:
+            return max(std, DOUBTED_STAMPS_SCALE_STD)
+        return std if self._vouched else max(std, UNVOUCHED_STAMPS_SCALE_STD)
 
     def restart(self, stamp: float, center: np.ndarray, keep_speed: bool = False) -> None:
         """A new start at a fix (the stream's first, or a confirmed kidnap's): its centre is the
         only one the speed is measured from; the last speed stays as a guess when ``keep_speed``."""
         self.fixes = [(stamp, np.asarray(center, dtype=float), 0.0)]
-        self.stamps_doubted = True
+        self.stamps_doubted = self._doubted_fixes > 0 or not self._vouched
         self.fit = None
         if not keep_speed:
             self.speed = None
@@ -194,19 +200,22 @@ class MotionModel:
             self._doubted_fixes = STAMP_DOUBT_FIXES
         else:
             self._doubted_fixes = max(self._doubted_fixes - 1, 0)
-        self.stamps_doubted = self._doubted_fixes > 0 or len(self.fixes) < 3
+        self._vouched = self._vouched or len(self.fixes) >= 4     # a restart does not change the camera
+        self.stamps_doubted = self._doubted_fixes > 0 or not self._vouched
 
     def _stamps_contradicted(self) -> bool:
-        """Whether two consecutive fix-to-fix speeds disagree beyond what the fixes' noise and a
-        physical acceleration explain (``STAMP_DOUBT_RATIO``): then a stamp gap is not the
-        time the camera moved (lost frames under nominal-rate stamps, invented stamps)."""
+        """Whether the fix-to-fix speeds zigzag: a speed that changes smoothly (accelerating,
+        braking) has second differences ``v₋ − 2v + v₊`` near zero, a stamp gap that is not the
+        time the camera moved (lost frames under nominal-rate stamps, invented stamps) makes one
+        segment fast and its neighbours slow. Contradicted when a second difference exceeds
+        ``STAMP_DOUBT_RATIO`` of the speed beyond the fixes' noise (a quarter of their reported
+        stds, which are several times their errors)."""
         fixes = sorted(self.fixes, key=lambda f: f[0])
-        seg = [(b[0] - a[0], float(np.linalg.norm(b[1] - a[1])), a[2] + b[2], (a[0] + b[0]) / 2)
+        seg = [(float(np.linalg.norm(b[1] - a[1])) / (b[0] - a[0]), (a[2] + b[2]) / (b[0] - a[0]))
                for a, b in pairwise(fixes) if b[0] > a[0]]
-        for (dt0, d0, n0, t0), (dt1, d1, n1, t1) in pairwise(seg):
-            v0, v1 = d0 / dt0, d1 / dt1
-            allowed = STAMP_DOUBT_RATIO * max(v0, v1) + n0 / dt0 + n1 / dt1 + MAX_ACCELERATION * (t1 - t0)
-            if abs(v1 - v0) > allowed:
+        for (v0, n0), (v1, n1), (v2, n2) in zip(seg, seg[1:], seg[2:]):
+            noise = (n0 + 2 * n1 + n2) / 4
+            if abs(v0 - 2 * v1 + v2) - noise > STAMP_DOUBT_RATIO * max(v0, v1, v2):
                 return True
         return False
 
@@ -236,14 +245,16 @@ class MotionModel:
             v_ref = float(np.average(v - accel * (t - t_ref), weights=w))
         old, self.fit = self.fit, SpeedFit(t_ref, max(v_ref, 0.0), accel)
         self.speed = self.fit.at(now)
-        # the fix-to-fix speeds' scatter about the line: a step's length is at least this unsure
+        # consecutive fix-to-fix speeds that differ beyond the fixes' noise: a step's length is at
+        # least this unsure (a smooth speed change hardly shows between two segments)
         speeds = sorted(self.fixes, key=lambda f: f[0])
-        segs = [((a[0] + b[0]) / 2, float(np.linalg.norm(b[1] - a[1])) / (b[0] - a[0]), (a[2] + b[2]) / (b[0] - a[0]))
+        segs = [(float(np.linalg.norm(b[1] - a[1])) / (b[0] - a[0]), (a[2] + b[2]) / (b[0] - a[0]))
                 for a, b in pairwise(speeds) if b[0] > a[0]]
-        if len(segs) >= 3:
-            excess = [max(abs(v - self.fit.at(t)) - noise, 0.0) for t, v, noise in segs]
-            mean_v = max(float(np.mean([v for _, v, _ in segs])), 1e-3)
-            self.speed_scatter = float(np.sqrt(np.mean(np.square(excess)))) / mean_v
+        self.recent_speed = max((v for v, _ in segs), default=self.speed)
+        if len(segs) >= 2:
+            jumps = [max(abs(v1 - v0) - n0 - n1, 0.0) for (v0, n0), (v1, n1) in pairwise(segs)]
+            mean_v = max(float(np.mean([v for v, _ in segs])), 1e-3)
+            self.speed_scatter = float(np.sqrt(np.mean(np.square(jumps)))) / mean_v
         return old != self.fit
 
     def first_speed(self, distance_m: float, dt: float) -> bool:
@@ -282,7 +293,9 @@ class MotionModel:
             dist, along = 0.0, cfg.max_speed_mps * step.dt
         else:
             dist = speed * step.dt
-            along = self.scale_std * dist + MAX_ACCELERATION * step.dt**2 / 2 + 0.05
+            # a robot at less than half its recent speed may be speeding up again (stop-and-go)
+            regain = max(0.5 * (self.recent_speed or 0.0) - speed, 0.0) * 2.0 * step.dt
+            along = self.scale_std * dist + regain + MAX_ACCELERATION * step.dt**2 / 2 + 0.05
         across = dist * np.radians(cfg.vo_direction_std_deg) + 0.02
         u = step.direction
         cov = displacement_covariance(u, along, across, np.radians(cfg.vo_rotation_std_deg))

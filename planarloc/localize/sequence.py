@@ -8,7 +8,7 @@ a :class:`SequenceEstimate` for every frame: a pose, its (6, 6) covariance and a
   frame, or the map points tracked into it), the motion since the last accepted fix was measured
   (wheel or visual odometry), the latest fix result was an acceptance, and its position std is
   at most ``SequenceConfig.localized_std_m``;
-- ``predicted``: a usable pose (position std at most ``SequenceConfig.lost_std_m``) carried by the
+- ``predicted``: a usable pose (position std at most ``SequenceConfig.max_pose_std_m``) carried by the
   motion model, with the uncertainty of what that model does not know
   (:mod:`planarloc.localize.motion_model`);
 - ``lost``: no pose yet, a pose too uncertain to use, a frame that cannot be tracked (black,
@@ -549,8 +549,9 @@ class SequenceLocalizer:
     def _status(self) -> FrameStatus:
         w = self._window
         pos_std, _ = covariance_stds(w.covariance)
-        if not len(w) or pos_std > self.config.lost_std_m or self._kidnap.doubt:
-            return FrameStatus.LOST  # never report a pose as usable beyond lost_std_m
+        usable_std = min(self.config.max_pose_std_m, self.config.lost_std_m)
+        if not len(w) or pos_std > usable_std or self._kidnap.doubt:
+            return FrameStatus.LOST  # never report a pose as usable beyond it
         anchor = w.last_fixed()
         current = len(w) - 1
         if (anchor is not None and self._latest_fix == "accepted" and pos_std <= self.config.localized_std_m

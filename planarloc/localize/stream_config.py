@@ -61,7 +61,11 @@ class SequenceConfig:
         tracking: the corner tracker's settings
             (:class:`~planarloc.localize.tracking.TrackerOptions`; its ``model`` is ``vo_model``).
         max_speed_mps: std of the distance per second while the speed is unknown.
-        lost_std_m: a frame whose position std (fused or predicted) is above this is ``lost``.
+        lost_std_m: a prediction with a position std above this is no guide: fixes go to global
+            retrieval, the frame waits for the fix in flight, and it is ``lost``.
+        max_pose_std_m: a frame whose position std (fused or predicted) is above this is
+            ``lost``: a pose that keeps its promise (within 3 std + 5 cm) is then at most 1.55 m
+            off, and the stds are conservative (the fixes' own are several times their errors).
         localized_std_m: a frame whose position std is above this is not ``localized`` (at most
             ``predicted``).
         kidnap_confirmations: consistent rejected fixes needed to re-initialise.
@@ -106,6 +110,7 @@ class SequenceConfig:
     tracking: TrackerOptions = TrackerOptions()
     max_speed_mps: float = 15.0
     lost_std_m: float = 1.0
+    max_pose_std_m: float = 1.0
     localized_std_m: float = 0.3
     kidnap_confirmations: int = 2
     frame_period_s: float = 0.1
@@ -135,7 +140,8 @@ class SequenceConfig:
                      "vo_direction_std_deg", "vo_rotation_std_deg", "vo_scale_std", "vo_first_scale_std",
                      "point_fix_min_std_m",
                      "point_fix_std_per_frame", "point_fix_rotation_std_deg",
-                     "max_speed_mps", "lost_std_m", "localized_std_m", "frame_period_s", "refix_radius_m"):
+                     "max_speed_mps", "lost_std_m", "max_pose_std_m", "localized_std_m", "frame_period_s",
+                     "refix_radius_m"):
             check_positive(f"SequenceConfig.{name}", getattr(self, name))
 
     @property
