@@ -3,6 +3,8 @@
 Conventions: see docs/conventions.md. Poses are ``cam_from_world`` (x_cam = R x_world + t).
 """
 
+# First, before any numba kernel is defined: numba's cache also on read-only installs.
+import planarloc.numerics.kernel_cache
 from planarloc.geometry import Camera, CameraModel, InputError, Pose
 from planarloc.robust.absolute_pose import estimate_absolute_pose
 from planarloc.robust.options import Method, RansacOptions, Structure

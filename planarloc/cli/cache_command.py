@@ -6,16 +6,25 @@ Three caches:
   settings; :func:`planarloc.map.settings.cache_dir`);
 - ``bags``: images unpacked from ROS bags (``--format rosbag`` without ``image_dir``);
 - ``kernels``: numba's compiled kernels (``*.nbi``/``*.nbc``, next to planarloc's modules, or
-  in ``NUMBA_CACHE_DIR``); `planarloc warmup` rebuilds them.
+  in ``NUMBA_CACHE_DIR``; on a read-only install also this user's folders:
+  :mod:`planarloc.numerics.kernel_cache`); `planarloc warmup` rebuilds them.
 
 ``clean`` removes ``maps`` and ``bags`` unless told which. A map that a running build holds
 (its writer lock) is skipped and named.
+
+The ``maps`` and ``bags`` folders are this user's (``<temp>/planarloc-<uid>/…``,
+:func:`planarloc.map.settings.cache_dir`): a folder of that name that is a symbolic link or
+another user's is refused, not cleaned. Cleaning never follows a symbolic link: a link found
+in a cache is removed as a link, its target is left alone, and folders are walked without
+entering linked ones. Kernels of a read-only install (its ``__pycache__``) are kept, and said so.
 """
 
 from __future__ import annotations
 
 import argparse
-import shutil
+import errno
+import os
+import stat
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -40,7 +49,16 @@ class CacheEntry:
 
     @property
     def size(self) -> int:
-        return sum(f.stat().st_size for f in self.files if f.is_file())
+        return sum(_lsize(f) for f in self.files)
+
+
+def _lsize(path: Path) -> int:
+    """Bytes of a regular file, 0 for anything else (a symbolic link counts as itself, never its target)."""
+    try:
+        st = os.lstat(path)
+    except OSError:
+        return 0
+    return st.st_size if stat.S_ISREG(st.st_mode) else 0
 
 
 def _kernel_files() -> tuple[list[Path], list[Path]]:
@@ -50,12 +68,28 @@ def _kernel_files() -> tuple[list[Path], list[Path]]:
     return kernel_cache_files()
 
 
+def _walk(folder: Path) -> tuple[list[Path], list[Path]]:
+    """``(entries, folders)`` below ``folder``: every file and symbolic link (never followed), and
+    every real subfolder, deepest first."""
+    entries, folders = [], []
+    for root, dirs, files in os.walk(folder, topdown=True, followlinks=False):
+        here = Path(root)
+        for d in dirs:
+            (folders if not (here / d).is_symlink() else entries).append(here / d)
+        entries += [here / f for f in files]
+    return sorted(entries), sorted(folders, key=lambda p: len(p.parts), reverse=True)
+
+
 def cache_entries() -> list[CacheEntry]:
-    """Every cache with its folders and files."""
+    """Every cache with its folders and files (this user's folders only; nothing is created).
+
+    Raises:
+        UnsafeFolderError: a cache folder is a symbolic link or another user's.
+    """
     out = []
     for kind, what in CACHES.items():
-        folder = cache_dir(kind)
-        files = sorted(p for p in folder.rglob("*") if p.is_file()) if folder.is_dir() else []
+        folder = cache_dir(kind, create=False)
+        files = _walk(folder)[0] if folder.is_dir() else []
         out.append(CacheEntry(kind, what, [folder], files))
     folders, files = _kernel_files()
     out.append(CacheEntry("kernels", KERNELS, folders, files))
@@ -102,33 +136,54 @@ def run_clean(args: argparse.Namespace) -> int:
     for e in cache_entries():
         if e.kind not in what:
             continue
-        removed, freed, busy = 0, 0, []
+        removed, freed, busy, kept = 0, 0, [], 0
         for f in e.files:
-            if e.kind == "maps":  # a map goes with its side files, under its writer lock
-                if f.suffix != ".db" or not f.is_file():
+            if e.kind == "maps":  # a map goes with its side files, under its writer lock; nothing else is touched
+                if f.suffix != ".db" or not _is_regular(f):
                     continue
-                group = [p for p in (f, *sidecars(f)) if p.is_file()]
+                group = [p for p in (f, *sidecars(f)) if os.path.lexists(p)]
                 try:
                     with MapWriterLock(f, timeout=0):
-                        size = sum(p.stat().st_size for p in group)
+                        size = sum(_lsize(p) for p in group)
                         for p in group:
                             p.unlink(missing_ok=True)
                 except MapBusyError:
                     busy.append(f)
                     continue
-            elif f.is_file():
-                size = f.stat().st_size
-                f.unlink(missing_ok=True)
+            elif os.path.lexists(f):
+                size = _lsize(f)
+                try:
+                    f.unlink()  # a symbolic link is removed as a link: its target is left alone
+                except FileNotFoundError:
+                    continue
+                except OSError as exc:
+                    if exc.errno not in (errno.EACCES, errno.EPERM, errno.EROFS):
+                        raise
+                    kept += 1  # e.g. the warm kernels of a read-only install
+                    continue
             else:
                 continue
             removed += 1
             freed += size
-        if e.kind == "bags":
+        if e.kind != "kernels":
             for folder in e.folders:
-                for d in sorted((d for d in folder.glob("*") if d.is_dir()), reverse=True):
-                    shutil.rmtree(d, ignore_errors=True)
+                if folder.is_dir():
+                    for d in _walk(folder)[1]:
+                        try:
+                            d.rmdir()
+                        except OSError:
+                            pass
         info(f"{e.kind:<8} {', '.join(str(f) for f in e.folders) or '-'}: removed {removed} "
              f"{'maps' if e.kind == 'maps' else 'files'}, {_size(freed)}")
         for f in busy:
             note(f"kept {f}: a map build holds it")
+        if kept:
+            note(f"kept {kept} {e.kind} files that you may not remove (e.g. the kernels of a read-only install)")
     return 0
+
+
+def _is_regular(path: Path) -> bool:
+    try:
+        return stat.S_ISREG(os.lstat(path).st_mode)
+    except OSError:
+        return False

@@ -3,8 +3,9 @@
 numba compiles a kernel on its first call and caches the machine code next to the module
 (``__pycache__/*.nbi, *.nbc``). Compiling planarloc's kernels takes about 170 s of CPU (kernels.json), so a
 fresh install or container would pay it on its first query; ``planarloc warmup`` at install or
-image-build time (``RUN planarloc warmup`` after ``pip install``) writes the cache once, and
-queries only load it.
+image-build time (``RUN planarloc warmup`` after ``pip install``, as root, before ``USER``) writes
+the cache once, and queries only load it, also as a user who cannot write the install
+(:mod:`planarloc.numerics.kernel_cache`; the repository's ``Dockerfile`` does this).
 
 How it compiles in parallel: ``kernels.json`` (next to this module) lists, for each warm-up step
 (:func:`warmup_steps`: a method with a structure mode on a small generated scene, the degeneracy
@@ -18,12 +19,15 @@ without the parallelism). After changing kernels, regenerate the list with
 ``python -m planarloc.cli.warmup_command --write-manifest``.
 
 The commands that estimate poses call :func:`compile_ahead`: when kernels of their method are
-not in the cache, they say so in one line on stderr and compile them the same way first.
+not in the cache, they say so in one line on stderr and compile them the same way first. A kernel
+list that cannot be read, or is not of its shape, fails ``warmup`` with one line naming the file;
+the other commands warn in one line and let the kernels compile on first use.
 """
 
 from __future__ import annotations
 
 import argparse
+import ast
 import dis
 import importlib
 import json
@@ -143,15 +147,57 @@ class Manifest:
         return sorted(seen)
 
 
-def load_manifest(path: Path = MANIFEST) -> Manifest:
-    """Read the kernel list; an unreadable one is empty (warm-up then runs the steps only)."""
+class ManifestError(ValueError):
+    """``kernels.json`` cannot be read, or is not the kernel list (names the file, one line)."""
+
+
+def _manifest_shape_problem(raw: object) -> str | None:
+    """What is wrong with the parsed ``kernels.json`` (its documented shape: ``{"kernels": {key:
+    {"signatures": [str, ...], "compile_s": number}}, "steps": {step: [key, ...]}}``), or None."""
+    if not isinstance(raw, dict):
+        return f"expected a JSON object, got {type(raw).__name__}"
+    kernels, steps = raw.get("kernels"), raw.get("steps")
+    if not isinstance(kernels, dict):
+        return f"'kernels' must be an object of kernel entries, got {type(kernels).__name__}"
+    if not isinstance(steps, dict):
+        return f"'steps' must be an object of kernel lists, got {type(steps).__name__}"
+    for key, entry in kernels.items():
+        if not isinstance(entry, dict):
+            return f"kernels[{key!r}] must be an object, got {type(entry).__name__}"
+        sigs, seconds = entry.get("signatures"), entry.get("compile_s")
+        if not isinstance(sigs, list) or not all(isinstance(x, str) for x in sigs):
+            return f"kernels[{key!r}].signatures must be a list of strings"
+        if isinstance(seconds, bool) or not isinstance(seconds, (int, float)):
+            return f"kernels[{key!r}].compile_s must be a number, got {seconds!r}"
+    for name, keys in steps.items():
+        if not isinstance(keys, list) or not all(isinstance(k, str) for k in keys):
+            return f"steps[{name!r}] must be a list of kernel names"
+    return None
+
+
+def load_manifest(path: Path | None = None) -> Manifest:
+    """Read the kernel list (default: :data:`MANIFEST`, next to this module).
+
+    Raises:
+        ManifestError: the file cannot be read, is not JSON, or is not of the kernel list's shape
+            (one line naming the file; ``python -m planarloc.cli.warmup_command --write-manifest``
+            writes it again).
+    """
+    path = MANIFEST if path is None else Path(path)
     try:
         raw = json.loads(path.read_text())
-        kernels = {k: Kernel(k, tuple(v["signatures"]), float(v["compile_s"])) for k, v in raw["kernels"].items()}
-        return Manifest(kernels, {s: list(ks) for s, ks in raw["steps"].items()})
-    except (OSError, ValueError, KeyError, TypeError) as exc:
-        logger.warning("%s: kernel list unreadable (%s); compiling without it", path, exc)
-        return Manifest()
+    except OSError as exc:
+        raise ManifestError(f"{path}: cannot read planarloc's kernel list ({exc.strerror or exc}); reinstall "
+                            "planarloc") from None
+    except ValueError as exc:
+        raise ManifestError(f"{path}: planarloc's kernel list is not JSON ({exc}); reinstall planarloc, or "
+                            "write it again with `python -m planarloc.cli.warmup_command --write-manifest`") from None
+    problem = _manifest_shape_problem(raw)
+    if problem is not None:
+        raise ManifestError(f"{path}: not planarloc's kernel list ({problem}); reinstall planarloc, or write it "
+                            "again with `python -m planarloc.cli.warmup_command --write-manifest`")
+    kernels = {k: Kernel(k, tuple(v["signatures"]), float(v["compile_s"])) for k, v in raw["kernels"].items()}
+    return Manifest(kernels, {s: list(ks) for s, ks in raw["steps"].items()})
 
 
 def _dispatcher(key: str):
@@ -177,10 +223,20 @@ def _numba_types() -> dict[str, object]:
     return names
 
 
+#: The expressions a signature in ``kernels.json`` may use: type names, calls and subscripts of them
+#: (``array(float64, 1d, C)``, ``Literal[int](0)``), constants and tuples; no operators or attributes.
+_SIGNATURE_NODES = (ast.Expression, ast.Tuple, ast.Name, ast.Call, ast.keyword, ast.Subscript, ast.Constant,
+                    ast.Load, ast.UnaryOp, ast.USub)
+
+
 def parse_signature(text: str, names: dict[str, object] | None = None) -> tuple | None:
     """The argument types of a signature written as ``repr(tuple_of_numba_types)``; None if it
-    does not parse (e.g. a literal type)."""
+    does not parse (e.g. a literal type) or is not made only of numba type names, calls, constants
+    and tuples (the list is data: it is never evaluated as code beyond that)."""
     try:
+        if not isinstance(text, str) or len(text) > 4000 or not all(
+                isinstance(n, _SIGNATURE_NODES) for n in ast.walk(ast.parse(text, mode="eval"))):
+            return None
         sig = eval(text, {"__builtins__": {}}, names or _numba_types())  # noqa: S307 - numba type names only
     except Exception:  # noqa: BLE001 - any failure: the kernel is compiled by the steps instead
         return None
@@ -212,6 +268,14 @@ def missing_kernels(keys: Iterable[str], manifest: Manifest) -> list[str]:
         logger.info("cannot inspect numba's cache (%s); kernels compile on first use", exc)
         return []
     return out
+
+
+def _kernels_persist(key: str) -> bool:
+    """Whether kernels compiled in worker processes would reach this one (through numba's cache)."""
+    from planarloc.numerics.kernel_cache import kernels_persist
+
+    d = _dispatcher(key)
+    return d is not None and kernels_persist(d._cache)
 
 
 def _direct_callees(d) -> set:
@@ -412,10 +476,18 @@ def estimated_seconds(keys: Sequence[str], manifest: Manifest, jobs: int) -> flo
 
 def compile_ahead(steps: Sequence[str], jobs: int | None = None) -> None:
     """Before a command estimates poses: if kernels of ``steps`` are not in numba's cache, say so
-    in one line on stderr and compile them on every core (:func:`compile_kernels`)."""
-    manifest = load_manifest()
+    in one line on stderr and compile them on every core (:func:`compile_kernels`).
+
+    Compiling ahead is only a speed-up: with a kernel list that cannot be read (one warning line)
+    or a cache that cannot keep kernels (a read-only install without a writable folder: the kernel
+    cache says so), nothing is done here and the kernels compile on first use."""
+    try:
+        manifest = load_manifest()
+    except ManifestError as exc:
+        logger.warning("%s; kernels compile on first use", exc)
+        return
     missing = missing_kernels(manifest.for_steps(steps), manifest)
-    if not missing:
+    if not missing or not _kernels_persist(missing[0]):
         return
     jobs = max(1, int(jobs or os.cpu_count() or 1))
     about = max(10, round(estimated_seconds(missing, manifest, jobs), -1))
@@ -445,8 +517,12 @@ def run(args: argparse.Namespace) -> int:
         raise ValueError(f"--jobs: expected an integer >= 1, got {args.jobs}")
     t0 = time.perf_counter()
     manifest = load_manifest()
+    missing = missing_kernels(manifest.kernels, manifest)
+    if missing and not _kernels_persist(missing[0]):
+        raise ValueError("nowhere to keep compiled kernels: planarloc's install is read-only here and neither HOME "
+                         "nor the temp folder is writable; run `planarloc warmup` where the install is writable "
+                         "(e.g. when the image is built, before USER), or set NUMBA_CACHE_DIR to a writable folder")
     with progress_bar() as update:
-        missing = missing_kernels(manifest.kernels, manifest)
         report = compile_kernels(missing, manifest, args.jobs, update)
         times = run_steps(update=update)
     compiled = f"{report.compiled} kernels compiled on {max(1, args.jobs or os.cpu_count() or 1)} cores" \
@@ -479,14 +555,18 @@ def _planarloc_dispatchers() -> dict[str, object]:
 def kernel_cache_files() -> tuple[list[Path], list[Path]]:
     """numba's cache folders of planarloc's kernels, and the index and data files (``*.nbi``,
     ``*.nbc``) of planarloc's modules in them."""
+    from planarloc.numerics.kernel_cache import cache_folders
+
     folders, files = set(), set()
     for d in _planarloc_dispatchers().values():
-        path = getattr(getattr(d, "_cache", None), "cache_path", None)
-        if path is None:  # not a cache=True kernel
+        cache = getattr(d, "_cache", None)
+        if not hasattr(cache, "_cache_file"):  # not a cache=True kernel
             continue
-        folders.add(Path(path))
         base = d.py_func.__module__.rpartition(".")[2]
-        files |= {f for f in Path(path).glob(f"{base}.*") if f.suffix in (".nbi", ".nbc")}
+        for path in cache_folders(cache):  # a read-only install: its __pycache__ and this user's folders
+            folders.add(Path(path))
+            files |= {f for f in Path(path).glob(f"{base}.*") if f.suffix in (".nbi", ".nbc") and f.is_file()
+                      and not f.is_symlink()}
     return sorted(folders), sorted(files)
 
 

@@ -5,7 +5,10 @@ Every command that writes files checks each output before it reads its first inp
 output that is also an input (``localize --map m.db --out m.db``) is refused, as is an output that
 is a folder (or a folder that is a file), one whose folder cannot be created or written, and —
 for results files — an existing file that is not a results file (a map, an image: see
-:func:`is_results_file`).
+:func:`is_results_file`). An existing planarloc map given as an output (``map build --out``,
+``evaluate --map``) may be read-only: whether it must be written is the map builder's decision,
+which reuses a map that already holds exactly those images without writing it, and otherwise says
+why it cannot (:func:`planarloc.map.builder.build_map`).
 
 Writing (:func:`write_file`, :func:`atomic_output`), by the kind of target (:func:`output_kind`):
 
@@ -33,6 +36,8 @@ import sys
 from collections.abc import Iterable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
+
+from planarloc.map.schema import has_map_header
 
 STDOUT = "-"
 #: Bytes of an existing file read to tell whether it is a results file.
@@ -116,6 +121,8 @@ def check_output_file(path: Path | None, option: str, inputs: Iterable[Path] = (
                               "'name qw qx qy qz tx ty tz'); it is kept: choose another path, or remove it first")
     if path.is_dir():
         raise OutputPathError(f"{option} {path}: is a folder; give a file path, e.g. {path / 'out'}")
+    if not results and path.is_file() and has_map_header(path):
+        return  # an existing map, maybe read-only: the map builder reuses it or says why not (module docstring)
     if path.exists() and not os.access(path, os.W_OK):
         raise OutputPathError(f"{option} {path}: the file is not writable; choose another path or fix its "
                               "permissions")

@@ -8,6 +8,11 @@ PID. A second writer waits (and is told which PID it waits for) or, with ``timeo
 fails with :class:`MapBusyError` naming that PID. The kernel drops the lock when the owner
 dies, so a crashed build never blocks the next one. The lock file is removed by its owner
 on release; a waiter that acquires an already removed file retries on the new one.
+
+The lock belongs to the file, not to the name it is given by: the map path is resolved first
+(symbolic links to the map or to a folder above it), so a build through a link and one through
+the real path take turns. The lock file itself is never followed if it is a symbolic link (one
+planted in a shared folder would otherwise make the writer truncate its target): that is an error.
 """
 
 from __future__ import annotations
@@ -33,9 +38,21 @@ class MapBusyError(InputError):
 
 
 def lock_path_of(map_path: Path) -> Path:
-    """The lock file of a map: ``.<name>.lock`` in the map's folder."""
-    map_path = Path(map_path)
+    """The lock file of a map: ``.<name>.lock`` in the folder of the file the path resolves to
+    (symbolic links followed; the map need not exist yet)."""
+    map_path = Path(os.path.realpath(map_path))
     return map_path.with_name(f".{map_path.name}.lock")
+
+
+def _open_lock(path: Path, flags: int) -> int:
+    """``os.open`` of a lock file that refuses a symbolic link in its place (ELOOP: one line)."""
+    try:
+        return os.open(path, flags | os.O_NOFOLLOW, 0o644)
+    except OSError as exc:
+        if exc.errno == errno.ELOOP:
+            raise OSError(errno.ELOOP, "the map's lock file is a symbolic link; planarloc does not follow it "
+                          "(remove it if no build runs)", str(path)) from None
+        raise
 
 
 def _read_owner(fd: int) -> str:
@@ -51,7 +68,7 @@ def writer_of(map_path: Path) -> str | None:
     """The PID (as text) of the process writing ``map_path`` now, or None when nobody holds its
     writer lock. It only looks: it neither takes the lock nor creates the lock file."""
     try:
-        fd = os.open(lock_path_of(map_path), os.O_RDONLY)
+        fd = _open_lock(lock_path_of(map_path), os.O_RDONLY)
     except FileNotFoundError:
         return None
     try:
@@ -104,7 +121,7 @@ class MapWriterLock:
         deadline = None if self.timeout is None else time.monotonic() + self.timeout
         told = False
         while True:
-            fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
+            fd = _open_lock(self.path, os.O_RDWR | os.O_CREAT)
             try:
                 fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
             except OSError as exc:
@@ -128,7 +145,7 @@ class MapWriterLock:
             # The previous owner may have removed the file between our open and our lock:
             # then we hold a lock on an orphan inode and must retry on the current file.
             try:
-                same = os.fstat(fd).st_ino == os.stat(self.path).st_ino
+                same = os.fstat(fd).st_ino == os.lstat(self.path).st_ino
             except FileNotFoundError:
                 same = False
             if not same:

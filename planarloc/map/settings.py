@@ -6,15 +6,16 @@ Mixing features of two configurations in one map would silently break matching, 
 into an existing map must use its settings; :func:`settings_mismatch_error` names the keys
 that differ. Queries are extracted with the map's features (:func:`feature_config_from_map`).
 
-Caches: :func:`cache_dir` names the folders (in the temp folder) where planarloc keeps what it can
-rebuild: ``evaluate``'s maps and the images it unpacks from ROS bags (``planarloc cache``).
+Caches: :func:`cache_dir` gives the folders where planarloc keeps what it can rebuild: ``evaluate``'s
+maps and the images it unpacks from ROS bags (``planarloc cache``). They are this user's, in the temp
+folder (``<temp>/planarloc-<uid>/<kind>``, mode 0700), and refused when another user could have
+aimed them (a symbolic link, another owner: :mod:`planarloc.numerics.user_folders`).
 """
 
 from __future__ import annotations
 
 import dataclasses
 import json
-import tempfile
 from collections.abc import Mapping
 from pathlib import Path
 
@@ -22,7 +23,7 @@ import numpy as np
 
 from planarloc.features.extract import FeatureConfig
 from planarloc.geometry.validation import InputError
-
+from planarloc.numerics.user_folders import user_temp_folder
 
 #: The caches planarloc keeps in the temp folder: what each holds.
 CACHES = {
@@ -31,11 +32,20 @@ CACHES = {
 }
 
 
-def cache_dir(kind: str) -> Path:
-    """The folder of one of :data:`CACHES`: ``<temp folder>/planarloc-<kind>`` (``TMPDIR``)."""
+def cache_dir(kind: str, create: bool = True) -> Path:
+    """The folder of one of :data:`CACHES`: ``<temp folder>/planarloc-<uid>/<kind>`` (``TMPDIR``),
+    this user's own: created with mode 0700 (unless ``create`` is False), and checked at every
+    level to be a real folder of this user's that others cannot write to.
+
+    Raises:
+        InputError: ``kind`` is not a cache.
+        UnsafeFolderError: the folder (or ``planarloc-<uid>``) is a symbolic link, another user's,
+            or writable by others (a PermissionError; it is never used then).
+        OSError: it cannot be created.
+    """
     if kind not in CACHES:
         raise InputError(f"cache: expected one of {', '.join(CACHES)}, got {kind!r}")
-    return Path(tempfile.gettempdir()) / f"planarloc-{kind}"
+    return user_temp_folder(kind, create=create)
 
 
 def canonical_json(config: Mapping[str, object]) -> str:

@@ -11,6 +11,9 @@ Reading is lazy: opening a map reads only its metadata, features are fetched per
 Durability: ``synchronous=NORMAL`` with WAL: a process crash never loses a committed image and
 never corrupts the map; a power failure may lose the last few commits but leaves it consistent.
 
+Opening checks the file's pages (SQLite ``quick_check``, :func:`_check_pages`), so a damaged file
+is refused at once rather than when a damaged row is read; `planarloc map check` checks every row.
+
 Writers take turns: opening for writing (``create``, ``open(mode="a")``) takes the map's
 :class:`~planarloc.map.lock.MapWriterLock` (a waiting writer is told the owner's PID) and holds it
 until :meth:`MapDatabase.close`. :meth:`MapDatabase.mark_complete` checkpoints the WAL and leaves
@@ -21,6 +24,7 @@ is still in WAL mode is opened ``immutable`` when its folder is read-only.
 from __future__ import annotations
 
 import datetime as dt
+import errno
 import hashlib
 import json
 import logging
@@ -86,6 +90,45 @@ from planarloc.map.settings import canonical_json, settings_mismatch_error
 logger = logging.getLogger(__name__)
 
 DEFAULT_CACHE_SIZE = 16
+
+
+#: Map files whose pages this process found sound: (device, inode, size, mtime, ctime, WAL size, WAL mtime).
+_PAGES_SOUND: set[tuple] = set()
+
+
+def _file_state(path: Path) -> tuple | None:
+    try:
+        st = os.stat(path)
+    except OSError:
+        return None
+    try:
+        wal = os.stat(path.with_name(path.name + "-wal"))
+        wal_state = (wal.st_size, wal.st_mtime_ns)
+    except OSError:
+        wal_state = (0, 0)
+    return (st.st_dev, st.st_ino, st.st_size, st.st_mtime_ns, st.st_ctime_ns, *wal_state)
+
+
+def _check_pages(conn: sqlite3.Connection, path: Path) -> None:
+    """Refuse a damaged map file at open: SQLite's ``PRAGMA quick_check`` reads every page once and
+    checks the b-trees, free lists and overflow chains (not the contents of blobs: their checksums
+    are checked when they are read, and `planarloc map check` checks every row). About 1 ms per MB
+    with the file in the page cache (60 ms for a 59 MB map); done once per process for an unchanged
+    file (its inode, size, modification and change times).
+
+    Raises:
+        MapCorruptError: a page is damaged (e.g. bytes overwritten in the middle of the file).
+    """
+    state = _file_state(path)
+    if state is not None and state in _PAGES_SOUND:
+        return
+    rows = conn.execute("PRAGMA quick_check(1)").fetchall()
+    if [r[0] for r in rows] != ["ok"]:
+        first = " ".join(str(rows[0][0]).split()) if rows else "no answer"
+        raise MapCorruptError(f"{path}: damaged map file (SQLite quick_check: {first}); run `planarloc map check "
+                              f"{path}` and rebuild the map")
+    if state is not None:
+        _PAGES_SOUND.add(state)
 
 
 class MapDatabase:
@@ -189,10 +232,11 @@ class MapDatabase:
     @classmethod
     def _create_locked(cls, path: Path, config_json: str, descriptor_encoding: str, storage: str, overwrite: bool,
                        cache_size: int, lock: MapWriterLock) -> MapDatabase:
+        given, path = path, Path(os.path.realpath(path))  # through a symbolic link: the file it names (the lock's)
         if path.exists():
             if not overwrite:
                 raise InputError(
-                    f"{path} already exists; open it with MapDatabase.open(path, mode='a') to append, "
+                    f"{given} already exists; open it with MapDatabase.open(path, mode='a') to append, "
                     "or pass overwrite=True to replace it"
                 )
             path.unlink()
@@ -231,7 +275,7 @@ class MapDatabase:
         finally:
             conn.close()
         os.replace(tmp, path)
-        return cls._open_locked(path, "a", cache_size, lock)
+        return cls._open_locked(given, "a", cache_size, lock)
 
     @classmethod
     def open(
@@ -272,8 +316,11 @@ class MapDatabase:
     def _open_locked(cls, path: Path, mode: str, cache_size: int, lock: MapWriterLock | None) -> MapDatabase:
         if not path.is_file():
             raise MapFormatError(f"{path}: no such map file (it was removed while waiting for its writer)")
+        if mode == "a" and not os.access(path, os.W_OK):  # SQLite would open it read-only and fail at a write
+            raise PermissionError(errno.EACCES, "the map file is read-only", str(path))
         conn = schema.open_connection(path, writable=mode == "a")
         with schema.closed_on_error(conn, path):
+            _check_pages(conn, path)
             if mode == "a":
                 conn.execute("PRAGMA journal_mode = WAL")
                 conn.execute("PRAGMA synchronous = NORMAL")

@@ -13,6 +13,11 @@ module                 holds
 ``cholesky``           Cholesky factor and solves of small symmetric positive-definite matrices
 ``null_space``         orthonormal null-space basis of a small wide matrix (Householder QR of
                        its transpose): the five-point and minimal 8-point linear steps
+``kernel_cache``       where numba keeps the compiled kernels, also on a read-only install (loads
+                       the install's warm cache, writes to a user folder or nowhere); imported
+                       by ``planarloc/__init__.py`` before any kernel is defined
+``user_folders``       this user's folder in the shared temp folder (``planarloc-<uid>``, mode
+                       0700, refused if a link or another user's), for the caches
 =====================  =========================================================================
 
 What is specific to one problem stays with its solver: the eigenvectors of Stewénius' action

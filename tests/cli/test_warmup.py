@@ -129,3 +129,73 @@ def test_bad_jobs_is_one_line(jobs: str, capsys: pytest.CaptureFixture[str]) -> 
 
     assert main(["warmup", "--jobs", jobs]) == 1
     assert capsys.readouterr().err.strip() == f"planarloc warmup: error: --jobs: expected an integer >= 1, got {jobs}"
+
+
+# ---- a damaged kernel list ------------------------------------------------------------------------------
+BAD_LISTS = {
+    "kernels a list": '{"kernels": [], "steps": {}}',
+    "not an object": "[1, 2]",
+    "signatures a number": '{"kernels": {"planarloc.geometry.mat3:dot": {"signatures": 3, "compile_s": 1}}, "steps": {}}',
+    "steps of numbers": '{"kernels": {}, "steps": {"solvers": [1]}}',
+    "not JSON": "{kernels",
+}
+
+
+@pytest.mark.parametrize("text", BAD_LISTS.values(), ids=BAD_LISTS.keys())
+def test_load_manifest_names_the_file_and_the_problem(text: str, tmp_path: Path) -> None:
+    from planarloc.cli.warmup_command import ManifestError
+
+    bad = tmp_path / "kernels.json"
+    bad.write_text(text)
+    with pytest.raises(ManifestError) as exc:
+        load_manifest(bad)
+    assert str(exc.value).startswith(f"{bad}: ") and "\n" not in str(exc.value)
+
+
+@pytest.fixture(scope="module")
+def bad_list_install(tiny_world: Path, tmp_path_factory: pytest.TempPathFactory):
+    """This package (with its kernel cache) copied, its kernels.json replaced by one of the wrong
+    shape, and a map of the tiny world."""
+    import shutil
+
+    import planarloc
+
+    root = tmp_path_factory.mktemp("badlist")
+    site = root / "site"
+    shutil.copytree(Path(planarloc.__file__).parent, site / "planarloc", ignore=shutil.ignore_patterns("*.pyc"))
+    env = {**os.environ, "PYTHONPATH": str(site)}
+    env.pop("NUMBA_CACHE_DIR", None)
+    built = subprocess.run([sys.executable, "-m", "planarloc.cli.main", "map", "build", tiny_world / "map", "-f", "tum",
+                            "--out", root / "map.db", "--vocabulary-size", "16"], env=env, capture_output=True,
+                           text=True, timeout=900, cwd=root)  # cwd: `python -m` puts it first on sys.path
+    assert built.returncode == 0, built.stderr
+    manifest = site / "planarloc" / "cli" / "kernels.json"
+    manifest.write_text(BAD_LISTS["kernels a list"])
+    return root, env, manifest
+
+
+def test_warmup_with_a_kernel_list_of_the_wrong_shape_is_one_line_naming_it(bad_list_install) -> None:
+    _root, env, manifest = bad_list_install
+    proc = subprocess.run([sys.executable, "-m", "planarloc.cli.main", "warmup"], env=env, capture_output=True,
+                          text=True, timeout=900, cwd=_root)
+    err = proc.stderr.strip().splitlines()
+    assert proc.returncode == 1 and len(err) == 1, proc.stderr
+    assert err[0].startswith(f"planarloc warmup: error: {manifest}: not planarloc's kernel list ('kernels' must be")
+
+
+def test_localize_goes_on_without_a_well_formed_kernel_list(bad_list_install, tiny_world: Path) -> None:
+    root, env, manifest = bad_list_install
+    query = sorted((tiny_world / "query" / "rgb").glob("*.png"))[0]
+    cam = (tiny_world / "query" / "camera.txt").read_text().splitlines()[-1]
+    proc = subprocess.run([sys.executable, "-m", "planarloc.cli.main", "localize", "--map", root / "map.db", query,
+                           "--camera", cam, "--out", "-"], env=env, capture_output=True, text=True, timeout=900,
+                          cwd=root)
+    assert proc.returncode == 0, proc.stderr
+    assert len([x for x in proc.stdout.splitlines() if len(x.split()) == 8]) == 1
+    warned = [x for x in proc.stderr.splitlines() if str(manifest) in x]
+    assert len(warned) == 1 and warned[0].startswith("WARNING") and "kernels compile on first use" in warned[0]
+
+
+@pytest.mark.parametrize("text", ["9**9**9**9", "().__class__.__mro__", "[x for x in ()]", "(float64,) * 10**12"])
+def test_a_signature_in_the_list_is_data_never_code(text: str) -> None:
+    assert parse_signature(text) is None  # returns at once: no operator, attribute or comprehension is evaluated

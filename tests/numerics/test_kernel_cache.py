@@ -1,0 +1,174 @@
+"""numba's kernel cache on a read-only install (planarloc.numerics.kernel_cache): another user loads the
+kernels compiled at build time without compiling, with or without a HOME; a kernel the install lacks
+goes to that user's temp folder, or stays in memory where nothing is writable, said in one line."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+import pytest
+from other_user import base_env, other_user, run_as, shared_folder
+
+import planarloc
+
+PACKAGE = Path(planarloc.__file__).parent
+#: Runs the CLI (or one kernel call, ``--kernel``) in-process and reports on stderr, as ``PROBE {json}``,
+#: what numba compiled (its ``numba:compile`` events) and how many kernels came from its cache.
+PROBE = '''
+import json, logging, sys
+from numba.core import event
+compiled = []
+class Recorder(event.Listener):
+    def on_start(self, ev):
+        d = ev.data["dispatcher"]
+        compiled.append(f"{d.py_func.__module__}:{d.py_func.__qualname__}")
+    def on_end(self, ev):
+        pass
+event.register("numba:compile", Recorder())
+import planarloc
+if sys.argv[1] == "--kernel":  # a signature no warm-up compiles
+    import numpy as np
+    from planarloc.geometry import mat3
+    logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    mat3.dot(np.ones(3, np.int16), np.ones(3, np.int16))
+    rc = 0
+else:
+    from planarloc.cli.main import main
+    rc = main(sys.argv[1:])
+from planarloc.cli.warmup_command import _planarloc_dispatchers
+hits = sum(sum(d.stats.cache_hits.values()) for d in _planarloc_dispatchers().values())
+print("PROBE " + json.dumps({"file": planarloc.__file__, "rc": rc, "compiled": compiled, "hits": hits}),
+      file=sys.stderr)
+'''
+
+
+@dataclass
+class Install:
+    root: Path
+    site: Path
+    probe: Path
+    localize: list[str]
+    user: object
+
+
+def _report(proc: subprocess.CompletedProcess) -> dict:
+    lines = [x for x in proc.stderr.splitlines() if x.startswith("PROBE ")]
+    assert proc.returncode == 0 and lines, f"exit {proc.returncode}; stderr:\n{proc.stderr[-3000:]}"
+    return json.loads(lines[-1][len("PROBE "):])
+
+
+def _files(folder: Path) -> set[str]:
+    return {str(p.relative_to(folder)) for p in folder.rglob("*")}
+
+
+def _cache_lines(proc: subprocess.CompletedProcess) -> list[str]:
+    return [x for x in proc.stderr.splitlines() if "planarloc.numerics.kernel_cache" in x]
+
+
+def _sticky(folder: Path) -> Path:
+    """A temp folder like /tmp: everyone may create files, only in their own names."""
+    folder.mkdir()
+    folder.chmod(0o1777)
+    return folder
+
+
+@pytest.fixture(scope="module")
+def install(tiny_world: Path):
+    """This package copied with its warm kernel cache into a folder other users can read, a map of
+    the tiny world built as root; the kernels the localize run needs warmed as root (the image
+    build), then the copy made read-only."""
+    user = other_user()
+    with shared_folder() as root:
+        site = root / "site"
+        shutil.copytree(PACKAGE, site / "planarloc", ignore=shutil.ignore_patterns("*.pyc", "*.tmp.*"))
+        world = root / "world"
+        shutil.copytree(tiny_world, world)
+        probe = root / "probe.py"
+        probe.write_text(PROBE)
+        env = base_env(PYTHONPATH=str(site))
+        built = subprocess.run([sys.executable, "-m", "planarloc.cli.main", "map", "build", world / "map", "-f", "tum",
+                                "--out", root / "map.db", "--vocabulary-size", "16"], env=env, capture_output=True,
+                               text=True, timeout=900, cwd=root)
+        assert built.returncode == 0, built.stderr
+        query = sorted((world / "query" / "rgb").glob("*.png"))[0]
+        cam = (world / "query" / "camera.txt").read_text().splitlines()[-1]
+        localize = ["localize", "--map", str(root / "map.db"), str(query), "--camera", cam, "--out", "-"]
+        warm = subprocess.run([sys.executable, probe, *localize], env=env, capture_output=True, text=True, timeout=900)
+        assert _report(warm)["file"] == str(site / "planarloc" / "__init__.py")  # the copy, not the checkout
+        subprocess.run(["chmod", "-R", "a-w", str(site)], check=True)
+        subprocess.run(["chmod", "-R", "a+rX", str(root)], check=True)
+        yield Install(root, site, probe, localize, user)
+
+
+@pytest.mark.parametrize("home", ["no HOME", "a writable HOME"])
+def test_localize_as_another_user_loads_the_read_only_warm_cache_and_compiles_nothing(install: Install,
+                                                                                       home: str) -> None:
+    tmp = _sticky(install.root / f"tmp-{home.replace(' ', '-')}")
+    env = base_env(PYTHONPATH=str(install.site), TMPDIR=str(tmp))
+    if home != "no HOME":
+        env["HOME"] = str(install.root / "home")
+        (install.root / "home").mkdir()
+        os.chown(install.root / "home", install.user.pw_uid, install.user.pw_gid)
+    before = _files(install.site)
+    proc = run_as(install.user, [sys.executable, install.probe, *install.localize], env=env)
+    report = _report(proc)
+    assert report["rc"] == 0 and report["file"] == str(install.site / "planarloc" / "__init__.py")
+    assert report["compiled"] == [] and report["hits"] > 20  # every kernel loaded from the install's cache
+    assert len([x for x in proc.stdout.splitlines() if len(x.split()) == 8]) == 1  # the pose
+    assert "for first use" not in proc.stderr and not _cache_lines(proc)
+    assert _files(install.site) == before and not list(tmp.iterdir())  # nothing written anywhere
+    if home != "no HOME":
+        assert not list((install.root / "home").iterdir())  # no ~/.cache/numba: the warm cache was enough
+
+
+def test_a_kernel_the_install_lacks_is_kept_in_the_users_temp_folder(install: Install) -> None:
+    tmp = _sticky(install.root / "tmp-missing-kernel")
+    env = base_env(PYTHONPATH=str(install.site), TMPDIR=str(tmp))
+    first = run_as(install.user, [sys.executable, install.probe, "--kernel"], env=env)
+    assert "planarloc.geometry.mat3:dot" in _report(first)["compiled"]
+    folder = tmp / f"planarloc-{install.user.pw_uid}"
+    lines = _cache_lines(first)
+    assert len(lines) == 1 and lines[0].startswith("WARNING") and f"cached in {folder / 'kernels'}" in lines[0]
+    st = folder.stat()
+    assert st.st_uid == install.user.pw_uid and st.st_mode & 0o777 == 0o700
+    assert list((folder / "kernels").rglob("mat3.dot-*.nbi"))
+    second = run_as(install.user, [sys.executable, install.probe, "--kernel"], env=env)
+    assert _report(second)["compiled"] == [] and not _cache_lines(second)  # loaded from there
+
+
+def test_where_nothing_is_writable_kernels_compile_in_memory_said_in_one_line(install: Install) -> None:
+    env = base_env(PYTHONPATH=str(install.site))  # no HOME, the temp folders read-only, cwd /
+    proc = run_as(install.user, [sys.executable, install.probe, "--kernel"], env=env, read_only_tmp=True)
+    assert "planarloc.geometry.mat3:dot" in _report(proc)["compiled"]
+    lines = _cache_lines(proc)
+    assert len(lines) == 1 and "stay in memory" in lines[0] and "NUMBA_CACHE_DIR" in lines[0], proc.stderr
+
+
+def test_a_temp_folder_of_that_name_made_by_someone_else_is_never_used(install: Install) -> None:
+    tmp = _sticky(install.root / "tmp-planted")
+    planted = tmp / f"planarloc-{install.user.pw_uid}"
+    (planted / "kernels").mkdir(parents=True)  # root's, 0755: made first by another user
+    env = base_env(PYTHONPATH=str(install.site), TMPDIR=str(tmp))
+    proc = run_as(install.user, [sys.executable, install.probe, "--kernel"], env=env)
+    assert "planarloc.geometry.mat3:dot" in _report(proc)["compiled"]
+    lines = _cache_lines(proc)
+    assert len(lines) == 1 and "stay in memory" in lines[0] and f"{planted} belongs to root" in lines[0]
+    assert not list((planted / "kernels").iterdir())
+
+
+def test_every_kernel_is_defined_after_the_cache_class_is_in_place() -> None:
+    code = ("import planarloc.cli.main, planarloc.localize.localizer\n"
+            "from planarloc.cli.warmup_command import _planarloc_dispatchers\n"
+            "from planarloc.numerics.kernel_cache import KernelCache\n"
+            "ds = _planarloc_dispatchers()\n"
+            "print(len(ds), sorted(k for k, d in ds.items() if type(d._cache) is not KernelCache))\n")
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr
+    count, others = proc.stdout.split(" ", 1)
+    assert int(count) > 50 and others.strip() == "[]"
