@@ -12,7 +12,7 @@ from planarloc.cli.commands import add_command
 from planarloc.cli.console import info, note, notify, progress_bar
 from planarloc.cli.warmup_command import compile_ahead, steps_for
 from planarloc.cli.cross_session import add_cross_session_args, read_map_and_queries
-from planarloc.cli.exit_codes import EVALUATE_RESUMES
+from planarloc.cli.exit_codes import EVALUATE_RESUMES, EXIT_PARTIAL
 from planarloc.cli.options import (
     add_dataset_args,
     add_feature_args,
@@ -42,7 +42,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         sub, "evaluate", "evaluate localization on posed data (map = every N-th frame, or cross-session --queries)",
         """Builds a map from the frames with index % N == 0 (cached, or --map), localizes every other frame
         and compares with its ground truth. Success thresholds are the paper's: 0.25 m/10°, 0.5 m/10°, 1.0
-        m/20°. A failed query counts as a failure. The table goes to stdout.
+        m/20°. A failed query counts as a failure. The table goes to stdout. Map images that cannot go into
+        the map (unreadable, truncated, of another size than their camera) are left out and listed, as by
+        `map build`, and the exit code is 3.
 
         Cross-session (map on Monday, localize on Friday; the paper's OpenLORIS protocol): give one or more
         map datasets and --queries QUERY_DATASET instead of --map-every. The JSON lists, per query, the map
@@ -96,16 +98,40 @@ def run(args: argparse.Namespace) -> int:
         check_output_file(path, option, image_paths)
     note(f"map: {len(map_images)} frames -> {map_path}; queries: {len(queries)} frames")
     compile_ahead(steps_for([config]))
+    left_out: list[tuple[str, str]] = []
     if args.sequential:
         with progress_bar() as update:
-            build_map(map_images, map_path, features, num_words=num_words, progress=update, notify=notify)
-        return evaluate_sequential(args, map_path, map_images, queries, config)
+            build_map(map_images, map_path, features, num_words=num_words, progress=update, notify=notify,
+                      skipped=_skipped(left_out))
+        return _left_out_exit(evaluate_sequential(args, map_path, map_images, queries, config), left_out,
+                              len(map_images))
     results, gravity = _build_and_localize(args, map_images, queries, map_path, features, num_words, config, pairs,
-                                           gravity)
+                                           gravity, left_out)
     method, structure = config_label(config)
     summary = summarize(results, method, structure, **extra, top_n=config.top_n, tilt=features.tilt,
                         query_gravity="truth" if args.gravity_from_truth else ("file" if gravity else "map"))
-    return _report(args, summary, results, map_images, map_path, title)
+    summary["map_images_left_out"] = [{"name": name, "reason": reason} for name, reason in left_out]
+    return _left_out_exit(_report(args, summary, results, map_images, map_path, title), left_out, len(map_images))
+
+
+def _skipped(left_out: list[tuple[str, str]]):
+    """``build_map``'s ``skipped``: collects the map images left out (and says so, as `map build`)."""
+    def skipped(image, reason: str) -> None:
+        left_out.append((image.name, reason))
+        note(f"image {image.name} left out of the map: {reason}")
+
+    return skipped
+
+
+def _left_out_exit(code: int, left_out: list[tuple[str, str]], total: int) -> int:
+    """The exit code, 3 when map images were left out (as `map build`), with their list."""
+    if not left_out:
+        return code
+    note(f"{len(left_out)} of {total} map images were left out of the map (fix or remove them, then re-run the same "
+         "command to add them):")
+    for name, reason in left_out:
+        note(f"  {name}: {reason}")
+    return max(code, EXIT_PARTIAL)
 
 
 def _check_options(args: argparse.Namespace) -> None:
@@ -130,13 +156,13 @@ def _check_outputs(args: argparse.Namespace, outputs: dict[str, Path | None]) ->
 
 def _build_and_localize(args: argparse.Namespace, map_images: list, queries: list, map_path: Path,
                         features: FeatureConfig, num_words: int, config: LocalizerConfig, pairs: dict | None,
-                        gravity: dict | None) -> tuple[list, dict | None]:
+                        gravity: dict | None, left_out: list[tuple[str, str]]) -> tuple[list, dict | None]:
     """Build (or resume) the map, then localize every query, here or on Ray; returns the results
-    and the query gravity used."""
+    and the query gravity used; the map images left out go to ``left_out`` (name, reason)."""
     outputs = EstimateOutputs(args.plot_matches, args.rerun)
     with closing(outputs), ray_session(args.ray) as ray_backend, progress_bar() as update:
         build_map(map_images, map_path, features, num_words=num_words, progress=update, notify=notify,
-                  mapper=ray_backend.map if ray_backend else None)
+                  mapper=ray_backend.map if ray_backend else None, skipped=_skipped(left_out))
         if args.gravity_from_truth:
             # the dataset's declared down direction, else the map's (estimated) gravity
             with MapDatabase.open(map_path) as db:

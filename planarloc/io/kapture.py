@@ -16,6 +16,9 @@ Layout of a dataset directory ``root``; all files are comma-separated, ``#`` sta
 An image's pose is the trajectory entry with the same timestamp and camera id, or, if the
 camera belongs to a rig, ``cam_from_world = cam_from_rig ∘ rig_from_world`` with the rig's
 entry at that timestamp. Records without a pose (e.g. query images) are skipped with a warning.
+Poses are never guessed, as in the ROS bag reader: trajectory entries that share a timestamp and
+device with different poses (or rig entries giving a rig's sensor two poses) are all dropped,
+each with a warning naming the file and line; an entry repeated with the same pose counts once.
 
 Gravity: the format does not define the world's up axis (``world_down`` is None): the map
 estimates it from its poses, or the user gives it with the dataset option ``up=``.
@@ -24,7 +27,10 @@ estimates it from its poses, or the user gives it with the dataset option ``up=`
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable, Hashable
 from pathlib import Path
+
+import numpy as np
 
 from planarloc.geometry.camera import Camera
 from planarloc.geometry.pose import Pose
@@ -47,13 +53,30 @@ def _timestamp_key(path: Path, lineno: int, token: str) -> int | float:
         return float(parse_floats(path, lineno, [token], "timestamp")[0])
 
 
-def _read_poses(path: Path, fields: str) -> dict[tuple[str, str], tuple[int, Pose]]:
-    """``{(key0, key1): (lineno, pose)}`` of a 9-field kapture pose file (trajectories, rigs)."""
-    poses: dict[tuple[str, str], tuple[int, Pose]] = {}
+#: Poses of one key closer than this (matrix entries) are the same pose given twice.
+SAME_POSE_TOL = 1e-9
+
+
+def _read_poses(path: Path, fields: str, key: Callable[[int, str, str], Hashable]) -> dict[Hashable, tuple[int, Pose]]:
+    """``{key(lineno, field0, field1): (lineno, pose)}`` of a 9-field kapture pose file
+    (trajectories, rigs). A key given on several lines with different poses is dropped, with a
+    warning per line (module docstring); with the same pose, its first line counts."""
+    lines: dict[Hashable, list[tuple[int, Pose]]] = {}
     for lineno, tokens in iter_data_lines(path, FORMAT, f"poses {fields}", sep=","):
         if len(tokens) != 9:
             raise FormatError(path, lineno, f"expected 9 fields {fields}, found {len(tokens)}")
-        poses[(tokens[0], tokens[1])] = (lineno, parse_pose_fields(path, lineno, tokens[2:], WXYZ_T, 3))
+        pose = parse_pose_fields(path, lineno, tokens[2:], WXYZ_T, 3)
+        lines.setdefault(key(lineno, tokens[0], tokens[1]), []).append((lineno, pose))
+    poses: dict[Hashable, tuple[int, Pose]] = {}
+    for k, given in lines.items():
+        first = given[0][1]
+        if all(np.allclose(first.matrix, pose.matrix, atol=SAME_POSE_TOL) for _, pose in given[1:]):
+            poses[k] = given[0]
+            continue
+        for lineno, _ in given:
+            others = ", ".join(str(n) for n, _ in given if n != lineno)
+            logger.warning("%s:%d: %s has different poses on line(s) %s; none of them is used",
+                           path, lineno, ", ".join(str(v) for v in k), others)
     return poses
 
 
@@ -98,14 +121,12 @@ def read_kapture(root: Path, *, timestamp_scale: float = 1.0, check_images: bool
             cameras[sensor_id] = camera_from_tokens(sensors_path, lineno, tokens, first_column=4)
         return cameras[sensor_id]
 
-    trajectories = {
-        (_timestamp_key(traj_path, ln, ts), dev): (ln, pose)
-        for (ts, dev), (ln, pose) in _read_poses(traj_path, POSE_FIELDS).items()
-    }
+    trajectories = _read_poses(traj_path, POSE_FIELDS,
+                               lambda ln, ts, dev: (_timestamp_key(traj_path, ln, ts), dev))
     cam_from_rig: dict[str, tuple[str, Pose]] = {}
     if rigs_path.is_file():
         for (rig, sensor), (_, pose) in _read_poses(
-            rigs_path, "'rig_id, sensor_id, qw, qx, qy, qz, tx, ty, tz'"
+            rigs_path, "'rig_id, sensor_id, qw, qx, qy, qz, tx, ty, tz'", lambda ln, rig, sensor: (rig, sensor)
         ).items():
             cam_from_rig[sensor] = (rig, pose)
 

@@ -6,7 +6,6 @@ by :mod:`planarloc.io.text` (one parser per text format).
 
 from __future__ import annotations
 
-import struct
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from pathlib import Path
@@ -146,18 +145,17 @@ def resolve_image(path: Path, lineno: int | None, image_root: Path, name: str, *
 
 
 def image_size(path: Path) -> tuple[int, int]:
-    """(width, height) of an image: from the PNG header if it is a PNG, else by decoding it."""
+    """(width, height) of an image from its header, never decoded
+    (:func:`planarloc.features.images.declared_size`; the pixel cap of every image path)."""
+    from planarloc.features.images import check_image_pixels, declared_size
+
     try:
-        with open(path, "rb") as f:
-            head = f.read(24)
+        data = Path(path).read_bytes()
     except OSError as exc:
         raise FormatError(path, None, f"cannot read image ({exc})") from None
-    if head[:8] == b"\x89PNG\r\n\x1a\n" and head[12:16] == b"IHDR":
-        width, height = struct.unpack(">II", head[16:24])
-        return int(width), int(height)
-    import cv2  # only for non-PNG images
-
-    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-    if img is None:
-        raise FormatError(path, None, "cannot decode image to determine its size (not an image file?)")
-    return int(img.shape[1]), int(img.shape[0])
+    try:
+        _fmt, width, height = declared_size(data)
+        check_image_pixels(width, height, str(path))
+    except InputError as exc:
+        raise FormatError(path, None, f"cannot determine the image size: {exc}") from None
+    return int(width), int(height)

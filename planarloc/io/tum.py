@@ -16,6 +16,9 @@ Layout of a sequence directory ``root``::
 Association: each rgb frame takes the ground-truth sample (and the depth frame) with the
 nearest timestamp if it is within ``max_dt`` seconds; frames without a pose are skipped (one
 warning with their count), frames without depth get ``depth_path = None``. No interpolation.
+Stamps are never guessed, as in the ROS bag reader: ground-truth lines that share a timestamp
+with different poses are all dropped, each with a warning naming the file and line (a frame at
+that time cannot be given the right one); lines repeating the same pose count once.
 
 Intrinsics, first that applies: ``camera=`` argument; ``tum_camera="fr1"|"fr2"|"fr3"``
 (TUM's published pinhole defaults for 640x480, distortion not included); ``camera.txt``; the
@@ -117,13 +120,46 @@ def read_timestamped_list(path: Path, fmt: str, purpose: str) -> list[_Entry]:
     return entries
 
 
-def read_tum_trajectory(path: Path, fmt: str = FORMAT) -> tuple[np.ndarray, list[Pose]]:
+#: Poses at one stamp closer than this (matrix entries) are the same pose given twice.
+SAME_POSE_TOL = 1e-9
+
+
+def distinct_stamps(path: Path, times: list[float], poses: list[Pose], linenos: list[int]
+                    ) -> tuple[list[float], list[Pose], list[int]]:
+    """The samples of a pose file without ambiguous stamps: samples sharing a stamp count once
+    if their poses agree, else all of them are dropped with a warning per line naming the file,
+    the line and the other lines (as :func:`planarloc.io.rosbag.distinct_samples` does for bags)."""
+    by_stamp: dict[float, list[int]] = {}
+    for i, t in enumerate(times):
+        by_stamp.setdefault(float(t), []).append(i)
+    keep = []
+    for t, idx in by_stamp.items():
+        if len(idx) == 1 or all(np.allclose(poses[idx[0]].matrix, poses[i].matrix, atol=SAME_POSE_TOL)
+                                for i in idx[1:]):
+            keep.append(idx[0])
+            continue
+        for i in idx:
+            others = ", ".join(str(linenos[j]) for j in idx if j != i)
+            logger.warning("%s:%d: timestamp %.9g has different poses on line(s) %s; none of them is used",
+                           path, linenos[i], t, others)
+    keep.sort()
+    return [times[i] for i in keep], [poses[i] for i in keep], [linenos[i] for i in keep]
+
+
+def read_tum_trajectory(path: Path, fmt: str = FORMAT, *, distinct: bool = False) -> tuple[np.ndarray, list[Pose]]:
     """A TUM trajectory file 'timestamp tx ty tz qx qy qz qw' (``to_world`` poses).
+
+    Args:
+        path: the file.
+        fmt: format name for messages.
+        distinct: drop the samples that share a timestamp with different poses, warning for each
+            (:func:`distinct_stamps`; for files whose poses are looked up by time); False: every
+            line, in order.
 
     Returns:
         (N,) timestamps and the N poses ``world_from_frame`` (x_world = R x_frame + t).
     """
-    times, poses = [], []
+    times, poses, linenos = [], [], []
     for lineno, tokens in iter_data_lines(path, fmt, "poses 'timestamp tx ty tz qx qy qz qw'"):
         if len(tokens) != 8:
             raise FormatError(
@@ -131,8 +167,13 @@ def read_tum_trajectory(path: Path, fmt: str = FORMAT) -> tuple[np.ndarray, list
             )
         times.append(float(parse_floats(path, lineno, tokens[:1], "timestamp in seconds")[0]))
         poses.append(parse_pose_fields(path, lineno, tokens[1:], T_XYZW, 2))
+        linenos.append(lineno)
     if not poses:
         raise FormatError(path, None, "expected poses 'timestamp tx ty tz qx qy qz qw', found none")
+    if distinct:
+        times, poses, _ = distinct_stamps(path, times, poses, linenos)
+        if not poses:
+            raise FormatError(path, None, "every timestamp has different poses on several lines; no pose is usable")
     return np.array(times), poses
 
 
@@ -215,7 +256,7 @@ def read_rgbd_sequence(root: Path, layout: RgbdLayout, camera: Camera, *, depth_
     depth_list, depth_dir = layout.depth_list, layout.depth_dir
     list_path = root / image_list
     entries = read_timestamped_list(list_path, fmt, "'timestamp filename' per colour image")
-    gt_times, world_from_body = read_tum_trajectory(root / pose_file, fmt)
+    gt_times, world_from_body = read_tum_trajectory(root / pose_file, fmt, distinct=True)
 
     depth_times: list[float] = []
     depth_paths: list[Path] = []

@@ -300,7 +300,8 @@ class Localizer:
         query_kp = np.concatenate([m[:, 0] for m in matches])
         angle = np.concatenate([np.where(p.partner >= 0, p.angle_deg, -1.0) for p in points])
         order = np.lexsort((-angle, query_kp))
-        first = np.r_[True, query_kp[order][1:] != query_kp[order][:-1]]
+        first = np.ones(len(order), dtype=bool)  # (no matches at all: nothing to keep)
+        first[1:] = query_kp[order][1:] != query_kp[order][:-1]
         keep = np.zeros(len(query_kp), dtype=bool)
         keep[order[first]] = True
         keep &= angle >= 0
@@ -354,6 +355,12 @@ class Localizer:
         unknown = [r for r in refs if r not in self._posed]
         if unknown:
             raise InputError(f"references not in the map: {unknown[:3]}{'...' if len(unknown) > 3 else ''}")
+        if len(features) < self.config.min_matches:  # a black, uniform or blurred frame: nothing to match
+            est = PoseEstimate(None, False, "too_few_matches",
+                               f"the image has {len(features)} features (a black, uniform or featureless frame): "
+                               "nothing to match with the map", [])
+            est.stats.add_time("retrieval", time.perf_counter() - t0)
+            return est, []
         t1 = time.perf_counter()
         pairs, used, (residual_px, focal_px) = self._pairs_and_map_residual(features, refs, camera)
         t2 = time.perf_counter()
@@ -390,6 +397,15 @@ class Localizer:
                 (x right, y down, z forward), e.g. an IMU's accelerometer reading negated
                 (it measures the reaction, i.e. up) and rotated into the camera frame; any
                 non-zero length. None: the query is assumed mounted like the map cameras.
+
+        Returns:
+            the estimate; a frame with nothing to match (black, uniform, featureless) is a failed
+            one with status ``"too_few_matches"`` and a message saying so.
+
+        Raises:
+            InputError: an empty, truncated, damaged or oversized image (over
+                :data:`~planarloc.features.images.MAX_IMAGE_PIXELS`), a camera of another size, a
+                bad gravity (:mod:`planarloc.localize.query`).
         """
         t0 = time.perf_counter()
         return self.localize_query(self.prepare(image, camera, gravity=gravity, references=references), t0)

@@ -8,7 +8,9 @@ arguments of :meth:`planarloc.localize.localizer.Localizer.prepare`, which build
 :func:`prepare_query`; the single-frame localizer and the stream localizer both take it.
 
 Every check raises :class:`~planarloc.geometry.validation.InputError` with one line naming the
-image: an unreadable or undecodable image, an image whose size differs from its camera's, a map
+image: an empty, unreadable, truncated or undecodable image, one declaring more pixels than
+:data:`planarloc.features.images.MAX_IMAGE_PIXELS` (refused from its header, before decoding, on
+every path: files, bytes, arrays), an image whose size differs from its camera's, a map
 with several cameras and no camera given, a bad gravity vector, references that are not in the
 map.
 """

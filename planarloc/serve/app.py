@@ -21,7 +21,8 @@ field, 404 unknown map, 408 body too slow, 409 a session frame out of order, 410
 that was evicted or lost, 413 over a limit, 415 not a multipart form / not a JPEG or PNG),
 503 + ``Retry-After`` for load and for what a retry can fix (overload, a worker that died, a map
 changed on disk), 500 for the server's faults (a damaged map, a bug: logged, the answer names no
-path or internals). With a token, ``/v1/*`` and ``/metrics`` need ``Authorization: Bearer <token>``.
+path or internals). With a token, ``/v1/*`` and ``/metrics`` need ``Authorization: Bearer <token>``
+(the scheme in any case, as RFC 7235 says: ``bearer``, ``BEARER``; the token exactly).
 
 Order of a localize request: token → body read within ``body_timeout_s`` and the limits
 (:mod:`planarloc.serve.form`) → map still the version the server started with
@@ -87,6 +88,18 @@ class PathScrubber:
         for p in self._paths:
             text = text.replace(p, "<server path>")
         return text
+
+
+def bearer_token_matches(authorization: str, token: str) -> bool:
+    """Whether an ``Authorization`` header value carries ``token`` with the Bearer scheme.
+
+    The scheme is case-insensitive and separated from the token by one or more spaces (RFC 7235,
+    section 2.1; RFC 6750, section 2.1); the token is compared exactly, in constant time.
+    """
+    scheme, _, credentials = authorization.strip(" ").partition(" ")
+    given = credentials.lstrip(" ")
+    scheme_ok = scheme.lower() == "bearer"
+    return hmac.compare_digest(given.encode("utf-8", "surrogateescape"), token.encode("utf-8")) and scheme_ok
 
 
 class Service:
@@ -270,17 +283,16 @@ def create_app(settings: ServeSettings):  # -> fastapi.FastAPI
         t0 = time.perf_counter()
         path = request.url.path
         endpoint = path if path in ENDPOINTS else "other"
-        if settings.token and endpoint in ("/v1/localize", "/v1/maps", "/metrics"):
-            auth = request.headers.get("authorization", "")
-            if not hmac.compare_digest(auth.encode(), f"Bearer {settings.token}".encode()):
-                metrics.rejected.labels("unauthorized").inc()
-                response = error(
-                    401,
-                    "missing or wrong bearer token (header 'Authorization: Bearer TOKEN')",
-                    {"WWW-Authenticate": "Bearer", "Connection": "close"},
-                )
-                metrics.observe(endpoint, 401, time.perf_counter() - t0)
-                return response
+        guarded = settings.token and endpoint in ("/v1/localize", "/v1/maps", "/metrics")
+        if guarded and not bearer_token_matches(request.headers.get("authorization", ""), settings.token):
+            metrics.rejected.labels("unauthorized").inc()
+            response = error(
+                401,
+                "missing or wrong bearer token (header 'Authorization: Bearer TOKEN')",
+                {"WWW-Authenticate": "Bearer", "Connection": "close"},
+            )
+            metrics.observe(endpoint, 401, time.perf_counter() - t0)
+            return response
         response = await call_next(request)
         metrics.observe(endpoint, response.status_code, time.perf_counter() - t0)
         return response

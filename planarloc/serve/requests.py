@@ -2,10 +2,12 @@
 
 Everything a client sends is checked here, before any CPU-heavy work: the map name (looked up in
 the configured maps, never used as a path), the image (JPEG or PNG by its signature, size limit,
-dimensions read from the header without decoding), the camera (``MODEL W H PARAMS...``, must fit
+dimensions read from the header without decoding, at most the pixels every image path takes:
+:data:`planarloc.features.images.MAX_IMAGE_PIXELS`), the camera (``MODEL W H PARAMS...``, must fit
 the image; optional: the map's camera when the map has one), gravity (``gx gy gz``, returned as a
 unit vector, as the CLI's ``--gravity``), method, structure and seed, and for a frame of a
-session (``session``, one stream per robot) its ``stamp`` (seconds, required) and ``odometry``
+session (``session``, one stream per robot) its ``stamp`` (seconds, required, at most
+:data:`MAX_STAMP_AHEAD_S` ahead of the server's clock) and ``odometry``
 (``tx ty tz qx qy qz qw``: the camera's pose in the odometry frame, the layout of a
 ``--odometry`` file line). The texts are parsed by :mod:`planarloc.io.text`, the parsers of the
 CLI and the file readers. A bad field raises :class:`RequestError` with an HTTP status (4xx) and a
@@ -16,11 +18,17 @@ from __future__ import annotations
 
 import re
 import sqlite3
+import time
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from planarloc.features.images import ImageFormatError, image_size_from_header
+from planarloc.features.images import (
+    ImageFormatError,
+    ImageTooLargeError,
+    check_image_pixels,
+    image_size_from_header,
+)
 from planarloc.geometry.camera import Camera
 from planarloc.geometry.pose import Pose
 from planarloc.geometry.validation import InputError
@@ -31,15 +39,20 @@ from planarloc.robust.options import Method, Structure
 
 #: Default upper bound of an uploaded image (bytes).
 DEFAULT_MAX_IMAGE_BYTES = 20 * 1024 * 1024
-#: Upper bound of the decoded image (pixels), against decompression bombs.
-MAX_IMAGE_PIXELS = 64 * 1024 * 1024
-MAP_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")
-SESSION = re.compile(r"^[\x21-\x7e]{1,128}$")
-SEED = re.compile(r"^[0-9]{1,18}$")
+# The pixel cap is the one of every image path (files, uploads, bags, the node):
+# planarloc.features.images.MAX_IMAGE_PIXELS; an upload is checked against it here first, from its header.
+# Patterns end with \Z: `$` also matches before a trailing newline ("robot-1\n" is not an id).
+MAP_NAME = re.compile(r"\A[A-Za-z0-9][A-Za-z0-9_.-]{0,63}\Z")
+SESSION = re.compile(r"\A[\x21-\x7e]{1,128}\Z")
+SEED = re.compile(r"\A[0-9]{1,18}\Z")
 #: A stamp in seconds: a decimal number as Python or C print it (no hex, underscores, nan or inf).
-STAMP = re.compile(r"^[+-]?([0-9]+\.?[0-9]*|\.[0-9]+)([eE][+-]?[0-9]{1,3})?$")
+STAMP = re.compile(r"\A[+-]?([0-9]+\.?[0-9]*|\.[0-9]+)([eE][+-]?[0-9]{1,3})?\Z")
 #: Largest stamp magnitude accepted (s): beyond ~3e4 years a float no longer resolves milliseconds.
 MAX_STAMP_S = 1e12
+#: How far a frame's stamp may be ahead of the server's clock (s): a stamp is a capture time,
+#: Unix time or a clock that started later (a simulation, a replay); one a day ahead or more was
+#: never taken yet (it would also hold its session's later frames off as out of order).
+MAX_STAMP_AHEAD_S = 86400.0
 FIELDS = ("image", "camera", "map", "gravity", "session", "stamp", "odometry", "method", "structure", "seed")
 
 
@@ -84,8 +97,10 @@ def classify_error(exc: BaseException, what: str = "request") -> RequestError | 
     if isinstance(exc, MapFormatError):
         return ServerFault("the map is damaged or unreadable on the server (logged there); the operator must check "
                            "it with `planarloc map check`", detail)
+    if isinstance(exc, ImageTooLargeError):
+        return RequestError(413, str(exc) if str(exc).startswith(f"{what}:") else f"{what}: {exc}")
     if isinstance(exc, InputError):
-        return RequestError(400, f"{what}: {exc}")
+        return RequestError(400, str(exc) if str(exc).startswith(f"{what}:") else f"{what}: {exc}")
     if isinstance(exc, (sqlite3.Error, OSError)):
         return ServerFault("the server cannot read its map (logged there)", detail)
     return ServerFault(f"internal error ({type(exc).__name__}, logged on the server)", detail)
@@ -190,12 +205,20 @@ def parse_gravity_field(text: str) -> tuple[float, float, float]:
         raise RequestError(400, f"gravity {text[:80]!r}: {exc}") from None
 
 
-def parse_stamp_field(text: str) -> float:
-    """A session frame's ``stamp``: seconds as a plain decimal number, else a 400."""
+def parse_stamp_field(text: str, now: float | None = None) -> float:
+    """A session frame's ``stamp``: seconds as a plain decimal number, not more than
+    :data:`MAX_STAMP_AHEAD_S` ahead of the server's clock ``now`` (default: ``time.time()``), else a 400."""
     text = text.strip()
     if len(text) > 40 or not STAMP.match(text) or not abs(float(text)) <= MAX_STAMP_S:
         raise RequestError(400, f"stamp: expected the frame's time in seconds (e.g. 1305031102.175), got {text[:40]!r}")
-    return float(text)
+    stamp = float(text)
+    now = time.time() if now is None else float(now)
+    if stamp > now + MAX_STAMP_AHEAD_S:
+        raise RequestError(400, f"stamp: {text[:40]} is {stamp - now:.3g} s ahead of the server's clock (Unix time "
+                                f"{now:.0f}); a frame's stamp is the time it was taken, in seconds (Unix time or a "
+                                f"clock started later), at most {MAX_STAMP_AHEAD_S:g} s ahead; the frame was not "
+                                "used and the session is unchanged")
+    return stamp
 
 
 def parse_odometry_field(text: str) -> Pose:
@@ -221,6 +244,7 @@ def parse_localize_request(
     filename: str | None,
     maps: MapSet,
     max_image_bytes: int = DEFAULT_MAX_IMAGE_BYTES,
+    now: float | None = None,
 ) -> LocalizeRequest:
     """Validate the fields of ``POST /v1/localize`` (module docstring).
 
@@ -230,6 +254,7 @@ def parse_localize_request(
         filename: the uploaded file's name (the record's ``name``; default ``"query"``).
         maps: the served maps.
         max_image_bytes: larger images are refused with 413.
+        now: the server's clock (Unix time; default ``time.time()``), for a stamp far ahead of it.
     """
     unknown = sorted(set(fields) - set(FIELDS))
     if unknown:
@@ -239,18 +264,22 @@ def parse_localize_request(
     map_name = maps.resolve(fields.get("map") or None)
     if image is None:
         raise RequestError(400, "image: missing (multipart file field 'image', a JPEG or PNG)")
+    if not image:
+        raise RequestError(400, "image: the file is empty (0 bytes); send a JPEG or PNG")
     if len(image) > max_image_bytes:
         raise RequestError(413, f"image: {len(image)} bytes is over the limit of {max_image_bytes} bytes")
     _fmt, w, h = image_size(image)
-    if w <= 0 or h <= 0 or w * h > MAX_IMAGE_PIXELS:
-        raise RequestError(413, f"image: {w}x{h} pixels is outside 1..{MAX_IMAGE_PIXELS} pixels")
+    try:
+        check_image_pixels(w, h, "image")
+    except ImageTooLargeError as exc:
+        raise RequestError(413, str(exc)) from None
     camera = parse_camera_field(fields["camera"]) if fields.get("camera") else None
     if camera is not None and (camera.width, camera.height) != (w, h):
         raise RequestError(400, f"camera: {camera.width}x{camera.height} does not fit the {w}x{h} image")
     session = fields.get("session") or None
     if session is not None and not SESSION.match(session):
         raise RequestError(400, "session: expected 1-128 printable ASCII characters without spaces")
-    stamp = parse_stamp_field(fields["stamp"]) if fields.get("stamp") else None
+    stamp = parse_stamp_field(fields["stamp"], now) if fields.get("stamp") else None
     odometry = parse_odometry_field(fields["odometry"]) if fields.get("odometry") else None
     if session is None and (stamp is not None or odometry is not None):
         raise RequestError(400, "stamp, odometry: only for a frame of a session (give the field session=ROBOT_ID)")

@@ -14,14 +14,20 @@ Two halves:
 - :class:`SessionTable`, in the server process: which sessions exist, which worker process
   holds each (a session lives in **one** worker, so its state stays in one process; new sessions
   go to the worker with the fewest), and the bounds: at most ``max_sessions`` sessions (a new one
-  evicts the least recently used idle one) and at most ``idle_s`` seconds without a frame.
-  A session that was evicted or lost (its worker died) answers its next request once with
-  **410** and the reason (:class:`SessionGone`); the request after that starts a new stream.
+  evicts the least recently used idle one) and at most ``idle_s`` seconds without an accepted
+  frame. Only frames the worker answered count as use: refused ones (4xx) neither keep a session
+  alive nor make it recently used, so a client that keeps sending frames the session refuses
+  cannot hold it. A session that was evicted or lost (its worker died) answers its next request
+  once with **410** and the reason (:class:`SessionGone`); the request after that starts a new
+  stream.
 - :class:`SessionStates`, in the worker: the session's localizer and its last stamp. Frames of
   one session are run one at a time in arrival order (one worker, one FIFO); a frame whose stamp
-  is not after the session's last is refused (409) and leaves the session unchanged, as does any
-  bad input (4xx). A server fault while running a frame closes the session (its next request
-  gets 410).
+  is not after the session's last, or more than :data:`MAX_FRAME_GAP_S` after it, is refused
+  (409) and leaves the session unchanged, as does any bad input (4xx; a stamp far ahead of the
+  server's clock is refused before the session is looked up,
+  :data:`~planarloc.serve.requests.MAX_STAMP_AHEAD_S`). A frame the stream cannot localize
+  (black, featureless) is answered with its failure status and the session goes on. A server
+  fault while running a frame closes the session (its next request gets 410).
 
 The Ray Serve deployment (:mod:`planarloc.serve.ray_serve`) uses both halves in one replica.
 """
@@ -45,6 +51,11 @@ logger = logging.getLogger(__name__)
 
 #: Forgotten sessions whose reason is kept for their next request, per allowed session (at least 256).
 TOMBSTONES_PER_SESSION = 4
+#: Largest stamp step from a session's last frame to its next (s). One stamped further ahead (a
+#: clock jump, a mistyped stamp) would make every later frame of the stream "out of order": it is
+#: refused and the session goes on; a robot whose clock really jumped starts a new session id (or
+#: its session is evicted after ``idle_s`` without an accepted frame).
+MAX_FRAME_GAP_S = 3600.0
 
 
 class SessionGone(RequestError):
@@ -65,7 +76,7 @@ class SessionEntry:
     settings: tuple
     slot: int
     generation: int
-    last_used: float
+    last_used: float  # when it was opened, or its last frame was answered (refused frames do not count)
     pending: int = 0  # frames admitted, not answered yet
     frames: int = 0  # frames answered
 
@@ -77,7 +88,7 @@ class SessionTable:
     Args:
         slots: worker processes (a session lives in one).
         max_sessions: sessions kept at once.
-        idle_s: seconds without a frame after which a session is evicted.
+        idle_s: seconds without an accepted frame after which a session is evicted.
         clock: monotonic seconds (tests).
     """
 
@@ -148,7 +159,6 @@ class SessionTable:
                 raise RequestError(409, f"session {req.session!r}: started on map {entry.map_name!r} with (method, "
                                         f"structure, seed) = {entry.settings}; a frame cannot change them (use "
                                         "another session id)")
-            self.entries.move_to_end(entry.id)
         else:
             if len(self.entries) >= self.max_sessions:
                 idle = [e for e in self.entries.values() if e.pending == 0]
@@ -166,15 +176,17 @@ class SessionTable:
             entry = SessionEntry(req.session, req.map_name, req.settings, slot, self._generation, self.clock())
             self.entries[entry.id] = entry
         entry.pending += 1
-        entry.last_used = self.clock()
         return entry
 
     def done(self, entry: SessionEntry, answered: bool) -> None:
-        """A frame of ``entry`` left the server (``answered``: the worker ran it)."""
+        """A frame of ``entry`` left the server (``answered``: the worker ran it). Only an answered
+        frame makes the session recently used (idle time, least recently used order)."""
         entry.pending -= 1
-        entry.last_used = self.clock()
         if answered:
             entry.frames += 1
+            entry.last_used = self.clock()
+            if self.entries.get(entry.id) is entry:
+                self.entries.move_to_end(entry.id)
 
     @property
     def count(self) -> int:
@@ -210,7 +222,7 @@ class SessionStates:
 
         Raises:
             RequestError: 4xx for bad input (the session is unchanged), 409 for a stamp that is
-                not after the session's last.
+                not after the session's last or more than :data:`MAX_FRAME_GAP_S` after it.
             ServerFault: a fault of the server (the session is dropped).
         """
         sid = str(req.session)
@@ -228,6 +240,11 @@ class SessionStates:
         if state.last_stamp is not None and not req.stamp > state.last_stamp:
             raise RequestError(409, f"stamp: {req.stamp!r} is not after the last frame of session {sid!r} "
                                     f"({state.last_stamp!r}); send the frames of a session in time order")
+        if state.last_stamp is not None and req.stamp - state.last_stamp > MAX_FRAME_GAP_S:
+            raise RequestError(409, f"stamp: {req.stamp!r} is {req.stamp - state.last_stamp:.6g} s after the last "
+                                    f"frame of session {sid!r} ({state.last_stamp!r}), more than "
+                                    f"{MAX_FRAME_GAP_S:g} s; the frame was not used and the session goes on (if "
+                                    "the robot's clock jumped, start a new session id)")
         extra = {} if req.gravity is None else {"gravity": req.gravity}
         try:
             estimate = state.sequence.step(req.image, req.camera, req.stamp, odometry=req.odometry, **extra)
