@@ -15,11 +15,12 @@ ROS 2 bag folder with ``metadata.yaml``, or a ``.db3`` / ``.mcap`` file inside o
   with the header stamp (the bag's receive time when the stamp is zero).
 - intrinsics, first that applies: the ``camera`` option (a Camera or a line
   ``'PINHOLE W H fx fy cx cy'``); the first ``sensor_msgs/CameraInfo`` of ``camera_info_topic``
-  (or of the bag's only CameraInfo topic). A CameraInfo becomes PINHOLE (no distortion),
-  OPENCV (``plumb_bob`` or ``rational_polynomial`` with k3..k6 = 0) or OPENCV_FISHEYE
-  (``equidistant`` or ``fisheye``: D = k1 k2 k3 k4, OpenCV's ``cv2.fisheye``); for an image topic
-  whose name contains ``rect`` the projection matrix P is used (rectified images have no
-  distortion).
+  (or of the bag's only CameraInfo topic), converted as the ROS 2 node converts a live one
+  (:func:`planarloc.io.ros_messages.camera_from_camera_info`): PINHOLE (no distortion), OPENCV
+  (``plumb_bob`` or ``rational_polynomial`` with k3..k6 = 0) or OPENCV_FISHEYE (``equidistant`` or
+  ``fisheye``: D = k1 k2 k3 k4, OpenCV's ``cv2.fisheye``, also with D = 0); for a rectified image
+  topic (a name part starting with ``rect``: ``image_rect``, ``image_rect_color``) the projection
+  matrix P is used (rectified images have no distortion).
 - poses, either ``pose_topic`` (``geometry_msgs/PoseStamped``, ``PoseWithCovarianceStamped`` or
   ``nav_msgs/Odometry``: the pose of a frame in the world, x_world = R x_frame + t), or the
   ``/tf`` + ``/tf_static`` chain from ``tf_parent`` (the world, e.g. ``map``) down to ``tf_child``.
@@ -56,12 +57,20 @@ from typing import Any
 import cv2
 import numpy as np
 
-from planarloc.features.images import ImageFormatError, image_size_from_header
-from planarloc.geometry.camera import Camera, CameraModel
+from planarloc.features.images import ImageFormatError, check_image_pixels, declared_size, image_size_from_header
+from planarloc.geometry.camera import Camera
 from planarloc.geometry.pose import Pose
 from planarloc.geometry.validation import InputError
 from planarloc.io.format_error import FormatError
 from planarloc.io.output import write_file
+from planarloc.io.ros_messages import (
+    camera_from_camera_info,
+    camera_info_fields,
+    frame_name,
+    pose_from_ros,
+    rectified_topic,
+    transform_edge,
+)
 from planarloc.io.text import T_XYZW, parse_camera, parse_pose, pose_from_numbers
 from planarloc.io.tum import associate_timestamps
 from planarloc.map.posed_image import PosedImage
@@ -91,9 +100,8 @@ _ENCODINGS = {
     "rgba8": (4, np.uint8, cv2.COLOR_RGBA2BGR),
 }
 _PNG = [cv2.IMWRITE_PNG_COMPRESSION, 1]
-#: CameraInfo distortion models: plumb_bob / rational_polynomial (OpenCV), equidistant / fisheye (cv2.fisheye).
-_RADTAN_MODELS = ("plumb_bob", "rational_polynomial")
-_FISHEYE_MODELS = ("equidistant", "fisheye")
+#: how to get past an unsupported CameraInfo in a bag
+_CAMERA_HINT = "use a rectified image topic or pass the option camera='OPENCV W H fx fy cx cy k1 k2 p1 p2'"
 
 
 def _is_depth_encoding(enc: str) -> bool:
@@ -169,17 +177,6 @@ def _stamp_ns(msg: Any, bag_ns: int) -> int:
     return ns if ns > 0 else int(bag_ns)
 
 
-def _frame(name: str) -> str:
-    return str(name).lstrip("/")
-
-
-def _pose_of(position: Any, orientation: Any) -> Pose:
-    q = np.array([orientation.w, orientation.x, orientation.y, orientation.z], dtype=float)
-    if not np.isfinite(q).all() or np.linalg.norm(q) < 1e-9:
-        raise InputError(f"invalid quaternion (w, x, y, z) = {q}")
-    return Pose.from_quat_wxyz(q, [position.x, position.y, position.z])
-
-
 def parse_transform(value: object, option: str) -> Pose:
     """``'x y z qx qy qz qw'`` (or 7 numbers): the child's pose in the parent frame -> ``parent_from_child``."""
     if isinstance(value, Pose):
@@ -200,36 +197,6 @@ def parse_camera_option(value: object) -> Camera:
         return parse_camera(value if isinstance(value, str) else "")
     except InputError as exc:
         raise InputError(f"camera={value!r}: {exc}") from None
-
-
-def camera_from_info(msg: Any, rectified: bool) -> Camera:
-    """A Camera from a ``sensor_msgs/CameraInfo`` (ROS 1 upper- or ROS 2 lower-case fields).
-
-    ``plumb_bob`` / ``rational_polynomial`` (D = k1 k2 p1 p2 [k3 [k4 k5 k6]]) become PINHOLE or
-    OPENCV (k3..k6 must be 0); ``equidistant`` / ``fisheye`` (D = k1 k2 k3 k4) become
-    OPENCV_FISHEYE; ``rectified``: the projection matrix P as a PINHOLE.
-    """
-    K = np.asarray(getattr(msg, "k", getattr(msg, "K", None)), dtype=float).reshape(3, 3)
-    P = np.asarray(getattr(msg, "p", getattr(msg, "P", None)), dtype=float).reshape(3, 4)
-    D = np.asarray(getattr(msg, "d", getattr(msg, "D", [])), dtype=float).reshape(-1)
-    w, h = int(msg.width), int(msg.height)
-    model = str(msg.distortion_model).strip().lower()
-    if rectified and P[0, 0] > 0:
-        return Camera.from_K(P[:, :3], w, h)
-    if model in _FISHEYE_MODELS:
-        if D.size < 4 or np.any(D[4:]):
-            raise InputError(f"CameraInfo distortion model {model!r} needs D = k1 k2 k3 k4, got {D.tolist()}")
-        (fx, _, cx), (_, fy, cy) = K[0], K[1]
-        return Camera("OPENCV_FISHEYE", w, h, (fx, fy, cx, cy, *D[:4]))
-    if D.size == 0 or not np.any(D):
-        return Camera.from_K(K, w, h)
-    if model in _RADTAN_MODELS and D.size >= 4 and not np.any(D[4:]):
-        return Camera.from_K(K, w, h, D[:4])
-    raise InputError(
-        f"CameraInfo distortion model {model!r} with D = {D.tolist()} is not supported (plumb_bob or "
-        "rational_polynomial with k3..k6 = 0, equidistant/fisheye with 4 coefficients); use a rectified image "
-        "topic or pass the option camera='OPENCV W H fx fy cx cy k1 k2 p1 p2'"
-    )
 
 
 def decode_image(msg: Any) -> np.ndarray:
@@ -334,8 +301,7 @@ class _TfBuffer:
 
     def add(self, msg: Any, static: bool, bag_ns: int = 0) -> None:
         for tf in msg.transforms:
-            parent, child = _frame(tf.header.frame_id), _frame(tf.child_frame_id)
-            pose = _pose_of(tf.transform.translation, tf.transform.rotation)
+            parent, child, pose = transform_edge(tf)
             if static:
                 if child in self.static and not _same_pose(self.static[child][1], pose):
                     logger.warning("/tf_static: %s -> %s is published twice with different transforms; the later "
@@ -484,15 +450,15 @@ def _read_bag(
                         name += "_"
                     names.add(name)
                     path = _store_image(out_dir, name, msg, conn.msgtype)
-                    pending.append((str(path.relative_to(out_dir)), path, index, ns, _frame(msg.header.frame_id)))
+                    pending.append((str(path.relative_to(out_dir)), path, index, ns, frame_name(msg.header.frame_id)))
                 elif conn.topic == info_topic and cam is None:
-                    cam = camera_from_info(msg, "rect" in img_topic)
+                    cam = camera_from_camera_info(msg, rectified_topic(img_topic), _CAMERA_HINT)
                 elif conn.topic == pose_topic:
                     p = msg.pose if conn.msgtype == POSE_STAMPED else msg.pose.pose
-                    poses.append(_pose_of(p.position, p.orientation))
+                    poses.append(pose_from_ros(p.position, p.orientation))
                     pose_times.append(ns * 1e-9)
                     if conn.msgtype == ODOMETRY:
-                        pose_frame = _frame(msg.child_frame_id)
+                        pose_frame = frame_name(msg.child_frame_id)
                 elif conn.msgtype == TF_MESSAGE:
                     tf.add(msg, conn.topic == "/tf_static", bag_ns)
             except InputError as exc:
@@ -504,13 +470,15 @@ def _read_bag(
     images = [BagImage(name, path, cam, index, ns * 1e-9, frame) for name, path, index, ns, frame in pending]
     if not images:
         raise FormatError(root, None, f"expected messages on {img_topic}, found none")
-    first = cv2.imread(str(images[0].path), cv2.IMREAD_UNCHANGED)
-    if first is None:
+    try:  # the size from the header: nothing is decoded here (the pixel cap of every image path)
+        _fmt, width, height = declared_size(Path(images[0].path).read_bytes())
+        check_image_pixels(width, height, f"{images[0].path}")
+    except (InputError, OSError) as exc:
         raise FormatError(root, None, f"{at_stamp(img_topic, pending[0][3])}: cannot decode the first image "
-                                      f"({images[0].path})")
-    if (first.shape[1], first.shape[0]) != (images[0].camera.width, images[0].camera.height):
+                                      f"({images[0].path}): {exc}") from None
+    if (width, height) != (images[0].camera.width, images[0].camera.height):
         raise FormatError(
-            root, None, f"{img_topic}: images are {first.shape[1]}x{first.shape[0]} but the camera is "
+            root, None, f"{img_topic}: images are {width}x{height} but the camera is "
             f"{images[0].camera.width}x{images[0].camera.height}; check camera_info_topic / camera"
         )
     return _BagContent(img_topic, images, pose_times, poses, pose_frame, tf)
@@ -526,10 +494,11 @@ def _store_image(out_dir: Path, name: str, msg: Any, msgtype: str) -> Path:
                              "image topic with image_topic=TOPIC")
         data = bytes(msg.data)
         try:
-            kind, _w, _h = image_size_from_header(data)
+            kind, w, h = image_size_from_header(data)
         except ImageFormatError as exc:
             raise InputError(f"the CompressedImage data ({msg.format!r}, {len(data)} bytes) is not a readable JPEG or "
                              f"PNG: {exc}") from None
+        check_image_pixels(w, h, f"the CompressedImage data ({msg.format!r}, {len(data)} bytes)")
         path = out_dir / (name + (".png" if kind == "png" else ".jpg"))
         if not path.is_file():
             write_file(path, data)
@@ -637,8 +606,8 @@ def read_rosbag(
         world_from_posed = [poses[i] if i >= 0 else None for i in idx]
         posed_frame = content.pose_frame
     else:
-        world_from_posed = content.tf.poses_at(_frame(tf_parent), _frame(tf_child), times, float(max_dt), root)
-        posed_frame = _frame(tf_child)
+        world_from_posed = content.tf.poses_at(frame_name(tf_parent), frame_name(tf_child), times, float(max_dt), root)
+        posed_frame = frame_name(tf_child)
     extrinsic = base_from_camera
     if extrinsic is None and posed_frame:
         image_frame = images[0].frame_id
@@ -707,7 +676,8 @@ def write_rosbag(
         compressed: write ``sensor_msgs/CompressedImage`` (the image files' PNG/JPEG bytes)
             instead of ``sensor_msgs/Image`` (mono8 or bgr8).
         image_topic, camera_info_topic: image and CameraInfo topics (CameraInfo skipped if None;
-            the distortion model of :func:`camera_info_distortion`, every camera model).
+            the distortion model of :func:`planarloc.io.ros_messages.camera_info_distortion`, every camera
+            model).
         pose_topic, pose_message: topic and type (``PoseStamped``, ``PoseWithCovarianceStamped``,
             ``Odometry``) of the poses, or ``"tf"``: the poses go to ``/tf`` as
             ``world_frame -> base_frame`` (``pose_topic`` unused).
@@ -827,26 +797,13 @@ def _stamp_of(im: PosedImage) -> int:
     return int(round(float(t) * 1e9))
 
 
-def camera_info_distortion(cam: Camera) -> tuple[str, np.ndarray]:
-    """``(distortion_model, D)`` of a CameraInfo for a camera: ``plumb_bob`` with
-    ``k1 k2 p1 p2 k3`` (k3 = 0) for the pinhole, radial and OPENCV models, ``equidistant`` with
-    ``k1 k2 k3 k4`` for OPENCV_FISHEYE (what :func:`camera_from_info` reads back)."""
-    if cam.model == CameraModel.OPENCV_FISHEYE:
-        return "equidistant", np.asarray(cam.distortion, dtype=float).reshape(4)
-    return "plumb_bob", np.concatenate([np.asarray(cam.distortion, dtype=float).reshape(4), np.zeros(1)])
-
-
 def _camera_info_msg(T: Any, header: Any, cam: Camera, ros1: bool) -> Any:
-    fx, fy = cam.focal
-    cx, cy = cam.principal_point
-    K = np.array([fx, 0, cx, 0, fy, cy, 0, 0, 1], dtype=float)
-    P = np.array([fx, 0, cx, 0, 0, fy, cy, 0, 0, 0, 1, 0], dtype=float)
-    model, D = camera_info_distortion(cam)
+    """A rosbags CameraInfo of ``cam`` (:func:`planarloc.io.ros_messages.camera_info_fields`)."""
+    info = camera_info_fields(cam)
     roi = T["sensor_msgs/msg/RegionOfInterest"](x_offset=0, y_offset=0, height=0, width=0, do_rectify=False)
-    fields = {"D": D, "K": K, "R": np.eye(3).reshape(-1), "P": P} if ros1 else \
-        {"d": D, "k": K, "r": np.eye(3).reshape(-1), "p": P}
-    return T[CAMERA_INFO](header=header, height=cam.height, width=cam.width, distortion_model=model,
-                          binning_x=0, binning_y=0, roi=roi, **fields)
+    arrays = {(k.upper() if ros1 else k): np.asarray(info[k], dtype=float) for k in ("d", "k", "r", "p")}
+    return T[CAMERA_INFO](header=header, height=info["height"], width=info["width"],
+                          distortion_model=info["distortion_model"], binning_x=0, binning_y=0, roi=roi, **arrays)
 
 
 def _open_writer(out: Path, storage: str, ts: Any) -> tuple[Any, Any]:

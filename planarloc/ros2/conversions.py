@@ -1,12 +1,17 @@
-"""Between ROS 2 messages and planarloc: cameras, poses, covariances, odometry and transforms.
+"""Between ROS 2 messages and planarloc: the node's frames, covariances, odometry and transforms.
 
 Nothing here imports rclpy: the functions take and return plain values (message objects are
-read by their fields), so they are tested without a ROS installation.
+read by their fields), so they are tested without a ROS installation. The message conversions
+shared with ROS bags (CameraInfo, poses, transforms, stamps) are :mod:`planarloc.io.ros_messages`'s,
+imported here.
 
 Frames and conventions (``b_from_a`` maps points of ``a`` to ``b``, docs/conventions.md):
 
 - a ROS transform or pose of ``child`` in ``parent`` is ``parent_from_child``;
 - ``/planarloc/pose`` is ``map_from_base`` (or ``map_from_camera`` without base → camera);
+- ``map`` is z-up (REP-103/105) by default: ``map_from_world`` (:func:`map_from_world_from_gravity`)
+  is the rotation from the map's world (the frame of its poses, e.g. KITTI's first camera, y
+  down) that puts the map's gravity along −z; ``x_map = R · x_world``, no translation;
 - ROS covariances of a ``PoseWithCovariance`` are row-major 6×6 over ``(x, y, z, roll, pitch, yaw)``:
   the position in the parent frame and a **rotation vector about the parent's fixed axes**
   (``parent_from_child' = (Exp(φ) R, p + δp)``), the convention of ``geometry_msgs`` ("fixed-axis
@@ -18,86 +23,21 @@ from __future__ import annotations
 import bisect
 from collections.abc import Iterable
 from dataclasses import dataclass, field
-from typing import Any
 
 import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
-from planarloc.geometry.camera import Camera
 from planarloc.geometry.epipolar import skew
 from planarloc.geometry.pose import Pose
-from planarloc.geometry.validation import InputError
-from planarloc.io.rosbag import camera_from_info
-
-#: CameraInfo distortion models taken (sensor_msgs/distortion_models.hpp names)
-PLUMB_BOB, RATIONAL_POLYNOMIAL, EQUIDISTANT = "plumb_bob", "rational_polynomial", "equidistant"
-
-
-def camera_from_camera_info(msg: Any, rectified: bool = False) -> Camera:
-    """A :class:`Camera` from a ``sensor_msgs/CameraInfo``.
-
-    ``plumb_bob`` (and ``rational_polynomial`` with k3..k6 = 0) → ``OPENCV`` (``PINHOLE`` without
-    distortion), ``equidistant`` → ``OPENCV_FISHEYE`` (``D = (k1, k2, k3, k4)``, OpenCV's
-    ``cv2.fisheye``, as ROS' image_pipeline). ``rectified`` (an ``image_rect`` topic): the projection
-    matrix ``P``, no distortion.
-
-    Raises:
-        InputError: another distortion model, or coefficients the models above do not have.
-    """
-    model = str(getattr(msg, "distortion_model", "")).strip().lower()
-    D = np.asarray(getattr(msg, "d", []), dtype=float).reshape(-1)
-    if model == EQUIDISTANT and not rectified:  # a fisheye projection even with D = 0
-        if D.size not in (0, 4):
-            raise InputError(f"CameraInfo: the equidistant model takes 4 coefficients (k1 k2 k3 k4), got {D.size}")
-        K = np.asarray(msg.k, dtype=float).reshape(3, 3)
-        return Camera("OPENCV_FISHEYE", int(msg.width), int(msg.height),
-                      (K[0, 0], K[1, 1], K[0, 2], K[1, 2], *(D if D.size else np.zeros(4))))
-    if model == RATIONAL_POLYNOMIAL and D.size >= 5 and not np.any(D[4:]):
-        model = PLUMB_BOB
-    if model not in ("", PLUMB_BOB) and np.any(D) and not rectified:
-        raise InputError(f"CameraInfo distortion model {model!r} is not supported (plumb_bob, equidistant, or "
-                         "rational_polynomial with k3..k6 = 0); use a rectified image topic")
-    return camera_from_info(msg if str(msg.distortion_model) == PLUMB_BOB else _PlumbBob(msg), rectified)
-
-
-@dataclass(frozen=True)
-class _PlumbBob:
-    """A CameraInfo whose zero or dropped coefficients read as plumb_bob."""
-
-    msg: Any
-
-    def __getattr__(self, name: str) -> Any:
-        return PLUMB_BOB if name == "distortion_model" else getattr(self.msg, name)
-
-
-def stamp_seconds(stamp: Any) -> float:
-    """A ``builtin_interfaces/Time`` in seconds."""
-    return int(stamp.sec) + int(stamp.nanosec) * 1e-9
-
-
-def stamp_parts(seconds: float) -> tuple[int, int]:
-    """``(sec, nanosec)`` of a time in seconds (for a ``builtin_interfaces/Time``)."""
-    ns = int(round(seconds * 1e9))
-    return ns // 1_000_000_000, ns % 1_000_000_000
-
-
-def pose_from_ros(position: Any, orientation: Any) -> Pose:
-    """``parent_from_child`` from a ROS position/translation and quaternion (x, y, z, w fields).
-
-    Raises:
-        InputError: a zero or non-finite quaternion.
-    """
-    q = np.array([orientation.w, orientation.x, orientation.y, orientation.z], dtype=float)
-    if not np.isfinite(q).all() or np.linalg.norm(q) < 1e-9:
-        raise InputError(f"invalid quaternion (w, x, y, z) = {q.tolist()}")
-    return Pose.from_quat_wxyz(q, [position.x, position.y, position.z])
-
-
-def ros_from_pose(pose: Pose) -> tuple[tuple[float, float, float], tuple[float, float, float, float]]:
-    """``((x, y, z), (qx, qy, qz, qw))`` of ``parent_from_child``: the child's origin in the
-    parent and its orientation, as a ROS pose or transform holds them."""
-    w, x, y, z = (float(v) for v in pose.quat_wxyz)
-    return (float(pose.t[0]), float(pose.t[1]), float(pose.t[2])), (x, y, z, w)
+from planarloc.io.ros_messages import (  # noqa: F401  (the node's message conversions: one layer, in io)
+    camera_from_camera_info,
+    pose_from_ros,
+    ros_from_pose,
+    stamp_parts,
+    stamp_seconds,
+    transform_edge,
+)
+from planarloc.robust.pair_matches import unit_gravity
 
 
 def ros_covariance_of_child(parent_from_frame: Pose, covariance: np.ndarray, frame_from_child: Pose) -> np.ndarray:
@@ -112,6 +52,80 @@ def ros_covariance_of_child(parent_from_frame: Pose, covariance: np.ndarray, fra
     J[:3, 3:] = -skew(lever[None])[0]
     out = J @ np.asarray(covariance, dtype=float) @ J.T
     return 0.5 * (out + out.T)
+
+
+def map_from_world_from_gravity(g_world: object) -> Pose:
+    """The rotation ``map_from_world`` from a map's world to its z-up, gravity-aligned ``map`` frame
+    (REP-103 axes, REP-105 ``map``): the same origin, gravity along −z.
+
+    Args:
+        g_world: (3,) gravity (pointing down) in the world frame, any non-zero length (the map's
+            :class:`~planarloc.gravity.world.GravityReport` ``g_world``).
+
+    Returns:
+        ``Pose(R, 0)`` with ``x_map = R · x_world``. The rows of ``R`` are the map's axes in world
+        coordinates: ``z = −g/|g|`` (up); ``x`` = the world's x axis projected into the ground plane
+        (``e_x − (e_x · z) z``, normalised), or the world's y axis projected when the world's x is
+        within 45° of vertical (``|e_x · z| > √½``; then ``|e_y · z| < √½``); ``y = z × x``. A
+        world that is already z-up gives the identity; the heading (yaw) of the map is the world's.
+
+    Raises:
+        InputError: a zero or non-finite ``g_world``.
+
+    Example:
+        KITTI and the generated worlds (``g_world = +y``: x right, y down, z forward):
+        ``R = [[1, 0, 0], [0, 0, 1], [0, −1, 0]]``: map x = world x, map y = world z (forward),
+        map z = −world y (up).
+
+        >>> map_from_world_from_gravity([0, 1, 0]).R.astype(int).tolist()
+        [[1, 0, 0], [0, 0, 1], [0, -1, 0]]
+    """
+    up = -unit_gravity("g_world", g_world)
+    axis = np.eye(3)[0] if abs(up[0]) <= np.sqrt(0.5) else np.eye(3)[1]
+    x = axis - (axis @ up) * up
+    x /= np.linalg.norm(x)
+    R = np.stack([x, np.cross(up, x), up])
+    return Pose(R, np.zeros(3))
+
+
+def ros_covariance_of_parent(new_from_parent: Pose, covariance: np.ndarray) -> np.ndarray:
+    """ROS-order covariance of ``new_from_child = new_from_parent · parent_from_child`` (a fixed
+    change of the parent frame, e.g. ``map_from_world``) from that of ``parent_from_child``.
+
+    Args:
+        new_from_parent: the fixed transform (its translation does not matter).
+        covariance: (6, 6) over (position in the parent, rotation vector about the parent's axes).
+
+    Returns:
+        (6, 6) ``A C Aᵀ`` with ``A = blockdiag(R, R)``, ``R = new_from_parent.R``: the position
+        moves by ``R δp`` and ``R Exp(φ) Rᵀ = Exp(R φ)``, so both blocks rotate by ``R``.
+    """
+    A = np.kron(np.eye(2), new_from_parent.R)
+    out = A @ np.asarray(covariance, dtype=float) @ A.T
+    return 0.5 * (out + out.T)
+
+
+def map_pose_of_child(world_from_camera: Pose, covariance: np.ndarray, camera_from_child: Pose,
+                      map_from_world: Pose) -> tuple[Pose, np.ndarray]:
+    """The published pose: ``map_from_child = map_from_world · world_from_camera · camera_from_child``
+    and its ROS-order covariance.
+
+    Args:
+        world_from_camera: the camera's pose in the map's world.
+        covariance: (6, 6) ROS-order covariance of ``world_from_camera`` (position in the world,
+            rotation vector about the world's axes; ``SequenceEstimate.covariance``).
+        camera_from_child: the rigid offset of the published frame (the base; identity for the
+            camera itself).
+        map_from_world: the published frame's rotation from the world (:func:`map_from_world_from_gravity`;
+            identity for ``map_frame_convention`` ``world``).
+
+    Returns:
+        ``(map_from_child, (6, 6) covariance)``: :func:`ros_covariance_of_child` through the lever
+        arm, then :func:`ros_covariance_of_parent` into ``map``.
+    """
+    world_from_child = world_from_camera @ camera_from_child
+    cov = ros_covariance_of_child(world_from_camera, covariance, camera_from_child)
+    return map_from_world @ world_from_child, ros_covariance_of_parent(map_from_world, cov)
 
 
 def map_from_odom(map_from_base: Pose, odom_from_base: Pose) -> Pose:

@@ -1,23 +1,41 @@
 """The ROS 2 node of ``planarloc ros2``: camera frames in, map poses, ``map → odom`` and diagnostics out.
 
-Topics (names are parameters, see :class:`NodeSettings`):
+Topics (names are parameters, see :class:`~planarloc.ros2.settings.NodeSettings`):
 
 - in: ``sensor_msgs/Image`` on ``image_topic`` (``sensor_msgs/CompressedImage`` when the name
-  ends in ``/compressed``) with ``sensor_msgs/CameraInfo`` on ``camera_info_topic``; optional
+  ends in ``/compressed``) with ``sensor_msgs/CameraInfo`` on ``camera_info_topic`` (until one
+  arrives, the map's camera when the map has only one, with a warning once); optional
   ``nav_msgs/Odometry`` (``odom_topic``), ``/tf`` and ``/tf_static`` (base → camera) and
   ``geometry_msgs/PoseWithCovarianceStamped`` on ``initialpose_topic``.
-- out: ``geometry_msgs/PoseWithCovarianceStamped`` on ``pose_topic`` in ``map_frame`` (the map's
-  world), stamped with the image's stamp: the pose of ``base_frame`` when base → camera is known
-  (TF or the ``base_to_camera`` parameter), else of the image's frame; the ``map_frame →
-  odom_frame`` transform on ``/tf`` when odometry is given (AMCL's contract: ``map_from_odom =
-  map_from_base · odom_from_base⁻¹`` at the image's stamp); ``diagnostic_msgs/DiagnosticArray``
-  on ``diagnostics_topic`` for every frame.
+- out: ``geometry_msgs/PoseWithCovarianceStamped`` on ``pose_topic`` in ``map_frame``, stamped with
+  the image's stamp: the pose of ``base_frame`` when base → camera is known (TF or the
+  ``base_to_camera`` parameter), else of the image's frame; the ``map_frame → odom_frame``
+  transform on ``/tf`` when odometry is given and ``tf_broadcast`` is true (AMCL's contract:
+  ``map_from_odom = map_from_base · odom_from_base⁻¹`` at the image's stamp, the transform stamped
+  ``transform_tolerance_s`` later); ``diagnostic_msgs/DiagnosticArray`` on ``diagnostics_topic``
+  for every frame.
+
+The map frame (``map_frame_convention``): ``z_up`` (default) publishes in a z-up, gravity-aligned
+``map`` (REP-103/105): ``map_from_world = map_from_world_from_gravity(g_world)``
+(:mod:`planarloc.ros2.conversions`), a rotation about the world's origin computed once from the
+map's stored gravity (declared by the dataset format, given with ``up=``, or estimated from the
+map's camera centres; ``planarloc map info``). Its z axis is the world's up (``−g_world``), its x
+axis the world's x projected into the ground plane, y = z × x. So ``map_from_base =
+map_from_world · world_from_base`` and the ROS covariance (position, rotation vector about the
+parent's axes) is rotated by ``blockdiag(R, R)``; ``map → odom`` is computed from the z-up pose.
+For KITTI and the generated worlds (x right, y down, z forward of the first camera): map x =
+world x, map y = world z, map z = −world y. ``world`` publishes in the map's world itself.
 
 What is published (the node is never confidently wrong): a frame the stream calls
 ``localized`` (an absolute fix accepted in this frame), and with ``publish_predicted`` a
 ``predicted`` one, each only when its position std is at most ``max_position_std_m``. A
 ``lost`` frame publishes only its diagnostic. ``map → odom`` is re-sent with each localized or
 predicted frame's stamp (as AMCL re-sends its last transform) and never after ``lost``.
+
+Bad frames (an empty or undecodable image, a uniform one such as a black frame, a frame of the
+wrong size for its camera) never stop the node: each is a ``failed`` diagnostic with its
+``reason`` and the node goes on with the next frame; the stream keeps its state (a bad frame is
+treated like a dropped one). Only an unexpected exception (a bug) is logged with its traceback.
 
 Frames: the image callback queues the frame; a worker thread localizes the queued frames in
 order. The queue holds at most ``queue_size`` frames: when the worker falls further behind (a
@@ -37,147 +55,97 @@ import sys
 import threading
 import time
 from collections import deque
-from collections.abc import Sequence
+from collections.abc import Collection, Sequence
 from dataclasses import dataclass, fields
 from typing import Any
 
+import cv2
 import numpy as np
 
 from planarloc.extras import require
+from planarloc.features.images import decode_gray
+from planarloc.geometry.camera import Camera
 from planarloc.geometry.pose import Pose
 from planarloc.geometry.validation import InputError
-from planarloc.io.rosbag import decode_image, parse_transform
+from planarloc.io.rosbag import decode_image
 from planarloc.localize.localizer import Localizer, localizer_config
 from planarloc.localize.sequence import FrameStatus, SequenceConfig, SequenceEstimate, SequenceLocalizer
-from planarloc.localize.stream_config import FIX_MODES
-from planarloc.robust.options import Method
 from planarloc.ros2.conversions import (
     OdometryBuffer,
     TransformTree,
     camera_from_camera_info,
     map_from_odom,
+    map_from_world_from_gravity,
+    map_pose_of_child,
     pose_from_ros,
-    ros_covariance_of_child,
     ros_from_pose,
     stamp_parts,
     stamp_seconds,
+    transform_edge,
 )
 from planarloc.ros2.interfaces import tf_message_type
+from planarloc.ros2.settings import (  # noqa: F401  (NodeSettings, PARAMETERS: the node's public names)
+    NODE_NAME,
+    PARAMETERS,
+    NodeSettings,
+    check_parameter_names,
+    parameter_help,
+)
 
 logger = logging.getLogger(__name__)
+#: why there is no camera yet: no CameraInfo received (the map's only camera is used, :func:`frame_camera`)
+NO_CAMERA_INFO = "no CameraInfo received yet"
 
-_SEQ = SequenceConfig()
-NODE_NAME = "planarloc"
 
+def frame_camera(camera: Camera | None, camera_error: str, map_cameras: Collection[Camera],
+                 camera_info_topic: str) -> tuple[Camera | None, str, str, str]:
+    """The camera of the next frame: ``(camera, source, error, warning)``.
 
-@dataclass(frozen=True)
-class NodeSettings:
-    """The node's ROS parameters (``--ros-args -p name:=value``) and their defaults.
+    Args:
+        camera: the last usable CameraInfo's camera, or None.
+        camera_error: why ``camera`` is None: :data:`NO_CAMERA_INFO` (none received yet) or the
+            last CameraInfo's problem.
+        map_cameras: the map's distinct cameras.
+        camera_info_topic: named in the messages.
 
-    Attributes:
-        map: the map file (``--map``).
-        image_topic, camera_info_topic: camera input (``…/compressed``: CompressedImage).
-        image_qos: ``sensor_data`` (best effort; takes reliable publishers too) or ``reliable``.
-        odom_topic: ``nav_msgs/Odometry`` input; empty: no odometry.
-        initialpose_topic, pose_topic, diagnostics_topic: the other topics.
-        map_frame, odom_frame, base_frame: frame names (``map_frame`` is the map's world).
-        camera_frame: the image's frame; empty: the image's ``header.frame_id``.
-        base_to_camera: ``'x y z qx qy qz qw'``, the camera's pose in ``base_frame`` (as
-            ``static_transform_publisher``), used when TF has no base → camera; empty: TF only.
-        odom_tolerance_s: odometry is interpolated at the image's stamp from samples at most
-            ``2 odom_tolerance_s`` apart, else taken from one within ``odom_tolerance_s``.
-        transform_tolerance_s: ``map → odom`` is stamped this much after the image (AMCL's
-            ``transform_tolerance``) so that TF lookups at the current time succeed.
-        publish_predicted: also publish ``predicted`` frames (their covariance has grown with the
-            motion since the last fix).
-        max_position_std_m: no pose with a larger position std (worst axis) is published; also the
-            single-frame estimator's limit (``RansacOptions.max_position_std_m``).
-        method, structure, top_n, seed: the localizer's settings (``planarloc localize``'s options).
-        window, local_top_n, vo_model, kidnap_confirmations: the stream's (``SequenceConfig``).
-        fixes: ``"background"`` (default: absolute fixes in a worker thread, frames posed by
-            tracking meanwhile) or ``"wait"`` (each frame waits for its fix: deterministic, for
-            replays and tests; ``SequenceConfig.fixes``).
-        queue_size: frames waiting for the worker at most (1: only the newest; see the module
-            docstring); its latency in the diagnostics includes the wait.
+    Returns:
+        ``(camera, "camera_info", "", "")`` with a CameraInfo; ``(None, "map", "", warning)`` while
+        none has been received and the map has exactly one camera (None: the stream takes the
+        map's; the warning names it); ``(None, "", error, error)`` otherwise (a bad CameraInfo, or
+        a map with several cameras: the error says to publish the CameraInfo).
     """
-
-    map: str = ""
-    image_topic: str = "/camera/image_raw"
-    camera_info_topic: str = "/camera/camera_info"
-    image_qos: str = "sensor_data"
-    odom_topic: str = "/odom"
-    initialpose_topic: str = "/initialpose"
-    pose_topic: str = "/planarloc/pose"
-    diagnostics_topic: str = "/diagnostics"
-    map_frame: str = "map"
-    odom_frame: str = "odom"
-    base_frame: str = "base_link"
-    camera_frame: str = ""
-    base_to_camera: str = ""
-    odom_tolerance_s: float = 0.1
-    transform_tolerance_s: float = 0.0
-    publish_predicted: bool = False
-    max_position_std_m: float = 0.3
-    method: str = "auto"
-    structure: str = "tracks"
-    top_n: int = 5
-    seed: int = 0
-    window: int = _SEQ.window
-    local_top_n: int = _SEQ.local_top_n
-    vo_model: str = _SEQ.vo_model
-    kidnap_confirmations: int = _SEQ.kidnap_confirmations
-    fixes: str = _SEQ.fixes
-    queue_size: int = 5
-
-    def __post_init__(self) -> None:
-        if not self.map:
-            raise InputError("parameter map: give the map file (--map MAP.db or -p map:=MAP.db)")
-        methods = [m.value for m in Method]
-        if self.method not in methods:
-            raise InputError(f"parameter method: expected one of {', '.join(methods)}, got {self.method!r}")
-        if self.fixes not in FIX_MODES:
-            raise InputError(f"parameter fixes: expected one of {', '.join(FIX_MODES)}, got {self.fixes!r}")
-        if self.image_qos not in ("sensor_data", "reliable"):
-            raise InputError(f"parameter image_qos: expected 'sensor_data' or 'reliable', got {self.image_qos!r}")
-        for name in ("odom_tolerance_s", "max_position_std_m"):
-            if not getattr(self, name) > 0:
-                raise InputError(f"parameter {name}: expected a number > 0, got {getattr(self, name)}")
-        if self.queue_size < 1:
-            raise InputError(f"parameter queue_size: expected an integer >= 1, got {self.queue_size}")
-        if self.transform_tolerance_s < 0:
-            raise InputError(f"parameter transform_tolerance_s: expected >= 0, got {self.transform_tolerance_s}")
-        for name in ("image_topic", "camera_info_topic", "pose_topic", "diagnostics_topic", "map_frame",
-                     "odom_frame", "base_frame"):
-            if not getattr(self, name):
-                raise InputError(f"parameter {name}: must not be empty")
-
-    @property
-    def base_from_camera(self) -> Pose | None:
-        return parse_transform(self.base_to_camera, "parameter base_to_camera") if self.base_to_camera else None
-
-    @property
-    def rectified(self) -> bool:
-        """An ``image_rect*`` topic (image_proc's): undistorted, its CameraInfo's ``P`` applies."""
-        return any(part.startswith("image_rect") for part in self.image_topic.split("/"))
-
-    @property
-    def compressed(self) -> bool:
-        return self.image_topic.rstrip("/").endswith("/compressed")
+    if camera is not None:
+        return camera, "camera_info", "", ""
+    if camera_error != NO_CAMERA_INFO:   # a CameraInfo arrived but is not usable
+        return None, "", camera_error, ""
+    cameras = list(map_cameras)
+    if len(cameras) != 1:
+        error = (f"no CameraInfo on {camera_info_topic} and the map has {len(cameras)} cameras: publish the "
+                 f"camera's CameraInfo on {camera_info_topic} (or set camera_info_topic)")
+        return None, "", error, error
+    (only,) = cameras
+    warning = (f"no CameraInfo on {camera_info_topic}: using the map's only camera ({only.model.value} "
+               f"{only.width}x{only.height}, params {' '.join(f'{p:g}' for p in only.params)}); publish the "
+               "camera's CameraInfo if the images come from another camera")
+    return None, "map", "", warning
 
 
-PARAMETERS = tuple(f.name for f in fields(NodeSettings))
+def frame_pixels(msg: Any, compressed: bool) -> np.ndarray:
+    """The pixels of a ``sensor_msgs/Image`` ((H, W) or (H, W, 3), :func:`~planarloc.io.rosbag.decode_image`)
+    or of a ``CompressedImage`` (``compressed``: (H, W) gray).
 
-
-def check_parameter_names(ros_args: Sequence[str]) -> None:
-    """Reject ``-p name:=value`` overrides of parameters the node does not have (ROS ignores them)."""
-    for flag, value in zip(ros_args, ros_args[1:]):
-        if flag in ("-p", "--param"):
-            name = value.split(":=", 1)[0]
-            if ":=" not in value or not value.split(":=", 1)[1]:
-                raise InputError(f"--ros-args {flag} {value}: expected name:=value (an empty string: name:='')")
-            if name.rpartition(".")[2] not in PARAMETERS and name not in ("use_sim_time",):
-                raise InputError(f"--ros-args {flag} {value}: unknown parameter {name!r}; parameters: "
-                                 f"{', '.join(PARAMETERS)}")
+    Raises:
+        InputError: an empty or undecodable image, or a uniform one (every pixel the same, e.g. a
+            black frame: nothing to localize).
+    """
+    if compressed:
+        data = bytes(msg.data)
+        image = decode_gray(data, f"CompressedImage ({msg.format!r}, {len(data)} bytes)")
+    else:
+        image = decode_image(msg)
+    if image.size and image.min() == image.max():
+        raise InputError(f"a uniform image (every pixel {image.flat[0]}): nothing to localize")
+    return image
 
 
 class FrameQueue:
@@ -262,7 +230,9 @@ class LocalizerNode:
         self.counts = FrameCounts()
         self._base_from_camera_param = settings.base_from_camera
         self._camera: Any = None
-        self._camera_error = "no CameraInfo received yet"
+        self._camera_error = NO_CAMERA_INFO   # empty once a usable CameraInfo arrived
+        self.map_from_world = Pose.identity()  # set by _open (map_frame_convention)
+        self.map_frame_note = ""
         self._pending = FrameQueue(settings.queue_size)
         self._map_from_odom: Pose | None = None
         self._last_stamp: float | None = None
@@ -283,7 +253,8 @@ class LocalizerNode:
         node.create_subscription(self.TFMessage, "/tf_static", self._on_tf, QoSProfile(
             depth=100, durability=DurabilityPolicy.TRANSIENT_LOCAL, reliability=ReliabilityPolicy.RELIABLE))
         self.pose_pub = node.create_publisher(PoseWithCovarianceStamped, settings.pose_topic, reliable)
-        self.tf_pub = node.create_publisher(self.TFMessage, "/tf", QoSProfile(depth=100))
+        self.tf_pub = node.create_publisher(self.TFMessage, "/tf", QoSProfile(depth=100)) if settings.tf_broadcast \
+            else None
         self.diag_pub = node.create_publisher(DiagnosticArray, settings.diagnostics_topic, reliable)
         # The map (SQLite) is opened by the thread that localizes; its errors are raised here.
         self._opened = threading.Event()
@@ -306,6 +277,14 @@ class LocalizerNode:
                            kidnap_confirmations=s.kidnap_confirmations, fixes=s.fixes))
         # The first query of a process is ~10x slower than the next (kernels loaded from the compile
         # cache, first calls into OpenCV): pay for it before the first frame, not with dropped frames.
+        gravity = self.sequence.localizer.gravity
+        if s.map_frame_convention == "z_up":
+            self.map_from_world = map_from_world_from_gravity(gravity.g_world)
+            g = ", ".join(f"{v:+.3f}" for v in gravity.g_world)
+            self.map_frame_note = (f"z-up (REP-103), rotated from the map's world by its gravity ({g}, "
+                                   f"{gravity.source}{': ' + gravity.detail if gravity.detail else ''})")
+        else:
+            self.map_frame_note = "the map's world (map_frame_convention world)"
         logger.info("warming up the localizer on the map's own images")
         logger.info("warm-up done in %.1f s", self.sequence.warm_up())
 
@@ -320,7 +299,7 @@ class LocalizerNode:
         try:
             camera = camera_from_camera_info(msg, rectified=self.settings.rectified)
         except (InputError, ValueError) as exc:
-            self._camera, self._camera_error = None, f"CameraInfo: {exc}"
+            self._camera, self._camera_error = None, f"CameraInfo on {self.settings.camera_info_topic}: {exc}"
             self._warn_once(self._camera_error)
             return
         self._camera, self._camera_error = camera, ""
@@ -344,21 +323,21 @@ class LocalizerNode:
     def _on_tf(self, msg: Any) -> None:
         edges = []
         for tf in msg.transforms:
-            if tf.child_frame_id.lstrip("/") == self.settings.odom_frame and \
-                    tf.header.frame_id.lstrip("/") == self.settings.map_frame:
-                continue  # our own map -> odom
             try:
-                edges.append((tf.header.frame_id, tf.child_frame_id,
-                              pose_from_ros(tf.transform.translation, tf.transform.rotation)))
+                parent, child, pose = transform_edge(tf)
             except InputError as exc:
-                self._warn_once(f"/tf {tf.header.frame_id} -> {tf.child_frame_id}: {exc}")
+                self._warn_once(f"/tf: {exc}")
+                continue
+            if (parent, child) != (self.settings.map_frame, self.settings.odom_frame):  # not our own map -> odom
+                edges.append((parent, child, pose))
         with self._cond:
             self.tf.add_many(edges)
 
     def _warn_once(self, text: str) -> None:
+        """A warning on the console and ``/rosout`` (rclpy's logger), once per text."""
         if text not in self._warned:
             self._warned.add(text)
-            logger.warning("%s", text)
+            self.node.get_logger().warning(text)
 
     # ---- the worker --------------------------------------------------------------------------
     def _work(self) -> None:
@@ -380,8 +359,7 @@ class LocalizerNode:
                 self._process(msg, received, reset)
             except Exception as exc:  # a bug must not stop the node silently: log it, count and report the frame
                 logger.exception("frame at %.3f failed", stamp_seconds(msg.header.stamp))
-                self.counts.failed += 1
-                self._diagnose(msg.header.stamp, "failed", f"internal error: {type(exc).__name__}: {exc}", received)
+                self._fail(msg, f"internal error: {type(exc).__name__}: {exc}", received)
 
     def stop(self) -> None:
         """Stop the worker after the frame it is localizing."""
@@ -401,19 +379,30 @@ class LocalizerNode:
             pose = self._base_from_camera_param
         return pose
 
+    def _fail(self, msg: Any, reason: str, received: float, camera_source: str = "") -> None:
+        """A frame that cannot be localized: counted, and a ``failed`` diagnostic with its reason."""
+        self.counts.failed += 1
+        self._diagnose(msg.header.stamp, "failed", reason, received, camera_source=camera_source)
+
+    def _camera_for_frame(self) -> tuple[Camera | None, str, str]:
+        camera, source, error, warning = frame_camera(self._camera, self._camera_error,
+                                                      self.sequence.localizer.map_cameras,  # type: ignore[union-attr]
+                                                      self.settings.camera_info_topic)
+        if warning:
+            self._warn_once(warning)
+        return camera, source, error
+
     def _process(self, msg: Any, received: float, reset: bool = False) -> None:
         stamp = stamp_seconds(msg.header.stamp)
         camera_frame = (self.settings.camera_frame or msg.header.frame_id).lstrip("/")
-        camera = self._camera
-        if camera is None:
-            self.counts.failed += 1
-            self._diagnose(msg.header.stamp, "failed", self._camera_error, received)
+        camera, camera_source, error = self._camera_for_frame()
+        if error:
+            self._fail(msg, error, received)
             return
         try:
-            image = bytes(msg.data) if self.settings.compressed else decode_image(msg)
-        except (InputError, ValueError) as exc:
-            self.counts.failed += 1
-            self._diagnose(msg.header.stamp, "failed", f"image: {exc}", received)
+            image = frame_pixels(msg, self.settings.compressed)
+        except (InputError, ValueError, cv2.error) as exc:   # the data's fault: cv2.error from decoding
+            self._fail(msg, f"bad frame: {' '.join(str(exc).split())}", received, camera_source)
             return
         notes = []
         if reset:
@@ -449,15 +438,14 @@ class LocalizerNode:
         odometry = None if odom_from_child is None else (odom_from_child @ child_from_camera).inverse()
         try:
             est = self.sequence.step(image, camera, stamp, odometry=odometry)  # type: ignore[union-attr]
-        except InputError as exc:
-            self.counts.failed += 1
-            self._diagnose(msg.header.stamp, "failed", str(exc), received)
+        except InputError as exc:   # the frame's (e.g. not the size of its camera), not the node's
+            self._fail(msg, f"bad frame: {exc}", received, camera_source)
             return
         self.counts.processed += 1
         status = est.status
         setattr(self.counts, status, getattr(self.counts, status) + 1)
         published = self._publish(msg.header.stamp, est, camera_frame, odom_from_child, child_from_camera)
-        self._diagnose(msg.header.stamp, status, "; ".join(notes), received, est, published)
+        self._diagnose(msg.header.stamp, status, "; ".join(notes), received, est, published, camera_source)
 
     def _publishable(self, est: SequenceEstimate) -> bool:
         if est.pose is None or not est.position_std_m <= self.settings.max_position_std_m:
@@ -478,14 +466,11 @@ class LocalizerNode:
         if not np.isfinite(cov).all():
             return False  # no promise without a finite covariance
         base_from_camera = self._frame_from_camera(self.settings.base_frame, camera_frame)
-        if base_from_camera is not None:
-            camera_from_base = base_from_camera.inverse()
-            pose, cov = world_from_camera @ camera_from_base, ros_covariance_of_child(world_from_camera, cov,
-                                                                                       camera_from_base)
-        else:
-            pose = world_from_camera
+        if base_from_camera is None:
             self._warn_once(f"no transform {self.settings.base_frame} -> {camera_frame}: publishing the pose of "
                             f"{camera_frame}")
+        camera_from_child = Pose.identity() if base_from_camera is None else base_from_camera.inverse()
+        pose, cov = map_pose_of_child(world_from_camera, cov, camera_from_child, self.map_from_world)
         out = PoseWithCovarianceStamped()
         out.header.stamp, out.header.frame_id = stamp, self.settings.map_frame
         (out.pose.pose.position.x, out.pose.pose.position.y, out.pose.pose.position.z), q = ros_from_pose(pose)
@@ -495,8 +480,9 @@ class LocalizerNode:
         self.pose_pub.publish(out)
         self.counts.published += 1
         if odom_from_child is not None and child_from_camera is not None:
-            self._map_from_odom = map_from_odom(world_from_camera @ child_from_camera.inverse(), odom_from_child)
-        if self._map_from_odom is not None:
+            map_from_child = self.map_from_world @ world_from_camera @ child_from_camera.inverse()
+            self._map_from_odom = map_from_odom(map_from_child, odom_from_child)
+        if self._map_from_odom is not None and self.tf_pub is not None:
             tf = TransformStamped()
             sec, nanosec = stamp_parts(stamp_seconds(stamp) + self.settings.transform_tolerance_s)
             tf.header.stamp.sec, tf.header.stamp.nanosec = sec, nanosec
@@ -509,7 +495,7 @@ class LocalizerNode:
         return True
 
     def _diagnose(self, stamp: Any, status: str, note: str, received: float, est: SequenceEstimate | None = None,
-                  published: bool = False) -> None:
+                  published: bool = False, camera_source: str = "") -> None:
         from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 
         level = {"localized": DiagnosticStatus.OK, "predicted": DiagnosticStatus.WARN}.get(status,
@@ -525,8 +511,10 @@ class LocalizerNode:
         if est is not None:
             values.update(fix_status=est.fix_status, motion_source=est.motion_source,
                           position_std_m=f"{est.position_std_m:.4g}", rotation_std_deg=f"{est.rotation_std_deg:.4g}")
+        if camera_source:
+            values["camera_source"] = camera_source   # camera_info, or map (no CameraInfo received)
         if note:
-            values["note"] = note
+            values["reason" if status == "failed" else "note"] = note
         d = DiagnosticStatus(level=level, name=f"{NODE_NAME}: localization", hardware_id=self.settings.map,
                              message=f"{status}{': ' + note if note else ''}",
                              values=[KeyValue(key=k, value=str(v)) for k, v in values.items()])
@@ -535,17 +523,33 @@ class LocalizerNode:
         self.diag_pub.publish(out)
 
 
-def declare_settings(node: Any, defaults: NodeSettings | dict) -> NodeSettings:
-    """Declare every :class:`NodeSettings` field as a ROS parameter (command-line overrides apply)
-    and read the settings back."""
-    from rcl_interfaces.msg import ParameterDescriptor
+def declare_settings(node: Any, defaults: NodeSettings | dict | None = None,
+                     overrides: dict[str, object] | None = None) -> NodeSettings:
+    """Declare every :class:`NodeSettings` field as a ROS parameter (its meaning as the description)
+    and read the settings back.
 
-    base = defaults if isinstance(defaults, dict) else {f.name: getattr(defaults, f.name) for f in fields(defaults)}
+    Precedence, lowest first: ``defaults`` (a NodeSettings or some fields; else NodeSettings'),
+    ``--ros-args`` (``--params-file`` and ``-p``, as ROS applies them), ``overrides`` (e.g.
+    ``{"map": path}`` from ``--map``; set on the node too, so ``ros2 param get`` shows them).
+
+    Raises:
+        InputError: a value of the wrong type or outside its choices, naming the parameter.
+    """
+    from rcl_interfaces.msg import ParameterDescriptor
+    from rclpy.parameter import Parameter
+
+    if isinstance(defaults, NodeSettings):
+        defaults = {f.name: getattr(defaults, f.name) for f in fields(defaults)}
+    base, overrides, meaning = defaults or {}, overrides or {}, parameter_help()
     values = {}
     for f in fields(NodeSettings):
         default = base.get(f.name, f.default)
         # Typed by the default, but `-p odom_tolerance_s:=1` (an integer) is a fine number of seconds.
-        value = node.declare_parameter(f.name, default, ParameterDescriptor(dynamic_typing=True)).value
+        descriptor = ParameterDescriptor(description=meaning[f.name], dynamic_typing=True)
+        value = node.declare_parameter(f.name, default, descriptor).value
+        if f.name in overrides:
+            value = overrides[f.name]
+            node.set_parameters([Parameter(f.name, value=value)])
         values[f.name] = _coerce(f.name, value, type(f.default))
     return NodeSettings(**values)
 
@@ -573,10 +577,11 @@ def run(map_path: str | None, ros_args: Sequence[str]) -> int:
     node = worker = None
     try:
         node = rclpy.create_node(NODE_NAME)
-        settings = declare_settings(node, {"map": map_path or ""})
+        settings = declare_settings(node, overrides={"map": map_path} if map_path else None)
         worker = LocalizerNode(node, settings)
         print(f"planarloc ros2: localizing {settings.image_topic} against {settings.map}; poses on "
-              f"{settings.pose_topic} in {settings.map_frame} (Ctrl-C stops)", file=sys.stderr, flush=True)
+              f"{settings.pose_topic} in {settings.map_frame}: {worker.map_frame_note} (Ctrl-C stops)",
+              file=sys.stderr, flush=True)
         executor = SingleThreadedExecutor()
         executor.add_node(node)
         try:

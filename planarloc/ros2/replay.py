@@ -34,19 +34,23 @@ from planarloc.features.images import read_gray
 from planarloc.geometry.camera import Camera
 from planarloc.geometry.pose import Pose
 from planarloc.geometry.validation import InputError
+from planarloc.io.ros_messages import camera_info_fields
 from planarloc.ros2.conversions import pose_from_ros, ros_from_pose, stamp_parts, stamp_seconds
 from planarloc.ros2.interfaces import tf_message_type
 
 
 @dataclass(frozen=True)
 class ReplayFrame:
-    """One frame to replay: an image file or array, its camera, stamp and optional odometry.
+    """One frame to replay: an image, its camera, stamp and optional odometry.
 
+    ``image``: a file or an array (sent as mono8 ``Image``, or as a PNG ``CompressedImage``), or
+    ``bytes`` sent as they are as a ``CompressedImage``'s data (e.g. empty or damaged data).
+    ``camera``: its ``CameraInfo`` is published before the image; None: no CameraInfo.
     ``odom_from_base``: the odometry's pose of the base at this stamp (None: no Odometry message).
     """
 
     image: object
-    camera: Camera
+    camera: Camera | None
     stamp: float
     odom_from_base: Pose | None = None
 
@@ -66,16 +70,10 @@ def _key(stamp: object) -> float:
     return round(stamp_seconds(stamp), 9)
 
 
-def _camera_info(msg: object, camera: Camera) -> None:
-    K = camera.K
-    msg.width, msg.height = camera.width, camera.height  # type: ignore[attr-defined]
-    msg.k = [float(v) for v in K.ravel()]  # type: ignore[attr-defined]
-    fisheye = camera.model.value == "OPENCV_FISHEYE"
-    msg.distortion_model = "equidistant" if fisheye else "plumb_bob"  # type: ignore[attr-defined]
-    msg.d = [float(v) for v in camera.distortion] + ([] if fisheye else [0.0])  # type: ignore[attr-defined]
-    msg.r = [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0]  # type: ignore[attr-defined]
-    msg.p = [float(K[0, 0]), 0.0, float(K[0, 2]), 0.0, 0.0, float(K[1, 1]), float(K[1, 2]), 0.0,  # type: ignore
-             0.0, 0.0, 1.0, 0.0]
+def fill_camera_info(msg: object, camera: Camera) -> None:
+    """Fill a ``sensor_msgs/CameraInfo`` with the camera's fields (:func:`camera_info_fields`)."""
+    for name, value in camera_info_fields(camera).items():
+        setattr(msg, name, value)
 
 
 def replay(frames: Sequence[ReplayFrame], *, camera_frame: str = "camera_optical", base_frame: str = "base_link",
@@ -89,7 +87,8 @@ def replay(frames: Sequence[ReplayFrame], *, camera_frame: str = "camera_optical
     ``initialpose_before``: publish an identity pose on ``/initialpose`` before that frame, as
     rviz's "2D Pose Estimate" does (the node restarts its stream).
 
-    ``image_topic`` ending in ``/compressed`` sends PNG ``CompressedImage`` messages. Waits up to
+    ``image_topic`` ending in ``/compressed`` sends PNG ``CompressedImage`` messages (a frame's
+    ``bytes`` as they are). Waits up to
     ``wait_s`` for the node's subscription (and, in lockstep, for each frame's diagnostic).
 
     Raises:
@@ -175,15 +174,21 @@ def replay(frames: Sequence[ReplayFrame], *, camera_frame: str = "camera_optical
                 o = odom.pose.pose.orientation
                 o.x, o.y, o.z, o.w = q
                 odom_pub.publish(odom)
-            info = CameraInfo()
-            info.header.stamp.sec, info.header.stamp.nanosec = sec, nanosec
-            info.header.frame_id = camera_frame
-            _camera_info(info, frame.camera)
-            info_pub.publish(info)
-            gray = read_gray(frame.image) if not isinstance(frame.image, np.ndarray) else frame.image
-            if compressed:
+            if frame.camera is not None:
+                info = CameraInfo()
+                info.header.stamp.sec, info.header.stamp.nanosec = sec, nanosec
+                info.header.frame_id = camera_frame
+                fill_camera_info(info, frame.camera)
+                info_pub.publish(info)
+            if isinstance(frame.image, bytes):
+                if not compressed:
+                    raise InputError(f"frame {i}: bytes are sent as a CompressedImage; use a /compressed image_topic")
+                msg = CompressedImage(format="png", data=frame.image)
+            elif compressed:
+                gray = frame.image if isinstance(frame.image, np.ndarray) else read_gray(frame.image)
                 msg = CompressedImage(format="png", data=cv2.imencode(".png", gray)[1].tobytes())
             else:
+                gray = frame.image if isinstance(frame.image, np.ndarray) else read_gray(frame.image)
                 msg = Image(height=gray.shape[0], width=gray.shape[1], encoding="mono8", step=gray.shape[1],
                             data=np.ascontiguousarray(gray).tobytes())
             msg.header.stamp.sec, msg.header.stamp.nanosec = sec, nanosec

@@ -19,7 +19,10 @@ from planarloc.ros2.conversions import (
     TransformTree,
     camera_from_camera_info,
     map_from_odom,
+    map_from_world_from_gravity,
+    map_pose_of_child,
     ros_covariance_of_child,
+    ros_covariance_of_parent,
     stamp_parts,
 )
 
@@ -92,8 +95,53 @@ def test_stream_covariance_in_ros_order_matches_a_numeric_jacobian() -> None:
         ros = ros_covariance(cam_from_world, cov)
         got = ros_covariance_of_child(cam_from_world.inverse(), ros, camera_from_child)
         assert np.allclose(got, expected, rtol=1e-5, atol=1e-12)
+        # the published pose in a z-up map: the same perturbations seen through map_from_world
+        map_from_world = map_from_world_from_gravity(rng.normal(size=3))
+        J = np.stack([(_ros_vector(map_from_world @ perturbed(eps * e).inverse() @ camera_from_child,
+                                   map_from_world @ reference)
+                       - _ros_vector(map_from_world @ perturbed(-eps * e).inverse() @ camera_from_child,
+                                     map_from_world @ reference)) / (2 * eps) for e in np.eye(6)], axis=1)
+        pose, got = map_pose_of_child(cam_from_world.inverse(), ros, camera_from_child, map_from_world)
+        assert np.allclose(pose.matrix, (map_from_world @ reference).matrix)
+        assert np.allclose(got, J @ cov @ J.T, rtol=1e-5, atol=1e-12)
     # the position block of the camera's is the stream's centre block: position_std_m is its worst axis
     assert np.allclose(ros_covariance(cam_from_world, cov)[:3, :3], cov[3:, 3:])
+
+
+def test_map_from_world_puts_gravity_along_minus_z_and_keeps_the_world_x_in_the_ground_plane() -> None:
+    rng = np.random.default_rng(4)
+    for g in [*rng.normal(size=(200, 3)), (0.0, 0.0, -1.0), (0.0, 1.0, 0.0), (1.0, 0.0, 0.0), (-0.8, 0.6, 0.0)]:
+        R = map_from_world_from_gravity(3.0 * np.asarray(g)).R
+        assert np.allclose(R @ R.T, np.eye(3), atol=1e-12) and np.isclose(np.linalg.det(R), 1.0)
+        assert np.allclose(R @ (np.asarray(g) / np.linalg.norm(g)), [0, 0, -1], atol=1e-12)
+        up = -np.asarray(g) / np.linalg.norm(g)
+        kept = np.eye(3)[0] if abs(up[0]) <= np.sqrt(0.5) else np.eye(3)[1]   # the world axis kept in the map x-z plane
+        assert abs((R @ kept)[1]) < 1e-12 and (R @ kept)[0] > 0.7 - 1e-12
+    # KITTI / generated worlds (y down, z forward): map x = world x, map y = world z, map z = -world y
+    assert np.array_equal(map_from_world_from_gravity([0, 1, 0]).R, [[1, 0, 0], [0, 0, 1], [0, -1, 0]])
+    assert np.allclose(map_from_world_from_gravity([0, 0, -2]).matrix, np.eye(3, 4))   # already z-up: identity
+    with pytest.raises(InputError, match="g_world"):
+        map_from_world_from_gravity([0, 0, 0])
+
+
+def test_covariance_in_a_rotated_parent_matches_a_numeric_jacobian() -> None:
+    """Both ROS blocks (position, rotation vector about the parent's axes) follow the new parent."""
+    rng = np.random.default_rng(5)
+    world_from_child, map_from_world = _random_pose(rng), _random_pose(rng)
+    A = rng.normal(size=(6, 6))
+    cov = A @ A.T * 1e-3
+    eps = 1e-6
+
+    def perturbed(x: np.ndarray) -> Pose:  # ROS perturbation in the world: (Exp(φ) R, p + δp)
+        return Pose(so3_exp(x[3:])[0] @ world_from_child.R, world_from_child.t + x[:3])
+
+    reference = map_from_world @ world_from_child
+    J = np.stack([(_ros_vector(map_from_world @ perturbed(eps * e), reference)
+                   - _ros_vector(map_from_world @ perturbed(-eps * e), reference)) / (2 * eps) for e in np.eye(6)],
+                 axis=1)
+    got = ros_covariance_of_parent(map_from_world, cov)
+    assert np.allclose(got, J @ cov @ J.T, rtol=1e-5, atol=1e-12)
+    assert not np.allclose(got, cov, atol=1e-6)   # the rotation matters
 
 
 def test_a_non_finite_stream_covariance_stays_non_finite() -> None:
