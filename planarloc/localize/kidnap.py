@@ -6,7 +6,9 @@ that agree with each other — each carried to the next one's frame through the 
 (:meth:`planarloc.localize.pose_window.PoseWindow.carried`) — confirm a kidnap, and the stream
 restarts from the latest of them. With no measured motion since the last accepted fix, one
 rejected global fix already makes the stream **doubt** its pose: it has nothing that says the
-robot did not move there.
+robot did not move there. So does a **view break**: a frame whose corners were tracked but whose
+tracks fit no relative pose (the scene changed more than any motion explains, as when a robot is
+carried away), until a fix of that frame or a later one is accepted.
 """
 
 from __future__ import annotations
@@ -44,9 +46,28 @@ class KidnapMonitor:
         self.clear()
 
     def clear(self) -> None:
-        """An accepted fix (or a restart): nothing is suspected."""
+        """A restart: nothing is suspected."""
         self.candidate: KidnapCandidate | None = None
         self.doubt = False
+        self.view_break: float | None = None
+
+    def accept(self, stamp: float) -> None:
+        """A fix of frame ``stamp`` was accepted: the candidate and the doubt go; a view break
+        goes only when the fix is of a frame at or after it (an older frame's fix says nothing
+        about where the robot went since)."""
+        self.candidate, self.doubt = None, False
+        if self.view_break is not None and stamp >= self.view_break:
+            self.view_break = None
+
+    def broke_view(self, stamp: float) -> None:
+        """The view changed more than any motion explains at frame ``stamp`` (the tracks found no
+        relative pose although they found the corners): the robot may have been carried away."""
+        self.view_break = stamp
+
+    @property
+    def doubted(self) -> bool:
+        """The stream has no pose it can vouch for until a fix settles it."""
+        return self.doubt or self.view_break is not None
 
     @property
     def suspected(self) -> bool:

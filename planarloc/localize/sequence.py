@@ -65,8 +65,10 @@ from planarloc.localize.tracking import (
     is_blank,
     pose_from_points,
     tracked_points_covariance,
+    view_broken,
 )
 from planarloc.numerics.blas_threads import BLAS_ONE_THREAD
+from planarloc.robust.pose_graph import so3_log
 from planarloc.robust.result import PoseEstimate
 
 __all__ = ["FrameStatus", "SequenceConfig", "SequenceEstimate", "SequenceLocalizer", "StreamStats",
@@ -197,6 +199,13 @@ class SequenceLocalizer:
             return self._motion.disputed(self._motion.visual(step, vo.model), weak)
         return weak
 
+    def _expected_turn_deg(self, odometry: Pose | None) -> float | None:
+        """The rotation wheel odometry measured since the previous frame (degrees); None without."""
+        prev = self._prev[1] if self._prev is not None else None
+        if odometry is None or prev is None:
+            return None
+        return float(np.degrees(np.linalg.norm(so3_log((odometry @ prev.inverse()).R[None])[0])))
+
     def _weak(self, last: int, dt: float) -> Motion:
         """The constant-velocity motion from node ``last`` over ``dt`` seconds."""
         return self._motion.constant(self._window.last_step(last), dt)
@@ -285,7 +294,7 @@ class SequenceLocalizer:
             # the fix's own std (its covariance is scaled by fix_std_scale for the graph)
             std = float(np.sqrt(np.linalg.eigvalsh(cov[3:, 3:])[-1])) / self.config.fix_std_scale
             self._motion.add_fix(result.stamp, pose.center, std)
-            self._kidnap.clear()
+            self._kidnap.accept(result.stamp)
             if result.points is not None:
                 self._tracker.set_points(result.tracked_to(self._history, self.config.tracker).points)
         else:
@@ -420,7 +429,7 @@ class SequenceLocalizer:
             return FixJob(stamp, query.image, query.camera, query.gravity, None, False, float("inf"), self._generation)
         std, _ = covariance_stds(w.covariance)
         # a suspected kidnap: the map images near the prediction are the wrong place to look
-        usable = std <= self.config.lost_std_m and not self._kidnap.suspected and not self._kidnap.doubt
+        usable = std <= self.config.lost_std_m and not self._kidnap.suspected and not self._kidnap.doubted
         return FixJob(stamp, query.image, query.camera, query.gravity, (w.current.pose, w.covariance),
                       usable, std, self._generation)
 
@@ -466,15 +475,16 @@ class SequenceLocalizer:
         if is_blank(query.image):
             return self._blank(stamp, missing, t_call, t0, cpu0)
         handled = _Handled()
-        prev_odometry = self._prev[1] if self._prev is not None else None
         self._history.append(stamp, query.image)
         tracked = self._tracker.track(query.image, query.camera, stamp,
-                                      estimate_motion=bool(len(self._window)) and (odometry is None or prev_odometry is None))
+                                      estimate_motion=bool(len(self._window)))
         motion = Motion.none()
         if not len(self._window):
             self._first_fix(query, stamp, handled)
         else:
             motion = self._frame_motion(tracked, stamp, odometry)
+            if view_broken(tracked, self.config.tracker.min_inliers, self._expected_turn_deg(odometry)):
+                self._kidnap.broke_view(stamp)
             self._window.append(motion, stamp)
             self._trim()
             self._take_fixes(query, stamp, handled)
@@ -519,7 +529,7 @@ class SequenceLocalizer:
             self._handle(result, handled)
         self._refresh()
         lost = covariance_stds(self._window.covariance)[0] > self.config.lost_std_m
-        if background and self._fixes.busy and (self._kidnap.doubt or lost):
+        if background and self._fixes.busy and (self._kidnap.doubted or lost):
             for result in self._fixes.collect(frame, wait=True):
                 self._handle(result, handled)
             self._refresh()
@@ -550,7 +560,7 @@ class SequenceLocalizer:
         w = self._window
         pos_std, _ = covariance_stds(w.covariance)
         usable_std = min(self.config.max_pose_std_m, self.config.lost_std_m)
-        if not len(w) or pos_std > usable_std or self._kidnap.doubt:
+        if not len(w) or pos_std > usable_std or self._kidnap.doubted:
             return FrameStatus.LOST  # never report a pose as usable beyond it
         anchor = w.last_fixed()
         current = len(w) - 1

@@ -231,6 +231,33 @@ def pose_from_points(prior: Pose, points: np.ndarray, rays: np.ndarray, focal: f
     return pose, n
 
 
+#: a view break needs the tracked corners to have moved at least this far (median, pixels): a
+#: robot standing still sees no parallax and fits no relative pose either
+BREAK_MIN_FLOW_PX = 2.0
+#: ... and the expected rotation since the previous frame to be below this (degrees): a turn
+#: faster than the tracker follows also fits no relative pose
+BREAK_MAX_ROTATION_DEG = 10.0
+
+
+def view_broken(tracked: Tracked, min_tracks: int, expected_rotation_deg: float | None) -> bool:
+    """Whether the view changed more than any motion explains: the rotation expected since the
+    previous frame (``expected_rotation_deg``, from wheel odometry; None: nothing tells, so a turn
+    too fast for the tracker cannot be told from a jump) is small, yet the previous frame's
+    corners were lost (``too_few_matches``), or at least ``min_tracks`` were followed and moved
+    (``BREAK_MIN_FLOW_PX``) but too few fit one relative pose (``too_few_inliers``). A robot
+    carried away (a kidnap) looks like this. Standing still (no flow) or a fast turn is not a
+    break; a frame too fast for the tracker is, and costs frames until the next fix, never a
+    wrong pose."""
+    rel = tracked.relative
+    if rel is None or rel.success:
+        return False
+    if expected_rotation_deg is not None and expected_rotation_deg >= BREAK_MAX_ROTATION_DEG:
+        return False
+    if rel.status == "too_few_matches":      # the corners of a textured frame were lost (blank frames never get here)
+        return True
+    return rel.status == "too_few_inliers" and tracked.tracks >= min_tracks and tracked.flow_px >= BREAK_MIN_FLOW_PX
+
+
 #: a frame whose pixels vary less than this (std, grey levels) has nothing to track or match
 BLANK_PIXEL_STD = 2.0
 
@@ -402,12 +429,14 @@ class Tracked:
         tracks: corners tracked from the previous frame.
         points: the world points still tracked into this frame, or None.
         covariance: (5, 5) covariance of ``relative`` (:func:`relative_pose_covariance`), or None.
+        flow_px: the median displacement of the tracked corners (pixels).
     """
 
     relative: RelativePoseEstimate | None
     tracks: int = 0
     points: TrackedPoints | None = None
     covariance: np.ndarray | None = None
+    flow_px: float = 0.0
 
 
 class FrameTracker:
@@ -463,8 +492,9 @@ class FrameTracker:
                                                num_inliers=rel.num_inliers, stats=rel.stats)
                 cov = relative_pose_covariance(rel, prev_camera, camera, corners[found], nxt[found]) \
                     if rel.success else None
-                out = Tracked(rel, int(found.sum()), covariance=cov)
+                flow = float(np.median(np.linalg.norm(nxt[found] - corners[found], axis=1))) if found.any() else 0.0
+                out = Tracked(rel, int(found.sum()), covariance=cov, flow_px=flow)
         elif self.points is not None and self.points.stamp != stamp:
             self.points = None
         self._prev = (gray, camera, detect_corners(gray, self.options.corners))
-        return Tracked(out.relative, out.tracks, self.points, out.covariance)
+        return Tracked(out.relative, out.tracks, self.points, out.covariance, out.flow_px)

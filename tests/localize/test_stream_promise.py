@@ -122,3 +122,22 @@ def test_a_corrupt_frame_is_an_error_and_the_stream_goes_on(camera_rate_world: t
         after = [(f, seq.step(read_gray(f.image.path), f.image.camera, f.stamp)) for f in frames[3:8]]
     assert all(e.success for e in first)
     _check_promises(after, min_good=4)
+
+
+@pytest.mark.parametrize("odometry", [False, True])
+def test_a_kidnap_is_lost_not_a_wrong_pose(camera_rate_world: tuple, odometry: bool) -> None:
+    """Carried to the other side of the loop and back (the wheels do not turn): the view breaks,
+    the frames are lost until a fix of theirs settles it, no pose is given from the old place."""
+    map_path, _ = camera_rate_world
+    root = map_path.parent / "office"
+    queries = read_dataset(root / "query", "tum")
+    frames = make_stream(queries, stream_order(len(queries), kidnap_at=10), np.random.default_rng(0))
+    loc = Localizer(map_path, LocalizerConfig(ransac=RansacOptions(structure="tracks")))
+    run = []
+    with SequenceLocalizer(loc, SequenceConfig(**LATE_FIXES)) as seq:
+        for f in frames:
+            odo = f.odometry if odometry else None
+            run.append((f, seq.step(read_gray(f.image.path), f.image.camera, f.stamp, odo)))
+    kidnaps = [k for k, (f, _) in enumerate(run) if f.kidnapped]
+    assert len(kidnaps) == 2 and all(not run[k][1].success for k in kidnaps)
+    _check_promises(run, min_good=len(frames) // 2)

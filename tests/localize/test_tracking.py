@@ -7,16 +7,17 @@ import cv2
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
+from textured_images import textured_image
 
 from planarloc.features.images import read_gray
 from planarloc.geometry.camera import Camera
 from planarloc.geometry.pose import Pose, pose_errors
 from planarloc.geometry.validation import InputError
 from planarloc.io.datasets import read_dataset
-from planarloc.robust.pose_graph import so3_exp
 from planarloc.localize.tracking import (
     FrameHistory,
     FrameTracker,
+    Tracked,
     TrackedPoints,
     TrackerOptions,
     detect_corners,
@@ -27,10 +28,12 @@ from planarloc.localize.tracking import (
     track_checked,
     track_points,
     track_through,
+    view_broken,
 )
+from planarloc.robust.pose_graph import so3_exp
+from planarloc.robust.relative_pose import RelativePoseEstimate
 from planarloc.synthetic.world.export import generate
 from planarloc.synthetic.world.presets import get_preset, shrunk
-from textured_images import textured_image
 
 
 @pytest.fixture(scope="module")
@@ -201,3 +204,16 @@ def test_blank_frames_are_told_from_dark_textured_ones() -> None:
     assert is_blank(np.full((120, 160), 255, np.uint8))
     dark = (np.random.default_rng(0).random((120, 160)) * 12).astype(np.uint8)   # underexposed, not blank
     assert not is_blank(dark)
+
+
+def test_a_view_break_is_lost_corners_or_tracks_that_fit_no_motion_but_not_standing_still() -> None:
+    failed = RelativePoseEstimate(None, False, "too_few_inliers", num_inliers=5)
+    moved = Tracked(failed, tracks=200, flow_px=40.0)
+    assert view_broken(moved, 20, None)                     # nothing says it was a fast turn
+    assert view_broken(moved, 20, 3.0)                      # odometry: a small turn
+    assert not view_broken(moved, 20, 25.0)                 # odometry: a turn too fast to track
+    assert not view_broken(Tracked(failed, tracks=200, flow_px=0.5), 20, None)   # standing still
+    lost = Tracked(RelativePoseEstimate(None, False, "too_few_matches"), tracks=3, flow_px=60.0)
+    assert view_broken(lost, 20, None)
+    ok = Tracked(RelativePoseEstimate(Pose.identity(), True, "success", num_inliers=150), tracks=200, flow_px=9.0)
+    assert not view_broken(ok, 20, None) and not view_broken(Tracked(None), 20, None)
