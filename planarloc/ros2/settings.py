@@ -66,8 +66,9 @@ class NodeSettings:
         transform_tolerance_s: map -> odom is stamped this much after the image (AMCL's
             ``transform_tolerance``), so that TF lookups up to that time succeed.
         tf_broadcast: publish map -> odom on /tf (AMCL's ``tf_broadcast``); false: poses only.
-        publish_predicted: also publish ``predicted`` frames (their covariance has grown with the
-            motion since the last fix).
+        publish_predicted: also publish ``predicted`` frames (the motion model's pose; it keeps
+            its promise like a localized one, its covariance grown with what the motion model does
+            not know); false: ``localized`` frames only.
         max_position_std_m: no pose with a larger position std (worst axis) is published; also the
             single-frame estimator's limit.
         method: the hypothesis family (``planarloc localize --method``).
@@ -102,7 +103,7 @@ class NodeSettings:
     odom_tolerance_s: float = 0.1
     transform_tolerance_s: float = 1.0
     tf_broadcast: bool = True
-    publish_predicted: bool = False
+    publish_predicted: bool = True
     max_position_std_m: float = 0.3
     method: str = "auto"
     structure: str = "tracks"
