@@ -45,7 +45,7 @@ STAMP_DOUBT_RATIO = 0.2
 #: a nominal-rate stamp doubles a step's true length
 DOUBTED_STAMPS_SCALE_STD = 1.0
 #: the same before four fixes have shown that the stamp gaps are the times the camera moved
-UNVOUCHED_STAMPS_SCALE_STD = 0.5
+UNVOUCHED_STAMPS_SCALE_STD = 0.3
 #: fix-to-fix speeds kept to judge the stamps
 SPEEDS_KEPT = 8
 #: a visual step's relative length std is at least this many times the relative jumps between

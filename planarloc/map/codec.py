@@ -81,7 +81,7 @@ STORAGE_LAYOUTS = ("compact", "full")
 #: The layout of new maps: ``compact`` keeps the single-frame recall and the promises of ``full``
 #: maps on both shared KITTI sequences (map every 2nd and 4th, RANSAC seeds 0-4) and in every
 #: setting of benchmarks/trust.py at a fifth of the bytes (BENCHMARKS.md, "Compact maps", and
-#: "A search stopped on a wall's planar twin"); ``full`` stays available.
+#: "Trust"); ``full`` stays available.
 DEFAULT_STORAGE = "compact"
 DESCRIPTOR_ENCODINGS = ("auto", "uint4", "uint8", "float16", "float32")
 KEYPOINT_LAYOUTS = {"full": "float32", "compact": "fixed"}
