@@ -88,13 +88,7 @@ class _InstalledTreeImpl(_CompileResultImpl):
 @functools.cache
 def _tree_writable(folder: str) -> bool:
     """Whether numba's own in-tree locator would take ``folder/__pycache__`` (its own test)."""
-    path = os.path.join(folder, "__pycache__")
-    try:
-        os.makedirs(path, exist_ok=True)
-        tempfile.TemporaryFile(dir=path).close()
-    except OSError:
-        return False
-    return True
+    return _writable(os.path.join(folder, "__pycache__"), private=False)
 
 
 def _read_only_module(py_func) -> str | None:
@@ -155,6 +149,8 @@ def _temp_folder_trusted() -> bool:
 
 
 def _writable(path: str, private: bool) -> bool:
+    """Whether a file can be made in ``path`` (created first: mode 0700 when ``private``, and
+    then never through a symbolic link)."""
     try:
         if private:
             os.makedirs(path, mode=0o700, exist_ok=True)
