@@ -28,7 +28,7 @@ world x, map y = world z, map z = −world y. ``world`` publishes in the map's w
 
 What is published (the node is never confidently wrong): a frame the stream calls
 ``localized`` (an absolute fix accepted in this frame), and with ``publish_predicted`` a
-``predicted`` one, each only when its position std is at most ``max_position_std_m``. A
+``predicted`` one, each only when its position std is at most ``max_published_std_m``. A
 ``lost`` frame publishes only its diagnostic. ``map → odom`` is re-sent with each localized or
 predicted frame's stamp (as AMCL re-sends its last transform) and never after ``lost``.
 
@@ -448,7 +448,7 @@ class LocalizerNode:
         self._diagnose(msg.header.stamp, status, "; ".join(notes), received, est, published, camera_source)
 
     def _publishable(self, est: SequenceEstimate) -> bool:
-        if est.pose is None or not est.position_std_m <= self.settings.max_position_std_m:
+        if est.pose is None or not est.position_std_m <= self.settings.max_published_std_m:
             return False
         return est.status == FrameStatus.LOCALIZED.value or (
             est.status == FrameStatus.PREDICTED.value and self.settings.publish_predicted)

@@ -69,8 +69,12 @@ class NodeSettings:
         publish_predicted: also publish ``predicted`` frames (the motion model's pose; it keeps
             its promise like a localized one, its covariance grown with what the motion model does
             not know); false: ``localized`` frames only.
-        max_position_std_m: no pose with a larger position std (worst axis) is published; also the
-            single-frame estimator's limit.
+        max_position_std_m: the single-frame estimator's limit: a fix with a larger position std
+            (worst axis) is a failure (``RansacOptions.max_position_std_m``).
+        max_published_std_m: no pose with a larger position std (worst axis) is published: a
+            pose keeps its promise (within 3 std + 5 cm), so none is then more than 1.55 m off,
+            and the stream's stds are conservative (the published errors stay under 0.3 m on the
+            shared KITTI; BENCHMARKS.md, "Stream trust").
         method: the hypothesis family (``planarloc localize --method``).
         structure: ``tracks`` (also 2D-3D constraints from points triangulated between map
             images) or ``none`` (2D-2D only) (``planarloc localize --structure``).
@@ -105,6 +109,7 @@ class NodeSettings:
     tf_broadcast: bool = True
     publish_predicted: bool = True
     max_position_std_m: float = 0.3
+    max_published_std_m: float = 0.5
     method: str = "auto"
     structure: str = "tracks"
     top_n: int = 5
@@ -124,7 +129,7 @@ class NodeSettings:
         for name, allowed in choices.items():
             if getattr(self, name) not in allowed:
                 raise InputError(f"parameter {name}: expected one of {', '.join(allowed)}, got {getattr(self, name)!r}")
-        for name in ("odom_tolerance_s", "max_position_std_m"):
+        for name in ("odom_tolerance_s", "max_position_std_m", "max_published_std_m"):
             if not getattr(self, name) > 0:
                 raise InputError(f"parameter {name}: expected a number > 0, got {getattr(self, name)}")
         if self.queue_size < 1:
