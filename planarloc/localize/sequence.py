@@ -201,10 +201,9 @@ class SequenceLocalizer:
 
     def _expected_turn_deg(self, odometry: Pose | None) -> float | None:
         """The rotation wheel odometry measured since the previous frame (degrees); None without."""
-        prev = self._prev[1] if self._prev is not None else None
-        if odometry is None or prev is None:
+        if odometry is None or self._prev is None or self._prev[1] is None:
             return None
-        return float(np.degrees(np.linalg.norm(so3_log((odometry @ prev.inverse()).R[None])[0])))
+        return float(np.degrees(np.linalg.norm(so3_log((odometry @ self._prev[1].inverse()).R[None])[0])))
 
     def _weak(self, last: int, dt: float) -> Motion:
         """The constant-velocity motion from node ``last`` over ``dt`` seconds."""
@@ -311,10 +310,8 @@ class SequenceLocalizer:
         self.stats.count_fix(status)
 
     def _reject_visual_odometry(self, node: int, fixes: FixOutcome) -> None:
-        """Visual odometry can be wrong (few tracks, bas-relief ambiguity). When two fixes
-        (local and global retrieval) agree with each other and with the weak motion model, the
-        visual factor into ``node`` is the outlier: it is replaced and the fix accepted
-        (``fixes`` updated)."""
+        """Two fixes (local, global) that agree with each other and with constant velocity but not
+        with the visual motion into ``node``: that motion is replaced and the fix accepted."""
         w = self._window
         if node < 1 or w.nodes[node].source != "visual" or len(fixes.rejected) < 2:
             return
@@ -331,8 +328,7 @@ class SequenceLocalizer:
         fixes.accepted, fixes.status, fixes.mahalanobis_sq, fixes.rejected = (b.pose, b.covariance), "accepted", d2, []
 
     def _track_kidnap(self, node: int, fixes: FixOutcome, handled: _Handled) -> None:
-        """Rejected global fixes feed the kidnap monitor (:mod:`planarloc.localize.kidnap`); a
-        confirmed kidnap restarts the window at this node."""
+        """Rejected global fixes feed the kidnap monitor; a confirmed kidnap restarts the window."""
         w = self._window
         anchor = w.last_fixed()
         anchor = -1 if anchor is None else anchor
@@ -358,9 +354,8 @@ class SequenceLocalizer:
         return self._window.carried(c.pose, c.covariance, prev, node, self._weak_covariance)
 
     def _observe_scale(self, node: int, pose: Pose, cov: np.ndarray) -> None:
-        """An absolute pose at ``node``: how long the visual steps since the previous absolute
-        pose were against how far it says the camera went (:class:`~planarloc.localize.
-        motion_model.ScaleDoubt`); a larger doubt scales the window's visual motions again."""
+        """An absolute pose at ``node`` against the visual steps since the previous one
+        (:class:`~planarloc.localize.motion_model.ScaleDoubt`); a new doubt rescales them."""
         w = self._window
         prev = max((f.node for f in w.absolute if f.node < node), default=-1)
         if prev < 0 or any(n.source != "visual" for n in w.nodes[prev + 1:node + 1]):
@@ -376,10 +371,8 @@ class SequenceLocalizer:
             w.marginalize()
 
     def _replace_visual(self, pose: Pose, cov: np.ndarray) -> bool:
-        """The current node's pose from its tracked map points contradicts a prediction made
-        with visual odometry: when it agrees with the constant-velocity model instead, the
-        visual factor is the outlier (2D-2D motion has wrong basins that explain the tracks as
-        well as the truth) and is replaced. Returns whether it was."""
+        """A point fix that contradicts a visual-odometry prediction but agrees with constant
+        velocity: the visual factor is the outlier (a wrong 2D-2D basin) and is replaced."""
         w = self._window
         n = len(w) - 1
         if n < 1 or w.nodes[n].source != "visual":
@@ -391,9 +384,8 @@ class SequenceLocalizer:
         return True
 
     def _point_fix(self, stamp: float, camera: Camera) -> None:
-        """The current node's pose from the world points tracked into this frame
-        (:func:`~planarloc.localize.tracking.pose_from_points`), gated by χ²(6) against the
-        prediction; a contradicting one drops the points."""
+        """The current node's pose from the map points tracked into this frame, gated by χ²(6)
+        against the prediction; a contradicting one drops the points."""
         cfg = self.config
         points = self._tracker.points
         if points is None or points.stamp != stamp or len(points) < MIN_POINTS:
@@ -502,11 +494,9 @@ class SequenceLocalizer:
             self._tracker.set_points(result.points)
 
     def _take_fixes(self, query: Query, stamp: float, handled: _Handled) -> None:
-        """Fuse the fix results that arrived and the tracked map points, then submit this
-        frame's fix job when the worker is idle; a frame too far ahead of the fix in flight, or
-        one with no pose to give early (a suspected kidnap, a std beyond ``lost_std_m``) waits
-        for it: the stream is re-anchored within a frame or two instead of at the rate the
-        worker gets CPU next to the frame path."""
+        """Fuse the fix results that arrived and the tracked map points, submit this frame's fix
+        job when the worker is idle; a frame too far ahead of the fix in flight, or with no pose
+        to give early (doubted, a std beyond ``lost_std_m``), waits for it."""
         frame = self._frame
         for result in self._fixes.collect(frame):
             self._handle(result, handled)
@@ -535,10 +525,9 @@ class SequenceLocalizer:
             self._refresh()
 
     def _blank(self, stamp: float, missing: int, t_call: float, t0: float, cpu0: float) -> SequenceEstimate:
-        """A blank frame (:func:`~planarloc.localize.tracking.is_blank`) is ``lost`` with a
-        message and leaves the stream as it was: not tracked, not fixed, not a node; the next
-        frame is tracked from the last one with texture, across the gap, like a dropped frame.
-        Its pose is the constant-velocity guess (std as :meth:`MotionModel.constant`)."""
+        """A blank frame (:func:`~planarloc.localize.tracking.is_blank`) is ``lost`` with a message,
+        its pose the constant-velocity guess; it is not tracked, fixed or a node: the next frame
+        is tracked from the last one with texture, like a dropped frame."""
         w = self._window
         pose, cov = None, np.full((6, 6), np.inf)
         if len(w):
