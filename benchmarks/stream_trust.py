@@ -18,7 +18,13 @@ Wheel odometry, where used, is simulated from the truth (:func:`planarloc.synthe
 How frames are fed: good and black frames as decoded (H, W) uint8 arrays (as the ROS node and
 the service hand them over, so decoding is not timed); corrupt frames as the bytes themselves
 (``step`` takes JPEG/PNG bytes): zero-length, random, a PNG cut in half. Each frame is handed over
-when the previous pose is out (the sustained rate). A frame the stream refuses with ``InputError``
+as a camera delivers it (``--pace camera``, the default): at its capture time on the wall clock
+(the true time, also where the stamps lie: ``fixed-rate``, ``jitter``), or at once when the
+stream is still busy with the previous frame (latency is then counted from the capture time, so a
+stream that falls behind shows it); ``--pace eager`` hands each frame over when the previous pose is
+out (faster than the camera: a stress mode in which background fixes come back every few frames).
+The default case without odometry with background fixes is also run ``eager`` for the sustained
+rate (the speed target). A frame the stream refuses with ``InputError``
 is status ``error`` (expected for corrupt frames, a failure for any other); any other exception out
 of ``step`` is a ``crash``: recorded with its text, the stream goes on with the next frame.
 
@@ -92,6 +98,7 @@ WORLDS = ("office", "corridor")
 DEFAULT_DATA = ("kitti_seq2", "kitti_seq1", "office")
 WORLD_SEED = 0
 ODOMETRY = ("without", "with")
+PACES = ("camera", "eager")
 STRICT_T, STRICT_R = 0.25, 10.0
 BEYOND_M = 1.0
 #: base_link with the optical camera 1.65 m up, 0.27 m ahead (KITTI's mount; benchmarks/ros2_replay.py)
@@ -193,8 +200,9 @@ def _brief(r: dict) -> dict:
 
 
 # ---- the stream in this process -----------------------------------------------------------------
-def run_stream(loc: Localizer, frames: list[CaseFrame], fixes: str, odometry: bool) -> dict:
-    """``frames`` through a fresh :class:`SequenceLocalizer`; never raises on a frame."""
+def run_stream(loc: Localizer, frames: list[CaseFrame], fixes: str, odometry: bool, pace: str = "camera") -> dict:
+    """``frames`` through a fresh :class:`SequenceLocalizer`, paced as ``pace`` (module docstring);
+    never raises on a frame."""
     results, records, crashes = [], [], []
     stats: dict = {}
     try:
@@ -205,6 +213,11 @@ def run_stream(loc: Localizer, frames: list[CaseFrame], fixes: str, odometry: bo
                 truth = PosedImage(f.name, Path(f.name), f.truth, f.camera, k)
                 message = ""
                 arrival = time.perf_counter()
+                if pace == "camera":
+                    due = start + (f.true_time - frames[0].true_time)
+                    if due > arrival:
+                        time.sleep(due - arrival)
+                    arrival = due
                 try:
                     est = seq.step(f.image, f.camera, f.stamp, f.odometry if odometry else None, arrival=arrival)
                 except InputError as exc:
@@ -308,7 +321,7 @@ def run_node(data: Stream, loc: Localizer, frames: list[CaseFrame], params: Sequ
 
 
 # ---- output -------------------------------------------------------------------------------------
-HEADERS = ["data", "case", "odometry", "fixes", "frames", "≤0.25 m/10°", "%", "breaks L/P/other", "> 1 m",
+HEADERS = ["data", "case", "odometry", "fixes", "pace", "frames", "≤0.25 m/10°", "%", "breaks L/P/other", "> 1 m",
            "worst break: status error (std)", "refused/crash", "frames/s", "p99 ms"]
 
 
@@ -316,7 +329,7 @@ def table_row(r: dict) -> list[str]:
     w = r["worst"]
     worst = "-" if w is None else (f"{w['status']} {w['translation_error_m']:.2f} m "
                                    f"({w['position_std_m']:.2f})")
-    return [r["data"], r["case"], r["odometry"], r["fixes"], str(r["frames"]), str(r["good"]),
+    return [r["data"], r["case"], r["odometry"], r["fixes"], r["pace"], str(r["frames"]), str(r["good"]),
             f"{r['good_pct']:.1f}",
             f"{r['promise_breaks']} ({r['breaks_localized']}/{r['breaks_predicted']}/{r['breaks_other']})",
             str(r["beyond_1m"]), worst, f"{r['refused']}/{len(r['crashes'])}",
@@ -370,15 +383,21 @@ def detail_lines(rows: list[dict]) -> list[str]:
 def target_lines(rows: list[dict]) -> list[str]:
     out = []
     for r in rows:
-        label = f"{r['data']} {r['case']} odometry={r['odometry']} fixes={r['fixes']}"
-        if not CASES[r["case"]].kidnap:
+        label = f"{r['data']} {r['case']} odometry={r['odometry']} fixes={r['fixes']} pace={r['pace']}"
+        if not CASES[r["case"]].kidnap and r["pace"] == "camera":
             out.append(peer.verdict(r["good_pct_of_image_frames"] >= 95.0,
                                     f"{label}: >= 95 % of the frames with an image within 0.25 m/10° "
                                     f"({r['good_pct_of_image_frames']:.1f} %)"))
-        if r["case"] == "default" and r["runner"] == "stream" and r["fixes"] == "background":
-            out.append(peer.verdict((r["fps"] or 0) >= 10.0 and r["p99_ms"] is not None and r["p99_ms"] <= 100.0,
-                                    f"{label}: >= 10 frames/s and p99 <= 100 ms ({peer.fmt_num(r['fps'], 1)} "
-                                    f"frames/s, p99 {peer.fmt_num(r['p99_ms'], 0)} ms)"))
+        if (r["case"] == "default" and r["runner"] == "stream" and r["fixes"] == "background"
+                and r["odometry"] == "without"):
+            p99_ok = r["p99_ms"] is not None and r["p99_ms"] <= 100.0
+            if r["pace"] == "eager":     # the sustained rate: frames handed over as fast as they are posed
+                out.append(peer.verdict((r["fps"] or 0) >= 10.0 and p99_ok,
+                                        f"{label}: >= 10 frames/s sustained and p99 <= 100 ms "
+                                        f"({peer.fmt_num(r['fps'], 1)} frames/s, p99 {peer.fmt_num(r['p99_ms'], 0)} ms)"))
+            else:                        # at the camera's pace the latency counts from the capture time
+                out.append(peer.verdict(p99_ok, f"{label}: p99 <= 100 ms from capture "
+                                                f"(p99 {peer.fmt_num(r['p99_ms'], 0)} ms)"))
     return out
 
 
@@ -390,6 +409,9 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument("--cases", nargs="+", choices=list(CASES), default=None,
                    help=f"stream cases (default: all; --quick: {' '.join(QUICK['cases'])})")
     p.add_argument("--fixes", nargs="+", choices=FIX_MODES, default=None, help="fix modes (default: both)")
+    p.add_argument("--pace", nargs="+", choices=PACES, default=["camera"],
+                   help="how frames are handed over: at their capture times (camera) or as soon as the previous "
+                        "pose is out (eager); default: %(default)s, plus one eager run of the default case for speed")
     p.add_argument("--odometry", nargs="+", choices=ODOMETRY, default=None,
                    help=f"with / without simulated wheel odometry (default: both; --quick: {QUICK['odometry'][0]})")
     p.add_argument("--quick", action="store_true", help="CI subset: " + "; ".join(
@@ -426,16 +448,19 @@ def main(argv: list[str] | None = None) -> int:
         loc = Localizer(data.map_path, localizer_config(structure="tracks", seed=0))
         for case in args.cases:
             frames = apply_case(case, data.frames, args.seed)
-            runs = [(odo, fixes, "stream") for odo in args.odometry for fixes in args.fixes]
+            runs = [(odo, fixes, "stream", pace) for pace in args.pace for odo in args.odometry
+                    for fixes in args.fixes]
+            if case == "default" and "eager" not in args.pace:
+                runs.append(("without", "background", "stream", "eager"))   # the sustained rate
             if args.node and case in args.node_cases:
-                runs.append(("without", "node", "node"))
-            for odo, fixes, runner in runs:
+                runs.append(("without", "node", "node", "camera"))
+            for odo, fixes, runner, pace in runs:
                 load, t0 = os.getloadavg()[0], time.perf_counter()
                 if runner == "node":
                     r = run_node(data, loc, frames, args.node_param)
                 else:
-                    r = run_stream(loc, frames, fixes, odo == "with")
-                r = {"data": name, "case": case, "odometry": odo, "fixes": fixes, "runner": runner,
+                    r = run_stream(loc, frames, fixes, odo == "with", pace)
+                r = {"data": name, "case": case, "odometry": odo, "fixes": fixes, "runner": runner, "pace": pace,
                      "load_average": load, "wall_s": time.perf_counter() - t0, **r}
                 rows.append(r)
                 peer.log("| " + " | ".join(table_row(r)) + f" | load {load:.1f} |")

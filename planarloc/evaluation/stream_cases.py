@@ -68,6 +68,9 @@ class CaseFrame:
             are not an image) or :data:`STOPPED` (a repeat of the previous frame: the robot
             stands still).
         kidnapped: the robot was carried here from the previous frame's place.
+        capture_time: seconds on the stream's clock when the camera took the frame, where
+            ``stamp`` lies about it (``fixed-rate``, ``jitter``); None: ``stamp`` is the truth.
+            A replay that paces frames as a camera delivers them uses :attr:`true_time`.
     """
 
     image: object
@@ -78,6 +81,12 @@ class CaseFrame:
     name: str = ""
     kind: str = FRAME
     kidnapped: bool = False
+    capture_time: float | None = None
+
+    @property
+    def true_time(self) -> float:
+        """When the frame was taken (seconds): :attr:`capture_time`, else :attr:`stamp`."""
+        return self.stamp if self.capture_time is None else self.capture_time
 
 
 def frames_from_stream(stream: Sequence, load: bool = True) -> list[CaseFrame]:
@@ -132,7 +141,7 @@ def fixed_rate(frames: Sequence[CaseFrame], rng: np.random.Generator, fraction: 
     period = nominal_period(frames) if period_s is None else float(period_s)
     kept = _drop(frames, rng, fraction)
     t0 = kept[0].stamp
-    return [dataclasses.replace(f, stamp=t0 + k * period) for k, f in enumerate(kept)]
+    return [dataclasses.replace(f, stamp=t0 + k * period, capture_time=f.true_time) for k, f in enumerate(kept)]
 
 
 def _victims(n: int, rng: np.random.Generator, fraction: float, start: int, pair: bool) -> list[int]:
@@ -253,7 +262,7 @@ def jitter(frames: Sequence[CaseFrame], rng: np.random.Generator, max_offset_s: 
         stamp = f.stamp + float(rng.uniform(-max_offset_s, max_offset_s))
         if out and stamp <= out[-1].stamp:
             stamp = out[-1].stamp + 1e-3
-        out.append(dataclasses.replace(f, stamp=stamp))
+        out.append(dataclasses.replace(f, stamp=stamp, capture_time=f.true_time))
     return out
 
 

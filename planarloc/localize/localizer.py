@@ -40,6 +40,7 @@ from planarloc.robust.absolute_pose import estimate_absolute_pose
 from planarloc.robust.options import Method, RansacOptions, Structure
 from planarloc.robust.pair_matches import PairMatches, unit_gravity
 from planarloc.robust.result import PoseEstimate
+from planarloc.robust.status import Status
 
 logger = logging.getLogger(__name__)
 
@@ -356,7 +357,7 @@ class Localizer:
         if unknown:
             raise InputError(f"references not in the map: {unknown[:3]}{'...' if len(unknown) > 3 else ''}")
         if len(features) < self.config.min_matches:  # a black, uniform or blurred frame: nothing to match
-            est = PoseEstimate(None, False, "too_few_matches",
+            est = PoseEstimate(None, False, Status.TOO_FEW_MATCHES,
                                f"the image has {len(features)} features (a black, uniform or featureless frame): "
                                "nothing to match with the map", [])
             est.stats.add_time("retrieval", time.perf_counter() - t0)
@@ -365,7 +366,7 @@ class Localizer:
         pairs, used, (residual_px, focal_px) = self._pairs_and_map_residual(features, refs, camera)
         t2 = time.perf_counter()
         if len(pairs) < 2:
-            est = PoseEstimate(None, False, "too_few_matches",
+            est = PoseEstimate(None, False, Status.TOO_FEW_MATCHES,
                                f"fewer than 2 of the {len(refs)} retrieved map images have >= "
                                f"{self.config.min_matches} matches", [np.zeros(0, bool)] * len(pairs))
         else:

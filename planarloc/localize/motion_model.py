@@ -11,8 +11,13 @@ Three sources, in order of preference (:class:`MotionModel`):
 - **constant velocity**: the last step repeated at the measured speed, with a large std.
 
 What visual odometry does not know is in its std along the motion (:meth:`MotionModel.visual`):
-the speed's own relative std, a change of speed over the step (``MAX_ACCELERATION · dt²``), and
-the **scale doubt** (:class:`ScaleDoubt`): how far the lengths that speed × stamp gap predicted
+the speed's own std (from the fixes' stds, :class:`SpeedFit`), a change of speed the fixes have
+not seen (``SPEED_CHANGE_STD``), and the **scale doubt** (:class:`ScaleDoubt`). The steps since the
+last absolute pose share one speed, so their length errors add up, not in quadrature: after ``T``
+seconds of visual odometry the along-track std is ``f(T) = σ_v·T + SPEED_CHANGE_STD·T²/2`` (``σ_v``
+the speed's std, relative scale doubt included), and a step from ``T₀`` to ``T₀ + dt`` carries
+``sqrt(f(T₀ + dt)² − f(T₀)²)``: chained, the steps' variances sum to ``f(T)²`` exactly.
+The scale doubt: how far the lengths that speed × stamp gap predicted
 were from the lengths the absolute poses then measured. A stamp gap that lies about the time
 (a driver that stamps at its nominal rate while frames are lost, a recording replayed with
 invented stamps) makes those lengths wrong by whole multiples; the doubt learns it from the
@@ -21,7 +26,7 @@ first contradictions and keeps the predictions honest until the lengths agree ag
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from itertools import pairwise
 
 import numpy as np
@@ -33,9 +38,17 @@ from planarloc.localize.tracking import direction_basis
 from planarloc.robust.pose_graph import so3_log
 
 #: visual-odometry speed: from this many of the latest fixes (:meth:`MotionModel.update_speed`)
-SPEED_FIXES = 4
+SPEED_FIXES = 10
 #: the speed model's acceleration is at most this (m/s²), and applied at most this far from its data (s)
 MAX_ACCELERATION, MAX_EXTRAPOLATION_S = 5.0, 1.0
+#: an unmodelled change of speed over a visual step (m/s², as a std): the fitted line already
+#: carries the measured acceleration, this is what the fixes have not seen yet
+SPEED_CHANGE_STD = 1.5
+#: a robot that stood still may speed up again to the largest speed of this many seconds before
+#: (:meth:`MotionModel.visual`'s regain term): a stop can outlast the fixes kept for the speed
+REGAIN_MEMORY_S = 10.0
+#: a fix's position is never known better than this (m), for the speed's std
+MIN_FIX_STD_M = 0.01
 #: rotation std of the constant-velocity guess (degrees)
 CONSTANT_ROTATION_STD_DEG = 20.0
 #: fix-to-fix speeds whose second difference exceeds this fraction of the speed (beyond the fixes'
@@ -47,7 +60,7 @@ DOUBTED_STAMPS_SCALE_STD = 1.0
 #: the same before four fixes have shown that the stamp gaps are the times the camera moved
 UNVOUCHED_STAMPS_SCALE_STD = 0.3
 #: fix-to-fix speeds kept to judge the stamps
-SPEEDS_KEPT = 8
+SPEEDS_KEPT = 10
 #: a visual step's relative length std is at least this many times the relative jumps between
 #: consecutive fix-to-fix speeds (a step is shorter than a fix-to-fix segment, and noisier)
 SCATTER_SCALE = 2.0
@@ -57,6 +70,13 @@ STAMP_DOUBT_FIXES = 30
 #: visual odometry farther than this (squared Mahalanobis distance of the displacement, 3σ) from
 #: the constant-velocity guess is disputed (:meth:`MotionModel.disputed`)
 DISPUTE_MAHALANOBIS_SQ = 9.0
+
+
+def chain_std(speed_std: float, seconds: float) -> float:
+    """Along-track std (m) of visual odometry chained over ``seconds`` from an absolute pose at
+    one speed of std ``speed_std`` (m/s), with an unseen change of speed of std ``SPEED_CHANGE_STD``:
+    ``σ_v·T + SPEED_CHANGE_STD·T²/2`` (module docstring)."""
+    return speed_std * seconds + SPEED_CHANGE_STD * seconds**2 / 2
 
 
 @dataclass(frozen=True)
@@ -71,6 +91,8 @@ class VisualStep:
         covariance: (5, 5) covariance of (rotation, direction) from the tracks, or None.
         disputed_m: the constant-velocity model's disagreement with it (:meth:`MotionModel.disputed`),
             a std added on every position axis.
+        since_anchor_s: time from the last absolute pose (a fix, tracked map points) before the
+            step to the step's start: the steps in between share its speed error.
     """
 
     R: np.ndarray
@@ -79,6 +101,7 @@ class VisualStep:
     dt: float
     covariance: np.ndarray | None = None
     disputed_m: float = 0.0
+    since_anchor_s: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -103,16 +126,26 @@ class Motion:
 
 @dataclass(frozen=True)
 class SpeedFit:
-    """A line through the fixes' speeds: ``speed`` (m/s) at ``t_ref`` and its ``acceleration``."""
+    """A line through the fixes' speeds: ``speed`` (m/s) at ``t_ref`` and its ``acceleration``;
+    ``covariance``: (2, 2) of (speed, acceleration) from the fixes' position stds."""
 
     t_ref: float
     speed: float
     acceleration: float
+    covariance: np.ndarray | None = field(default=None, compare=False)
 
     def at(self, stamp: float) -> float:
         """The speed at ``stamp``, extrapolated at most ``MAX_EXTRAPOLATION_S``, never negative."""
         dt = float(np.clip(stamp - self.t_ref, -MAX_EXTRAPOLATION_S, MAX_EXTRAPOLATION_S))
         return max(self.speed + self.acceleration * dt, 0.0)
+
+    def std_at(self, stamp: float) -> float:
+        """The std of :meth:`at` (m/s): the line's uncertainty at ``stamp`` (0 without a covariance)."""
+        if self.covariance is None:
+            return 0.0
+        dt = float(np.clip(stamp - self.t_ref, -MAX_EXTRAPOLATION_S, MAX_EXTRAPOLATION_S))
+        J = np.array([1.0, dt])
+        return float(np.sqrt(max(J @ self.covariance @ J, 0.0)))
 
 
 class ScaleDoubt:
@@ -150,6 +183,41 @@ class ScaleDoubt:
         return float(np.clip(max(rms, max(self.errors[-2:])), self.floor, self.max_std))
 
 
+def fit_speed(stamps: np.ndarray, centers: np.ndarray, stds: np.ndarray) -> SpeedFit:
+    """The speed along a path through fixes, with its covariance.
+
+    The distance travelled along the path (the fixes' centres joined in order) is fitted by
+    weighted least squares as a function of time, ``s(τ) = s₀ + v·τ + a·τ²/2`` with ``τ`` from the
+    last fix (a line, ``a = 0``, with fewer than four fixes; ``|a|`` at most
+    ``MAX_ACCELERATION``), each fix weighted by its position std. Fitting the positions rather
+    than differencing consecutive fixes uses every fix once: the speed's std is that of the fit.
+
+    Args:
+        stamps: (N,) increasing times (s), N ≥ 2.
+        centers: (N, 3) the fixes' camera centres.
+        stds: (N,) their position stds (m), > 0.
+    Returns:
+        :class:`SpeedFit` at the last fix, with the (2, 2) covariance of (speed, acceleration).
+    """
+    s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(centers, axis=0), axis=1))])
+    tau = stamps - stamps[-1]
+    w = 1.0 / np.square(stds)
+    quadratic = len(stamps) >= 4
+    A = np.stack([np.ones_like(tau), tau, tau**2 / 2] if quadratic else [np.ones_like(tau), tau], axis=1)
+    info = A.T @ (A * w[:, None])
+    params = np.linalg.solve(info, A.T @ (s * w))
+    cov = np.linalg.inv(info)
+    accel = float(params[2]) if quadratic else 0.0
+    if abs(accel) > MAX_ACCELERATION:        # clipped: the line through what the parabola leaves
+        accel = float(np.clip(accel, -MAX_ACCELERATION, MAX_ACCELERATION))
+        A2 = A[:, :2]
+        info = A2.T @ (A2 * w[:, None])
+        params = np.linalg.solve(info, A2.T @ ((s - accel * tau**2 / 2) * w))
+        cov = np.linalg.inv(info)
+    speed_cov = cov[1:3, 1:3] if cov.shape[0] == 3 else np.diag([cov[1, 1], 0.0])
+    return SpeedFit(float(stamps[-1]), max(float(params[1]), 0.0), accel, speed_cov)
+
+
 class MotionModel:
     """Odometry, visual odometry and constant-velocity motions with honest covariances, and the
     speed that gives visual odometry its length (module docstring).
@@ -170,7 +238,8 @@ class MotionModel:
         self.doubt.reset()
         self.stamps_doubted = True       # until four fixes have shown that stamp gaps are times
         self.speed_scatter = 0.0         # relative jumps between consecutive fix-to-fix speeds
-        self.recent_speed: float | None = None   # the largest of the recent fix-to-fix speeds
+        self.recent_speed: float | None = None   # the largest fix-to-fix speed of the last REGAIN_MEMORY_S
+        self._speeds_seen: list[tuple[float, float]] = []   # (stamp, fix-to-fix speed ending there)
         self._doubted_fixes = 0
         self._vouched = False
 
@@ -226,31 +295,26 @@ class MotionModel:
 
     def update_speed(self, now: float) -> bool:
         """Speed from the raw fixes, not the fused poses (fused poses follow visual odometry,
-        whose length comes from this speed: a feedback loop that would keep any initial error).
-        Each pair of consecutive fixes among the last ``SPEED_FIXES`` gives a speed at its mid
-        time; a line through them (weighted by their durations, acceleration at most
-        ``MAX_ACCELERATION``) gives the speed at any time. Returns whether it changed."""
+        whose length comes from this speed: a feedback loop that would keep any initial error):
+        :func:`fit_speed` over the last ``SPEED_FIXES``. Returns whether it changed."""
         fixes = sorted(self.fixes, key=lambda f: f[0])[-SPEED_FIXES:]
-        seg = [((a[0] + b[0]) / 2, float(np.linalg.norm(b[1] - a[1])) / (b[0] - a[0]), b[0] - a[0])
-               for a, b in pairwise(fixes) if b[0] > a[0]]
-        if not seg:
+        fixes = [f for k, f in enumerate(fixes) if k == 0 or f[0] > fixes[k - 1][0]]
+        if len(fixes) < 2:
             return False
-        t, v, w = (np.array(x) for x in zip(*seg))
-        t_ref = float(t[-1])
-        v_ref, accel = float(np.average(v, weights=w)), 0.0
-        if len(seg) >= 3:
-            A = np.stack([np.ones_like(t), t - t_ref], axis=1) * np.sqrt(w)[:, None]
-            v_ref, accel = (float(x) for x in np.linalg.lstsq(A, v * np.sqrt(w), rcond=None)[0])
-            accel = float(np.clip(accel, -MAX_ACCELERATION, MAX_ACCELERATION))
-            v_ref = float(np.average(v - accel * (t - t_ref), weights=w))
-        old, self.fit = self.fit, SpeedFit(t_ref, max(v_ref, 0.0), accel)
+        fit = fit_speed(np.array([f[0] for f in fixes]), np.stack([f[1] for f in fixes]),
+                        np.maximum([f[2] for f in fixes], MIN_FIX_STD_M))
+        old, self.fit = self.fit, fit
         self.speed = self.fit.at(now)
         # consecutive fix-to-fix speeds that differ beyond the fixes' noise: a step's length is at
         # least this unsure (a smooth speed change hardly shows between two segments)
         speeds = sorted(self.fixes, key=lambda f: f[0])
         segs = [(float(np.linalg.norm(b[1] - a[1])) / (b[0] - a[0]), (a[2] + b[2]) / (b[0] - a[0]))
                 for a, b in pairwise(speeds) if b[0] > a[0]]
-        self.recent_speed = max((v for v, _ in segs), default=self.speed)
+        latest = speeds[-1][0]
+        self._speeds_seen = [(t, v) for t, v in self._speeds_seen if t >= latest - REGAIN_MEMORY_S]
+        ends = [(b[0], float(np.linalg.norm(b[1] - a[1])) / (b[0] - a[0])) for a, b in pairwise(speeds) if b[0] > a[0]]
+        self._speeds_seen += [(t, v) for t, v in ends if not self._speeds_seen or t > self._speeds_seen[-1][0]]
+        self.recent_speed = max((v for _, v in self._speeds_seen), default=self.speed)
         if len(segs) >= 2:
             jumps = [max(abs(v1 - v0) - n0 - n1, 0.0) for (v0, n0), (v1, n1) in pairwise(segs)]
             mean_v = max(float(np.mean([v for v, _ in segs])), 1e-3)
@@ -285,17 +349,22 @@ class MotionModel:
         Covariance over (rotation, centre displacement ``d = dist · u``): the tracks' own (5, 5)
         covariance of rotation and direction (with their correlation), plus
         ``vo_rotation_std_deg`` and ``vo_direction_std_deg`` per axis and 2 cm across; along the
-        motion the speed's relative std (``vo_first_scale_std`` before two fixes measured it,
-        else the :class:`ScaleDoubt`), a change of speed over the step and 5 cm."""
+        motion the step's share of :func:`chain_std` since ``step.since_anchor_s`` (the speed's
+        std: its fit's, and its relative std ``vo_first_scale_std`` before two fixes measured it,
+        else the :class:`ScaleDoubt`'s), a robot speeding up again after a stop, and 5 cm."""
         cfg = self.config
-        speed = self.speed_at(step.stamp - step.dt / 2)
+        mid = step.stamp - step.dt / 2
+        speed = self.speed_at(mid)
         if speed is None:
             dist, along = 0.0, cfg.max_speed_mps * step.dt
         else:
             dist = speed * step.dt
             # a robot at less than half its recent speed may be speeding up again (stop-and-go)
             regain = max(0.5 * (self.recent_speed or 0.0) - speed, 0.0) * 2.0 * step.dt
-            along = self.scale_std * dist + regain + MAX_ACCELERATION * step.dt**2 / 2 + 0.05
+            speed_std = float(np.hypot(self.scale_std * speed, 0.0 if self.fit is None else self.fit.std_at(mid)))
+            t0 = max(step.since_anchor_s, 0.0)
+            chained = np.sqrt(max(chain_std(speed_std, t0 + step.dt) ** 2 - chain_std(speed_std, t0) ** 2, 0.0))
+            along = float(chained) + regain + 0.05
         across = dist * np.radians(cfg.vo_direction_std_deg) + 0.02
         u = step.direction
         cov = displacement_covariance(u, along, across, np.radians(cfg.vo_rotation_std_deg))

@@ -203,11 +203,19 @@ class PoseWindow:
         self.relative = relative
         self.dirty = bool(relative)
 
+    def anchor_stamp(self, node: int) -> float:
+        """The stamp of the latest node at or before ``node`` with an absolute factor (the
+        window's first node, whose prior anchors it, when none has)."""
+        anchored = [f.node for f in self.absolute if f.node <= node]
+        return self.nodes[max(anchored, default=0)].stamp
+
     def rescale(self, motion: Callable[[VisualStep], Motion]) -> None:
-        """Scale the visual motions again (``motion``: a visual step to its motion now)."""
+        """Scale the visual motions again (``motion``: a visual step to its motion now), each
+        chained from the latest absolute pose before it as the window now holds them."""
         for k, f in enumerate(self.relative):
             n = self.nodes[f.j]
             if f.j == f.i + 1 and n.source == "visual" and n.visual is not None:
+                n.visual = replace(n.visual, since_anchor_s=self.nodes[f.i].stamp - self.anchor_stamp(f.i))
                 m = motion(n.visual)
                 self.relative[k] = RelativeFactor(f.i, f.j, m.cur_from_prev, m.covariance)
 

@@ -195,7 +195,9 @@ class SequenceLocalizer:
         vo = tracked.relative
         weak = self._weak(len(self._window) - 1, dt)
         if vo is not None and vo.success and vo.pose is not None:
-            step = VisualStep(vo.pose.R, vo.pose.inverse().t, stamp, dt, tracked.covariance)
+            w = self._window
+            since = prev_stamp - w.anchor_stamp(len(w) - 1) if len(w) else 0.0
+            step = VisualStep(vo.pose.R, vo.pose.inverse().t, stamp, dt, tracked.covariance, since_anchor_s=since)
             return self._motion.disputed(self._motion.visual(step, vo.model), weak)
         return weak
 

@@ -64,8 +64,8 @@ class SequenceConfig:
         lost_std_m: a prediction with a position std above this is no guide: fixes go to global
             retrieval, the frame waits for the fix in flight, and it is ``lost``.
         max_pose_std_m: a frame whose position std (fused or predicted) is above this is
-            ``lost``: a pose that keeps its promise (within 3 std + 5 cm) is then at most 1.55 m
-            off, and the stds are conservative (the fixes' own are several times their errors).
+            ``lost``: a pose that keeps its promise (within 3 std + 5 cm) is then less than 1 m
+            off (0.95 m at the default 0.3 m).
         localized_std_m: a frame whose position std is above this is not ``localized`` (at most
             ``predicted``).
         kidnap_confirmations: consistent rejected fixes needed to re-initialise.
@@ -89,7 +89,7 @@ class SequenceConfig:
     local_radius_m: float = 15.0
     local_max_angle_deg: float = 60.0
     gate_probability: float = 0.999
-    fix_std_scale: float = 2.0
+    fix_std_scale: float = 1.0
     fix_std_scale_2d: float = 5.0
     min_inliers_3d: int = 10
     min_fix_std_m: float = 0.03
@@ -102,7 +102,7 @@ class SequenceConfig:
     vo_model: str = "auto"
     vo_direction_std_deg: float = 3.0
     vo_rotation_std_deg: float = 0.5
-    vo_scale_std: float = 0.1
+    vo_scale_std: float = 0.05
     vo_first_scale_std: float = 0.3
     point_fix_min_std_m: float = 0.05
     point_fix_rotation_std_deg: float = 0.2
@@ -110,7 +110,7 @@ class SequenceConfig:
     tracking: TrackerOptions = TrackerOptions()
     max_speed_mps: float = 15.0
     lost_std_m: float = 1.0
-    max_pose_std_m: float = 1.0
+    max_pose_std_m: float = 0.3
     localized_std_m: float = 0.3
     kidnap_confirmations: int = 2
     frame_period_s: float = 0.1

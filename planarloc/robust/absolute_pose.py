@@ -28,21 +28,24 @@ from planarloc.robust.estimators import (
     RelativePairEstimator,
     rectify_problem,
 )
+from planarloc.robust.final_refinement import FinalRefiner, RefinedPose
 from planarloc.robust.options import Method, RansacOptions, Structure, parse_method, reprojection_threshold_px
 from planarloc.robust.pair_matches import PairMatches, unit_gravity
 from planarloc.robust.problem import AbsolutePoseProblem, build_problem
 from planarloc.robust.ransac import ransac
-from planarloc.robust.final_refinement import FinalRefiner, RefinedPose
 from planarloc.robust.result import PoseEstimate, RansacStatistics
+from planarloc.robust.sampling import eligible_pairs
+from planarloc.robust.status import DATA_LIMITED, Status
+from planarloc.robust.structure import triangulate_tracks
 from planarloc.robust.verification import (
     RIVAL_COST_RATIO,
     RIVAL_MARGIN_INLIERS,
+    Candidate,
+    EstimateContext,
     failed_estimate,
     judge_pose,
     with_rival,
 )
-from planarloc.robust.sampling import eligible_pairs
-from planarloc.robust.structure import triangulate_tracks
 
 logger = logging.getLogger(__name__)
 
@@ -62,9 +65,6 @@ PLANAR_VIOLATION_RATIO = 0.8
 # (:func:`rival_check_samples`).
 RIVAL_CHECK_ITERATIONS = 10
 RIVAL_CHECK_CONFIDENCE = 0.9  # chance of one all-inlier sample per map image the budget aims at
-# Failures of a planar pose that say the matches cannot single out a position, whatever the model.
-DATA_LIMITED = ("degenerate_scale", "degenerate_structure", "single_reference", "inconsistent_references",
-                "ambiguous_pose")
 
 
 @dataclass(frozen=True)
@@ -176,88 +176,116 @@ def estimate_absolute_pose(
     stats = RansacStatistics()
     problem, gravity = _prepare(query_camera, pairs, options, query_gravity, stats)
     stats.add_time("setup", time.perf_counter() - t_start)
-
-    def failure(status: str, message: str) -> PoseEstimate:
-        return failed_estimate(problem, stats, t_start, status, message)
-
+    run = _Estimation(EstimateContext(problem, options, gravity.world, gravity.query, stats, t_start), gravity, method)
     families = [f for f in FAMILIES[method] if _eligible(problem, f)]
     if not families:
         m1, m2 = MIN_SAMPLE[method]
-        return failure("too_few_matches",
-                       f"{method.value} needs {m1} matches in one map image and {m2} in another, or 2D-3D "
-                       f"constraints; got {problem.counts.tolist()} matches per map image and {len(problem.X3d)} "
-                       "2D-3D constraints: retrieve more map images or check the intrinsics")
-    rng = np.random.default_rng(options.seed)
+        return run.failure(Status.TOO_FEW_MATCHES,
+                           f"{method.value} needs {m1} matches in one map image and {m2} in another, or 2D-3D "
+                           f"constraints; got {problem.counts.tolist()} matches per map image and {len(problem.X3d)} "
+                           "2D-3D constraints: retrieve more map images or check the intrinsics")
+    run.rng = np.random.default_rng(options.seed)
+    return run.estimate(families)
 
-    def search(family: Method, counted: bool, iterations: int | None = None) -> _Search | None:
+
+@dataclass
+class _Estimation:
+    """One call of :func:`estimate_absolute_pose` past its setup: the searches, in the order
+    that draws the same random samples, and the judgement of their poses."""
+
+    ctx: EstimateContext
+    gravity: _Gravity
+    method: Method
+    rng: np.random.Generator | None = None
+
+    def failure(self, status: Status, message: str) -> PoseEstimate:
+        ctx = self.ctx
+        return failed_estimate(ctx.problem, ctx.stats, ctx.t_start, status, message)
+
+    def search(self, family: Method, counted: bool, iterations: int | None = None) -> _Search | None:
         """One family's search; ``iterations``: a short check, refined with a quick look only."""
-        budget = options if iterations is None else options.with_iterations(iterations)
-        return _search(problem, budget, family, gravity, rng, stats, counted, quick=iterations is not None)
+        ctx = self.ctx
+        budget = ctx.options if iterations is None else ctx.options.with_iterations(iterations)
+        return _search(ctx.problem, budget, family, self.gravity, self.rng, ctx.stats, counted,
+                       quick=iterations is not None)
 
-    def judge(best: _Search, searches: Sequence[_Search]) -> PoseEstimate:
-        return judge_pose(best.scorer, problem, options, gravity.world, gravity.query, best.refined, stats, t_start,
-                          _rivals(best, searches), best.alternatives, best.pool,
-                          FinalRefiner(best.scorer, options),
-                          any_plane_degenerate=best.family == Method.EIGHT)
+    def judge(self, best: _Search, searches: Sequence[_Search]) -> PoseEstimate:
+        candidate = Candidate(best.scorer, best.refined, best.alternatives, best.pool,
+                              FinalRefiner(best.scorer, self.ctx.options), any_plane_degenerate=best.family == Method.EIGHT)
+        return judge_pose(self.ctx, candidate, _rivals(best, searches))
 
-    def or_supported(est: PoseEstimate, best: _Search, searches: list[_Search], checks: list[_Search]
+    def or_supported(self, est: PoseEstimate, best: _Search, searches: list[_Search], checks: list[_Search]
                      ) -> tuple[PoseEstimate, _Search]:
         """``est`` of ``best``, or, where it failed for want of data, the estimate of the pose the
         2D-3D constraints support (:func:`_better_supported`; with a search on them alone when no
         full search kept them) if that one passes. ``checks``: quick searches, rivals only."""
         if est.success or est.status not in DATA_LIMITED:
             return est, best
+        ctx = self.ctx
         candidates = list(searches)
-        if np.count_nonzero(best.refined.in3d) < options.min_inliers <= len(problem.X3d):
-            candidates += [r for r in [_points_search(problem, options, gravity, rng, stats)] if r is not None]
+        if np.count_nonzero(best.refined.in3d) < ctx.options.min_inliers <= len(ctx.problem.X3d):
+            candidates += [r for r in [_points_search(ctx.problem, ctx.options, self.gravity, self.rng, ctx.stats)]
+                           if r is not None]
         supported = _better_supported(best, candidates)
         if supported is None:
             return est, best
-        alternative = judge(supported, candidates + checks)
+        alternative = self.judge(supported, candidates + checks)
         return (alternative, supported) if alternative.success else (est, best)
 
-    # The planar model first. Where its refined pose fits the plane and either passes every
-    # check or fails one that says the data are weak (an unobservable position, disagreeing
-    # map images, a rival answer), a short 6DoF search (rival_check_samples per map image, a
-    # quick refinement) only checks it: a pose of clearly lower cost means the planar search failed (a
-    # generated office tilted 1°: a planar pose 6.6° off on 993 inliers, the 6DoF one right on
-    # 1,184 at a seventh of the cost), one elsewhere of about the same cost is a rival; at 60 %
-    # outliers the short search rarely finds anything, and costs little. The full 6DoF search
-    # runs when the planar answer is in doubt: no pose, too few inliers, a pose that leaves the
-    # plane (a tilted query, one off the map's plane), or a clearly better 6DoF pose.
-    found, others = [], []
-    first = [f for f in families if f in PLANAR] if method in (Method.AUTO, *PLANAR) else families
-    for family in first:
-        found += [r for r in [search(family, counted=True)] if r is not None]
-    if found and method in (Method.AUTO, *PLANAR) and (method == Method.AUTO or options.cross_check):
+    def estimate(self, families: list[Method]) -> PoseEstimate:
+        """The planar model first. Where its refined pose fits the plane and either passes every
+        check or fails one that says the data are weak (an unobservable position, disagreeing
+        map images, a rival answer), a short 6DoF search (:func:`rival_check_samples` per map
+        image, a quick refinement) only checks it: a pose of clearly lower cost means the planar
+        search failed (a generated office tilted 1°: a planar pose 6.6° off on 993 inliers, the
+        6DoF one right on 1,184 at a seventh of the cost), one elsewhere of about the same cost is
+        a rival; at 60 % outliers the short search rarely finds anything, and costs little. The
+        full 6DoF search runs when the planar answer is in doubt: no pose, too few inliers, a
+        pose that leaves the plane (a tilted query, one off the map's plane), or a clearly
+        better 6DoF pose."""
+        method, options, problem = self.method, self.ctx.options, self.ctx.problem
+        found, others = [], []
+        first = [f for f in families if f in PLANAR] if method in (Method.AUTO, *PLANAR) else families
+        for family in first:
+            found += [r for r in [self.search(family, counted=True)] if r is not None]
+        if found and method in (Method.AUTO, *PLANAR) and (method == Method.AUTO or options.cross_check):
+            best = min(found, key=lambda s: s.refined.score)
+            est = self.judge(best, found)
+            if est.model == "planar" and (est.success or est.status in DATA_LIMITED):
+                checked = self._checked_planar(est, best, found)
+                if isinstance(checked, PoseEstimate):
+                    return checked
+                others.append(checked)
+        elif found and method in PLANAR:  # the paper's methods without the cross-check: the planar answer alone
+            best = min(found, key=lambda s: s.refined.score)
+            return self.judge(best, found)
+        for family in families:
+            if family not in first:
+                found += [r for r in [self.search(family, counted=True)] if r is not None]
+        others += [r for r in (self.search(f, counted=False) for f in _cross_check_families(method, options, problem))
+                   if r is not None]
+        if not found:
+            return self.failure(*_no_hypothesis(self.ctx.stats, method, options))
         best = min(found, key=lambda s: s.refined.score)
-        est = judge(best, found)
-        if est.model == "planar" and (est.success or est.status in DATA_LIMITED):
-            samples = rival_check_samples(np.array([np.count_nonzero(m) for m in est.inliers]), problem.counts)
-            check = search(Method.NISTER, counted=False, iterations=samples) \
-                if _eligible(problem, Method.NISTER) else None
-            margin = RIVAL_MARGIN_INLIERS * best.scorer.threshold_sq
-            if check is None or check.refined.score >= best.refined.score - margin:
-                stats.searches_skipped += 1
-                est, best = or_supported(est, best, found, [] if check is None else [check])
-                rivals = [] if not est.success or check is None else _rivals(best, [best, check])
-                return with_rival(est, rivals[0], options) if rivals else est
-            others.append(check)
-    elif found and method in PLANAR:  # the paper's methods without the cross-check: the planar answer alone
-        best = min(found, key=lambda s: s.refined.score)
-        return judge(best, found)
-    for family in families:
-        if family not in first:
-            found += [r for r in [search(family, counted=True)] if r is not None]
-    others += [r for r in (search(f, counted=False) for f in _cross_check_families(method, options, problem))
-               if r is not None]
-    if not found:
-        return failure(*_no_hypothesis(stats, method, options))
-    best = min(found, key=lambda s: s.refined.score)
-    est, best = or_supported(judge(best, found + others), best, found, others)
-    if method in PLANAR:
-        return _planar_model_check(est, method, options, problem, best, others)
-    return est
+        est, best = self.or_supported(self.judge(best, found + others), best, found, others)
+        if method in PLANAR:
+            return _planar_model_check(est, method, options, problem, best, others)
+        return est
+
+    def _checked_planar(self, est: PoseEstimate, best: _Search, found: list[_Search]) -> PoseEstimate | _Search:
+        """The planar estimate checked by a short 6DoF search: the estimate when the check finds
+        no clearly better pose, else the check's search (the full 6DoF search then runs)."""
+        problem = self.ctx.problem
+        samples = rival_check_samples(np.array([np.count_nonzero(m) for m in est.inliers]), problem.counts)
+        check = self.search(Method.NISTER, counted=False, iterations=samples) \
+            if _eligible(problem, Method.NISTER) else None
+        margin = RIVAL_MARGIN_INLIERS * best.scorer.threshold_sq
+        if check is None or check.refined.score >= best.refined.score - margin:
+            self.ctx.stats.searches_skipped += 1
+            est, best = self.or_supported(est, best, found, [] if check is None else [check])
+            rivals = [] if not est.success or check is None else _rivals(best, [best, check])
+            return with_rival(est, rivals[0], self.ctx.options) if rivals else est
+        return check
 
 
 @dataclass(frozen=True)
@@ -335,14 +363,14 @@ def rival_check_samples(inliers: np.ndarray, counts: np.ndarray, sample_size: in
     return int(min(max(math.ceil(needed), 2), RIVAL_CHECK_ITERATIONS))
 
 
-def _no_hypothesis(stats: RansacStatistics, method: Method, options: RansacOptions) -> tuple[str, str]:
+def _no_hypothesis(stats: RansacStatistics, method: Method, options: RansacOptions) -> tuple[Status, str]:
     """Status and message when no search produced a pose."""
     if stats.rejected_degenerate > 0 and stats.rejected_degenerate >= (
             stats.rejected_rcheck + stats.rejected_pdcheck + stats.rejected_consistency):
         hint = "" if options.structure == Structure.TRACKS else "; try structure='tracks'"
-        return "degenerate_scale", (f"no hypothesis: {stats.rejected_degenerate} samples were degenerate "
+        return Status.DEGENERATE_SCALE, (f"no hypothesis: {stats.rejected_degenerate} samples were degenerate "
                                     "(triangulation singular: query collinear with the map images)" + hint)
-    return "no_consistent_hypothesis", (
+    return Status.NO_CONSISTENT_HYPOTHESIS, (
         f"none of the {stats.hypotheses} {method.value} hypotheses passed the checks (Rcheck {stats.rejected_rcheck}, "
         f"Pdcheck {stats.rejected_pdcheck}, consistency {stats.rejected_consistency}, degenerate "
         f"{stats.rejected_degenerate}): check the intrinsics and that the retrieved map images show the query's scene")
@@ -424,7 +452,7 @@ def _planar_model_check(est: PoseEstimate, method: Method, options: RansacOption
         why = (f"a 6DoF pose explains the matches better than the {method.value} pose (MSAC cost "
                f"{better[0].refined.score:.4g} < {best.refined.score:.4g}) and lies elsewhere: the query is tilted or "
                "off the map's plane")
-    return PoseEstimate(None, False, "planar_model_violated", why + "; use method='auto'", est.inliers,
+    return PoseEstimate(None, False, Status.PLANAR_MODEL_VIOLATED, why + "; use method='auto'", est.inliers,
                         est.num_inliers, est.num_inliers_3d, est.iterations, est.position_std_m, pose, est.stats,
                         model="6dof")
 

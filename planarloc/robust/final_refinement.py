@@ -15,11 +15,12 @@ import numpy as np
 from numba import njit
 
 from planarloc.geometry import mat3 as m3
+from planarloc.geometry.so3 import exp_so3
 from planarloc.numerics.symmetric_eigen import symmetric_eigen
 from planarloc.robust.estimators import SIGMA_FLOOR_PX
 from planarloc.robust.map_prior import refine_with_map_prior
 from planarloc.robust.options import RansacOptions
-from planarloc.robust.refinement import centre_covariance, exp_so3, refine_pose
+from planarloc.robust.refinement import centre_covariance, refine_pose
 from planarloc.robust.scoring import errors_sq
 
 LATER_ROUND_ITERATIONS = 3  # LM iterations of the rounds after the first in refine_until_stable

@@ -23,8 +23,9 @@ import numpy as np
 from numba import njit
 
 from planarloc.geometry import mat3 as m3
+from planarloc.geometry.so3 import exp_so3
 from planarloc.numerics.cholesky import solve_spd, spd_inverse
-from planarloc.robust.refinement import FASTMATH, exp_so3, irls_normal_equations, residuals, residuals_jacobian
+from planarloc.robust.refinement import FASTMATH, irls_normal_equations, residuals, residuals_jacobian
 
 
 @njit(cache=True, error_model="numpy", inline="always")

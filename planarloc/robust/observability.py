@@ -33,11 +33,11 @@ import numpy as np
 from numba import njit
 
 from planarloc.geometry import mat3 as m3
-from planarloc.robust.estimators import SIGMA_FLOOR_PX
+from planarloc.geometry.so3 import exp_so3
 from planarloc.numerics.cholesky import solve_spd, spd_inverse
+from planarloc.robust.estimators import SIGMA_FLOOR_PX
 from planarloc.robust.map_prior import refine_with_map_prior
 from planarloc.robust.refinement import (
-    exp_so3,
     map_centre_covariance,
     map_uncertainty_covariance,
     refine_pose_core,

@@ -33,49 +33,13 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from planarloc.geometry.epipolar import skew
 from planarloc.geometry.pose import Pose
+
+# SO(3) maps live in geometry.so3; imported here for the graph (and still importable from here)
+from planarloc.geometry.so3 import so3_exp, so3_left_jacobian_inverse, so3_log
 from planarloc.geometry.validation import InputError, check_array
-
-
-def so3_exp(omega: np.ndarray) -> np.ndarray:
-    """(N, 3) rotation vectors (radians) -> (N, 3, 3) rotation matrices (Rodrigues)."""
-    w = np.asarray(omega, dtype=float).reshape(-1, 3)
-    th = np.linalg.norm(w, axis=1)
-    small = th < 1e-8
-    ths = np.where(small, 1.0, th)
-    a = np.where(small, 1.0, np.sin(ths) / ths)
-    b = np.where(small, 0.5, (1.0 - np.cos(ths)) / ths**2)
-    K = skew(w)
-    return np.eye(3)[None] + a[:, None, None] * K + b[:, None, None] * (K @ K)
-
-
-def so3_log(R: np.ndarray) -> np.ndarray:
-    """(N, 3, 3) rotation matrices -> (N, 3) rotation vectors (radians, norm ≤ π)."""
-    R = np.asarray(R, dtype=float).reshape(-1, 3, 3)
-    cos = np.clip((np.trace(R, axis1=1, axis2=2) - 1.0) / 2.0, -1.0, 1.0)
-    th = np.arccos(cos)
-    v = np.stack([R[:, 2, 1] - R[:, 1, 2], R[:, 0, 2] - R[:, 2, 0], R[:, 1, 0] - R[:, 0, 1]], axis=1)
-    small = th < 1e-6
-    f = np.where(small, 0.5 + th**2 / 12.0, th / (2.0 * np.sin(np.where(small, 1.0, th))))
-    out = f[:, None] * v
-    near_pi = th > np.pi - 1e-3          # sin θ → 0: the antisymmetric part loses the axis
-    if near_pi.any():
-        out[near_pi] = Rotation.from_matrix(R[near_pi]).as_rotvec()
-    return out
-
-
-def so3_left_jacobian_inverse(phi: np.ndarray) -> np.ndarray:
-    """(N, 3) -> (N, 3, 3) ``J_l⁻¹(φ)``: ``log(exp(ε) exp(φ)) ≈ φ + J_l⁻¹(φ) ε`` (Barfoot eq. 7.77)."""
-    phi = np.asarray(phi, dtype=float).reshape(-1, 3)
-    th = np.linalg.norm(phi, axis=1)
-    P = skew(phi)
-    small = th < 1e-6
-    ths = np.where(small, 1.0, th)
-    coef = np.where(small, 1.0 / 12.0, 1.0 / ths**2 - (1.0 + np.cos(ths)) / (2.0 * ths * np.sin(ths)))
-    return np.eye(3)[None] - 0.5 * P + coef[:, None, None] * (P @ P)
 
 
 def _whitener(name: str, cov: object) -> np.ndarray:

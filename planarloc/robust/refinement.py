@@ -20,23 +20,13 @@ from numba import njit
 
 from planarloc.geometry import mat3 as m3
 from planarloc.geometry.epipolar_kernels import project, relative_essential_into, sampson_signed
+from planarloc.geometry.so3 import exp_so3
 from planarloc.numerics.cholesky import solve_spd, spd_inverse
 from planarloc.robust.scoring import errors_sq
-
 
 # Floating-point contraction and reassociation for the Jacobian's sums of products, but not
 # the no-NaN/no-inf assumptions (the kernels test for degenerate values).
 FASTMATH = {"contract", "reassoc", "arcp", "nsz"}
-
-
-@njit(cache=True, error_model="numpy")
-def exp_so3(w: np.ndarray) -> np.ndarray:
-    th = np.sqrt(w[0] * w[0] + w[1] * w[1] + w[2] * w[2])
-    K = np.zeros((3, 3))
-    K[0, 1], K[0, 2], K[1, 0], K[1, 2], K[2, 0], K[2, 1] = -w[2], w[1], w[2], -w[0], -w[1], w[0]
-    if th < 1e-12:
-        return np.eye(3) + K
-    return np.eye(3) + np.sin(th) / th * K + (1.0 - np.cos(th)) / (th * th) * m3.mul(K, K)
 
 
 @njit(cache=True, error_model="numpy", fastmath=FASTMATH)

@@ -22,12 +22,13 @@ from planarloc.geometry.camera import Camera
 from planarloc.geometry.epipolar import essential_from_relpose, sampson_error_sq
 from planarloc.geometry.epipolar_kernels import essential_into, sampson_sq
 from planarloc.geometry.pose import Pose
+from planarloc.geometry.so3 import so3_exp
 from planarloc.geometry.validation import InputError, check_array
 from planarloc.robust.options import RansacOptions
-from planarloc.robust.pose_graph import so3_exp
 from planarloc.robust.ransac import ransac
 from planarloc.robust.result import RansacStatistics
 from planarloc.robust.scoring import msac_add
+from planarloc.robust.status import Status
 
 #: the 6DoF model replaces the planar one only if it has this many times its inliers
 SIX_DOF_MARGIN = 1.15
@@ -43,7 +44,8 @@ class RelativePoseEstimate:
     Attributes:
         pose: ``b_from_a`` with unit-norm translation, or None when not ``success``.
         success: a supported pose was found.
-        status: ``"success"``, ``"too_few_matches"`` or ``"too_few_inliers"``.
+        status: a :class:`Status`: ``success``, ``too_few_matches`` or ``too_few_inliers`` (a
+            string of a member's value is converted to that member).
         model: ``"planar"`` or ``"6dof"`` (empty on failure).
         inliers: (N,) bool over the input matches.
         num_inliers: inlier count.
@@ -52,11 +54,14 @@ class RelativePoseEstimate:
 
     pose: Pose | None
     success: bool
-    status: str
+    status: Status
     model: str = ""
     inliers: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
     num_inliers: int = 0
     stats: RansacStatistics = field(default_factory=RansacStatistics)
+
+    def __post_init__(self) -> None:
+        self.status = Status.of(self.status)
 
 
 def _sampson_sq(R: np.ndarray, t: np.ndarray, xa: np.ndarray, xb: np.ndarray, fa: np.ndarray,
@@ -257,7 +262,7 @@ def estimate_relative_pose(
     idx = np.flatnonzero(ok)
     inliers = np.zeros(len(pa), dtype=bool)
     if len(idx) < max(min_inliers, 5):
-        return RelativePoseEstimate(None, False, "too_few_matches", inliers=inliers)
+        return RelativePoseEstimate(None, False, Status.TOO_FEW_MATCHES, inliers=inliers)
     xa, xb = _rays(camera_a, pa[idx]), _rays(camera_b, pb[idx])
     fa, fb = np.asarray(camera_a.focal, dtype=float), np.asarray(camera_b.focal, dtype=float)
     stats = RansacStatistics()
@@ -275,7 +280,7 @@ def estimate_relative_pose(
         if best is None or out.num_inliers > SIX_DOF_MARGIN * best[3]:
             best = (m, out.R, out.t, out.num_inliers)
     if best is None or best[3] < min_inliers:
-        return RelativePoseEstimate(None, False, "too_few_inliers", inliers=inliers, stats=stats,
+        return RelativePoseEstimate(None, False, Status.TOO_FEW_INLIERS, inliers=inliers, stats=stats,
                                     num_inliers=0 if best is None else best[3])
     m, R, t, _ = best
     R, t = _RelativeEstimator(xa, xb, fa, fb, m, options.threshold_px).refine(R, t)
@@ -286,4 +291,4 @@ def estimate_relative_pose(
     if _depths_positive(R, -t, xa[inl], xb[inl]) > _depths_positive(R, t, xa[inl], xb[inl]):
         t = -t
     inliers[idx] = inl
-    return RelativePoseEstimate(Pose(R, t / np.linalg.norm(t)), True, "success", m, inliers, int(inliers.sum()), stats)
+    return RelativePoseEstimate(Pose(R, t / np.linalg.norm(t)), True, Status.SUCCESS, m, inliers, int(inliers.sum()), stats)

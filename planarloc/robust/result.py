@@ -7,6 +7,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from planarloc.geometry.pose import Pose
+from planarloc.robust.status import Status
 
 
 @dataclass
@@ -52,8 +53,8 @@ class PoseEstimate:
     Attributes:
         pose: the query ``cam_from_world``, or None when not ``success``.
         success: True only for a pose that is supported and observable.
-        status: ``"success"`` or a machine-readable reason: ``"too_few_matches"``,
-            ``"no_consistent_hypothesis"``, ``"too_few_inliers"``, ``"degenerate_scale"``.
+        status: a :class:`~planarloc.robust.status.Status`: ``success`` or the reason it failed
+            (a string of a member's value is converted to that member).
         message: a human-readable explanation.
         inliers: one (N_k,) bool array per input pair.
         num_inliers: total 2D-2D inliers.
@@ -78,7 +79,7 @@ class PoseEstimate:
 
     pose: Pose | None
     success: bool
-    status: str
+    status: Status
     message: str
     inliers: list[np.ndarray]
     num_inliers: int = 0
@@ -90,6 +91,9 @@ class PoseEstimate:
     references: list[str] = field(default_factory=list)
     model: str = ""
     covariance: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        self.status = Status.of(self.status)
 
     def to_dict(self) -> dict:
         """JSON-serialisable summary (for result files)."""

@@ -14,13 +14,13 @@ import dataclasses
 import math
 import time
 from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 
 import numpy as np
 from numba import njit
 
 from planarloc.geometry.mat3 import sym_eigvals
 from planarloc.geometry.pose import Pose
-from planarloc.robust.refinement import centre_covariance
 from planarloc.numerics.cholesky import cholesky_factor, spd_inverse
 from planarloc.robust import observability as obs
 from planarloc.robust.chance_support import beyond_chance, chance_inliers
@@ -29,7 +29,9 @@ from planarloc.robust.options import RansacOptions, Structure
 from planarloc.robust.planar_scene import distant_planar_pairs
 from planarloc.robust.problem import AbsolutePoseProblem
 from planarloc.robust.ransac import ALTERNATIVE_MARGIN_INLIERS
+from planarloc.robust.refinement import centre_covariance
 from planarloc.robust.result import PoseEstimate, RansacStatistics
+from planarloc.robust.status import Status
 
 PROFILE_BELOW_RATIO = 0.15  # centre collinearity ratio under which the cost profile is checked
 PROFILE_BELOW_INLIERS = 400  # fewer inliers than this: restarts look for other basins of the cost
@@ -105,7 +107,7 @@ def with_rival(est: PoseEstimate, rival_centre: np.ndarray, options: RansacOptio
     if not d > est.position_std_m:
         return est
     if d > options.max_position_std_m:
-        return PoseEstimate(None, False, "ambiguous_pose", f"another search's pose {d:.3g} m away explains the matches "
+        return PoseEstimate(None, False, Status.AMBIGUOUS_POSE, f"another search's pose {d:.3g} m away explains the matches "
                             f"nearly as well (MSAC cost within {100 * (RIVAL_COST_RATIO - 1):.0f} %): the data do not "
                             "single out one position; more matches or map images", est.inliers, est.num_inliers,
                             est.num_inliers_3d, est.iterations, d, est.pose, est.stats, model=est.model)
@@ -239,7 +241,7 @@ def split_by_pair(mask: np.ndarray, offsets: np.ndarray) -> list[np.ndarray]:
     return [mask[a:b] for a, b in zip(bounds[:-1], bounds[1:])]
 
 
-def failed_estimate(problem: AbsolutePoseProblem, stats: RansacStatistics, t_start: float, status: str, message: str,
+def failed_estimate(problem: AbsolutePoseProblem, stats: RansacStatistics, t_start: float, status: Status, message: str,
                     **kw) -> PoseEstimate:
     """A :class:`PoseEstimate` without a pose (``kw``: inliers, counts, std, unreliable_pose, model)."""
     stats.time_s["total"] = time.perf_counter() - t_start  # elapsed, set: a pose may be judged twice
@@ -249,27 +251,83 @@ def failed_estimate(problem: AbsolutePoseProblem, stats: RansacStatistics, t_sta
     return PoseEstimate(None, False, status, message, inliers, iterations=stats.iterations, stats=stats, **kw)
 
 
-def judge_pose(estimator, problem: AbsolutePoseProblem, options: RansacOptions, gravity_world: np.ndarray,
-               query_gravity: np.ndarray, ref: RefinedPose, stats: RansacStatistics, t_start: float,
-               rivals: Sequence[np.ndarray] = (), alternatives: Sequence[tuple[np.ndarray, np.ndarray, float]] = (),
-               pool: tuple[np.ndarray, np.ndarray] = (np.zeros((0, 3, 3)), np.zeros((0, 3))),
-               refine: FinalRefiner | None = None,
-               any_plane_degenerate: bool = False) -> PoseEstimate:
+@dataclass(frozen=True)
+class EstimateContext:
+    """What one estimate fixes for every pose it judges: the problem, the options, gravity
+    ((3,) unit vectors down, in the world and in the query frame), the statistics (times are
+    added) and ``t_start``, the estimate's ``perf_counter`` start (for the total time)."""
+
+    problem: AbsolutePoseProblem
+    options: RansacOptions
+    gravity_world: np.ndarray
+    query_gravity: np.ndarray
+    stats: RansacStatistics
+    t_start: float
+
+
+@dataclass(frozen=True)
+class Candidate:
+    """A search's refined pose and what a verifier may inspect of its search.
+
+    Attributes:
+        estimator: the scoring estimator of the problem (its matches, options, refinement).
+        ref: the search's refined pose.
+        alternatives: the search's other locally optimised models ``(R, t, MSAC cost)``.
+        pool: its raw hypotheses near the best cost ``(R (k, 3, 3), t (k, 3))``.
+        refine: the search's :class:`FinalRefiner`; ``refine(R, t, quick)`` refines one like
+            ``ref`` (``quick``: one round of two iterations, a first look). None: no runner-up
+            is examined.
+        any_plane_degenerate: the search's solver cannot tell the epipolar geometry on a plane
+            (the 8-point algorithm): any plane, not only a distant one, is degenerate.
+    """
+
+    estimator: object
+    ref: RefinedPose
+    alternatives: Sequence[tuple[np.ndarray, np.ndarray, float]] = ()
+    pool: tuple[np.ndarray, np.ndarray] = (np.zeros((0, 3, 3)), np.zeros((0, 3)))
+    refine: FinalRefiner | None = None
+    any_plane_degenerate: bool = False
+
+
+@dataclass
+class _Judging:
+    """A pose under judgement: its evidence and the std the checks raise as they go."""
+
+    ctx: EstimateContext
+    cand: Candidate
+    t0: float
+    support: obs.PoseSupport
+    correlation: float
+    cov: np.ndarray
+    std: float
+    linear_std: float
+    rival: float
+    pose: Pose
+    model: str
+    inliers: list[np.ndarray]
+    n2d: int
+    n3d: int
+
+    def fail(self, status: Status, message: str, with_pose: bool = True) -> PoseEstimate:
+        """The failed estimate (the pose as ``unreliable_pose`` when ``with_pose``)."""
+        ctx = self.ctx
+        ctx.stats.add_time("verification", time.perf_counter() - self.t0)
+        kw = dict(unreliable_pose=self.pose) if with_pose else {}
+        return failed_estimate(ctx.problem, ctx.stats, ctx.t_start, status, message, position_std_m=self.std,
+                               inliers=self.inliers, num_inliers=self.n2d, num_inliers_3d=self.n3d, model=self.model,
+                               **kw)
+
+
+def judge_pose(ctx: EstimateContext, cand: Candidate, rivals: Sequence[np.ndarray] = ()) -> PoseEstimate:
     """Uncertainty and verification of a refined pose; a ``success`` only if it passes.
 
     Args:
-        estimator: the scoring estimator of the problem (its matches, options, refinement).
-        gravity_world: (3,) unit gravity in the world; query_gravity: (3,) in the query frame.
-        ref: the search's refined pose. stats: the estimate's statistics (times are added).
-        t_start: ``perf_counter`` at the start of the estimate (for the total time).
+        ctx: the estimate's problem, options, gravity and statistics.
+        cand: the search's refined pose and its runner-ups. A runner-up that refines to a pose
+            beyond ``3·std + 5 cm`` explaining the matches as well but for
+            ``RIVAL_MARGIN_INLIERS`` inliers is a rival answer (:func:`_rival_distance`): the
+            distance bounds the std from below (``ambiguous_pose`` when that exceeds the limit).
         rivals: (3,) centres of other searches' refined poses of nearly the same cost.
-        alternatives: the search's other locally optimised models ``(R, t, MSAC cost)``;
-            ``pool``: its raw hypotheses near the best cost ``(R (k, 3, 3), t (k, 3))``;
-            ``refine``: the search's :class:`FinalRefiner`; ``refine(R, t, quick)`` refines one like ``ref`` (``quick``: one round of two
-            iterations, a first look). A runner-up that refines to a pose beyond
-            ``3·std + 5 cm`` explaining the matches as well but for ``RIVAL_MARGIN_INLIERS``
-            inliers is a rival answer (:func:`_rival_distance`): the distance bounds the std
-            from below (``ambiguous_pose`` when that exceeds the limit).
 
     Returns:
         :class:`PoseEstimate`: ``success`` with the position std, or the first failed check as
@@ -277,16 +335,28 @@ def judge_pose(estimator, problem: AbsolutePoseProblem, options: RansacOptions, 
         ``inconsistent_references``, ``ambiguous_pose``) with the pose as ``unreliable_pose``
         where one exists.
     """
-    t0 = time.perf_counter()
+    j = _uncertainty(ctx, cand, rivals, time.perf_counter())
+    for check in (_check_support, _check_distant_plane, _check_position, _check_runner_ups):
+        failed = check(j)
+        if failed is not None:
+            return failed
+    stats, std = ctx.stats, j.std
+    stats.add_time("verification", time.perf_counter() - j.t0)
+    stats.time_s["total"] = time.perf_counter() - ctx.t_start  # elapsed, set: a pose may be judged twice
+    covariance = pose_covariance(cand.ref, j.cov, std, j.correlation, ctx.options)
+    return PoseEstimate(j.pose, True, Status.SUCCESS, f"{j.n2d} 2D-2D and {j.n3d} 2D-3D inliers, position std "
+                        f"{std:.3g} m, {j.model} model", j.inliers, j.n2d, j.n3d, stats.iterations, std, None, stats,
+                        model=j.model, covariance=covariance)
 
-    def failure(status: str, message: str, **kw) -> PoseEstimate:
-        stats.add_time("verification", time.perf_counter() - t0)
-        return failed_estimate(problem, stats, t_start, status, message, **kw)
 
+def _uncertainty(ctx: EstimateContext, cand: Candidate, rivals: Sequence[np.ndarray], t0: float) -> _Judging:
+    """The pose's support and position std: the linearised covariance, inflated for correlated
+    residuals, profiled along weak directions of near-collinear geometry, bounded by rivals."""
+    options, estimator, ref = ctx.options, cand.estimator, cand.ref
     R, t, in2d, in3d = ref.R, ref.t, ref.in2d, ref.in3d
-    inliers = split_by_pair(in2d, problem.offsets)
+    inliers = split_by_pair(in2d, ctx.problem.offsets)
     n2d, n3d = int(np.count_nonzero(in2d)), int(np.count_nonzero(in3d))
-    support = obs.pose_support(problem, R, t, in2d, gravity_world, query_gravity)
+    support = obs.pose_support(ctx.problem, R, t, in2d, ctx.gravity_world, ctx.query_gravity)
     spread = support.collinearity
     near_collinear = spread < PROFILE_BELOW_RATIO and n3d < options.min_inliers
     # Residuals within one reference are correlated (its pose error, calibration, model
@@ -313,113 +383,129 @@ def judge_pose(estimator, problem: AbsolutePoseProblem, options: RansacOptions, 
                                                              map_prior=with_prior))
     rival = max((float(np.linalg.norm(other - (-R.T @ t))) for other in rivals), default=0.0)
     linear_std, std = std, max(std, rival)
-    fit = support.fit
-    model = "planar" if fit.holds(options.planar_tolerance_deg) else "6dof"
+    model = "planar" if support.fit.holds(options.planar_tolerance_deg) else "6dof"
     pose = Pose._unchecked(R, t)  # a refined rotation (exp map of a rotation): valid by construction
-    common = dict(inliers=inliers, num_inliers=n2d, num_inliers_3d=n3d, model=model)
+    return _Judging(ctx, cand, t0, support, correlation, cov, std, linear_std, rival, pose, model, inliers, n2d, n3d)
+
+
+def _check_support(j: _Judging) -> PoseEstimate | None:
+    """Enough inliers, from at least two map images, beyond what random matches would give."""
+    options, problem, ref = j.ctx.options, j.ctx.problem, j.cand.ref
+    n2d, n3d, supporting = j.n2d, j.n3d, j.support.supporting
     if n2d + n3d < options.min_inliers:
-        return failure("too_few_inliers", f"best pose has {n2d + n3d} inliers, fewer than min_inliers="
-                       f"{options.min_inliers}", position_std_m=std, **common)
-    supporting = support.supporting
+        return j.fail(Status.TOO_FEW_INLIERS, f"best pose has {n2d + n3d} inliers, fewer than min_inliers="
+                      f"{options.min_inliers}", with_pose=False)
     if len(supporting) < 2 and n3d < options.min_inliers:
-        return failure("single_reference",
-                       f"only {len(supporting)} reference image(s) support the pose with >= {obs.MIN_PAIR_INLIERS} "
-                       "inliers: the position along the baseline cannot be verified; retrieve more map images",
-                       position_std_m=std, unreliable_pose=pose, **common)
+        return j.fail(Status.SINGLE_REFERENCE,
+                      f"only {len(supporting)} reference image(s) support the pose with >= {obs.MIN_PAIR_INLIERS} "
+                      "inliers: the position along the baseline cannot be verified; retrieve more map images")
     if n3d < options.min_inliers:
         # Without 2D-3D constraints the pose rests on its 2D-2D inliers alone: at least two map
         # images must support it beyond what random matches would give it.
-        chance = chance_inliers(problem, R, t, options.threshold_px)
-        real = beyond_chance(support.pair_inliers[supporting], chance[supporting])
+        chance = chance_inliers(problem, ref.R, ref.t, options.threshold_px)
+        real = beyond_chance(j.support.pair_inliers[supporting], chance[supporting])
         if int(real.sum()) < 2:
-            detail = ", ".join(f"{int(support.pair_inliers[k])} vs {chance[k]:.1f}" for k in supporting)
-            return failure("too_few_inliers",
-                           f"{int(real.sum())} of the {len(supporting)} supporting map images have more inliers than "
-                           f"random matches would give this pose (inliers vs chance: {detail}): the matches do not "
-                           "see the same scene; retrieve other map images or add map images of this place",
-                           position_std_m=std, unreliable_pose=pose, **common)
+            detail = ", ".join(f"{int(j.support.pair_inliers[k])} vs {chance[k]:.1f}" for k in supporting)
+            return j.fail(Status.TOO_FEW_INLIERS,
+                          f"{int(real.sum())} of the {len(supporting)} supporting map images have more inliers than "
+                          f"random matches would give this pose (inliers vs chance: {detail}): the matches do not "
+                          "see the same scene; retrieve other map images or add map images of this place")
+    return None
+
+
+def _check_distant_plane(j: _Judging) -> PoseEstimate | None:
+    """Pairs that one homography explains are no evidence of the position on their own."""
+    options, problem, estimator, ref = j.ctx.options, j.ctx.problem, j.cand.estimator, j.cand.ref
+    R, t, in2d, in3d, n3d, supporting = ref.R, ref.t, ref.in2d, ref.in3d, j.n3d, j.support.supporting
+    any_plane = j.cand.any_plane_degenerate
     planar = distant_planar_pairs(problem, R, t, in2d, supporting, PLANAR_TRANSFER_SCALE * options.threshold_px,
-                                  any_plane=any_plane_degenerate)
-    if planar.any():
-        # A distant plane: one homography explains a pair's matches and the map images stand
-        # close together relative to it; rotation and translation are entangled far beyond what
-        # the linearised covariance says. Such pairs are no evidence of the position on their
-        # own: with fewer than two others and no 2D-3D constraints the pose is refused;
-        # otherwise the pose without them, and its uncertainty, bound the std.
-        if n3d < options.min_inliers and len(supporting) - int(planar.sum()) < 2:
-            why = ("(one homography explains their matches: a plane, or too little parallax), on which the "
-                   "8-point algorithm cannot tell the epipolar geometry; use method='auto'") if any_plane_degenerate else (
-                   "(one homography explains their matches, far beyond the map images' spread): rotation and "
-                   "translation cannot be told apart; add map images that see the scene from closer or from other "
-                   "directions")
-            return failure("degenerate_structure", f"{int(planar.sum())} of the {len(supporting)} supporting map "
-                           f"images see {'a plane' if any_plane_degenerate else 'a distant plane'} {why}",
-                           position_std_m=std, unreliable_pose=pose, **common)
-        keep2d = in2d & ~np.isin(problem.pair, supporting[planar])
-        prior = n3d > 0 and (options.map_rotation_std_deg > 0 or options.map_position_std_m > 0)
-        R_w, t_w, H_w, sigma_w, cost_w = (estimator._refine_with_map_prior if prior else estimator._refine)(
-            R, -R.T @ t, keep2d, in3d, 6)
-        alone = RefinedPose(R_w, t_w, centre_covariance(H_w, sigma_w), sigma_w, cost_w, ref.score, keep2d, in3d, H=H_w)
-        cov_w = _position_covariance(estimator, options, alone, support, correlation)
-        std_w = math.sqrt(max(sym_eigvals(cov_w)[0], 0.0)) if np.isfinite(cov_w).all() else math.inf
-        std = max(std, float(np.linalg.norm(-R_w.T @ t_w - (-R.T @ t))), std_w)
+                                  any_plane=any_plane)
+    if not planar.any():
+        return None
+    # A distant plane: one homography explains a pair's matches and the map images stand
+    # close together relative to it; rotation and translation are entangled far beyond what
+    # the linearised covariance says. Such pairs are no evidence of the position on their
+    # own: with fewer than two others and no 2D-3D constraints the pose is refused;
+    # otherwise the pose without them, and its uncertainty, bound the std.
+    if n3d < options.min_inliers and len(supporting) - int(planar.sum()) < 2:
+        why = ("(one homography explains their matches: a plane, or too little parallax), on which the "
+               "8-point algorithm cannot tell the epipolar geometry; use method='auto'") if any_plane else (
+               "(one homography explains their matches, far beyond the map images' spread): rotation and "
+               "translation cannot be told apart; add map images that see the scene from closer or from other "
+               "directions")
+        return j.fail(Status.DEGENERATE_STRUCTURE, f"{int(planar.sum())} of the {len(supporting)} supporting map "
+                      f"images see {'a plane' if any_plane else 'a distant plane'} {why}")
+    keep2d = in2d & ~np.isin(problem.pair, supporting[planar])
+    prior = n3d > 0 and (options.map_rotation_std_deg > 0 or options.map_position_std_m > 0)
+    R_w, t_w, H_w, sigma_w, cost_w = (estimator._refine_with_map_prior if prior else estimator._refine)(
+        R, -R.T @ t, keep2d, in3d, 6)
+    alone = RefinedPose(R_w, t_w, centre_covariance(H_w, sigma_w), sigma_w, cost_w, ref.score, keep2d, in3d, H=H_w)
+    cov_w = _position_covariance(estimator, options, alone, j.support, j.correlation)
+    std_w = math.sqrt(max(sym_eigvals(cov_w)[0], 0.0)) if np.isfinite(cov_w).all() else math.inf
+    j.std = max(j.std, float(np.linalg.norm(-R_w.T @ t_w - (-R.T @ t))), std_w)
+    return None
+
+
+def _check_position(j: _Judging) -> PoseEstimate | None:
+    """An observable position within ``max_position_std_m``, one the references agree on."""
+    options, estimator, ref = j.ctx.options, j.cand.estimator, j.cand.ref
+    spread, n3d = j.support.collinearity, j.n3d
     collinear = n3d < options.min_inliers and spread < options.min_collinearity_ratio
-    if not collinear and rival > options.max_position_std_m and linear_std <= options.max_position_std_m:
-        return failure("ambiguous_pose", f"another search's pose {rival:.3g} m away explains the matches nearly as "
-                       f"well (MSAC cost within {100 * (RIVAL_COST_RATIO - 1):.0f} %): the data do not single out one position; more "
-                       "matches or map images", position_std_m=std, unreliable_pose=pose, **common)
-    if collinear or not std <= options.max_position_std_m:
+    if not collinear and j.rival > options.max_position_std_m and j.linear_std <= options.max_position_std_m:
+        return j.fail(Status.AMBIGUOUS_POSE, f"another search's pose {j.rival:.3g} m away explains the matches nearly "
+                      f"as well (MSAC cost within {100 * (RIVAL_COST_RATIO - 1):.0f} %): the data do not single out "
+                      "one position; more matches or map images")
+    if collinear or not j.std <= options.max_position_std_m:
         hint = "" if options.structure == Structure.TRACKS else "; try structure='tracks'"
         why = (f"the query and reference centres are nearly collinear (ratio {spread:.2g} < "
                f"min_collinearity_ratio = {options.min_collinearity_ratio})") if collinear else (
-               f"std {std:.3g} m > max_position_std_m = {options.max_position_std_m} m")
-        return failure("degenerate_scale", f"position unobservable from the inliers: {why}{hint}",
-                       position_std_m=std, unreliable_pose=pose, **common)
+               f"std {j.std:.3g} m > max_position_std_m = {options.max_position_std_m} m")
+        return j.fail(Status.DEGENERATE_SCALE, f"position unobservable from the inliers: {why}{hint}")
     if options.refine:
+        R, t, in2d, in3d, supporting = ref.R, ref.t, ref.in2d, ref.in3d, j.support.supporting
         prior = n3d > 0 and (options.map_rotation_std_deg > 0 or options.map_position_std_m > 0)
         jk = (obs.reference_jackknife_with_prior(estimator, R, t, in2d, in3d, supporting) if prior
               else obs.reference_jackknife(estimator, R, t, in2d, in3d, support=supporting))
         if math.isfinite(jk.position_std_m):
-            std = max(std, jk.position_std_m)
-            limit = min(options.max_reference_shift_std * std, options.max_position_std_m)
+            j.std = max(j.std, jk.position_std_m)
+            limit = min(options.max_reference_shift_std * j.std, options.max_position_std_m)
             if jk.max_shift_m > limit or jk.max_rotation_deg > 5.0:
-                return failure("inconsistent_references",
-                               f"leaving out reference {jk.worst_reference} moves the pose by {jk.max_shift_m:.3g} m / "
-                               f"{jk.max_rotation_deg:.2g}° (limit {limit:.3g} m / 5°): the references disagree",
-                               position_std_m=std, unreliable_pose=pose, **common)
-    if not std <= options.max_position_std_m:
-        return failure("degenerate_scale", f"position std {std:.3g} m > max_position_std_m = "
-                       f"{options.max_position_std_m} m after leave-one-reference-out verification",
-                       position_std_m=std, unreliable_pose=pose, **common)
-    if refine is not None and (len(alternatives) or len(pool[0])):
+                return j.fail(Status.INCONSISTENT_REFERENCES,
+                              f"leaving out reference {jk.worst_reference} moves the pose by {jk.max_shift_m:.3g} m / "
+                              f"{jk.max_rotation_deg:.2g}° (limit {limit:.3g} m / 5°): the references disagree")
+    if not j.std <= options.max_position_std_m:
+        return j.fail(Status.DEGENERATE_SCALE, f"position std {j.std:.3g} m > max_position_std_m = "
+                      f"{options.max_position_std_m} m after leave-one-reference-out verification")
+    return None
+
+
+def _check_runner_ups(j: _Judging) -> PoseEstimate | None:
+    """No other pose, a runner-up of the search or a restart of the refinement, far away
+    explains the matches about as well."""
+    options, cand = j.ctx.options, j.cand
+    if cand.refine is not None and (len(cand.alternatives) or len(cand.pool[0])):
         # Few inliers per reference: a pose that absorbs a few outliers can explain the matches
         # as well as the truth, far beyond what the curvature at either optimum says
         # (benchmarks/robustness.py --protocol hard, 20 matches per pair: ~1 % of successes
         # were 0.2-3 m off with std 0.04-0.2 m before this check; about half are left).
-        d = _rival_distance(estimator, ref, n2d + n3d, alternatives, pool, refine, 3.0 * std + 0.05)
+        d = _rival_distance(cand.estimator, cand.ref, j.n2d + j.n3d, cand.alternatives, cand.pool, cand.refine,
+                            3.0 * j.std + 0.05)
         if d > 0.0:
-            std = max(std, d)
-            if not std <= options.max_position_std_m:
-                return failure("ambiguous_pose", f"another pose {d:.3g} m away explains the matches nearly as well "
-                               f"(within {RIVAL_MARGIN_INLIERS} inliers' worth of MSAC cost): the data do not single "
-                               "out one position; "
-                               "more matches or map images, or structure='tracks'",
-                               position_std_m=std, unreliable_pose=pose, **common)
-    if refine is not None and n2d + n3d < PROFILE_BELOW_INLIERS:
+            j.std = max(j.std, d)
+            if not j.std <= options.max_position_std_m:
+                return j.fail(Status.AMBIGUOUS_POSE, f"another pose {d:.3g} m away explains the matches nearly as "
+                              f"well (within {RIVAL_MARGIN_INLIERS} inliers' worth of MSAC cost): the data do not "
+                              "single out one position; more matches or map images, or structure='tracks'")
+    if cand.refine is not None and j.n2d + j.n3d < PROFILE_BELOW_INLIERS:
         # Few constraints: other basins of the cost, with other inlier sets, may explain the
         # matches as well (Strecha entry_p10 against the fountain_p11 map: a pose 0.95 m off with
         # std 0.23 m, while restarts 0.7 m away found lower costs).
-        d = _basin_distance(estimator, ref, refine, 3.0 * std + 0.05)
+        d = _basin_distance(cand.estimator, cand.ref, cand.refine, 3.0 * j.std + 0.05)
         if d > 0.0:
-            std = max(std, d)
-            if not std <= options.max_position_std_m:
-                return failure("ambiguous_pose", f"a restart of the refinement {d:.3g} m away converged to a pose that "
-                               f"explains the matches as well (within {RESTART_MARGIN_INLIERS} inlier's worth of MSAC "
-                               "cost, or better): the data do not single out one position; more matches or map images",
-                               position_std_m=std, unreliable_pose=pose, **common)
-    stats.add_time("verification", time.perf_counter() - t0)
-    stats.time_s["total"] = time.perf_counter() - t_start  # elapsed, set: a pose may be judged twice
-    covariance = pose_covariance(ref, cov, std, correlation, options)
-    return PoseEstimate(pose, True, "success", f"{n2d} 2D-2D and {n3d} 2D-3D inliers, position std {std:.3g} m, "
-                        f"{model} model", inliers, n2d, n3d, stats.iterations, std, None, stats, model=model,
-                        covariance=covariance)
+            j.std = max(j.std, d)
+            if not j.std <= options.max_position_std_m:
+                return j.fail(Status.AMBIGUOUS_POSE, f"a restart of the refinement {d:.3g} m away converged to a pose "
+                              f"that explains the matches as well (within {RESTART_MARGIN_INLIERS} inlier's worth of "
+                              "MSAC cost, or better): the data do not single out one position; more matches or map "
+                              "images")
+    return None

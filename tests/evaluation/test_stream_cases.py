@@ -109,6 +109,9 @@ def test_fixed_rate_stamps_are_even_while_the_truth_skips(frames: list[CaseFrame
     steps = [np.linalg.norm(b.truth.center - a.truth.center) for a, b in itertools.pairwise(out)]
     assert max(steps) > 1.9 * min(steps)                                       # ... over skipped motion
     assert out[0].stamp == frames[0].stamp
+    # the capture times stay the true ones: a replay paced like the camera uses them
+    assert [f.true_time for f in out] == [f.stamp for f in dropped]
+    assert all(f.true_time == f.stamp for f in frames)
 
 
 def test_black_frames_are_zero_images_with_their_truth(frames: list[CaseFrame]) -> None:
@@ -184,6 +187,7 @@ def test_jitter_moves_stamps_by_at_most_30_ms(frames: list[CaseFrame]) -> None:
     off = np.array([f.stamp - g.stamp for f, g in zip(out, frames)])
     assert np.all(np.abs(off) <= 0.03 + 1e-9) and np.std(off) > 0.005
     assert all(f.image is g.image and f.odometry is g.odometry for f, g in zip(out, frames))
+    assert [f.true_time for f in out] == [g.stamp for g in frames]              # the truth kept apart
 
 
 def test_unknown_case_and_degenerate_streams(frames: list[CaseFrame]) -> None:

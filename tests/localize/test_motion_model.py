@@ -14,6 +14,8 @@ from planarloc.localize.motion_model import (
     ScaleDoubt,
     SpeedFit,
     VisualStep,
+    chain_std,
+    fit_speed,
 )
 from planarloc.localize.stream_config import SequenceConfig
 from planarloc.localize.tracking import TrackerOptions
@@ -42,6 +44,53 @@ def test_speed_fit_extrapolates_at_most_a_second_and_never_backwards() -> None:
     assert fit.at(10.5) == pytest.approx(1.5)
     assert fit.at(30.0) == pytest.approx(1.0)       # clipped to 1 s of extrapolation
     assert SpeedFit(0.0, 0.5, -5.0).at(1.0) == 0.0
+
+
+def test_the_speed_fit_recovers_a_constant_acceleration_exactly() -> None:
+    # s(t) = 2 t + 0.75 t² along a straight line: speed 2 + 1.5 t, acceleration 1.5
+    t = np.array([0.0, 0.15, 0.3, 0.5, 0.6, 0.8])
+    centers = np.stack([np.zeros_like(t), np.zeros_like(t), 2 * t + 0.75 * t**2], axis=1)
+    fit = fit_speed(t, centers, np.full(len(t), 0.05))
+    assert fit.t_ref == 0.8 and fit.speed == pytest.approx(2 + 1.5 * 0.8, abs=1e-9)
+    assert fit.acceleration == pytest.approx(1.5, abs=1e-9)
+    # with fewer than four fixes: a line, the mean speed
+    line = fit_speed(t[:3], centers[:3], np.full(3, 0.05))
+    assert line.acceleration == 0.0 and 2.0 < line.speed < 2 + 1.5 * 0.3
+
+
+def test_the_speed_std_is_that_of_the_fit_and_covers_noisy_fixes() -> None:
+    rng = np.random.default_rng(3)
+    t = np.arange(6) * 0.1
+    truth = 8.0 * t
+    speeds, std = [], None
+    for _ in range(400):
+        z = truth + rng.normal(0.0, 0.05, len(t))
+        fit = fit_speed(t, np.stack([np.zeros_like(t), np.zeros_like(t), z], axis=1), np.full(len(t), 0.05))
+        std = fit.std_at(t[-1])
+        speeds.append(fit.speed)
+    errors = np.array(speeds) - 8.0
+    # calibrated both ways: the spread of the fitted speeds is the reported std
+    assert np.std(errors) == pytest.approx(std, rel=0.15)
+    assert np.mean(np.abs(errors) > 3 * std) < 0.01
+    # quadrupling the fixes' std quadruples the speed's
+    again = fit_speed(t, np.stack([np.zeros_like(t), np.zeros_like(t), truth], axis=1), np.full(len(t), 0.2))
+    base = fit_speed(t, np.stack([np.zeros_like(t), np.zeros_like(t), truth], axis=1), np.full(len(t), 0.05))
+    assert again.std_at(0.5) == pytest.approx(4 * base.std_at(0.5))
+
+
+def test_chained_visual_steps_add_their_length_errors_linearly() -> None:
+    # the steps since the last absolute pose share the speed's error: their variances sum to chain_std²
+    m = _model_with_fixes([0.0, 0.1, 0.2, 0.3, 0.4], [0.0, 1.0, 2.0, 3.0, 4.0])
+    var, dt = 0.0, 0.1
+    for k in range(6):
+        step = VisualStep(np.eye(3), FORWARD, 0.5 + k * dt, dt, since_anchor_s=k * dt)
+        var += (_along_std(m.visual(step)) - 0.05) ** 2       # without the per-step 5 cm
+    speed_std = float(np.hypot(m.scale_std * m.speed_at(0.75), m.fit.std_at(0.75)))
+    assert np.sqrt(var) == pytest.approx(chain_std(speed_std, 0.6), rel=0.05)
+    # a step far from its anchor is less sure than the same step just after a fix
+    near = m.visual(VisualStep(np.eye(3), FORWARD, 0.5, dt, since_anchor_s=0.0))
+    far = m.visual(VisualStep(np.eye(3), FORWARD, 0.5, dt, since_anchor_s=0.5))
+    assert _along_std(far) > 2 * _along_std(near) - 0.05
 
 
 def test_honest_stamps_give_the_speed_and_a_small_length_std() -> None:

@@ -1,0 +1,94 @@
+"""Function sizes in ``planarloc.robust``: at most 12 parameters and 80 lines (docstring
+excluded) per function, nested ones included.
+
+The numba kernels below still take a problem's arrays one by one. A named record of them
+(a ``typing.NamedTuple``, which numba compiles) changes the kernels' signatures to a type whose
+text the shipped kernel list (``planarloc/cli/kernels.json``) cannot hold as data, so those
+kernels would no longer compile ahead (``planarloc warmup``); until the list can name such
+types, each keeps at most its present size. The list may only shrink.
+"""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+import planarloc.robust
+
+MAX_PARAMETERS = 12
+MAX_LINES = 80
+
+# (module, function): (parameters, lines) today; numba kernels, see the module docstring.
+KERNELS_TO_SPLIT = {
+    ("final_refinement", "refine_until_stable"): (19, 43),
+    ("hypotheses", "hypotheses_2p1p"): (13, 49),
+    ("hypotheses", "hypotheses_from_relative_poses"): (15, 48),
+    ("hypotheses", "planar_relative_candidates"): (14, 76),
+    ("hypotheses", "hypotheses_2p1p_consensus"): (16, 142),
+    ("local_optimization", "_refine_stage"): (19, 18),
+    ("local_optimization", "refine_planar_then_6dof"): (20, 14),
+    ("map_prior", "refine_with_map_prior"): (21, 173),
+    ("observability", "jackknife_kernel"): (18, 76),
+    ("observability", "points_centre_covariance"): (16, 68),
+    ("planar_scene", "_distant_planar_kernel"): (13, 26),
+    ("refinement", "residuals"): (16, 24),
+    ("refinement", "residuals_jacobian"): (17, 97),
+    ("refinement", "refine_pose_core"): (20, 66),
+    ("refinement", "refine_pose"): (19, 8),
+    ("refinement", "refine_on_inliers"): (16, 18),
+    ("refinement", "map_uncertainty_covariance"): (16, 33),
+    ("scoring", "msac_scores"): (14, 33),
+}
+
+
+def function_sizes(path: Path) -> dict[str, tuple[int, int, bool]]:
+    """``name: (parameters, lines without the docstring, is a numba kernel)`` of every function
+    (methods and nested functions too, by qualified name)."""
+    out = {}
+
+    def visit(node: ast.AST, prefix: str) -> None:
+        for child in ast.iter_child_nodes(node):
+            if isinstance(child, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                a = child.args
+                params = len(a.posonlyargs) + len(a.args) + len(a.kwonlyargs) + (a.vararg is not None) \
+                    + (a.kwarg is not None)
+                lines = child.end_lineno - child.lineno + 1
+                if ast.get_docstring(child, clean=False) is not None:
+                    lines -= child.body[0].end_lineno - child.body[0].lineno + 1
+                kernel = any("njit" in ast.unparse(d) for d in child.decorator_list)
+                out[prefix + child.name] = (params, lines, kernel)
+                visit(child, prefix + child.name + ".")
+            elif isinstance(child, ast.ClassDef):
+                visit(child, prefix + child.name + ".")
+    visit(ast.parse(path.read_text(encoding="utf-8")), "")
+    return out
+
+
+def _all_sizes() -> dict[tuple[str, str], tuple[int, int, bool]]:
+    root = Path(planarloc.robust.__file__).parent
+    return {(p.stem, name): size for p in sorted(root.glob("*.py")) for name, size in function_sizes(p).items()}
+
+
+def test_every_function_is_within_the_limits() -> None:
+    sizes = _all_sizes()
+    assert len(sizes) > 150  # the walk sees the package
+    over = {k: v[:2] for k, v in sizes.items()
+            if (v[0] > MAX_PARAMETERS or v[1] > MAX_LINES) and k not in KERNELS_TO_SPLIT}
+    assert over == {}
+
+
+def test_the_kernels_left_to_split_do_not_grow_and_the_list_only_shrinks() -> None:
+    sizes = _all_sizes()
+    for key, (params, lines) in KERNELS_TO_SPLIT.items():
+        assert key in sizes, f"{key} is gone: remove it from KERNELS_TO_SPLIT"
+        p, n, kernel = sizes[key]
+        assert kernel, f"{key} is plain Python: split it"
+        assert p <= params and n <= lines, (key, (p, n))
+        assert p > MAX_PARAMETERS or n > MAX_LINES, f"{key} is within the limits now: remove it from the list"
+
+
+def test_the_counter_counts_parameters_and_lines(tmp_path: Path) -> None:
+    f = tmp_path / "m.py"
+    f.write_text('def f(a, b=1, *c, d, **e):\n    """Doc\n    string."""\n    x = 1\n    return x\n\n\n'
+                 'class K:\n    def g(self):\n        def h():\n            pass\n        return h\n')
+    assert function_sizes(f) == {"f": (5, 3, False), "K.g": (1, 4, False), "K.g.h": (0, 2, False)}
