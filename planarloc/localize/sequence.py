@@ -195,8 +195,7 @@ class SequenceLocalizer:
         vo = tracked.relative
         weak = self._weak(len(self._window) - 1, dt)
         if vo is not None and vo.success and vo.pose is not None:
-            w = self._window
-            since = prev_stamp - w.anchor_stamp(len(w) - 1) if len(w) else 0.0
+            since = prev_stamp - self._window.anchor_stamp(len(self._window) - 1) if len(self._window) else 0.0
             step = VisualStep(vo.pose.R, vo.pose.inverse().t, stamp, dt, tracked.covariance, since_anchor_s=since)
             return self._motion.disputed(self._motion.visual(step, vo.model), weak)
         return weak
@@ -498,7 +497,7 @@ class SequenceLocalizer:
     def _take_fixes(self, query: Query, stamp: float, handled: _Handled) -> None:
         """Fuse the fix results that arrived and the tracked map points, submit this frame's fix
         job when the worker is idle; a frame too far ahead of the fix in flight, or with no pose
-        to give early (doubted, a std beyond ``lost_std_m``), waits for it."""
+        to give early (doubted, a std beyond ``max_pose_std_m`` or ``lost_std_m``), waits for it."""
         frame = self._frame
         for result in self._fixes.collect(frame):
             self._handle(result, handled)
@@ -520,7 +519,7 @@ class SequenceLocalizer:
         for result in self._fixes.collect(frame, wait=lagging):
             self._handle(result, handled)
         self._refresh()
-        lost = covariance_stds(self._window.covariance)[0] > self.config.lost_std_m
+        lost = covariance_stds(self._window.covariance)[0] > min(self.config.lost_std_m, self.config.max_pose_std_m)
         if background and self._fixes.busy and (self._kidnap.doubted or lost):
             for result in self._fixes.collect(frame, wait=True):
                 self._handle(result, handled)
