@@ -37,15 +37,16 @@ crashed frames; sustained frames/s and p99 latency (``est.latency_s``, after the
 ``lost`` frames of good images that carry a pose breaking the promise are counted apart (JSON
 ``lost_pose_breaks``, not gated: a lost pose is not given as usable).
 
-The node (``--node``, slow: a process per run): ``planarloc ros2`` as in ``benchmarks/ros2_replay.py``,
-frames at 10 Hz without odometry, background fixes (the node's defaults; ``--node-param`` adds
-``-p`` overrides), for ``--node-cases`` (default ``default fixed-rate``). What the node publishes
-(``/planarloc/pose``: ``localized``, and ``predicted`` with ``publish_predicted``) is compared
-with the truth of the base (KITTI, the camera 1.65 m above it) or the camera (worlds), its
-position std from the published covariance; frames with no published pose count as not posed.
-The truth is put in the node's published frame as the node says in its banner: z-up from the
-map's gravity (``map_frame_convention z_up``, :func:`planarloc.ros2.conversions.map_from_world_from_gravity`)
-or the map's world.
+The node (``--node``, slow: a process per run): ``planarloc ros2`` as in
+``benchmarks/ros2_replay.py``, frames at their capture times (the camera's 10 Hz, with the gaps of
+the frames a case removes) without odometry, background fixes (the node's defaults; ``--node-param``
+adds ``-p`` overrides), for ``--node-cases`` (default ``default fixed-rate``). What the node
+publishes (``/planarloc/pose``: ``localized``, and ``predicted`` with ``publish_predicted``) is
+compared with the truth of the base (KITTI, the camera 1.65 m above it) or the camera (worlds), its
+position std from the published covariance; frames with no published pose count as not posed. The
+truth is put in the node's published frame as the node says in its banner: z-up from the map's
+gravity (``map_frame_convention z_up``,
+:func:`planarloc.ros2.conversions.map_from_world_from_gravity`) or the map's world.
 
 Exit code 1 when any run has a promise break, a pose beyond 1 m, a crash or a refused good frame
 (CI gates on it); 2 for bad options. The issue's other targets (≥ 95 % within 0.25 m of the
@@ -258,13 +259,13 @@ def node_map_from_world(stderr: Sequence[str], loc: Localizer) -> tuple[Pose, st
 
 
 def run_node(data: Stream, loc: Localizer, frames: list[CaseFrame], params: Sequence[str]) -> dict:
-    """``frames`` replayed at 10 Hz to ``planarloc ros2`` (no odometry, background fixes)."""
+    """``frames`` replayed to ``planarloc ros2`` at their capture times (no odometry, background fixes)."""
     from planarloc.ros2.replay import NodeProcess, ReplayFrame, exclusive_domain, loopback_env, replay
 
     crashes: list[dict] = []
     result, rc, stderr = None, None, []
     base = data.base_from_camera
-    replayed = [ReplayFrame(f.image, f.camera, f.stamp, None) for f in frames]
+    replayed = [ReplayFrame(f.image, f.camera, f.stamp, None, capture_time=f.true_time) for f in frames]
     try:
         with exclusive_domain() as domain:
             env = loopback_env(domain)

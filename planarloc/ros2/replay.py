@@ -47,12 +47,16 @@ class ReplayFrame:
     ``bytes`` sent as they are as a ``CompressedImage``'s data (e.g. empty or damaged data).
     ``camera``: its ``CameraInfo`` is published before the image; None: no CameraInfo.
     ``odom_from_base``: the odometry's pose of the base at this stamp (None: no Odometry message).
+    ``capture_time``: when the camera took it (s, any origin): without lockstep the frame goes out
+    that long after the first frame, as a camera delivers it (a stamp may lie about it); None
+    for every frame: at ``rate_hz``.
     """
 
     image: object
     camera: Camera | None
     stamp: float
     odom_from_base: Pose | None = None
+    capture_time: float | None = None
 
 
 @dataclass
@@ -206,7 +210,9 @@ def replay(frames: Sequence[ReplayFrame], *, camera_frame: str = "camera_optical
                         raise InputError(f"frame {i} (stamp {frame.stamp:.3f}): no diagnostic within {wait_s:.0f} s")
                     rclpy.spin_once(node, timeout_sec=0.05)
             else:
-                next_at = t0 + (i + 1) / rate_hz
+                paced = i + 1 < len(frames) and frames[i + 1].capture_time is not None \
+                    and frames[0].capture_time is not None
+                next_at = t0 + (frames[i + 1].capture_time - frames[0].capture_time if paced else (i + 1) / rate_hz)
                 while time.perf_counter() < next_at:
                     rclpy.spin_once(node, timeout_sec=max(0.0, min(0.01, next_at - time.perf_counter())))
         result.seconds = time.perf_counter() - t0 if t0 is not None else 0.0
