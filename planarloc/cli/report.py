@@ -2,16 +2,15 @@
 
 from __future__ import annotations
 
-import json
 from collections.abc import Sequence
 from pathlib import Path
 
-from rich.table import Table
-
 import numpy as np
+from rich.table import Table
 
 from planarloc.cli.console import info, note
 from planarloc.cli.exit_codes import EXIT_OK, EXIT_PARTIAL
+from planarloc.io import strict_json
 from planarloc.io.output import atomic_output, write_text_atomic
 
 
@@ -38,7 +37,7 @@ def print_summary_table(summaries: Sequence[dict], title: str) -> None:
 def write_json(path: Path | None, data: object) -> None:
     if path is None:
         return
-    write_text_atomic(Path(path), json.dumps(data, indent=1))
+    write_text_atomic(Path(path), strict_json.dumps(data, indent=1))
     info(f"wrote {path}")
 
 

@@ -29,11 +29,11 @@ that ends or is interrupted (:meth:`ResultsWriter.close`) replaces them.
 
 from __future__ import annotations
 
-import json
 import re
 from pathlib import Path
 
 from planarloc.geometry.validation import InputError
+from planarloc.io import strict_json
 from planarloc.io.output import STDOUT, StagedFiles, output_kind, remove_dead_temporaries
 from planarloc.io.pose_list import pose_line
 from planarloc.io.tum import tum_trajectory_text
@@ -131,7 +131,7 @@ class ResultsWriter:
         except (KeyError, TypeError, ValueError) as exc:
             raise InputError(f"{name}: the record's pose is not a pose ({exc})") from None
         if self.records_dir is not None:
-            self._staged.add(self.records_dir / record_filename(name), json.dumps(record, indent=1))
+            self._staged.add(self.records_dir / record_filename(name), strict_json.dumps(record, indent=1))
         self.names.append(name)
         self.statuses[str(record.get("status"))] = self.statuses.get(str(record.get("status")), 0) + 1
         mark = None

@@ -32,7 +32,6 @@ Order of a localize request: token → body read within ``body_timeout_s`` and t
 # No `from __future__ import annotations`: FastAPI reads the handlers' annotations at definition time.
 import asyncio
 import hmac
-import json
 import logging
 import os
 import sys
@@ -43,6 +42,7 @@ from contextlib import asynccontextmanager
 from pathlib import Path
 
 from planarloc.extras import require
+from planarloc.io import strict_json
 from planarloc.io.text import camera_text
 from planarloc.map.store import MapDatabase
 from planarloc.serve import worker
@@ -301,8 +301,8 @@ def create_app(settings: ServeSettings):  # -> fastapi.FastAPI
     async def localize(request: fastapi.Request):
         body, status, headers = await service.localize(request)
         if status == 200:
-            return responses.Response(json.dumps(body), media_type="application/json")
-        return responses.JSONResponse(body, status_code=status, headers=headers)
+            return responses.Response(strict_json.dumps(body), media_type="application/json")
+        return responses.JSONResponse(strict_json.to_jsonable(body), status_code=status, headers=headers)
 
     @app.get("/v1/maps")
     async def maps():
@@ -311,7 +311,7 @@ def create_app(settings: ServeSettings):  # -> fastapi.FastAPI
     @app.get("/healthz")
     async def healthz():
         body, status = service.health()
-        return responses.JSONResponse(body, status_code=status)
+        return responses.JSONResponse(strict_json.to_jsonable(body), status_code=status)
 
     @app.get("/metrics")
     async def prometheus():

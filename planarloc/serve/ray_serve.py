@@ -42,12 +42,12 @@ Scale a map's replicas by deploying it again with another ``replicas``; ``serve.
 from __future__ import annotations
 
 import hashlib
-import json
 import logging
 from collections.abc import Mapping
 from pathlib import Path
 
 from planarloc.extras import require
+from planarloc.io import strict_json
 from planarloc.serve.form import FORM_OVERHEAD_BYTES, UploadBudget, read_localize_form
 from planarloc.serve.map_watch import MapWatch
 from planarloc.serve.requests import (
@@ -154,8 +154,8 @@ async def respond(request, maps: MapSet, max_image_bytes: int, budget: UploadBud
         return JSONResponse({"error": exc.message}, status_code=exc.status, headers=headers)
     body, status, headers = await answer(req)
     if status == 200:
-        return Response(json.dumps(body), media_type="application/json")
-    return JSONResponse(body, status_code=status, headers=headers)
+        return Response(strict_json.dumps(body), media_type="application/json")
+    return JSONResponse(strict_json.to_jsonable(body), status_code=status, headers=headers)
 
 
 class LocalizerIngress:

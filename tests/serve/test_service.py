@@ -273,3 +273,21 @@ def test_localize_server_records_an_undecodable_image_and_goes_on(server, tmp_pa
     before = out.read_text()
     dead = ["localize", "--server", "http://127.0.0.1:9", "--map", "office", images[0], "--out", out]
     assert main([str(a) for a in dead]) == 1 and out.read_text() == before
+
+
+def test_a_failed_query_answers_strict_json(server) -> None:
+    """A black frame fails (no features): its answer has no pose and no finite std, and says so
+    with nulls a strict parser accepts, not NaN or Infinity (issue 32)."""
+    import cv2
+
+    from planarloc.io.strict_json import loads_strict
+
+    w, h = (int(v) for v in server.camera.split()[1:3])
+    ok, png = cv2.imencode(".png", np.zeros((h, w), np.uint8))
+    assert ok
+    response = httpx.post(server.url + "/v1/localize", headers={"Authorization": f"Bearer {server.token}"},
+                          files={"image": ("black.png", png.tobytes())},
+                          data={"camera": server.camera, "map": "office"}, timeout=120)
+    body = loads_strict(response.text)
+    assert response.status_code == 200 and body["success"] is False
+    assert "position_std_m" in body and body["position_std_m"] is None
