@@ -41,6 +41,10 @@ frame (``tf_child`` or the Odometry ``child_frame_id``) to the image's ``header.
 neither exists and the frames differ, the pose is taken as the camera's, with a warning.
 
 :func:`write_rosbag` writes posed images as a bag in the same layout (tests, conversions).
+
+This module reads; the message types and image decoding are in :mod:`planarloc.io.rosbag_messages`,
+pose samples and the ``/tf`` buffer in :mod:`planarloc.io.rosbag_poses`, the writer in
+:mod:`planarloc.io.rosbag_write` (their public names are importable from here too).
 """
 
 from __future__ import annotations
@@ -48,7 +52,6 @@ from __future__ import annotations
 import hashlib
 import logging
 import math
-import os
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -65,67 +68,39 @@ from planarloc.io.format_error import FormatError
 from planarloc.io.output import write_file
 from planarloc.io.ros_messages import (
     camera_from_camera_info,
-    camera_info_fields,
     frame_name,
     pose_from_ros,
     rectified_topic,
-    transform_edge,
 )
-from planarloc.io.text import T_XYZW, parse_camera, parse_pose, pose_from_numbers
+from planarloc.io.rosbag_messages import (  # noqa: F401  (re-exported: the reader's public names)
+    _CAMERA_HINT,
+    _ENCODINGS,
+    _PNG,
+    CAMERA_INFO,
+    COMPRESSED_IMAGE,
+    DEFAULT_MAX_DT,
+    FORMAT,
+    IMAGE,
+    ODOMETRY,
+    POSE_STAMPED,
+    POSE_TYPES,
+    POSE_WITH_COVARIANCE,
+    TF_MESSAGE,
+    _is_depth_encoding,
+    _rosbags,
+    _stamp_ns,
+    at_stamp,
+    decode_image,
+    parse_camera_option,
+    parse_transform,
+)
+from planarloc.io.rosbag_poses import TfBuffer, distinct_samples
+from planarloc.io.rosbag_write import POSE_MESSAGES, STORAGES, write_rosbag  # noqa: F401  (re-exported)
 from planarloc.io.tum import associate_timestamps
 from planarloc.map.posed_image import PosedImage
 from planarloc.map.settings import cache_dir
 
 logger = logging.getLogger(__name__)
-
-FORMAT = "ROS bag"
-DEFAULT_MAX_DT = 0.05
-IMAGE = "sensor_msgs/msg/Image"
-COMPRESSED_IMAGE = "sensor_msgs/msg/CompressedImage"
-CAMERA_INFO = "sensor_msgs/msg/CameraInfo"
-POSE_STAMPED = "geometry_msgs/msg/PoseStamped"
-POSE_WITH_COVARIANCE = "geometry_msgs/msg/PoseWithCovarianceStamped"
-ODOMETRY = "nav_msgs/msg/Odometry"
-TF_MESSAGE = "tf2_msgs/msg/TFMessage"
-POSE_TYPES = (POSE_STAMPED, POSE_WITH_COVARIANCE, ODOMETRY)
-#: camera encodings read: name -> (channels, dtype, cv2 conversion to BGR or None)
-_ENCODINGS = {
-    "mono8": (1, np.uint8, None),
-    "8uc1": (1, np.uint8, None),
-    "mono16": (1, np.uint16, None),
-    "bgr8": (3, np.uint8, None),
-    "8uc3": (3, np.uint8, None),
-    "rgb8": (3, np.uint8, cv2.COLOR_RGB2BGR),
-    "bgra8": (4, np.uint8, cv2.COLOR_BGRA2BGR),
-    "rgba8": (4, np.uint8, cv2.COLOR_RGBA2BGR),
-}
-_PNG = [cv2.IMWRITE_PNG_COMPRESSION, 1]
-#: how to get past an unsupported CameraInfo in a bag
-_CAMERA_HINT = "use a rectified image topic or pass the option camera='OPENCV W H fx fy cx cy k1 k2 p1 p2'"
-
-
-def _is_depth_encoding(enc: str) -> bool:
-    """16UC1, 32FC1 and the other generic encodings that are not 8-bit (depth maps, disparities)."""
-    enc = enc.strip().lower()
-    return enc[:1].isdigit() and enc not in ("8uc1", "8uc3")
-
-
-def at_stamp(topic: str, ns: int) -> str:
-    """``TOPIC at stamp SEC.NANOSEC``: how a message is named in errors and warnings."""
-    return f"{topic} at stamp {ns // 1_000_000_000}.{ns % 1_000_000_000:09d}"
-
-
-def _rosbags() -> Any:
-    try:
-        import rosbags.highlevel  # noqa: F401
-        import rosbags.typesys
-    except ImportError:
-        raise InputError(
-            "the rosbag format needs the 'rosbags' package: pip install 'planarloc[ros]'"
-        ) from None
-    import rosbags
-
-    return rosbags
 
 
 @dataclass(frozen=True)
@@ -169,57 +144,6 @@ def bag_paths(root: Path) -> list[Path]:
     )
 
 
-def _stamp_ns(msg: Any, bag_ns: int) -> int:
-    header = getattr(msg, "header", None)
-    if header is None:
-        return int(bag_ns)
-    ns = int(header.stamp.sec) * 1_000_000_000 + int(header.stamp.nanosec)
-    return ns if ns > 0 else int(bag_ns)
-
-
-def parse_transform(value: object, option: str) -> Pose:
-    """``'x y z qx qy qz qw'`` (or 7 numbers): the child's pose in the parent frame -> ``parent_from_child``."""
-    if isinstance(value, Pose):
-        return value
-    try:
-        if isinstance(value, str):
-            return parse_pose(value, T_XYZW)
-        return pose_from_numbers([float(v) for v in value], T_XYZW)  # type: ignore[union-attr]
-    except (TypeError, ValueError) as exc:
-        raise InputError(f"{option}: {exc}, got {value!r}") from None
-
-
-def parse_camera_option(value: object) -> Camera:
-    """A Camera, or a line ``'MODEL W H PARAMS...'`` (:func:`planarloc.io.text.parse_camera`)."""
-    if isinstance(value, Camera):
-        return value
-    try:
-        return parse_camera(value if isinstance(value, str) else "")
-    except InputError as exc:
-        raise InputError(f"camera={value!r}: {exc}") from None
-
-
-def decode_image(msg: Any) -> np.ndarray:
-    """A ``sensor_msgs/Image`` as (H, W) gray or (H, W, 3) BGR array (uint8, or uint16 for mono16)."""
-    enc = str(msg.encoding).lower()
-    if _is_depth_encoding(enc):
-        raise InputError(f"encoding {msg.encoding!r} is a depth (or other non-camera) image, not a camera image; "
-                         "choose the camera's image topic with image_topic=TOPIC")
-    if enc not in _ENCODINGS:
-        raise InputError(f"image encoding {msg.encoding!r} is not supported (supported: {', '.join(_ENCODINGS)})")
-    channels, dtype, conversion = _ENCODINGS[enc]
-    h, w, step = int(msg.height), int(msg.width), int(msg.step)
-    item = np.dtype(dtype).itemsize
-    data = np.frombuffer(bytes(msg.data), dtype=np.uint8)
-    if h < 1 or w < 1 or data.size < h * step or step < w * channels * item:
-        raise InputError(f"image message: {data.size} bytes do not hold {h} rows of step {step} ({w}x{h} {enc})")
-    rows = np.ascontiguousarray(data[: h * step].reshape(h, step)[:, : w * channels * item])
-    order = ">" if int(getattr(msg, "is_bigendian", 0)) else "<"
-    img = rows.view(np.dtype(dtype).newbyteorder(order)).astype(dtype).reshape(h, w, channels)
-    img = img[:, :, 0] if channels == 1 else img
-    return cv2.cvtColor(img, conversion) if conversion is not None else img
-
-
 def default_image_dir(paths: Sequence[Path], image_topic: str) -> Path:
     """The cache folder of a bag's decoded images (temp dir, keyed by path, size, mtime and topic)."""
     h = hashlib.sha1(image_topic.encode())
@@ -252,29 +176,6 @@ def _pick_topic(topics: dict[str, str], wanted: str | None, types: Sequence[str]
     )
 
 
-def _same_pose(a: Pose, b: Pose, tol: float = 1e-9) -> bool:
-    return bool(np.allclose(a.matrix, b.matrix, atol=tol))
-
-
-def distinct_samples(times: Sequence[float], poses: Sequence[Pose], what: str) -> tuple[list[float], list[Pose]]:
-    """The pose samples of one source (a pose topic, a ``/tf`` edge) without ambiguous stamps:
-    samples sharing a stamp count once if their poses agree, else all of them are dropped with a
-    warning per message (a frame at that time cannot be given the right one)."""
-    by_stamp: dict[float, list[int]] = {}
-    for i, t in enumerate(times):
-        by_stamp.setdefault(float(t), []).append(i)
-    keep = []
-    for t, idx in by_stamp.items():
-        if len(idx) == 1 or all(_same_pose(poses[idx[0]], poses[i]) for i in idx[1:]):
-            keep.append(idx[0])
-            continue
-        for i in idx:
-            logger.warning("%s: %d pose samples share this stamp with different poses; none of them is used",
-                           at_stamp(what, int(round(t * 1e9))), len(idx))
-    keep.sort()
-    return [float(times[i]) for i in keep], [poses[i] for i in keep]
-
-
 def _shared_stamps(images: Sequence[BagImage], topic: str, action: str) -> set[int]:
     """Indices of the images whose header stamp another image has too (each warned, with ``action``)."""
     count: dict[float, int] = {}
@@ -292,80 +193,6 @@ def _topic_list(topics: dict[str, str]) -> str:
     return ", ".join(f"{t} ({ty})" for t, ty in sorted(topics.items())) or "none"
 
 
-class _TfBuffer:
-    """Static and time-stamped transforms ``parent_from_child`` per edge (child -> parent)."""
-
-    def __init__(self) -> None:
-        self.static: dict[str, tuple[str, Pose]] = {}
-        self.dynamic: dict[str, tuple[str, list[float], list[Pose]]] = {}
-
-    def add(self, msg: Any, static: bool, bag_ns: int = 0) -> None:
-        for tf in msg.transforms:
-            parent, child, pose = transform_edge(tf)
-            if static:
-                if child in self.static and not _same_pose(self.static[child][1], pose):
-                    logger.warning("/tf_static: %s -> %s is published twice with different transforms; the later "
-                                   "is used", parent, child)
-                self.static[child] = (parent, pose)
-            else:
-                entry = self.dynamic.setdefault(child, (parent, [], []))
-                entry[1].append(_stamp_ns(tf, bag_ns) * 1e-9)
-                entry[2].append(pose)
-
-    def parent(self, child: str) -> str | None:
-        if child in self.static:
-            return self.static[child][0]
-        if child in self.dynamic:
-            return self.dynamic[child][0]
-        return None
-
-    def chain(self, parent: str, child: str) -> list[str] | None:
-        """Frames from ``child`` up to (excluding) ``parent``, or None if ``parent`` is not an ancestor."""
-        out, frame = [], child
-        while frame != parent:
-            out.append(frame)
-            frame = self.parent(frame)  # type: ignore[assignment]
-            if frame is None or len(out) > 1000:
-                return None
-        return out
-
-    def static_chain(self, parent: str, child: str) -> Pose | None:
-        """``parent_from_child`` if ``child`` hangs below ``parent`` through static transforms only."""
-        chain = self.chain(parent, child)
-        if chain is None or any(f not in self.static for f in chain):
-            return None
-        pose = Pose.identity()
-        for f in chain:
-            pose = self.static[f][1] @ pose
-        return pose
-
-    def frames(self) -> list[str]:
-        names = set(self.static) | set(self.dynamic)
-        names |= {p for p, _ in self.static.values()} | {e[0] for e in self.dynamic.values()}
-        return sorted(names)
-
-    def poses_at(self, parent: str, child: str, times: np.ndarray, max_dt: float,
-                 root: Path) -> list[Pose | None]:
-        """``parent_from_child`` at each time (None where a dynamic edge has no sample within max_dt)."""
-        chain = self.chain(parent, child)
-        if chain is None:
-            raise FormatError(
-                root, None, f"tf_parent={parent!r} is not an ancestor of tf_child={child!r} in /tf and /tf_static "
-                f"(frames: {', '.join(self.frames()) or 'none'})"
-            )
-        out: list[Pose | None] = [Pose.identity() for _ in times]
-        for frame in chain:
-            if frame in self.static:
-                edge = self.static[frame][1]
-                out = [None if p is None else edge @ p for p in out]
-                continue
-            parent, stamps, poses = self.dynamic[frame]
-            stamps, poses = distinct_samples(stamps, poses, f"/tf {parent} -> {frame}")
-            idx = associate_timestamps(times, stamps, max_dt)
-            out = [None if p is None or i < 0 else poses[i] @ p for p, i in zip(out, idx)]
-        return out
-
-
 @dataclass
 class _BagContent:
     image_topic: str
@@ -373,7 +200,7 @@ class _BagContent:
     pose_times: list[float]
     poses: list[Pose]
     pose_frame: str | None
-    tf: _TfBuffer
+    tf: TfBuffer
 
 
 def _read_bag(
@@ -424,7 +251,7 @@ def _read_bag(
         pose_times: list[float] = []
         poses: list[Pose] = []
         pose_frame: str | None = None
-        tf = _TfBuffer()
+        tf = TfBuffer()
         n_image = 0
         names: set[str] = set()
         for conn, bag_ns, raw in reader.messages(connections=conns):
@@ -643,186 +470,3 @@ def read_rosbag(
         logger.warning("%s: %d of %d images have no pose (%s) within max_dt = %g s and are skipped",
                        root, skipped, len(images), source, float(max_dt))
     return out
-
-
-# ---- writing ----------------------------------------------------------------------------------
-STORAGES = ("rosbag1", "sqlite3", "mcap")
-POSE_MESSAGES = {"PoseStamped": POSE_STAMPED, "PoseWithCovarianceStamped": POSE_WITH_COVARIANCE,
-                 "Odometry": ODOMETRY, "tf": TF_MESSAGE}
-
-
-def write_rosbag(
-    out: Path,
-    images: Sequence[PosedImage],
-    *,
-    storage: str = "sqlite3",
-    compressed: bool = False,
-    image_topic: str = "/camera/image_raw",
-    camera_info_topic: str | None = "/camera/camera_info",
-    pose_topic: str = "/pose",
-    pose_message: str = "PoseStamped",
-    world_frame: str = "map",
-    base_frame: str = "base_link",
-    camera_frame: str = "camera_optical_frame",
-    base_from_camera: Pose | None = None,
-    pose_delay: float = 0.0,
-) -> Path:
-    """Write posed images as a ROS bag (the inverse of :func:`read_rosbag`).
-
-    Args:
-        out: a new ``.bag`` file (``storage="rosbag1"``) or a new ROS 2 bag folder.
-        images: posed images; stamps are their ``timestamp`` (else ``0.1 s * index``).
-        storage: ``"rosbag1"``, ``"sqlite3"`` or ``"mcap"``.
-        compressed: write ``sensor_msgs/CompressedImage`` (the image files' PNG/JPEG bytes)
-            instead of ``sensor_msgs/Image`` (mono8 or bgr8).
-        image_topic, camera_info_topic: image and CameraInfo topics (CameraInfo skipped if None;
-            the distortion model of :func:`planarloc.io.ros_messages.camera_info_distortion`, every camera
-            model).
-        pose_topic, pose_message: topic and type (``PoseStamped``, ``PoseWithCovarianceStamped``,
-            ``Odometry``) of the poses, or ``"tf"``: the poses go to ``/tf`` as
-            ``world_frame -> base_frame`` (``pose_topic`` unused).
-        world_frame, base_frame, camera_frame: frame ids.
-        base_from_camera: if given, the poses written are the base's (world_from_cam ∘
-            camera_from_base) and ``/tf_static`` holds ``base_frame -> camera_frame``; else the
-            poses are the camera's (``base_frame`` = ``camera_frame`` in tf mode).
-        pose_delay: seconds added to the pose stamps (to exercise time matching).
-
-    Returns:
-        ``out``.
-    """
-    _rosbags()
-    from rosbags.typesys import Stores, get_typestore
-
-    if storage not in STORAGES:
-        raise InputError(f"storage: expected one of {', '.join(STORAGES)}, got {storage!r}")
-    if pose_message not in POSE_MESSAGES:
-        raise InputError(f"pose_message: expected one of {', '.join(POSE_MESSAGES)}, got {pose_message!r}")
-    ros1 = storage == "rosbag1"
-    ts = get_typestore(Stores.ROS1_NOETIC if ros1 else Stores.ROS2_HUMBLE)
-    if TF_MESSAGE not in ts.types:  # the noetic store lacks tf2_msgs
-        from rosbags.typesys import get_types_from_msg
-
-        ts.register(get_types_from_msg("geometry_msgs/TransformStamped[] transforms", TF_MESSAGE))
-    T = ts.types
-    out = Path(out)
-    posed_frame = base_frame if base_from_camera is not None else camera_frame
-
-    def stamp(ns: int) -> Any:
-        return T["builtin_interfaces/msg/Time"](sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000)
-
-    def header(ns: int, frame: str, seq: int = 0) -> Any:
-        kw = {"seq": seq} if ros1 else {}
-        return T["std_msgs/msg/Header"](**kw, stamp=stamp(ns), frame_id=frame)
-
-    def pose_msg(p: Pose) -> Any:
-        q, t = p.quat_wxyz, p.t
-        return T["geometry_msgs/msg/Pose"](
-            position=T["geometry_msgs/msg/Point"](x=float(t[0]), y=float(t[1]), z=float(t[2])),
-            orientation=T["geometry_msgs/msg/Quaternion"](x=float(q[1]), y=float(q[2]), z=float(q[3]), w=float(q[0])))
-
-    def transform_msg(ns: int, parent: str, child: str, p: Pose) -> Any:
-        q, t = p.quat_wxyz, p.t
-        return T["geometry_msgs/msg/TransformStamped"](
-            header=header(ns, parent), child_frame_id=child,
-            transform=T["geometry_msgs/msg/Transform"](
-                translation=T["geometry_msgs/msg/Vector3"](x=float(t[0]), y=float(t[1]), z=float(t[2])),
-                rotation=T["geometry_msgs/msg/Quaternion"](x=float(q[1]), y=float(q[2]), z=float(q[3]),
-                                                           w=float(q[0]))))
-
-    writer, serialize = _open_writer(out, storage, ts)
-    with writer:
-        conns: dict[str, Any] = {}
-
-        def add(topic: str, msgtype: str) -> Any:
-            if topic not in conns:
-                conns[topic] = writer.add_connection(topic, msgtype, typestore=ts)
-            return conns[topic]
-
-        if base_from_camera is not None:
-            ns0 = _stamp_of(images[0]) if images else 0
-            msg = T[TF_MESSAGE](transforms=[transform_msg(ns0, base_frame, camera_frame, base_from_camera)])
-            writer.write(add("/tf_static", TF_MESSAGE), ns0, serialize(msg, TF_MESSAGE))
-        for seq, im in enumerate(images):
-            ns = _stamp_of(im)
-            world_from_cam = im.cam_from_world.inverse()
-            world_from_posed = (world_from_cam if base_from_camera is None
-                                else world_from_cam @ base_from_camera.inverse())
-            pns = ns + int(round(pose_delay * 1e9))
-            if pose_message == "tf":
-                msg = T[TF_MESSAGE](transforms=[transform_msg(pns, world_frame, posed_frame, world_from_posed)])
-                writer.write(add("/tf", TF_MESSAGE), pns, serialize(msg, TF_MESSAGE))
-            else:
-                mt = POSE_MESSAGES[pose_message]
-                p = pose_msg(world_from_posed)
-                if mt == POSE_STAMPED:
-                    msg = T[mt](header=header(pns, world_frame, seq), pose=p)
-                else:
-                    cov = T["geometry_msgs/msg/PoseWithCovariance"](pose=p, covariance=np.zeros(36))
-                    if mt == POSE_WITH_COVARIANCE:
-                        msg = T[mt](header=header(pns, world_frame, seq), pose=cov)
-                    else:
-                        zero = T["geometry_msgs/msg/Vector3"](x=0.0, y=0.0, z=0.0)
-                        twist = T["geometry_msgs/msg/TwistWithCovariance"](
-                            twist=T["geometry_msgs/msg/Twist"](linear=zero, angular=zero), covariance=np.zeros(36))
-                        msg = T[mt](header=header(pns, world_frame, seq), child_frame_id=posed_frame, pose=cov,
-                                    twist=twist)
-                writer.write(add(pose_topic, mt), pns, serialize(msg, mt))
-            if camera_info_topic is not None:
-                msg = _camera_info_msg(T, header(ns, camera_frame, seq), im.camera, ros1)
-                writer.write(add(camera_info_topic, CAMERA_INFO), ns, serialize(msg, CAMERA_INFO))
-            if compressed:
-                data = Path(im.path).read_bytes()
-                fmt = "png" if Path(im.path).suffix.lower() == ".png" else "jpeg"
-                msg = T[COMPRESSED_IMAGE](header=header(ns, camera_frame, seq), format=fmt,
-                                          data=np.frombuffer(data, dtype=np.uint8))
-                writer.write(add(image_topic, COMPRESSED_IMAGE), ns, serialize(msg, COMPRESSED_IMAGE))
-            else:
-                img = cv2.imread(str(im.path), cv2.IMREAD_UNCHANGED)
-                if img is None:
-                    raise InputError(f"{im.path}: cannot read image")
-                if img.ndim == 3 and img.shape[2] == 4:
-                    img = cv2.cvtColor(img, cv2.COLOR_BGRA2BGR)
-                enc = "mono8" if img.ndim == 2 else "bgr8"
-                if img.dtype != np.uint8:
-                    raise InputError(f"{im.path}: only 8-bit images can be written as sensor_msgs/Image")
-                msg = T[IMAGE](header=header(ns, camera_frame, seq), height=img.shape[0], width=img.shape[1],
-                               encoding=enc, is_bigendian=0, step=img.shape[1] * (1 if img.ndim == 2 else 3),
-                               data=np.ascontiguousarray(img).reshape(-1))
-                writer.write(add(image_topic, IMAGE), ns, serialize(msg, IMAGE))
-    return out
-
-
-def _stamp_of(im: PosedImage) -> int:
-    t = im.timestamp if im.timestamp is not None else 0.1 * im.index
-    return int(round(float(t) * 1e9))
-
-
-def _camera_info_msg(T: Any, header: Any, cam: Camera, ros1: bool) -> Any:
-    """A rosbags CameraInfo of ``cam`` (:func:`planarloc.io.ros_messages.camera_info_fields`)."""
-    info = camera_info_fields(cam)
-    roi = T["sensor_msgs/msg/RegionOfInterest"](x_offset=0, y_offset=0, height=0, width=0, do_rectify=False)
-    arrays = {(k.upper() if ros1 else k): np.asarray(info[k], dtype=float) for k in ("d", "k", "r", "p")}
-    return T[CAMERA_INFO](header=header, height=info["height"], width=info["width"],
-                          distortion_model=info["distortion_model"], binning_x=0, binning_y=0, roi=roi, **arrays)
-
-
-def _open_writer(out: Path, storage: str, ts: Any) -> tuple[Any, Any]:
-    if out.exists():
-        raise InputError(f"{out}: exists already; a bag is never overwritten")
-    if storage == "rosbag1":
-        from rosbags.rosbag1 import Writer as Writer1
-
-        return Writer1(out), ts.serialize_ros1
-    import inspect
-
-    from rosbags.rosbag2 import StoragePlugin, Writer as Writer2
-
-    kwargs: dict[str, Any] = {}
-    params = inspect.signature(Writer2).parameters
-    if "version" in params:
-        kwargs["version"] = 9
-    if "storage_plugin" in params:
-        kwargs["storage_plugin"] = StoragePlugin.MCAP if storage == "mcap" else StoragePlugin.SQLITE3
-    elif storage == "mcap":
-        raise InputError("writing mcap needs rosbags >= 0.10 with the mcap storage plugin")
-    return Writer2(out, **kwargs), ts.serialize_cdr

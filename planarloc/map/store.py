@@ -1,7 +1,8 @@
 """The map store: posed images with their local and global features, in one SQLite file.
 
 :class:`MapDatabase` creates, opens, reads and writes maps (schema in :mod:`planarloc.map.schema`,
-byte layouts in :mod:`planarloc.map.codec`). Every image is added in its own transaction (image
+byte layouts in :mod:`planarloc.map.codec`; its reading methods in :mod:`planarloc.map.store_read`,
+its writing methods in :mod:`planarloc.map.store_write`). Every image is added in its own transaction (image
 row, keypoints and descriptors together), so a build that crashes or is interrupted leaves a
 consistent map holding every image committed so far; re-running the build skips the images
 already present (resumable). ``build_complete`` is set only by :meth:`MapDatabase.mark_complete`.
@@ -25,13 +26,12 @@ from __future__ import annotations
 
 import datetime as dt
 import errno
-import hashlib
 import json
 import logging
 import os
 import sqlite3
 from collections import OrderedDict
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Iterator, Mapping
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Literal, Self
@@ -41,51 +41,28 @@ import numpy as np
 from planarloc.features.extract import Features
 from planarloc.geometry.camera import Camera
 from planarloc.geometry.pose import Pose
-from planarloc.geometry.validation import InputError, check_array
+from planarloc.geometry.validation import InputError
 from planarloc.map import schema
 from planarloc.map.codec import (
     DEFAULT_STORAGE,
     DESCRIPTOR_ENCODINGS,
     GLOBAL_ENCODINGS,
     KEYPOINT_LAYOUTS,
-    PROJECT_ABOVE,
-    PROJECTED_DIM,
     STORAGE_LAYOUTS,
-    camera_key,
-    KLT_MIN_FEATURES,
     DescriptorBasis,
-    check_features,
     check_storage,
-    damaged_poses,
-    decode_basis,
-    decode_descriptor_basis,
-    decode_features,
-    decode_global,
-    encode_basis,
-    encode_descriptor_basis,
-    encode_descriptors,
-    encode_global,
-    encode_keypoints,
-    fit_descriptor_basis,
-    global_row_problem,
-    pose_columns,
-    poses_from_columns,
-    record_digest,
 )
 from planarloc.map.lock import MapWriterLock
-from planarloc.map.posed_image import PosedImage
 from planarloc.map.schema import (
     BLOB_SHA_PREFIX,
-    DESCRIPTOR_BASIS_BLOB,
-    GLOBAL_BASIS_BLOB,
-    IMAGE_COLUMNS,
     RESERVED_META,
     SOURCES_TABLE,
     MapCorruptError,
     MapFormatError,
-    row_error,
 )
 from planarloc.map.settings import canonical_json, settings_mismatch_error
+from planarloc.map.store_read import MapReading
+from planarloc.map.store_write import MapWriting
 
 logger = logging.getLogger(__name__)
 
@@ -131,7 +108,7 @@ def _check_pages(conn: sqlite3.Connection, path: Path) -> None:
         _PAGES_SOUND.add(state)
 
 
-class MapDatabase:
+class MapDatabase(MapReading, MapWriting):
     """A planarloc map file (schema in :mod:`planarloc.map.schema`).
 
     Create with :meth:`create`, open with :meth:`open` (``mode="r"`` read-only, ``"a"`` to
@@ -477,270 +454,6 @@ class MapDatabase:
         with self._transaction() as conn:
             conn.execute("INSERT OR REPLACE INTO meta (key, value) VALUES (?, ?)", (key, str(value)))
 
-    # ---- writing -------------------------------------------------------------------------------
-    def _camera_id(self, conn: sqlite3.Connection, camera: Camera, pending: dict) -> int:
-        key = camera_key(camera)
-        if key in self._camera_ids:
-            return self._camera_ids[key]
-        row = conn.execute(
-            "SELECT id FROM cameras WHERE model = ? AND width = ? AND height = ? AND params = ?", key
-        ).fetchone()
-        cam_id = (
-            row[0]
-            if row is not None
-            else conn.execute(
-                "INSERT INTO cameras (model, width, height, params) VALUES (?, ?, ?, ?)", key
-            ).lastrowid
-        )
-        pending[key] = cam_id
-        return cam_id
-
-    def add_image(self, posed: PosedImage, features: Features, *, content_sha256: str | None = None) -> int:
-        """Add one image with its local features in one transaction; skip it if present.
-
-        Args:
-            posed: the image record (name must be unique in the map).
-            features: its local features: keypoints (N, 2), descriptors (N, D), scales (N,),
-                D equal for all images of the map. N = 0 is allowed.
-            content_sha256: SHA-256 (hex) of the source image file, stored so that a later
-                build can tell a changed image from the same one (see :mod:`planarloc.map.identity`).
-
-        Returns:
-            The image id (the existing one if an image with this name is already stored —
-            this makes builds resumable).
-
-        Raises:
-            InputError: read-only map, bad feature shapes or values, descriptor dimension
-                different from the map's.
-        """
-        self._require_writable()
-        if not isinstance(posed, PosedImage):
-            raise InputError(f"add_image: expected a PosedImage, got {type(posed).__name__}")
-        existing = self._find_id(posed.name)
-        if existing is not None:
-            logger.debug("%s: image %r already in the map (id %d); skipped", self.path, posed.name, existing)
-            return existing
-        kp, desc, scales = check_features(features, self._dim)
-        n, dim = desc.shape
-        basis, new_basis = self.descriptor_basis(), None
-        if basis is None and self._storage == "compact" and self._encoding == "auto" and n >= KLT_MIN_FEATURES \
-                and bool(desc.min() >= 0):
-            basis = new_basis = fit_descriptor_basis(desc)  # the map's first image with enough features
-        encoding, desc_blob = encode_descriptors(desc, self._encoding, self._storage, basis)
-        kp_blob = encode_keypoints(kp, scales, self._kp_layout)
-        pose7 = pose_columns(posed.cam_from_world)
-        digest = record_digest(posed.name, camera_key(posed.camera), pose7, n, kp_blob, dim, encoding, desc_blob)
-        pending: dict = {}
-        with self._transaction() as conn:
-            if new_basis is not None and encoding == "klt":
-                self._put_blob(conn, DESCRIPTOR_BASIS_BLOB, encode_descriptor_basis(new_basis))
-            cam_id = self._camera_id(conn, posed.camera, pending)
-            image_id = conn.execute(
-                f"INSERT INTO images ({IMAGE_COLUMNS}) VALUES (NULL, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
-                (
-                    posed.name,
-                    cam_id,
-                    *pose7,
-                    int(posed.index),
-                    None if posed.timestamp is None else float(posed.timestamp),
-                    str(posed.path),
-                    None if posed.depth_path is None else str(posed.depth_path),
-                    float(posed.depth_scale),
-                ),
-            ).lastrowid
-            conn.execute(
-                "INSERT INTO keypoints (image_id, num, data) VALUES (?, ?, ?)", (image_id, n, kp_blob)
-            )
-            conn.execute(
-                "INSERT INTO descriptors (image_id, num, dim, encoding, data) VALUES (?, ?, ?, ?, ?)",
-                (image_id, n, dim, encoding, desc_blob),
-            )
-            conn.execute(
-                "INSERT INTO image_sources (image_id, content_sha256, record_sha256) VALUES (?, ?, ?)",
-                (image_id, content_sha256, digest),
-            )
-            if self._dim is None:
-                conn.execute(
-                    "INSERT OR REPLACE INTO meta (key, value) VALUES ('descriptor_dim', ?)", (str(dim),)
-                )
-            conn.execute("UPDATE meta SET value = '0' WHERE key = 'build_complete' AND value != '0'")
-        self._camera_ids.update(pending)
-        self._dim = dim
-        if new_basis is not None and encoding == "klt":
-            self._basis = new_basis
-        return int(image_id)
-
-    def descriptor_basis(self) -> DescriptorBasis | None:
-        """The transform of the map's ``klt`` descriptor rows (:mod:`planarloc.map.codec`), None
-        while it has none."""
-        if self._basis is None:
-            data = self.get_blob(DESCRIPTOR_BASIS_BLOB)
-            if data is not None:
-                try:
-                    self._basis = decode_descriptor_basis(data)
-                except MapCorruptError as exc:
-                    raise row_error(self.path, f"blob {DESCRIPTOR_BASIS_BLOB!r}", str(exc)) from None
-        return self._basis
-
-    def image_source(self, name: str) -> tuple[str | None, str | None] | None:
-        """``(stored path, content SHA-256)`` of image ``name`` (None entries when unknown);
-        None if no image has this name."""
-        row = self._db.execute(
-            "SELECT i.path, s.content_sha256 FROM images i LEFT JOIN image_sources s ON s.image_id = i.id "
-            "WHERE i.name = ?", (name,)
-        ).fetchone() if self._has_sources() else self._db.execute(
-            "SELECT path, NULL FROM images WHERE name = ?", (name,)
-        ).fetchone()
-        return None if row is None else (row[0], row[1])
-
-    def _has_sources(self) -> bool:
-        if self._sources is None:
-            self._sources = self._db.execute(
-                "SELECT 1 FROM sqlite_master WHERE type = 'table' AND name = 'image_sources'"
-            ).fetchone() is not None
-        return self._sources
-
-    def update_image_record(self, name: str, posed: PosedImage, content_sha256: str | None = None) -> None:
-        """Replace the pose, path and (if given) content hash of a stored image, keeping its
-        features (for a corrected pose file or a moved dataset). Marks the build incomplete.
-
-        Raises:
-            KeyError: no image ``name``; InputError: read-only map or a different camera size.
-        """
-        image_id = self._resolve_id(name)
-        old = self.get_posed_image(image_id)
-        if (old.camera.width, old.camera.height) != (posed.camera.width, posed.camera.height):
-            raise InputError(f"{self.path}: image {name}: the camera size changed; rebuild its features")
-        pose7 = pose_columns(posed.cam_from_world)
-        num, kp_blob, dim, encoding, desc_blob = self._db.execute(
-            "SELECT k.num, k.data, d.dim, d.encoding, d.data FROM keypoints k JOIN descriptors d "
-            "ON d.image_id = k.image_id WHERE k.image_id = ?", (image_id,)
-        ).fetchone()
-        digest = record_digest(name, camera_key(posed.camera), pose7, num, kp_blob, dim, encoding, desc_blob)
-        pending: dict = {}
-        with self._transaction() as conn:
-            cam_id = self._camera_id(conn, posed.camera, pending)
-            conn.execute(
-                "UPDATE images SET camera_id = ?, qw = ?, qx = ?, qy = ?, qz = ?, tx = ?, ty = ?, tz = ?, "
-                "path = ?, timestamp = ?, depth_path = ?, depth_scale = ? WHERE id = ?",
-                (cam_id, *pose7, str(posed.path), None if posed.timestamp is None else float(posed.timestamp),
-                 None if posed.depth_path is None else str(posed.depth_path), float(posed.depth_scale), image_id),
-            )
-            old_sha = conn.execute(
-                "SELECT content_sha256 FROM image_sources WHERE image_id = ?", (image_id,)).fetchone()
-            conn.execute(
-                "INSERT OR REPLACE INTO image_sources (image_id, content_sha256, record_sha256) VALUES (?, ?, ?)",
-                (image_id, content_sha256 or (old_sha[0] if old_sha else None), digest),
-            )
-            conn.execute("UPDATE meta SET value = '0' WHERE key = 'build_complete' AND value != '0'")
-        self._camera_ids.update(pending)
-        self._cameras.pop(cam_id, None)
-
-    def remove_image(self, name: str) -> None:
-        """Delete an image with its features and global descriptor. Marks the build incomplete.
-
-        Raises:
-            KeyError: no image ``name``; InputError: read-only map.
-        """
-        image_id = self._resolve_id(name)
-        with self._transaction() as conn:
-            for table in ("keypoints", "descriptors", "global_descriptors", "image_sources"):
-                conn.execute(f"DELETE FROM {table} WHERE image_id = ?", (image_id,))
-            conn.execute("DELETE FROM images WHERE id = ?", (image_id,))
-            conn.execute("UPDATE meta SET value = '0' WHERE key = 'build_complete' AND value != '0'")
-        self._cache.pop(image_id, None)
-
-    def set_global_descriptors(
-        self, descriptors: Mapping[str | int, object] | tuple[Sequence[int | str], object]
-    ) -> None:
-        """Store global (retrieval) descriptors, replacing earlier ones of the same images.
-
-        Args:
-            descriptors: ``{image name or id: (D,) vector}`` or ``(keys, (M, D) array)``.
-                Normalise before if the retrieval needs it.
-
-        How they are stored (:mod:`planarloc.map.codec`): as given (float32) in a ``full`` map;
-        in a ``compact`` one with 4 bits a value (each within ``max|v| / 14``), and, when vectors of
-        all images are given and there are more than ``PROJECT_ABOVE`` (2048) of them, as their
-        coordinates in the top-512 subspace of these vectors (:meth:`global_basis`); vectors
-        given later for some of the images are projected on that basis.
-
-        Raises:
-            InputError: unknown image, inconsistent dimensions, non-finite values.
-            KeyError: an image name or id is not in the map.
-        """
-        if isinstance(descriptors, tuple):
-            keys, arr = descriptors
-            keys = list(keys)
-            mat = check_array("global descriptors", arr, (len(keys), None), dtype=np.float32)
-        else:
-            keys = list(descriptors)
-            if not keys:
-                return
-            mat = check_array(
-                "global descriptors",
-                [np.asarray(descriptors[k]).reshape(-1) for k in keys],
-                (len(keys), None),
-                dtype=np.float32,
-            )
-        ids = [self._resolve_id(k) for k in keys]
-        if len(set(ids)) != len(ids):
-            raise InputError("global descriptors: an image is given more than once")
-        stored = {r[0] for r in self._db.execute("SELECT image_id FROM global_descriptors")}
-        replace_all = stored <= set(ids)
-        basis = self.global_basis()
-        if not replace_all:
-            dim = basis.shape[0] if basis is not None else self._db.execute(
-                "SELECT dim FROM global_descriptors LIMIT 1").fetchone()[0]
-            if mat.shape[1] != dim:
-                raise InputError(
-                    f"global descriptors: the map stores {dim}-D vectors, got {mat.shape[1]}-D; "
-                    "give new vectors for all images to change the dimension"
-                )
-            encoding = self._global_encoding
-        elif self._storage == "full":
-            encoding, basis = "float32", None
-        elif len(ids) > PROJECT_ABOVE and mat.shape[1] > PROJECTED_DIM:
-            from planarloc.features.retrieval import subspace_basis
-
-            encoding, basis = "projected", subspace_basis(mat, PROJECTED_DIM)
-        else:
-            encoding, basis = "int4", None
-        values = mat @ basis if encoding == "projected" else mat
-        rows = [(i, values.shape[1], blob) for i, blob in zip(ids, encode_global(values, encoding))]
-        with self._transaction() as conn:
-            if replace_all:
-                conn.execute("DELETE FROM global_descriptors")
-                self._store_basis(conn, basis if encoding == "projected" else None)
-                conn.execute("INSERT OR REPLACE INTO meta (key, value) VALUES ('global_encoding', ?)", (encoding,))
-            conn.executemany(
-                "INSERT OR REPLACE INTO global_descriptors (image_id, dim, data) VALUES (?, ?, ?)", rows
-            )
-            conn.executemany("UPDATE image_sources SET global_sha256 = ? WHERE image_id = ?",
-                             [(hashlib.sha256(r[2]).hexdigest(), r[0]) for r in rows])
-        self._global_encoding = encoding
-
-    @staticmethod
-    def _store_basis(conn: sqlite3.Connection, basis: np.ndarray | None) -> None:
-        """Write (or remove) the projection basis blob inside the caller's transaction."""
-        if basis is None:
-            conn.execute("DELETE FROM blobs WHERE key = ?", (GLOBAL_BASIS_BLOB,))
-            conn.execute("DELETE FROM meta WHERE key = ?", (BLOB_SHA_PREFIX + GLOBAL_BASIS_BLOB,))
-            return
-        MapDatabase._put_blob(conn, GLOBAL_BASIS_BLOB, encode_basis(basis))
-
-    def put_blob(self, key: str, data: bytes) -> None:
-        """Store (replace) a named binary blob, e.g. a retrieval vocabulary or index."""
-        with self._transaction() as conn:
-            self._put_blob(conn, str(key), bytes(data))
-
-    @staticmethod
-    def _put_blob(conn: sqlite3.Connection, key: str, data: bytes) -> None:
-        """Write a blob and its checksum inside the caller's transaction."""
-        conn.execute("INSERT OR REPLACE INTO blobs (key, data) VALUES (?, ?)", (key, data))
-        conn.execute("INSERT OR REPLACE INTO meta (key, value) VALUES (?, ?)",
-                     (BLOB_SHA_PREFIX + key, hashlib.sha256(data).hexdigest()))
-
     # ---- reading -------------------------------------------------------------------------------
     def _find_id(self, name: str) -> int | None:
         row = self._db.execute("SELECT id FROM images WHERE name = ?", (name,)).fetchone()
@@ -781,217 +494,3 @@ class MapDatabase:
         return int(
             self._db.execute("SELECT num FROM keypoints WHERE image_id = ?", (image_id,)).fetchone()[0]
         )
-
-    def _camera(self, camera_id: int) -> Camera:
-        if camera_id not in self._cameras:
-            row = self._db.execute(
-                "SELECT model, width, height, params FROM cameras WHERE id = ?", (camera_id,)
-            ).fetchone()
-            if row is None:
-                raise MapCorruptError(f"{self.path}: camera row {camera_id} is missing; run `planarloc map check`")
-            try:
-                self._cameras[camera_id] = Camera(row[0], row[1], row[2], tuple(json.loads(row[3])))
-            except (ValueError, TypeError) as exc:
-                raise MapCorruptError(f"{self.path}: camera row {camera_id} is damaged ({exc}); "
-                                      f"run `planarloc map check {self.path}`") from None
-        return self._cameras[camera_id]
-
-    def _posed_from_row(self, row: tuple, pose: Pose | None = None) -> PosedImage:
-        _, name, cam_id, qw, qx, qy, qz, tx, ty, tz, index, ts, path, depth_path, depth_scale = row
-        if pose is None:
-            try:
-                pose = Pose.from_quat_wxyz([qw, qx, qy, qz], [tx, ty, tz])
-            except (ValueError, TypeError) as exc:
-                raise row_error(self.path, f"{name!r} (row id {row[0]})", f"damaged pose ({exc})") from None
-        return PosedImage(
-            name=name,
-            path=Path(path) if path is not None else Path(name),
-            cam_from_world=pose,
-            camera=self._camera(cam_id),
-            index=int(index),
-            timestamp=ts,
-            depth_path=None if depth_path is None else Path(depth_path),
-            depth_scale=float(depth_scale),
-        )
-
-    def _image_row(self, key: str | int) -> tuple:
-        if isinstance(key, (int, np.integer)) and not isinstance(key, bool):
-            row = self._db.execute(
-                f"SELECT {IMAGE_COLUMNS} FROM images WHERE id = ?", (int(key),)
-            ).fetchone()
-        else:
-            row = self._db.execute(
-                f"SELECT {IMAGE_COLUMNS} FROM images WHERE name = ?", (str(key),)
-            ).fetchone()
-        if row is None:
-            raise KeyError(f"image {key!r} is not in map {self.path}")
-        return row
-
-    def get_posed_image(self, key: str | int) -> PosedImage:
-        """The stored record of an image (by name or id)."""
-        return self._posed_from_row(self._image_row(key))
-
-    def get_pose(self, key: str | int) -> Pose:
-        """``cam_from_world`` of an image (by name or id)."""
-        return self._posed_from_row(self._image_row(key)).cam_from_world
-
-    def get_camera(self, key: str | int) -> Camera:
-        """Intrinsics of an image (by name or id)."""
-        return self._camera(self._image_row(key)[2])
-
-    def posed_images(self) -> list[PosedImage]:
-        """All image records (no features), in id order."""
-        rows = self._db.execute(f"SELECT {IMAGE_COLUMNS} FROM images ORDER BY id").fetchall()
-        poses = self._poses_of(rows, 3)
-        return [self._posed_from_row(r, pose) for r, pose in zip(rows, poses)]
-
-    def load_all_poses(self) -> dict[str, Pose]:
-        """``{name: cam_from_world}`` of all images, in id order."""
-        rows = self._db.execute("SELECT id, name, qw, qx, qy, qz, tx, ty, tz FROM images ORDER BY id").fetchall()
-        return dict(zip((r[1] for r in rows), self._poses_of(rows, 2)))
-
-    def _poses_of(self, rows: Sequence[tuple], first: int) -> list[Pose]:
-        """:meth:`_poses_checked`, reusing the poses already built while the map is unchanged (no
-        commit by this connection or another one since): the localizer reads all 20,000 poses of a
-        building-scale map twice when it opens (its images, then the map's gravity)."""
-        conn = self._db
-        version = (int(conn.execute("PRAGMA data_version").fetchone()[0]), conn.total_changes)
-        if self._poses is None or self._poses[0] != version:
-            self._poses = (version, {})
-        known = self._poses[1]
-        new = [r for r in rows if r[0] not in known]
-        known.update(zip((r[0] for r in new), self._poses_checked(new, first)))
-        return [known[r[0]] for r in rows]
-
-    def _poses_checked(self, rows: Sequence[tuple], first: int) -> list[Pose]:
-        """Poses of rows whose columns ``first:first + 7`` are (qw..tz); damaged rows are named."""
-        columns = [r[first:first + 7] for r in rows]
-        bad = damaged_poses(columns)
-        if bad.any():
-            r = rows[int(np.argmax(bad))]
-            raise row_error(self.path, f"{r[1]!r} (row id {r[0]})", "damaged pose (not a unit quaternion "
-                            "and finite translation)")
-        return poses_from_columns(columns)
-
-    def _features_from_blobs(self, label: str, num: int, kp_blob: bytes, dim: int, encoding: str,
-                             desc_blob: bytes) -> Features:
-        try:
-            return decode_features(num, kp_blob, dim, encoding, desc_blob, self._kp_layout,
-                                   self.descriptor_basis() if encoding == "klt" else None)
-        except MapCorruptError as exc:
-            raise row_error(self.path, label, str(exc)) from None
-
-    def get_features(self, key: str | int) -> Features:
-        """Local features of one image (by name or id), fetched on demand, LRU-cached.
-
-        Returns:
-            :class:`Features` with read-only float32 arrays; descriptors L2-normalised.
-        """
-        image_id = self._resolve_id(key) if not isinstance(key, (int, np.integer)) else int(key)
-        cached = self._cache.get(image_id)
-        if cached is not None:
-            self._cache.move_to_end(image_id)
-            return cached
-        row = self._db.execute(
-            "SELECT k.num, k.data, d.dim, d.encoding, d.data FROM keypoints k JOIN descriptors d "
-            "ON d.image_id = k.image_id WHERE k.image_id = ?",
-            (image_id,),
-        ).fetchone()
-        if row is None:
-            name = self._db.execute("SELECT name FROM images WHERE id = ?", (image_id,)).fetchone()
-            if name is None:
-                raise KeyError(f"image id {image_id} is not in map {self.path}")
-            raise row_error(self.path, f"{name[0]!r} (row id {image_id})", "its keypoints or descriptors are missing")
-        feats = self._features_from_blobs(f"row id {image_id}", *row)
-        self._verify_record(image_id, row)
-        if self._cache_size > 0:
-            self._cache[image_id] = feats
-            if len(self._cache) > self._cache_size:
-                self._cache.popitem(last=False)
-        return feats
-
-    def iter_features(self) -> Iterator[tuple[int, str, Features]]:
-        """Stream ``(image id, name, Features)`` of all images in id order (one in memory at a time)."""
-        cursor = self._db.execute(
-            "SELECT i.id, i.name, k.num, k.data, d.dim, d.encoding, d.data FROM images i "
-            "JOIN keypoints k ON k.image_id = i.id JOIN descriptors d ON d.image_id = i.id ORDER BY i.id"
-        )
-        for image_id, name, *blobs in cursor:
-            feats = self._features_from_blobs(f"{name!r} (row id {image_id})", *blobs)
-            self._verify_record(image_id, blobs)
-            yield int(image_id), name, feats
-
-    def _verify_record(self, image_id: int, blobs: Sequence[object]) -> None:
-        """Compare an image row with its stored checksum (maps without checksums: no-op)."""
-        if not self._has_sources():
-            return
-        row = self._db.execute(
-            "SELECT i.name, c.model, c.width, c.height, c.params, i.qw, i.qx, i.qy, i.qz, i.tx, i.ty, i.tz, "
-            "s.record_sha256 FROM images i JOIN image_sources s ON s.image_id = i.id "
-            "LEFT JOIN cameras c ON c.id = i.camera_id WHERE i.id = ?", (image_id,)).fetchone()
-        if row is None:
-            return
-        num, kp_blob, dim, encoding, desc_blob = blobs
-        if record_digest(row[0], row[1:5], row[5:12], num, kp_blob, dim, encoding, desc_blob) != row[12]:
-            raise row_error(self.path, f"{row[0]!r} (row id {image_id})",
-                              "checksum mismatch (name, camera, pose or features changed on disk)")
-
-    def get_global_descriptors(self) -> tuple[np.ndarray, np.ndarray]:
-        """All stored global descriptors.
-
-        Returns:
-            (M,) int64 image ids (ascending) and (M, D) float32 descriptors; (0,), (0, 0) if none.
-            In a map with a projection basis (:meth:`global_basis`), the (M, d) coordinates of
-            the descriptors in that basis.
-        """
-        rows = self._db.execute(
-            "SELECT image_id, dim, data FROM global_descriptors ORDER BY image_id"
-        ).fetchall()
-        sums = dict(self._db.execute("SELECT image_id, global_sha256 FROM image_sources "
-                                     "WHERE global_sha256 IS NOT NULL")) if self._has_sources() else {}
-        for image_id, _dim, data in rows:
-            if image_id in sums and (not isinstance(data, bytes) or hashlib.sha256(data).hexdigest() != sums[image_id]):
-                raise row_error(self.path, f"row id {image_id}", "global descriptor checksum mismatch")
-        if not rows:
-            return np.zeros(0, dtype=np.int64), np.zeros((0, 0), dtype=np.float32)
-        ids = np.array([r[0] for r in rows], dtype=np.int64)
-        for image_id, dim, data in rows:
-            problem = global_row_problem(data, dim, self._global_encoding)
-            if problem is None and dim != rows[0][1]:
-                problem = f"global descriptor of {dim} values, the others have {rows[0][1]}"
-            if problem is not None:
-                raise row_error(self.path, f"row id {image_id}", problem)
-        mat = decode_global([r[2] for r in rows], rows[0][1], self._global_encoding)
-        finite = np.isfinite(mat).all(axis=1)
-        if not finite.all():
-            raise row_error(self.path, f"row id {ids[np.argmin(finite)]}", "non-finite global descriptor")
-        return ids, mat
-
-    def global_basis(self) -> np.ndarray | None:
-        """The (D, d) orthonormal basis the global descriptors are coordinates in, or None when
-        they are stored whole (see :meth:`set_global_descriptors`)."""
-        if self._global_encoding != "projected":
-            return None
-        data = self.get_blob(GLOBAL_BASIS_BLOB)
-        if data is None:
-            raise row_error(self.path, f"blob {GLOBAL_BASIS_BLOB!r}", "missing (global descriptors are projected)")
-        try:
-            return decode_basis(data)
-        except MapCorruptError as exc:
-            raise row_error(self.path, f"blob {GLOBAL_BASIS_BLOB!r}", str(exc)) from None
-
-    def get_blob(self, key: str) -> bytes | None:
-        """A named blob, or None if it was never stored."""
-        row = self._db.execute("SELECT data FROM blobs WHERE key = ?", (str(key),)).fetchone()
-        if row is None:
-            return None
-        data = row[0]
-        if not isinstance(data, bytes):
-            raise row_error(self.path, f"blob {key!r}", "not a blob")
-        expected = self.get_meta(BLOB_SHA_PREFIX + str(key))
-        if expected is not None and hashlib.sha256(data).hexdigest() != expected:
-            raise row_error(self.path, f"blob {key!r}", "checksum mismatch (damaged on disk)")
-        return data
-
-    def blob_keys(self) -> list[str]:
-        return [r[0] for r in self._db.execute("SELECT key FROM blobs ORDER BY key")]

@@ -17,7 +17,7 @@ import pytest
 from planarloc.features.extract import Features
 from planarloc.features.retrieval import GlobalIndex
 from planarloc.localize.localizer import Localizer
-from planarloc.map import store
+from planarloc.map import store_write
 from planarloc.map.codec import (
     decode_descriptor_basis,
     decode_descriptors,
@@ -180,8 +180,8 @@ def test_compact_map_is_under_100_kb_per_kitti_sized_image(tmp_path: Path, sift_
 
 def test_projected_global_descriptors_search_like_the_full_vectors(tmp_path: Path, rng: np.random.Generator,
                                                                    monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.setattr(store, "PROJECT_ABOVE", 8)
-    monkeypatch.setattr(store, "PROJECTED_DIM", 6)
+    monkeypatch.setattr(store_write, "PROJECT_ABOVE", 8)  # the writer projects
+    monkeypatch.setattr(store_write, "PROJECTED_DIM", 6)
     basis_true = np.linalg.qr(rng.normal(size=(64, 5)))[0]  # the 12 vectors span 5 of the 64 dimensions
     vectors = (rng.normal(size=(12, 5)) @ basis_true.T).astype(np.float32)
     vectors /= np.linalg.norm(vectors, axis=1, keepdims=True)
