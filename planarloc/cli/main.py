@@ -21,6 +21,7 @@ from planarloc.cli import (
 from planarloc.cli.errors import os_error_message, sqlite_error_message
 from planarloc.cli.exit_codes import EXIT_ERROR, EXIT_INTERRUPTED, HELP as EXIT_CODES_HELP
 from planarloc.extras import MissingExtraError
+from planarloc.map.errors import MapKeyError
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -52,7 +53,7 @@ def main(argv: list[str] | None = None) -> int:
                         format="%(levelname)s %(name)s: %(message)s")
     try:
         return int(args.func(args) or 0)
-    except (ValueError, OSError, sqlite3.Error, KeyError, MissingExtraError) as exc:
+    except (ValueError, OSError, sqlite3.Error, MapKeyError, MissingExtraError) as exc:
         # Known errors (bad input, bad files, file system, damaged maps, a missing optional
         # extra) print one line; anything else keeps its traceback.
         command = " ".join(filter(None, [args.command, getattr(args, "map_command", None)]))
@@ -60,7 +61,7 @@ def main(argv: list[str] | None = None) -> int:
             text = os_error_message(exc)
         elif isinstance(exc, sqlite3.Error):
             text = sqlite_error_message(exc)
-        elif isinstance(exc, KeyError):
+        elif isinstance(exc, MapKeyError):   # only the map's own: any other KeyError is a bug
             text = f"map lookup failed ({exc.args[0] if exc.args else exc}); run `planarloc map check` on the map"
         else:
             text = str(exc)

@@ -52,6 +52,7 @@ from planarloc.map.codec import (
     DescriptorBasis,
     check_storage,
 )
+from planarloc.map.errors import MapKeyError
 from planarloc.map.lock import MapWriterLock
 from planarloc.map.schema import (
     BLOB_SHA_PREFIX,
@@ -462,11 +463,11 @@ class MapDatabase(MapReading, MapWriting):
     def _resolve_id(self, key: str | int) -> int:
         if isinstance(key, (int, np.integer)) and not isinstance(key, bool):
             if self._db.execute("SELECT 1 FROM images WHERE id = ?", (int(key),)).fetchone() is None:
-                raise KeyError(f"image id {int(key)} is not in map {self.path}")
+                raise MapKeyError(f"image id {int(key)} is not in map {self.path}")
             return int(key)
         image_id = self._find_id(str(key))
         if image_id is None:
-            raise KeyError(f"image {key!r} is not in map {self.path}")
+            raise MapKeyError(f"image {key!r} is not in map {self.path}")
         return image_id
 
     def has_image(self, name: str) -> bool:

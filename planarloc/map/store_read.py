@@ -26,6 +26,7 @@ from planarloc.map.codec import (
     poses_from_columns,
     record_digest,
 )
+from planarloc.map.errors import MapKeyError
 from planarloc.map.posed_image import PosedImage
 from planarloc.map.schema import (
     BLOB_SHA_PREFIX,
@@ -100,7 +101,7 @@ class MapReading:
                 f"SELECT {IMAGE_COLUMNS} FROM images WHERE name = ?", (str(key),)
             ).fetchone()
         if row is None:
-            raise KeyError(f"image {key!r} is not in map {self.path}")
+            raise MapKeyError(f"image {key!r} is not in map {self.path}")
         return row
 
     def get_posed_image(self, key: str | int) -> PosedImage:
@@ -176,7 +177,7 @@ class MapReading:
         if row is None:
             name = self._db.execute("SELECT name FROM images WHERE id = ?", (image_id,)).fetchone()
             if name is None:
-                raise KeyError(f"image id {image_id} is not in map {self.path}")
+                raise MapKeyError(f"image id {image_id} is not in map {self.path}")
             raise row_error(self.path, f"{name[0]!r} (row id {image_id})", "its keypoints or descriptors are missing")
         feats = self._features_from_blobs(f"row id {image_id}", *row)
         self._verify_record(image_id, row)
