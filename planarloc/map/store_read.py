@@ -5,8 +5,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-import sqlite3
-from collections import OrderedDict
 from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -35,26 +33,13 @@ from planarloc.map.schema import (
     MapCorruptError,
     row_error,
 )
+from planarloc.map.store_state import MapState
 
 
-class MapReading:
+class MapReading(MapState):
     """The reading methods of :class:`~planarloc.map.store.MapDatabase` (its connection and caches)."""
 
-    if TYPE_CHECKING:  # what MapDatabase (planarloc.map.store) holds; declared for the type checker only
-        path: Path
-        _cache: OrderedDict[int, Features]
-        _cameras: dict[int, Camera]
-        _kp_layout: str
-        _sources: bool | None
-        _basis: DescriptorBasis | None
-        _poses: tuple[tuple[int, int], dict[int, Pose]] | None
-        _cache_size: int
-        _global_encoding: str
-        _dim: int | None
-
-        @property
-        def _db(self) -> sqlite3.Connection: ...
-        def _resolve_id(self, key: str | int) -> int: ...
+    if TYPE_CHECKING:  # MapDatabase's own helpers these methods call; for the type checker only
         def _has_sources(self) -> bool: ...
         def descriptor_basis(self) -> DescriptorBasis | None: ...
         def get_meta(self, key: str) -> str | None: ...

@@ -7,17 +7,14 @@ from __future__ import annotations
 import hashlib
 import logging
 import sqlite3
-from collections import OrderedDict
 from collections.abc import Mapping, Sequence
 from contextlib import AbstractContextManager
-from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
 
 from planarloc.features.extract import Features
 from planarloc.geometry.camera import Camera
-from planarloc.geometry.pose import Pose
 from planarloc.geometry.validation import InputError, check_array
 from planarloc.map.codec import (
     KLT_MIN_FEATURES,
@@ -45,34 +42,19 @@ from planarloc.map.schema import (
     MapCorruptError,
     row_error,
 )
+from planarloc.map.store_state import MapState
 
 logger = logging.getLogger("planarloc.map.store")  # the store's logger, as before the split
 
 
-class MapWriting:
+class MapWriting(MapState):
     """The writing methods of :class:`~planarloc.map.store.MapDatabase` (its connection, caches and
     transactions)."""
 
-    if TYPE_CHECKING:  # what MapDatabase (planarloc.map.store) holds; declared for the type checker only
-        path: Path
-        _cache: OrderedDict[int, Features]
-        _cameras: dict[int, Camera]
-        _kp_layout: str
-        _dim: int | None
-        _global_encoding: str
-        _sources: bool | None
-        _basis: DescriptorBasis | None
-        _poses: tuple[tuple[int, int], dict[int, Pose]] | None
-        _camera_ids: dict[tuple, int]
-        _encoding: str
-        _storage: str
-
-        @property
-        def _db(self) -> sqlite3.Connection: ...
+    if TYPE_CHECKING:  # MapDatabase's own helpers these methods call; for the type checker only
         def _require_writable(self) -> None: ...
         def _transaction(self) -> AbstractContextManager[sqlite3.Connection]: ...
         def _find_id(self, name: str) -> int | None: ...
-        def _resolve_id(self, key: str | int) -> int: ...
         def get_posed_image(self, key: str | int) -> PosedImage: ...
         def global_basis(self) -> np.ndarray | None: ...
         def get_blob(self, key: str) -> bytes | None: ...
