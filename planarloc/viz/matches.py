@@ -1,6 +1,11 @@
 """Match plots (the paper's Fig. 9): a query beside each of its reference images, with the
 matches the estimator saw, inliers and outliers in two colours.
 
+Every match is a small dot at both ends; lines are drawn for at most :data:`MAX_LINES` of them per
+pair (:func:`lines_to_draw`: a seeded random subsample, inliers preferred), the outliers first,
+thin and transparent, the inliers last, on top. Each row's title says how many lines of how many
+matches are drawn.
+
 Functions take a matplotlib ``ax`` so they compose; :func:`save_match_plot` writes one figure
 per query (one row per reference). :func:`query_pairs` recovers the matches behind an
 estimate (matching is deterministic, so re-matching the query's features to the estimate's
@@ -25,7 +30,10 @@ from planarloc.robust.result import PoseEstimate
 
 INLIER_COLOR = "#1a9850"  # green
 OUTLIER_COLOR = "#d73027"  # red
-MAX_OUTLIER_LINES = 150  # per pair: keep the figure readable; inliers are all drawn
+#: lines drawn per pair, at most: more hide the images and each other (the dots show every match)
+MAX_LINES = 100
+#: share of MAX_LINES kept for outliers when there are more inliers than fit
+OUTLIER_SHARE = 0.25
 
 
 def query_pairs(localizer: Localizer, features: Features, camera: Camera,
@@ -50,9 +58,40 @@ def _rgb(path: Path | str) -> np.ndarray:
     return cv2.cvtColor(read_bgr(path), cv2.COLOR_BGR2RGB)  # pixels as stored, as the keypoints
 
 
+def lines_to_draw(inliers: np.ndarray, max_lines: int = MAX_LINES, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """``(outlier indices, inlier indices)``, sorted, of the matches whose lines are drawn.
+
+    At most ``max_lines`` in all, chosen at random with ``numpy.random.default_rng(seed)``,
+    inliers preferred: outliers get ``OUTLIER_SHARE`` of the lines when there are more inliers
+    than fit, and whatever the inliers leave otherwise.
+
+    Args:
+        inliers: (N,) bool, True for an inlier.
+        max_lines: the most lines to draw (>= 0).
+        seed: seed of the subsample (the same plot each run).
+
+    Example:
+        >>> out, inl = lines_to_draw(np.arange(500) < 400, max_lines=100)
+        >>> len(out), len(inl)
+        (25, 75)
+    """
+    inl = np.asarray(inliers, dtype=bool).reshape(-1)
+    in_idx, out_idx = np.flatnonzero(inl), np.flatnonzero(~inl)
+    max_lines = max(int(max_lines), 0)
+    n_in = min(len(in_idx), max_lines - min(len(out_idx), int(OUTLIER_SHARE * max_lines)))
+    n_out = min(len(out_idx), max_lines - n_in)
+    rng = np.random.default_rng(seed)
+
+    def pick(idx: np.ndarray, n: int) -> np.ndarray:
+        return idx if n >= len(idx) else np.sort(rng.choice(idx, n, replace=False))
+
+    return pick(out_idx, n_out), pick(in_idx, n_in)
+
+
 def plot_pair(ax, query_image: np.ndarray, ref_image: np.ndarray, pair: PairMatches, inliers: np.ndarray | None,
-              ref_label: str = "", seed: int = 0) -> None:
-    """Query (left) and reference (right) side by side with match lines.
+              ref_label: str = "", seed: int = 0, max_lines: int = MAX_LINES) -> None:
+    """Query (left) and reference (right) side by side: a dot at both ends of every match and
+    lines for a subsample of them (:func:`lines_to_draw`), inliers drawn last, on top.
 
     Args:
         ax: a matplotlib Axes.
@@ -60,6 +99,8 @@ def plot_pair(ax, query_image: np.ndarray, ref_image: np.ndarray, pair: PairMatc
         pair: the matches (query and reference pixel coordinates, N each).
         inliers: (N,) bool, or None when the estimator did not score them (drawn red).
         ref_label: text under the reference.
+        seed: seed of the line subsample.
+        max_lines: the most match lines drawn.
     """
     from matplotlib.collections import LineCollection
 
@@ -73,18 +114,24 @@ def plot_pair(ax, query_image: np.ndarray, ref_image: np.ndarray, pair: PairMatc
     off = query_image.shape[1]
     q, r = pair.query_points, pair.ref_points
     inl = np.zeros(len(q), bool) if inliers is None else np.asarray(inliers, bool)
-    out_idx = np.flatnonzero(~inl)
-    if len(out_idx) > MAX_OUTLIER_LINES:
-        out_idx = np.sort(np.random.default_rng(seed).choice(out_idx, MAX_OUTLIER_LINES, replace=False))
-    for idx, color, width in ((out_idx, OUTLIER_COLOR, 0.4), (np.flatnonzero(inl), INLIER_COLOR, 0.7)):
+    out_idx, in_idx = lines_to_draw(inl, max_lines, seed)
+    # unscored matches are all the pair has: drawn stronger than the outliers of a scored pair
+    out_style = (0.6, 0.75) if inliers is None else (0.6, 0.55)  # (line width, alpha)
+    for idx, mask, color, (width, alpha), z in ((out_idx, ~inl, OUTLIER_COLOR, out_style, 2),
+                                                 (in_idx, inl, INLIER_COLOR, (0.8, 0.9), 3)):
+        ends = np.concatenate([q[mask], r[mask] + [off, 0]])
+        if len(ends):
+            ax.scatter(ends[:, 0], ends[:, 1], s=2, color=color, zorder=z)
         if len(idx):
             segments = np.stack([q[idx], r[idx] + [off, 0]], axis=1)  # (n, 2 ends, xy)
-            ax.add_collection(LineCollection(segments, colors=color, linewidths=width, alpha=0.8))
-            ends = segments.reshape(-1, 2)
-            ax.scatter(ends[:, 0], ends[:, 1], s=2, color=color)
+            ax.add_collection(LineCollection(list(segments), colors=color, linewidths=width, alpha=alpha, zorder=z))
     ax.set_axis_off()
-    counts = (f"{len(q)} matches, not scored (red)" if inliers is None
-              else f"{int(inl.sum())} inliers (green), {int((~inl).sum())} outliers (red)")
+    n_in, n_out = int(inl.sum()), int((~inl).sum())
+    if inliers is None:
+        counts = f"{len(q)} matches, not scored (red); lines for {len(out_idx)} of them"
+    else:
+        counts = (f"{n_in} inliers (green), {n_out} outliers (red); lines for {len(in_idx)} of {n_in} inliers, "
+                  f"{len(out_idx)} of {n_out} outliers")
     ax.set_title(f"query | {ref_label}: {counts}", fontsize="small")
 
 
@@ -165,5 +212,5 @@ class MatchPlotter:
         self.written.append(path)
         return path
 
-    def __call__(self, localizer: Localizer, query, features: Features, estimate: PoseEstimate) -> None:  # noqa: ANN001
+    def __call__(self, localizer: Localizer, query, features: Features, estimate: PoseEstimate) -> None:
         self.plot(localizer, query.name, query.path, query.camera, features, estimate, query.cam_from_world)

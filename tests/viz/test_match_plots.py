@@ -1,4 +1,5 @@
-"""Match plots: inliers and outliers drawn in their colours, caption with the error, unscored pairs."""
+"""Match plots: inliers and outliers drawn in their colours, caption with the error, unscored pairs; a
+subsample of the match lines, inliers on top."""
 
 from __future__ import annotations
 
@@ -9,7 +10,15 @@ from planarloc.geometry.camera import Camera
 from planarloc.geometry.pose import Pose
 from planarloc.robust.pair_matches import PairMatches
 from planarloc.robust.result import PoseEstimate
-from planarloc.viz.matches import estimate_caption, match_plot_name, save_match_plot
+from planarloc.viz.matches import (
+    INLIER_COLOR,
+    OUTLIER_COLOR,
+    estimate_caption,
+    lines_to_draw,
+    match_plot_name,
+    plot_pair,
+    save_match_plot,
+)
 
 CAMERA = Camera("PINHOLE", 160, 120, (100.0, 100.0, 80.0, 60.0))
 
@@ -41,3 +50,45 @@ def test_inliers_green_outliers_red_and_unscored(tmp_path):
     assert "error" not in estimate_caption("q", failed, truth)
     assert save_match_plot(tmp_path / "c.png", tmp_path / "q.png", [], [], [], failed, "q").is_file()
     assert match_plot_name("cam/0.5.png") == "cam__0.5.png"
+
+
+def test_lines_to_draw_is_a_seeded_subsample_that_prefers_inliers() -> None:
+    inl = np.arange(500) < 400                                    # 400 inliers, 100 outliers
+    out, keep = lines_to_draw(inl, max_lines=100, seed=3)
+    assert (len(out), len(keep)) == (25, 75)                      # outliers keep a quarter when inliers would fill it
+    assert inl[keep].all() and not inl[out].any() and len(set(keep)) == 75
+    assert all(np.array_equal(a, b) for a, b in zip((out, keep), lines_to_draw(inl, max_lines=100, seed=3)))
+    out, keep = lines_to_draw(np.arange(500) < 30, max_lines=100)  # few inliers: all of them, outliers fill up
+    assert (len(out), len(keep)) == (70, 30)
+    out, keep = lines_to_draw(np.ones(40, bool), max_lines=100)    # fewer matches than lines: every one
+    assert (len(out), len(keep)) == (0, 40)
+    assert [len(a) for a in lines_to_draw(np.zeros(10, bool), max_lines=0)] == [0, 0]
+
+
+def test_a_pair_draws_at_most_max_lines_outliers_first_and_says_so() -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.collections import LineCollection
+    from matplotlib.colors import to_rgba
+
+    rng = np.random.default_rng(0)
+    pts = rng.uniform([5, 5], [155, 115], size=(600, 2))
+    pair = PairMatches(Pose.identity(), CAMERA, pts, pts + 1.0)
+    inl = np.arange(600) < 450
+    img = np.full((120, 160, 3), 255, np.uint8)
+    fig, ax = plt.subplots()
+    plot_pair(ax, img, img, pair, inl, "r0.png", max_lines=80)
+    lines = [c for c in ax.collections if isinstance(c, LineCollection)]
+    assert sum(len(c.get_segments()) for c in lines) <= 80
+    outliers, inliers = lines                                      # outliers added first ...
+    assert np.allclose(outliers.get_colors()[0][:3], to_rgba(OUTLIER_COLOR)[:3])
+    assert np.allclose(inliers.get_colors()[0][:3], to_rgba(INLIER_COLOR)[:3])
+    assert inliers.get_zorder() > outliers.get_zorder()            # ... inliers on top
+    assert outliers.get_linewidths()[0] <= inliers.get_linewidths()[0] and outliers.get_alpha() < inliers.get_alpha()
+    assert (len(outliers.get_segments()), len(inliers.get_segments())) == (20, 60)
+    assert "lines for 60 of 450 inliers, 20 of 150 outliers" in ax.get_title()
+    dots = [c for c in ax.collections if not isinstance(c, LineCollection)]
+    assert sum(len(c.get_offsets()) for c in dots) == 2 * 600      # every match keeps its dots
+    plt.close(fig)
