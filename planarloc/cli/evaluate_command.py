@@ -103,6 +103,7 @@ def run(args: argparse.Namespace) -> int:
         with progress_bar() as update:
             build_map(map_images, map_path, features, num_words=num_words, progress=update, notify=notify,
                       skipped=_skipped(left_out))
+        _map_gravity_warnings(map_path)
         return _left_out_exit(evaluate_sequential(args, map_path, map_images, queries, config), left_out,
                               len(map_images))
     results, gravity = _build_and_localize(args, map_images, queries, map_path, features, num_words, config, pairs,
@@ -121,6 +122,14 @@ def _skipped(left_out: list[tuple[str, str]]):
         note(f"image {image.name} left out of the map: {reason}")
 
     return skipped
+
+
+def _map_gravity_warnings(map_path: Path) -> None:
+    """The map's gravity warnings (stored with it; they concern the queries without their own
+    gravity), once per run: the build only logs them (:func:`planarloc.map.gravity.store_map_gravity`)."""
+    with MapDatabase.open(map_path) as db:
+        for w in map_gravity(db).warnings:
+            note(f"warning: {map_path}: {w}")
 
 
 def _left_out_exit(code: int, left_out: list[tuple[str, str]], total: int) -> int:
@@ -167,6 +176,8 @@ def _build_and_localize(args: argparse.Namespace, map_images: list, queries: lis
             # the dataset's declared down direction, else the map's (estimated) gravity
             with MapDatabase.open(map_path) as db:
                 gravity = gravity_from_truth(queries, map_gravity(db).g_world_array)
+        else:  # queries without their own gravity get the map cameras' mount tilt
+            _map_gravity_warnings(map_path)
         progress = lambda d, n: update("localize", d, n)  # noqa: E731
         if ray_backend:
             return ray_backend.evaluate(map_path, config, queries, pairs, progress, gravity=gravity), gravity

@@ -17,6 +17,8 @@ import argparse
 import os
 from collections.abc import Callable
 from contextlib import ExitStack, closing
+from dataclasses import replace
+from itertools import pairwise
 from pathlib import Path
 
 from planarloc.cli.commands import add_command
@@ -40,6 +42,7 @@ from planarloc.geometry.validation import InputError
 from planarloc.io.datasets import FORMATS
 from planarloc.io.gravity_file import read_gravity_file
 from planarloc.io.hloc_pairs import read_hloc_pairs
+from planarloc.io.kitti import kitti_frame_times
 from planarloc.io.output import STDOUT, check_output_dir, check_output_file, input_files
 from planarloc.io.results import ResultsWriter, default_records_dir
 from planarloc.localize.localizer import Localizer
@@ -119,7 +122,8 @@ def _queries(args: argparse.Namespace, camera: Camera | None) -> tuple[list[Quer
         options = parse_dataset_options(args.dataset_option, fmt=args.format)
         return dataset_queries(args.images, args.format, options, camera), False
     if args.sequence and len(args.images) == 1 and args.images[0].is_file() and args.images[0].suffix.lower() == ".txt":
-        return list_queries(args.images[0], args.frame_period)
+        queries, timed = list_queries(args.images[0], args.frame_period)
+        return (queries if timed else _with_source_times(queries, stream=True)), timed
     if args.sequence:
         files = [p for p in args.images if not p.is_dir()]
         seen = {}
@@ -131,7 +135,16 @@ def _queries(args: argparse.Namespace, camera: Camera | None) -> tuple[list[Quer
     queries = image_queries(args.images)
     if args.sequence:
         queries = [QuerySource(q.name, q.path, timestamp=k * args.frame_period) for k, q in enumerate(queries)]
-    return queries, False
+    return _with_source_times(queries, stream=args.sequence), False
+
+
+def _with_source_times(queries: list[QuerySource], stream: bool) -> list[QuerySource]:
+    """Queries that are the frames of a KITTI sequence with ``times.txt`` get its stamps (the TUM
+    file's times, the stream's clock); a stream only if they increase in the given order."""
+    times = kitti_frame_times([q.path for q in queries])
+    if times is None or (stream and any(b <= a for a, b in pairwise(times))):
+        return queries
+    return [replace(q, timestamp=t) for q, t in zip(queries, times)]
 
 
 def _check_options(args: argparse.Namespace) -> None:
@@ -202,7 +215,7 @@ def run_queries(writer: ResultsWriter, queries: list[QuerySource], localize: Loc
             for i, q in enumerate(queries):
                 record = localize(q)
                 if record["status"] == "error":
-                    note(f"query {q.name} not processed: {record['reason']}")
+                    note(f"query {q.name} not processed: {record['message']}")
                 writer.add(record, q.timestamp)
                 update(stage, i + 1, len(queries))
     except KeyboardInterrupt:
@@ -228,8 +241,9 @@ def _batch_localizer(loc: Localizer, camera: Camera | None, gravity: object | No
         except MapFormatError:
             raise  # a damaged map fails every query: stop
         except (InputError, OSError) as exc:
-            return error_record(q.name, f"{q.path}: {exc.strerror or exc}" if isinstance(exc, OSError) else str(exc))
-        return query_record(q.name, est, query.gravity)
+            return error_record(q.name, f"{q.path}: {exc.strerror or exc}" if isinstance(exc, OSError) else str(exc),
+                                stamp=q.timestamp)
+        return query_record(q.name, est, query.gravity, stamp=q.timestamp)
 
     return localize
 
@@ -257,7 +271,7 @@ def _stream_localizer(loc: Localizer, args: argparse.Namespace, camera: Camera |
             raise
         except (InputError, OSError) as exc:
             reason = f"{q.path}: {exc.strerror or exc}" if isinstance(exc, OSError) else str(exc)
-            return error_record(q.name, reason, stamp=q.timestamp)
+            return error_record(q.name, reason, kind="frame", stamp=q.timestamp)
         record = frame_record(q.name, est)
         if rerun is not None:
             rerun.log_frame(q.name, record, query.camera, q.path)

@@ -44,6 +44,12 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         DATASET/NAME (each reported in one line). A second build of the same file waits for the first (it
         names its PID).
 
+        Appending to a map that holds images first matches up to 10 of the new images (those nearest to the
+        map's cameras) against the map: if none shares matches with it, or the matches contradict the matched
+        images' poses (another sequence whose poses also start at its first camera, e.g. a second KITTI
+        sequence), the build stops with one line saying what was found and leaves the map as it was;
+        --allow-unrelated-frames appends them anyway (with a warning).
+
         The world's gravity is the format's (KITTI, OpenLORIS, generated worlds), the dataset option up=...,
         or estimated from the camera centres' plane; `map info` shows it.
 
@@ -66,6 +72,10 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                         f"descriptors, fixed-point keypoints, 4-bit global descriptors; the recall of full on KITTI) or "
                         f"full (float32 keypoints, 8-bit descriptors); default: {DEFAULT_STORAGE}; an existing map "
                         f"keeps its own")
+    b.add_argument("--allow-unrelated-frames", action="store_true",
+                   help="append images to a non-empty map even when they share no matches with it or their "
+                        "matches contradict the poses (their world frame looks unrelated to the map's); default: "
+                        "refuse, leaving the map as it was")
     b.add_argument("--ray", nargs="?", const="local", metavar="ADDRESS",
                    help="distribute over a Ray cluster (auto, HOST:PORT, ray://HOST:PORT; a local one without "
                         "ADDRESS); needs pip install 'planarloc[ray]'")
@@ -108,7 +118,8 @@ def run_build(args: argparse.Namespace) -> int:
 
     with ray_session(args.ray) as ray_backend, progress_bar() as update:
         build_map(images, args.out, features, num_words=num_words, progress=update, notify=notify,
-                  mapper=ray_backend.map if ray_backend else None, skipped=skipped, storage=args.storage)
+                  mapper=ray_backend.map if ray_backend else None, skipped=skipped, storage=args.storage,
+                  allow_unrelated_frames=args.allow_unrelated_frames)
     code = run_info(argparse.Namespace(map=args.out))
     if left_out:
         note(f"{len(left_out)} of {len(images)} images were left out of the map (fix or remove them, then re-run "

@@ -87,14 +87,15 @@ def remote_localizer(client, args: argparse.Namespace, camera: Camera | None,
         try:
             data = q.path.read_bytes()
         except OSError as exc:
-            return error_record(q.name, f"{q.path}: {exc.strerror or exc}")
+            return error_record(q.name, f"{q.path}: {exc.strerror or exc}", stamp=q.timestamp)
         try:
             record = client.localize(data, camera or q.camera, map=map_name, name=q.name.replace("/", "__"),
                                      method=args.method, structure=args.structure, seed=args.seed, gravity=g)
         except ServiceError as exc:
             if exc.status in _QUERY_ERRORS:
-                return error_record(q.name, f"{q.path}: the server answered {exc}")
+                return error_record(q.name, f"{q.path}: the server answered {exc}", stamp=q.timestamp)
             raise ValueError(f"{q.path}: {args.server} answered {exc}") from None
-        return {**record, "name": q.name}
+        # the server knows neither the query's own name (it is sent flattened) nor its time
+        return {**record, "name": q.name, "stamp": q.timestamp}
 
     return localize

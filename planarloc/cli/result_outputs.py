@@ -4,7 +4,7 @@ APE/RPE from evo, match plots (``--plot-matches``) and a Rerun recording (``--re
 from __future__ import annotations
 
 import argparse
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -83,8 +83,15 @@ def _world_from_cam(quat_wxyz: Sequence[float], center: Sequence[float]) -> Pose
     return Pose(Pose.from_quat_wxyz(quat_wxyz, np.zeros(3)).R.T, np.asarray(center, dtype=float))
 
 
-def _tum_rows(results: Sequence) -> tuple[np.ndarray, list]:
-    rows = sorted((query_timestamp(r.name, r.timestamp, i), r) for i, r in enumerate(results) if r.success)
+def _tum_rows(results: Sequence, source_stamps: Mapping[str, float | None] | None = None
+              ) -> tuple[np.ndarray, list]:
+    """The localized results in time order with their TUM times: the source's stamp of each query
+    (``source_stamps``, by name) when the source has one for every one of them, else the result's
+    own (:func:`planarloc.io.results.query_timestamp`)."""
+    found = {r.name: source_stamps.get(r.name) for r in results if r.success} if source_stamps else {}
+    use_source = bool(found) and all(t is not None for t in found.values())
+    rows = sorted((query_timestamp(r.name, found[r.name] if use_source else r.timestamp, i), r)
+                  for i, r in enumerate(results) if r.success)
     ts = np.array([t for t, _ in rows])
     if len(ts) > 1 and np.any(np.diff(ts) <= 0):
         dup = ts[1:][np.diff(ts) <= 0][0]
@@ -92,10 +99,13 @@ def _tum_rows(results: Sequence) -> tuple[np.ndarray, list]:
     return ts, [r for _, r in rows]
 
 
-def write_evaluation_tum(out_dir: Path, results: Sequence) -> dict:
+def write_evaluation_tum(out_dir: Path, results: Sequence,
+                         source_stamps: Mapping[str, float | None] | None = None) -> dict:
     """``out_dir/estimate.txt`` and ``out_dir/groundtruth.txt`` (localized queries only), and
-    evo's APE/RPE of them (``{}`` if nothing was localized; a note if evo is missing)."""
-    ts, rows = _tum_rows(results)
+    evo's APE/RPE of them (``{}`` if nothing was localized; a note if evo is missing).
+    ``source_stamps``: the dataset's time of each query by name, for results timed otherwise
+    (a simulated stream's clock); the files then carry the dataset's times."""
+    ts, rows = _tum_rows(results, source_stamps)
     est = [_world_from_cam(r.estimate_quat_wxyz, r.estimate_center) for r in rows]
     gt = [_world_from_cam(r.truth_quat_wxyz, r.truth_center) for r in rows]
     out_dir = Path(out_dir)

@@ -150,6 +150,7 @@ def evaluate_sequential(args: argparse.Namespace, map_path: Path, map_images: li
     from planarloc.evaluation.sequence import evaluate_stream, summarize_sequence
     from planarloc.io.odometry import read_odometry
     from planarloc.localize.localizer import Localizer
+    from planarloc.localize.records import frame_record
     from planarloc.synthetic.stream import make_stream, stream_order
 
     n = len(queries)
@@ -169,7 +170,7 @@ def evaluate_sequential(args: argparse.Namespace, map_path: Path, map_images: li
         seq.warm_up()   # a camera's stream starts on a localizer that is up, not with a slow first frame
         rerun = stream_rerun(args.rerun, loc, stack)
         on_frame = None if rerun is None else (
-            lambda image, est: rerun.log_frame(image.name, est.to_dict(), image.camera, image.path,
+            lambda image, est: rerun.log_frame(image.name, frame_record(image.name, est), image.camera, image.path,
                                                image.cam_from_world))
         with progress_bar() as update:
             results = evaluate_stream(seq, [f.image for f in frames], stamps, odometry, [f.kidnapped for f in frames],
@@ -184,7 +185,8 @@ def evaluate_sequential(args: argparse.Namespace, map_path: Path, map_images: li
                                  window=seq.config.window, local_top_n=seq.config.local_top_n,
                                  fixes=seq.config.fixes, rate_hz=args.rate, stream=stats)
     if args.tum:
-        summary["evo"] = write_evaluation_tum(args.tum, results)
+        # the dataset's times, also for frames a kidnap re-timed on the stream's clock
+        summary["evo"] = write_evaluation_tum(args.tum, results, {q.name: q.timestamp for q in queries})
     title = f"{Path(args.dataset[0]).name}, map every {args.map_every}, {len(frames)} frames streamed"
     print_sequence_table([(motion, summary)], title)
     write_json(args.json, summary)

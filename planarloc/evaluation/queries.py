@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -21,6 +21,7 @@ from planarloc.geometry.pose import pose_errors
 from planarloc.geometry.validation import InputError
 from planarloc.gravity.world import gravity_in_camera
 from planarloc.localize.localizer import Localizer, LocalizerConfig
+from planarloc.localize.records import error_record, query_record
 from planarloc.map.posed_image import PosedImage
 from planarloc.map.schema import MapFormatError
 from planarloc.map.settings import cache_dir
@@ -30,6 +31,8 @@ from planarloc.robust.result import PoseEstimate
 #: ``on_estimate(localizer, query, features, estimate)`` callback of :func:`evaluate_configs`.
 OnEstimate = Callable[[Localizer, PosedImage, Features, PoseEstimate], None]
 THRESHOLDS: tuple[tuple[float, float], ...] = ((0.25, 10.0), (0.5, 10.0), (1.0, 20.0))
+#: the schema of :func:`summarize`'s JSON (``docs/schema/evaluation.schema.json``)
+SCHEMA = "planarloc.evaluation/1"
 
 
 def threshold_name(t: float, r: float) -> str:
@@ -61,6 +64,25 @@ class QueryResult:
     truth_quat_wxyz: tuple[float, float, float, float] | None = None
     references: tuple[str, ...] = ()
     reason: str = ""  # why a query failed: the estimator's message, or why it could not be processed (status "error")
+    #: the query's fix record (:func:`planarloc.localize.records.query_record`), as ``localize`` writes it
+    record: dict = field(default_factory=dict, compare=False, repr=False)
+
+    def to_dict(self) -> dict:
+        """The evaluation's entry of this query: its fix record (docs/schema/record.schema.json)
+        with the ground truth (``truth_quat_wxyz``, ``truth_center``), the errors (null without
+        a pose) and ``seconds`` (features, retrieval, matching and estimation)."""
+        return {**with_truth(self.record, self.truth_quat_wxyz, self.truth_center, self.translation_error_m,
+                             self.rotation_error_deg), "seconds": self.seconds}
+
+
+def with_truth(record: dict, truth_quat_wxyz: Sequence[float] | None, truth_center: Sequence[float],
+               translation_error_m: float, rotation_error_deg: float) -> dict:
+    """``record`` with its evaluation (docs/schema/record.schema.json, "evaluation_fields"): the
+    true ``cam_from_world`` rotation and centre and the errors (NaN without a pose, ``null`` once
+    written)."""
+    return {**record, "truth_quat_wxyz": None if truth_quat_wxyz is None else list(truth_quat_wxyz),
+            "truth_center": list(truth_center), "translation_error_m": translation_error_m,
+            "rotation_error_deg": rotation_error_deg}
 
 
 def split_map_queries(images: Sequence[PosedImage], map_every: int) -> tuple[list[PosedImage], list[PosedImage]]:
@@ -70,7 +92,7 @@ def split_map_queries(images: Sequence[PosedImage], map_every: int) -> tuple[lis
     return [i for i in images if i.index % map_every == 0], [i for i in images if i.index % map_every != 0]
 
 
-def query_result(query: PosedImage, est: PoseEstimate, seconds: float) -> QueryResult:
+def query_result(query: PosedImage, est: PoseEstimate, seconds: float, gravity: object | None = None) -> QueryResult:
     if est.success and est.pose is not None:
         t_err, r_err = pose_errors(est.pose, query.cam_from_world)
         c = tuple(float(v) for v in est.pose.center)
@@ -81,14 +103,17 @@ def query_result(query: PosedImage, est: PoseEstimate, seconds: float) -> QueryR
                        int(est.num_inliers), int(est.num_inliers_3d), seconds, c,
                        tuple(float(v) for v in query.cam_from_world.center), query.timestamp, q,
                        tuple(float(v) for v in query.cam_from_world.quat_wxyz), tuple(est.references),
-                       reason="" if est.success else est.message)
+                       reason="" if est.success else est.message,
+                       record=query_record(query.name, est, gravity, stamp=query.timestamp))
 
 
 def _error_result(query: PosedImage, seconds: float, reason: str) -> QueryResult:
     """A query that could not be processed: failed, status ``"error"``, with the reason."""
     nan = float("nan")
     return QueryResult(query.name, "error", False, nan, nan, nan, 0, 0, seconds, None,
-                       tuple(float(v) for v in query.cam_from_world.center), reason=reason)
+                       tuple(float(v) for v in query.cam_from_world.center), query.timestamp, None,
+                       tuple(float(v) for v in query.cam_from_world.quat_wxyz), reason=reason,
+                       record=error_record(query.name, reason, stamp=query.timestamp, seconds=seconds))
 
 
 def summarize(results: Sequence[QueryResult], method: str, structure: str, **extra: object) -> dict:
@@ -106,6 +131,7 @@ def summarize(results: Sequence[QueryResult], method: str, structure: str, **ext
     for r in results:
         statuses[r.status] = statuses.get(r.status, 0) + 1
     return {
+        "schema": SCHEMA,
         "method": method,
         "structure": structure,
         "queries": n,
@@ -117,7 +143,7 @@ def summarize(results: Sequence[QueryResult], method: str, structure: str, **ext
         "status_counts": statuses,
         "seconds_per_query": float(np.mean([r.seconds for r in results])) if n else None,
         **extra,
-        "per_query": [asdict(r) for r in results],
+        "per_query": [r.to_dict() for r in results],
     }
 
 
@@ -221,7 +247,7 @@ def evaluate_query(localizers: Sequence[Localizer], query: PosedImage,
         except InputError as exc:
             results.append(_error_result(query, t_feat + time.perf_counter() - t1, str(exc)))
             continue
-        results.append(query_result(query, est, t_feat + time.perf_counter() - t1))
+        results.append(query_result(query, est, t_feat + time.perf_counter() - t1, prepared.gravity))
         if on_estimate is not None:
             on_estimate(loc, query, features, est)
     return results

@@ -24,17 +24,20 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
-from planarloc.evaluation.queries import THRESHOLDS, threshold_name
+from planarloc.evaluation.queries import THRESHOLDS, threshold_name, with_truth
 from planarloc.geometry.pose import Pose, pose_errors
 from planarloc.geometry.validation import InputError
+from planarloc.localize.records import error_record, frame_record
 from planarloc.localize.sequence import FrameStatus, SequenceEstimate, SequenceLocalizer
 from planarloc.map.posed_image import PosedImage
 
 WRONG_M, WRONG_DEG = 1.0, 20.0
+#: the schema of :func:`summarize_sequence`'s JSON (``docs/schema/sequence-evaluation.schema.json``)
+SCHEMA = "planarloc.sequence-evaluation/1"
 #: status of a frame the camera replaced before the stream took it (``evaluate_stream(rate_hz=...)``)
 DROPPED = "dropped"
 
@@ -72,6 +75,14 @@ class FrameResult:
     timestamp: float | None = None
     reason: str = ""
     cpu_s: float = float("nan")
+    #: the frame's record (:func:`planarloc.localize.records.frame_record`), as ``localize --sequence`` writes it
+    record: dict = field(default_factory=dict, compare=False, repr=False)
+
+    def to_dict(self) -> dict:
+        """The evaluation's entry of this frame: its record (docs/schema/record.schema.json) with
+        the ground truth, the errors (null without a pose), ``kidnapped`` and ``finished_s``."""
+        return {**with_truth(self.record, self.truth_quat_wxyz, self.truth_center, self.translation_error_m,
+                             self.rotation_error_deg), "kidnapped": self.kidnapped, "finished_s": self.finished_s}
 
 
 def frame_result(image: PosedImage, est: SequenceEstimate, kidnapped: bool, finished_s: float = float("nan")
@@ -89,7 +100,7 @@ def frame_result(image: PosedImage, est: SequenceEstimate, kidnapped: bool, fini
                        t_err, r_err, float(est.position_std_m), float(est.seconds), c,
                        tuple(float(v) for v in truth.center), q, tuple(float(v) for v in truth.quat_wxyz),
                        float(est.latency_s), float(finished_s), bool(est.late), bool(est.success), float(est.stamp),
-                       cpu_s=float(est.cpu_s))
+                       cpu_s=float(est.cpu_s), record=frame_record(image.name, est))
 
 
 def unposed_result(image: PosedImage, stamp: float, kidnapped: bool, status: str = "dropped",
@@ -99,7 +110,9 @@ def unposed_result(image: PosedImage, stamp: float, kidnapped: bool, status: str
     return FrameResult(image.name, float(stamp), status, "none", "none", bool(kidnapped), float("nan"),
                        float("nan"), float("inf"), 0.0, None, tuple(float(v) for v in image.cam_from_world.center),
                        None, tuple(float(v) for v in image.cam_from_world.quat_wxyz), timestamp=float(stamp),
-                       reason=" ".join(str(reason).split()))
+                       reason=" ".join(str(reason).split()),
+                       record=error_record(image.name, reason or "the camera replaced this frame before the stream "
+                                           "took it", kind="frame", stamp=stamp, status=status))
 
 
 def ground_truth_jumps(truth: Sequence[Pose], min_jump_m: float = 3.0, factor: float = 4.0) -> list[bool]:
@@ -152,7 +165,7 @@ def _speed(results: Sequence[FrameResult]) -> dict:
                         "max": 1e3 * float(lat.max())} if len(lat) else None),
         "first_frame_latency_ms": 1e3 * done[0].latency_s if done else None,
         "cpu_ms_per_frame": 1e3 * float(np.mean([r.cpu_s for r in done[1:]])) if len(done) > 1 else None,
-        "late_frames": int(sum(r.late for r in done[1:])),
+        "late_frames": int(sum(r.late for r in done)),   # every frame the stream said was late (its own count)
         "dropped_frames": int(sum(r.status == DROPPED for r in results)),
     }
 
@@ -178,6 +191,7 @@ def summarize_sequence(results: Sequence[FrameResult], **extra: object) -> dict:
     seconds = np.array([r.seconds for r in results if np.isfinite(r.finished_s)], dtype=float)
     loc = status == FrameStatus.LOCALIZED.value
     return {
+        "schema": SCHEMA,
         "frames": n,
         "success": success,
         "status_counts": counts,
@@ -192,7 +206,7 @@ def summarize_sequence(results: Sequence[FrameResult], **extra: object) -> dict:
         "seconds_per_frame": float(seconds.mean()) if len(seconds) else None,
         **_speed(results),
         **extra,
-        "per_frame": [asdict(r) for r in results],
+        "per_frame": [r.to_dict() for r in results],
     }
 
 

@@ -310,6 +310,39 @@ def _estimate(poses: list[Pose]) -> tuple[np.ndarray, str, str, float | None, np
     return normal, "plane", "", float(s[2]), extent, warnings
 
 
+def _tilt_spread(poses: list[Pose], g: np.ndarray
+                 ) -> tuple[np.ndarray, float, float, float, float, float, float]:
+    """The map cameras' mount tilt relative to unit gravity ``g``: their median gravity direction,
+    its pitch and roll, and the spread and largest deviation of the pitch and of the roll."""
+    g_cams = np.array([p.R @ g for p in poses])
+    median_g = np.median(g_cams, axis=0)
+    if not np.linalg.norm(median_g) > 1e-9:
+        median_g = g_cams.mean(axis=0) if np.linalg.norm(g_cams.mean(axis=0)) > 1e-9 else g_cams[0]
+    pitch0, roll0 = pitch_roll_from_gravity(median_g)
+    pitch, roll = mount_tilt(poses, g)
+    p_spread, p_max = _spread(pitch, pitch0)
+    r_spread, r_max = _spread(roll, roll0)
+    return median_g, float(pitch0), float(roll0), p_spread, p_max, r_spread, r_max
+
+
+def _estimate_advice(poses: list[Pose]) -> str:
+    """Advice for an inconsistent tilt under a format's declared gravity: the dataset option
+    ``up=estimate``, only if the gravity estimated from the poses makes the tilt consistent
+    (checked here, so that following the advice removes the problem, without the large-tilt
+    warning instead); else nothing."""
+    try:
+        g = _estimate(poses)[0]
+    except InputError:
+        return ""
+    median_g, _, _, p_spread, _, r_spread, _ = _tilt_spread(poses, g / np.linalg.norm(g))
+    tilt = math.degrees(math.acos(float(np.clip(median_g[1] / np.linalg.norm(median_g), -1.0, 1.0))))
+    if max(p_spread, r_spread) > TILT_SPREAD_WARN_DEG or tilt > LARGE_TILT_WARN_DEG:
+        return ""
+    return (f"; the format's declared gravity is off: gravity estimated from the map's poses makes the tilt "
+            f"consistent (spread pitch {p_spread:.1f}°, roll {r_spread:.1f}°); build the map with the dataset "
+            "option up=estimate (command line: --dataset-option up=estimate)")
+
+
 def gravity_from_map_poses(
     poses: Sequence[Pose], declared: WorldDown | None = None
 ) -> tuple[np.ndarray, GravityReport]:
@@ -356,21 +389,13 @@ def gravity_from_map_poses(
         if declared is not None:  # up=estimate
             detail = f"{declared.detail}: {detail}" if detail else declared.detail
     g = g / np.linalg.norm(g)
-    g_cams = np.array([p.R @ g for p in poses])
-    median_g = np.median(g_cams, axis=0)
-    if not np.linalg.norm(median_g) > 1e-9:
-        median_g = g_cams.mean(axis=0) if np.linalg.norm(g_cams.mean(axis=0)) > 1e-9 else g_cams[0]
-    pitch0, roll0 = pitch_roll_from_gravity(median_g)
-    pitch, roll = mount_tilt(poses, g)
-    p_spread, p_max = _spread(pitch, pitch0)
-    r_spread, r_max = _spread(roll, roll0)
+    median_g, pitch0, roll0, p_spread, p_max, r_spread, r_max = _tilt_spread(poses, g)
     if max(p_spread, r_spread) > TILT_SPREAD_WARN_DEG:
         warnings.append(
             f"the cameras' tilt relative to gravity is inconsistent (spread pitch {p_spread:.1f}°, roll "
             f"{r_spread:.1f}°): not one rigid mount on level ground; queries without their own gravity get the "
             "median tilt, which may be wrong for them"
-            + ("; the format's declared gravity may be approximate: try the dataset option up=estimate"
-               if source == "declared" else ""))
+            + (_estimate_advice(poses) if source == "declared" else ""))
     tilt = math.degrees(math.acos(float(np.clip(median_g[1] / np.linalg.norm(median_g), -1.0, 1.0))))
     if method in ("plane", "line") and tilt > LARGE_TILT_WARN_DEG:
         warnings.append(

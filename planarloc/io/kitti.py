@@ -21,6 +21,9 @@ is read from the first image. Blank lines and lines starting with ``#`` are igno
 
 Returned poses are ``cam_from_world = (world_from_cam)⁻¹``.
 
+Timestamps: ``PosedImage.timestamp`` is line k of ``times.txt`` (None without it). Images given
+as files (``localize``) get the same stamps from :func:`kitti_frame_times`.
+
 Gravity: the world is the first camera's frame, so the format declares down = +y
 (:data:`WORLD_DOWN`, exact when that camera is level; a map overrides it with ``up=``).
 """
@@ -28,7 +31,9 @@ Gravity: the world is the first camera's frame, so the format declares down = +y
 from __future__ import annotations
 
 import logging
+import os
 import re
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
@@ -118,6 +123,44 @@ def _read_times(path: Path) -> list[float]:
             )
         times.append(float(parse_floats(path, lineno, tokens, "timestamp")[0]))
     return times
+
+
+def kitti_frame_times(paths: Sequence[Path]) -> list[float] | None:
+    """The ``times.txt`` stamps of image files that are frames of KITTI sequences.
+
+    An image ``root/image_l/000012.png`` (or in ``image_N/``) of a sequence folder ``root`` with a
+    ``times.txt`` is frame 12, taken at line 12's time (seconds), as :func:`read_kitti` reads it.
+
+    Args:
+        paths: (N,) image files, e.g. the queries of ``planarloc localize``.
+
+    Returns:
+        (N,) stamps in seconds, or None unless every path is such a frame with a line in its
+        ``times.txt`` (a mix of seconds and frame numbers would be no trajectory).
+
+    Raises:
+        FormatError: a ``times.txt`` that is not one number per line.
+
+    Example:
+        >>> kitti_frame_times([Path("seq/image_l/000002.png")])   # doctest: +SKIP
+        [0.207491]
+    """
+    loaded: dict[Path, list[float] | None] = {}
+    out = []
+    for path in paths:
+        path = Path(os.path.abspath(path))  # not resolved: a linked image belongs to the folder it is named in
+        folder = path.parent
+        if not (path.stem.isdigit() and path.suffix.lower() in IMAGE_SUFFIXES
+                and (folder.name in IMAGE_DIRS or re.fullmatch(r"image_\d+", folder.name))):
+            return None
+        times_path = folder.parent / "times.txt"
+        if times_path not in loaded:
+            loaded[times_path] = _read_times(times_path) if times_path.is_file() else None
+        times = loaded[times_path]
+        if times is None or int(path.stem) >= len(times):
+            return None
+        out.append(times[int(path.stem)])
+    return out or None
 
 
 def read_kitti(root: Path, *, image_dir: str | None = None, calib_key: str | None = None,

@@ -40,6 +40,7 @@ from planarloc.robust.absolute_pose import estimate_absolute_pose
 from planarloc.robust.options import Method, RansacOptions, Structure
 from planarloc.robust.pair_matches import PairMatches, unit_gravity
 from planarloc.robust.result import PoseEstimate
+from planarloc.robust.covisibility import epipolar_support, seeing_support
 from planarloc.robust.status import Status
 
 logger = logging.getLogger(__name__)
@@ -381,10 +382,36 @@ class Localizer:
                 est.message += (f"; the retrieved map images' poses disagree with their images by {residual_px:.1f} px "
                                 f"(median): map rotation std taken as {measured:.2f}° instead of "
                                 f"{self.config.ransac.map_rotation_std_deg:g}°")
+        if not est.success:  # any failure: whether a map image sees the query at all decides the advice
+            t3 = time.perf_counter()
+            est = self._unless_unseen(est, refs, pairs, camera)
+            est.stats.add_time("covisibility", time.perf_counter() - t3)
         est.references = used
         est.stats.add_time("retrieval", t1 - t0)
         est.stats.add_time("matching", t2 - t1)
         return est, pairs
+
+    def _unless_unseen(self, est: PoseEstimate, refs: Sequence[str], pairs: Sequence[PairMatches],
+                       camera: Camera) -> PoseEstimate:
+        """``est``, or ``not_in_map`` when no retrieved map image sees the query
+        (:mod:`planarloc.robust.covisibility`): the message says what was tried and keeps the
+        estimator's own reason."""
+        threshold = self.config.ransac.threshold_px
+        support = [epipolar_support(p.query_points, p.ref_points, camera, p.ref_camera, threshold) for p in pairs]
+        needed = [seeing_support(len(p.query_points)) for p in pairs]
+        if any(s >= n for s, n in zip(support, needed)):
+            return est
+        shown = ", ".join(refs[:3]) + (f" and {len(refs) - 3} more" if len(refs) > 3 else "")
+        tried = (f"{len(pairs)} of them have >= {self.config.min_matches} matches, and at most "
+                 f"{max(support, default=0)} matches of one image fit one essential matrix ({min(needed)} or more "
+                 "would show it sees the query)") if pairs else \
+            f"none of them has {self.config.min_matches} or more matches"
+        before = f"{est.status}: {est.message}" if est.message else str(est.status)
+        est.status = Status.NOT_IN_MAP
+        est.message = (f"no map image sees the query: tried {len(refs)} map images ({shown}); {tried}. "
+                       "The map does not hold this place (or it looks too different now): map it, or localize where "
+                       f"the map was recorded (the estimator said {before})")
+        return est
 
     def localize(self, image: ImageSource, camera: Camera | None = None, references: Sequence[str] | None = None,
                  *, gravity: object | None = None) -> PoseEstimate:

@@ -98,7 +98,7 @@ class SequenceLocalizer:
     The public API (used by the CLI, the service's fleet sessions and the ROS 2 node): the
     constructor, :meth:`step` (or :meth:`step_query` for a prepared query), :meth:`reset`,
     :meth:`close` (or ``with``), :attr:`stats`, and the returned :class:`SequenceEstimate`
-    (:meth:`SequenceEstimate.to_dict` is the frame record).
+    (:func:`planarloc.localize.records.frame_record` is its JSON record).
 
     Args:
         localizer: a single-frame :class:`Localizer` (its config sets method and structure).

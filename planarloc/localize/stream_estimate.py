@@ -94,28 +94,6 @@ class SequenceEstimate:
         """A pose the caller may use: ``localized`` or ``predicted``."""
         return self.pose is not None and self.status != FrameStatus.LOST.value
 
-    def to_dict(self) -> dict:
-        """The JSON record: every attribute but ``graph_covariance``; a pose as ``quat_wxyz``
-        and ``t`` of ``cam_from_world`` with ``covariance_xyz_rotvec`` (ROS order, as a
-        single fix's record)."""
-        d = {
-            "stamp": self.stamp, "success": self.success, "status": self.status,
-            "position_std_m": _finite_or_none(self.position_std_m),
-            "rotation_std_deg": _finite_or_none(self.rotation_std_deg),
-            "fix_status": self.fix_status, "fix_stamp": self.fix_stamp, "rejected": self.rejected,
-            "mahalanobis_sq": _finite_or_none(self.mahalanobis_sq),
-            "motion_source": self.motion_source, "motion_model": self.motion_model, "tracks": self.tracks,
-            "global_retrieval": self.global_retrieval, "kidnap_suspected": self.kidnap_suspected,
-            "reinitialized": self.reinitialized, "seconds": self.seconds, "latency_s": self.latency_s,
-            "late": self.late, "missing_frames": self.missing_frames, "cpu_s": self.cpu_s,
-            "fix": None if self.fix is None else self.fix.to_dict(), "message": self.message,
-        }
-        if self.pose is not None:
-            d["quat_wxyz"] = [float(v) for v in self.pose.quat_wxyz]
-            d["t"] = [float(v) for v in self.pose.t]
-            d["covariance_xyz_rotvec"] = np.where(np.isfinite(self.covariance), self.covariance, None).tolist()
-        return d
-
 
 @dataclass
 class StreamStats:
@@ -140,8 +118,4 @@ class StreamStats:
         name = f"fixes_{status}"
         if hasattr(self, name):
             setattr(self, name, getattr(self, name) + 1)
-
-
-def _finite_or_none(v: float) -> float | None:
-    return float(v) if np.isfinite(v) else None
 

@@ -9,6 +9,12 @@ vocabulary and the global descriptors are (re)computed when anything changed, th
 marked complete, and its gravity is stored (:mod:`planarloc.map.gravity`). Only one process
 builds a map at a time (the others wait, see :mod:`planarloc.map.lock`).
 
+Before new images go into a map that already holds some, a few of them are matched against it
+(:mod:`planarloc.map.frame_check`): images whose poses are in another world frame (e.g. another
+sequence that also starts at "first camera frame") are refused with
+:class:`~planarloc.map.frame_check.UnrelatedFramesError` and the map is not touched, unless
+``allow_unrelated_frames`` (then a warning says what was found). A new or empty map skips the check.
+
 An image that cannot go into the map — missing or unreadable, truncated or damaged
 (:func:`planarloc.features.images.image_problem`), undecodable, or of another size than its
 camera — is left out and reported (``skipped``, default: a warning each); the build goes on with
@@ -36,11 +42,22 @@ from planarloc.features.retrieval import DEFAULT_NUM_WORDS, VladVocabulary, vlad
 from planarloc.geometry.validation import InputError
 from planarloc.gravity.world import WorldDown
 from planarloc.map.codec import DEFAULT_STORAGE
-from planarloc.map.gravity import declared_world_down, resolve_world_down, store_map_gravity
+from planarloc.map.frame_check import (
+    DEFAULT_FRAME_CHECK,
+    FrameCheck,
+    UnrelatedFramesError,
+    check_appended_frames,
+)
+from planarloc.map.gravity import (
+    declared_world_down,
+    resolve_world_down,
+    store_map_gravity,
+    world_down_changes,
+)
 from planarloc.map.identity import MapUpdatePlan, plan_map_update
-from planarloc.map.lock import writer_of
+from planarloc.map.lock import MapWriterLock, writer_of
 from planarloc.map.posed_image import PosedImage
-from planarloc.map.schema import GRAVITY_META, VOCABULARY_BLOB, WORLD_DOWN_META, MapFormatError
+from planarloc.map.schema import GRAVITY_META, VOCABULARY_BLOB, MapFormatError
 from planarloc.map.settings import check_num_words, map_config, settings_mismatch_error
 from planarloc.map.store import MapDatabase
 
@@ -139,6 +156,7 @@ def build_map(
     mapper: Mapper | None = None,
     skipped: Skipped | None = None,
     storage: str = DEFAULT_STORAGE,
+    allow_unrelated_frames: bool = False,
 ) -> Path:
     """Create (or resume / append to) the map at ``path`` from posed images.
 
@@ -161,6 +179,9 @@ def build_map(
         skipped: receives each image left out of the map (missing, unreadable, truncated,
             damaged, undecodable, or of another size than its camera) and the reason; default:
             logged as warnings. The build goes on with the other images.
+        allow_unrelated_frames: append images to a non-empty map even when their world frame
+            looks unrelated to the map's (:mod:`planarloc.map.frame_check`); the finding is then
+            reported through ``notify`` (default: a logged warning) instead of raised.
 
     Returns:
         The map path.
@@ -169,6 +190,9 @@ def build_map(
         InputError: an existing map built with different settings, no usable image at all,
             images that declare a different world gravity than the map, bad options (checked
             before any work).
+        UnrelatedFramesError: (an InputError) the images to append share no matches with the
+            map or contradict its poses, and not ``allow_unrelated_frames``; the map file is
+            left as it was.
         MapBusyError: another process still builds the map after ``lock_timeout``.
     """
     path = Path(path)
@@ -189,6 +213,12 @@ def build_map(
         else:
             logger.warning("%s: left out of the map: %s", image.name, reason)
 
+    def tell(line: str) -> None:
+        if notify is not None:
+            notify(line)
+        else:
+            logger.warning("%s", line)
+
     with ThreadPoolExecutor(max_workers=workers or os.cpu_count() or 1) as pool:
         checked = _hash_images(images, pool, progress)
         bad = [(im, reason) for im, (_, reason) in zip(images, checked) if reason is not None]
@@ -198,6 +228,17 @@ def build_map(
             skip(im, reason)  # type: ignore[arg-type]
         images = [im for im, (sha, _) in zip(images, checked) if sha is not None]
         hashes = [sha for sha, _ in checked if sha is not None]
+        ready: dict[Path, Features | str] = {}  # features extracted by the frame check, kept for stage 2
+        finding = _check_frames(path, config, images, hashes, features, declared, lock_timeout, pool, ready)
+        if finding is not None and not finding[0].related:
+            frames, num_new = finding
+            line = f"{path}: the {num_new} new images look unrelated to the map's world frame: {frames.summary()}"
+            if not allow_unrelated_frames:
+                raise UnrelatedFramesError(f"{line}; if they are another sequence with its own origin, build a "
+                                           "separate map; to append them anyway, run `planarloc map build` with "
+                                           "--allow-unrelated-frames (allow_unrelated_frames=True); the map is "
+                                           "unchanged")
+            tell(f"{line}; appending them anyway (allow_unrelated_frames)")
         try:
             db = MapDatabase.open_or_create(path, config, lock_timeout=lock_timeout, storage=storage)
         except OSError as exc:
@@ -209,13 +250,10 @@ def build_map(
             resolve_world_down(db, declared)  # a contradicting declaration fails before any work
             plan = plan_map_update(db, images, hashes)
             for line in plan.summary_lines(path):
-                if notify is not None:
-                    notify(line)
-                else:
-                    logger.warning("%s", line)
+                tell(line)
             if plan.keep:
                 logger.info("%s: %d of %d images already in the map, resuming", path, len(plan.keep), len(images))
-            _store_images(db, plan, features, mapper or pool.map, progress, skip)
+            _store_images(db, plan, features, mapper or pool.map, progress, skip, ready)
             if db.num_images() == 0:
                 raise InputError(f"{path}: none of the {len(images) + len(bad)} images could be decoded; see the "
                                  "reasons above")
@@ -236,18 +274,21 @@ def _hash_images(images: Sequence[PosedImage], pool: ThreadPoolExecutor,
 
 
 def _store_images(db: MapDatabase, plan: MapUpdatePlan, features: FeatureConfig, mapper: Mapper,
-                  progress: Progress | None, skip: Skipped) -> None:
+                  progress: Progress | None, skip: Skipped, ready: dict[Path, Features | str] | None = None) -> None:
     """Stage 2: the plan's pose updates, then the new and changed images' features.
 
     Reading and SIFT run in worker threads (OpenCV releases the GIL) or on the given mapper (e.g.
-    a Ray cluster); the database is written in this thread, in order, one transaction per image
+    a Ray cluster), except for the images in ``ready`` (by file path: extracted already, by the
+    frame check); the database is written in this thread, in order, one transaction per image
     (resumable)."""
     for record, sha in plan.update:
         db.update_image_record(record.name, record, sha)
     todo = plan.replace + plan.add
-    extracted = mapper(functools.partial(extract_image_features, features=features), [r for r, _ in todo])
-    for i, feats in enumerate(extracted):
-        record, sha = todo[i]
+    done = [(ready or {}).get(Path(r.path)) for r, _ in todo]  # decided once: ``fresh`` follows the others
+    rest = [r for (r, _), d in zip(todo, done) if d is None]
+    fresh = iter(mapper(functools.partial(extract_image_features, features=features), rest))
+    for i, (record, sha) in enumerate(todo):
+        feats = done[i] if done[i] is not None else next(fresh)
         if isinstance(feats, str):  # unreadable after all (e.g. a damaged JPEG): left out, the rest goes on
             skip(record, feats)
             continue
@@ -256,6 +297,48 @@ def _store_images(db: MapDatabase, plan: MapUpdatePlan, features: FeatureConfig,
         db.add_image(record, feats, content_sha256=sha)
         if progress:
             progress("features", i + 1, len(todo))
+
+
+def _check_frames(path: Path, config: dict, images: Sequence[PosedImage], hashes: Sequence[str],
+                  features: FeatureConfig, declared: WorldDown | None, lock_timeout: float | None,
+                  pool: ThreadPoolExecutor, ready: dict[Path, Features | str]) -> tuple[FrameCheck, int] | None:
+    """Before the map is opened for writing: do the images it would add share its world frame
+    (:func:`planarloc.map.frame_check.check_appended_frames`)? The finding and the number of
+    images the build would add, or None when there is nothing to
+    check: no map yet, an empty map, another feature configuration (refused or replaced later),
+    no new image, or a map this process cannot lock (a read-only folder: the build says so later).
+
+    The map is read through a read-only connection while this process holds its writer lock (so
+    no other build changes it meanwhile), and the file is not written: a refused build leaves it
+    byte for byte as it was. Features extracted for the check go into ``ready``."""
+    if not path.is_file():
+        return None
+    lock = MapWriterLock(path, timeout=lock_timeout)
+    try:
+        lock.acquire()
+    except OSError as exc:
+        if exc.errno in (errno.EACCES, errno.EPERM, errno.EROFS):
+            return None
+        raise
+    try:
+        if not path.is_file():  # removed while waiting for another writer
+            return None
+        with MapDatabase.open(path) as db:
+            if db.num_images() == 0 or json.dumps(db.config, sort_keys=True) != json.dumps(config, sort_keys=True):
+                return None
+            resolve_world_down(db, declared)  # a contradicting gravity declaration fails first, as it did
+            new = [record for record, _ in plan_map_update(db, images, hashes).add]
+            if not new:
+                return None
+
+            def extract(image: PosedImage) -> Features | str:
+                ready[Path(image.path)] = extract_image_features(image, features)
+                return ready[Path(image.path)]
+
+            found = check_appended_frames(db, new, extract, DEFAULT_FRAME_CHECK, mapper=pool.map)
+    finally:
+        lock.release()
+    return found, len(new)
 
 
 def _finish(db: MapDatabase, plan: MapUpdatePlan, declared: WorldDown | None, num_words: int, seed: int,
@@ -267,7 +350,7 @@ def _finish(db: MapDatabase, plan: MapUpdatePlan, declared: WorldDown | None, nu
         index_map(db, num_words=num_words, seed=seed, progress=progress)
         store_map_gravity(db, declared)
         db.mark_complete()
-    elif db.get_meta(GRAVITY_META) is None or (declared is not None and db.get_meta(WORLD_DOWN_META) is None):
+    elif db.get_meta(GRAVITY_META) is None or world_down_changes(db, declared):  # e.g. up= given for this map
         store_map_gravity(db, declared)
 
 

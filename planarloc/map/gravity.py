@@ -59,7 +59,9 @@ def store_map_gravity(db: MapDatabase, declared: WorldDown | None = None) -> Gra
             agree with a stored one of the same kind, and never replaces a stored option.
 
     Returns:
-        The stored :class:`GravityReport`.
+        The stored :class:`GravityReport`. Its ``warnings`` are stored with it and logged at INFO
+        only: the caller shows them once (`map build` and `map info` in the map's summary,
+        `evaluate` before it localizes), never also as a log line.
 
     Raises:
         InputError: a declaration that contradicts the map's (different world frames).
@@ -70,8 +72,15 @@ def store_map_gravity(db: MapDatabase, declared: WorldDown | None = None) -> Gra
     _, report = gravity_from_map_poses(list(db.load_all_poses().values()), use)
     db.set_meta(GRAVITY_META, json.dumps(report.to_dict()))
     for w in report.warnings:
-        logger.warning("%s: %s", db.path, w)
+        logger.info("%s: %s", db.path, w)
     return report
+
+
+def world_down_changes(db: MapDatabase, declared: WorldDown | None) -> bool:
+    """Whether storing the map's gravity with ``declared`` would change the map's world down
+    (e.g. a user's ``up=`` given for a map built without it): then its gravity is stored again."""
+    stored, use = resolve_world_down(db, declared)
+    return use != stored
 
 
 def map_gravity(db: MapDatabase) -> GravityReport:

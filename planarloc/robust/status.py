@@ -32,6 +32,9 @@ class Status(StrEnum):
     AMBIGUOUS_POSE = "ambiguous_pose"
     #: an explicit planar method's model does not fit: a 6DoF pose far from it is clearly better
     PLANAR_MODEL_VIOLATED = "planar_model_violated"
+    #: no retrieved map image sees the query (:mod:`planarloc.robust.covisibility`): the map does
+    #: not hold the place (set by the localizer, which knows what retrieval tried)
+    NOT_IN_MAP = "not_in_map"
 
     @classmethod
     def of(cls, value: str) -> Status | str:

@@ -66,8 +66,10 @@ from planarloc.features.images import decode_gray
 from planarloc.geometry.camera import Camera
 from planarloc.geometry.pose import Pose
 from planarloc.geometry.validation import InputError
+from planarloc.io import strict_json
 from planarloc.io.rosbag import decode_image
 from planarloc.localize.localizer import Localizer, localizer_config
+from planarloc.localize.records import error_record, frame_record
 from planarloc.localize.sequence import FrameStatus, SequenceConfig, SequenceEstimate, SequenceLocalizer
 from planarloc.ros2.conversions import (
     OdometryBuffer,
@@ -456,6 +458,12 @@ class LocalizerNode:
             values["camera_source"] = camera_source   # camera_info, or map (no CameraInfo received)
         if note:
             values["reason" if status == "failed" else "note"] = note
+        # The frame's record (docs/schema/record.schema.json), as `localize --sequence` and the
+        # service's sessions write it: one schema for every front door.
+        name = f"{self.settings.image_topic}@{stamp_seconds(stamp):.9f}"
+        record = (frame_record(name, est) if est is not None else
+                  error_record(name, note or status, kind="frame", stamp=stamp_seconds(stamp)))
+        values["record"] = strict_json.dumps(record)
         d = DiagnosticStatus(level=level, name=f"{NODE_NAME}: localization", hardware_id=self.settings.map,
                              message=f"{status}{': ' + note if note else ''}",
                              values=[KeyValue(key=k, value=str(v)) for k, v in values.items()])

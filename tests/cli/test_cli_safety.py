@@ -106,8 +106,8 @@ def test_bad_queries_are_recorded_and_the_batch_goes_on(world_map: Path, queries
     lines = out.read_text().splitlines()
     assert sorted(line.split()[0] for line in lines) == sorted(p.name for p in images)
     records = {r["name"]: r for r in (json.loads(p.read_text()) for p in (tmp_path / "poses.txt.json.d").glob("*"))}
-    assert records["broken.png"]["status"] == "error" and "cannot read image" in records["broken.png"]["reason"]
-    assert records["small.png"]["status"] == "error" and "80x60" in records["small.png"]["reason"]
+    assert records["broken.png"]["status"] == "error" and "cannot read image" in records["broken.png"]["message"]
+    assert records["small.png"]["status"] == "error" and "80x60" in records["small.png"]["message"]
     captured = capsys.readouterr()
     assert "localized 2 of 4 queries (2 failed, 2 could not be processed)" in captured.out
     assert "query broken.png not processed: " in captured.err and "query small.png not processed: " in captured.err
@@ -120,7 +120,7 @@ def test_camera_of_another_size_is_not_silently_used(world_map: Path, queries, t
                 "--out", out]) == 3
     assert out.read_text() == ""
     record = json.loads(next((tmp_path / "poses.txt.json.d").glob("*")).read_text())
-    assert not record["success"] and "640x480" in record["reason"]
+    assert not record["success"] and "640x480" in record["message"]
 
 
 # ---- validation before work ---------------------------------------------------------------------
@@ -254,7 +254,7 @@ def test_evaluate_records_a_broken_query_and_goes_on(tiny_world: Path, tmp_path:
     s = json.loads(summary.read_text())
     errors = [q for q in s["per_query"] if q["status"] == "error"]
     assert s["queries"] == 6 and len(errors) == 1 and errors[0]["name"] == broken.name
-    assert "cannot read image" in errors[0]["reason"] and s["localized"] >= 4
+    assert "cannot read image" in errors[0]["message"] and s["localized"] >= 4
 
 
 def test_interrupted_batch_keeps_the_poses_so_far(world_map: Path, queries, tmp_path: Path,

@@ -188,7 +188,7 @@ def test_a_stream_records_an_unreadable_frame_and_goes_on(world_map, tiny_world,
                "--structure", "tracks", "--out", out)
     assert proc.returncode == 3, proc.stderr
     records = {r["name"]: r for r in (json.loads(p.read_text()) for p in (tmp_path / "poses.txt.json.d").iterdir())}
-    assert records["broken.png"]["status"] == "error" and "cannot read image" in records["broken.png"]["reason"]
+    assert records["broken.png"]["status"] == "error" and "cannot read image" in records["broken.png"]["message"]
     assert records["broken.png"]["stamp"] == pytest.approx((stamps[2] + stamps[3]) / 2)
     others = [records[p.name] for p in frames]
     assert all(r["status"] in ("localized", "predicted", "lost") for r in others)

@@ -61,7 +61,7 @@ def test_a_batch_records_each_bad_image_and_localizes_the_good_ones(office, tmp_
     reasons = {"empty.png": "the image is empty (0 bytes)", "cut.png": "truncated PNG",
                "bomb.png": "declares 30000x30000 pixels, over the limit", "noise.png": "not a PNG, JPEG"}
     for name, reason in reasons.items():
-        assert got[name]["status"] == "error" and name in got[name]["reason"] and reason in got[name]["reason"]
+        assert got[name]["status"] == "error" and name in got[name]["message"] and reason in got[name]["message"]
     assert got["black.png"]["status"] == "too_few_matches" and not got["black.png"]["success"]
     assert "featureless" in got["black.png"]["message"]
     err = capsys.readouterr().err
@@ -89,7 +89,7 @@ def test_a_stream_records_an_empty_frame_and_goes_on(office, tmp_path: Path) -> 
     got = records(tmp_path / "poses.txt.json.d")
     names = [Path(f).name for f in frames]
     assert sorted(got) == sorted(names)
-    assert got[names[1]]["status"] == "error" and "the image is empty" in got[names[1]]["reason"]
+    assert got[names[1]]["status"] == "error" and "the image is empty" in got[names[1]]["message"]
     assert got[names[2]]["status"] == "lost"  # black: the stream says so and goes on
     # The stream goes on after them (the frame right after the gap may be lost: the stream's call).
     assert got[names[0]]["status"] == "localized" and got[names[-1]]["status"] == "localized"

@@ -57,7 +57,7 @@ def test_cross_session_with_bag_queries_equals_all_tum(tiny_world: Path, query_b
         np.testing.assert_allclose(a["truth_center"], b["truth_center"], atol=1e-6)
         if a["success"]:
             assert abs(a["translation_error_m"] - b["translation_error_m"]) < 1e-3
-            np.testing.assert_allclose(a["estimate_center"], b["estimate_center"], atol=1e-3)
+            np.testing.assert_allclose(a["center"], b["center"], atol=1e-3)
             assert b["references"] and set(b["references"]) <= map_names
     # TUM files: evo reads them, and its APE in the JSON is the per-query error of planarloc
     file_interface = pytest.importorskip("evo.tools.file_interface")
@@ -66,7 +66,7 @@ def test_cross_session_with_bag_queries_equals_all_tum(tiny_world: Path, query_b
     localized = [q for q in bag["per_query"] if q["success"]]
     assert est.num_poses == gt.num_poses == len(localized)
     np.testing.assert_allclose(gt.positions_xyz, [q["truth_center"] for q in localized], atol=1e-6)
-    np.testing.assert_allclose(est.positions_xyz, [q["estimate_center"] for q in localized], atol=1e-6)
+    np.testing.assert_allclose(est.positions_xyz, [q["center"] for q in localized], atol=1e-6)
     errors = np.linalg.norm(est.positions_xyz - gt.positions_xyz, axis=1)
     assert bag["evo"]["ape_translation_m"]["max"] == pytest.approx(errors.max(), abs=1e-6)
     assert bag["evo"]["ape_translation_m"]["max"] == pytest.approx(
@@ -99,9 +99,9 @@ def test_a_dataset_and_the_same_dataset_as_a_bag_give_the_same_results(tiny_worl
     assert tum["status_counts"] == from_bag["status_counts"] and tum["localized"] >= 5
     for a, b in zip(tum["per_query"], from_bag["per_query"]):
         assert a["status"] == b["status"] and a["num_inliers"] == b["num_inliers"]
-        assert b["name"] == f"camera_image_raw/{a['timestamp']:.9f}.png"  # the bag names frames by stamp
+        assert b["name"] == f"camera_image_raw/{a['stamp']:.9f}.png"  # the bag names frames by stamp
         if a["success"]:
-            np.testing.assert_allclose(a["estimate_center"], b["estimate_center"], atol=1e-6)
+            np.testing.assert_allclose(a["center"], b["center"], atol=1e-6)
 
 
 def test_bags_into_map_build_and_localize(tiny_world: Path, query_bag: Path, tmp_path: Path,

@@ -130,8 +130,8 @@ def test_a_stream_records_bad_frames_and_goes_on(tiny_world: Path, world_map: Pa
     assert run(["localize", "--map", world_map, "--sequence", listing, "--camera", camera, "--fixes", "wait",
                 "--odometry", tiny_world / "query" / "groundtruth.txt", "--out", out]) == 3
     records = {r["name"]: r for r in (json.loads(p.read_text()) for p in (tmp_path / "poses.txt.json.d").iterdir())}
-    assert records["cut.png"]["status"] == "error" and "cannot read image" in records["cut.png"]["reason"]
-    assert records["small.png"]["status"] == "error" and "160x120" in records["small.png"]["reason"]
+    assert records["cut.png"]["status"] == "error" and "cannot read image" in records["cut.png"]["message"]
+    assert records["small.png"]["status"] == "error" and "160x120" in records["small.png"]["message"]
     others = [records[p.name] for p in frames]
     assert all(r["status"] in ("localized", "predicted", "lost") for r in others)
     assert sum(r["success"] for r in others) >= 4
@@ -169,5 +169,5 @@ def test_evaluate_sequential_records_a_bad_frame(tiny_world: Path, tmp_path: Pat
                 "--fixes", "wait", "--json", summary]) == 3
     s = json.loads(summary.read_text())
     bad = [f for f in s["per_frame"] if f["status"] == "error"]
-    assert len(bad) == 1 and "cannot read image" in bad[0]["reason"] and s["frames"] == 3
+    assert len(bad) == 1 and "cannot read image" in bad[0]["message"] and s["frames"] == 3
     assert s["status_counts"]["error"] == 1

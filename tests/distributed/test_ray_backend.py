@@ -102,9 +102,9 @@ def check_evaluate_on_ray_equals_local(world: Path, tmp_path: Path) -> None:
     for q, r in zip(per_query, local):  # same poses as the local run, query by query
         assert (q["status"], q["num_inliers"]) == (r.status, r.num_inliers)
         # Equal up to the last bits: Ray workers may sum in another order (alignment, threads).
-        assert (q["estimate_center"] is None) == (r.estimate_center is None)
+        assert (q["center"] is None) == (r.estimate_center is None)
         if r.estimate_center is not None:
-            np.testing.assert_allclose(q["estimate_center"], r.estimate_center, rtol=1e-9, atol=1e-12)
+            np.testing.assert_allclose(q["center"], r.estimate_center, rtol=1e-9, atol=1e-12)
 
 
 def check_ray_serve_deployment_serves_the_cli_pose(world: Path, tmp_path: Path) -> None:

@@ -10,6 +10,7 @@ import pytest
 
 from planarloc.geometry.pose import Pose
 from planarloc.io import FormatError, read_kitti
+from planarloc.io.kitti import kitti_frame_times
 
 K = np.array([[718.856, 0, 607.1928], [0, 718.856, 185.2157], [0, 0, 1]])
 
@@ -146,3 +147,21 @@ def test_missing_image_directory(tmp_path):
     tmp_path.joinpath("poses.txt").write_text("")
     with pytest.raises(FormatError, match="image_l, image_0, image_2"):
         read_kitti(tmp_path)
+
+
+def test_image_files_get_the_times_of_their_sequence(tmp_path, write_image, random_poses):
+    """Images given as files (``localize``) get times.txt's stamps, as read_kitti gives them."""
+    write_sequence(tmp_path, random_poses(3), write_image, image_dir="image_0")
+    files = [tmp_path / "image_0" / f"{k:06d}.png" for k in (2, 0)]
+    assert kitti_frame_times(files) is None  # no times.txt: nothing invented
+    (tmp_path / "times.txt").write_text("# seconds\n1317384506.40\n1317384506.50\n1317384506.61\n")
+    assert kitti_frame_times(files) == [1317384506.61, 1317384506.40]
+    assert kitti_frame_times(files) == [read_kitti(tmp_path)[k].timestamp for k in (2, 0)]
+    # one file that is no frame with a time: none gets one (no mix of seconds and frame numbers)
+    other = write_image(tmp_path / "other" / "000001.png")
+    assert kitti_frame_times([files[0], other]) is None
+    assert kitti_frame_times([files[0], write_image(tmp_path / "image_0" / "000003.png")]) is None  # past times.txt
+    assert kitti_frame_times([]) is None
+    (tmp_path / "times.txt").write_text("0.0\nsoon\n")
+    with pytest.raises(FormatError, match=r"times\.txt:2"):
+        kitti_frame_times(files)

@@ -13,6 +13,7 @@ from scipy.spatial.transform import Rotation
 
 from planarloc.evaluation.sequence import evaluate_stream, relocalization, summarize_sequence
 from planarloc.features.images import read_gray
+from planarloc.localize.records import frame_record
 from planarloc.geometry.pose import Pose, pose_errors
 from planarloc.geometry.validation import InputError
 from planarloc.io.datasets import read_dataset
@@ -329,7 +330,7 @@ def test_the_covariance_is_in_ros_order(stream_world: tuple) -> None:
     seq = SequenceLocalizer(Localizer(map_path), SequenceConfig(fixes="wait"))
     est = seq.step(read_gray(queries[0].path), queries[0].camera, 0.0)
     seq.close()
-    rec = est.to_dict()
+    rec = frame_record("frame", est)
     C = np.array(rec["covariance_xyz_rotvec"])
     G = est.graph_covariance
     np.testing.assert_allclose(C, est.covariance)

@@ -73,8 +73,8 @@ def test_changed_image_file_is_reextracted(seq_a, built: Path, caplog: pytest.Lo
 def test_colliding_names_of_another_dataset_are_namespaced(built: Path, tmp_path: Path,
                                                            caplog: pytest.LogCaptureFixture) -> None:
     seq_b = posed_folder(tmp_path / "seq_b", n=3, seed=2)  # same names image_l/00000k.png, other files
-    with caplog.at_level(logging.WARNING):
-        build(seq_b, built)
+    with caplog.at_level(logging.WARNING):  # random textures that share nothing: appended on purpose
+        build_map(seq_b, built, FEATURES, num_words=WORDS, workers=1, allow_unrelated_frames=True)
     assert "already used by different images" in caplog.text and "seq_b/image_l/000000.png" in caplog.text
     with MapDatabase.open(built) as db:
         names = db.image_names()

@@ -27,11 +27,15 @@ VALUES = {
     "INCONSISTENT_REFERENCES": "inconsistent_references",
     "AMBIGUOUS_POSE": "ambiguous_pose",
     "PLANAR_MODEL_VIOLATED": "planar_model_violated",
+    "NOT_IN_MAP": "not_in_map",
 }
 
 
 def test_the_string_values_are_unchanged() -> None:
+    """The values are those results carry, and each is one the published record schema allows."""
     assert {s.name: s.value for s in Status} == VALUES
+    schema = json.loads((Path(__file__).resolve().parents[2] / "docs/schema/record.schema.json").read_text())
+    assert set(VALUES.values()) | {"error"} == set(schema["$defs"]["fix"]["properties"]["status"]["enum"])
     for s in Status:
         assert s == s.value and str(s) == s.value and f"{s}" == s.value and hash(s) == hash(s.value)
         assert json.loads(json.dumps({s: s})) == {s.value: s.value}

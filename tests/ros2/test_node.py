@@ -15,6 +15,8 @@ import pytest
 
 pytest.importorskip("rclpy", reason="rclpy is not installed (pip install 'planarloc[ros2]')")
 
+from record_schemas import check  # noqa: E402
+
 from planarloc.geometry.pose import Pose, pose_errors  # noqa: E402
 from planarloc.io.datasets import read_dataset  # noqa: E402
 from planarloc.ros2.replay import ReplayFrame, loopback_env, planarloc_command, replay  # noqa: E402
@@ -128,6 +130,12 @@ def test_bad_frames_and_no_camera_info_never_stop_the_node(tiny_world: Path, wor
         diag = result.diagnostics[stamp]
         assert diag["status"] == "failed" and diag["published"] == "false" and stamp not in result.poses
         assert diag["reason"].startswith("bad frame: ") and reason in diag["reason"], diag
+        record = check("record", diag["record"], f"diagnostic record of the bad frame at {stamp}")
+        assert record["kind"] == "frame" and record["status"] == "error" and record["message"] == diag["reason"]
+    for f in frames:  # every diagnostic carries the frame's record (one schema for every front door)
+        record = check("record", result.diagnostics[round(f.stamp, 9)]["record"], f"record at {f.stamp}")
+        assert record["status"] == result.diagnostics[round(f.stamp, 9)]["status"]
+        assert record["stamp"] == pytest.approx(f.stamp, abs=1e-6)
     # every published pose keeps the promise (3σ + 5 cm); poses go on after the bad frames
     assert _check_poses(result, truths, frames, Pose.identity()) >= 2
     assert any(stamp > max(bad) for stamp in result.poses), sorted(result.poses)

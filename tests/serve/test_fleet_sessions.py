@@ -16,6 +16,7 @@ import httpx
 import numpy as np
 import pytest
 from conftest import Served
+from record_schemas import check
 
 from planarloc.cli.main import main
 from planarloc.client import Client, ServiceError, SessionRestarted
@@ -120,6 +121,9 @@ def test_a_robot_streams_its_frames_and_gets_the_sequence_record(fleet, tmp_path
         robot = client.session("robot-a", camera=fleet.camera)
         records = [robot.localize(image, stamp, odometry=truth) for stamp, image, truth in frames]
     assert [r["session"]["frame"] for r in records] == list(range(1, len(frames) + 1))  # one stream, one worker
+    for rec, loc in zip(records, local):  # one record schema for the CLI's frames and the service's
+        check("record", rec, "session answer")
+        check("record", loc, "localize --sequence record")
     for rec, loc, (_, _, truth) in zip(records, local, frames):
         assert rec["session"]["id"] == "robot-a" and rec["name"] == loc["name"]
         assert rec["status"] == loc["status"] and rec["status"] in ("localized", "predicted", "lost")
@@ -134,7 +138,7 @@ def test_a_robot_streams_its_frames_and_gets_the_sequence_record(fleet, tmp_path
     assert all(r["status"] == "localized" for r in records) and robot.restarts == 0
     # Out of order: refused (409), the stream unchanged.
     r = post_frame(fleet.url, frames[0][1], frames[0][0], "robot-a", fleet.camera, structure="tracks")
-    assert r.status_code == 409 and "time order" in r.json()["error"]
+    assert r.status_code == 409 and "time order" in check("service-error", r.text)["error"]
     r = post_frame(fleet.url, frames[0][1], frames[-1][0] + 1, "robot-a", fleet.camera)
     assert r.status_code == 200 and r.json()["session"]["frame"] == len(frames) + 1
     # A frame cannot change the session's settings; odometry is a pose; stamp is required.

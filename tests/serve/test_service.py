@@ -11,6 +11,8 @@ import httpx
 import numpy as np
 import pytest
 
+from record_schemas import check
+
 from planarloc.cli.main import main
 from planarloc.client import Client, ServiceError
 from planarloc.serve.launcher import worker_pids
@@ -30,6 +32,8 @@ def test_served_pose_equals_cli_pose(server, tmp_path: Path) -> None:
         for image in images:
             local = json.loads((tmp_path / "poses.txt.json.d" / (image.name + ".json")).read_text())
             served = client.localize(image, server.camera, map="office", structure="tracks", seed=7)
+            check("record", served, "served record")
+            check("record", local, "localize record")
             assert served["success"] and served["status"] == local["status"]
             # Same RANSAC run: equal counters and models; floats equal up to summation order (worker
             # processes may align arrays differently, which moves the last bit of numpy's sums).
@@ -97,7 +101,7 @@ def test_malformed_requests_get_one_line_4xx_and_the_server_stays_up(server) -> 
         for what, kwargs, status in battery:
             r = http.post(url, **kwargs)
             assert r.status_code == status, (what, r.text)
-            reason = r.json()["error"]
+            reason = check("service-error", r.text, what)["error"]
             assert reason and "\n" not in reason, what
         r = http.post(
             url, content=b"--x\r\nbroken", headers={"content-type": "multipart/form-data; boundary=x"}
@@ -267,7 +271,7 @@ def test_localize_server_records_an_undecodable_image_and_goes_on(server, tmp_pa
             images[1], "--structure", "tracks", "--out", out]
     assert main([str(a) for a in args]) == 3
     records = {r["name"]: r for r in (json.loads(p.read_text()) for p in (tmp_path / "poses.txt.json.d").iterdir())}
-    assert records["broken.png"]["status"] == "error" and "cannot decode" in records["broken.png"]["reason"]
+    assert records["broken.png"]["status"] == "error" and "cannot decode" in records["broken.png"]["message"]
     assert sorted(line.split()[0] for line in out.read_text().splitlines()) == sorted(p.name for p in images)
     # A server that cannot be reached stops the run (exit 1) and leaves the results file as it was.
     before = out.read_text()
@@ -280,14 +284,12 @@ def test_a_failed_query_answers_strict_json(server) -> None:
     with nulls a strict parser accepts, not NaN or Infinity (issue 32)."""
     import cv2
 
-    from planarloc.io.strict_json import loads_strict
-
     w, h = (int(v) for v in server.camera.split()[1:3])
     ok, png = cv2.imencode(".png", np.zeros((h, w), np.uint8))
     assert ok
     response = httpx.post(server.url + "/v1/localize", headers={"Authorization": f"Bearer {server.token}"},
                           files={"image": ("black.png", png.tobytes())},
                           data={"camera": server.camera, "map": "office"}, timeout=120)
-    body = loads_strict(response.text)
+    body = check("record", response.text, "answer to a black frame")
     assert response.status_code == 200 and body["success"] is False
     assert "position_std_m" in body and body["position_std_m"] is None
