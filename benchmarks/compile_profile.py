@@ -2,10 +2,11 @@
 
 Runs one target in a new process with an empty numba cache (``NUMBA_CACHE_DIR`` pointed at a new
 temporary folder) and numba's compile events recorded (``numba:compile``, through
-:class:`planarloc.cli.warmup_command.CompileRecorder`): each planarloc kernel's signatures and the
+:class:`planarloc.compile.CompileRecorder`): each planarloc kernel's signatures and the
 CPU seconds of each one's compilation, without the planarloc kernels compiled on the way.
-``compile_ahead`` (the parallel compile workers of the commands) is switched off in that process,
-so that every kernel compiles lazily where its events are seen — the CPU a cold first use needs.
+Compiling ahead (the parallel compile workers of the commands) is switched off in that process
+(:func:`planarloc.compile.compile_lazily`), so that every kernel compiles lazily where its events
+are seen — the CPU a cold first use needs.
 
 Targets:
   localize  ``planarloc localize`` of one KITTI frame against a map of every 4th frame (built
@@ -52,13 +53,11 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
 
 def _child(target: str, work: Path, out: Path) -> int:
     """The profiled process: run ``target`` with the compile events recorded."""
-    from planarloc.cli import demo_command, localize_command, main as cli
-    from planarloc.cli.warmup_command import CompileRecorder, run_steps
+    from planarloc.cli import main as cli
+    from planarloc.compile import CompileRecorder, compile_lazily, run_steps
 
-    for module in (demo_command, localize_command):
-        module.compile_ahead = lambda steps, jobs=None: None  # lazy compilation, in this process
     t0, c0 = time.perf_counter(), time.process_time()
-    with CompileRecorder() as rec:
+    with compile_lazily(), CompileRecorder() as rec:  # lazy compilation, in this process
         if target == "localize":
             frame = sorted((work / "kitti" / "image_l").glob("*.png"))[1]
             code = cli.main(["localize", "--map", str(work / "map.db"), str(frame), "--out", str(work / "q.txt")])

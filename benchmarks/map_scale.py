@@ -188,7 +188,8 @@ def main(argv: list[str] | None = None) -> int:
           f"{args.features} RootSIFT-like features; {args.queries} queries each in a fresh process")
     print(peer.code_note())
     print(peer.load_note("at start"))
-    from planarloc.cli.warmup_command import compile_ahead, steps_for
+    from planarloc.cli.warmup_command import compile_ahead
+    from planarloc.compile import steps_for
     from planarloc.localize.localizer import LocalizerConfig
 
     compile_ahead(steps_for([LocalizerConfig()]))  # the measured processes load the kernels, never compile

@@ -23,6 +23,7 @@ LAYERS = {
     "evaluation": 6,
     "io": 7, "synthetic": 7,
     "distributed": 8, "viz": 8, "client": 8,   # libraries of the front doors
+    "compile": 8,                               # compiling the kernels ahead (warmup, first use)
     "serve": 9,                                 # the service (FastAPI app, Ray Serve deployment)
     "ros2": 9,                                  # the ROS 2 node
     "cli": 10,                                  # the command line, which also launches the service

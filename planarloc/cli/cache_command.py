@@ -63,7 +63,7 @@ def _lsize(path: Path) -> int:
 
 def _kernel_files() -> tuple[list[Path], list[Path]]:
     """numba's cache folders of planarloc's kernels and the index/data files in them."""
-    from planarloc.cli.warmup_command import kernel_cache_files
+    from planarloc.compile import kernel_cache_files
 
     return kernel_cache_files()
 

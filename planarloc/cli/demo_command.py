@@ -12,7 +12,8 @@ from planarloc.cli.commands import add_command
 from planarloc.cli.console import info, progress_bar
 from planarloc.cli.exit_codes import DEMO_RESUMES
 from planarloc.cli.report import print_summary_table, write_json
-from planarloc.cli.warmup_command import compile_ahead, steps_for
+from planarloc.cli.warmup_command import compile_ahead
+from planarloc.compile import steps_for
 from planarloc.evaluation.queries import config_label, evaluate_configs, summarize
 from planarloc.features.extract import FeatureConfig
 from planarloc.io.datasets import read_dataset

@@ -36,7 +36,8 @@ from planarloc.cli.query_sources import QuerySource, dataset_queries, image_quer
 from planarloc.cli.remote_localize import add_server_args, check_remote_args, remote_localizer
 from planarloc.cli.result_outputs import EstimateOutputs, add_output_args
 from planarloc.cli.sequence_cli import add_sequence_args, check_stream_args, sequence_config, stream_rerun
-from planarloc.cli.warmup_command import compile_ahead, steps_for
+from planarloc.cli.warmup_command import compile_ahead
+from planarloc.compile import steps_for
 from planarloc.geometry.camera import Camera
 from planarloc.geometry.validation import InputError
 from planarloc.io.datasets import FORMATS

@@ -78,7 +78,7 @@ def test_the_dockerfile_commands_run_as_its_user(tiny_world: Path) -> None:
     with shared_folder() as root:
         site = root / "site"
         _pip_install(site)  # RUN pip install .  (as root: the user cannot write the install)
-        assert (site / "planarloc" / "cli" / "kernels.json").is_file()
+        assert (site / "planarloc" / "compile" / "kernels.json").is_file()
         # Seed numba's cache from this checkout's (same sources, so the same valid entries) to save
         # minutes of compiling on a shared machine; warmup below compiles whatever is not there.
         for f in (REPO / "planarloc").rglob("__pycache__/*.nb[ic]"):

@@ -12,25 +12,21 @@ from pathlib import Path
 
 import pytest
 
-from planarloc.cli.warmup_command import (
-    CompileRecorder,
-    _Schedule,
-    load_manifest,
-    parse_signature,
-    warmup_steps,
-)
+from planarloc.compile import CompileRecorder, load_manifest, warmup_steps
+from planarloc.compile.schedule import _Schedule
+from planarloc.compile.signatures import parse_signature
 
 
 def test_the_kernel_list_names_real_cached_kernels_for_every_step() -> None:
     from numba.core.dispatcher import Dispatcher
 
-    from planarloc.cli.warmup_command import _dispatcher
+    from planarloc.compile.dispatchers import dispatcher
 
     manifest = load_manifest()
     assert set(manifest.steps) == {name for name, _ in warmup_steps()}
     assert all(manifest.steps.values()) and len(manifest.kernels) > 50
     for key, kernel in manifest.kernels.items():
-        d = _dispatcher(key)
+        d = dispatcher(key)
         assert isinstance(d, Dispatcher) and hasattr(d._cache, "_cache_file"), key  # a cache=True kernel
         # every signature parses but literal ones (``Literal[int](0)``: those specialisations compile with
         # the kernels that call them, or when the steps run)
@@ -105,7 +101,7 @@ def test_compile_ahead_says_so_and_fills_an_empty_cache_in_parallel(tmp_path: Pa
              "    def on_end(self, e): pass\n"
              "event.register('numba:compile', L())\n"
              f"{ahead}\n"
-             "from planarloc.cli.warmup_command import run_steps\n"
+             "from planarloc.compile import run_steps\n"
              "run_steps(['solvers'])\n"
              "print(compiled)\n")
     second = _python(check, env)
@@ -143,7 +139,7 @@ BAD_LISTS = {
 
 @pytest.mark.parametrize("text", BAD_LISTS.values(), ids=BAD_LISTS.keys())
 def test_load_manifest_names_the_file_and_the_problem(text: str, tmp_path: Path) -> None:
-    from planarloc.cli.warmup_command import ManifestError
+    from planarloc.compile import ManifestError
 
     bad = tmp_path / "kernels.json"
     bad.write_text(text)
@@ -169,7 +165,7 @@ def bad_list_install(tiny_world: Path, tmp_path_factory: pytest.TempPathFactory)
                             "--out", root / "map.db", "--vocabulary-size", "16"], env=env, capture_output=True,
                            text=True, timeout=900, cwd=root)  # cwd: `python -m` puts it first on sys.path
     assert built.returncode == 0, built.stderr
-    manifest = site / "planarloc" / "cli" / "kernels.json"
+    manifest = site / "planarloc" / "compile" / "kernels.json"
     manifest.write_text(BAD_LISTS["kernels a list"])
     return root, env, manifest
 
@@ -199,3 +195,24 @@ def test_localize_goes_on_without_a_well_formed_kernel_list(bad_list_install, ti
 @pytest.mark.parametrize("text", ["9**9**9**9", "().__class__.__mro__", "[x for x in ()]", "(float64,) * 10**12"])
 def test_a_signature_in_the_list_is_data_never_code(text: str) -> None:
     assert parse_signature(text) is None  # returns at once: no operator, attribute or comprehension is evaluated
+
+
+def test_steps_for_names_the_step_of_each_method_and_structure() -> None:
+    from planarloc.compile import steps_for
+    from planarloc.localize.localizer import LocalizerConfig
+    from planarloc.robust.options import RansacOptions
+
+    configs = [LocalizerConfig(method="2p1p", ransac=RansacOptions(structure="none")), LocalizerConfig()]
+    assert steps_for(configs) == sorted({"2p1p none", f"{LocalizerConfig().method.value} tracks"})
+    assert set(steps_for(configs)) <= {name for name, _ in warmup_steps()}
+
+
+def test_compile_lazily_plans_nothing_and_ends_with_its_block(monkeypatch: pytest.MonkeyPatch) -> None:
+    from planarloc.compile import ahead
+
+    read: list[object] = []
+    monkeypatch.setattr(ahead, "load_manifest", lambda: read.append(1) or load_manifest())
+    with ahead.compile_lazily():
+        assert ahead.plan_ahead(["solvers"]) is None and read == []  # not even the list is read
+    ahead.plan_ahead(["solvers"])
+    assert read == [1]  # outside the block compiling ahead plans again

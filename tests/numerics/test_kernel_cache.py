@@ -41,8 +41,8 @@ if sys.argv[1] == "--kernel":  # a signature no warm-up compiles
 else:
     from planarloc.cli.main import main
     rc = main(sys.argv[1:])
-from planarloc.cli.warmup_command import _planarloc_dispatchers
-hits = sum(sum(d.stats.cache_hits.values()) for d in _planarloc_dispatchers().values())
+from planarloc.compile.dispatchers import planarloc_dispatchers
+hits = sum(sum(d.stats.cache_hits.values()) for d in planarloc_dispatchers().values())
 print("PROBE " + json.dumps({"file": planarloc.__file__, "rc": rc, "compiled": compiled, "hits": hits}),
       file=sys.stderr)
 '''
@@ -164,9 +164,9 @@ def test_a_temp_folder_of_that_name_made_by_someone_else_is_never_used(install: 
 
 def test_every_kernel_is_defined_after_the_cache_class_is_in_place() -> None:
     code = ("import planarloc.cli.main, planarloc.localize.localizer\n"
-            "from planarloc.cli.warmup_command import _planarloc_dispatchers\n"
+            "from planarloc.compile.dispatchers import planarloc_dispatchers\n"
             "from planarloc.numerics.kernel_cache import KernelCache\n"
-            "ds = _planarloc_dispatchers()\n"
+            "ds = planarloc_dispatchers()\n"
             "print(len(ds), sorted(k for k, d in ds.items() if type(d._cache) is not KernelCache))\n")
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stderr

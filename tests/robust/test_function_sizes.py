@@ -3,7 +3,7 @@ excluded) per function, nested ones included.
 
 The numba kernels below still take a problem's arrays one by one. A named record of them
 (a ``typing.NamedTuple``, which numba compiles) changes the kernels' signatures to a type whose
-text the shipped kernel list (``planarloc/cli/kernels.json``) cannot hold as data, so those
+text the shipped kernel list (``planarloc/compile/kernels.json``) cannot hold as data, so those
 kernels would no longer compile ahead (``planarloc warmup``); until the list can name such
 types, each keeps at most its present size. The list may only shrink.
 """

@@ -1,0 +1,36 @@
+"""Kernel signatures as ``kernels.json`` writes them (``repr`` of a tuple of numba types), read
+back as data: never evaluated as code beyond numba type names, calls, constants and tuples."""
+
+from __future__ import annotations
+
+import ast
+
+
+def numba_types() -> dict[str, object]:
+    """The names a signature may use: numba's type names, plus ``bool`` and ``omitted``."""
+    from numba.core import types
+
+    names = {k: v for k, v in vars(types).items() if not k.startswith("_")}
+    names["bool"] = types.boolean  # repr(types.boolean) is 'bool'
+    names["omitted"] = lambda default: types.Omitted(default)  # repr: 'omitted(default=...)'
+    return names
+
+
+#: The expressions a signature may use: type names, calls and subscripts of them
+#: (``array(float64, 1d, C)``, ``Literal[int](0)``), constants and tuples; no operators or attributes.
+_SIGNATURE_NODES = (ast.Expression, ast.Tuple, ast.Name, ast.Call, ast.keyword, ast.Subscript, ast.Constant,
+                    ast.Load, ast.UnaryOp, ast.USub)
+
+
+def parse_signature(text: str, names: dict[str, object] | None = None) -> tuple | None:
+    """The argument types of a signature written as ``repr(tuple_of_numba_types)``; None if it
+    does not parse (e.g. a literal type) or is not made only of numba type names, calls, constants
+    and tuples (the list is data: it is never evaluated as code beyond that)."""
+    try:
+        if not isinstance(text, str) or len(text) > 4000 or not all(
+                isinstance(n, _SIGNATURE_NODES) for n in ast.walk(ast.parse(text, mode="eval"))):
+            return None
+        sig = eval(text, {"__builtins__": {}}, names or numba_types())  # noqa: S307 - numba type names only
+    except Exception:  # noqa: BLE001 - any failure: the kernel is compiled by the steps instead
+        return None
+    return sig if isinstance(sig, tuple) else None
