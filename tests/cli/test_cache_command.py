@@ -127,7 +127,8 @@ def test_a_link_planted_by_another_user_never_makes_cache_clean_delete_roots_fil
         for name in ("planarloc-bags", "planarloc-maps"):
             made = run_as(user, ["ln", "-s", target, tmp / name], env=plant)
             assert made.returncode == 0, made.stderr
-        env = {**os.environ, "TMPDIR": str(tmp)}
+        # `clean all` also cleans the kernels: aimed at a folder of this test, never the checkout's
+        env = {**os.environ, "TMPDIR": str(tmp), "NUMBA_CACHE_DIR": str(shared / "numba")}
         cleaned = cli("cache", "clean", "all", env=env)
         assert cleaned.returncode == 0, cleaned.stderr
         assert _intact(target)
