@@ -47,6 +47,8 @@ def test_served_pose_equals_cli_pose(server, tmp_path: Path) -> None:
     server_args = ["--server", server.url, "--token", server.token, "--map", "second"]
     assert main(["localize", *server_args, *common, "--out", str(remote)]) == 0
     assert same_words_and_numbers(remote.read_text(), out.read_text())
+    for path in sorted((tmp_path / "remote.txt.json.d").glob("*.json")):  # localize --server's records too
+        check("record", path.read_text(), str(path))
 
 
 def same_words_and_numbers(a: str, b: str) -> bool:
