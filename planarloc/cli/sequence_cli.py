@@ -180,14 +180,15 @@ def evaluate_sequential(args: argparse.Namespace, map_path: Path, map_images: li
     motion = "simulated odometry" if args.simulate_odometry else "odometry" if args.odometry else "visual odometry"
     summary = summarize_sequence(results, dataset=" ".join(str(d) for d in args.dataset), map_every=args.map_every,
                                  motion=motion,
-                                 structure=str(getattr(localizer_config.ransac.structure, "value", "")),
+                                 structure=localizer_config.ransac.structure.value,  # type: ignore[attr-defined]
                                  kidnap_at=args.kidnap_at, drop_every=args.drop_every, dropped=len(drop),
                                  window=seq.config.window, local_top_n=seq.config.local_top_n,
                                  fixes=seq.config.fixes, rate_hz=args.rate, stream=stats)
     if args.tum:
         # the dataset's times, also for frames a kidnap re-timed on the stream's clock
         summary["evo"] = write_evaluation_tum(args.tum, results, {q.name: q.timestamp for q in queries})
-    title = f"{Path(args.dataset[0]).name}, map every {args.map_every}, {len(frames)} frames streamed"
+    split = f"map every {args.map_every}" if args.map_every else f"queries {Path(args.queries).name}"
+    title = f"{Path(args.dataset[0]).name}, {split}, {len(frames)} frames streamed"
     print_sequence_table([(motion, summary)], title)
     write_json(args.json, summary)
     write_trajectory_plot(args.plot, map_images, results, f"{title}: {motion}", loc.gravity.g_world_array)

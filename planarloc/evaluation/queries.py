@@ -254,9 +254,8 @@ def evaluate_query(localizers: Sequence[Localizer], query: PosedImage,
 
 
 def config_label(config: LocalizerConfig) -> tuple[str, str]:
-    method = getattr(config.method, "value", config.method)
-    structure = getattr(config.ransac.structure, "value", config.ransac.structure)
-    return str(method), str(structure)
+    """``(method, structure)`` of ``config`` as their names (``("auto", "tracks")``)."""
+    return config.method.value, config.ransac.structure.value  # type: ignore[union-attr]  # a Method once built
 
 
 def default_map_path(dataset_root: Path, map_every: int, feature_name: str,

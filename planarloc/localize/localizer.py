@@ -37,7 +37,7 @@ from planarloc.map.schema import VOCABULARY_BLOB
 from planarloc.map.settings import feature_config_from_map
 from planarloc.map.store import MapDatabase
 from planarloc.robust.absolute_pose import estimate_absolute_pose
-from planarloc.robust.options import Method, RansacOptions, Structure
+from planarloc.robust.options import Method, RansacOptions, Structure, parse_method
 from planarloc.robust.pair_matches import PairMatches, unit_gravity
 from planarloc.robust.result import PoseEstimate
 from planarloc.robust.covisibility import epipolar_support, seeing_support
@@ -78,6 +78,7 @@ class LocalizerConfig:
     min_matches: int = 3
 
     def __post_init__(self) -> None:
+        object.__setattr__(self, "method", parse_method(self.method))  # a name ("2p1p") becomes its Method
         if int(self.top_n) < 2:
             raise InputError(f"top_n: need at least 2 reference images to fix the scale, got {self.top_n}")
 

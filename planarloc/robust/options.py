@@ -6,6 +6,7 @@ import copy
 import math
 from dataclasses import dataclass
 from enum import Enum
+from typing import TypeVar
 
 import numpy as np
 
@@ -41,6 +42,8 @@ class Structure(str, Enum):
     NONE = "none"
     TRACKS = "tracks"
 
+
+_E = TypeVar("_E", Method, Structure)
 
 _FINITE_FIELDS = ("threshold_px", "rcheck_deg", "consistency_deg", "max_position_std_m", "map_rotation_std_deg",
                   "map_position_std_m", "min_collinearity_ratio", "track_min_angle_deg", "planar_tolerance_deg",
@@ -124,10 +127,7 @@ class RansacOptions:
     seed: int | None = 0
 
     def __post_init__(self) -> None:
-        try:
-            object.__setattr__(self, "structure", Structure(getattr(self.structure, "value", self.structure)))
-        except ValueError:
-            raise InputError(f"RansacOptions.structure: expected 'none' or 'tracks', got {self.structure!r}") from None
+        object.__setattr__(self, "structure", parse_choice(Structure, self.structure, "RansacOptions.structure"))
         for name in ("max_iterations", "min_iterations", "min_inliers"):
             check_integer(f"RansacOptions.{name}", getattr(self, name), 0)
         check_integer("RansacOptions.seed", self.seed, 0, allow_none=True)
@@ -175,9 +175,26 @@ def reprojection_threshold_px(options: RansacOptions) -> float:
     return 2.0 * options.threshold_px if options.threshold_3d_px is None else float(options.threshold_3d_px)
 
 
-def parse_method(method: Method | str) -> Method:
+def parse_choice(kind: type[_E], value: _E | str, name: str) -> _E:
+    """``value`` as a member of the enum ``kind`` (:class:`Method`, :class:`Structure`): a member, or
+    its value as a string (a CLI argument, a form field, a ROS parameter). The one place where a
+    front door's text becomes an enum; configurations hold the members.
+
+    Raises:
+        InputError: a value that is not one of ``kind``'s, naming ``name`` and the choices.
+    """
     try:
-        return Method(getattr(method, "value", method))
+        return kind(getattr(value, "value", value))
     except ValueError:
-        names = ", ".join(m.value for m in Method)
-        raise InputError(f"method: unknown method {method!r}; choose one of {names}") from None
+        names = ", ".join(str(m.value) for m in kind)
+        raise InputError(f"{name}: expected one of {names}, got {value!r}") from None
+
+
+def parse_method(method: Method | str) -> Method:
+    """:func:`parse_choice` for a :class:`Method`."""
+    return parse_choice(Method, method, "method")
+
+
+def parse_structure(structure: Structure | str) -> Structure:
+    """:func:`parse_choice` for a :class:`Structure`."""
+    return parse_choice(Structure, structure, "structure")

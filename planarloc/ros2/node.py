@@ -68,9 +68,9 @@ from planarloc.geometry.pose import Pose
 from planarloc.geometry.validation import InputError
 from planarloc.io import strict_json
 from planarloc.io.rosbag import decode_image
-from planarloc.localize.localizer import Localizer, localizer_config
+from planarloc.localize.localizer import Localizer
 from planarloc.localize.records import error_record, frame_record
-from planarloc.localize.sequence import FrameStatus, SequenceConfig, SequenceEstimate, SequenceLocalizer
+from planarloc.localize.sequence import FrameStatus, SequenceEstimate, SequenceLocalizer
 from planarloc.ros2.conversions import (
     OdometryBuffer,
     TransformTree,
@@ -212,12 +212,7 @@ class LocalizerNode:
     def _open(self) -> None:
         """Open the map and warm the localizer up (in the worker: SQLite stays in one thread)."""
         s = self.settings
-        config = localizer_config(method=s.method, structure=s.structure, seed=s.seed, top_n=s.top_n,
-                                  max_position_std_m=s.max_position_std_m)
-        self.sequence = SequenceLocalizer(
-            Localizer(s.map, config),
-            SequenceConfig(window=s.window, local_top_n=s.local_top_n, vo_model=s.vo_model,
-                           kidnap_confirmations=s.kidnap_confirmations, fixes=s.fixes))
+        self.sequence = SequenceLocalizer(Localizer(s.map, s.localizer_config()), s.sequence_config())
         # The first query of a process is ~10x slower than the next (kernels loaded from the compile
         # cache, first calls into OpenCV): pay for it before the first frame, not with dropped frames.
         gravity = self.sequence.localizer.gravity

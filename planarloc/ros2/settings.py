@@ -1,6 +1,6 @@
 """The ROS 2 node's parameters (:class:`NodeSettings`), their checks, and the files that use them.
 
-This module imports neither rclpy nor the localizer, so that ``planarloc ros2 --help`` can list the
+This module does not import rclpy, so that ``planarloc ros2 --help`` can list the
 parameters (:func:`parameters_listing`) and tests can check the packaged files against them:
 ``share/params.yaml`` (every parameter with its default, :func:`params_yaml`),
 ``share/planarloc.launch.py`` (ROS 2 launch) and ``share/planarloc.rviz`` (:data:`SHARE_DIR`).
@@ -19,8 +19,9 @@ from planarloc.geometry.pose import Pose
 from planarloc.geometry.validation import InputError
 from planarloc.io.ros_messages import rectified_topic
 from planarloc.io.rosbag import parse_transform
+from planarloc.localize.localizer import LocalizerConfig, localizer_config
 from planarloc.localize.stream_config import FIX_MODES, SequenceConfig
-from planarloc.robust.options import Method
+from planarloc.robust.options import Method, Structure
 
 NODE_NAME = "planarloc"
 #: the packaged launch file, parameter file and rviz configuration (``planarloc ros2 --share-dir``)
@@ -30,7 +31,14 @@ MAP_FRAME_CONVENTIONS = ("z_up", "world")
 #: parameters every ROS 2 node has (rclpy declares them)
 ROS_PARAMETERS = ("use_sim_time",)
 
+# The defaults of the settings the node shares with the library are the library's (a test checks it):
+_LOC = LocalizerConfig()
 _SEQ = SequenceConfig()
+#: ``max_published_std_m``'s default, a node-only limit (m): deliberately looser than the stream's
+#: ``SequenceConfig.max_pose_std_m`` (0.3 m), which already calls a frame with a larger std ``lost``;
+#: measured in BENCHMARKS.md ("The node's publishing limit"): 100 / 97.4 / 100 % published within
+#: 0.25 m at 10 Hz without odometry, against 81.6 / 97.4 / 97.5 % with a 0.3 m limit.
+MAX_PUBLISHED_STD_M = 0.5
 
 
 @dataclass(frozen=True)
@@ -108,12 +116,12 @@ class NodeSettings:
     transform_tolerance_s: float = 1.0
     tf_broadcast: bool = True
     publish_predicted: bool = True
-    max_position_std_m: float = 0.3
-    max_published_std_m: float = 0.5
-    method: str = "auto"
-    structure: str = "tracks"
-    top_n: int = 5
-    seed: int = 0
+    max_position_std_m: float = _LOC.ransac.max_position_std_m
+    max_published_std_m: float = MAX_PUBLISHED_STD_M
+    method: str = _LOC.method.value  # type: ignore[union-attr]  # LocalizerConfig holds a Method
+    structure: str = _LOC.ransac.structure.value
+    top_n: int = _LOC.top_n
+    seed: int = int(_LOC.ransac.seed or 0)
     window: int = _SEQ.window
     local_top_n: int = _SEQ.local_top_n
     vo_model: str = _SEQ.vo_model
@@ -124,7 +132,8 @@ class NodeSettings:
     def __post_init__(self) -> None:
         if not self.map:
             raise InputError("parameter map: give the map file (--map MAP.db or -p map:=MAP.db)")
-        choices = {"method": [m.value for m in Method], "fixes": list(FIX_MODES),
+        choices = {"method": [m.value for m in Method], "structure": [s.value for s in Structure],
+                   "fixes": list(FIX_MODES),
                    "image_qos": ["sensor_data", "reliable"], "map_frame_convention": list(MAP_FRAME_CONVENTIONS)}
         for name, allowed in choices.items():
             if getattr(self, name) not in allowed:
@@ -140,6 +149,17 @@ class NodeSettings:
                      "odom_frame", "base_frame"):
             if not getattr(self, name):
                 raise InputError(f"parameter {name}: must not be empty")
+
+    def localizer_config(self) -> LocalizerConfig:
+        """The fixes' single-frame localizer configuration (``method`` and ``structure`` parsed here,
+        the ROS parameters' edge; what is not a parameter keeps :class:`LocalizerConfig`'s default)."""
+        return localizer_config(method=self.method, structure=self.structure, seed=self.seed, top_n=self.top_n,
+                                max_position_std_m=self.max_position_std_m)
+
+    def sequence_config(self) -> SequenceConfig:
+        """The stream's configuration (what is not a parameter keeps :class:`SequenceConfig`'s default)."""
+        return SequenceConfig(window=self.window, local_top_n=self.local_top_n, vo_model=self.vo_model,
+                              kidnap_confirmations=self.kidnap_confirmations, fixes=self.fixes)
 
     @property
     def base_from_camera(self) -> Pose | None:

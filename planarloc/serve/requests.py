@@ -33,9 +33,9 @@ from planarloc.geometry.camera import Camera
 from planarloc.geometry.pose import Pose
 from planarloc.geometry.validation import InputError
 from planarloc.io.text import T_XYZW, parse_camera, parse_gravity, parse_pose
-from planarloc.localize.localizer import localizer_config
+from planarloc.localize.localizer import LocalizerConfig, localizer_config
 from planarloc.map.schema import MapFormatError
-from planarloc.robust.options import Method, Structure
+from planarloc.robust.options import Method, Structure, parse_method, parse_structure
 
 #: Default upper bound of an uploaded image (bytes).
 DEFAULT_MAX_IMAGE_BYTES = 20 * 1024 * 1024
@@ -53,6 +53,7 @@ MAX_STAMP_S = 1e12
 #: Unix time or a clock that started later (a simulation, a replay); one a day ahead or more was
 #: never taken yet (it would also hold its session's later frames off as out of order).
 MAX_STAMP_AHEAD_S = 86400.0
+_DEFAULT = LocalizerConfig()
 FIELDS = ("image", "camera", "map", "gravity", "session", "stamp", "odometry", "method", "structure", "seed")
 
 
@@ -152,6 +153,28 @@ class MapSet:
 
 
 @dataclass(frozen=True)
+class QuerySettings:
+    """What configures the localizer for a request (and a session, from its first frame): the
+    defaults are :class:`~planarloc.localize.localizer.LocalizerConfig`'s, so the service, the CLI
+    and the ROS node configure alike."""
+
+    method: Method = _DEFAULT.method  # type: ignore[assignment]  # LocalizerConfig holds a Method
+    structure: Structure = _DEFAULT.ransac.structure
+    seed: int | None = _DEFAULT.ransac.seed
+
+    def config(self) -> LocalizerConfig:
+        """The localizer's configuration.
+
+        Raises:
+            InputError: a value the options refuse.
+        """
+        return localizer_config(method=self.method, structure=self.structure, seed=self.seed)
+
+    def __str__(self) -> str:
+        return f"(method, structure, seed) = ({self.method.value}, {self.structure.value}, {self.seed})"
+
+
+@dataclass(frozen=True)
 class LocalizeRequest:
     """A validated localization request (picklable: it crosses into worker processes)."""
 
@@ -161,20 +184,18 @@ class LocalizeRequest:
     camera: Camera | None
     gravity: tuple[float, float, float] | None = None
     session: str | None = None
-    method: str | None = None
-    structure: str | None = None
+    method: Method | None = None  # None: the default (QuerySettings)
+    structure: Structure | None = None
     seed: int | None = None
     image_size: tuple[int, int] = field(default=(0, 0))  # (width, height) from the header
     stamp: float | None = None  # a session frame's time (s)
     odometry: Pose | None = None  # a session frame's cam_from_odom, or None
 
     @property
-    def settings(self) -> tuple[str, str, int]:
-        """What configures the localizer: ``(method, structure, seed)``, defaults filled in (a
-        session keeps those of its first frame)."""
-        config = localizer_config(method=self.method, structure=self.structure, seed=self.seed)
-        return (str(getattr(config.method, "value", config.method)),
-                str(getattr(config.ransac.structure, "value", config.ransac.structure)), int(config.ransac.seed))
+    def settings(self) -> QuerySettings:
+        """What configures the localizer, defaults filled in (a session keeps those of its first frame)."""
+        given = {"method": self.method, "structure": self.structure, "seed": self.seed}
+        return QuerySettings(**{k: v for k, v in given.items() if v is not None})  # type: ignore[arg-type]
 
 
 def image_size(data: bytes) -> tuple[str, int, int]:
@@ -230,12 +251,22 @@ def parse_odometry_field(text: str) -> Pose:
         raise RequestError(400, f"odometry {text[:80]!r}: {str(exc)[:200]}") from None
 
 
-def _choice(name: str, text: str | None, choices: Sequence[str]) -> str | None:
-    if not text:
-        return None
-    if text not in choices:
-        raise RequestError(400, f"{name}: expected one of {', '.join(choices)}, got {text[:40]!r}")
-    return text
+def parse_method_field(text: str | None) -> Method | None:
+    """``method`` (a :class:`Method`'s name; empty: the default), else a 400."""
+    try:
+        return parse_method(text) if text else None
+    except InputError:
+        raise RequestError(400, f"method: expected one of {', '.join(m.value for m in Method)}, "
+                                f"got {text[:40]!r}") from None
+
+
+def parse_structure_field(text: str | None) -> Structure | None:
+    """``structure`` (a :class:`Structure`'s name; empty: the default), else a 400."""
+    try:
+        return parse_structure(text) if text else None
+    except InputError:
+        raise RequestError(400, f"structure: expected one of {', '.join(s.value for s in Structure)}, "
+                                f"got {text[:40]!r}") from None
 
 
 def parse_localize_request(
@@ -298,8 +329,8 @@ def parse_localize_request(
         camera=camera,
         gravity=parse_gravity_field(fields["gravity"]) if fields.get("gravity") else None,
         session=session,
-        method=_choice("method", fields.get("method"), [m.value for m in Method]),
-        structure=_choice("structure", fields.get("structure"), [s.value for s in Structure]),
+        method=parse_method_field(fields.get("method")),
+        structure=parse_structure_field(fields.get("structure")),
         seed=None if seed is None else int(seed),
         image_size=(w, h),
         stamp=stamp,

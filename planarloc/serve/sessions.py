@@ -41,10 +41,10 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
 from planarloc.geometry.validation import InputError
-from planarloc.localize.localizer import Localizer, localizer_config
+from planarloc.localize.localizer import Localizer
 from planarloc.localize.records import frame_record
 from planarloc.localize.sequence import SequenceConfig, SequenceLocalizer
-from planarloc.serve.requests import LocalizeRequest, RequestError, ServerFault, classify_error
+from planarloc.serve.requests import LocalizeRequest, QuerySettings, RequestError, ServerFault, classify_error
 from planarloc.serve.settings import DEFAULT_MAX_SESSIONS, DEFAULT_SESSION_IDLE_S
 
 logger = logging.getLogger(__name__)
@@ -73,7 +73,7 @@ class SessionEntry:
 
     id: str
     map_name: str
-    settings: tuple
+    settings: QuerySettings
     slot: int
     generation: int
     last_used: float  # when it was opened, or its last frame was answered (refused frames do not count)
@@ -156,8 +156,8 @@ class SessionTable:
         entry = self.entries.get(req.session)
         if entry is not None:
             if (entry.map_name, entry.settings) != (req.map_name, req.settings):
-                raise RequestError(409, f"session {req.session!r}: started on map {entry.map_name!r} with (method, "
-                                        f"structure, seed) = {entry.settings}; a frame cannot change them (use "
+                raise RequestError(409, f"session {req.session!r}: started on map {entry.map_name!r} with "
+                                        f"{entry.settings}; a frame cannot change them (use "
                                         "another session id)")
         else:
             if len(self.entries) >= self.max_sessions:
@@ -228,9 +228,8 @@ class SessionStates:
         sid = str(req.session)
         state = self._states.get(sid)
         if state is None or state.generation != generation:
-            method, structure, seed = req.settings
             try:
-                config = localizer_config(method=method, structure=structure, seed=seed)
+                config = req.settings.config()
             except InputError as exc:
                 raise RequestError(400, str(exc)) from None
             # Each request is answered with its frame's fix (``fixes="wait"``): a served frame has no

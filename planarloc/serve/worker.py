@@ -24,7 +24,7 @@ import time
 from collections.abc import Mapping
 from pathlib import Path
 
-from planarloc.localize.localizer import Localizer, localizer_config
+from planarloc.localize.localizer import Localizer
 from planarloc.localize.records import query_record
 from planarloc.serve.map_watch import MapFingerprint, fingerprint_change, map_fingerprint
 from planarloc.serve.requests import LocalizeRequest, RequestError, ServerFault, classify_error
@@ -78,7 +78,7 @@ def localize_with(base: Localizer, req: LocalizeRequest) -> dict:
         ServerFault: anything that goes wrong once the query is accepted (a damaged map, a bug).
     """
     try:
-        loc = base.with_config(localizer_config(method=req.method, structure=req.structure, seed=req.seed))
+        loc = base.with_config(req.settings.config())
         query = loc.prepare(req.image, req.camera, name=req.name, gravity=req.gravity)
     except Exception as exc:  # noqa: BLE001 - sorted into the client's and the server's
         raise classify_error(exc, req.name) from None

@@ -4,10 +4,10 @@ from __future__ import annotations
 
 import subprocess
 from collections.abc import Iterator
-from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
+from served import Served
 
 pytest.importorskip("fastapi", reason="the serve extra is not installed (pip install 'planarloc[serve]')")
 pytest.importorskip("httpx", reason="the serve extra is not installed (pip install 'planarloc[serve]')")
@@ -19,16 +19,6 @@ from planarloc.synthetic.world.export import generate  # noqa: E402
 from planarloc.synthetic.world.presets import get_preset, shrunk  # noqa: E402
 
 TOKEN = "test-token"
-
-
-@dataclass(frozen=True)
-class Served:
-    url: str
-    process: subprocess.Popen
-    world: Path
-    map_path: Path
-    camera: str
-    token: str
 
 
 @pytest.fixture(scope="session")

@@ -15,7 +15,7 @@ from pathlib import Path
 import httpx
 import numpy as np
 import pytest
-from conftest import Served
+from served import Served
 from record_schemas import check
 
 from planarloc.cli.main import main

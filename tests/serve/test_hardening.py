@@ -15,7 +15,7 @@ from pathlib import Path
 
 import httpx
 import pytest
-from conftest import Served
+from served import Served
 
 from planarloc.cli.main import main
 from planarloc.client import Client, ServiceError, resolve_token

@@ -71,9 +71,12 @@ def test_session_fields(tmp_path: Path) -> None:
                                  png, "q.png", maps)
     assert req.stamp == 0.30000000000000004 and req.session == "r1"
     np.testing.assert_allclose(req.odometry.center, [1, 2, 3])  # cam_from_odom of a camera at (1, 2, 3)
-    from planarloc.robust.options import RansacOptions
+    from planarloc.robust.options import Method, RansacOptions, Structure
+    from planarloc.localize.localizer import LocalizerConfig
+    from planarloc.serve.requests import QuerySettings
 
-    assert req.settings == ("auto", "tracks", RansacOptions().seed)  # the defaults, filled in
+    assert req.settings == QuerySettings(Method.AUTO, Structure.TRACKS, RansacOptions().seed)  # the defaults, filled in
+    assert req.method is None and req.settings.config() == LocalizerConfig()
     for fields, match in [({"session": "r1"}, "stamp: required"), ({"stamp": "1"}, "only for a frame of a session"),
                           ({"session": "r1", "stamp": "1e400"}, "stamp"), ({"session": "r1", "stamp": "0x1"}, "stamp"),
                           ({"session": "r 1", "stamp": "1"}, "session"),

@@ -16,7 +16,7 @@ import cv2
 import httpx
 import numpy as np
 import pytest
-from conftest import Served
+from served import Served
 
 from planarloc.localize.localizer import Localizer
 from planarloc.serve.app import bearer_token_matches
