@@ -40,8 +40,8 @@ from robustness import ITERATIONS, MAX_CENTRE_ERROR_M, MAX_ROTATION_ERROR_DEG, T
 
 from planarloc.geometry.pose import pose_errors  # noqa: E402
 from planarloc.robust.absolute_pose import estimate_absolute_pose  # noqa: E402
-from planarloc.robust.final_refinement import FinalRefiner  # noqa: E402
 from planarloc.robust.estimators import Planar2p1pEstimator  # noqa: E402
+from planarloc.robust.final_refinement import FinalRefiner  # noqa: E402
 from planarloc.robust.options import RansacOptions  # noqa: E402
 from planarloc.robust.problem import build_problem  # noqa: E402
 from planarloc.synthetic.scenes import make_scene  # noqa: E402

@@ -27,10 +27,10 @@ from __future__ import annotations
 
 import argparse
 import itertools
-from collections import Counter
 import sys
 import tempfile
 import time
+from collections import Counter
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -42,15 +42,15 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import _peer_pipeline as peer  # noqa: E402
 from _datasets import build_or_reuse  # noqa: E402
 
-from planarloc.geometry.pose import Pose  # noqa: E402
-from planarloc.io.datasets import read_dataset  # noqa: E402
 from planarloc.evaluation.queries import THRESHOLDS, split_map_queries, threshold_name  # noqa: E402
 from planarloc.features.extract import FeatureConfig, extract_features  # noqa: E402
-from planarloc.localize.localizer import Localizer, localizer_config  # noqa: E402
 from planarloc.features.images import read_gray  # noqa: E402
+from planarloc.geometry.pose import Pose  # noqa: E402
+from planarloc.io.datasets import read_dataset  # noqa: E402
+from planarloc.localize.localizer import Localizer, localizer_config  # noqa: E402
 from planarloc.map.codec import DEFAULT_STORAGE, STORAGE_LAYOUTS  # noqa: E402
-from planarloc.map.store import MapDatabase  # noqa: E402
 from planarloc.map.posed_image import PosedImage  # noqa: E402
+from planarloc.map.store import MapDatabase  # noqa: E402
 
 DATA_ROOT = Path(__file__).resolve().parents[2] / "shared" / "data"
 SEQUENCES = ["kitti_seq1", "kitti_seq2"]

@@ -9,8 +9,7 @@ from contextlib import closing
 from pathlib import Path
 
 from planarloc.cli.commands import add_command
-from planarloc.cli.console import info, note, notify, progress_bar
-from planarloc.cli.warmup_command import compile_ahead
+from planarloc.cli.console import note, notify, progress_bar
 from planarloc.cli.cross_session import add_cross_session_args, read_map_and_queries
 from planarloc.cli.exit_codes import EVALUATE_RESUMES, EXIT_PARTIAL
 from planarloc.cli.options import (
@@ -25,6 +24,7 @@ from planarloc.cli.options import (
 from planarloc.cli.report import partial_exit, print_summary_table, write_json, write_trajectory_plot
 from planarloc.cli.result_outputs import EstimateOutputs, add_output_args, write_evaluation_tum
 from planarloc.cli.sequence_cli import add_sequence_args, check_sequential_args, evaluate_sequential
+from planarloc.cli.warmup_command import compile_ahead
 from planarloc.compile import steps_for
 from planarloc.distributed.ray_backend import ray_session
 from planarloc.evaluation.queries import config_label, evaluate_queries, gravity_from_truth, summarize

@@ -7,7 +7,6 @@ import logging
 import sqlite3
 import sys
 
-from planarloc.version import __version__
 from planarloc.cli import (
     cache_command,
     demo_command,
@@ -19,9 +18,11 @@ from planarloc.cli import (
     warmup_command,
 )
 from planarloc.cli.errors import os_error_message, sqlite_error_message
-from planarloc.cli.exit_codes import EXIT_ERROR, EXIT_INTERRUPTED, HELP as EXIT_CODES_HELP
+from planarloc.cli.exit_codes import EXIT_ERROR, EXIT_INTERRUPTED
+from planarloc.cli.exit_codes import HELP as EXIT_CODES_HELP
 from planarloc.extras import MissingExtraError
 from planarloc.map.errors import MapKeyError
+from planarloc.version import __version__
 
 
 def build_parser() -> argparse.ArgumentParser:

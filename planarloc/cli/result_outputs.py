@@ -13,8 +13,8 @@ from planarloc.cli.console import info, note
 from planarloc.features.extract import Features, extract_features
 from planarloc.geometry.camera import Camera
 from planarloc.geometry.pose import Pose
-from planarloc.io.results import query_timestamp
 from planarloc.io.output import StagedFiles
+from planarloc.io.results import query_timestamp
 from planarloc.io.tum import tum_trajectory_text
 from planarloc.localize.localizer import Localizer
 from planarloc.map.posed_image import PosedImage

@@ -60,7 +60,12 @@ from typing import Any
 import cv2
 import numpy as np
 
-from planarloc.features.images import ImageFormatError, check_image_pixels, declared_size, image_size_from_header
+from planarloc.features.images import (
+    ImageFormatError,
+    check_image_pixels,
+    declared_size,
+    image_size_from_header,
+)
 from planarloc.geometry.camera import Camera
 from planarloc.geometry.pose import Pose
 from planarloc.geometry.validation import InputError

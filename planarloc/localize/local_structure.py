@@ -29,11 +29,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from planarloc.features.extract import Features
+from planarloc.features.matching import DEFAULT_RATIO, match_features
 from planarloc.geometry.camera import Camera
 from planarloc.geometry.epipolar import triangulate_points, triangulation_uncertainty
 from planarloc.geometry.pose import Pose
-from planarloc.features.extract import Features
-from planarloc.features.matching import DEFAULT_RATIO, match_features
 from planarloc.robust.structure import KEYPOINT_STD_PX
 
 logger = logging.getLogger(__name__)

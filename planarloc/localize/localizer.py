@@ -37,10 +37,10 @@ from planarloc.map.schema import VOCABULARY_BLOB
 from planarloc.map.settings import feature_config_from_map
 from planarloc.map.store import MapDatabase
 from planarloc.robust.absolute_pose import estimate_absolute_pose
+from planarloc.robust.covisibility import epipolar_support, seeing_support
 from planarloc.robust.options import Method, RansacOptions, Structure, parse_method
 from planarloc.robust.pair_matches import PairMatches, unit_gravity
 from planarloc.robust.result import PoseEstimate
-from planarloc.robust.covisibility import epipolar_support, seeing_support
 from planarloc.robust.status import Status
 
 logger = logging.getLogger(__name__)

@@ -26,9 +26,9 @@ from planarloc.robust.hypotheses import (
     hypotheses_2p1p_consensus,
     hypotheses_from_relative_poses,
     hypotheses_p3p,
-    top_distinct_relative,
     hypotheses_up2p,
     planar_relative_candidates,
+    top_distinct_relative,
 )
 from planarloc.robust.local_optimization import distinct_centres, level_plane, refine_planar_then_6dof
 from planarloc.robust.map_prior import refine_with_map_prior

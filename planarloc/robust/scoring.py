@@ -12,7 +12,12 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from planarloc.geometry.epipolar_kernels import essential_into, relative_essential_into, reprojection_sq, sampson_sq
+from planarloc.geometry.epipolar_kernels import (
+    essential_into,
+    relative_essential_into,
+    reprojection_sq,
+    sampson_sq,
+)
 
 
 @njit(cache=True, inline="always")

@@ -14,7 +14,6 @@ from pathlib import Path
 
 from planarloc.extras import require
 
-
 #: The banner ``planarloc serve`` prints on stderr once its socket is bound.
 BANNER = re.compile(r"^serving .* on http://(?P<host>[^\s]+):(?P<port>\d+) ")
 

@@ -54,8 +54,8 @@ from numba import njit, prange
 
 from planarloc.geometry.essential_decomposition import (
     check_correspondence_batch,
-    solve_relpose_batch,
     solve_correspondences,
+    solve_relpose_batch,
 )
 from planarloc.geometry.pose import Pose
 from planarloc.numerics.eigen import real_eigenvalues

@@ -34,14 +34,14 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+from planarloc.geometry import mat3 as m3
 from planarloc.geometry.essential_decomposition import (
     check_correspondence_batch,
-    solve_relpose_batch,
     relpose_from_essential_kernel,
     relposes_closed_form,
     solve_correspondences,
+    solve_relpose_batch,
 )
-from planarloc.geometry import mat3 as m3
 from planarloc.geometry.pose import Pose
 from planarloc.geometry.validation import rays_invalid
 from planarloc.numerics.null_space import null_space_qr

@@ -7,6 +7,7 @@ import dataclasses
 import cv2
 import numpy as np
 import pytest
+from textured_images import textured_image
 
 from planarloc.features.extract import (
     DEFAULT_FEATURE_CONFIG,
@@ -16,9 +17,6 @@ from planarloc.features.extract import (
     rootsift,
 )
 from planarloc.geometry.validation import InputError
-from textured_images import textured_image
-
-
 
 
 @pytest.fixture(scope="module")
@@ -171,7 +169,7 @@ def test_map_without_resize_max_reads_as_full_resolution() -> None:
     import types
 
     from planarloc.features.extract import FeatureConfig
-    from planarloc.map.settings import map_config, feature_config_from_map
+    from planarloc.map.settings import feature_config_from_map, map_config
 
     old = types.SimpleNamespace(config={"features": {"max_features": 2000, "tilt": False}})
     assert feature_config_from_map(old).resize_max is None

@@ -5,14 +5,12 @@ from __future__ import annotations
 import cv2
 import numpy as np
 import pytest
+from textured_images import textured_image
 
 from planarloc.features import matching as matching
 from planarloc.features.extract import Features, extract_features
 from planarloc.features.matching import match_features, match_query_to_refs
 from planarloc.geometry.validation import InputError
-from textured_images import textured_image
-
-
 
 
 def make_features(desc: np.ndarray, kp: np.ndarray | None = None) -> Features:

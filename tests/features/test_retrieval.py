@@ -5,13 +5,11 @@ from __future__ import annotations
 import cv2
 import numpy as np
 import pytest
+from textured_images import textured_image
 
 from planarloc.features.extract import FeatureConfig, extract_features
 from planarloc.features.retrieval import GlobalIndex, VladVocabulary, retrieve_from_pairs, vlad_descriptor
 from planarloc.geometry.validation import InputError
-from textured_images import textured_image
-
-
 
 
 def perturbed(img: np.ndarray, rng: np.random.Generator) -> np.ndarray:

@@ -7,6 +7,7 @@ import math
 import cv2
 import numpy as np
 import pytest
+from textured_images import textured_image
 
 from planarloc.features.extract import FeatureConfig, extract_features
 from planarloc.features.matching import match_features
@@ -21,9 +22,6 @@ from planarloc.features.tilt import (
     tilted_height,
 )
 from planarloc.geometry.validation import InputError
-from textured_images import textured_image
-
-
 
 
 def test_default_tilts_are_the_papers():

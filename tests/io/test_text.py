@@ -13,7 +13,16 @@ from planarloc.geometry.pose import Pose
 from planarloc.io import FormatError
 from planarloc.io.camera_file import read_camera_file
 from planarloc.io.rosbag import parse_camera_option, parse_transform
-from planarloc.io.text import T_XYZW, WXYZ_T, TextError, camera_text, parse_camera, parse_gravity, parse_pose, pose_text
+from planarloc.io.text import (
+    T_XYZW,
+    WXYZ_T,
+    TextError,
+    camera_text,
+    parse_camera,
+    parse_gravity,
+    parse_pose,
+    pose_text,
+)
 from planarloc.serve.requests import RequestError, parse_camera_field, parse_gravity_field
 
 

@@ -4,16 +4,20 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-
-from planarloc.geometry.camera import Camera
 from scipy.spatial.transform import Rotation
 
+from planarloc.features.extract import Features
+from planarloc.geometry.camera import Camera
 from planarloc.geometry.epipolar import projection_jacobians, triangulation_uncertainty
 from planarloc.geometry.planar import rotation_from_yaw
 from planarloc.geometry.pose import Pose
-from planarloc.features.extract import Features
-from planarloc.localize.local_structure import (CONSISTENT_RESIDUAL_PX, MapView, PairMatchCache, map_rotation_std_deg,
-                                                view_points)
+from planarloc.localize.local_structure import (
+    CONSISTENT_RESIDUAL_PX,
+    MapView,
+    PairMatchCache,
+    map_rotation_std_deg,
+    view_points,
+)
 
 CAMERA = Camera("PINHOLE", 640, 480, (500.0, 500.0, 320.0, 240.0))
 

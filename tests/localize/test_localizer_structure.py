@@ -7,11 +7,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from planarloc.features.extract import extract_features
+from planarloc.features.images import read_gray
 from planarloc.geometry.pose import pose_errors
 from planarloc.io.datasets import read_dataset
-from planarloc.features.extract import extract_features
 from planarloc.localize.localizer import Localizer, LocalizerConfig
-from planarloc.features.images import read_gray
 from planarloc.map.builder import build_map
 from planarloc.robust.options import RansacOptions
 

@@ -13,11 +13,11 @@ from scipy.spatial.transform import Rotation
 
 from planarloc.evaluation.sequence import evaluate_stream, relocalization, summarize_sequence
 from planarloc.features.images import read_gray
-from planarloc.localize.records import frame_record
 from planarloc.geometry.pose import Pose, pose_errors
 from planarloc.geometry.validation import InputError
 from planarloc.io.datasets import read_dataset
 from planarloc.localize.localizer import Localizer, LocalizerConfig
+from planarloc.localize.records import frame_record
 from planarloc.localize.sequence import SequenceConfig, SequenceLocalizer, graph_covariance, ros_covariance
 from planarloc.map.builder import build_map
 from planarloc.robust.options import RansacOptions

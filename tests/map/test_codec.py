@@ -13,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from test_store import CONFIG, make_features, make_posed, rootsift
 
 from planarloc.features.extract import Features
 from planarloc.features.retrieval import GlobalIndex
@@ -30,8 +31,6 @@ from planarloc.map.codec import (
 from planarloc.map.integrity import check_map
 from planarloc.map.schema import MapCorruptError
 from planarloc.map.store import MapDatabase
-
-from test_store import CONFIG, make_features, make_posed, rootsift
 
 DATA = Path(__file__).parent / "data"
 

@@ -15,6 +15,7 @@ from scipy.spatial.transform import Rotation
 from planarloc.geometry.pose import Pose
 from planarloc.synthetic.scenes import SyntheticScene, make_scene
 
+
 def rotation_angle_deg(R_a: np.ndarray, R_b: np.ndarray) -> float:
     """Angle of ``R_a R_bᵀ`` in degrees, accurate for tiny angles.
 

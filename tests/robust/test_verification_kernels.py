@@ -14,6 +14,7 @@ from planarloc.geometry.mat3 import sym_eigvals
 from planarloc.geometry.pose import Pose
 from planarloc.robust import observability as obs
 from planarloc.robust.estimators import SIGMA_FLOOR_PX, Planar2p1pEstimator
+from planarloc.robust.final_refinement import refine_until_stable
 from planarloc.robust.options import RansacOptions
 from planarloc.robust.problem import build_problem
 from planarloc.robust.refinement import (
@@ -23,7 +24,6 @@ from planarloc.robust.refinement import (
     residuals,
     residuals_jacobian,
 )
-from planarloc.robust.final_refinement import refine_until_stable
 from planarloc.robust.scoring import errors_sq
 
 NO3D = np.zeros(0, dtype=np.int64)

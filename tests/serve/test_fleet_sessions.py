@@ -15,8 +15,8 @@ from pathlib import Path
 import httpx
 import numpy as np
 import pytest
-from served import Served
 from record_schemas import check
+from served import Served
 
 from planarloc.cli.main import main
 from planarloc.client import Client, ServiceError, SessionRestarted

@@ -71,8 +71,8 @@ def test_session_fields(tmp_path: Path) -> None:
                                  png, "q.png", maps)
     assert req.stamp == 0.30000000000000004 and req.session == "r1"
     np.testing.assert_allclose(req.odometry.center, [1, 2, 3])  # cam_from_odom of a camera at (1, 2, 3)
-    from planarloc.robust.options import Method, RansacOptions, Structure
     from planarloc.localize.localizer import LocalizerConfig
+    from planarloc.robust.options import Method, RansacOptions, Structure
     from planarloc.serve.requests import QuerySettings
 
     assert req.settings == QuerySettings(Method.AUTO, Structure.TRACKS, RansacOptions().seed)  # the defaults, filled in

@@ -10,7 +10,6 @@ from pathlib import Path
 import httpx
 import numpy as np
 import pytest
-
 from record_schemas import check
 
 from planarloc.cli.main import main

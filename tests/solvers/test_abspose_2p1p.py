@@ -5,10 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
-
-from planarloc.geometry.planar import rotation_from_yaw
 from two_view_scenes import unit_relpose
 
+from planarloc.geometry.planar import rotation_from_yaw
 from planarloc.geometry.pose import Pose
 from planarloc.solvers.abspose_2p1p import abspose_2p1p, scale_2p1p, scale_from_point3d
 from planarloc.synthetic.scenes import random_planar_pose

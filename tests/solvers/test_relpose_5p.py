@@ -9,7 +9,6 @@ from __future__ import annotations
 import numpy as np
 import poselib
 import pytest
-
 from two_view_scenes import make_scene, pose_error, random_relpose
 
 from planarloc.geometry.epipolar import essential_from_relpose, triangulation_depths

@@ -6,14 +6,12 @@ import cv2
 import numpy as np
 import poselib
 import pytest
-
 from two_view_scenes import make_scene as _make_scene
 from two_view_scenes import pose_error, random_relpose
 
 from planarloc.geometry.epipolar import essential_from_relpose
 from planarloc.geometry.validation import InputError
 from planarloc.solvers.relpose_8p import essential_8p, relpose_8p, relpose_8p_batch
-
 
 
 def make_scene(rng, n=8, **kw):

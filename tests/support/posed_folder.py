@@ -6,12 +6,11 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+from textured_images import textured_image
 
 from planarloc.geometry.camera import Camera
 from planarloc.geometry.pose import Pose
 from planarloc.map.posed_image import PosedImage
-
-from textured_images import textured_image
 
 CAMERA = Camera("PINHOLE", 160, 120, (150.0, 150.0, 80.0, 60.0))
 

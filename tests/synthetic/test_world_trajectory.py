@@ -13,8 +13,8 @@ from planarloc.synthetic.world.placement import clearance, polygon_distance
 from planarloc.synthetic.world.trajectory import (
     camera_centers,
     ellipse_loop,
-    height_profile,
     heading_of,
+    height_profile,
     offset_path,
     planar_poses,
     straight_line,
