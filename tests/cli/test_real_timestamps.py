@@ -7,8 +7,8 @@ from __future__ import annotations
 import shutil
 from pathlib import Path
 
-import numpy as np
 import pytest
+from kitti_layout import write_kitti_sequence
 
 from planarloc.cli.main import main
 from planarloc.io.datasets import read_dataset
@@ -21,23 +21,13 @@ def run(argv: list) -> int:
     return main([str(a) for a in argv])
 
 
-def row(values: object) -> str:
-    return " ".join(f"{v:.17g}" for v in np.ravel(values)) + "\n"
-
-
 @pytest.fixture(scope="module")
 def kitti_seq(tiny_world: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
     """The tiny world's 12 map frames as a KITTI sequence (image_l/, poses.txt, calib.txt, times.txt)."""
     root = tmp_path_factory.mktemp("kitti_times") / "seq"
     frames = read_dataset(tiny_world / "map", "tum")
     assert len(frames) == len(TIMES) and frames[0].camera.model.value == "PINHOLE"
-    (root / "image_l").mkdir(parents=True)
-    for k, im in enumerate(frames):
-        shutil.copy(im.path, root / "image_l" / f"{k:06d}.png")
-    (root / "poses.txt").write_text("".join(row(im.cam_from_world.inverse().matrix) for im in frames))
-    fx, fy, cx, cy = frames[0].camera.params
-    (root / "calib.txt").write_text(row([[fx, 0, cx, 0], [0, fy, cy, 0], [0, 0, 1, 0]]))
-    (root / "times.txt").write_text("".join(f"{t:.6f}\n" for t in TIMES))
+    write_kitti_sequence(frames, root, times=TIMES)
     return root
 
 

@@ -9,11 +9,11 @@ from __future__ import annotations
 
 import logging
 import math
-import shutil
 from pathlib import Path
 
 import numpy as np
 import pytest
+from kitti_layout import write_kitti_sequence
 from scipy.spatial.transform import Rotation
 
 from planarloc.cli.main import main
@@ -34,22 +34,11 @@ def run(argv: list) -> int:
     return main([str(a) for a in argv])
 
 
-def row(values: object) -> str:
-    return " ".join(f"{v:.17g}" for v in np.ravel(values)) + "\n"
-
-
 @pytest.fixture(scope="module")
 def tilted_kitti(tiny_world: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
     root = tmp_path_factory.mktemp("tilted") / "seq"
     frames = read_dataset(tiny_world / "map", "tum")
-    (root / "image_l").mkdir(parents=True)
-    tilted_from_world = Pose(TILT, np.zeros(3))
-    for k, im in enumerate(frames):
-        shutil.copy(im.path, root / "image_l" / f"{k:06d}.png")
-    (root / "poses.txt").write_text(
-        "".join(row((im.cam_from_world @ tilted_from_world.inverse()).inverse().matrix) for im in frames))
-    fx, fy, cx, cy = frames[0].camera.params
-    (root / "calib.txt").write_text(row([[fx, 0, cx, 0], [0, fy, cy, 0], [0, 0, 1, 0]]))
+    write_kitti_sequence(frames, root, world_from_kitti=Pose(TILT, np.zeros(3)).inverse())
     return root
 
 
