@@ -35,7 +35,7 @@ from planarloc.geometry.validation import InputError
 from planarloc.io.text import T_XYZW, parse_camera, parse_gravity, parse_pose
 from planarloc.localize.localizer import LocalizerConfig, localizer_config
 from planarloc.map.schema import MapFormatError
-from planarloc.robust.options import Method, Structure, parse_method, parse_structure
+from planarloc.robust.options import Method, Structure, parse_choice
 
 #: Default upper bound of an uploaded image (bytes).
 DEFAULT_MAX_IMAGE_BYTES = 20 * 1024 * 1024
@@ -251,22 +251,25 @@ def parse_odometry_field(text: str) -> Pose:
         raise RequestError(400, f"odometry {text[:80]!r}: {str(exc)[:200]}") from None
 
 
+def _choice_field(kind: type[Method] | type[Structure], name: str, text: str | None) -> Method | Structure | None:
+    """A form field naming a member of ``kind`` (empty: the default, None), else a 400."""
+    if not text:
+        return None
+    try:
+        return parse_choice(kind, text, name)
+    except InputError:
+        raise RequestError(400, f"{name}: expected one of {', '.join(m.value for m in kind)}, "
+                                f"got {text[:40]!r}") from None
+
+
 def parse_method_field(text: str | None) -> Method | None:
     """``method`` (a :class:`Method`'s name; empty: the default), else a 400."""
-    try:
-        return parse_method(text) if text else None
-    except InputError:
-        raise RequestError(400, f"method: expected one of {', '.join(m.value for m in Method)}, "
-                                f"got {text[:40]!r}") from None
+    return _choice_field(Method, "method", text)  # type: ignore[return-value]
 
 
 def parse_structure_field(text: str | None) -> Structure | None:
     """``structure`` (a :class:`Structure`'s name; empty: the default), else a 400."""
-    try:
-        return parse_structure(text) if text else None
-    except InputError:
-        raise RequestError(400, f"structure: expected one of {', '.join(s.value for s in Structure)}, "
-                                f"got {text[:40]!r}") from None
+    return _choice_field(Structure, "structure", text)  # type: ignore[return-value]
 
 
 def parse_localize_request(
