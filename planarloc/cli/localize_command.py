@@ -27,7 +27,9 @@ from planarloc.cli.exit_codes import EXIT_OK, EXIT_PARTIAL, Interrupted
 from planarloc.cli.options import (
     add_gravity_args,
     add_localizer_args,
+    add_map_features_arg,
     camera_option,
+    check_map_features,
     gravity_option,
     localizer_config_of,
     parse_dataset_options,
@@ -96,6 +98,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                      help="gravity of all queries (direction, pointing down) in the query camera frame (x right, "
                           "y down, z forward), e.g. from an IMU; default: the map cameras' mount tilt")
     add_localizer_args(p)
+    add_map_features_arg(p)
     add_output_args(p, "also write the localized queries as a TUM trajectory (timestamp tx ty tz qx qy qz qw, "
                        "camera-to-world) for evo")
     add_server_args(p)
@@ -182,6 +185,7 @@ def run(args: argparse.Namespace) -> int:
             where = f" via {args.server}"
         else:
             loc = Localizer(args.map, localizer_config_of(args))
+            check_map_features(args.map, loc.features.kind, args.features)
             compile_ahead(steps_for([loc.config]))
             if camera is None and len(loc.map_cameras) != 1 and not all(q.camera for q in queries):
                 raise ValueError(f"the map has {len(loc.map_cameras)} cameras: pass the query intrinsics with --camera")

@@ -12,6 +12,12 @@ from typing import TypeVar
 import numpy as np
 
 from planarloc.features.extract import DEFAULT_FEATURE_CONFIG, FeatureConfig
+from planarloc.features.registry import (
+    DEFAULT_FEATURE_TYPE,
+    FEATURE_TYPES,
+    check_map_feature_kind,
+    feature_kind_of_config,
+)
 from planarloc.features.retrieval import DEFAULT_NUM_WORDS
 from planarloc.geometry.camera import Camera
 from planarloc.geometry.validation import InputError
@@ -66,12 +72,18 @@ def parse_dataset_options(items: list[str] | None, option: str = "--dataset-opti
     return out
 
 
+FEATURES_HELP = ("rootsift (OpenCV SIFT, the base install), xfeat (XFeat, needs pip install 'planarloc[learned]') or "
+                 "aliked-lightglue (ALIKED + LightGlue, needs pip install 'planarloc[aliked]')")
+
+
 def add_feature_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--features", choices=list(FEATURE_TYPES), default=DEFAULT_FEATURE_CONFIG.kind,
+                   help=f"local feature type of the map: {FEATURES_HELP} (default: %(default)s)")
     p.add_argument("--tilt", action="store_true",
                    help="tilt-augment map features (paper Sec. III-B: 6 vertical tilts, ~3x slower build, "
                         "more matches under viewpoint change)")
     p.add_argument("--max-features", type=int, default=DEFAULT_FEATURE_CONFIG.max_features,
-                   help="SIFT keypoints per image (default: %(default)s)")
+                   help="keypoints per image (default: %(default)s)")
     p.add_argument("--vocabulary-size", type=int, default=DEFAULT_NUM_WORDS,
                    help="VLAD visual words for retrieval (default: %(default)s)")
 
@@ -84,7 +96,44 @@ def check_vocabulary_size(value: int) -> int:
 
 
 def feature_config(args: argparse.Namespace) -> FeatureConfig:
-    return FeatureConfig(max_features=args.max_features, tilt=args.tilt)
+    """The :class:`FeatureConfig` of the feature options; a learned type's packages are loaded now
+    (a missing extra is one error line before any work)."""
+    config = FeatureConfig(max_features=args.max_features, tilt=args.tilt, kind=args.features)
+    load_feature_backend(config.kind)
+    return config
+
+
+def add_map_features_arg(p: argparse.ArgumentParser) -> None:
+    """``--features NAME`` of the commands that open a map: checks the map's feature type (queries
+    are always extracted with the map's features)."""
+    p.add_argument("--features", choices=list(FEATURE_TYPES), default=None,
+                   help=f"the feature type the map must have been built with: {FEATURES_HELP}; another is refused "
+                        "(default: the map's own)")
+
+
+def load_feature_backend(kind: str) -> None:
+    """Import a learned feature type's packages now (MissingExtraError naming the extra if missing)."""
+    if kind != DEFAULT_FEATURE_TYPE:
+        from planarloc.features import learned  # imports torch: only for the learned types
+
+        learned.load_backend(kind)
+
+
+def check_map_features(map_name: object, map_kind: str, given: str | None, option: str = "--features") -> None:
+    """Refuse ``given`` (``--features``) when the map was built with another type (one line), and
+    load the map's learned backend before the first query."""
+    check_map_feature_kind(map_name, map_kind, given, option)
+    load_feature_backend(map_kind)
+
+
+def check_map_file_features(path: Path, given: str | None, option: str = "--features") -> str:
+    """:func:`check_map_features` for a map file (opened read-only for its stored config); its feature type."""
+    from planarloc.map.store import MapDatabase
+
+    with MapDatabase.open(path) as db:
+        kind = feature_kind_of_config(db.config)
+    check_map_features(path, kind, given, option)
+    return kind
 
 
 def add_localizer_args(p: argparse.ArgumentParser) -> None:

@@ -13,6 +13,7 @@ from pathlib import Path
 
 from planarloc.cli.commands import add_command
 from planarloc.cli.console import note
+from planarloc.cli.options import add_map_features_arg, check_map_file_features
 from planarloc.serve.settings import (
     DEFAULT_BODY_TIMEOUT_S,
     DEFAULT_HEADER_TIMEOUT_S,
@@ -53,6 +54,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         metavar="PATH|NAME=PATH",
         help="map file to serve, named after its file stem or NAME (repeatable)",
     )
+    add_map_features_arg(p)
     p.add_argument(
         "--host", default="127.0.0.1", help="address to bind (default: %(default)s, loopback only)"
     )
@@ -142,8 +144,11 @@ def run(args: argparse.Namespace) -> int:
         loopback = args.host == "localhost"
     if not loopback and not token:
         logger.warning("serving on %s without a token: anyone who can reach it can use it", args.host)
+    maps = MapSet.from_specs(args.maps)
+    for path in maps.paths.values():  # --features: every served map must have that type
+        check_map_file_features(path, args.features)
     settings = ServeSettings(
-        MapSet.from_specs(args.maps),
+        maps,
         workers=args.workers,
         queue_size=args.queue,
         token=token,

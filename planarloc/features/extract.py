@@ -1,8 +1,10 @@
-"""Local features: OpenCV SIFT with RootSIFT descriptors, optionally tilt-augmented (map images).
+"""Local features: OpenCV SIFT with RootSIFT descriptors (or a learned type), optionally tilt-augmented.
 
 :class:`FeatureConfig` is the single source of defaults for the API and the CLI
 (:data:`DEFAULT_FEATURE_CONFIG`); :func:`extract_features` is the in-memory core used for one
-live frame as well as for building a map.
+live frame as well as for building a map. ``FeatureConfig.kind`` names the feature type
+(:mod:`planarloc.features.registry`): ``rootsift`` here, the learned ones through
+:mod:`planarloc.features.learned` (imported only when used: it needs torch).
 
 References:
     Lowe, "Distinctive image features from scale-invariant keypoints", IJCV 2004 (SIFT).
@@ -22,6 +24,7 @@ import numpy as np
 
 from planarloc.features import tilt as _tilt
 from planarloc.features.images import to_gray
+from planarloc.features.registry import DEFAULT_FEATURE_TYPE, feature_type
 from planarloc.geometry.validation import InputError
 
 logger = logging.getLogger(__name__)
@@ -34,8 +37,9 @@ class Features:
     Attributes:
         keypoints: (N, 2) float32 pixel coordinates (OpenCV convention, x right, y down),
             in the ORIGINAL image (tilted extractions are mapped back).
-        descriptors: (N, D) float32 descriptors, L2-normalised (RootSIFT: D = 128).
-        scales: (N,) float32 keypoint sizes in pixels.
+        descriptors: (N, D) float32 descriptors, L2-normalised (RootSIFT: D = 128, XFeat: 64,
+            ALIKED: 128).
+        scales: (N,) float32 keypoint sizes in pixels (learned types: a constant, they have none).
     """
 
     keypoints: np.ndarray
@@ -51,6 +55,10 @@ class FeatureConfig:
     """Settings of :func:`extract_features`; the defaults are the library's and the CLI's.
 
     Attributes:
+        kind: the feature type, one of :data:`planarloc.features.registry.FEATURE_TYPES`
+            (``rootsift``, ``xfeat``, ``aliked-lightglue``; ``--features``). The SIFT settings
+            below (``contrast_threshold`` … ``rootsift``) only apply to ``rootsift``;
+            ``max_features``, the tilts and ``resize_max`` apply to every type.
         max_features: SIFT keeps at most this many keypoints (by contrast response) on the
             untilted image; tilt ``t`` gets ``ceil(max_features / t)`` (same density), so a
             tilted pool holds at most ≈ 2.99·max_features for the default tilts.
@@ -81,8 +89,10 @@ class FeatureConfig:
     tilts: tuple[float, ...] = _tilt.DEFAULT_TILTS
     tilt_blur: float = _tilt.ASIFT_BLUR
     resize_max: int | None = 1600
+    kind: str = DEFAULT_FEATURE_TYPE
 
     def __post_init__(self) -> None:
+        feature_type(self.kind, "FeatureConfig.kind (--features)")
         if self.resize_max is not None:
             if isinstance(self.resize_max, bool) or int(self.resize_max) < 16:
                 raise InputError(f"FeatureConfig.resize_max: expected None or an integer >= 16, got {self.resize_max}")
@@ -107,11 +117,13 @@ class FeatureConfig:
     def name(self) -> str:
         """Short name encoding the settings that change descriptors, e.g. ``rootsift-n4000-tilt6``.
 
-        Stored with a map so that query and map features are known to be compatible.
+        Stored with a map so that query and map features are known to be compatible. Learned
+        types start with their kind (``xfeat-n4000``) and carry no SIFT settings.
         """
         default = FeatureConfig.__dataclass_fields__
-        parts = ["rootsift" if self.rootsift else "sift", f"n{self.max_features}"]
-        for field, tag in (
+        learned = self.kind != DEFAULT_FEATURE_TYPE
+        parts = [self.kind if learned else "rootsift" if self.rootsift else "sift", f"n{self.max_features}"]
+        for field, tag in () if learned else (
             ("contrast_threshold", "ct"),
             ("edge_threshold", "et"),
             ("n_octave_layers", "ol"),
@@ -206,8 +218,18 @@ def _detect_sift(gray: np.ndarray, config: FeatureConfig, max_features: int):
     return pts, desc.astype(np.float32, copy=False), sizes
 
 
+def _detector(config: FeatureConfig):
+    """The :data:`planarloc.features.tilt.DetectFn` of ``config.kind`` (a learned one imports torch)."""
+    if config.kind == DEFAULT_FEATURE_TYPE:
+        return lambda img, n: _detect_sift(img, config, n)
+    from planarloc.features import learned  # torch: only for the learned types
+
+    return learned.DETECTORS[config.kind]
+
+
 def extract_features(image: np.ndarray, config: FeatureConfig = DEFAULT_FEATURE_CONFIG) -> Features:
-    """Detect SIFT keypoints and compute (Root)SIFT descriptors.
+    """Detect keypoints and compute descriptors: SIFT with (Root)SIFT descriptors, or the
+    learned type ``config.kind`` (:mod:`planarloc.features.learned`).
 
     Args:
         image: (H, W) or (H, W, 3) uint8 image; colour images are BGR (as from ``cv2.imread``).
@@ -218,12 +240,15 @@ def extract_features(image: np.ndarray, config: FeatureConfig = DEFAULT_FEATURE_
         :class:`Features` with keypoints (N, 2) in original-image pixels (also when
         ``config.resize_max`` downscaled the image for detection; OpenCV convention;
         OpenCV's precise upscale is enabled, so keypoints carry no 0.25 px bias),
-        descriptors (N, 128) float32 with unit L2 norm, and scales (N,) = SIFT keypoint size in
-        pixels (of the tilted image for tilted features, i.e. their horizontal extent).
+        descriptors (N, D) float32 with unit L2 norm (D = 128 for RootSIFT and ALIKED, 64 for
+        XFeat), and scales (N,) = SIFT keypoint size in pixels (of the tilted image for tilted
+        features, i.e. their horizontal extent; learned types: a constant 8 px).
         An image without texture gives N = 0.
 
     Raises:
         InputError: on a non-uint8, empty or wrongly shaped image.
+        MissingExtraError: a learned ``config.kind`` whose packages are not installed (an
+            ImportError naming ``pip install 'planarloc[learned]'`` or ``[aliked]``).
 
     Example:
         >>> img = (np.random.default_rng(0).random((120, 160)) * 255).astype(np.uint8)
@@ -238,17 +263,18 @@ def extract_features(image: np.ndarray, config: FeatureConfig = DEFAULT_FEATURE_
         s = config.resize_max / max(gray.shape)
         size = (max(1, round(gray.shape[1] * s)), max(1, round(gray.shape[0] * s)))
         gray = cv2.resize(gray, size, interpolation=cv2.INTER_AREA)
+    detect = _detector(config)
     if config.tilt:
         pts, desc, sizes, _ = _tilt.tilted_extraction(
             gray,
-            lambda img, n: _detect_sift(img, config, n),
+            detect,
             config.max_features,
             config.tilts,
             config.tilt_blur,
         )
     else:
-        pts, desc, sizes = _detect_sift(gray, config, config.max_features)
-    desc = rootsift(desc) if config.rootsift else _l2_normalize(desc)
+        pts, desc, sizes = detect(gray, config.max_features)
+    desc = rootsift(desc) if config.rootsift and config.kind == DEFAULT_FEATURE_TYPE else _l2_normalize(desc)
     if resized:
         # Pixel centres at integer coordinates (OpenCV): x_small + 0.5 = s (x_full + 0.5).
         sx, sy = gray.shape[1] / full_shape[1], gray.shape[0] / full_shape[0]

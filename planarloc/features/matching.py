@@ -21,6 +21,13 @@ matching", CVIU 2015): the second neighbour is the best reference feature at lea
 ``fginn_radius`` pixels away from the first one. With it the tilted pool kept 363 matches (plain
 features: 340); on plain features FGINN and Lowe agree within 1 % of the matches.
 ``fginn_radius=0`` gives Lowe's test exactly.
+
+Feature types (:mod:`planarloc.features.registry`): ``rootsift`` and ``xfeat`` use this
+descriptor matcher (XFeat's own matcher is mutual nearest neighbours, XFeat paper Sec. 3.3;
+the ratio test is kept: on learned descriptors too it removes the ambiguous matches of repeated
+structure). ``aliked-lightglue`` matches a query with LightGlue (:func:`match_query_to_refs` with
+``kind="aliked-lightglue"``, :func:`planarloc.features.learned.lightglue_matches`). Matches
+between two map images (local structure, frame checks) use the descriptor matcher for every type.
 """
 
 from __future__ import annotations
@@ -33,6 +40,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from planarloc.features.extract import Features
+from planarloc.features.registry import DEFAULT_FEATURE_TYPE, feature_type
 from planarloc.geometry.validation import InputError
 
 logger = logging.getLogger(__name__)
@@ -201,6 +209,7 @@ def match_query_to_refs(
     ratio: float | None = DEFAULT_RATIO,
     mutual: bool = True,
     fginn_radius: float = DEFAULT_FGINN_RADIUS,
+    kind: str = DEFAULT_FEATURE_TYPE,
 ) -> list[np.ndarray]:
     """Match one query against several references (e.g. the retrieved map images).
 
@@ -210,12 +219,16 @@ def match_query_to_refs(
     Args:
         q: query features (N descriptors, D dims).
         refs: K reference Features, each with D-dimensional descriptors.
-        ratio, mutual, fginn_radius: as in :func:`match_features`.
+        ratio, mutual, fginn_radius: as in :func:`match_features` (descriptor matcher).
+        kind: the feature type of query and references (the map's ``FeatureConfig.kind``); its
+            matcher (:data:`planarloc.features.registry.FEATURE_TYPES`) is used: LightGlue for
+            ``aliked-lightglue`` (then ``ratio``, ``mutual`` and ``fginn_radius`` do not apply).
 
     Returns:
         K arrays of shape (M_k, 2), int64 ``(query_idx, ref_idx)``.
     """
     _check_params(ratio, fginn_radius)
+    matcher = feature_type(kind, "kind").matcher
     dq, _ = _check_features("q", q)
     out = []
     for k, r in enumerate(refs):
@@ -225,6 +238,11 @@ def match_query_to_refs(
                 f"descriptor dimensions differ: query D = {dq.shape[1]}, refs[{k}] D = {dr.shape[1]}; "
                 "hint: extract query and map features with the same FeatureConfig"
             )
-        out.append(_match_checked(dq, r, dr, ratio, mutual, fginn_radius))
+        if matcher == "lightglue":
+            from planarloc.features import learned  # torch: only for the learned types
+
+            out.append(learned.lightglue_matches(q.keypoints, dq, r.keypoints, dr))
+        else:
+            out.append(_match_checked(dq, r, dr, ratio, mutual, fginn_radius))
     logger.debug("matched %d query features to %d references: %s", len(dq), len(out), [len(m) for m in out])
     return out

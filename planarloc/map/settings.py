@@ -6,6 +6,11 @@ Mixing features of two configurations in one map would silently break matching, 
 into an existing map must use its settings; :func:`settings_mismatch_error` names the keys
 that differ. Queries are extracted with the map's features (:func:`feature_config_from_map`).
 
+The feature type (``features.kind``: ``rootsift``, ``xfeat``, ``aliked-lightglue``,
+:mod:`planarloc.features.registry`) is stored for the learned types only: a map without it was
+built with RootSIFT, as every map before learned features was, so their stored configs (and
+resuming them) are unchanged. Building into a map of another type names both types.
+
 Caches: :func:`cache_dir` gives the folders where planarloc keeps what it can rebuild: ``evaluate``'s
 maps and the images it unpacks from ROS bags (``planarloc cache``). They are this user's, in the temp
 folder (``<temp>/planarloc-<uid>/<kind>``, mode 0700), and refused when another user could have
@@ -22,6 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from planarloc.features.extract import FeatureConfig
+from planarloc.features.registry import DEFAULT_FEATURE_TYPE, feature_kind_of_config
 from planarloc.geometry.validation import InputError
 from planarloc.numerics.user_folders import user_temp_folder
 
@@ -78,7 +84,12 @@ def config_diff(stored: Mapping[str, object], given: Mapping[str, object]) -> st
 
 
 def settings_mismatch_error(path: Path, stored: Mapping[str, object], given: Mapping[str, object]) -> InputError:
-    """The error for building into a map made with other settings (names the differing keys)."""
+    """The error for building into a map made with other settings (names the differing keys, or
+    the two feature types when they differ: a map holds one type)."""
+    kinds = feature_kind_of_config(dict(stored)), feature_kind_of_config(dict(given))
+    if kinds[0] != kinds[1]:
+        return InputError(f"{path} was built with {kinds[0]} features, not {kinds[1]} (--features): a map holds "
+                          "one feature type; use a new map file, or --features " + kinds[0])
     return InputError(f"{path} was built with another feature config ({config_diff(stored, dict(given))}); use a "
                       "new map file, or the map's settings to resume or extend it")
 
@@ -92,7 +103,10 @@ def check_num_words(num_words: object) -> int:
 
 def map_config(features: FeatureConfig, num_words: int) -> dict:
     """The ``meta.config`` of a map built with these feature and retrieval settings."""
-    return {"features": dataclasses.asdict(features), "feature_name": features.name,
+    stored = dataclasses.asdict(features)
+    if stored["kind"] == DEFAULT_FEATURE_TYPE:
+        del stored["kind"]  # RootSIFT maps read as before (see the module docstring)
+    return {"features": stored, "feature_name": features.name,
             "retrieval": {"type": "vlad", "num_words": int(num_words)}}
 
 

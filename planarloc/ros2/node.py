@@ -62,7 +62,9 @@ import cv2
 import numpy as np
 
 from planarloc.extras import require
+from planarloc.features import learned
 from planarloc.features.images import decode_gray
+from planarloc.features.registry import check_map_feature_kind
 from planarloc.geometry.camera import Camera
 from planarloc.geometry.pose import Pose
 from planarloc.geometry.validation import InputError
@@ -212,7 +214,10 @@ class LocalizerNode:
     def _open(self) -> None:
         """Open the map and warm the localizer up (in the worker: SQLite stays in one thread)."""
         s = self.settings
-        self.sequence = SequenceLocalizer(Localizer(s.map, s.localizer_config()), s.sequence_config())
+        localizer = Localizer(s.map, s.localizer_config())
+        check_map_feature_kind(s.map, localizer.features.kind, s.features or None, "parameter features")
+        learned.load_backend(localizer.features.kind)  # a learned map's models (torch) now, not at the first frame
+        self.sequence = SequenceLocalizer(localizer, s.sequence_config())
         # The first query of a process is ~10x slower than the next (kernels loaded from the compile
         # cache, first calls into OpenCV): pay for it before the first frame, not with dropped frames.
         gravity = self.sequence.localizer.gravity

@@ -15,6 +15,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass, fields
 from pathlib import Path
 
+from planarloc.features.registry import FEATURE_TYPES
 from planarloc.geometry.pose import Pose
 from planarloc.geometry.validation import InputError
 from planarloc.io.ros_messages import rectified_topic
@@ -87,6 +88,9 @@ class NodeSettings:
         structure: ``tracks`` (also 2D-3D constraints from points triangulated between map
             images) or ``none`` (2D-2D only) (``planarloc localize --structure``).
         top_n: retrieved map images per fix (``planarloc localize --top-n``).
+        features: the feature type the map must have been built with (a type of ``planarloc
+            localize --features``); another is refused when the node starts; empty: the map's own
+            (frames always use the map's features).
         seed: the RANSAC seed (``planarloc localize --seed``).
         window: poses kept in the stream's sliding-window pose graph.
         local_top_n: map images nearest to the predicted pose used for a fix.
@@ -121,6 +125,7 @@ class NodeSettings:
     method: str = _LOC.method.value  # type: ignore[union-attr]  # LocalizerConfig holds a Method
     structure: str = _LOC.ransac.structure.value
     top_n: int = _LOC.top_n
+    features: str = ""
     seed: int = int(_LOC.ransac.seed or 0)
     window: int = _SEQ.window
     local_top_n: int = _SEQ.local_top_n
@@ -135,6 +140,8 @@ class NodeSettings:
         choices = {"method": [m.value for m in Method], "structure": [s.value for s in Structure],
                    "fixes": list(FIX_MODES),
                    "image_qos": ["sensor_data", "reliable"], "map_frame_convention": list(MAP_FRAME_CONVENTIONS)}
+        if self.features:
+            choices["features"] = list(FEATURE_TYPES)
         for name, allowed in choices.items():
             if getattr(self, name) not in allowed:
                 raise InputError(f"parameter {name}: expected one of {', '.join(allowed)}, got {getattr(self, name)!r}")

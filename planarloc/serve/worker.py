@@ -24,6 +24,7 @@ import time
 from collections.abc import Mapping
 from pathlib import Path
 
+from planarloc.features import learned
 from planarloc.localize.localizer import Localizer
 from planarloc.localize.records import query_record
 from planarloc.serve.map_watch import MapFingerprint, fingerprint_change, map_fingerprint
@@ -62,6 +63,7 @@ def open_localizers(maps: Mapping[str, str | Path],
     for name, path in maps.items():
         before = map_fingerprint(path)
         _LOCALIZERS[name] = Localizer(Path(path))
+        learned.load_backend(_LOCALIZERS[name].features.kind)  # a learned map's models load now, not in a request
         after = map_fingerprint(path)
         if expected is not None and name in expected:
             change = fingerprint_change(expected[name], before) or fingerprint_change(expected[name], after)
