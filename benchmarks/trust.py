@@ -217,6 +217,8 @@ def trust_metrics(rows: Sequence[dict]) -> dict:
     with np.errstate(invalid="ignore"):
         calibration = {f"within_{s}std": share(t <= s * std) for s in SIGMAS}
         calibration["within_3std_plus_5cm"] = share(t <= 3 * std + STD_MARGIN_M)
+        # a calibrated std gives about 1 (0.5-1.5 for the worst-axis std of a 2D-3D error)
+        calibration["median_error_over_std"] = float(np.median(t[ok] / std[ok])) if k else None
     return {
         "queries": n,
         "localized": k,
@@ -238,7 +240,7 @@ def trust_metrics(rows: Sequence[dict]) -> dict:
 # ---- output ---------------------------------------------------------------------------------------
 HEADERS = ["data", "method", "structure", "queries", *[threshold_name(t, r) for t, r in THRESHOLDS],
            "confident wrong", "> 1m/20°", "worst t [m]", "worst R [°]",
-           "≤ 1σ", "≤ 2σ", "≤ 3σ", "≤ 3σ+5cm",
+           "≤ 1σ", "≤ 2σ", "≤ 3σ", "≤ 3σ+5cm", "median err/σ",
            "models", "s/query"]
 
 
@@ -251,7 +253,7 @@ def table_row(result: dict) -> list[str]:
             str(m["confident_wrong"]), str(m["beyond_gate"]),
             peer.fmt_num(m["worst_translation_error_m"], 2), peer.fmt_num(m["worst_rotation_error_deg"], 1),
             *[peer.fmt_pct(cal[f"within_{s}std"]) for s in SIGMAS], peer.fmt_pct(cal["within_3std_plus_5cm"]),
-            models, peer.fmt_num(m["seconds_per_query"], 2)]
+            peer.fmt_num(cal.get("median_error_over_std"), 2), models, peer.fmt_num(m["seconds_per_query"], 2)]
 
 
 def rich_table(results: Sequence[dict], title: str) -> Table:

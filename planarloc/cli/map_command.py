@@ -22,6 +22,7 @@ from planarloc.map.builder import build_map, check_map_settings
 from planarloc.map.codec import DEFAULT_STORAGE, STORAGE_LAYOUTS
 from planarloc.map.gravity import map_gravity
 from planarloc.map.integrity import check_map
+from planarloc.map.pose_accuracy import load_accuracy
 from planarloc.map.store import MapDatabase
 
 
@@ -144,6 +145,10 @@ def run_info(args: argparse.Namespace) -> int:
         if n:
             for line in map_gravity(db).summary_lines():
                 info(line)
+            accuracy = load_accuracy(db)
+            info(accuracy.summary() if accuracy is not None else
+                 "map pose accuracy: not measured (a map built before planarloc measured it, or too few "
+                 "overlapping images); queries assume the configured map prior")
     return 0
 
 

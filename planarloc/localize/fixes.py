@@ -197,7 +197,7 @@ class FixSolver:
         self._map_centers = np.array([p.cam_from_world.center for p in posed]).reshape(-1, 3)
         self._map_R = np.array([p.cam_from_world.R for p in posed]).reshape(-1, 3, 3)
         self.gate = float(chi2.ppf(config.gate_probability, 6))
-        self._map_rotation_std = np.radians(localizer.config.ransac.map_rotation_std_deg)
+        self._map_rotation_std = np.radians(localizer.ransac_options.map_rotation_std_deg)
         limit = config.fix_resize_max
         own = localizer.features.resize_max
         self.features = localizer.features if limit is None or (own is not None and own <= limit) else replace(

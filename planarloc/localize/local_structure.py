@@ -201,7 +201,8 @@ def _match_and_triangulate(a: MapView, b: MapView, rows: np.ndarray, entry: _Dir
 
 def view_points(views: Sequence[MapView], keypoints: Sequence[np.ndarray], cache: PairMatchCache, *,
                 ratio: float = DEFAULT_RATIO, max_error_px: float = 2.0,
-                min_angle_deg: float = DEFAULT_MIN_ANGLE_DEG) -> list[ViewPoints]:
+                min_angle_deg: float = DEFAULT_MIN_ANGLE_DEG,
+                keypoint_std_px: float = KEYPOINT_STD_PX) -> list[ViewPoints]:
     """3D points of the given keypoints of each view, triangulated with the other views.
 
     Args:
@@ -211,6 +212,8 @@ def view_points(views: Sequence[MapView], keypoints: Sequence[np.ndarray], cache
         ratio: ratio-test threshold of the matcher.
         max_error_px: reprojection tolerance in both views, pixels.
         min_angle_deg: smallest triangulation angle.
+        keypoint_std_px: the map images' keypoint noise, for the points' covariance (the map's
+            measurement, :attr:`planarloc.map.pose_accuracy.MapPoseAccuracy.keypoint_std_px`).
 
     Returns:
         one :class:`ViewPoints` per view, rows in the order of ``keypoints[k]``; each keypoint
@@ -242,7 +245,7 @@ def view_points(views: Sequence[MapView], keypoints: Sequence[np.ndarray], cache
             cov[has], jac[has] = triangulation_uncertainty(
                 X[has], (view.cam_from_world.R, view.cam_from_world.t),
                 (np.array([o.cam_from_world.R for o in others]), np.array([o.cam_from_world.t for o in others])),
-                view.camera.focal, np.array([o.camera.focal for o in others], dtype=float), KEYPOINT_STD_PX)
+                view.camera.focal, np.array([o.camera.focal for o in others], dtype=float), keypoint_std_px)
         bad = ~(np.isfinite(cov).all(axis=(1, 2)) & np.isfinite(jac).all(axis=(1, 2, 3)))
         X[bad], angle[bad], partner[bad], cov[bad], jac[bad] = np.nan, 0.0, -1, np.nan, np.nan
         pooled = np.concatenate(residuals) if residuals else np.zeros(0)

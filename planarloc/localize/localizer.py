@@ -32,6 +32,7 @@ from planarloc.geometry.validation import InputError
 from planarloc.localize.local_structure import MapView, PairMatchCache, map_rotation_std_deg, view_points
 from planarloc.localize.query import ImageSource, Query, prepare_query
 from planarloc.map.gravity import map_gravity
+from planarloc.map.pose_accuracy import load_accuracy
 from planarloc.map.posed_image import PosedImage
 from planarloc.map.schema import VOCABULARY_BLOB
 from planarloc.map.settings import feature_config_from_map
@@ -42,6 +43,7 @@ from planarloc.robust.options import Method, RansacOptions, Structure, parse_met
 from planarloc.robust.pair_matches import PairMatches, unit_gravity
 from planarloc.robust.result import PoseEstimate
 from planarloc.robust.status import Status
+from planarloc.robust.structure import KEYPOINT_STD_PX
 
 logger = logging.getLogger(__name__)
 
@@ -54,6 +56,12 @@ logger = logging.getLogger(__name__)
 #: (the worst image's value did: position stds 0.04 -> 0.06 m from frame 13 on with the map every
 #: 4th frame, and the 10 Hz stream without odometry posed 34-36 of 38 frames instead of 37).
 MAP_DISAGREEMENT_SHARE = 0.2
+MIN_KEYPOINT_STD_PX = 0.1
+"""Floor of the measured keypoint noise of the map images (pixels)."""
+CARRYING_3D_INLIERS = 50
+"""A success with fewer 2D-3D inliers is judged under the configured map prior (not the measured one)."""
+MAP_PRIORS = ("measured", "configured")
+"""Where :attr:`LocalizerConfig.map_prior` takes the map pose prior from."""
 
 
 @dataclass(frozen=True)
@@ -68,6 +76,10 @@ class LocalizerConfig:
         ratio: ratio-test threshold of the matcher.
         use_depth: use the map images' depth maps (if any) as 2D-3D constraints.
         min_matches: references with fewer matches are dropped before estimation.
+        map_prior: ``"measured"`` (default): the map pose prior is the map's own measurement
+            (:mod:`planarloc.map.pose_accuracy`, stored by ``map build``) where the map has one,
+            else ``ransac.map_rotation_std_deg`` / ``map_position_std_m``; ``"configured"``:
+            always those two options.
     """
 
     top_n: int = DEFAULT_TOP_N
@@ -76,9 +88,12 @@ class LocalizerConfig:
     ratio: float = DEFAULT_RATIO
     use_depth: bool = False
     min_matches: int = 3
+    map_prior: str = "measured"
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "method", parse_method(self.method))  # a name ("2p1p") becomes its Method
+        if self.map_prior not in MAP_PRIORS:
+            raise InputError(f"map_prior: expected one of {', '.join(MAP_PRIORS)}, got {self.map_prior!r}")
         if int(self.top_n) < 2:
             raise InputError(f"top_n: need at least 2 reference images to fix the scale, got {self.top_n}")
 
@@ -154,6 +169,9 @@ class Localizer:
         """Matches between map images (local structure), kept across queries."""
         self.gravity = map_gravity(self.db)
         """The map's :class:`~planarloc.gravity.world.GravityReport` (``g_world``, mount tilt)."""
+        self.pose_accuracy = load_accuracy(self.db)
+        """How well the map's poses agree with its images (:mod:`planarloc.map.pose_accuracy`),
+        None for a map without the measurement."""
         self._g_world = self.gravity.g_world_array
 
     def with_config(self, config: LocalizerConfig) -> Localizer:
@@ -164,6 +182,33 @@ class Localizer:
         return other
 
     # ---- the map ------------------------------------------------------------------------
+    @property
+    def ransac_options(self) -> RansacOptions:
+        """The estimator options queries use: ``config.ransac`` with the map pose prior taken from
+        the map's measurement (:attr:`pose_accuracy`) when ``config.map_prior`` is ``"measured"``:
+        as measured with structure (``tracks``), at least the configured one without."""
+        ransac, accuracy = self.config.ransac, self.pose_accuracy
+        if self.config.map_prior != "measured" or accuracy is None:
+            return ransac
+        if ransac.structure != Structure.TRACKS:
+            # 2D-2D constraints alone: the measurement may raise the assumed prior, never lower it
+            # (a small prior does not make wrong-but-consistent matches precise; README, "map prior").
+            return replace(ransac, map_rotation_std_deg=max(ransac.map_rotation_std_deg, accuracy.rotation_std_deg),
+                           map_position_std_m=max(ransac.map_position_std_m, accuracy.position_std_m))
+        return replace(ransac, map_rotation_std_deg=accuracy.rotation_std_deg,
+                       map_position_std_m=accuracy.position_std_m, map_prior_measured=True,
+                       assumed_map_prior=(ransac.map_rotation_std_deg, ransac.map_position_std_m))
+
+    @property
+    def keypoint_std_px(self) -> float:
+        """The map images' keypoint noise for the covariance of points triangulated from them:
+        the map's measurement when ``config.map_prior`` is ``"measured"``, else
+        :data:`~planarloc.robust.structure.KEYPOINT_STD_PX`."""
+        accuracy = self.pose_accuracy
+        if self.config.map_prior != "measured" or accuracy is None or not np.isfinite(accuracy.keypoint_std_px):
+            return KEYPOINT_STD_PX
+        return max(float(accuracy.keypoint_std_px), MIN_KEYPOINT_STD_PX)
+
     @property
     def map_images(self) -> list[PosedImage]:
         """The map's image records (poses, cameras, files), in map order."""
@@ -247,7 +292,7 @@ class Localizer:
         :attr:`ViewPoints.pose_residual_px` of the two map images that triangulated it; NaN, NaN
         without structure)."""
         refs = [self.db.get_features(n) for n in references]
-        matches = match_query_to_refs(features, refs, ratio=self.config.ratio)
+        matches = match_query_to_refs(features, refs, ratio=self.config.ratio, kind=self.features.kind)
         points3d = self._local_structure(references, refs, matches)
         view_residual = np.array([np.nan if p is None else p.pose_residual_px for p in points3d])
         point_residuals, focals = [], []
@@ -298,7 +343,7 @@ class Localizer:
             return [None] * len(references)
         views = [MapView(n, f, self._posed[n].cam_from_world, self._posed[n].camera) for n, f in zip(references, refs)]
         points = view_points(views, [m[:, 1] for m in matches], self.pair_cache, ratio=self.config.ratio,
-                             max_error_px=self.config.ransac.threshold_px)
+                             max_error_px=self.config.ransac.threshold_px, keypoint_std_px=self.keypoint_std_px)
         # One 2D-3D constraint per query keypoint: the widest-angle point among its matches.
         query_kp = np.concatenate([m[:, 0] for m in matches])
         angle = np.concatenate([np.where(p.partner >= 0, p.angle_deg, -1.0) for p in points])
@@ -374,15 +419,18 @@ class Localizer:
         else:
             # Map poses that disagree with their images (KITTI's first seconds) move every point
             # triangulated from them together: the map prior takes what the images measured.
-            ransac = self.config.ransac
+            ransac = map_wide = self.ransac_options
             measured = map_rotation_std_deg(residual_px, focal_px)
             if measured > ransac.map_rotation_std_deg:
                 ransac = replace(ransac, map_rotation_std_deg=measured)
             est = estimate_absolute_pose(camera, pairs, self.config.method, ransac, query_gravity=query_gravity)
-            if ransac is not self.config.ransac:
+            est.map_prior = (ransac.map_rotation_std_deg, ransac.map_position_std_m)
+            if ransac is not map_wide:
                 est.message += (f"; the retrieved map images' poses disagree with their images by {residual_px:.1f} px "
                                 f"(median): map rotation std taken as {measured:.2f}° instead of "
-                                f"{self.config.ransac.map_rotation_std_deg:g}°")
+                                f"{map_wide.map_rotation_std_deg:.2g}°")
+            if ransac.map_prior_measured and est.success and est.num_inliers_3d < CARRYING_3D_INLIERS:
+                return self._under_assumed_prior(features, camera, refs, query_gravity, est.num_inliers_3d)
         if not est.success:  # any failure: whether a map image sees the query at all decides the advice
             t3 = time.perf_counter()
             est = self._unless_unseen(est, refs, pairs, camera)
@@ -390,6 +438,18 @@ class Localizer:
         est.references = used
         est.stats.add_time("retrieval", t1 - t0)
         est.stats.add_time("matching", t2 - t1)
+        return est, pairs
+
+    def _under_assumed_prior(self, features: Features, camera: Camera, refs: Sequence[str],
+                             gravity: np.ndarray | None, num_3d: int) -> tuple[PoseEstimate, list[PairMatches]]:
+        """The estimate of a pose that few 2D-3D inliers carry, judged again under the configured
+        (assumed) map prior and keypoint noise: the measured ones, small on a well-posed map, say
+        how precise points triangulated from it are, not that a query mostly matched 2D-2D is
+        (cross-session Strecha: poses 0.2-0.33 m off with 19-27 2D-3D inliers had 0.08-0.11 m stds)."""
+        est, pairs = self.with_config(replace(self.config, map_prior="configured")).localize_pairs(
+            features, camera, refs, gravity=gravity)
+        est.message += (f"; judged under the configured map prior: only {num_3d} 2D-3D inliers (fewer than "
+                        f"{CARRYING_3D_INLIERS}) carry the pose")
         return est, pairs
 
     def _unless_unseen(self, est: PoseEstimate, refs: Sequence[str], pairs: Sequence[PairMatches],

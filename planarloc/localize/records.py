@@ -23,7 +23,8 @@ Every record has (``null`` where a value is absent — never NaN or Infinity, :m
   "Pose covariances");
 - ``time_s``: seconds per stage, ``total`` among them.
 
-A fix adds the estimator's evidence (``num_inliers``, ``references``, ``model``, ...); a frame adds
+A fix adds the estimator's evidence (``num_inliers``, ``references``, ``model``, ...) and the map pose
+prior it assumed (``map_prior``: the map's measurement, :mod:`planarloc.map.pose_accuracy`); a frame adds
 the stream's bookkeeping (``fix_status``, ``motion_source``, ``late``, ..., and ``fix``: the fix
 record handled in its step).
 """
@@ -102,6 +103,8 @@ def query_record(name: str, estimate: PoseEstimate, gravity: object | None = Non
         "model": d["model"],
         "stats": d["stats"],
         "query_gravity": None if gravity is None else [float(v) for v in gravity],  # type: ignore[union-attr]
+        "map_prior": None if estimate.map_prior is None else {
+            "rotation_std_deg": float(estimate.map_prior[0]), "position_std_m": float(estimate.map_prior[1])},
     }
 
 

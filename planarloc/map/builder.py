@@ -36,6 +36,7 @@ from pathlib import Path
 
 import numpy as np
 
+from planarloc.features import learned
 from planarloc.features.extract import DEFAULT_FEATURE_CONFIG, FeatureConfig, Features, extract_features
 from planarloc.features.images import ImageFormatError, image_problem, image_size_from_header, read_gray
 from planarloc.features.retrieval import DEFAULT_NUM_WORDS, VladVocabulary, vlad_descriptor
@@ -56,6 +57,7 @@ from planarloc.map.gravity import (
 )
 from planarloc.map.identity import MapUpdatePlan, plan_map_update
 from planarloc.map.lock import MapWriterLock, writer_of
+from planarloc.map.pose_accuracy import measure_map_accuracy, store_accuracy
 from planarloc.map.posed_image import PosedImage
 from planarloc.map.schema import GRAVITY_META, VOCABULARY_BLOB, MapFormatError
 from planarloc.map.settings import check_num_words, map_config, settings_mismatch_error
@@ -199,6 +201,7 @@ def build_map(
     num_words = check_num_words(num_words)
     if not isinstance(features, FeatureConfig):
         raise InputError(f"features: expected a FeatureConfig, got {type(features).__name__}")
+    learned.load_backend(features.kind)  # a learned type's packages: a missing extra fails before any work
     images = list(images)
     if not images:
         raise InputError(f"{path}: no images to build the map from")
@@ -343,12 +346,14 @@ def _check_frames(path: Path, config: dict, images: Sequence[PosedImage], hashes
 
 def _finish(db: MapDatabase, plan: MapUpdatePlan, declared: WorldDown | None, num_words: int, seed: int,
             progress: Progress | None) -> None:
-    """Stage 3: when anything changed (or the last build did not finish), the retrieval index and
-    the map's gravity, then the map is marked complete; a map built before gravity was stored
+    """Stage 3: when anything changed (or the last build did not finish), the retrieval index,
+    the map's gravity and how well its poses agree with its images
+    (:mod:`planarloc.map.pose_accuracy`), then the map is marked complete; a map built before gravity was stored
     gets it."""
     if plan.changes_map or not db.is_complete or db.get_blob(VOCABULARY_BLOB) is None:
         index_map(db, num_words=num_words, seed=seed, progress=progress)
         store_map_gravity(db, declared)
+        store_accuracy(db, measure_map_accuracy(db, progress=progress))
         db.mark_complete()
     elif db.get_meta(GRAVITY_META) is None or world_down_changes(db, declared):  # e.g. up= given for this map
         store_map_gravity(db, declared)

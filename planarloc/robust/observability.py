@@ -37,6 +37,7 @@ from planarloc.geometry.so3 import exp_so3
 from planarloc.numerics.cholesky import solve_spd, spd_inverse
 from planarloc.robust.estimators import SIGMA_FLOOR_PX
 from planarloc.robust.map_prior import refine_with_map_prior
+from planarloc.robust.problem import ProblemArrays
 from planarloc.robust.refinement import (
     map_centre_covariance,
     map_uncertainty_covariance,
@@ -270,13 +271,15 @@ def profile_std(est, R: np.ndarray, t: np.ndarray, in2d: np.ndarray, in3d: np.nd
     return worst
 
 
-def map_covariance(est, R: np.ndarray, t: np.ndarray, in2d: np.ndarray, in3d: np.ndarray) -> np.ndarray:
-    """(3, 3) position covariance caused by the map's pose uncertainty (options.map_*_std)."""
+def map_covariance(est, R: np.ndarray, t: np.ndarray, in2d: np.ndarray, in3d: np.ndarray,
+                   prior: tuple[float, float] | None = None) -> np.ndarray:
+    """(3, 3) position covariance caused by the map's pose uncertainty: ``prior`` (rotation std
+    in degrees, position std in metres), default the options' ``map_*_std``."""
     p, o = est.p, est.options
+    rotation_deg, position_m = prior if prior is not None else (o.map_rotation_std_deg, o.map_position_std_m)
     return map_centre_covariance(*map_uncertainty_covariance(
-        np.ascontiguousarray(R), np.ascontiguousarray(t), p.xq, p.xr, p.pair, np.flatnonzero(in2d),
-        p.f_query, p.f_ref, p.ref_R, p.ref_t, p.xq3d, p.X3d, np.flatnonzero(in3d), o.threshold_px,
-        float(np.radians(o.map_rotation_std_deg)), float(o.map_position_std_m)))
+        np.ascontiguousarray(R), np.ascontiguousarray(t), p.arrays, np.flatnonzero(in2d), np.flatnonzero(in3d),
+        o.threshold_px, float(np.radians(rotation_deg)), float(position_m)))
 
 
 @dataclass(frozen=True)
@@ -301,10 +304,8 @@ class Jackknife:
 
 @njit(cache=True, error_model="numpy")
 def jackknife_kernel(
-    R: np.ndarray, t: np.ndarray, xq: np.ndarray, xr: np.ndarray, pair: np.ndarray, offsets: np.ndarray,
-    f_query: np.ndarray, f_ref: np.ndarray, ref_R: np.ndarray, ref_t: np.ndarray, xq3d: np.ndarray,
-    X3d: np.ndarray, in2d: np.ndarray, in3d: np.ndarray, support: np.ndarray, loss_scale: float,
-    max_iterations: int, sigma_floor: float,
+    R: np.ndarray, t: np.ndarray, prob: ProblemArrays, in2d: np.ndarray, in3d: np.ndarray, support: np.ndarray,
+    loss_scale: float, max_iterations: int, sigma_floor: float,
 ) -> tuple[float, float, float, int]:
     """The numbers of :func:`reference_jackknife` in one compiled call (one refinement per
     supporting reference with its rows left out, started at the full estimate).
@@ -313,6 +314,7 @@ def jackknife_kernel(
         (jackknife position std, largest centre shift, largest rotation in degrees, index into
         ``support`` of the reference whose removal moves the pose most).
     """
+    pair, offsets = prob.pair, prob.offsets
     n = support.shape[0]
     c = -m3.t_vec(R, t)
     idx3d = np.flatnonzero(in3d)
@@ -325,8 +327,7 @@ def jackknife_kernel(
     r = np.empty(m)
     J = np.empty((m, 6))
     eye = np.eye(3)
-    residuals_jacobian(R, c, eye, xq, xr, pair, all2d, f_query, f_ref, ref_R, ref_t, xq3d, X3d, idx3d, r, J,
-                       np.empty((0, 3)))
+    residuals_jacobian(R, c, eye, prob, all2d, idx3d, r, J, np.empty((0, 3)))
     P = offsets.shape[0] - 1
     Hp = np.zeros((P + 1, 6, 6))  # per pair; row P: the 2D-3D constraints (kept in every problem)
     gp = np.zeros((P + 1, 6))
@@ -359,9 +360,8 @@ def jackknife_kernel(
         if max_iterations >= 1 and solve_spd(A, gp[k] - gt, step):
             R1 = m3.mul(exp_so3(step[:3]), R)
             c1 = c + step[3:]
-        Rk, tk, _, _, _ = refine_pose_core(R1, t, xq, xr, pair, keep, f_query, f_ref, ref_R, ref_t, xq3d, X3d,
-                                           idx3d, loss_scale, max(max_iterations - 1, 0), sigma_floor, c1, eye, free,
-                                           np.bool_(False))
+        Rk, tk, _, _, _ = refine_pose_core(R1, t, prob, keep, idx3d, loss_scale, max(max_iterations - 1, 0),
+                                           sigma_floor, c1, eye, free, np.bool_(False))
         ck = -m3.t_vec(Rk, tk)
         for a in range(3):
             centres[i, a] = ck[a]
@@ -407,8 +407,7 @@ def reference_jackknife(est, R: np.ndarray, t: np.ndarray, in2d: np.ndarray, in3
     if n < 3:
         return Jackknife(n, float("nan"), float("nan"), float("nan"), -1)
     std, shift, rot, worst = jackknife_kernel(
-        np.ascontiguousarray(R), np.ascontiguousarray(t), p.xq, p.xr, p.pair, p.offsets, p.f_query, p.f_ref,
-        p.ref_R, p.ref_t, p.xq3d, p.X3d, in2d, in3d, np.asarray(support, dtype=np.int64),
+        np.ascontiguousarray(R), np.ascontiguousarray(t), p.arrays, in2d, in3d, np.asarray(support, dtype=np.int64),
         est.options.threshold_px, max_iterations, SIGMA_FLOOR_PX)
     return Jackknife(n, float(std), float(shift), float(rot), int(support[worst]))
 
@@ -433,9 +432,8 @@ def reference_jackknife_with_prior(est, R: np.ndarray, t: np.ndarray, in2d: np.n
     rot_std, pos_std = math.radians(o.map_rotation_std_deg), float(o.map_position_std_m)
     for i, k in enumerate(support):
         idx2d = np.flatnonzero(in2d & (p.pair != k))
-        Rk, tk, *_ = refine_with_map_prior(np.ascontiguousarray(R), np.ascontiguousarray(t), p.xq, p.xr, p.pair,
-                                           idx2d, p.f_query, p.f_ref, p.ref_R, p.ref_t, p.xq3d, p.X3d, idx3d,
-                                           o.threshold_px, max_iterations, SIGMA_FLOOR_PX, rot_std, pos_std, c, eye,
+        Rk, tk, *_ = refine_with_map_prior(np.ascontiguousarray(R), np.ascontiguousarray(t), p.arrays, idx2d, idx3d,
+                                           o.threshold_px, max_iterations, SIGMA_FLOOR_PX, (rot_std, pos_std), c, eye,
                                            free)
         centres[i] = -Rk.T @ tk
         max_rot = max(max_rot, math.degrees(math.acos(min(1.0, max(-1.0, (float(np.sum(Rk * R)) - 1.0) / 2.0)))))
@@ -448,9 +446,8 @@ def reference_jackknife_with_prior(est, R: np.ndarray, t: np.ndarray, in2d: np.n
 
 
 @njit(cache=True, error_model="numpy")
-def points_centre_covariance(R: np.ndarray, t: np.ndarray, xq3d: np.ndarray, X3d: np.ndarray, X3d_cov: np.ndarray,
-                             X3d_views: np.ndarray, X3d_pose_jac: np.ndarray, idx3d: np.ndarray, f_query: np.ndarray,
-                             f_ref: np.ndarray, ref_R: np.ndarray, ref_t: np.ndarray, H: np.ndarray,
+def points_centre_covariance(R: np.ndarray, t: np.ndarray, prob: ProblemArrays, X3d_cov: np.ndarray,
+                             X3d_views: np.ndarray, X3d_pose_jac: np.ndarray, idx3d: np.ndarray, H: np.ndarray,
                              loss_scale: float, map_rotation_var: float, map_position_var: float) -> np.ndarray:
     """(3, 3) covariance of the query centre caused by the 2D-3D points' own uncertainty.
 
@@ -480,8 +477,7 @@ def points_centre_covariance(R: np.ndarray, t: np.ndarray, xq3d: np.ndarray, X3d
     r = np.empty(m)
     J = np.empty((m, 6))
     c = -m3.t_vec(R, t)
-    residuals_jacobian(R, c, np.eye(3), xq3d[:0], xq3d[:0], np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64),
-                       f_query, f_ref, ref_R, ref_t, xq3d, X3d, idx3d, r, J, np.empty((0, 3)))
+    residuals_jacobian(R, c, np.eye(3), prob, np.zeros(0, dtype=np.int64), idx3d, r, J, np.empty((0, 3)))
     s2 = loss_scale * loss_scale
     n_views = 0
     for n in range(idx3d.shape[0]):
@@ -549,7 +545,6 @@ def points_covariance(est, R: np.ndarray, t: np.ndarray, in3d: np.ndarray, H: np
     idx3d = np.flatnonzero(in3d)
     if len(idx3d) == 0 or not (np.any(p.X3d_cov[idx3d]) or np.any(p.X3d_views[idx3d] >= 0)):
         return np.zeros((3, 3))
-    return points_centre_covariance(np.ascontiguousarray(R), np.ascontiguousarray(t), p.xq3d, p.X3d, p.X3d_cov,
-                                    p.X3d_views, p.X3d_pose_jac, idx3d, p.f_query, p.f_ref, p.ref_R, p.ref_t,
-                                    np.ascontiguousarray(H), o.threshold_px, math.radians(o.map_rotation_std_deg) ** 2,
+    return points_centre_covariance(np.ascontiguousarray(R), np.ascontiguousarray(t), p.arrays, p.X3d_cov,
+                                    p.X3d_views, p.X3d_pose_jac, idx3d, np.ascontiguousarray(H), o.threshold_px, math.radians(o.map_rotation_std_deg) ** 2,
                                     float(o.map_position_std_m) ** 2)

@@ -78,7 +78,17 @@ class RansacOptions:
         map_rotation_std_deg, map_position_std_m: uncertainty of the map's reference poses
             (rotation in degrees, centre in metres), propagated into ``position_std_m``; map
             errors are systematic per reference and near-collinear geometry amplifies them.
-            Set both to 0 for perfect (e.g. synthetic) maps.
+            Set both to 0 for perfect (e.g. synthetic) maps. The Localizer replaces them with
+            the map's own measurement (:mod:`planarloc.map.pose_accuracy`) where it has one.
+        map_prior_measured: the two map stds above were measured on the map's images (set by
+            the Localizer). For a pose carried by 2D-3D constraints the map errors are then
+            modelled, and the linearised covariance is not inflated for residuals correlated
+            within a reference (:func:`planarloc.robust.observability.correlation_inflation`),
+            which stands in for them when the prior is only assumed. A pose on 2D-2D
+            constraints alone keeps the inflation, and ``assumed_map_prior`` as a floor of the
+            map stds it propagates.
+        assumed_map_prior: the map stds assumed before the measurement, ``(rotation degrees,
+            position metres)`` (set by the Localizer with ``map_prior_measured``).
         min_collinearity_ratio: with fewer than ``min_inliers`` 2D-3D inliers, the query
             centre and the centres of the references with inliers must not lie on one line:
             the ratio of the second to the first singular value of the centred centres must
@@ -119,6 +129,8 @@ class RansacOptions:
     max_position_std_m: float = 0.3
     map_rotation_std_deg: float = 0.1
     map_position_std_m: float = 0.02
+    map_prior_measured: bool = False
+    assumed_map_prior: tuple[float, float] | None = None
     min_collinearity_ratio: float = 0.01
     track_min_angle_deg: float = 1.0
     planar_tolerance_deg: float = 1.5

@@ -75,6 +75,9 @@ class PoseEstimate:
             gravity-levelled plane of the references, the paper's model) or ``"6dof"`` (the
             planar model did not fit and 6DoF hypotheses won); empty on failure before a
             model was chosen.
+        map_prior: the map pose prior the estimate assumed, ``(rotation std in degrees,
+            position std in metres)`` per map image (filled by the Localizer: the map's own
+            measurement, raised where the retrieved images disagree); None if not known.
     """
 
     pose: Pose | None
@@ -91,6 +94,7 @@ class PoseEstimate:
     references: list[str] = field(default_factory=list)
     model: str = ""
     covariance: np.ndarray | None = None
+    map_prior: tuple[float, float] | None = None
 
     def __post_init__(self) -> None:
         self.status = Status.of(self.status)

@@ -133,7 +133,9 @@ def _position_covariance(estimator, options: RansacOptions, ref: RefinedPose, su
       (weak geometry amplifies them: a 0.1° error of a reference's rotation moves a 2D-2D
       position by metres when the query is almost collinear with the references). Never less
       than the references' own error moved rigidly with the query (triangulated points inherit
-      it: KITTI, tracks, 95 % -> 100 % of successes within 3σ + 5 cm with it);
+      it: KITTI, tracks, 95 % -> 100 % of successes within 3σ + 5 cm with it), averaged over the
+      supporting references when the map prior was measured (independent per image) and
+      2D-3D constraints carry the pose;
     * the 2D-3D points' own uncertainty (far points seen at a small angle are uncertain in
       depth; a query seen from elsewhere inherits that, and over few points it does not
       average out like pixel noise).
@@ -142,14 +144,30 @@ def _position_covariance(estimator, options: RansacOptions, ref: RefinedPose, su
     if not np.isfinite(cov).all():
         return cov
     n3d = int(np.count_nonzero(ref.in3d))
-    if options.map_rotation_std_deg > 0 or options.map_position_std_m > 0:
+    rotation_std, position_std = _map_prior(options, n3d)
+    if rotation_std > 0 or position_std > 0:
         if n3d == 0:
-            cov = cov + obs.map_covariance(estimator, ref.R, ref.t, ref.in2d, ref.in3d)
-        rigid = options.map_position_std_m**2 + (support.median_distance_m * math.radians(options.map_rotation_std_deg)) ** 2
+            cov = cov + obs.map_covariance(estimator, ref.R, ref.t, ref.in2d, ref.in3d, (rotation_std, position_std))
+        rigid = position_std**2 + (support.median_distance_m * math.radians(rotation_std)) ** 2
+        if options.map_prior_measured and n3d >= options.min_inliers:
+            # Measured per-image errors are independent: the query inherits their mean over the
+            # supporting references, not each one whole.
+            rigid /= max(len(support.supporting), 1)
         cov = cov + np.eye(3) * rigid
     if n3d and ref.H is not None:
         cov = cov + obs.points_covariance(estimator, ref.R, ref.t, ref.in3d, ref.H)
     return cov
+
+
+def _map_prior(options: RansacOptions, n3d: int) -> tuple[float, float]:
+    """The map stds (degrees, metres) a pose with ``n3d`` 2D-3D inliers propagates: the options',
+    raised to the assumed prior for a pose on 2D-2D constraints alone when the options' were
+    measured (a small measured prior does not make wrong-but-consistent 2D-2D matches precise:
+    fountain_p11's map measured 0.002°, and an entry_p10 query 0.98 m off got a 0.09 m std)."""
+    rotation, position = options.map_rotation_std_deg, options.map_position_std_m
+    if options.map_prior_measured and n3d < options.min_inliers and options.assumed_map_prior is not None:
+        rotation, position = max(rotation, options.assumed_map_prior[0]), max(position, options.assumed_map_prior[1])
+    return rotation, position
 
 
 def pose_covariance(ref: RefinedPose, position_cov: np.ndarray, std: float, correlation: float,
@@ -361,7 +379,12 @@ def _uncertainty(ctx: EstimateContext, cand: Candidate, rivals: Sequence[np.ndar
     near_collinear = spread < PROFILE_BELOW_RATIO and n3d < options.min_inliers
     # Residuals within one reference are correlated (its pose error, calibration, model
     # errors): thousands of matches are not thousands of independent constraints.
-    correlation = obs.correlation_inflation(n2d + n3d, len(support.supporting))
+    # With a measured map prior and 2D-3D support the map errors are modelled and nothing is
+    # left to inflate (on the shared data and generated worlds the inflated std was 2-5x the
+    # error). A pose on 2D-2D constraints alone keeps the inflation: cross-session matches
+    # (fountain_p11 map, entry_p10 queries) gave a pose 0.98 m off with a 0.08 m std without it.
+    modelled = options.map_prior_measured and n3d >= options.min_inliers
+    correlation = 1.0 if modelled else obs.correlation_inflation(n2d + n3d, len(support.supporting))
     cov = _position_covariance(estimator, options, ref, support, correlation)
     finite = bool(np.isfinite(cov).all())
     std = math.sqrt(max(sym_eigvals(cov)[0], 0.0)) if finite else math.inf

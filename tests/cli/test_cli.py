@@ -46,10 +46,12 @@ def test_map_build_storage_compact_is_a_smaller_map_that_localizes(tiny_world: P
         run(["map", "build", tiny_world / "map", "--format", "tum", "--out", tmp_path / "x.db", "--storage", "tiny"])
 
 
-def test_map_build_localize_evaluate(tiny_world: Path, tmp_path: Path) -> None:
+def test_map_build_localize_evaluate(tiny_world: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     db = tmp_path / "map.db"
     assert run(["map", "build", tiny_world / "map", "--format", "tum", "--out", db]) == 0
+    capsys.readouterr()
     assert run(["map", "info", db]) == 0
+    assert "map poses agree with their images to" in capsys.readouterr().out  # the measured map prior
     out = tmp_path / "poses.txt"
     queries = sorted((tiny_world / "query" / "rgb").glob("*.png"))[:3]
     cam = (tiny_world / "query" / "camera.txt").read_text().splitlines()[-1]
@@ -58,6 +60,9 @@ def test_map_build_localize_evaluate(tiny_world: Path, tmp_path: Path) -> None:
     assert len(lines) == 3 and all(len(line.split()) == 8 for line in lines)
     records = [json.loads(p.read_text()) for p in sorted((tmp_path / "poses.txt.json.d").glob("*.json"))]
     assert len(records) == 3 and all(r["success"] and r["num_inliers"] > 0 for r in records)
+    # the rendered world's poses are exact: the measured prior is far below the 0.1° / 2 cm default
+    assert all(r["map_prior"]["rotation_std_deg"] < 0.05 and r["map_prior"]["position_std_m"] < 0.01
+               for r in records), [r["map_prior"] for r in records]
     summary = tmp_path / "eval.json"
     plot = tmp_path / "eval.png"
     assert run(["evaluate", tiny_world / "map", "--format", "tum", "--map-every", "2", "--map", tmp_path / "e.db",

@@ -114,7 +114,19 @@ def test_map_poses_that_disagree_with_their_images_widen_the_promise(straight_co
         return estimate(camera, pairs, method, options, **kwargs)
 
     monkeypatch.setattr(localizer_module, "estimate_absolute_pose", spy)
+    # The map's own measurement at build time finds the error (planarloc.map.pose_accuracy) ...
     loc = Localizer(path)
+    assert loc.pose_accuracy is not None and 0.15 <= loc.pose_accuracy.rotation_std_deg <= 0.6, loc.pose_accuracy
+    for q in queries:
+        est = loc.localize(read_gray(q.path), q.camera)
+        # the measured error, map-wide or (few 2D-3D inliers: judged under the configured prior) per query
+        assert est.map_prior is not None and est.map_prior[0] >= 0.15, est.map_prior
+        if est.success:
+            t_err, _ = pose_errors(est.pose, q.cam_from_world)
+            assert t_err <= 3 * est.position_std_m + 0.05, (q.name, t_err, est.position_std_m)
+    # ... and with the configured prior, each query measures it on the retrieved map images.
+    used_std.clear()
+    loc = Localizer(path, LocalizerConfig(map_prior="configured"))
     for q in queries:
         est = loc.localize(read_gray(q.path), q.camera)
         assert "poses disagree with their images" in est.message, est.message
