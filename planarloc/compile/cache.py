@@ -6,6 +6,7 @@ from __future__ import annotations
 import logging
 from collections.abc import Iterable
 from pathlib import Path
+from typing import Any
 
 from planarloc.compile.dispatchers import dispatcher, planarloc_dispatchers
 from planarloc.compile.manifest import Manifest
@@ -22,7 +23,8 @@ def missing_kernels(keys: Iterable[str], manifest: Manifest) -> list[str]:
     out = []
     try:
         for key in keys:
-            d = dispatcher(key)
+            # Any: numba's private cache API below (Dispatcher._cache, CPUContext.codegen) is not in its stubs
+            d: Any = dispatcher(key)
             if d is None:
                 continue
             cache = d._cache
@@ -45,7 +47,7 @@ def kernels_persist(key: str) -> bool:
     """Whether kernels compiled in worker processes would reach this one (through numba's cache)."""
     from planarloc.numerics.kernel_cache import kernels_persist as cache_keeps
 
-    d = dispatcher(key)
+    d: Any = dispatcher(key)  # Any: Dispatcher._cache is numba's private API, not in its stubs
     return d is not None and cache_keeps(d._cache)
 
 

@@ -6,12 +6,16 @@ import dis
 import importlib
 import pkgutil
 from collections.abc import Sequence
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:  # numba is imported when a function here runs, not when planarloc.compile is imported
+    from numba.core.dispatcher import Dispatcher
 
 #: The packages whose modules define planarloc's compiled kernels.
 KERNEL_PACKAGES = ("geometry", "numerics", "solvers", "robust")
 
 
-def dispatcher(key: str):
+def dispatcher(key: str) -> Dispatcher[Any] | None:
     """The numba dispatcher ``module:qualname``, or None if there is none of that name."""
     from numba.core.dispatcher import Dispatcher
 
@@ -25,11 +29,11 @@ def dispatcher(key: str):
     return obj if isinstance(obj, Dispatcher) else None
 
 
-def planarloc_dispatchers() -> dict[str, object]:
+def planarloc_dispatchers() -> dict[str, Dispatcher[Any]]:
     """Every numba dispatcher defined in planarloc's compiled layers, by ``module:qualname``."""
     from numba.core.dispatcher import Dispatcher
 
-    out = {}
+    out: dict[str, Dispatcher[Any]] = {}
     for package in KERNEL_PACKAGES:
         pkg = importlib.import_module(f"planarloc.{package}")
         for m in pkgutil.iter_modules(pkg.__path__):

@@ -3,6 +3,10 @@
 from __future__ import annotations
 
 import time
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:  # numba is imported when recording starts
+    from numba.core.event import Listener
 
 
 class CompileRecorder:
@@ -20,7 +24,7 @@ class CompileRecorder:
         self.kernels: dict[str, dict[str, float]] = {}
         self.overloads: dict[str, float] = {}
         self._stack: list[list] = []
-        self._listener = None
+        self._listener: Listener | None = None
 
     def _start(self, data: dict) -> None:
         self._stack.append([data["dispatcher"], data["args"], time.process_time(), 0.0])

@@ -31,7 +31,9 @@ class _Schedule:
     """Hands out kernels whose callees are compiled, longest remaining chain of compile time first."""
 
     def __init__(self, deps: dict[str, set[str]], cost: dict[str, float]) -> None:
-        self.deps, self.pending, self.running, self.done = deps, set(deps), set(), set()
+        self.deps, self.pending = deps, set(deps)
+        self.running: set[str] = set()
+        self.done: set[str] = set()
         users: dict[str, set[str]] = {k: set() for k in deps}
         for k, ds in deps.items():
             for d in ds:
@@ -89,15 +91,18 @@ def estimated_seconds(keys: Sequence[str], manifest: Manifest, jobs: int) -> flo
     return max(sum(cost.values()) / max(jobs, 1), max(schedule.chain.values()))
 
 
-def _drive(proc: subprocess.Popen, schedule: _Schedule, manifest: Manifest, report: CompileReport,
+def _drive(proc: subprocess.Popen[str], schedule: _Schedule, manifest: Manifest, report: CompileReport,
            lock: threading.Lock, update: Update | None) -> None:
     """Feed one worker process kernels from ``schedule`` until none is left or the worker ends."""
+    stdin, stdout = proc.stdin, proc.stdout
+    if stdin is None or stdout is None:
+        raise ValueError("a compile worker must be started with stdin=PIPE and stdout=PIPE")
     total = len(schedule.deps)
     while (key := schedule.take()) is not None:
         try:
-            proc.stdin.write(json.dumps({"key": key, "signatures": manifest.kernels[key].signatures}) + "\n")
-            proc.stdin.flush()
-            reply = proc.stdout.readline()
+            stdin.write(json.dumps({"key": key, "signatures": manifest.kernels[key].signatures}) + "\n")
+            stdin.flush()
+            reply = stdout.readline()
         except (OSError, ValueError):
             reply = ""
         errors = json.loads(reply)["errors"] if reply else ["the worker process ended"]
@@ -114,10 +119,10 @@ def _drive(proc: subprocess.Popen, schedule: _Schedule, manifest: Manifest, repo
             return
 
 
-def _stop(workers: list[subprocess.Popen]) -> None:
+def _stop(workers: list[subprocess.Popen[str]]) -> None:
     """Close the workers' input (they end) and wait for them; kill one that does not end."""
     for p in workers:
-        if p.poll() is None:
+        if p.poll() is None and p.stdin is not None:
             try:
                 p.stdin.close()
             except OSError:

@@ -4,6 +4,7 @@ back as data: never evaluated as code beyond numba type names, calls, constants 
 from __future__ import annotations
 
 import ast
+import re
 
 
 def numba_types() -> dict[str, object]:
@@ -13,7 +14,15 @@ def numba_types() -> dict[str, object]:
     names = {k: v for k, v in vars(types).items() if not k.startswith("_")}
     names["bool"] = types.boolean  # repr(types.boolean) is 'bool'
     names["omitted"] = lambda default: types.Omitted(default)  # repr: 'omitted(default=...)'
+    # the kernels' named records (typing.NamedTuple): repr 'ProblemArrays(array(float64, 2d, C), ...)'
+    from planarloc.robust.problem import ProblemArrays
+
+    names["ProblemArrays"] = lambda *fields: types.NamedTuple(fields, ProblemArrays)
     return names
+
+
+#: An array as a record's repr writes its fields (``str`` of the type): ``array(float64, 2d, C)``.
+_SHORT_ARRAY = re.compile(r"\barray\((\w+), (\d)d, ([CFA])\)")
 
 
 #: The expressions a signature may use: type names, calls and subscripts of them
@@ -27,6 +36,7 @@ def parse_signature(text: str, names: dict[str, object] | None = None) -> tuple 
     does not parse (e.g. a literal type) or is not made only of numba type names, calls, constants
     and tuples (the list is data: it is never evaluated as code beyond that)."""
     try:
+        text = _SHORT_ARRAY.sub(r"Array(\1, \2, '\3')", text)
         if not isinstance(text, str) or len(text) > 4000 or not all(
                 isinstance(n, _SIGNATURE_NODES) for n in ast.walk(ast.parse(text, mode="eval"))):
             return None

@@ -51,10 +51,15 @@ def warmup_steps() -> list[tuple[str, Callable[[], object]]]:
     spread = make_scene(rng, num_refs=3, matches_per_pair=30, noise_px=1.0, outlier_ratio=0.3, track_pool=1.5)
     line = make_scene(rng, num_refs=3, matches_per_pair=30, noise_px=1.0, outlier_ratio=0.2, collinear=True)
     opts = RansacOptions(max_iterations=20, min_iterations=20)
+
+    def on_spread(method: Method, structure: str) -> Callable[[], object]:
+        return lambda: estimate_absolute_pose(
+            spread.query_camera, spread.pairs, method,
+            RansacOptions(max_iterations=20, min_iterations=20, structure=structure))
+
     steps: list[tuple[str, Callable[[], object]]] = [
-        (step_name(m.value, s), lambda m=m, s=s: estimate_absolute_pose(
-            spread.query_camera, spread.pairs, m, RansacOptions(max_iterations=20, min_iterations=20, structure=s)))
-        for m in Method for s in ("none", "tracks")]
+        (step_name(m.value, s), on_spread(m, s)) for m in Method for s in ("none", "tracks")
+    ]
     steps.append(("2p1p collinear", lambda: estimate_absolute_pose(line.query_camera, line.pairs, "2p1p", opts)))
     steps.append(("solvers", _solver_calls()))
     return steps
@@ -81,4 +86,8 @@ def run_steps(names: Iterable[str] | None = None, update: Update | None = None) 
 def steps_for(configs: Iterable[LocalizerConfig]) -> list[str]:
     """The warm-up steps that localizing with these configurations needs (one per method and
     structure mode)."""
-    return sorted({step_name(c.method.value, c.ransac.structure.value) for c in configs})
+    from planarloc.robust.options import parse_method, parse_structure
+
+    # The configurations hold the members (their __post_init__ parses); the fields' types also admit a name.
+    return sorted({step_name(parse_method(c.method).value, parse_structure(c.ransac.structure).value)
+                   for c in configs})

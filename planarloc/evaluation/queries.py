@@ -26,6 +26,7 @@ from planarloc.map.posed_image import PosedImage
 from planarloc.map.schema import MapFormatError
 from planarloc.map.settings import cache_dir
 from planarloc.map.store import MapDatabase
+from planarloc.robust.options import parse_method, parse_structure
 from planarloc.robust.result import PoseEstimate
 
 #: ``on_estimate(localizer, query, features, estimate)`` callback of :func:`evaluate_configs`.
@@ -37,6 +38,16 @@ SCHEMA = "planarloc.evaluation/1"
 
 def threshold_name(t: float, r: float) -> str:
     return f"{t:g}m/{r:g}deg"
+
+
+def center_tuple(center: np.ndarray) -> tuple[float, float, float]:
+    """A (3,) camera centre as a tuple of Python floats (a result's field)."""
+    return float(center[0]), float(center[1]), float(center[2])
+
+
+def quat_wxyz_tuple(quat_wxyz: np.ndarray) -> tuple[float, float, float, float]:
+    """A (4,) quaternion (w, x, y, z) as a tuple of Python floats (a result's field)."""
+    return float(quat_wxyz[0]), float(quat_wxyz[1]), float(quat_wxyz[2]), float(quat_wxyz[3])
 
 
 @dataclass(frozen=True)
@@ -95,14 +106,14 @@ def split_map_queries(images: Sequence[PosedImage], map_every: int) -> tuple[lis
 def query_result(query: PosedImage, est: PoseEstimate, seconds: float, gravity: object | None = None) -> QueryResult:
     if est.success and est.pose is not None:
         t_err, r_err = pose_errors(est.pose, query.cam_from_world)
-        c = tuple(float(v) for v in est.pose.center)
-        q = tuple(float(v) for v in est.pose.quat_wxyz)
+        c: tuple[float, float, float] | None = center_tuple(est.pose.center)
+        q: tuple[float, float, float, float] | None = quat_wxyz_tuple(est.pose.quat_wxyz)
     else:
         t_err, r_err, c, q = float("nan"), float("nan"), None, None
     return QueryResult(query.name, est.status, bool(est.success), t_err, r_err, float(est.position_std_m),
                        int(est.num_inliers), int(est.num_inliers_3d), seconds, c,
-                       tuple(float(v) for v in query.cam_from_world.center), query.timestamp, q,
-                       tuple(float(v) for v in query.cam_from_world.quat_wxyz), tuple(est.references),
+                       center_tuple(query.cam_from_world.center), query.timestamp, q,
+                       quat_wxyz_tuple(query.cam_from_world.quat_wxyz), tuple(est.references),
                        reason="" if est.success else est.message,
                        record=query_record(query.name, est, gravity, stamp=query.timestamp))
 
@@ -111,8 +122,8 @@ def _error_result(query: PosedImage, seconds: float, reason: str) -> QueryResult
     """A query that could not be processed: failed, status ``"error"``, with the reason."""
     nan = float("nan")
     return QueryResult(query.name, "error", False, nan, nan, nan, 0, 0, seconds, None,
-                       tuple(float(v) for v in query.cam_from_world.center), query.timestamp, None,
-                       tuple(float(v) for v in query.cam_from_world.quat_wxyz), reason=reason,
+                       center_tuple(query.cam_from_world.center), query.timestamp, None,
+                       quat_wxyz_tuple(query.cam_from_world.quat_wxyz), reason=reason,
                        record=error_record(query.name, reason, stamp=query.timestamp, seconds=seconds))
 
 
@@ -162,7 +173,7 @@ def gravity_from_truth(queries: Sequence[PosedImage], g_world: object | None = N
     """
     out = {}
     for q in queries:
-        down = q.world_down.direction if q.world_down is not None else None
+        down: object | None = q.world_down.direction if q.world_down is not None else None
         down = g_world if down is None else down
         if down is not None:
             out[q.name] = gravity_in_camera(q.cam_from_world, down)
@@ -255,7 +266,8 @@ def evaluate_query(localizers: Sequence[Localizer], query: PosedImage,
 
 def config_label(config: LocalizerConfig) -> tuple[str, str]:
     """``(method, structure)`` of ``config`` as their names (``("auto", "tracks")``)."""
-    return config.method.value, config.ransac.structure.value  # type: ignore[union-attr]  # a Method once built
+    # The configuration holds the members (its __post_init__ parses); the fields' types also admit a name.
+    return parse_method(config.method).value, parse_structure(config.ransac.structure).value
 
 
 def default_map_path(dataset_root: Path, map_every: int, feature_name: str,

@@ -28,7 +28,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from planarloc.evaluation.queries import THRESHOLDS, threshold_name, with_truth
+from planarloc.evaluation.queries import THRESHOLDS, center_tuple, quat_wxyz_tuple, threshold_name, with_truth
 from planarloc.geometry.pose import Pose, pose_errors
 from planarloc.geometry.validation import InputError
 from planarloc.localize.records import error_record, frame_record
@@ -92,13 +92,13 @@ def frame_result(image: PosedImage, est: SequenceEstimate, kidnapped: bool, fini
     truth = image.cam_from_world
     if est.pose is not None:
         t_err, r_err = pose_errors(est.pose, truth)
-        c = tuple(float(v) for v in est.pose.center)
-        q = tuple(float(v) for v in est.pose.quat_wxyz)
+        c: tuple[float, float, float] | None = center_tuple(est.pose.center)
+        q: tuple[float, float, float, float] | None = quat_wxyz_tuple(est.pose.quat_wxyz)
     else:
         t_err, r_err, c, q = float("nan"), float("nan"), None, None
     return FrameResult(image.name, est.stamp, est.status, est.fix_status, est.motion_source, bool(kidnapped),
                        t_err, r_err, float(est.position_std_m), float(est.seconds), c,
-                       tuple(float(v) for v in truth.center), q, tuple(float(v) for v in truth.quat_wxyz),
+                       center_tuple(truth.center), q, quat_wxyz_tuple(truth.quat_wxyz),
                        float(est.latency_s), float(finished_s), bool(est.late), bool(est.success), float(est.stamp),
                        cpu_s=float(est.cpu_s), record=frame_record(image.name, est))
 
@@ -108,8 +108,8 @@ def unposed_result(image: PosedImage, stamp: float, kidnapped: bool, status: str
     """A frame without a pose: one the stream never saw (:data:`DROPPED`), or one it could not
     process (``"error"``, with its reason)."""
     return FrameResult(image.name, float(stamp), status, "none", "none", bool(kidnapped), float("nan"),
-                       float("nan"), float("inf"), 0.0, None, tuple(float(v) for v in image.cam_from_world.center),
-                       None, tuple(float(v) for v in image.cam_from_world.quat_wxyz), timestamp=float(stamp),
+                       float("nan"), float("inf"), 0.0, None, center_tuple(image.cam_from_world.center),
+                       None, quat_wxyz_tuple(image.cam_from_world.quat_wxyz), timestamp=float(stamp),
                        reason=" ".join(str(reason).split()),
                        record=error_record(image.name, reason or "the camera replaced this frame before the stream "
                                            "took it", kind="frame", stamp=stamp, status=status))
@@ -147,9 +147,10 @@ def relocalization(results: Sequence[FrameResult], threshold: tuple[float, float
 
     events = [k for k, r in enumerate(results) if r.kidnapped]
     bounds = [0, *events, len(results)]
-    out = {"threshold": threshold_name(*threshold), "start": delay(0, bounds[1]) if results else None,
-           "kidnaps": [delay(a, b) for a, b in zip(bounds[1:-1], bounds[2:])]}
-    found = [d["frames"] for d in out["kidnaps"] if d is not None]
+    kidnaps = [delay(a, b) for a, b in zip(bounds[1:-1], bounds[2:])]
+    out: dict[str, object] = {"threshold": threshold_name(*threshold),
+                              "start": delay(0, bounds[1]) if results else None, "kidnaps": kidnaps}
+    found = [d["frames"] for d in kidnaps if d is not None]
     out["max_frames_after_kidnap"] = max(found) if found and len(found) == len(events) else None
     return out
 

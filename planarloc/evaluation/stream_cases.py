@@ -181,7 +181,7 @@ def _png_bytes(image: object) -> bytes:
         return buf.tobytes()
     if isinstance(image, (bytes, bytearray)):
         return bytes(image)
-    return Path(image).read_bytes()  # type: ignore[arg-type]
+    return Path(image).read_bytes()  # type: ignore[arg-type]  # else a path (Path raises TypeError otherwise)
 
 
 def corrupt(frames: Sequence[CaseFrame], rng: np.random.Generator, fraction: float = 0.1,
@@ -234,9 +234,9 @@ def _rechain(frames: Sequence[CaseFrame], order: Sequence[int], period: float) -
         prev_i, prev = order[k - 1], out[-1]
         jump = i != prev_i + 1
         stamp = prev.stamp + (period if jump else frames[i].stamp - frames[prev_i].stamp)
-        odometry = f.odometry
-        if prev.odometry is not None and f.odometry is not None and frames[prev_i].odometry is not None:
-            step = Pose.identity() if jump else f.odometry @ frames[prev_i].odometry.inverse()
+        odometry, prev_source = f.odometry, frames[prev_i].odometry
+        if prev.odometry is not None and f.odometry is not None and prev_source is not None:
+            step = Pose.identity() if jump else f.odometry @ prev_source.inverse()
             odometry = step @ prev.odometry
         out.append(dataclasses.replace(f, stamp=stamp, odometry=odometry, kidnapped=jump))
     return out

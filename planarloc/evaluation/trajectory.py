@@ -36,7 +36,7 @@ def _trajectory(trajectory_mod, timestamps: np.ndarray, centers: np.ndarray,  # 
 
 
 def evo_errors(
-    timestamps: Sequence[float],
+    timestamps: Sequence[float] | np.ndarray,
     estimate_centers: np.ndarray,
     estimate_quat_wxyz: np.ndarray,
     truth_centers: np.ndarray,
@@ -61,7 +61,7 @@ def evo_errors(
         return {}
     est = _trajectory(trajectory, ts, estimate_centers, estimate_quat_wxyz)
     ref = _trajectory(trajectory, ts, truth_centers, truth_quat_wxyz)
-    out = {}
+    out: dict[str, dict[str, float] | None] = {}
     for key, relation in (("ape_translation_m", metrics.PoseRelation.translation_part),
                           ("ape_rotation_deg", metrics.PoseRelation.rotation_angle_deg)):
         ape = metrics.APE(relation)

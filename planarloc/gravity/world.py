@@ -139,7 +139,14 @@ def world_down_from_up(value: object) -> WorldDown:
     ``up=estimate`` gives ``direction=None``: estimate from the poses."""
     if isinstance(value, str) and value.strip().lower() == ESTIMATE:
         return WorldDown(None, "option", f"up={ESTIMATE}")
-    return WorldDown(tuple(-parse_up(value)), "option", f"up={value if isinstance(value, str) else list(value)}")
+    if not isinstance(value, (list, tuple, np.ndarray)):  # a string: parse_up refuses anything else
+        return WorldDown(tuple(-parse_up(value)), "option", f"up={value}")
+    return WorldDown(tuple(-parse_up(value)), "option", f"up={list(value)}")
+
+
+def _floats3(v: np.ndarray) -> tuple[float, float, float]:
+    """A (3,) array as a tuple of Python floats."""
+    return float(v[0]), float(v[1]), float(v[2])
 
 
 def gravity_in_camera(pose: Pose, g_world: object) -> np.ndarray:
@@ -376,6 +383,7 @@ def gravity_from_map_poses(
     poses = _check_poses(poses)
     if declared is not None and not isinstance(declared, WorldDown):
         raise InputError(f"declared: expected a WorldDown, got {type(declared).__name__}")
+    warnings: list[str]
     if declared is not None and declared.direction is not None:
         g, method, detail, plane_rms, warnings = np.array(declared.direction), "given", declared.detail, None, []
         centers = np.array([p.center for p in poses])
@@ -402,8 +410,8 @@ def gravity_from_map_poses(
             f"the cameras are tilted {tilt:.0f}° from the estimated gravity: the centres' {method} is probably not "
             "level (e.g. a handheld or vertical path); pass the dataset option up=...")
     report = GravityReport(
-        g_world=tuple(float(v) for v in g), source=source, method=method, detail=detail,
+        g_world=_floats3(g), source=source, method=method, detail=detail,
         num_cameras=len(poses), pitch_deg=float(pitch0), roll_deg=float(roll0),
         pitch_spread_deg=p_spread, roll_spread_deg=r_spread, pitch_max_dev_deg=p_max, roll_max_dev_deg=r_max,
-        plane_rms=plane_rms, extent=tuple(float(v) for v in extent), warnings=tuple(warnings))
+        plane_rms=plane_rms, extent=_floats3(extent), warnings=tuple(warnings))
     return g, report

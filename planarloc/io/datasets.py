@@ -99,7 +99,7 @@ def format_options(fmt: str) -> list[str]:
     ] + [UP_OPTION]
 
 
-_KINDS = {bool: "bool", int: "int", float: "float"}
+_KINDS: dict[object, str] = {bool: "bool", int: "int", float: "float"}  # a type hint -> its kind
 
 
 def option_kind(fmt: str, key: str) -> str:

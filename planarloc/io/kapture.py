@@ -101,18 +101,7 @@ def read_kapture(root: Path, *, timestamp_scale: float = 1.0, check_images: bool
     sensors_path, traj_path = sdir / "sensors.txt", sdir / "trajectories.txt"
     records_path, rigs_path = sdir / "records_camera.txt", sdir / "rigs.txt"
 
-    camera_lines: dict[str, tuple[int, list[str]]] = {}
-    for lineno, tokens in iter_data_lines(
-        sensors_path, FORMAT, "'sensor_id, name, sensor_type, model, params...' per sensor", sep=","
-    ):
-        if len(tokens) < 3:
-            raise FormatError(
-                sensors_path,
-                lineno,
-                f"expected 'sensor_id, name, sensor_type, ...', found {len(tokens)} fields",
-            )
-        if tokens[2].lower() == "camera":
-            camera_lines[tokens[0]] = (lineno, tokens[3:])
+    camera_lines = _camera_lines(sensors_path)
     cameras: dict[str, Camera] = {}
 
     def camera_of(sensor_id: str) -> Camera:
@@ -123,13 +112,7 @@ def read_kapture(root: Path, *, timestamp_scale: float = 1.0, check_images: bool
 
     trajectories = _read_poses(traj_path, POSE_FIELDS,
                                lambda ln, ts, dev: (_timestamp_key(traj_path, ln, ts), dev))
-    cam_from_rig: dict[str, tuple[str, Pose]] = {}
-    if rigs_path.is_file():
-        for (rig, sensor), (_, pose) in _read_poses(
-            rigs_path, "'rig_id, sensor_id, qw, qx, qy, qz, tx, ty, tz'", lambda ln, rig, sensor: (rig, sensor)
-        ).items():
-            cam_from_rig[sensor] = (rig, pose)
-
+    cam_from_rig = _cam_from_rig(rigs_path)
     out: list[PosedImage] = []
     unposed = 0
     for index, (lineno, tokens) in enumerate(
@@ -147,12 +130,8 @@ def read_kapture(root: Path, *, timestamp_scale: float = 1.0, check_images: bool
             raise FormatError(
                 records_path, lineno, f"expected a camera sensor id of sensors.txt, found {device!r}"
             )
-        if (ts, device) in trajectories:
-            pose = trajectories[(ts, device)][1]
-        elif device in cam_from_rig and (ts, cam_from_rig[device][0]) in trajectories:
-            rig, c_from_r = cam_from_rig[device]
-            pose = c_from_r @ trajectories[(ts, rig)][1]
-        else:
+        pose = _record_pose(ts, device, trajectories, cam_from_rig)
+        if pose is None:
             unposed += 1
             continue
         out.append(
@@ -174,3 +153,41 @@ def read_kapture(root: Path, *, timestamp_scale: float = 1.0, check_images: bool
             records_path, None, "expected camera records with a pose in trajectories.txt, found none"
         )
     return out
+
+
+def _camera_lines(sensors_path: Path) -> dict[str, tuple[int, list[str]]]:
+    """sensor id -> (line number, model and params tokens) of every camera in ``sensors.txt``."""
+    camera_lines: dict[str, tuple[int, list[str]]] = {}
+    for lineno, tokens in iter_data_lines(
+        sensors_path, FORMAT, "'sensor_id, name, sensor_type, model, params...' per sensor", sep=","
+    ):
+        if len(tokens) < 3:
+            raise FormatError(
+                sensors_path,
+                lineno,
+                f"expected 'sensor_id, name, sensor_type, ...', found {len(tokens)} fields",
+            )
+        if tokens[2].lower() == "camera":
+            camera_lines[tokens[0]] = (lineno, tokens[3:])
+    return camera_lines
+
+
+def _cam_from_rig(rigs_path: Path) -> dict[str, tuple[str, Pose]]:
+    """sensor id -> (its rig id, cam_from_rig) from ``rigs.txt`` (empty without the file)."""
+    cam_from_rig: dict[str, tuple[str, Pose]] = {}
+    if rigs_path.is_file():
+        for (rig, sensor), (_, pose) in _read_poses(
+            rigs_path, "'rig_id, sensor_id, qw, qx, qy, qz, tx, ty, tz'", lambda ln, rig, sensor: (rig, sensor)
+        ).items():
+            cam_from_rig[sensor] = (rig, pose)
+    return cam_from_rig
+
+
+def _record_pose(ts: object, device: str, trajectories: dict, cam_from_rig: dict[str, tuple[str, Pose]]) -> Pose | None:
+    """cam_from_world of a record: the device's own trajectory pose, else through its rig; None if unposed."""
+    if (ts, device) in trajectories:
+        return trajectories[(ts, device)][1]
+    if device in cam_from_rig and (ts, cam_from_rig[device][0]) in trajectories:
+        rig, c_from_r = cam_from_rig[device]
+        return c_from_r @ trajectories[(ts, rig)][1]
+    return None

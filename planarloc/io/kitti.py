@@ -192,12 +192,7 @@ def read_kitti(root: Path, *, image_dir: str | None = None, calib_key: str | Non
     poses_path, calib_path, times_path = root / "poses.txt", root / "calib.txt", root / "times.txt"
     read_text(poses_path, FORMAT, "one 3x4 camera-to-world matrix (12 numbers) per frame")
 
-    if calib_key is None:
-        m = re.fullmatch(r"image_(\d)", img_dir.name)
-        text = read_text(calib_path, FORMAT, "the 3x4 projection matrix of the camera")
-        if m and re.search(rf"^\s*P{m.group(1)}:", text, flags=re.MULTILINE):
-            calib_key = f"P{m.group(1)}"
-    P, calib_where = _read_calib(calib_path, calib_key)
+    P, calib_where = _read_calib(calib_path, _calib_key(calib_path, img_dir, calib_key))
     K = P[:, :3]
     cam_from_cam0 = Pose(np.eye(3), np.linalg.solve(K, P[:, 3]))
     moved = bool(np.any(cam_from_cam0.t != 0))
@@ -209,27 +204,7 @@ def read_kitti(root: Path, *, image_dir: str | None = None, calib_key: str | Non
         by_index = dict(enumerate(files))
     times = _read_times(times_path) if times_path.is_file() else None
 
-    frames: list[tuple[int, Path, Pose]] = []
-    for k, (lineno, tokens) in enumerate(
-        iter_data_lines(poses_path, FORMAT, "one 3x4 camera-to-world matrix (12 numbers) per frame")
-    ):
-        if len(tokens) != 12:
-            raise FormatError(
-                poses_path, lineno, f"expected 12 numbers (3x4 camera-to-world matrix), found {len(tokens)}"
-            )
-        world_from_cam0 = pose_from_matrix34(
-            poses_path, lineno, parse_floats(poses_path, lineno, tokens, "pose matrix").reshape(3, 4)
-        )
-        image_path = by_index.get(k)
-        if image_path is None:
-            image_path = img_dir / f"{k:06d}.png"
-            if check_images:
-                raise FormatError(
-                    poses_path,
-                    lineno,
-                    f"expected an image for frame {k} in {img_dir}/, found none ({image_path.name})",
-                )
-        frames.append((k, image_path, cam_from_cam0 @ world_from_cam0.inverse()))
+    frames = _read_frames(poses_path, img_dir, by_index, cam_from_cam0, check_images)
     if not frames:
         raise FormatError(
             poses_path, None, "expected one 3x4 camera-to-world matrix per frame, found no pose"
@@ -261,3 +236,40 @@ def read_kitti(root: Path, *, image_dir: str | None = None, calib_key: str | Non
         )
         for k, path, pose in frames
     ]
+
+
+def _calib_key(calib_path: Path, img_dir: Path, calib_key: str | None) -> str | None:
+    """The ``calib.txt`` label to use: ``calib_key``, else ``PN`` for ``image_N/`` when that line exists."""
+    if calib_key is None:
+        m = re.fullmatch(r"image_(\d)", img_dir.name)
+        text = read_text(calib_path, FORMAT, "the 3x4 projection matrix of the camera")
+        if m and re.search(rf"^\s*P{m.group(1)}:", text, flags=re.MULTILINE):
+            calib_key = f"P{m.group(1)}"
+    return calib_key
+
+
+def _read_frames(poses_path: Path, img_dir: Path, by_index: dict[int, Path], cam_from_cam0: Pose,
+                 check_images: bool) -> list[tuple[int, Path, Pose]]:
+    """(frame number, image file, cam_from_world) per line of ``poses.txt``."""
+    frames: list[tuple[int, Path, Pose]] = []
+    for k, (lineno, tokens) in enumerate(
+        iter_data_lines(poses_path, FORMAT, "one 3x4 camera-to-world matrix (12 numbers) per frame")
+    ):
+        if len(tokens) != 12:
+            raise FormatError(
+                poses_path, lineno, f"expected 12 numbers (3x4 camera-to-world matrix), found {len(tokens)}"
+            )
+        world_from_cam0 = pose_from_matrix34(
+            poses_path, lineno, parse_floats(poses_path, lineno, tokens, "pose matrix").reshape(3, 4)
+        )
+        image_path = by_index.get(k)
+        if image_path is None:
+            image_path = img_dir / f"{k:06d}.png"
+            if check_images:
+                raise FormatError(
+                    poses_path,
+                    lineno,
+                    f"expected an image for frame {k} in {img_dir}/, found none ({image_path.name})",
+                )
+        frames.append((k, image_path, cam_from_cam0 @ world_from_cam0.inverse()))
+    return frames

@@ -208,7 +208,7 @@ def _running(pid: int) -> bool:
 
 def remove_dead_temporaries(folder: Path) -> list[Path]:
     """Remove the temporary files that killed runs left in ``folder`` (their process is gone)."""
-    removed = []
+    removed: list[Path] = []
     try:
         entries = list(Path(folder).iterdir())
     except OSError:

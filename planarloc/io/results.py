@@ -32,6 +32,7 @@ from __future__ import annotations
 import re
 from pathlib import Path
 
+from planarloc.geometry.pose import Pose
 from planarloc.geometry.validation import InputError
 from planarloc.io import strict_json
 from planarloc.io.output import STDOUT, StagedFiles, output_kind, remove_dead_temporaries
@@ -91,7 +92,7 @@ class ResultsWriter:
         self.lines: list[str] = []
         self.statuses: dict[str, int] = {}
         self.names: list[str] = []
-        self._tum: list[tuple[float, object, str | None]] = []   # stamp, pose, the predicted mark
+        self._tum: list[tuple[float, Pose, str | None]] = []   # stamp, pose, the predicted mark
         self._staged = StagedFiles()
         if self.records_dir is not None:
             self.records_dir.mkdir(parents=True, exist_ok=True)

@@ -225,7 +225,6 @@ def _read_bag(
 
     if isinstance(every, bool) or not isinstance(every, (int, np.integer)) or every < 1:
         raise InputError(f"every: expected an integer >= 1, got {every!r}")
-    every = int(every)
     paths = bag_paths(Path(root))
     try:
         reader = AnyReader(paths, default_typestore=get_typestore(Stores.ROS2_HUMBLE))
@@ -249,71 +248,101 @@ def _read_bag(
         wanted = {img_topic, info_topic, pose_topic}
         if with_tf:
             wanted |= {t for t, ty in topics.items() if ty == TF_MESSAGE and t in ("/tf", "/tf_static")}
-        conns = [c for c in reader.connections if c.topic in wanted]
         out_dir = Path(image_dir) if image_dir is not None else default_image_dir(paths, img_topic)
-        slug = img_topic.strip("/").replace("/", "_") or "image"
-        pending: list[tuple[str, Path, int, int, str]] = []  # name, file, index, stamp, frame
-        pose_times: list[float] = []
-        poses: list[Pose] = []
-        pose_frame: str | None = None
-        tf = TfBuffer()
-        n_image = 0
-        names: set[str] = set()
-        for conn, bag_ns, raw in reader.messages(connections=conns):
-            if conn.topic == img_topic:
-                index = n_image
-                n_image += 1
-                if index % every:
-                    continue
-            elif conn.topic == info_topic and cam is not None:
-                continue
-            where = at_stamp(conn.topic, int(bag_ns))
-            try:
-                msg = reader.deserialize(raw, conn.msgtype)
-            except Exception as exc:  # noqa: BLE001 - rosbags raises many kinds for a damaged message
-                raise FormatError(root, None, f"{where} (bag time): cannot decode the {conn.msgtype} message "
-                                              f"({type(exc).__name__}: {exc})") from None
-            ns = _stamp_ns(msg, bag_ns)
-            where = at_stamp(conn.topic, ns)
-            try:
-                if conn.topic == img_topic:
-                    name = f"{slug}/{ns // 1_000_000_000}.{ns % 1_000_000_000:09d}"
-                    while name in names:
-                        name += "_"
-                    names.add(name)
-                    path = _store_image(out_dir, name, msg, conn.msgtype)
-                    pending.append((str(path.relative_to(out_dir)), path, index, ns, frame_name(msg.header.frame_id)))
-                elif conn.topic == info_topic and cam is None:
-                    cam = camera_from_camera_info(msg, rectified_topic(img_topic), _CAMERA_HINT)
-                elif conn.topic == pose_topic:
-                    p = msg.pose if conn.msgtype == POSE_STAMPED else msg.pose.pose
-                    poses.append(pose_from_ros(p.position, p.orientation))
-                    pose_times.append(ns * 1e-9)
-                    if conn.msgtype == ODOMETRY:
-                        pose_frame = frame_name(msg.child_frame_id)
-                elif conn.msgtype == TF_MESSAGE:
-                    tf.add(msg, conn.topic == "/tf_static", bag_ns)
-            except InputError as exc:
-                raise FormatError(root, None, f"{where}: {exc}") from None
+        collector = _BagCollector(root, _BagTopics(img_topic, info_topic, pose_topic), cam, out_dir, int(every))
+        for conn, bag_ns, raw in reader.messages(connections=[c for c in reader.connections if c.topic in wanted]):
+            collector.add(reader, conn, bag_ns, raw)
     finally:
         reader.close()
-    if cam is None:
-        raise FormatError(root, None, f"{info_topic}: no CameraInfo message in the bag; pass the option camera=...")
-    images = [BagImage(name, path, cam, index, ns * 1e-9, frame) for name, path, index, ns, frame in pending]
-    if not images:
-        raise FormatError(root, None, f"expected messages on {img_topic}, found none")
-    try:  # the size from the header: nothing is decoded here (the pixel cap of every image path)
-        _fmt, width, height = declared_size(Path(images[0].path).read_bytes())
-        check_image_pixels(width, height, f"{images[0].path}")
-    except (InputError, OSError) as exc:
-        raise FormatError(root, None, f"{at_stamp(img_topic, pending[0][3])}: cannot decode the first image "
-                                      f"({images[0].path}): {exc}") from None
-    if (width, height) != (images[0].camera.width, images[0].camera.height):
-        raise FormatError(
-            root, None, f"{img_topic}: images are {width}x{height} but the camera is "
-            f"{images[0].camera.width}x{images[0].camera.height}; check camera_info_topic / camera"
-        )
-    return _BagContent(img_topic, images, pose_times, poses, pose_frame, tf)
+    return collector.content()
+
+
+@dataclass(frozen=True)
+class _BagTopics:
+    """The topics read: images, CameraInfo (None when the camera is given) and poses (None: tf or none)."""
+
+    image: str
+    camera_info: str | None
+    pose: str | None
+
+
+class _BagCollector:
+    """Decodes a bag's messages in order: stores the kept images, takes the camera from CameraInfo,
+    collects poses and the tf tree."""
+
+    def __init__(self, root: Path, topics: _BagTopics, cam: Camera | None, out_dir: Path, every: int):
+        self.root, self.topics, self.cam, self.out_dir, self.every = root, topics, cam, out_dir, every
+        self.slug = topics.image.strip("/").replace("/", "_") or "image"
+        self.pending: list[tuple[str, Path, int, int, str]] = []  # name, file, index, stamp, frame
+        self.pose_times: list[float] = []
+        self.poses: list[Pose] = []
+        self.pose_frame: str | None = None
+        self.tf = TfBuffer()
+        self.n_image = 0
+        self.names: set[str] = set()
+
+    def add(self, reader: Any, conn: Any, bag_ns: int, raw: bytes) -> None:
+        index = -1
+        if conn.topic == self.topics.image:
+            index = self.n_image
+            self.n_image += 1
+            if index % self.every:
+                return
+        elif conn.topic == self.topics.camera_info and self.cam is not None:
+            return
+        where = at_stamp(conn.topic, int(bag_ns))
+        try:
+            msg = reader.deserialize(raw, conn.msgtype)
+        except Exception as exc:  # noqa: BLE001 - rosbags raises many kinds for a damaged message
+            raise FormatError(self.root, None, f"{where} (bag time): cannot decode the {conn.msgtype} message "
+                                               f"({type(exc).__name__}: {exc})") from None
+        ns = _stamp_ns(msg, bag_ns)
+        try:
+            self._take(conn, msg, ns, bag_ns, index)
+        except InputError as exc:
+            raise FormatError(self.root, None, f"{at_stamp(conn.topic, ns)}: {exc}") from None
+
+    def _take(self, conn: Any, msg: Any, ns: int, bag_ns: int, index: int) -> None:
+        if conn.topic == self.topics.image:
+            name = f"{self.slug}/{ns // 1_000_000_000}.{ns % 1_000_000_000:09d}"
+            while name in self.names:
+                name += "_"
+            self.names.add(name)
+            path = _store_image(self.out_dir, name, msg, conn.msgtype)
+            self.pending.append((str(path.relative_to(self.out_dir)), path, index, ns,
+                                 frame_name(msg.header.frame_id)))
+        elif conn.topic == self.topics.camera_info and self.cam is None:
+            self.cam = camera_from_camera_info(msg, rectified_topic(self.topics.image), _CAMERA_HINT)
+        elif conn.topic == self.topics.pose:
+            p = msg.pose if conn.msgtype == POSE_STAMPED else msg.pose.pose
+            self.poses.append(pose_from_ros(p.position, p.orientation))
+            self.pose_times.append(ns * 1e-9)
+            if conn.msgtype == ODOMETRY:
+                self.pose_frame = frame_name(msg.child_frame_id)
+        elif conn.msgtype == TF_MESSAGE:
+            self.tf.add(msg, conn.topic == "/tf_static", bag_ns)
+
+    def content(self) -> _BagContent:
+        """What was read, after checking there are images, a camera, and that it fits the first image."""
+        root, img_topic, cam = self.root, self.topics.image, self.cam
+        if cam is None:
+            raise FormatError(root, None, f"{self.topics.camera_info}: no CameraInfo message in the bag; pass the "
+                                          "option camera=...")
+        images = [BagImage(name, path, cam, index, ns * 1e-9, frame) for name, path, index, ns, frame in self.pending]
+        if not images:
+            raise FormatError(root, None, f"expected messages on {img_topic}, found none")
+        try:  # the size from the header: nothing is decoded here (the pixel cap of every image path)
+            _fmt, width, height = declared_size(Path(images[0].path).read_bytes())
+            check_image_pixels(width, height, f"{images[0].path}")
+        except (InputError, OSError) as exc:
+            raise FormatError(root, None, f"{at_stamp(img_topic, self.pending[0][3])}: cannot decode the first image "
+                                          f"({images[0].path}): {exc}") from None
+        if (width, height) != (cam.width, cam.height):
+            raise FormatError(
+                root, None, f"{img_topic}: images are {width}x{height} but the camera is "
+                f"{cam.width}x{cam.height}; check camera_info_topic / camera"
+            )
+        return _BagContent(img_topic, images, self.pose_times, self.poses, self.pose_frame, self.tf)
 
 
 def _store_image(out_dir: Path, name: str, msg: Any, msgtype: str) -> Path:
@@ -412,6 +441,45 @@ def read_rosbag(
         >>> read_rosbag(Path("run1.bag"), image_topic="/cam/image_raw", pose_topic="/odom")  # doctest: +SKIP
     """
     root = Path(root)
+    max_dt = _check_pose_options(pose_topic, tf_parent, tf_child, max_dt)
+    base_from_camera = parse_transform(base_to_camera, "base_to_camera") if base_to_camera is not None else None
+    content = _read_bag(root, image_topic=image_topic, camera_info_topic=camera_info_topic, camera=camera,
+                        pose_topic=pose_topic, with_tf=True, every=every, image_dir=image_dir)
+    images = content.images
+    ambiguous = _shared_stamps(images, content.image_topic, "skipped: a pose cannot be paired with one of them")
+    times = np.array([im.timestamp for im in images])
+    if pose_topic is not None:
+        if not content.poses:
+            raise FormatError(root, None, f"expected pose messages on {pose_topic}, found none")
+        pose_times, poses = distinct_samples(content.pose_times, content.poses, pose_topic)
+        idx = associate_timestamps(times, pose_times, max_dt)
+        world_from_posed = [poses[i] if i >= 0 else None for i in idx]
+        posed_frame = content.pose_frame
+    else:
+        world_from_posed = content.tf.poses_at(frame_name(tf_parent), frame_name(tf_child), times, max_dt, root)
+        posed_frame = frame_name(tf_child)
+    extrinsic = base_from_camera
+    if extrinsic is None:
+        extrinsic = _static_extrinsic(root, content, posed_frame, pose_topic)
+    out = [PosedImage(name=im.name, path=im.path, cam_from_world=(w_from_p if extrinsic is None else
+                                                                   w_from_p @ extrinsic).inverse(),
+                      camera=im.camera, index=im.index, timestamp=im.timestamp)
+           for k, (im, w_from_p) in enumerate(zip(images, world_from_posed)) if w_from_p is not None and k not in ambiguous]
+    skipped = sum(w is None for k, w in enumerate(world_from_posed) if k not in ambiguous)
+    source = pose_topic or f"tf {tf_parent} -> {tf_child}"
+    if not out:
+        raise FormatError(
+            root, None, f"expected images with a pose ({source}) within max_dt = {max_dt:g} s, found none "
+            f"({len(images)} images); check the topics/frames or raise max_dt"
+        )
+    if skipped:
+        logger.warning("%s: %d of %d images have no pose (%s) within max_dt = %g s and are skipped",
+                       root, skipped, len(images), source, max_dt)
+    return out
+
+
+def _check_pose_options(pose_topic: str | None, tf_parent: str | None, tf_child: str | None, max_dt: float) -> float:
+    """Either a pose topic or a full tf chain; returns ``max_dt`` as a float >= 0."""
     if (pose_topic is None) == (tf_parent is None and tf_child is None):
         raise InputError(
             "rosbag: give either the option pose_topic=TOPIC or both tf_parent=FRAME and tf_child=FRAME"
@@ -424,24 +492,14 @@ def read_rosbag(
         max_dt = math.nan
     if not np.isfinite(max_dt) or max_dt < 0:
         raise InputError(f"max_dt: expected a number of seconds >= 0, got {max_dt!r}")
-    base_from_camera = parse_transform(base_to_camera, "base_to_camera") if base_to_camera is not None else None
-    content = _read_bag(root, image_topic=image_topic, camera_info_topic=camera_info_topic, camera=camera,
-                        pose_topic=pose_topic, with_tf=True, every=every, image_dir=image_dir)
+    return max_dt
+
+
+def _static_extrinsic(root: Path, content: _BagContent, posed_frame: str | None, pose_topic: str | None) -> Pose | None:
+    """``posed_from_camera`` from ``/tf_static`` when the posed frame and the image frame differ
+    (None, with a warning, when it does not link them or the posed frame is unnamed)."""
     images = content.images
-    ambiguous = _shared_stamps(images, content.image_topic, "skipped: a pose cannot be paired with one of them")
-    times = np.array([im.timestamp for im in images])
-    if pose_topic is not None:
-        if not content.poses:
-            raise FormatError(root, None, f"expected pose messages on {pose_topic}, found none")
-        pose_times, poses = distinct_samples(content.pose_times, content.poses, pose_topic)
-        idx = associate_timestamps(times, pose_times, float(max_dt))
-        world_from_posed = [poses[i] if i >= 0 else None for i in idx]
-        posed_frame = content.pose_frame
-    else:
-        world_from_posed = content.tf.poses_at(frame_name(tf_parent), frame_name(tf_child), times, float(max_dt), root)
-        posed_frame = frame_name(tf_child)
-    extrinsic = base_from_camera
-    if extrinsic is None and posed_frame:
+    if posed_frame:
         image_frame = images[0].frame_id
         if image_frame and image_frame != posed_frame:
             extrinsic = content.tf.static_chain(posed_frame, image_frame)
@@ -451,27 +509,11 @@ def read_rosbag(
                     "taking the poses as the camera's (pass base_to_camera='x y z qx qy qz qw' if not)",
                     root, posed_frame, image_frame,
                 )
-    elif extrinsic is None and images[0].frame_id in content.tf.static:
+            return extrinsic
+    elif images[0].frame_id in content.tf.static:
         logger.warning(
             "%s: %s does not name its posed frame, and /tf_static places the image frame %r below %r; taking "
             "the poses as the camera's (if they are of the base, pass base_to_camera='x y z qx qy qz qw')",
             root, pose_topic, images[0].frame_id, content.tf.static[images[0].frame_id][0],
         )
-    out = []
-    for k, (im, w_from_p) in enumerate(zip(images, world_from_posed)):
-        if w_from_p is None or k in ambiguous:
-            continue
-        world_from_cam = w_from_p if extrinsic is None else w_from_p @ extrinsic
-        out.append(PosedImage(name=im.name, path=im.path, cam_from_world=world_from_cam.inverse(), camera=im.camera,
-                              index=im.index, timestamp=im.timestamp))
-    skipped = sum(w is None for k, w in enumerate(world_from_posed) if k not in ambiguous)
-    source = pose_topic or f"tf {tf_parent} -> {tf_child}"
-    if not out:
-        raise FormatError(
-            root, None, f"expected images with a pose ({source}) within max_dt = {float(max_dt):g} s, found none "
-            f"({len(images)} images); check the topics/frames or raise max_dt"
-        )
-    if skipped:
-        logger.warning("%s: %d of %d images have no pose (%s) within max_dt = %g s and are skipped",
-                       root, skipped, len(images), source, float(max_dt))
-    return out
+    return None

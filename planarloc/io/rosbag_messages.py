@@ -4,7 +4,8 @@ stamp are named, ``sensor_msgs/Image`` decoding, the bag options that are not to
 
 from __future__ import annotations
 
-from typing import Any
+from collections.abc import Iterable
+from typing import Any, Literal
 
 import cv2
 import numpy as np
@@ -79,7 +80,9 @@ def parse_transform(value: object, option: str) -> Pose:
     try:
         if isinstance(value, str):
             return parse_pose(value, T_XYZW)
-        return pose_from_numbers([float(v) for v in value], T_XYZW)  # type: ignore[union-attr]
+        if not isinstance(value, Iterable):
+            raise TypeError(f"'{type(value).__name__}' object is not iterable")
+        return pose_from_numbers([float(v) for v in value], T_XYZW)
     except (TypeError, ValueError) as exc:
         raise InputError(f"{option}: {exc}, got {value!r}") from None
 
@@ -109,7 +112,7 @@ def decode_image(msg: Any) -> np.ndarray:
     if h < 1 or w < 1 or data.size < h * step or step < w * channels * item:
         raise InputError(f"image message: {data.size} bytes do not hold {h} rows of step {step} ({w}x{h} {enc})")
     rows = np.ascontiguousarray(data[: h * step].reshape(h, step)[:, : w * channels * item])
-    order = ">" if int(getattr(msg, "is_bigendian", 0)) else "<"
+    order: Literal[">", "<"] = ">" if int(getattr(msg, "is_bigendian", 0)) else "<"
     img = rows.view(np.dtype(dtype).newbyteorder(order)).astype(dtype).reshape(h, w, channels)
     img = img[:, :, 0] if channels == 1 else img
     return cv2.cvtColor(img, conversion) if conversion is not None else img

@@ -71,12 +71,14 @@ class TfBuffer:
 
     def chain(self, parent: str, child: str) -> list[str] | None:
         """Frames from ``child`` up to (excluding) ``parent``, or None if ``parent`` is not an ancestor."""
-        out, frame = [], child
+        out: list[str] = []
+        frame = child
         while frame != parent:
             out.append(frame)
-            frame = self.parent(frame)  # type: ignore[assignment]
-            if frame is None or len(out) > 1000:
+            up = self.parent(frame)
+            if up is None or len(out) > 1000:
                 return None
+            frame = up
         return out
 
     def static_chain(self, parent: str, child: str) -> Pose | None:

@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -31,27 +32,37 @@ POSE_MESSAGES = {"PoseStamped": POSE_STAMPED, "PoseWithCovarianceStamped": POSE_
                  "Odometry": ODOMETRY, "tf": TF_MESSAGE}
 
 
-def write_rosbag(
-    out: Path,
-    images: Sequence[PosedImage],
-    *,
-    storage: str = "sqlite3",
-    compressed: bool = False,
-    image_topic: str = "/camera/image_raw",
-    camera_info_topic: str | None = "/camera/camera_info",
-    pose_topic: str = "/pose",
-    pose_message: str = "PoseStamped",
-    world_frame: str = "map",
-    base_frame: str = "base_link",
-    camera_frame: str = "camera_optical_frame",
-    base_from_camera: Pose | None = None,
-    pose_delay: float = 0.0,
-) -> Path:
+@dataclass(frozen=True)
+class BagLayout:
+    """What :func:`write_rosbag` writes: storage, topics, message types and frames (see its docstring)."""
+
+    storage: str = "sqlite3"
+    compressed: bool = False
+    image_topic: str = "/camera/image_raw"
+    camera_info_topic: str | None = "/camera/camera_info"
+    pose_topic: str = "/pose"
+    pose_message: str = "PoseStamped"
+    world_frame: str = "map"
+    base_frame: str = "base_link"
+    camera_frame: str = "camera_optical_frame"
+    base_from_camera: Pose | None = None
+    pose_delay: float = 0.0
+
+    @property
+    def posed_frame(self) -> str:
+        return self.base_frame if self.base_from_camera is not None else self.camera_frame
+
+
+def write_rosbag(out: Path, images: Sequence[PosedImage], layout: BagLayout | None = None, **overrides: Any) -> Path:
     """Write posed images as a ROS bag (the inverse of :func:`read_rosbag`).
 
     Args:
         out: a new ``.bag`` file (``storage="rosbag1"``) or a new ROS 2 bag folder.
         images: posed images; stamps are their ``timestamp`` (else ``0.1 s * index``).
+        layout: a :class:`BagLayout` (None: defaults); keyword ``overrides`` replace its fields,
+            e.g. ``write_rosbag(out, images, storage="mcap", compressed=True)``.
+
+    Layout fields:
         storage: ``"rosbag1"``, ``"sqlite3"`` or ``"mcap"``.
         compressed: write ``sensor_msgs/CompressedImage`` (the image files' PNG/JPEG bytes)
             instead of ``sensor_msgs/Image`` (mono8 or bgr8).
@@ -70,106 +81,124 @@ def write_rosbag(
     Returns:
         ``out``.
     """
+    layout = replace(layout or BagLayout(), **overrides)
     _rosbags()
-    from rosbags.typesys import Stores, get_typestore
-
-    if storage not in STORAGES:
-        raise InputError(f"storage: expected one of {', '.join(STORAGES)}, got {storage!r}")
-    if pose_message not in POSE_MESSAGES:
-        raise InputError(f"pose_message: expected one of {', '.join(POSE_MESSAGES)}, got {pose_message!r}")
-    ros1 = storage == "rosbag1"
-    ts = get_typestore(Stores.ROS1_NOETIC if ros1 else Stores.ROS2_HUMBLE)
-    if TF_MESSAGE not in ts.types:  # the noetic store lacks tf2_msgs
-        from rosbags.typesys import get_types_from_msg
-
-        ts.register(get_types_from_msg("geometry_msgs/TransformStamped[] transforms", TF_MESSAGE))
-    T = ts.types
+    if layout.storage not in STORAGES:
+        raise InputError(f"storage: expected one of {', '.join(STORAGES)}, got {layout.storage!r}")
+    if layout.pose_message not in POSE_MESSAGES:
+        raise InputError(f"pose_message: expected one of {', '.join(POSE_MESSAGES)}, got {layout.pose_message!r}")
     out = Path(out)
-    posed_frame = base_frame if base_from_camera is not None else camera_frame
+    bag = _BagWriter(layout)
+    writer, bag.serialize = _open_writer(out, layout.storage, bag.ts)
+    with writer:
+        bag.writer = writer
+        if layout.base_from_camera is not None:
+            ns0 = _stamp_of(images[0]) if images else 0
+            msg = bag.T[TF_MESSAGE](transforms=[bag.transform_msg(ns0, layout.base_frame, layout.camera_frame,
+                                                                  layout.base_from_camera)])
+            bag.write("/tf_static", TF_MESSAGE, ns0, msg)
+        for seq, im in enumerate(images):
+            ns = _stamp_of(im)
+            bag.write_pose(im, ns, seq)
+            if layout.camera_info_topic is not None:
+                msg = _camera_info_msg(bag.T, bag.header(ns, layout.camera_frame, seq), im.camera, bag.ros1)
+                bag.write(layout.camera_info_topic, CAMERA_INFO, ns, msg)
+            bag.write_image(im, ns, seq)
+    return out
 
-    def stamp(ns: int) -> Any:
-        return T["builtin_interfaces/msg/Time"](sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000)
 
-    def header(ns: int, frame: str, seq: int = 0) -> Any:
-        kw = {"seq": seq} if ros1 else {}
-        return T["std_msgs/msg/Header"](**kw, stamp=stamp(ns), frame_id=frame)
+class _BagWriter:
+    """Builds the messages of one bag with its type store and writes them, one connection per topic."""
 
-    def pose_msg(p: Pose) -> Any:
-        q, t = p.quat_wxyz, p.t
+    def __init__(self, layout: BagLayout):
+        from rosbags.typesys import Stores, get_typestore
+
+        self.layout = layout
+        self.ros1 = layout.storage == "rosbag1"
+        self.ts = get_typestore(Stores.ROS1_NOETIC if self.ros1 else Stores.ROS2_HUMBLE)
+        if TF_MESSAGE not in self.ts.types:  # the noetic store lacks tf2_msgs
+            from rosbags.typesys import get_types_from_msg
+
+            self.ts.register(get_types_from_msg("geometry_msgs/TransformStamped[] transforms", TF_MESSAGE))
+        self.T = self.ts.types
+        self.conns: dict[str, Any] = {}
+        self.writer: Any = None
+        self.serialize: Any = None
+
+    def write(self, topic: str, msgtype: str, ns: int, msg: Any) -> None:
+        if topic not in self.conns:
+            self.conns[topic] = self.writer.add_connection(topic, msgtype, typestore=self.ts)
+        self.writer.write(self.conns[topic], ns, self.serialize(msg, msgtype))
+
+    def header(self, ns: int, frame: str, seq: int = 0) -> Any:
+        kw = {"seq": seq} if self.ros1 else {}
+        stamp = self.T["builtin_interfaces/msg/Time"](sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000)
+        return self.T["std_msgs/msg/Header"](**kw, stamp=stamp, frame_id=frame)
+
+    def pose_msg(self, p: Pose) -> Any:
+        q, t, T = p.quat_wxyz, p.t, self.T
         return T["geometry_msgs/msg/Pose"](
             position=T["geometry_msgs/msg/Point"](x=float(t[0]), y=float(t[1]), z=float(t[2])),
             orientation=T["geometry_msgs/msg/Quaternion"](x=float(q[1]), y=float(q[2]), z=float(q[3]), w=float(q[0])))
 
-    def transform_msg(ns: int, parent: str, child: str, p: Pose) -> Any:
-        q, t = p.quat_wxyz, p.t
+    def transform_msg(self, ns: int, parent: str, child: str, p: Pose) -> Any:
+        q, t, T = p.quat_wxyz, p.t, self.T
         return T["geometry_msgs/msg/TransformStamped"](
-            header=header(ns, parent), child_frame_id=child,
+            header=self.header(ns, parent), child_frame_id=child,
             transform=T["geometry_msgs/msg/Transform"](
                 translation=T["geometry_msgs/msg/Vector3"](x=float(t[0]), y=float(t[1]), z=float(t[2])),
                 rotation=T["geometry_msgs/msg/Quaternion"](x=float(q[1]), y=float(q[2]), z=float(q[3]),
                                                            w=float(q[0]))))
 
-    writer, serialize = _open_writer(out, storage, ts)
-    with writer:
-        conns: dict[str, Any] = {}
-
-        def add(topic: str, msgtype: str) -> Any:
-            if topic not in conns:
-                conns[topic] = writer.add_connection(topic, msgtype, typestore=ts)
-            return conns[topic]
-
-        if base_from_camera is not None:
-            ns0 = _stamp_of(images[0]) if images else 0
-            msg = T[TF_MESSAGE](transforms=[transform_msg(ns0, base_frame, camera_frame, base_from_camera)])
-            writer.write(add("/tf_static", TF_MESSAGE), ns0, serialize(msg, TF_MESSAGE))
-        for seq, im in enumerate(images):
-            ns = _stamp_of(im)
-            world_from_cam = im.cam_from_world.inverse()
-            world_from_posed = (world_from_cam if base_from_camera is None
-                                else world_from_cam @ base_from_camera.inverse())
-            pns = ns + int(round(pose_delay * 1e9))
-            if pose_message == "tf":
-                msg = T[TF_MESSAGE](transforms=[transform_msg(pns, world_frame, posed_frame, world_from_posed)])
-                writer.write(add("/tf", TF_MESSAGE), pns, serialize(msg, TF_MESSAGE))
+    def write_pose(self, im: PosedImage, ns: int, seq: int) -> None:
+        """The image's pose (camera's or base's) as the layout's pose message, or on ``/tf``."""
+        lay, T = self.layout, self.T
+        world_from_cam = im.cam_from_world.inverse()
+        world_from_posed = (world_from_cam if lay.base_from_camera is None
+                            else world_from_cam @ lay.base_from_camera.inverse())
+        pns = ns + int(round(lay.pose_delay * 1e9))
+        if lay.pose_message == "tf":
+            msg = T[TF_MESSAGE](transforms=[self.transform_msg(pns, lay.world_frame, lay.posed_frame,
+                                                               world_from_posed)])
+            self.write("/tf", TF_MESSAGE, pns, msg)
+            return
+        mt = POSE_MESSAGES[lay.pose_message]
+        p = self.pose_msg(world_from_posed)
+        header = self.header(pns, lay.world_frame, seq)
+        if mt == POSE_STAMPED:
+            msg = T[mt](header=header, pose=p)
+        else:
+            cov = T["geometry_msgs/msg/PoseWithCovariance"](pose=p, covariance=np.zeros(36))
+            if mt == POSE_WITH_COVARIANCE:
+                msg = T[mt](header=header, pose=cov)
             else:
-                mt = POSE_MESSAGES[pose_message]
-                p = pose_msg(world_from_posed)
-                if mt == POSE_STAMPED:
-                    msg = T[mt](header=header(pns, world_frame, seq), pose=p)
-                else:
-                    cov = T["geometry_msgs/msg/PoseWithCovariance"](pose=p, covariance=np.zeros(36))
-                    if mt == POSE_WITH_COVARIANCE:
-                        msg = T[mt](header=header(pns, world_frame, seq), pose=cov)
-                    else:
-                        zero = T["geometry_msgs/msg/Vector3"](x=0.0, y=0.0, z=0.0)
-                        twist = T["geometry_msgs/msg/TwistWithCovariance"](
-                            twist=T["geometry_msgs/msg/Twist"](linear=zero, angular=zero), covariance=np.zeros(36))
-                        msg = T[mt](header=header(pns, world_frame, seq), child_frame_id=posed_frame, pose=cov,
-                                    twist=twist)
-                writer.write(add(pose_topic, mt), pns, serialize(msg, mt))
-            if camera_info_topic is not None:
-                msg = _camera_info_msg(T, header(ns, camera_frame, seq), im.camera, ros1)
-                writer.write(add(camera_info_topic, CAMERA_INFO), ns, serialize(msg, CAMERA_INFO))
-            if compressed:
-                data = Path(im.path).read_bytes()
-                fmt = "png" if Path(im.path).suffix.lower() == ".png" else "jpeg"
-                msg = T[COMPRESSED_IMAGE](header=header(ns, camera_frame, seq), format=fmt,
-                                          data=np.frombuffer(data, dtype=np.uint8))
-                writer.write(add(image_topic, COMPRESSED_IMAGE), ns, serialize(msg, COMPRESSED_IMAGE))
-            else:
-                img = cv2.imread(str(im.path), cv2.IMREAD_UNCHANGED)
-                if img is None:
-                    raise InputError(f"{im.path}: cannot read image")
-                if img.ndim == 3 and img.shape[2] == 4:
-                    img = cv2.cvtColor(img, cv2.COLOR_BGRA2BGR)
-                enc = "mono8" if img.ndim == 2 else "bgr8"
-                if img.dtype != np.uint8:
-                    raise InputError(f"{im.path}: only 8-bit images can be written as sensor_msgs/Image")
-                msg = T[IMAGE](header=header(ns, camera_frame, seq), height=img.shape[0], width=img.shape[1],
-                               encoding=enc, is_bigendian=0, step=img.shape[1] * (1 if img.ndim == 2 else 3),
-                               data=np.ascontiguousarray(img).reshape(-1))
-                writer.write(add(image_topic, IMAGE), ns, serialize(msg, IMAGE))
-    return out
+                zero = T["geometry_msgs/msg/Vector3"](x=0.0, y=0.0, z=0.0)
+                twist = T["geometry_msgs/msg/TwistWithCovariance"](
+                    twist=T["geometry_msgs/msg/Twist"](linear=zero, angular=zero), covariance=np.zeros(36))
+                msg = T[mt](header=header, child_frame_id=lay.posed_frame, pose=cov, twist=twist)
+        self.write(lay.pose_topic, mt, pns, msg)
+
+    def write_image(self, im: PosedImage, ns: int, seq: int) -> None:
+        """The image file as a CompressedImage (its bytes) or an Image (mono8 / bgr8)."""
+        lay, T = self.layout, self.T
+        header = self.header(ns, lay.camera_frame, seq)
+        if lay.compressed:
+            data = Path(im.path).read_bytes()
+            fmt = "png" if Path(im.path).suffix.lower() == ".png" else "jpeg"
+            msg = T[COMPRESSED_IMAGE](header=header, format=fmt, data=np.frombuffer(data, dtype=np.uint8))
+            self.write(lay.image_topic, COMPRESSED_IMAGE, ns, msg)
+            return
+        img = cv2.imread(str(im.path), cv2.IMREAD_UNCHANGED)
+        if img is None:
+            raise InputError(f"{im.path}: cannot read image")
+        if img.ndim == 3 and img.shape[2] == 4:
+            img = cv2.cvtColor(img, cv2.COLOR_BGRA2BGR)
+        enc = "mono8" if img.ndim == 2 else "bgr8"
+        if img.dtype != np.uint8:
+            raise InputError(f"{im.path}: only 8-bit images can be written as sensor_msgs/Image")
+        msg = T[IMAGE](header=header, height=img.shape[0], width=img.shape[1], encoding=enc, is_bigendian=0,
+                       step=img.shape[1] * (1 if img.ndim == 2 else 3), data=np.ascontiguousarray(img).reshape(-1))
+        self.write(lay.image_topic, IMAGE, ns, msg)
 
 
 def _stamp_of(im: PosedImage) -> int:

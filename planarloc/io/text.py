@@ -122,7 +122,8 @@ def parse_camera(text: str | Sequence[str]) -> Camera:
     numbers(tok[1:3], "image width and height", 1)  # Camera checks they are whole positive pixel counts
     params = numbers(tok[3:], f"{tok[0].upper()} parameter", 3)
     try:
-        return Camera(tok[0], tok[1], tok[2], tuple(params))
+        # The size goes in as text: Camera checks it is a whole pixel count and quotes the text if not.
+        return Camera(tok[0], tok[1], tok[2], tuple(params))  # type: ignore[arg-type]  # Camera converts it
     except InputError as exc:
         try:
             CameraModel(tok[0].upper())
@@ -133,7 +134,8 @@ def parse_camera(text: str | Sequence[str]) -> Camera:
 
 def camera_text(camera: Camera) -> str:
     """The text of a camera, ``MODEL W H PARAMS...`` (parameters in shortest round-trip form)."""
-    return " ".join([camera.model.value, str(camera.width), str(camera.height), *(repr(float(p)) for p in camera.params)])
+    return " ".join([CameraModel(camera.model).value, str(camera.width), str(camera.height),
+                     *(repr(float(p)) for p in camera.params)])
 
 
 def parse_gravity(text: str | Sequence[str] | np.ndarray) -> np.ndarray:
@@ -159,7 +161,7 @@ def parse_gravity(text: str | Sequence[str] | np.ndarray) -> np.ndarray:
                         f"found {g.tolist()}") from None
 
 
-def pose_from_numbers(values: Sequence[float], layout: str = WXYZ_T) -> Pose:
+def pose_from_numbers(values: Sequence[float] | np.ndarray, layout: str = WXYZ_T) -> Pose:
     """The pose of 7 numbers in ``layout`` (:data:`WXYZ_T` or :data:`T_XYZW`).
 
     Raises:

@@ -253,43 +253,15 @@ def read_rgbd_sequence(root: Path, layout: RgbdLayout, camera: Camera, *, depth_
             f"base_from_camera: expected a planarloc Pose, got {type(base_from_camera).__name__}"
         )
     fmt, image_list, pose_file = layout.fmt, layout.image_list, layout.pose_file
-    depth_list, depth_dir = layout.depth_list, layout.depth_dir
     list_path = root / image_list
     entries = read_timestamped_list(list_path, fmt, "'timestamp filename' per colour image")
     gt_times, world_from_body = read_tum_trajectory(root / pose_file, fmt, distinct=True)
 
-    depth_times: list[float] = []
-    depth_paths: list[Path] = []
-    if depth_list is not None and (root / depth_list).is_file():
-        dpath = root / depth_list
-        for e in read_timestamped_list(dpath, fmt, "'timestamp filename' per depth image"):
-            depth_times.append(e.timestamp)
-            depth_paths.append(resolve_image(dpath, e.lineno, root, e.name, check=check_images))
-    elif depth_dir is not None and (root / depth_dir).is_dir():
-        for p in sorted((root / depth_dir).iterdir()):
-            try:
-                depth_times.append(float(p.stem))
-            except ValueError:
-                continue
-            depth_paths.append(p.absolute())
-
+    depth_times, depth_paths = _depth_images(root, layout, check_images)
     ts = np.array([e.timestamp for e in entries])
     pose_idx = associate_timestamps(ts, gt_times, max_dt)
     depth_idx = associate_timestamps(ts, depth_times, max_dt)
-    skipped = [e for e, i in zip(entries, pose_idx) if i < 0]
-    if skipped:
-        logger.warning(
-            "%s: %d of %d frames have no ground-truth pose within max_dt = %g s in %s and are skipped "
-            "(first at %s line %d, t = %.6f)",
-            root,
-            len(skipped),
-            len(entries),
-            max_dt,
-            pose_file,
-            image_list,
-            skipped[0].lineno,
-            skipped[0].timestamp,
-        )
+    _warn_unposed(root, layout, entries, pose_idx, max_dt)
     if depth_times:
         logger.debug("%s: %d frames without depth within %g s", root, int(np.sum(depth_idx < 0)), max_dt)
 
@@ -321,6 +293,44 @@ def read_rgbd_sequence(root: Path, layout: RgbdLayout, camera: Camera, *, depth_
             f"({len(entries)} frames listed); check the timestamps or raise max_dt",
         )
     return out
+
+
+def _depth_images(root: Path, layout: RgbdLayout, check_images: bool) -> tuple[list[float], list[Path]]:
+    """Stamps and files of the depth images: from the layout's depth list, else its depth folder
+    (files named by their stamp); empty if neither exists."""
+    depth_times: list[float] = []
+    depth_paths: list[Path] = []
+    depth_list, depth_dir = layout.depth_list, layout.depth_dir
+    if depth_list is not None and (root / depth_list).is_file():
+        dpath = root / depth_list
+        for e in read_timestamped_list(dpath, layout.fmt, "'timestamp filename' per depth image"):
+            depth_times.append(e.timestamp)
+            depth_paths.append(resolve_image(dpath, e.lineno, root, e.name, check=check_images))
+    elif depth_dir is not None and (root / depth_dir).is_dir():
+        for p in sorted((root / depth_dir).iterdir()):
+            try:
+                depth_times.append(float(p.stem))
+            except ValueError:
+                continue
+            depth_paths.append(p.absolute())
+    return depth_times, depth_paths
+
+
+def _warn_unposed(root: Path, layout: RgbdLayout, entries: list, pose_idx: np.ndarray, max_dt: float) -> None:
+    skipped = [e for e, i in zip(entries, pose_idx) if i < 0]
+    if skipped:
+        logger.warning(
+            "%s: %d of %d frames have no ground-truth pose within max_dt = %g s in %s and are skipped "
+            "(first at %s line %d, t = %.6f)",
+            root,
+            len(skipped),
+            len(entries),
+            max_dt,
+            layout.pose_file,
+            layout.image_list,
+            skipped[0].lineno,
+            skipped[0].timestamp,
+        )
 
 
 def read_tum(

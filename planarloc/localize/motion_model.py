@@ -402,9 +402,9 @@ class MotionModel:
         measured speed, with a large covariance (position std ``max_speed_mps · dt / 5`` plus half
         the step, rotation 20°); before a speed is measured, no motion with std
         ``max_speed_mps · dt`` (as :meth:`visual`)."""
-        motion, d = Pose.identity(), np.zeros(3)
-        known = last_step is not None and self.speed is not None
-        if known:
+        motion, d, known = Pose.identity(), np.zeros(3), False
+        if last_step is not None and self.speed is not None:
+            known = True
             d = last_step.inverse().t
             n = np.linalg.norm(d)
             if n > 1e-9:

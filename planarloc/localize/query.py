@@ -111,7 +111,7 @@ def prepare_query(
     gray = load_gray(image, name)
     height, width = gray.shape[:2]
     from_map = camera is None
-    if from_map:
+    if camera is None:
         cameras = set(map_cameras)
         if len(cameras) != 1:
             raise InputError(f"{name}: the map has {len(cameras)} cameras; give the query's intrinsics")

@@ -33,6 +33,7 @@ from __future__ import annotations
 import logging
 import time
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -42,6 +43,7 @@ from planarloc.geometry.pose_covariance import covariance_stds, graph_covariance
 from planarloc.geometry.validation import InputError
 from planarloc.localize.fixes import (
     BackgroundFixes,
+    FixAttempt,
     FixJob,
     FixOutcome,
     FixResult,
@@ -81,6 +83,13 @@ MEASURED = ("odometry", "visual")
 #: while the stamps are in doubt (:attr:`MotionModel.stamps_doubted`), a frame this many frames
 #: after the fix in flight waits for it: visual odometry's length is then unknown to 100 %
 DOUBTED_FIX_LAG_FRAMES = 2
+
+
+def _rejected_covariance(attempt: FixAttempt) -> np.ndarray:
+    """The covariance of a rejected fix: only fixes with one are gated, hence rejected."""
+    if attempt.covariance is None:
+        raise ValueError("a rejected fix without a covariance")
+    return attempt.covariance
 
 
 @dataclass
@@ -188,7 +197,9 @@ class SequenceLocalizer:
 
     def _frame_motion(self, tracked: Tracked, stamp: float, odometry: Pose | None) -> Motion:
         """The motion since the previous frame: odometry, else visual odometry, else constant velocity."""
-        prev_stamp, prev_odometry = self._prev  # type: ignore[misc]
+        if self._prev is None:  # step() calls this only once a frame has been tracked
+            raise RuntimeError("no previous frame to take the motion from")
+        prev_stamp, prev_odometry = self._prev
         dt = stamp - prev_stamp
         if odometry is not None and prev_odometry is not None:
             return self._motion.odometry(odometry, prev_odometry)
@@ -317,16 +328,17 @@ class SequenceLocalizer:
         if node < 1 or w.nodes[node].source != "visual" or len(fixes.rejected) < 2:
             return
         a, b = fixes.rejected[:2]
-        if mahalanobis_sq(a.pose, a.covariance, b.pose, b.covariance) > self._gate:
+        cov_a, cov_b = _rejected_covariance(a), _rejected_covariance(b)
+        if mahalanobis_sq(a.pose, cov_a, b.pose, cov_b) > self._gate:
             return
         weak = self._weak(node - 1, w.nodes[node].stamp - w.nodes[node - 1].stamp)
         alt = w.with_motion(node, weak)
-        d2 = mahalanobis_sq(b.pose, b.covariance, alt.poses[node], alt.covariance)
+        d2 = mahalanobis_sq(b.pose, cov_b, alt.poses[node], alt.covariance)
         if d2 > self._gate:
             return
         w.adopt(alt, "visual_rejected")
         w.rechain(node)
-        fixes.accepted, fixes.status, fixes.mahalanobis_sq, fixes.rejected = (b.pose, b.covariance), "accepted", d2, []
+        fixes.accepted, fixes.status, fixes.mahalanobis_sq, fixes.rejected = (b.pose, cov_b), "accepted", d2, []
 
     def _track_kidnap(self, node: int, fixes: FixOutcome, handled: _Handled) -> None:
         """Rejected global fixes feed the kidnap monitor; a confirmed kidnap restarts the window."""
@@ -338,7 +350,7 @@ class SequenceLocalizer:
                 continue
             if any(s not in MEASURED for s in w.sources_after(anchor)[:node - anchor]):
                 self._kidnap.doubt = True
-            self._kidnap.consider(attempt.pose, attempt.covariance, w.nodes[node].stamp,
+            self._kidnap.consider(attempt.pose, _rejected_covariance(attempt), w.nodes[node].stamp,
                                   lambda c: self._carry(c, node))
         c = self._kidnap.confirmed()
         if c is not None:
@@ -579,7 +591,7 @@ class SequenceLocalizer:
             reinitialized=handled.reinitialized)
 
     def _estimate(self, stamp: float, status: FrameStatus, pose: Pose | None, cov: np.ndarray, missing: int,
-                  times: tuple[float, float, float], **fields: object) -> SequenceEstimate:
+                  times: tuple[float, float, float], **fields: Any) -> SequenceEstimate:
         """The frame's :class:`SequenceEstimate`, counted in :attr:`stats`; ``times``: the step's
         start, the frame's arrival and the thread's CPU time at the start."""
         t_call, t0, cpu0 = times
@@ -597,4 +609,4 @@ class SequenceLocalizer:
             covariance=ros_covariance(pose, cov) if pose is not None else np.full((6, 6), np.inf),
             position_std_m=pos_std, rotation_std_deg=rot_std, seconds=now - t_call, latency_s=latency, late=late,
             missing_frames=missing, cpu_s=time.thread_time() - cpu0, graph_covariance=cov.copy(),
-            **fields)  # type: ignore[arg-type]
+            **fields)

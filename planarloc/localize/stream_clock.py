@@ -29,7 +29,7 @@ class StreamClock:
     def check(self, stamp: object) -> float:
         """``stamp`` as seconds; InputError when it is not a finite time after the last frame's."""
         try:
-            t = float(stamp)  # type: ignore[arg-type]
+            t = float(stamp)  # type: ignore[arg-type]  # any object: float() decides, TypeError handled
         except (TypeError, ValueError):
             raise InputError(f"stamp: expected a time in seconds, got {stamp!r}") from None
         if not np.isfinite(t):

@@ -45,6 +45,7 @@ from planarloc.geometry.validation import InputError, check_integer, check_posit
 from planarloc.robust.options import RansacOptions
 from planarloc.robust.pose_graph import so3_exp
 from planarloc.robust.relative_pose import RelativePoseEstimate, direction_basis, estimate_relative_pose
+from planarloc.robust.status import Status
 
 #: a grid cell is about this many pixels wide and high (corners are spread over the cells)
 CELL_PX = 120
@@ -488,7 +489,7 @@ class FrameTracker:
                                              nxt[found].astype(float), model=self.options.model,
                                              options=self._ransac, min_inliers=self.options.min_inliers)
                 if rel.success and rel.num_inliers < self.options.min_inlier_ratio * found.sum():
-                    rel = RelativePoseEstimate(None, False, "too_few_inliers", inliers=rel.inliers,
+                    rel = RelativePoseEstimate(None, False, Status.TOO_FEW_INLIERS, inliers=rel.inliers,
                                                num_inliers=rel.num_inliers, stats=rel.stats)
                 cov = relative_pose_covariance(rel, prev_camera, camera, corners[found], nxt[found]) \
                     if rel.success else None

@@ -69,10 +69,11 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
+from numpy.typing import DTypeLike
 from scipy.spatial.transform import Rotation
 
 from planarloc.features.extract import Features
-from planarloc.geometry.camera import Camera
+from planarloc.geometry.camera import Camera, CameraModel
 from planarloc.geometry.pose import Pose
 from planarloc.geometry.validation import InputError, check_array
 from planarloc.map.schema import MapCorruptError
@@ -96,7 +97,7 @@ KLT_MIN_ENERGY = 0.90
 #: Compact maps with more global descriptors than this store them projected (PROJECTED_DIM-D).
 PROJECT_ABOVE = 2048
 PROJECTED_DIM = 512
-_DTYPE = {"uint8": np.uint8, "float16": "<f2", "float32": "<f4"}
+_DTYPE: dict[str, DTypeLike] = {"uint8": np.uint8, "float16": "<f2", "float32": "<f4"}
 _ITEM_SIZE = {"uint8": 1, "float16": 2, "float32": 4}
 _UINT4_LEVELS = 15
 _KP_HEADER = struct.Struct("<Bb2xfff")  # mode (0 float32, 1 fixed point), k, origin x, origin y, smallest scale
@@ -117,7 +118,7 @@ def check_storage(storage: object) -> str:
 
 def camera_key(camera: Camera) -> tuple[str, int, int, str]:
     """The ``cameras`` row of a camera: ``(model, width, height, params JSON)``."""
-    return camera.model.value, camera.width, camera.height, json.dumps(list(camera.params))
+    return CameraModel(camera.model).value, camera.width, camera.height, json.dumps(list(camera.params))
 
 
 def pose_columns(pose: Pose) -> list[float]:

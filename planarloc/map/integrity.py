@@ -100,6 +100,31 @@ def check_map(path: str | Path, progress: Callable[[int, int], None] | None = No
 
 def _check_rows(conn: sqlite3.Connection, report: MapCheckReport,
                 progress: Callable[[int, int], None] | None) -> None:
+    meta = _check_meta(conn, report)
+    cameras = _check_cameras(conn, report)
+    has_sources = conn.execute(
+        "SELECT 1 FROM sqlite_master WHERE type = 'table' AND name = 'image_sources'").fetchone() is not None
+    digests, global_sums = {}, {}
+    if has_sources:
+        for image_id, rec, glob in conn.execute("SELECT image_id, record_sha256, global_sha256 FROM image_sources"):
+            digests[image_id], global_sums[image_id] = rec, glob
+    _check_images(conn, report, _MapContext(meta, cameras, digests, _descriptor_basis(conn, report)), progress)
+    _check_global_descriptors(conn, report, meta, global_sums)
+    _check_blobs(conn, report, meta)
+
+
+@dataclass(frozen=True)
+class _MapContext:
+    """What checking an image row needs: meta, the valid cameras by id, recorded digests, the descriptor basis."""
+
+    meta: dict
+    cameras: dict[int, tuple]
+    digests: dict
+    basis: DescriptorBasis | None
+
+
+def _check_meta(conn: sqlite3.Connection, report: MapCheckReport) -> dict:
+    """The meta table as a dict; flags an unreadable config or descriptor dimension."""
     meta = dict(conn.execute("SELECT key, value FROM meta"))
     report.complete = meta.get("build_complete") == "1"
     try:
@@ -111,7 +136,11 @@ def _check_rows(conn: sqlite3.Connection, report: MapCheckReport,
     dim_meta = meta.get("descriptor_dim")
     if dim_meta is not None and not dim_meta.isdigit():
         report.add(f"meta.descriptor_dim: {dim_meta!r} is not an integer")
+    return meta
 
+
+def _check_cameras(conn: sqlite3.Connection, report: MapCheckReport) -> dict[int, tuple]:
+    """The cameras that parse, by id (their raw row); flags the others."""
     cameras: dict[int, tuple] = {}
     for cam_id, model, w, h, params in conn.execute("SELECT id, model, width, height, params FROM cameras"):
         try:
@@ -119,14 +148,12 @@ def _check_rows(conn: sqlite3.Connection, report: MapCheckReport,
             cameras[cam_id] = (model, w, h, params)
         except (ValueError, TypeError) as exc:
             report.add(f"cameras row {cam_id}: damaged ({exc})")
+    return cameras
 
-    basis = _descriptor_basis(conn, report)
-    has_sources = conn.execute(
-        "SELECT 1 FROM sqlite_master WHERE type = 'table' AND name = 'image_sources'").fetchone() is not None
-    digests, global_sums = {}, {}
-    if has_sources:
-        for image_id, rec, glob in conn.execute("SELECT image_id, record_sha256, global_sha256 FROM image_sources"):
-            digests[image_id], global_sums[image_id] = rec, glob
+
+def _check_images(conn: sqlite3.Connection, report: MapCheckReport, ctx: _MapContext,
+                  progress: Callable[[int, int], None] | None) -> None:
+    """Every image row with its keypoints and descriptors: name, camera, pose, features, checksum."""
     total = int(conn.execute("SELECT COUNT(*) FROM images").fetchone()[0])
     report.num_images = total
     names_seen: set[str] = set()
@@ -136,34 +163,47 @@ def _check_rows(conn: sqlite3.Connection, report: MapCheckReport,
         "LEFT JOIN keypoints k ON k.image_id = i.id LEFT JOIN descriptors d ON d.image_id = i.id ORDER BY i.id")
     for done, row in enumerate(cursor, 1):
         image_id, name, cam_id = row[0], row[1], row[2]
-        pose7, (kp_num, kp_blob, d_num, dim, encoding, d_blob) = row[3:10], row[10:]
         where = f"images row {image_id} ({name!r})"
         if not isinstance(name, str) or name in names_seen:
             report.add(f"{where}: bad or duplicate name")
         names_seen.add(str(name))
-        if cam_id not in cameras:
+        if cam_id not in ctx.cameras:
             report.add(f"{where}: camera {cam_id} is missing or damaged")
-        try:
-            p = np.asarray(pose7, dtype=float)
-            if not np.isfinite(p).all() or abs(np.linalg.norm(p[:4]) - 1.0) > 1e-6:
-                raise ValueError("not a finite unit quaternion and translation")
-        except (ValueError, TypeError) as exc:
-            report.add(f"{where}: damaged pose ({exc})")
-        if kp_blob is None or d_blob is None:
-            report.add(f"{where}: keypoint or descriptor row missing")
-        elif not isinstance(kp_blob, bytes) or not isinstance(d_blob, bytes):
-            report.add(f"{where}: feature data is not a blob")
-        else:
-            problem = _check_features(kp_num, kp_blob, d_num, dim, encoding, d_blob, meta, basis)
-            if problem:
-                report.add(f"{where}: {problem}")
-            elif image_id in digests and cam_id in cameras:
-                digest = record_digest(name, cameras[cam_id], pose7, kp_num, kp_blob, dim, encoding, d_blob)
-                if digest != digests[image_id]:
-                    report.add(f"{where}: checksum mismatch (name, camera, pose or features changed on disk)")
+        for problem in _image_row_problems(row, ctx):
+            report.add(f"{where}: {problem}")
         if progress:
             progress(done, total)
 
+
+def _image_row_problems(row: tuple, ctx: _MapContext) -> list[str]:
+    """What is wrong with an image row's pose, features or checksum (one line each)."""
+    image_id, name, cam_id = row[0], row[1], row[2]
+    pose7, (kp_num, kp_blob, d_num, dim, encoding, d_blob) = row[3:10], row[10:]
+    problems = []
+    try:
+        p = np.asarray(pose7, dtype=float)
+        if not np.isfinite(p).all() or abs(np.linalg.norm(p[:4]) - 1.0) > 1e-6:
+            raise ValueError("not a finite unit quaternion and translation")
+    except (ValueError, TypeError) as exc:
+        problems.append(f"damaged pose ({exc})")
+    if kp_blob is None or d_blob is None:
+        problems.append("keypoint or descriptor row missing")
+    elif not isinstance(kp_blob, bytes) or not isinstance(d_blob, bytes):
+        problems.append("feature data is not a blob")
+    else:
+        problem = _check_features(kp_num, kp_blob, d_num, dim, encoding, d_blob, ctx.meta, ctx.basis)
+        if problem:
+            problems.append(problem)
+        elif image_id in ctx.digests and cam_id in ctx.cameras:
+            digest = record_digest(name, ctx.cameras[cam_id], pose7, kp_num, kp_blob, dim, encoding, d_blob)
+            if digest != ctx.digests[image_id]:
+                problems.append("checksum mismatch (name, camera, pose or features changed on disk)")
+    return problems
+
+
+def _check_global_descriptors(conn: sqlite3.Connection, report: MapCheckReport, meta: dict,
+                              global_sums: dict) -> None:
+    """Global descriptor rows: encoding, finite values, checksum, no orphans."""
     global_encoding = meta.get("global_encoding", "float32")
     for image_id, gdim, data in conn.execute("SELECT image_id, dim, data FROM global_descriptors"):
         problem = global_row_problem(data, gdim, global_encoding)
@@ -176,13 +216,17 @@ def _check_rows(conn: sqlite3.Connection, report: MapCheckReport,
     orphans = conn.execute("SELECT COUNT(*) FROM global_descriptors WHERE image_id NOT IN (SELECT id FROM images)")
     if (n := orphans.fetchone()[0]) > 0:
         report.add(f"global_descriptors: {n} row(s) of images that are not in the map")
+
+
+def _check_blobs(conn: sqlite3.Connection, report: MapCheckReport, meta: dict) -> None:
+    """Blob checksums, the global projection basis, the vocabulary, and completeness."""
     for key, data in conn.execute("SELECT key, data FROM blobs"):
         expected = meta.get(BLOB_SHA_PREFIX + str(key))
         if not isinstance(data, bytes):
             report.add(f"blobs row {key!r}: not a blob")
         elif expected is not None and hashlib.sha256(data).hexdigest() != expected:
             report.add(f"blobs row {key!r}: checksum mismatch")
-    if global_encoding == "projected":
+    if meta.get("global_encoding", "float32") == "projected":
         basis = conn.execute("SELECT data FROM blobs WHERE key = ?", (GLOBAL_BASIS_BLOB,)).fetchone()
         try:
             if basis is None:
@@ -198,6 +242,7 @@ def _check_rows(conn: sqlite3.Connection, report: MapCheckReport,
             report.add(f"blobs row {VOCABULARY_BLOB!r}: {exc}")
     elif report.complete:
         report.add("the map is marked complete but has no retrieval vocabulary")
+    total = report.num_images
     if report.complete and total:
         n_global = conn.execute("SELECT COUNT(*) FROM global_descriptors").fetchone()[0]
         if n_global != total:

@@ -34,7 +34,7 @@ from collections import OrderedDict
 from collections.abc import Iterator, Mapping
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Literal, Self
+from typing import TYPE_CHECKING, Literal, Self, TypedDict
 
 import numpy as np
 
@@ -65,9 +65,22 @@ from planarloc.map.settings import canonical_json, settings_mismatch_error
 from planarloc.map.store_read import MapReading
 from planarloc.map.store_write import MapWriting
 
+if TYPE_CHECKING:
+    from typing_extensions import Unpack  # typing.Unpack is Python 3.12+
+
 logger = logging.getLogger(__name__)
 
 DEFAULT_CACHE_SIZE = 16
+
+
+class CreateOptions(TypedDict, total=False):
+    """The keyword options of :meth:`MapDatabase.create` that :meth:`MapDatabase.open_or_create` passes on
+    (not ``overwrite``: it opens an existing map)."""
+
+    descriptor_encoding: str
+    storage: str
+    cache_size: int
+    lock_timeout: float | None
 
 
 #: Map files whose pages this process found sound: (device, inode, size, mtime, ctime, WAL size, WAL mtime).
@@ -308,7 +321,7 @@ class MapDatabase(MapReading, MapWriting):
 
     @classmethod
     def open_or_create(
-        cls, path: str | os.PathLike, config: Mapping[str, object], **create_options: object
+        cls, path: str | os.PathLike, config: Mapping[str, object], **create_options: Unpack[CreateOptions]
     ) -> MapDatabase:
         """Open ``path`` for appending if it exists (resume), else :meth:`create` it.
 
@@ -319,11 +332,11 @@ class MapDatabase(MapReading, MapWriting):
         path = Path(path)
         path.parent.mkdir(parents=True, exist_ok=True)
         timeout = create_options.pop("lock_timeout", None)
-        lock = MapWriterLock(path, timeout=timeout)  # type: ignore[arg-type]
+        lock = MapWriterLock(path, timeout=timeout)
         lock.acquire()  # exists-or-create must be decided by one writer at a time
         try:
             if not path.exists():
-                return cls.create(path, config, _lock=lock, **create_options)  # type: ignore[arg-type]
+                return cls.create(path, config, _lock=lock, **create_options)
             db = cls._open_locked(path, "a", int(create_options.get("cache_size", DEFAULT_CACHE_SIZE)), lock)
         except BaseException:
             lock.release()
@@ -332,14 +345,14 @@ class MapDatabase(MapReading, MapWriting):
             if db.num_images() == 0 and not db.is_complete:
                 # An empty, unfinished map (a build that failed before its first image) holds
                 # nothing to lose: start it again with the new configuration.
-                lock, db._lock = db._lock, None
+                held, db._lock = db._lock, None
                 db.close()
                 logger.warning("%s: replacing an empty unfinished map built with other settings", path)
                 try:
-                    return cls.create(path, config, overwrite=True, _lock=lock, **create_options)  # type: ignore[arg-type]
+                    return cls.create(path, config, overwrite=True, _lock=held, **create_options)
                 except BaseException:
-                    if lock is not None:
-                        lock.release()
+                    if held is not None:
+                        held.release()
                     raise
             stored = db.config
             db.close()
@@ -357,7 +370,7 @@ class MapDatabase(MapReading, MapWriting):
                 except sqlite3.Error:
                     pass
             self._conn.close()
-            self._conn = None  # type: ignore[assignment]
+            self._conn = None  # type: ignore[assignment]  # closed: typed as open for the methods using it
             self._cache.clear()
         if self._lock is not None:
             self._lock.release()

@@ -7,7 +7,7 @@ import hashlib
 import json
 from collections.abc import Iterator, Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -183,8 +183,9 @@ class MapReading(MapState):
             self._verify_record(image_id, blobs)
             yield int(image_id), name, feats
 
-    def _verify_record(self, image_id: int, blobs: Sequence[object]) -> None:
-        """Compare an image row with its stored checksum (maps without checksums: no-op)."""
+    def _verify_record(self, image_id: int, blobs: Sequence[Any]) -> None:
+        """Compare an image row with its stored checksum (maps without checksums: no-op); ``blobs``:
+        the SQLite row ``(num, keypoint blob, dim, encoding, descriptor blob)``."""
         if not self._has_sources():
             return
         row = self._db.execute(

@@ -39,6 +39,7 @@ import logging
 import os
 import tempfile
 import threading
+from typing import TYPE_CHECKING
 
 from numba.core import caching, config, dispatcher
 
@@ -62,10 +63,16 @@ def _numba_class(*names: str) -> type:
     raise ImportError(f"numba.core.caching has none of {', '.join(names)}: a numba this module does not know")
 
 
-_InTreeLocator = _numba_class("InTreeCacheLocator", "_InTreeCacheLocator")
-_UserWideLocator = _numba_class("UserWideCacheLocator", "_UserWideCacheLocator")
-_CompileResultImpl = _numba_class("CompileResultCacheImpl")
-_IndexDataFile = _numba_class("IndexDataCacheFile")
+if TYPE_CHECKING:  # the type checker sees the current numba's names; at run time both spellings are looked up
+    from numba.core.caching import CompileResultCacheImpl as _CompileResultImpl
+    from numba.core.caching import IndexDataCacheFile as _IndexDataFile
+    from numba.core.caching import InTreeCacheLocator as _InTreeLocator
+    from numba.core.caching import UserWideCacheLocator as _UserWideLocator
+else:
+    _InTreeLocator = _numba_class("InTreeCacheLocator", "_InTreeCacheLocator")
+    _UserWideLocator = _numba_class("UserWideCacheLocator", "_UserWideCacheLocator")
+    _CompileResultImpl = _numba_class("CompileResultCacheImpl")
+    _IndexDataFile = _numba_class("IndexDataCacheFile")
 _FunctionCache = caching.FunctionCache  # numba's class, kept whatever dispatcher.FunctionCache is set to
 
 
@@ -94,7 +101,7 @@ def _tree_writable(folder: str) -> bool:
 def _read_only_module(py_func) -> str | None:
     """The source file of a planarloc kernel whose ``__pycache__`` numba cannot write (and no
     ``NUMBA_CACHE_DIR`` or locator override is set); None for every other kernel."""
-    if config.CACHE_DIR or getattr(config, "CACHE_LOCATOR_CLASSES", ""):
+    if getattr(config, "CACHE_DIR", "") or getattr(config, "CACHE_LOCATOR_CLASSES", ""):  # set at run time
         return None
     try:
         source = os.path.abspath(inspect.getfile(py_func))
@@ -299,7 +306,7 @@ def kernels_persist(cache) -> bool:
 def install() -> None:
     """Make numba create the caches of ``cache=True`` kernels with :class:`KernelCache` (idempotent;
     done on import)."""
-    dispatcher.FunctionCache = KernelCache
+    dispatcher.FunctionCache = KernelCache  # type: ignore[attr-defined]  # numba's dispatcher.pyi omits it
 
 
 install()

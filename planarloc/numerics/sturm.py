@@ -121,27 +121,10 @@ def _newton_bisect(c: np.ndarray, deg: int, lo: float, hi: float) -> float:
     return x
 
 
-@njit(cache=True)
-def real_roots_sturm(coeffs: np.ndarray, roots: np.ndarray) -> int:
-    """All distinct real roots of a polynomial by Sturm sequences (Nistér 2004, Sec. 3).
-
-    The Sturm sequence ``p, p', −rem(p, p'), ...`` counts the distinct real roots in any
-    interval (Sturm's theorem). Starting from Fujiwara's bound on the root magnitudes, intervals
-    are bisected until each holds exactly one root, which is then polished by Newton steps
-    safeguarded by bisection to full double precision (a root of even multiplicity, where p
-    does not change sign, is found as a root of the last member of the sequence,
-    ``gcd(p, p')``). A cluster of roots closer than ~1e-14 relative is reported once.
-
-    Args:
-        coeffs: (n + 1,) ascending coefficients. Leading coefficients below 1e-15 of the
-            largest one are treated as zero (the roots they would add are at ~1e15).
-        roots: (≥ n,) output buffer.
-
-    Returns:
-        Number of real roots written to ``roots`` (0 for a polynomial that is identically 0).
-    """
+@njit(cache=True, inline="always")
+def _effective_degree(coeffs: np.ndarray) -> int:
+    """Degree once leading coefficients below 1e-15 of the largest are dropped (0 for p ≡ 0)."""
     n = coeffs.shape[0] - 1
-    multiple = False  # p has multiple roots: the Sturm sequence ends at gcd(p, p')
     scale = 0.0
     for k in range(n + 1):
         scale = max(scale, abs(coeffs[k]))
@@ -149,11 +132,20 @@ def real_roots_sturm(coeffs: np.ndarray, roots: np.ndarray) -> int:
         return 0
     while n > 0 and abs(coeffs[n]) <= 1e-15 * scale:
         n -= 1
-    if n == 0:
-        return 0
-    S = np.zeros((n + 2, n + 1))  # the sequence; the last row is scratch for remainders
-    degs = np.zeros(n + 1, dtype=np.int64)
-    quot = np.zeros((n + 1, 3))  # row k: (a, b, c) with S[k+1] = c ((a z + b) S[k] − S[k−1])
+    return n
+
+
+@njit(cache=True, inline="always")
+def _sturm_sequence(coeffs: np.ndarray, n: int, S: np.ndarray, degs: np.ndarray, quot: np.ndarray):
+    """Fill the Sturm sequence ``p/lead, p'/n, −rem, ...`` of the degree-``n`` polynomial.
+
+    ``S`` (n + 2, n + 1): rows are the members (the last row is scratch for remainders),
+    ``degs`` their degrees, ``quot`` row k: (a, b, c) with S[k+1] = c ((a z + b) S[k] − S[k−1]).
+    Returns ``(ns, multiple, linear)``: the number of members, whether p has multiple roots
+    (the sequence ends at gcd(p, p')), and whether every quotient is linear (the fast
+    recurrence of :func:`_sign_changes` applies).
+    """
+    multiple = False
     linear = True
     lead = coeffs[n]
     for k in range(n + 1):
@@ -198,7 +190,13 @@ def real_roots_sturm(coeffs: np.ndarray, roots: np.ndarray) -> int:
         quot[ns - 1, 0], quot[ns - 1, 1], quot[ns - 1, 2] = q1, q0, c
         degs[ns] = dr
         ns += 1
-    # Fujiwara bound on |root| of the monic S[0]
+    return ns, multiple, linear
+
+
+@njit(cache=True, inline="always")
+def _root_bound(S: np.ndarray, degs: np.ndarray, ns: int, quot: np.ndarray, linear: bool, n: int):
+    """``(bound, v_lo, v_hi)``: every real root lies in (−bound, bound) (Fujiwara's bound on the
+    monic S[0]), with the sign-change counts at both ends."""
     bound = 0.0
     for k in range(1, n + 1):
         a = abs(S[0, n - k])
@@ -216,6 +214,36 @@ def real_roots_sturm(coeffs: np.ndarray, roots: np.ndarray) -> int:
         bound *= 2.0
         v_lo = _sign_changes(S, degs, ns, quot, linear, -bound)
         v_hi = _sign_changes(S, degs, ns, quot, linear, bound)
+    return bound, v_lo, v_hi
+
+
+@njit(cache=True)
+def real_roots_sturm(coeffs: np.ndarray, roots: np.ndarray) -> int:
+    """All distinct real roots of a polynomial by Sturm sequences (Nistér 2004, Sec. 3).
+
+    The Sturm sequence ``p, p', −rem(p, p'), ...`` counts the distinct real roots in any
+    interval (Sturm's theorem). Starting from Fujiwara's bound on the root magnitudes, intervals
+    are bisected until each holds exactly one root, which is then polished by Newton steps
+    safeguarded by bisection to full double precision (a root of even multiplicity, where p
+    does not change sign, is found as a root of the last member of the sequence,
+    ``gcd(p, p')``). A cluster of roots closer than ~1e-14 relative is reported once.
+
+    Args:
+        coeffs: (n + 1,) ascending coefficients. Leading coefficients below 1e-15 of the
+            largest one are treated as zero (the roots they would add are at ~1e15).
+        roots: (≥ n,) output buffer.
+
+    Returns:
+        Number of real roots written to ``roots`` (0 for a polynomial that is identically 0).
+    """
+    n = _effective_degree(coeffs)
+    if n == 0:
+        return 0
+    S = np.zeros((n + 2, n + 1))
+    degs = np.zeros(n + 1, dtype=np.int64)
+    quot = np.zeros((n + 1, 3))
+    ns, multiple, linear = _sturm_sequence(coeffs, n, S, degs, quot)
+    bound, v_lo, v_hi = _root_bound(S, degs, ns, quot, linear, n)
     # isolate by bisection (depth-first, explicit stack), then polish each isolated root
     stack = np.empty((2, 128))  # interval ends
     counts = np.empty((2, 128), dtype=np.int64)  # sign changes at the ends

@@ -85,8 +85,7 @@ class _ProblemEstimator:
                 B: np.ndarray = _IDENTITY, fixed: np.ndarray = _FREE) -> tuple:
         p = self.p
         return refine_pose(
-            np.ascontiguousarray(R), -R @ c0, p.xq, p.xr, p.pair, np.flatnonzero(in2d),
-            p.f_query, p.f_ref, p.ref_R, p.ref_t, p.xq3d, p.X3d, np.flatnonzero(in3d),
+            np.ascontiguousarray(R), -R @ c0, p.arrays, np.flatnonzero(in2d), np.flatnonzero(in3d),
             self.options.threshold_px, max_iterations, SIGMA_FLOOR_PX, np.ascontiguousarray(c0), B, fixed,
         )
 
@@ -95,15 +94,13 @@ class _ProblemEstimator:
         """:meth:`_refine` under the map prior (:func:`planarloc.robust.map_prior.refine_with_map_prior`)."""
         p, o = self.p, self.options
         return refine_with_map_prior(
-            np.ascontiguousarray(R), -R @ c0, p.xq, p.xr, p.pair, np.flatnonzero(in2d), p.f_query, p.f_ref, p.ref_R,
-            p.ref_t, p.xq3d, p.X3d, np.flatnonzero(in3d), o.threshold_px, max_iterations, SIGMA_FLOOR_PX,
-            float(np.radians(o.map_rotation_std_deg)), float(o.map_position_std_m), np.ascontiguousarray(c0), B,
-            fixed)
+            np.ascontiguousarray(R), -R @ c0, p.arrays, np.flatnonzero(in2d), np.flatnonzero(in3d), o.threshold_px,
+            max_iterations, SIGMA_FLOOR_PX, (float(np.radians(o.map_rotation_std_deg)), float(o.map_position_std_m)),
+            np.ascontiguousarray(c0), B, fixed)
 
     def _refine_on_inliers(self, R: np.ndarray, t: np.ndarray, threshold_sq: float, max_iterations: int) -> tuple:
         p = self.p
-        return refine_on_inliers(np.ascontiguousarray(R), np.ascontiguousarray(t), p.xq, p.xr, p.pair, p.offsets,
-                                 p.f_query, p.f_ref, p.ref_R, p.ref_t, p.xq3d, p.X3d, threshold_sq,
+        return refine_on_inliers(np.ascontiguousarray(R), np.ascontiguousarray(t), p.arrays, threshold_sq,
                                  self.options.threshold_px, max_iterations, SIGMA_FLOOR_PX)
 
     def refine_full(self, R: np.ndarray, t: np.ndarray, max_iterations: int) -> tuple:
@@ -132,9 +129,9 @@ class _ProblemEstimator:
         success at 20 matches per pair and 60 % outliers (3000 scenes, BENCHMARKS.md)."""
         p = self.p
         return refine_planar_then_6dof(
-            np.ascontiguousarray(R), np.ascontiguousarray(t), p.xq, p.xr, p.pair, p.offsets, p.f_query, p.f_ref,
-            p.ref_R, p.ref_t, p.xq3d, p.X3d, LO_WIDENING**2 * self.threshold_sq, self.options.threshold_px,
-            self._level, self._cos_level, LO_PLANAR_ITERATIONS, LO_ITERATIONS, SIGMA_FLOOR_PX, LO_MAX_DATA)
+            np.ascontiguousarray(R), np.ascontiguousarray(t), p.arrays, LO_WIDENING**2 * self.threshold_sq,
+            self.options.threshold_px, self._level, self._cos_level, LO_PLANAR_ITERATIONS, LO_ITERATIONS,
+            SIGMA_FLOOR_PX, LO_MAX_DATA)
 
     def _flush(self, stats: RansacStatistics) -> None:
         c = self.counters

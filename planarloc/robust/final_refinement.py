@@ -20,6 +20,7 @@ from planarloc.numerics.symmetric_eigen import symmetric_eigen
 from planarloc.robust.estimators import SIGMA_FLOOR_PX
 from planarloc.robust.map_prior import refine_with_map_prior
 from planarloc.robust.options import RansacOptions
+from planarloc.robust.problem import ProblemArrays
 from planarloc.robust.refinement import centre_covariance, refine_pose
 from planarloc.robust.scoring import errors_sq
 
@@ -65,9 +66,7 @@ class FinalRefiner:
         return (iterations, rounds) if self.options.refine else (0, 1)
 
     def _problem(self) -> tuple:
-        p, o = self.scorer.p, self.options
-        return (p.xq, p.xr, p.pair, p.offsets, p.f_query, p.f_ref, p.ref_R, p.ref_t, p.xq3d, p.X3d,
-                self.scorer.threshold_sq, o.threshold_px)
+        return self.scorer.p.arrays, self.scorer.threshold_sq, self.options.threshold_px
 
     def _prior(self) -> tuple[float, float]:
         return math.radians(self.options.map_rotation_std_deg), self.options.map_position_std_m
@@ -113,16 +112,16 @@ class FinalRefiner:
 
 @njit(cache=True, error_model="numpy")
 def refine_until_stable(
-    Rq: np.ndarray, tq: np.ndarray, xq: np.ndarray, xr: np.ndarray, pair: np.ndarray, offsets: np.ndarray,
-    f_query: np.ndarray, f_ref: np.ndarray, ref_R: np.ndarray, ref_t: np.ndarray,
-    xq3d: np.ndarray, X3d: np.ndarray, inlier_threshold_sq: float, loss_scale: float, max_iterations: int,
-    rounds: int, sigma_floor: float, map_rotation_std_rad: float = 0.0, map_position_std_m: float = 0.0,
+    Rq: np.ndarray, tq: np.ndarray, prob: ProblemArrays, inlier_threshold_sq: float, loss_scale: float,
+    max_iterations: int, rounds: int, sigma_floor: float, map_rotation_std_rad: float = 0.0,
+    map_position_std_m: float = 0.0,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, float, float, np.ndarray, np.ndarray, float, float]:
     """The final refinement: :func:`refine_pose` on the inliers of the current pose, repeated on
     the refined pose's inliers while they change (at most ``rounds`` times), in one call.
 
     Args:
         Rq, tq: the RANSAC winner ``query_from_world``.
+        prob: the problem's arrays (:attr:`planarloc.robust.problem.AbsolutePoseProblem.arrays`).
         inlier_threshold_sq: τ² (pixels²) defining the inliers.
         max_iterations: LM iterations of the first round (0: only evaluate H and the cost at
             the pose); later rounds take at most ``LATER_ROUND_ITERATIONS``.
@@ -136,8 +135,9 @@ def refine_until_stable(
         returned pose, its MSAC cost ``Σ min(e², τ²)`` (the score every search is judged by) and
         the 2D-3D constraints' share of that cost.
     """
+    p = prob
     R, t = Rq.copy(), tq.copy()
-    e2d, e3d = errors_sq(R, t, xq, xr, offsets, f_query, f_ref, ref_R, ref_t, xq3d, X3d)
+    e2d, e3d = errors_sq(R, t, p.xq, p.xr, p.offsets, p.f_query, p.f_ref, p.ref_R, p.ref_t, p.xq3d, p.X3d)
     in2d = e2d < inlier_threshold_sq
     in3d = e3d < inlier_threshold_sq
     eye = np.eye(3)
@@ -151,15 +151,13 @@ def refine_until_stable(
         # iterations reach the new one (the first round may start a few pixels away).
         its = max_iterations if rnd == 0 else min(max_iterations, LATER_ROUND_ITERATIONS)
         if prior and in3d.any():
-            R, t, H, sigma, cost = refine_with_map_prior(R, t, xq, xr, pair, np.flatnonzero(in2d), f_query, f_ref,
-                                                         ref_R, ref_t, xq3d, X3d, np.flatnonzero(in3d), loss_scale,
-                                                         its, sigma_floor, map_rotation_std_rad, map_position_std_m,
-                                                         -m3.t_vec(R, t), eye, free)
+            R, t, H, sigma, cost = refine_with_map_prior(
+                R, t, prob, np.flatnonzero(in2d), np.flatnonzero(in3d), loss_scale, its, sigma_floor,
+                (map_rotation_std_rad, map_position_std_m), -m3.t_vec(R, t), eye, free)
         else:
-            R, t, H, sigma, cost = refine_pose(R, t, xq, xr, pair, np.flatnonzero(in2d), f_query, f_ref, ref_R,
-                                               ref_t, xq3d, X3d, np.flatnonzero(in3d), loss_scale, its,
-                                               sigma_floor, -m3.t_vec(R, t), eye, free)
-        e2d, e3d = errors_sq(R, t, xq, xr, offsets, f_query, f_ref, ref_R, ref_t, xq3d, X3d)
+            R, t, H, sigma, cost = refine_pose(R, t, prob, np.flatnonzero(in2d), np.flatnonzero(in3d), loss_scale,
+                                               its, sigma_floor, -m3.t_vec(R, t), eye, free)
+        e2d, e3d = errors_sq(R, t, p.xq, p.xr, p.offsets, p.f_query, p.f_ref, p.ref_R, p.ref_t, p.xq3d, p.X3d)
         new2d = e2d < inlier_threshold_sq
         new3d = e3d < inlier_threshold_sq
         same = np.array_equal(new2d, in2d) and np.array_equal(new3d, in3d)

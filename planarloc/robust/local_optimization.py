@@ -18,6 +18,7 @@ import numpy as np
 from numba import njit
 
 from planarloc.geometry import mat3 as m3
+from planarloc.robust.problem import ProblemArrays
 from planarloc.robust.refinement import refine_pose_core
 from planarloc.robust.scoring import errors_sq
 
@@ -86,11 +87,10 @@ def distinct_centres(R: np.ndarray, t: np.ndarray, cb: np.ndarray, ref_centres: 
 
 
 @njit(cache=True, error_model="numpy")
-def _refine_stage(R: np.ndarray, t: np.ndarray, xq: np.ndarray, xr: np.ndarray, pair: np.ndarray,
-                  offsets: np.ndarray, f_query: np.ndarray, f_ref: np.ndarray, ref_R: np.ndarray, ref_t: np.ndarray,
-                  xq3d: np.ndarray, X3d: np.ndarray, inlier_threshold_sq: float, loss_scale: float,
+def _refine_stage(R: np.ndarray, t: np.ndarray, prob: ProblemArrays, inlier_threshold_sq: float, loss_scale: float,
                   iterations: int, sigma_floor: float, B: np.ndarray, fixed: np.ndarray, max_data: int) -> tuple:
-    e2d, e3d = errors_sq(R, t, xq, xr, offsets, f_query, f_ref, ref_R, ref_t, xq3d, X3d)
+    p = prob
+    e2d, e3d = errors_sq(R, t, p.xq, p.xr, p.offsets, p.f_query, p.f_ref, p.ref_R, p.ref_t, p.xq3d, p.X3d)
     idx2d = np.flatnonzero(e2d < inlier_threshold_sq)
     idx3d = np.flatnonzero(e3d < inlier_threshold_sq)
     n = idx2d.shape[0] + idx3d.shape[0]
@@ -100,18 +100,15 @@ def _refine_stage(R: np.ndarray, t: np.ndarray, xq: np.ndarray, xr: np.ndarray, 
     if stride > 1:
         idx2d, idx3d = idx2d[::stride].copy(), idx3d[::stride].copy()
     # Only the pose is wanted: no normal matrix after the last step.
-    R2, t2, _, _, _ = refine_pose_core(R, t, xq, xr, pair, idx2d, f_query, f_ref, ref_R, ref_t, xq3d, X3d, idx3d,
-                                       loss_scale, iterations, sigma_floor, -m3.t_vec(R, t), B, fixed.copy(),
-                                       np.bool_(False))  # writable, typed: refine_pose's one signature
-    return R2, t2
+    refined = refine_pose_core(R, t, prob, idx2d, idx3d, loss_scale, iterations, sigma_floor, -m3.t_vec(R, t), B,
+                               fixed.copy(), np.bool_(False))  # writable, typed: refine_pose's one signature
+    return refined.R, refined.t
 
 
 @njit(cache=True, error_model="numpy")
 def refine_planar_then_6dof(
-    Rq: np.ndarray, tq: np.ndarray, xq: np.ndarray, xr: np.ndarray, pair: np.ndarray, offsets: np.ndarray,
-    f_query: np.ndarray, f_ref: np.ndarray, ref_R: np.ndarray, ref_t: np.ndarray, xq3d: np.ndarray,
-    X3d: np.ndarray, inlier_threshold_sq: float, loss_scale: float, level: np.ndarray, cos_level: float,
-    planar_iterations: int, iterations: int, sigma_floor: float, max_data: int,
+    Rq: np.ndarray, tq: np.ndarray, prob: ProblemArrays, inlier_threshold_sq: float, loss_scale: float,
+    level: np.ndarray, cos_level: float, planar_iterations: int, iterations: int, sigma_floor: float, max_data: int,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Local optimisation of one hypothesis: planar, then 6DoF robust refinement on its inliers.
 
@@ -126,7 +123,7 @@ def refine_planar_then_6dof(
 
     Args:
         Rq, tq: (3, 3), (3,) hypothesis ``query_from_world``.
-        xq ... X3d: the problem's arrays (:class:`planarloc.robust.problem.AbsolutePoseProblem`).
+        prob: the problem's arrays (:attr:`planarloc.robust.problem.AbsolutePoseProblem.arrays`).
         inlier_threshold_sq: squared pixel error under which a datum is refined on.
         loss_scale: Cauchy scale of the refinement, pixels.
         level: (3, 3) from :func:`level_plane`, or (0, 3) for no planar stage.
@@ -142,8 +139,7 @@ def refine_planar_then_6dof(
     R, t = Rq.copy(), tq.copy()
     if planar_iterations > 0 and level.shape[0] == 3 and (
             R[1, 0] * level[0, 1] + R[1, 1] * level[1, 1] + R[1, 2] * level[2, 1]) > cos_level:
-        R, t = _refine_stage(R, t, xq, xr, pair, offsets, f_query, f_ref, ref_R, ref_t, xq3d, X3d,
-                             inlier_threshold_sq, loss_scale, planar_iterations, sigma_floor, level, PLANAR_FIXED,
-                             max_data)
-    return _refine_stage(R, t, xq, xr, pair, offsets, f_query, f_ref, ref_R, ref_t, xq3d, X3d, inlier_threshold_sq,
-                         loss_scale, iterations, sigma_floor, np.eye(3), _FREE, np.int64(1 << 62))
+        R, t = _refine_stage(R, t, prob, inlier_threshold_sq, loss_scale, planar_iterations, sigma_floor, level,
+                             PLANAR_FIXED, max_data)
+    return _refine_stage(R, t, prob, inlier_threshold_sq, loss_scale, iterations, sigma_floor, np.eye(3), _FREE,
+                         np.int64(1 << 62))

@@ -23,6 +23,7 @@ from numba import njit
 
 from planarloc.geometry import mat3 as m3
 from planarloc.numerics.cholesky import solve_spd
+from planarloc.robust.problem import ProblemArrays
 
 PLANAR_INLIER_RATIO = 0.9
 """A pair whose epipolar inliers are at least this share homography inliers is a planar scene."""
@@ -197,18 +198,18 @@ def distant_planar_pairs(problem, R: np.ndarray, t: np.ndarray, in2d: np.ndarray
     geometry of points on a plane is not unique; generated offices seen 0.8 m from the map images
     gave 8-point poses 15-21° off with a 0.1 m position std)."""
     out = np.zeros(len(pairs), dtype=np.bool_)
-    _distant_planar_kernel(np.ascontiguousarray(R, dtype=float), np.ascontiguousarray(t, dtype=float), problem.xq,
-                           problem.xr, problem.offsets, np.ascontiguousarray(in2d), np.asarray(pairs, dtype=np.int64),
-                           problem.ref_R, problem.ref_t, problem.f_ref, float(threshold_px), bool(any_plane), out)
+    _distant_planar_kernel(np.ascontiguousarray(R, dtype=float), np.ascontiguousarray(t, dtype=float), problem.arrays,
+                           np.ascontiguousarray(in2d), np.asarray(pairs, dtype=np.int64), float(threshold_px),
+                           bool(any_plane), out)
     return out
 
 
 @njit(cache=True, error_model="numpy")
-def _distant_planar_kernel(R: np.ndarray, t: np.ndarray, xq: np.ndarray, xr: np.ndarray, offsets: np.ndarray,
-                           in2d: np.ndarray, pairs: np.ndarray, ref_R: np.ndarray, ref_t: np.ndarray,
-                           f_ref: np.ndarray, threshold_px: float, any_plane: bool, out: np.ndarray) -> None:
+def _distant_planar_kernel(R: np.ndarray, t: np.ndarray, prob: ProblemArrays, in2d: np.ndarray, pairs: np.ndarray,
+                           threshold_px: float, any_plane: bool, out: np.ndarray) -> None:
     """The loop of :func:`distant_planar_pairs` over ``pairs`` (K,) into ``out`` (K,) bool, in one
     compiled call (the cheap tests first: few inliers, far; then the homography)."""
+    xq, xr, offsets, ref_R, ref_t, f_ref = prob.xq, prob.xr, prob.offsets, prob.ref_R, prob.ref_t, prob.f_ref
     K = pairs.shape[0]
     spread = 0.0  # largest distance between the centres of the pairs' map images
     for a in range(K):

@@ -7,6 +7,7 @@ import itertools
 from collections.abc import Sequence
 from dataclasses import dataclass
 from functools import cached_property
+from typing import NamedTuple
 
 import numpy as np
 from numba import njit
@@ -14,6 +15,29 @@ from numba import njit
 from planarloc.geometry.camera import Camera
 from planarloc.geometry.validation import InputError
 from planarloc.robust.pair_matches import PairMatches
+
+
+class ProblemArrays(NamedTuple):
+    """The arrays of an :class:`AbsolutePoseProblem` that the numba kernels read, as one named
+    record (numba compiles a ``NamedTuple`` of arrays as one argument; see the fields there)."""
+
+    xq: np.ndarray
+    xr: np.ndarray
+    pair: np.ndarray
+    offsets: np.ndarray
+    f_query: np.ndarray
+    f_ref: np.ndarray
+    ref_R: np.ndarray
+    ref_t: np.ndarray
+    xq3d: np.ndarray
+    X3d: np.ndarray
+
+
+@njit(cache=True)
+def with_references(prob: ProblemArrays, ref_R: np.ndarray, ref_t: np.ndarray) -> ProblemArrays:
+    """``prob`` with other reference poses (the map prior's nuisance refinement)."""
+    return ProblemArrays(prob.xq, prob.xr, prob.pair, prob.offsets, prob.f_query, prob.f_ref, ref_R, ref_t,
+                         prob.xq3d, prob.X3d)
 
 
 @dataclass(frozen=True, eq=False)
@@ -63,6 +87,12 @@ class AbsolutePoseProblem:
     @property
     def num_pairs(self) -> int:
         return len(self.offsets) - 1
+
+    @cached_property
+    def arrays(self) -> ProblemArrays:
+        """The kernels' record of this problem's arrays (built once)."""
+        return ProblemArrays(self.xq, self.xr, self.pair, self.offsets, self.f_query, self.f_ref, self.ref_R,
+                             self.ref_t, self.xq3d, self.X3d)
 
     @cached_property
     def counts(self) -> np.ndarray:

@@ -15,6 +15,8 @@ uses finite differences over the reference poses, once per query.
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numpy as np
 from numba import njit
 
@@ -22,6 +24,7 @@ from planarloc.geometry import mat3 as m3
 from planarloc.geometry.epipolar_kernels import project, relative_essential_into, sampson_signed
 from planarloc.geometry.so3 import exp_so3
 from planarloc.numerics.cholesky import solve_spd, spd_inverse
+from planarloc.robust.problem import ProblemArrays
 from planarloc.robust.scoring import errors_sq
 
 # Floating-point contraction and reassociation for the Jacobian's sums of products, but not
@@ -29,15 +32,27 @@ from planarloc.robust.scoring import errors_sq
 FASTMATH = {"contract", "reassoc", "arcp", "nsz"}
 
 
+class Refinement(NamedTuple):
+    """A refined ``query_from_world``: R (3, 3), t (3,), the (6, 6) normal matrix ``JᵀWJ`` at the
+    solution (:func:`centre_covariance`), the residual scale σ̂ (pixels) and the final robust cost."""
+
+    R: np.ndarray
+    t: np.ndarray
+    H: np.ndarray
+    sigma: float
+    cost: float
+
+
 @njit(cache=True, error_model="numpy", fastmath=FASTMATH)
 def residuals(
-    params: np.ndarray, R0: np.ndarray, c0: np.ndarray, B: np.ndarray, xq: np.ndarray, xr: np.ndarray,
-    pair: np.ndarray, idx2d: np.ndarray, f_query: np.ndarray, f_ref: np.ndarray, ref_R: np.ndarray,
-    ref_t: np.ndarray, xq3d: np.ndarray, X3d: np.ndarray, idx3d: np.ndarray, out: np.ndarray,
+    params: np.ndarray, R0: np.ndarray, c0: np.ndarray, B: np.ndarray, prob: ProblemArrays, idx2d: np.ndarray,
+    idx3d: np.ndarray, out: np.ndarray,
 ) -> None:
-    """Signed Sampson errors (pixels) of the 2D-2D rows, then reprojection errors (2 per 2D-3D row),
-    through the shared kernels of :mod:`planarloc.geometry.epipolar_kernels` (the same errors
-    scoring thresholds)."""
+    """Signed Sampson errors (pixels) of the 2D-2D rows ``idx2d``, then reprojection errors (2 per
+    2D-3D row ``idx3d``) of the problem ``prob``, through the shared kernels of
+    :mod:`planarloc.geometry.epipolar_kernels` (the same errors scoring thresholds)."""
+    xq, xr, pair, f_query, f_ref = prob.xq, prob.xr, prob.pair, prob.f_query, prob.f_ref
+    ref_R, ref_t, xq3d, X3d = prob.ref_R, prob.ref_t, prob.xq3d, prob.X3d
     Rq = m3.mul(exp_so3(params[:3]), R0)
     c = c0 + m3.vec(B, params[3:])
     tq = -m3.vec(Rq, c)
@@ -60,29 +75,11 @@ def residuals(
 
 
 @njit(cache=True, error_model="numpy", fastmath=FASTMATH)
-def residuals_jacobian(
-    R: np.ndarray, c: np.ndarray, B: np.ndarray, xq: np.ndarray, xr: np.ndarray, pair: np.ndarray,
-    idx2d: np.ndarray, f_query: np.ndarray, f_ref: np.ndarray, ref_R: np.ndarray, ref_t: np.ndarray,
-    xq3d: np.ndarray, X3d: np.ndarray, idx3d: np.ndarray, r: np.ndarray, J: np.ndarray, Jrot: np.ndarray,
-) -> None:
-    """Residuals and their analytic Jacobian w.r.t. ``(δ, p)`` at ``δ = 0, p = 0`` for the query
-    ``R' = Exp(δ) R``, ``c' = c + B p``.
-
-    With ``p_from_query = (R_p Rᵀ, t_p + R_p c)`` and ``E = [t]x R_pq``:
-    ``∂E/∂δ_k = −E [e_k]x`` and ``∂E/∂p_k = [R_p b_k]x R_pq``, gathered once per pair into
-    ``D_p`` (9, 6). Per match, the Sampson residual ``s = rᵀEq / √den`` is differentiated w.r.t.
-    the 9 entries of E (``∂s/∂E_ij = α_i q_j − r_i β_j``, see the code) and chained with
-    ``D_p``: ~90 flops per match instead of differentiating through each parameter (~200).
-    Reprojection: ``X_c = R (X − c)``, ``∂X_c/∂δ_k = e_k × X_c``, ``∂X_c/∂p_k = −R b_k``.
-
-    ``Jrot`` (m, 3), unless empty: derivatives of each 2D-2D residual w.r.t. a rotation increment
-    ``ω`` of its own reference, ``R_p' = Exp(ω) R_p`` with the reference centre fixed, for the
-    map-uncertainty propagation: then ``E' = Exp(ω) E`` (as ``[Rv]x R = R [v]x``), so
-    ``∂E/∂ω_k = [e_k]x E``. (A shift of the reference centre acts as the opposite shift of the
-    query centre.) 2D-3D rows get 0.
-    """
+def _essential_derivatives(R: np.ndarray, c: np.ndarray, B: np.ndarray, ref_R: np.ndarray,
+                           ref_t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per pair p, ``E_p = [t]x R_pq`` (P, 3, 3) of the query ``(R, c)`` and ``D_p`` (P, 9, 6), the
+    derivatives of its entries w.r.t. ``(δ, p)`` (:func:`residuals_jacobian`)."""
     P = ref_R.shape[0]
-    want_ref = Jrot.shape[0] > 0
     E = np.empty((P, 3, 3))
     D = np.empty((P, 9, 6))  # D[p, 3 i + j, k] = ∂E_ij / ∂param_k
     for p in range(P):
@@ -106,6 +103,17 @@ def residuals_jacobian(
                 D[p, j, 3 + k] = -v2 * A[1, j] + v1 * A[2, j]
                 D[p, 3 + j, 3 + k] = v2 * A[0, j] - v0 * A[2, j]
                 D[p, 6 + j, 3 + k] = -v1 * A[0, j] + v0 * A[1, j]
+    return E, D
+
+
+@njit(cache=True, error_model="numpy", fastmath=FASTMATH)
+def _sampson_rows(E: np.ndarray, D: np.ndarray, prob: ProblemArrays, idx2d: np.ndarray, r: np.ndarray,
+                  J: np.ndarray, Jrot: np.ndarray) -> None:
+    """The 2D-2D rows of :func:`residuals_jacobian`: Sampson residuals, their Jacobian chained
+    through ``D`` and, when ``Jrot`` is not empty, their reference-rotation derivatives."""
+    xq, xr, pair, f_query, f_ref = prob.xq, prob.xr, prob.pair, prob.f_query, prob.f_ref
+    P = E.shape[0]
+    want_ref = Jrot.shape[0] > 0
     fq0, fq1 = f_query[0], f_query[1]
     iq0, iq1 = 1.0 / (fq0 * fq0), 1.0 / (fq1 * fq1)
     ir = np.empty((P, 2))
@@ -146,7 +154,15 @@ def residuals_jacobian(
             Jrot[n, 0] = -(g10 * e2[0] + g11 * e2[1] + g12 * e2[2]) + (g20 * e1[0] + g21 * e1[1] + g22 * e1[2])
             Jrot[n, 1] = (g00 * e2[0] + g01 * e2[1] + g02 * e2[2]) - (g20 * e0[0] + g21 * e0[1] + g22 * e0[2])
             Jrot[n, 2] = -(g00 * e1[0] + g01 * e1[1] + g02 * e1[2]) + (g10 * e0[0] + g11 * e0[1] + g12 * e0[2])
-    m0 = idx2d.shape[0]
+
+
+@njit(cache=True, error_model="numpy", fastmath=FASTMATH)
+def _reprojection_rows(R: np.ndarray, c: np.ndarray, B: np.ndarray, prob: ProblemArrays, m0: int,
+                       idx3d: np.ndarray, r: np.ndarray, J: np.ndarray, Jrot: np.ndarray) -> None:
+    """The 2D-3D rows of :func:`residuals_jacobian` (from row ``m0``): reprojection residuals and
+    their Jacobian; 0 in ``Jrot`` when it is not empty."""
+    xq3d, X3d, f_query = prob.xq3d, prob.X3d, prob.f_query
+    want_ref = Jrot.shape[0] > 0
     RB = m3.mul(R, B)
     fq0, fq1 = f_query[2], f_query[3]  # reprojection errors' scale (AbsolutePoseProblem.f_query)
     for n in range(idx3d.shape[0]):
@@ -176,6 +192,32 @@ def residuals_jacobian(
 
 
 @njit(cache=True, error_model="numpy", fastmath=FASTMATH)
+def residuals_jacobian(
+    R: np.ndarray, c: np.ndarray, B: np.ndarray, prob: ProblemArrays, idx2d: np.ndarray, idx3d: np.ndarray,
+    r: np.ndarray, J: np.ndarray, Jrot: np.ndarray,
+) -> None:
+    """Residuals and their analytic Jacobian w.r.t. ``(δ, p)`` at ``δ = 0, p = 0`` for the query
+    ``R' = Exp(δ) R``, ``c' = c + B p``.
+
+    With ``p_from_query = (R_p Rᵀ, t_p + R_p c)`` and ``E = [t]x R_pq``:
+    ``∂E/∂δ_k = −E [e_k]x`` and ``∂E/∂p_k = [R_p b_k]x R_pq``, gathered once per pair into
+    ``D_p`` (9, 6). Per match, the Sampson residual ``s = rᵀEq / √den`` is differentiated w.r.t.
+    the 9 entries of E (``∂s/∂E_ij = α_i q_j − r_i β_j``, see the code) and chained with
+    ``D_p``: ~90 flops per match instead of differentiating through each parameter (~200).
+    Reprojection: ``X_c = R (X − c)``, ``∂X_c/∂δ_k = e_k × X_c``, ``∂X_c/∂p_k = −R b_k``.
+
+    ``Jrot`` (m, 3), unless empty: derivatives of each 2D-2D residual w.r.t. a rotation increment
+    ``ω`` of its own reference, ``R_p' = Exp(ω) R_p`` with the reference centre fixed, for the
+    map-uncertainty propagation: then ``E' = Exp(ω) E`` (as ``[Rv]x R = R [v]x``), so
+    ``∂E/∂ω_k = [e_k]x E``. (A shift of the reference centre acts as the opposite shift of the
+    query centre.) 2D-3D rows get 0.
+    """
+    E, D = _essential_derivatives(R, c, B, prob.ref_R, prob.ref_t)
+    _sampson_rows(E, D, prob, idx2d, r, J, Jrot)
+    _reprojection_rows(R, c, B, prob, idx2d.shape[0], idx3d, r, J, Jrot)
+
+
+@njit(cache=True, error_model="numpy", fastmath=FASTMATH)
 def irls_normal_equations(J: np.ndarray, r: np.ndarray, s2: float, H: np.ndarray, g: np.ndarray) -> float:
     """``H = Jᵀ W J`` (6, 6) and ``g = Jᵀ W r`` (6,) in place, with the Cauchy IRLS weights
     ``w = 1 / (1 + r² / s²)`` of residuals r (m,) and Jacobian J (m, 6); returns ``Σ w r²``."""
@@ -198,11 +240,9 @@ def irls_normal_equations(J: np.ndarray, r: np.ndarray, s2: float, H: np.ndarray
 
 @njit(cache=True, error_model="numpy", fastmath=FASTMATH)
 def refine_pose_core(
-    Rq: np.ndarray, tq: np.ndarray, xq: np.ndarray, xr: np.ndarray, pair: np.ndarray, idx2d: np.ndarray,
-    f_query: np.ndarray, f_ref: np.ndarray, ref_R: np.ndarray, ref_t: np.ndarray,
-    xq3d: np.ndarray, X3d: np.ndarray, idx3d: np.ndarray, loss_scale: float, max_iterations: int,
-    sigma_floor: float, c0: np.ndarray, B: np.ndarray, fixed: np.ndarray, final_normal: bool,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, float, float]:
+    Rq: np.ndarray, tq: np.ndarray, prob: ProblemArrays, idx2d: np.ndarray, idx3d: np.ndarray, loss_scale: float,
+    max_iterations: int, sigma_floor: float, c0: np.ndarray, B: np.ndarray, fixed: np.ndarray, final_normal: bool,
+) -> Refinement:
     """:func:`refine_pose`; with ``final_normal`` False the normal matrix and σ̂ are not
     re-evaluated after the last step (stale), which saves one residual-and-Jacobian pass
     where only the pose is wanted (leave-one-out refinements)."""
@@ -218,7 +258,7 @@ def refine_pose_core(
     s2 = loss_scale * loss_scale
     lam = 1e-4
     no_ref = np.empty((0, 3))
-    residuals_jacobian(R, c, B, xq, xr, pair, idx2d, f_query, f_ref, ref_R, ref_t, xq3d, X3d, idx3d, r, J, no_ref)
+    residuals_jacobian(R, c, B, prob, idx2d, idx3d, r, J, no_ref)
     cost = 0.5 * s2 * np.sum(np.log1p(r * r / s2))
     wr2 = 0.0
     for it in range(max_iterations + 1):
@@ -241,7 +281,7 @@ def refine_pose_core(
                 continue
             R_new = m3.mul(exp_so3(step[:3]), R)
             c_new = c + m3.vec(B, step[3:])
-            residuals(zero, R_new, c_new, B, xq, xr, pair, idx2d, f_query, f_ref, ref_R, ref_t, xq3d, X3d, idx3d, rp)
+            residuals(zero, R_new, c_new, B, prob, idx2d, idx3d, rp)
             new_cost = 0.5 * s2 * np.sum(np.log1p(rp * rp / s2))
             if new_cost <= cost:
                 R, c = R_new, c_new
@@ -257,29 +297,27 @@ def refine_pose_core(
         if not final_normal and it == max_iterations - 1:
             break  # the pose is what the caller wants; H and σ̂ stay those of the last pass
         if improved or _try < 6:
-            residuals_jacobian(R, c, B, xq, xr, pair, idx2d, f_query, f_ref, ref_R, ref_t, xq3d, X3d, idx3d, r, J,
-                                no_ref)
+            residuals_jacobian(R, c, B, prob, idx2d, idx3d, r, J, no_ref)
         if not improved or np.sqrt(np.sum(step * step)) < 1e-9:
             max_iterations = it + 1  # one more pass to evaluate H at the solution
     # The normal matrix JᵀWJ at the solution; the covariance σ̂² (JᵀWJ)⁻¹ is formed by the caller.
     dof = max(m - 6, 1)
     sigma2 = max(wr2 / dof, sigma_floor * sigma_floor)
     t = -m3.vec(R, c)
-    return R, t, H.copy(), np.sqrt(sigma2), cost
+    return Refinement(R, t, H.copy(), np.sqrt(sigma2), cost)
 
 
 @njit(cache=True, error_model="numpy")
 def refine_pose(
-    Rq: np.ndarray, tq: np.ndarray, xq: np.ndarray, xr: np.ndarray, pair: np.ndarray, idx2d: np.ndarray,
-    f_query: np.ndarray, f_ref: np.ndarray, ref_R: np.ndarray, ref_t: np.ndarray,
-    xq3d: np.ndarray, X3d: np.ndarray, idx3d: np.ndarray, loss_scale: float, max_iterations: int,
-    sigma_floor: float, c0: np.ndarray, B: np.ndarray, fixed: np.ndarray,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, float, float]:
+    Rq: np.ndarray, tq: np.ndarray, prob: ProblemArrays, idx2d: np.ndarray, idx3d: np.ndarray, loss_scale: float,
+    max_iterations: int, sigma_floor: float, c0: np.ndarray, B: np.ndarray, fixed: np.ndarray,
+) -> Refinement:
     """Refine ``query_from_world`` on the given inliers.
 
     Args:
         Rq: (3, 3) initial rotation of ``query_from_world``; tq is ignored in favour of
             the centre ``c0`` (kept in the signature for symmetry with the loop).
+        prob: the problem's arrays (:attr:`planarloc.robust.problem.AbsolutePoseProblem.arrays`).
         c0, B: the centre is parametrised as ``c = c0 + B p`` with B (3, 3) orthonormal.
         fixed: (6,) bool; parameters held at their initial value (rotation 0-2, centre 3-5),
             used to profile the cost along one direction (degeneracy test).
@@ -293,16 +331,14 @@ def refine_pose(
         ``(δ, p)``; see :func:`centre_covariance`), the residual scale σ̂ in pixels, and the
         final robust cost.
     """
-    return refine_pose_core(Rq, tq, xq, xr, pair, idx2d, f_query, f_ref, ref_R, ref_t, xq3d, X3d, idx3d, loss_scale,
-                        max_iterations, sigma_floor, c0, B, fixed, np.bool_(True))
+    return refine_pose_core(Rq, tq, prob, idx2d, idx3d, loss_scale, max_iterations, sigma_floor, c0, B, fixed,
+                            np.bool_(True))
 
 
 @njit(cache=True, error_model="numpy")
 def refine_on_inliers(
-    Rq: np.ndarray, tq: np.ndarray, xq: np.ndarray, xr: np.ndarray, pair: np.ndarray, offsets: np.ndarray,
-    f_query: np.ndarray, f_ref: np.ndarray, ref_R: np.ndarray, ref_t: np.ndarray,
-    xq3d: np.ndarray, X3d: np.ndarray, inlier_threshold_sq: float, loss_scale: float, max_iterations: int,
-    sigma_floor: float,
+    Rq: np.ndarray, tq: np.ndarray, prob: ProblemArrays, inlier_threshold_sq: float, loss_scale: float,
+    max_iterations: int, sigma_floor: float,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, float, float, np.ndarray, np.ndarray]:
     """:func:`refine_pose` on the inliers of the initial pose, in one call.
 
@@ -314,7 +350,8 @@ def refine_on_inliers(
         R, t, the normal matrix H, σ̂, cost (as :func:`refine_pose`), and the inlier masks
         (N,), (M,) bool at the initial pose.
     """
-    e2d, e3d = errors_sq(Rq, tq, xq, xr, offsets, f_query, f_ref, ref_R, ref_t, xq3d, X3d)
+    p = prob
+    e2d, e3d = errors_sq(Rq, tq, p.xq, p.xr, p.offsets, p.f_query, p.f_ref, p.ref_R, p.ref_t, p.xq3d, p.X3d)
     in2d = e2d < inlier_threshold_sq
     in3d = e3d < inlier_threshold_sq
     idx2d = np.flatnonzero(in2d)
@@ -322,17 +359,14 @@ def refine_on_inliers(
     if idx2d.shape[0] + idx3d.shape[0] < 6:
         return Rq.copy(), tq.copy(), np.zeros((6, 6)), np.inf, np.inf, in2d, in3d
     c0 = -m3.t_vec(Rq, tq)
-    R, t, H, sigma, cost = refine_pose(Rq, tq, xq, xr, pair, idx2d, f_query, f_ref, ref_R, ref_t, xq3d, X3d,
-                                       idx3d, loss_scale, max_iterations, sigma_floor, c0, np.eye(3),
-                                       np.zeros(6, dtype=np.bool_))
+    R, t, H, sigma, cost = refine_pose(Rq, tq, prob, idx2d, idx3d, loss_scale, max_iterations, sigma_floor, c0,
+                                       np.eye(3), np.zeros(6, dtype=np.bool_))
     return R, t, H, sigma, cost, in2d, in3d
 
 
 @njit(cache=True, error_model="numpy")
 def map_uncertainty_covariance(
-    Rq: np.ndarray, tq: np.ndarray, xq: np.ndarray, xr: np.ndarray, pair: np.ndarray, idx2d: np.ndarray,
-    f_query: np.ndarray, f_ref: np.ndarray, ref_R: np.ndarray, ref_t: np.ndarray,
-    xq3d: np.ndarray, X3d: np.ndarray, idx3d: np.ndarray, loss_scale: float,
+    Rq: np.ndarray, tq: np.ndarray, prob: ProblemArrays, idx2d: np.ndarray, idx3d: np.ndarray, loss_scale: float,
     rotation_std_rad: float, position_std_m: float,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Covariance of the query centre caused by errors of the map's reference poses.
@@ -355,10 +389,10 @@ def map_uncertainty_covariance(
     r = np.empty(m)
     J = np.empty((m, 6))
     Jrot = np.empty((m, 3))
-    residuals_jacobian(Rq, c0, np.eye(3), xq, xr, pair, idx2d, f_query, f_ref, ref_R, ref_t, xq3d, X3d, idx3d, r,
-                        J, Jrot)
+    residuals_jacobian(Rq, c0, np.eye(3), prob, idx2d, idx3d, r, J, Jrot)
+    pair = prob.pair
     s2 = loss_scale * loss_scale
-    P = ref_R.shape[0]
+    P = prob.ref_R.shape[0]
     H = np.zeros((6, 6))
     M = np.zeros((6, 6 * P))
     for n in range(m):

@@ -22,7 +22,7 @@ import tempfile
 import threading
 import time
 from collections.abc import Iterator, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -80,149 +80,219 @@ def fill_camera_info(msg: object, camera: Camera) -> None:
         setattr(msg, name, value)
 
 
-def replay(frames: Sequence[ReplayFrame], *, camera_frame: str = "camera_optical", base_frame: str = "base_link",
-           odom_frame: str = "odom", base_from_camera: Pose | None = None, image_topic: str = "/camera/image_raw",
-           camera_info_topic: str = "/camera/camera_info", odom_topic: str = "/odom",
-           pose_topic: str = "/planarloc/pose", diagnostics_topic: str = "/diagnostics", lockstep: bool = True,
-           rate_hz: float = 10.0, wait_s: float = 120.0, settle_s: float = 2.0,
-           initialpose_before: int | None = None) -> ReplayResult:
+@dataclass(frozen=True)
+class ReplaySettings:
+    """Topics, frames and pacing of :func:`replay` (see its docstring)."""
+
+    camera_frame: str = "camera_optical"
+    base_frame: str = "base_link"
+    odom_frame: str = "odom"
+    base_from_camera: Pose | None = None
+    image_topic: str = "/camera/image_raw"
+    camera_info_topic: str = "/camera/camera_info"
+    odom_topic: str = "/odom"
+    pose_topic: str = "/planarloc/pose"
+    diagnostics_topic: str = "/diagnostics"
+    lockstep: bool = True
+    rate_hz: float = 10.0
+    wait_s: float = 120.0
+    settle_s: float = 2.0
+    initialpose_before: int | None = None
+
+    @property
+    def compressed(self) -> bool:
+        return self.image_topic.rstrip("/").endswith("/compressed")
+
+
+class _Replayer:
+    """The replay's rclpy node: its publishers, the subscriptions that fill ``result``, and one stage per step."""
+
+    def __init__(self, rclpy: Any, s: ReplaySettings):
+        self.rclpy, self.s, self.result = rclpy, s, ReplayResult()
+        self.TFMessage = tf_message_type()
+        self.node = rclpy.create_node("planarloc_replay")
+
+    def create_endpoints(self) -> None:
+        """The publishers, and the subscriptions that fill ``result``."""
+        from diagnostic_msgs.msg import DiagnosticArray
+        from geometry_msgs.msg import PoseWithCovarianceStamped
+        from nav_msgs.msg import Odometry
+        from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+        from sensor_msgs.msg import CameraInfo, CompressedImage, Image
+
+        node, s = self.node, self.s
+        reliable = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
+        self.image_pub = node.create_publisher(CompressedImage if s.compressed else Image, s.image_topic, reliable)
+        self.info_pub = node.create_publisher(CameraInfo, s.camera_info_topic, reliable)
+        self.odom_pub = node.create_publisher(Odometry, s.odom_topic, reliable)
+        self.initial_pub = node.create_publisher(PoseWithCovarianceStamped, "/initialpose", reliable)
+        self.static_pub = node.create_publisher(self.TFMessage, "/tf_static", QoSProfile(
+            depth=10, durability=DurabilityPolicy.TRANSIENT_LOCAL, reliability=ReliabilityPolicy.RELIABLE))
+        node.create_subscription(PoseWithCovarianceStamped, s.pose_topic, self._on_pose, reliable)
+        node.create_subscription(self.TFMessage, "/tf", self._on_tf, QoSProfile(depth=100))
+        node.create_subscription(DiagnosticArray, s.diagnostics_topic, self._on_diagnostics, reliable)
+
+    def _on_pose(self, msg: Any) -> None:
+        p = msg.pose.pose
+        self.result.poses[_key(msg.header.stamp)] = (pose_from_ros(p.position, p.orientation),
+                                                      np.asarray(msg.pose.covariance, dtype=float).reshape(6, 6),
+                                                      msg.header.frame_id)
+
+    def _on_tf(self, msg: Any) -> None:
+        for tf in msg.transforms:
+            self.result.map_from_odom[_key(tf.header.stamp)] = (
+                pose_from_ros(tf.transform.translation, tf.transform.rotation), tf.header.frame_id,
+                tf.child_frame_id)
+
+    def _on_diagnostics(self, msg: Any) -> None:
+        for status in msg.status:
+            self.result.diagnostics[_key(msg.header.stamp)] = {kv.key: kv.value for kv in status.values}
+
+    def spin(self, times: int, timeout_s: float) -> None:
+        for _ in range(times):
+            self.rclpy.spin_once(self.node, timeout_sec=timeout_s)
+
+    def connect(self) -> None:
+        """Wait for the planarloc node, then publish the static base → camera transform."""
+        from geometry_msgs.msg import TransformStamped
+
+        s = self.s
+        deadline = time.monotonic() + s.wait_s
+        while self.image_pub.get_subscription_count() == 0 or self.node.count_publishers(s.diagnostics_topic) == 0:
+            if time.monotonic() > deadline:
+                raise InputError(f"no planarloc node subscribes to {s.image_topic} within {s.wait_s:.0f} s")
+            self.rclpy.spin_once(self.node, timeout_sec=0.1)
+        if s.base_from_camera is not None:
+            tf = TransformStamped()
+            tf.header.frame_id, tf.child_frame_id = s.base_frame, s.camera_frame
+            t, q = ros_from_pose(s.base_from_camera)
+            tf.transform.translation.x, tf.transform.translation.y, tf.transform.translation.z = t
+            r = tf.transform.rotation
+            r.x, r.y, r.z, r.w = q
+            self.static_pub.publish(self.TFMessage(transforms=[tf]))
+        self.spin(10, 0.05)  # let the subscriptions of both sides match
+
+    def publish_initial_pose(self, sec: int, nanosec: int) -> None:
+        from geometry_msgs.msg import PoseWithCovarianceStamped
+
+        initial = PoseWithCovarianceStamped()
+        initial.header.frame_id = "map"
+        initial.header.stamp.sec, initial.header.stamp.nanosec = sec, nanosec
+        initial.pose.pose.orientation.w = 1.0
+        self.initial_pub.publish(initial)
+        self.spin(10, 0.02)
+
+    def publish_side_messages(self, frame: ReplayFrame, sec: int, nanosec: int) -> None:
+        """The frame's Odometry and CameraInfo (those it has)."""
+        from nav_msgs.msg import Odometry
+        from sensor_msgs.msg import CameraInfo
+
+        if frame.odom_from_base is not None:
+            odom = Odometry()
+            odom.header.stamp.sec, odom.header.stamp.nanosec = sec, nanosec
+            odom.header.frame_id, odom.child_frame_id = self.s.odom_frame, self.s.base_frame
+            t, q = ros_from_pose(frame.odom_from_base)
+            odom.pose.pose.position.x, odom.pose.pose.position.y, odom.pose.pose.position.z = t
+            o = odom.pose.pose.orientation
+            o.x, o.y, o.z, o.w = q
+            self.odom_pub.publish(odom)
+        if frame.camera is not None:
+            info = CameraInfo()
+            info.header.stamp.sec, info.header.stamp.nanosec = sec, nanosec
+            info.header.frame_id = self.s.camera_frame
+            fill_camera_info(info, frame.camera)
+            self.info_pub.publish(info)
+
+    def image_message(self, i: int, frame: ReplayFrame, sec: int, nanosec: int) -> Any:
+        from sensor_msgs.msg import CompressedImage, Image
+
+        if isinstance(frame.image, bytes):
+            if not self.s.compressed:
+                raise InputError(f"frame {i}: bytes are sent as a CompressedImage; use a /compressed image_topic")
+            msg = CompressedImage(format="png", data=frame.image)
+        elif self.s.compressed:
+            gray = frame.image if isinstance(frame.image, np.ndarray) else read_gray(frame.image)
+            msg = CompressedImage(format="png", data=cv2.imencode(".png", gray)[1].tobytes())
+        else:
+            gray = frame.image if isinstance(frame.image, np.ndarray) else read_gray(frame.image)
+            msg = Image(height=gray.shape[0], width=gray.shape[1], encoding="mono8", step=gray.shape[1],
+                        data=np.ascontiguousarray(gray).tobytes())
+        msg.header.stamp.sec, msg.header.stamp.nanosec = sec, nanosec
+        msg.header.frame_id = self.s.camera_frame
+        return msg
+
+    def wait_for_diagnostic(self, i: int, frame: ReplayFrame) -> None:
+        key, wait_s = round(frame.stamp, 9), self.s.wait_s
+        deadline = time.monotonic() + wait_s
+        while key not in self.result.diagnostics:
+            if time.monotonic() > deadline:
+                raise InputError(f"frame {i} (stamp {frame.stamp:.3f}): no diagnostic within {wait_s:.0f} s")
+            self.rclpy.spin_once(self.node, timeout_sec=0.05)
+
+    def wait_until(self, next_at: float) -> None:
+        while time.perf_counter() < next_at:
+            self.rclpy.spin_once(self.node, timeout_sec=max(0.0, min(0.01, next_at - time.perf_counter())))
+
+    def run(self, frames: Sequence[ReplayFrame]) -> ReplayResult:
+        s, t0 = self.s, None
+        self.create_endpoints()
+        self.connect()
+        for i, frame in enumerate(frames):
+            sec, nanosec = stamp_parts(frame.stamp)
+            if i == s.initialpose_before:
+                self.publish_initial_pose(sec, nanosec)
+            self.publish_side_messages(frame, sec, nanosec)
+            msg = self.image_message(i, frame, sec, nanosec)
+            if i == 0:  # the CameraInfo must be there before the first image
+                self.spin(5, 0.02)
+                t0 = time.perf_counter()  # the clock of the rate starts at the first image
+            self.image_pub.publish(msg)
+            if s.lockstep:
+                self.wait_for_diagnostic(i, frame)
+            else:
+                paced = i + 1 < len(frames) and frames[i + 1].capture_time is not None \
+                    and frames[0].capture_time is not None
+                self.wait_until(t0 + (frames[i + 1].capture_time - frames[0].capture_time if paced
+                                      else (i + 1) / s.rate_hz))
+        self.result.seconds = time.perf_counter() - t0 if t0 is not None else 0.0
+        end = time.monotonic() + s.settle_s
+        while time.monotonic() < end:  # the last answers (poses after their diagnostics, trailing frames)
+            self.rclpy.spin_once(self.node, timeout_sec=0.05)
+        self.result.published = len(self.result.poses)
+        return self.result
+
+
+def replay(frames: Sequence[ReplayFrame], settings: ReplaySettings | None = None, **overrides: Any) -> ReplayResult:
     """Publish ``frames`` in order to a running ``planarloc ros2`` and collect its answers.
 
-    ``initialpose_before``: publish an identity pose on ``/initialpose`` before that frame, as
-    rviz's "2D Pose Estimate" does (the node restarts its stream).
+    ``settings`` (None: defaults), with keyword ``overrides`` of any :class:`ReplaySettings` field,
+    e.g. ``replay(frames, base_from_camera=pose, lockstep=False)``:
 
-    ``image_topic`` ending in ``/compressed`` sends PNG ``CompressedImage`` messages (a frame's
-    ``bytes`` as they are). Waits up to
-    ``wait_s`` for the node's subscription (and, in lockstep, for each frame's diagnostic).
+    - ``*_frame``, ``*_topic``: the TF frames and topics used; ``base_from_camera`` is published
+      as a static transform (None: none).
+    - ``image_topic`` ending in ``/compressed`` sends PNG ``CompressedImage`` messages (a frame's
+      ``bytes`` as they are).
+    - ``lockstep``: wait for each frame's diagnostic; otherwise frames go out at ``rate_hz`` (or
+      at their ``capture_time``).
+    - ``wait_s``: how long to wait for the node's subscription (and, in lockstep, for each
+      frame's diagnostic); ``settle_s``: how long to collect answers after the last frame.
+    - ``initialpose_before``: publish an identity pose on ``/initialpose`` before that frame, as
+      rviz's "2D Pose Estimate" does (the node restarts its stream).
 
     Raises:
         InputError: no node subscribes to ``image_topic`` within ``wait_s``, or (lockstep) a
             frame got no diagnostic within ``wait_s``.
     """
+    settings = replace(settings or ReplaySettings(), **overrides)
     rclpy = require("rclpy", "ros2")
-    from diagnostic_msgs.msg import DiagnosticArray
-    from geometry_msgs.msg import PoseWithCovarianceStamped, TransformStamped
-    from nav_msgs.msg import Odometry
-    from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
-    from sensor_msgs.msg import CameraInfo, CompressedImage, Image
-
-    TFMessage = tf_message_type()
     own_context = not rclpy.ok()
     if own_context:
         rclpy.init(args=["planarloc_replay"])
-    node = rclpy.create_node("planarloc_replay")
-    result = ReplayResult()
+    replayer = _Replayer(rclpy, settings)
     try:
-        reliable = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
-        compressed = image_topic.rstrip("/").endswith("/compressed")
-        image_pub = node.create_publisher(CompressedImage if compressed else Image, image_topic, reliable)
-        info_pub = node.create_publisher(CameraInfo, camera_info_topic, reliable)
-        odom_pub = node.create_publisher(Odometry, odom_topic, reliable)
-        initial_pub = node.create_publisher(PoseWithCovarianceStamped, "/initialpose", reliable)
-        static_pub = node.create_publisher(TFMessage, "/tf_static", QoSProfile(
-            depth=10, durability=DurabilityPolicy.TRANSIENT_LOCAL, reliability=ReliabilityPolicy.RELIABLE))
-
-        def on_pose(msg: PoseWithCovarianceStamped) -> None:
-            p = msg.pose.pose
-            result.poses[_key(msg.header.stamp)] = (pose_from_ros(p.position, p.orientation),
-                                                     np.asarray(msg.pose.covariance, dtype=float).reshape(6, 6),
-                                                     msg.header.frame_id)
-
-        def on_tf(msg: object) -> None:
-            for tf in msg.transforms:  # type: ignore[attr-defined]
-                result.map_from_odom[_key(tf.header.stamp)] = (
-                    pose_from_ros(tf.transform.translation, tf.transform.rotation), tf.header.frame_id,
-                    tf.child_frame_id)
-
-        def on_diagnostics(msg: DiagnosticArray) -> None:
-            for status in msg.status:
-                result.diagnostics[_key(msg.header.stamp)] = {kv.key: kv.value for kv in status.values}
-
-        node.create_subscription(PoseWithCovarianceStamped, pose_topic, on_pose, reliable)
-        node.create_subscription(TFMessage, "/tf", on_tf, QoSProfile(depth=100))
-        node.create_subscription(DiagnosticArray, diagnostics_topic, on_diagnostics, reliable)
-
-        deadline = time.monotonic() + wait_s
-        while image_pub.get_subscription_count() == 0 or node.count_publishers(diagnostics_topic) == 0:
-            if time.monotonic() > deadline:
-                raise InputError(f"no planarloc node subscribes to {image_topic} within {wait_s:.0f} s")
-            rclpy.spin_once(node, timeout_sec=0.1)
-        if base_from_camera is not None:
-            tf = TransformStamped()
-            tf.header.frame_id, tf.child_frame_id = base_frame, camera_frame
-            t, q = ros_from_pose(base_from_camera)
-            tf.transform.translation.x, tf.transform.translation.y, tf.transform.translation.z = t
-            r = tf.transform.rotation
-            r.x, r.y, r.z, r.w = q
-            static_pub.publish(TFMessage(transforms=[tf]))
-        for _ in range(10):  # let the subscriptions of both sides match
-            rclpy.spin_once(node, timeout_sec=0.05)
-
-        t0 = None
-        for i, frame in enumerate(frames):
-            sec, nanosec = stamp_parts(frame.stamp)
-            if i == initialpose_before:
-                initial = PoseWithCovarianceStamped()
-                initial.header.frame_id = "map"
-                initial.header.stamp.sec, initial.header.stamp.nanosec = sec, nanosec
-                initial.pose.pose.orientation.w = 1.0
-                initial_pub.publish(initial)
-                for _ in range(10):
-                    rclpy.spin_once(node, timeout_sec=0.02)
-            if frame.odom_from_base is not None:
-                odom = Odometry()
-                odom.header.stamp.sec, odom.header.stamp.nanosec = sec, nanosec
-                odom.header.frame_id, odom.child_frame_id = odom_frame, base_frame
-                t, q = ros_from_pose(frame.odom_from_base)
-                odom.pose.pose.position.x, odom.pose.pose.position.y, odom.pose.pose.position.z = t
-                o = odom.pose.pose.orientation
-                o.x, o.y, o.z, o.w = q
-                odom_pub.publish(odom)
-            if frame.camera is not None:
-                info = CameraInfo()
-                info.header.stamp.sec, info.header.stamp.nanosec = sec, nanosec
-                info.header.frame_id = camera_frame
-                fill_camera_info(info, frame.camera)
-                info_pub.publish(info)
-            if isinstance(frame.image, bytes):
-                if not compressed:
-                    raise InputError(f"frame {i}: bytes are sent as a CompressedImage; use a /compressed image_topic")
-                msg = CompressedImage(format="png", data=frame.image)
-            elif compressed:
-                gray = frame.image if isinstance(frame.image, np.ndarray) else read_gray(frame.image)
-                msg = CompressedImage(format="png", data=cv2.imencode(".png", gray)[1].tobytes())
-            else:
-                gray = frame.image if isinstance(frame.image, np.ndarray) else read_gray(frame.image)
-                msg = Image(height=gray.shape[0], width=gray.shape[1], encoding="mono8", step=gray.shape[1],
-                            data=np.ascontiguousarray(gray).tobytes())
-            msg.header.stamp.sec, msg.header.stamp.nanosec = sec, nanosec
-            msg.header.frame_id = camera_frame
-            if i == 0:  # the CameraInfo must be there before the first image
-                for _ in range(5):
-                    rclpy.spin_once(node, timeout_sec=0.02)
-                t0 = time.perf_counter()  # the clock of the rate starts at the first image
-            image_pub.publish(msg)
-            key = round(frame.stamp, 9)
-            if lockstep:
-                deadline = time.monotonic() + wait_s
-                while key not in result.diagnostics:
-                    if time.monotonic() > deadline:
-                        raise InputError(f"frame {i} (stamp {frame.stamp:.3f}): no diagnostic within {wait_s:.0f} s")
-                    rclpy.spin_once(node, timeout_sec=0.05)
-            else:
-                paced = i + 1 < len(frames) and frames[i + 1].capture_time is not None \
-                    and frames[0].capture_time is not None
-                next_at = t0 + (frames[i + 1].capture_time - frames[0].capture_time if paced else (i + 1) / rate_hz)
-                while time.perf_counter() < next_at:
-                    rclpy.spin_once(node, timeout_sec=max(0.0, min(0.01, next_at - time.perf_counter())))
-        result.seconds = time.perf_counter() - t0 if t0 is not None else 0.0
-        end = time.monotonic() + settle_s
-        while time.monotonic() < end:  # the last answers (poses after their diagnostics, trailing frames)
-            rclpy.spin_once(node, timeout_sec=0.05)
-        result.published = len(result.poses)
-        return result
+        return replayer.run(frames)
     finally:
-        node.destroy_node()
+        replayer.node.destroy_node()
         if own_context:
             rclpy.try_shutdown()
 

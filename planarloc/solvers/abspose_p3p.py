@@ -56,6 +56,49 @@ def _frame(a: np.ndarray, b: np.ndarray, c: np.ndarray, F: np.ndarray) -> bool:
     return True
 
 
+@njit(cache=True, error_model="numpy", inline="always")
+def _refine_depths(s: np.ndarray, ca: float, cb: float, cg: float, d2: np.ndarray) -> None:
+    """Two Gauss-Newton steps on the depths ``s`` (3,) of the law of cosines
+    f_ik(s) = s_i² + s_k² − 2 s_i s_k cos θ_ik − d_ik², (i, k) = (2,3), (1,3), (1,2); ``d2`` = (a², b², c²)."""
+    a2, b2, c2 = d2[0], d2[1], d2[2]
+    for _ in range(2):
+        f0 = s[1] * s[1] + s[2] * s[2] - 2.0 * s[1] * s[2] * ca - a2
+        f1 = s[0] * s[0] + s[2] * s[2] - 2.0 * s[0] * s[2] * cb - b2
+        f2 = s[0] * s[0] + s[1] * s[1] - 2.0 * s[0] * s[1] * cg - c2
+        # J = [[0, p, q], [r, 0, w], [y, z, 0]] solved by Cramer's rule (numba's LAPACK
+        # bindings cost seconds of compile time for a 3x3 system).
+        p_, q_ = 2.0 * (s[1] - s[2] * ca), 2.0 * (s[2] - s[1] * ca)
+        r_, w_ = 2.0 * (s[0] - s[2] * cb), 2.0 * (s[2] - s[0] * cb)
+        y_, z_ = 2.0 * (s[0] - s[1] * cg), 2.0 * (s[1] - s[0] * cg)
+        det = p_ * w_ * y_ + q_ * r_ * z_
+        if not abs(det) > 1e-12 * (s[0] * s[1] * s[2] + 1e-300):
+            break
+        s[0] -= (-f0 * w_ * z_ + p_ * w_ * f2 + q_ * f1 * z_) / det
+        s[1] -= (f0 * w_ * y_ + q_ * r_ * f2 - q_ * f1 * y_) / det
+        s[2] -= (-p_ * r_ * f2 + p_ * f1 * y_ + f0 * r_ * z_) / det
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _add_pose(j: np.ndarray, s: np.ndarray, X: np.ndarray, Fw: np.ndarray, Rs: np.ndarray, ts: np.ndarray,
+              count: int) -> int:
+    """Write the pose that puts ray i at depth s[i] onto X[i] at ``count`` unless degenerate or a
+    duplicate; returns the new count."""
+    P = np.empty((3, 3))
+    for i in range(3):
+        P[i] = s[i] * j[i]
+    Fc = np.empty((3, 3))
+    if not _frame(P[0], P[1], P[2], Fc):
+        return count
+    R = m3.mul_t(Fc, Fw)
+    t = P[0] - m3.vec(R, X[0])
+    for m in range(count):
+        if np.sum(np.abs(Rs[m] - R)) < 1e-9 and np.sum(np.abs(ts[m] - t)) < 1e-9 * (1.0 + np.sum(np.abs(t))):
+            return count
+    Rs[count] = R
+    ts[count] = t
+    return count + 1
+
+
 @njit(cache=True, error_model="numpy")
 def solve_p3p(x: np.ndarray, X: np.ndarray, Rs: np.ndarray, ts: np.ndarray) -> int:
     """Core solver: x (3, 3) rays (any length), X (3, 3) world points; writes ≤ 4 poses.
@@ -70,9 +113,8 @@ def solve_p3p(x: np.ndarray, X: np.ndarray, Rs: np.ndarray, ts: np.ndarray) -> i
         if not n > 0.0:
             return 0
         j[i] = x[i] / n
-    a2 = np.sum((X[1] - X[2]) ** 2)
-    b2 = np.sum((X[0] - X[2]) ** 2)
-    c2 = np.sum((X[0] - X[1]) ** 2)
+    d2 = np.array([np.sum((X[1] - X[2]) ** 2), np.sum((X[0] - X[2]) ** 2), np.sum((X[0] - X[1]) ** 2)])
+    a2, b2, c2 = d2[0], d2[1], d2[2]
     if not (a2 > 1e-24 and b2 > 1e-24 and c2 > 1e-24):
         return 0
     ca = np.sum(j[1] * j[2])  # cos α: rays 2, 3
@@ -96,9 +138,7 @@ def solve_p3p(x: np.ndarray, X: np.ndarray, Rs: np.ndarray, ts: np.ndarray) -> i
     Fw = np.empty((3, 3))
     if not _frame(X[0], X[1], X[2], Fw):
         return 0
-    Fc = np.empty((3, 3))
     s = np.empty(3)
-    P = np.empty((3, 3))
     count = 0
     for k in range(nr):
         v = roots[k]
@@ -111,39 +151,10 @@ def solve_p3p(x: np.ndarray, X: np.ndarray, Rs: np.ndarray, ts: np.ndarray) -> i
         s[0], s[1], s[2] = s1, u * s1, v * s1
         if not (s[1] > 0.0 and s[2] > 0.0):
             continue
-        # Gauss-Newton on f_ik(s) = s_i² + s_k² − 2 s_i s_k cos θ_ik − d_ik², (i, k) = (2,3), (1,3), (1,2)
-        for _ in range(2):
-            f0 = s[1] * s[1] + s[2] * s[2] - 2.0 * s[1] * s[2] * ca - a2
-            f1 = s[0] * s[0] + s[2] * s[2] - 2.0 * s[0] * s[2] * cb - b2
-            f2 = s[0] * s[0] + s[1] * s[1] - 2.0 * s[0] * s[1] * cg - c2
-            # J = [[0, p, q], [r, 0, w], [y, z, 0]] solved by Cramer's rule (numba's LAPACK
-            # bindings cost seconds of compile time for a 3x3 system).
-            p_, q_ = 2.0 * (s[1] - s[2] * ca), 2.0 * (s[2] - s[1] * ca)
-            r_, w_ = 2.0 * (s[0] - s[2] * cb), 2.0 * (s[2] - s[0] * cb)
-            y_, z_ = 2.0 * (s[0] - s[1] * cg), 2.0 * (s[1] - s[0] * cg)
-            det = p_ * w_ * y_ + q_ * r_ * z_
-            if not abs(det) > 1e-12 * (s[0] * s[1] * s[2] + 1e-300):
-                break
-            s[0] -= (-f0 * w_ * z_ + p_ * w_ * f2 + q_ * f1 * z_) / det
-            s[1] -= (f0 * w_ * y_ + q_ * r_ * f2 - q_ * f1 * y_) / det
-            s[2] -= (-p_ * r_ * f2 + p_ * f1 * y_ + f0 * r_ * z_) / det
+        _refine_depths(s, ca, cb, cg, d2)
         if not (s[0] > 0.0 and s[1] > 0.0 and s[2] > 0.0):
             continue
-        for i in range(3):
-            P[i] = s[i] * j[i]
-        if not _frame(P[0], P[1], P[2], Fc):
-            continue
-        R = m3.mul_t(Fc, Fw)
-        t = P[0] - m3.vec(R, X[0])
-        duplicate = False
-        for m in range(count):
-            if np.sum(np.abs(Rs[m] - R)) < 1e-9 and np.sum(np.abs(ts[m] - t)) < 1e-9 * (1.0 + np.sum(np.abs(t))):
-                duplicate = True
-        if duplicate:
-            continue
-        Rs[count] = R
-        ts[count] = t
-        count += 1
+        count = _add_pose(j, s, X, Fw, Rs, ts, count)
         if count == MAX_SOLUTIONS:
             break
     return count

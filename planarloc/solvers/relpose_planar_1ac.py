@@ -134,6 +134,90 @@ def _least_eigvec_sym3(a00: float, a01: float, a02: float, a11: float, a12: floa
     return True, v0 / nv, v1 / nv, v2 / nv
 
 
+_ZERO4 = (0.0, 0.0, 0.0, 0.0)
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _ac_system(xq: np.ndarray, A: np.ndarray, xr: np.ndarray):
+    """``(ok, m0, m1, m2)``: the rows of the 3x4 system M x = 0 (module docstring), normalised;
+    not ok for an empty row (e.g. on the horizon of both views) or NaN."""
+    u1, v1 = xq[0] / xq[2], xq[1] / xq[2]
+    u2, v2 = xr[0] / xr[2], xr[1] / xr[2]
+    a00, a01, a10, a11 = A[0, 0], A[0, 1], A[1, 0], A[1, 1]
+    m00, m01, m02, m03 = v1, v1 * u2, v2, -u1 * v2
+    m10, m11, m12, m13 = 0.0, a00 * v1, a10, -(a10 * u1 + v2)
+    m20, m21, m22, m23 = 1.0, a01 * v1 + u2, a11, -a11 * u1
+    n0 = np.sqrt(m00 * m00 + m01 * m01 + m02 * m02 + m03 * m03)
+    n1 = np.sqrt(m10 * m10 + m11 * m11 + m12 * m12 + m13 * m13)
+    n2 = np.sqrt(m20 * m20 + m21 * m21 + m22 * m22 + m23 * m23)
+    if not (n0 > 1e-300 and n1 > 1e-300 and n2 > 1e-300):
+        return False, _ZERO4, _ZERO4, _ZERO4
+    return (True, (m00 / n0, m01 / n0, m02 / n0, m03 / n0), (m10 / n1, m11 / n1, m12 / n1, m13 / n1),
+            (m20 / n2, m21 / n2, m22 / n2, m23 / n2))
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _null_vector(m0, m1, m2):
+    """Null vector of the 3x4 matrix with rows m0, m1, m2: generalised cross product,
+    x_k = (-1)^k det(M without column k)."""
+    m00, m01, m02, m03 = m0
+    m10, m11, m12, m13 = m1
+    m20, m21, m22, m23 = m2
+    x1 = m01 * (m12 * m23 - m13 * m22) - m02 * (m11 * m23 - m13 * m21) + m03 * (m11 * m22 - m12 * m21)
+    x2 = -(m00 * (m12 * m23 - m13 * m22) - m02 * (m10 * m23 - m13 * m20) + m03 * (m10 * m22 - m12 * m20))
+    x3 = m00 * (m11 * m23 - m13 * m21) - m01 * (m10 * m23 - m13 * m20) + m03 * (m10 * m21 - m11 * m20)
+    x4 = -(m00 * (m11 * m22 - m12 * m21) - m01 * (m10 * m22 - m12 * m20) + m02 * (m10 * m21 - m11 * m20))
+    return x1, x2, x3, x4
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _dot4(a, b) -> float:
+    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2] + a[3] * b[3]
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _project_on_cone(m0, m1, m2, x, c1: float, c2: float):
+    """``(ok, x, c1, c2)``: the null vector x moved onto the cone x1² + x2² = x3² + x4²
+    (deviation from 1AC_CS, see the module docstring), with its circle-pair norms c1, c2.
+
+    The cone point of span{x, y} nearest to x, y the next right singular vector of M (y = Mᵀ w,
+    w the least eigenvector of M Mᵀ; y ⟂ x because M x = 0). Exact data: x is on the cone. Not
+    ok if a circle pair vanishes after the move; without a real intersection x is returned
+    unchanged (each pair is then put on its circle, the authors' 1AC_CS).
+    """
+    ok, w0, w1, w2 = _least_eigvec_sym3(_dot4(m0, m0), _dot4(m0, m1), _dot4(m0, m2), _dot4(m1, m1),
+                                        _dot4(m1, m2), _dot4(m2, m2))
+    if not ok:
+        return True, x, c1, c2
+    y1 = w0 * m0[0] + w1 * m1[0] + w2 * m2[0]
+    y2 = w0 * m0[1] + w1 * m1[1] + w2 * m2[1]
+    y3 = w0 * m0[2] + w1 * m1[2] + w2 * m2[2]
+    y4 = w0 * m0[3] + w1 * m1[3] + w2 * m2[3]
+    ny = np.sqrt(y1 * y1 + y2 * y2 + y3 * y3 + y4 * y4)
+    if not ny > 1e-300:
+        return True, x, c1, c2
+    nx = np.sqrt(c1 + c2)
+    x1, x2, x3, x4 = x[0] / nx, x[1] / nx, x[2] / nx, x[3] / nx
+    y1, y2, y3, y4 = y1 / ny, y2 / ny, y3 / ny, y4 / ny
+    c1, c2 = c1 / (nx * nx), c2 / (nx * nx)
+    # (x + l y) on the cone: p + 2 q l + r l² = 0 with the form diag(1, 1, -1, -1).
+    p = x1 * x1 + x2 * x2 - x3 * x3 - x4 * x4
+    q = x1 * y1 + x2 * y2 - x3 * y3 - x4 * y4
+    r = y1 * y1 + y2 * y2 - y3 * y3 - y4 * y4
+    disc = q * q - p * r
+    if disc >= 0.0:
+        # root of smallest |l|, in the cancellation-free form l = -p / (q ± sqrt(disc))
+        den = q + np.sqrt(disc) if q >= 0.0 else q - np.sqrt(disc)
+        if abs(den) > 1e-300:
+            lam = -p / den
+            x1, x2, x3, x4 = x1 + lam * y1, x2 + lam * y2, x3 + lam * y3, x4 + lam * y4
+            c1 = x1 * x1 + x2 * x2
+            c2 = x3 * x3 + x4 * x4
+            if c1 < _EPS_PAIR or c2 < _EPS_PAIR:
+                return False, (x1, x2, x3, x4), c1, c2
+    return True, (x1, x2, x3, x4), c1, c2
+
+
 @njit(cache=True, error_model="numpy")
 def solve_planar_1ac(xq: np.ndarray, xr: np.ndarray, A: np.ndarray, out: np.ndarray) -> int:
     """Core solver on one affine correspondence; returns the number of solutions (0 or 1).
@@ -143,78 +227,29 @@ def solve_planar_1ac(xq: np.ndarray, xr: np.ndarray, A: np.ndarray, out: np.ndar
         A: (2, 2) local affine map ``∂x_r/∂x_q`` in normalized image coordinates.
         out: (3,) output buffer: ``θ``, ``φ`` (eq. 1) and the cone imbalance (module docstring).
 
-    Scalars only: the solve is ~150 floating-point operations and allocations would dominate.
+    Scalars and tuples only (the stages are inlined): the solve is ~150 floating-point
+    operations and allocations would dominate.
     """
     if not (xq[2] > 0.0 and xr[2] > 0.0):
         return 0  # no finite normalized coordinates (or NaN)
-    u1, v1 = xq[0] / xq[2], xq[1] / xq[2]
-    u2, v2 = xr[0] / xr[2], xr[1] / xr[2]
-    a00, a01, a10, a11 = A[0, 0], A[0, 1], A[1, 0], A[1, 1]
-    # The 3x4 system M x = 0 (module docstring), rows normalised.
-    m00, m01, m02, m03 = v1, v1 * u2, v2, -u1 * v2
-    m10, m11, m12, m13 = 0.0, a00 * v1, a10, -(a10 * u1 + v2)
-    m20, m21, m22, m23 = 1.0, a01 * v1 + u2, a11, -a11 * u1
-    n0 = np.sqrt(m00 * m00 + m01 * m01 + m02 * m02 + m03 * m03)
-    n1 = np.sqrt(m10 * m10 + m11 * m11 + m12 * m12 + m13 * m13)
-    n2 = np.sqrt(m20 * m20 + m21 * m21 + m22 * m22 + m23 * m23)
-    if not (n0 > 1e-300 and n1 > 1e-300 and n2 > 1e-300):
-        return 0  # an empty row (e.g. on the horizon of both views), or NaN
-    m00, m01, m02, m03 = m00 / n0, m01 / n0, m02 / n0, m03 / n0
-    m10, m11, m12, m13 = m10 / n1, m11 / n1, m12 / n1, m13 / n1
-    m20, m21, m22, m23 = m20 / n2, m21 / n2, m22 / n2, m23 / n2
-    # Null vector: generalised cross product, x_k = (-1)^k det(M without column k).
-    x1 = m01 * (m12 * m23 - m13 * m22) - m02 * (m11 * m23 - m13 * m21) + m03 * (m11 * m22 - m12 * m21)
-    x2 = -(m00 * (m12 * m23 - m13 * m22) - m02 * (m10 * m23 - m13 * m20) + m03 * (m10 * m22 - m12 * m20))
-    x3 = m00 * (m11 * m23 - m13 * m21) - m01 * (m10 * m23 - m13 * m20) + m03 * (m10 * m21 - m11 * m20)
-    x4 = -(m00 * (m11 * m22 - m12 * m21) - m01 * (m10 * m22 - m12 * m20) + m02 * (m10 * m21 - m11 * m20))
-    c1 = x1 * x1 + x2 * x2
-    c2 = x3 * x3 + x4 * x4
+    ok, m0, m1, m2 = _ac_system(xq, A, xr)
+    if not ok:
+        return 0
+    x = _null_vector(m0, m1, m2)
+    c1 = x[0] * x[0] + x[1] * x[1]
+    c2 = x[2] * x[2] + x[3] * x[3]
     if not (c1 + c2 > _EPS_RANK * _EPS_RANK):
         return 0  # rank < 3: zero baseline, point at infinity, or a degenerate frame (or NaN)
     if c1 < _EPS_PAIR * (c1 + c2) or c2 < _EPS_PAIR * (c1 + c2):
         return 0  # one circle pair vanishes: the frame fits no planar motion
     imbalance = (c1 - c2) / (c1 + c2)
-    # Projection onto the cone (deviation from 1AC_CS, see the module docstring): the cone point
-    # of span{n, v} nearest to n, v the next right singular vector of M (v = Mᵀ w, w the least
-    # eigenvector of M Mᵀ; v ⟂ n because M n = 0). Exact data: n is on the cone, l = 0.
-    g00 = m00 * m00 + m01 * m01 + m02 * m02 + m03 * m03
-    g01 = m00 * m10 + m01 * m11 + m02 * m12 + m03 * m13
-    g02 = m00 * m20 + m01 * m21 + m02 * m22 + m03 * m23
-    g11 = m10 * m10 + m11 * m11 + m12 * m12 + m13 * m13
-    g12 = m10 * m20 + m11 * m21 + m12 * m22 + m13 * m23
-    g22 = m20 * m20 + m21 * m21 + m22 * m22 + m23 * m23
-    ok, w0, w1, w2 = _least_eigvec_sym3(g00, g01, g02, g11, g12, g22)
-    if ok:
-        y1 = w0 * m00 + w1 * m10 + w2 * m20
-        y2 = w0 * m01 + w1 * m11 + w2 * m21
-        y3 = w0 * m02 + w1 * m12 + w2 * m22
-        y4 = w0 * m03 + w1 * m13 + w2 * m23
-        ny = np.sqrt(y1 * y1 + y2 * y2 + y3 * y3 + y4 * y4)
-        nx = np.sqrt(c1 + c2)
-        if ny > 1e-300:
-            x1, x2, x3, x4 = x1 / nx, x2 / nx, x3 / nx, x4 / nx
-            y1, y2, y3, y4 = y1 / ny, y2 / ny, y3 / ny, y4 / ny
-            c1, c2 = c1 / (nx * nx), c2 / (nx * nx)
-            # (x + l y) on the cone: p + 2 q l + r l² = 0 with the form diag(1, 1, -1, -1).
-            p = x1 * x1 + x2 * x2 - x3 * x3 - x4 * x4
-            q = x1 * y1 + x2 * y2 - x3 * y3 - x4 * y4
-            r = y1 * y1 + y2 * y2 - y3 * y3 - y4 * y4
-            disc = q * q - p * r
-            if disc >= 0.0:
-                # root of smallest |l|, in the cancellation-free form l = -p / (q ± sqrt(disc))
-                den = q + np.sqrt(disc) if q >= 0.0 else q - np.sqrt(disc)
-                if abs(den) > 1e-300:
-                    lam = -p / den
-                    x1, x2, x3, x4 = x1 + lam * y1, x2 + lam * y2, x3 + lam * y3, x4 + lam * y4
-                    c1 = x1 * x1 + x2 * x2
-                    c2 = x3 * x3 + x4 * x4
-                    if c1 < _EPS_PAIR or c2 < _EPS_PAIR:
-                        return 0
-            # no real intersection: keep n, each pair put on its circle (the authors' 1AC_CS)
+    ok, x, c1, c2 = _project_on_cone(m0, m1, m2, x, c1, c2)
+    if not ok:
+        return 0
     r1 = np.sqrt(c1)
     r2 = np.sqrt(c2)
-    s1, co1 = x1 / r1, x2 / r1  # sin(θ-φ), cos(θ-φ)
-    sp, cp = x3 / r2, x4 / r2  # sin φ, cos φ (up to the common sign of x)
+    s1, co1 = x[0] / r1, x[1] / r1  # sin(θ-φ), cos(θ-φ)
+    sp, cp = x[2] / r2, x[3] / r2  # sin φ, cos φ (up to the common sign of x)
     ct = co1 * cp - s1 * sp  # cos θ; invariant under x -> -x
     st = s1 * cp + co1 * sp
     sign = _point_depth_sign(ct, st, sp, cp, xq[0], xq[1], xq[2], xr[0], xr[1], xr[2])

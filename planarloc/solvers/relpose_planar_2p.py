@@ -72,18 +72,13 @@ def _depth_signs(c: float, s: float, sp: float, cp: float, xq: np.ndarray, xr: n
     return sign
 
 
-@njit(cache=True, error_model="numpy")
-def solve_planar_2p(xq: np.ndarray, xr: np.ndarray, thetas: np.ndarray, phis: np.ndarray) -> int:
-    """Core solver on one sample; writes up to 2 solutions, returns how many.
+_ZERO4 = (0.0, 0.0, 0.0, 0.0)
 
-    Args:
-        xq, xr: (2, 3) query / reference rays.
-        thetas, phis: (2,) output buffers for yaw θ and translation direction φ (eq. 1).
 
-    Written with scalars only (no temporary arrays): heap allocations would dominate the
-    ~100 floating-point operations of a solve.
-    """
-    # Row k of the 2x4 system A e = 0 (eq. 8), normalised.
+@njit(cache=True, error_model="numpy", inline="always")
+def _system_rows(xq: np.ndarray, xr: np.ndarray):
+    """``(ok, r, s)``: the two rows of the 2x4 system A e = 0 (eq. 8), normalised; not ok for a
+    match on the horizon line of both views (it constrains nothing) or NaN."""
     r0 = xr[0, 0] * xq[0, 1]
     r1 = xr[0, 1] * xq[0, 0]
     r2 = xr[0, 1] * xq[0, 2]
@@ -95,10 +90,16 @@ def solve_planar_2p(xq: np.ndarray, xr: np.ndarray, thetas: np.ndarray, phis: np
     nr = np.sqrt(r0 * r0 + r1 * r1 + r2 * r2 + r3 * r3)
     ns = np.sqrt(s0 * s0 + s1 * s1 + s2 * s2 + s3 * s3)
     if not (nr > 1e-300 and ns > 1e-300):
-        return 0  # a match on the horizon line of both views constrains nothing (or NaN)
-    r0, r1, r2, r3 = r0 / nr, r1 / nr, r2 / nr, r3 / nr
-    s0, s1, s2, s3 = s0 / ns, s1 / ns, s2 / ns, s3 / ns
-    # Null space (eq. 9) from the Hodge dual of r ^ s: its rows are orthogonal to r and s.
+        return False, _ZERO4, _ZERO4
+    return True, (r0 / nr, r1 / nr, r2 / nr, r3 / nr), (s0 / ns, s1 / ns, s2 / ns, s3 / ns)
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _null_space(r, s):
+    """``(ok, n1, n2)``: an orthonormal basis of the null space of rows r, s (eq. 9), from the
+    Hodge dual of r ∧ s (its rows are orthogonal to r and s); not ok at rank 1."""
+    r0, r1, r2, r3 = r
+    s0, s1, s2, s3 = s
     p01 = r0 * s1 - r1 * s0
     p02 = r0 * s2 - r2 * s0
     p03 = r0 * s3 - r3 * s0
@@ -106,7 +107,7 @@ def solve_planar_2p(xq: np.ndarray, xr: np.ndarray, thetas: np.ndarray, phis: np
     p13 = r1 * s3 - r3 * s1
     p23 = r2 * s3 - r3 * s2
     if p01 * p01 + p02 * p02 + p03 * p03 + p12 * p12 + p13 * p13 + p23 * p23 < _EPS_RANK * _EPS_RANK:
-        return 0  # rank 1: repeated or proportional matches
+        return False, _ZERO4, _ZERO4  # rank 1: repeated or proportional matches
     # Candidate null vectors (dual rows); take the longest, then Gram-Schmidt the next.
     c = ((0.0, p23, -p13, p12), (-p23, 0.0, p03, -p02), (p13, -p03, 0.0, p01), (-p12, p02, -p01, 0.0))
     best, ib = -1.0, 0
@@ -125,10 +126,15 @@ def solve_planar_2p(xq: np.ndarray, xr: np.ndarray, thetas: np.ndarray, phis: np
         if nw > best2:
             best2, b0, b1, b2, b3 = nw, w0, w1, w2, w3
     nb2 = np.sqrt(best2)
-    b0, b1, b2, b3 = b0 / nb2, b1 / nb2, b2 / nb2, b3 / nb2
-    n1 = (a0, a1, a2, a3)
-    n2 = (b0, b1, b2, b3)
-    # Quadratic form of e01² + e21² - e10² - e12² restricted to the null space.
+    return True, (a0, a1, a2, a3), (b0 / nb2, b1 / nb2, b2 / nb2, b3 / nb2)
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _isotropic_basis(n1, n2):
+    """``(ok, v1, v2, mu1, mu2)`` for the quadratic form of e01² + e21² − e10² − e12² on the
+    null space: its eigenvectors v1 (eigenvalue mu2²) and v2 (eigenvalue −mu1²); the form
+    vanishes on ``mu1 v1 ± mu2 v2``. Not ok if the form vanishes (zero baseline, points at
+    infinity) or is definite (no real solution)."""
     p = n1[0] * n1[0] - n1[1] * n1[1] - n1[2] * n1[2] + n1[3] * n1[3]
     r = n2[0] * n2[0] - n2[1] * n2[1] - n2[2] * n2[2] + n2[3] * n2[3]
     q = n1[0] * n2[0] - n1[1] * n2[1] - n1[2] * n2[2] + n1[3] * n2[3]
@@ -136,10 +142,8 @@ def solve_planar_2p(xq: np.ndarray, xr: np.ndarray, thetas: np.ndarray, phis: np
     dev = np.sqrt(0.25 * (p - r) ** 2 + q * q)
     lam1 = mean + dev
     lam2 = mean - dev
-    if dev < _EPS_FORM and abs(mean) < _EPS_FORM:
-        return 0  # form vanishes: zero baseline or points at infinity
-    if lam2 > _EPS_FORM or lam1 < -_EPS_FORM:
-        return 0  # definite form: no real solution
+    if (dev < _EPS_FORM and abs(mean) < _EPS_FORM) or lam2 > _EPS_FORM or lam1 < -_EPS_FORM:
+        return False, (0.0, 0.0), (0.0, 0.0), 0.0, 0.0
     lam1 = max(lam1, 0.0)
     lam2 = min(lam2, 0.0)
     # Eigenvector of lam1 (choose the better-conditioned of two formulas).
@@ -154,36 +158,66 @@ def solve_planar_2p(xq: np.ndarray, xr: np.ndarray, thetas: np.ndarray, phis: np
         v10, v11 = 1.0, 0.0
     else:
         v10, v11 = v10 / nv, v11 / nv
-    v20, v21 = -v11, v10
-    mu1 = np.sqrt(-lam2)
-    mu2 = np.sqrt(lam1)
+    return True, (v10, v11), (-v11, v10), np.sqrt(-lam2), np.sqrt(lam1)
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _write_solution(l1, l2, n1, n2, xq, xr, thetas, phis, count) -> int:
+    """Write (θ, φ) of e = l1 n1 + l2 n2 at ``count`` if it passes cheirality: 1 written, 0
+    rejected, −1 a point at infinity (cheirality cannot tell the solutions apart)."""
+    e01 = l1 * n1[0] + l2 * n2[0]
+    e10 = l1 * n1[1] + l2 * n2[1]
+    e12 = l1 * n1[2] + l2 * n2[2]
+    e21 = l1 * n1[3] + l2 * n2[3]
+    if e01 * e01 + e21 * e21 < 1e-24:
+        return 0
+    # eq. (11) without trigonometric calls: cos/sin of θ-φ and φ are entries of e / ρ.
+    rho = np.sqrt(e01 * e01 + e21 * e21)
+    c1, s1 = e01 / rho, e21 / rho  # cos(θ-φ), sin(θ-φ)
+    rho2 = np.sqrt(e10 * e10 + e12 * e12)
+    cp, sp = -e10 / rho2, e12 / rho2  # cos φ, sin φ
+    ct = c1 * cp - s1 * sp  # cos θ = cos((θ-φ) + φ)
+    st = s1 * cp + c1 * sp
+    sign = _depth_signs(ct, st, sp, cp, xq, xr)
+    if sign == 2:
+        return -1
+    if sign == 0:
+        return 0
+    thetas[count] = np.arctan2(st, ct)
+    phis[count] = np.arctan2(sign * sp, sign * cp)
+    return 1
+
+
+@njit(cache=True, error_model="numpy")
+def solve_planar_2p(xq: np.ndarray, xr: np.ndarray, thetas: np.ndarray, phis: np.ndarray) -> int:
+    """Core solver on one sample; writes up to 2 solutions, returns how many.
+
+    Args:
+        xq, xr: (2, 3) query / reference rays.
+        thetas, phis: (2,) output buffers for yaw θ and translation direction φ (eq. 1).
+
+    Written with scalars and tuples only (no temporary arrays; the stages are inlined): heap
+    allocations would dominate the ~100 floating-point operations of a solve.
+    """
+    ok, r, s = _system_rows(xq, xr)
+    if not ok:
+        return 0
+    ok, n1, n2 = _null_space(r, s)
+    if not ok:
+        return 0
+    ok, v1, v2, mu1, mu2 = _isotropic_basis(n1, n2)
+    if not ok:
+        return 0
     count = 0
     for sgn in (1.0, -1.0):
         if sgn < 0 and mu1 * mu2 < 1e-9 * (mu1 * mu1 + mu2 * mu2):
             break  # double root
-        l1 = v10 * mu1 + v20 * sgn * mu2
-        l2 = v11 * mu1 + v21 * sgn * mu2
-        e01 = l1 * n1[0] + l2 * n2[0]
-        e10 = l1 * n1[1] + l2 * n2[1]
-        e12 = l1 * n1[2] + l2 * n2[2]
-        e21 = l1 * n1[3] + l2 * n2[3]
-        if e01 * e01 + e21 * e21 < 1e-24:
-            continue
-        # eq. (11) without trigonometric calls: cos/sin of θ-φ and φ are entries of e / ρ.
-        rho = np.sqrt(e01 * e01 + e21 * e21)
-        c1, s1 = e01 / rho, e21 / rho  # cos(θ-φ), sin(θ-φ)
-        rho2 = np.sqrt(e10 * e10 + e12 * e12)
-        cp, sp = -e10 / rho2, e12 / rho2  # cos φ, sin φ
-        ct = c1 * cp - s1 * sp  # cos θ = cos((θ-φ) + φ)
-        st = s1 * cp + c1 * sp
-        sign = _depth_signs(ct, st, sp, cp, xq, xr)
-        if sign == 2:
-            return 0  # a point at infinity: cheirality cannot tell the solutions apart
-        if sign == 0:
-            continue
-        thetas[count] = np.arctan2(st, ct)
-        phis[count] = np.arctan2(sign * sp, sign * cp)
-        count += 1
+        l1 = v1[0] * mu1 + v2[0] * sgn * mu2
+        l2 = v1[1] * mu1 + v2[1] * sgn * mu2
+        written = _write_solution(l1, l2, n1, n2, xq, xr, thetas, phis, count)
+        if written < 0:
+            return 0
+        count += written
     return count
 
 

@@ -85,34 +85,156 @@ def _project(camera: Camera, pose: Pose, X: np.ndarray, min_depth: float = 0.5) 
     return uv, inside
 
 
-def make_scene(
-    rng: np.random.Generator,
-    num_refs: int = 5,
-    matches_per_pair: int = 100,
-    noise_px: float = 1.0,
-    outlier_ratio: float = 0.0,
-    camera: Camera = PAPER_CAMERA,
-    num_points: int = 4000,
-    collinear: bool = False,
-    ref_tilt_deg: float = 0.0,
-    with_depth: bool = False,
-    track_pool: float | None = None,
-    max_tries: int = 200,
-    mount_pitch_deg: float = 0.0,
-    mount_roll_deg: float = 0.0,
-    query_tilt_deg: float = 0.0,
-    query_height_m: float = 0.0,
-    world_from_upright: Pose | None = None,
-    with_gravity: bool = False,
-) -> SyntheticScene:
+@dataclass(frozen=True)
+class SceneSpec:
+    """Settings of :func:`make_scene` (see its docstring for each field)."""
+
+    num_refs: int = 5
+    matches_per_pair: int = 100
+    noise_px: float = 1.0
+    outlier_ratio: float = 0.0
+    camera: Camera = PAPER_CAMERA
+    num_points: int = 4000
+    collinear: bool = False
+    ref_tilt_deg: float = 0.0
+    with_depth: bool = False
+    track_pool: float | None = None
+    max_tries: int = 200
+    mount_pitch_deg: float = 0.0
+    mount_roll_deg: float = 0.0
+    query_tilt_deg: float = 0.0
+    query_height_m: float = 0.0
+    world_from_upright: Pose | None = None
+    with_gravity: bool = False
+
+
+class _Mount:
+    """Applies the spec's camera mount (pitch, roll), extra query tilt and height drop to an upright pose."""
+
+    def __init__(self, spec: SceneSpec, rng: np.random.Generator):
+        self.rng = rng
+        self.tilted = (spec.mount_pitch_deg != 0.0 or spec.mount_roll_deg != 0.0 or spec.query_tilt_deg > 0
+                       or spec.query_height_m != 0.0)
+        self.cam_from_upright = upright_from_cam_rotation(spec.mount_pitch_deg, spec.mount_roll_deg).T
+
+    def __call__(self, pose: Pose, extra_tilt: float = 0.0, drop: float = 0.0) -> Pose:
+        if not self.tilted:
+            return pose
+        R = self.cam_from_upright @ pose.R
+        if extra_tilt > 0:
+            pitch, roll = self.rng.normal(0.0, extra_tilt, 2)
+            R = upright_from_cam_rotation(pitch, roll).T @ R
+        c = pose.center + np.array([0.0, drop, 0.0])
+        return Pose(R, -R @ c)
+
+
+@dataclass(frozen=True)
+class _Layout:
+    """One attempt's query pose, pre-drawn reference poses (collinear scenes only) and world points."""
+
+    query: Pose
+    refs: list[Pose]
+    points: np.ndarray
+
+
+def _draw_layout(rng: np.random.Generator, spec: SceneSpec, mount: _Mount) -> _Layout:
+    if spec.collinear:
+        def pose_on_line(z: float) -> Pose:
+            R = rotation_from_yaw(rng.uniform(-0.05, 0.05))
+            return Pose(R, -R @ np.array([0.0, 0.0, z]))
+
+        query = pose_on_line(rng.uniform(-1.0, 1.0))
+        refs = [pose_on_line(rng.uniform(-4.0, 4.0)) for _ in range(spec.num_refs)]
+        n = spec.num_points
+        X = np.c_[rng.uniform(-10, 10, n), rng.uniform(-3, 3, n), rng.uniform(6, 30, n)]
+        return _Layout(query, refs, X)
+    query = mount(random_planar_pose(rng), spec.query_tilt_deg, spec.query_height_m)
+    return _Layout(query, [], rng.uniform(-10.0, 10.0, (spec.num_points, 3)))
+
+
+def _wrong_projection(rng: np.random.Generator, camera: Camera, X: np.ndarray) -> np.ndarray:
+    """(2,) pixel of point ``X`` seen from a random wrong planar pose (an outlier), visible if possible.
+
+    Vectorised over 20 attempted poses (Pose objects would validate each one)."""
+    Rw = rotation_from_yaw(rng.uniform(-np.pi, np.pi, 20))
+    cw = np.stack([rng.uniform(-5, 5, 20), np.zeros(20), rng.uniform(-5, 5, 20)], axis=1)
+    Xc = np.einsum("kij,kj->ki", Rw, X - cw)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        uv_w = (Xc @ camera.K.T)[:, :2] / Xc[:, 2:3]
+    ok = (Xc[:, 2] > 0.5) & (uv_w[:, 0] >= 0) & (uv_w[:, 0] < camera.width) & (
+        uv_w[:, 1] >= 0) & (uv_w[:, 1] < camera.height)
+    hit = np.flatnonzero(ok)
+    return uv_w[hit[0]] if len(hit) else rng.uniform([0, 0], [camera.width, camera.height])
+
+
+def _make_pair(rng: np.random.Generator, spec: SceneSpec, ref: Pose, X: np.ndarray, ids: np.ndarray,
+               uv: tuple[np.ndarray, np.ndarray]) -> tuple[PairMatches, np.ndarray]:
+    """Noisy matches of points ``ids`` between query and ``ref`` (pixels ``uv``), with outliers."""
+    m, camera = spec.matches_per_pair, spec.camera
+    q = uv[0][ids] + rng.normal(0.0, spec.noise_px, (m, 2))
+    r = uv[1][ids] + rng.normal(0.0, spec.noise_px, (m, 2))
+    is_out = np.zeros(m, dtype=bool)
+    n_out = int(round(spec.outlier_ratio * m))
+    if n_out:
+        out_idx = rng.choice(m, n_out, replace=False)
+        is_out[out_idx] = True
+        for i in out_idx:
+            r[i] = _wrong_projection(rng, camera, X[ids[i]])
+    X3 = X[ids].copy() if spec.with_depth else None
+    if X3 is not None:
+        X3[is_out] = np.nan
+    return PairMatches(ref, camera, q, r, query_indices=ids, ref_points3d=X3), is_out
+
+
+def _try_scene(rng: np.random.Generator, spec: SceneSpec, mount: _Mount) -> SyntheticScene | None:
+    """One attempt at a scene in the upright world frame; None when too few points are co-visible."""
+    layout = _draw_layout(rng, spec, mount)
+    X, camera, m = layout.points, spec.camera, spec.matches_per_pair
+    uv_q, vis_q = _project(camera, layout.query, X)
+    if vis_q.sum() < m:
+        return None
+    if spec.track_pool is not None:
+        # The query detects a limited set of keypoints; references re-observe them, so
+        # the same query keypoint is matched in several pairs (tracks).
+        pool = rng.choice(np.flatnonzero(vis_q), min(int(vis_q.sum()), int(spec.track_pool * m)), replace=False)
+        vis_q = np.zeros_like(vis_q)
+        vis_q[pool] = True
+    pairs, outl = [], []
+    tries = 0
+    while len(pairs) < spec.num_refs and tries < 50:
+        tries += 1
+        ref = layout.refs[len(pairs)] if spec.collinear else mount(random_planar_pose(rng, tilt_deg=spec.ref_tilt_deg))
+        uv_r, vis_r = _project(camera, ref, X)
+        common = np.flatnonzero(vis_q & vis_r)
+        if len(common) < m:
+            if spec.collinear:
+                break
+            continue
+        ids = rng.choice(common, m, replace=False)
+        pair, is_out = _make_pair(rng, spec, ref, X, ids, (uv_q, uv_r))
+        pairs.append(pair)
+        outl.append(is_out)
+    if len(pairs) < spec.num_refs:
+        return None
+    return SyntheticScene(camera, layout.query, pairs, X, outl)
+
+
+def make_scene(rng: np.random.Generator, spec: SceneSpec | None = None, **overrides) -> SyntheticScene:
     """Generate one scene of the paper's synthetic protocol.
 
     Args:
         rng: seeded generator.
+        spec: the settings; None uses :class:`SceneSpec` defaults. Keyword ``overrides``
+            (any :class:`SceneSpec` field) replace fields of ``spec``, e.g.
+            ``make_scene(rng, num_refs=3, outlier_ratio=0.5)``.
+
+    Settings (fields of :class:`SceneSpec`):
         num_refs: reference views, each co-visible with the query.
         matches_per_pair: matches per query-reference pair (inliers + outliers).
         noise_px: std of Gaussian pixel noise added to every keypoint.
         outlier_ratio: fraction of matches per pair that are outliers.
+        camera: intrinsics of every camera; num_points: world points drawn per attempt;
+            max_tries: attempts before giving up (RuntimeError).
         collinear: all camera centres on the world z-axis with small yaw (a straight corridor
             or road: the position along it is unobservable from 2D-2D constraints).
         ref_tilt_deg: pitch/roll noise of the references (uneven floor).
@@ -130,85 +252,16 @@ def make_scene(
         with_gravity: fill each pair's ``ref_gravity`` with the true gravity direction.
             The query's true gravity is ``query_pose.R @ gravity_world(scene, world_from_upright)``.
     """
-    tilted = mount_pitch_deg != 0.0 or mount_roll_deg != 0.0 or query_tilt_deg > 0 or query_height_m != 0.0
-    cam_from_upright = upright_from_cam_rotation(mount_pitch_deg, mount_roll_deg).T
-
-    def mount(pose: Pose, extra_tilt: float = 0.0, drop: float = 0.0) -> Pose:
-        if not tilted:
-            return pose
-        R = cam_from_upright @ pose.R
-        if extra_tilt > 0:
-            pitch, roll = rng.normal(0.0, extra_tilt, 2)
-            R = upright_from_cam_rotation(pitch, roll).T @ R
-        c = pose.center + np.array([0.0, drop, 0.0])
-        return Pose(R, -R @ c)
-
-    for _ in range(max_tries):
-        if collinear:
-            def pose_on_line(z: float) -> Pose:
-                R = rotation_from_yaw(rng.uniform(-0.05, 0.05))
-                return Pose(R, -R @ np.array([0.0, 0.0, z]))
-
-            query = pose_on_line(rng.uniform(-1.0, 1.0))
-            refs = [pose_on_line(rng.uniform(-4.0, 4.0)) for _ in range(num_refs)]
-            X = np.c_[rng.uniform(-10, 10, num_points), rng.uniform(-3, 3, num_points),
-                      rng.uniform(6, 30, num_points)]
-        else:
-            query = mount(random_planar_pose(rng), query_tilt_deg, query_height_m)
-            X = rng.uniform(-10.0, 10.0, (num_points, 3))
-            refs = []
-        uv_q, vis_q = _project(camera, query, X)
-        if vis_q.sum() < matches_per_pair:
+    spec = replace(spec or SceneSpec(), **overrides)
+    mount = _Mount(spec, rng)
+    for _ in range(spec.max_tries):
+        scene = _try_scene(rng, spec, mount)
+        if scene is None:
             continue
-        if track_pool is not None:
-            # The query detects a limited set of keypoints; references re-observe them, so
-            # the same query keypoint is matched in several pairs (tracks).
-            pool = rng.choice(np.flatnonzero(vis_q), min(int(vis_q.sum()), int(track_pool * matches_per_pair)), replace=False)
-            vis_q = np.zeros_like(vis_q)
-            vis_q[pool] = True
-        pairs, outl = [], []
-        tries = 0
-        while len(pairs) < num_refs and tries < 50:
-            tries += 1
-            ref = refs[len(pairs)] if collinear else mount(random_planar_pose(rng, tilt_deg=ref_tilt_deg))
-            uv_r, vis_r = _project(camera, ref, X)
-            common = np.flatnonzero(vis_q & vis_r)
-            if len(common) < matches_per_pair:
-                if collinear:
-                    break
-                continue
-            ids = rng.choice(common, matches_per_pair, replace=False)
-            q = uv_q[ids] + rng.normal(0.0, noise_px, (matches_per_pair, 2))
-            r = uv_r[ids] + rng.normal(0.0, noise_px, (matches_per_pair, 2))
-            is_out = np.zeros(matches_per_pair, dtype=bool)
-            n_out = int(round(outlier_ratio * matches_per_pair))
-            if n_out:
-                out_idx = rng.choice(matches_per_pair, n_out, replace=False)
-                is_out[out_idx] = True
-                K = camera.K
-                for i in out_idx:
-                    # Project the point with random wrong planar poses (vectorised over 20
-                    # attempts: Pose objects would validate each one) and keep a visible one.
-                    Rw = rotation_from_yaw(rng.uniform(-np.pi, np.pi, 20))
-                    cw = np.stack([rng.uniform(-5, 5, 20), np.zeros(20), rng.uniform(-5, 5, 20)], axis=1)
-                    Xc = np.einsum("kij,kj->ki", Rw, X[ids[i]] - cw)
-                    with np.errstate(divide="ignore", invalid="ignore"):
-                        uv_w = (Xc @ K.T)[:, :2] / Xc[:, 2:3]
-                    ok = (Xc[:, 2] > 0.5) & (uv_w[:, 0] >= 0) & (uv_w[:, 0] < camera.width) & (
-                        uv_w[:, 1] >= 0) & (uv_w[:, 1] < camera.height)
-                    hit = np.flatnonzero(ok)
-                    r[i] = uv_w[hit[0]] if len(hit) else rng.uniform([0, 0], [camera.width, camera.height])
-            X3 = X[ids].copy() if with_depth else None
-            if X3 is not None:
-                X3[is_out] = np.nan
-            pairs.append(PairMatches(ref, camera, q, r, query_indices=ids, ref_points3d=X3))
-            outl.append(is_out)
-        if len(pairs) == num_refs:
-            scene = SyntheticScene(camera, query, pairs, X, outl)
-            if world_from_upright is not None:
-                scene = _transform_world(scene, world_from_upright)
-            if with_gravity:
-                g = gravity_world(scene, world_from_upright)
-                scene.pairs[:] = [replace(p, ref_gravity=p.ref_pose.R @ g) for p in scene.pairs]
-            return scene
+        if spec.world_from_upright is not None:
+            scene = _transform_world(scene, spec.world_from_upright)
+        if spec.with_gravity:
+            g = gravity_world(scene, spec.world_from_upright)
+            scene.pairs[:] = [replace(p, ref_gravity=p.ref_pose.R @ g) for p in scene.pairs]
+        return scene
     raise RuntimeError("could not generate a scene with enough co-visible points; lower matches_per_pair")

@@ -157,6 +157,7 @@ def save_match_plot(path: Path | str, query_path: Path | str, ref_paths: Sequenc
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
 
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -175,7 +176,11 @@ def save_match_plot(path: Path | str, query_path: Path | str, ref_paths: Sequenc
     fig.tight_layout(rect=(0, 0, 1, 1 - 0.5 / fig.get_figheight()))
     fig.set_dpi(100)
     fig.canvas.draw()  # encode with OpenCV: several times faster than matplotlib's PNG writer
-    rgba = np.asarray(fig.canvas.buffer_rgba())
+    canvas = fig.canvas
+    if not isinstance(canvas, FigureCanvasAgg):  # matplotlib.use("Agg") above: never
+        plt.close(fig)
+        raise TypeError(f"expected matplotlib's Agg canvas, got {type(canvas).__name__}")
+    rgba = np.asarray(canvas.buffer_rgba())
     plt.close(fig)
     if not cv2.imwrite(str(path), cv2.cvtColor(rgba, cv2.COLOR_RGBA2BGR), [cv2.IMWRITE_PNG_COMPRESSION, 1]):
         raise ValueError(f"{path}: cannot write the match plot")

@@ -131,7 +131,8 @@ class RerunLogger:
             self.rec.log("query/image", rr.EncodedImage(path=str(image_path)))
             q_in, q_out = [], []
             for k, p in enumerate(pairs):
-                inl = inliers[k] if k < len(inliers) and inliers[k] is not None else np.zeros(len(p.query_points), bool)
+                mask = inliers[k] if k < len(inliers) else None
+                inl = mask if mask is not None else np.zeros(len(p.query_points), bool)
                 q_in.append(p.query_points[inl])
                 q_out.append(p.query_points[~inl])
             if pairs:

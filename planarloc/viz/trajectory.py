@@ -269,7 +269,7 @@ def _stamp(result: object) -> float:
     value = getattr(result, "timestamp", None)
     value = getattr(result, "stamp", None) if value is None else value
     try:
-        return float(value)  # type: ignore[arg-type]
+        return float(value)  # type: ignore[arg-type]  # any object: float() decides, TypeError handled
     except (TypeError, ValueError):
         return float("nan")
 

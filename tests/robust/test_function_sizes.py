@@ -1,11 +1,9 @@
 """Function sizes in ``planarloc.robust``: at most 12 parameters and 80 lines (docstring
 excluded) per function, nested ones included.
 
-The numba kernels below still take a problem's arrays one by one. A named record of them
-(a ``typing.NamedTuple``, which numba compiles) changes the kernels' signatures to a type whose
-text the shipped kernel list (``planarloc/compile/kernels.json``) cannot hold as data, so those
-kernels would no longer compile ahead (``planarloc warmup``); until the list can name such
-types, each keeps at most its present size. The list may only shrink.
+The numba kernels below are still too large: each keeps at most its present size until it is
+split or takes the problem's named record (:class:`planarloc.robust.problem.ProblemArrays`, which
+the shipped kernel list ``planarloc/compile/kernels.json`` names). The list may only shrink.
 """
 
 from __future__ import annotations
@@ -20,23 +18,10 @@ MAX_LINES = 80
 
 # (module, function): (parameters, lines) today; numba kernels, see the module docstring.
 KERNELS_TO_SPLIT = {
-    ("final_refinement", "refine_until_stable"): (19, 43),
     ("hypotheses", "hypotheses_2p1p"): (13, 49),
     ("hypotheses", "hypotheses_from_relative_poses"): (15, 48),
     ("hypotheses", "planar_relative_candidates"): (14, 76),
     ("hypotheses", "hypotheses_2p1p_consensus"): (16, 142),
-    ("local_optimization", "_refine_stage"): (19, 18),
-    ("local_optimization", "refine_planar_then_6dof"): (20, 14),
-    ("map_prior", "refine_with_map_prior"): (21, 173),
-    ("observability", "jackknife_kernel"): (18, 76),
-    ("observability", "points_centre_covariance"): (16, 68),
-    ("planar_scene", "_distant_planar_kernel"): (13, 26),
-    ("refinement", "residuals"): (16, 24),
-    ("refinement", "residuals_jacobian"): (17, 97),
-    ("refinement", "refine_pose_core"): (20, 66),
-    ("refinement", "refine_pose"): (19, 8),
-    ("refinement", "refine_on_inliers"): (16, 18),
-    ("refinement", "map_uncertainty_covariance"): (16, 33),
     ("scoring", "msac_scores"): (14, 33),
 }
 

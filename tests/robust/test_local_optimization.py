@@ -32,8 +32,7 @@ def _scene(seed: int, **kw):
 
 
 def _lo(p, R, t, level, planar_iterations: int, iterations: int) -> tuple[np.ndarray, np.ndarray]:
-    return refine_planar_then_6dof(np.ascontiguousarray(R), np.ascontiguousarray(t), p.xq, p.xr, p.pair, p.offsets,
-                                   p.f_query, p.f_ref, p.ref_R, p.ref_t, p.xq3d, p.X3d, TH_SQ, 2.0, level,
+    return refine_planar_then_6dof(np.ascontiguousarray(R), np.ascontiguousarray(t), p.arrays, TH_SQ, 2.0, level,
                                    COS_LEVEL, planar_iterations, iterations, 0.5, 128)
 
 

@@ -175,8 +175,7 @@ def test_map_prior_keeps_2d2d_from_outvoting_the_points() -> None:
         pb = build_problem(sc.query_camera, pairs).with_reprojection_threshold(0.5)
         T = sc.query_pose
         for prior in (True, False):
-            R, t, *_ = refine_until_stable(T.R, T.t, pb.xq, pb.xr, pb.pair, pb.offsets, pb.f_query, pb.f_ref, pb.ref_R,
-                                           pb.ref_t, pb.xq3d, pb.X3d, 4.0, 2.0, 6, 4, SIGMA_FLOOR_PX,
+            R, t, *_ = refine_until_stable(T.R, T.t, pb.arrays, 4.0, 2.0, 6, 4, SIGMA_FLOOR_PX,
                                            math.radians(0.3) if prior else 0.0, 0.02 if prior else 0.0)
             errors[prior].append(pose_errors(Pose(R, t), T)[0])
     assert np.median(errors[True]) < 0.6 * np.median(errors[False]), errors
@@ -189,9 +188,8 @@ def test_map_prior_refinement_is_exact_on_a_perfect_map() -> None:
     T = sc.query_pose
     start = Pose.from_center(Rotation.from_rotvec([0.004, -0.003, 0.002]).as_matrix() @ T.R,
                              T.center + np.array([0.05, -0.02, 0.04]))
-    R, t, H, sigma, *_ = refine_until_stable(start.R, start.t, pb.xq, pb.xr, pb.pair, pb.offsets, pb.f_query,
-                                             pb.f_ref, pb.ref_R, pb.ref_t, pb.xq3d, pb.X3d, 4.0, 2.0, 10, 4,
-                                             SIGMA_FLOOR_PX, math.radians(0.1), 0.02)
+    R, t, H, sigma, *_ = refine_until_stable(start.R, start.t, pb.arrays, 4.0, 2.0, 10, 4, SIGMA_FLOOR_PX,
+                                             math.radians(0.1), 0.02)
     dc, dr = pose_errors(Pose(R, t), T)
     assert dc < 1e-6 and dr < 1e-5
     assert np.all(np.linalg.eigvalsh(H) > 0)

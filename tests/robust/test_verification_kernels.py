@@ -39,8 +39,7 @@ def problem_with_points(sc, rng: np.random.Generator, n3d: int = 4):
 
 
 def refine_to_convergence(pb, pose: Pose, idx2d: np.ndarray, idx3d: np.ndarray = NO3D) -> Pose:
-    R, t, *_ = refine_pose(pose.R, pose.t, pb.xq, pb.xr, pb.pair, idx2d, pb.f_query, pb.f_ref, pb.ref_R, pb.ref_t,
-                           pb.xq3d, pb.X3d, idx3d, 2.0, 60, 0.5, pose.center, np.eye(3), FREE)
+    R, t, *_ = refine_pose(pose.R, pose.t, pb.arrays, idx2d, idx3d, 2.0, 60, 0.5, pose.center, np.eye(3), FREE)
     return Pose(R, t)
 
 
@@ -53,18 +52,17 @@ def test_jacobian_matches_finite_differences(scene) -> None:
     B = np.linalg.qr(rng.normal(size=(3, 3)))[0]
     R, c = sc.query_pose.R, sc.query_pose.center + 0.05
     r, J, Jrot = np.empty(m), np.empty((m, 6)), np.empty((m, 3))
-    common = (pb.xq, pb.xr, pb.pair, idx2d, pb.f_query, pb.f_ref)
-    residuals_jacobian(R, c, B, *common, pb.ref_R, pb.ref_t, pb.xq3d, pb.X3d, idx3d, r, J, Jrot)
+    residuals_jacobian(R, c, B, pb.arrays, idx2d, idx3d, r, J, Jrot)
     base = np.empty(m)
-    residuals(np.zeros(6), R, c, B, *common, pb.ref_R, pb.ref_t, pb.xq3d, pb.X3d, idx3d, base)
+    residuals(np.zeros(6), R, c, B, pb.arrays, idx2d, idx3d, base)
     np.testing.assert_allclose(r, base, rtol=1e-10, atol=1e-10)
     h = 1e-6
     for k in range(6):  # query parameters: rotation increment, centre along B's columns
         step = np.zeros(6)
         step[k] = h
         plus, minus = np.empty(m), np.empty(m)
-        residuals(step, R, c, B, *common, pb.ref_R, pb.ref_t, pb.xq3d, pb.X3d, idx3d, plus)
-        residuals(-step, R, c, B, *common, pb.ref_R, pb.ref_t, pb.xq3d, pb.X3d, idx3d, minus)
+        residuals(step, R, c, B, pb.arrays, idx2d, idx3d, plus)
+        residuals(-step, R, c, B, pb.arrays, idx2d, idx3d, minus)
         np.testing.assert_allclose(J[:, k], (plus - minus) / (2 * h), rtol=1e-4, atol=1e-4 * np.abs(J[:, k]).max())
     for k in range(3):  # a rotation increment of each 2D-2D row's own reference, centre fixed
         fd = np.empty(len(idx2d))
@@ -79,7 +77,7 @@ def test_jacobian_matches_finite_differences(scene) -> None:
                 Rp[p] = Rotation.from_rotvec(w).as_matrix() @ pb.ref_R[p]
                 tp[p] = -Rp[p] @ (-pb.ref_R[p].T @ pb.ref_t[p])
                 e = np.empty(m)
-                residuals(np.zeros(6), R, c, B, *common, Rp, tp, pb.xq3d, pb.X3d, idx3d, e)
+                residuals(np.zeros(6), R, c, B, pb.arrays._replace(ref_R=Rp, ref_t=tp), idx2d, idx3d, e)
                 out.append(e[rows])
             fd[rows] = (out[0] - out[1]) / (2 * h)
         np.testing.assert_allclose(Jrot[:len(idx2d), k], fd, rtol=1e-4, atol=1e-4 * np.abs(fd).max())
@@ -91,8 +89,7 @@ def test_map_propagation_predicts_the_refined_shift(scene) -> None:
     sc = scene(12, num_refs=3, matches_per_pair=40, noise_px=0.0, outlier_ratio=0.0)
     pb = build_problem(sc.query_camera, sc.pairs)
     idx2d = np.arange(len(pb.xq))
-    H, M, _ = map_uncertainty_covariance(sc.query_pose.R, sc.query_pose.t, pb.xq, pb.xr, pb.pair, idx2d, pb.f_query,
-                                         pb.f_ref, pb.ref_R, pb.ref_t, pb.xq3d, pb.X3d, NO3D, 2.0, 1.0, 1.0)
+    H, M, _ = map_uncertainty_covariance(sc.query_pose.R, sc.query_pose.t, pb.arrays, idx2d, NO3D, 2.0, 1.0, 1.0)
     # The refined query cancels the residual change: J δq + J_r δr = 0, so δq = -H⁻¹ M δr
     # (noise-free data: W = I). The covariance B diag(var) Bᵀ does not see the sign.
     Bm = -np.linalg.solve(H, M)
@@ -117,8 +114,7 @@ def test_map_propagation_predicts_the_refined_shift(scene) -> None:
 def test_map_centre_covariance_matches_numpy(scene) -> None:
     sc = scene(12, num_refs=3, matches_per_pair=40, noise_px=0.0, outlier_ratio=0.0)
     pb = build_problem(sc.query_camera, sc.pairs)
-    args = (sc.query_pose.R, sc.query_pose.t, pb.xq, pb.xr, pb.pair, np.arange(len(pb.xq)), pb.f_query, pb.f_ref,
-            pb.ref_R, pb.ref_t, pb.xq3d, pb.X3d, NO3D, 2.0, np.radians(0.1), 0.05)
+    args = (sc.query_pose.R, sc.query_pose.t, pb.arrays, np.arange(len(pb.xq)), NO3D, 2.0, np.radians(0.1), 0.05)
     H, M, var = map_uncertainty_covariance(*args)
     Bm = np.linalg.solve(H, M)
     np.testing.assert_allclose(map_centre_covariance(H, M, var), ((Bm * var) @ Bm.T)[3:, 3:], rtol=1e-9)
@@ -190,8 +186,7 @@ def test_refine_until_stable_returns_consistent_inliers_and_score(scene) -> None
                              sc.query_pose.center + rng.normal(0, 0.03, 3))
     th2 = 4.0
     R, t, H, sigma, cost, in2d, in3d, score, _ = refine_until_stable(
-        start.R, start.t, pb.xq, pb.xr, pb.pair, pb.offsets, pb.f_query, pb.f_ref, pb.ref_R, pb.ref_t, pb.xq3d,
-        pb.X3d, th2, 2.0, 6, 4, SIGMA_FLOOR_PX)
+        start.R, start.t, pb.arrays, th2, 2.0, 6, 4, SIGMA_FLOOR_PX)
     e2d, _ = errors_sq(R, t, pb.xq, pb.xr, pb.offsets, pb.f_query, pb.f_ref, pb.ref_R, pb.ref_t, pb.xq3d, pb.X3d)
     np.testing.assert_array_equal(in2d, e2d < th2)
     assert score == pytest.approx(np.minimum(e2d, th2).sum(), rel=1e-12)

@@ -22,6 +22,7 @@ from planarloc.synthetic.world.textures import (
     note,
     poster,
     random_color,
+    shaded_color,
     speckle,
     to_uint8,
 )
@@ -40,7 +41,7 @@ def plaster(rng: np.random.Generator, height: int, width: int, px_per_m: float) 
     """Painted plaster wall with stains, speckles and scattered marks; (H, W, 3) uint8."""
     check_size(height, width)
     paint = random_color(rng, 140, 240)
-    dark = tuple(int(c * rng.uniform(0.55, 0.75)) for c in paint)
+    dark = shaded_color(rng, paint, 0.55, 0.75)
     stains = fractal_noise(rng, height, width, 0.8 * px_per_m, 5, 0.6)
     blotches = fractal_noise(rng, height, width, 0.06 * px_per_m, 2, 0.5)
     image = colorize(np.clip(0.75 * stains + 0.6 * (blotches - 0.5), 0, 1), dark, paint)
@@ -178,7 +179,10 @@ def wood(
     area_m2 = w * h / (px_per_m * px_per_m)
     for _ in range(int(area_m2 * 8) + 1):
         center = (int(rng.integers(0, w)), int(rng.integers(0, h)))
-        axes = (int(rng.integers(3, 0.05 * px_per_m + 5)), int(rng.integers(2, 0.02 * px_per_m + 3)))
+        axes = (
+            int(rng.integers(3, int(0.05 * px_per_m + 5))),
+            int(rng.integers(2, int(0.02 * px_per_m + 3))),
+        )
         cv2.ellipse(out, center, axes, 0, 0, 360, random_color(rng, 20, 90), -1, cv2.LINE_AA)
         cv2.ellipse(
             out, center, (axes[0] + 2, axes[1] + 2), 0, 0, 360, random_color(rng, 60, 140), 1, cv2.LINE_AA
@@ -191,7 +195,7 @@ def cardboard(rng: np.random.Generator, height: int, width: int, px_per_m: float
     """A cardboard or painted furniture face with tape, printed labels and marks; (H, W, 3) uint8."""
     check_size(height, width)
     base = random_color(rng, 90, 220)
-    shade = tuple(int(c * rng.uniform(0.6, 0.85)) for c in base)
+    shade = shaded_color(rng, base, 0.6, 0.85)
     image = colorize(fractal_noise(rng, height, width, 0.2 * px_per_m, 5, 0.6), shade, base)
     image = speckle(rng, image, 0.03, 40.0)
     out = to_uint8(image)

@@ -80,7 +80,8 @@ def _random_box(
     size_max: tuple[float, float, float],
     against_wall: bool,
 ) -> Box:
-    size = tuple(float(v) for v in rng.uniform(size_min, size_max))
+    sx, sy, sz = (float(v) for v in rng.uniform(size_min, size_max))
+    size = (sx, sy, sz)
     seed = int(rng.integers(2**31))
     if against_wall:
         walls = room_walls(room)

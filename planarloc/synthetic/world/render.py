@@ -239,7 +239,7 @@ def render(
     image = np.zeros((int(height), int(width), 3), np.uint8)
     inv_depth = np.zeros((int(height), int(width)), np.float32)
     # Front to back (by nearest clipped vertex), so that hidden planes fail the depth test early.
-    todo = []
+    todo: list[tuple[float, int, Plane, np.ndarray]] = []
     for plane in world.planes:
         poly = clip_polygon_near(plane.corners @ R.T + t, float(near))
         if len(poly) >= 3:

@@ -58,6 +58,7 @@ def fractal_noise(
         cell = max(cell_px / 2**octave, 1.0)
         grid_h, grid_w = int(np.ceil(height / cell)) + 2, int(np.ceil(width / cell)) + 2
         grid = rng.random((grid_h, grid_w), dtype=np.float32)
+        up: np.ndarray
         if cell == 1.0:
             up = grid[:height, :width]
         else:
@@ -67,6 +68,14 @@ def fractal_noise(
         amplitude *= persistence
     lo, hi = float(total.min()), float(total.max())
     return (total - lo) / np.float32(max(hi - lo, 1e-6))
+
+
+def shaded_color(
+    rng: np.random.Generator, color: tuple[int, int, int], low: float, high: float
+) -> tuple[int, int, int]:
+    """``color`` with each channel scaled by its own factor drawn in [low, high) (R first), truncated."""
+    r, g, b = (int(c * rng.uniform(low, high)) for c in color)
+    return r, g, b
 
 
 def colorize(values: np.ndarray, color_a: tuple[int, int, int], color_b: tuple[int, int, int]) -> np.ndarray:
@@ -150,11 +159,11 @@ def draw_shape(rng: np.random.Generator, image: np.ndarray, box: tuple[int, int,
         angles = np.sort(rng.uniform(0, 2 * np.pi, n))
         radii = rng.uniform(0.3, 1.0, n)
         pts = np.stack([cx + radii * np.cos(angles) * w / 2, cy + radii * np.sin(angles) * h / 2], axis=1)
-        pts = np.rint(pts).astype(np.int32)[None]
+        polygon = np.rint(pts).astype(np.int32)
         if filled:
-            cv2.fillPoly(image, pts, color, cv2.LINE_AA)
+            cv2.fillPoly(image, [polygon], color, cv2.LINE_AA)
         else:
-            cv2.polylines(image, pts, True, color, thickness, cv2.LINE_AA)
+            cv2.polylines(image, [polygon], True, color, thickness, cv2.LINE_AA)
     else:
         for _ in range(int(rng.integers(2, 6))):
             p0 = (int(rng.integers(x, x + w)), int(rng.integers(y, y + h)))
