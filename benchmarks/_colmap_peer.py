@@ -79,15 +79,22 @@ def pycolmap_version() -> str | None:
 
 def _require() -> None:
     if pycolmap is None:
-        raise RuntimeError("the COLMAP peer needs pycolmap: pip install -e '.[bench]' (or pip install pycolmap)")
+        raise RuntimeError(
+            "the COLMAP peer needs pycolmap: pip install -e '.[bench]' (or pip install pycolmap)"
+        )
 
 
 # ---- conversions ------------------------------------------------------------------------------------
 def colmap_camera(camera: Camera, camera_id: int = 1) -> pycolmap.Camera:
     """A planarloc Camera as a pycolmap Camera (same COLMAP model names and parameter order)."""
     _require()
-    return pycolmap.Camera(model=camera.model.value, width=int(camera.width), height=int(camera.height),
-                           params=np.asarray(camera.params, dtype=np.float64), camera_id=camera_id)
+    return pycolmap.Camera(
+        model=camera.model.value,
+        width=int(camera.width),
+        height=int(camera.height),
+        params=np.asarray(camera.params, dtype=np.float64),
+        camera_id=camera_id,
+    )
 
 
 def rigid3d_from_pose(pose: Pose) -> pycolmap.Rigid3d:
@@ -124,8 +131,9 @@ def mutual_ratio_matches(d1: np.ndarray, d2: np.ndarray, ratio: float = RATIO) -
     return np.stack([rows[ok], nn[ok]], axis=1).astype(np.int64)
 
 
-def epipolar_errors_px(b_from_a: Pose, cam_a: Camera, cam_b: Camera, kp_a: np.ndarray,
-                       kp_b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def epipolar_errors_px(
+    b_from_a: Pose, cam_a: Camera, cam_b: Camera, kp_a: np.ndarray, kp_b: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
     """Distances (pixels, via each camera's mean focal length) of matched keypoints to the epipolar
     lines of the known relative pose, in image a and in image b (hloc ``compute_epipolar_errors``)."""
     xa = cam_a.bearings_from_img(np.asarray(kp_a, dtype=np.float64))
@@ -144,8 +152,9 @@ def epipolar_errors_px(b_from_a: Pose, cam_a: Camera, cam_b: Camera, kp_a: np.nd
     return np.nan_to_num(err_a, nan=np.inf), np.nan_to_num(err_b, nan=np.inf)
 
 
-def map_pairs(images: Sequence[PosedImage], neighbours: int = NEIGHBOURS,
-              exhaustive_up_to: int = EXHAUSTIVE_UP_TO) -> list[tuple[int, int]]:
+def map_pairs(
+    images: Sequence[PosedImage], neighbours: int = NEIGHBOURS, exhaustive_up_to: int = EXHAUSTIVE_UP_TO
+) -> list[tuple[int, int]]:
     """Index pairs (i < j) of map images to match: all pairs of a small map, else each image with
     its ``neighbours`` nearest by camera centre."""
     n = len(images)
@@ -216,10 +225,17 @@ class ColmapPeer:
         >>> est = peer.localize(query_features, query_camera, ["image_l/000004.png", ...])  # doctest: +SKIP
     """
 
-    def __init__(self, map_images: Sequence[PosedImage], features: Callable[[PosedImage], Features],
-                 workdir: Path | None = None, *, neighbours: int = NEIGHBOURS,
-                 exhaustive_up_to: int = EXHAUSTIVE_UP_TO, min_inliers: int = MIN_INLIERS,
-                 verbose: bool = False) -> None:
+    def __init__(
+        self,
+        map_images: Sequence[PosedImage],
+        features: Callable[[PosedImage], Features],
+        workdir: Path | None = None,
+        *,
+        neighbours: int = NEIGHBOURS,
+        exhaustive_up_to: int = EXHAUSTIVE_UP_TO,
+        min_inliers: int = MIN_INLIERS,
+        verbose: bool = False,
+    ) -> None:
         _require()
         self.map_images = list(map_images)
         self._features_of = features
@@ -270,8 +286,9 @@ class ColmapPeer:
             for i, im in enumerate(images):
                 image_id = i + 1
                 kp = np.asarray(self.features[im.name].keypoints, dtype=np.float64).reshape(-1, 2)
-                image = pycolmap.Image(name=im.name, keypoints=kp, camera_id=camera_ids[im.camera],
-                                       image_id=image_id)
+                image = pycolmap.Image(
+                    name=im.name, keypoints=kp, camera_id=camera_ids[im.camera], image_id=image_id
+                )
                 reference.add_image_with_trivial_frame(image, rigid3d_from_pose(im.cam_from_world))
                 db.write_frame(reference.frame(image_id), use_frame_id=True)
                 db_image = pycolmap.Image(name=im.name, camera_id=camera_ids[im.camera], image_id=image_id)
@@ -286,8 +303,9 @@ class ColmapPeer:
                 m = mutual_ratio_matches(fa.descriptors, fb.descriptors)
                 raw += len(m)
                 b_from_a = b.cam_from_world @ a.cam_from_world.inverse()
-                ea, eb = epipolar_errors_px(b_from_a, a.camera, b.camera, fa.keypoints[m[:, 0]],
-                                            fb.keypoints[m[:, 1]])
+                ea, eb = epipolar_errors_px(
+                    b_from_a, a.camera, b.camera, fa.keypoints[m[:, 0]], fb.keypoints[m[:, 1]]
+                )
                 keep = m[(ea <= VERIFY_PX) & (eb <= VERIFY_PX)]
                 verified += len(keep)
                 db.write_matches(i + 1, j + 1, m.astype(np.uint32))
@@ -300,28 +318,38 @@ class ColmapPeer:
         options = pycolmap.IncrementalPipelineOptions()
         options.triangulation.random_seed = SEED
         with _quiet_colmap(self.verbose):
-            model = pycolmap.triangulate_points(reference, str(db_path), str(work / "images"),
-                                                str(work / "model"), options=options)
+            model = pycolmap.triangulate_points(
+                reference, str(db_path), str(work / "images"), str(work / "model"), options=options
+            )
         row = {pid: k for k, pid in enumerate(model.point3D_ids())}
         xyz = np.array([model.point3D(pid).xyz for pid in row], dtype=np.float64).reshape(-1, 3)
         point_index: dict[str, np.ndarray] = {}
         for image in model.images.values():
             point_index[image.name] = np.array(
-                [row[p.point3D_id] if p.has_point3D() else -1 for p in image.points2D], dtype=np.int64)
-        stats = {"map_images": len(images), "features_seconds": round(t_features, 2), "pairs": len(pairs),
-                 "raw_matches": raw, "verified_matches": verified,
-                 "points3D": model.num_points3D(), "mean_track_length": float(model.compute_mean_track_length())
-                 if model.num_points3D() else 0.0,
-                 "mean_reprojection_error_px": float(model.compute_mean_reprojection_error())
-                 if model.num_points3D() else None}
+                [row[p.point3D_id] if p.has_point3D() else -1 for p in image.points2D], dtype=np.int64
+            )
+        stats = {
+            "map_images": len(images),
+            "features_seconds": round(t_features, 2),
+            "pairs": len(pairs),
+            "raw_matches": raw,
+            "verified_matches": verified,
+            "points3D": model.num_points3D(),
+            "mean_track_length": float(model.compute_mean_track_length()) if model.num_points3D() else 0.0,
+            "mean_reprojection_error_px": float(model.compute_mean_reprojection_error())
+            if model.num_points3D()
+            else None,
+        }
         # the model's poses are the given ones (held fixed): checked, since everything rests on it
         for image in model.images.values():
             truth = images[image.image_id - 1]
             if image.name != truth.name:
                 raise RuntimeError(f"COLMAP renumbered the map images: {image.name} != {truth.name}")
             got = pose_from_rigid3d(image.cam_from_world())
-            if not (np.allclose(got.R, truth.cam_from_world.R, atol=1e-9)
-                    and np.allclose(got.t, truth.cam_from_world.t, atol=1e-9)):
+            if not (
+                np.allclose(got.R, truth.cam_from_world.R, atol=1e-9)
+                and np.allclose(got.t, truth.cam_from_world.t, atol=1e-9)
+            ):
                 raise RuntimeError(f"COLMAP moved the pose of map image {image.name}")
         return MapModel(xyz, point_index, stats)
 
@@ -340,8 +368,10 @@ class ColmapPeer:
             pid = index[m[:, 1]]
             pairs.append(np.stack([m[:, 0], pid], axis=1)[pid >= 0])
         qp = np.unique(np.concatenate(pairs, axis=0) if pairs else np.zeros((0, 2), np.int64), axis=0)
-        return (np.asarray(features.keypoints, dtype=np.float64)[qp[:, 0]].reshape(-1, 2),
-                self.model.xyz[qp[:, 1]].reshape(-1, 3))
+        return (
+            np.asarray(features.keypoints, dtype=np.float64)[qp[:, 0]].reshape(-1, 2),
+            self.model.xyz[qp[:, 1]].reshape(-1, 3),
+        )
 
     def localize(self, features: Features, camera: Camera, references: Sequence[str]) -> PeerEstimate:
         """The query's ``cam_from_world`` from its features and retrieved map images (step 2)."""
@@ -349,8 +379,9 @@ class ColmapPeer:
         x2d, x3d = self.correspondences(features, references)
         return self.pose_from_correspondences(x2d, x3d, camera, t0)
 
-    def pose_from_correspondences(self, x2d: np.ndarray, x3d: np.ndarray, camera: Camera,
-                                  started: float | None = None) -> PeerEstimate:
+    def pose_from_correspondences(
+        self, x2d: np.ndarray, x3d: np.ndarray, camera: Camera, started: float | None = None
+    ) -> PeerEstimate:
         t0 = time.perf_counter() if started is None else started
         n = len(x2d)
         if n < 4:
@@ -361,8 +392,16 @@ class ColmapPeer:
             return PeerEstimate(None, False, "pnp_failed", 0, n, seconds)
         info = {"reprojection_rms_px": ret.reprojection_rms_px}
         if ret.num_inliers < self.min_inliers:
-            return PeerEstimate(None, False, "few_inliers", ret.num_inliers, n, seconds,
-                                info | {"pose_with_few_inliers": ret.pose}, ret.position_std_m)
+            return PeerEstimate(
+                None,
+                False,
+                "few_inliers",
+                ret.num_inliers,
+                n,
+                seconds,
+                info | {"pose_with_few_inliers": ret.pose},
+                ret.position_std_m,
+            )
         return PeerEstimate(ret.pose, True, "success", ret.num_inliers, n, seconds, info, ret.position_std_m)
 
 
@@ -377,8 +416,9 @@ class AbsolutePose:
     reprojection_rms_px: float
 
 
-def absolute_pose(x2d: np.ndarray, x3d: np.ndarray, camera: Camera, max_error_px: float = PNP_PX,
-                  seed: int = SEED) -> AbsolutePose | None:
+def absolute_pose(
+    x2d: np.ndarray, x3d: np.ndarray, camera: Camera, max_error_px: float = PNP_PX, seed: int = SEED
+) -> AbsolutePose | None:
     """``pycolmap.estimate_and_refine_absolute_pose`` (LO-RANSAC P3P + refinement) with hloc's
     threshold, or None when pycolmap finds no pose.
 
@@ -395,8 +435,9 @@ def absolute_pose(x2d: np.ndarray, x3d: np.ndarray, camera: Camera, max_error_px
     options.ransac.random_seed = int(seed)
     x2d = np.ascontiguousarray(x2d, dtype=np.float64)
     x3d = np.ascontiguousarray(x3d, dtype=np.float64)
-    ret = pycolmap.estimate_and_refine_absolute_pose(x2d, x3d, colmap_camera(camera), options,
-                                                     return_covariance=True)
+    ret = pycolmap.estimate_and_refine_absolute_pose(
+        x2d, x3d, colmap_camera(camera), options, return_covariance=True
+    )
     if ret is None:
         return None
     pose = pose_from_rigid3d(ret["cam_from_world"])
@@ -418,8 +459,12 @@ def absolute_pose(x2d: np.ndarray, x3d: np.ndarray, camera: Camera, max_error_px
     return AbsolutePose(pose, int(ret["num_inliers"]), std, rms)
 
 
-def split_peer(map_images: Sequence[PosedImage],
-               features: Mapping[str, Features] | Callable[[PosedImage], Features], workdir: Path | None = None, **kwargs: object) -> ColmapPeer:
+def split_peer(
+    map_images: Sequence[PosedImage],
+    features: Mapping[str, Features] | Callable[[PosedImage], Features],
+    workdir: Path | None = None,
+    **kwargs: object,
+) -> ColmapPeer:
     """A built :class:`ColmapPeer` of one map split; ``features`` by map image name or a callable."""
     get = (lambda im: features[im.name]) if isinstance(features, Mapping) else features
     return ColmapPeer(map_images, get, workdir, **kwargs).build()  # type: ignore[arg-type]

@@ -61,8 +61,12 @@ PROMISE_SIGMAS, PROMISE_MARGIN_M = 3.0, 0.05
 def broken_promises(summary: dict) -> list[str]:
     """Names of the queries of an evaluation summary reported as success but farther from the
     truth than their own uncertainty allows (``PROMISE_SIGMAS`` position stds + ``PROMISE_MARGIN_M``)."""
-    return [q["name"] for q in summary["per_query"] if q["success"] and not
-            q["translation_error_m"] <= PROMISE_SIGMAS * q["position_std_m"] + PROMISE_MARGIN_M]
+    return [
+        q["name"]
+        for q in summary["per_query"]
+        if q["success"]
+        and not q["translation_error_m"] <= PROMISE_SIGMAS * q["position_std_m"] + PROMISE_MARGIN_M
+    ]
 
 
 def cache_root(path: Path | None = None) -> Path:
@@ -96,15 +100,29 @@ def images_key(images: Sequence[PosedImage]) -> list:
     for im in images:
         st = Path(im.path).stat()
         pose = im.cam_from_world
-        out.append([im.name, str(im.path), st.st_size, st.st_mtime_ns,
-                    np.asarray(pose.R).round(12).tolist(), np.asarray(pose.t).round(12).tolist(),
-                    im.camera.model.value, list(im.camera.params)])
+        out.append(
+            [
+                im.name,
+                str(im.path),
+                st.st_size,
+                st.st_mtime_ns,
+                np.asarray(pose.R).round(12).tolist(),
+                np.asarray(pose.t).round(12).tolist(),
+                im.camera.model.value,
+                list(im.camera.params),
+            ]
+        )
     return out
 
 
-def build_or_reuse(map_images: Sequence[PosedImage], path: Path, features: FeatureConfig, reuse: bool,
-                   progress: Callable[[str, int, int], None] | None = None,
-                   storage: str = DEFAULT_STORAGE) -> float:
+def build_or_reuse(
+    map_images: Sequence[PosedImage],
+    path: Path,
+    features: FeatureConfig,
+    reuse: bool,
+    progress: Callable[[str, int, int], None] | None = None,
+    storage: str = DEFAULT_STORAGE,
+) -> float:
     """Build (or, with ``reuse``, reuse a complete) map at ``path`` in the ``storage`` layout
     (:mod:`planarloc.map.codec`); returns the build time in seconds (0 when reused). Without
     ``reuse``, or when the file holds another layout, an existing file is deleted first."""
@@ -125,10 +143,14 @@ def build_or_reuse(map_images: Sequence[PosedImage], path: Path, features: Featu
     return time.perf_counter() - t0
 
 
-def cached_map(map_images: Sequence[PosedImage], label: str, root: Path,
-               features: FeatureConfig | None = None,
-               progress: Callable[[str, int, int], None] | None = None,
-               storage: str = DEFAULT_STORAGE) -> tuple[Path, float]:
+def cached_map(
+    map_images: Sequence[PosedImage],
+    label: str,
+    root: Path,
+    features: FeatureConfig | None = None,
+    progress: Callable[[str, int, int], None] | None = None,
+    storage: str = DEFAULT_STORAGE,
+) -> tuple[Path, float]:
     """The map of ``map_images`` under ``root/maps``, keyed by content; (path, build seconds or 0)."""
     features = features or FeatureConfig()
     key = content_key(images_key(map_images), features.name, storage, map_code_key())
@@ -137,8 +159,9 @@ def cached_map(map_images: Sequence[PosedImage], label: str, root: Path,
     return path, build_or_reuse(map_images, path, features, reuse=True, progress=progress, storage=storage)
 
 
-def cached_world(config: WorldConfig, seed: int, root: Path,
-                 progress: Callable[[int, int], None] | None = None) -> Path:
+def cached_world(
+    config: WorldConfig, seed: int, root: Path, progress: Callable[[int, int], None] | None = None
+) -> Path:
     """The rendered world of ``config`` and ``seed`` under ``root/worlds`` (rendered once)."""
     out = root / "worlds" / f"{config.name}-{content_key(config.to_dict(), seed)}"
     return generate(config, out, seed=seed, progress=progress)

@@ -57,8 +57,12 @@ def poselib_version() -> str | None:
 
 def poselib_camera(camera: Camera) -> dict:
     """A planarloc Camera as PoseLib's camera dict (same COLMAP model names and parameter order)."""
-    return {"model": camera.model.value, "width": camera.width, "height": camera.height,
-            "params": list(camera.params)}
+    return {
+        "model": camera.model.value,
+        "width": camera.width,
+        "height": camera.height,
+        "params": list(camera.params),
+    }
 
 
 def poselib_pose(pose: Pose):
@@ -88,9 +92,13 @@ class PeerResult:
     info: dict
 
 
-def generalized_relative_pose(query_camera: Camera, pairs: Sequence[PeerMatches],
-                              ransac_opt: dict | None = None, bundle_opt: dict | None = None,
-                              min_matches: int = 6) -> PeerResult:
+def generalized_relative_pose(
+    query_camera: Camera,
+    pairs: Sequence[PeerMatches],
+    ransac_opt: dict | None = None,
+    bundle_opt: dict | None = None,
+    min_matches: int = 6,
+) -> PeerResult:
     """PoseLib ``estimate_generalized_relative_pose`` of the query against ``pairs``.
 
     Pairs with no match are left out (PoseLib needs none of them). With fewer than
@@ -112,12 +120,21 @@ def generalized_relative_pose(query_camera: Camera, pairs: Sequence[PeerMatches]
         matches.append(m)
     t0 = time.perf_counter()
     pose, info = poselib.estimate_generalized_relative_pose(
-        matches, [poselib_pose(p.ref_pose) for p in used], [poselib_camera(p.ref_camera) for p in used],
-        [poselib_pose(Pose.identity())], [poselib_camera(query_camera)], dict(ransac_opt or {}),
-        dict(bundle_opt or {}))
+        matches,
+        [poselib_pose(p.ref_pose) for p in used],
+        [poselib_camera(p.ref_camera) for p in used],
+        [poselib_pose(Pose.identity())],
+        [poselib_camera(query_camera)],
+        dict(ransac_opt or {}),
+        dict(bundle_opt or {}),
+    )
     seconds = time.perf_counter() - t0
-    return PeerResult(Pose(pose.R, pose.t), int(info.get("num_inliers", 0)), seconds,
-                      {k: v for k, v in info.items() if k != "inliers"})
+    return PeerResult(
+        Pose(pose.R, pose.t),
+        int(info.get("num_inliers", 0)),
+        seconds,
+        {k: v for k, v in info.items() if k != "inliers"},
+    )
 
 
 # ---- OpenCV -------------------------------------------------------------------------------------
@@ -138,8 +155,11 @@ def bf_ratio_match(matcher: cv2.BFMatcher, dq: np.ndarray, dr: np.ndarray, ratio
     """(K, 2) int (query, reference) indices kept by ``knnMatch(k=2)`` + Lowe's ratio test."""
     if len(dq) < 1 or len(dr) < 2:
         return np.zeros((0, 2), dtype=np.int64)
-    out = [(m.queryIdx, m.trainIdx) for m, n in (p for p in matcher.knnMatch(dq, dr, k=2) if len(p) == 2)
-           if m.distance < ratio * n.distance]
+    out = [
+        (m.queryIdx, m.trainIdx)
+        for m, n in (p for p in matcher.knnMatch(dq, dr, k=2) if len(p) == 2)
+        if m.distance < ratio * n.distance
+    ]
     return np.array(out, dtype=np.int64).reshape(-1, 2)
 
 
@@ -156,7 +176,9 @@ def success_rates(errors: Sequence[tuple[float, float]]) -> dict[str, float]:
     """Percent of queries within each of the paper's thresholds; NaN errors count as failures."""
     n = max(len(errors), 1)
     e = np.array(errors, dtype=float).reshape(-1, 2)
-    return {threshold_name(t, r): 100.0 * float(((e[:, 0] < t) & (e[:, 1] < r)).sum()) / n for t, r in THRESHOLDS}
+    return {
+        threshold_name(t, r): 100.0 * float(((e[:, 0] < t) & (e[:, 1] < r)).sum()) / n for t, r in THRESHOLDS
+    }
 
 
 def errors_of(pose: Pose | None, truth: Pose) -> tuple[float, float]:
@@ -180,10 +202,12 @@ def code_version() -> dict:
     out = {"planarloc_version": planarloc.__version__, "source_sha1": h.hexdigest()[:12]}
     try:
         git = ["git", "-C", str(pkg.parent)]
-        out["git_head"] = subprocess.run([*git, "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
-                                         check=True).stdout.strip()
-        status = subprocess.run([*git, "status", "--porcelain", "--", "planarloc"], capture_output=True, text=True,
-                                check=True).stdout
+        out["git_head"] = subprocess.run(
+            [*git, "rev-parse", "--short", "HEAD"], capture_output=True, text=True, check=True
+        ).stdout.strip()
+        status = subprocess.run(
+            [*git, "status", "--porcelain", "--", "planarloc"], capture_output=True, text=True, check=True
+        ).stdout
         out["uncommitted_files"] = len(status.splitlines())
     except (OSError, subprocess.CalledProcessError):
         pass
@@ -192,7 +216,11 @@ def code_version() -> dict:
 
 def code_note() -> str:
     v = code_version()
-    git = f", git {v['git_head']} + {v.get('uncommitted_files', 0)} uncommitted file(s)" if "git_head" in v else ""
+    git = (
+        f", git {v['git_head']} + {v.get('uncommitted_files', 0)} uncommitted file(s)"
+        if "git_head" in v
+        else ""
+    )
     return f"planarloc {v['planarloc_version']} (sources sha1 {v['source_sha1']}{git})"
 
 
@@ -203,8 +231,10 @@ def load_average() -> tuple[float, float, float]:
 def load_note(label: str = "") -> str:
     """One line with the load average, and a warning when timings are not to be trusted."""
     la = load_average()
-    text = f"load average{(' ' + label) if label else ''}: {la[0]:.2f} {la[1]:.2f} {la[2]:.2f} " \
-           f"(1/5/15 min, {os.cpu_count()} CPUs)"
+    text = (
+        f"load average{(' ' + label) if label else ''}: {la[0]:.2f} {la[1]:.2f} {la[2]:.2f} "
+        f"(1/5/15 min, {os.cpu_count()} CPUs)"
+    )
     if la[0] > LOAD_WARNING:
         text += f"  WARNING: machine loaded (> {LOAD_WARNING}), timings are inflated by other jobs"
     return text

@@ -8,8 +8,9 @@ import time
 from collections.abc import Callable, Sequence
 
 
-def run_trials(label: str, tasks: Sequence, run_trial: Callable[[object], dict], jobs: int,
-               warm_up: Callable[[], None]) -> list[dict]:
+def run_trials(
+    label: str, tasks: Sequence, run_trial: Callable[[object], dict], jobs: int, warm_up: Callable[[], None]
+) -> list[dict]:
     """Warm up (numba compile) in this process, then run ``run_trial`` on every task.
 
     With ``jobs > 1`` the tasks run in forked workers, which inherit the compiled kernels;
@@ -24,13 +25,20 @@ def run_trials(label: str, tasks: Sequence, run_trial: Callable[[object], dict],
         if done == total or now - last > 10.0:
             last = now
             eta = now / done * (total - done) if done else float("nan")
-            print(f"[{label}] {done}/{total} scenes ({100 * done / total:.0f}%), {now:.0f} s elapsed, "
-                  f"~{eta:.0f} s left", file=sys.stderr, flush=True)
+            print(
+                f"[{label}] {done}/{total} scenes ({100 * done / total:.0f}%), {now:.0f} s elapsed, "
+                f"~{eta:.0f} s left",
+                file=sys.stderr,
+                flush=True,
+            )
 
     print(f"[{label}] warming up (numba compile or cache load) ...", file=sys.stderr, flush=True)
     warm_up()
-    print(f"[{label}] warm-up {time.perf_counter() - t_start:.0f} s; {total} scenes on {jobs} worker(s)",
-          file=sys.stderr, flush=True)
+    print(
+        f"[{label}] warm-up {time.perf_counter() - t_start:.0f} s; {total} scenes on {jobs} worker(s)",
+        file=sys.stderr,
+        flush=True,
+    )
     t_start = time.perf_counter()
     if jobs <= 1:
         for i, task in enumerate(tasks):

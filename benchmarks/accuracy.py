@@ -68,8 +68,11 @@ MATCHES = (100, 50, 10)
 NUM_REFS = 5
 ITERATIONS = 100
 THRESHOLD_PX = 2.0
-METRICS = (("rotation_deg", "rotation error (deg)"), ("direction_deg", "translation direction error (deg)"),
-           ("position_m", "position error (m)"))
+METRICS = (
+    ("rotation_deg", "rotation error (deg)"),
+    ("direction_deg", "translation direction error (deg)"),
+    ("position_m", "position error (m)"),
+)
 
 
 def direction_error_deg(est: Pose, truth: Pose, refs: list[Pose]) -> float:
@@ -93,12 +96,24 @@ def run_trial(task: tuple[int, int, int, int, tuple[str, ...], bool, float, bool
     threshold = max(THRESHOLD_PX, threshold_scale * NOISES[ni])
     ss = np.random.SeedSequence([seed, ni, mi, trial])
     ransac_seed = int(ss.generate_state(1)[0])
-    sc = make_scene(np.random.default_rng(ss), num_refs=NUM_REFS, matches_per_pair=MATCHES[mi],
-                    noise_px=NOISES[ni], outlier_ratio=0.0)
+    sc = make_scene(
+        np.random.default_rng(ss),
+        num_refs=NUM_REFS,
+        matches_per_pair=MATCHES[mi],
+        noise_px=NOISES[ni],
+        outlier_ratio=0.0,
+    )
     refs = [p.ref_pose for p in sc.pairs]
     # The paper's methods as published (no 6DoF cross-check of planar poses, see robustness.py).
-    opts = RansacOptions(max_iterations=ITERATIONS, min_iterations=ITERATIONS, threshold_px=threshold,
-                         seed=ransac_seed, refine=refine, structure="none", cross_check=False)
+    opts = RansacOptions(
+        max_iterations=ITERATIONS,
+        min_iterations=ITERATIONS,
+        threshold_px=threshold,
+        seed=ransac_seed,
+        refine=refine,
+        structure="none",
+        cross_check=False,
+    )
     out: dict = {"cell": (ni, mi), "methods": {}}
     for method in methods:
         try:
@@ -114,8 +129,14 @@ def run_trial(task: tuple[int, int, int, int, tuple[str, ...], bool, float, bool
             r.update(errors(pose, sc.query_pose, refs))
         out["methods"][method] = r
     if with_peer:
-        peer = estimate_query_pose_poselib(sc.query_camera, sc.pairs, iterations=ITERATIONS,
-                                           threshold_px=threshold, seed=ransac_seed, refine=refine)
+        peer = estimate_query_pose_poselib(
+            sc.query_camera,
+            sc.pairs,
+            iterations=ITERATIONS,
+            threshold_px=threshold,
+            seed=ransac_seed,
+            refine=refine,
+        )
         r = {"status": "success" if peer.pose is not None else "no_pose", "time_s": peer.cpu_s}
         if peer.pose is not None:
             r.update(errors(peer.pose, sc.query_pose, refs))
@@ -126,15 +147,27 @@ def run_trial(task: tuple[int, int, int, int, tuple[str, ...], bool, float, bool
 def warm_up(methods: tuple[str, ...] = METHODS) -> None:
     sc = make_scene(np.random.default_rng(12345), num_refs=3, matches_per_pair=20, noise_px=1.0)
     for method in methods:
-        estimate_absolute_pose(sc.query_camera, sc.pairs, method,
-                               RansacOptions(max_iterations=20, min_iterations=20))
+        estimate_absolute_pose(
+            sc.query_camera, sc.pairs, method, RansacOptions(max_iterations=20, min_iterations=20)
+        )
     estimate_query_pose_poselib(sc.query_camera, sc.pairs, iterations=20)
 
 
-def run(trials: int, seed: int, jobs: int, methods: tuple[str, ...], with_peer: bool,
-        threshold_scale: float = 0.0, refine: bool = True) -> list[dict]:
-    tasks = [(seed, ni, mi, k, methods, with_peer, threshold_scale, refine)
-             for k in range(trials) for ni in range(len(NOISES)) for mi in range(len(MATCHES))]
+def run(
+    trials: int,
+    seed: int,
+    jobs: int,
+    methods: tuple[str, ...],
+    with_peer: bool,
+    threshold_scale: float = 0.0,
+    refine: bool = True,
+) -> list[dict]:
+    tasks = [
+        (seed, ni, mi, k, methods, with_peer, threshold_scale, refine)
+        for k in range(trials)
+        for ni in range(len(NOISES))
+        for mi in range(len(MATCHES))
+    ]
     return run_trials("accuracy", tasks, run_trial, jobs, lambda: warm_up(methods))
 
 
@@ -149,8 +182,11 @@ def summarise(results: list[dict], names: tuple[str, ...]) -> dict:
                 s[key]["mean"][m], s[key]["median"][m] = [], []
             s["failed"][m], s["flagged"][m], s["median_time_s"][m] = [], [], []
             for ni in range(len(NOISES)):
-                rs = [r["methods"][name] for r in results
-                      if tuple(r["cell"]) == (ni, mi) and name in r["methods"]]
+                rs = [
+                    r["methods"][name]
+                    for r in results
+                    if tuple(r["cell"]) == (ni, mi) and name in r["methods"]
+                ]
                 ok = [r for r in rs if "position_m" in r]
                 for key, _ in METRICS:
                     vals = [r[key] for r in ok]
@@ -164,16 +200,19 @@ def summarise(results: list[dict], names: tuple[str, ...]) -> dict:
     return out
 
 
-def print_tables(summary: dict, names: tuple[str, ...], trials: int, threshold_scale: float = 0.0,
-                 refine: bool = True) -> None:
+def print_tables(
+    summary: dict, names: tuple[str, ...], trials: int, threshold_scale: float = 0.0, refine: bool = True
+) -> None:
     w = max(len(n) for n in names) + 2
     head = "".join(f"{s:>8g}" for s in NOISES)
     th = f"{THRESHOLD_PX:g} px"
     if threshold_scale > 0:
         th = f"max({th}, {threshold_scale:g} sigma)"
-    print(f"\nAccuracy: mean errors over {trials} trials per cell; {NUM_REFS} refs, no outliers, "
-          f"{ITERATIONS} fixed iterations, inlier threshold {th}, "
-          f"{'with' if refine else 'without'} final refinement; columns = noise sigma (px)")
+    print(
+        f"\nAccuracy: mean errors over {trials} trials per cell; {NUM_REFS} refs, no outliers, "
+        f"{ITERATIONS} fixed iterations, inlier threshold {th}, "
+        f"{'with' if refine else 'without'} final refinement; columns = noise sigma (px)"
+    )
     for key, title in METRICS:
         for m in MATCHES:
             print(f"\n  {title}, {m} matches/pair\n  {'method':<{w}}{head}")
@@ -181,11 +220,14 @@ def print_tables(summary: dict, names: tuple[str, ...], trials: int, threshold_s
                 vals = summary[name][key]["mean"][m]
                 fmt = (lambda v: f"{v:>8.4f}") if key == "position_m" else (lambda v: f"{v:>8.3f}")
                 print(f"  {name:<{w}}" + "".join(fmt(v) for v in vals))
-    bad = {(n, m): (sum(summary[n]["failed"][m]), sum(summary[n]["flagged"][m]))
-           for n in names for m in MATCHES}
+    bad = {
+        (n, m): (sum(summary[n]["failed"][m]), sum(summary[n]["flagged"][m])) for n in names for m in MATCHES
+    }
     if any(f or g for f, g in bad.values()):
-        print("\n  runs without a pose (failed, left out of the means) / with a pose flagged "
-              "degenerate_scale (included):")
+        print(
+            "\n  runs without a pose (failed, left out of the means) / with a pose flagged "
+            "degenerate_scale (included):"
+        )
         for (n, m), (f, g) in bad.items():
             if f or g:
                 print(f"    {n:<{w}} {m:>3d}/pair: failed {f}, flagged {g} of {trials * len(NOISES)}")
@@ -197,8 +239,9 @@ def plot(summary: dict, names: tuple[str, ...], path: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(len(METRICS), len(MATCHES), figsize=(4 * len(MATCHES), 3.2 * len(METRICS)),
-                             squeeze=False)
+    fig, axes = plt.subplots(
+        len(METRICS), len(MATCHES), figsize=(4 * len(MATCHES), 3.2 * len(METRICS)), squeeze=False
+    )
     for row, (key, title) in enumerate(METRICS):
         for col, m in enumerate(MATCHES):
             ax = axes[row, col]
@@ -216,17 +259,26 @@ def plot(summary: dict, names: tuple[str, ...], path: Path) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
-                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = argparse.ArgumentParser(
+        description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     ap.add_argument("--trials", type=int, default=100, help="scenes per (noise, matches) cell (default 100)")
     ap.add_argument("--quick", action="store_true", help="20 trials per cell")
     ap.add_argument("--seed", type=int, default=0, help="base seed (default 0)")
     ap.add_argument("--json", type=Path, help="write the summary (means and medians) to this file")
     ap.add_argument("--plot", type=Path, help="save a Fig. 5-style plot (PNG) to this file")
-    ap.add_argument("--threshold-scale", type=float, default=0.0, metavar="K",
-                    help="inlier threshold max(2 px, K * sigma) instead of a fixed 2 px (default 0: fixed)")
-    ap.add_argument("--no-refine", action="store_true",
-                    help="evaluate the best RANSAC hypothesis: no local optimisation or final refinement")
+    ap.add_argument(
+        "--threshold-scale",
+        type=float,
+        default=0.0,
+        metavar="K",
+        help="inlier threshold max(2 px, K * sigma) instead of a fixed 2 px (default 0: fixed)",
+    )
+    ap.add_argument(
+        "--no-refine",
+        action="store_true",
+        help="evaluate the best RANSAC hypothesis: no local optimisation or final refinement",
+    )
     ap.add_argument("--jobs", type=int, default=min(2, os.cpu_count() or 1), help="worker processes")
     ap.add_argument("--methods", nargs="+", default=list(METHODS), choices=METHODS)
     ap.add_argument("--no-poselib", action="store_true", help="skip the PoseLib peer")
@@ -238,26 +290,42 @@ def main(argv: list[str] | None = None) -> int:
     methods = tuple(args.methods)
     names = methods + (() if args.no_poselib else (PEER,))
     t0 = time.perf_counter()
-    results = run(trials, args.seed, args.jobs, methods, not args.no_poselib, args.threshold_scale,
-                  not args.no_refine)
+    results = run(
+        trials, args.seed, args.jobs, methods, not args.no_poselib, args.threshold_scale, not args.no_refine
+    )
     wall = time.perf_counter() - t0
     summary = summarise(results, names)
     print_tables(summary, names, trials, args.threshold_scale, not args.no_refine)
     w = max(len(n) for n in names) + 2
     print("\nMedian CPU time per query (ms), by matches/pair:")
     for name in names:
-        print(f"  {name:<{w}}" + "".join(f"{m:>5d}: {1e3 * np.median(summary[name]['median_time_s'][m]):7.2f}"
-                                         for m in MATCHES))
+        print(
+            f"  {name:<{w}}"
+            + "".join(f"{m:>5d}: {1e3 * np.median(summary[name]['median_time_s'][m]):7.2f}" for m in MATCHES)
+        )
     print(f"\nWall time {wall:.0f} s with {args.jobs} job(s), warm-up included")
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps({
-            "protocol": {"num_refs": NUM_REFS, "noises_px": NOISES, "matches_per_pair": MATCHES,
-                         "iterations": ITERATIONS, "threshold_px": THRESHOLD_PX,
-                         "threshold_scale": args.threshold_scale, "refine": not args.no_refine,
-                         "trials": trials,
-                         "seed": args.seed},
-            "wall_time_s": wall, "summary": summary}, indent=1))
+        args.json.write_text(
+            json.dumps(
+                {
+                    "protocol": {
+                        "num_refs": NUM_REFS,
+                        "noises_px": NOISES,
+                        "matches_per_pair": MATCHES,
+                        "iterations": ITERATIONS,
+                        "threshold_px": THRESHOLD_PX,
+                        "threshold_scale": args.threshold_scale,
+                        "refine": not args.no_refine,
+                        "trials": trials,
+                        "seed": args.seed,
+                    },
+                    "wall_time_s": wall,
+                    "summary": summary,
+                },
+                indent=1,
+            )
+        )
         print(f"wrote {args.json}", file=sys.stderr)
     if args.plot:
         plot(summary, names, args.plot)

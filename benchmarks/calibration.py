@@ -90,8 +90,19 @@ GALLERY, SPARSE_GALLERY = "gallery", "gallery-sparse"
 GALLERY_FRAMES = (32, 12)
 SPARSE_GALLERY_FRAMES = (10, 6)
 WORLD_SEED = 0
-DEFAULT_DATASETS = ["kitti-every4", "kitti-every2", "kitti1-every4", "kitti1-every2", "fountain_p11", "entry_p10",
-                    "office-tilt0-pitch0", "office-tilt1-pitch10", "pitched", GALLERY, SPARSE_GALLERY]
+DEFAULT_DATASETS = [
+    "kitti-every4",
+    "kitti-every2",
+    "kitti1-every4",
+    "kitti1-every2",
+    "fountain_p11",
+    "entry_p10",
+    "office-tilt0-pitch0",
+    "office-tilt1-pitch10",
+    "pitched",
+    GALLERY,
+    SPARSE_GALLERY,
+]
 QUICK_DATASETS = ["fountain_p11", "entry_p10", "kitti-every4"]
 THRESHOLDS = ((0.25, 2.0), (0.25, 10.0))
 BEYOND_M = 1.0
@@ -107,34 +118,56 @@ def gallery_config(n_map: int = GALLERY_FRAMES[0], n_query: int = GALLERY_FRAMES
     return WorldConfig(
         name=GALLERY,
         camera=CameraConfig(width=1600, height=1200, fx=1200.0, fy=1200.0),
-        scene=SceneConfig(kind="room", size_x=10.0, size_z=7.0, height=3.0, n_boxes=4, n_posters=24,
-                          px_per_m=300.0),
-        trajectory=TrajectoryConfig(shape="loop", n_map=n_map, n_query=n_query, camera_height=1.2, wall_margin=1.8,
-                                    lateral_offset=0.5, yaw_offset_deg=10.0, yaw_wobble_deg=5.0,
-                                    query_height_drop=0.3),
+        scene=SceneConfig(
+            kind="room", size_x=10.0, size_z=7.0, height=3.0, n_boxes=4, n_posters=24, px_per_m=300.0
+        ),
+        trajectory=TrajectoryConfig(
+            shape="loop",
+            n_map=n_map,
+            n_query=n_query,
+            camera_height=1.2,
+            wall_margin=1.8,
+            lateral_offset=0.5,
+            yaw_offset_deg=10.0,
+            yaw_wobble_deg=5.0,
+            query_height_drop=0.3,
+        ),
         map_effects=EffectsConfig(),
         query_effects=EffectsConfig(noise_sigma=1.0),
     )
 
 
-def sparse_gallery_config(n_map: int = SPARSE_GALLERY_FRAMES[0],
-                          n_query: int = SPARSE_GALLERY_FRAMES[1]) -> WorldConfig:
+def sparse_gallery_config(
+    n_map: int = SPARSE_GALLERY_FRAMES[0], n_query: int = SPARSE_GALLERY_FRAMES[1]
+) -> WorldConfig:
     """The gallery with deep views and wide baselines: a 24 x 16 x 5 m hall, 10 map images about
     5 m apart on a loop 4 m from the walls, 6 queries of another session (0.5 m aside, 0.3 m lower)."""
     return WorldConfig(
         name=SPARSE_GALLERY,
         camera=CameraConfig(width=1600, height=1200, fx=1200.0, fy=1200.0),
-        scene=SceneConfig(kind="room", size_x=24.0, size_z=16.0, height=5.0, n_boxes=4, n_posters=40,
-                          px_per_m=150.0),
-        trajectory=TrajectoryConfig(shape="loop", n_map=n_map, n_query=n_query, camera_height=1.2, wall_margin=4.0,
-                                    lateral_offset=0.5, yaw_offset_deg=10.0, yaw_wobble_deg=5.0,
-                                    query_height_drop=0.3),
+        scene=SceneConfig(
+            kind="room", size_x=24.0, size_z=16.0, height=5.0, n_boxes=4, n_posters=40, px_per_m=150.0
+        ),
+        trajectory=TrajectoryConfig(
+            shape="loop",
+            n_map=n_map,
+            n_query=n_query,
+            camera_height=1.2,
+            wall_margin=4.0,
+            lateral_offset=0.5,
+            yaw_offset_deg=10.0,
+            yaw_wobble_deg=5.0,
+            query_height_drop=0.3,
+        ),
         map_effects=EffectsConfig(),
         query_effects=EffectsConfig(noise_sigma=1.0),
     )
 
 
-GALLERIES: dict[str, Callable[[], WorldConfig]] = {GALLERY: gallery_config, SPARSE_GALLERY: sparse_gallery_config}
+GALLERIES: dict[str, Callable[[], WorldConfig]] = {
+    GALLERY: gallery_config,
+    SPARSE_GALLERY: sparse_gallery_config,
+}
 
 
 def dataset_names() -> list[str]:
@@ -145,10 +178,16 @@ def load_dataset(name: str, args: argparse.Namespace, root: Path) -> trust.DataS
     """The data set ``name`` with trust.py's loaders and splits, or the gallery (rendered once)."""
     progress = peer.Progress()
     if name in GALLERIES:
-        folder = cache.cached_world(GALLERIES[name](), WORLD_SEED, root,
-                                    lambda d, n: progress(f"render {name}", d, n))
-        return trust.DataSet(name, read_dataset(folder / "map", "tum"), read_dataset(folder / "query", "tum"),
-                             None, str(folder))
+        folder = cache.cached_world(
+            GALLERIES[name](), WORLD_SEED, root, lambda d, n: progress(f"render {name}", d, n)
+        )
+        return trust.DataSet(
+            name,
+            read_dataset(folder / "map", "tum"),
+            read_dataset(folder / "query", "tum"),
+            None,
+            str(folder),
+        )
     ns = argparse.Namespace(world_frames=trust.WORLD_FRAMES, data_root=args.data_root)
     return trust.load_dataset(name, ns, root, progress)
 
@@ -206,20 +245,41 @@ def localize_one(index: int) -> tuple[dict, dict]:
     t4 = time.perf_counter()
     shared = (t1 - t0) + (t2 - t1)  # features and retrieval: both pipelines pay them
     err = _errors(est.pose if est.success else None, q.cam_from_world)
-    unreliable = _errors(est.unreliable_pose, q.cam_from_world)[0] if est.unreliable_pose is not None else None
-    ours = {"name": q.name, "success": bool(est.success), "status": str(est.status), "error_m": err[0],
-            "error_deg": err[1], "std_m": _finite(est.position_std_m), "num_inliers": int(est.num_inliers),
-            "num_inliers_3d": int(est.num_inliers_3d), "model": est.model, "seconds": shared + t3 - t2,
-            "references": list(refs), "used_references": list(est.references), "unreliable_error_m": unreliable,
-            "map_prior": list(prior) if (prior := getattr(est, "map_prior", None)) is not None else None}
+    unreliable = (
+        _errors(est.unreliable_pose, q.cam_from_world)[0] if est.unreliable_pose is not None else None
+    )
+    ours = {
+        "name": q.name,
+        "success": bool(est.success),
+        "status": str(est.status),
+        "error_m": err[0],
+        "error_deg": err[1],
+        "std_m": _finite(est.position_std_m),
+        "num_inliers": int(est.num_inliers),
+        "num_inliers_3d": int(est.num_inliers_3d),
+        "model": est.model,
+        "seconds": shared + t3 - t2,
+        "references": list(refs),
+        "used_references": list(est.references),
+        "unreliable_error_m": unreliable,
+        "map_prior": list(prior) if (prior := getattr(est, "map_prior", None)) is not None else None,
+    }
     perr = _errors(got.pose, q.cam_from_world)
     few = got.info.get("pose_with_few_inliers")
-    theirs = {"name": q.name, "success": bool(got.success), "status": got.status, "error_m": perr[0],
-              "error_deg": perr[1], "std_m": _finite(got.position_std_m), "num_inliers": int(got.num_inliers),
-              "num_correspondences": int(got.num_correspondences), "seconds": shared + t4 - t3,
-              "references": list(refs),
-              "reprojection_rms_px": _finite(got.info.get("reprojection_rms_px", np.nan)),
-              "few_inliers_error_m": _errors(few, q.cam_from_world)[0] if few is not None else None}
+    theirs = {
+        "name": q.name,
+        "success": bool(got.success),
+        "status": got.status,
+        "error_m": perr[0],
+        "error_deg": perr[1],
+        "std_m": _finite(got.position_std_m),
+        "num_inliers": int(got.num_inliers),
+        "num_correspondences": int(got.num_correspondences),
+        "seconds": shared + t4 - t3,
+        "references": list(refs),
+        "reprojection_rms_px": _finite(got.info.get("reprojection_rms_px", np.nan)),
+        "few_inliers_error_m": _errors(few, q.cam_from_world)[0] if few is not None else None,
+    }
     return ours, theirs
 
 
@@ -233,11 +293,14 @@ def run_dataset(data: trust.DataSet, args: argparse.Namespace, root: Path) -> di
     loc = Localizer(MapDatabase.open(map_path, mode="r"))
     warm_s = loc.warm_up()
     t0 = time.perf_counter()
-    the_peer = colmap_peer.ColmapPeer(data.map_images, map_features_extractor(loc.features),
-                                      min_inliers=args.peer_min_inliers).build()
+    the_peer = colmap_peer.ColmapPeer(
+        data.map_images, map_features_extractor(loc.features), min_inliers=args.peer_min_inliers
+    ).build()
     peer_build_s = time.perf_counter() - t0
-    peer.log(f"{data.name}: colmap peer map: {the_peer.model.stats} "
-             f"({peer_build_s:.1f} s incl. feature extraction)")
+    peer.log(
+        f"{data.name}: colmap peer map: {the_peer.model.stats} "
+        f"({peer_build_s:.1f} s incl. feature extraction)"
+    )
     queries = data.queries[: args.max_queries] if args.max_queries else data.queries
     # a forked worker opens its own map (an sqlite connection must not cross a fork)
     _RUN = _Run(map_path, the_peer, queries, loc if args.jobs == 1 else None)
@@ -245,8 +308,9 @@ def run_dataset(data: trust.DataSet, args: argparse.Namespace, root: Path) -> di
     rows: list[tuple[dict, dict]] = []
     t0 = time.perf_counter()
     if args.jobs > 1 and len(queries) > 1:
-        with ProcessPoolExecutor(args.jobs, mp_context=get_context("fork"), initializer=_worker_init,
-                                 initargs=(True,)) as pool:
+        with ProcessPoolExecutor(
+            args.jobs, mp_context=get_context("fork"), initializer=_worker_init, initargs=(True,)
+        ) as pool:
             for i, row in enumerate(pool.map(localize_one, range(len(queries)))):
                 rows.append(row)
                 progress(f"localize {data.name}", i + 1, len(queries))
@@ -257,16 +321,24 @@ def run_dataset(data: trust.DataSet, args: argparse.Namespace, root: Path) -> di
     _RUN = None
     loc.db.close()
     seconds = time.perf_counter() - t0
-    peer.log(f"{data.name}: {len(data.map_images)} map / {len(queries)} queries, "
-             f"planarloc map build {build_s:.0f} s"
-             f"{' (cached)' if build_s == 0 else ''}, warm-up {warm_s:.1f} s, peer map {peer_build_s:.1f} s, "
-             f"localization {seconds:.0f} s; {peer.load_note()}")
+    peer.log(
+        f"{data.name}: {len(data.map_images)} map / {len(queries)} queries, "
+        f"planarloc map build {build_s:.0f} s"
+        f"{' (cached)' if build_s == 0 else ''}, warm-up {warm_s:.1f} s, peer map {peer_build_s:.1f} s, "
+        f"localization {seconds:.0f} s; {peer.load_note()}"
+    )
     per_pipeline = {"planarloc": [r[0] for r in rows], "colmap-peer": [r[1] for r in rows]}
-    return {"dataset": data.name, "source": data.source, "map_images": len(data.map_images),
-            "queries": len(queries), "planarloc_map_build_s": build_s, "peer_map": the_peer.model.stats,
-            "peer_map_build_s": peer_build_s,
-            "metrics": {k: metrics(v, with_std=True) for k, v in per_pipeline.items()},
-            "per_query": per_pipeline}
+    return {
+        "dataset": data.name,
+        "source": data.source,
+        "map_images": len(data.map_images),
+        "queries": len(queries),
+        "planarloc_map_build_s": build_s,
+        "peer_map": the_peer.model.stats,
+        "peer_map_build_s": peer_build_s,
+        "metrics": {k: metrics(v, with_std=True) for k, v in per_pipeline.items()},
+        "per_query": per_pipeline,
+    }
 
 
 # ---- metrics ----------------------------------------------------------------------------------------
@@ -282,30 +354,55 @@ def metrics(rows: Sequence[dict], with_std: bool) -> dict:
     rot = np.array([r["error_deg"] for r in rows], dtype=float)
     k = int(ok.sum())
     with np.errstate(invalid="ignore"):
-        success = {threshold_label(tt, rr): 100.0 * float((ok & (t < tt) & (rot < rr)).sum()) / max(n, 1)
-                   for tt, rr in THRESHOLDS}
-        out = {"queries": n, "localized": k, "success": success,
-               "median_error_m": float(np.median(t[ok])) if k else None,
-               "median_error_deg": float(np.median(rot[ok])) if k else None,
-               "beyond_1m": int((ok & ~(t <= BEYOND_M)).sum()),
-               "failures": dict(Counter(r["status"] for r in rows if not r["success"])),
-               "seconds_per_query": float(np.mean([r["seconds"] for r in rows])) if n else None}
+        success = {
+            threshold_label(tt, rr): 100.0 * float((ok & (t < tt) & (rot < rr)).sum()) / max(n, 1)
+            for tt, rr in THRESHOLDS
+        }
+        out = {
+            "queries": n,
+            "localized": k,
+            "success": success,
+            "median_error_m": float(np.median(t[ok])) if k else None,
+            "median_error_deg": float(np.median(rot[ok])) if k else None,
+            "beyond_1m": int((ok & ~(t <= BEYOND_M)).sum()),
+            "failures": dict(Counter(r["status"] for r in rows if not r["success"])),
+            "seconds_per_query": float(np.mean([r["seconds"] for r in rows])) if n else None,
+        }
         if with_std:
             std = np.array([r["std_m"] for r in rows], dtype=float)
             ratio = t[ok] / std[ok]
             out["median_error_over_std"] = float(np.median(ratio)) if k else None
-            out["error_over_std_quantiles"] = ({f"p{int(100 * p)}": float(np.quantile(ratio, p))
-                                                for p in RATIO_QUANTILES} | {"max": float(ratio.max())}) if k else None
+            out["error_over_std_quantiles"] = (
+                (
+                    {f"p{int(100 * p)}": float(np.quantile(ratio, p)) for p in RATIO_QUANTILES}
+                    | {"max": float(ratio.max())}
+                )
+                if k
+                else None
+            )
             kept = t <= PROMISE_SIGMAS * std + PROMISE_MARGIN_M  # NaN (no std): broken
             out["within_3std_5cm"] = 100.0 * float((kept & ok).sum()) / k if k else None
             out["median_std_m"] = float(np.median(std[ok])) if k else None
-            out["broken_promises"] = [r["name"] for r, o, w in zip(rows, ok, kept, strict=True) if o and not w]
+            out["broken_promises"] = [
+                r["name"] for r, o, w in zip(rows, ok, kept, strict=True) if o and not w
+            ]
     return out
 
 
 # ---- output ------------------------------------------------------------------------------------------
-HEADERS = ["data", "pipeline", "queries", *[f"≤ {threshold_label(t, r)}" for t, r in THRESHOLDS],
-           "median err [m]", "> 1 m", "median err/σ", "≤ 3σ+5cm", "median σ [m]", "failures", "s/query"]
+HEADERS = [
+    "data",
+    "pipeline",
+    "queries",
+    *[f"≤ {threshold_label(t, r)}" for t, r in THRESHOLDS],
+    "median err [m]",
+    "> 1 m",
+    "median err/σ",
+    "≤ 3σ+5cm",
+    "median σ [m]",
+    "failures",
+    "s/query",
+]
 
 
 def table_rows(result: dict) -> list[list[str]]:
@@ -313,40 +410,77 @@ def table_rows(result: dict) -> list[list[str]]:
     for who in PIPELINES:
         m = result["metrics"][who]
         failures = ", ".join(f"{k} {v}" for k, v in sorted(m["failures"].items())) or "-"
-        out.append([result["dataset"], who, str(m["queries"]), *[peer.fmt_pct(v) for v in m["success"].values()],
-                    peer.fmt_num(m["median_error_m"], 4), str(m["beyond_1m"]),
-                    peer.fmt_num(m["median_error_over_std"], 3), peer.fmt_pct(m["within_3std_5cm"]),
-                    peer.fmt_num(m["median_std_m"], 4), failures,
-                    peer.fmt_num(m["seconds_per_query"], 2)])
+        out.append(
+            [
+                result["dataset"],
+                who,
+                str(m["queries"]),
+                *[peer.fmt_pct(v) for v in m["success"].values()],
+                peer.fmt_num(m["median_error_m"], 4),
+                str(m["beyond_1m"]),
+                peer.fmt_num(m["median_error_over_std"], 3),
+                peer.fmt_pct(m["within_3std_5cm"]),
+                peer.fmt_num(m["median_std_m"], 4),
+                failures,
+                peer.fmt_num(m["seconds_per_query"], 2),
+            ]
+        )
     return out
 
 
-RATIO_HEADERS = ["data", "successes", "err/σ p10", "p50", "p90", "max", "median err [m]", "median σ [m]",
-                 "broken promises", "peer map: points", "track", "reproj [px]", "build [s]"]
+RATIO_HEADERS = [
+    "data",
+    "successes",
+    "err/σ p10",
+    "p50",
+    "p90",
+    "max",
+    "median err [m]",
+    "median σ [m]",
+    "broken promises",
+    "peer map: points",
+    "track",
+    "reproj [px]",
+    "build [s]",
+]
 
 
 def ratio_row(result: dict) -> list[str]:
     m, pm = result["metrics"]["planarloc"], result["peer_map"]
     q = m["error_over_std_quantiles"] or {}
-    return [result["dataset"], str(m["localized"]),
-            *[peer.fmt_num(q.get(k), 3) for k in ("p10", "p50", "p90", "max")],
-            peer.fmt_num(m["median_error_m"], 4), peer.fmt_num(m["median_std_m"], 4),
-            str(len(m["broken_promises"])), str(pm["points3D"]), peer.fmt_num(pm["mean_track_length"], 2),
-            peer.fmt_num(pm["mean_reprojection_error_px"], 2), peer.fmt_num(result["peer_map_build_s"], 1)]
+    return [
+        result["dataset"],
+        str(m["localized"]),
+        *[peer.fmt_num(q.get(k), 3) for k in ("p10", "p50", "p90", "max")],
+        peer.fmt_num(m["median_error_m"], 4),
+        peer.fmt_num(m["median_std_m"], 4),
+        str(len(m["broken_promises"])),
+        str(pm["points3D"]),
+        peer.fmt_num(pm["mean_track_length"], 2),
+        peer.fmt_num(pm["mean_reprojection_error_px"], 2),
+        peer.fmt_num(result["peer_map_build_s"], 1),
+    ]
 
 
 def query_lines(result: dict) -> list[str]:
     """Both pipelines' outcome for every query of one data set."""
     lines = []
-    for ours, theirs in zip(result["per_query"]["planarloc"], result["per_query"]["colmap-peer"], strict=True):
-        extra = (f", unreliable pose {ours['unreliable_error_m']:.3f} m off"
-                 if ours["unreliable_error_m"] is not None else "")
-        lines.append(f"  {result['dataset']} {ours['name']}: planarloc {ours['status']} ({ours['model'] or '-'}), "
-                     f"err {_fmt(ours['error_m'])} m / {_fmt(ours['error_deg'], 2)}°, "
-                     f"std {_fmt(ours['std_m'])} m, "
-                     f"inliers {ours['num_inliers']} 2D-2D / {ours['num_inliers_3d']} 2D-3D{extra} | peer "
-                     f"{theirs['status']}, err {_fmt(theirs['error_m'])} m / {_fmt(theirs['error_deg'], 2)}°, "
-                     f"{theirs['num_inliers']} of {theirs['num_correspondences']} 2D-3D inliers")
+    for ours, theirs in zip(
+        result["per_query"]["planarloc"], result["per_query"]["colmap-peer"], strict=True
+    ):
+        extra = (
+            f", unreliable pose {ours['unreliable_error_m']:.3f} m off"
+            if ours["unreliable_error_m"] is not None
+            else ""
+        )
+        lines.append(
+            f"  {result['dataset']} {ours['name']}: planarloc {ours['status']} ({ours['model'] or '-'}), "
+            f"err {_fmt(ours['error_m'])} m / {_fmt(ours['error_deg'], 2)}°, "
+            f"std {_fmt(ours['std_m'])} m, "
+            f"inliers {ours['num_inliers']} 2D-2D / {ours['num_inliers_3d']} 2D-3D{extra} | peer "
+            f"{theirs['status']}, err {_fmt(theirs['error_m'])} m / {_fmt(theirs['error_deg'], 2)}°, "
+            f"{theirs['num_inliers']} of {theirs['num_correspondences']} 2D-3D inliers"
+        )
     return lines
 
 
@@ -356,10 +490,12 @@ def success_lines(result: dict) -> list[str]:
     for r in result["per_query"]["planarloc"]:
         if r["success"]:
             ratio = r["error_m"] / r["std_m"] if r["std_m"] else None
-            out.append(f"  {result['dataset']} {r['name']}: err {r['error_m']:.4f} m, "
-                       f"std {_fmt(r['std_m'], 4)} m, "
-                       f"err/std {_fmt(ratio)}, inliers {r['num_inliers']} / "
-                       f"{r['num_inliers_3d']} 3D, model {r['model'] or '-'}")
+            out.append(
+                f"  {result['dataset']} {r['name']}: err {r['error_m']:.4f} m, "
+                f"std {_fmt(r['std_m'], 4)} m, "
+                f"err/std {_fmt(ratio)}, inliers {r['num_inliers']} / "
+                f"{r['num_inliers_3d']} 3D, model {r['model'] or '-'}"
+            )
     return out
 
 
@@ -397,8 +533,11 @@ def self_check(verbose: bool = True) -> list[str]:
     query = pose([0.3, 0.15, 0.4], [2.0, 9.0, -1.5])
     back = colmap_peer.pose_from_rigid3d(colmap_peer.rigid3d_from_pose(query))
     rigid = colmap_peer.rigid3d_from_pose(query)
-    d_conv = max(np.abs(back.R - query.R).max(), np.abs(back.t - query.t).max(),
-                 np.abs(np.asarray(rigid.matrix()) - query.matrix).max())
+    d_conv = max(
+        np.abs(back.R - query.R).max(),
+        np.abs(back.t - query.t).max(),
+        np.abs(np.asarray(rigid.matrix()) - query.matrix).max(),
+    )
     if not d_conv < 1e-9:
         failures.append(f"Pose <-> pycolmap.Rigid3d round trip off by {d_conv:.2e}")
     Xc = points @ query.R.T + query.t
@@ -410,9 +549,16 @@ def self_check(verbose: bool = True) -> list[str]:
         d_pnp = max(np.abs(got.pose.R - query.R).max(), np.abs(got.pose.t - query.t).max())
         if not d_pnp < 1e-9:
             failures.append(f"pycolmap absolute pose on exact data off by {d_pnp:.2e} (R, t entries)")
-    maps = [PosedImage(f"map/{i}.png", Path(f"/nonexistent/map/{i}.png"),
-                       pose([0.6 * i - 2.0, 0.05 * (i % 3), 0.1 * i], [1.0 * (i % 2), 4.0 * i - 12.0, 0.5]),
-                       camera, i) for i in range(7)]
+    maps = [
+        PosedImage(
+            f"map/{i}.png",
+            Path(f"/nonexistent/map/{i}.png"),
+            pose([0.6 * i - 2.0, 0.05 * (i % 3), 0.1 * i], [1.0 * (i % 2), 4.0 * i - 12.0, 0.5]),
+            camera,
+            i,
+        )
+        for i in range(7)
+    ]
     feats = {m.name: observe(m.cam_from_world) for m in maps}
     the_peer = colmap_peer.split_peer(maps, feats)
     est = the_peer.localize(observe(query), camera, [m.name for m in maps[:5]])
@@ -423,32 +569,57 @@ def self_check(verbose: bool = True) -> list[str]:
         if not (t_err < 1e-6 and r_err < 1e-5):
             failures.append(f"the peer on noise-free data is {t_err:.2e} m / {r_err:.2e}° off")
         if verbose:
-            peer.log(f"self-check: round trip {d_conv:.1e}, peer end to end {t_err:.1e} m / {r_err:.1e}° "
-                     f"({est.num_inliers} inliers, map {the_peer.model.stats['points3D']} points, reprojection "
-                     f"{the_peer.model.stats['mean_reprojection_error_px']:.1e} px)")
+            peer.log(
+                f"self-check: round trip {d_conv:.1e}, peer end to end {t_err:.1e} m / {r_err:.1e}° "
+                f"({est.num_inliers} inliers, map {the_peer.model.stats['points3D']} points, reprojection "
+                f"{the_peer.model.stats['mean_reprojection_error_px']:.1e} px)"
+            )
     return failures
 
 
 # ---- main ---------------------------------------------------------------------------------------------
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--datasets", nargs="+", default=None, metavar="NAME",
-                   help=f"data sets (default: {' '.join(DEFAULT_DATASETS)}; --quick: {' '.join(QUICK_DATASETS)}); "
-                        f"choose from {' '.join(dataset_names())}")
+    p.add_argument(
+        "--datasets",
+        nargs="+",
+        default=None,
+        metavar="NAME",
+        help=f"data sets (default: {' '.join(DEFAULT_DATASETS)}; --quick: {' '.join(QUICK_DATASETS)}); "
+        f"choose from {' '.join(dataset_names())}",
+    )
     p.add_argument("--quick", action="store_true", help="the self-check, then a small subset (<= 2 minutes)")
-    p.add_argument("--self-check", action="store_true",
-                   help="only check the pycolmap conventions on synthetic data (exit 1 on failure)")
-    p.add_argument("--jobs", type=int, default=1,
-                   help="worker processes over the queries of a data set (default 1: clean timings)")
+    p.add_argument(
+        "--self-check",
+        action="store_true",
+        help="only check the pycolmap conventions on synthetic data (exit 1 on failure)",
+    )
+    p.add_argument(
+        "--jobs",
+        type=int,
+        default=1,
+        help="worker processes over the queries of a data set (default 1: clean timings)",
+    )
     p.add_argument("--max-queries", type=int, default=None, help="first N queries of each data set")
-    p.add_argument("--peer-min-inliers", type=int, default=colmap_peer.MIN_INLIERS,
-                   help="the peer fails below this many PnP inliers (default: %(default)s)")
-    p.add_argument("--list-successes", action="store_true",
-                   help="print every planarloc success with its error / std")
+    p.add_argument(
+        "--peer-min-inliers",
+        type=int,
+        default=colmap_peer.MIN_INLIERS,
+        help="the peer fails below this many PnP inliers (default: %(default)s)",
+    )
+    p.add_argument(
+        "--list-successes", action="store_true", help="print every planarloc success with its error / std"
+    )
     p.add_argument("--per-query", action="store_true", help="print both pipelines' outcome for every query")
-    p.add_argument("--data-root", type=Path, default=DATA_ROOT, help="shared real data (default: %(default)s)")
-    p.add_argument("--cache-dir", type=Path, default=None,
-                   help="rendered worlds and planarloc maps (default: $TMPDIR/planarloc-bench)")
+    p.add_argument(
+        "--data-root", type=Path, default=DATA_ROOT, help="shared real data (default: %(default)s)"
+    )
+    p.add_argument(
+        "--cache-dir",
+        type=Path,
+        default=None,
+        help="rendered worlds and planarloc maps (default: $TMPDIR/planarloc-bench)",
+    )
     p.add_argument("--json", type=Path, default=None, help="write the metrics and per-query records here")
     args = p.parse_args(argv)
     known = dataset_names()
@@ -472,8 +643,13 @@ def main(argv: list[str] | None = None) -> int:
     print(peer.load_note("at start"))
     if args.self_check or args.quick:
         failures = self_check()
-        print(peer.verdict(not failures, "self-check: pycolmap conventions on noise-free data"
-                           + ("" if not failures else ": " + "; ".join(failures))))
+        print(
+            peer.verdict(
+                not failures,
+                "self-check: pycolmap conventions on noise-free data"
+                + ("" if not failures else ": " + "; ".join(failures)),
+            )
+        )
         if failures or args.self_check:
             return 1 if failures else 0
     root = cache.cache_root(args.cache_dir)
@@ -489,8 +665,13 @@ def main(argv: list[str] | None = None) -> int:
     title = "planarloc (default Localizer) vs the hloc-style COLMAP peer, same splits and top-5 pairs"
     print(peer.markdown_table(HEADERS, [row for r in results for row in table_rows(r)], title))
     print()
-    print(peer.markdown_table(RATIO_HEADERS, [ratio_row(r) for r in results],
-                              "planarloc's successes: error / position_std_m, and the peer's triangulated map"))
+    print(
+        peer.markdown_table(
+            RATIO_HEADERS,
+            [ratio_row(r) for r in results],
+            "planarloc's successes: error / position_std_m, and the peer's triangulated map",
+        )
+    )
     for r in results:
         if r["dataset"] in GALLERIES or args.per_query:
             print(f"\nper query, {r['dataset']}:")
@@ -503,13 +684,25 @@ def main(argv: list[str] | None = None) -> int:
         print(f"skipped (data not found under {args.data_root}): {', '.join(skipped)}")
     seconds = time.perf_counter() - t_start
     print(f"total {seconds:.0f} s; {peer.load_note('at end')}")
-    peer.write_json(args.json, {"args": vars(args), "code": peer.code_version(),
-                                "pycolmap": colmap_peer.pycolmap_version(), "seconds": seconds, "skipped": skipped,
-                                "peer": {"ratio": colmap_peer.RATIO, "verify_px": colmap_peer.VERIFY_PX,
-                                         "pnp_px": colmap_peer.PNP_PX, "neighbours": colmap_peer.NEIGHBOURS,
-                                         "exhaustive_up_to": colmap_peer.EXHAUSTIVE_UP_TO,
-                                         "min_inliers": args.peer_min_inliers},
-                                "results": results})
+    peer.write_json(
+        args.json,
+        {
+            "args": vars(args),
+            "code": peer.code_version(),
+            "pycolmap": colmap_peer.pycolmap_version(),
+            "seconds": seconds,
+            "skipped": skipped,
+            "peer": {
+                "ratio": colmap_peer.RATIO,
+                "verify_px": colmap_peer.VERIFY_PX,
+                "pnp_px": colmap_peer.PNP_PX,
+                "neighbours": colmap_peer.NEIGHBOURS,
+                "exhaustive_up_to": colmap_peer.EXHAUSTIVE_UP_TO,
+                "min_inliers": args.peer_min_inliers,
+            },
+            "results": results,
+        },
+    )
     return 0
 
 

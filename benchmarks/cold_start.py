@@ -63,7 +63,9 @@ class Steps:
         peer.log(f"{label}: {' '.join(map(str, cmd))}")
         before = resource.getrusage(resource.RUSAGE_CHILDREN)
         t0 = time.perf_counter()
-        proc = subprocess.run([str(c) for c in cmd], cwd=self.cwd, env=self.env, capture_output=True, text=True)
+        proc = subprocess.run(
+            [str(c) for c in cmd], cwd=self.cwd, env=self.env, capture_output=True, text=True
+        )
         wall = time.perf_counter() - t0
         after = resource.getrusage(resource.RUSAGE_CHILDREN)
         if proc.returncode != 0:
@@ -85,23 +87,30 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     root.mkdir(parents=True, exist_ok=True)
     print("# Cold start: a fresh venv, the base install, the first pose")
-    head = subprocess.run(["git", "-C", str(REPO), "rev-parse", "--short", "HEAD"], check=True, capture_output=True,
-                          text=True).stdout.strip()
+    head = subprocess.run(
+        ["git", "-C", str(REPO), "rev-parse", "--short", "HEAD"], check=True, capture_output=True, text=True
+    ).stdout.strip()
     print(f"measured: the committed tree of {REPO} at git {head} (git archive HEAD)")
     print(peer.load_note("at start"))
     try:
         tree, venv = root / "tree", root / "venv"
         tree.mkdir()
-        archive = subprocess.run(["git", "-C", str(REPO), "archive", "HEAD"], check=True, capture_output=True).stdout
+        archive = subprocess.run(
+            ["git", "-C", str(REPO), "archive", "HEAD"], check=True, capture_output=True
+        ).stdout
         subprocess.run(["tar", "-x", "-C", str(tree)], input=archive, check=True)
-        env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "NUMBA_CACHE_DIR", "VIRTUAL_ENV")}
+        env = {
+            k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "NUMBA_CACHE_DIR", "VIRTUAL_ENV")
+        }
         env["PATH"] = f"{venv / 'bin'}{os.pathsep}{env.get('PATH', '')}"
         steps = Steps(env, root)
         steps.run("venv", ["python3", "-m", "venv", venv])
         steps.run("pip install . (base)", [venv / "bin" / "pip", "install", "--quiet", tree])
         pl = venv / "bin" / "planarloc"
-        steps.run("map build (13 images)", [pl, "map", "build", args.kitti, "-f", "kitti", "--every", "4",
-                                            "--out", root / "map.db"])
+        steps.run(
+            "map build (13 images)",
+            [pl, "map", "build", args.kitti, "-f", "kitti", "--every", "4", "--out", root / "map.db"],
+        )
         frame = sorted((args.kitti / "image_l").glob("*.png"))[1]
         localize = [pl, "localize", "--map", root / "map.db", frame, "--out", root / "q.txt"]
         cold = steps.run("first localize, empty kernel cache", localize)
@@ -122,30 +131,59 @@ def main(argv: list[str] | None = None) -> int:
         if args.keep is None:
             shutil.rmtree(root, ignore_errors=True)
     res = steps.results
-    rows = [[k, f"{v['wall_s']:.1f} s", f"{v['cpu_s']:.1f} s"] for k, v in res.items() if not k.startswith("cache")]
+    rows = [
+        [k, f"{v['wall_s']:.1f} s", f"{v['cpu_s']:.1f} s"]
+        for k, v in res.items()
+        if not k.startswith("cache")
+    ]
     print()
-    print(peer.markdown_table(["step (a new process each)", "wall", "CPU"], rows,
-                              f"Fresh venv, base install, {os.cpu_count()} cores"))
+    print(
+        peer.markdown_table(
+            ["step (a new process each)", "wall", "CPU"],
+            rows,
+            f"Fresh venv, base install, {os.cpu_count()} cores",
+        )
+    )
     notice = [line for line in cold.stderr.splitlines() if "for first use" in line]
     print(f"\nthe cold localize said: {notice[0] if notice else '(nothing)'}")
     lines = [line for line in warm.stderr.splitlines() if re.match(r"(compile kernels|run steps): ", line)]
-    print(f"warmup without a terminal printed {len(lines)} progress lines, first {lines[:1]}, last {lines[-1:]}")
+    print(
+        f"warmup without a terminal printed {len(lines)} progress lines, first {lines[:1]}, last {lines[-1:]}"
+    )
     print(peer.load_note())
     first = res["first localize after warmup"]["wall_s"]
-    checks = [(first <= TARGET_FIRST_POSE_S, f"first localize after the install (+ warmup) {first:.1f} s "
-                                             f"(target ≤ {TARGET_FIRST_POSE_S:g} s)")]
+    checks = [
+        (
+            first <= TARGET_FIRST_POSE_S,
+            f"first localize after the install (+ warmup) {first:.1f} s (target ≤ {TARGET_FIRST_POSE_S:g} s)",
+        )
+    ]
     readme = "demo after warmup (README's first command)"
     if readme in res:
         demo = res[readme]["wall_s"]
-        checks.append((demo <= TARGET_DEMO_S, f"demo after the install + warmup {demo:.1f} s (target ≤ {TARGET_DEMO_S:g} s)"))
+        checks.append(
+            (
+                demo <= TARGET_DEMO_S,
+                f"demo after the install + warmup {demo:.1f} s (target ≤ {TARGET_DEMO_S:g} s)",
+            )
+        )
         total = sum(res[k]["wall_s"] for k in ("venv", "pip install . (base)", "warmup (every core)", readme))
         print(f"README's first command (venv, pip install, warmup, demo) in all: {total:.1f} s wall")
     print("\n## Targets")
     for ok, text in checks:
         print(peer.verdict(ok, text))
-    peer.write_json(args.json, {"steps": res, "cores": os.cpu_count(), "notice": notice, "warmup_lines": lines,
-                                "targets": [{"pass": ok, "text": t} for ok, t in checks], "load_average_end": load,
-                                "git_head": head})
+    peer.write_json(
+        args.json,
+        {
+            "steps": res,
+            "cores": os.cpu_count(),
+            "notice": notice,
+            "warmup_lines": lines,
+            "targets": [{"pass": ok, "text": t} for ok, t in checks],
+            "load_average_end": load,
+            "git_head": head,
+        },
+    )
     return 0
 
 

@@ -42,9 +42,19 @@ KITTI = REPO.parent / "shared" / "data" / "kitti_seq2"
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("targets", nargs="*", help="localize, demo or a warm-up step name")
-    p.add_argument("--kitti", type=Path, default=KITTI, help="KITTI sequence of the localize target (default: %(default)s)")
-    p.add_argument("--opt", type=int, choices=(0, 1, 2, 3), default=None,
-                   help="NUMBA_OPT of the profiled process (default: numba's)")
+    p.add_argument(
+        "--kitti",
+        type=Path,
+        default=KITTI,
+        help="KITTI sequence of the localize target (default: %(default)s)",
+    )
+    p.add_argument(
+        "--opt",
+        type=int,
+        choices=(0, 1, 2, 3),
+        default=None,
+        help="NUMBA_OPT of the profiled process (default: numba's)",
+    )
     p.add_argument("--top", type=int, default=25, help="kernels listed per target (default: %(default)s)")
     p.add_argument("--json", type=Path, default=None, help="write the measurements here")
     p.add_argument("--child", nargs=3, metavar=("TARGET", "WORK", "OUT"), help=argparse.SUPPRESS)
@@ -60,14 +70,25 @@ def _child(target: str, work: Path, out: Path) -> int:
     with compile_lazily(), CompileRecorder() as rec:  # lazy compilation, in this process
         if target == "localize":
             frame = sorted((work / "kitti" / "image_l").glob("*.png"))[1]
-            code = cli.main(["localize", "--map", str(work / "map.db"), str(frame), "--out", str(work / "q.txt")])
+            code = cli.main(
+                ["localize", "--map", str(work / "map.db"), str(frame), "--out", str(work / "q.txt")]
+            )
         elif target == "demo":
             code = cli.main(["demo", "--out", str(work / "demo")])
         else:
             run_steps([target])
             code = 0
-    out.write_text(json.dumps({"kernels": rec.kernels, "overloads": rec.overloads, "wall_s": time.perf_counter() - t0,
-                               "cpu_s": time.process_time() - c0, "exit_code": code}))
+    out.write_text(
+        json.dumps(
+            {
+                "kernels": rec.kernels,
+                "overloads": rec.overloads,
+                "wall_s": time.perf_counter() - t0,
+                "cpu_s": time.process_time() - c0,
+                "exit_code": code,
+            }
+        )
+    )
     return int(code)
 
 
@@ -79,8 +100,12 @@ def profile(target: str, args: argparse.Namespace, work: Path) -> dict:
         env["NUMBA_OPT"] = str(args.opt)
     out = work / f"profile-{len(list(work.glob('profile-*')))}.json"
     peer.log(f"{target}: profiling (NUMBA_OPT={env.get('NUMBA_OPT', 'default')}, {peer.load_note().strip()})")
-    subprocess.run([sys.executable, __file__, "--child", target, str(work), str(out)], env=env, check=True,
-                   stdout=subprocess.DEVNULL)
+    subprocess.run(
+        [sys.executable, __file__, "--child", target, str(work), str(out)],
+        env=env,
+        check=True,
+        stdout=subprocess.DEVNULL,
+    )
     return json.loads(out.read_text())
 
 
@@ -91,18 +116,34 @@ def report(target: str, rec: dict, top: int) -> None:
     rows = []
     for k, sigs in sorted(kernels.items(), key=lambda kv: -sum(kv[1].values()))[:top]:
         times = sorted(sigs.values(), reverse=True)
-        rows.append([k.removeprefix("planarloc."), len(sigs), f"{sum(times):.2f}",
-                     " + ".join(f"{t:.2f}" for t in times) if len(times) > 1 else ""])
-    print(peer.markdown_table(["kernel", "signatures", "compile CPU (s)", "per signature (s)"], rows,
-                              f"{target}: {len(kernels)} kernels, {nsig} signatures, {total:.1f} s of compile CPU "
-                              f"(process: {rec['cpu_s']:.1f} s CPU, {rec['wall_s']:.1f} s wall)"))
+        rows.append(
+            [
+                k.removeprefix("planarloc."),
+                len(sigs),
+                f"{sum(times):.2f}",
+                " + ".join(f"{t:.2f}" for t in times) if len(times) > 1 else "",
+            ]
+        )
+    print(
+        peer.markdown_table(
+            ["kernel", "signatures", "compile CPU (s)", "per signature (s)"],
+            rows,
+            f"{target}: {len(kernels)} kernels, {nsig} signatures, {total:.1f} s of compile CPU "
+            f"(process: {rec['cpu_s']:.1f} s CPU, {rec['wall_s']:.1f} s wall)",
+        )
+    )
     by_layer: dict[str, float] = defaultdict(float)
     for k, sigs in kernels.items():
         by_layer[k.split(".")[1]] += sum(sigs.values())
-    print("by layer: " + ", ".join(f"{layer} {s:.1f} s" for layer, s in sorted(by_layer.items(), key=lambda x: -x[1])))
+    print(
+        "by layer: "
+        + ", ".join(f"{layer} {s:.1f} s" for layer, s in sorted(by_layer.items(), key=lambda x: -x[1]))
+    )
     ov = sorted(rec["overloads"].items(), key=lambda kv: -kv[1])
-    print(f"numba's own functions compiled for them: {sum(rec['overloads'].values()):.1f} s in all; largest: "
-          + ", ".join(f"{k.partition(':')[2]} ({k.partition(':')[0]}) {s:.1f} s" for k, s in ov[:6]))
+    print(
+        f"numba's own functions compiled for them: {sum(rec['overloads'].values()):.1f} s in all; largest: "
+        + ", ".join(f"{k.partition(':')[2]} ({k.partition(':')[0]}) {s:.1f} s" for k, s in ov[:6])
+    )
     multi = {k: len(s) for k, s in kernels.items() if len(s) > 1}
     print(f"kernels with more than one signature: {multi or 'none'}\n")
 
@@ -125,9 +166,25 @@ def main(argv: list[str] | None = None) -> int:
                 print(f"--kitti {args.kitti}: not a KITTI sequence (image_l/ missing)", file=sys.stderr)
                 return 2
             (work / "kitti").symlink_to(args.kitti.resolve())
-            subprocess.run([sys.executable, "-m", "planarloc.cli.main", "map", "build", str(args.kitti), "-f",
-                            "kitti", "--every", "4", "--out", str(work / "map.db")], check=True,
-                           stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+            subprocess.run(
+                [
+                    sys.executable,
+                    "-m",
+                    "planarloc.cli.main",
+                    "map",
+                    "build",
+                    str(args.kitti),
+                    "-f",
+                    "kitti",
+                    "--every",
+                    "4",
+                    "--out",
+                    str(work / "map.db"),
+                ],
+                check=True,
+                stdout=subprocess.DEVNULL,
+                stderr=subprocess.DEVNULL,
+            )
         for target in args.targets:
             before = resource.getrusage(resource.RUSAGE_CHILDREN)
             rec = profile(target, args, work)

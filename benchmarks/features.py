@@ -59,10 +59,30 @@ from planarloc.localize import localizer as localizer_module  # noqa: E402
 from planarloc.localize.localizer import Localizer, LocalizerConfig  # noqa: E402
 from planarloc.map.store import MapDatabase  # noqa: E402
 
-DATASETS = ["kitti1-every4", "kitti-every4", "fountain_p11", "entry_p10", "fountain-to-entry", "entry-to-fountain"]
-HEADERS = ["data", "features", "queries", "extract ms (query)", "extract ms (map)", "match ms (5 refs)",
-           "match ms/pair", "s/query", "0.25m/10°", "0.5m/10°", "1m/20°", "confident wrong", "> 1 m",
-           "median t [m]"]
+DATASETS = [
+    "kitti1-every4",
+    "kitti-every4",
+    "fountain_p11",
+    "entry_p10",
+    "fountain-to-entry",
+    "entry-to-fountain",
+]
+HEADERS = [
+    "data",
+    "features",
+    "queries",
+    "extract ms (query)",
+    "extract ms (map)",
+    "match ms (5 refs)",
+    "match ms/pair",
+    "s/query",
+    "0.25m/10°",
+    "0.5m/10°",
+    "1m/20°",
+    "confident wrong",
+    "> 1 m",
+    "median t [m]",
+]
 
 
 class TimedMatcher:
@@ -79,13 +99,15 @@ class TimedMatcher:
         return out
 
 
-def run_type(kind: str, data: trust.DataSet, root: Path, update: Callable[[str, int, int], None],
-             stride: int = 1) -> dict:
+def run_type(
+    kind: str, data: trust.DataSet, root: Path, update: Callable[[str, int, int], None], stride: int = 1
+) -> dict:
     """Build (or reuse) the map of ``data`` with feature type ``kind`` and localize every
     ``stride``-th query."""
     features = FeatureConfig(kind=kind)
-    map_path, build_s = cache.cached_map(data.map_images, f"{data.name}-{kind}", root, features=features,
-                                         progress=update)
+    map_path, build_s = cache.cached_map(
+        data.map_images, f"{data.name}-{kind}", root, features=features, progress=update
+    )
     config = LocalizerConfig()
     rows, t_extract = [], []
     queries = data.queries[::stride]
@@ -112,40 +134,81 @@ def run_type(kind: str, data: trust.DataSet, root: Path, update: Callable[[str, 
     m = trust.trust_metrics(rows)
     ok = [r for r in rows if r["success"]]
     return {
-        "dataset": data.name, "features": kind, "feature_name": features.name, "queries": len(rows),
-        "map_images": len(data.map_images), "build_s": build_s,
+        "dataset": data.name,
+        "features": kind,
+        "feature_name": features.name,
+        "queries": len(rows),
+        "map_images": len(data.map_images),
+        "build_s": build_s,
         "extract_ms_query": 1000 * float(np.mean(t_extract)),
         "extract_ms_map": 1000 * build_s / len(data.map_images) if build_s else None,
         "match_ms_query": 1000 * float(np.mean(t_match)) if t_match else None,
         "match_ms_pair": 1000 * float(np.sum(t_match)) / max(1, int(np.sum(pairs))),
-        "seconds_per_query": m["seconds_per_query"], "success": m["success"],
-        "confident_wrong": m["confident_wrong"], "confident_wrong_queries": m["confident_wrong_queries"],
+        "seconds_per_query": m["seconds_per_query"],
+        "success": m["success"],
+        "confident_wrong": m["confident_wrong"],
+        "confident_wrong_queries": m["confident_wrong_queries"],
         "beyond_1m": sum(r["translation_error_m"] > 1.0 for r in ok),
-        "median_translation_error_m": float(np.median([r["translation_error_m"] for r in ok])) if ok else None,
-        "status_counts": m["status_counts"], "per_query": rows,
+        "median_translation_error_m": float(np.median([r["translation_error_m"] for r in ok]))
+        if ok
+        else None,
+        "status_counts": m["status_counts"],
+        "per_query": rows,
     }
 
 
 def table_row(r: dict) -> list[str]:
-    return [r["dataset"], r["features"], str(r["queries"]), peer.fmt_num(r["extract_ms_query"], 0),
-            peer.fmt_num(r["extract_ms_map"], 0), peer.fmt_num(r["match_ms_query"], 0),
-            peer.fmt_num(r["match_ms_pair"], 0), peer.fmt_num(r["seconds_per_query"], 2),
-            *[peer.fmt_pct(v) for v in r["success"].values()], str(r["confident_wrong"]), str(r["beyond_1m"]),
-            peer.fmt_num(r["median_translation_error_m"], 3)]
+    return [
+        r["dataset"],
+        r["features"],
+        str(r["queries"]),
+        peer.fmt_num(r["extract_ms_query"], 0),
+        peer.fmt_num(r["extract_ms_map"], 0),
+        peer.fmt_num(r["match_ms_query"], 0),
+        peer.fmt_num(r["match_ms_pair"], 0),
+        peer.fmt_num(r["seconds_per_query"], 2),
+        *[peer.fmt_pct(v) for v in r["success"].values()],
+        str(r["confident_wrong"]),
+        str(r["beyond_1m"]),
+        peer.fmt_num(r["median_translation_error_m"], 3),
+    ]
 
 
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--features", nargs="+", default=["rootsift", "xfeat", "aliked-lightglue"],
-                   choices=list(FEATURE_TYPES), help="feature types (default: all; rootsift is always measured)")
-    p.add_argument("--datasets", nargs="+", default=DATASETS, choices=DATASETS, help="data sets (default: all)")
-    p.add_argument("--data-root", type=Path, default=trust.DATA_ROOT, help="shared real data (default: %(default)s)")
-    p.add_argument("--cache-dir", type=Path, default=None,
-                   help="maps, reused when their content matches (default: $TMPDIR/planarloc-bench)")
-    p.add_argument("--query-stride", type=int, default=1, metavar="K",
-                   help="localize every K-th query only (a subset for slow types; default: all)")
-    p.add_argument("--torch-threads", type=int, default=None, metavar="N",
-                   help="torch's threads for the learned types (default: PLANARLOC_TORCH_THREADS, else one per core)")
+    p.add_argument(
+        "--features",
+        nargs="+",
+        default=["rootsift", "xfeat", "aliked-lightglue"],
+        choices=list(FEATURE_TYPES),
+        help="feature types (default: all; rootsift is always measured)",
+    )
+    p.add_argument(
+        "--datasets", nargs="+", default=DATASETS, choices=DATASETS, help="data sets (default: all)"
+    )
+    p.add_argument(
+        "--data-root", type=Path, default=trust.DATA_ROOT, help="shared real data (default: %(default)s)"
+    )
+    p.add_argument(
+        "--cache-dir",
+        type=Path,
+        default=None,
+        help="maps, reused when their content matches (default: $TMPDIR/planarloc-bench)",
+    )
+    p.add_argument(
+        "--query-stride",
+        type=int,
+        default=1,
+        metavar="K",
+        help="localize every K-th query only (a subset for slow types; default: all)",
+    )
+    p.add_argument(
+        "--torch-threads",
+        type=int,
+        default=None,
+        metavar="N",
+        help="torch's threads for the learned types (default: PLANARLOC_TORCH_THREADS, else one per core)",
+    )
     p.add_argument("--json", type=Path, default=None, help="write all metrics and per-query results here")
     p.add_argument("--markdown", type=Path, default=None, help="write the table as markdown")
     args = p.parse_args(argv)
@@ -162,7 +225,8 @@ def main(argv: list[str] | None = None) -> int:
     console = Console(width=200)
     root = cache.cache_root(args.cache_dir)
     title = "Feature types: default Localizer (VLAD top-5)" + (
-        f", every {args.query_stride}th query" if args.query_stride > 1 else "")
+        f", every {args.query_stride}th query" if args.query_stride > 1 else ""
+    )
     console.print(f"# {title}")
     console.print(peer.code_note())
     console.print(peer.load_note("at start"))
@@ -199,8 +263,16 @@ def main(argv: list[str] | None = None) -> int:
         args.markdown.write_text(markdown + "\n")
     seconds = time.perf_counter() - t_start
     console.print(f"total {seconds:.0f} s; {peer.load_note('at end')}")
-    peer.write_json(args.json, {"args": {k: v for k, v in vars(args).items()}, "code": peer.code_version(),
-                                "seconds": seconds, "skipped": skipped, "results": results})
+    peer.write_json(
+        args.json,
+        {
+            "args": {k: v for k, v in vars(args).items()},
+            "code": peer.code_version(),
+            "seconds": seconds,
+            "skipped": skipped,
+            "results": results,
+        },
+    )
     return 0
 
 

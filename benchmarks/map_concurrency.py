@@ -34,10 +34,28 @@ N_MAP = 12
 
 
 def builder(dataset: Path, out: Path) -> subprocess.Popen:
-    cmd = [sys.executable, "-m", "planarloc.cli.main", "map", "build", str(dataset), "-f", "tum", "--out", str(out),
-           "--max-features", "1000", "--vocabulary-size", "16"]
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(Path(__file__).resolve().parents[1]),
-                                                        os.environ.get("PYTHONPATH", "")])}
+    cmd = [
+        sys.executable,
+        "-m",
+        "planarloc.cli.main",
+        "map",
+        "build",
+        str(dataset),
+        "-f",
+        "tum",
+        "--out",
+        str(out),
+        "--max-features",
+        "1000",
+        "--vocabulary-size",
+        "16",
+    ]
+    env = {
+        **os.environ,
+        "PYTHONPATH": os.pathsep.join(
+            [str(Path(__file__).resolve().parents[1]), os.environ.get("PYTHONPATH", "")]
+        ),
+    }
     return subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
 
 
@@ -63,9 +81,17 @@ def one_repetition(dataset: Path, out: Path, rng: np.random.Generator, kill: boo
     expected_ok = [rc == 0 for i, (rc, _) in enumerate(outcomes) if not (killed and i == 0)]
     errors = [err.strip().splitlines()[-1] for rc, err in outcomes if rc != 0 and err.strip()]
     ok = report.ok and num == N_MAP and complete and all(expected_ok)
-    return {"ok": ok, "killed": killed, "images": num, "complete": complete, "problems": report.problems,
-            "exit_codes": [rc for rc, _ in outcomes], "errors": errors, "seconds": time.perf_counter() - t0,
-            "waited": sum("being built by PID" in err for _, err in outcomes)}
+    return {
+        "ok": ok,
+        "killed": killed,
+        "images": num,
+        "complete": complete,
+        "problems": report.problems,
+        "exit_codes": [rc for rc, _ in outcomes],
+        "errors": errors,
+        "seconds": time.perf_counter() - t0,
+        "waited": sum("being built by PID" in err for _, err in outcomes),
+    }
 
 
 def main() -> int:
@@ -76,19 +102,28 @@ def main() -> int:
     args = ap.parse_args()
     rng = np.random.default_rng(args.seed)
     with tempfile.TemporaryDirectory() as tmp:
-        world = generate(shrunk(get_preset("office"), scale=0.5, n_map=N_MAP, n_query=2), Path(tmp) / "w", seed=0)
+        world = generate(
+            shrunk(get_preset("office"), scale=0.5, n_map=N_MAP, n_query=2), Path(tmp) / "w", seed=0
+        )
         results = []
         for rep in range(args.reps):
             r = one_repetition(world / "map", Path(tmp) / f"map{rep}.db", rng, kill=rep % 3 == 2)
             results.append(r)
-            print(f"rep {rep + 1:2d}/{args.reps}: {'ok ' if r['ok'] else 'BAD'} images {r['images']:2d} "
-                  f"complete {r['complete']!s:5} exit {r['exit_codes']} killed {r['killed']!s:5} "
-                  f"waited {r['waited']} {r['seconds']:.1f} s {r['problems'][:1]} {r['errors'][:1]}",
-                  file=sys.stderr, flush=True)
+            print(
+                f"rep {rep + 1:2d}/{args.reps}: {'ok ' if r['ok'] else 'BAD'} images {r['images']:2d} "
+                f"complete {r['complete']!s:5} exit {r['exit_codes']} killed {r['killed']!s:5} "
+                f"waited {r['waited']} {r['seconds']:.1f} s {r['problems'][:1]} {r['errors'][:1]}",
+                file=sys.stderr,
+                flush=True,
+            )
     bad = [r for r in results if not r["ok"]]
-    summary = {"repetitions": len(results), "ok": len(results) - len(bad), "bad": len(bad),
-               "killed_runs": sum(r["killed"] for r in results),
-               "runs_where_a_builder_waited": sum(r["waited"] > 0 for r in results)}
+    summary = {
+        "repetitions": len(results),
+        "ok": len(results) - len(bad),
+        "bad": len(bad),
+        "killed_runs": sum(r["killed"] for r in results),
+        "runs_where_a_builder_waited": sum(r["waited"] > 0 for r in results),
+    }
     print(json.dumps(summary))
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)

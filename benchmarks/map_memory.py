@@ -44,12 +44,22 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--images", type=int, default=1000, help="map images (default: %(default)s)")
     p.add_argument("--features", type=int, default=4000, help="features per image (default: %(default)s)")
-    p.add_argument("--queries", type=int, default=5, help="queries served by the subprocess (default: %(default)s)")
+    p.add_argument(
+        "--queries", type=int, default=5, help="queries served by the subprocess (default: %(default)s)"
+    )
     p.add_argument("--seed", type=int, default=0, help="seed of the random map (default: %(default)s)")
-    p.add_argument("--storage", choices=STORAGE_LAYOUTS, default=DEFAULT_STORAGE,
-                   help="storage layout of the map (planarloc.map.codec; default: %(default)s)")
-    p.add_argument("--map", type=Path, default=None,
-                   help="map file to build, or to reuse if it is complete with the same size (default: temporary)")
+    p.add_argument(
+        "--storage",
+        choices=STORAGE_LAYOUTS,
+        default=DEFAULT_STORAGE,
+        help="storage layout of the map (planarloc.map.codec; default: %(default)s)",
+    )
+    p.add_argument(
+        "--map",
+        type=Path,
+        default=None,
+        help="map file to build, or to reuse if it is complete with the same size (default: temporary)",
+    )
     p.add_argument("--json", type=Path, default=None, help="write the measurements here")
     p.add_argument("--child", type=Path, default=None, help=argparse.SUPPRESS)  # internal: the fresh process
     return p.parse_args(argv)
@@ -81,8 +91,9 @@ def planar_trajectory(rng: np.random.Generator, n: int, step_m: float = 0.5):
     return poses
 
 
-def build_random_map(path: Path, num_images: int, num_features: int, seed: int,
-                     storage: str = DEFAULT_STORAGE) -> dict:
+def build_random_map(
+    path: Path, num_images: int, num_features: int, seed: int, storage: str = DEFAULT_STORAGE
+) -> dict:
     from planarloc.features.extract import FeatureConfig, Features
     from planarloc.geometry.camera import Camera
     from planarloc.map.builder import index_map
@@ -93,15 +104,21 @@ def build_random_map(path: Path, num_images: int, num_features: int, seed: int,
     camera = Camera(*CAMERA)
     features_cfg = FeatureConfig(max_features=num_features)
     # The same config layout as build_map writes, so the Localizer reads the feature settings back.
-    config = {"features": dataclasses.asdict(features_cfg), "feature_name": features_cfg.name,
-              "retrieval": {"type": "vlad", "num_words": 64}, "synthetic": "benchmarks/map_memory.py"}
+    config = {
+        "features": dataclasses.asdict(features_cfg),
+        "feature_name": features_cfg.name,
+        "retrieval": {"type": "vlad", "num_words": 64},
+        "synthetic": "benchmarks/map_memory.py",
+    }
     t0 = time.perf_counter()
     with MapDatabase.create(path, config, overwrite=True, storage=storage) as db:
         for i, pose in enumerate(planar_trajectory(rng, num_images)):
-            kp = (rng.random((num_features, 2), dtype=np.float32) * np.float32([CAMERA[1], CAMERA[2]]))
+            kp = rng.random((num_features, 2), dtype=np.float32) * np.float32([CAMERA[1], CAMERA[2]])
             scales = rng.uniform(2.0, 30.0, num_features).astype(np.float32)
             f = Features(kp, rootsift_like(rng, num_features), scales)
-            db.add_image(PosedImage(f"synthetic/{i:06d}.png", Path(f"synthetic/{i:06d}.png"), pose, camera, i), f)
+            db.add_image(
+                PosedImage(f"synthetic/{i:06d}.png", Path(f"synthetic/{i:06d}.png"), pose, camera, i), f
+            )
             progress("add images", i + 1, num_images)
         t1 = time.perf_counter()
         index_map(db, progress=progress)
@@ -117,8 +134,12 @@ def map_is_reusable(path: Path, num_images: int, storage: str = DEFAULT_STORAGE)
         return False
     try:
         with MapDatabase.open(path) as db:
-            return (db.is_complete and db.num_images() == num_images and "synthetic" in db.config
-                    and db.storage == storage)
+            return (
+                db.is_complete
+                and db.num_images() == num_images
+                and "synthetic" in db.config
+                and db.storage == storage
+            )
     except Exception:  # noqa: BLE001 - anything unreadable is rebuilt
         return False
 
@@ -158,15 +179,29 @@ def child(map_path: Path, num_queries: int, seed: int) -> int:
         d = np.concatenate([a.descriptors[:half], b.descriptors[half:]])
         d = np.abs(d + rng.normal(0.0, 0.003, d.shape).astype(np.float32))
         d /= np.linalg.norm(d, axis=1, keepdims=True)
-        feats = Features(kp + rng.normal(0.0, 1.0, kp.shape).astype(np.float32), d,
-                         np.concatenate([a.scales[:half], b.scales[half:]]))
+        feats = Features(
+            kp + rng.normal(0.0, 1.0, kp.shape).astype(np.float32),
+            d,
+            np.concatenate([a.scales[:half], b.scales[half:]]),
+        )
         camera = loc.db.get_camera(names[i])
         t1 = time.perf_counter()
         est = loc.localize_features(feats, camera)
-        queries.append({"source": names[i], "seconds": time.perf_counter() - t1, "status": est.status,
-                        "references": est.references, "source_retrieved": names[i] in est.references,
-                        "time_s": dict(est.stats.time_s)})
-        print(f"  query {k + 1}/{num_queries}: {est.status}, {queries[-1]['seconds']:.2f} s", file=sys.stderr, flush=True)
+        queries.append(
+            {
+                "source": names[i],
+                "seconds": time.perf_counter() - t1,
+                "status": est.status,
+                "references": est.references,
+                "source_retrieved": names[i] in est.references,
+                "time_s": dict(est.stats.time_s),
+            }
+        )
+        print(
+            f"  query {k + 1}/{num_queries}: {est.status}, {queries[-1]['seconds']:.2f} s",
+            file=sys.stderr,
+            flush=True,
+        )
     out["queries"] = queries
     out["rss_end_mb"] = rss_mb("VmRSS")
     out["vm_hwm_mb"] = rss_mb("VmHWM")
@@ -181,15 +216,21 @@ def main(argv: list[str] | None = None) -> int:
     if args.child is not None:
         return child(args.child, args.queries, args.seed)
     t_start = time.perf_counter()
-    print(f"# Map memory: {args.images} images x {args.features} random RootSIFT-like features, "
-          f"{args.storage} storage, {args.queries} queries in a fresh process")
+    print(
+        f"# Map memory: {args.images} images x {args.features} random RootSIFT-like features, "
+        f"{args.storage} storage, {args.queries} queries in a fresh process"
+    )
     print(peer.code_note())
     print(peer.load_note("at start"))
     tmp = None if args.map else tempfile.TemporaryDirectory(prefix="planarloc-memory-")
     path = args.map or Path(tmp.name) / f"random-{args.images}.db"
-    report: dict = {"images": args.images, "features_per_image": args.features, "storage": args.storage,
-                    "code": peer.code_version(),
-                    "load_average_start": peer.load_average()}
+    report: dict = {
+        "images": args.images,
+        "features_per_image": args.features,
+        "storage": args.storage,
+        "code": peer.code_version(),
+        "load_average_start": peer.load_average(),
+    }
     try:
         if map_is_reusable(path, args.images, args.storage):
             peer.log(f"reusing {path}")
@@ -199,8 +240,16 @@ def main(argv: list[str] | None = None) -> int:
         size_mb = sum(p.stat().st_size for p in path.parent.glob(path.name + "*")) / 2**20
         report["map_file_mb"] = size_mb
         peer.log("opening the map in a fresh process")
-        cmd = [sys.executable, str(Path(__file__).resolve()), "--child", str(path), "--queries", str(args.queries),
-               "--seed", str(args.seed)]
+        cmd = [
+            sys.executable,
+            str(Path(__file__).resolve()),
+            "--child",
+            str(path),
+            "--queries",
+            str(args.queries),
+            "--seed",
+            str(args.seed),
+        ]
         proc = subprocess.run(cmd, stdout=subprocess.PIPE, text=True)
         if proc.returncode != 0:
             print(f"the subprocess failed with exit code {proc.returncode}: {' '.join(cmd)}")
@@ -214,13 +263,21 @@ def main(argv: list[str] | None = None) -> int:
     b = report["build"]
     q_s = [q["seconds"] for q in res["queries"]]
     rows = [
-        ["map file", f"{size_mb:.0f} MB ({args.images} images x {args.features} features, uint8 descriptors)"],
-        ["build (add images + index_map)", "reused" if b is None else
-         f"{b['add_images_seconds']:.0f} s + {b['index_seconds']:.0f} s"],
+        [
+            "map file",
+            f"{size_mb:.0f} MB ({args.images} images x {args.features} features, uint8 descriptors)",
+        ],
+        [
+            "build (add images + index_map)",
+            "reused" if b is None else f"{b['add_images_seconds']:.0f} s + {b['index_seconds']:.0f} s",
+        ],
         ["open (Localizer(map))", f"{res['open_seconds']:.2f} s"],
         ["query (localize_features, 5 map images)", f"median {np.median(q_s):.2f} s (n = {len(q_s)})"],
-        ["query statuses", ", ".join(sorted({q['status'] for q in res["queries"]}))],
-        ["source image among the retrieved", f"{sum(q['source_retrieved'] for q in res['queries'])}/{len(q_s)}"],
+        ["query statuses", ", ".join(sorted({q["status"] for q in res["queries"]}))],
+        [
+            "source image among the retrieved",
+            f"{sum(q['source_retrieved'] for q in res['queries'])}/{len(q_s)}",
+        ],
         ["RSS after imports", f"{res['rss_after_imports_mb']:.0f} MB"],
         ["RSS after open", f"{res['rss_after_open_mb']:.0f} MB"],
         ["RSS after the queries", f"{res['rss_end_mb']:.0f} MB"],
@@ -234,8 +291,13 @@ def main(argv: list[str] | None = None) -> int:
     report["target"] = {"pass": ok, "peak_rss_gb": peak_gb, "limit_gb": LIMIT_GB}
     print()
     print("## Target")
-    print(peer.verdict(ok, f"peak RSS {res['ru_maxrss_mb']:.0f} MB = {peak_gb:.2f} GB of the process that opens "
-                           f"the {args.images}-image map and serves {len(q_s)} queries (limit {LIMIT_GB:g} GB)"))
+    print(
+        peer.verdict(
+            ok,
+            f"peak RSS {res['ru_maxrss_mb']:.0f} MB = {peak_gb:.2f} GB of the process that opens "
+            f"the {args.images}-image map and serves {len(q_s)} queries (limit {LIMIT_GB:g} GB)",
+        )
+    )
     report["seconds"] = time.perf_counter() - t_start
     report["load_average_end"] = load
     peer.write_json(args.json, report)

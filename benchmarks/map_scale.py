@@ -48,13 +48,24 @@ SHARED = Path(__file__).resolve().parents[2] / "shared" / "data"
 
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--sizes", type=int, nargs="+", default=[1000, 5000, 20000], help="map sizes (default: %(default)s)")
+    p.add_argument(
+        "--sizes", type=int, nargs="+", default=[1000, 5000, 20000], help="map sizes (default: %(default)s)"
+    )
     p.add_argument("--features", type=int, default=1500, help="features per image (default: %(default)s)")
-    p.add_argument("--queries", type=int, default=50, help="retrieval queries per size (default: %(default)s)")
+    p.add_argument(
+        "--queries", type=int, default=50, help="retrieval queries per size (default: %(default)s)"
+    )
     p.add_argument("--serve", type=int, default=5, help="of them localized end to end (default: %(default)s)")
-    p.add_argument("--dir", type=Path, default=None, help="keep the maps here and reuse them (default: temporary)")
-    p.add_argument("--ray-data", type=Path, nargs="+", default=[SHARED / "kitti_seq1", SHARED / "kitti_seq2"],
-                   help="KITTI sequences whose frames the Ray builds extract (default: ../shared/data/kitti_seq1, 2)")
+    p.add_argument(
+        "--dir", type=Path, default=None, help="keep the maps here and reuse them (default: temporary)"
+    )
+    p.add_argument(
+        "--ray-data",
+        type=Path,
+        nargs="+",
+        default=[SHARED / "kitti_seq1", SHARED / "kitti_seq2"],
+        help="KITTI sequences whose frames the Ray builds extract (default: ../shared/data/kitti_seq1, 2)",
+    )
     p.add_argument("--no-ray", action="store_true", help="skip the Ray build throughput")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--json", type=Path, default=None, help="write the measurements here")
@@ -81,10 +92,15 @@ def query_features(loc, name_a: str, name_b: str, rng: np.random.Generator):
     a, b = loc.db.get_features(name_a), loc.db.get_features(name_b)
     half = len(a) // 2
     kp = np.concatenate([a.keypoints[:half], b.keypoints[half:]])
-    d = np.abs(np.concatenate([a.descriptors[:half], b.descriptors[half:]]) + rng.normal(0, 0.003, (len(kp), 128)))
+    d = np.abs(
+        np.concatenate([a.descriptors[:half], b.descriptors[half:]]) + rng.normal(0, 0.003, (len(kp), 128))
+    )
     d = (d / np.linalg.norm(d, axis=1, keepdims=True)).astype(np.float32)
-    return Features((kp + rng.normal(0, 1.0, kp.shape)).astype(np.float32), d,
-                    np.concatenate([a.scales[:half], b.scales[half:]]))
+    return Features(
+        (kp + rng.normal(0, 1.0, kp.shape)).astype(np.float32),
+        d,
+        np.concatenate([a.scales[:half], b.scales[half:]]),
+    )
 
 
 def child(map_path: Path, num_queries: int, num_serve: int, seed: int) -> int:
@@ -117,9 +133,15 @@ def child(map_path: Path, num_queries: int, num_serve: int, seed: int) -> int:
             t3 = time.perf_counter()
             est = loc.localize_features(feats, camera)
             served.append({"seconds": time.perf_counter() - t3, "status": est.status})
-    out.update(retrieval_ms=[1e3 * s for s in retrieval], search_ms=[1e3 * s for s in search],
-               source_retrieved=found / num_queries, served=served, rss_end_mb=rss_mb("VmRSS"),
-               vm_hwm_mb=rss_mb("VmHWM"), ru_maxrss_mb=resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0)
+    out.update(
+        retrieval_ms=[1e3 * s for s in retrieval],
+        search_ms=[1e3 * s for s in search],
+        source_retrieved=found / num_queries,
+        served=served,
+        rss_end_mb=rss_mb("VmRSS"),
+        vm_hwm_mb=rss_mb("VmHWM"),
+        ru_maxrss_mb=resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
+    )
     print(json.dumps(out))
     return 0
 
@@ -129,8 +151,18 @@ BLAS_ENV = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")
 
 def measure(path: Path, args: argparse.Namespace, blas_threads: int | None) -> dict:
     """The fresh process' measurements, with BLAS' default threads (None) or ``blas_threads``."""
-    cmd = [sys.executable, str(Path(__file__).resolve()), "--child", str(path), "--queries", str(args.queries),
-           "--serve", str(args.serve), "--seed", str(args.seed)]
+    cmd = [
+        sys.executable,
+        str(Path(__file__).resolve()),
+        "--child",
+        str(path),
+        "--queries",
+        str(args.queries),
+        "--serve",
+        str(args.serve),
+        "--seed",
+        str(args.seed),
+    ]
     env = {k: v for k, v in os.environ.items() if k not in BLAS_ENV}
     if blas_threads is not None:
         env.update({k: str(blas_threads) for k in BLAS_ENV})
@@ -184,8 +216,10 @@ def main(argv: list[str] | None = None) -> int:
     if args.child is not None:
         return child(args.child, args.queries, args.serve, args.seed)
     t_start = time.perf_counter()
-    print(f"# Building scale: maps of {', '.join(f'{n:,}' for n in args.sizes)} generated images x "
-          f"{args.features} RootSIFT-like features; {args.queries} queries each in a fresh process")
+    print(
+        f"# Building scale: maps of {', '.join(f'{n:,}' for n in args.sizes)} generated images x "
+        f"{args.features} RootSIFT-like features; {args.queries} queries each in a fresh process"
+    )
     print(peer.code_note())
     print(peer.load_note("at start"))
     from planarloc.cli.warmup_command import compile_ahead
@@ -196,8 +230,12 @@ def main(argv: list[str] | None = None) -> int:
     tmp = None if args.dir else tempfile.TemporaryDirectory(prefix="planarloc-scale-")
     root = args.dir or Path(tmp.name)
     root.mkdir(parents=True, exist_ok=True)
-    report: dict = {"features_per_image": args.features, "code": peer.code_version(), "sizes": {},
-                    "load_average_start": peer.load_average()}
+    report: dict = {
+        "features_per_image": args.features,
+        "code": peer.code_version(),
+        "sizes": {},
+        "load_average_start": peer.load_average(),
+    }
     try:
         for n in args.sizes:
             path = root / f"scale-{n}-{args.features}.db"
@@ -218,42 +256,84 @@ def main(argv: list[str] | None = None) -> int:
     rows = []
     for n, e in report["sizes"].items():
         c, c1, b = e["child"], e["child_blas1"], e.get("build")
-        rows.append([f"{n:,}", f"{e['map_file_mb']:.0f} MB ({1024 * e['map_file_mb'] / n:.0f} KB/image)",
-                     "reused" if b is None else f"{b['add_images_seconds']:.0f} + {b['index_seconds']:.0f} s",
-                     "512-D projection" if c["projected"] else "8192-D int4", f"{c['open_s']:.2f} s",
-                     f"{np.median(c['retrieval_ms']):.1f} ms ({np.percentile(c['retrieval_ms'], 90):.1f})",
-                     f"{np.median(c1['retrieval_ms']):.1f} ms ({np.percentile(c1['retrieval_ms'], 90):.1f})",
-                     f"{np.median(c['search_ms']):.2f} ms", f"{100 * c['source_retrieved']:.0f} %",
-                     f"{np.median([s['seconds'] for s in c['served']]):.2f} s" if c["served"] else "-",
-                     f"{c['rss_after_open_mb']:.0f} / {c['vm_hwm_mb']:.0f} MB"])
+        rows.append(
+            [
+                f"{n:,}",
+                f"{e['map_file_mb']:.0f} MB ({1024 * e['map_file_mb'] / n:.0f} KB/image)",
+                "reused" if b is None else f"{b['add_images_seconds']:.0f} + {b['index_seconds']:.0f} s",
+                "512-D projection" if c["projected"] else "8192-D int4",
+                f"{c['open_s']:.2f} s",
+                f"{np.median(c['retrieval_ms']):.1f} ms ({np.percentile(c['retrieval_ms'], 90):.1f})",
+                f"{np.median(c1['retrieval_ms']):.1f} ms ({np.percentile(c1['retrieval_ms'], 90):.1f})",
+                f"{np.median(c['search_ms']):.2f} ms",
+                f"{100 * c['source_retrieved']:.0f} %",
+                f"{np.median([s['seconds'] for s in c['served']]):.2f} s" if c["served"] else "-",
+                f"{c['rss_after_open_mb']:.0f} / {c['vm_hwm_mb']:.0f} MB",
+            ]
+        )
     print()
-    print(peer.markdown_table(["images", "map file", "build (add + index)", "global descriptors", "open",
-                               "retrieval median (p90)", "same, 1 BLAS thread", "search alone", "source retrieved",
-                               "query end to end", "RSS after open / peak"], rows,
-                              "Maps of generated images served from a fresh process"))
+    print(
+        peer.markdown_table(
+            [
+                "images",
+                "map file",
+                "build (add + index)",
+                "global descriptors",
+                "open",
+                "retrieval median (p90)",
+                "same, 1 BLAS thread",
+                "search alone",
+                "source retrieved",
+                "query end to end",
+                "RSS after open / peak",
+            ],
+            rows,
+            "Maps of generated images served from a fresh process",
+        )
+    )
     ray = report.get("ray")
     if ray:
         print()
-        print(peer.markdown_table(["build", "seconds", "images/s"],
-                                  [[k, f"{v['seconds']:.1f}", f"{v['images_per_s']:.2f}"] for k, v in ray.items()
-                                   if isinstance(v, dict)],
-                                  f"Map-build throughput, {ray['images']} KITTI frames"))
-        print(f"Ray 2 CPUs / 1 CPU: {ray['ray, 2 CPUs']['images_per_s'] / ray['ray, 1 CPU']['images_per_s']:.2f}x")
+        print(
+            peer.markdown_table(
+                ["build", "seconds", "images/s"],
+                [
+                    [k, f"{v['seconds']:.1f}", f"{v['images_per_s']:.2f}"]
+                    for k, v in ray.items()
+                    if isinstance(v, dict)
+                ],
+                f"Map-build throughput, {ray['images']} KITTI frames",
+            )
+        )
+        print(
+            f"Ray 2 CPUs / 1 CPU: {ray['ray, 2 CPUs']['images_per_s'] / ray['ray, 1 CPU']['images_per_s']:.2f}x"
+        )
     report["load_average_end"] = peer.load_average()
     print(peer.load_note())
     largest = report["sizes"][max(report["sizes"])]["child"]
-    checks = [(largest["open_s"] <= TARGET_OPEN_S, f"open {largest['open_s']:.2f} s (target ≤ {TARGET_OPEN_S:g} s)"),
-              (np.median(largest["retrieval_ms"]) <= TARGET_RETRIEVAL_MS,
-               f"retrieval {np.median(largest['retrieval_ms']):.1f} ms per query (target ≤ {TARGET_RETRIEVAL_MS:g} ms)"),
-              (largest["vm_hwm_mb"] / 1024 <= TARGET_RSS_GB,
-               f"peak RSS {largest['vm_hwm_mb']:.0f} MB while serving (target ≤ {TARGET_RSS_GB:g} GB)")]
+    checks = [
+        (
+            largest["open_s"] <= TARGET_OPEN_S,
+            f"open {largest['open_s']:.2f} s (target ≤ {TARGET_OPEN_S:g} s)",
+        ),
+        (
+            np.median(largest["retrieval_ms"]) <= TARGET_RETRIEVAL_MS,
+            f"retrieval {np.median(largest['retrieval_ms']):.1f} ms per query (target ≤ {TARGET_RETRIEVAL_MS:g} ms)",
+        ),
+        (
+            largest["vm_hwm_mb"] / 1024 <= TARGET_RSS_GB,
+            f"peak RSS {largest['vm_hwm_mb']:.0f} MB while serving (target ≤ {TARGET_RSS_GB:g} GB)",
+        ),
+    ]
     print()
     print(f"## Targets ({max(report['sizes']):,} images)")
     for ok, text in checks:
         print(peer.verdict(ok, text))
     one = report["sizes"][max(report["sizes"])]["child_blas1"]
-    print(f"(with one BLAS thread: retrieval {np.median(one['retrieval_ms']):.1f} ms per query, open "
-          f"{one['open_s']:.2f} s, peak RSS {one['vm_hwm_mb']:.0f} MB)")
+    print(
+        f"(with one BLAS thread: retrieval {np.median(one['retrieval_ms']):.1f} ms per query, open "
+        f"{one['open_s']:.2f} s, peak RSS {one['vm_hwm_mb']:.0f} MB)"
+    )
     report["targets"] = [{"pass": ok, "text": text} for ok, text in checks]
     report["seconds"] = time.perf_counter() - t_start
     peer.write_json(args.json, report)

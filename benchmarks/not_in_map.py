@@ -34,8 +34,12 @@ from planarloc.map.builder import build_map
 
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "data"
 SETS = {"kitti_seq1": "kitti", "kitti_seq2": "kitti", "fountain_p11": "kapture", "entry_p10": "kapture"}
-ELSEWHERE = [("kitti_seq2", "kitti_seq1"), ("kitti_seq1", "kitti_seq2"), ("entry_p10", "fountain_p11"),
-             ("fountain_p11", "entry_p10")]
+ELSEWHERE = [
+    ("kitti_seq2", "kitti_seq1"),
+    ("kitti_seq1", "kitti_seq2"),
+    ("entry_p10", "fountain_p11"),
+    ("fountain_p11", "entry_p10"),
+]
 
 
 def run(label: str, kind: str, map_images: list, queries: list, folder: Path, truth_in_frame: bool) -> dict:
@@ -52,13 +56,23 @@ def run(label: str, kind: str, map_images: list, queries: list, folder: Path, tr
             wrong += not (t < 0.25 and r < 10.0)
             beyond += not (t < 1.0 and r < 20.0)
     n = len(queries)
-    out = {"label": label, "kind": kind, "queries": n, "success": statuses.get("success", 0),
-           "not_in_map": statuses.get("not_in_map", 0), "statuses": dict(statuses),
-           "wrong_successes": wrong if truth_in_frame else None, "beyond_1m": beyond if truth_in_frame else None,
-           "seconds_per_query": (time.perf_counter() - t0) / max(n, 1)}
+    out = {
+        "label": label,
+        "kind": kind,
+        "queries": n,
+        "success": statuses.get("success", 0),
+        "not_in_map": statuses.get("not_in_map", 0),
+        "statuses": dict(statuses),
+        "wrong_successes": wrong if truth_in_frame else None,
+        "beyond_1m": beyond if truth_in_frame else None,
+        "seconds_per_query": (time.perf_counter() - t0) / max(n, 1),
+    }
     other = ", ".join(f"{k} {v}" for k, v in sorted(statuses.items()) if k not in ("success", "not_in_map"))
-    print(f"{label:34s} {kind:9s} {n:3d} queries  success {out['success']:3d}  not_in_map {out['not_in_map']:3d}  "
-          f"wrong {out['wrong_successes']}  other: {other or '-'}  ({out['seconds_per_query']:.2f} s/query)", flush=True)
+    print(
+        f"{label:34s} {kind:9s} {n:3d} queries  success {out['success']:3d}  not_in_map {out['not_in_map']:3d}  "
+        f"wrong {out['wrong_successes']}  other: {other or '-'}  ({out['seconds_per_query']:.2f} s/query)",
+        flush=True,
+    )
     return out
 
 
@@ -74,17 +88,28 @@ def main(argv: list[str] | None = None) -> int:
     with tempfile.TemporaryDirectory() as tmp:
         folder = Path(tmp)
         for map_set, query_set in ELSEWHERE:
-            results.append(run(f"{query_set} vs map of {map_set}", "elsewhere", data[map_set], data[query_set], folder,
-                               truth_in_frame=False))
+            results.append(
+                run(
+                    f"{query_set} vs map of {map_set}",
+                    "elsewhere",
+                    data[map_set],
+                    data[query_set],
+                    folder,
+                    truth_in_frame=False,
+                )
+            )
         for name, images in data.items():
-            results.append(run(f"{name} (map every 2nd)", "held", images[::2], images[1::2], folder,
-                               truth_in_frame=True))
+            results.append(
+                run(f"{name} (map every 2nd)", "held", images[::2], images[1::2], folder, truth_in_frame=True)
+            )
     elsewhere = [r for r in results if r["kind"] == "elsewhere"]
     held = [r for r in results if r["kind"] == "held"]
-    print(f"elsewhere: {sum(r['not_in_map'] for r in elsewhere)} of {sum(r['queries'] for r in elsewhere)} queries "
-          f"not_in_map, {sum(r['success'] for r in elsewhere)} successes; held: "
-          f"{sum(r['not_in_map'] for r in held)} of {sum(r['queries'] for r in held)} queries called not_in_map, "
-          f"{sum(r['wrong_successes'] for r in held)} wrong successes")
+    print(
+        f"elsewhere: {sum(r['not_in_map'] for r in elsewhere)} of {sum(r['queries'] for r in elsewhere)} queries "
+        f"not_in_map, {sum(r['success'] for r in elsewhere)} successes; held: "
+        f"{sum(r['not_in_map'] for r in held)} of {sum(r['queries'] for r in held)} queries called not_in_map, "
+        f"{sum(r['wrong_successes'] for r in held)} wrong successes"
+    )
     if args.json:
         args.json.write_text(json.dumps(results, indent=1) + "\n")
     return 0 if all(r["success"] == 0 for r in elsewhere) and all(r["not_in_map"] == 0 for r in held) else 1

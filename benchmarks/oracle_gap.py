@@ -50,10 +50,17 @@ from planarloc.synthetic.scenes import make_scene  # noqa: E402
 def run_scene(task: tuple[int, int, int, float, bool, str]) -> dict:
     seed, k, matches, outliers, with_2p2p, method = task
     ss = np.random.SeedSequence([seed, 777, k])
-    sc = make_scene(np.random.default_rng(ss), num_refs=3, matches_per_pair=matches, noise_px=1.5,
-                    outlier_ratio=outliers)
-    opts = RansacOptions(max_iterations=ITERATIONS, min_iterations=ITERATIONS, threshold_px=THRESHOLD_PX,
-                         seed=int(ss.generate_state(1)[0]), structure="none", cross_check=method != "2p1p")
+    sc = make_scene(
+        np.random.default_rng(ss), num_refs=3, matches_per_pair=matches, noise_px=1.5, outlier_ratio=outliers
+    )
+    opts = RansacOptions(
+        max_iterations=ITERATIONS,
+        min_iterations=ITERATIONS,
+        threshold_px=THRESHOLD_PX,
+        seed=int(ss.generate_state(1)[0]),
+        structure="none",
+        cross_check=method != "2p1p",
+    )
 
     def judged(est) -> tuple[bool, bool, object]:
         pose = est.pose if est.success else est.unreliable_pose
@@ -83,38 +90,60 @@ def run_scene(task: tuple[int, int, int, float, bool, str]) -> dict:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
-                                 epilog="example: python benchmarks/oracle_gap.py --matches 20 --outliers 0.6 "
-                                        "--scenes 600 --seeds 1 2 3 4 5")
+    ap = argparse.ArgumentParser(
+        description=__doc__.split("\n\n")[0],
+        epilog="example: python benchmarks/oracle_gap.py --matches 20 --outliers 0.6 "
+        "--scenes 600 --seeds 1 2 3 4 5",
+    )
     ap.add_argument("--matches", type=int, default=20, help="matches per pair (default 20)")
     ap.add_argument("--outliers", type=float, default=0.6, help="outlier ratio (default 0.6)")
     ap.add_argument("--scenes", type=int, default=600, help="scenes per seed (default 600)")
     ap.add_argument("--seeds", type=int, nargs="+", default=[1, 2, 3, 4, 5], help="scene seeds (default 1-5)")
-    ap.add_argument("--jobs", type=int, default=min(2, os.cpu_count() or 1), help="worker processes (default 2)")
+    ap.add_argument(
+        "--jobs", type=int, default=min(2, os.cpu_count() or 1), help="worker processes (default 2)"
+    )
     ap.add_argument("--with-2p2p", action="store_true", help="also run 2p2p on every scene")
-    ap.add_argument("--method", choices=["2p1p", "auto"], default="2p1p",
-                    help="2p1p (the paper's, no cross-check; default) or auto (the library's default)")
+    ap.add_argument(
+        "--method",
+        choices=["2p1p", "auto"],
+        default="2p1p",
+        help="2p1p (the paper's, no cross-check; default) or auto (the library's default)",
+    )
     a = ap.parse_args()
     if a.matches < 2 or a.scenes < 1 or not 0.0 <= a.outliers < 1.0:
-        ap.error(f"need --matches >= 2, --scenes >= 1, 0 <= --outliers < 1; got {a.matches}, {a.scenes}, "
-                 f"{a.outliers}")
+        ap.error(
+            f"need --matches >= 2, --scenes >= 1, 0 <= --outliers < 1; got {a.matches}, {a.scenes}, "
+            f"{a.outliers}"
+        )
     tasks = [(s, k, a.matches, a.outliers, a.with_2p2p, a.method) for s in a.seeds for k in range(a.scenes)]
 
     def warm_up() -> None:
-        sc = make_scene(np.random.default_rng(0), num_refs=3, matches_per_pair=20, noise_px=1.5, outlier_ratio=0.2)
+        sc = make_scene(
+            np.random.default_rng(0), num_refs=3, matches_per_pair=20, noise_px=1.5, outlier_ratio=0.2
+        )
         for method in ("2p1p", "2p2p", a.method):
-            estimate_absolute_pose(sc.query_camera, sc.pairs, method,
-                                   RansacOptions(max_iterations=20, min_iterations=20, structure="none"))
+            estimate_absolute_pose(
+                sc.query_camera,
+                sc.pairs,
+                method,
+                RansacOptions(max_iterations=20, min_iterations=20, structure="none"),
+            )
 
     res = run_trials("oracle_gap", tasks, run_scene, a.jobs, warm_up)
     n = len(res)
-    rate = {m: 100.0 * sum(r[m] for r in res) / n for m in ("ok", "oracle") + (("2p2p",) if a.with_2p2p else ())}
-    print(f"{a.matches} matches/pair, {100 * a.outliers:.0f} % outliers, {n} scenes (seeds {a.seeds}): "
-          f"{a.method} {rate['ok']:.1f} %, oracle {rate['oracle']:.1f} %, gap {rate['oracle'] - rate['ok']:.1f} points"
-          + (f", 2p2p {rate['2p2p']:.1f} %" if a.with_2p2p else ""))
+    rate = {
+        m: 100.0 * sum(r[m] for r in res) / n for m in ("ok", "oracle") + (("2p2p",) if a.with_2p2p else ())
+    }
+    print(
+        f"{a.matches} matches/pair, {100 * a.outliers:.0f} % outliers, {n} scenes (seeds {a.seeds}): "
+        f"{a.method} {rate['ok']:.1f} %, oracle {rate['oracle']:.1f} %, gap {rate['oracle'] - rate['ok']:.1f} points"
+        + (f", 2p2p {rate['2p2p']:.1f} %" if a.with_2p2p else "")
+    )
     classes = Counter(r["class"] for r in res if "class" in r)
-    print(f"oracle succeeds, {a.method} fails: {sum(classes.values())} ({dict(classes)}); "
-          f"{a.method} succeeds, oracle fails: {sum(1 for r in res if r['ok'] and not r['oracle'])}")
+    print(
+        f"oracle succeeds, {a.method} fails: {sum(classes.values())} ({dict(classes)}); "
+        f"{a.method} succeeds, oracle fails: {sum(1 for r in res if r['ok'] and not r['oracle'])}"
+    )
 
 
 if __name__ == "__main__":

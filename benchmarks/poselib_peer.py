@@ -54,8 +54,12 @@ def poselib_camera(camera: Camera) -> dict:
     """A PoseLib camera dict of the same model and parameters (COLMAP names and order)."""
     if camera.model not in (CameraModel.PINHOLE, CameraModel.SIMPLE_PINHOLE, CameraModel.OPENCV):
         raise ValueError(f"camera model {camera.model} has no PoseLib counterpart here")
-    return {"model": camera.model.value, "width": camera.width, "height": camera.height,
-            "params": list(camera.params)}
+    return {
+        "model": camera.model.value,
+        "width": camera.width,
+        "height": camera.height,
+        "params": list(camera.params),
+    }
 
 
 def poselib_pose(pose: Pose) -> poselib.CameraPose:
@@ -100,11 +104,16 @@ def estimate_query_pose_poselib(
     rig1_cams = [poselib_camera(query_camera)]
     rig2_ext = [poselib_pose(p.ref_pose) for p in pairs]
     rig2_cams = [poselib_camera(p.ref_camera) for p in pairs]
-    ransac_opt = {"min_iterations": iterations, "max_iterations": iterations,
-                  "max_epipolar_error": threshold_px, "seed": seed}
+    ransac_opt = {
+        "min_iterations": iterations,
+        "max_iterations": iterations,
+        "max_epipolar_error": threshold_px,
+        "seed": seed,
+    }
     bundle_opt = {} if refine else {"max_iterations": 0}
     rig2_from_rig1, info = poselib.estimate_generalized_relative_pose(
-        matches, rig1_ext, rig1_cams, rig2_ext, rig2_cams, ransac_opt, bundle_opt)
+        matches, rig1_ext, rig1_cams, rig2_ext, rig2_cams, ransac_opt, bundle_opt
+    )
     elapsed, cpu = time.perf_counter() - t0, time.process_time() - c0
     R, t = np.asarray(rig2_from_rig1.R), np.asarray(rig2_from_rig1.t)
     pose = None

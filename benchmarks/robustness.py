@@ -55,7 +55,11 @@ METHODS = ("2p1p", "2p2p", "5p5p-nister", "5p5p-stewenius", "8p8p")
 ORACLE = "2p1p-oracle"  # 2p1p on the true inliers only
 # The library's defaults (issue 17): "auto", and "2p1p" with its cross-check (the paper's methods
 # above run without it); "auto-oracle" is auto on the true inliers only.
-DEFAULTS = {"auto": ("auto", True, False), "2p1p-checked": ("2p1p", True, False), "auto-oracle": ("auto", True, True)}
+DEFAULTS = {
+    "auto": ("auto", True, False),
+    "2p1p-checked": ("2p1p", True, False),
+    "auto-oracle": ("auto", True, True),
+}
 CHOICES = METHODS + (ORACLE,) + tuple(DEFAULTS)
 PEER = "poselib-gen"
 OUTLIERS = (0.0, 0.2, 0.4, 0.5, 0.6)
@@ -76,9 +80,16 @@ def trial_seeds(seed: int, mi: int, ri: int, trial: int) -> tuple[np.random.Gene
 
 def inlier_pairs(sc) -> list[PairMatches]:
     """The scene's pairs without their outliers (the oracle's input)."""
-    return [PairMatches(p.ref_pose, p.ref_camera, p.query_points[~o], p.ref_points[~o],
-                        None if p.query_indices is None else p.query_indices[~o])
-            for p, o in zip(sc.pairs, sc.is_outlier)]
+    return [
+        PairMatches(
+            p.ref_pose,
+            p.ref_camera,
+            p.query_points[~o],
+            p.ref_points[~o],
+            None if p.query_indices is None else p.query_indices[~o],
+        )
+        for p, o in zip(sc.pairs, sc.is_outlier)
+    ]
 
 
 def run_trial(task: tuple[int, int, int, int, tuple[str, ...], bool, str]) -> dict:
@@ -87,24 +98,37 @@ def run_trial(task: tuple[int, int, int, int, tuple[str, ...], bool, str]) -> di
     num_refs, noise_px, matches = PROTOCOLS[protocol]
     rng, ransac_seed = trial_seeds(seed, mi, ri, trial)
     c0 = time.process_time()
-    sc = make_scene(rng, num_refs=num_refs, matches_per_pair=matches[mi], noise_px=noise_px,
-                    outlier_ratio=OUTLIERS[ri])
+    sc = make_scene(
+        rng, num_refs=num_refs, matches_per_pair=matches[mi], noise_px=noise_px, outlier_ratio=OUTLIERS[ri]
+    )
     out: dict = {"cell": (mi, ri), "scene_cpu_s": time.process_time() - c0, "methods": {}}
     # The paper's methods as published: no 6DoF cross-check of the planar pose (the library's
     # default cross_check=True adds one 5-point search per query; see BENCHMARKS.md, "Trust").
-    opts = RansacOptions(max_iterations=ITERATIONS, min_iterations=ITERATIONS, threshold_px=THRESHOLD_PX,
-                         seed=ransac_seed, structure="none", cross_check=False)
+    opts = RansacOptions(
+        max_iterations=ITERATIONS,
+        min_iterations=ITERATIONS,
+        threshold_px=THRESHOLD_PX,
+        seed=ransac_seed,
+        structure="none",
+        cross_check=False,
+    )
     for method in methods:
-        name, checked, oracle = DEFAULTS.get(method, ("2p1p" if method == ORACLE else method, False, method == ORACLE))
+        name, checked, oracle = DEFAULTS.get(
+            method, ("2p1p" if method == ORACLE else method, False, method == ORACLE)
+        )
         o = replace(opts, cross_check=checked)
         try:
             t, c = time.perf_counter(), time.process_time()
             est = estimate_absolute_pose(sc.query_camera, inlier_pairs(sc) if oracle else sc.pairs, name, o)
             dt, dc = time.perf_counter() - t, time.process_time() - c
         except Exception as exc:  # a crash is a failure to report, not a reason to lose the run
-            out["methods"][method] = {"ok": False, "status": f"error: {type(exc).__name__}: {exc}",
-                                      "time_s": float("nan"), "cpu_s": float("nan"),
-                                      "trace": traceback.format_exc()}
+            out["methods"][method] = {
+                "ok": False,
+                "status": f"error: {type(exc).__name__}: {exc}",
+                "time_s": float("nan"),
+                "cpu_s": float("nan"),
+                "trace": traceback.format_exc(),
+            }
             continue
         r = {"status": est.status, "time_s": dt, "cpu_s": dc, "stage_s": dict(est.stats.time_s), "ok": False}
         pose = est.pose if est.success else est.unreliable_pose
@@ -113,19 +137,31 @@ def run_trial(task: tuple[int, int, int, int, tuple[str, ...], bool, str]) -> di
             good = dc < MAX_CENTRE_ERROR_M and dr < MAX_ROTATION_ERROR_DEG
             # A success promises the centre within its reported std (benchmarks/trust.py: 3σ + 5 cm).
             broken = bool(est.success and dc > 3.0 * est.position_std_m + 0.05)
-            r.update(centre_m=dc, rotation_deg=dr, ok=bool(est.success and good),
-                     gated_correct=bool(not est.success and good), wrong_success=bool(est.success and not good),
-                     broken_promise=broken)
+            r.update(
+                centre_m=dc,
+                rotation_deg=dr,
+                ok=bool(est.success and good),
+                gated_correct=bool(not est.success and good),
+                wrong_success=bool(est.success and not good),
+                broken_promise=broken,
+            )
         out["methods"][method] = r
     if with_peer:
-        peer = estimate_query_pose_poselib(sc.query_camera, sc.pairs, iterations=ITERATIONS,
-                                           threshold_px=THRESHOLD_PX, seed=ransac_seed)
-        r = {"status": "success" if peer.pose is not None else "no_pose", "time_s": peer.time_s,
-             "cpu_s": peer.cpu_s, "ok": False}
+        peer = estimate_query_pose_poselib(
+            sc.query_camera, sc.pairs, iterations=ITERATIONS, threshold_px=THRESHOLD_PX, seed=ransac_seed
+        )
+        r = {
+            "status": "success" if peer.pose is not None else "no_pose",
+            "time_s": peer.time_s,
+            "cpu_s": peer.cpu_s,
+            "ok": False,
+        }
         if peer.pose is not None:
             dc, dr = pose_errors(peer.pose, sc.query_pose)
             good = dc < MAX_CENTRE_ERROR_M and dr < MAX_ROTATION_ERROR_DEG
-            r.update(centre_m=dc, rotation_deg=dr, ok=bool(good), wrong_success=not good)  # PoseLib reports no failure
+            r.update(
+                centre_m=dc, rotation_deg=dr, ok=bool(good), wrong_success=not good
+            )  # PoseLib reports no failure
         out["methods"][PEER] = r
     return out
 
@@ -134,21 +170,34 @@ def warm_up(methods: tuple[str, ...] = METHODS) -> None:
     """Load the numba caches (or compile) of every method and every verification path before
     anything is timed (several scenes: some paths run only on some scenes)."""
     for k in range(12):
-        sc = make_scene(np.random.default_rng(12345 + k), num_refs=3, matches_per_pair=20, noise_px=1.5,
-                        outlier_ratio=0.2 + 0.04 * k)
+        sc = make_scene(
+            np.random.default_rng(12345 + k),
+            num_refs=3,
+            matches_per_pair=20,
+            noise_px=1.5,
+            outlier_ratio=0.2 + 0.04 * k,
+        )
         for method in methods:
             name, checked, _ = DEFAULTS.get(method, ("2p1p" if method == ORACLE else method, False, False))
-            estimate_absolute_pose(sc.query_camera, sc.pairs, name,
-                                   RansacOptions(max_iterations=100, min_iterations=100, structure="none",
-                                                 cross_check=checked))
+            estimate_absolute_pose(
+                sc.query_camera,
+                sc.pairs,
+                name,
+                RansacOptions(max_iterations=100, min_iterations=100, structure="none", cross_check=checked),
+            )
     estimate_query_pose_poselib(sc.query_camera, sc.pairs, iterations=20)
 
 
-def run(trials: int, seed: int, jobs: int, methods: tuple[str, ...], with_peer: bool,
-        protocol: str = "paper") -> list[dict]:
+def run(
+    trials: int, seed: int, jobs: int, methods: tuple[str, ...], with_peer: bool, protocol: str = "paper"
+) -> list[dict]:
     matches = PROTOCOLS[protocol][2]
-    tasks = [(seed, mi, ri, k, methods, with_peer, protocol)
-             for k in range(trials) for mi in range(len(matches)) for ri in range(len(OUTLIERS))]
+    tasks = [
+        (seed, mi, ri, k, methods, with_peer, protocol)
+        for k in range(trials)
+        for mi in range(len(matches))
+        for ri in range(len(OUTLIERS))
+    ]
     return run_trials("robustness", tasks, run_trial, jobs, lambda: warm_up(methods))
 
 
@@ -158,8 +207,13 @@ def summarise(results: list[dict], names: tuple[str, ...], protocol: str = "pape
     for mi, m in enumerate(PROTOCOLS[protocol][2]):
         for ri, r in enumerate(OUTLIERS):
             rows = [res for res in results if tuple(res["cell"]) == (mi, ri)]
-            cell = {"matches_per_pair": m, "outlier_ratio": r, "trials": len(rows),
-                    "scene_median_cpu_s": float(np.median([x["scene_cpu_s"] for x in rows])), "methods": {}}
+            cell = {
+                "matches_per_pair": m,
+                "outlier_ratio": r,
+                "trials": len(rows),
+                "scene_median_cpu_s": float(np.median([x["scene_cpu_s"] for x in rows])),
+                "methods": {},
+            }
             for name in names:
                 rs = [x["methods"][name] for x in rows if name in x["methods"]]
                 times = [v["time_s"] for v in rs if np.isfinite(v["time_s"])]
@@ -177,9 +231,12 @@ def summarise(results: list[dict], names: tuple[str, ...], protocol: str = "pape
                     "gated_but_correct": int(sum(v.get("gated_correct", False) for v in rs)),
                     "wrong_successes": int(sum(v.get("wrong_success", False) for v in rs)),
                     "broken_promises": int(sum(v.get("broken_promise", False) for v in rs)),
-                    "median_stage_s": {k: float(np.median([v["stage_s"].get(k, 0.0) for v in rs]))
-                                       for k in stage_keys},
-                    "mean_stage_s": {k: float(np.mean([v["stage_s"].get(k, 0.0) for v in rs])) for k in stage_keys},
+                    "median_stage_s": {
+                        k: float(np.median([v["stage_s"].get(k, 0.0) for v in rs])) for k in stage_keys
+                    },
+                    "mean_stage_s": {
+                        k: float(np.mean([v["stage_s"].get(k, 0.0) for v in rs])) for k in stage_keys
+                    },
                 }
             cells[f"{m}x{r:.1f}"] = cell
     return cells
@@ -198,58 +255,81 @@ def print_tables(cells: dict, names: tuple[str, ...], trials: int, protocol: str
     num_refs, noise_px, matches = PROTOCOLS[protocol]
     w = max(len(n) for n in names) + 2
     head = "".join(f"{int(100 * r):>6d}%" for r in OUTLIERS)
-    print(f"\nSuccess rate (%), protocol {protocol!r}: {num_refs} refs, {noise_px:g} px noise, {ITERATIONS} "
-          f"fixed iterations, centre < {MAX_CENTRE_ERROR_M} m & R < {MAX_ROTATION_ERROR_DEG} deg, "
-          f"{trials} trials per cell")
+    print(
+        f"\nSuccess rate (%), protocol {protocol!r}: {num_refs} refs, {noise_px:g} px noise, {ITERATIONS} "
+        f"fixed iterations, centre < {MAX_CENTRE_ERROR_M} m & R < {MAX_ROTATION_ERROR_DEG} deg, "
+        f"{trials} trials per cell"
+    )
     for m in matches:
         print(f"\n  matches/pair = {m}\n  {'method':<{w}}{head}")
         for name in names:
             rates = [cells[f"{m}x{r:.1f}"]["methods"][name]["success_rate"] for r in OUTLIERS]
             vals = "".join(f"{100 * v:>7.0f}" for v in rates)
             print(f"  {name:<{w}}{vals}")
-    print(f"\nWrong successes (reported a pose, but centre >= {MAX_CENTRE_ERROR_M} m or R >= "
-          f"{MAX_ROTATION_ERROR_DEG} deg), count per cell of {trials}:")
+    print(
+        f"\nWrong successes (reported a pose, but centre >= {MAX_CENTRE_ERROR_M} m or R >= "
+        f"{MAX_ROTATION_ERROR_DEG} deg), count per cell of {trials}:"
+    )
     for m in matches:
         print(f"\n  matches/pair = {m}\n  {'method':<{w}}{head}")
         for name in names:
-            vals = "".join(f"{cells[f'{m}x{r:.1f}']['methods'][name]['wrong_successes']:>7d}" for r in OUTLIERS)
+            vals = "".join(
+                f"{cells[f'{m}x{r:.1f}']['methods'][name]['wrong_successes']:>7d}" for r in OUTLIERS
+            )
             print(f"  {name:<{w}}{vals}")
     ours = [n for n in names if n != PEER]
-    print(f"\nBroken promises (success with centre error > 3 x its position_std_m + 5 cm), count per cell of {trials}:")
+    print(
+        f"\nBroken promises (success with centre error > 3 x its position_std_m + 5 cm), count per cell of {trials}:"
+    )
     for m in matches:
         print(f"\n  matches/pair = {m}\n  {'method':<{w}}{head}")
         for name in ours:
-            vals = "".join(f"{cells[f'{m}x{r:.1f}']['methods'][name]['broken_promises']:>7d}" for r in OUTLIERS)
+            vals = "".join(
+                f"{cells[f'{m}x{r:.1f}']['methods'][name]['broken_promises']:>7d}" for r in OUTLIERS
+            )
             print(f"  {name:<{w}}{vals}")
     for key, label in (("median_cpu_s", "CPU"), ("median_time_s", "wall")):
         print(f"\nMedian {label} time per query (ms), by matches/pair (median of the per-cell medians):")
         print(f"  {'method':<{w}}" + "".join(f"{m:>8d}" for m in matches))
         for name in names:
-            vals = [np.median([cells[f"{m}x{r:.1f}"]["methods"][name][key] for r in OUTLIERS])
-                    for m in matches]
+            vals = [
+                np.median([cells[f"{m}x{r:.1f}"]["methods"][name][key] for r in OUTLIERS]) for m in matches
+            ]
             print(f"  {name:<{w}}" + "".join(f"{1e3 * v:>8.2f}" for v in vals))
-    for m in (matches if PEER in names and "2p1p" in names else ()):
+    for m in matches if PEER in names and "2p1p" in names else ():
         print(f"\nTime ratio ours/PoseLib, 2p1p vs {PEER}, {num_refs}x{m} matches (median per query):")
-        print(f"  {'outliers':<10}{'CPU ours':>10}{'PoseLib':>10}{'ratio':>7}"
-              f"{'wall ours':>11}{'PoseLib':>10}{'ratio':>7}")
+        print(
+            f"  {'outliers':<10}{'CPU ours':>10}{'PoseLib':>10}{'ratio':>7}"
+            f"{'wall ours':>11}{'PoseLib':>10}{'ratio':>7}"
+        )
         for r in OUTLIERS:
             c = cells[f"{m}x{r:.1f}"]["methods"]
             a, b = c["2p1p"], c[PEER]
-            print(f"  {int(100 * r):>3d}%      {1e3 * a['median_cpu_s']:>8.2f}ms"
-                  f"{1e3 * b['median_cpu_s']:>8.2f}ms"
-                  f"{a['median_cpu_s'] / b['median_cpu_s']:>7.2f}{1e3 * a['median_time_s']:>9.2f}ms"
-                  f"{1e3 * b['median_time_s']:>8.2f}ms{a['median_time_s'] / b['median_time_s']:>7.2f}")
+            print(
+                f"  {int(100 * r):>3d}%      {1e3 * a['median_cpu_s']:>8.2f}ms"
+                f"{1e3 * b['median_cpu_s']:>8.2f}ms"
+                f"{a['median_cpu_s'] / b['median_cpu_s']:>7.2f}{1e3 * a['median_time_s']:>9.2f}ms"
+                f"{1e3 * b['median_time_s']:>8.2f}ms{a['median_time_s'] / b['median_time_s']:>7.2f}"
+            )
         for r in (0.0, 0.6):
             st = cells[f"{m}x{r:.1f}"]["methods"]["2p1p"]["median_stage_s"]
             if st:
-                print(f"  2p1p stages at {m} matches, {int(100 * r)}% outliers (median wall ms): "
-                      + ", ".join(f"{k} {1e3 * v:.2f}" for k, v in st.items()))
+                print(
+                    f"  2p1p stages at {m} matches, {int(100 * r)}% outliers (median wall ms): "
+                    + ", ".join(f"{k} {1e3 * v:.2f}" for k, v in st.items())
+                )
     if PEER in names:
-        print(f"\nCPU time per query, ours / {PEER} (ratio of the means over every scene of each matches/pair):")
+        print(
+            f"\nCPU time per query, ours / {PEER} (ratio of the means over every scene of each matches/pair):"
+        )
         print(f"  {'method':<{w}}" + "".join(f"{m:>8d}" for m in matches) + f"{'all':>8}")
         for name in ours:
             vals = [cells_ratio(cells, m, name) for m in matches]
-            print(f"  {name:<{w}}" + "".join(f"{v:>8.2f}" for v in vals) + f"{cells_ratio(cells, None, name):>8.2f}")
+            print(
+                f"  {name:<{w}}"
+                + "".join(f"{v:>8.2f}" for v in vals)
+                + f"{cells_ratio(cells, None, name):>8.2f}"
+            )
     if PEER in names:
         # Where the time goes: the search (setup, hypotheses, scoring, local optimisation, final
         # refinement) and the checks that make a success a promise (verification; the cross-check
@@ -260,33 +340,60 @@ def print_tables(cells: dict, names: tuple[str, ...], trials: int, protocol: str
             total = sum(c["methods"][name]["mean_time_s"] for c in cells.values())
             st = [c["methods"][name].get("mean_stage_s", {}) for c in cells.values()]
             part = {k: sum(x.get(k, 0.0) for x in st) / total for k in ("verification", "cross_check")}
-            search = sum(sum(v for k, v in x.items() if k not in ("verification", "cross_check", "total"))
-                         for x in st) / total
+            search = (
+                sum(
+                    sum(v for k, v in x.items() if k not in ("verification", "cross_check", "total"))
+                    for x in st
+                )
+                / total
+            )
             ratio = cells_ratio(cells, None, name)
-            print(f"  {name:<{w}}{ratio:.2f} = search {ratio * search:.2f} + verification "
-                  f"{ratio * part['verification']:.2f} + cross-check {ratio * part['cross_check']:.2f} + other "
-                  f"{ratio * (1 - search - part['verification'] - part['cross_check']):.2f}")
-    errors = {n: sum(v for s, v in cells[c]["methods"][n]["status"].items() if s.startswith("error"))
-              for c in cells for n in names}
+            print(
+                f"  {name:<{w}}{ratio:.2f} = search {ratio * search:.2f} + verification "
+                f"{ratio * part['verification']:.2f} + cross-check {ratio * part['cross_check']:.2f} + other "
+                f"{ratio * (1 - search - part['verification'] - part['cross_check']):.2f}"
+            )
+    errors = {
+        n: sum(v for s, v in cells[c]["methods"][n]["status"].items() if s.startswith("error"))
+        for c in cells
+        for n in names
+    }
     if any(errors.values()):
-        print(f"\nWARNING: methods raised exceptions (counted as failures): "
-              f"{ {n: k for n, k in errors.items() if k} }")
+        print(
+            f"\nWARNING: methods raised exceptions (counted as failures): "
+            f"{ {n: k for n, k in errors.items() if k} }"
+        )
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
-                                 formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--trials", type=int, default=100,
-                    help="scenes per (matches, outliers) cell (default 100)")
+    ap = argparse.ArgumentParser(
+        description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    ap.add_argument(
+        "--trials", type=int, default=100, help="scenes per (matches, outliers) cell (default 100)"
+    )
     ap.add_argument("--quick", action="store_true", help="20 trials per cell")
     ap.add_argument("--seed", type=int, default=0, help="base seed of scenes and RANSAC (default 0)")
     ap.add_argument("--json", type=Path, help="write the per-cell summary to this file")
-    ap.add_argument("--jobs", type=int, default=min(2, os.cpu_count() or 1),
-                    help="worker processes (default: min(2, cores)); 1 for the cleanest timings")
-    ap.add_argument("--methods", nargs="+", default=list(METHODS), choices=CHOICES,
-                    help=f"methods to run (default: all but {ORACLE})")
-    ap.add_argument("--protocol", choices=tuple(PROTOCOLS), default="paper",
-                    help="paper: 5 refs, 1 px, 100/50/20 matches; hard: 3 refs, 1.5 px, 50/20 matches")
+    ap.add_argument(
+        "--jobs",
+        type=int,
+        default=min(2, os.cpu_count() or 1),
+        help="worker processes (default: min(2, cores)); 1 for the cleanest timings",
+    )
+    ap.add_argument(
+        "--methods",
+        nargs="+",
+        default=list(METHODS),
+        choices=CHOICES,
+        help=f"methods to run (default: all but {ORACLE})",
+    )
+    ap.add_argument(
+        "--protocol",
+        choices=tuple(PROTOCOLS),
+        default="paper",
+        help="paper: 5 refs, 1 px, 100/50/20 matches; hard: 3 refs, 1.5 px, 50/20 matches",
+    )
     ap.add_argument("--no-poselib", action="store_true", help="skip the PoseLib peer")
     args = ap.parse_args(argv)
     trials = 20 if args.quick else args.trials
@@ -301,23 +408,41 @@ def main(argv: list[str] | None = None) -> int:
     cells = summarise(results, names, args.protocol)
     print_tables(cells, names, trials, args.protocol)
     scene_s = sum(r["scene_cpu_s"] for r in results)
-    method_s = {n: sum(r["methods"][n]["cpu_s"] for r in results if np.isfinite(r["methods"][n]["cpu_s"]))
-                for n in names}
+    method_s = {
+        n: sum(r["methods"][n]["cpu_s"] for r in results if np.isfinite(r["methods"][n]["cpu_s"]))
+        for n in names
+    }
     cpu_total = scene_s + sum(method_s.values())
-    print(f"\nWall time {wall:.0f} s with {args.jobs} job(s), warm-up included. CPU time: scene generation "
-          f"{scene_s:.0f} s, estimators " + ", ".join(f"{n} {s:.0f} s" for n, s in method_s.items())
-          + f"; total {cpu_total:.0f} s = {cpu_total / args.jobs:.0f} s wall on {args.jobs} idle core(s)")
+    print(
+        f"\nWall time {wall:.0f} s with {args.jobs} job(s), warm-up included. CPU time: scene generation "
+        f"{scene_s:.0f} s, estimators "
+        + ", ".join(f"{n} {s:.0f} s" for n, s in method_s.items())
+        + f"; total {cpu_total:.0f} s = {cpu_total / args.jobs:.0f} s wall on {args.jobs} idle core(s)"
+    )
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps({
-            "protocol": {"name": args.protocol, "num_refs": PROTOCOLS[args.protocol][0],
-                         "noise_px": PROTOCOLS[args.protocol][1], "iterations": ITERATIONS,
-                         "threshold_px": THRESHOLD_PX, "success": {"centre_m": MAX_CENTRE_ERROR_M,
-                                                                   "rotation_deg": MAX_ROTATION_ERROR_DEG},
-                         "trials": trials, "seed": args.seed, "jobs": args.jobs},
-            "wall_time_s": wall, "scene_generation_cpu_s": scene_s, "estimator_cpu_s": method_s,
-            "cells": cells,
-        }, indent=1))
+        args.json.write_text(
+            json.dumps(
+                {
+                    "protocol": {
+                        "name": args.protocol,
+                        "num_refs": PROTOCOLS[args.protocol][0],
+                        "noise_px": PROTOCOLS[args.protocol][1],
+                        "iterations": ITERATIONS,
+                        "threshold_px": THRESHOLD_PX,
+                        "success": {"centre_m": MAX_CENTRE_ERROR_M, "rotation_deg": MAX_ROTATION_ERROR_DEG},
+                        "trials": trials,
+                        "seed": args.seed,
+                        "jobs": args.jobs,
+                    },
+                    "wall_time_s": wall,
+                    "scene_generation_cpu_s": scene_s,
+                    "estimator_cpu_s": method_s,
+                    "cells": cells,
+                },
+                indent=1,
+            )
+        )
         print(f"wrote {args.json}", file=sys.stderr)
     return 0
 

@@ -61,8 +61,15 @@ STRICT_T, STRICT_R, WRONG_T = 0.25, 10.0, 1.0
 def _frames(queries: list, odometry: bool) -> tuple[list[ReplayFrame], list[Pose]]:
     stream = make_stream(queries, stream_order(len(queries)), np.random.default_rng(0), frame_period_s=0.1)
     cam_from_base = BASE_FROM_CAMERA.inverse()
-    frames = [ReplayFrame(read_gray(f.image.path), f.image.camera, f.stamp,
-                          (f.odometry.inverse() @ cam_from_base) if odometry else None) for f in stream]
+    frames = [
+        ReplayFrame(
+            read_gray(f.image.path),
+            f.image.camera,
+            f.stamp,
+            (f.odometry.inverse() @ cam_from_base) if odometry else None,
+        )
+        for f in stream
+    ]
     return frames, [f.image.cam_from_world for f in stream]
 
 
@@ -83,12 +90,17 @@ def _score(result, frames: list[ReplayFrame], truths: list[Pose]) -> dict:
     last = result.diagnostics.get(round(frames[-1].stamp, 9), {})
     latencies = [float(d["latency_ms"]) for d in result.diagnostics.values() if "latency_ms" in d]
     return {
-        "frames": len(frames), "posed": len(errors), "posed_within_0.25m_10deg": good,
+        "frames": len(frames),
+        "posed": len(errors),
+        "posed_within_0.25m_10deg": good,
         "success_pct": 100.0 * good / len(frames),
-        "beyond_1m": int(np.sum(e[:, 0] > WRONG_T)), "max_error_m": float(e[:, 0].max()) if len(e) else None,
+        "beyond_1m": int(np.sum(e[:, 0] > WRONG_T)),
+        "max_error_m": float(e[:, 0].max()) if len(e) else None,
         "median_error_m": float(np.median(e[:, 0])) if len(e) else None,
-        "tf_checked": len(tf_residual), "tf_max_residual": max(tf_residual) if tf_residual else None,
-        "diagnostics": len(result.diagnostics), "frames_dropped": int(last.get("frames_dropped", -1)),
+        "tf_checked": len(tf_residual),
+        "tf_max_residual": max(tf_residual) if tf_residual else None,
+        "diagnostics": len(result.diagnostics),
+        "frames_dropped": int(last.get("frames_dropped", -1)),
         "node_latency_ms_median": float(np.median(latencies)) if latencies else None,
         "seconds": result.seconds,
     }
@@ -96,11 +108,14 @@ def _score(result, frames: list[ReplayFrame], truths: list[Pose]) -> dict:
 
 def _peer(map_path: Path, frames: list[ReplayFrame], truths: list[Pose]) -> dict:
     """The same frames through SequenceLocalizer in this process (the lockstep runs' configuration)."""
-    seq = SequenceLocalizer(Localizer(map_path, localizer_config(structure="tracks", seed=0)),
-                            SequenceConfig(fixes="wait"))
+    seq = SequenceLocalizer(
+        Localizer(map_path, localizer_config(structure="tracks", seed=0)), SequenceConfig(fixes="wait")
+    )
     good, posed, wall, cpu = 0, 0, [], []
     for frame, truth in zip(frames, truths):
-        odometry = None if frame.odom_from_base is None else (frame.odom_from_base @ BASE_FROM_CAMERA).inverse()
+        odometry = (
+            None if frame.odom_from_base is None else (frame.odom_from_base @ BASE_FROM_CAMERA).inverse()
+        )
         t0, c0 = time.perf_counter(), time.process_time()
         est = seq.step(frame.image, frame.camera, frame.stamp, odometry=odometry)
         wall.append(time.perf_counter() - t0)
@@ -109,9 +124,13 @@ def _peer(map_path: Path, frames: list[ReplayFrame], truths: list[Pose]) -> dict
             posed += 1
             t, r = pose_errors(est.pose, truth)
             good += t < STRICT_T and r < STRICT_R
-    return {"frames": len(frames), "posed": posed, "success_pct": 100.0 * good / len(frames),
-            "ms_per_frame_median": 1000 * float(np.median(wall[1:])), "cpu_ms_per_frame_median":
-            1000 * float(np.median(cpu[1:]))}
+    return {
+        "frames": len(frames),
+        "posed": posed,
+        "success_pct": 100.0 * good / len(frames),
+        "ms_per_frame_median": 1000 * float(np.median(wall[1:])),
+        "cpu_ms_per_frame_median": 1000 * float(np.median(cpu[1:])),
+    }
 
 
 def run_sequence(data: Path, rate: bool, root: Path) -> dict:
@@ -127,15 +146,27 @@ def run_sequence(data: Path, rate: bool, root: Path) -> dict:
         with exclusive_domain() as domain:
             env = loopback_env(domain)
             os.environ.update(env)
-            args = ["--map", str(map_path), "--ros-args", "-p", f"odom_topic:={'/odom' if odometry else chr(39) * 2}"]
+            args = [
+                "--map",
+                str(map_path),
+                "--ros-args",
+                "-p",
+                f"odom_topic:={'/odom' if odometry else chr(39) * 2}",
+            ]
             if lockstep:  # an offline replay: each frame waits for its fix (the node's default is background)
                 args += ["-p", "fixes:=wait"]
             node = NodeProcess(args, env)
             try:
                 node.wait_ready(timeout=600)
                 c0, load = time.time(), os.getloadavg()[0]
-                result = replay(frames, base_from_camera=BASE_FROM_CAMERA, lockstep=lockstep, rate_hz=10.0,
-                                wait_s=900.0, settle_s=5.0)
+                result = replay(
+                    frames,
+                    base_from_camera=BASE_FROM_CAMERA,
+                    lockstep=lockstep,
+                    rate_hz=10.0,
+                    wait_s=900.0,
+                    settle_s=5.0,
+                )
                 score = _score(result, frames, truths)
                 try:
                     rc: int | str = node.interrupt()
@@ -149,8 +180,10 @@ def run_sequence(data: Path, rate: bool, root: Path) -> dict:
         score["wall_s"] = time.time() - c0
         score["load_average"] = load
         out["runs"][label] = score
-        log(f"{data.name} {label}: {score['success_pct']:.1f}% within 0.25 m/10deg, {score['beyond_1m']} beyond 1 m, "
-            f"{score['posed']}/{score['frames']} posed, {score['frames_dropped']} dropped")
+        log(
+            f"{data.name} {label}: {score['success_pct']:.1f}% within 0.25 m/10deg, {score['beyond_1m']} beyond 1 m, "
+            f"{score['posed']}/{score['frames']} posed, {score['frames_dropped']} dropped"
+        )
     frames, truths = _frames(queries, odometry=True)
     out["peer in-process odometry"] = _peer(map_path, frames, truths)
     return out
@@ -158,35 +191,55 @@ def run_sequence(data: Path, rate: bool, root: Path) -> dict:
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--data", type=Path, action="append", help="KITTI sequence folder (repeatable; default: "
-                                                                "the shared kitti_seq2 and kitti_seq1)")
+    ap.add_argument(
+        "--data",
+        type=Path,
+        action="append",
+        help="KITTI sequence folder (repeatable; default: the shared kitti_seq2 and kitti_seq1)",
+    )
     ap.add_argument("--no-rate", action="store_true", help="skip the 10 Hz run")
     ap.add_argument("--cache", type=Path, help="map cache folder (default: $TMPDIR/planarloc-bench)")
     ap.add_argument("--json", type=Path, help="write the results here")
     args = ap.parse_args()
     results = [run_sequence(d, not args.no_rate, cache_root(args.cache)) for d in (args.data or DEFAULT_DATA)]
-    print("| sequence | run | frames | posed | within 0.25 m/10° | > 1 m | max error | map→odom checked (max "
-          "residual) | dropped | node latency p50 | SIGINT exit | load average |")
+    print(
+        "| sequence | run | frames | posed | within 0.25 m/10° | > 1 m | max error | map→odom checked (max "
+        "residual) | dropped | node latency p50 | SIGINT exit | load average |"
+    )
     print("|---|---|---|---|---|---|---|---|---|---|---|---|")
     verdicts = []
     for r in results:
         for label, s in r["runs"].items():
             mx = "-" if s["max_error_m"] is None else f"{s['max_error_m']:.3f} m"
             tf = "-" if not s["tf_checked"] else f"{s['tf_checked']} ({s['tf_max_residual']:.1e})"
-            print(f"| {r['dataset']} | {label} | {s['frames']} | {s['posed']} | {s['success_pct']:.1f} % | "
-                  f"{s['beyond_1m']} | {mx} | {tf} | {s['frames_dropped']} | {s['node_latency_ms_median']:.0f} ms | "
-                  f"{s['exit_code_on_sigint']}{' (traceback)' if s['traceback'] else ''} | {s['load_average']:.1f} |")
-            ok = s["success_pct"] >= 95 and s["beyond_1m"] == 0 and s["exit_code_on_sigint"] == 0 \
-                and not s["traceback"] and (s["frames"] == 0 or "visual" in label or
-                                             (s["tf_checked"] == s["posed"] and s["tf_max_residual"] < 1e-6))
+            print(
+                f"| {r['dataset']} | {label} | {s['frames']} | {s['posed']} | {s['success_pct']:.1f} % | "
+                f"{s['beyond_1m']} | {mx} | {tf} | {s['frames_dropped']} | {s['node_latency_ms_median']:.0f} ms | "
+                f"{s['exit_code_on_sigint']}{' (traceback)' if s['traceback'] else ''} | {s['load_average']:.1f} |"
+            )
+            ok = (
+                s["success_pct"] >= 95
+                and s["beyond_1m"] == 0
+                and s["exit_code_on_sigint"] == 0
+                and not s["traceback"]
+                and (
+                    s["frames"] == 0
+                    or "visual" in label
+                    or (s["tf_checked"] == s["posed"] and s["tf_max_residual"] < 1e-6)
+                )
+            )
             verdicts.append((f"{r['dataset']} {label}", ok))
         p = r["peer in-process odometry"]
-        print(f"| {r['dataset']} | peer: SequenceLocalizer in-process, odometry | {p['frames']} | {p['posed']} | "
-              f"{p['success_pct']:.1f} % | | | | | {p['ms_per_frame_median']:.0f} ms/frame "
-              f"(CPU {p['cpu_ms_per_frame_median']:.0f} ms) | | |")
+        print(
+            f"| {r['dataset']} | peer: SequenceLocalizer in-process, odometry | {p['frames']} | {p['posed']} | "
+            f"{p['success_pct']:.1f} % | | | | | {p['ms_per_frame_median']:.0f} ms/frame "
+            f"(CPU {p['cpu_ms_per_frame_median']:.0f} ms) | | |"
+        )
     for name, ok in verdicts:
-        print(f"{'PASS' if ok else 'FAIL'} {name}: >= 95 % within 0.25 m/10deg, none beyond 1 m, map -> odom "
-              "consistent, clean SIGINT")
+        print(
+            f"{'PASS' if ok else 'FAIL'} {name}: >= 95 % within 0.25 m/10deg, none beyond 1 m, map -> odom "
+            "consistent, clean SIGINT"
+        )
     if args.json:
         args.json.write_text(json.dumps(results, indent=2))
     return 0

@@ -78,29 +78,46 @@ def _single_frame(loc: Localizer, frames: list) -> list[FrameResult]:
         est = loc.localize(read_gray(f.image.path), f.image.camera)
         seconds = time.perf_counter() - t0
         cov = np.eye(6) * est.position_std_m**2 if est.success else np.full((6, 6), np.inf)
-        seq_est = SequenceEstimate(f.stamp, "localized" if est.success else "lost", est.pose if est.success else None,
-                                   cov, float(est.position_std_m), 0.0, est, "accepted" if est.success else "failed",
-                                   seconds=seconds, latency_s=seconds, cpu_s=time.thread_time() - c0)
+        seq_est = SequenceEstimate(
+            f.stamp,
+            "localized" if est.success else "lost",
+            est.pose if est.success else None,
+            cov,
+            float(est.position_std_m),
+            0.0,
+            est,
+            "accepted" if est.success else "failed",
+            seconds=seconds,
+            latency_s=seconds,
+            cpu_s=time.thread_time() - c0,
+        )
         out.append(frame_result(f.image, seq_est, f.kidnapped, time.perf_counter() - start))
     return out
 
 
 def _stream(loc: Localizer, config: SequenceConfig, frames: list, rate_hz: float | None) -> tuple[list, dict]:
     with SequenceLocalizer(loc, config) as seq:
-        results = evaluate_stream(seq, [f.image for f in frames], [f.stamp for f in frames],
-                                  kidnapped=[f.kidnapped for f in frames], rate_hz=rate_hz)
+        results = evaluate_stream(
+            seq,
+            [f.image for f in frames],
+            [f.stamp for f in frames],
+            kidnapped=[f.kidnapped for f in frames],
+            rate_hz=rate_hz,
+        )
         return results, vars(seq.stats).copy()
 
 
 def run_sequence(name: str, map_path: Path, queries: list, kidnap: bool) -> list[dict]:
     loc = Localizer(map_path, LocalizerConfig(ransac=RansacOptions(structure="tracks")))
-    loc.localize(read_gray(queries[0].path), queries[0].camera)   # numba warm-up outside the timings
+    loc.localize(read_gray(queries[0].path), queries[0].camera)  # numba warm-up outside the timings
     plain = make_stream(queries, stream_order(len(queries)), np.random.default_rng(0))
-    runs = [("single", lambda: (_single_frame(loc, plain), {})),
-            ("per-frame", lambda: _stream(loc, PER_FRAME, plain, None)),
-            ("camera-rate", lambda: _stream(loc, SequenceConfig(), plain, None)),
-            ("camera-rate @10 Hz", lambda: _stream(loc, SequenceConfig(), plain, 10.0)),
-            ("fixes every 2nd frame, 1 late", lambda: _stream(loc, EVERY_2ND, plain, None))]
+    runs = [
+        ("single", lambda: (_single_frame(loc, plain), {})),
+        ("per-frame", lambda: _stream(loc, PER_FRAME, plain, None)),
+        ("camera-rate", lambda: _stream(loc, SequenceConfig(), plain, None)),
+        ("camera-rate @10 Hz", lambda: _stream(loc, SequenceConfig(), plain, 10.0)),
+        ("fixes every 2nd frame, 1 late", lambda: _stream(loc, EVERY_2ND, plain, None)),
+    ]
     if kidnap:
         kid = make_stream(queries, stream_order(len(queries), kidnap_at=10), np.random.default_rng(0))
         runs.append(("camera-rate kidnap", lambda: _stream(loc, SequenceConfig(), kid, None)))
@@ -113,8 +130,14 @@ def run_sequence(name: str, map_path: Path, queries: list, kidnap: bool) -> list
         cpu = time.process_time() - c0
         s = summarize_sequence(results)
         s.pop("per_frame")
-        s.update(dataset=name, run=label, wall_s=time.perf_counter() - t0, cpu_seconds_per_frame=cpu / len(results),
-                 stream=stats, load_average=load)
+        s.update(
+            dataset=name,
+            run=label,
+            wall_s=time.perf_counter() - t0,
+            cpu_seconds_per_frame=cpu / len(results),
+            stream=stats,
+            load_average=load,
+        )
         rows.append(s)
         print(_row(s), flush=True)
     return rows
@@ -126,18 +149,22 @@ def _row(s: dict) -> str:
     after = "-" if not kid else ",".join("never" if k is None else str(k["frames"]) for k in kid)
     fixes = s["stream"].get("fixes_submitted")
     fix_cpu = "-" if not fixes else f"{1e3 * s['stream']['fix_cpu_s'] / fixes:.0f}"
-    return (f"| {s['dataset']} | {s['run']} | {s['success'][STRICT]:.1f} % | {s['max_translation_error_m']:.3f} | "
-            f"{c.get('localized', 0)}/{c.get('predicted', 0)}/{c.get('lost', 0)}/{c.get('dropped', 0)} | "
-            f"{s['confident_wrong']} | {s['predicted_wrong']} | {after} | {fixes or '-'} | "
-            f"{s['frames_per_second']:.1f} | {lat['p50']:.0f} / {lat['p99']:.0f} | {s['late_frames']} | "
-            f"{1e3 * s['cpu_seconds_per_frame']:.0f} | {s['cpu_ms_per_frame']:.0f} | {fix_cpu} | "
-            f"{s['load_average']:.1f} |")
+    return (
+        f"| {s['dataset']} | {s['run']} | {s['success'][STRICT]:.1f} % | {s['max_translation_error_m']:.3f} | "
+        f"{c.get('localized', 0)}/{c.get('predicted', 0)}/{c.get('lost', 0)}/{c.get('dropped', 0)} | "
+        f"{s['confident_wrong']} | {s['predicted_wrong']} | {after} | {fixes or '-'} | "
+        f"{s['frames_per_second']:.1f} | {lat['p50']:.0f} / {lat['p99']:.0f} | {s['late_frames']} | "
+        f"{1e3 * s['cpu_seconds_per_frame']:.0f} | {s['cpu_ms_per_frame']:.0f} | {fix_cpu} | "
+        f"{s['load_average']:.1f} |"
+    )
 
 
-HEADER = ("| sequence | run | 0.25 m/10° | max error [m] | localized/predicted/lost/dropped | localized beyond 1 m | "
-          "predicted beyond 1 m | frames to recover after kidnap | fixes computed | frames/s | latency p50 / p99 [ms] | "
-          "late (> 100 ms) | CPU per frame, all threads [ms] | CPU per frame, calling thread [ms] | CPU per fix [ms] | "
-          "load average at start |\n|" + "---|" * 16)
+HEADER = (
+    "| sequence | run | 0.25 m/10° | max error [m] | localized/predicted/lost/dropped | localized beyond 1 m | "
+    "predicted beyond 1 m | frames to recover after kidnap | fixes computed | frames/s | latency p50 / p99 [ms] | "
+    "late (> 100 ms) | CPU per frame, all threads [ms] | CPU per frame, calling thread [ms] | CPU per fix [ms] | "
+    "load average at start |\n|" + "---|" * 16
+)
 
 
 # ---- pose-graph solver: ours (scipy) vs GTSAM on the same windows ---------------------------
@@ -155,7 +182,9 @@ def _random_window(rng: np.random.Generator, n: int = 10):
         rel.append(RelativeFactor(i, i + 1, noisy, np.diag([rel_std[0] ** 2] * 3 + [rel_std[1] ** 2] * 3)))
     for k in range(0, n, 2):
         p = truth[k]
-        noisy = Pose.from_center(so3_exp(rng.normal(0, abs_rot, (1, 3)))[0] @ p.R, p.center + rng.normal(0, abs_pos, 3))
+        noisy = Pose.from_center(
+            so3_exp(rng.normal(0, abs_rot, (1, 3)))[0] @ p.R, p.center + rng.normal(0, abs_pos, 3)
+        )
         absolute.append(AbsoluteFactor(k, noisy, np.diag([abs_rot**2] * 3 + [abs_pos**2] * 3)))
     initial = [truth[0]]
     for f in rel:
@@ -177,12 +206,20 @@ def _solve_gtsam(initial: list[Pose], absolute: list, relative: list):
         # GTSAM's Pose3 tangent is (rotation, translation) in the body frame; our covariances are
         # isotropic per block, so the same sigmas apply.
         sig = np.sqrt(np.diag(f.covariance))
-        graph.add(gtsam.PriorFactorPose3(f.node, world_from_cam(f.pose), gtsam.noiseModel.Diagonal.Sigmas(sig)))
+        graph.add(
+            gtsam.PriorFactorPose3(f.node, world_from_cam(f.pose), gtsam.noiseModel.Diagonal.Sigmas(sig))
+        )
     for f in relative:
         sig = np.sqrt(np.diag(f.covariance))
-        i_from_j = f.j_from_i.inverse()   # GTSAM measures X_i⁻¹ X_j with X = world_from_cam
-        graph.add(gtsam.BetweenFactorPose3(f.i, f.j, gtsam.Pose3(gtsam.Rot3(i_from_j.R), gtsam.Point3(*i_from_j.t)),
-                                           gtsam.noiseModel.Diagonal.Sigmas(sig)))
+        i_from_j = f.j_from_i.inverse()  # GTSAM measures X_i⁻¹ X_j with X = world_from_cam
+        graph.add(
+            gtsam.BetweenFactorPose3(
+                f.i,
+                f.j,
+                gtsam.Pose3(gtsam.Rot3(i_from_j.R), gtsam.Point3(*i_from_j.t)),
+                gtsam.noiseModel.Diagonal.Sigmas(sig),
+            )
+        )
     result = gtsam.LevenbergMarquardtOptimizer(graph, values, gtsam.LevenbergMarquardtParams()).optimize()
     marg = gtsam.Marginals(graph, result)
     cov_last = marg.marginalCovariance(len(initial) - 1)
@@ -209,9 +246,15 @@ def compare_pose_graph_solvers(trials: int = 50) -> dict:
         err_ours.append(np.mean([pose_errors(a, b)[0] for a, b in zip(sol.poses, truth)]))
         err_gtsam.append(np.mean([pose_errors(a, b)[0] for a, b in zip(g_poses, truth)]))
         diff.append(max(pose_errors(a, b)[0] for a, b in zip(sol.poses, g_poses)))
-    out = {"trials": trials, "window": 10, "ours_ms": 1e3 * t_ours / trials, "gtsam_ms": 1e3 * t_gtsam / trials,
-           "ours_mean_error_m": float(np.mean(err_ours)), "gtsam_mean_error_m": float(np.mean(err_gtsam)),
-           "max_difference_m": float(np.max(diff))}
+    out = {
+        "trials": trials,
+        "window": 10,
+        "ours_ms": 1e3 * t_ours / trials,
+        "gtsam_ms": 1e3 * t_gtsam / trials,
+        "ours_mean_error_m": float(np.mean(err_ours)),
+        "gtsam_mean_error_m": float(np.mean(err_gtsam)),
+        "max_difference_m": float(np.max(diff)),
+    }
     out["time_ratio_ours_over_gtsam"] = out["ours_ms"] / out["gtsam_ms"]
     return out
 
@@ -221,7 +264,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--sequences", nargs="+", default=["kitti_seq2", "kitti_seq1"])
     p.add_argument("--data", type=Path, default=SHARED, help="folder of the KITTI sequences")
     p.add_argument("--work-dir", type=Path, help="keep the maps here (default: a temp folder)")
-    p.add_argument("--quick", action="store_true", help="kitti_seq2 only, no kidnap run, no solver comparison")
+    p.add_argument(
+        "--quick", action="store_true", help="kitti_seq2 only, no kidnap run, no solver comparison"
+    )
     p.add_argument("--json", type=Path)
     args = p.parse_args(argv)
     work = args.work_dir or Path(tempfile.mkdtemp(prefix="planarloc-seq-"))
@@ -242,18 +287,22 @@ def main(argv: list[str] | None = None) -> int:
         except ImportError:
             print("\npose graph: GTSAM is not installed (pip install gtsam); solver comparison skipped")
     if solver:
-        print(f"\npose graph, window of 10, {solver['trials']} random windows: ours (scipy least_squares) "
-              f"{solver['ours_ms']:.2f} ms, GTSAM {solver['gtsam_ms']:.2f} ms per solve "
-              f"(ratio {solver['time_ratio_ours_over_gtsam']:.2f}); mean error {solver['ours_mean_error_m']:.4f} m vs "
-              f"{solver['gtsam_mean_error_m']:.4f} m; max difference {solver['max_difference_m']:.2e} m")
+        print(
+            f"\npose graph, window of 10, {solver['trials']} random windows: ours (scipy least_squares) "
+            f"{solver['ours_ms']:.2f} ms, GTSAM {solver['gtsam_ms']:.2f} ms per solve "
+            f"(ratio {solver['time_ratio_ours_over_gtsam']:.2f}); mean error {solver['ours_mean_error_m']:.4f} m vs "
+            f"{solver['gtsam_mean_error_m']:.4f} m; max difference {solver['max_difference_m']:.2e} m"
+        )
     for s in rows:
         if not s["run"].startswith("camera-rate") or "kidnap" in s["run"]:
             continue
         lat = s["latency_ms"]
-        checks = [(">= 100 % within 0.25 m/10°", s["success"][STRICT] >= 100.0),
-                  ("0 localized beyond 1 m", s["confident_wrong"] == 0),
-                  (">= 10 frames/s sustained", (s["frames_per_second"] or 0) >= 10.0),
-                  ("latency p99 <= 100 ms", lat is not None and lat["p99"] <= 100.0)]
+        checks = [
+            (">= 100 % within 0.25 m/10°", s["success"][STRICT] >= 100.0),
+            ("0 localized beyond 1 m", s["confident_wrong"] == 0),
+            (">= 10 frames/s sustained", (s["frames_per_second"] or 0) >= 10.0),
+            ("latency p99 <= 100 ms", lat is not None and lat["p99"] <= 100.0),
+        ]
         for what, ok in checks:
             print(f"{'PASS' if ok else 'FAIL'} {s['dataset']} {s['run']}: {what}")
     if args.json:

@@ -62,7 +62,9 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument("--soak-seconds", type=float, default=120.0)
     p.add_argument("--quick", action="store_true", help="6 requests per client, 20 s soak")
     p.add_argument("--robots", type=int, default=4, help="concurrent robot sessions (default: 4)")
-    p.add_argument("--laps", type=int, default=2, help="times each robot streams the query trajectory (default: 2)")
+    p.add_argument(
+        "--laps", type=int, default=2, help="times each robot streams the query trajectory (default: 2)"
+    )
     p.add_argument("--only", choices=["sessions"], help="run only this part")
     p.add_argument("--json", type=Path)
     args = p.parse_args(argv)
@@ -86,7 +88,9 @@ def prepare(args: argparse.Namespace, tmp: Path) -> tuple[Path, list[Path], str,
     return map_path, sorted((world / "query" / "rgb").glob("*.png")), camera, world
 
 
-def robot_streams(world: Path, robots: int, laps: int, seed: int = 0) -> list[list[tuple[float, Path, Pose, Pose]]]:
+def robot_streams(
+    world: Path, robots: int, laps: int, seed: int = 0
+) -> list[list[tuple[float, Path, Pose, Pose]]]:
     """Per robot: (stamp, image, true cam_from_world, odometry cam_from_odom) per frame. Robot k starts
     at frame 3k of the query trajectory and goes round it ``laps`` times; its odometry integrates
     the true motion with 1 % translation and 0.2° rotation noise per frame."""
@@ -103,8 +107,10 @@ def robot_streams(world: Path, robots: int, laps: int, seed: int = 0) -> list[li
                 odom_from_cam = truth[i].inverse()
             else:
                 step = truth[order[n - 1]] @ truth[i].inverse()  # prev_cam_from_cam, the true motion
-                noise = Pose(Rotation.from_rotvec(rng.normal(0, np.radians(0.2), 3)).as_matrix(),
-                             step.t * rng.normal(0, 0.01, 3))
+                noise = Pose(
+                    Rotation.from_rotvec(rng.normal(0, np.radians(0.2), 3)).as_matrix(),
+                    step.t * rng.normal(0, 0.01, 3),
+                )
                 odom_from_cam = odom_from_cam @ Pose(step.R, step.t) @ noise
             frames.append((0.1 * (n + 1), images[i], truth[i], odom_from_cam.inverse()))
         out.append(frames)
@@ -124,11 +130,17 @@ def sessions_phase(url: str, camera: str, streams: list[list[tuple[float, Path, 
         with httpx.Client(base_url=url, timeout=120) as http:
             start.wait()
             for stamp, image, truth, odometry in streams[k]:
-                fields = {"camera": camera, "session": f"robot-{k}", "stamp": repr(stamp),
-                          "odometry": pose_text(odometry.inverse(), T_XYZW)}
+                fields = {
+                    "camera": camera,
+                    "session": f"robot-{k}",
+                    "stamp": repr(stamp),
+                    "odometry": pose_text(odometry.inverse(), T_XYZW),
+                }
                 for _attempt in range(20):  # 503: wait Retry-After, bounded
                     t0 = time.perf_counter()
-                    r = http.post("/v1/localize", files={"image": (image.name, image.read_bytes())}, data=fields)
+                    r = http.post(
+                        "/v1/localize", files={"image": (image.name, image.read_bytes())}, data=fields
+                    )
                     with lock:
                         statuses[str(r.status_code)] = statuses.get(str(r.status_code), 0) + 1
                     if r.status_code != 503:
@@ -146,9 +158,15 @@ def sessions_phase(url: str, camera: str, streams: list[list[tuple[float, Path, 
                     errors.append(float(np.linalg.norm(est.center - truth.center)))
                     moves.append(rotation_error_deg(est.R, truth.R))
         counts = {s: frames.count(s) for s in sorted(set(frames))}
-        per_robot.append({"robot": k, "frames": len(frames), "statuses": counts,
-                          "within_0.25m_10deg": int(sum(e <= 0.25 and a <= 10 for e, a in zip(errors, moves))),
-                          "max_error_m": max(errors) if errors else None})
+        per_robot.append(
+            {
+                "robot": k,
+                "frames": len(frames),
+                "statuses": counts,
+                "within_0.25m_10deg": int(sum(e <= 0.25 and a <= 10 for e, a in zip(errors, moves))),
+                "max_error_m": max(errors) if errors else None,
+            }
+        )
 
     threads = [threading.Thread(target=robot, args=(k,)) for k in range(len(streams))]
     t0 = time.perf_counter()
@@ -159,9 +177,12 @@ def sessions_phase(url: str, camera: str, streams: list[list[tuple[float, Path, 
     seconds = time.perf_counter() - t0
     frames = sum(r["frames"] for r in per_robot)
     return {
-        "robots": len(streams), "frames": frames, "seconds": seconds, "frames_per_second": frames / seconds,
-        "http_statuses": statuses, "fivexx_other_than_503": {k: v for k, v in statuses.items()
-                                                             if k.startswith("5") and k != "503"},
+        "robots": len(streams),
+        "frames": frames,
+        "seconds": seconds,
+        "frames_per_second": frames / seconds,
+        "http_statuses": statuses,
+        "fivexx_other_than_503": {k: v for k, v in statuses.items() if k.startswith("5") and k != "503"},
         "p50_s": float(np.percentile(latencies, 50)) if latencies else None,
         "p99_s": float(np.percentile(latencies, 99)) if latencies else None,
         "per_robot": sorted(per_robot, key=lambda r: r["robot"]),
@@ -247,8 +268,9 @@ def main(argv: list[str] | None = None) -> int:
     with tempfile.TemporaryDirectory() as tmp:
         map_path, images, camera, world = prepare(args, Path(tmp))
         if args.only == "sessions":
-            url, proc = start_server(["--map", f"bench={map_path}", "--workers", str(args.workers), "--queue",
-                                      str(args.queue)])
+            url, proc = start_server(
+                ["--map", f"bench={map_path}", "--workers", str(args.workers), "--queue", str(args.queue)]
+            )
             try:
                 Load(url, images, camera).run(args.workers, 2, 120)  # warm-up: every worker has run a request
                 report["sessions"] = run_sessions(url, camera, world, args)
@@ -364,13 +386,18 @@ def main(argv: list[str] | None = None) -> int:
 
 def run_sessions(url: str, camera: str, world: Path, args: argparse.Namespace) -> dict:
     s = sessions_phase(url, camera, robot_streams(world, args.robots, args.laps))
-    print(f"{s['robots']} robot sessions on {args.workers} workers: {s['frames']} frames in {s['seconds']:.0f} s "
-          f"({s['frames_per_second']:.2f} frames/s), p50 {s['p50_s']:.3f} s, p99 {s['p99_s']:.3f} s, HTTP "
-          f"{s['http_statuses']}, 5xx other than 503: {s['fivexx_other_than_503'] or 'none'}", flush=True)
+    print(
+        f"{s['robots']} robot sessions on {args.workers} workers: {s['frames']} frames in {s['seconds']:.0f} s "
+        f"({s['frames_per_second']:.2f} frames/s), p50 {s['p50_s']:.3f} s, p99 {s['p99_s']:.3f} s, HTTP "
+        f"{s['http_statuses']}, 5xx other than 503: {s['fivexx_other_than_503'] or 'none'}",
+        flush=True,
+    )
     for r in s["per_robot"]:
-        print(f"  robot {r['robot']}: {r['statuses']}, {r['within_0.25m_10deg']} of {r['frames']} within 0.25 m / "
-              f"10°, worst error {r['max_error_m'] if r['max_error_m'] is None else round(r['max_error_m'], 3)} m",
-              flush=True)
+        print(
+            f"  robot {r['robot']}: {r['statuses']}, {r['within_0.25m_10deg']} of {r['frames']} within 0.25 m / "
+            f"10°, worst error {r['max_error_m'] if r['max_error_m'] is None else round(r['max_error_m'], 3)} m",
+            flush=True,
+        )
     return s
 
 

@@ -212,21 +212,48 @@ def run(quick: bool) -> tuple[list[Row], dict]:
 
     def add(name, kind, best_med, samples, repeats=reps, peer=None, note=""):
         best, med = best_med[:2]
-        rows.append(Row(name, kind, best, med, samples, repeats, peer, note,
-                        cpu_best=best_med[2] if len(best_med) > 2 else None))
+        rows.append(
+            Row(
+                name,
+                kind,
+                best,
+                med,
+                samples,
+                repeats,
+                peer,
+                note,
+                cpu_best=best_med[2] if len(best_med) > 2 else None,
+            )
+        )
         print(f"  {name:<46s} {best:10.3f} µs (median {med:.3f})", file=sys.stderr, flush=True)
 
     def add_single(name, ours, peer_name=None, peer=None, n=n_single):
         """Our single call interleaved with its PoseLib peer (if any); one row each."""
         wall, cpu, pwall, pcpu = time_interleaved(ours, peer, n, reps)
-        row = Row(f"{name} (single)", "single", min(wall), statistics.median(wall), n, reps,
-                  cpu_best=min(cpu), cpu_median=statistics.median(cpu))
+        row = Row(
+            f"{name} (single)",
+            "single",
+            min(wall),
+            statistics.median(wall),
+            n,
+            reps,
+            cpu_best=min(cpu),
+            cpu_median=statistics.median(cpu),
+        )
         rows.append(row)
         msg = f"  {row.name:<46s} {row.us_best:10.3f} µs wall, {row.cpu_best:.3f} CPU"
         if peer is not None:
-            prow = Row(f"{peer_name} (with {name})", "peer", min(pwall), statistics.median(pwall), n, reps,
-                       note="Python binding, interleaved", cpu_best=min(pcpu),
-                       cpu_median=statistics.median(pcpu))
+            prow = Row(
+                f"{peer_name} (with {name})",
+                "peer",
+                min(pwall),
+                statistics.median(pwall),
+                n,
+                reps,
+                note="Python binding, interleaved",
+                cpu_best=min(pcpu),
+                cpu_median=statistics.median(pcpu),
+            )
             row.peer = prow.name
             row.ratio_wall = row.us_best / prow.us_best
             row.ratio_cpu = row.cpu_best / prow.cpu_best
@@ -252,21 +279,46 @@ def run(quick: bool) -> tuple[list[Row], dict]:
     if poselib is not None:
         peer_2p = poselib.relpose_upright_planar_2pt
         peer_2p(uq2[0], ur2[0])
-    single_2p = add_single("relpose_planar_2p", lambda i: relpose_planar_2p(xq2[i], xr2[i]),
-                           "poselib.relpose_upright_planar_2pt",
-                           None if peer_2p is None else lambda i: peer_2p(uq2[i], ur2[i]))
-    add("relpose_planar_2p_batch (per sample)", "batch",
-        time_batch(lambda: relpose_planar_2p_batch(xq2, xr2), n_batch_2p, reps), n_batch_2p,
-        peer=single_2p.peer)
+    single_2p = add_single(
+        "relpose_planar_2p",
+        lambda i: relpose_planar_2p(xq2[i], xr2[i]),
+        "poselib.relpose_upright_planar_2pt",
+        None if peer_2p is None else lambda i: peer_2p(uq2[i], ur2[i]),
+    )
+    add(
+        "relpose_planar_2p_batch (per sample)",
+        "batch",
+        time_batch(lambda: relpose_planar_2p_batch(xq2, xr2), n_batch_2p, reps),
+        n_batch_2p,
+        peer=single_2p.peer,
+    )
     th, ph = np.empty(2), np.empty(2)
-    add("solve_planar_2p kernel (numba dispatch)", "kernel",
-        time_loop(lambda i: solve_planar_2p(xq2[i], xr2[i], th, ph), n_single, reps), n_single,
-        note="called from Python: includes numba dispatch")
-    add("solve_planar_2p kernel (in numba loop)", "kernel",
-        time_kernel(_loop_planar_2p, (xq2, xr2), n_batch_2p, reps), n_batch_2p,
-        peer="PoseLib C++ planar 2pt (README)", note="what RANSAC hypotheses call")
-    rows.append(Row("PoseLib C++ planar 2pt (README)", "reference", POSELIB_README_PLANAR_2PT_US, None, 0, 0,
-                    note="NOT MEASURED: constant quoted from PoseLib's README"))
+    add(
+        "solve_planar_2p kernel (numba dispatch)",
+        "kernel",
+        time_loop(lambda i: solve_planar_2p(xq2[i], xr2[i], th, ph), n_single, reps),
+        n_single,
+        note="called from Python: includes numba dispatch",
+    )
+    add(
+        "solve_planar_2p kernel (in numba loop)",
+        "kernel",
+        time_kernel(_loop_planar_2p, (xq2, xr2), n_batch_2p, reps),
+        n_batch_2p,
+        peer="PoseLib C++ planar 2pt (README)",
+        note="what RANSAC hypotheses call",
+    )
+    rows.append(
+        Row(
+            "PoseLib C++ planar 2pt (README)",
+            "reference",
+            POSELIB_README_PLANAR_2PT_US,
+            None,
+            0,
+            0,
+            note="NOT MEASURED: constant quoted from PoseLib's README",
+        )
+    )
 
     # -- absolute pose ----------------------------------------------------------------------
     from planarloc.synthetic.scenes import random_planar_pose
@@ -285,8 +337,10 @@ def run(quick: bool) -> tuple[list[Row], dict]:
     abspose_2p2p(*cases[0][:4])
     abspose_2p1p(cases[0][0], cases[0][2], cases[0][3], cases[0][4], cases[0][5])
     add_single("abspose_2p2p", lambda i: abspose_2p2p(*cases[i][:4]))
-    add_single("abspose_2p1p",
-               lambda i: abspose_2p1p(cases[i][0], cases[i][2], cases[i][3], cases[i][4], cases[i][5]))
+    add_single(
+        "abspose_2p1p",
+        lambda i: abspose_2p1p(cases[i][0], cases[i][2], cases[i][3], cases[i][4], cases[i][5]),
+    )
     up2p = []  # (2, 3) query rays and their points in an upright frame
     while len(up2p) < n_single:
         query = random_planar_pose(rng)
@@ -299,26 +353,46 @@ def run(quick: bool) -> tuple[list[Row], dict]:
     t1 = np.array([c[0].t for c in cases])
     t2 = np.array([c[0].R @ c[1].R.T @ c[1].t for c in cases])
     b = np.array([(c[2] @ c[3].inverse()).t for c in cases])
-    add("triangulate_scales kernel (in numba loop)", "kernel",
-        time_kernel(_loop_triangulate_scales, (t1, t2, b), len(cases), reps, reps=200), len(cases) * 200,
-        note="2p2p scales, eq. 13-15")
+    add(
+        "triangulate_scales kernel (in numba loop)",
+        "kernel",
+        time_kernel(_loop_triangulate_scales, (t1, t2, b), len(cases), reps, reps=200),
+        len(cases) * 200,
+        note="2p2p scales, eq. 13-15",
+    )
     j2j = [c[3] @ c[2].inverse() for c in cases]
     a = np.array([p.R @ c[0].t for p, c in zip(j2j, cases)])
     bb = np.array([p.t for p in j2j])
     y = np.array([p.R @ c[0].R @ c[4] for p, c in zip(j2j, cases)])
     x2 = np.array([c[5] for c in cases])
-    add("scale_2p1p kernel (in numba loop)", "kernel",
-        time_kernel(_loop_scale_2p1p, (a, bb, y, x2), len(cases), reps, reps=200), len(cases) * 200,
-        note="2p1p scale, eq. 18")
+    add(
+        "scale_2p1p kernel (in numba loop)",
+        "kernel",
+        time_kernel(_loop_scale_2p1p, (a, bb, y, x2), len(cases), reps, reps=200),
+        len(cases) * 200,
+        note="2p1p scale, eq. 18",
+    )
 
     # -- general relative pose --------------------------------------------------------------
     xq5, xr5 = general_samples(rng, n_batch_5p, 5)
     xq8, xr8 = general_samples(rng, n_batch_5p, 8)
     general = [
-        ("relpose_5p_nister", "relpose_5p_nister_batch", "planarloc.solvers.relpose_5p_nister", xq5, xr5,
-         "poselib.relpose_5pt"),
-        ("relpose_5p_stewenius", "relpose_5p_stewenius_batch", "planarloc.solvers.relpose_5p_stewenius", xq5,
-         xr5, "poselib.relpose_5pt"),
+        (
+            "relpose_5p_nister",
+            "relpose_5p_nister_batch",
+            "planarloc.solvers.relpose_5p_nister",
+            xq5,
+            xr5,
+            "poselib.relpose_5pt",
+        ),
+        (
+            "relpose_5p_stewenius",
+            "relpose_5p_stewenius_batch",
+            "planarloc.solvers.relpose_5p_stewenius",
+            xq5,
+            xr5,
+            "poselib.relpose_5pt",
+        ),
         ("relpose_8p", "relpose_8p_batch", "planarloc.solvers.relpose_8p", xq8, xr8, "poselib.relpose_8pt"),
     ]
     for single_name, batch_name, module, xq, xr, peer in general:
@@ -336,10 +410,16 @@ def run(quick: bool) -> tuple[list[Row], dict]:
             f = getattr(poselib, peer.split(".")[1])
             f(uq[0], ur[0])
             peer_fn = lambda i, f=f, uq=uq, ur=ur: f(uq[i], ur[i])  # noqa: E731
-        row = add_single(single_name, lambda i, single=single, xq=xq, xr=xr: single(xq[i], xr[i]), peer,
-                         peer_fn)
-        add(f"{batch_name} (per sample)", "batch", time_batch(lambda: batch(xq, xr), len(xq), reps), len(xq),
-            peer=row.peer)
+        row = add_single(
+            single_name, lambda i, single=single, xq=xq, xr=xr: single(xq[i], xr[i]), peer, peer_fn
+        )
+        add(
+            f"{batch_name} (per sample)",
+            "batch",
+            time_batch(lambda: batch(xq, xr), len(xq), reps),
+            len(xq),
+            peer=row.peer,
+        )
 
     meta = {
         "python": platform.python_version(),

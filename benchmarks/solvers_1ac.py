@@ -58,7 +58,9 @@ def scenes(rng: np.random.Generator, m: int, fov_tan: float = 1.0):
         X = rng.uniform(-10.0, 10.0, (64, 3))
         Xr = X @ pose.R.T + pose.t
         ok = (X[:, 2] > 0.1) & (Xr[:, 2] > 0.1)
-        ok &= (np.abs(X[:, :2]) < fov_tan * X[:, 2:]).all(1) & (np.abs(Xr[:, :2]) < fov_tan * Xr[:, 2:]).all(1)
+        ok &= (np.abs(X[:, :2]) < fov_tan * X[:, 2:]).all(1) & (np.abs(Xr[:, :2]) < fov_tan * Xr[:, 2:]).all(
+            1
+        )
         if ok.sum() < 2:
             continue
         X = X[ok][:2]
@@ -116,8 +118,7 @@ def interleaved(fn_a, fn_b, per: int, k: int) -> tuple[list[float], list[float]]
 def row(name: str, ta: list[float], tb: list[float]) -> str:
     ba, bb = min(ta), min(tb)
     ma, mb = statistics.median(ta), statistics.median(tb)
-    return (f"{name:<26} {ba:9.3f} {ma:9.3f} | {bb:9.3f} {mb:9.3f} | "
-            f"{ba / bb:6.2f}x {ma / mb:6.2f}x")
+    return f"{name:<26} {ba:9.3f} {ma:9.3f} | {bb:9.3f} {mb:9.3f} | {ba / bb:6.2f}x {ma / mb:6.2f}x"
 
 
 def timing(rng: np.random.Generator, quick: bool) -> None:
@@ -148,12 +149,32 @@ def timing(rng: np.random.Generator, quick: bool) -> None:
     Bq2, Br2 = np.tile(xq2, (reps, 1, 1)), np.tile(xr2, (reps, 1, 1))
     kreps = 20
     print(f"timing: µs per sample, best and median of {k}; load average {os.getloadavg()[0]:.2f}")
-    print(f"{'':<26} {'1ac best':>9} {'1ac med':>9} | {'2p best':>9} {'2p med':>9} | ratio 1ac/2p (best, med)")
+    print(
+        f"{'':<26} {'1ac best':>9} {'1ac med':>9} | {'2p best':>9} {'2p med':>9} | ratio 1ac/2p (best, med)"
+    )
     print(row(f"single call (n={n_single})", *interleaved(single_1ac, single_2p, n_single, k)))
-    print(row(f"batch API (M={len(Bq1)})", *interleaved(lambda: relpose_planar_1ac_batch(Bq1, Br1, BA),
-                                                       lambda: relpose_planar_2p_batch(Bq2, Br2), len(Bq1), k)))
-    print(row("compiled kernel", *interleaved(lambda: _kernel_loop_1ac(xq1, xr1, A1, kreps),
-                                              lambda: _kernel_loop_2p(xq2, xr2, kreps), n_single * kreps, k)))
+    print(
+        row(
+            f"batch API (M={len(Bq1)})",
+            *interleaved(
+                lambda: relpose_planar_1ac_batch(Bq1, Br1, BA),
+                lambda: relpose_planar_2p_batch(Bq2, Br2),
+                len(Bq1),
+                k,
+            ),
+        )
+    )
+    print(
+        row(
+            "compiled kernel",
+            *interleaved(
+                lambda: _kernel_loop_1ac(xq1, xr1, A1, kreps),
+                lambda: _kernel_loop_2p(xq2, xr2, kreps),
+                n_single * kreps,
+                k,
+            ),
+        )
+    )
 
 
 # ---- accuracy -------------------------------------------------------------------------------
@@ -184,15 +205,19 @@ def errors(Rs: np.ndarray, ts: np.ndarray, valid: np.ndarray, R: np.ndarray, t: 
 
 def summary(er: np.ndarray, et: np.ndarray) -> str:
     ok = np.isfinite(er)
-    return (f"{np.median(er[ok]):8.3f} {np.median(et[ok]):8.3f} {np.percentile(et[ok], 90):8.2f} "
-            f"{100 * (1 - ok.mean()):6.1f}%")
+    return (
+        f"{np.median(er[ok]):8.3f} {np.median(et[ok]):8.3f} {np.percentile(et[ok], 90):8.2f} "
+        f"{100 * (1 - ok.mean()):6.1f}%"
+    )
 
 
 def accuracy(rng: np.random.Generator, quick: bool) -> None:
     m = 4000 if quick else 20000
     R, t, xq, xr, A = scenes(rng, m)
-    print(f"\naccuracy: {m} scenes, f = {F_PX:.0f} px; median rotation error, median and 90th percentile "
-          "translation-direction error (deg), no-solution rate")
+    print(
+        f"\naccuracy: {m} scenes, f = {F_PX:.0f} px; median rotation error, median and 90th percentile "
+        "translation-direction error (deg), no-solution rate"
+    )
     print(f"{'solver / noise':<44} {'rot med':>8} {'t med':>8} {'t p90':>8} {'none':>7}")
 
     def px_noise(x: np.ndarray, sigma: float) -> np.ndarray:
@@ -203,20 +228,33 @@ def accuracy(rng: np.random.Generator, quick: bool) -> None:
     for sigma in (0.0, 0.5, 1.0, 2.0):
         Rs, ts, valid = relpose_planar_2p_batch(px_noise(xq, sigma), px_noise(xr, sigma))
         print(f"{f'2p, pixel noise {sigma} px':<44} " + summary(*errors(Rs, ts, valid, R, t)))
-    grid = ((0.0, 0.0, 0.0), (0.0, 0.0, 1.0), (0.0, 0.02, 0.0), (1.0, 0.0, 0.0), (1.0, 0.02, 1.0),
-            (3.0, 0.05, 1.0), (5.0, 0.10, 1.0), (10.0, 0.20, 1.0))
+    grid = (
+        (0.0, 0.0, 0.0),
+        (0.0, 0.0, 1.0),
+        (0.0, 0.02, 0.0),
+        (1.0, 0.0, 0.0),
+        (1.0, 0.02, 1.0),
+        (3.0, 0.05, 1.0),
+        (5.0, 0.10, 1.0),
+        (10.0, 0.20, 1.0),
+    )
     for model in ("true affine", "SIFT similarity"):
         base = A if model == "true affine" else nearest_similarity(A)
         for s_ang, s_sc, s_px in grid if model == "true affine" else grid[:1] + grid[4:]:
-            noisy = (np.exp(rng.normal(scale=s_sc, size=m))[:, None, None]
-                     * rot2(np.radians(rng.normal(scale=s_ang, size=m))) @ base)
+            noisy = (
+                np.exp(rng.normal(scale=s_sc, size=m))[:, None, None]
+                * rot2(np.radians(rng.normal(scale=s_ang, size=m)))
+                @ base
+            )
             q, r = px_noise(xq[:, 0], s_px), px_noise(xr[:, 0], s_px)
             label = f"1ac, {model}, {s_ang:g}° / {100 * s_sc:g}% / {s_px:g} px"
             Rs, ts, valid, _ = relpose_planar_1ac_batch(q, r, noisy)
             print(f"{label:<44} " + summary(*errors(Rs, ts, valid, R, t)))
             if model == "true affine" and 0 < s_ang + s_sc + s_px and s_ang + s_sc < 3:
                 Rs, ts, valid = authors_1ac_cs(q, r, noisy)
-                print(f"{'  authors 1AC_CS (no cone projection)':<44} " + summary(*errors(Rs, ts, valid, R, t)))
+                print(
+                    f"{'  authors 1AC_CS (no cone projection)':<44} " + summary(*errors(Rs, ts, valid, R, t))
+                )
 
 
 def authors_1ac_cs(xq: np.ndarray, xr: np.ndarray, A: np.ndarray):
@@ -226,9 +264,14 @@ def authors_1ac_cs(xq: np.ndarray, xr: np.ndarray, A: np.ndarray):
     u1, v1, u2, v2 = xq[:, 0], xq[:, 1], xr[:, 0], xr[:, 1]
     a00, a01, a10, a11 = A[:, 0, 0], A[:, 0, 1], A[:, 1, 0], A[:, 1, 1]
     z, o = np.zeros_like(u1), np.ones_like(u1)
-    M = np.stack([np.stack([v1, v1 * u2, v2, -u1 * v2], -1),
-                  np.stack([z, a00 * v1, a10, -(a10 * u1 + v2)], -1),
-                  np.stack([o, a01 * v1 + u2, a11, -a11 * u1], -1)], 1)
+    M = np.stack(
+        [
+            np.stack([v1, v1 * u2, v2, -u1 * v2], -1),
+            np.stack([z, a00 * v1, a10, -(a10 * u1 + v2)], -1),
+            np.stack([o, a01 * v1 + u2, a11, -a11 * u1], -1),
+        ],
+        1,
+    )
     M /= np.linalg.norm(M, axis=2, keepdims=True)
     x = np.linalg.svd(M)[2][:, 3]
     phi = np.arctan2(x[:, 2], x[:, 3])
@@ -240,8 +283,12 @@ def authors_1ac_cs(xq: np.ndarray, xr: np.ndarray, A: np.ndarray):
 
 def ransac_draws() -> None:
     print("\nRANSAC draws for 99 % confidence at 40 % inliers, ceil(log(0.01) / log(1 - 0.4^s)):")
-    for s, what in ((1, "1ac (relative pose, 1 affine correspondence)"), (2, "2p (relative pose, 2 points)"),
-                    (2, "1ac1p (absolute, 1 AC + 1 point)"), (3, "2p1p (absolute, 3 points)")):
+    for s, what in (
+        (1, "1ac (relative pose, 1 affine correspondence)"),
+        (2, "2p (relative pose, 2 points)"),
+        (2, "1ac1p (absolute, 1 AC + 1 point)"),
+        (3, "2p1p (absolute, 3 points)"),
+    ):
         n = math.ceil(math.log(0.01) / math.log(1 - 0.4**s))
         print(f"  s = {s}: {n:3d} draws   {what}")
 

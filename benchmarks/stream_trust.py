@@ -105,8 +105,12 @@ BEYOND_M = 1.0
 #: base_link with the optical camera 1.65 m up, 0.27 m ahead (KITTI's mount; benchmarks/ros2_replay.py)
 KITTI_BASE_FROM_CAMERA = Pose.from_quat_wxyz([0.5, -0.5, 0.5, -0.5], [0.27, 0.0, 1.65])
 NODE_RATE_HZ = 10.0
-QUICK = {"data": ["kitti_seq2"], "cases": ["default", "fixed-rate", "black", "corrupt"],
-         "odometry": ["without"], "fixes": ["wait", "background"]}
+QUICK = {
+    "data": ["kitti_seq2"],
+    "cases": ["default", "fixed-rate", "black", "corrupt"],
+    "odometry": ["without"],
+    "fixes": ["wait", "background"],
+}
 
 
 # ---- data ---------------------------------------------------------------------------------------
@@ -131,14 +135,20 @@ def load_stream(name: str, args: argparse.Namespace, root: Path) -> Stream:
         map_images, queries = split_map_queries(images, args.map_every)
         label, base = f"{name}-every{args.map_every}", KITTI_BASE_FROM_CAMERA
     else:
-        folder = cache.cached_world(world_config(name), WORLD_SEED, root,
-                                    lambda d, n: peer.log(f"  render {name}: {d}/{n}") if d == n else None)
+        folder = cache.cached_world(
+            world_config(name),
+            WORLD_SEED,
+            root,
+            lambda d, n: peer.log(f"  render {name}: {d}/{n}") if d == n else None,
+        )
         map_images, queries = read_dataset(folder / "map", "tum"), read_dataset(folder / "query", "tum")
         label, base = f"{name}-stream", None
     map_path, build_s = cache.cached_map(map_images, label, root)
     stream = make_stream(queries, stream_order(len(queries)), np.random.default_rng(0), frame_period_s=0.1)
-    peer.log(f"{name}: {len(map_images)} map images, {len(queries)} streamed frames"
-             f"{f', map built in {build_s:.0f} s' if build_s else ' (cached map)'}")
+    peer.log(
+        f"{name}: {len(map_images)} map images, {len(queries)} streamed frames"
+        f"{f', map built in {build_s:.0f} s' if build_s else ' (cached map)'}"
+    )
     return Stream(name, map_path, frames_from_stream(stream), base)
 
 
@@ -153,13 +163,19 @@ def score(records: list[dict]) -> dict:
     ``translation_error_m``, ``rotation_error_deg``, ``position_std_m``, ``has_pose``)."""
     n = len(records)
     image_frames = [r for r in records if r["kind"] not in (BLACK, CORRUPT)]
-    good = [r for r in records if r["success"] and r["translation_error_m"] < STRICT_T
-            and r["rotation_error_deg"] < STRICT_R]
+    good = [
+        r
+        for r in records
+        if r["success"] and r["translation_error_m"] < STRICT_T and r["rotation_error_deg"] < STRICT_R
+    ]
     gated, breaks, beyond, lost_breaks = [], [], [], []
     for r in records:
         if not r["has_pose"]:
             continue
-        promised = r["success"] or r["kind"] in (BLACK, CORRUPT)   # a bad frame's pose, if any, must keep it too
+        promised = r["success"] or r["kind"] in (
+            BLACK,
+            CORRUPT,
+        )  # a bad frame's pose, if any, must keep it too
         broken = breaks_promise(r["translation_error_m"], r["position_std_m"])
         if promised:
             gated.append(r)
@@ -172,15 +188,20 @@ def score(records: list[dict]) -> dict:
     worst = max(breaks, key=lambda r: r["translation_error_m"], default=None)
     errs = [r["translation_error_m"] for r in gated]
     return {
-        "frames": n, "image_frames": len(image_frames), "good": len(good),
+        "frames": n,
+        "image_frames": len(image_frames),
+        "good": len(good),
         "good_pct": 100.0 * len(good) / max(n, 1),
-        "good_pct_of_image_frames": 100.0 * sum(r["kind"] not in (BLACK, CORRUPT) for r in good)
+        "good_pct_of_image_frames": 100.0
+        * sum(r["kind"] not in (BLACK, CORRUPT) for r in good)
         / max(len(image_frames), 1),
         "status_counts": dict(Counter(r["status"] for r in records)),
         "promise_breaks": len(breaks),
-        "breaks_localized": by_status.get("localized", 0), "breaks_predicted": by_status.get("predicted", 0),
+        "breaks_localized": by_status.get("localized", 0),
+        "breaks_predicted": by_status.get("predicted", 0),
         "breaks_other": len(breaks) - by_status.get("localized", 0) - by_status.get("predicted", 0),
-        "beyond_1m": len(beyond), "lost_pose_breaks": len(lost_breaks),
+        "beyond_1m": len(beyond),
+        "lost_pose_breaks": len(lost_breaks),
         "max_error_m": max(errs) if errs else None,
         "worst_breaks": [_brief(r) for r in sorted(breaks, key=lambda r: -r["translation_error_m"])[:5]],
         "beyond_1m_frames": [_brief(r) for r in beyond],
@@ -188,20 +209,41 @@ def score(records: list[dict]) -> dict:
         "worst": None if worst is None else _brief(worst),
         "refused": len(errors),
         "refused_good_frames": [_brief(r) for r in errors if r["kind"] != CORRUPT],
-        "corrupt_outcomes": dict(Counter(
-            ("error" if r["status"] == "error" else f"{r['status']}{' (message)' if r.get('message') else ''}")
-            for r in records if r["kind"] == CORRUPT)),
+        "corrupt_outcomes": dict(
+            Counter(
+                (
+                    "error"
+                    if r["status"] == "error"
+                    else f"{r['status']}{' (message)' if r.get('message') else ''}"
+                )
+                for r in records
+                if r["kind"] == CORRUPT
+            )
+        ),
     }
 
 
 def _brief(r: dict) -> dict:
-    keys = ("index", "name", "kind", "stamp", "status", "translation_error_m", "rotation_error_deg",
-            "position_std_m", "motion_source", "fix_status", "reason")
+    keys = (
+        "index",
+        "name",
+        "kind",
+        "stamp",
+        "status",
+        "translation_error_m",
+        "rotation_error_deg",
+        "position_std_m",
+        "motion_source",
+        "fix_status",
+        "reason",
+    )
     return {k: r.get(k) for k in keys if k in r}
 
 
 # ---- the stream in this process -----------------------------------------------------------------
-def run_stream(loc: Localizer, frames: list[CaseFrame], fixes: str, odometry: bool, pace: str = "camera") -> dict:
+def run_stream(
+    loc: Localizer, frames: list[CaseFrame], fixes: str, odometry: bool, pace: str = "camera"
+) -> dict:
     """``frames`` through a fresh :class:`SequenceLocalizer`, paced as ``pace`` (module docstring);
     never raises on a frame."""
     results, records, crashes = [], [], []
@@ -220,29 +262,59 @@ def run_stream(loc: Localizer, frames: list[CaseFrame], fixes: str, odometry: bo
                         time.sleep(due - arrival)
                     arrival = due
                 try:
-                    est = seq.step(f.image, f.camera, f.stamp, f.odometry if odometry else None, arrival=arrival)
+                    est = seq.step(
+                        f.image, f.camera, f.stamp, f.odometry if odometry else None, arrival=arrival
+                    )
                 except InputError as exc:
                     r = unposed_result(truth, f.stamp, f.kidnapped, "error", str(exc))
                 except Exception as exc:  # noqa: BLE001 - a crash of the stream is a result here
                     r = unposed_result(truth, f.stamp, f.kidnapped, "crash", f"{type(exc).__name__}: {exc}")
-                    crashes.append({"index": k, "name": f.name, "kind": f.kind, "exception": f"{type(exc).__name__}: "
-                                    f"{exc}", "traceback": traceback.format_exc()})
+                    crashes.append(
+                        {
+                            "index": k,
+                            "name": f.name,
+                            "kind": f.kind,
+                            "exception": f"{type(exc).__name__}: {exc}",
+                            "traceback": traceback.format_exc(),
+                        }
+                    )
                 else:
                     r = frame_result(truth, est, f.kidnapped, time.perf_counter() - start)
                     message = est.message
                 results.append(r)
-                records.append({**asdict(r), "index": k, "kind": f.kind, "message": message,
-                                "has_pose": r.estimate_center is not None})
+                records.append(
+                    {
+                        **asdict(r),
+                        "index": k,
+                        "kind": f.kind,
+                        "message": message,
+                        "has_pose": r.estimate_center is not None,
+                    }
+                )
             stats = vars(seq.stats).copy()
     except Exception as exc:  # noqa: BLE001 - the stream could not start or stop
-        crashes.append({"index": None, "name": None, "kind": None, "exception": f"{type(exc).__name__}: {exc}",
-                        "traceback": traceback.format_exc()})
+        crashes.append(
+            {
+                "index": None,
+                "name": None,
+                "kind": None,
+                "exception": f"{type(exc).__name__}: {exc}",
+                "traceback": traceback.format_exc(),
+            }
+        )
     summary = summarize_sequence(results) if results else {}
-    summary.pop("per_frame", None)       # the records below hold the same, and each frame's kind
+    summary.pop("per_frame", None)  # the records below hold the same, and each frame's kind
     lat = summary.get("latency_ms") or {}
-    return {**score(records), "fps": summary.get("frames_per_second"), "p99_ms": lat.get("p99"),
-            "p50_ms": lat.get("p50"), "crashes": crashes, "stream_stats": stats,
-            "summary": summary, "per_frame": records}
+    return {
+        **score(records),
+        "fps": summary.get("frames_per_second"),
+        "p99_ms": lat.get("p99"),
+        "p50_ms": lat.get("p50"),
+        "crashes": crashes,
+        "stream_stats": stats,
+        "summary": summary,
+        "per_frame": records,
+    }
 
 
 # ---- the ROS 2 node -----------------------------------------------------------------------------
@@ -276,19 +348,39 @@ def run_node(data: Stream, loc: Localizer, frames: list[CaseFrame], params: Sequ
             node = NodeProcess(args, env)
             try:
                 node.wait_ready(timeout=600)
-                result = replay(replayed, base_from_camera=base, lockstep=False, rate_hz=NODE_RATE_HZ,
-                                wait_s=900.0, settle_s=5.0)
+                result = replay(
+                    replayed,
+                    base_from_camera=base,
+                    lockstep=False,
+                    rate_hz=NODE_RATE_HZ,
+                    wait_s=900.0,
+                    settle_s=5.0,
+                )
                 rc = node.interrupt()
             finally:
                 node.kill()
                 stderr = node.stderr
     except Exception as exc:  # noqa: BLE001 - the node run failed: a result of this case
-        crashes.append({"index": None, "name": None, "kind": None, "exception": f"{type(exc).__name__}: {exc}",
-                        "traceback": traceback.format_exc()})
+        crashes.append(
+            {
+                "index": None,
+                "name": None,
+                "kind": None,
+                "exception": f"{type(exc).__name__}: {exc}",
+                "traceback": traceback.format_exc(),
+            }
+        )
     for line in stderr:
         if "Traceback" in line or "internal error" in line:
-            crashes.append({"index": None, "name": None, "kind": None, "exception": f"node: {line.strip()}",
-                            "traceback": "".join(stderr)[-4000:]})
+            crashes.append(
+                {
+                    "index": None,
+                    "name": None,
+                    "kind": None,
+                    "exception": f"node: {line.strip()}",
+                    "traceback": "".join(stderr)[-4000:],
+                }
+            )
             break
     map_from_world, banner = node_map_from_world(stderr, loc)
     records, latencies = [], []
@@ -298,43 +390,92 @@ def run_node(data: Stream, loc: Localizer, frames: list[CaseFrame], params: Sequ
         status = diag.get("status", "no diagnostic")
         if "latency_ms" in diag:
             latencies.append(float(diag["latency_ms"]))
-        rec = {"index": k, "name": f.name, "kind": f.kind, "stamp": f.stamp, "status": status, "success": False,
-               "has_pose": False, "translation_error_m": float("nan"), "rotation_error_deg": float("nan"),
-               "position_std_m": float("inf"), "fix_status": diag.get("fix_status"),
-               "motion_source": diag.get("motion_source"), "reason": diag.get("note", "")}
+        rec = {
+            "index": k,
+            "name": f.name,
+            "kind": f.kind,
+            "stamp": f.stamp,
+            "status": status,
+            "success": False,
+            "has_pose": False,
+            "translation_error_m": float("nan"),
+            "rotation_error_deg": float("nan"),
+            "position_std_m": float("inf"),
+            "fix_status": diag.get("fix_status"),
+            "motion_source": diag.get("motion_source"),
+            "reason": diag.get("note", ""),
+        }
         if result and key in result.poses:
             parent_from_child, cov, _ = result.poses[key]
             world_from_child = f.truth.inverse() if base is None else f.truth.inverse() @ base.inverse()
             truth = map_from_world @ world_from_child
             t, r = pose_errors(parent_from_child.inverse(), truth.inverse())
             std = float(np.sqrt(max(np.linalg.eigvalsh(cov[:3, :3])[-1], 0.0)))
-            rec.update(success=True, has_pose=True, translation_error_m=float(t), rotation_error_deg=float(r),
-                       position_std_m=std, status=status if status in ("localized", "predicted") else "published")
+            rec.update(
+                success=True,
+                has_pose=True,
+                translation_error_m=float(t),
+                rotation_error_deg=float(r),
+                position_std_m=std,
+                status=status if status in ("localized", "predicted") else "published",
+            )
         records.append(rec)
     processed = sum(r["status"] not in ("no diagnostic",) for r in records)
     seconds = result.seconds if result else 0.0
-    return {**score(records), "fps": processed / seconds if seconds > 0 else None,
-            "p99_ms": float(np.percentile(latencies[1:], 99)) if len(latencies) > 1 else None,
-            "p50_ms": float(np.percentile(latencies[1:], 50)) if len(latencies) > 1 else None,
-            "crashes": crashes, "node_exit_code": rc, "published": result.published if result else 0,
-            "node_banner": banner, "map_from_world_R": map_from_world.R.round(6).tolist(),
-            "per_frame": records}
+    return {
+        **score(records),
+        "fps": processed / seconds if seconds > 0 else None,
+        "p99_ms": float(np.percentile(latencies[1:], 99)) if len(latencies) > 1 else None,
+        "p50_ms": float(np.percentile(latencies[1:], 50)) if len(latencies) > 1 else None,
+        "crashes": crashes,
+        "node_exit_code": rc,
+        "published": result.published if result else 0,
+        "node_banner": banner,
+        "map_from_world_R": map_from_world.R.round(6).tolist(),
+        "per_frame": records,
+    }
 
 
 # ---- output -------------------------------------------------------------------------------------
-HEADERS = ["data", "case", "odometry", "fixes", "pace", "frames", "≤0.25 m/10°", "%", "breaks L/P/other", "> 1 m",
-           "worst break: status error (std)", "refused/crash", "frames/s", "p99 ms"]
+HEADERS = [
+    "data",
+    "case",
+    "odometry",
+    "fixes",
+    "pace",
+    "frames",
+    "≤0.25 m/10°",
+    "%",
+    "breaks L/P/other",
+    "> 1 m",
+    "worst break: status error (std)",
+    "refused/crash",
+    "frames/s",
+    "p99 ms",
+]
 
 
 def table_row(r: dict) -> list[str]:
     w = r["worst"]
-    worst = "-" if w is None else (f"{w['status']} {w['translation_error_m']:.2f} m "
-                                   f"({w['position_std_m']:.2f})")
-    return [r["data"], r["case"], r["odometry"], r["fixes"], r["pace"], str(r["frames"]), str(r["good"]),
-            f"{r['good_pct']:.1f}",
-            f"{r['promise_breaks']} ({r['breaks_localized']}/{r['breaks_predicted']}/{r['breaks_other']})",
-            str(r["beyond_1m"]), worst, f"{r['refused']}/{len(r['crashes'])}",
-            peer.fmt_num(r["fps"], 1), peer.fmt_num(r["p99_ms"], 0)]
+    worst = (
+        "-" if w is None else (f"{w['status']} {w['translation_error_m']:.2f} m ({w['position_std_m']:.2f})")
+    )
+    return [
+        r["data"],
+        r["case"],
+        r["odometry"],
+        r["fixes"],
+        r["pace"],
+        str(r["frames"]),
+        str(r["good"]),
+        f"{r['good_pct']:.1f}",
+        f"{r['promise_breaks']} ({r['breaks_localized']}/{r['breaks_predicted']}/{r['breaks_other']})",
+        str(r["beyond_1m"]),
+        worst,
+        f"{r['refused']}/{len(r['crashes'])}",
+        peer.fmt_num(r["fps"], 1),
+        peer.fmt_num(r["p99_ms"], 0),
+    ]
 
 
 def failed(r: dict) -> bool:
@@ -363,14 +504,18 @@ def detail_lines(rows: list[dict]) -> list[str]:
             continue
         label = f"{r['data']} {r['case']} odometry={r['odometry']} fixes={r['fixes']}"
         for b in r["worst_breaks"][:3]:
-            out.append(f"{label}: frame {b['index']} ({b['name']}, {b['kind']}) {b['status']} "
-                       f"{b['translation_error_m']:.2f} m off, std {b['position_std_m']:.3f} m "
-                       f"(motion {b.get('motion_source')}, fix {b.get('fix_status')})")
+            out.append(
+                f"{label}: frame {b['index']} ({b['name']}, {b['kind']}) {b['status']} "
+                f"{b['translation_error_m']:.2f} m off, std {b['position_std_m']:.3f} m "
+                f"(motion {b.get('motion_source')}, fix {b.get('fix_status')})"
+            )
         listed = {b["index"] for b in r["worst_breaks"][:3]}
         for b in [b for b in r["beyond_1m_frames"] if b["index"] not in listed][:3]:
-            out.append(f"{label}: frame {b['index']} ({b['name']}, {b['kind']}) {b['status']} "
-                       f"{b['translation_error_m']:.2f} m off (beyond 1 m), std {b['position_std_m']:.3f} m "
-                       f"(motion {b.get('motion_source')}, fix {b.get('fix_status')})")
+            out.append(
+                f"{label}: frame {b['index']} ({b['name']}, {b['kind']}) {b['status']} "
+                f"{b['translation_error_m']:.2f} m off (beyond 1 m), std {b['position_std_m']:.3f} m "
+                f"(motion {b.get('motion_source')}, fix {b.get('fix_status')})"
+            )
         for c in r["crashes"][:3]:
             where = "" if c["index"] is None else f"frame {c['index']} ({c['name']}, {c['kind']}): "
             out.append(f"{label}: CRASH {where}{c['exception']}")
@@ -386,50 +531,108 @@ def target_lines(rows: list[dict]) -> list[str]:
     for r in rows:
         label = f"{r['data']} {r['case']} odometry={r['odometry']} fixes={r['fixes']} pace={r['pace']}"
         if not CASES[r["case"]].kidnap and r["pace"] == "camera":
-            out.append(peer.verdict(r["good_pct_of_image_frames"] >= 95.0,
-                                    f"{label}: >= 95 % of the frames with an image within 0.25 m/10° "
-                                    f"({r['good_pct_of_image_frames']:.1f} %)"))
-        if (r["case"] == "default" and r["runner"] == "stream" and r["fixes"] == "background"
-                and r["odometry"] == "without"):
+            out.append(
+                peer.verdict(
+                    r["good_pct_of_image_frames"] >= 95.0,
+                    f"{label}: >= 95 % of the frames with an image within 0.25 m/10° "
+                    f"({r['good_pct_of_image_frames']:.1f} %)",
+                )
+            )
+        if (
+            r["case"] == "default"
+            and r["runner"] == "stream"
+            and r["fixes"] == "background"
+            and r["odometry"] == "without"
+        ):
             p99_ok = r["p99_ms"] is not None and r["p99_ms"] <= 100.0
-            if r["pace"] == "eager":     # the sustained rate: frames handed over as fast as they are posed
-                out.append(peer.verdict((r["fps"] or 0) >= 10.0 and p99_ok,
-                                        f"{label}: >= 10 frames/s sustained and p99 <= 100 ms "
-                                        f"({peer.fmt_num(r['fps'], 1)} frames/s, p99 {peer.fmt_num(r['p99_ms'], 0)} ms)"))
-            else:                        # at the camera's pace the latency counts from the capture time
-                out.append(peer.verdict(p99_ok, f"{label}: p99 <= 100 ms from capture "
-                                                f"(p99 {peer.fmt_num(r['p99_ms'], 0)} ms)"))
+            if r["pace"] == "eager":  # the sustained rate: frames handed over as fast as they are posed
+                out.append(
+                    peer.verdict(
+                        (r["fps"] or 0) >= 10.0 and p99_ok,
+                        f"{label}: >= 10 frames/s sustained and p99 <= 100 ms "
+                        f"({peer.fmt_num(r['fps'], 1)} frames/s, p99 {peer.fmt_num(r['p99_ms'], 0)} ms)",
+                    )
+                )
+            else:  # at the camera's pace the latency counts from the capture time
+                out.append(
+                    peer.verdict(
+                        p99_ok, f"{label}: p99 <= 100 ms from capture (p99 {peer.fmt_num(r['p99_ms'], 0)} ms)"
+                    )
+                )
     return out
 
 
 # ---- main ---------------------------------------------------------------------------------------
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--data", nargs="+", choices=[*KITTI, *WORLDS], default=None,
-                   help=f"streams (default: {' '.join(DEFAULT_DATA)}; --quick: {' '.join(QUICK['data'])})")
-    p.add_argument("--cases", nargs="+", choices=list(CASES), default=None,
-                   help=f"stream cases (default: all; --quick: {' '.join(QUICK['cases'])})")
+    p.add_argument(
+        "--data",
+        nargs="+",
+        choices=[*KITTI, *WORLDS],
+        default=None,
+        help=f"streams (default: {' '.join(DEFAULT_DATA)}; --quick: {' '.join(QUICK['data'])})",
+    )
+    p.add_argument(
+        "--cases",
+        nargs="+",
+        choices=list(CASES),
+        default=None,
+        help=f"stream cases (default: all; --quick: {' '.join(QUICK['cases'])})",
+    )
     p.add_argument("--fixes", nargs="+", choices=FIX_MODES, default=None, help="fix modes (default: both)")
-    p.add_argument("--pace", nargs="+", choices=PACES, default=["camera"],
-                   help="how frames are handed over: at their capture times (camera) or as soon as the previous "
-                        "pose is out (eager); default: %(default)s, plus one eager run of the default case for speed")
-    p.add_argument("--odometry", nargs="+", choices=ODOMETRY, default=None,
-                   help=f"with / without simulated wheel odometry (default: both; --quick: {QUICK['odometry'][0]})")
-    p.add_argument("--quick", action="store_true", help="CI subset: " + "; ".join(
-        f"{k} {' '.join(v)}" for k, v in QUICK.items()) + " (explicit filters override)")
+    p.add_argument(
+        "--pace",
+        nargs="+",
+        choices=PACES,
+        default=["camera"],
+        help="how frames are handed over: at their capture times (camera) or as soon as the previous "
+        "pose is out (eager); default: %(default)s, plus one eager run of the default case for speed",
+    )
+    p.add_argument(
+        "--odometry",
+        nargs="+",
+        choices=ODOMETRY,
+        default=None,
+        help=f"with / without simulated wheel odometry (default: both; --quick: {QUICK['odometry'][0]})",
+    )
+    p.add_argument(
+        "--quick",
+        action="store_true",
+        help="CI subset: "
+        + "; ".join(f"{k} {' '.join(v)}" for k, v in QUICK.items())
+        + " (explicit filters override)",
+    )
     p.add_argument("--seed", type=int, default=0, help="seed of the stream cases' random choices")
     p.add_argument("--map-every", type=int, default=4, help="KITTI map = every Nth frame (default 4)")
-    p.add_argument("--data-root", type=Path, default=SHARED, help="shared KITTI folders (default: %(default)s)")
-    p.add_argument("--cache", type=Path, default=None, help="worlds and maps (default: $TMPDIR/planarloc-bench)")
+    p.add_argument(
+        "--data-root", type=Path, default=SHARED, help="shared KITTI folders (default: %(default)s)"
+    )
+    p.add_argument(
+        "--cache", type=Path, default=None, help="worlds and maps (default: $TMPDIR/planarloc-bench)"
+    )
     p.add_argument("--node", action="store_true", help="also replay through the ROS 2 node (slow)")
-    p.add_argument("--node-cases", nargs="+", choices=[c for c in CASES if c != "corrupt"],
-                   default=["default", "fixed-rate"], help="cases replayed through the node (default: %(default)s)")
-    p.add_argument("--node-param", action="append", default=[], metavar="NAME:=VALUE",
-                   help="extra -p parameter of the node (repeatable)")
+    p.add_argument(
+        "--node-cases",
+        nargs="+",
+        choices=[c for c in CASES if c != "corrupt"],
+        default=["default", "fixed-rate"],
+        help="cases replayed through the node (default: %(default)s)",
+    )
+    p.add_argument(
+        "--node-param",
+        action="append",
+        default=[],
+        metavar="NAME:=VALUE",
+        help="extra -p parameter of the node (repeatable)",
+    )
     p.add_argument("--json", type=Path, default=None, help="write every run, per frame, here")
     args = p.parse_args(argv)
-    for key, default in (("data", list(DEFAULT_DATA)), ("cases", list(CASES)), ("fixes", list(FIX_MODES)),
-                         ("odometry", list(ODOMETRY))):
+    for key, default in (
+        ("data", list(DEFAULT_DATA)),
+        ("cases", list(CASES)),
+        ("fixes", list(FIX_MODES)),
+        ("odometry", list(ODOMETRY)),
+    ):
         if getattr(args, key) is None:
             setattr(args, key, QUICK[key] if args.quick else default)
     if args.map_every < 2:
@@ -449,10 +652,14 @@ def main(argv: list[str] | None = None) -> int:
         loc = Localizer(data.map_path, localizer_config(structure="tracks", seed=0))
         for case in args.cases:
             frames = apply_case(case, data.frames, args.seed)
-            runs = [(odo, fixes, "stream", pace) for pace in args.pace for odo in args.odometry
-                    for fixes in args.fixes]
+            runs = [
+                (odo, fixes, "stream", pace)
+                for pace in args.pace
+                for odo in args.odometry
+                for fixes in args.fixes
+            ]
             if case == "default" and "eager" not in args.pace:
-                runs.append(("without", "background", "stream", "eager"))   # the sustained rate
+                runs.append(("without", "background", "stream", "eager"))  # the sustained rate
             if args.node and case in args.node_cases:
                 runs.append(("without", "node", "node", "camera"))
             for odo, fixes, runner, pace in runs:
@@ -461,23 +668,44 @@ def main(argv: list[str] | None = None) -> int:
                     r = run_node(data, loc, frames, args.node_param)
                 else:
                     r = run_stream(loc, frames, fixes, odo == "with", pace)
-                r = {"data": name, "case": case, "odometry": odo, "fixes": fixes, "runner": runner, "pace": pace,
-                     "load_average": load, "wall_s": time.perf_counter() - t0, **r}
+                r = {
+                    "data": name,
+                    "case": case,
+                    "odometry": odo,
+                    "fixes": fixes,
+                    "runner": runner,
+                    "pace": pace,
+                    "load_average": load,
+                    "wall_s": time.perf_counter() - t0,
+                    **r,
+                }
                 rows.append(r)
                 peer.log("| " + " | ".join(table_row(r)) + f" | load {load:.1f} |")
-    print_table(rows, f"Stream trust (load average {os.getloadavg()[0]:.1f} at the end: timings on a loaded "
-                      "machine are inflated)")
+    print_table(
+        rows,
+        f"Stream trust (load average {os.getloadavg()[0]:.1f} at the end: timings on a loaded "
+        "machine are inflated)",
+    )
     for line in detail_lines(rows):
         print(line)
     for line in target_lines(rows):
         print(line)
     bad = [r for r in rows if failed(r)]
     print(f"total {time.perf_counter() - t_start:.0f} s; {peer.load_note('at end')}")
-    print(f"{len(bad)} of {len(rows)} runs break a promise, pose beyond 1 m, crash or refuse a good frame"
-          if bad else f"all {len(rows)} runs keep every promise")
-    peer.write_json(args.json, {"args": {k: str(v) if isinstance(v, Path) else v for k, v in vars(args).items()},
-                                "code": peer.code_version(), "seconds": time.perf_counter() - t_start,
-                                "runs": rows})
+    print(
+        f"{len(bad)} of {len(rows)} runs break a promise, pose beyond 1 m, crash or refuse a good frame"
+        if bad
+        else f"all {len(rows)} runs keep every promise"
+    )
+    peer.write_json(
+        args.json,
+        {
+            "args": {k: str(v) if isinstance(v, Path) else v for k, v in vars(args).items()},
+            "code": peer.code_version(),
+            "seconds": time.perf_counter() - t_start,
+            "runs": rows,
+        },
+    )
     return 1 if bad else 0
 
 

@@ -92,8 +92,9 @@ class TriangulatePnPPeer:
         m = peer.bf_ratio_match(self.matcher, da, db, RATIO)
         if len(m) == 0:
             return {}
-        Xh = cv2.triangulatePoints(self._projection(a), self._projection(b), ka[m[:, 0]].T.astype(float),
-                                   kb[m[:, 1]].T.astype(float))
+        Xh = cv2.triangulatePoints(
+            self._projection(a), self._projection(b), ka[m[:, 0]].T.astype(float), kb[m[:, 1]].T.astype(float)
+        )
         X = (Xh[:3] / Xh[3]).T
         ok = np.ones(len(X), dtype=bool)
         for image, kp in ((a, ka[m[:, 0]]), (b, kb[m[:, 1]])):
@@ -119,9 +120,13 @@ class TriangulatePnPPeer:
                     X3d.append(X)
         if len(x2d) < 4:
             return None
-        pose, _ = peer.poselib.estimate_absolute_pose(np.asarray(x2d, dtype=float), np.asarray(X3d, dtype=float),
-                                                      peer.poselib_camera(query.camera),
-                                                      {"max_reproj_error": PNP_PX}, {})
+        pose, _ = peer.poselib.estimate_absolute_pose(
+            np.asarray(x2d, dtype=float),
+            np.asarray(X3d, dtype=float),
+            peer.poselib_camera(query.camera),
+            {"max_reproj_error": PNP_PX},
+            {},
+        )
         return Pose(pose.R, pose.t)
 
 
@@ -129,21 +134,34 @@ def summarise(rows: Sequence[dict], with_std: bool) -> dict:
     n = len(rows)
     e = np.array([(r["t_err"], r["r_err"]) for r in rows], dtype=float).reshape(-1, 2)
     ok = np.array([r["success"] for r in rows], dtype=bool)
-    success = {threshold_name(t, r): 100.0 * float((ok & (e[:, 0] < t) & (e[:, 1] < r)).sum()) / max(n, 1)
-               for t, r in THRESHOLDS}
+    success = {
+        threshold_name(t, r): 100.0 * float((ok & (e[:, 0] < t) & (e[:, 1] < r)).sum()) / max(n, 1)
+        for t, r in THRESHOLDS
+    }
     wrong = int((ok & ~((e[:, 0] <= 1.0) & (e[:, 1] <= 20.0))).sum())
     broken = None
     if with_std:
         std = np.array([r["std"] for r in rows], dtype=float)
         broken = int((ok & (e[:, 0] > 3.0 * std + STD_MARGIN_M)).sum())
-    return {"queries": n, "success": success, "wrong_beyond_1m_20deg": wrong, "broken_promises": broken,
-            "median_error_m": float(np.median(e[ok, 0])) if ok.any() else None,
-            "seconds_per_query": float(np.mean([r["seconds"] for r in rows])) if n else None,
-            "failures": dict(Counter(r["status"] for r in rows if not r["success"]))}
+    return {
+        "queries": n,
+        "success": success,
+        "wrong_beyond_1m_20deg": wrong,
+        "broken_promises": broken,
+        "median_error_m": float(np.median(e[ok, 0])) if ok.any() else None,
+        "seconds_per_query": float(np.mean([r["seconds"] for r in rows])) if n else None,
+        "failures": dict(Counter(r["status"] for r in rows if not r["success"])),
+    }
 
 
-def run_sequence(folder: Path, map_every: int, root: Path, progress: peer.Progress, seed: int = 0,
-                 storage: str = DEFAULT_STORAGE) -> dict:
+def run_sequence(
+    folder: Path,
+    map_every: int,
+    root: Path,
+    progress: peer.Progress,
+    seed: int = 0,
+    storage: str = DEFAULT_STORAGE,
+) -> dict:
     images = read_dataset(folder, "kitti")
     map_images, queries = split_map_queries(images, map_every)
     by_name = {m.name: m for m in map_images}
@@ -158,33 +176,72 @@ def run_sequence(folder: Path, map_every: int, root: Path, progress: peer.Progre
             est = loc.localize(read_gray(q.path), q.camera)
             t1 = time.perf_counter()
             te, re = peer.errors_of(est.pose if est.success else None, q.cam_from_world)
-            ours.append({"name": q.name, "success": bool(est.success), "status": est.status, "t_err": te,
-                         "r_err": re, "std": est.position_std_m, "seconds": t1 - t0})
-            for rows, refs in ((peer_ours, est.references or loc.retrieve(extract_features(read_gray(q.path),
-                                                                                          loc.features))),
-                               (peer_oracle, peer.oracle_references(q, map_images, TOP_N))):
+            ours.append(
+                {
+                    "name": q.name,
+                    "success": bool(est.success),
+                    "status": est.status,
+                    "t_err": te,
+                    "r_err": re,
+                    "std": est.position_std_m,
+                    "seconds": t1 - t0,
+                }
+            )
+            for rows, refs in (
+                (
+                    peer_ours,
+                    est.references or loc.retrieve(extract_features(read_gray(q.path), loc.features)),
+                ),
+                (peer_oracle, peer.oracle_references(q, map_images, TOP_N)),
+            ):
                 t2 = time.perf_counter()
                 pose = the_peer.localize(q, [by_name[r] for r in refs])
                 te, re = peer.errors_of(pose, q.cam_from_world)
-                rows.append({"name": q.name, "success": pose is not None, "status": "no_pose" if pose is None
-                             else "success", "t_err": te, "r_err": re, "seconds": time.perf_counter() - t2})
+                rows.append(
+                    {
+                        "name": q.name,
+                        "success": pose is not None,
+                        "status": "no_pose" if pose is None else "success",
+                        "t_err": te,
+                        "r_err": re,
+                        "seconds": time.perf_counter() - t2,
+                    }
+                )
             progress(f"{folder.name} every {map_every}", i + 1, len(queries))
-    return {"sequence": folder.name, "map_every": map_every, "map_images": len(map_images), "queries": len(queries),
-            "planarloc": summarise(ours, True), "peer_our_retrieval": summarise(peer_ours, False),
-            "peer_oracle_retrieval": summarise(peer_oracle, False),
-            "per_query": {"planarloc": ours, "peer_our_retrieval": peer_ours, "peer_oracle_retrieval": peer_oracle}}
+    return {
+        "sequence": folder.name,
+        "map_every": map_every,
+        "map_images": len(map_images),
+        "queries": len(queries),
+        "planarloc": summarise(ours, True),
+        "peer_our_retrieval": summarise(peer_ours, False),
+        "peer_oracle_retrieval": summarise(peer_oracle, False),
+        "per_query": {
+            "planarloc": ours,
+            "peer_our_retrieval": peer_ours,
+            "peer_oracle_retrieval": peer_oracle,
+        },
+    }
 
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--sequences", nargs="+", default=SEQUENCES, help="folders under --data-root (KITTI layout)")
+    p.add_argument(
+        "--sequences", nargs="+", default=SEQUENCES, help="folders under --data-root (KITTI layout)"
+    )
     p.add_argument("--map-every", nargs="+", type=int, default=MAP_EVERY, help="map = every N-th frame")
     p.add_argument("--data-root", type=Path, default=DATA_ROOT)
     p.add_argument("--json", type=Path, default=None)
-    p.add_argument("--storage", choices=STORAGE_LAYOUTS, default=DEFAULT_STORAGE,
-                   help="layout of the maps (default: %(default)s, the library's)")
+    p.add_argument(
+        "--storage",
+        choices=STORAGE_LAYOUTS,
+        default=DEFAULT_STORAGE,
+        help="layout of the maps (default: %(default)s, the library's)",
+    )
     p.add_argument("--seed", type=int, default=0, help="RANSAC seed of planarloc (default 0, the library's)")
-    p.add_argument("--cache-dir", type=Path, default=Path(tempfile.gettempdir()) / "planarloc-bench" / "structure")
+    p.add_argument(
+        "--cache-dir", type=Path, default=Path(tempfile.gettempdir()) / "planarloc-bench" / "structure"
+    )
     args = p.parse_args(argv)
     if not peer.have_poselib():
         p.error("the peer needs PoseLib: pip install -e '.[bench]'")
@@ -201,24 +258,55 @@ def main(argv: list[str] | None = None) -> int:
             continue
         for every in args.map_every:
             results.append(run_sequence(folder, every, args.cache_dir, progress, args.seed, args.storage))
-    heads = ["sequence", "map", "who", *[threshold_name(t, r) for t, r in THRESHOLDS], "> 1m/20°", "broken promises",
-             "median [m]", "s/query", "failures"]
+    heads = [
+        "sequence",
+        "map",
+        "who",
+        *[threshold_name(t, r) for t, r in THRESHOLDS],
+        "> 1m/20°",
+        "broken promises",
+        "median [m]",
+        "s/query",
+        "failures",
+    ]
     rows = []
     for r in results:
-        for who, key in (("planarloc (auto, tracks)", "planarloc"), ("peer, our retrieval", "peer_our_retrieval"),
-                         ("peer, oracle top-5", "peer_oracle_retrieval")):
+        for who, key in (
+            ("planarloc (auto, tracks)", "planarloc"),
+            ("peer, our retrieval", "peer_our_retrieval"),
+            ("peer, oracle top-5", "peer_oracle_retrieval"),
+        ):
             s = r[key]
-            rows.append([r["sequence"], f"every {r['map_every']}", who, *[peer.fmt_pct(v) for v in s["success"].values()],
-                         str(s["wrong_beyond_1m_20deg"]), "-" if s["broken_promises"] is None else str(s["broken_promises"]),
-                         peer.fmt_num(s["median_error_m"]), peer.fmt_num(s["seconds_per_query"], 2),
-                         ", ".join(f"{k} {v}" for k, v in s["failures"].items()) or "-"])
-    print(peer.markdown_table(heads, rows, "Local structure vs triangulate + PnP (success within the thresholds)"))
+            rows.append(
+                [
+                    r["sequence"],
+                    f"every {r['map_every']}",
+                    who,
+                    *[peer.fmt_pct(v) for v in s["success"].values()],
+                    str(s["wrong_beyond_1m_20deg"]),
+                    "-" if s["broken_promises"] is None else str(s["broken_promises"]),
+                    peer.fmt_num(s["median_error_m"]),
+                    peer.fmt_num(s["seconds_per_query"], 2),
+                    ", ".join(f"{k} {v}" for k, v in s["failures"].items()) or "-",
+                ]
+            )
+    print(
+        peer.markdown_table(
+            heads, rows, "Local structure vs triangulate + PnP (success within the thresholds)"
+        )
+    )
     for r in results:
-        gap = r["peer_our_retrieval"]["success"][threshold_name(*THRESHOLDS[0])] - \
-            r["planarloc"]["success"][threshold_name(*THRESHOLDS[0])]
-        print(peer.verdict(gap <= 1.0 and r["planarloc"]["wrong_beyond_1m_20deg"] == 0,
-                           f"{r['sequence']} every {r['map_every']}: planarloc within 1 point of the peer at "
-                           f"{threshold_name(*THRESHOLDS[0])} (gap {gap:+.1f}) with no success beyond 1 m / 20°"))
+        gap = (
+            r["peer_our_retrieval"]["success"][threshold_name(*THRESHOLDS[0])]
+            - r["planarloc"]["success"][threshold_name(*THRESHOLDS[0])]
+        )
+        print(
+            peer.verdict(
+                gap <= 1.0 and r["planarloc"]["wrong_beyond_1m_20deg"] == 0,
+                f"{r['sequence']} every {r['map_every']}: planarloc within 1 point of the peer at "
+                f"{threshold_name(*THRESHOLDS[0])} (gap {gap:+.1f}) with no success beyond 1 m / 20°",
+            )
+        )
     print(peer.load_note("at end"))
     peer.write_json(args.json, {"code": peer.code_version(), "seed": args.seed, "results": results})
     return 0

@@ -93,7 +93,10 @@ FLOOR_TILTS_DEG = (0.0, 1.0, 3.0)
 MOUNT_PITCHES_DEG = (0.0, 10.0)
 QUICK_DATASETS = ["office-tilt3-pitch10", "kitti-every4", "fountain_p11", "fountain-to-entry"]
 KITTI = {"kitti": "kitti_seq2", "kitti1": "kitti_seq1"}  # data set name prefix -> shared folder
-CROSS_SESSION = {"fountain-to-entry": ("fountain_p11", "entry_p10"), "entry-to-fountain": ("entry_p10", "fountain_p11")}
+CROSS_SESSION = {
+    "fountain-to-entry": ("fountain_p11", "entry_p10"),
+    "entry-to-fountain": ("entry_p10", "fountain_p11"),
+}
 
 
 # ---- data sets ------------------------------------------------------------------------------------
@@ -110,9 +113,12 @@ class DataSet:
 
 def world_configs(n_map: int, n_query: int) -> dict[str, object]:
     """Named WorldConfigs of the generated data sets."""
+
     def frames(config):
-        return dataclasses.replace(config, trajectory=dataclasses.replace(config.trajectory, n_map=n_map,
-                                                                          n_query=n_query))
+        return dataclasses.replace(
+            config, trajectory=dataclasses.replace(config.trajectory, n_map=n_map, n_query=n_query)
+        )
+
     office = frames(get_preset("office"))
     out = {}
     for pitch in MOUNT_PITCHES_DEG:
@@ -125,29 +131,46 @@ def world_configs(n_map: int, n_query: int) -> dict[str, object]:
 
 
 def dataset_names(world_frames: tuple[int, int] = WORLD_FRAMES) -> list[str]:
-    return [*world_configs(*world_frames), *(f"{k}-every{e}" for k in KITTI for e in (4, 2)), "fountain_p11",
-            "entry_p10", *CROSS_SESSION]
+    return [
+        *world_configs(*world_frames),
+        *(f"{k}-every{e}" for k in KITTI for e in (4, 2)),
+        "fountain_p11",
+        "entry_p10",
+        *CROSS_SESSION,
+    ]
 
 
-def load_dataset(name: str, args: argparse.Namespace, root: Path,
-                 update: Callable[[str, int, int], None]) -> DataSet | None:
+def load_dataset(
+    name: str, args: argparse.Namespace, root: Path, update: Callable[[str, int, int], None]
+) -> DataSet | None:
     """The data set ``name`` (rendered if needed), or None when its real data is not there."""
     worlds = world_configs(*args.world_frames)
     if name in worlds:
-        folder = cache.cached_world(worlds[name], WORLD_SEED, root,
-                                    lambda d, n: update(f"render {name}", d, n))
+        folder = cache.cached_world(
+            worlds[name], WORLD_SEED, root, lambda d, n: update(f"render {name}", d, n)
+        )
         queries = read_dataset(folder / "query", "tum")
         g = read_gravity(folder / "query" / "gravity.txt")
-        return DataSet(name, read_dataset(folder / "map", "tum"), queries,
-                       {q.name: g[Path(q.name).stem] for q in queries}, str(folder))
+        return DataSet(
+            name,
+            read_dataset(folder / "map", "tum"),
+            queries,
+            {q.name: g[Path(q.name).stem] for q in queries},
+            str(folder),
+        )
     if name in CROSS_SESSION:
         folders = [args.data_root / d for d in CROSS_SESSION[name]]
         missing = [f for f in folders if not f.is_dir()]
         if missing:
             peer.log(f"{name}: {missing[0]} not found, skipped")
             return None
-        return DataSet(name, read_dataset(folders[0], "kapture"), read_dataset(folders[1], "kapture"), None,
-                       " -> ".join(str(f) for f in folders))
+        return DataSet(
+            name,
+            read_dataset(folders[0], "kapture"),
+            read_dataset(folders[1], "kapture"),
+            None,
+            " -> ".join(str(f) for f in folders),
+        )
     prefix, _, every_text = name.partition("-every")
     if prefix in KITTI and every_text.isdigit():
         folder, fmt, every = args.data_root / KITTI[prefix], "kitti", int(every_text)
@@ -165,8 +188,13 @@ def localizer_takes_gravity() -> bool:
     return "gravity" in inspect.signature(Localizer.localize_features).parameters
 
 
-def localize_all(db: MapDatabase, configs: Sequence[LocalizerConfig], data: DataSet, use_gravity: bool,
-                 update: Callable[[str, int, int], None]) -> list[list[dict]]:
+def localize_all(
+    db: MapDatabase,
+    configs: Sequence[LocalizerConfig],
+    data: DataSet,
+    use_gravity: bool,
+    update: Callable[[str, int, int], None],
+) -> list[list[dict]]:
     """Per config, one dict per query: :class:`QueryResult` fields plus ``model``. Query features
     are extracted once per query; ``seconds`` is extraction plus that config's localization."""
     localizers = [Localizer(db, c) for c in configs]
@@ -188,8 +216,11 @@ def localize_all(db: MapDatabase, configs: Sequence[LocalizerConfig], data: Data
 # ---- metrics --------------------------------------------------------------------------------------
 def beyond(rows: Sequence[dict], t_max: float, r_max: float) -> list[dict]:
     """Successes off by more than ``t_max`` metres or ``r_max`` degrees."""
-    return [r for r in rows if r["success"] and not (r["translation_error_m"] <= t_max
-                                                     and r["rotation_error_deg"] <= r_max)]
+    return [
+        r
+        for r in rows
+        if r["success"] and not (r["translation_error_m"] <= t_max and r["rotation_error_deg"] <= r_max)
+    ]
 
 
 def trust_metrics(rows: Sequence[dict]) -> dict:
@@ -204,10 +235,16 @@ def trust_metrics(rows: Sequence[dict]) -> dict:
     t = np.array([r["translation_error_m"] for r in rows], dtype=float)
     rot = np.array([r["rotation_error_deg"] for r in rows], dtype=float)
     std = np.array([r["position_std_m"] for r in rows], dtype=float)
-    success = {threshold_name(tt, rr): 100.0 * float((ok & (t < tt) & (rot < rr)).sum()) / max(n, 1)
-               for tt, rr in THRESHOLDS}
-    wrong = [r for r in rows if r["success"] and not (r["translation_error_m"] < cache.WRONG_T
-                                                      and r["rotation_error_deg"] < cache.WRONG_R)]
+    success = {
+        threshold_name(tt, rr): 100.0 * float((ok & (t < tt) & (rot < rr)).sum()) / max(n, 1)
+        for tt, rr in THRESHOLDS
+    }
+    wrong = [
+        r
+        for r in rows
+        if r["success"]
+        and not (r["translation_error_m"] < cache.WRONG_T and r["rotation_error_deg"] < cache.WRONG_R)
+    ]
     gate = beyond(rows, cache.GATE_T, cache.GATE_R)
     k = int(ok.sum())
 
@@ -232,35 +269,63 @@ def trust_metrics(rows: Sequence[dict]) -> dict:
         "calibration": calibration,
         "models": dict(Counter(r.get("model", "") or "-" for r in rows if r["success"])),
         "status_counts": dict(Counter(r.get("status", "") for r in rows)),
-        "seconds_per_query": (float(np.mean([r["seconds"] for r in rows]))
-                              if n and "seconds" in rows[0] else None),
+        "seconds_per_query": (
+            float(np.mean([r["seconds"] for r in rows])) if n and "seconds" in rows[0] else None
+        ),
     }
 
 
 # ---- output ---------------------------------------------------------------------------------------
-HEADERS = ["data", "method", "structure", "queries", *[threshold_name(t, r) for t, r in THRESHOLDS],
-           "confident wrong", "> 1m/20°", "worst t [m]", "worst R [°]",
-           "≤ 1σ", "≤ 2σ", "≤ 3σ", "≤ 3σ+5cm", "median err/σ",
-           "models", "s/query"]
+HEADERS = [
+    "data",
+    "method",
+    "structure",
+    "queries",
+    *[threshold_name(t, r) for t, r in THRESHOLDS],
+    "confident wrong",
+    "> 1m/20°",
+    "worst t [m]",
+    "worst R [°]",
+    "≤ 1σ",
+    "≤ 2σ",
+    "≤ 3σ",
+    "≤ 3σ+5cm",
+    "median err/σ",
+    "models",
+    "s/query",
+]
 
 
 def table_row(result: dict) -> list[str]:
     m = result["metrics"]
     cal = m["calibration"]
     models = ", ".join(f"{k} {v}" for k, v in sorted(m["models"].items()) if k != "-") or "-"
-    return [result["dataset"], result["method"], result["structure"], str(m["queries"]),
-            *[peer.fmt_pct(v) for v in m["success"].values()],
-            str(m["confident_wrong"]), str(m["beyond_gate"]),
-            peer.fmt_num(m["worst_translation_error_m"], 2), peer.fmt_num(m["worst_rotation_error_deg"], 1),
-            *[peer.fmt_pct(cal[f"within_{s}std"]) for s in SIGMAS], peer.fmt_pct(cal["within_3std_plus_5cm"]),
-            peer.fmt_num(cal.get("median_error_over_std"), 2), models, peer.fmt_num(m["seconds_per_query"], 2)]
+    return [
+        result["dataset"],
+        result["method"],
+        result["structure"],
+        str(m["queries"]),
+        *[peer.fmt_pct(v) for v in m["success"].values()],
+        str(m["confident_wrong"]),
+        str(m["beyond_gate"]),
+        peer.fmt_num(m["worst_translation_error_m"], 2),
+        peer.fmt_num(m["worst_rotation_error_deg"], 1),
+        *[peer.fmt_pct(cal[f"within_{s}std"]) for s in SIGMAS],
+        peer.fmt_pct(cal["within_3std_plus_5cm"]),
+        peer.fmt_num(cal.get("median_error_over_std"), 2),
+        models,
+        peer.fmt_num(m["seconds_per_query"], 2),
+    ]
 
 
 def rich_table(results: Sequence[dict], title: str) -> Table:
     table = Table(title=title, show_lines=False)
     for h in HEADERS:
-        table.add_column(h, justify="left" if h in ("data", "method", "structure", "models") else "right",
-                         no_wrap=h in ("data", "method"))
+        table.add_column(
+            h,
+            justify="left" if h in ("data", "method", "structure", "models") else "right",
+            no_wrap=h in ("data", "method"),
+        )
     for r in results:
         m = r["metrics"]
         style = "bold red" if m["beyond_gate"] else ("yellow" if m["confident_wrong"] else None)
@@ -273,10 +338,12 @@ def offending_lines(results: Sequence[dict]) -> list[str]:
     out = []
     for r in results:
         for q in beyond(r["per_query"], cache.GATE_T, cache.GATE_R):
-            out.append(f"{r['dataset']} {r['method']} {r['structure']}: query {q['name']} reported success "
-                       f"({q['status']}, model {q['model'] or '-'}) but is "
-                       f"{q['translation_error_m']:.2f} m / "
-                       f"{q['rotation_error_deg']:.1f}° off, position_std_m {q['position_std_m']:.3f}")
+            out.append(
+                f"{r['dataset']} {r['method']} {r['structure']}: query {q['name']} reported success "
+                f"({q['status']}, model {q['model'] or '-'}) but is "
+                f"{q['translation_error_m']:.2f} m / "
+                f"{q['rotation_error_deg']:.1f}° off, position_std_m {q['position_std_m']:.3f}"
+            )
     return out
 
 
@@ -284,28 +351,60 @@ def offending_lines(results: Sequence[dict]) -> list[str]:
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     all_methods = [m.value for m in Method]
-    p.add_argument("--datasets", nargs="+", default=None, metavar="NAME",
-                   help=f"data sets (default: all; --quick: {' '.join(QUICK_DATASETS)}); "
-                        f"choose from {' '.join(dataset_names())}")
-    p.add_argument("--methods", nargs="+", default=None, choices=all_methods,
-                   help=f"solvers (default: {' '.join(DEFAULT_METHODS)}; --quick: {QUICK_METHOD})")
-    p.add_argument("--structures", nargs="+", default=STRUCTURES, choices=STRUCTURES,
-                   help="structure modes (default: both)")
-    p.add_argument("--query-gravity", choices=["none", "truth"], default="none",
-                   help="pass each query's true gravity to the Localizer "
-                        "(generated worlds only; default: none)")
-    p.add_argument("--world-frames", nargs=2, type=int, default=list(WORLD_FRAMES), metavar=("MAP", "QUERY"),
-                   help="frames of a generated world (default: %(default)s)")
-    p.add_argument("--data-root", type=Path, default=DATA_ROOT,
-                   help="shared real data (default: %(default)s)")
-    p.add_argument("--cache-dir", type=Path, default=None,
-                   help="rendered worlds and maps, reused when their content matches "
-                        "(default: $TMPDIR/planarloc-bench)")
-    p.add_argument("--quick", action="store_true",
-                   help="CI gate: 3 data sets, default method; exit 1 on any success beyond 1 m or 20°")
+    p.add_argument(
+        "--datasets",
+        nargs="+",
+        default=None,
+        metavar="NAME",
+        help=f"data sets (default: all; --quick: {' '.join(QUICK_DATASETS)}); "
+        f"choose from {' '.join(dataset_names())}",
+    )
+    p.add_argument(
+        "--methods",
+        nargs="+",
+        default=None,
+        choices=all_methods,
+        help=f"solvers (default: {' '.join(DEFAULT_METHODS)}; --quick: {QUICK_METHOD})",
+    )
+    p.add_argument(
+        "--structures",
+        nargs="+",
+        default=STRUCTURES,
+        choices=STRUCTURES,
+        help="structure modes (default: both)",
+    )
+    p.add_argument(
+        "--query-gravity",
+        choices=["none", "truth"],
+        default="none",
+        help="pass each query's true gravity to the Localizer (generated worlds only; default: none)",
+    )
+    p.add_argument(
+        "--world-frames",
+        nargs=2,
+        type=int,
+        default=list(WORLD_FRAMES),
+        metavar=("MAP", "QUERY"),
+        help="frames of a generated world (default: %(default)s)",
+    )
+    p.add_argument(
+        "--data-root", type=Path, default=DATA_ROOT, help="shared real data (default: %(default)s)"
+    )
+    p.add_argument(
+        "--cache-dir",
+        type=Path,
+        default=None,
+        help="rendered worlds and maps, reused when their content matches (default: $TMPDIR/planarloc-bench)",
+    )
+    p.add_argument(
+        "--quick",
+        action="store_true",
+        help="CI gate: 3 data sets, default method; exit 1 on any success beyond 1 m or 20°",
+    )
     p.add_argument("--json", type=Path, default=None, help="write all metrics and per-query results here")
-    p.add_argument("--markdown", type=Path, default=None,
-                   help="write the table as markdown (for BENCHMARKS.md)")
+    p.add_argument(
+        "--markdown", type=Path, default=None, help="write the table as markdown (for BENCHMARKS.md)"
+    )
     args = p.parse_args(argv)
     args.world_frames = tuple(args.world_frames)
     if min(args.world_frames) < 2:
@@ -323,21 +422,34 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
 
 def run_dataset(data: DataSet, args: argparse.Namespace, root: Path, update) -> list[dict]:
     map_path, build_s = cache.cached_map(data.map_images, data.name, root, progress=update)
-    configs = [LocalizerConfig(method=m, ransac=RansacOptions(structure=s))
-               for m in args.methods for s in args.structures]
+    configs = [
+        LocalizerConfig(method=m, ransac=RansacOptions(structure=s))
+        for m in args.methods
+        for s in args.structures
+    ]
     t0 = time.perf_counter()
     with MapDatabase.open(map_path) as db:
         rows = localize_all(db, configs, data, args.query_gravity == "truth", update)
     eval_s = time.perf_counter() - t0
-    peer.log(f"{data.name}: {len(data.map_images)} map / {len(data.queries)} queries, "
-             f"map build {build_s:.0f} s"
-             f"{' (cached)' if build_s == 0 else ''}, localization {eval_s:.0f} s; {peer.load_note()}")
-    return [{"dataset": data.name, "source": data.source,
-             "method": config_label(c)[0], "structure": config_label(c)[1],
-             "map_images": len(data.map_images), "queries": len(data.queries),
-             "query_gravity": args.query_gravity if data.gravity is not None else "none",
-             "metrics": trust_metrics(r), "per_query": r}
-            for c, r in zip(configs, rows, strict=True)]
+    peer.log(
+        f"{data.name}: {len(data.map_images)} map / {len(data.queries)} queries, "
+        f"map build {build_s:.0f} s"
+        f"{' (cached)' if build_s == 0 else ''}, localization {eval_s:.0f} s; {peer.load_note()}"
+    )
+    return [
+        {
+            "dataset": data.name,
+            "source": data.source,
+            "method": config_label(c)[0],
+            "structure": config_label(c)[1],
+            "map_images": len(data.map_images),
+            "queries": len(data.queries),
+            "query_gravity": args.query_gravity if data.gravity is not None else "none",
+            "metrics": trust_metrics(r),
+            "per_query": r,
+        }
+        for c, r in zip(configs, rows, strict=True)
+    ]
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -345,8 +457,10 @@ def main(argv: list[str] | None = None) -> int:
     t_start = time.perf_counter()
     console = Console(width=200)
     root = cache.cache_root(args.cache_dir)
-    title = (f"Trust: {', '.join(args.methods)}; structures {', '.join(args.structures)}; VLAD top-5; "
-             f"query gravity {args.query_gravity}")
+    title = (
+        f"Trust: {', '.join(args.methods)}; structures {', '.join(args.structures)}; VLAD top-5; "
+        f"query gravity {args.query_gravity}"
+    )
     console.print(f"# {title}")
     console.print(peer.code_note())
     console.print(peer.load_note("at start"))
@@ -372,11 +486,20 @@ def main(argv: list[str] | None = None) -> int:
     offending = offending_lines(results)
     seconds = time.perf_counter() - t_start
     console.print(f"total {seconds:.0f} s; {peer.load_note('at end')}")
-    peer.write_json(args.json, {"args": {k: v for k, v in vars(args).items()}, "code": peer.code_version(),
-                                "seconds": seconds, "skipped": skipped, "results": results})
+    peer.write_json(
+        args.json,
+        {
+            "args": {k: v for k, v in vars(args).items()},
+            "code": peer.code_version(),
+            "seconds": seconds,
+            "skipped": skipped,
+            "results": results,
+        },
+    )
     if offending:
-        console.print(f"[bold red]{len(offending)} success(es) beyond "
-                      f"{cache.GATE_T:g} m or {cache.GATE_R:g}°:")
+        console.print(
+            f"[bold red]{len(offending)} success(es) beyond {cache.GATE_T:g} m or {cache.GATE_R:g}°:"
+        )
         for line in offending:
             print(line)
     else:

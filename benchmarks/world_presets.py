@@ -54,31 +54,62 @@ DEFAULT_PRESETS = ("office", "corridor", "lifelong")
 
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--presets", nargs="+", default=list(DEFAULT_PRESETS), choices=preset_names(),
-                   help="worlds to run (default: %(default)s; trust.py covers pitched and offplane)")
+    p.add_argument(
+        "--presets",
+        nargs="+",
+        default=list(DEFAULT_PRESETS),
+        choices=preset_names(),
+        help="worlds to run (default: %(default)s; trust.py covers pitched and offplane)",
+    )
     p.add_argument("--seed", type=int, default=0, help="world seed (default: %(default)s)")
     p.add_argument("--method", default="2p1p", help="solver (default: %(default)s)")
-    p.add_argument("--work-dir", type=Path, default=None,
-                   help="keep rendered worlds here and reuse them (default: a temporary folder); maps are rebuilt")
+    p.add_argument(
+        "--work-dir",
+        type=Path,
+        default=None,
+        help="keep rendered worlds here and reuse them (default: a temporary folder); maps are rebuilt",
+    )
     p.add_argument("--json", type=Path, default=None, help="write all summaries and per-query results here")
     return p.parse_args(argv)
 
 
 def row(preset: str, tilt: bool, s: dict) -> list[str]:
-    return [preset, "tilt" if tilt else "-", s["structure"], *[peer.fmt_pct(v) for v in s["success"].values()],
-            peer.fmt_num(s["median_translation_error_m"]), peer.fmt_num(s["median_rotation_error_deg"], 2),
-            f"{s['failed_queries']}/{s['queries']}", str(s["status_counts"].get("degenerate_scale", 0)),
-            str(len(confident_wrong(s))), peer.fmt_num(s["seconds_per_query"], 2)]
+    return [
+        preset,
+        "tilt" if tilt else "-",
+        s["structure"],
+        *[peer.fmt_pct(v) for v in s["success"].values()],
+        peer.fmt_num(s["median_translation_error_m"]),
+        peer.fmt_num(s["median_rotation_error_deg"], 2),
+        f"{s['failed_queries']}/{s['queries']}",
+        str(s["status_counts"].get("degenerate_scale", 0)),
+        str(len(confident_wrong(s))),
+        peer.fmt_num(s["seconds_per_query"], 2),
+    ]
 
 
-HEADERS = ["world", "tilt", "structure", *[threshold_name(t, r) for t, r in THRESHOLDS], "median t [m]",
-           "median R [°]", "failed", "degenerate", "confident wrong", "s/query"]
+HEADERS = [
+    "world",
+    "tilt",
+    "structure",
+    *[threshold_name(t, r) for t, r in THRESHOLDS],
+    "median t [m]",
+    "median R [°]",
+    "failed",
+    "degenerate",
+    "confident wrong",
+    "s/query",
+]
 
 
 def run_preset(preset: str, args: argparse.Namespace, work: Path, maps: Path) -> list[dict]:
     t0 = time.perf_counter()
-    world = generate(preset, work / f"world-{preset}-seed{args.seed}", seed=args.seed,
-                     progress=lambda d, n: progress(f"render {preset}", d, n))
+    world = generate(
+        preset,
+        work / f"world-{preset}-seed{args.seed}",
+        seed=args.seed,
+        progress=lambda d, n: progress(f"render {preset}", d, n),
+    )
     render_s = time.perf_counter() - t0
     map_images, queries = read_dataset(world / "map", "tum"), read_dataset(world / "query", "tum")
     runs = []
@@ -91,15 +122,31 @@ def run_preset(preset: str, args: argparse.Namespace, work: Path, maps: Path) ->
         configs = [LocalizerConfig(method=args.method, ransac=RansacOptions(structure=s)) for s in STRUCTURES]
         t0 = time.perf_counter()
         with MapDatabase.open(path) as db:
-            results = evaluate_configs(db, configs, queries, lambda d, n: progress(f"localize {preset}", d, n))
+            results = evaluate_configs(
+                db, configs, queries, lambda d, n: progress(f"localize {preset}", d, n)
+            )
         eval_s = time.perf_counter() - t0
-        summaries = [summarize(r, *config_label(c), preset=preset, seed=args.seed, tilt=tilt)
-                     for c, r in zip(configs, results)]
-        runs.append({"preset": preset, "tilt": tilt, "map_images": len(map_images), "queries": len(queries),
-                     "render_seconds": render_s, "build_seconds": build_s, "evaluate_seconds": eval_s,
-                     "load_average": peer.load_average(), "summaries": summaries})
-        peer.log(f"{preset}{' (tilt)' if tilt else ''}: build {build_s:.0f} s, localization {eval_s:.0f} s; "
-                 f"{peer.load_note()}")
+        summaries = [
+            summarize(r, *config_label(c), preset=preset, seed=args.seed, tilt=tilt)
+            for c, r in zip(configs, results)
+        ]
+        runs.append(
+            {
+                "preset": preset,
+                "tilt": tilt,
+                "map_images": len(map_images),
+                "queries": len(queries),
+                "render_seconds": render_s,
+                "build_seconds": build_s,
+                "evaluate_seconds": eval_s,
+                "load_average": peer.load_average(),
+                "summaries": summaries,
+            }
+        )
+        peer.log(
+            f"{preset}{' (tilt)' if tilt else ''}: build {build_s:.0f} s, localization {eval_s:.0f} s; "
+            f"{peer.load_note()}"
+        )
     return runs
 
 
@@ -108,34 +155,55 @@ def targets(runs: list[dict]) -> list[tuple[bool, str]]:
     out = []
     if ("office", False) in by:
         v = by[("office", False)]["tracks"]["success"][STRICT]
-        out.append((v >= TARGET_SUCCESS, f"office: tracks {v:.1f}% at {STRICT} (target >= {TARGET_SUCCESS:g}%)"))
+        out.append(
+            (v >= TARGET_SUCCESS, f"office: tracks {v:.1f}% at {STRICT} (target >= {TARGET_SUCCESS:g}%)")
+        )
     if ("corridor", False) in by:
         none, tracks = by[("corridor", False)]["none"], by[("corridor", False)]["tracks"]
         wrong = confident_wrong(none)
         degenerate = [q["name"] for q in none["per_query"] if q["status"] == "degenerate_scale"]
-        out.append((not wrong and len(degenerate) > 0,
-                    f"corridor: none reports {len(degenerate)}/{none['queries']} queries degenerate and "
-                    f"{len(wrong)} confident-but-wrong (> {WRONG_T:g} m or > {WRONG_R:g}°; target: > 0 degenerate, "
-                    f"0 wrong){': ' + ', '.join(wrong[:5]) if wrong else ''}"))
-        solved = [q for q in tracks["per_query"] if q["name"] in set(degenerate) and q["success"] and not is_wrong(q)]
+        out.append(
+            (
+                not wrong and len(degenerate) > 0,
+                f"corridor: none reports {len(degenerate)}/{none['queries']} queries degenerate and "
+                f"{len(wrong)} confident-but-wrong (> {WRONG_T:g} m or > {WRONG_R:g}°; target: > 0 degenerate, "
+                f"0 wrong){': ' + ', '.join(wrong[:5]) if wrong else ''}",
+            )
+        )
+        solved = [
+            q
+            for q in tracks["per_query"]
+            if q["name"] in set(degenerate) and q["success"] and not is_wrong(q)
+        ]
         pct = 100.0 * len(solved) / max(len(degenerate), 1)
-        out.append((len(degenerate) > 0 and pct >= TARGET_SUCCESS,
-                    f"corridor: tracks localizes {len(solved)}/{len(degenerate)} of the queries none reported degenerate "
-                    f"within {WRONG_T:g} m/{WRONG_R:g}° ({pct:.0f}%, target >= {TARGET_SUCCESS:g}%); tracks overall "
-                    f"{tracks['success'][STRICT]:.1f}% at {STRICT}, {len(confident_wrong(tracks))} confident-but-wrong"))
+        out.append(
+            (
+                len(degenerate) > 0 and pct >= TARGET_SUCCESS,
+                f"corridor: tracks localizes {len(solved)}/{len(degenerate)} of the queries none reported degenerate "
+                f"within {WRONG_T:g} m/{WRONG_R:g}° ({pct:.0f}%, target >= {TARGET_SUCCESS:g}%); tracks overall "
+                f"{tracks['success'][STRICT]:.1f}% at {STRICT}, {len(confident_wrong(tracks))} confident-but-wrong",
+            )
+        )
     for tilt in (False, True):
         if ("lifelong", tilt) in by:
             v = by[("lifelong", tilt)]["tracks"]["success"][STRICT]
-            out.append((v >= TARGET_SUCCESS, f"lifelong {'with' if tilt else 'without'} tilt: tracks {v:.1f}% at "
-                                             f"{STRICT} (target >= {TARGET_SUCCESS:g}%)"))
+            out.append(
+                (
+                    v >= TARGET_SUCCESS,
+                    f"lifelong {'with' if tilt else 'without'} tilt: tracks {v:.1f}% at "
+                    f"{STRICT} (target >= {TARGET_SUCCESS:g}%)",
+                )
+            )
     return out
 
 
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     t_start = time.perf_counter()
-    print(f"# Generated worlds: {', '.join(args.presets)} (seed {args.seed}); method {args.method}, "
-          f"structures {', '.join(STRUCTURES)}, VLAD top-5")
+    print(
+        f"# Generated worlds: {', '.join(args.presets)} (seed {args.seed}); method {args.method}, "
+        f"structures {', '.join(STRUCTURES)}, VLAD top-5"
+    )
     print(peer.code_note())
     print(peer.load_note("at start"))
     code = peer.code_version()
@@ -150,10 +218,20 @@ def main(argv: list[str] | None = None) -> int:
         tmp.cleanup()
     rows = [row(r["preset"], r["tilt"], s) for r in runs for s in r["summaries"]]
     print()
-    print(peer.markdown_table(HEADERS, rows, f"Generated worlds, {args.method}, map = map trajectory, "
-                                             f"queries = query trajectory"))
-    print("; ".join(f"{r['preset']}{' tilt' if r['tilt'] else ''}: {r['map_images']} map / {r['queries']} queries, "
-                    f"build {r['build_seconds']:.0f} s" for r in runs))
+    print(
+        peer.markdown_table(
+            HEADERS,
+            rows,
+            f"Generated worlds, {args.method}, map = map trajectory, queries = query trajectory",
+        )
+    )
+    print(
+        "; ".join(
+            f"{r['preset']}{' tilt' if r['tilt'] else ''}: {r['map_images']} map / {r['queries']} queries, "
+            f"build {r['build_seconds']:.0f} s"
+            for r in runs
+        )
+    )
     verdicts = targets(runs)
     print()
     print("## Targets")
@@ -161,8 +239,17 @@ def main(argv: list[str] | None = None) -> int:
         print(peer.verdict(ok, text))
     seconds = time.perf_counter() - t_start
     print(f"total {seconds:.0f} s; {peer.load_note('at end')}")
-    peer.write_json(args.json, {"seed": args.seed, "method": args.method, "code": code, "runs": runs,
-                                "targets": [{"pass": ok, "target": t} for ok, t in verdicts], "seconds": seconds})
+    peer.write_json(
+        args.json,
+        {
+            "seed": args.seed,
+            "method": args.method,
+            "code": code,
+            "runs": runs,
+            "targets": [{"pass": ok, "target": t} for ok, t in verdicts],
+            "seconds": seconds,
+        },
+    )
     return 0
 
 

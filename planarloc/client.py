@@ -30,8 +30,9 @@ TOKEN_ENV = "PLANARLOC_TOKEN"
 _MAX_TOKEN = 4096
 
 
-def resolve_token(token: str | None = None, token_file: str | os.PathLike | None = None,
-                  env: str = TOKEN_ENV) -> str | None:
+def resolve_token(
+    token: str | None = None, token_file: str | os.PathLike | None = None, env: str = TOKEN_ENV
+) -> str | None:
     """The bearer token: ``token``, else the first line of ``token_file``, else ``$PLANARLOC_TOKEN``,
     else None.
 
@@ -40,8 +41,9 @@ def resolve_token(token: str | None = None, token_file: str | os.PathLike | None
             that cannot be sent in an HTTP header (not printable ASCII, spaces, longer than 4096).
     """
     if token is not None and token_file is not None:
-        raise ValueError("--token, --token-file: give one of them (--token-file keeps the token out of the "
-                         "process list)")
+        raise ValueError(
+            "--token, --token-file: give one of them (--token-file keeps the token out of the process list)"
+        )
     source = "--token"
     if token_file is not None:
         source = f"--token-file {token_file}"
@@ -112,7 +114,9 @@ class Client:
         try:
             return self._http.request(method, path, **kwargs)
         except self._transport_error as exc:
-            raise ServiceError(0, f"cannot reach {self._http.base_url}: {type(exc).__name__}: {exc}") from None
+            raise ServiceError(
+                0, f"cannot reach {self._http.base_url}: {type(exc).__name__}: {exc}"
+            ) from None
 
     def _check(self, response) -> dict:
         if response.status_code == 200:
@@ -197,12 +201,26 @@ class Client:
         }
         return self._post(fields, fname, data)
 
-    def session(self, session_id: str | None = None, *, camera: Camera | str | None = None,
-                map: str | None = None, method: str | None = None, structure: str | None = None,
-                seed: int | None = None) -> Session:
+    def session(
+        self,
+        session_id: str | None = None,
+        *,
+        camera: Camera | str | None = None,
+        map: str | None = None,
+        method: str | None = None,
+        structure: str | None = None,
+        seed: int | None = None,
+    ) -> Session:
         """A robot's stream on the server (:class:`Session`); ``session_id`` default: a new UUID."""
-        return Session(self, session_id or uuid.uuid4().hex, camera=camera, map=map, method=method,
-                       structure=structure, seed=seed)
+        return Session(
+            self,
+            session_id or uuid.uuid4().hex,
+            camera=camera,
+            map=map,
+            method=method,
+            structure=structure,
+            seed=seed,
+        )
 
 
 class Session:
@@ -221,21 +239,46 @@ class Session:
     replica) gets ``session.restarted = True`` in its record. :attr:`restarts` counts both.
     """
 
-    def __init__(self, client: Client, session_id: str, *, camera: Camera | str | None = None,
-                 map: str | None = None, method: str | None = None, structure: str | None = None,
-                 seed: int | None = None) -> None:
+    def __init__(
+        self,
+        client: Client,
+        session_id: str,
+        *,
+        camera: Camera | str | None = None,
+        map: str | None = None,
+        method: str | None = None,
+        structure: str | None = None,
+        seed: int | None = None,
+    ) -> None:
         self.client, self.id = client, str(session_id)
         self.camera, self.map, self.method, self.structure, self.seed = camera, map, method, structure, seed
         self.frames = 0
         self.restarts = 0
 
-    def localize(self, image: str | Path | bytes, stamp: float, odometry: Pose | None = None, *,
-                 name: str | None = None, gravity: tuple[float, float, float] | None = None) -> dict:
+    def localize(
+        self,
+        image: str | Path | bytes,
+        stamp: float,
+        odometry: Pose | None = None,
+        *,
+        name: str | None = None,
+        gravity: tuple[float, float, float] | None = None,
+    ) -> dict:
         """Localize the next frame (``stamp`` in seconds; ``odometry``: its ``cam_from_odom``)."""
         try:
-            record = self.client.localize(image, self.camera, map=self.map, name=name, gravity=gravity,
-                                          session=self.id, stamp=stamp, odometry=odometry, method=self.method,
-                                          structure=self.structure, seed=self.seed)
+            record = self.client.localize(
+                image,
+                self.camera,
+                map=self.map,
+                name=name,
+                gravity=gravity,
+                session=self.id,
+                stamp=stamp,
+                odometry=odometry,
+                method=self.method,
+                structure=self.structure,
+                seed=self.seed,
+            )
         except SessionRestarted:
             self.frames = 0
             self.restarts += 1

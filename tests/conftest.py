@@ -28,5 +28,7 @@ def straight_corridor(tmp_path_factory: pytest.TempPathFactory) -> Path:
     import dataclasses
 
     config = shrunk(get_preset("corridor"), scale=0.5, n_map=10, n_query=6)
-    config = dataclasses.replace(config, trajectory=dataclasses.replace(config.trajectory, lateral_offset=0.0))
+    config = dataclasses.replace(
+        config, trajectory=dataclasses.replace(config.trajectory, lateral_offset=0.0)
+    )
     return generate(config, tmp_path_factory.mktemp("world") / "corridor", seed=0)

@@ -14,22 +14,40 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1] / "planarloc"
 #: Layer of each top-level package: a module may import its own package and lower layers only.
 LAYERS = {
-    "extras": 0, "geometry": 0, "numerics": 0, "version": 0,
+    "extras": 0,
+    "geometry": 0,
+    "numerics": 0,
+    "version": 0,
     "solvers": 1,
     "robust": 2,
-    "features": 3, "gravity": 3,
+    "features": 3,
+    "gravity": 3,
     "map": 4,
     "localize": 5,
     "evaluation": 6,
-    "io": 7, "synthetic": 7,
-    "distributed": 8, "viz": 8, "client": 8,   # libraries of the front doors
-    "compile": 8,                               # compiling the kernels ahead (warmup, first use)
-    "serve": 9,                                 # the service (FastAPI app, Ray Serve deployment)
-    "ros2": 9,                                  # the ROS 2 node
-    "cli": 10,                                  # the command line, which also launches the service
+    "io": 7,
+    "synthetic": 7,
+    "distributed": 8,
+    "viz": 8,
+    "client": 8,  # libraries of the front doors
+    "compile": 8,  # compiling the kernels ahead (warmup, first use)
+    "serve": 9,  # the service (FastAPI app, Ray Serve deployment)
+    "ros2": 9,  # the ROS 2 node
+    "cli": 10,  # the command line, which also launches the service
 }
-EXTRAS = ("fastapi", "uvicorn", "starlette", "multipart", "prometheus_client", "httpx", "ray", "rosbags", "evo",
-          "rerun", "rclpy")
+EXTRAS = (
+    "fastapi",
+    "uvicorn",
+    "starlette",
+    "multipart",
+    "prometheus_client",
+    "httpx",
+    "ray",
+    "rosbags",
+    "evo",
+    "rerun",
+    "rclpy",
+)
 
 
 def _modules() -> dict[str, Path]:
@@ -54,7 +72,9 @@ def _imports(module: str) -> list[tuple[str, list[str], int]]:
         elif isinstance(node, ast.ImportFrom):
             base = node.module or ""
             if node.level:
-                base = ".".join(package.split(".")[: len(package.split(".")) - node.level + 1] + ([base] if base else []))
+                base = ".".join(
+                    package.split(".")[: len(package.split(".")) - node.level + 1] + ([base] if base else [])
+                )
             if base.startswith("planarloc"):
                 out.append((base, [a.name for a in node.names], node.lineno))
     return out
@@ -95,8 +115,13 @@ def test_imports_flow_downward_and_front_doors_never_import_each_other() -> None
 
 
 def test_the_service_never_imports_the_command_line() -> None:
-    offenders = [f"{m} imports {t}" for m, ts in _edges().items() if m.startswith("planarloc.serve")
-                 for t in ts if t.startswith("planarloc.cli")]
+    offenders = [
+        f"{m} imports {t}"
+        for m, ts in _edges().items()
+        if m.startswith("planarloc.serve")
+        for t in ts
+        if t.startswith("planarloc.cli")
+    ]
     assert not offenders
 
 
@@ -140,20 +165,35 @@ def test_no_private_name_crosses_a_package() -> None:
         for target, names, line in _imports(module):
             private = [n for n in names if n.startswith("_") and not n.endswith("__")]
             private += [p for p in target.split(".") if p.startswith("_")][:1]
-            owner = target.rpartition(".")[0] if target in MODULES and not MODULES[target].name == "__init__.py" \
+            owner = (
+                target.rpartition(".")[0]
+                if target in MODULES and not MODULES[target].name == "__init__.py"
                 else target
+            )
             if private and owner != package:
                 wrong.append(f"{MODULES[module].relative_to(ROOT.parent)}:{line}: {target} {private}")
     assert not wrong, "\n".join(wrong)
 
 
-@pytest.mark.parametrize("entry", ["planarloc", "planarloc.cli.main", "planarloc.localize.sequence",
-                                   "planarloc.evaluation.queries", "planarloc.io.datasets", "planarloc.io.results",
-                                   "planarloc.map.builder", "planarloc.serve.settings",
-                                   "planarloc.ros2.node"])
+@pytest.mark.parametrize(
+    "entry",
+    [
+        "planarloc",
+        "planarloc.cli.main",
+        "planarloc.localize.sequence",
+        "planarloc.evaluation.queries",
+        "planarloc.io.datasets",
+        "planarloc.io.results",
+        "planarloc.map.builder",
+        "planarloc.serve.settings",
+        "planarloc.ros2.node",
+    ],
+)
 def test_the_base_install_imports_no_extra(entry: str) -> None:
-    code = (f"import sys, {entry}; "
-            f"print(' '.join(m for m in {EXTRAS!r} if m in sys.modules or any(k.startswith(m + '.') for k in sys.modules)))")
+    code = (
+        f"import sys, {entry}; "
+        f"print(' '.join(m for m in {EXTRAS!r} if m in sys.modules or any(k.startswith(m + '.') for k in sys.modules)))"
+    )
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr
     assert proc.stdout.strip() == ""

@@ -101,22 +101,42 @@ def _size(n: int) -> str:
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
-    p = add_command(sub, "cache", "list or clean what planarloc caches (evaluate's maps, unpacked bags, kernels)",
-                    """List the caches — evaluate's maps and the images unpacked from ROS bags (in the temp folder,
+    p = add_command(
+        sub,
+        "cache",
+        "list or clean what planarloc caches (evaluate's maps, unpacked bags, kernels)",
+        """List the caches — evaluate's maps and the images unpacked from ROS bags (in the temp folder,
                     TMPDIR) and numba's compiled kernels — with their folders, files and sizes, or remove them.
                     Everything in them is rebuilt when needed.""",
-                    ["planarloc cache list", "planarloc cache clean            # evaluate's maps and unpacked bags",
-                     "planarloc cache clean kernels    # then `planarloc warmup` compiles them again"])
+        [
+            "planarloc cache list",
+            "planarloc cache clean            # evaluate's maps and unpacked bags",
+            "planarloc cache clean kernels    # then `planarloc warmup` compiles them again",
+        ],
+    )
     actions = p.add_subparsers(dest="cache_command", required=True)
-    ls = add_command(actions, "list", "the caches, their folders and sizes (stdout)",
-                     "Print one line per cache: its name, folder, number of files and size, and what it holds.",
-                     ["planarloc cache list"], run_list)
+    ls = add_command(
+        actions,
+        "list",
+        "the caches, their folders and sizes (stdout)",
+        "Print one line per cache: its name, folder, number of files and size, and what it holds.",
+        ["planarloc cache list"],
+        run_list,
+    )
     ls.set_defaults(interrupted="interrupted; nothing was changed")
-    clean = add_command(actions, "clean", "remove cached files (default: maps and bags)",
-                        "Remove the files of the given caches (default: maps and bags). Maps a running build holds are "
-                        "skipped and named.", ["planarloc cache clean", "planarloc cache clean maps kernels"],
-                        run_clean, interrupted="interrupted; the files removed so far are gone, the others kept")
-    clean.add_argument("what", nargs="*", metavar="CACHE", help=f"{', '.join(KINDS)} or all (default: maps bags)")
+    clean = add_command(
+        actions,
+        "clean",
+        "remove cached files (default: maps and bags)",
+        "Remove the files of the given caches (default: maps and bags). Maps a running build holds are "
+        "skipped and named.",
+        ["planarloc cache clean", "planarloc cache clean maps kernels"],
+        run_clean,
+        interrupted="interrupted; the files removed so far are gone, the others kept",
+    )
+    clean.add_argument(
+        "what", nargs="*", metavar="CACHE", help=f"{', '.join(KINDS)} or all (default: maps bags)"
+    )
 
 
 def run_list(args: argparse.Namespace) -> int:
@@ -138,7 +158,9 @@ def run_clean(args: argparse.Namespace) -> int:
             continue
         removed, freed, busy, kept = 0, 0, [], 0
         for f in e.files:
-            if e.kind == "maps":  # a map goes with its side files, under its writer lock; nothing else is touched
+            if (
+                e.kind == "maps"
+            ):  # a map goes with its side files, under its writer lock; nothing else is touched
                 if f.suffix != ".db" or not _is_regular(f):
                     continue
                 group = [p for p in (f, *sidecars(f)) if os.path.lexists(p)]
@@ -173,12 +195,16 @@ def run_clean(args: argparse.Namespace) -> int:
                             d.rmdir()
                         except OSError:
                             pass
-        info(f"{e.kind:<8} {', '.join(str(f) for f in e.folders) or '-'}: removed {removed} "
-             f"{'maps' if e.kind == 'maps' else 'files'}, {_size(freed)}")
+        info(
+            f"{e.kind:<8} {', '.join(str(f) for f in e.folders) or '-'}: removed {removed} "
+            f"{'maps' if e.kind == 'maps' else 'files'}, {_size(freed)}"
+        )
         for f in busy:
             note(f"kept {f}: a map build holds it")
         if kept:
-            note(f"kept {kept} {e.kind} files that you may not remove (e.g. the kernels of a read-only install)")
+            note(
+                f"kept {kept} {e.kind} files that you may not remove (e.g. the kernels of a read-only install)"
+            )
     return 0
 
 

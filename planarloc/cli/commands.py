@@ -22,15 +22,26 @@ def reflow(text: str) -> str:
     return "\n\n".join(out)
 
 
-def add_command(sub: argparse._SubParsersAction, name: str, summary: str, description: str,
-                examples: Sequence[str], func: Callable[[argparse.Namespace], int] | None = None,
-                listing: str = "", **defaults: object) -> argparse.ArgumentParser:
+def add_command(
+    sub: argparse._SubParsersAction,
+    name: str,
+    summary: str,
+    description: str,
+    examples: Sequence[str],
+    func: Callable[[argparse.Namespace], int] | None = None,
+    listing: str = "",
+    **defaults: object,
+) -> argparse.ArgumentParser:
     """A subcommand whose ``--help`` shows ``description`` (:func:`reflow`) and ``examples``;
     ``listing``: preformatted lines shown after the description (e.g. a table of choices);
     ``func(args)`` runs it, ``defaults`` are set on its namespace (e.g. ``interrupted``)."""
     shown = "\n".join(f"  {e}" for e in examples)
-    p = sub.add_parser(name, help=summary, formatter_class=argparse.RawDescriptionHelpFormatter,
-                       description=f"{reflow(description)}{listing}\n\nexample{'s' if len(examples) > 1 else ''}:\n{shown}")
+    p = sub.add_parser(
+        name,
+        help=summary,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+        description=f"{reflow(description)}{listing}\n\nexample{'s' if len(examples) > 1 else ''}:\n{shown}",
+    )
     if func is not None:
         p.set_defaults(func=func, **defaults)
     return p

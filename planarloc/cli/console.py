@@ -64,7 +64,7 @@ def _print(console: Console, objects: tuple[object, ...], markup: bool) -> None:
         console.print(*objects, markup=markup)
         return
     saved = console.width
-    console.width = width   # rich caps a print's width at the console's
+    console.width = width  # rich caps a print's width at the console's
     try:
         console.print(*objects, markup=markup)
     finally:

@@ -29,7 +29,9 @@ from planarloc.synthetic.world.presets import DEFAULT_PRESET, preset_names, pres
 def add_parser(sub: argparse._SubParsersAction) -> None:
     presets = "\n\npresets:" + "".join(f"\n  {name:<9} {text}" for name, text in preset_summaries().items())
     p = add_command(
-        sub, "demo", "map and localize a generated indoor world in one go (no data needed)",
+        sub,
+        "demo",
+        "map and localize a generated indoor world in one go (no data needed)",
         """Renders a small indoor world (textured rooms, furniture) seen by a wheeled robot along a map
         trajectory and a different query trajectory, builds the map from the map images and their poses, and
         localizes every query image with the paper's 2D-2D method (structure none) and with the structure-aware
@@ -37,12 +39,25 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
         The generated world is in TUM RGB-D layout, so it also works with
           planarloc map build DIR/world/map --format tum --out map.db""",
-        ["planarloc demo --preset corridor --out corridor-demo"], run, listing=presets, interrupted=DEMO_RESUMES)
-    p.add_argument("--out", "-o", type=Path, default=Path("planarloc-demo"), help="output folder (default: %(default)s)")
-    p.add_argument("--preset", default=DEFAULT_PRESET, choices=preset_names(), help="world preset (default: %(default)s)")
+        ["planarloc demo --preset corridor --out corridor-demo"],
+        run,
+        listing=presets,
+        interrupted=DEMO_RESUMES,
+    )
+    p.add_argument(
+        "--out", "-o", type=Path, default=Path("planarloc-demo"), help="output folder (default: %(default)s)"
+    )
+    p.add_argument(
+        "--preset", default=DEFAULT_PRESET, choices=preset_names(), help="world preset (default: %(default)s)"
+    )
     p.add_argument("--seed", type=int, default=0, help="world seed (default: %(default)s)")
-    p.add_argument("--method", "-m", default=Method(LocalizerConfig().method).value, choices=[m.value for m in Method],
-                   help="solver for both runs (default: %(default)s)")
+    p.add_argument(
+        "--method",
+        "-m",
+        default=Method(LocalizerConfig().method).value,
+        choices=[m.value for m in Method],
+        help="solver for both runs (default: %(default)s)",
+    )
     p.add_argument("--tilt", action="store_true", help="tilt-augment the map features (paper Sec. III-B)")
 
 
@@ -51,20 +66,28 @@ def run(args: argparse.Namespace) -> int:
     out = args.out
     check_output_dir(out, "--out")  # before rendering anything
     features = FeatureConfig(tilt=args.tilt)
-    configs = [LocalizerConfig(method=args.method, ransac=RansacOptions(structure=s)) for s in ("none", "tracks")]
+    configs = [
+        LocalizerConfig(method=args.method, ransac=RansacOptions(structure=s)) for s in ("none", "tracks")
+    ]
     compile_ahead(steps_for(configs))
     with progress_bar() as update:
-        world = generate(args.preset, out / "world", seed=args.seed, progress=lambda d, n: update("render world", d, n))
+        world = generate(
+            args.preset, out / "world", seed=args.seed, progress=lambda d, n: update("render world", d, n)
+        )
         map_images = read_dataset(world / "map", "tum")
         queries = read_dataset(world / "query", "tum")
         map_path = out / f"map-{features.name}.db"
         build_map(map_images, map_path, features, progress=update)
         with MapDatabase.open(map_path) as db:
             results = evaluate_configs(db, configs, queries, lambda d, n: update("localize", d, n))
-    summaries = [summarize(r, *config_label(c), preset=args.preset, seed=args.seed, tilt=args.tilt)
-                 for c, r in zip(configs, results)]
-    print_summary_table(summaries, f"planarloc demo: {args.preset} world, {len(map_images)} map images, "
-                                   f"{len(queries)} queries")
+    summaries = [
+        summarize(r, *config_label(c), preset=args.preset, seed=args.seed, tilt=args.tilt)
+        for c, r in zip(configs, results)
+    ]
+    print_summary_table(
+        summaries,
+        f"planarloc demo: {args.preset} world, {len(map_images)} map images, {len(queries)} queries",
+    )
     write_json(out / "results.json", summaries)
     from planarloc.viz.trajectory import save_localization_plot
 

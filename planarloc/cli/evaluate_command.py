@@ -40,7 +40,9 @@ from planarloc.map.store import MapDatabase
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
     p = add_command(
-        sub, "evaluate", "evaluate localization on posed data (map = every N-th frame, or cross-session --queries)",
+        sub,
+        "evaluate",
+        "evaluate localization on posed data (map = every N-th frame, or cross-session --queries)",
         """Builds a map from the frames with index % N == 0 (cached, or --map), localizes every other frame
         and compares with its ground truth. Success thresholds are the paper's: 0.25 m/10°, 0.5 m/10°, 1.0
         m/20°. A failed query counts as a failure. The table goes to stdout. Map images that cannot go into
@@ -50,33 +52,59 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         Cross-session (map on Monday, localize on Friday; the paper's OpenLORIS protocol): give one or more
         map datasets and --queries QUERY_DATASET instead of --map-every. The JSON lists, per query, the map
         images it used (references).""",
-        ["planarloc evaluate data/kitti_seq2 --format kitti --map-every 2 --structure tracks --json kitti.json "
-         "--plot kitti.png",
-         "planarloc evaluate worlds/office/map -f tum --map-every 3 --gravity-from-truth",
-         "planarloc evaluate home1 home3 -f openloris --queries home2 --json home2.json --tum home2-tum",
-         "planarloc evaluate monday/ -f tum --queries friday.bag --queries-format rosbag --queries-option "
-         "pose_topic=/pose --plot-matches matches/",
-         "planarloc evaluate data/kitti_seq2 --format kitti --map-every 4 --structure tracks --sequential "
-         "--kidnap-at 10 --json seq.json   # the queries as one stream"],
-        run, interrupted=EVALUATE_RESUMES)
+        [
+            "planarloc evaluate data/kitti_seq2 --format kitti --map-every 2 --structure tracks --json kitti.json "
+            "--plot kitti.png",
+            "planarloc evaluate worlds/office/map -f tum --map-every 3 --gravity-from-truth",
+            "planarloc evaluate home1 home3 -f openloris --queries home2 --json home2.json --tum home2-tum",
+            "planarloc evaluate monday/ -f tum --queries friday.bag --queries-format rosbag --queries-option "
+            "pose_topic=/pose --plot-matches matches/",
+            "planarloc evaluate data/kitti_seq2 --format kitti --map-every 4 --structure tracks --sequential "
+            "--kidnap-at 10 --json seq.json   # the queries as one stream",
+        ],
+        run,
+        interrupted=EVALUATE_RESUMES,
+    )
     add_dataset_args(p, many=True)
     add_cross_session_args(p)
-    p.add_argument("--map", type=Path, help="map file to build/reuse (default: a cache file in the temp folder)")
+    p.add_argument(
+        "--map", type=Path, help="map file to build/reuse (default: a cache file in the temp folder)"
+    )
     p.add_argument("--json", type=Path, help="write the summary and per-query results here")
-    p.add_argument("--plot", type=Path, help="write the trajectory plot (paper Fig. 8; top view in the plane "
-                                             "perpendicular to the map's gravity) here")
-    p.add_argument("--dataset-option", action="append", metavar="KEY=VALUE",
-                   help="importer option (repeatable); up=AXIS gives the world's up direction, e.g. up=z")
-    add_gravity_args(p, "--gravity-from-truth", action="store_true",
-                     help="simulate an IMU: give each query its true gravity (ground-truth rotation x the world's "
-                          "down direction: the format's, up=..., or the map's estimate; see `map info`)")
+    p.add_argument(
+        "--plot",
+        type=Path,
+        help="write the trajectory plot (paper Fig. 8; top view in the plane "
+        "perpendicular to the map's gravity) here",
+    )
+    p.add_argument(
+        "--dataset-option",
+        action="append",
+        metavar="KEY=VALUE",
+        help="importer option (repeatable); up=AXIS gives the world's up direction, e.g. up=z",
+    )
+    add_gravity_args(
+        p,
+        "--gravity-from-truth",
+        action="store_true",
+        help="simulate an IMU: give each query its true gravity (ground-truth rotation x the world's "
+        "down direction: the format's, up=..., or the map's estimate; see `map info`)",
+    )
     add_feature_args(p)
     add_localizer_args(p)
-    add_output_args(p, "write DIR/estimate.txt and DIR/groundtruth.txt (TUM, camera-to-world, localized queries) "
-                       "for `evo_ape tum DIR/groundtruth.txt DIR/estimate.txt`, and add evo's APE/RPE to the JSON")
-    p.add_argument("--ray", nargs="?", const="local", metavar="ADDRESS",
-                   help="distribute over a Ray cluster (auto, HOST:PORT, ray://HOST:PORT; a local one without "
-                        "ADDRESS); needs pip install 'planarloc[ray]'")
+    add_output_args(
+        p,
+        "write DIR/estimate.txt and DIR/groundtruth.txt (TUM, camera-to-world, localized queries) "
+        "for `evo_ape tum DIR/groundtruth.txt DIR/estimate.txt`, and add evo's APE/RPE to the JSON",
+    )
+    p.add_argument(
+        "--ray",
+        nargs="?",
+        const="local",
+        metavar="ADDRESS",
+        help="distribute over a Ray cluster (auto, HOST:PORT, ray://HOST:PORT; a local one without "
+        "ADDRESS); needs pip install 'planarloc[ray]'",
+    )
     add_sequence_args(p, evaluate=True)
 
 
@@ -92,8 +120,9 @@ def run(args: argparse.Namespace) -> int:
     _check_outputs(args, outputs)
     if args.map is not None:
         check_map_settings(args.map, features, num_words)
-    map_images, queries, map_path, extra, title = read_map_and_queries(args, features.name,
-                                                                       settings=f"words={num_words}|{features}")
+    map_images, queries, map_path, extra, title = read_map_and_queries(
+        args, features.name, settings=f"words={num_words}|{features}"
+    )
     image_paths = [im.path for im in [*map_images, *queries]]
     for option, path in outputs.items():
         check_output_file(path, option, image_paths)
@@ -102,22 +131,41 @@ def run(args: argparse.Namespace) -> int:
     left_out: list[tuple[str, str]] = []
     if args.sequential:
         with progress_bar() as update:
-            build_map(map_images, map_path, features, num_words=num_words, progress=update, notify=notify,
-                      skipped=_skipped(left_out))
+            build_map(
+                map_images,
+                map_path,
+                features,
+                num_words=num_words,
+                progress=update,
+                notify=notify,
+                skipped=_skipped(left_out),
+            )
         _map_gravity_warnings(map_path)
-        return _left_out_exit(evaluate_sequential(args, map_path, map_images, queries, config), left_out,
-                              len(map_images))
-    results, gravity = _build_and_localize(args, map_images, queries, map_path, features, num_words, config, pairs,
-                                           gravity, left_out)
+        return _left_out_exit(
+            evaluate_sequential(args, map_path, map_images, queries, config), left_out, len(map_images)
+        )
+    results, gravity = _build_and_localize(
+        args, map_images, queries, map_path, features, num_words, config, pairs, gravity, left_out
+    )
     method, structure = config_label(config)
-    summary = summarize(results, method, structure, **extra, top_n=config.top_n, tilt=features.tilt,
-                        query_gravity="truth" if args.gravity_from_truth else ("file" if gravity else "map"))
+    summary = summarize(
+        results,
+        method,
+        structure,
+        **extra,
+        top_n=config.top_n,
+        tilt=features.tilt,
+        query_gravity="truth" if args.gravity_from_truth else ("file" if gravity else "map"),
+    )
     summary["map_images_left_out"] = [{"name": name, "reason": reason} for name, reason in left_out]
-    return _left_out_exit(_report(args, summary, results, map_images, map_path, title), left_out, len(map_images))
+    return _left_out_exit(
+        _report(args, summary, results, map_images, map_path, title), left_out, len(map_images)
+    )
 
 
 def _skipped(left_out: list[tuple[str, str]]):
     """``build_map``'s ``skipped``: collects the map images left out (and says so, as `map build`)."""
+
     def skipped(image, reason: str) -> None:
         left_out.append((image.name, reason))
         note(f"image {image.name} left out of the map: {reason}")
@@ -137,8 +185,10 @@ def _left_out_exit(code: int, left_out: list[tuple[str, str]], total: int) -> in
     """The exit code, 3 when map images were left out (as `map build`), with their list."""
     if not left_out:
         return code
-    note(f"{len(left_out)} of {total} map images were left out of the map (fix or remove them, then re-run the same "
-         "command to add them):")
+    note(
+        f"{len(left_out)} of {total} map images were left out of the map (fix or remove them, then re-run the same "
+        "command to add them):"
+    )
     for name, reason in left_out:
         note(f"  {name}: {reason}")
     return max(code, EXIT_PARTIAL)
@@ -149,7 +199,9 @@ def _check_options(args: argparse.Namespace) -> None:
         raise ValueError(f"--map-every must be >= 2 (otherwise there are no queries), got {args.map_every}")
     check_sequential_args(args)
     if args.sequential and (args.ray or args.plot_matches or args.gravity_file or args.gravity_from_truth):
-        raise ValueError("--sequential: --ray, --plot-matches and query gravity are single-frame options; drop them")
+        raise ValueError(
+            "--sequential: --ray, --plot-matches and query gravity are single-frame options; drop them"
+        )
     if args.ray and (args.plot_matches or args.rerun):
         raise ValueError("--plot-matches and --rerun draw in this process: run them without --ray")
 
@@ -158,21 +210,40 @@ def _check_outputs(args: argparse.Namespace, outputs: dict[str, Path | None]) ->
     """The outputs differ from each other and from every input the command line names."""
     _check_distinct(outputs)
     roots = [Path(d) for d in args.dataset] + ([Path(args.queries)] if args.queries is not None else [])
-    inputs = input_files([*(f for r in roots for f in dataset_files(r)), *roots, args.pairs, args.gravity_file])
+    inputs = input_files(
+        [*(f for r in roots for f in dataset_files(r)), *roots, args.pairs, args.gravity_file]
+    )
     for option in ("--json", "--plot"):
         check_output_file(outputs[option], option, input_files(inputs, with_map_sidecars=[args.map]))
     check_output_file(args.map, "--map", inputs)
 
 
-def _build_and_localize(args: argparse.Namespace, map_images: list, queries: list, map_path: Path,
-                        features: FeatureConfig, num_words: int, config: LocalizerConfig, pairs: dict | None,
-                        gravity: dict | None, left_out: list[tuple[str, str]]) -> tuple[list, dict | None]:
+def _build_and_localize(
+    args: argparse.Namespace,
+    map_images: list,
+    queries: list,
+    map_path: Path,
+    features: FeatureConfig,
+    num_words: int,
+    config: LocalizerConfig,
+    pairs: dict | None,
+    gravity: dict | None,
+    left_out: list[tuple[str, str]],
+) -> tuple[list, dict | None]:
     """Build (or resume) the map, then localize every query, here or on Ray; returns the results
     and the query gravity used; the map images left out go to ``left_out`` (name, reason)."""
     outputs = EstimateOutputs(args.plot_matches, args.rerun)
     with closing(outputs), ray_session(args.ray) as ray_backend, progress_bar() as update:
-        build_map(map_images, map_path, features, num_words=num_words, progress=update, notify=notify,
-                  mapper=ray_backend.map if ray_backend else None, skipped=_skipped(left_out))
+        build_map(
+            map_images,
+            map_path,
+            features,
+            num_words=num_words,
+            progress=update,
+            notify=notify,
+            mapper=ray_backend.map if ray_backend else None,
+            skipped=_skipped(left_out),
+        )
         if args.gravity_from_truth:
             # the dataset's declared down direction, else the map's (estimated) gravity
             with MapDatabase.open(map_path) as db:
@@ -182,12 +253,19 @@ def _build_and_localize(args: argparse.Namespace, map_images: list, queries: lis
         progress = lambda d, n: update("localize", d, n)  # noqa: E731
         if ray_backend:
             return ray_backend.evaluate(map_path, config, queries, pairs, progress, gravity=gravity), gravity
-        return evaluate_queries(Localizer(map_path, config), queries, progress, pairs,
-                                outputs if outputs.active else None, gravity=gravity), gravity
+        return evaluate_queries(
+            Localizer(map_path, config),
+            queries,
+            progress,
+            pairs,
+            outputs if outputs.active else None,
+            gravity=gravity,
+        ), gravity
 
 
-def _report(args: argparse.Namespace, summary: dict, results: list, map_images: list, map_path: Path,
-            title: str) -> int:
+def _report(
+    args: argparse.Namespace, summary: dict, results: list, map_images: list, map_path: Path, title: str
+) -> int:
     """The table (stdout), the JSON, the TUM files and the plot; the exit code (3: queries not processed)."""
     if args.tum:
         summary["evo"] = write_evaluation_tum(args.tum, results)
@@ -196,8 +274,9 @@ def _report(args: argparse.Namespace, summary: dict, results: list, map_images: 
     if args.plot:
         with MapDatabase.open(map_path) as db:
             g_world = map_gravity(db).g_world_array
-        write_trajectory_plot(args.plot, map_images, results, f"{title}: {summary['method']}, {summary['structure']}",
-                              g_world)
+        write_trajectory_plot(
+            args.plot, map_images, results, f"{title}: {summary['method']}, {summary['structure']}", g_world
+        )
     return partial_exit(results, "queries")
 
 

@@ -58,7 +58,9 @@ LocalizeOne = Callable[[QuerySource], dict]
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
     p = add_command(
-        sub, "localize", "localize query images against a map",
+        sub,
+        "localize",
+        "localize query images against a map",
         """Retrieve the top-n map images of each query, match RootSIFT features to them and solve the query's
         absolute pose from 2D-2D matches under local planar motion.
 
@@ -70,37 +72,72 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         the others go on (exit code 3); the same holds with --sequence and --server. Query names: the file
         name of an image given directly, the path relative to a folder or dataset given; parent folders are
         added to tell equal names apart.""",
-        ["planarloc localize --map kitti.db queries/*.png --camera 'PINHOLE 1241 376 718.856 718.856 607.19 185.22' "
-         "--structure tracks --out poses.txt",
-         "planarloc localize --map office.db frame.png --gravity '0 0.996 0.087'   # camera pitched 5°",
-         "planarloc localize --map office.db run2.bag --format rosbag --dataset-option image_topic=/camera/image_raw "
-         "--tum run2.tum --plot-matches matches/",
-         "planarloc localize --server http://127.0.0.1:8080 --map office frame.png --out -",
-         "planarloc localize --map kitti.db --sequence frames.txt --odometry odom.txt --out poses.txt"
-         "   # a stream: pose, covariance and status (localized/predicted/lost) per frame"],
-        run, interrupted=None)
-    p.add_argument("--map", required=True, type=Path,
-                   help="map file from `planarloc map build` (with --server: the served map's name)")
-    p.add_argument("images", nargs="+", type=Path, help="query image files or folders of images, or one dataset "
-                                                        "with --format")
-    p.add_argument("--format", "-f", choices=sorted(FORMATS), help="read the queries from a dataset in this format "
-                   "(e.g. rosbag: images only unless pose options are given; known poses caption --plot-matches)")
-    p.add_argument("--dataset-option", action="append", metavar="KEY=VALUE",
-                   help="importer option with --format, e.g. image_topic=/cam/image_raw (repeatable)")
-    p.add_argument("--camera", help="query intrinsics 'MODEL W H PARAMS...' (COLMAP syntax); default: the map's "
-                                    "camera if the map has one camera of the same image size")
-    p.add_argument("--out", "-o", default="poses.txt",
-                   help="results file, '-' for stdout (default: %(default)s)")
-    p.add_argument("--json-dir", type=Path,
-                   help="folder for one JSON record per query (default: <out>.json.d; none with --out - "
-                        "or a device unless given)")
-    add_gravity_args(p, "--gravity", metavar="'GX GY GZ'",
-                     help="gravity of all queries (direction, pointing down) in the query camera frame (x right, "
-                          "y down, z forward), e.g. from an IMU; default: the map cameras' mount tilt")
+        [
+            "planarloc localize --map kitti.db queries/*.png --camera 'PINHOLE 1241 376 718.856 718.856 607.19 185.22' "
+            "--structure tracks --out poses.txt",
+            "planarloc localize --map office.db frame.png --gravity '0 0.996 0.087'   # camera pitched 5°",
+            "planarloc localize --map office.db run2.bag --format rosbag --dataset-option image_topic=/camera/image_raw "
+            "--tum run2.tum --plot-matches matches/",
+            "planarloc localize --server http://127.0.0.1:8080 --map office frame.png --out -",
+            "planarloc localize --map kitti.db --sequence frames.txt --odometry odom.txt --out poses.txt"
+            "   # a stream: pose, covariance and status (localized/predicted/lost) per frame",
+        ],
+        run,
+        interrupted=None,
+    )
+    p.add_argument(
+        "--map",
+        required=True,
+        type=Path,
+        help="map file from `planarloc map build` (with --server: the served map's name)",
+    )
+    p.add_argument(
+        "images",
+        nargs="+",
+        type=Path,
+        help="query image files or folders of images, or one dataset with --format",
+    )
+    p.add_argument(
+        "--format",
+        "-f",
+        choices=sorted(FORMATS),
+        help="read the queries from a dataset in this format "
+        "(e.g. rosbag: images only unless pose options are given; known poses caption --plot-matches)",
+    )
+    p.add_argument(
+        "--dataset-option",
+        action="append",
+        metavar="KEY=VALUE",
+        help="importer option with --format, e.g. image_topic=/cam/image_raw (repeatable)",
+    )
+    p.add_argument(
+        "--camera",
+        help="query intrinsics 'MODEL W H PARAMS...' (COLMAP syntax); default: the map's "
+        "camera if the map has one camera of the same image size",
+    )
+    p.add_argument(
+        "--out", "-o", default="poses.txt", help="results file, '-' for stdout (default: %(default)s)"
+    )
+    p.add_argument(
+        "--json-dir",
+        type=Path,
+        help="folder for one JSON record per query (default: <out>.json.d; none with --out - "
+        "or a device unless given)",
+    )
+    add_gravity_args(
+        p,
+        "--gravity",
+        metavar="'GX GY GZ'",
+        help="gravity of all queries (direction, pointing down) in the query camera frame (x right, "
+        "y down, z forward), e.g. from an IMU; default: the map cameras' mount tilt",
+    )
     add_localizer_args(p)
     add_map_features_arg(p)
-    add_output_args(p, "also write the localized queries as a TUM trajectory (timestamp tx ty tz qx qy qz qw, "
-                       "camera-to-world) for evo")
+    add_output_args(
+        p,
+        "also write the localized queries as a TUM trajectory (timestamp tx ty tz qx qy qz qw, "
+        "camera-to-world) for evo",
+    )
     add_server_args(p)
     add_sequence_args(p, evaluate=False)
 
@@ -125,7 +162,12 @@ def _queries(args: argparse.Namespace, camera: Camera | None) -> tuple[list[Quer
     if args.format:
         options = parse_dataset_options(args.dataset_option, fmt=args.format)
         return dataset_queries(args.images, args.format, options, camera), False
-    if args.sequence and len(args.images) == 1 and args.images[0].is_file() and args.images[0].suffix.lower() == ".txt":
+    if (
+        args.sequence
+        and len(args.images) == 1
+        and args.images[0].is_file()
+        and args.images[0].suffix.lower() == ".txt"
+    ):
         queries, timed = list_queries(args.images[0], args.frame_period)
         return (queries if timed else _with_source_times(queries, stream=True)), timed
     if args.sequence:
@@ -133,12 +175,16 @@ def _queries(args: argparse.Namespace, camera: Camera | None) -> tuple[list[Quer
         seen = {}
         for p in files:
             if os.path.realpath(p) in seen:
-                raise ValueError(f"--sequence: {p} is given twice (as {seen[os.path.realpath(p)]} before); a stream "
-                                 "shows each frame once")
+                raise ValueError(
+                    f"--sequence: {p} is given twice (as {seen[os.path.realpath(p)]} before); a stream "
+                    "shows each frame once"
+                )
             seen[os.path.realpath(p)] = p
     queries = image_queries(args.images)
     if args.sequence:
-        queries = [QuerySource(q.name, q.path, timestamp=k * args.frame_period) for k, q in enumerate(queries)]
+        queries = [
+            QuerySource(q.name, q.path, timestamp=k * args.frame_period) for k, q in enumerate(queries)
+        ]
     return _with_source_times(queries, stream=args.sequence), False
 
 
@@ -155,12 +201,22 @@ def _check_options(args: argparse.Namespace) -> None:
     """Option combinations, refused before any work."""
     check_stream_args(args, args.sequence, "--sequence")
     if args.sequence:
-        used = [o for o, v in (("--server", args.server), ("--format", args.format),
-                               ("--plot-matches", args.plot_matches), ("--gravity-file", args.gravity_file),
-                               ("--pairs", args.pairs)) if v]
+        used = [
+            o
+            for o, v in (
+                ("--server", args.server),
+                ("--format", args.format),
+                ("--plot-matches", args.plot_matches),
+                ("--gravity-file", args.gravity_file),
+                ("--pairs", args.pairs),
+            )
+            if v
+        ]
         if used:
-            raise ValueError(f"--sequence: {', '.join(used)} are single-frame options; drop them (retrieval and "
-                             "gravity follow the stream)")
+            raise ValueError(
+                f"--sequence: {', '.join(used)} are single-frame options; drop them (retrieval and "
+                "gravity follow the stream)"
+            )
     if args.server:
         check_remote_args(args)
 
@@ -173,14 +229,18 @@ def run(args: argparse.Namespace) -> int:
     gravity_file = read_gravity_file(args.gravity_file) if args.gravity_file else None
     pairs = read_hloc_pairs(args.pairs) if args.pairs else None
     queries, timed = _queries(args, camera)
-    inputs = input_files([q.path for q in queries] + [args.pairs, args.gravity_file, args.odometry,
-                                                     *args.images], with_map_sidecars=[] if args.server else [args.map])
+    inputs = input_files(
+        [q.path for q in queries] + [args.pairs, args.gravity_file, args.odometry, *args.images],
+        with_map_sidecars=[] if args.server else [args.map],
+    )
     records_dir = _check_outputs(args, inputs)
     with ExitStack() as stack:
         if args.server:
             from planarloc.client import Client, resolve_token
 
-            client = stack.enter_context(Client(args.server, token=resolve_token(args.token, args.token_file)))
+            client = stack.enter_context(
+                Client(args.server, token=resolve_token(args.token, args.token_file))
+            )
             localize = remote_localizer(client, args, camera, gravity)
             where = f" via {args.server}"
         else:
@@ -188,25 +248,33 @@ def run(args: argparse.Namespace) -> int:
             check_map_features(args.map, loc.features.kind, args.features)
             compile_ahead(steps_for([loc.config]))
             if camera is None and len(loc.map_cameras) != 1 and not all(q.camera for q in queries):
-                raise ValueError(f"the map has {len(loc.map_cameras)} cameras: pass the query intrinsics with --camera")
+                raise ValueError(
+                    f"the map has {len(loc.map_cameras)} cameras: pass the query intrinsics with --camera"
+                )
             if gravity is None and gravity_file is None:
                 rep = loc.gravity
-                note(f"map gravity: {rep.source}; queries without their own gravity are assumed mounted like the "
-                     f"map cameras (pitch {rep.pitch_deg:+.1f}°, roll {rep.roll_deg:+.1f}°)")
+                note(
+                    f"map gravity: {rep.source}; queries without their own gravity are assumed mounted like the "
+                    f"map cameras (pitch {rep.pitch_deg:+.1f}°, roll {rep.roll_deg:+.1f}°)"
+                )
             if args.sequence:
                 localize = _stream_localizer(loc, args, camera, gravity, queries, timed, stack)
             else:
                 outputs = stack.enter_context(closing(EstimateOutputs(args.plot_matches, args.rerun)))
                 localize = _batch_localizer(loc, camera, gravity, gravity_file, pairs, outputs)
             where = ""
-        writer = ResultsWriter(args.out, records_dir, tum=args.tum, predicted=getattr(args, "predicted", "mark"))
+        writer = ResultsWriter(
+            args.out, records_dir, tum=args.tum, predicted=getattr(args, "predicted", "mark")
+        )
         code = run_queries(writer, queries, localize, "localize stream" if args.sequence else "localize")
     if gravity_file is not None:
         _gravity_file_notes(args.gravity_file, gravity_file, {q.name for q in queries})
     stale = writer.stale_records()
     if stale:
-        note(f"note: {len(stale)} JSON file(s) in {records_dir}/ are from an earlier run (e.g. {stale[0]}), not from "
-             "these queries")
+        note(
+            f"note: {len(stale)} JSON file(s) in {records_dir}/ are from an earlier run (e.g. {stale[0]}), not from "
+            "these queries"
+        )
     _summary(writer, args, records_dir, where)
     return code
 
@@ -226,8 +294,10 @@ def run_queries(writer: ResultsWriter, queries: list[QuerySource], localize: Loc
     except KeyboardInterrupt:
         writer.close()
         where = "on stdout" if str(writer.out) == STDOUT else f"in {writer.out}"
-        raise Interrupted(f"interrupted after {writer.queries} of {len(queries)} queries: their results are {where} "
-                          f"(the others have none); re-running the command localizes all {len(queries)} again") from None
+        raise Interrupted(
+            f"interrupted after {writer.queries} of {len(queries)} queries: their results are {where} "
+            f"(the others have none); re-running the command localizes all {len(queries)} again"
+        ) from None
     except BaseException:
         writer.abort()  # a failed run: the earlier results file and records stay as they were
         raise
@@ -235,8 +305,14 @@ def run_queries(writer: ResultsWriter, queries: list[QuerySource], localize: Loc
     return EXIT_PARTIAL if writer.errors else EXIT_OK
 
 
-def _batch_localizer(loc: Localizer, camera: Camera | None, gravity: object | None, gravity_file: dict | None,
-                     pairs: dict | None, outputs: EstimateOutputs) -> LocalizeOne:
+def _batch_localizer(
+    loc: Localizer,
+    camera: Camera | None,
+    gravity: object | None,
+    gravity_file: dict | None,
+    pairs: dict | None,
+    outputs: EstimateOutputs,
+) -> LocalizeOne:
     def localize(q: QuerySource) -> dict:
         g = gravity if gravity_file is None else gravity_file.get(q.name)
         try:  # one bad query is recorded with its reason; the batch goes on
@@ -246,23 +322,35 @@ def _batch_localizer(loc: Localizer, camera: Camera | None, gravity: object | No
         except MapFormatError:
             raise  # a damaged map fails every query: stop
         except (InputError, OSError) as exc:
-            return error_record(q.name, f"{q.path}: {exc.strerror or exc}" if isinstance(exc, OSError) else str(exc),
-                                stamp=q.timestamp)
+            return error_record(
+                q.name,
+                f"{q.path}: {exc.strerror or exc}" if isinstance(exc, OSError) else str(exc),
+                stamp=q.timestamp,
+            )
         return query_record(q.name, est, query.gravity, stamp=q.timestamp)
 
     return localize
 
 
-def _stream_localizer(loc: Localizer, args: argparse.Namespace, camera: Camera | None, gravity: object | None,
-                      queries: list[QuerySource], timed: bool, stack: ExitStack) -> LocalizeOne:
+def _stream_localizer(
+    loc: Localizer,
+    args: argparse.Namespace,
+    camera: Camera | None,
+    gravity: object | None,
+    queries: list[QuerySource],
+    timed: bool,
+    stack: ExitStack,
+) -> LocalizeOne:
     from planarloc.io.odometry import read_odometry
     from planarloc.localize.sequence import SequenceLocalizer
 
     stamps = [q.timestamp for q in queries]
     odometry = read_odometry(args.odometry, stamps if timed else None) if args.odometry else None
     if odometry is not None and len(odometry) != len(queries):
-        raise ValueError(f"{args.odometry}: {len(odometry)} odometry poses for {len(queries)} frames (without "
-                         "timestamps in the image list the file must have one line per frame)")
+        raise ValueError(
+            f"{args.odometry}: {len(odometry)} odometry poses for {len(queries)} frames (without "
+            "timestamps in the image list the file must have one line per frame)"
+        )
     seq = stack.enter_context(SequenceLocalizer(loc, sequence_config(args)))
     rerun = stream_rerun(args.rerun, loc, stack)
     frames = iter(range(len(queries)))  # the run localizes the queries once, in order
@@ -290,24 +378,33 @@ def _summary(writer: ResultsWriter, args: argparse.Namespace, records_dir: Path 
     errors = f", {writer.errors} could not be processed" if writer.errors else ""
     if args.sequence:
         counts = ", ".join(f"{v} {k}" for k, v in sorted(writer.statuses.items()))
-        kept = "localized poses; predicted ones dropped" if writer.predicted == "drop" else \
-            "localized poses, predicted ones marked '# predicted'"
+        kept = (
+            "localized poses; predicted ones dropped"
+            if writer.predicted == "drop"
+            else "localized poses, predicted ones marked '# predicted'"
+        )
         info(f"{writer.queries} frames: {counts} -> {args.out} ({kept}){details}")
     else:
         failed = writer.queries - writer.localized
-        info(f"localized {writer.localized} of {writer.queries} queries ({failed} failed{errors}){where} -> "
-             f"{args.out}{details}")
+        info(
+            f"localized {writer.localized} of {writer.queries} queries ({failed} failed{errors}){where} -> "
+            f"{args.out}{details}"
+        )
 
 
 def _gravity_file_notes(path: Path, gravity: dict, names: set[str]) -> None:
     """Say which queries the gravity file missed and which of its names matched no query."""
     missing, unused = len(names - set(gravity)), sorted(set(gravity) - names)
     if missing:
-        note(f"{path}: no gravity for {missing} of {len(names)} queries; they were assumed mounted like the map "
-             "cameras")
+        note(
+            f"{path}: no gravity for {missing} of {len(names)} queries; they were assumed mounted like the map "
+            "cameras"
+        )
     if unused:
-        note(f"{path}: {len(unused)} name(s) match no query, e.g. {unused[0]!r} (names follow the query naming "
-             "rule: file names, or paths relative to a query folder)")
+        note(
+            f"{path}: {len(unused)} name(s) match no query, e.g. {unused[0]!r} (names follow the query naming "
+            "rule: file names, or paths relative to a query folder)"
+        )
 
 
 def _same_path(a: Path, b: Path) -> bool:

@@ -30,19 +30,27 @@ def build_parser() -> argparse.ArgumentParser:
         prog="planarloc",
         formatter_class=argparse.RawDescriptionHelpFormatter,
         description="Localize a ground robot's camera against a map that is only a set of posed images "
-                    "(no 3D model), from 2D-2D matches under local planar motion.\n\n"
-                    "examples (start here):\n"
-                    "  planarloc demo                      map and localize a generated indoor world\n"
-                    "  planarloc map build DATA -f kitti --out map.db\n"
-                    "  planarloc localize --map map.db query.png --camera 'PINHOLE W H fx fy cx cy'\n"
-                    "  planarloc evaluate DATA -f kitti --map-every 2 --structure tracks",
+        "(no 3D model), from 2D-2D matches under local planar motion.\n\n"
+        "examples (start here):\n"
+        "  planarloc demo                      map and localize a generated indoor world\n"
+        "  planarloc map build DATA -f kitti --out map.db\n"
+        "  planarloc localize --map map.db query.png --camera 'PINHOLE W H fx fy cx cy'\n"
+        "  planarloc evaluate DATA -f kitti --map-every 2 --structure tracks",
         epilog=EXIT_CODES_HELP,
     )
     parser.add_argument("--version", action="version", version=f"planarloc {__version__}")
     parser.add_argument("--verbose", "-v", action="count", default=0, help="more log output (-vv for debug)")
     sub = parser.add_subparsers(dest="command", required=True)
-    for module in (demo_command, map_command, localize_command, evaluate_command, serve_command, ros2_command,
-                   warmup_command, cache_command):
+    for module in (
+        demo_command,
+        map_command,
+        localize_command,
+        evaluate_command,
+        serve_command,
+        ros2_command,
+        warmup_command,
+        cache_command,
+    ):
         module.add_parser(sub)
     return parser
 
@@ -50,8 +58,10 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
-    logging.basicConfig(level=[logging.WARNING, logging.INFO, logging.DEBUG][min(args.verbose, 2)],
-                        format="%(levelname)s %(name)s: %(message)s")
+    logging.basicConfig(
+        level=[logging.WARNING, logging.INFO, logging.DEBUG][min(args.verbose, 2)],
+        format="%(levelname)s %(name)s: %(message)s",
+    )
     try:
         return int(args.func(args) or 0)
     except (ValueError, OSError, sqlite3.Error, MapKeyError, MissingExtraError) as exc:
@@ -62,7 +72,7 @@ def main(argv: list[str] | None = None) -> int:
             text = os_error_message(exc)
         elif isinstance(exc, sqlite3.Error):
             text = sqlite_error_message(exc)
-        elif isinstance(exc, MapKeyError):   # only the map's own: any other KeyError is a bug
+        elif isinstance(exc, MapKeyError):  # only the map's own: any other KeyError is a bug
             text = f"map lookup failed ({exc.args[0] if exc.args else exc}); run `planarloc map check` on the map"
         else:
             text = str(exc)

@@ -27,13 +27,22 @@ from planarloc.map.store import MapDatabase
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
-    p = add_command(sub, "map", "build or inspect a map (a SQLite file of posed images and their features)",
-                    """A map is just posed images with their features: no 3D model is built.""",
-                    ["planarloc map build data/kitti_seq2 --format kitti --every 2 --out kitti.db",
-                     "planarloc map info kitti.db", "planarloc map check kitti.db"])
+    p = add_command(
+        sub,
+        "map",
+        "build or inspect a map (a SQLite file of posed images and their features)",
+        """A map is just posed images with their features: no 3D model is built.""",
+        [
+            "planarloc map build data/kitti_seq2 --format kitti --every 2 --out kitti.db",
+            "planarloc map info kitti.db",
+            "planarloc map check kitti.db",
+        ],
+    )
     msub = p.add_subparsers(dest="map_command", required=True)
     b = add_command(
-        msub, "build", "build (or resume / extend) a map from a dataset",
+        msub,
+        "build",
+        "build (or resume / extend) a map from a dataset",
         """Extract RootSIFT features of every posed image and store them with the poses in MAP.db, then index
         the map for retrieval (VLAD); then print `map info` of it.
 
@@ -57,40 +66,70 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         New maps are compact (50-100 KB per KITTI image, the recall of full maps); --storage full stores
         float32 keypoints and 8-bit descriptors (about 5 times the bytes). Maps of either layout, and
         maps from before layouts existed (full), open alike.""",
-        ["planarloc map build data/kitti_seq2 --format kitti --every 2 --out kitti.db",
-         "planarloc map build data/fountain_p11 --format kapture --dataset-option up=-z --out f.db"],
-        run_build, interrupted=BUILD_RESUMES)
+        [
+            "planarloc map build data/kitti_seq2 --format kitti --every 2 --out kitti.db",
+            "planarloc map build data/fountain_p11 --format kapture --dataset-option up=-z --out f.db",
+        ],
+        run_build,
+        interrupted=BUILD_RESUMES,
+    )
     add_dataset_args(b)
-    b.add_argument("--every", type=int, default=1, help="only frames with index %% N == 0 go into the map (default: 1)")
+    b.add_argument(
+        "--every", type=int, default=1, help="only frames with index %% N == 0 go into the map (default: 1)"
+    )
     b.add_argument("--out", "-o", required=True, type=Path, help="map file to create or extend")
-    b.add_argument("--dataset-option", action="append", metavar="KEY=VALUE",
-                   help="importer option, e.g. tum_camera=fr1 or max_dt=0.05 (repeatable); up=AXIS gives the "
-                        "world's up direction (e.g. up=z, up=-y, up=0,0,1; up=estimate: from the camera centres' plane "
-                        "even if the format declares one)")
+    b.add_argument(
+        "--dataset-option",
+        action="append",
+        metavar="KEY=VALUE",
+        help="importer option, e.g. tum_camera=fr1 or max_dt=0.05 (repeatable); up=AXIS gives the "
+        "world's up direction (e.g. up=z, up=-y, up=0,0,1; up=estimate: from the camera centres' plane "
+        "even if the format declares one)",
+    )
     add_feature_args(b)
-    b.add_argument("--storage", choices=STORAGE_LAYOUTS, default=DEFAULT_STORAGE,
-                   help=f"layout of a new map: compact (about a fifth of the bytes of full: transform-coded "
-                        f"descriptors, fixed-point keypoints, 4-bit global descriptors; the recall of full on KITTI) or "
-                        f"full (float32 keypoints, 8-bit descriptors); default: {DEFAULT_STORAGE}; an existing map "
-                        f"keeps its own")
-    b.add_argument("--allow-unrelated-frames", action="store_true",
-                   help="append images to a non-empty map even when they share no matches with it or their "
-                        "matches contradict the poses (their world frame looks unrelated to the map's); default: "
-                        "refuse, leaving the map as it was")
-    b.add_argument("--ray", nargs="?", const="local", metavar="ADDRESS",
-                   help="distribute over a Ray cluster (auto, HOST:PORT, ray://HOST:PORT; a local one without "
-                        "ADDRESS); needs pip install 'planarloc[ray]'")
+    b.add_argument(
+        "--storage",
+        choices=STORAGE_LAYOUTS,
+        default=DEFAULT_STORAGE,
+        help=f"layout of a new map: compact (about a fifth of the bytes of full: transform-coded "
+        f"descriptors, fixed-point keypoints, 4-bit global descriptors; the recall of full on KITTI) or "
+        f"full (float32 keypoints, 8-bit descriptors); default: {DEFAULT_STORAGE}; an existing map "
+        f"keeps its own",
+    )
+    b.add_argument(
+        "--allow-unrelated-frames",
+        action="store_true",
+        help="append images to a non-empty map even when they share no matches with it or their "
+        "matches contradict the poses (their world frame looks unrelated to the map's); default: "
+        "refuse, leaving the map as it was",
+    )
+    b.add_argument(
+        "--ray",
+        nargs="?",
+        const="local",
+        metavar="ADDRESS",
+        help="distribute over a Ray cluster (auto, HOST:PORT, ray://HOST:PORT; a local one without "
+        "ADDRESS); needs pip install 'planarloc[ray]'",
+    )
     for name, summary, description, func in (
-        ("info", "summarise a map (images, features, gravity, camera mount tilt) and check its integrity",
-         "Prints (on stdout) the number of images, the feature settings, whether the build is complete, and the "
-         "map's gravity: where it comes from (declared by the format, the up= option, or estimated from the camera "
-         "centres' plane) and the map cameras' mount pitch/roll relative to it; after the checks of `planarloc map "
-         "check` (exit code 1 if the map is damaged).", run_info),
-        ("check", "verify every row of a map (SQLite integrity, blobs, checksums)",
-         "Runs SQLite's integrity_check and then decodes every stored row: cameras, poses, keypoint and descriptor "
-         "blobs (lengths, finite values, checksums), global descriptors and the retrieval vocabulary. Prints one "
-         "line per problem naming the row (on stderr); exit code 0 if the map is sound (one line on stdout), 1 if "
-         "not (rebuild it with `planarloc map build`).", run_check),
+        (
+            "info",
+            "summarise a map (images, features, gravity, camera mount tilt) and check its integrity",
+            "Prints (on stdout) the number of images, the feature settings, whether the build is complete, and the "
+            "map's gravity: where it comes from (declared by the format, the up= option, or estimated from the camera "
+            "centres' plane) and the map cameras' mount pitch/roll relative to it; after the checks of `planarloc map "
+            "check` (exit code 1 if the map is damaged).",
+            run_info,
+        ),
+        (
+            "check",
+            "verify every row of a map (SQLite integrity, blobs, checksums)",
+            "Runs SQLite's integrity_check and then decodes every stored row: cameras, poses, keypoint and descriptor "
+            "blobs (lengths, finite values, checksums), global descriptors and the retrieval vocabulary. Prints one "
+            "line per problem naming the row (on stderr); exit code 0 if the map is sound (one line on stdout), 1 if "
+            "not (rebuild it with `planarloc map build`).",
+            run_check,
+        ),
     ):
         m = add_command(msub, name, summary, description, [f"planarloc map {name} kitti.db"], func)
         m.add_argument("map", type=Path, help="map file")
@@ -118,13 +157,24 @@ def run_build(args: argparse.Namespace) -> int:
         note(f"image {image.name} left out of the map: {reason}")
 
     with ray_session(args.ray) as ray_backend, progress_bar() as update:
-        build_map(images, args.out, features, num_words=num_words, progress=update, notify=notify,
-                  mapper=ray_backend.map if ray_backend else None, skipped=skipped, storage=args.storage,
-                  allow_unrelated_frames=args.allow_unrelated_frames)
+        build_map(
+            images,
+            args.out,
+            features,
+            num_words=num_words,
+            progress=update,
+            notify=notify,
+            mapper=ray_backend.map if ray_backend else None,
+            skipped=skipped,
+            storage=args.storage,
+            allow_unrelated_frames=args.allow_unrelated_frames,
+        )
     code = run_info(argparse.Namespace(map=args.out))
     if left_out:
-        note(f"{len(left_out)} of {len(images)} images were left out of the map (fix or remove them, then re-run "
-             "the same command to add them):")
+        note(
+            f"{len(left_out)} of {len(images)} images were left out of the map (fix or remove them, then re-run "
+            "the same command to add them):"
+        )
         for name, reason in left_out:
             note(f"  {name}: {reason}")
         return EXIT_PARTIAL
@@ -134,21 +184,33 @@ def run_build(args: argparse.Namespace) -> int:
 def run_info(args: argparse.Namespace) -> int:
     report = check_map(args.map)
     if not report.ok:
-        raise ValueError(f"{args.map}: damaged map: {report.problems[0]}"
-                         + (f" (and {len(report.problems) - 1} more problem(s): `planarloc map check {args.map}` "
-                            "lists them)" if len(report.problems) > 1 else "") + "; rebuild the map")
+        raise ValueError(
+            f"{args.map}: damaged map: {report.problems[0]}"
+            + (
+                f" (and {len(report.problems) - 1} more problem(s): `planarloc map check {args.map}` "
+                "lists them)"
+                if len(report.problems) > 1
+                else ""
+            )
+            + "; rebuild the map"
+        )
     with MapDatabase.open(args.map) as db:
         n = db.num_images()
         cfg = db.config
-        info(f"{args.map}: {n} images, features {cfg.get('feature_name', '?')}, "
-             f"{'complete' if db.is_complete else 'incomplete build'}, integrity ok")
+        info(
+            f"{args.map}: {n} images, features {cfg.get('feature_name', '?')}, "
+            f"{'complete' if db.is_complete else 'incomplete build'}, integrity ok"
+        )
         if n:
             for line in map_gravity(db).summary_lines():
                 info(line)
             accuracy = load_accuracy(db)
-            info(accuracy.summary() if accuracy is not None else
-                 "map pose accuracy: not measured (a map built before planarloc measured it, or too few "
-                 "overlapping images); queries assume the configured map prior")
+            info(
+                accuracy.summary()
+                if accuracy is not None
+                else "map pose accuracy: not measured (a map built before planarloc measured it, or too few "
+                "overlapping images); queries assume the configured map prior"
+            )
     return 0
 
 
@@ -157,7 +219,11 @@ def run_check(args: argparse.Namespace) -> int:
     for line in report.problems:
         note(f"{args.map}: {line}")
     if not report.ok:
-        raise ValueError(f"{args.map}: damaged map, {len(report.problems)} problem(s) listed above; "
-                         "rebuild the map (planarloc map build ... --out NEW.db)")
-    info(f"{args.map}: ok ({report.num_images} images, {'complete' if report.complete else 'incomplete build'})")
+        raise ValueError(
+            f"{args.map}: damaged map, {len(report.problems)} problem(s) listed above; "
+            "rebuild the map (planarloc map build ... --out NEW.db)"
+        )
+    info(
+        f"{args.map}: ok ({report.num_images} images, {'complete' if report.complete else 'incomplete build'})"
+    )
     return 0

@@ -31,10 +31,12 @@ _RANSAC = RansacOptions()
 _LOC = LocalizerConfig()
 
 
-FORMAT_HELP = ("dataset layout: kitti (image_l/, poses.txt, calib.txt), tum (rgb.txt, groundtruth.txt, camera.txt), "
-               "openloris, kapture, colmap (text model), list (name qw qx qy qz tx ty tz), rosbag (ROS 1 .bag or "
-               "ROS 2 bag folder; options image_topic, camera_info_topic, pose_topic or tf_parent+tf_child, "
-               "base_to_camera, max_dt, every)")
+FORMAT_HELP = (
+    "dataset layout: kitti (image_l/, poses.txt, calib.txt), tum (rgb.txt, groundtruth.txt, camera.txt), "
+    "openloris, kapture, colmap (text model), list (name qw qx qy qz tx ty tz), rosbag (ROS 1 .bag or "
+    "ROS 2 bag folder; options image_topic, camera_info_topic, pose_topic or tf_parent+tf_child, "
+    "base_to_camera, max_dt, every)"
+)
 
 
 def add_dataset_args(p: argparse.ArgumentParser, many: bool = False) -> None:
@@ -45,7 +47,9 @@ def add_dataset_args(p: argparse.ArgumentParser, many: bool = False) -> None:
     p.add_argument("--format", "-f", required=True, choices=sorted(FORMATS), help=FORMAT_HELP)
 
 
-def parse_dataset_options(items: list[str] | None, option: str = "--dataset-option", fmt: str | None = None) -> dict:
+def parse_dataset_options(
+    items: list[str] | None, option: str = "--dataset-option", fmt: str | None = None
+) -> dict:
     """KEY=VALUE pairs -> dict. With the format ``fmt``, each key must be one of its reader's options
     and each value of the option's kind (:func:`planarloc.io.datasets.parse_option_text`: an
     integer, a number, true/false or a text); an error names ``option`` and the pair. Without it,
@@ -58,8 +62,9 @@ def parse_dataset_options(items: list[str] | None, option: str = "--dataset-opti
         if fmt is not None:
             allowed = format_options(fmt)
             if k not in allowed:
-                raise ValueError(f"{option} {item}: format {fmt} has no option {k!r}; its options: "
-                                 f"{', '.join(allowed)}")
+                raise ValueError(
+                    f"{option} {item}: format {fmt} has no option {k!r}; its options: {', '.join(allowed)}"
+                )
             try:
                 out[k] = parse_option_text(fmt, k, v)
             except InputError as exc:
@@ -72,20 +77,37 @@ def parse_dataset_options(items: list[str] | None, option: str = "--dataset-opti
     return out
 
 
-FEATURES_HELP = ("rootsift (OpenCV SIFT, the base install), xfeat (XFeat, needs pip install 'planarloc[learned]') or "
-                 "aliked-lightglue (ALIKED + LightGlue, needs pip install 'planarloc[aliked]')")
+FEATURES_HELP = (
+    "rootsift (OpenCV SIFT, the base install), xfeat (XFeat, needs pip install 'planarloc[learned]') or "
+    "aliked-lightglue (ALIKED + LightGlue, needs pip install 'planarloc[aliked]')"
+)
 
 
 def add_feature_args(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--features", choices=list(FEATURE_TYPES), default=DEFAULT_FEATURE_CONFIG.kind,
-                   help=f"local feature type of the map: {FEATURES_HELP} (default: %(default)s)")
-    p.add_argument("--tilt", action="store_true",
-                   help="tilt-augment map features (paper Sec. III-B: 6 vertical tilts, ~3x slower build, "
-                        "more matches under viewpoint change)")
-    p.add_argument("--max-features", type=int, default=DEFAULT_FEATURE_CONFIG.max_features,
-                   help="keypoints per image (default: %(default)s)")
-    p.add_argument("--vocabulary-size", type=int, default=DEFAULT_NUM_WORDS,
-                   help="VLAD visual words for retrieval (default: %(default)s)")
+    p.add_argument(
+        "--features",
+        choices=list(FEATURE_TYPES),
+        default=DEFAULT_FEATURE_CONFIG.kind,
+        help=f"local feature type of the map: {FEATURES_HELP} (default: %(default)s)",
+    )
+    p.add_argument(
+        "--tilt",
+        action="store_true",
+        help="tilt-augment map features (paper Sec. III-B: 6 vertical tilts, ~3x slower build, "
+        "more matches under viewpoint change)",
+    )
+    p.add_argument(
+        "--max-features",
+        type=int,
+        default=DEFAULT_FEATURE_CONFIG.max_features,
+        help="keypoints per image (default: %(default)s)",
+    )
+    p.add_argument(
+        "--vocabulary-size",
+        type=int,
+        default=DEFAULT_NUM_WORDS,
+        help="VLAD visual words for retrieval (default: %(default)s)",
+    )
 
 
 def check_vocabulary_size(value: int) -> int:
@@ -106,9 +128,13 @@ def feature_config(args: argparse.Namespace) -> FeatureConfig:
 def add_map_features_arg(p: argparse.ArgumentParser) -> None:
     """``--features NAME`` of the commands that open a map: checks the map's feature type (queries
     are always extracted with the map's features)."""
-    p.add_argument("--features", choices=list(FEATURE_TYPES), default=None,
-                   help=f"the feature type the map must have been built with: {FEATURES_HELP}; another is refused "
-                        "(default: the map's own)")
+    p.add_argument(
+        "--features",
+        choices=list(FEATURE_TYPES),
+        default=None,
+        help=f"the feature type the map must have been built with: {FEATURES_HELP}; another is refused "
+        "(default: the map's own)",
+    )
 
 
 def load_feature_backend(kind: str) -> None:
@@ -119,7 +145,9 @@ def load_feature_backend(kind: str) -> None:
         learned.load_backend(kind)
 
 
-def check_map_features(map_name: object, map_kind: str, given: str | None, option: str = "--features") -> None:
+def check_map_features(
+    map_name: object, map_kind: str, given: str | None, option: str = "--features"
+) -> None:
     """Refuse ``given`` (``--features``) when the map was built with another type (one line), and
     load the map's learned backend before the first query."""
     check_map_feature_kind(map_name, map_kind, given, option)
@@ -138,42 +166,77 @@ def check_map_file_features(path: Path, given: str | None, option: str = "--feat
 
 def add_localizer_args(p: argparse.ArgumentParser) -> None:
     g = p.add_argument_group("localization")
-    g.add_argument("--method", "-m", default=Method(_LOC.method).value, choices=[m.value for m in Method],
-                   help="auto = planar 2p1p where the planar model holds, 6DoF 5-point where it does not "
-                        "(tilted or off-plane queries); 2p1p / 2p2p = the paper's planar methods; 5p5p-nister, "
-                        "5p5p-stewenius, 8p8p = its 6DoF baselines (default: %(default)s)")
-    g.add_argument("--structure", "-s", default=_RANSAC.structure.value, choices=[s.value for s in Structure],
-                   help="none = the paper's 2D-2D constraints only (position unobservable when the query is "
-                        "collinear with the map images: reported as degenerate_scale); tracks = also "
-                        "triangulate query keypoints seen in 2+ map images (default: %(default)s)")
-    g.add_argument("--top-n", "-k", type=int, default=_LOC.top_n, help="retrieved map images (default: %(default)s)")
+    g.add_argument(
+        "--method",
+        "-m",
+        default=Method(_LOC.method).value,
+        choices=[m.value for m in Method],
+        help="auto = planar 2p1p where the planar model holds, 6DoF 5-point where it does not "
+        "(tilted or off-plane queries); 2p1p / 2p2p = the paper's planar methods; 5p5p-nister, "
+        "5p5p-stewenius, 8p8p = its 6DoF baselines (default: %(default)s)",
+    )
+    g.add_argument(
+        "--structure",
+        "-s",
+        default=_RANSAC.structure.value,
+        choices=[s.value for s in Structure],
+        help="none = the paper's 2D-2D constraints only (position unobservable when the query is "
+        "collinear with the map images: reported as degenerate_scale); tracks = also "
+        "triangulate query keypoints seen in 2+ map images (default: %(default)s)",
+    )
+    g.add_argument(
+        "--top-n", "-k", type=int, default=_LOC.top_n, help="retrieved map images (default: %(default)s)"
+    )
     g.add_argument("--pairs", help="hloc pairs file 'query db' to use instead of the built-in VLAD retrieval")
     g.add_argument("--use-depth", action="store_true", help="use map depth images as 2D-3D constraints")
-    g.add_argument("--iterations", type=int, default=None,
-                   help="fixed number of RANSAC iterations (the paper uses 100); default: adaptive "
-                        f"between {_RANSAC.min_iterations} and {_RANSAC.max_iterations}")
-    g.add_argument("--threshold", type=float, default=_RANSAC.threshold_px,
-                   help="inlier threshold, Sampson error in pixels (default: %(default)s)")
-    g.add_argument("--max-position-std", type=float, default=_RANSAC.max_position_std_m,
-                   help="report degenerate_scale above this position std in metres (default: %(default)s)")
+    g.add_argument(
+        "--iterations",
+        type=int,
+        default=None,
+        help="fixed number of RANSAC iterations (the paper uses 100); default: adaptive "
+        f"between {_RANSAC.min_iterations} and {_RANSAC.max_iterations}",
+    )
+    g.add_argument(
+        "--threshold",
+        type=float,
+        default=_RANSAC.threshold_px,
+        help="inlier threshold, Sampson error in pixels (default: %(default)s)",
+    )
+    g.add_argument(
+        "--max-position-std",
+        type=float,
+        default=_RANSAC.max_position_std_m,
+        help="report degenerate_scale above this position std in metres (default: %(default)s)",
+    )
     g.add_argument("--seed", type=int, default=_RANSAC.seed, help="RANSAC seed (default: %(default)s)")
 
 
 def localizer_config_of(args: argparse.Namespace) -> LocalizerConfig:
     """The :class:`LocalizerConfig` of the localization options (:func:`localizer_config`)."""
-    return localizer_config(method=args.method, structure=args.structure, seed=args.seed, top_n=args.top_n,
-                            iterations=args.iterations, threshold_px=args.threshold,
-                            max_position_std_m=args.max_position_std, use_depth=args.use_depth)
+    return localizer_config(
+        method=args.method,
+        structure=args.structure,
+        seed=args.seed,
+        top_n=args.top_n,
+        iterations=args.iterations,
+        threshold_px=args.threshold,
+        max_position_std_m=args.max_position_std,
+        use_depth=args.use_depth,
+    )
 
 
 def add_gravity_args(p: argparse.ArgumentParser, option: str, **kwargs: object) -> None:
     """The query-gravity options: ``option`` (for all queries) or ``--gravity-file`` (per query), not both."""
     group = p.add_mutually_exclusive_group()
     group.add_argument(option, **kwargs)  # type: ignore[arg-type]
-    group.add_argument("--gravity-file", type=Path, metavar="FILE",
-                       help="per-query gravity (e.g. from an IMU), lines 'name gx gy gz': direction of gravity "
-                            "(down) in the query camera frame (x right, y down, z forward); queries not listed "
-                            "are assumed mounted like the map cameras")
+    group.add_argument(
+        "--gravity-file",
+        type=Path,
+        metavar="FILE",
+        help="per-query gravity (e.g. from an IMU), lines 'name gx gy gz': direction of gravity "
+        "(down) in the query camera frame (x right, y down, z forward); queries not listed "
+        "are assumed mounted like the map cameras",
+    )
 
 
 def text_option(parse: Callable[[str], T], text: str | None, option: str) -> T | None:

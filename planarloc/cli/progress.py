@@ -47,8 +47,15 @@ def progress_reporter(console: Console, interval: float = LINE_INTERVAL) -> Iter
 
 @contextmanager
 def _bars(console: Console) -> Iterator[Update]:
-    with Progress(TextColumn("[bold]{task.description:<16}"), BarColumn(), MofNCompleteColumn(),
-                  TimeElapsedColumn(), TimeRemainingColumn(), console=console, transient=False) as prog:
+    with Progress(
+        TextColumn("[bold]{task.description:<16}"),
+        BarColumn(),
+        MofNCompleteColumn(),
+        TimeElapsedColumn(),
+        TimeRemainingColumn(),
+        console=console,
+        transient=False,
+    ) as prog:
         tasks: dict[str, int] = {}
         lock = threading.Lock()
 

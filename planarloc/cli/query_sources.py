@@ -63,8 +63,10 @@ def list_queries(path: Path, frame_period_s: float) -> tuple[list[QuerySource], 
 
     entries = read_image_list(path)
     timed = entries[0][0] is not None
-    out = [QuerySource(p.name, p, timestamp=float(s) if timed else k * frame_period_s)
-           for k, (s, p) in enumerate(entries)]
+    out = [
+        QuerySource(p.name, p, timestamp=float(s) if timed else k * frame_period_s)
+        for k, (s, p) in enumerate(entries)
+    ]
     return unique_names(out, keep_repeats=True), timed
 
 
@@ -89,12 +91,14 @@ def unique_names(items: list[QuerySource], keep_repeats: bool = False) -> list[Q
             break
         for i, q in enumerate(files):
             if names[i] in clash:
-                parts = Path(os.path.abspath(q.path)).parts[-depth - 1:]
+                parts = Path(os.path.abspath(q.path)).parts[-depth - 1 :]
                 names[i] = "/".join(parts) if len(parts) > depth else os.path.abspath(q.path)
     for n, q in zip(names, files):
         if any(c.isspace() for c in n):  # before any work: the results file could not hold it
-            raise ValueError(f"{q.path}: query image names must not contain whitespace (the hloc results format "
-                             "is 'name qw qx qy qz tx ty tz'); rename the file")
+            raise ValueError(
+                f"{q.path}: query image names must not contain whitespace (the hloc results format "
+                "is 'name qw qx qy qz tx ty tz'); rename the file"
+            )
     return [replace(q, name=n) for n, q in zip(names, files)]
 
 
@@ -111,7 +115,11 @@ def dataset_queries(paths: list[Path], fmt: str, options: dict, camera: Camera |
 
         if camera is not None:
             options = {"camera": camera, **options}
-        return [QuerySource(im.name, im.path, im.camera, im.timestamp)
-                for im in read_rosbag_images(paths[0], **options)]
-    return [QuerySource(im.name, im.path, im.camera, im.timestamp, im.cam_from_world)
-            for im in read_dataset(paths[0], fmt, **options)]
+        return [
+            QuerySource(im.name, im.path, im.camera, im.timestamp)
+            for im in read_rosbag_images(paths[0], **options)
+        ]
+    return [
+        QuerySource(im.name, im.path, im.camera, im.timestamp, im.cam_from_world)
+        for im in read_dataset(paths[0], fmt, **options)
+    ]

@@ -48,15 +48,24 @@ def add_server_args(p: argparse.ArgumentParser) -> None:
         "q/*.png --camera 'PINHOLE 640 480 525 525 320 240'",
     )
     token = g.add_mutually_exclusive_group()
-    token.add_argument("--token", help="bearer token of the service (visible in the process list: prefer "
-                                       "--token-file or $PLANARLOC_TOKEN)")
-    token.add_argument("--token-file", type=Path, metavar="FILE",
-                       help="read the service's token from the first line of FILE (default: $PLANARLOC_TOKEN)")
+    token.add_argument(
+        "--token",
+        help="bearer token of the service (visible in the process list: prefer "
+        "--token-file or $PLANARLOC_TOKEN)",
+    )
+    token.add_argument(
+        "--token-file",
+        type=Path,
+        metavar="FILE",
+        help="read the service's token from the first line of FILE (default: $PLANARLOC_TOKEN)",
+    )
 
 
 def check_remote_args(args: argparse.Namespace) -> None:
     """Refuse, before any work, the options a server cannot take per request."""
-    changed = [k.replace("_", "-") for k, default in _LOCAL_ONLY.items() if getattr(args, k, default) != default]
+    changed = [
+        k.replace("_", "-") for k, default in _LOCAL_ONLY.items() if getattr(args, k, default) != default
+    ]
     if changed:
         raise ValueError(
             f"--server: --{', --'.join(changed)} cannot be set per request (the server uses its "
@@ -64,8 +73,9 @@ def check_remote_args(args: argparse.Namespace) -> None:
         )
 
 
-def remote_localizer(client, args: argparse.Namespace, camera: Camera | None,
-                     gravity: object | None) -> Callable[[QuerySource], dict]:
+def remote_localizer(
+    client, args: argparse.Namespace, camera: Camera | None, gravity: object | None
+) -> Callable[[QuerySource], dict]:
     """``localize(query) -> record`` through ``client`` (a :class:`planarloc.client.Client`),
     after checking that the served map exists and, without ``camera``, has exactly one camera."""
     from planarloc.client import ServiceError
@@ -76,11 +86,14 @@ def remote_localizer(client, args: argparse.Namespace, camera: Camera | None,
     except ServiceError as exc:
         raise ValueError(f"--server {args.server}: {exc}") from None
     if map_name not in maps:
-        raise ValueError(f"--map {map_name}: the server serves no such map (it serves {', '.join(sorted(maps))})")
+        raise ValueError(
+            f"--map {map_name}: the server serves no such map (it serves {', '.join(sorted(maps))})"
+        )
     cameras = maps[map_name].get("cameras", [])
     if camera is None and len(cameras) != 1:
-        raise ValueError(f"--server: map {map_name!r} has {len(cameras)} cameras: pass the query intrinsics "
-                         "with --camera")
+        raise ValueError(
+            f"--server: map {map_name!r} has {len(cameras)} cameras: pass the query intrinsics with --camera"
+        )
     g = None if gravity is None else tuple(float(v) for v in gravity)
 
     def localize(q: QuerySource) -> dict:
@@ -89,8 +102,16 @@ def remote_localizer(client, args: argparse.Namespace, camera: Camera | None,
         except OSError as exc:
             return error_record(q.name, f"{q.path}: {exc.strerror or exc}", stamp=q.timestamp)
         try:
-            record = client.localize(data, camera or q.camera, map=map_name, name=q.name.replace("/", "__"),
-                                     method=args.method, structure=args.structure, seed=args.seed, gravity=g)
+            record = client.localize(
+                data,
+                camera or q.camera,
+                map=map_name,
+                name=q.name.replace("/", "__"),
+                method=args.method,
+                structure=args.structure,
+                seed=args.seed,
+                gravity=g,
+            )
         except ServiceError as exc:
             if exc.status in _QUERY_ERRORS:
                 return error_record(q.name, f"{q.path}: the server answered {exc}", stamp=q.timestamp)

@@ -27,10 +27,16 @@ def print_summary_table(summaries: Sequence[dict], title: str) -> None:
         table.add_column(col, justify="right")
     for s in summaries:
         mt, mr = s["median_translation_error_m"], s["median_rotation_error_deg"]
-        table.add_row(s["method"], s["structure"], *[f"{v:.1f}%" for v in s["success"].values()],
-                      "-" if mt is None else f"{mt:.3f}", "-" if mr is None else f"{mr:.2f}",
-                      f"{s['failed_queries']}/{s['queries']}", str(s["status_counts"].get("degenerate_scale", 0)),
-                      f"{s['seconds_per_query']:.2f}")
+        table.add_row(
+            s["method"],
+            s["structure"],
+            *[f"{v:.1f}%" for v in s["success"].values()],
+            "-" if mt is None else f"{mt:.3f}",
+            "-" if mr is None else f"{mr:.2f}",
+            f"{s['failed_queries']}/{s['queries']}",
+            str(s["status_counts"].get("degenerate_scale", 0)),
+            f"{s['seconds_per_query']:.2f}",
+        )
     info(table)
 
 
@@ -41,8 +47,9 @@ def write_json(path: Path | None, data: object) -> None:
     info(f"wrote {path}")
 
 
-def write_trajectory_plot(path: Path | None, map_images: Sequence, results: Sequence, title: str,
-                          g_world: object) -> None:
+def write_trajectory_plot(
+    path: Path | None, map_images: Sequence, results: Sequence, title: str, g_world: object
+) -> None:
     """The trajectory plot (``--plot``) in the map's gravity plane (:mod:`planarloc.viz.trajectory`)."""
     if path is None:
         return
@@ -58,7 +65,9 @@ def partial_exit(results: Sequence, what: str) -> int:
     """3 (and a note) when some of the ``results`` could not be processed (status ``error``), else 0."""
     errors = [r for r in results if r.status == "error"]
     if errors:
-        note(f"{len(errors)} of {len(results)} {what} could not be processed (e.g. {errors[0].reason}); they count "
-             "as failed")
+        note(
+            f"{len(errors)} of {len(results)} {what} could not be processed (e.g. {errors[0].reason}); they count "
+            "as failed"
+        )
         return EXIT_PARTIAL
     return EXIT_OK

@@ -11,7 +11,9 @@ from planarloc.ros2.settings import SHARE_DIR, parameters_listing
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
     p = add_command(
-        sub, "ros2", "run the ROS 2 localization node (poses, map -> odom, diagnostics)",
+        sub,
+        "ros2",
+        "run the ROS 2 localization node (poses, map -> odom, diagnostics)",
         """Subscribes to camera images with their CameraInfo (without one: the map's camera, if the map has only
         one) and optionally nav_msgs/Odometry, /tf, /tf_static and /initialpose; publishes
         geometry_msgs/PoseWithCovarianceStamped on /planarloc/pose in frame map, the map -> odom transform on /tf
@@ -24,17 +26,31 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
         A ROS 2 launch file, a parameter file with every default and an rviz configuration are in the folder
         `planarloc ros2 --share-dir` prints (planarloc.launch.py, params.yaml, planarloc.rviz).""",
-        ["planarloc ros2 --map kitti.db",
-         ("planarloc ros2 --map office.db --ros-args -p image_topic:=/camera/image_raw/compressed "
-          "-p odom_topic:=/odom -p base_to_camera:='0.3 0 0.2 -0.5 0.5 -0.5 0.5' -p transform_tolerance_s:=0.5"),
-         "planarloc ros2 --map office.db --ros-args --params-file my_params.yaml",
-         "ros2 launch $(planarloc ros2 --share-dir)/planarloc.launch.py map:=$PWD/office.db rviz:=true"],
-        run, listing=parameters_listing())
+        [
+            "planarloc ros2 --map kitti.db",
+            (
+                "planarloc ros2 --map office.db --ros-args -p image_topic:=/camera/image_raw/compressed "
+                "-p odom_topic:=/odom -p base_to_camera:='0.3 0 0.2 -0.5 0.5 -0.5 0.5' -p transform_tolerance_s:=0.5"
+            ),
+            "planarloc ros2 --map office.db --ros-args --params-file my_params.yaml",
+            "ros2 launch $(planarloc ros2 --share-dir)/planarloc.launch.py map:=$PWD/office.db rviz:=true",
+        ],
+        run,
+        listing=parameters_listing(),
+    )
     p.add_argument("--map", help="the map file (the ROS parameter 'map'; required to run the node)")
-    p.add_argument("--share-dir", action="store_true",
-                   help="print the folder of the launch file, params.yaml and the rviz configuration, and exit")
-    p.add_argument("--ros-args", dest="ros_args", nargs=argparse.REMAINDER, default=[],
-                   help="ROS arguments, e.g. -p name:=value or --params-file FILE (every argument after it)")
+    p.add_argument(
+        "--share-dir",
+        action="store_true",
+        help="print the folder of the launch file, params.yaml and the rviz configuration, and exit",
+    )
+    p.add_argument(
+        "--ros-args",
+        dest="ros_args",
+        nargs=argparse.REMAINDER,
+        default=[],
+        help="ROS arguments, e.g. -p name:=value or --params-file FILE (every argument after it)",
+    )
 
 
 def run(args: argparse.Namespace) -> int:

@@ -23,64 +23,129 @@ _SEQ = SequenceConfig()
 def add_sequence_args(p: argparse.ArgumentParser, evaluate: bool) -> None:
     g = p.add_argument_group("sequential localization")
     if evaluate:
-        g.add_argument("--sequential", action="store_true",
-                       help="stream the query frames in order through the sequential localizer (frame-to-frame "
-                            "tracking, absolute fixes in the background, pose-graph fusion, kidnap recovery); every "
-                            "frame is counted, with frames/s and latency")
-        g.add_argument("--simulate-odometry", action="store_true",
-                       help="wheel odometry simulated from the ground truth (3%% of distance, 0.3° per axis noise)")
-        g.add_argument("--kidnap-at", type=int, metavar="K",
-                       help="carry the robot away after the K-th streamed frame and back later (two kidnaps; every "
-                            "frame still streamed once)")
+        g.add_argument(
+            "--sequential",
+            action="store_true",
+            help="stream the query frames in order through the sequential localizer (frame-to-frame "
+            "tracking, absolute fixes in the background, pose-graph fusion, kidnap recovery); every "
+            "frame is counted, with frames/s and latency",
+        )
+        g.add_argument(
+            "--simulate-odometry",
+            action="store_true",
+            help="wheel odometry simulated from the ground truth (3%% of distance, 0.3° per axis noise)",
+        )
+        g.add_argument(
+            "--kidnap-at",
+            type=int,
+            metavar="K",
+            help="carry the robot away after the K-th streamed frame and back later (two kidnaps; every "
+            "frame still streamed once)",
+        )
         g.add_argument("--drop-every", type=int, metavar="N", help="drop every N-th streamed frame")
-        g.add_argument("--rate", type=float, metavar="HZ",
-                       help="frames arrive at this rate like a camera's (one waiting frame; a newer one replaces "
-                            "it and the older is counted dropped); default: each frame as soon as the previous "
-                            "pose is out (the sustained rate)")
+        g.add_argument(
+            "--rate",
+            type=float,
+            metavar="HZ",
+            help="frames arrive at this rate like a camera's (one waiting frame; a newer one replaces "
+            "it and the older is counted dropped); default: each frame as soon as the previous "
+            "pose is out (the sustained rate)",
+        )
     else:
-        g.add_argument("--sequence", action="store_true",
-                       help="the images are one ordered stream (files in the given order, folders sorted, or one "
-                            "image-list file 'path' / 'timestamp path' per line)")
-        g.add_argument("--frame-period", type=float, default=_SEQ.frame_period_s,
-                       help="seconds between frames when the list has no timestamps (default: %(default)s)")
-        g.add_argument("--predicted", choices=PREDICTED_MODES, default=PREDICTED_MODES[0],
-                       help="predicted frames (carried by the motion model, not fixed at their own time) in the "
-                            "--out and --tum pose files: 'mark' them with a '# predicted NAME position_std_m=S' "
-                            "comment line before the pose, or 'drop' them; the JSON records keep every frame "
-                            "(default: %(default)s)")
-    g.add_argument("--odometry", type=Path, help="wheel odometry, TUM layout 'timestamp tx ty tz qx qy qz qw' "
-                                                 "(camera-to-odometry), one line per frame or matched by timestamp")
-    g.add_argument("--fixes", choices=FIX_MODES, default=_SEQ.fixes,
-                   help="absolute fixes in a background worker (camera rate) or inside each frame's step (wait: "
-                        "deterministic, for reproducible offline runs) (default: %(default)s)")
-    g.add_argument("--fix-every", type=int, default=_SEQ.fix_every,
-                   help="frames between two absolute fixes at least (default: %(default)s)")
-    g.add_argument("--fix-delay", type=int, default=_SEQ.fix_delay,
-                   help="--fixes wait: frames between a fix and its fusion, as a worker would deliver it "
-                        "(default: %(default)s)")
-    g.add_argument("--window", type=int, default=_SEQ.window, help="poses in the sliding window (default: %(default)s)")
-    g.add_argument("--local-top-n", type=int, default=_SEQ.local_top_n,
-                   help="map images nearest to the prediction used per frame (default: %(default)s)")
-    g.add_argument("--vo-model", default=_SEQ.vo_model, choices=MODELS,
-                   help="visual-odometry motion model (default: %(default)s)")
-    g.add_argument("--kidnap-confirmations", type=int, default=_SEQ.kidnap_confirmations,
-                   help="consistent contradicting fixes that re-initialise the stream (default: %(default)s)")
+        g.add_argument(
+            "--sequence",
+            action="store_true",
+            help="the images are one ordered stream (files in the given order, folders sorted, or one "
+            "image-list file 'path' / 'timestamp path' per line)",
+        )
+        g.add_argument(
+            "--frame-period",
+            type=float,
+            default=_SEQ.frame_period_s,
+            help="seconds between frames when the list has no timestamps (default: %(default)s)",
+        )
+        g.add_argument(
+            "--predicted",
+            choices=PREDICTED_MODES,
+            default=PREDICTED_MODES[0],
+            help="predicted frames (carried by the motion model, not fixed at their own time) in the "
+            "--out and --tum pose files: 'mark' them with a '# predicted NAME position_std_m=S' "
+            "comment line before the pose, or 'drop' them; the JSON records keep every frame "
+            "(default: %(default)s)",
+        )
+    g.add_argument(
+        "--odometry",
+        type=Path,
+        help="wheel odometry, TUM layout 'timestamp tx ty tz qx qy qz qw' "
+        "(camera-to-odometry), one line per frame or matched by timestamp",
+    )
+    g.add_argument(
+        "--fixes",
+        choices=FIX_MODES,
+        default=_SEQ.fixes,
+        help="absolute fixes in a background worker (camera rate) or inside each frame's step (wait: "
+        "deterministic, for reproducible offline runs) (default: %(default)s)",
+    )
+    g.add_argument(
+        "--fix-every",
+        type=int,
+        default=_SEQ.fix_every,
+        help="frames between two absolute fixes at least (default: %(default)s)",
+    )
+    g.add_argument(
+        "--fix-delay",
+        type=int,
+        default=_SEQ.fix_delay,
+        help="--fixes wait: frames between a fix and its fusion, as a worker would deliver it "
+        "(default: %(default)s)",
+    )
+    g.add_argument(
+        "--window", type=int, default=_SEQ.window, help="poses in the sliding window (default: %(default)s)"
+    )
+    g.add_argument(
+        "--local-top-n",
+        type=int,
+        default=_SEQ.local_top_n,
+        help="map images nearest to the prediction used per frame (default: %(default)s)",
+    )
+    g.add_argument(
+        "--vo-model",
+        default=_SEQ.vo_model,
+        choices=MODELS,
+        help="visual-odometry motion model (default: %(default)s)",
+    )
+    g.add_argument(
+        "--kidnap-confirmations",
+        type=int,
+        default=_SEQ.kidnap_confirmations,
+        help="consistent contradicting fixes that re-initialise the stream (default: %(default)s)",
+    )
 
 
 def sequence_config(args: argparse.Namespace) -> SequenceConfig:
     kw = {}
     if getattr(args, "frame_period", None) is not None:
         kw["frame_period_s"] = args.frame_period
-    return SequenceConfig(window=args.window, local_top_n=args.local_top_n, vo_model=args.vo_model,
-                          kidnap_confirmations=args.kidnap_confirmations, fixes=args.fixes, fix_every=args.fix_every,
-                          fix_delay=args.fix_delay, **kw)
+    return SequenceConfig(
+        window=args.window,
+        local_top_n=args.local_top_n,
+        vo_model=args.vo_model,
+        kidnap_confirmations=args.kidnap_confirmations,
+        fixes=args.fixes,
+        fix_every=args.fix_every,
+        fix_delay=args.fix_delay,
+        **kw,
+    )
 
 
 def check_stream_args(args: argparse.Namespace, stream: bool, flag: str) -> None:
     """The stream options are only used with ``flag`` (``--sequence`` / ``--sequential``);
     ``--fix-delay`` only with ``--fixes wait``."""
-    defaults = {"--fixes": ("fixes", _SEQ.fixes), "--fix-every": ("fix_every", _SEQ.fix_every),
-                "--fix-delay": ("fix_delay", _SEQ.fix_delay)}
+    defaults = {
+        "--fixes": ("fixes", _SEQ.fixes),
+        "--fix-every": ("fix_every", _SEQ.fix_every),
+        "--fix-delay": ("fix_delay", _SEQ.fix_delay),
+    }
     if not stream:
         used = [o for o, (name, default) in defaults.items() if getattr(args, name) != default]
         if args.odometry:
@@ -89,7 +154,9 @@ def check_stream_args(args: argparse.Namespace, stream: bool, flag: str) -> None
             raise ValueError(f"{used[0]}: only used with {flag}")
         return
     if args.fix_delay != _SEQ.fix_delay and args.fixes != "wait":
-        raise ValueError("--fix-delay: only used with --fixes wait (background fixes arrive when they are done)")
+        raise ValueError(
+            "--fix-delay: only used with --fixes wait (background fixes arrive when they are done)"
+        )
 
 
 def print_sequence_table(summaries: list[tuple[str, dict]], title: str) -> None:
@@ -100,8 +167,16 @@ def print_sequence_table(summaries: list[tuple[str, dict]], title: str) -> None:
     table.add_column("run")
     for key in summaries[0][1]["success"]:
         table.add_column(key, justify="right")
-    for col in ("localized/predicted/lost", "confident wrong", "rejected", "first correct", "after kidnap", "frames/s",
-                "latency p50/p99 [ms]", "late/dropped"):
+    for col in (
+        "localized/predicted/lost",
+        "confident wrong",
+        "rejected",
+        "first correct",
+        "after kidnap",
+        "frames/s",
+        "latency p50/p99 [ms]",
+        "late/dropped",
+    ):
         table.add_column(col, justify="right")
     for label, s in summaries:
         c, reloc = s["status_counts"], s["relocalization"]
@@ -109,12 +184,18 @@ def print_sequence_table(summaries: list[tuple[str, dict]], title: str) -> None:
         kid = reloc["kidnaps"]
         after = "-" if not kid else ", ".join("never" if k is None else str(k["frames"]) for k in kid)
         fps, lat = s["frames_per_second"], s["latency_ms"]
-        table.add_row(label, *[f"{v:.1f}%" for v in s["success"].values()],
-                      f"{c.get('localized', 0)}/{c.get('predicted', 0)}/{c.get('lost', 0)}",
-                      str(s["confident_wrong"]), str(s["rejected_fixes"]), start, after,
-                      "-" if fps is None else f"{fps:.2f}",
-                      "-" if lat is None else f"{lat['p50']:.0f}/{lat['p99']:.0f}",
-                      f"{s['late_frames']}/{s['dropped_frames']}")
+        table.add_row(
+            label,
+            *[f"{v:.1f}%" for v in s["success"].values()],
+            f"{c.get('localized', 0)}/{c.get('predicted', 0)}/{c.get('lost', 0)}",
+            str(s["confident_wrong"]),
+            str(s["rejected_fixes"]),
+            start,
+            after,
+            "-" if fps is None else f"{fps:.2f}",
+            "-" if lat is None else f"{lat['p50']:.0f}/{lat['p99']:.0f}",
+            f"{s['late_frames']}/{s['dropped_frames']}",
+        )
     info(table)
 
 
@@ -122,9 +203,16 @@ def check_sequential_args(args: argparse.Namespace) -> None:
     """Reject option combinations of `evaluate` before any work is done."""
     check_stream_args(args, args.sequential, "--sequential")
     if not args.sequential:
-        used = [o for o, v in (("--simulate-odometry", args.simulate_odometry),
-                               ("--kidnap-at", args.kidnap_at is not None),
-                               ("--drop-every", args.drop_every is not None), ("--rate", args.rate is not None)) if v]
+        used = [
+            o
+            for o, v in (
+                ("--simulate-odometry", args.simulate_odometry),
+                ("--kidnap-at", args.kidnap_at is not None),
+                ("--drop-every", args.drop_every is not None),
+                ("--rate", args.rate is not None),
+            )
+            if v
+        ]
         if used:
             raise ValueError(f"{used[0]}: only used with --sequential")
         return
@@ -133,15 +221,18 @@ def check_sequential_args(args: argparse.Namespace) -> None:
     if args.odometry and args.simulate_odometry:
         raise ValueError("--odometry and --simulate-odometry: choose one")
     if args.kidnap_at is not None and args.odometry:
-        raise ValueError("--kidnap-at reorders the stream: use it with --simulate-odometry or visual odometry")
+        raise ValueError(
+            "--kidnap-at reorders the stream: use it with --simulate-odometry or visual odometry"
+        )
     if args.drop_every is not None and args.drop_every < 2:
         raise ValueError(f"--drop-every: expected N >= 2, got {args.drop_every}")
     if args.rate is not None and not (np.isfinite(args.rate) and args.rate > 0):
         raise ValueError(f"--rate: expected a frame rate > 0 (Hz), got {args.rate}")
 
 
-def evaluate_sequential(args: argparse.Namespace, map_path: Path, map_images: list, queries: list,
-                        localizer_config: object) -> int:
+def evaluate_sequential(
+    args: argparse.Namespace, map_path: Path, map_images: list, queries: list, localizer_config: object
+) -> int:
     """`planarloc evaluate --sequential`: the queries in order as one stream; prints and writes the
     summary, the TUM files (``--tum``), the plot (``--plot``) and the Rerun recording (``--rerun``).
     Returns 3 when some frames could not be processed (recorded with status ``error``)."""
@@ -167,23 +258,47 @@ def evaluate_sequential(args: argparse.Namespace, map_path: Path, map_images: li
     loc = Localizer(map_path, localizer_config)
     with ExitStack() as stack:
         seq = stack.enter_context(SequenceLocalizer(loc, sequence_config(args)))
-        seq.warm_up()   # a camera's stream starts on a localizer that is up, not with a slow first frame
+        seq.warm_up()  # a camera's stream starts on a localizer that is up, not with a slow first frame
         rerun = stream_rerun(args.rerun, loc, stack)
-        on_frame = None if rerun is None else (
-            lambda image, est: rerun.log_frame(image.name, frame_record(image.name, est), image.camera, image.path,
-                                               image.cam_from_world))
+        on_frame = (
+            None
+            if rerun is None
+            else (
+                lambda image, est: rerun.log_frame(
+                    image.name, frame_record(image.name, est), image.camera, image.path, image.cam_from_world
+                )
+            )
+        )
         with progress_bar() as update:
-            results = evaluate_stream(seq, [f.image for f in frames], stamps, odometry, [f.kidnapped for f in frames],
-                                      lambda d, t: update("localize stream", d, t), rate_hz=args.rate,
-                                      on_frame=on_frame)
+            results = evaluate_stream(
+                seq,
+                [f.image for f in frames],
+                stamps,
+                odometry,
+                [f.kidnapped for f in frames],
+                lambda d, t: update("localize stream", d, t),
+                rate_hz=args.rate,
+                on_frame=on_frame,
+            )
         stats = vars(seq.stats).copy()
-    motion = "simulated odometry" if args.simulate_odometry else "odometry" if args.odometry else "visual odometry"
-    summary = summarize_sequence(results, dataset=" ".join(str(d) for d in args.dataset), map_every=args.map_every,
-                                 motion=motion,
-                                 structure=localizer_config.ransac.structure.value,  # type: ignore[attr-defined]
-                                 kidnap_at=args.kidnap_at, drop_every=args.drop_every, dropped=len(drop),
-                                 window=seq.config.window, local_top_n=seq.config.local_top_n,
-                                 fixes=seq.config.fixes, rate_hz=args.rate, stream=stats)
+    motion = (
+        "simulated odometry" if args.simulate_odometry else "odometry" if args.odometry else "visual odometry"
+    )
+    summary = summarize_sequence(
+        results,
+        dataset=" ".join(str(d) for d in args.dataset),
+        map_every=args.map_every,
+        motion=motion,
+        structure=localizer_config.ransac.structure.value,  # type: ignore[attr-defined]
+        kidnap_at=args.kidnap_at,
+        drop_every=args.drop_every,
+        dropped=len(drop),
+        window=seq.config.window,
+        local_top_n=seq.config.local_top_n,
+        fixes=seq.config.fixes,
+        rate_hz=args.rate,
+        stream=stats,
+    )
     if args.tum:
         # the dataset's times, also for frames a kidnap re-timed on the stream's clock
         summary["evo"] = write_evaluation_tum(args.tum, results, {q.name: q.timestamp for q in queries})

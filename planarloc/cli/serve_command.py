@@ -31,7 +31,9 @@ logger = logging.getLogger(__name__)
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
     p = add_command(
-        sub, "serve", "serve localization over HTTP for a fleet of robots",
+        sub,
+        "serve",
+        "serve localization over HTTP for a fleet of robots",
         """POST /v1/localize (multipart: image, and optionally camera 'MODEL W H PARAMS...' (default: the
         map's camera), map, gravity 'gx gy gz', method, structure, seed) answers the record `planarloc
         localize` writes per query; with session=ROBOT_ID, stamp=SECONDS and optionally odometry='tx ty tz qx
@@ -42,10 +44,13 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         503 with Retry-After. A map file changed on disk is refused until restart. The banner on stderr
         names the address bound (with --port 0: the port chosen) once the workers are ready. Ctrl-C stops
         it. Needs: pip install 'planarloc[serve]'.""",
-        ["planarloc serve --map office=office.db --map lab=lab.db --workers 2 --port 8080",
-         "curl -F image=@q.png -F 'camera=PINHOLE 640 480 525 525 320 240' -F map=office "
-         "http://127.0.0.1:8080/v1/localize"],
-        run)
+        [
+            "planarloc serve --map office=office.db --map lab=lab.db --workers 2 --port 8080",
+            "curl -F image=@q.png -F 'camera=PINHOLE 640 480 525 525 320 240' -F map=office "
+            "http://127.0.0.1:8080/v1/localize",
+        ],
+        run,
+    )
     p.add_argument(
         "--map",
         dest="maps",
@@ -59,38 +64,69 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         "--host", default="127.0.0.1", help="address to bind (default: %(default)s, loopback only)"
     )
     p.add_argument(
-        "--port", type=int, default=8080,
-        help="TCP port, 0 = any free port (the banner on stderr names the port bound; default: %(default)s)"
+        "--port",
+        type=int,
+        default=8080,
+        help="TCP port, 0 = any free port (the banner on stderr names the port bound; default: %(default)s)",
     )
     p.add_argument(
-        "--workers", type=int, default=DEFAULT_WORKERS, help="localization worker processes (default: %(default)s)"
+        "--workers",
+        type=int,
+        default=DEFAULT_WORKERS,
+        help="localization worker processes (default: %(default)s)",
     )
     p.add_argument(
-        "--queue", type=int, default=DEFAULT_QUEUE,
-        help="requests waiting for a worker before 503 (default: %(default)s)"
+        "--queue",
+        type=int,
+        default=DEFAULT_QUEUE,
+        help="requests waiting for a worker before 503 (default: %(default)s)",
     )
     token = p.add_mutually_exclusive_group()
-    token.add_argument("--token", help="require 'Authorization: Bearer TOKEN' on /v1/* and /metrics (visible in "
-                                       "the process list: prefer --token-file or $PLANARLOC_TOKEN)")
-    token.add_argument("--token-file", type=Path, metavar="FILE",
-                       help="read the token from the first line of FILE (default: $PLANARLOC_TOKEN if set)")
+    token.add_argument(
+        "--token",
+        help="require 'Authorization: Bearer TOKEN' on /v1/* and /metrics (visible in "
+        "the process list: prefer --token-file or $PLANARLOC_TOKEN)",
+    )
+    token.add_argument(
+        "--token-file",
+        type=Path,
+        metavar="FILE",
+        help="read the token from the first line of FILE (default: $PLANARLOC_TOKEN if set)",
+    )
     p.add_argument(
-        "--max-image-mb", type=float, default=DEFAULT_MAX_IMAGE_BYTES / (1024 * 1024),
-        help="image upload limit in MB, for every transfer encoding (default: %(default)s)"
+        "--max-image-mb",
+        type=float,
+        default=DEFAULT_MAX_IMAGE_BYTES / (1024 * 1024),
+        help="image upload limit in MB, for every transfer encoding (default: %(default)s)",
     )
     limits = p.add_argument_group("limits (seconds unless stated)")
     for option, default, text in (
         ("--header-timeout", DEFAULT_HEADER_TIMEOUT_S, "time for a request's headers once connected"),
-        ("--body-timeout", DEFAULT_BODY_TIMEOUT_S, "time for a request's body (408 beyond; slow clients hold no "
-                                                   "worker or queue place meanwhile)"),
-        ("--queue-timeout", DEFAULT_QUEUE_TIMEOUT_S, "longest wait of an admitted request for a worker (503 beyond)"),
-        ("--job-timeout", DEFAULT_JOB_TIMEOUT_S, "longest localization; beyond it the worker is replaced (503)"),
+        (
+            "--body-timeout",
+            DEFAULT_BODY_TIMEOUT_S,
+            "time for a request's body (408 beyond; slow clients hold no worker or queue place meanwhile)",
+        ),
+        (
+            "--queue-timeout",
+            DEFAULT_QUEUE_TIMEOUT_S,
+            "longest wait of an admitted request for a worker (503 beyond)",
+        ),
+        (
+            "--job-timeout",
+            DEFAULT_JOB_TIMEOUT_S,
+            "longest localization; beyond it the worker is replaced (503)",
+        ),
         ("--session-idle", DEFAULT_SESSION_IDLE_S, "a session without a frame for this long is evicted"),
     ):
         limits.add_argument(option, type=float, default=default, help=f"{text} (default: %(default)s)")
-    limits.add_argument("--max-sessions", type=int, default=DEFAULT_MAX_SESSIONS,
-                        help="robot sessions kept at once; a new one evicts the least recently used idle one "
-                             "(default: %(default)s)")
+    limits.add_argument(
+        "--max-sessions",
+        type=int,
+        default=DEFAULT_MAX_SESSIONS,
+        help="robot sessions kept at once; a new one evicts the least recently used idle one "
+        "(default: %(default)s)",
+    )
 
 
 def bind(host: str, port: int) -> socket.socket:
@@ -107,8 +143,10 @@ def bind(host: str, port: int) -> socket.socket:
     except OSError as exc:
         sock.close()
         if exc.errno == errno.EADDRINUSE:
-            raise ValueError(f"--port {port}: {host}:{port} is already in use (another server?); choose another "
-                             "port, or --port 0 for any free one") from None
+            raise ValueError(
+                f"--port {port}: {host}:{port} is already in use (another server?); choose another "
+                "port, or --port 0 for any free one"
+            ) from None
         raise ValueError(f"--host {host} --port {port}: cannot listen there ({exc.strerror})") from None
     return sock
 
@@ -126,7 +164,9 @@ def check_settings(args: argparse.Namespace) -> None:
     for option in ("header_timeout", "body_timeout", "queue_timeout", "job_timeout", "session_idle"):
         value = getattr(args, option)
         if not value > 0 or not math.isfinite(value):
-            raise ValueError(f"--{option.replace('_', '-')}: must be a positive number of seconds, got {value}")
+            raise ValueError(
+                f"--{option.replace('_', '-')}: must be a positive number of seconds, got {value}"
+            )
 
 
 def run(args: argparse.Namespace) -> int:
@@ -166,15 +206,21 @@ def run(args: argparse.Namespace) -> int:
     try:
         app = create_app(settings)
         service = app.state.service
-        config = uvicorn.Config(app, log_level="warning", timeout_graceful_shutdown=5,
-                                http=header_timeout_protocol(settings.header_timeout_s))
+        config = uvicorn.Config(
+            app,
+            log_level="warning",
+            timeout_graceful_shutdown=5,
+            http=header_timeout_protocol(settings.header_timeout_s),
+        )
         server = uvicorn.Server(config)
 
         async def serve() -> None:
             await service.start()  # workers up and maps open before the banner: failures are one line
             try:
-                note(f"serving {', '.join(settings.maps.paths)} on http://{host}:{port} "
-                     f"({settings.workers} workers, queue {settings.queue_size})")
+                note(
+                    f"serving {', '.join(settings.maps.paths)} on http://{host}:{port} "
+                    f"({settings.workers} workers, queue {settings.queue_size})"
+                )
                 await server.serve(sockets=[sock])
             finally:
                 await service.close()

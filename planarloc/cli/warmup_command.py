@@ -23,9 +23,11 @@ from planarloc.cli.exit_codes import WARMUP_RESUMES
 from planarloc.compile import compile_kernels, load_manifest, plan_ahead, run_steps
 from planarloc.compile.cache import kernels_persist, missing_kernels
 
-NOWHERE = ("nowhere to keep compiled kernels: planarloc's install is read-only here and neither HOME nor the temp "
-           "folder is writable; run `planarloc warmup` where the install is writable (e.g. when the image is "
-           "built, before USER), or set NUMBA_CACHE_DIR to a writable folder")
+NOWHERE = (
+    "nowhere to keep compiled kernels: planarloc's install is read-only here and neither HOME nor the temp "
+    "folder is writable; run `planarloc warmup` where the install is writable (e.g. when the image is "
+    "built, before USER), or set NUMBA_CACHE_DIR to a writable folder"
+)
 
 
 def compile_ahead(steps: Sequence[str], jobs: int | None = None) -> None:
@@ -41,14 +43,20 @@ def compile_ahead(steps: Sequence[str], jobs: int | None = None) -> None:
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
-    p = add_command(sub, "warmup", "compile every numba kernel once, on all cores (run at install or image build time)",
-                    """Compile every numba kernel a query uses into numba's on-disk cache: in parallel worker
+    p = add_command(
+        sub,
+        "warmup",
+        "compile every numba kernel once, on all cores (run at install or image build time)",
+        """Compile every numba kernel a query uses into numba's on-disk cache: in parallel worker
                     processes (--jobs, default one per core), then by running each estimator once on small
                     generated scenes, which loads them all. The first run on a machine takes about 3 minutes of
                     CPU, spread over the cores; later runs, and queries, only load the cache. Progress goes to stderr (plain
                     lines without a terminal). In a Dockerfile, after pip install:
                     RUN planarloc warmup""",
-                    ["planarloc warmup", "planarloc warmup --jobs 8"], run, interrupted=WARMUP_RESUMES)
+        ["planarloc warmup", "planarloc warmup --jobs 8"],
+        run,
+        interrupted=WARMUP_RESUMES,
+    )
     p.add_argument("--jobs", "-j", type=int, default=None, help="worker processes (default: one per core)")
 
 
@@ -63,10 +71,15 @@ def run(args: argparse.Namespace) -> int:
     with progress_bar() as update:
         report = compile_kernels(missing, manifest, args.jobs, update)
         times = run_steps(update=update)
-    compiled = f"{report.compiled} kernels compiled on {max(1, args.jobs or os.cpu_count() or 1)} cores" \
-        if missing else "every listed kernel was cached"
+    compiled = (
+        f"{report.compiled} kernels compiled on {max(1, args.jobs or os.cpu_count() or 1)} cores"
+        if missing
+        else "every listed kernel was cached"
+    )
     failed = f", {len(report.failed)} compiled by the steps instead" if report.failed else ""
     slowest = max(times, key=times.get)
-    info(f"warm-up done in {time.perf_counter() - t0:.1f} s ({compiled}{failed}; "
-         f"slowest step: {slowest}, {times[slowest]:.1f} s)")
+    info(
+        f"warm-up done in {time.perf_counter() - t0:.1f} s ({compiled}{failed}; "
+        f"slowest step: {slowest}, {times[slowest]:.1f} s)"
+    )
     return 0

@@ -24,7 +24,24 @@ from planarloc.compile.recorder import CompileRecorder
 from planarloc.compile.schedule import COMPILE_STAGE, CompileReport, compile_kernels
 from planarloc.compile.steps import STEPS_STAGE, run_steps, steps_for, warmup_steps
 
-__all__ = ["COMPILE_STAGE", "MANIFEST", "STEPS_STAGE", "AheadPlan", "CompileRecorder", "CompileReport",
-           "Kernel", "Manifest", "ManifestError", "compile_ahead", "compile_kernels", "compile_lazily",
-           "kernel_cache_files", "load_manifest", "missing_kernels", "plan_ahead", "run_steps", "steps_for",
-           "warmup_steps"]
+__all__ = [
+    "COMPILE_STAGE",
+    "MANIFEST",
+    "STEPS_STAGE",
+    "AheadPlan",
+    "CompileRecorder",
+    "CompileReport",
+    "Kernel",
+    "Manifest",
+    "ManifestError",
+    "compile_ahead",
+    "compile_kernels",
+    "compile_lazily",
+    "kernel_cache_files",
+    "load_manifest",
+    "missing_kernels",
+    "plan_ahead",
+    "run_steps",
+    "steps_for",
+    "warmup_steps",
+]

@@ -46,21 +46,32 @@ def write_manifest(path: Path = MANIFEST) -> None:
         steps: dict[str, list[str]] = {}
         for name, _ in warmup_steps():
             print(f"kernels of step {name!r}", file=sys.stderr, flush=True)
-            subprocess.run([*ME, "--step-entries", name, str(Path(tmp) / "entries.json")], env=env, check=True)
+            subprocess.run(
+                [*ME, "--step-entries", name, str(Path(tmp) / "entries.json")], env=env, check=True
+            )
             steps[name] = [k for k in json.loads((Path(tmp) / "entries.json").read_text()) if k in kernels]
     import numba
 
     for k in kernels.values():
         k["compile_s"] = round(k["compile_s"], 3)
-    path.write_text(json.dumps({"numba": numba.__version__, "kernels": dict(sorted(kernels.items())),
-                                "steps": steps}, indent=1) + "\n")
-    print(f"wrote {path}: {len(kernels)} kernels, {sum(len(k['signatures']) for k in kernels.values())} signatures, "
-          f"{sum(k['compile_s'] for k in kernels.values()):.0f} s of compilation", file=sys.stderr)
+    path.write_text(
+        json.dumps(
+            {"numba": numba.__version__, "kernels": dict(sorted(kernels.items())), "steps": steps}, indent=1
+        )
+        + "\n"
+    )
+    print(
+        f"wrote {path}: {len(kernels)} kernels, {sum(len(k['signatures']) for k in kernels.values())} signatures, "
+        f"{sum(k['compile_s'] for k in kernels.values()):.0f} s of compilation",
+        file=sys.stderr,
+    )
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m planarloc.compile",
-                                 description="planarloc's kernel list and compile workers (`planarloc warmup` uses them)")
+    ap = argparse.ArgumentParser(
+        prog="python -m planarloc.compile",
+        description="planarloc's kernel list and compile workers (`planarloc warmup` uses them)",
+    )
     g = ap.add_mutually_exclusive_group(required=True)
     g.add_argument("--write-manifest", action="store_true", help=f"regenerate {MANIFEST.name} (minutes)")
     g.add_argument("--compile-worker", action="store_true", help=argparse.SUPPRESS)

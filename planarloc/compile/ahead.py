@@ -51,9 +51,11 @@ class AheadPlan:
     def notice(self) -> str:
         """The one line that says a first use compiles, and how to do it ahead."""
         about = max(10, round(estimated_seconds(self.missing, self.manifest, self.jobs), -1))
-        return (f"compiling planarloc's kernels for first use ({len(self.missing)} kernels, about {about:.0f} s on "
-                f"{self.jobs} core{'s' if self.jobs > 1 else ''}, once); run `planarloc warmup` at install or "
-                "image-build time to do it ahead")
+        return (
+            f"compiling planarloc's kernels for first use ({len(self.missing)} kernels, about {about:.0f} s on "
+            f"{self.jobs} core{'s' if self.jobs > 1 else ''}, once); run `planarloc warmup` at install or "
+            "image-build time to do it ahead"
+        )
 
     def run(self, update: Update | None = None) -> CompileReport:
         """Compile the missing kernels; a kernel that fails compiles on first use (logged)."""
@@ -79,8 +81,12 @@ def plan_ahead(steps: Sequence[str], jobs: int | None = None) -> AheadPlan | Non
     return AheadPlan(manifest, missing, max(1, int(jobs or os.cpu_count() or 1)))
 
 
-def compile_ahead(steps: Sequence[str], jobs: int | None = None, update: Update | None = None,
-                  notify: Callable[[str], None] | None = None) -> CompileReport | None:
+def compile_ahead(
+    steps: Sequence[str],
+    jobs: int | None = None,
+    update: Update | None = None,
+    notify: Callable[[str], None] | None = None,
+) -> CompileReport | None:
     """Compile the kernels of ``steps`` that numba's cache misses, on ``jobs`` cores (default: all).
 
     ``notify`` receives the one-line notice first (default: logged at INFO); ``update`` the

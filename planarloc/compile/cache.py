@@ -64,6 +64,9 @@ def kernel_cache_files() -> tuple[list[Path], list[Path]]:
         base = d.py_func.__module__.rpartition(".")[2]
         for path in cache_folders(cache):  # a read-only install: its __pycache__ and this user's folders
             folders.add(Path(path))
-            files |= {f for f in Path(path).glob(f"{base}.*") if f.suffix in (".nbi", ".nbc") and f.is_file()
-                      and not f.is_symlink()}
+            files |= {
+                f
+                for f in Path(path).glob(f"{base}.*")
+                if f.suffix in (".nbi", ".nbc") and f.is_file() and not f.is_symlink()
+            }
     return sorted(folders), sorted(files)

@@ -82,5 +82,7 @@ def kernel_dependencies(keys: Sequence[str]) -> dict[str, set[str]]:
         memo[d] = out
         return out
 
-    return {k: ({key_of[c] for c in calls(d, frozenset({d})) if c in key_of} - {k}) if d is not None else set()
-            for k, d in dispatchers.items()}
+    return {
+        k: ({key_of[c] for c in calls(d, frozenset({d})) if c in key_of} - {k}) if d is not None else set()
+        for k, d in dispatchers.items()
+    }

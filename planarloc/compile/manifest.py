@@ -92,14 +92,19 @@ def load_manifest(path: Path | None = None) -> Manifest:
     try:
         raw = json.loads(path.read_text())
     except OSError as exc:
-        raise ManifestError(f"{path}: cannot read planarloc's kernel list ({exc.strerror or exc}); reinstall "
-                            "planarloc") from None
+        raise ManifestError(
+            f"{path}: cannot read planarloc's kernel list ({exc.strerror or exc}); reinstall planarloc"
+        ) from None
     except ValueError as exc:
-        raise ManifestError(f"{path}: planarloc's kernel list is not JSON ({exc}); reinstall planarloc, or "
-                            f"write it again with `{WRITE_COMMAND}`") from None
+        raise ManifestError(
+            f"{path}: planarloc's kernel list is not JSON ({exc}); reinstall planarloc, or "
+            f"write it again with `{WRITE_COMMAND}`"
+        ) from None
     problem = _shape_problem(raw)
     if problem is not None:
-        raise ManifestError(f"{path}: not planarloc's kernel list ({problem}); reinstall planarloc, or write it "
-                            f"again with `{WRITE_COMMAND}`")
+        raise ManifestError(
+            f"{path}: not planarloc's kernel list ({problem}); reinstall planarloc, or write it "
+            f"again with `{WRITE_COMMAND}`"
+        )
     kernels = {k: Kernel(k, tuple(v["signatures"]), float(v["compile_s"])) for k, v in raw["kernels"].items()}
     return Manifest(kernels, {s: list(ks) for s, ks in raw["steps"].items()})

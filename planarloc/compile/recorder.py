@@ -66,4 +66,6 @@ class CompileRecorder:
 
     def manifest_entries(self) -> dict[str, dict]:
         """``{kernel: {"signatures": [...], "compile_s": seconds}}``, as in ``kernels.json``."""
-        return {k: {"signatures": list(sigs), "compile_s": sum(sigs.values())} for k, sigs in self.kernels.items()}
+        return {
+            k: {"signatures": list(sigs), "compile_s": sum(sigs.values())} for k, sigs in self.kernels.items()
+        }

@@ -42,8 +42,9 @@ class _Schedule:
 
         def chain(k: str, seen: frozenset) -> float:
             if k not in self.chain:
-                self.chain[k] = cost.get(k, 1.0) + max((chain(u, seen | {k}) for u in users[k] if u not in seen),
-                                                       default=0.0)
+                self.chain[k] = cost.get(k, 1.0) + max(
+                    (chain(u, seen | {k}) for u in users[k] if u not in seen), default=0.0
+                )
             return self.chain[k]
 
         for k in deps:
@@ -91,8 +92,14 @@ def estimated_seconds(keys: Sequence[str], manifest: Manifest, jobs: int) -> flo
     return max(sum(cost.values()) / max(jobs, 1), max(schedule.chain.values()))
 
 
-def _drive(proc: subprocess.Popen[str], schedule: _Schedule, manifest: Manifest, report: CompileReport,
-           lock: threading.Lock, update: Update | None) -> None:
+def _drive(
+    proc: subprocess.Popen[str],
+    schedule: _Schedule,
+    manifest: Manifest,
+    report: CompileReport,
+    lock: threading.Lock,
+    update: Update | None,
+) -> None:
     """Feed one worker process kernels from ``schedule`` until none is left or the worker ends."""
     stdin, stdout = proc.stdin, proc.stdout
     if stdin is None or stdout is None:
@@ -134,8 +141,9 @@ def _stop(workers: list[subprocess.Popen[str]]) -> None:
             p.kill()
 
 
-def compile_kernels(keys: Sequence[str], manifest: Manifest, jobs: int | None = None,
-                    update: Update | None = None) -> CompileReport:
+def compile_kernels(
+    keys: Sequence[str], manifest: Manifest, jobs: int | None = None, update: Update | None = None
+) -> CompileReport:
     """Compile kernels into numba's on-disk cache in ``jobs`` worker processes (default: one per
     core; module docstring). Returns what was compiled and what failed (those compile on first use)."""
     t0 = time.perf_counter()
@@ -148,10 +156,20 @@ def compile_kernels(keys: Sequence[str], manifest: Manifest, jobs: int | None = 
     lock = threading.Lock()
     if update is not None:
         update(COMPILE_STAGE, 0, len(keys))
-    workers = [subprocess.Popen([sys.executable, *WORKER_COMMAND], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
-                                stderr=subprocess.DEVNULL, text=True) for _ in range(jobs)]
-    threads = [threading.Thread(target=_drive, args=(p, schedule, manifest, report, lock, update), daemon=True)
-               for p in workers]
+    workers = [
+        subprocess.Popen(
+            [sys.executable, *WORKER_COMMAND],
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.DEVNULL,
+            text=True,
+        )
+        for _ in range(jobs)
+    ]
+    threads = [
+        threading.Thread(target=_drive, args=(p, schedule, manifest, report, lock, update), daemon=True)
+        for p in workers
+    ]
     try:
         for t in threads:
             t.start()
@@ -181,5 +199,7 @@ def serve_compile_requests(requests: Iterable[str], out: TextIO) -> None:
                 d.compile(sig)
             except Exception as exc:  # noqa: BLE001 - reported; the kernel compiles on first use
                 errors.append(f"{task['key']}{text}: {type(exc).__name__}: {exc}".splitlines()[0])
-        out.write(json.dumps({"key": task["key"], "seconds": time.process_time() - t0, "errors": errors}) + "\n")
+        out.write(
+            json.dumps({"key": task["key"], "seconds": time.process_time() - t0, "errors": errors}) + "\n"
+        )
         out.flush()

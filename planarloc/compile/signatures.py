@@ -27,8 +27,18 @@ _SHORT_ARRAY = re.compile(r"\barray\((\w+), (\d)d, ([CFA])\)")
 
 #: The expressions a signature may use: type names, calls and subscripts of them
 #: (``array(float64, 1d, C)``, ``Literal[int](0)``), constants and tuples; no operators or attributes.
-_SIGNATURE_NODES = (ast.Expression, ast.Tuple, ast.Name, ast.Call, ast.keyword, ast.Subscript, ast.Constant,
-                    ast.Load, ast.UnaryOp, ast.USub)
+_SIGNATURE_NODES = (
+    ast.Expression,
+    ast.Tuple,
+    ast.Name,
+    ast.Call,
+    ast.keyword,
+    ast.Subscript,
+    ast.Constant,
+    ast.Load,
+    ast.UnaryOp,
+    ast.USub,
+)
 
 
 def parse_signature(text: str, names: dict[str, object] | None = None) -> tuple | None:
@@ -37,8 +47,11 @@ def parse_signature(text: str, names: dict[str, object] | None = None) -> tuple 
     and tuples (the list is data: it is never evaluated as code beyond that)."""
     try:
         text = _SHORT_ARRAY.sub(r"Array(\1, \2, '\3')", text)
-        if not isinstance(text, str) or len(text) > 4000 or not all(
-                isinstance(n, _SIGNATURE_NODES) for n in ast.walk(ast.parse(text, mode="eval"))):
+        if (
+            not isinstance(text, str)
+            or len(text) > 4000
+            or not all(isinstance(n, _SIGNATURE_NODES) for n in ast.walk(ast.parse(text, mode="eval")))
+        ):
             return None
         sig = eval(text, {"__builtins__": {}}, names or numba_types())  # noqa: S307 - numba type names only
     except Exception:  # noqa: BLE001 - any failure: the kernel is compiled by the steps instead

@@ -27,16 +27,33 @@ def _solver_calls() -> Callable[[], object]:
     import planarloc.solvers as S
     from planarloc.geometry.pose import Pose
 
-    xq = np.array([[0.1, 0.2, 1.0], [-0.3, 0.1, 1.0], [0.2, -0.1, 1.0], [0.05, 0.3, 1.0], [-0.2, -0.2, 1.0],
-                   [0.3, 0.25, 1.0], [-0.1, 0.05, 1.0], [0.15, -0.3, 1.0]])
+    xq = np.array(
+        [
+            [0.1, 0.2, 1.0],
+            [-0.3, 0.1, 1.0],
+            [0.2, -0.1, 1.0],
+            [0.05, 0.3, 1.0],
+            [-0.2, -0.2, 1.0],
+            [0.3, 0.25, 1.0],
+            [-0.1, 0.05, 1.0],
+            [0.15, -0.3, 1.0],
+        ]
+    )
     xr = xq + np.array([0.02, 0.0, 0.0])
     rel = Pose.from_center(np.eye(3), np.array([1.0, 0.0, 0.0]))  # unit baseline to a reference
     ref1, ref2 = Pose.identity(), Pose.from_center(np.eye(3), np.array([0.0, 0.0, 2.0]))
-    return lambda: (S.relpose_planar_2p(xq[:2], xr[:2]), S.relpose_5p_nister(xq[:5], xr[:5]),
-                    S.relpose_5p_stewenius(xq[:5], xr[:5]), S.relpose_8p(xq, xr),
-                    S.essentials_5p_nister(xq[:5], xr[:5]), S.essentials_5p_stewenius(xq[:5], xr[:5]),
-                    S.essential_8p(xq, xr), S.abspose_up2p(xq[:2], 5 * xq[:2]),
-                    S.abspose_2p2p(rel, rel, ref1, ref2), S.abspose_2p1p(rel, ref1, ref2, xq[0], xr[0]))
+    return lambda: (
+        S.relpose_planar_2p(xq[:2], xr[:2]),
+        S.relpose_5p_nister(xq[:5], xr[:5]),
+        S.relpose_5p_stewenius(xq[:5], xr[:5]),
+        S.relpose_8p(xq, xr),
+        S.essentials_5p_nister(xq[:5], xr[:5]),
+        S.essentials_5p_stewenius(xq[:5], xr[:5]),
+        S.essential_8p(xq, xr),
+        S.abspose_up2p(xq[:2], 5 * xq[:2]),
+        S.abspose_2p2p(rel, rel, ref1, ref2),
+        S.abspose_2p1p(rel, ref1, ref2, xq[0], xr[0]),
+    )
 
 
 def warmup_steps() -> list[tuple[str, Callable[[], object]]]:
@@ -54,13 +71,18 @@ def warmup_steps() -> list[tuple[str, Callable[[], object]]]:
 
     def on_spread(method: Method, structure: str) -> Callable[[], object]:
         return lambda: estimate_absolute_pose(
-            spread.query_camera, spread.pairs, method,
-            RansacOptions(max_iterations=20, min_iterations=20, structure=structure))
+            spread.query_camera,
+            spread.pairs,
+            method,
+            RansacOptions(max_iterations=20, min_iterations=20, structure=structure),
+        )
 
     steps: list[tuple[str, Callable[[], object]]] = [
         (step_name(m.value, s), on_spread(m, s)) for m in Method for s in ("none", "tracks")
     ]
-    steps.append(("2p1p collinear", lambda: estimate_absolute_pose(line.query_camera, line.pairs, "2p1p", opts)))
+    steps.append(
+        ("2p1p collinear", lambda: estimate_absolute_pose(line.query_camera, line.pairs, "2p1p", opts))
+    )
     steps.append(("solvers", _solver_calls()))
     return steps
 
@@ -89,5 +111,6 @@ def steps_for(configs: Iterable[LocalizerConfig]) -> list[str]:
     from planarloc.robust.options import parse_method, parse_structure
 
     # The configurations hold the members (their __post_init__ parses); the fields' types also admit a name.
-    return sorted({step_name(parse_method(c.method).value, parse_structure(c.ransac.structure).value)
-                   for c in configs})
+    return sorted(
+        {step_name(parse_method(c.method).value, parse_structure(c.ransac.structure).value) for c in configs}
+    )

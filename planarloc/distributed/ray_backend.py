@@ -66,8 +66,9 @@ class _QueryEvaluator:
         base = Localizer(Path(map_path), configs[0])
         self.localizers = [base.with_config(c) for c in configs]  # one open map and index
 
-    def evaluate(self, query: PosedImage, pairs: dict[str, list[str]] | None,
-                 gravity: np.ndarray | None = None) -> list[QueryResult]:
+    def evaluate(
+        self, query: PosedImage, pairs: dict[str, list[str]] | None, gravity: np.ndarray | None = None
+    ) -> list[QueryResult]:
         return evaluate_query(self.localizers, query, pairs, gravity=gravity)
 
 
@@ -142,8 +143,12 @@ class RayBackend:
         out: list[list[QueryResult]] = [[] for _ in configs]
         try:
             for i, per_config in enumerate(
-                ActorPool(actors).map(lambda a, q: a.evaluate.remote(q, pairs, None if gravity is None else gravity.get(q.name)),
-                                     list(queries))
+                ActorPool(actors).map(
+                    lambda a, q: a.evaluate.remote(
+                        q, pairs, None if gravity is None else gravity.get(q.name)
+                    ),
+                    list(queries),
+                )
             ):
                 for results, r in zip(out, per_config):
                     results.append(r)

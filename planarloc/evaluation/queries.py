@@ -74,7 +74,9 @@ class QueryResult:
     estimate_quat_wxyz: tuple[float, float, float, float] | None = None
     truth_quat_wxyz: tuple[float, float, float, float] | None = None
     references: tuple[str, ...] = ()
-    reason: str = ""  # why a query failed: the estimator's message, or why it could not be processed (status "error")
+    reason: str = (
+        ""  # why a query failed: the estimator's message, or why it could not be processed (status "error")
+    )
     #: the query's fix record (:func:`planarloc.localize.records.query_record`), as ``localize`` writes it
     record: dict = field(default_factory=dict, compare=False, repr=False)
 
@@ -82,49 +84,97 @@ class QueryResult:
         """The evaluation's entry of this query: its fix record (docs/schema/record.schema.json)
         with the ground truth (``truth_quat_wxyz``, ``truth_center``), the errors (null without
         a pose) and ``seconds`` (features, retrieval, matching and estimation)."""
-        return {**with_truth(self.record, self.truth_quat_wxyz, self.truth_center, self.translation_error_m,
-                             self.rotation_error_deg), "seconds": self.seconds}
+        return {
+            **with_truth(
+                self.record,
+                self.truth_quat_wxyz,
+                self.truth_center,
+                self.translation_error_m,
+                self.rotation_error_deg,
+            ),
+            "seconds": self.seconds,
+        }
 
 
-def with_truth(record: dict, truth_quat_wxyz: Sequence[float] | None, truth_center: Sequence[float],
-               translation_error_m: float, rotation_error_deg: float) -> dict:
+def with_truth(
+    record: dict,
+    truth_quat_wxyz: Sequence[float] | None,
+    truth_center: Sequence[float],
+    translation_error_m: float,
+    rotation_error_deg: float,
+) -> dict:
     """``record`` with its evaluation (docs/schema/record.schema.json, "evaluation_fields"): the
     true ``cam_from_world`` rotation and centre and the errors (NaN without a pose, ``null`` once
     written)."""
-    return {**record, "truth_quat_wxyz": None if truth_quat_wxyz is None else list(truth_quat_wxyz),
-            "truth_center": list(truth_center), "translation_error_m": translation_error_m,
-            "rotation_error_deg": rotation_error_deg}
+    return {
+        **record,
+        "truth_quat_wxyz": None if truth_quat_wxyz is None else list(truth_quat_wxyz),
+        "truth_center": list(truth_center),
+        "translation_error_m": translation_error_m,
+        "rotation_error_deg": rotation_error_deg,
+    }
 
 
-def split_map_queries(images: Sequence[PosedImage], map_every: int) -> tuple[list[PosedImage], list[PosedImage]]:
+def split_map_queries(
+    images: Sequence[PosedImage], map_every: int
+) -> tuple[list[PosedImage], list[PosedImage]]:
     """Map = frames with ``index % map_every == 0``, queries = the others (the issues' protocol)."""
     if map_every < 2:
         raise ValueError(f"map_every must be >= 2 (otherwise there are no queries), got {map_every}")
     return [i for i in images if i.index % map_every == 0], [i for i in images if i.index % map_every != 0]
 
 
-def query_result(query: PosedImage, est: PoseEstimate, seconds: float, gravity: object | None = None) -> QueryResult:
+def query_result(
+    query: PosedImage, est: PoseEstimate, seconds: float, gravity: object | None = None
+) -> QueryResult:
     if est.success and est.pose is not None:
         t_err, r_err = pose_errors(est.pose, query.cam_from_world)
         c: tuple[float, float, float] | None = center_tuple(est.pose.center)
         q: tuple[float, float, float, float] | None = quat_wxyz_tuple(est.pose.quat_wxyz)
     else:
         t_err, r_err, c, q = float("nan"), float("nan"), None, None
-    return QueryResult(query.name, est.status, bool(est.success), t_err, r_err, float(est.position_std_m),
-                       int(est.num_inliers), int(est.num_inliers_3d), seconds, c,
-                       center_tuple(query.cam_from_world.center), query.timestamp, q,
-                       quat_wxyz_tuple(query.cam_from_world.quat_wxyz), tuple(est.references),
-                       reason="" if est.success else est.message,
-                       record=query_record(query.name, est, gravity, stamp=query.timestamp))
+    return QueryResult(
+        query.name,
+        est.status,
+        bool(est.success),
+        t_err,
+        r_err,
+        float(est.position_std_m),
+        int(est.num_inliers),
+        int(est.num_inliers_3d),
+        seconds,
+        c,
+        center_tuple(query.cam_from_world.center),
+        query.timestamp,
+        q,
+        quat_wxyz_tuple(query.cam_from_world.quat_wxyz),
+        tuple(est.references),
+        reason="" if est.success else est.message,
+        record=query_record(query.name, est, gravity, stamp=query.timestamp),
+    )
 
 
 def _error_result(query: PosedImage, seconds: float, reason: str) -> QueryResult:
     """A query that could not be processed: failed, status ``"error"``, with the reason."""
     nan = float("nan")
-    return QueryResult(query.name, "error", False, nan, nan, nan, 0, 0, seconds, None,
-                       center_tuple(query.cam_from_world.center), query.timestamp, None,
-                       quat_wxyz_tuple(query.cam_from_world.quat_wxyz), reason=reason,
-                       record=error_record(query.name, reason, stamp=query.timestamp, seconds=seconds))
+    return QueryResult(
+        query.name,
+        "error",
+        False,
+        nan,
+        nan,
+        nan,
+        0,
+        0,
+        seconds,
+        None,
+        center_tuple(query.cam_from_world.center),
+        query.timestamp,
+        None,
+        quat_wxyz_tuple(query.cam_from_world.quat_wxyz),
+        reason=reason,
+        record=error_record(query.name, reason, stamp=query.timestamp, seconds=seconds),
+    )
 
 
 def summarize(results: Sequence[QueryResult], method: str, structure: str, **extra: object) -> dict:
@@ -191,8 +241,9 @@ def evaluate_queries(
 ) -> list[QueryResult]:
     """Localize every query image and compare with its ground truth (``on_estimate``, ``gravity``:
     see :func:`evaluate_configs`)."""
-    return evaluate_configs(localizer, [localizer.config], queries, progress, pairs, on_estimate,
-                            gravity=gravity)[0]
+    return evaluate_configs(
+        localizer, [localizer.config], queries, progress, pairs, on_estimate, gravity=gravity
+    )[0]
 
 
 def evaluate_configs(
@@ -220,17 +271,26 @@ def evaluate_configs(
     localizers = [base.with_config(c) for c in configs]  # one open map and index for all
     out: list[list[QueryResult]] = [[] for _ in configs]
     for i, q in enumerate(queries):
-        for results, r in zip(out, evaluate_query(localizers, q, pairs, on_estimate,
-                                                  gravity=None if gravity is None else gravity.get(q.name))):
+        for results, r in zip(
+            out,
+            evaluate_query(
+                localizers, q, pairs, on_estimate, gravity=None if gravity is None else gravity.get(q.name)
+            ),
+        ):
             results.append(r)
         if progress:
             progress(i + 1, len(queries))
     return out
 
 
-def evaluate_query(localizers: Sequence[Localizer], query: PosedImage,
-                   pairs: dict[str, list[str]] | None = None, on_estimate: OnEstimate | None = None,
-                   *, gravity: np.ndarray | None = None) -> list[QueryResult]:
+def evaluate_query(
+    localizers: Sequence[Localizer],
+    query: PosedImage,
+    pairs: dict[str, list[str]] | None = None,
+    on_estimate: OnEstimate | None = None,
+    *,
+    gravity: np.ndarray | None = None,
+) -> list[QueryResult]:
     """Localize one query with each localizer (same map), extracting its features once
     (``on_estimate`` and ``gravity``: see :func:`evaluate_configs`, here for this query).
 
@@ -270,8 +330,13 @@ def config_label(config: LocalizerConfig) -> tuple[str, str]:
     return parse_method(config.method).value, parse_structure(config.ransac.structure).value
 
 
-def default_map_path(dataset_root: Path, map_every: int, feature_name: str,
-                     map_images: Sequence[PosedImage] = (), settings: str = "") -> Path:
+def default_map_path(
+    dataset_root: Path,
+    map_every: int,
+    feature_name: str,
+    map_images: Sequence[PosedImage] = (),
+    settings: str = "",
+) -> Path:
     """Where `evaluate` caches the map it builds: next to nothing the user owns.
 
     The key covers the map images' content as far as it is cheap to know — names, file paths

@@ -81,12 +81,22 @@ class FrameResult:
     def to_dict(self) -> dict:
         """The evaluation's entry of this frame: its record (docs/schema/record.schema.json) with
         the ground truth, the errors (null without a pose), ``kidnapped`` and ``finished_s``."""
-        return {**with_truth(self.record, self.truth_quat_wxyz, self.truth_center, self.translation_error_m,
-                             self.rotation_error_deg), "kidnapped": self.kidnapped, "finished_s": self.finished_s}
+        return {
+            **with_truth(
+                self.record,
+                self.truth_quat_wxyz,
+                self.truth_center,
+                self.translation_error_m,
+                self.rotation_error_deg,
+            ),
+            "kidnapped": self.kidnapped,
+            "finished_s": self.finished_s,
+        }
 
 
-def frame_result(image: PosedImage, est: SequenceEstimate, kidnapped: bool, finished_s: float = float("nan")
-                 ) -> FrameResult:
+def frame_result(
+    image: PosedImage, est: SequenceEstimate, kidnapped: bool, finished_s: float = float("nan")
+) -> FrameResult:
     """The outcome of one frame; ``finished_s``: when its pose was returned (seconds since the
     stream started)."""
     truth = image.cam_from_world
@@ -96,23 +106,61 @@ def frame_result(image: PosedImage, est: SequenceEstimate, kidnapped: bool, fini
         q: tuple[float, float, float, float] | None = quat_wxyz_tuple(est.pose.quat_wxyz)
     else:
         t_err, r_err, c, q = float("nan"), float("nan"), None, None
-    return FrameResult(image.name, est.stamp, est.status, est.fix_status, est.motion_source, bool(kidnapped),
-                       t_err, r_err, float(est.position_std_m), float(est.seconds), c,
-                       center_tuple(truth.center), q, quat_wxyz_tuple(truth.quat_wxyz),
-                       float(est.latency_s), float(finished_s), bool(est.late), bool(est.success), float(est.stamp),
-                       cpu_s=float(est.cpu_s), record=frame_record(image.name, est))
+    return FrameResult(
+        image.name,
+        est.stamp,
+        est.status,
+        est.fix_status,
+        est.motion_source,
+        bool(kidnapped),
+        t_err,
+        r_err,
+        float(est.position_std_m),
+        float(est.seconds),
+        c,
+        center_tuple(truth.center),
+        q,
+        quat_wxyz_tuple(truth.quat_wxyz),
+        float(est.latency_s),
+        float(finished_s),
+        bool(est.late),
+        bool(est.success),
+        float(est.stamp),
+        cpu_s=float(est.cpu_s),
+        record=frame_record(image.name, est),
+    )
 
 
-def unposed_result(image: PosedImage, stamp: float, kidnapped: bool, status: str = "dropped",
-                   reason: str = "") -> FrameResult:
+def unposed_result(
+    image: PosedImage, stamp: float, kidnapped: bool, status: str = "dropped", reason: str = ""
+) -> FrameResult:
     """A frame without a pose: one the stream never saw (:data:`DROPPED`), or one it could not
     process (``"error"``, with its reason)."""
-    return FrameResult(image.name, float(stamp), status, "none", "none", bool(kidnapped), float("nan"),
-                       float("nan"), float("inf"), 0.0, None, center_tuple(image.cam_from_world.center),
-                       None, quat_wxyz_tuple(image.cam_from_world.quat_wxyz), timestamp=float(stamp),
-                       reason=" ".join(str(reason).split()),
-                       record=error_record(image.name, reason or "the camera replaced this frame before the stream "
-                                           "took it", kind="frame", stamp=stamp, status=status))
+    return FrameResult(
+        image.name,
+        float(stamp),
+        status,
+        "none",
+        "none",
+        bool(kidnapped),
+        float("nan"),
+        float("nan"),
+        float("inf"),
+        0.0,
+        None,
+        center_tuple(image.cam_from_world.center),
+        None,
+        quat_wxyz_tuple(image.cam_from_world.quat_wxyz),
+        timestamp=float(stamp),
+        reason=" ".join(str(reason).split()),
+        record=error_record(
+            image.name,
+            reason or "the camera replaced this frame before the stream took it",
+            kind="frame",
+            stamp=stamp,
+            status=status,
+        ),
+    )
 
 
 def ground_truth_jumps(truth: Sequence[Pose], min_jump_m: float = 3.0, factor: float = 4.0) -> list[bool]:
@@ -141,15 +189,21 @@ def relocalization(results: Sequence[FrameResult], threshold: tuple[float, float
     def delay(start: int, end: int) -> dict | None:
         for k in range(start, end):
             if _correct(results[k], *threshold):
-                return {"frame": results[start].name, "frames": k - start,
-                        "seconds": float(results[k].stamp - results[start].stamp)}
+                return {
+                    "frame": results[start].name,
+                    "frames": k - start,
+                    "seconds": float(results[k].stamp - results[start].stamp),
+                }
         return None
 
     events = [k for k, r in enumerate(results) if r.kidnapped]
     bounds = [0, *events, len(results)]
     kidnaps = [delay(a, b) for a, b in zip(bounds[1:-1], bounds[2:])]
-    out: dict[str, object] = {"threshold": threshold_name(*threshold),
-                              "start": delay(0, bounds[1]) if results else None, "kidnaps": kidnaps}
+    out: dict[str, object] = {
+        "threshold": threshold_name(*threshold),
+        "start": delay(0, bounds[1]) if results else None,
+        "kidnaps": kidnaps,
+    }
     found = [d["frames"] for d in kidnaps if d is not None]
     out["max_frames_after_kidnap"] = max(found) if found and len(found) == len(events) else None
     return out
@@ -162,11 +216,18 @@ def _speed(results: Sequence[FrameResult]) -> dict:
     span = done[-1].finished_s - done[0].finished_s if len(done) > 1 else 0.0
     return {
         "frames_per_second": float((len(done) - 1) / span) if span > 0 else None,
-        "latency_ms": ({"p50": 1e3 * float(np.percentile(lat, 50)), "p99": 1e3 * float(np.percentile(lat, 99)),
-                        "max": 1e3 * float(lat.max())} if len(lat) else None),
+        "latency_ms": (
+            {
+                "p50": 1e3 * float(np.percentile(lat, 50)),
+                "p99": 1e3 * float(np.percentile(lat, 99)),
+                "max": 1e3 * float(lat.max()),
+            }
+            if len(lat)
+            else None
+        ),
         "first_frame_latency_ms": 1e3 * done[0].latency_s if done else None,
         "cpu_ms_per_frame": 1e3 * float(np.mean([r.cpu_s for r in done[1:]])) if len(done) > 1 else None,
-        "late_frames": int(sum(r.late for r in done)),   # every frame the stream said was late (its own count)
+        "late_frames": int(sum(r.late for r in done)),  # every frame the stream said was late (its own count)
         "dropped_frames": int(sum(r.status == DROPPED for r in results)),
     }
 
@@ -243,7 +304,9 @@ def evaluate_stream(
     if rate_hz is not None and not (np.isfinite(rate_hz) and rate_hz > 0):
         raise ValueError(f"rate_hz: expected a frame rate > 0, got {rate_hz}")
     seq.reset()
-    kidnapped = list(kidnapped) if kidnapped is not None else ground_truth_jumps([i.cam_from_world for i in images])
+    kidnapped = (
+        list(kidnapped) if kidnapped is not None else ground_truth_jumps([i.cam_from_world for i in images])
+    )
     out: list[FrameResult] = []
     start = time.perf_counter()
     k = 0
@@ -251,8 +314,8 @@ def evaluate_stream(
         arrival = time.perf_counter()
         if rate_hz is not None:
             now = time.perf_counter()
-            latest = min(int((now - start) * rate_hz), len(images) - 1)   # the newest frame that has arrived
-            for j in range(k, latest):                                   # the camera replaced them
+            latest = min(int((now - start) * rate_hz), len(images) - 1)  # the newest frame that has arrived
+            for j in range(k, latest):  # the camera replaced them
                 out.append(unposed_result(images[j], stamps[j], kidnapped[j]))
             k = max(k, latest)
             arrival = start + k / rate_hz
@@ -260,8 +323,13 @@ def evaluate_stream(
                 time.sleep(arrival - now)
         image = images[k]
         try:  # a frame that cannot be processed is recorded with its reason; the stream goes on
-            est = seq.step(image.path, image.camera, stamps[k], None if odometry is None else odometry[k],
-                           arrival=arrival)
+            est = seq.step(
+                image.path,
+                image.camera,
+                stamps[k],
+                None if odometry is None else odometry[k],
+                arrival=arrival,
+            )
         except (InputError, OSError) as exc:
             reason = f"{image.path}: {exc.strerror or exc}" if isinstance(exc, OSError) else str(exc)
             out.append(unposed_result(image, stamps[k], kidnapped[k], "error", reason))

@@ -94,9 +94,18 @@ def frames_from_stream(stream: Sequence, load: bool = True) -> list[CaseFrame]:
     stream (anything with ``image`` (a :class:`~planarloc.map.posed_image.PosedImage`), ``stamp``,
     ``odometry`` and ``kidnapped``; its simulated odometry kept); ``load``: images as (H, W)
     uint8 arrays, else their files."""
-    return [CaseFrame(read_gray(f.image.path) if load else f.image.path, f.image.camera, float(f.stamp),
-                      f.image.cam_from_world, f.odometry, f.image.name, kidnapped=bool(f.kidnapped))
-            for f in stream]
+    return [
+        CaseFrame(
+            read_gray(f.image.path) if load else f.image.path,
+            f.image.camera,
+            float(f.stamp),
+            f.image.cam_from_world,
+            f.odometry,
+            f.image.name,
+            kidnapped=bool(f.kidnapped),
+        )
+        for f in stream
+    ]
 
 
 def nominal_period(frames: Sequence[CaseFrame]) -> float:
@@ -120,7 +129,9 @@ def default(frames: Sequence[CaseFrame], rng: np.random.Generator) -> list[CaseF
     return list(frames)
 
 
-def _drop(frames: Sequence[CaseFrame], rng: np.random.Generator, fraction: tuple[float, float]) -> list[CaseFrame]:
+def _drop(
+    frames: Sequence[CaseFrame], rng: np.random.Generator, fraction: tuple[float, float]
+) -> list[CaseFrame]:
     """``frames`` without a random ``fraction`` (drawn uniformly in the range) of them, never the first."""
     n = len(frames)
     k = min(n - 1, round(rng.uniform(*fraction) * n))
@@ -128,20 +139,27 @@ def _drop(frames: Sequence[CaseFrame], rng: np.random.Generator, fraction: tuple
     return [f for i, f in enumerate(frames) if i not in gone]
 
 
-def dropped(frames: Sequence[CaseFrame], rng: np.random.Generator,
-            fraction: tuple[float, float] = (0.2, 0.3)) -> list[CaseFrame]:
+def dropped(
+    frames: Sequence[CaseFrame], rng: np.random.Generator, fraction: tuple[float, float] = (0.2, 0.3)
+) -> list[CaseFrame]:
     """20–30 % of the frames removed at random (never the first); the others keep their true stamps."""
     return _drop(frames, rng, fraction)
 
 
-def fixed_rate(frames: Sequence[CaseFrame], rng: np.random.Generator, fraction: tuple[float, float] = (0.2, 0.3),
-               period_s: float | None = None) -> list[CaseFrame]:
+def fixed_rate(
+    frames: Sequence[CaseFrame],
+    rng: np.random.Generator,
+    fraction: tuple[float, float] = (0.2, 0.3),
+    period_s: float | None = None,
+) -> list[CaseFrame]:
     """The frames of :func:`dropped`, stamped ``period_s`` apart (default: the input's
     :func:`nominal_period`) from the first stamp on: the stamp gaps lie about the motion."""
     period = nominal_period(frames) if period_s is None else float(period_s)
     kept = _drop(frames, rng, fraction)
     t0 = kept[0].stamp
-    return [dataclasses.replace(f, stamp=t0 + k * period, capture_time=f.true_time) for k, f in enumerate(kept)]
+    return [
+        dataclasses.replace(f, stamp=t0 + k * period, capture_time=f.true_time) for k, f in enumerate(kept)
+    ]
 
 
 def _victims(n: int, rng: np.random.Generator, fraction: float, start: int, pair: bool) -> list[int]:
@@ -161,14 +179,17 @@ def _victims(n: int, rng: np.random.Generator, fraction: float, start: int, pair
     return sorted(chosen)
 
 
-def black(frames: Sequence[CaseFrame], rng: np.random.Generator, fraction: float = 0.1,
-          start: int = 3) -> list[CaseFrame]:
+def black(
+    frames: Sequence[CaseFrame], rng: np.random.Generator, fraction: float = 0.1, start: int = 3
+) -> list[CaseFrame]:
     """About ``fraction`` of the frames from index ``start`` on (at least 2, one pair in a row)
     replaced by all-zero images of the camera's size; truth, stamp and odometry kept."""
     out = list(frames)
     for i in _victims(len(frames), rng, fraction, start, pair=True):
         f = frames[i]
-        out[i] = dataclasses.replace(f, image=np.zeros((f.camera.height, f.camera.width), np.uint8), kind=BLACK)
+        out[i] = dataclasses.replace(
+            f, image=np.zeros((f.camera.height, f.camera.width), np.uint8), kind=BLACK
+        )
     return out
 
 
@@ -184,8 +205,9 @@ def _png_bytes(image: object) -> bytes:
     return Path(image).read_bytes()  # type: ignore[arg-type]  # else a path (Path raises TypeError otherwise)
 
 
-def corrupt(frames: Sequence[CaseFrame], rng: np.random.Generator, fraction: float = 0.1,
-            start: int = 3) -> list[CaseFrame]:
+def corrupt(
+    frames: Sequence[CaseFrame], rng: np.random.Generator, fraction: float = 0.1, start: int = 3
+) -> list[CaseFrame]:
     """About ``fraction`` of the frames from index ``start`` on (at least 2) replaced, in turn, by
     zero-length bytes, 1 kB of random bytes and the frame's PNG cut in half; truth, stamp and
     odometry kept."""
@@ -199,13 +221,18 @@ def corrupt(frames: Sequence[CaseFrame], rng: np.random.Generator, fraction: flo
             data = rng.bytes(1024)
         else:
             png = _png_bytes(f.image)
-            data = png[:len(png) // 2]
+            data = png[: len(png) // 2]
         out[i] = dataclasses.replace(f, image=data, kind=CORRUPT)
     return out
 
 
-def stop_and_go(frames: Sequence[CaseFrame], rng: np.random.Generator, stops: Sequence[float] = (1 / 3, 2 / 3),
-                stop_frames: int = 10, period_s: float | None = None) -> list[CaseFrame]:
+def stop_and_go(
+    frames: Sequence[CaseFrame],
+    rng: np.random.Generator,
+    stops: Sequence[float] = (1 / 3, 2 / 3),
+    stop_frames: int = 10,
+    period_s: float | None = None,
+) -> list[CaseFrame]:
     """The robot stands still ``stop_frames`` frames after the frames at the fractions ``stops``
     of the stream: each stop repeats that frame (image, truth, odometry; kind :data:`STOPPED`)
     at ``period_s`` (default: :func:`nominal_period`) intervals, and every later stamp moves
@@ -217,7 +244,9 @@ def stop_and_go(frames: Sequence[CaseFrame], rng: np.random.Generator, stops: Se
         out.append(dataclasses.replace(f, stamp=f.stamp + shift))
         if i in at:
             for k in range(1, stop_frames + 1):
-                out.append(dataclasses.replace(f, stamp=f.stamp + shift + k * period, kind=STOPPED, kidnapped=False))
+                out.append(
+                    dataclasses.replace(f, stamp=f.stamp + shift + k * period, kind=STOPPED, kidnapped=False)
+                )
             shift += stop_frames * period
     return out
 
@@ -249,12 +278,14 @@ def kidnap(frames: Sequence[CaseFrame], rng: np.random.Generator, at: float = 0.
     if n < 4:
         raise InputError(f"kidnap: need at least 4 frames, got {n}")
     k = min(n - 2, max(1, round(at * n)))
-    skip = (n - k) // 2      # as planarloc.synthetic.stream.stream_order(n, kidnap_at=k)
+    skip = (n - k) // 2  # as planarloc.synthetic.stream.stream_order(n, kidnap_at=k)
     order = [*range(k), *range(k + skip, n), *range(k, k + skip)]
     return _rechain(frames, order, nominal_period(frames))
 
 
-def jitter(frames: Sequence[CaseFrame], rng: np.random.Generator, max_offset_s: float = 0.03) -> list[CaseFrame]:
+def jitter(
+    frames: Sequence[CaseFrame], rng: np.random.Generator, max_offset_s: float = 0.03
+) -> list[CaseFrame]:
     """Each stamp moved by a uniform random offset in ``[-max_offset_s, max_offset_s]``; a stamp
     that would not come after the previous one is put 1 ms after it."""
     out: list[CaseFrame] = []
@@ -284,16 +315,19 @@ class StreamCase:
     kidnap: bool = False
 
 
-CASES: dict[str, StreamCase] = {c.name: c for c in (
-    StreamCase("default", default, "the stream as recorded"),
-    StreamCase("dropped", dropped, "20-30 % of the frames removed, true stamps"),
-    StreamCase("fixed-rate", fixed_rate, "20-30 % of the frames removed, stamps at the nominal rate"),
-    StreamCase("black", black, "~10 % of the frames all-zero (truth kept)"),
-    StreamCase("corrupt", corrupt, "~10 % of the frames empty, random or truncated bytes"),
-    StreamCase("stop-and-go", stop_and_go, "two 10-frame stops: same image, truth and odometry"),
-    StreamCase("kidnap", kidnap, "carried ahead after a quarter, later back (two kidnaps)", kidnap=True),
-    StreamCase("jitter", jitter, "stamps off their true times by uniform +-30 ms"),
-)}
+CASES: dict[str, StreamCase] = {
+    c.name: c
+    for c in (
+        StreamCase("default", default, "the stream as recorded"),
+        StreamCase("dropped", dropped, "20-30 % of the frames removed, true stamps"),
+        StreamCase("fixed-rate", fixed_rate, "20-30 % of the frames removed, stamps at the nominal rate"),
+        StreamCase("black", black, "~10 % of the frames all-zero (truth kept)"),
+        StreamCase("corrupt", corrupt, "~10 % of the frames empty, random or truncated bytes"),
+        StreamCase("stop-and-go", stop_and_go, "two 10-frame stops: same image, truth and odometry"),
+        StreamCase("kidnap", kidnap, "carried ahead after a quarter, later back (two kidnaps)", kidnap=True),
+        StreamCase("jitter", jitter, "stamps off their true times by uniform +-30 ms"),
+    )
+}
 
 
 def apply_case(name: str, frames: Sequence[CaseFrame], seed: int = 0) -> list[CaseFrame]:

@@ -27,12 +27,19 @@ def _evo():  # noqa: ANN202
     return metrics, sync, trajectory
 
 
-def _trajectory(trajectory_mod, timestamps: np.ndarray, centers: np.ndarray,  # noqa: ANN001, ANN202
-                quat_wxyz_cam_from_world: np.ndarray):
+def _trajectory(
+    trajectory_mod,
+    timestamps: np.ndarray,
+    centers: np.ndarray,  # noqa: ANN001, ANN202
+    quat_wxyz_cam_from_world: np.ndarray,
+):
     # world_from_cam: position = centre, rotation = inverse of cam_from_world (conjugate quaternion)
     q = np.asarray(quat_wxyz_cam_from_world, dtype=float) * np.array([1.0, -1.0, -1.0, -1.0])
-    return trajectory_mod.PoseTrajectory3D(positions_xyz=np.asarray(centers, dtype=float),
-                                           orientations_quat_wxyz=q, timestamps=np.asarray(timestamps, dtype=float))
+    return trajectory_mod.PoseTrajectory3D(
+        positions_xyz=np.asarray(centers, dtype=float),
+        orientations_quat_wxyz=q,
+        timestamps=np.asarray(timestamps, dtype=float),
+    )
 
 
 def evo_errors(
@@ -62,8 +69,10 @@ def evo_errors(
     est = _trajectory(trajectory, ts, estimate_centers, estimate_quat_wxyz)
     ref = _trajectory(trajectory, ts, truth_centers, truth_quat_wxyz)
     out: dict[str, dict[str, float] | None] = {}
-    for key, relation in (("ape_translation_m", metrics.PoseRelation.translation_part),
-                          ("ape_rotation_deg", metrics.PoseRelation.rotation_angle_deg)):
+    for key, relation in (
+        ("ape_translation_m", metrics.PoseRelation.translation_part),
+        ("ape_rotation_deg", metrics.PoseRelation.rotation_angle_deg),
+    ):
         ape = metrics.APE(relation)
         ape.process_data((ref, est))
         out[key] = {k: float(v) for k, v in ape.get_all_statistics().items()}

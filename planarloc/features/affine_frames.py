@@ -43,8 +43,9 @@ from planarloc.geometry.validation import InputError, check_array
 JACOBIAN_STEP_PX = 0.5
 
 
-def similarity_affine(angle_query_deg: object, size_query: object, angle_ref_deg: object,
-                      size_ref: object) -> np.ndarray:
+def similarity_affine(
+    angle_query_deg: object, size_query: object, angle_ref_deg: object, size_ref: object
+) -> np.ndarray:
     """Local affine maps of N matches from their keypoints' orientation and scale.
 
     Args:
@@ -106,8 +107,14 @@ def _normalized_jacobian(camera: Camera, uv: np.ndarray, h: float) -> np.ndarray
     return J
 
 
-def normalized_affine(affine_px: object, uv_query: object, uv_ref: object, cam_query: Camera,
-                      cam_ref: Camera, step_px: float = JACOBIAN_STEP_PX) -> np.ndarray:
+def normalized_affine(
+    affine_px: object,
+    uv_query: object,
+    uv_ref: object,
+    cam_query: Camera,
+    cam_ref: Camera,
+    step_px: float = JACOBIAN_STEP_PX,
+) -> np.ndarray:
     """Pixel affine maps of N matches as maps between normalized image coordinates.
 
     ``A_norm = J_ref(uv_ref) · A_px · J_query(uv_query)⁻¹`` with ``J = ∂(x/z, y/z)/∂(u, v)`` of
@@ -131,7 +138,9 @@ def normalized_affine(affine_px: object, uv_query: object, uv_ref: object, cam_q
     Jr = _normalized_jacobian(cam_ref, ur, step_px)
     with np.errstate(invalid="ignore", divide="ignore"):
         det = Jq[:, 0, 0] * Jq[:, 1, 1] - Jq[:, 0, 1] * Jq[:, 1, 0]
-        Jq_inv = np.stack([np.stack([Jq[:, 1, 1], -Jq[:, 0, 1]], -1), np.stack([-Jq[:, 1, 0], Jq[:, 0, 0]], -1)], -2)
+        Jq_inv = np.stack(
+            [np.stack([Jq[:, 1, 1], -Jq[:, 0, 1]], -1), np.stack([-Jq[:, 1, 0], Jq[:, 0, 0]], -1)], -2
+        )
         Jq_inv /= det[:, None, None]
     return Jr @ A @ Jq_inv
 

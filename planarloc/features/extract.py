@@ -95,7 +95,9 @@ class FeatureConfig:
         feature_type(self.kind, "FeatureConfig.kind (--features)")
         if self.resize_max is not None:
             if isinstance(self.resize_max, bool) or int(self.resize_max) < 16:
-                raise InputError(f"FeatureConfig.resize_max: expected None or an integer >= 16, got {self.resize_max}")
+                raise InputError(
+                    f"FeatureConfig.resize_max: expected None or an integer >= 16, got {self.resize_max}"
+                )
             object.__setattr__(self, "resize_max", int(self.resize_max))
         if int(self.max_features) < 1:
             raise InputError(f"FeatureConfig.max_features: expected >= 1, got {self.max_features}")
@@ -123,11 +125,15 @@ class FeatureConfig:
         default = FeatureConfig.__dataclass_fields__
         learned = self.kind != DEFAULT_FEATURE_TYPE
         parts = [self.kind if learned else "rootsift" if self.rootsift else "sift", f"n{self.max_features}"]
-        for field, tag in () if learned else (
-            ("contrast_threshold", "ct"),
-            ("edge_threshold", "et"),
-            ("n_octave_layers", "ol"),
-            ("sigma", "s"),
+        for field, tag in (
+            ()
+            if learned
+            else (
+                ("contrast_threshold", "ct"),
+                ("edge_threshold", "et"),
+                ("n_octave_layers", "ol"),
+                ("sigma", "s"),
+            )
         ):
             if getattr(self, field) != default[field].default:
                 parts.append(f"{tag}{getattr(self, field):g}")
@@ -281,7 +287,12 @@ def extract_features(image: np.ndarray, config: FeatureConfig = DEFAULT_FEATURE_
         pts = np.column_stack([(pts[:, 0] + 0.5) / sx - 0.5, (pts[:, 1] + 0.5) / sy - 0.5]).astype(np.float32)
         sizes = (sizes / (0.5 * (sx + sy))).astype(np.float32)
     logger.debug(
-        "extracted %d features (%s) on a %dx%d image (of %dx%d)", len(pts), config.name, gray.shape[1],
-        gray.shape[0], full_shape[1], full_shape[0]
+        "extracted %d features (%s) on a %dx%d image (of %dx%d)",
+        len(pts),
+        config.name,
+        gray.shape[1],
+        gray.shape[0],
+        full_shape[1],
+        full_shape[0],
     )
     return Features(keypoints=pts, descriptors=desc, scales=sizes)

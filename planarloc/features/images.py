@@ -69,7 +69,10 @@ def check_image_pixels(width: int, height: int, what: str = "image") -> None:
     if w * h > MAX_IMAGE_PIXELS:
         raise ImageTooLargeError(
             f"{what}: the image declares {w}x{h} pixels, over the limit of {MAX_IMAGE_PIXELS} pixels "
-            f"({MAX_IMAGE_PIXELS // 2**20} Mpx); refused before decoding (downscale it first)", w, h)
+            f"({MAX_IMAGE_PIXELS // 2**20} Mpx); refused before decoding (downscale it first)",
+            w,
+            h,
+        )
 
 
 def image_size_from_header(data: bytes) -> tuple[str, int, int]:
@@ -111,20 +114,20 @@ def _tiff_size(data: bytes) -> tuple[int, int]:
     try:
         if big:
             ifd = struct.unpack(order + "Q", data[8:16])[0]
-            count, entry, size, head = struct.unpack(order + "Q", data[ifd:ifd + 8])[0], 20, 8, 8
+            count, entry, size, head = struct.unpack(order + "Q", data[ifd : ifd + 8])[0], 20, 8, 8
         else:
             ifd = struct.unpack(order + "I", data[4:8])[0]
-            count, entry, size, head = struct.unpack(order + "H", data[ifd:ifd + 2])[0], 12, 4, 2
+            count, entry, size, head = struct.unpack(order + "H", data[ifd : ifd + 2])[0], 12, 4, 2
         found: dict[int, int] = {}
         for k in range(min(count, 4096)):
             at = ifd + head + k * entry
-            tag, kind = struct.unpack(order + "HH", data[at:at + 4])
+            tag, kind = struct.unpack(order + "HH", data[at : at + 4])
             if tag in (256, 257):
-                value = data[at + 4 + size:at + 4 + 2 * size]
+                value = data[at + 4 + size : at + 4 + 2 * size]
                 fmt = {3: "H", 4: "I", 16: "Q"}.get(kind)
                 if fmt is None:
                     raise ImageFormatError(f"damaged TIFF (its image size has field type {kind})")
-                found[tag] = struct.unpack(order + fmt, value[:struct.calcsize(fmt)])[0]
+                found[tag] = struct.unpack(order + fmt, value[: struct.calcsize(fmt)])[0]
     except struct.error:
         raise ImageFormatError("truncated TIFF (its first directory is cut off)") from None
     if 256 not in found or 257 not in found:
@@ -199,12 +202,12 @@ COLOR = cv2.IMREAD_COLOR | cv2.IMREAD_IGNORE_ORIENTATION
 def _png_problem(data: bytes) -> str | None:
     i = 8
     while i + 12 <= len(data):
-        length = struct.unpack(">I", data[i:i + 4])[0]
-        kind = data[i + 4:i + 8]
+        length = struct.unpack(">I", data[i : i + 4])[0]
+        kind = data[i + 4 : i + 8]
         end = i + 12 + length
         if end > len(data):
             return f"truncated PNG (its {kind.decode('latin-1')} chunk is cut off)"
-        if zlib.crc32(data[i + 4:i + 8 + length]) != struct.unpack(">I", data[i + 8 + length:end])[0]:
+        if zlib.crc32(data[i + 4 : i + 8 + length]) != struct.unpack(">I", data[i + 8 + length : end])[0]:
             return f"damaged PNG (its {kind.decode('latin-1')} chunk fails its CRC)"
         if kind == b"IEND":
             return None
@@ -226,10 +229,13 @@ def _jpeg_problem(data: bytes) -> str | None:
             continue
         if marker == 0xD9:
             return "damaged JPEG (it ends before its image data)"
-        length = struct.unpack(">H", data[i + 2:i + 4])[0]
+        length = struct.unpack(">H", data[i + 2 : i + 4])[0]
         if marker == 0xDA:  # start of scan: the entropy-coded data runs to the end-of-image marker
-            return None if data.rfind(b"\xff\xd9") > i + 2 + length else \
-                "truncated JPEG (no end-of-image marker after its image data)"
+            return (
+                None
+                if data.rfind(b"\xff\xd9") > i + 2 + length
+                else "truncated JPEG (no end-of-image marker after its image data)"
+            )
         i += 2 + length
     return "truncated JPEG (it ends before its image data)"
 
@@ -284,7 +290,9 @@ def _decode(data: bytes, what: str, flags: int, failure: str) -> np.ndarray:
         image = cv2.imdecode(np.frombuffer(data, np.uint8), flags)
     except cv2.error as exc:  # OpenCV refuses some damaged files with an exception, others with None
         reason = " ".join(str(exc).split())[-160:]
-        raise ImageFormatError(f"{what}: {failure} (corrupt or not an image file; OpenCV: {reason})") from None
+        raise ImageFormatError(
+            f"{what}: {failure} (corrupt or not an image file; OpenCV: {reason})"
+        ) from None
     if image is None or image.size == 0:
         raise ImageFormatError(f"{what}: {failure} (corrupt, truncated or not an image file)")
     return image

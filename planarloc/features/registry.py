@@ -53,9 +53,13 @@ DEFAULT_FEATURE_TYPE = "rootsift"
 """The library's and the CLI's default feature type (every map built before learned features)."""
 
 FEATURE_TYPES: dict[str, FeatureType] = {
-    "rootsift": FeatureType("rootsift", 128, "nearest", None, "OpenCV SIFT with RootSIFT descriptors (default)"),
+    "rootsift": FeatureType(
+        "rootsift", 128, "nearest", None, "OpenCV SIFT with RootSIFT descriptors (default)"
+    ),
     "xfeat": FeatureType("xfeat", 64, "nearest", "learned", "XFeat (CVPR 2024), mutual nearest neighbours"),
-    "aliked-lightglue": FeatureType("aliked-lightglue", 128, "lightglue", "aliked", "ALIKED matched by LightGlue"),
+    "aliked-lightglue": FeatureType(
+        "aliked-lightglue", 128, "lightglue", "aliked", "ALIKED matched by LightGlue"
+    ),
 }
 
 
@@ -69,10 +73,16 @@ def feature_type(name: object, option: str = "features") -> FeatureType:
 def feature_kind_of_config(config: object) -> str:
     """The feature type stored in a map's ``meta.config`` dict (maps without one are ``rootsift``)."""
     features = config.get("features", {}) if isinstance(config, dict) else {}
-    return str(features.get("kind", DEFAULT_FEATURE_TYPE)) if isinstance(features, dict) else DEFAULT_FEATURE_TYPE
+    return (
+        str(features.get("kind", DEFAULT_FEATURE_TYPE))
+        if isinstance(features, dict)
+        else DEFAULT_FEATURE_TYPE
+    )
 
 
-def check_map_feature_kind(map_name: object, map_kind: str, given: str | None, option: str = "--features") -> None:
+def check_map_feature_kind(
+    map_name: object, map_kind: str, given: str | None, option: str = "--features"
+) -> None:
     """Refuse features of type ``given`` for a map built with ``map_kind`` (``None`` follows the map).
 
     Raises:
@@ -82,5 +92,7 @@ def check_map_feature_kind(map_name: object, map_kind: str, given: str | None, o
         return
     feature_type(given, option)
     if given != map_kind:
-        raise InputError(f"{map_name} was built with {map_kind} features, not {given}: drop {option} (queries "
-                         f"use the map's features) or build a map with {option} {given}")
+        raise InputError(
+            f"{map_name} was built with {map_kind} features, not {given}: drop {option} (queries "
+            f"use the map's features) or build a map with {option} {given}"
+        )

@@ -238,7 +238,9 @@ def _orthonormal(y: np.ndarray) -> np.ndarray:
         g = y.T.astype(np.float64) @ y.astype(np.float64)
         try:
             r = scipy.linalg.cholesky(g, lower=False)
-            y = scipy.linalg.solve_triangular(r, y.T.astype(np.float64), trans="T", lower=False).T.astype(np.float32)
+            y = scipy.linalg.solve_triangular(r, y.T.astype(np.float64), trans="T", lower=False).T.astype(
+                np.float32
+            )
         except np.linalg.LinAlgError:
             w, v = np.linalg.eigh(g)
             keep = w > w[-1] * 1e-10
@@ -246,8 +248,9 @@ def _orthonormal(y: np.ndarray) -> np.ndarray:
     return y
 
 
-def subspace_basis(vectors: object, dim: int, seed: int = 0, max_rows: int = 4096,
-                   power_iterations: int = 2) -> np.ndarray:
+def subspace_basis(
+    vectors: object, dim: int, seed: int = 0, max_rows: int = 4096, power_iterations: int = 2
+) -> np.ndarray:
     """Orthonormal basis (D, d) of the top-``dim`` right singular subspace of (M, D) vectors.
 
     Args:
@@ -277,7 +280,9 @@ def subspace_basis(vectors: object, dim: int, seed: int = 0, max_rows: int = 409
         _, sv, vt = np.linalg.svd(x, full_matrices=False)
         d = min(d, int(np.sum(sv > sv[0] * 1e-6)))  # without the directions x does not span
         return np.ascontiguousarray(vt[:d].T, dtype=np.float32)
-    q = _orthonormal(x.T @ rng.standard_normal((len(x), d + 10), dtype=np.float32))  # (D, d + 10): range of Xᵀ
+    q = _orthonormal(
+        x.T @ rng.standard_normal((len(x), d + 10), dtype=np.float32)
+    )  # (D, d + 10): range of Xᵀ
     for _ in range(power_iterations):
         q = _orthonormal(x.T @ _orthonormal(x @ q))
     b = x @ q
@@ -300,7 +305,9 @@ class GlobalIndex:
         d = check_array("descriptors", descriptors, (None, None), dtype=np.float32)
         if d.shape[0] < 1 or d.shape[1] < 1:
             raise InputError(f"descriptors: expected shape (M >= 1, D >= 1), got {d.shape}")
-        self._basis = None if basis is None else check_array("basis", basis, (None, d.shape[1]), dtype=np.float32)
+        self._basis = (
+            None if basis is None else check_array("basis", basis, (None, d.shape[1]), dtype=np.float32)
+        )
         self._index = faiss.IndexFlatIP(d.shape[1])
         self._index.add(d)
 

@@ -72,15 +72,27 @@ NUM_PARAMS = {model: len(names) for model, names in PARAM_NAMES.items()}
 
 #: COLMAP models planarloc does not support yet: rejected with their own message.
 UNSUPPORTED_COLMAP_MODELS = (
-    "FULL_OPENCV", "FOV", "SIMPLE_RADIAL_FISHEYE", "RADIAL_FISHEYE", "THIN_PRISM_FISHEYE",
-    "RAD_TAN_THIN_PRISM_FISHEYE", "SIMPLE_DIVISION", "DIVISION", "SIMPLE_FISHEYE", "FISHEYE", "EUCM",
+    "FULL_OPENCV",
+    "FOV",
+    "SIMPLE_RADIAL_FISHEYE",
+    "RADIAL_FISHEYE",
+    "THIN_PRISM_FISHEYE",
+    "RAD_TAN_THIN_PRISM_FISHEYE",
+    "SIMPLE_DIVISION",
+    "DIVISION",
+    "SIMPLE_FISHEYE",
+    "FISHEYE",
+    "EUCM",
     "EQUIRECTANGULAR",
 )
 
 _ONE_FOCAL = frozenset({CameraModel.SIMPLE_PINHOLE, CameraModel.SIMPLE_RADIAL, CameraModel.RADIAL})
 #: The two-focal model that :meth:`Camera.scaled` turns a one-focal model into.
-_TWO_FOCAL = {CameraModel.SIMPLE_PINHOLE: CameraModel.PINHOLE, CameraModel.SIMPLE_RADIAL: CameraModel.OPENCV,
-              CameraModel.RADIAL: CameraModel.OPENCV}
+_TWO_FOCAL = {
+    CameraModel.SIMPLE_PINHOLE: CameraModel.PINHOLE,
+    CameraModel.SIMPLE_RADIAL: CameraModel.OPENCV,
+    CameraModel.RADIAL: CameraModel.OPENCV,
+}
 
 
 @dataclass(frozen=True)
@@ -177,8 +189,8 @@ class Camera:
           ``equidistant``), **not** radial-tangential coefficients.
         """
         d = np.zeros(4)
-        extra = self.params[self._principal_point_index + 2:]
-        d[:len(extra)] = extra
+        extra = self.params[self._principal_point_index + 2 :]
+        d[: len(extra)] = extra
         return d
 
     @property
@@ -187,7 +199,7 @@ class Camera:
         is non-zero, or the model is ``OPENCV_FISHEYE`` (its equidistant projection bends rays
         even with ``k1 = … = k4 = 0``)."""
         # Plain Python on the few parameters: called per query, where numpy's overhead dominated.
-        extra = self.params[self._principal_point_index + 2:]
+        extra = self.params[self._principal_point_index + 2 :]
         return self.model == CameraModel.OPENCV_FISHEYE or any(p != 0.0 for p in extra)
 
     def scaled(self, sx: float, sy: float | None = None) -> Camera:
@@ -305,7 +317,9 @@ def _pixel_count(name: str, value: object) -> int:
     try:
         v = float(value)  # type: ignore[arg-type]
     except (TypeError, ValueError):
-        raise InputError(f"Camera.{name}: image size must be positive whole pixel counts, got {value!r}") from None
+        raise InputError(
+            f"Camera.{name}: image size must be positive whole pixel counts, got {value!r}"
+        ) from None
     if isinstance(value, bool) or not np.isfinite(v) or v != int(v) or v <= 0:
         raise InputError(f"Camera.{name}: image size must be positive whole pixel counts, got {value!r}")
     return int(v)

@@ -55,7 +55,12 @@ def sampson_error_sq(
     r = np.einsum("ij,ij->i", x_ref, Ex)
     fq = np.asarray(f_query, dtype=float)
     fr = np.asarray(f_ref, dtype=float)
-    den = (Ex[:, 0] / fr[0]) ** 2 + (Ex[:, 1] / fr[1]) ** 2 + (Etx[:, 0] / fq[0]) ** 2 + (Etx[:, 1] / fq[1]) ** 2
+    den = (
+        (Ex[:, 0] / fr[0]) ** 2
+        + (Ex[:, 1] / fr[1]) ** 2
+        + (Etx[:, 0] / fq[0]) ** 2
+        + (Etx[:, 1] / fq[1]) ** 2
+    )
     return r * r / np.maximum(den, 1e-300)
 
 
@@ -122,8 +127,9 @@ def triangulate_points(
     return X_world, angle
 
 
-def projection_jacobians(X: np.ndarray, R: np.ndarray, t: np.ndarray, focal: tuple[float, float] | np.ndarray
-                         ) -> np.ndarray:
+def projection_jacobians(
+    X: np.ndarray, R: np.ndarray, t: np.ndarray, focal: tuple[float, float] | np.ndarray
+) -> np.ndarray:
     """(N, 2, 3) derivatives of the pixel projections of world points X (N, 3) w.r.t. X.
 
     For the pinhole camera ``cam_from_world = (R, t)`` with focal lengths ``(fx, fy)``:
@@ -195,16 +201,34 @@ def triangulation_uncertainty(
         return np.broadcast_to(np.asarray(a, dtype=float), (n, *shape)).copy()  # writable, C order
 
     cov, jac = np.empty((n, 3, 3)), np.empty((n, 2, 3, 6))
-    _uncertainty_kernel(X, per_point(cam_from_world_a[0], (3, 3)), per_point(cam_from_world_a[1], (3,)),
-                        per_point(focal_a, (2,)), per_point(cam_from_world_b[0], (3, 3)),
-                        per_point(cam_from_world_b[1], (3,)), per_point(focal_b, (2,)), float(keypoint_std_px) ** 2,
-                        cov, jac)
+    _uncertainty_kernel(
+        X,
+        per_point(cam_from_world_a[0], (3, 3)),
+        per_point(cam_from_world_a[1], (3,)),
+        per_point(focal_a, (2,)),
+        per_point(cam_from_world_b[0], (3, 3)),
+        per_point(cam_from_world_b[1], (3,)),
+        per_point(focal_b, (2,)),
+        float(keypoint_std_px) ** 2,
+        cov,
+        jac,
+    )
     return TriangulationUncertainty(cov, jac)
 
 
 @njit(cache=True, error_model="numpy")
-def _uncertainty_kernel(X: np.ndarray, Ra: np.ndarray, ta: np.ndarray, fa: np.ndarray, Rb: np.ndarray,
-                        tb: np.ndarray, fb: np.ndarray, var_px: float, cov: np.ndarray, out: np.ndarray) -> None:
+def _uncertainty_kernel(
+    X: np.ndarray,
+    Ra: np.ndarray,
+    ta: np.ndarray,
+    fa: np.ndarray,
+    Rb: np.ndarray,
+    tb: np.ndarray,
+    fb: np.ndarray,
+    var_px: float,
+    cov: np.ndarray,
+    out: np.ndarray,
+) -> None:
     """:func:`triangulation_uncertainty` into ``cov`` (N, 3, 3) and ``out`` (N, 2, 3, 6) for
     per-point poses (N, 3, 3), (N, 3), focal lengths (N, 2) and the pixel variance ``var_px``: one
     compiled pass (numpy spent ~120 µs on the small arrays of one query's points)."""
@@ -233,7 +257,7 @@ def _uncertainty_kernel(X: np.ndarray, Ra: np.ndarray, ta: np.ndarray, fa: np.nd
         c02 = A[1, 0] * A[2, 1] - A[1, 1] * A[2, 0]
         det = A[0, 0] * c00 + A[0, 1] * c01 + A[0, 2] * c02
         trace = A[0, 0] + A[1, 1] + A[2, 2]
-        if not (np.isfinite(det) and det > 1e-12 * trace ** 3):  # a point on the baseline
+        if not (np.isfinite(det) and det > 1e-12 * trace**3):  # a point on the baseline
             cov[i] = np.nan
             out[i] = np.nan
             continue

@@ -37,7 +37,9 @@ def essential_into(R: np.ndarray, t: np.ndarray, E: np.ndarray) -> None:
 
 
 @njit(cache=True, inline="always", error_model="numpy")
-def relative_essential_into(Rp: np.ndarray, tp: np.ndarray, Rq: np.ndarray, tq: np.ndarray, E: np.ndarray) -> None:
+def relative_essential_into(
+    Rp: np.ndarray, tp: np.ndarray, Rq: np.ndarray, tq: np.ndarray, E: np.ndarray
+) -> None:
     """E of ``p_from_query = (R_p R_qᵀ, t_p − R_p R_qᵀ t_q)`` for two ``cam_from_world`` poses."""
     R = m3.mul_t(Rp, Rq)
     t0 = tp[0] - (R[0, 0] * tq[0] + R[0, 1] * tq[1] + R[0, 2] * tq[2])
@@ -47,8 +49,9 @@ def relative_essential_into(Rp: np.ndarray, tp: np.ndarray, Rq: np.ndarray, tq: 
 
 
 @njit(cache=True, inline="always", error_model="numpy")
-def sampson_terms(E: np.ndarray, q: np.ndarray, r: np.ndarray, fq0: float, fq1: float, fr0: float,
-                  fr1: float) -> tuple[float, float]:
+def sampson_terms(
+    E: np.ndarray, q: np.ndarray, r: np.ndarray, fq0: float, fq1: float, fr0: float, fr1: float
+) -> tuple[float, float]:
     """Algebraic residual ``rᵀ E q`` and the Sampson denominator in pixels
     ``(Eq)₀²/fr0² + (Eq)₁²/fr1² + (Eᵀr)₀²/fq0² + (Eᵀr)₁²/fq1²`` (Hartley & Zisserman eq. 11.9)."""
     Ex0 = E[0, 0] * q[0] + E[0, 1] * q[1] + E[0, 2] * q[2]
@@ -61,8 +64,9 @@ def sampson_terms(E: np.ndarray, q: np.ndarray, r: np.ndarray, fq0: float, fq1: 
 
 
 @njit(cache=True, inline="always", error_model="numpy")
-def sampson_sq(E: np.ndarray, q: np.ndarray, r: np.ndarray, fq0: float, fq1: float, fr0: float,
-               fr1: float) -> float:
+def sampson_sq(
+    E: np.ndarray, q: np.ndarray, r: np.ndarray, fq0: float, fq1: float, fr0: float, fr1: float
+) -> float:
     """Squared Sampson error in pixels; ``NO_ERROR_SQ`` where it is undefined."""
     res, den = sampson_terms(E, q, r, fq0, fq1, fr0, fr1)
     if den < DEN_FLOOR:
@@ -71,8 +75,9 @@ def sampson_sq(E: np.ndarray, q: np.ndarray, r: np.ndarray, fq0: float, fq1: flo
 
 
 @njit(cache=True, inline="always", error_model="numpy")
-def sampson_signed(E: np.ndarray, q: np.ndarray, r: np.ndarray, fq0: float, fq1: float, fr0: float,
-                   fr1: float) -> float:
+def sampson_signed(
+    E: np.ndarray, q: np.ndarray, r: np.ndarray, fq0: float, fq1: float, fr0: float, fr1: float
+) -> float:
     """Signed Sampson error in pixels (the refinement's residual; its square is :func:`sampson_sq`)."""
     res, den = sampson_terms(E, q, r, fq0, fq1, fr0, fr1)
     return res / np.sqrt(max(den, DEN_FLOOR))
@@ -90,7 +95,9 @@ def project(R: np.ndarray, t: np.ndarray, X: np.ndarray) -> tuple[float, float, 
 
 
 @njit(cache=True, inline="always", error_model="numpy")
-def reprojection_sq(R: np.ndarray, t: np.ndarray, X: np.ndarray, x: np.ndarray, fq0: float, fq1: float) -> float:
+def reprojection_sq(
+    R: np.ndarray, t: np.ndarray, X: np.ndarray, x: np.ndarray, fq0: float, fq1: float
+) -> float:
     """Squared reprojection error in pixels of X observed at ray x (3,); ``NO_ERROR_SQ`` for a
     point not in front of the camera (depth ≤ 1e-9)."""
     u, v, z = project(R, t, X)

@@ -397,8 +397,9 @@ def relposes_closed_form(Es: np.ndarray, x_query: np.ndarray, x_ref: np.ndarray)
     return Pose._from_buffer(out, relposes_into(np.ascontiguousarray(Es), Es.shape[0], x_query, x_ref, out))
 
 
-def solve_relpose_batch(kernel, xq: np.ndarray, xr: np.ndarray,
-                        max_solutions: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def solve_relpose_batch(
+    kernel, xq: np.ndarray, xr: np.ndarray, max_solutions: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Run a batched relative-pose kernel ``kernel(xq, xr, R, t, valid)`` on validated (M, k, 3)
     float64 rays: R (M, max_solutions, 3, 3), t (M, max_solutions, 3), valid (M, max_solutions),
     NaN in the invalid slots (the batch solvers' shared tail; RANSAC calls it on samples of a

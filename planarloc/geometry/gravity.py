@@ -34,16 +34,16 @@ def upright_from_gravity(gravity_cam: np.ndarray) -> np.ndarray:
     """
     g = np.asarray(gravity_cam, dtype=float)
     g = g / np.linalg.norm(g, axis=-1, keepdims=True)
-    axis = np.cross(g, E_Y)                       # sin(angle) · unit axis
+    axis = np.cross(g, E_Y)  # sin(angle) · unit axis
     s = np.linalg.norm(axis, axis=-1)[..., None, None]
-    c = g[..., 1][..., None, None]                # cos(angle) = g · e_y
+    c = g[..., 1][..., None, None]  # cos(angle) = g · e_y
     K = np.zeros(g.shape[:-1] + (3, 3))
     K[..., 0, 1], K[..., 0, 2] = -axis[..., 2], axis[..., 1]
     K[..., 1, 0], K[..., 1, 2] = axis[..., 2], -axis[..., 0]
     K[..., 2, 0], K[..., 2, 1] = -axis[..., 1], axis[..., 0]
     eye = np.broadcast_to(np.eye(3), K.shape)
     with np.errstate(divide="ignore", invalid="ignore"):
-        U = eye + K + (K @ K) / (1.0 + c)         # Rodrigues with (1 - cos)/sin² = 1/(1 + cos)
+        U = eye + K + (K @ K) / (1.0 + c)  # Rodrigues with (1 - cos)/sin² = 1/(1 + cos)
     flip = (c[..., 0, 0] < -1.0 + 1e-12) & (s[..., 0, 0] < 1e-9)
     if np.any(flip):
         U[flip] = np.diag([1.0, -1.0, -1.0])

@@ -91,7 +91,9 @@ def is_planar(b_from_a: Pose, tol: float = 1e-6) -> bool:
     R, t = b_from_a.R, b_from_a.t
     scale = max(1.0, float(np.linalg.norm(t)))
     return bool(
-        abs(R[1, 1] - 1.0) < tol and np.abs(R[1, [0, 2]]).max() < tol and np.abs(R[[0, 2], 1]).max() < tol
+        abs(R[1, 1] - 1.0) < tol
+        and np.abs(R[1, [0, 2]]).max() < tol
+        and np.abs(R[[0, 2], 1]).max() < tol
         and abs(t[1]) < tol * scale
     )
 

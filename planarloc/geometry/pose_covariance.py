@@ -63,8 +63,9 @@ def covariance_stds(covariance: np.ndarray) -> tuple[float, float]:
     return pos, float(np.degrees(rot))
 
 
-def displacement_covariance(d: np.ndarray, along_std: float, across_std: float, rotation_std: float
-                            ) -> np.ndarray:
+def displacement_covariance(
+    d: np.ndarray, along_std: float, across_std: float, rotation_std: float
+) -> np.ndarray:
     """(6, 6) pose-graph covariance of a motion whose centre displacement ``d`` (3,) has
     ``along_std`` (m) along its direction and ``across_std`` across it, and ``rotation_std``
     (rad) per rotation axis; a zero displacement has ``along_std`` on every axis."""

@@ -40,7 +40,7 @@ def so3_log(R: np.ndarray) -> np.ndarray:
     small = th < 1e-6
     f = np.where(small, 0.5 + th**2 / 12.0, th / (2.0 * np.sin(np.where(small, 1.0, th))))
     out = f[:, None] * v
-    near_pi = th > np.pi - 1e-3          # sin θ → 0: the antisymmetric part loses the axis
+    near_pi = th > np.pi - 1e-3  # sin θ → 0: the antisymmetric part loses the axis
     if near_pi.any():
         out[near_pi] = Rotation.from_matrix(R[near_pi]).as_rotvec()
     return out

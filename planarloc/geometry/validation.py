@@ -46,8 +46,11 @@ def check_positive(name: str, value: object, *, allow_none: bool = False) -> Non
     """
     if allow_none and value is None:
         return
-    if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)) or not (
-            np.isfinite(value) and value > 0):
+    if (
+        isinstance(value, bool)
+        or not isinstance(value, (int, float, np.integer, np.floating))
+        or not (np.isfinite(value) and value > 0)
+    ):
         expected = "None or a finite number > 0" if allow_none else "a finite number > 0"
         raise InputError(f"{name}: expected {expected}, got {value!r}")
 

@@ -107,8 +107,10 @@ def parse_up(value: object) -> np.ndarray:
         >>> parse_up("-y")
         array([ 0., -1.,  0.])
     """
-    hint = ("expected an axis (x, y, z with optional sign, e.g. -y), a vector 'ux,uy,uz' (e.g. 0,0,1) "
-            f"or '{ESTIMATE}'")
+    hint = (
+        "expected an axis (x, y, z with optional sign, e.g. -y), a vector 'ux,uy,uz' (e.g. 0,0,1) "
+        f"or '{ESTIMATE}'"
+    )
     if isinstance(value, str):
         text = value.strip().lower()
         if text.lstrip("+-") in _AXES and len(text) - len(text.lstrip("+-")) <= 1:
@@ -229,9 +231,12 @@ class GravityReport:
     def summary_lines(self) -> list[str]:
         """Lines for ``map info``."""
         g = ", ".join(f"{v:+.4f}" for v in self.g_world)
-        how = {"given": "", "plane": ", normal of the camera centres' plane",
-               "line": ", collinear centres: mean camera y-axis orthogonal to the line",
-               "camera_y": ", mean camera y-axis"}[self.method]
+        how = {
+            "given": "",
+            "plane": ", normal of the camera centres' plane",
+            "line": ", collinear centres: mean camera y-axis orthogonal to the line",
+            "camera_y": ", mean camera y-axis",
+        }[self.method]
         lines = [f"gravity (down, world frame): ({g})  source: {self.source}{how}"]
         if self.detail:
             lines.append(f"  {self.detail}")
@@ -241,8 +246,10 @@ class GravityReport:
             f"roll {self.roll_deg:+.2f}° (spread {self.roll_spread_deg:.2f}°, max dev {self.roll_max_dev_deg:.2f}°)"
         )
         if self.plane_rms is not None:
-            lines.append(f"  plane fit residual: {self.plane_rms:.4f} rms (map units) over extents "
-                         + " x ".join(f"{e:.3g}" for e in self.extent))
+            lines.append(
+                f"  plane fit residual: {self.plane_rms:.4f} rms (map units) over extents "
+                + " x ".join(f"{e:.3g}" for e in self.extent)
+            )
         lines += [f"  warning: {w}" for w in self.warnings]
         return lines
 
@@ -302,14 +309,24 @@ def _estimate(poses: list[Pose]) -> tuple[np.ndarray, str, str, float | None, np
         d = vt[0]
         g = mean_y - (mean_y @ d) * d
         if np.linalg.norm(g) < 1e-6:
-            raise InputError("map poses: the cameras' y-axes are parallel to the line of their centres; "
-                             "gravity cannot be estimated, pass the dataset option up=...")
-        return (g, "line", "camera centres are collinear: the tilt about the line direction is not observable "
-                "and taken from the cameras (assumed zero on average)", None, extent, warnings)
+            raise InputError(
+                "map poses: the cameras' y-axes are parallel to the line of their centres; "
+                "gravity cannot be estimated, pass the dataset option up=..."
+            )
+        return (
+            g,
+            "line",
+            "camera centres are collinear: the tilt about the line direction is not observable "
+            "and taken from the cameras (assumed zero on average)",
+            None,
+            extent,
+            warnings,
+        )
     if s[2] > NOT_PLANAR_RATIO * s[1]:
         warnings.append(
             f"the camera centres do not lie on a plane (residual {s[2]:.3g} vs extent {s[1]:.3g} rms): gravity "
-            "is the mean camera y-axis, which assumes upright cameras on average; pass the dataset option up=...")
+            "is the mean camera y-axis, which assumes upright cameras on average; pass the dataset option up=..."
+        )
         return mean_y, "camera_y", "centres span 3D: mean camera y-axis", None, extent, warnings
     normal = vt[2]
     if normal @ mean_y < 0:
@@ -317,8 +334,9 @@ def _estimate(poses: list[Pose]) -> tuple[np.ndarray, str, str, float | None, np
     return normal, "plane", "", float(s[2]), extent, warnings
 
 
-def _tilt_spread(poses: list[Pose], g: np.ndarray
-                 ) -> tuple[np.ndarray, float, float, float, float, float, float]:
+def _tilt_spread(
+    poses: list[Pose], g: np.ndarray
+) -> tuple[np.ndarray, float, float, float, float, float, float]:
     """The map cameras' mount tilt relative to unit gravity ``g``: their median gravity direction,
     its pitch and roll, and the spread and largest deviation of the pitch and of the roll."""
     g_cams = np.array([p.R @ g for p in poses])
@@ -345,9 +363,11 @@ def _estimate_advice(poses: list[Pose]) -> str:
     tilt = math.degrees(math.acos(float(np.clip(median_g[1] / np.linalg.norm(median_g), -1.0, 1.0))))
     if max(p_spread, r_spread) > TILT_SPREAD_WARN_DEG or tilt > LARGE_TILT_WARN_DEG:
         return ""
-    return (f"; the format's declared gravity is off: gravity estimated from the map's poses makes the tilt "
-            f"consistent (spread pitch {p_spread:.1f}°, roll {r_spread:.1f}°); build the map with the dataset "
-            "option up=estimate (command line: --dataset-option up=estimate)")
+    return (
+        f"; the format's declared gravity is off: gravity estimated from the map's poses makes the tilt "
+        f"consistent (spread pitch {p_spread:.1f}°, roll {r_spread:.1f}°); build the map with the dataset "
+        "option up=estimate (command line: --dataset-option up=estimate)"
+    )
 
 
 def gravity_from_map_poses(
@@ -385,10 +405,19 @@ def gravity_from_map_poses(
         raise InputError(f"declared: expected a WorldDown, got {type(declared).__name__}")
     warnings: list[str]
     if declared is not None and declared.direction is not None:
-        g, method, detail, plane_rms, warnings = np.array(declared.direction), "given", declared.detail, None, []
+        g, method, detail, plane_rms, warnings = (
+            np.array(declared.direction),
+            "given",
+            declared.detail,
+            None,
+            [],
+        )
         centers = np.array([p.center for p in poses])
-        s = (np.linalg.svd(centers - centers.mean(axis=0), compute_uv=False) / math.sqrt(len(poses))
-             if len(poses) >= 2 else np.zeros(3))
+        s = (
+            np.linalg.svd(centers - centers.mean(axis=0), compute_uv=False) / math.sqrt(len(poses))
+            if len(poses) >= 2
+            else np.zeros(3)
+        )
         extent = np.concatenate([s, np.zeros(3 - len(s))])
         source = declared.source
     else:
@@ -403,15 +432,28 @@ def gravity_from_map_poses(
             f"the cameras' tilt relative to gravity is inconsistent (spread pitch {p_spread:.1f}°, roll "
             f"{r_spread:.1f}°): not one rigid mount on level ground; queries without their own gravity get the "
             "median tilt, which may be wrong for them"
-            + (_estimate_advice(poses) if source == "declared" else ""))
+            + (_estimate_advice(poses) if source == "declared" else "")
+        )
     tilt = math.degrees(math.acos(float(np.clip(median_g[1] / np.linalg.norm(median_g), -1.0, 1.0))))
     if method in ("plane", "line") and tilt > LARGE_TILT_WARN_DEG:
         warnings.append(
             f"the cameras are tilted {tilt:.0f}° from the estimated gravity: the centres' {method} is probably not "
-            "level (e.g. a handheld or vertical path); pass the dataset option up=...")
+            "level (e.g. a handheld or vertical path); pass the dataset option up=..."
+        )
     report = GravityReport(
-        g_world=_floats3(g), source=source, method=method, detail=detail,
-        num_cameras=len(poses), pitch_deg=float(pitch0), roll_deg=float(roll0),
-        pitch_spread_deg=p_spread, roll_spread_deg=r_spread, pitch_max_dev_deg=p_max, roll_max_dev_deg=r_max,
-        plane_rms=plane_rms, extent=_floats3(extent), warnings=tuple(warnings))
+        g_world=_floats3(g),
+        source=source,
+        method=method,
+        detail=detail,
+        num_cameras=len(poses),
+        pitch_deg=float(pitch0),
+        roll_deg=float(roll0),
+        pitch_spread_deg=p_spread,
+        roll_spread_deg=r_spread,
+        pitch_max_dev_deg=p_max,
+        roll_max_dev_deg=r_max,
+        plane_rms=plane_rms,
+        extent=_floats3(extent),
+        warnings=tuple(warnings),
+    )
     return g, report

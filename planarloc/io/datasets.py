@@ -68,7 +68,9 @@ SIGNATURES: dict[str, tuple[str, ...]] = {
 def detect_formats(root: Path) -> list[str]:
     """The formats whose signature files are all present in folder ``root`` (maybe none)."""
     root = Path(root)
-    return [f for f, files in SIGNATURES.items() if root.is_dir() and all((root / n).is_file() for n in files)]
+    return [
+        f for f, files in SIGNATURES.items() if root.is_dir() and all((root / n).is_file() for n in files)
+    ]
 
 
 def _check_layout(root: Path, fmt: str) -> None:
@@ -80,7 +82,9 @@ def _check_layout(root: Path, fmt: str) -> None:
     if files is None:
         return
     if not root.is_dir():
-        raise FormatError(root, None, f"is a file; the {fmt} format needs its folder (with {', '.join(files)})")
+        raise FormatError(
+            root, None, f"is a file; the {fmt} format needs its folder (with {', '.join(files)})"
+        )
     missing = [n for n in files if not (root / n).is_file()]
     if not missing:
         return
@@ -154,8 +158,9 @@ def check_option_value(fmt: str, key: str, value: object) -> object:
         raise InputError(f"{key}={value!r}: expected true or false")
     if kind == "int" and (isinstance(value, bool) or not isinstance(value, numbers.Integral)):
         raise InputError(f"{key}={value!r}: expected an integer, e.g. {key}=2")
-    if kind == "float" and (isinstance(value, bool) or not isinstance(value, numbers.Real)
-                            or not math.isfinite(float(value))):
+    if kind == "float" and (
+        isinstance(value, bool) or not isinstance(value, numbers.Real) or not math.isfinite(float(value))
+    ):
         raise InputError(f"{key}={value!r}: expected a finite number, e.g. {key}=0.05")
     return value
 

@@ -57,7 +57,9 @@ def _timestamp_key(path: Path, lineno: int, token: str) -> int | float:
 SAME_POSE_TOL = 1e-9
 
 
-def _read_poses(path: Path, fields: str, key: Callable[[int, str, str], Hashable]) -> dict[Hashable, tuple[int, Pose]]:
+def _read_poses(
+    path: Path, fields: str, key: Callable[[int, str, str], Hashable]
+) -> dict[Hashable, tuple[int, Pose]]:
     """``{key(lineno, field0, field1): (lineno, pose)}`` of a 9-field kapture pose file
     (trajectories, rigs). A key given on several lines with different poses is dropped, with a
     warning per line (module docstring); with the same pose, its first line counts."""
@@ -75,8 +77,13 @@ def _read_poses(path: Path, fields: str, key: Callable[[int, str, str], Hashable
             continue
         for lineno, _ in given:
             others = ", ".join(str(n) for n, _ in given if n != lineno)
-            logger.warning("%s:%d: %s has different poses on line(s) %s; none of them is used",
-                           path, lineno, ", ".join(str(v) for v in k), others)
+            logger.warning(
+                "%s:%d: %s has different poses on line(s) %s; none of them is used",
+                path,
+                lineno,
+                ", ".join(str(v) for v in k),
+                others,
+            )
     return poses
 
 
@@ -110,8 +117,9 @@ def read_kapture(root: Path, *, timestamp_scale: float = 1.0, check_images: bool
             cameras[sensor_id] = camera_from_tokens(sensors_path, lineno, tokens, first_column=4)
         return cameras[sensor_id]
 
-    trajectories = _read_poses(traj_path, POSE_FIELDS,
-                               lambda ln, ts, dev: (_timestamp_key(traj_path, ln, ts), dev))
+    trajectories = _read_poses(
+        traj_path, POSE_FIELDS, lambda ln, ts, dev: (_timestamp_key(traj_path, ln, ts), dev)
+    )
     cam_from_rig = _cam_from_rig(rigs_path)
     out: list[PosedImage] = []
     unposed = 0
@@ -177,13 +185,17 @@ def _cam_from_rig(rigs_path: Path) -> dict[str, tuple[str, Pose]]:
     cam_from_rig: dict[str, tuple[str, Pose]] = {}
     if rigs_path.is_file():
         for (rig, sensor), (_, pose) in _read_poses(
-            rigs_path, "'rig_id, sensor_id, qw, qx, qy, qz, tx, ty, tz'", lambda ln, rig, sensor: (rig, sensor)
+            rigs_path,
+            "'rig_id, sensor_id, qw, qx, qy, qz, tx, ty, tz'",
+            lambda ln, rig, sensor: (rig, sensor),
         ).items():
             cam_from_rig[sensor] = (rig, pose)
     return cam_from_rig
 
 
-def _record_pose(ts: object, device: str, trajectories: dict, cam_from_rig: dict[str, tuple[str, Pose]]) -> Pose | None:
+def _record_pose(
+    ts: object, device: str, trajectories: dict, cam_from_rig: dict[str, tuple[str, Pose]]
+) -> Pose | None:
     """cam_from_world of a record: the device's own trajectory pose, else through its rig; None if unposed."""
     if (ts, device) in trajectories:
         return trajectories[(ts, device)][1]

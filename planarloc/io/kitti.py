@@ -148,10 +148,15 @@ def kitti_frame_times(paths: Sequence[Path]) -> list[float] | None:
     loaded: dict[Path, list[float] | None] = {}
     out = []
     for path in paths:
-        path = Path(os.path.abspath(path))  # not resolved: a linked image belongs to the folder it is named in
+        path = Path(
+            os.path.abspath(path)
+        )  # not resolved: a linked image belongs to the folder it is named in
         folder = path.parent
-        if not (path.stem.isdigit() and path.suffix.lower() in IMAGE_SUFFIXES
-                and (folder.name in IMAGE_DIRS or re.fullmatch(r"image_\d+", folder.name))):
+        if not (
+            path.stem.isdigit()
+            and path.suffix.lower() in IMAGE_SUFFIXES
+            and (folder.name in IMAGE_DIRS or re.fullmatch(r"image_\d+", folder.name))
+        ):
             return None
         times_path = folder.parent / "times.txt"
         if times_path not in loaded:
@@ -163,8 +168,9 @@ def kitti_frame_times(paths: Sequence[Path]) -> list[float] | None:
     return out or None
 
 
-def read_kitti(root: Path, *, image_dir: str | None = None, calib_key: str | None = None,
-               check_images: bool = True) -> list[PosedImage]:
+def read_kitti(
+    root: Path, *, image_dir: str | None = None, calib_key: str | None = None, check_images: bool = True
+) -> list[PosedImage]:
     """Read a KITTI odometry sequence (format in the module docstring).
 
     Args:
@@ -248,8 +254,9 @@ def _calib_key(calib_path: Path, img_dir: Path, calib_key: str | None) -> str | 
     return calib_key
 
 
-def _read_frames(poses_path: Path, img_dir: Path, by_index: dict[int, Path], cam_from_cam0: Pose,
-                 check_images: bool) -> list[tuple[int, Path, Pose]]:
+def _read_frames(
+    poses_path: Path, img_dir: Path, by_index: dict[int, Path], cam_from_cam0: Pose, check_images: bool
+) -> list[tuple[int, Path, Pose]]:
     """(frame number, image file, cam_from_world) per line of ``poses.txt``."""
     frames: list[tuple[int, Path, Pose]] = []
     for k, (lineno, tokens) in enumerate(

@@ -66,7 +66,9 @@ def iter_named_lines(path: Path, fmt: str, line: str, n_fields: int) -> Iterator
             raise FormatError(path, lineno, f"expected {n_fields} fields {line}, found {len(tokens)}")
         name = tokens[0]
         if name in seen:
-            raise FormatError(path, lineno, f"expected unique names, found {name!r} again (line {seen[name]})")
+            raise FormatError(
+                path, lineno, f"expected unique names, found {name!r} again (line {seen[name]})"
+            )
         seen[name] = lineno
         yield lineno, name, tokens[1:]
 
@@ -95,8 +97,9 @@ def parse_floats(
         return numbers(tokens, what)
 
 
-def parse_pose_fields(path: Path, lineno: int, tokens: Sequence[str], layout: str = WXYZ_T,
-                      first_column: int = 1) -> Pose:
+def parse_pose_fields(
+    path: Path, lineno: int, tokens: Sequence[str], layout: str = WXYZ_T, first_column: int = 1
+) -> Pose:
     """A pose from 7 fields of a line in ``layout`` (:mod:`planarloc.io.text`)."""
     with located(path, lineno, first_column):
         return pose_from_numbers(numbers(tokens, "quaternion or translation"), layout)

@@ -38,8 +38,12 @@ FORMAT = "odometry (TUM layout)"
 DEFAULT_MAX_DT = 0.02
 
 
-def read_odometry(path: Path, stamps: Sequence[float] | None = None, max_dt: float = DEFAULT_MAX_DT,
-                  base_from_camera: Pose | None = None) -> list[Pose | None]:
+def read_odometry(
+    path: Path,
+    stamps: Sequence[float] | None = None,
+    max_dt: float = DEFAULT_MAX_DT,
+    base_from_camera: Pose | None = None,
+) -> list[Pose | None]:
     """``cam_from_odom`` per frame from an odometry file (module docstring).
 
     Args:
@@ -61,10 +65,16 @@ def read_odometry(path: Path, stamps: Sequence[float] | None = None, max_dt: flo
     idx = associate_timestamps(np.asarray(stamps, dtype=float), times, max_dt)
     missing = int((idx < 0).sum())
     if missing == len(idx) and len(idx):
-        raise FormatError(path, None, f"no odometry sample within {max_dt} s of any of the {len(idx)} frames; "
-                                      "check that the odometry and the frames use the same clock")
+        raise FormatError(
+            path,
+            None,
+            f"no odometry sample within {max_dt} s of any of the {len(idx)} frames; "
+            "check that the odometry and the frames use the same clock",
+        )
     if missing:
-        logger.warning("%s: %d of %d frames have no odometry sample within %g s", path, missing, len(idx), max_dt)
+        logger.warning(
+            "%s: %d of %d frames have no odometry sample within %g s", path, missing, len(idx), max_dt
+        )
     return [poses[i] if i >= 0 else None for i in idx]
 
 
@@ -80,19 +90,28 @@ def read_image_list(path: Path) -> list[tuple[float | None, Path]]:
         elif len(tokens) == 2:
             stamp, name = float(parse_floats(path, lineno, tokens[:1], "timestamp in seconds")[0]), tokens[1]
         else:
-            raise FormatError(path, lineno, f"expected 'path' or 'timestamp path', found {len(tokens)} fields")
+            raise FormatError(
+                path, lineno, f"expected 'path' or 'timestamp path', found {len(tokens)} fields"
+            )
         image = Path(name) if Path(name).is_absolute() else path.parent / name
         if not image.is_file():
             raise FormatError(path, lineno, f"image {image} does not exist")
         key = os.path.realpath(image)
         if key in seen:
-            raise FormatError(path, lineno, f"image {image} is already listed on line {seen[key]}; a stream shows "
-                                            "each frame once")
+            raise FormatError(
+                path,
+                lineno,
+                f"image {image} is already listed on line {seen[key]}; a stream shows each frame once",
+            )
         seen[key] = lineno
         if stamp is not None:
             if last is not None and stamp <= last[0]:
-                raise FormatError(path, lineno, f"timestamp {stamp:.6f} is not after line {last[1]}'s {last[0]:.6f}; "
-                                                "a stream's frames come in time order")
+                raise FormatError(
+                    path,
+                    lineno,
+                    f"timestamp {stamp:.6f} is not after line {last[1]}'s {last[0]:.6f}; "
+                    "a stream's frames come in time order",
+                )
             last = (stamp, lineno)
         out.append((stamp, image))
     if not out:

@@ -72,5 +72,13 @@ def read_openloris(
     root = Path(root)
     preset = None if (root / "camera.txt").is_file() else D400_COLOR_CAMERA
     cam = resolve_camera(root, FORMAT, camera, preset, "pass camera=Camera(...)")
-    return read_rgbd_sequence(root, LAYOUT, cam, depth_scale=depth_scale, base_from_camera=base_from_camera,
-                              max_dt=max_dt, check_images=check_images, world_down=WORLD_DOWN)
+    return read_rgbd_sequence(
+        root,
+        LAYOUT,
+        cam,
+        depth_scale=depth_scale,
+        base_from_camera=base_from_camera,
+        max_dt=max_dt,
+        check_images=check_images,
+        world_down=WORLD_DOWN,
+    )

@@ -61,7 +61,9 @@ def _same_file(a: Path, b: Path) -> bool:
         return False
 
 
-def input_files(paths: Iterable[Path | str | None], with_map_sidecars: Iterable[Path | str | None] = ()) -> list[Path]:
+def input_files(
+    paths: Iterable[Path | str | None], with_map_sidecars: Iterable[Path | str | None] = ()
+) -> list[Path]:
     """The input list for the checks: the given files, plus ``-wal``/``-shm``/``-journal`` of maps."""
     out = [Path(p) for p in paths if p is not None]
     for m in with_map_sidecars:
@@ -72,8 +74,20 @@ def input_files(paths: Iterable[Path | str | None], with_map_sidecars: Iterable[
 
 
 #: Files the dataset readers read next to the images (an output must never be one of them).
-DATASET_FILES = ("poses.txt", "calib.txt", "times.txt", "rgb.txt", "depth.txt", "groundtruth.txt", "camera.txt",
-                 "color.txt", "cameras.txt", "images.txt", "points3D.txt", "list.txt")
+DATASET_FILES = (
+    "poses.txt",
+    "calib.txt",
+    "times.txt",
+    "rgb.txt",
+    "depth.txt",
+    "groundtruth.txt",
+    "camera.txt",
+    "color.txt",
+    "cameras.txt",
+    "images.txt",
+    "points3D.txt",
+    "list.txt",
+)
 
 
 def dataset_files(root: Path | str) -> list[Path]:
@@ -92,18 +106,24 @@ def _check_parent(path: Path, option: str) -> None:
     if not parent.is_dir():
         raise OutputPathError(f"{option} {path}: {parent} is a file, not a folder; choose another path")
     if not os.access(parent, os.W_OK | os.X_OK):
-        raise OutputPathError(f"{option} {path}: folder {parent} is not writable; choose a writable location "
-                              "or fix its permissions")
+        raise OutputPathError(
+            f"{option} {path}: folder {parent} is not writable; choose a writable location "
+            "or fix its permissions"
+        )
 
 
 def _check_not_input(path: Path, option: str, inputs: Iterable[Path]) -> None:
     for inp in inputs:
         if _same_file(path, inp):
-            raise OutputPathError(f"{option} {path}: is also an input ({inp}); writing it would destroy that "
-                                  "input, choose another output path")
+            raise OutputPathError(
+                f"{option} {path}: is also an input ({inp}); writing it would destroy that "
+                "input, choose another output path"
+            )
 
 
-def check_output_file(path: Path | None, option: str, inputs: Iterable[Path] = (), *, results: bool = False) -> None:
+def check_output_file(
+    path: Path | None, option: str, inputs: Iterable[Path] = (), *, results: bool = False
+) -> None:
     """Refuse an output file that is an input, a folder, or not creatable/writable (no-op for
     None and ``-``); with ``results``, also an existing regular file that is not a results file
     (:func:`is_results_file`), e.g. a map given as ``--out``."""
@@ -114,18 +134,23 @@ def check_output_file(path: Path | None, option: str, inputs: Iterable[Path] = (
     kind = output_kind(path)
     if kind == "through":
         if not os.access(path, os.W_OK):
-            raise OutputPathError(f"{option} {path}: cannot be written; choose another path or fix its permissions")
+            raise OutputPathError(
+                f"{option} {path}: cannot be written; choose another path or fix its permissions"
+            )
         return
     if results and path.is_file() and not is_results_file(path):
-        raise OutputPathError(f"{option} {path}: exists and is not a results file (not lines of "
-                              "'name qw qx qy qz tx ty tz'); it is kept: choose another path, or remove it first")
+        raise OutputPathError(
+            f"{option} {path}: exists and is not a results file (not lines of "
+            "'name qw qx qy qz tx ty tz'); it is kept: choose another path, or remove it first"
+        )
     if path.is_dir():
         raise OutputPathError(f"{option} {path}: is a folder; give a file path, e.g. {path / 'out'}")
     if not results and path.is_file() and has_map_header(path):
         return  # an existing map, maybe read-only: the map builder reuses it or says why not (module docstring)
     if path.exists() and not os.access(path, os.W_OK):
-        raise OutputPathError(f"{option} {path}: the file is not writable; choose another path or fix its "
-                              "permissions")
+        raise OutputPathError(
+            f"{option} {path}: the file is not writable; choose another path or fix its permissions"
+        )
     _check_parent(path, option)
 
 
@@ -153,8 +178,11 @@ def output_kind(path: str | os.PathLike) -> str:
         mode = os.stat(path).st_mode  # follows symlinks
     except (FileNotFoundError, NotADirectoryError):
         return "file"
-    return "through" if stat.S_ISCHR(mode) or stat.S_ISBLK(mode) or stat.S_ISFIFO(mode) or stat.S_ISSOCK(mode) \
+    return (
+        "through"
+        if stat.S_ISCHR(mode) or stat.S_ISBLK(mode) or stat.S_ISFIFO(mode) or stat.S_ISSOCK(mode)
         else "file"
+    )
 
 
 def is_results_file(path: str | os.PathLike) -> bool:
@@ -251,7 +279,7 @@ def _write_temporary(path: str | os.PathLike, raw: bytes) -> tuple[Path, Path]:
         try:
             view = memoryview(raw)
             while view:
-                view = view[os.write(fd, view):]
+                view = view[os.write(fd, view) :]
             os.fsync(fd)
         finally:
             os.close(fd)

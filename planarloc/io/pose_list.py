@@ -115,7 +115,9 @@ def pose_line(name: str, values: Sequence[float]) -> str:
     if not isinstance(name, str) or not name or any(c.isspace() for c in name):
         raise InputError(f"pose list: image names must be non-empty without whitespace, got {name!r}")
     if len(values) != 7:
-        raise InputError(f"pose list: expected 7 numbers 'qw qx qy qz tx ty tz' for {name!r}, got {len(values)}")
+        raise InputError(
+            f"pose list: expected 7 numbers 'qw qx qy qz tx ty tz' for {name!r}, got {len(values)}"
+        )
     return name + " " + " ".join(repr(float(v)) for v in values)
 
 

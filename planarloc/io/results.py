@@ -81,8 +81,13 @@ class ResultsWriter:
     aborts.
     """
 
-    def __init__(self, out: str | Path, records_dir: Path | None = None, tum: Path | None = None,
-                 predicted: str = "mark") -> None:
+    def __init__(
+        self,
+        out: str | Path,
+        records_dir: Path | None = None,
+        tum: Path | None = None,
+        predicted: str = "mark",
+    ) -> None:
         if predicted not in PREDICTED_MODES:
             raise InputError(f"predicted: expected one of {PREDICTED_MODES}, got {predicted!r}")
         self.predicted = predicted
@@ -92,7 +97,7 @@ class ResultsWriter:
         self.lines: list[str] = []
         self.statuses: dict[str, int] = {}
         self.names: list[str] = []
-        self._tum: list[tuple[float, Pose, str | None]] = []   # stamp, pose, the predicted mark
+        self._tum: list[tuple[float, Pose, str | None]] = []  # stamp, pose, the predicted mark
         self._staged = StagedFiles()
         if self.records_dir is not None:
             self.records_dir.mkdir(parents=True, exist_ok=True)
@@ -155,8 +160,11 @@ class ResultsWriter:
         if self.records_dir is None:
             return []
         ours = {record_filename(n) for n in self.names}
-        return sorted(p.name for p in self.records_dir.glob("*.json") if p.name not in ours
-                      and not p.name.startswith("."))
+        return sorted(
+            p.name
+            for p in self.records_dir.glob("*.json")
+            if p.name not in ours and not p.name.startswith(".")
+        )
 
     def close(self) -> None:
         """Replace the results file, the TUM trajectory and the records, together (module docstring).

@@ -82,8 +82,10 @@ def camera_from_camera_info(msg: Any, rectified: bool = False, hint: str = RECTI
     K = K.reshape(3, 3)
     if model in FISHEYE_MODELS:
         if D.size and (D.size < 4 or np.any(D[4:])):
-            raise InputError(f"CameraInfo distortion model {model!r} takes 4 coefficients (D = k1 k2 k3 k4), got "
-                             f"{D.tolist()}; {hint}")
+            raise InputError(
+                f"CameraInfo distortion model {model!r} takes 4 coefficients (D = k1 k2 k3 k4), got "
+                f"{D.tolist()}; {hint}"
+            )
         k = D[:4] if D.size else np.zeros(4)
         return Camera("OPENCV_FISHEYE", w, h, (K[0, 0], K[1, 1], K[0, 2], K[1, 2], *k))
     if not np.any(D):
@@ -92,7 +94,8 @@ def camera_from_camera_info(msg: Any, rectified: bool = False, hint: str = RECTI
         return Camera.from_K(K, w, h, D[:4])
     raise InputError(
         f"CameraInfo distortion model {model!r} with D = {D.tolist()} is not supported (plumb_bob or "
-        f"rational_polynomial with k3..k6 = 0, equidistant/fisheye with 4 coefficients); {hint}")
+        f"rational_polynomial with k3..k6 = 0, equidistant/fisheye with 4 coefficients); {hint}"
+    )
 
 
 def camera_info_distortion(camera: Camera) -> tuple[str, np.ndarray]:
@@ -110,10 +113,15 @@ def camera_info_fields(camera: Camera) -> dict[str, Any]:
     :func:`camera_from_camera_info` reads them back as the same camera."""
     (fx, fy), (cx, cy) = (float(v) for v in camera.focal), (float(v) for v in camera.principal_point)
     model, D = camera_info_distortion(camera)
-    return {"width": int(camera.width), "height": int(camera.height), "distortion_model": model,
-            "d": [float(v) for v in D], "k": [fx, 0.0, cx, 0.0, fy, cy, 0.0, 0.0, 1.0],
-            "r": [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0],
-            "p": [fx, 0.0, cx, 0.0, 0.0, fy, cy, 0.0, 0.0, 0.0, 1.0, 0.0]}
+    return {
+        "width": int(camera.width),
+        "height": int(camera.height),
+        "distortion_model": model,
+        "d": [float(v) for v in D],
+        "k": [fx, 0.0, cx, 0.0, fy, cy, 0.0, 0.0, 1.0],
+        "r": [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0],
+        "p": [fx, 0.0, cx, 0.0, 0.0, fy, cy, 0.0, 0.0, 0.0, 1.0, 0.0],
+    }
 
 
 def frame_name(name: object) -> str:

@@ -143,9 +143,13 @@ def bag_paths(root: Path) -> list[Path]:
         if bags:
             return bags
     if not root.exists():
-        raise FormatError(root, None, "no such file or folder; expected a ROS 1 .bag file or a ROS 2 bag folder")
+        raise FormatError(
+            root, None, "no such file or folder; expected a ROS 1 .bag file or a ROS 2 bag folder"
+        )
     raise FormatError(
-        root, None, "expected a ROS 1 .bag file, a folder of .bag files, or a ROS 2 bag folder with metadata.yaml"
+        root,
+        None,
+        "expected a ROS 1 .bag file, a folder of .bag files, or a ROS 2 bag folder with metadata.yaml",
     )
 
 
@@ -160,14 +164,19 @@ def default_image_dir(paths: Sequence[Path], image_topic: str) -> Path:
     return cache_dir("bags") / f"{Path(paths[0]).stem}-{h.hexdigest()[:12]}"
 
 
-def _pick_topic(topics: dict[str, str], wanted: str | None, types: Sequence[str], option: str, root: Path,
-                required: bool) -> str | None:
+def _pick_topic(
+    topics: dict[str, str], wanted: str | None, types: Sequence[str], option: str, root: Path, required: bool
+) -> str | None:
     if wanted is not None:
         if wanted not in topics:
-            raise FormatError(root, None, f"{option}={wanted!r}: no such topic; topics: {_topic_list(topics)}")
+            raise FormatError(
+                root, None, f"{option}={wanted!r}: no such topic; topics: {_topic_list(topics)}"
+            )
         if topics[wanted] not in types:
             raise FormatError(
-                root, None, f"{option}={wanted!r} has type {topics[wanted]}, expected one of {', '.join(types)}"
+                root,
+                None,
+                f"{option}={wanted!r} has type {topics[wanted]}, expected one of {', '.join(types)}",
             )
         return wanted
     candidates = sorted(t for t, ty in topics.items() if ty in types)
@@ -190,7 +199,9 @@ def _shared_stamps(images: Sequence[BagImage], topic: str, action: str) -> set[i
     for i in sorted(shared):
         im = images[i]
         where = at_stamp(topic, int(round(im.timestamp * 1e9)))
-        logger.warning("%s (%s): %d images share this header stamp; %s", where, im.name, count[im.timestamp], action)
+        logger.warning(
+            "%s (%s): %d images share this header stamp; %s", where, im.name, count[im.timestamp], action
+        )
     return shared
 
 
@@ -237,11 +248,15 @@ def _read_bag(
         cam = parse_camera_option(camera) if camera is not None else None
         info_topic = None
         if cam is None:
-            info_topic = _pick_topic(topics, camera_info_topic, (CAMERA_INFO,), "camera_info_topic", root, False)
+            info_topic = _pick_topic(
+                topics, camera_info_topic, (CAMERA_INFO,), "camera_info_topic", root, False
+            )
             if info_topic is None:
                 raise FormatError(
-                    root, None, "cannot determine the intrinsics: the bag has no sensor_msgs/CameraInfo topic; pass "
-                    "the option camera='PINHOLE W H fx fy cx cy' (localize: --camera)"
+                    root,
+                    None,
+                    "cannot determine the intrinsics: the bag has no sensor_msgs/CameraInfo topic; pass "
+                    "the option camera='PINHOLE W H fx fy cx cy' (localize: --camera)",
                 )
         if pose_topic is not None:
             _pick_topic(topics, pose_topic, POSE_TYPES, "pose_topic", root, True)
@@ -249,8 +264,12 @@ def _read_bag(
         if with_tf:
             wanted |= {t for t, ty in topics.items() if ty == TF_MESSAGE and t in ("/tf", "/tf_static")}
         out_dir = Path(image_dir) if image_dir is not None else default_image_dir(paths, img_topic)
-        collector = _BagCollector(root, _BagTopics(img_topic, info_topic, pose_topic), cam, out_dir, int(every))
-        for conn, bag_ns, raw in reader.messages(connections=[c for c in reader.connections if c.topic in wanted]):
+        collector = _BagCollector(
+            root, _BagTopics(img_topic, info_topic, pose_topic), cam, out_dir, int(every)
+        )
+        for conn, bag_ns, raw in reader.messages(
+            connections=[c for c in reader.connections if c.topic in wanted]
+        ):
             collector.add(reader, conn, bag_ns, raw)
     finally:
         reader.close()
@@ -294,8 +313,11 @@ class _BagCollector:
         try:
             msg = reader.deserialize(raw, conn.msgtype)
         except Exception as exc:  # noqa: BLE001 - rosbags raises many kinds for a damaged message
-            raise FormatError(self.root, None, f"{where} (bag time): cannot decode the {conn.msgtype} message "
-                                               f"({type(exc).__name__}: {exc})") from None
+            raise FormatError(
+                self.root,
+                None,
+                f"{where} (bag time): cannot decode the {conn.msgtype} message ({type(exc).__name__}: {exc})",
+            ) from None
         ns = _stamp_ns(msg, bag_ns)
         try:
             self._take(conn, msg, ns, bag_ns, index)
@@ -309,8 +331,9 @@ class _BagCollector:
                 name += "_"
             self.names.add(name)
             path = _store_image(self.out_dir, name, msg, conn.msgtype)
-            self.pending.append((str(path.relative_to(self.out_dir)), path, index, ns,
-                                 frame_name(msg.header.frame_id)))
+            self.pending.append(
+                (str(path.relative_to(self.out_dir)), path, index, ns, frame_name(msg.header.frame_id))
+            )
         elif conn.topic == self.topics.camera_info and self.cam is None:
             self.cam = camera_from_camera_info(msg, rectified_topic(self.topics.image), _CAMERA_HINT)
         elif conn.topic == self.topics.pose:
@@ -326,21 +349,33 @@ class _BagCollector:
         """What was read, after checking there are images, a camera, and that it fits the first image."""
         root, img_topic, cam = self.root, self.topics.image, self.cam
         if cam is None:
-            raise FormatError(root, None, f"{self.topics.camera_info}: no CameraInfo message in the bag; pass the "
-                                          "option camera=...")
-        images = [BagImage(name, path, cam, index, ns * 1e-9, frame) for name, path, index, ns, frame in self.pending]
+            raise FormatError(
+                root,
+                None,
+                f"{self.topics.camera_info}: no CameraInfo message in the bag; pass the option camera=...",
+            )
+        images = [
+            BagImage(name, path, cam, index, ns * 1e-9, frame)
+            for name, path, index, ns, frame in self.pending
+        ]
         if not images:
             raise FormatError(root, None, f"expected messages on {img_topic}, found none")
         try:  # the size from the header: nothing is decoded here (the pixel cap of every image path)
             _fmt, width, height = declared_size(Path(images[0].path).read_bytes())
             check_image_pixels(width, height, f"{images[0].path}")
         except (InputError, OSError) as exc:
-            raise FormatError(root, None, f"{at_stamp(img_topic, self.pending[0][3])}: cannot decode the first image "
-                                          f"({images[0].path}): {exc}") from None
+            raise FormatError(
+                root,
+                None,
+                f"{at_stamp(img_topic, self.pending[0][3])}: cannot decode the first image "
+                f"({images[0].path}): {exc}",
+            ) from None
         if (width, height) != (cam.width, cam.height):
             raise FormatError(
-                root, None, f"{img_topic}: images are {width}x{height} but the camera is "
-                f"{cam.width}x{cam.height}; check camera_info_topic / camera"
+                root,
+                None,
+                f"{img_topic}: images are {width}x{height} but the camera is "
+                f"{cam.width}x{cam.height}; check camera_info_topic / camera",
             )
         return _BagContent(img_topic, images, self.pose_times, self.poses, self.pose_frame, self.tf)
 
@@ -351,14 +386,18 @@ def _store_image(out_dir: Path, name: str, msg: Any, msgtype: str) -> Path:
         fmt = str(msg.format).lower()
         encoding = fmt.split(";")[0].strip()
         if "compresseddepth" in fmt or _is_depth_encoding(encoding):
-            raise InputError(f"compressed depth images ({msg.format!r}) are not camera images; choose the camera's "
-                             "image topic with image_topic=TOPIC")
+            raise InputError(
+                f"compressed depth images ({msg.format!r}) are not camera images; choose the camera's "
+                "image topic with image_topic=TOPIC"
+            )
         data = bytes(msg.data)
         try:
             kind, w, h = image_size_from_header(data)
         except ImageFormatError as exc:
-            raise InputError(f"the CompressedImage data ({msg.format!r}, {len(data)} bytes) is not a readable JPEG or "
-                             f"PNG: {exc}") from None
+            raise InputError(
+                f"the CompressedImage data ({msg.format!r}, {len(data)} bytes) is not a readable JPEG or "
+                f"PNG: {exc}"
+            ) from None
         check_image_pixels(w, h, f"the CompressedImage data ({msg.format!r}, {len(data)} bytes)")
         path = out_dir / (name + (".png" if kind == "png" else ".jpg"))
         if not path.is_file():
@@ -390,10 +429,21 @@ def read_rosbag_images(
     Returns:
         One :class:`BagImage` per selected message of ``image_topic``, in message order.
     """
-    content = _read_bag(Path(root), image_topic=image_topic, camera_info_topic=camera_info_topic, camera=camera,
-                        pose_topic=None, with_tf=False, every=every, image_dir=image_dir)
-    _shared_stamps(content.images, content.image_topic, "kept under distinct names (their stamps do not tell them "
-                                                         "apart in time)")
+    content = _read_bag(
+        Path(root),
+        image_topic=image_topic,
+        camera_info_topic=camera_info_topic,
+        camera=camera,
+        pose_topic=None,
+        with_tf=False,
+        every=every,
+        image_dir=image_dir,
+    )
+    _shared_stamps(
+        content.images,
+        content.image_topic,
+        "kept under distinct names (their stamps do not tell them apart in time)",
+    )
     return content.images
 
 
@@ -442,11 +492,23 @@ def read_rosbag(
     """
     root = Path(root)
     max_dt = _check_pose_options(pose_topic, tf_parent, tf_child, max_dt)
-    base_from_camera = parse_transform(base_to_camera, "base_to_camera") if base_to_camera is not None else None
-    content = _read_bag(root, image_topic=image_topic, camera_info_topic=camera_info_topic, camera=camera,
-                        pose_topic=pose_topic, with_tf=True, every=every, image_dir=image_dir)
+    base_from_camera = (
+        parse_transform(base_to_camera, "base_to_camera") if base_to_camera is not None else None
+    )
+    content = _read_bag(
+        root,
+        image_topic=image_topic,
+        camera_info_topic=camera_info_topic,
+        camera=camera,
+        pose_topic=pose_topic,
+        with_tf=True,
+        every=every,
+        image_dir=image_dir,
+    )
     images = content.images
-    ambiguous = _shared_stamps(images, content.image_topic, "skipped: a pose cannot be paired with one of them")
+    ambiguous = _shared_stamps(
+        images, content.image_topic, "skipped: a pose cannot be paired with one of them"
+    )
     times = np.array([im.timestamp for im in images])
     if pose_topic is not None:
         if not content.poses:
@@ -456,29 +518,49 @@ def read_rosbag(
         world_from_posed = [poses[i] if i >= 0 else None for i in idx]
         posed_frame = content.pose_frame
     else:
-        world_from_posed = content.tf.poses_at(frame_name(tf_parent), frame_name(tf_child), times, max_dt, root)
+        world_from_posed = content.tf.poses_at(
+            frame_name(tf_parent), frame_name(tf_child), times, max_dt, root
+        )
         posed_frame = frame_name(tf_child)
     extrinsic = base_from_camera
     if extrinsic is None:
         extrinsic = _static_extrinsic(root, content, posed_frame, pose_topic)
-    out = [PosedImage(name=im.name, path=im.path, cam_from_world=(w_from_p if extrinsic is None else
-                                                                   w_from_p @ extrinsic).inverse(),
-                      camera=im.camera, index=im.index, timestamp=im.timestamp)
-           for k, (im, w_from_p) in enumerate(zip(images, world_from_posed)) if w_from_p is not None and k not in ambiguous]
+    out = [
+        PosedImage(
+            name=im.name,
+            path=im.path,
+            cam_from_world=(w_from_p if extrinsic is None else w_from_p @ extrinsic).inverse(),
+            camera=im.camera,
+            index=im.index,
+            timestamp=im.timestamp,
+        )
+        for k, (im, w_from_p) in enumerate(zip(images, world_from_posed))
+        if w_from_p is not None and k not in ambiguous
+    ]
     skipped = sum(w is None for k, w in enumerate(world_from_posed) if k not in ambiguous)
     source = pose_topic or f"tf {tf_parent} -> {tf_child}"
     if not out:
         raise FormatError(
-            root, None, f"expected images with a pose ({source}) within max_dt = {max_dt:g} s, found none "
-            f"({len(images)} images); check the topics/frames or raise max_dt"
+            root,
+            None,
+            f"expected images with a pose ({source}) within max_dt = {max_dt:g} s, found none "
+            f"({len(images)} images); check the topics/frames or raise max_dt",
         )
     if skipped:
-        logger.warning("%s: %d of %d images have no pose (%s) within max_dt = %g s and are skipped",
-                       root, skipped, len(images), source, max_dt)
+        logger.warning(
+            "%s: %d of %d images have no pose (%s) within max_dt = %g s and are skipped",
+            root,
+            skipped,
+            len(images),
+            source,
+            max_dt,
+        )
     return out
 
 
-def _check_pose_options(pose_topic: str | None, tf_parent: str | None, tf_child: str | None, max_dt: float) -> float:
+def _check_pose_options(
+    pose_topic: str | None, tf_parent: str | None, tf_child: str | None, max_dt: float
+) -> float:
     """Either a pose topic or a full tf chain; returns ``max_dt`` as a float >= 0."""
     if (pose_topic is None) == (tf_parent is None and tf_child is None):
         raise InputError(
@@ -495,7 +577,9 @@ def _check_pose_options(pose_topic: str | None, tf_parent: str | None, tf_child:
     return max_dt
 
 
-def _static_extrinsic(root: Path, content: _BagContent, posed_frame: str | None, pose_topic: str | None) -> Pose | None:
+def _static_extrinsic(
+    root: Path, content: _BagContent, posed_frame: str | None, pose_topic: str | None
+) -> Pose | None:
     """``posed_from_camera`` from ``/tf_static`` when the posed frame and the image frame differ
     (None, with a warning, when it does not link them or the posed frame is unnamed)."""
     images = content.images
@@ -507,13 +591,18 @@ def _static_extrinsic(root: Path, content: _BagContent, posed_frame: str | None,
                 logger.warning(
                     "%s: the poses are of frame %r, the images of frame %r, and /tf_static does not link them; "
                     "taking the poses as the camera's (pass base_to_camera='x y z qx qy qz qw' if not)",
-                    root, posed_frame, image_frame,
+                    root,
+                    posed_frame,
+                    image_frame,
                 )
             return extrinsic
     elif images[0].frame_id in content.tf.static:
         logger.warning(
             "%s: %s does not name its posed frame, and /tf_static places the image frame %r below %r; taking "
             "the poses as the camera's (if they are of the base, pass base_to_camera='x y z qx qy qz qw')",
-            root, pose_topic, images[0].frame_id, content.tf.static[images[0].frame_id][0],
+            root,
+            pose_topic,
+            images[0].frame_id,
+            content.tf.static[images[0].frame_id][0],
         )
     return None

@@ -101,16 +101,22 @@ def decode_image(msg: Any) -> np.ndarray:
     """A ``sensor_msgs/Image`` as (H, W) gray or (H, W, 3) BGR array (uint8, or uint16 for mono16)."""
     enc = str(msg.encoding).lower()
     if _is_depth_encoding(enc):
-        raise InputError(f"encoding {msg.encoding!r} is a depth (or other non-camera) image, not a camera image; "
-                         "choose the camera's image topic with image_topic=TOPIC")
+        raise InputError(
+            f"encoding {msg.encoding!r} is a depth (or other non-camera) image, not a camera image; "
+            "choose the camera's image topic with image_topic=TOPIC"
+        )
     if enc not in _ENCODINGS:
-        raise InputError(f"image encoding {msg.encoding!r} is not supported (supported: {', '.join(_ENCODINGS)})")
+        raise InputError(
+            f"image encoding {msg.encoding!r} is not supported (supported: {', '.join(_ENCODINGS)})"
+        )
     channels, dtype, conversion = _ENCODINGS[enc]
     h, w, step = int(msg.height), int(msg.width), int(msg.step)
     item = np.dtype(dtype).itemsize
     data = np.frombuffer(bytes(msg.data), dtype=np.uint8)
     if h < 1 or w < 1 or data.size < h * step or step < w * channels * item:
-        raise InputError(f"image message: {data.size} bytes do not hold {h} rows of step {step} ({w}x{h} {enc})")
+        raise InputError(
+            f"image message: {data.size} bytes do not hold {h} rows of step {step} ({w}x{h} {enc})"
+        )
     rows = np.ascontiguousarray(data[: h * step].reshape(h, step)[:, : w * channels * item])
     order: Literal[">", "<"] = ">" if int(getattr(msg, "is_bigendian", 0)) else "<"
     img = rows.view(np.dtype(dtype).newbyteorder(order)).astype(dtype).reshape(h, w, channels)

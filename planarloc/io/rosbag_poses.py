@@ -23,7 +23,9 @@ def _same_pose(a: Pose, b: Pose, tol: float = 1e-9) -> bool:
     return bool(np.allclose(a.matrix, b.matrix, atol=tol))
 
 
-def distinct_samples(times: Sequence[float], poses: Sequence[Pose], what: str) -> tuple[list[float], list[Pose]]:
+def distinct_samples(
+    times: Sequence[float], poses: Sequence[Pose], what: str
+) -> tuple[list[float], list[Pose]]:
     """The pose samples of one source (a pose topic, a ``/tf`` edge) without ambiguous stamps:
     samples sharing a stamp count once if their poses agree, else all of them are dropped with a
     warning per message (a frame at that time cannot be given the right one)."""
@@ -36,8 +38,11 @@ def distinct_samples(times: Sequence[float], poses: Sequence[Pose], what: str) -
             keep.append(idx[0])
             continue
         for i in idx:
-            logger.warning("%s: %d pose samples share this stamp with different poses; none of them is used",
-                           at_stamp(what, int(round(t * 1e9))), len(idx))
+            logger.warning(
+                "%s: %d pose samples share this stamp with different poses; none of them is used",
+                at_stamp(what, int(round(t * 1e9))),
+                len(idx),
+            )
     keep.sort()
     return [float(times[i]) for i in keep], [poses[i] for i in keep]
 
@@ -54,8 +59,12 @@ class TfBuffer:
             parent, child, pose = transform_edge(tf)
             if static:
                 if child in self.static and not _same_pose(self.static[child][1], pose):
-                    logger.warning("/tf_static: %s -> %s is published twice with different transforms; the later "
-                                   "is used", parent, child)
+                    logger.warning(
+                        "/tf_static: %s -> %s is published twice with different transforms; the later "
+                        "is used",
+                        parent,
+                        child,
+                    )
                 self.static[child] = (parent, pose)
             else:
                 entry = self.dynamic.setdefault(child, (parent, [], []))
@@ -96,14 +105,17 @@ class TfBuffer:
         names |= {p for p, _ in self.static.values()} | {e[0] for e in self.dynamic.values()}
         return sorted(names)
 
-    def poses_at(self, parent: str, child: str, times: np.ndarray, max_dt: float,
-                 root: Path) -> list[Pose | None]:
+    def poses_at(
+        self, parent: str, child: str, times: np.ndarray, max_dt: float, root: Path
+    ) -> list[Pose | None]:
         """``parent_from_child`` at each time (None where a dynamic edge has no sample within max_dt)."""
         chain = self.chain(parent, child)
         if chain is None:
             raise FormatError(
-                root, None, f"tf_parent={parent!r} is not an ancestor of tf_child={child!r} in /tf and /tf_static "
-                f"(frames: {', '.join(self.frames()) or 'none'})"
+                root,
+                None,
+                f"tf_parent={parent!r} is not an ancestor of tf_child={child!r} in /tf and /tf_static "
+                f"(frames: {', '.join(self.frames()) or 'none'})",
             )
         out: list[Pose | None] = [Pose.identity() for _ in times]
         for frame in chain:

@@ -28,8 +28,12 @@ from planarloc.io.rosbag_messages import (
 from planarloc.map.posed_image import PosedImage
 
 STORAGES = ("rosbag1", "sqlite3", "mcap")
-POSE_MESSAGES = {"PoseStamped": POSE_STAMPED, "PoseWithCovarianceStamped": POSE_WITH_COVARIANCE,
-                 "Odometry": ODOMETRY, "tf": TF_MESSAGE}
+POSE_MESSAGES = {
+    "PoseStamped": POSE_STAMPED,
+    "PoseWithCovarianceStamped": POSE_WITH_COVARIANCE,
+    "Odometry": ODOMETRY,
+    "tf": TF_MESSAGE,
+}
 
 
 @dataclass(frozen=True)
@@ -53,7 +57,9 @@ class BagLayout:
         return self.base_frame if self.base_from_camera is not None else self.camera_frame
 
 
-def write_rosbag(out: Path, images: Sequence[PosedImage], layout: BagLayout | None = None, **overrides: Any) -> Path:
+def write_rosbag(
+    out: Path, images: Sequence[PosedImage], layout: BagLayout | None = None, **overrides: Any
+) -> Path:
     """Write posed images as a ROS bag (the inverse of :func:`read_rosbag`).
 
     Args:
@@ -86,7 +92,9 @@ def write_rosbag(out: Path, images: Sequence[PosedImage], layout: BagLayout | No
     if layout.storage not in STORAGES:
         raise InputError(f"storage: expected one of {', '.join(STORAGES)}, got {layout.storage!r}")
     if layout.pose_message not in POSE_MESSAGES:
-        raise InputError(f"pose_message: expected one of {', '.join(POSE_MESSAGES)}, got {layout.pose_message!r}")
+        raise InputError(
+            f"pose_message: expected one of {', '.join(POSE_MESSAGES)}, got {layout.pose_message!r}"
+        )
     out = Path(out)
     bag = _BagWriter(layout)
     writer, bag.serialize = _open_writer(out, layout.storage, bag.ts)
@@ -94,8 +102,11 @@ def write_rosbag(out: Path, images: Sequence[PosedImage], layout: BagLayout | No
         bag.writer = writer
         if layout.base_from_camera is not None:
             ns0 = _stamp_of(images[0]) if images else 0
-            msg = bag.T[TF_MESSAGE](transforms=[bag.transform_msg(ns0, layout.base_frame, layout.camera_frame,
-                                                                  layout.base_from_camera)])
+            msg = bag.T[TF_MESSAGE](
+                transforms=[
+                    bag.transform_msg(ns0, layout.base_frame, layout.camera_frame, layout.base_from_camera)
+                ]
+            )
             bag.write("/tf_static", TF_MESSAGE, ns0, msg)
         for seq, im in enumerate(images):
             ns = _stamp_of(im)
@@ -139,27 +150,38 @@ class _BagWriter:
         q, t, T = p.quat_wxyz, p.t, self.T
         return T["geometry_msgs/msg/Pose"](
             position=T["geometry_msgs/msg/Point"](x=float(t[0]), y=float(t[1]), z=float(t[2])),
-            orientation=T["geometry_msgs/msg/Quaternion"](x=float(q[1]), y=float(q[2]), z=float(q[3]), w=float(q[0])))
+            orientation=T["geometry_msgs/msg/Quaternion"](
+                x=float(q[1]), y=float(q[2]), z=float(q[3]), w=float(q[0])
+            ),
+        )
 
     def transform_msg(self, ns: int, parent: str, child: str, p: Pose) -> Any:
         q, t, T = p.quat_wxyz, p.t, self.T
         return T["geometry_msgs/msg/TransformStamped"](
-            header=self.header(ns, parent), child_frame_id=child,
+            header=self.header(ns, parent),
+            child_frame_id=child,
             transform=T["geometry_msgs/msg/Transform"](
                 translation=T["geometry_msgs/msg/Vector3"](x=float(t[0]), y=float(t[1]), z=float(t[2])),
-                rotation=T["geometry_msgs/msg/Quaternion"](x=float(q[1]), y=float(q[2]), z=float(q[3]),
-                                                           w=float(q[0]))))
+                rotation=T["geometry_msgs/msg/Quaternion"](
+                    x=float(q[1]), y=float(q[2]), z=float(q[3]), w=float(q[0])
+                ),
+            ),
+        )
 
     def write_pose(self, im: PosedImage, ns: int, seq: int) -> None:
         """The image's pose (camera's or base's) as the layout's pose message, or on ``/tf``."""
         lay, T = self.layout, self.T
         world_from_cam = im.cam_from_world.inverse()
-        world_from_posed = (world_from_cam if lay.base_from_camera is None
-                            else world_from_cam @ lay.base_from_camera.inverse())
+        world_from_posed = (
+            world_from_cam
+            if lay.base_from_camera is None
+            else world_from_cam @ lay.base_from_camera.inverse()
+        )
         pns = ns + int(round(lay.pose_delay * 1e9))
         if lay.pose_message == "tf":
-            msg = T[TF_MESSAGE](transforms=[self.transform_msg(pns, lay.world_frame, lay.posed_frame,
-                                                               world_from_posed)])
+            msg = T[TF_MESSAGE](
+                transforms=[self.transform_msg(pns, lay.world_frame, lay.posed_frame, world_from_posed)]
+            )
             self.write("/tf", TF_MESSAGE, pns, msg)
             return
         mt = POSE_MESSAGES[lay.pose_message]
@@ -174,7 +196,8 @@ class _BagWriter:
             else:
                 zero = T["geometry_msgs/msg/Vector3"](x=0.0, y=0.0, z=0.0)
                 twist = T["geometry_msgs/msg/TwistWithCovariance"](
-                    twist=T["geometry_msgs/msg/Twist"](linear=zero, angular=zero), covariance=np.zeros(36))
+                    twist=T["geometry_msgs/msg/Twist"](linear=zero, angular=zero), covariance=np.zeros(36)
+                )
                 msg = T[mt](header=header, child_frame_id=lay.posed_frame, pose=cov, twist=twist)
         self.write(lay.pose_topic, mt, pns, msg)
 
@@ -196,8 +219,15 @@ class _BagWriter:
         enc = "mono8" if img.ndim == 2 else "bgr8"
         if img.dtype != np.uint8:
             raise InputError(f"{im.path}: only 8-bit images can be written as sensor_msgs/Image")
-        msg = T[IMAGE](header=header, height=img.shape[0], width=img.shape[1], encoding=enc, is_bigendian=0,
-                       step=img.shape[1] * (1 if img.ndim == 2 else 3), data=np.ascontiguousarray(img).reshape(-1))
+        msg = T[IMAGE](
+            header=header,
+            height=img.shape[0],
+            width=img.shape[1],
+            encoding=enc,
+            is_bigendian=0,
+            step=img.shape[1] * (1 if img.ndim == 2 else 3),
+            data=np.ascontiguousarray(img).reshape(-1),
+        )
         self.write(lay.image_topic, IMAGE, ns, msg)
 
 
@@ -211,8 +241,16 @@ def _camera_info_msg(T: Any, header: Any, cam: Camera, ros1: bool) -> Any:
     info = camera_info_fields(cam)
     roi = T["sensor_msgs/msg/RegionOfInterest"](x_offset=0, y_offset=0, height=0, width=0, do_rectify=False)
     arrays = {(k.upper() if ros1 else k): np.asarray(info[k], dtype=float) for k in ("d", "k", "r", "p")}
-    return T[CAMERA_INFO](header=header, height=info["height"], width=info["width"],
-                          distortion_model=info["distortion_model"], binning_x=0, binning_y=0, roi=roi, **arrays)
+    return T[CAMERA_INFO](
+        header=header,
+        height=info["height"],
+        width=info["width"],
+        distortion_model=info["distortion_model"],
+        binning_x=0,
+        binning_y=0,
+        roi=roi,
+        **arrays,
+    )
 
 
 def _open_writer(out: Path, storage: str, ts: Any) -> tuple[Any, Any]:

@@ -57,7 +57,9 @@ def read_sessions(roots: Sequence[str | Path], fmt: str, **options: object) -> l
 def sessions_map_path(roots: Sequence[str | Path], fmt: str, options: dict, feature_name: str) -> Path:
     """Where `evaluate --queries` caches the map of these sessions (temp folder, keyed by
     the resolved roots, the format, its options and the feature settings)."""
-    key = "|".join([*(str(Path(r).resolve()) for r in roots), fmt, repr(sorted(options.items())), feature_name])
+    key = "|".join(
+        [*(str(Path(r).resolve()) for r in roots), fmt, repr(sorted(options.items())), feature_name]
+    )
     digest = hashlib.sha1(key.encode()).hexdigest()[:12]
     name = "+".join(session_labels(roots))[:80]
     return cache_dir("maps") / f"{name}-{digest}.db"

@@ -52,6 +52,7 @@ def loads_strict(text: str | bytes) -> Any:
     Raises:
         ValueError: the text is not strict JSON.
     """
+
     def reject(constant: str) -> Any:
         raise ValueError(f"not strict JSON: {constant}")
 

@@ -47,11 +47,24 @@ QUAT_NORM_TOL = 5e-3
 WXYZ_T = "qw qx qy qz tx ty tz"
 T_XYZW = "tx ty tz qx qy qz qw"
 #: Every camera model name COLMAP knows, so that an unsupported one is reported as such.
-COLMAP_MODELS = frozenset({
-    "SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV", "OPENCV_FISHEYE", "FULL_OPENCV", "FOV",
-    "SIMPLE_RADIAL_FISHEYE", "RADIAL_FISHEYE", "THIN_PRISM_FISHEYE", "RAD_TAN_THIN_PRISM_FISHEYE",
-    "SIMPLE_DIVISION", "DIVISION",
-})
+COLMAP_MODELS = frozenset(
+    {
+        "SIMPLE_PINHOLE",
+        "PINHOLE",
+        "SIMPLE_RADIAL",
+        "RADIAL",
+        "OPENCV",
+        "OPENCV_FISHEYE",
+        "FULL_OPENCV",
+        "FOV",
+        "SIMPLE_RADIAL_FISHEYE",
+        "RADIAL_FISHEYE",
+        "THIN_PRISM_FISHEYE",
+        "RAD_TAN_THIN_PRISM_FISHEYE",
+        "SIMPLE_DIVISION",
+        "DIVISION",
+    }
+)
 CAMERA_SYNTAX = "'MODEL WIDTH HEIGHT PARAMS...' (COLMAP syntax), e.g. 'PINHOLE 640 480 500 500 320 240'"
 _COLUMN = "\x00column\x00"
 
@@ -90,17 +103,23 @@ def numbers(tokens: Sequence[str], what: str, first: int = 0) -> np.ndarray:
         try:
             out[i] = float(tok)
         except ValueError:
-            raise TextError(f"expected a number in column {_COLUMN} ({what}), found {shown}", first + i) from None
+            raise TextError(
+                f"expected a number in column {_COLUMN} ({what}), found {shown}", first + i
+            ) from None
         if not math.isfinite(out[i]):
-            raise TextError(f"expected a finite number in column {_COLUMN} ({what}), found {shown}", first + i)
+            raise TextError(
+                f"expected a finite number in column {_COLUMN} ({what}), found {shown}", first + i
+            )
     return out
 
 
 def _model_hint(name: str) -> str:
     supported = ", ".join(m.value for m in CameraModel)
     if name.upper() in COLMAP_MODELS:
-        return (f"camera model {name} is not supported (supported: {supported}); undistort the images "
-                "(e.g. COLMAP image_undistorter) or convert the camera to a supported model")
+        return (
+            f"camera model {name} is not supported (supported: {supported}); undistort the images "
+            "(e.g. COLMAP image_undistorter) or convert the camera to a supported model"
+        )
     return f"expected a camera model name ({supported}) in column {_COLUMN}, found {name!r}"
 
 
@@ -134,8 +153,14 @@ def parse_camera(text: str | Sequence[str]) -> Camera:
 
 def camera_text(camera: Camera) -> str:
     """The text of a camera, ``MODEL W H PARAMS...`` (parameters in shortest round-trip form)."""
-    return " ".join([CameraModel(camera.model).value, str(camera.width), str(camera.height),
-                     *(repr(float(p)) for p in camera.params)])
+    return " ".join(
+        [
+            CameraModel(camera.model).value,
+            str(camera.width),
+            str(camera.height),
+            *(repr(float(p)) for p in camera.params),
+        ]
+    )
 
 
 def parse_gravity(text: str | Sequence[str] | np.ndarray) -> np.ndarray:
@@ -149,16 +174,20 @@ def parse_gravity(text: str | Sequence[str] | np.ndarray) -> np.ndarray:
     else:
         g = numbers(fields(text), "gravity component")
     if g.shape != (3,):
-        raise TextError("expected three numbers 'gx gy gz' (gravity pointing down in the camera frame, not all "
-                        f"zero), e.g. '0 1 0' for an upright camera, found {g.size}")
+        raise TextError(
+            "expected three numbers 'gx gy gz' (gravity pointing down in the camera frame, not all "
+            f"zero), e.g. '0 1 0' for an upright camera, found {g.size}"
+        )
     big = float(np.max(np.abs(g)))
     if big > 1.0:  # |g|² overflows beyond ~1e154: scale first (a direction is wanted)
         g = g / big
     try:
         return unit_gravity("gravity", g)
     except InputError:
-        raise TextError(f"expected a non-zero gravity direction 'gx gy gz' (pointing down in the camera frame), "
-                        f"found {g.tolist()}") from None
+        raise TextError(
+            f"expected a non-zero gravity direction 'gx gy gz' (pointing down in the camera frame), "
+            f"found {g.tolist()}"
+        ) from None
 
 
 def pose_from_numbers(values: Sequence[float] | np.ndarray, layout: str = WXYZ_T) -> Pose:
@@ -173,8 +202,10 @@ def pose_from_numbers(values: Sequence[float] | np.ndarray, layout: str = WXYZ_T
     q, t = (v[:4], v[4:]) if layout == WXYZ_T else (v[[6, 3, 4, 5]], v[:3])
     norm = float(np.linalg.norm(q))
     if abs(norm - 1.0) > QUAT_NORM_TOL:
-        raise TextError(f"expected a unit quaternion (norm 1 +- {QUAT_NORM_TOL:g}), found norm {norm:.6g}; "
-                        "check the column order of the file")
+        raise TextError(
+            f"expected a unit quaternion (norm 1 +- {QUAT_NORM_TOL:g}), found norm {norm:.6g}; "
+            "check the column order of the file"
+        )
     return Pose.from_quat_wxyz(q / norm, t)
 
 

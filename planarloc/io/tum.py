@@ -124,8 +124,9 @@ def read_timestamped_list(path: Path, fmt: str, purpose: str) -> list[_Entry]:
 SAME_POSE_TOL = 1e-9
 
 
-def distinct_stamps(path: Path, times: list[float], poses: list[Pose], linenos: list[int]
-                    ) -> tuple[list[float], list[Pose], list[int]]:
+def distinct_stamps(
+    path: Path, times: list[float], poses: list[Pose], linenos: list[int]
+) -> tuple[list[float], list[Pose], list[int]]:
     """The samples of a pose file without ambiguous stamps: samples sharing a stamp count once
     if their poses agree, else all of them are dropped with a warning per line naming the file,
     the line and the other lines (as :func:`planarloc.io.rosbag.distinct_samples` does for bags)."""
@@ -134,19 +135,27 @@ def distinct_stamps(path: Path, times: list[float], poses: list[Pose], linenos: 
         by_stamp.setdefault(float(t), []).append(i)
     keep = []
     for t, idx in by_stamp.items():
-        if len(idx) == 1 or all(np.allclose(poses[idx[0]].matrix, poses[i].matrix, atol=SAME_POSE_TOL)
-                                for i in idx[1:]):
+        if len(idx) == 1 or all(
+            np.allclose(poses[idx[0]].matrix, poses[i].matrix, atol=SAME_POSE_TOL) for i in idx[1:]
+        ):
             keep.append(idx[0])
             continue
         for i in idx:
             others = ", ".join(str(linenos[j]) for j in idx if j != i)
-            logger.warning("%s:%d: timestamp %.9g has different poses on line(s) %s; none of them is used",
-                           path, linenos[i], t, others)
+            logger.warning(
+                "%s:%d: timestamp %.9g has different poses on line(s) %s; none of them is used",
+                path,
+                linenos[i],
+                t,
+                others,
+            )
     keep.sort()
     return [times[i] for i in keep], [poses[i] for i in keep], [linenos[i] for i in keep]
 
 
-def read_tum_trajectory(path: Path, fmt: str = FORMAT, *, distinct: bool = False) -> tuple[np.ndarray, list[Pose]]:
+def read_tum_trajectory(
+    path: Path, fmt: str = FORMAT, *, distinct: bool = False
+) -> tuple[np.ndarray, list[Pose]]:
     """A TUM trajectory file 'timestamp tx ty tz qx qy qz qw' (``to_world`` poses).
 
     Args:
@@ -173,7 +182,9 @@ def read_tum_trajectory(path: Path, fmt: str = FORMAT, *, distinct: bool = False
     if distinct:
         times, poses, _ = distinct_stamps(path, times, poses, linenos)
         if not poses:
-            raise FormatError(path, None, "every timestamp has different poses on several lines; no pose is usable")
+            raise FormatError(
+                path, None, "every timestamp has different poses on several lines; no pose is usable"
+            )
     return np.array(times), poses
 
 
@@ -232,9 +243,17 @@ class RgbdLayout:
 TUM_LAYOUT = RgbdLayout(FORMAT, "rgb.txt", "depth.txt")
 
 
-def read_rgbd_sequence(root: Path, layout: RgbdLayout, camera: Camera, *, depth_scale: float,
-                       base_from_camera: Pose | None, max_dt: float, check_images: bool,
-                       world_down: WorldDown | None = None) -> list[PosedImage]:
+def read_rgbd_sequence(
+    root: Path,
+    layout: RgbdLayout,
+    camera: Camera,
+    *,
+    depth_scale: float,
+    base_from_camera: Pose | None,
+    max_dt: float,
+    check_images: bool,
+    world_down: WorldDown | None = None,
+) -> list[PosedImage]:
     """The shared reader of timestamped RGB(-D) sequences with a TUM-style trajectory.
 
     Args:
@@ -386,8 +405,16 @@ def read_tum(
         "pass camera=Camera(...) or tum_camera='fr1'|'fr2'|'fr3', or write camera.txt "
         "('PINHOLE width height fx fy cx cy')",
     )
-    return read_rgbd_sequence(root, TUM_LAYOUT, cam, depth_scale=depth_scale, base_from_camera=base_from_camera,
-                              max_dt=max_dt, check_images=check_images, world_down=generated_world_down(root))
+    return read_rgbd_sequence(
+        root,
+        TUM_LAYOUT,
+        cam,
+        depth_scale=depth_scale,
+        base_from_camera=base_from_camera,
+        max_dt=max_dt,
+        check_images=check_images,
+        world_down=generated_world_down(root),
+    )
 
 
 def tum_lines(timestamps: object, world_from_cam: list[Pose]) -> list[str]:
@@ -415,8 +442,10 @@ def tum_trajectory_text(path: Path | str, timestamps: object, world_from_cam: li
     """
     ts = np.asarray(timestamps, dtype=float).reshape(-1)
     if len(ts) > 1 and not np.all(np.diff(ts) > 0):
-        raise InputError(f"{path}: TUM timestamps must be strictly increasing (evo requires it); two localized "
-                         "queries share a timestamp or come out of order")
+        raise InputError(
+            f"{path}: TUM timestamps must be strictly increasing (evo requires it); two localized "
+            "queries share a timestamp or come out of order"
+        )
     return "".join(["# timestamp tx ty tz qx qy qz qw (camera-to-world)\n", *tum_lines(ts, world_from_cam)])
 
 

@@ -100,7 +100,7 @@ class FixAttempt:
     covariance: np.ndarray | None
     global_retrieval: bool
     mahalanobis_sq: float = float("nan")
-    pairs: list[PairMatches] | None = None   # the matches it was estimated from (``estimate.references``)
+    pairs: list[PairMatches] | None = None  # the matches it was estimated from (``estimate.references``)
 
     @property
     def pose(self) -> Pose:
@@ -110,8 +110,11 @@ class FixAttempt:
 
     def report(self) -> dict:
         """The entry of ``SequenceEstimate.rejected``."""
-        return {"center": [float(v) for v in self.pose.center], "mahalanobis_sq": self.mahalanobis_sq,
-                "retrieval": "global" if self.global_retrieval else "local"}
+        return {
+            "center": [float(v) for v in self.pose.center],
+            "mahalanobis_sq": self.mahalanobis_sq,
+            "retrieval": "global" if self.global_retrieval else "local",
+        }
 
 
 @dataclass
@@ -123,7 +126,7 @@ class FixOutcome:
     accepted: tuple[Pose, np.ndarray] | None = None
     rejected: list[FixAttempt] = field(default_factory=list)
     last: PoseEstimate | None = None
-    last_pairs: list[PairMatches] | None = None   # the matches ``last`` was estimated from
+    last_pairs: list[PairMatches] | None = None  # the matches ``last`` was estimated from
     status: str = "none"
     mahalanobis_sq: float = float("nan")
     global_retrieval: bool = False
@@ -177,8 +180,14 @@ class FixResult:
         frames = history.since(self.points.stamp)
         if len(frames) < 2:
             return self
-        return FixResult(self.stamp, self.outcome, track_through(frames, self.points, options), self.seconds,
-                         self.generation, self.cpu_s)
+        return FixResult(
+            self.stamp,
+            self.outcome,
+            track_through(frames, self.points, options),
+            self.seconds,
+            self.generation,
+            self.cpu_s,
+        )
 
 
 class FixSolver:
@@ -200,8 +209,11 @@ class FixSolver:
         self._map_rotation_std = np.radians(localizer.ransac_options.map_rotation_std_deg)
         limit = config.fix_resize_max
         own = localizer.features.resize_max
-        self.features = localizer.features if limit is None or (own is not None and own <= limit) else replace(
-            localizer.features, resize_max=limit)
+        self.features = (
+            localizer.features
+            if limit is None or (own is not None and own <= limit)
+            else replace(localizer.features, resize_max=limit)
+        )
 
     def references_near(self, pose: Pose, position_std_m: float) -> list[str] | None:
         """The ``local_top_n`` map images nearest to ``pose`` (distance plus 1 m per 30° of
@@ -235,8 +247,9 @@ class FixSolver:
             cov[:3, :3] += scale**2 * graph_covariance(est.pose, est.covariance)[:3, :3]
         return cov
 
-    def _fix(self, features: Features, camera: Camera, references: list[str] | None,
-             gravity: np.ndarray | None) -> tuple[PoseEstimate, list[PairMatches]]:
+    def _fix(
+        self, features: Features, camera: Camera, references: list[str] | None, gravity: np.ndarray | None
+    ) -> tuple[PoseEstimate, list[PairMatches]]:
         """Single-frame fix from ``references``; with None, global retrieval followed by a
         second estimate from the map images nearest to the first (nearer references, better
         conditioned geometry: on KITTI the 2 nearest map images give 2-5x smaller errors than
@@ -245,7 +258,9 @@ class FixSolver:
         the localizer only when that fails. Returns the estimate and the matches it came from."""
         localize = self.localizer.localize_pairs
         if references is None and self.localizer.config.top_n > GLOBAL_TOP_N:
-            est, pairs = localize(features, camera, self.localizer.retrieve(features, GLOBAL_TOP_N), gravity=gravity)
+            est, pairs = localize(
+                features, camera, self.localizer.retrieve(features, GLOBAL_TOP_N), gravity=gravity
+            )
             if not est.success or est.pose is None:
                 est, pairs = localize(features, camera, None, gravity=gravity)
         else:
@@ -258,14 +273,23 @@ class FixSolver:
             return est, pairs
         again, again_pairs = localize(features, camera, near, gravity=gravity)
         cov2 = self.fix_covariance(again, camera) if again.success and again.pose is not None else None
-        if cov2 is not None and np.linalg.norm(again.pose.center - est.pose.center) <= self.config.refix_radius_m:
+        if (
+            cov2 is not None
+            and np.linalg.norm(again.pose.center - est.pose.center) <= self.config.refix_radius_m
+        ):
             return again, again_pairs
         return est, pairs
 
-    def attempts(self, features: Features, camera: Camera, gravity: np.ndarray | None, job: FixJob) -> FixOutcome:
+    def attempts(
+        self, features: Features, camera: Camera, gravity: np.ndarray | None, job: FixJob
+    ) -> FixOutcome:
         """A fix from the map images near a usable prediction, else (or when it is rejected or
         fails) from global retrieval; the first that passes the gate is accepted."""
-        near = self.references_near(job.prediction[0], job.position_std_m) if job.usable and job.prediction else None
+        near = (
+            self.references_near(job.prediction[0], job.position_std_m)
+            if job.usable and job.prediction
+            else None
+        )
         out = FixOutcome()
         for references in ([near] if near is not None else []) + [None]:  # None: global retrieval
             out.global_retrieval |= references is None
@@ -286,8 +310,14 @@ class FixSolver:
             out.rejected.append(FixAttempt(est, cov, references is None, out.mahalanobis_sq, pairs))
         return out
 
-    def world_points(self, features: Features, camera: Camera, est: PoseEstimate, stamp: float,
-                     pairs: list[PairMatches] | None = None) -> TrackedPoints | None:
+    def world_points(
+        self,
+        features: Features,
+        camera: Camera,
+        est: PoseEstimate,
+        stamp: float,
+        pairs: list[PairMatches] | None = None,
+    ) -> TrackedPoints | None:
         """The fix's inlier query keypoints and their world points: the map's 3D points (local
         structure, depth) where it has them, else triangulated between the query (at the fix)
         and the map image (at least ``MIN_POINT_ANGLE_DEG`` apart); one per keypoint. None if
@@ -306,9 +336,12 @@ class FixSolver:
             m = np.asarray(mask, bool)
             if len(m) != len(pair.query_points) or not m.any():
                 continue
-            X, angle = triangulate_points((est.pose.R, est.pose.t), (pair.ref_pose.R, pair.ref_pose.t),
-                                          camera.bearings_from_img(pair.query_points[m]),
-                                          pair.ref_camera.bearings_from_img(pair.ref_points[m]))
+            X, angle = triangulate_points(
+                (est.pose.R, est.pose.t),
+                (pair.ref_pose.R, pair.ref_pose.t),
+                camera.bearings_from_img(pair.query_points[m]),
+                pair.ref_camera.bearings_from_img(pair.ref_points[m]),
+            )
             X[~(angle >= MIN_POINT_ANGLE_DEG)] = np.nan
             if pair.ref_points3d is not None:
                 known = np.isfinite(pair.ref_points3d[m]).all(axis=1)
@@ -323,7 +356,9 @@ class FixSolver:
         ids_all = np.concatenate(ids)
         _, first = np.unique(ids_all, return_index=True)
         keep = np.sort(first) if (ids_all >= 0).all() else np.arange(len(ids_all))
-        return TrackedPoints(stamp, np.concatenate(pixels)[keep].astype(np.float32), np.concatenate(points)[keep])
+        return TrackedPoints(
+            stamp, np.concatenate(pixels)[keep].astype(np.float32), np.concatenate(points)[keep]
+        )
 
     def solve(self, job: FixJob) -> FixResult:
         """Run one job: features, the attempts, and the world points of an accepted fix."""
@@ -333,11 +368,12 @@ class FixSolver:
         points = None
         if outcome.accepted is not None and outcome.last is not None:
             points = self.world_points(features, job.camera, outcome.last, job.stamp, outcome.last_pairs)
-        elif outcome.rejected and outcome.rejected[-1].global_retrieval:   # a kidnap may restart from it
+        elif outcome.rejected and outcome.rejected[-1].global_retrieval:  # a kidnap may restart from it
             last = outcome.rejected[-1]
             points = self.world_points(features, job.camera, last.estimate, job.stamp, last.pairs)
-        return FixResult(job.stamp, outcome, points, time.perf_counter() - t0, job.generation,
-                         time.thread_time() - cpu0)
+        return FixResult(
+            job.stamp, outcome, points, time.perf_counter() - t0, job.generation, time.thread_time() - cpu0
+        )
 
 
 class ImmediateFixes:
@@ -392,8 +428,9 @@ class BackgroundFixes:
     (also done at interpreter exit for workers left open).
     """
 
-    def __init__(self, localizer: Localizer, config: SequenceConfig, history: FrameHistory,
-                 options: TrackerOptions) -> None:
+    def __init__(
+        self, localizer: Localizer, config: SequenceConfig, history: FrameHistory, options: TrackerOptions
+    ) -> None:
         self._path = localizer.db.path
         self._localizer_config = localizer.config
         self._config = config
@@ -401,7 +438,7 @@ class BackgroundFixes:
         self._jobs: queue.Queue[FixJob | None] = queue.Queue()
         self._results: queue.Queue[FixResult | BaseException] = queue.Queue()
         self._in_flight = 0
-        self._warm = threading.Event()   # set once the worker's localizer has warmed up (or failed to open)
+        self._warm = threading.Event()  # set once the worker's localizer has warmed up (or failed to open)
         self._thread = threading.Thread(target=self._run, name="planarloc-fixes", daemon=True)
         self._thread.start()
         _WORKERS.add(self)

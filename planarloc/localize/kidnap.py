@@ -73,8 +73,13 @@ class KidnapMonitor:
     def suspected(self) -> bool:
         return self.candidate is not None
 
-    def consider(self, pose: Pose, covariance: np.ndarray, stamp: float,
-                 carry: Callable[[KidnapCandidate], tuple[Pose, np.ndarray] | None]) -> None:
+    def consider(
+        self,
+        pose: Pose,
+        covariance: np.ndarray,
+        stamp: float,
+        carry: Callable[[KidnapCandidate], tuple[Pose, np.ndarray] | None],
+    ) -> None:
         """A rejected global fix of frame ``stamp``: it confirms the candidate when the candidate,
         carried to its frame (``carry``; None when the candidate's frame is not before it),
         agrees with it; else it becomes the candidate."""

@@ -144,8 +144,9 @@ class PairMatchCache:
         entry = self._entries.get(key)
         if entry is None:
             n = len(a.features)
-            entry = _Directed(np.full(n, _UNKNOWN, dtype=np.int64), np.full((n, 3), np.nan), np.zeros(n),
-                              np.full(n, np.nan))
+            entry = _Directed(
+                np.full(n, _UNKNOWN, dtype=np.int64), np.full((n, 3), np.nan), np.zeros(n), np.full(n, np.nan)
+            )
             self._entries[key] = entry
             if len(self._entries) > self.max_pairs:
                 self._entries.popitem(last=False)
@@ -163,8 +164,15 @@ def _normalized(camera: Camera, pixels: np.ndarray) -> np.ndarray:
     return camera.bearings_from_img(np.asarray(pixels, dtype=float))
 
 
-def _match_and_triangulate(a: MapView, b: MapView, rows: np.ndarray, entry: _Directed, ratio: float,
-                           max_error_px: float, min_angle_deg: float) -> None:
+def _match_and_triangulate(
+    a: MapView,
+    b: MapView,
+    rows: np.ndarray,
+    entry: _Directed,
+    ratio: float,
+    max_error_px: float,
+    min_angle_deg: float,
+) -> None:
     """Fill ``entry`` for keypoints ``rows`` of a: match into b, keep those consistent with the
     two known poses (epipolar, in front, reprojection within ``max_error_px``, angle)."""
     fa = a.features
@@ -179,7 +187,9 @@ def _match_and_triangulate(a: MapView, b: MapView, rows: np.ndarray, entry: _Dir
     ok = np.isfinite(xa).all(axis=1) & np.isfinite(xb).all(axis=1)
     Ra, ta = a.cam_from_world.R, a.cam_from_world.t
     Rb, tb = b.cam_from_world.R, b.cam_from_world.t
-    X, angle = triangulate_points((Ra, ta), (Rb, tb), np.where(ok[:, None], xa, 1.0), np.where(ok[:, None], xb, 1.0))
+    X, angle = triangulate_points(
+        (Ra, ta), (Rb, tb), np.where(ok[:, None], xa, 1.0), np.where(ok[:, None], xb, 1.0)
+    )
     err = np.zeros(len(X))
     for R, t, x, cam in ((Ra, ta, xa, a.camera), (Rb, tb, xb, b.camera)):
         Xc = X @ R.T + t
@@ -199,10 +209,16 @@ def _match_and_triangulate(a: MapView, b: MapView, rows: np.ndarray, entry: _Dir
     entry.angle[ia] = angle[ok]
 
 
-def view_points(views: Sequence[MapView], keypoints: Sequence[np.ndarray], cache: PairMatchCache, *,
-                ratio: float = DEFAULT_RATIO, max_error_px: float = 2.0,
-                min_angle_deg: float = DEFAULT_MIN_ANGLE_DEG,
-                keypoint_std_px: float = KEYPOINT_STD_PX) -> list[ViewPoints]:
+def view_points(
+    views: Sequence[MapView],
+    keypoints: Sequence[np.ndarray],
+    cache: PairMatchCache,
+    *,
+    ratio: float = DEFAULT_RATIO,
+    max_error_px: float = 2.0,
+    min_angle_deg: float = DEFAULT_MIN_ANGLE_DEG,
+    keypoint_std_px: float = KEYPOINT_STD_PX,
+) -> list[ViewPoints]:
     """3D points of the given keypoints of each view, triangulated with the other views.
 
     Args:
@@ -243,12 +259,21 @@ def view_points(views: Sequence[MapView], keypoints: Sequence[np.ndarray], cache
         if has.any():
             others = [views[int(j)] for j in partner[has]]
             cov[has], jac[has] = triangulation_uncertainty(
-                X[has], (view.cam_from_world.R, view.cam_from_world.t),
-                (np.array([o.cam_from_world.R for o in others]), np.array([o.cam_from_world.t for o in others])),
-                view.camera.focal, np.array([o.camera.focal for o in others], dtype=float), keypoint_std_px)
+                X[has],
+                (view.cam_from_world.R, view.cam_from_world.t),
+                (
+                    np.array([o.cam_from_world.R for o in others]),
+                    np.array([o.cam_from_world.t for o in others]),
+                ),
+                view.camera.focal,
+                np.array([o.camera.focal for o in others], dtype=float),
+                keypoint_std_px,
+            )
         bad = ~(np.isfinite(cov).all(axis=(1, 2)) & np.isfinite(jac).all(axis=(1, 2, 3)))
         X[bad], angle[bad], partner[bad], cov[bad], jac[bad] = np.nan, 0.0, -1, np.nan, np.nan
         pooled = np.concatenate(residuals) if residuals else np.zeros(0)
         pooled = pooled[np.isfinite(pooled)]
-        out.append(ViewPoints(X, cov, angle, partner, jac, float(np.median(pooled)) if len(pooled) else float("nan")))
+        out.append(
+            ViewPoints(X, cov, angle, partner, jac, float(np.median(pooled)) if len(pooled) else float("nan"))
+        )
     return out

@@ -98,10 +98,17 @@ class LocalizerConfig:
             raise InputError(f"top_n: need at least 2 reference images to fix the scale, got {self.top_n}")
 
 
-def localizer_config(*, method: Method | str | None = None, structure: Structure | str | None = None,
-                     seed: int | None = None, top_n: int | None = None, iterations: int | None = None,
-                     threshold_px: float | None = None, max_position_std_m: float | None = None,
-                     use_depth: bool | None = None) -> LocalizerConfig:
+def localizer_config(
+    *,
+    method: Method | str | None = None,
+    structure: Structure | str | None = None,
+    seed: int | None = None,
+    top_n: int | None = None,
+    iterations: int | None = None,
+    threshold_px: float | None = None,
+    max_position_std_m: float | None = None,
+    use_depth: bool | None = None,
+) -> LocalizerConfig:
     """A :class:`LocalizerConfig` from the settings a front door lets its user choose.
 
     Every argument left None keeps the default of :class:`LocalizerConfig` /
@@ -112,8 +119,12 @@ def localizer_config(*, method: Method | str | None = None, structure: Structure
         InputError: a value the options refuse (unknown method or structure, out of range).
     """
     ransac: dict[str, object] = {}
-    for key, value in (("structure", structure), ("seed", seed), ("threshold_px", threshold_px),
-                       ("max_position_std_m", max_position_std_m)):
+    for key, value in (
+        ("structure", structure),
+        ("seed", seed),
+        ("threshold_px", threshold_px),
+        ("max_position_std_m", max_position_std_m),
+    ):
         if value is not None:
             ransac[key] = value
     if iterations is not None:
@@ -125,14 +136,20 @@ def localizer_config(*, method: Method | str | None = None, structure: Structure
     return LocalizerConfig(**config)  # type: ignore[arg-type]
 
 
-def _partners_as_pairs(pairs: list[PairMatches], names: Sequence[str], references: Sequence[str]) -> list[PairMatches]:
+def _partners_as_pairs(
+    pairs: list[PairMatches], names: Sequence[str], references: Sequence[str]
+) -> list[PairMatches]:
     """The local-structure partners of ``pairs`` (indices into ``references``) as the estimator
     takes them: an index into ``pairs`` (``names``), or ``len(pairs) + j`` for reference ``j``
     whose pair was dropped (its pose errors still move the points it triangulated)."""
     slot = {n: i for i, n in enumerate(names)}
     lookup = np.array([slot.get(n, len(names) + j) for j, n in enumerate(references)] + [-1], dtype=np.int64)
-    return [p if p.ref_points3d_partner is None else replace(p, ref_points3d_partner=lookup[p.ref_points3d_partner])
-            for p in pairs]
+    return [
+        p
+        if p.ref_points3d_partner is None
+        else replace(p, ref_points3d_partner=lookup[p.ref_points3d_partner])
+        for p in pairs
+    ]
 
 
 class Localizer:
@@ -158,7 +175,9 @@ class Localizer:
         blob = self.db.get_blob(VOCABULARY_BLOB)
         ids, descs = self.db.get_global_descriptors()
         if blob is None or len(ids) == 0:
-            raise InputError(f"{self.db.path}: the map has no retrieval index; re-run `planarloc map build` on it")
+            raise InputError(
+                f"{self.db.path}: the map has no retrieval index; re-run `planarloc map build` on it"
+            )
         self.vocabulary = VladVocabulary.from_bytes(blob)
         self.index_ids = ids
         self.index = GlobalIndex(descs, basis=self.db.global_basis())
@@ -193,11 +212,18 @@ class Localizer:
         if ransac.structure != Structure.TRACKS:
             # 2D-2D constraints alone: the measurement may raise the assumed prior, never lower it
             # (a small prior does not make wrong-but-consistent matches precise; README, "map prior").
-            return replace(ransac, map_rotation_std_deg=max(ransac.map_rotation_std_deg, accuracy.rotation_std_deg),
-                           map_position_std_m=max(ransac.map_position_std_m, accuracy.position_std_m))
-        return replace(ransac, map_rotation_std_deg=accuracy.rotation_std_deg,
-                       map_position_std_m=accuracy.position_std_m, map_prior_measured=True,
-                       assumed_map_prior=(ransac.map_rotation_std_deg, ransac.map_position_std_m))
+            return replace(
+                ransac,
+                map_rotation_std_deg=max(ransac.map_rotation_std_deg, accuracy.rotation_std_deg),
+                map_position_std_m=max(ransac.map_position_std_m, accuracy.position_std_m),
+            )
+        return replace(
+            ransac,
+            map_rotation_std_deg=accuracy.rotation_std_deg,
+            map_position_std_m=accuracy.position_std_m,
+            map_prior_measured=True,
+            assumed_map_prior=(ransac.map_rotation_std_deg, ransac.map_position_std_m),
+        )
 
     @property
     def keypoint_std_px(self) -> float:
@@ -205,7 +231,11 @@ class Localizer:
         the map's measurement when ``config.map_prior`` is ``"measured"``, else
         :data:`~planarloc.robust.structure.KEYPOINT_STD_PX`."""
         accuracy = self.pose_accuracy
-        if self.config.map_prior != "measured" or accuracy is None or not np.isfinite(accuracy.keypoint_std_px):
+        if (
+            self.config.map_prior != "measured"
+            or accuracy is None
+            or not np.isfinite(accuracy.keypoint_std_px)
+        ):
             return KEYPOINT_STD_PX
         return max(float(accuracy.keypoint_std_px), MIN_KEYPOINT_STD_PX)
 
@@ -219,9 +249,16 @@ class Localizer:
         """The map's distinct cameras (a query without a camera takes the only one)."""
         return {p.camera for p in self._posed.values()}
 
-    def prepare(self, image: ImageSource, camera: Camera | None = None, *, name: str = "query",
-                gravity: object | None = None, references: Sequence[str] | None = None,
-                pairs: Mapping[str, Sequence[str]] | None = None) -> Query:
+    def prepare(
+        self,
+        image: ImageSource,
+        camera: Camera | None = None,
+        *,
+        name: str = "query",
+        gravity: object | None = None,
+        references: Sequence[str] | None = None,
+        pairs: Mapping[str, Sequence[str]] | None = None,
+    ) -> Query:
         """Check and prepare one query against this map (:func:`planarloc.localize.query.prepare_query`).
 
         Args:
@@ -233,15 +270,26 @@ class Localizer:
             pairs: hloc pairs ``{query name: [map names]}``: the first ``config.top_n`` of
                 this query's are its references.
         """
-        return prepare_query(image, camera, map_cameras=self.map_cameras, map_names=self._posed.keys(), name=name,
-                             gravity=gravity, references=references, pairs=pairs, top_n=self.config.top_n)
+        return prepare_query(
+            image,
+            camera,
+            map_cameras=self.map_cameras,
+            map_names=self._posed.keys(),
+            name=name,
+            gravity=gravity,
+            references=references,
+            pairs=pairs,
+            top_n=self.config.top_n,
+        )
 
     # ---- steps ---------------------------------------------------------------------------
     def retrieve(self, features: Features, top_n: int | None = None) -> list[str]:
         """Names of the ``top_n`` most similar map images (VLAD, cosine similarity)."""
         if len(features) == 0:
             return []
-        idx, _ = self.index.search(vlad_descriptor(self.vocabulary, features.descriptors), top_n or self.config.top_n)
+        idx, _ = self.index.search(
+            vlad_descriptor(self.vocabulary, features.descriptors), top_n or self.config.top_n
+        )
         return [self._by_id[int(self.index_ids[i])] for i in idx]
 
     def _depth(self, name: str) -> np.ndarray | None:
@@ -272,8 +320,9 @@ class Localizer:
         pose = posed.cam_from_world
         return (X_cam - pose.t) @ pose.R
 
-    def pairs_for(self, features: Features, references: Sequence[str],
-                  camera: Camera | None = None) -> tuple[list[PairMatches], list[str]]:
+    def pairs_for(
+        self, features: Features, references: Sequence[str], camera: Camera | None = None
+    ) -> tuple[list[PairMatches], list[str]]:
         """Match the query to each reference and package the matches for the estimator.
 
         ``camera`` (the query's) lets keypoints outside its distortion model's range be dropped.
@@ -284,8 +333,9 @@ class Localizer:
         pairs, names, _ = self._pairs_and_map_residual(features, references, camera)
         return pairs, names
 
-    def _pairs_and_map_residual(self, features: Features, references: Sequence[str], camera: Camera | None
-                                ) -> tuple[list[PairMatches], list[str], tuple[float, float]]:
+    def _pairs_and_map_residual(
+        self, features: Features, references: Sequence[str], camera: Camera | None
+    ) -> tuple[list[PairMatches], list[str], tuple[float, float]]:
         """:meth:`pairs_for`, and how much the map poses behind the query's 2D-3D constraints
         disagree with their images: ``(px, focal px)``, the largest disagreement that at least
         :data:`MAP_DISAGREEMENT_SHARE` of the constraints share (per constraint, the larger
@@ -319,31 +369,56 @@ class Localizer:
                     focals.append(float(np.mean(posed.camera.focal)))
                 if X is not None:  # measured depth first
                     take = np.isnan(X[:, 0])
-                    X_local, cov = np.where(take[:, None], X_local, X), np.where(take[:, None, None], cov, 0.0)
+                    X_local, cov = (
+                        np.where(take[:, None], X_local, X),
+                        np.where(take[:, None, None], cov, 0.0),
+                    )
                     partner = np.where(take, partner, -1)
                 X = X_local
-            pairs.append(PairMatches(posed.cam_from_world, posed.camera,
-                                     np.asarray(features.keypoints[m[:, 0]], dtype=float), ref_pts,
-                                     query_indices=m[:, 0], ref_points3d=X,
-                                     ref_gravity=posed.cam_from_world.R @ self._g_world, ref_points3d_cov=cov,
-                                     ref_points3d_partner=partner, ref_points3d_pose_jac=jac))
+            pairs.append(
+                PairMatches(
+                    posed.cam_from_world,
+                    posed.camera,
+                    np.asarray(features.keypoints[m[:, 0]], dtype=float),
+                    ref_pts,
+                    query_indices=m[:, 0],
+                    ref_points3d=X,
+                    ref_gravity=posed.cam_from_world.R @ self._g_world,
+                    ref_points3d_cov=cov,
+                    ref_points3d_partner=partner,
+                    ref_points3d_pose_jac=jac,
+                )
+            )
             names.append(name)
         residuals = np.concatenate(point_residuals) if point_residuals else np.zeros(0)
         residuals = residuals[np.isfinite(residuals)]
-        disagreement = ((float(np.quantile(residuals, 1.0 - MAP_DISAGREEMENT_SHARE)), float(np.mean(focals)))
-                        if len(residuals) else (np.nan, np.nan))
+        disagreement = (
+            (float(np.quantile(residuals, 1.0 - MAP_DISAGREEMENT_SHARE)), float(np.mean(focals)))
+            if len(residuals)
+            else (np.nan, np.nan)
+        )
         return _partners_as_pairs(pairs, names, references), names, disagreement
 
-    def _local_structure(self, references: Sequence[str], refs: Sequence[Features],
-                         matches: Sequence[np.ndarray]) -> list:
+    def _local_structure(
+        self, references: Sequence[str], refs: Sequence[Features], matches: Sequence[np.ndarray]
+    ) -> list:
         """Per reference, 3D points of its matched keypoints triangulated with the other
         references (:mod:`planarloc.localize.local_structure`), one per query keypoint (the
         widest angle over its matches); ``None`` per reference without structure mode."""
         if self.config.ransac.structure != Structure.TRACKS or len(references) < 2:
             return [None] * len(references)
-        views = [MapView(n, f, self._posed[n].cam_from_world, self._posed[n].camera) for n, f in zip(references, refs)]
-        points = view_points(views, [m[:, 1] for m in matches], self.pair_cache, ratio=self.config.ratio,
-                             max_error_px=self.config.ransac.threshold_px, keypoint_std_px=self.keypoint_std_px)
+        views = [
+            MapView(n, f, self._posed[n].cam_from_world, self._posed[n].camera)
+            for n, f in zip(references, refs)
+        ]
+        points = view_points(
+            views,
+            [m[:, 1] for m in matches],
+            self.pair_cache,
+            ratio=self.config.ratio,
+            max_error_px=self.config.ransac.threshold_px,
+            keypoint_std_px=self.keypoint_std_px,
+        )
         # One 2D-3D constraint per query keypoint: the widest-angle point among its matches.
         query_kp = np.concatenate([m[:, 0] for m in matches])
         angle = np.concatenate([np.where(p.partner >= 0, p.angle_deg, -1.0) for p in points])
@@ -355,7 +430,7 @@ class Localizer:
         keep &= angle >= 0
         start = 0
         for pts in points:
-            drop = ~keep[start:start + len(pts.X)]
+            drop = ~keep[start : start + len(pts.X)]
             pts.X[drop] = np.nan
             pts.cov[drop] = np.nan
             start += len(pts.X)
@@ -377,23 +452,37 @@ class Localizer:
             return 0.0
         name = names[len(names) // 2]
         features = self.db.get_features(name)
-        references = [r for r in self.retrieve(features, self.config.top_n + 1) if r != name][: self.config.top_n]
+        references = [r for r in self.retrieve(features, self.config.top_n + 1) if r != name][
+            : self.config.top_n
+        ]
         if len(features) and len(references) >= 2:
             est = self.localize_features(features, self._posed[name].camera, references)
             logger.debug("warm-up on map image %s: %s", name, est.status)
         return time.perf_counter() - t0
 
     # ---- whole pipeline ------------------------------------------------------------------
-    def localize_features(self, features: Features, camera: Camera,
-                          references: Sequence[str] | None = None, *, gravity: object | None = None) -> PoseEstimate:
+    def localize_features(
+        self,
+        features: Features,
+        camera: Camera,
+        references: Sequence[str] | None = None,
+        *,
+        gravity: object | None = None,
+    ) -> PoseEstimate:
         """Localize from already extracted query features (retrieval unless ``references``).
 
         ``gravity``: see :meth:`localize`.
         """
         return self.localize_pairs(features, camera, references, gravity=gravity)[0]
 
-    def localize_pairs(self, features: Features, camera: Camera, references: Sequence[str] | None = None, *,
-                       gravity: object | None = None) -> tuple[PoseEstimate, list[PairMatches]]:
+    def localize_pairs(
+        self,
+        features: Features,
+        camera: Camera,
+        references: Sequence[str] | None = None,
+        *,
+        gravity: object | None = None,
+    ) -> tuple[PoseEstimate, list[PairMatches]]:
         """:meth:`localize_features`, and the matched pairs it estimated from (one per name of
         ``est.references``, in that order, as ``est.inliers``): callers that need the inliers'
         matches (the stream's tracked map points) need not match again."""
@@ -404,18 +493,28 @@ class Localizer:
         if unknown:
             raise InputError(f"references not in the map: {unknown[:3]}{'...' if len(unknown) > 3 else ''}")
         if len(features) < self.config.min_matches:  # a black, uniform or blurred frame: nothing to match
-            est = PoseEstimate(None, False, Status.TOO_FEW_MATCHES,
-                               f"the image has {len(features)} features (a black, uniform or featureless frame): "
-                               "nothing to match with the map", [])
+            est = PoseEstimate(
+                None,
+                False,
+                Status.TOO_FEW_MATCHES,
+                f"the image has {len(features)} features (a black, uniform or featureless frame): "
+                "nothing to match with the map",
+                [],
+            )
             est.stats.add_time("retrieval", time.perf_counter() - t0)
             return est, []
         t1 = time.perf_counter()
         pairs, used, (residual_px, focal_px) = self._pairs_and_map_residual(features, refs, camera)
         t2 = time.perf_counter()
         if len(pairs) < 2:
-            est = PoseEstimate(None, False, Status.TOO_FEW_MATCHES,
-                               f"fewer than 2 of the {len(refs)} retrieved map images have >= "
-                               f"{self.config.min_matches} matches", [np.zeros(0, bool)] * len(pairs))
+            est = PoseEstimate(
+                None,
+                False,
+                Status.TOO_FEW_MATCHES,
+                f"fewer than 2 of the {len(refs)} retrieved map images have >= "
+                f"{self.config.min_matches} matches",
+                [np.zeros(0, bool)] * len(pairs),
+            )
         else:
             # Map poses that disagree with their images (KITTI's first seconds) move every point
             # triangulated from them together: the map prior takes what the images measured.
@@ -423,12 +522,16 @@ class Localizer:
             measured = map_rotation_std_deg(residual_px, focal_px)
             if measured > ransac.map_rotation_std_deg:
                 ransac = replace(ransac, map_rotation_std_deg=measured)
-            est = estimate_absolute_pose(camera, pairs, self.config.method, ransac, query_gravity=query_gravity)
+            est = estimate_absolute_pose(
+                camera, pairs, self.config.method, ransac, query_gravity=query_gravity
+            )
             est.map_prior = (ransac.map_rotation_std_deg, ransac.map_position_std_m)
             if ransac is not map_wide:
-                est.message += (f"; the retrieved map images' poses disagree with their images by {residual_px:.1f} px "
-                                f"(median): map rotation std taken as {measured:.2f}° instead of "
-                                f"{map_wide.map_rotation_std_deg:.2g}°")
+                est.message += (
+                    f"; the retrieved map images' poses disagree with their images by {residual_px:.1f} px "
+                    f"(median): map rotation std taken as {measured:.2f}° instead of "
+                    f"{map_wide.map_rotation_std_deg:.2g}°"
+                )
             if ransac.map_prior_measured and est.success and est.num_inliers_3d < CARRYING_3D_INLIERS:
                 return self._under_assumed_prior(features, camera, refs, query_gravity, est.num_inliers_3d)
         if not est.success:  # any failure: whether a map image sees the query at all decides the advice
@@ -440,42 +543,62 @@ class Localizer:
         est.stats.add_time("matching", t2 - t1)
         return est, pairs
 
-    def _under_assumed_prior(self, features: Features, camera: Camera, refs: Sequence[str],
-                             gravity: np.ndarray | None, num_3d: int) -> tuple[PoseEstimate, list[PairMatches]]:
+    def _under_assumed_prior(
+        self, features: Features, camera: Camera, refs: Sequence[str], gravity: np.ndarray | None, num_3d: int
+    ) -> tuple[PoseEstimate, list[PairMatches]]:
         """The estimate of a pose that few 2D-3D inliers carry, judged again under the configured
         (assumed) map prior and keypoint noise: the measured ones, small on a well-posed map, say
         how precise points triangulated from it are, not that a query mostly matched 2D-2D is
         (cross-session Strecha: poses 0.2-0.33 m off with 19-27 2D-3D inliers had 0.08-0.11 m stds)."""
         est, pairs = self.with_config(replace(self.config, map_prior="configured")).localize_pairs(
-            features, camera, refs, gravity=gravity)
-        est.message += (f"; judged under the configured map prior: only {num_3d} 2D-3D inliers (fewer than "
-                        f"{CARRYING_3D_INLIERS}) carry the pose")
+            features, camera, refs, gravity=gravity
+        )
+        est.message += (
+            f"; judged under the configured map prior: only {num_3d} 2D-3D inliers (fewer than "
+            f"{CARRYING_3D_INLIERS}) carry the pose"
+        )
         return est, pairs
 
-    def _unless_unseen(self, est: PoseEstimate, refs: Sequence[str], pairs: Sequence[PairMatches],
-                       camera: Camera) -> PoseEstimate:
+    def _unless_unseen(
+        self, est: PoseEstimate, refs: Sequence[str], pairs: Sequence[PairMatches], camera: Camera
+    ) -> PoseEstimate:
         """``est``, or ``not_in_map`` when no retrieved map image sees the query
         (:mod:`planarloc.robust.covisibility`): the message says what was tried and keeps the
         estimator's own reason."""
         threshold = self.config.ransac.threshold_px
-        support = [epipolar_support(p.query_points, p.ref_points, camera, p.ref_camera, threshold) for p in pairs]
+        support = [
+            epipolar_support(p.query_points, p.ref_points, camera, p.ref_camera, threshold) for p in pairs
+        ]
         needed = [seeing_support(len(p.query_points)) for p in pairs]
         if any(s >= n for s, n in zip(support, needed)):
             return est
         shown = ", ".join(refs[:3]) + (f" and {len(refs) - 3} more" if len(refs) > 3 else "")
-        tried = (f"{len(pairs)} of them have >= {self.config.min_matches} matches, and at most "
-                 f"{max(support, default=0)} matches of one image fit one essential matrix ({min(needed)} or more "
-                 "would show it sees the query)") if pairs else \
-            f"none of them has {self.config.min_matches} or more matches"
+        tried = (
+            (
+                f"{len(pairs)} of them have >= {self.config.min_matches} matches, and at most "
+                f"{max(support, default=0)} matches of one image fit one essential matrix ({min(needed)} or more "
+                "would show it sees the query)"
+            )
+            if pairs
+            else f"none of them has {self.config.min_matches} or more matches"
+        )
         before = f"{est.status}: {est.message}" if est.message else str(est.status)
         est.status = Status.NOT_IN_MAP
-        est.message = (f"no map image sees the query: tried {len(refs)} map images ({shown}); {tried}. "
-                       "The map does not hold this place (or it looks too different now): map it, or localize where "
-                       f"the map was recorded (the estimator said {before})")
+        est.message = (
+            f"no map image sees the query: tried {len(refs)} map images ({shown}); {tried}. "
+            "The map does not hold this place (or it looks too different now): map it, or localize where "
+            f"the map was recorded (the estimator said {before})"
+        )
         return est
 
-    def localize(self, image: ImageSource, camera: Camera | None = None, references: Sequence[str] | None = None,
-                 *, gravity: object | None = None) -> PoseEstimate:
+    def localize(
+        self,
+        image: ImageSource,
+        camera: Camera | None = None,
+        references: Sequence[str] | None = None,
+        *,
+        gravity: object | None = None,
+    ) -> PoseEstimate:
         """Localize one live frame taken with ``camera``.
 
         Args:
@@ -506,7 +629,11 @@ class Localizer:
         t_features = time.perf_counter()
         features = extract_features(query.image, self.features)
         est = self.localize_features(features, query.camera, query.references, gravity=query.gravity)
-        est.stats.add_time("features", time.perf_counter() - t_features - sum(
-            est.stats.time_s.get(k, 0.0) for k in ("retrieval", "matching", "total")))
+        est.stats.add_time(
+            "features",
+            time.perf_counter()
+            - t_features
+            - sum(est.stats.time_s.get(k, 0.0) for k in ("retrieval", "matching", "total")),
+        )
         est.stats.time_s["end_to_end"] = time.perf_counter() - t0
         return est

@@ -173,7 +173,7 @@ class ScaleDoubt:
             return
         excess = max(abs(measured_m - predicted_m) - std_m, 0.0)
         self.errors.append(min(excess / predicted_m, self.max_std))
-        del self.errors[:-self.window]
+        del self.errors[: -self.window]
 
     @property
     def std(self) -> float:
@@ -208,7 +208,7 @@ def fit_speed(stamps: np.ndarray, centers: np.ndarray, stds: np.ndarray) -> Spee
     params = np.linalg.solve(info, A.T @ (s * w))
     cov = np.linalg.inv(info)
     accel = float(params[2]) if quadratic else 0.0
-    if abs(accel) > MAX_ACCELERATION:        # clipped: the line through what the parabola leaves
+    if abs(accel) > MAX_ACCELERATION:  # clipped: the line through what the parabola leaves
         accel = float(np.clip(accel, -MAX_ACCELERATION, MAX_ACCELERATION))
         A2 = A[:, :2]
         info = A2.T @ (A2 * w[:, None])
@@ -234,12 +234,12 @@ class MotionModel:
     def reset(self) -> None:
         self.speed: float | None = None
         self.fit: SpeedFit | None = None
-        self.fixes: list[tuple[float, np.ndarray, float]] = []   # stamp, centre, position std
+        self.fixes: list[tuple[float, np.ndarray, float]] = []  # stamp, centre, position std
         self.doubt.reset()
-        self.stamps_doubted = True       # until four fixes have shown that stamp gaps are times
-        self.speed_scatter = 0.0         # relative jumps between consecutive fix-to-fix speeds
-        self.recent_speed: float | None = None   # the largest fix-to-fix speed of the last REGAIN_MEMORY_S
-        self._speeds_seen: list[tuple[float, float]] = []   # (stamp, fix-to-fix speed ending there)
+        self.stamps_doubted = True  # until four fixes have shown that stamp gaps are times
+        self.speed_scatter = 0.0  # relative jumps between consecutive fix-to-fix speeds
+        self.recent_speed: float | None = None  # the largest fix-to-fix speed of the last REGAIN_MEMORY_S
+        self._speeds_seen: list[tuple[float, float]] = []  # (stamp, fix-to-fix speed ending there)
         self._doubted_fixes = 0
         self._vouched = False
 
@@ -264,12 +264,12 @@ class MotionModel:
     def add_fix(self, stamp: float, center: np.ndarray, std_m: float = 0.0) -> None:
         """An accepted fix's centre at ``stamp`` with its position std ``std_m``."""
         self.fixes.append((stamp, np.asarray(center, dtype=float), float(std_m)))
-        del self.fixes[:-SPEEDS_KEPT - 1]
+        del self.fixes[: -SPEEDS_KEPT - 1]
         if self._stamps_contradicted():
             self._doubted_fixes = STAMP_DOUBT_FIXES
         else:
             self._doubted_fixes = max(self._doubted_fixes - 1, 0)
-        self._vouched = self._vouched or len(self.fixes) >= 4     # a restart does not change the camera
+        self._vouched = self._vouched or len(self.fixes) >= 4  # a restart does not change the camera
         self.stamps_doubted = self._doubted_fixes > 0 or not self._vouched
 
     def _stamps_contradicted(self) -> bool:
@@ -280,8 +280,11 @@ class MotionModel:
         ``STAMP_DOUBT_RATIO`` of the speed beyond the fixes' noise (a quarter of their reported
         stds, which are several times their errors)."""
         fixes = sorted(self.fixes, key=lambda f: f[0])
-        seg = [(float(np.linalg.norm(b[1] - a[1])) / (b[0] - a[0]), (a[2] + b[2]) / (b[0] - a[0]))
-               for a, b in pairwise(fixes) if b[0] > a[0]]
+        seg = [
+            (float(np.linalg.norm(b[1] - a[1])) / (b[0] - a[0]), (a[2] + b[2]) / (b[0] - a[0]))
+            for a, b in pairwise(fixes)
+            if b[0] > a[0]
+        ]
         for (v0, n0), (v1, n1), (v2, n2) in zip(seg, seg[1:], seg[2:]):
             noise = (n0 + 2 * n1 + n2) / 4
             if abs(v0 - 2 * v1 + v2) - noise > STAMP_DOUBT_RATIO * max(v0, v1, v2):
@@ -301,19 +304,31 @@ class MotionModel:
         fixes = [f for k, f in enumerate(fixes) if k == 0 or f[0] > fixes[k - 1][0]]
         if len(fixes) < 2:
             return False
-        fit = fit_speed(np.array([f[0] for f in fixes]), np.stack([f[1] for f in fixes]),
-                        np.maximum([f[2] for f in fixes], MIN_FIX_STD_M))
+        fit = fit_speed(
+            np.array([f[0] for f in fixes]),
+            np.stack([f[1] for f in fixes]),
+            np.maximum([f[2] for f in fixes], MIN_FIX_STD_M),
+        )
         old, self.fit = self.fit, fit
         self.speed = self.fit.at(now)
         # consecutive fix-to-fix speeds that differ beyond the fixes' noise: a step's length is at
         # least this unsure (a smooth speed change hardly shows between two segments)
         speeds = sorted(self.fixes, key=lambda f: f[0])
-        segs = [(float(np.linalg.norm(b[1] - a[1])) / (b[0] - a[0]), (a[2] + b[2]) / (b[0] - a[0]))
-                for a, b in pairwise(speeds) if b[0] > a[0]]
+        segs = [
+            (float(np.linalg.norm(b[1] - a[1])) / (b[0] - a[0]), (a[2] + b[2]) / (b[0] - a[0]))
+            for a, b in pairwise(speeds)
+            if b[0] > a[0]
+        ]
         latest = speeds[-1][0]
         self._speeds_seen = [(t, v) for t, v in self._speeds_seen if t >= latest - REGAIN_MEMORY_S]
-        ends = [(b[0], float(np.linalg.norm(b[1] - a[1])) / (b[0] - a[0])) for a, b in pairwise(speeds) if b[0] > a[0]]
-        self._speeds_seen += [(t, v) for t, v in ends if not self._speeds_seen or t > self._speeds_seen[-1][0]]
+        ends = [
+            (b[0], float(np.linalg.norm(b[1] - a[1])) / (b[0] - a[0]))
+            for a, b in pairwise(speeds)
+            if b[0] > a[0]
+        ]
+        self._speeds_seen += [
+            (t, v) for t, v in ends if not self._speeds_seen or t > self._speeds_seen[-1][0]
+        ]
         self.recent_speed = max((v for _, v in self._speeds_seen), default=self.speed)
         if len(segs) >= 2:
             jumps = [max(abs(v1 - v0) - n0 - n1, 0.0) for (v0, n0), (v1, n1) in pairwise(segs)]
@@ -361,9 +376,13 @@ class MotionModel:
             dist = speed * step.dt
             # a robot at less than half its recent speed may be speeding up again (stop-and-go)
             regain = max(0.5 * (self.recent_speed or 0.0) - speed, 0.0) * 2.0 * step.dt
-            speed_std = float(np.hypot(self.scale_std * speed, 0.0 if self.fit is None else self.fit.std_at(mid)))
+            speed_std = float(
+                np.hypot(self.scale_std * speed, 0.0 if self.fit is None else self.fit.std_at(mid))
+            )
             t0 = max(step.since_anchor_s, 0.0)
-            chained = np.sqrt(max(chain_std(speed_std, t0 + step.dt) ** 2 - chain_std(speed_std, t0) ** 2, 0.0))
+            chained = np.sqrt(
+                max(chain_std(speed_std, t0 + step.dt) ** 2 - chain_std(speed_std, t0) ** 2, 0.0)
+            )
             along = float(chained) + regain + 0.05
         across = dist * np.radians(cfg.vo_direction_std_deg) + 0.02
         u = step.direction

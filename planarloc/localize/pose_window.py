@@ -52,7 +52,7 @@ class Alternative:
     node: int
     poses: list[Pose]
     relative: list[RelativeFactor]
-    covariance: np.ndarray          # the marginal covariance of ``node`` under it
+    covariance: np.ndarray  # the marginal covariance of ``node`` under it
     source: str
 
 
@@ -71,9 +71,9 @@ class PoseWindow:
         self.nodes: list[WindowNode] = []
         self.absolute: list[AbsoluteFactor] = []
         self.relative: list[RelativeFactor] = []
-        self.covariance = np.full((6, 6), np.inf)   # of the current node
-        self.exact = True                           # ``covariance`` is the marginal, not a guess
-        self.dirty = False                          # a factor was added since the last solve
+        self.covariance = np.full((6, 6), np.inf)  # of the current node
+        self.exact = True  # ``covariance`` is the marginal, not a guess
+        self.dirty = False  # a factor was added since the last solve
 
     # ---- reading --------------------------------------------------------------------------
     def __len__(self) -> int:
@@ -110,7 +110,7 @@ class PoseWindow:
         return any(f.node == node for f in self.absolute)
 
     def sources_after(self, node: int) -> list[str]:
-        return [n.source for n in self.nodes[node + 1:]]
+        return [n.source for n in self.nodes[node + 1 :]]
 
     def last_step(self, node: int) -> Pose | None:
         """``cur_from_prev`` of the nodes ``node − 1`` → ``node`` (None before the second node)."""
@@ -169,9 +169,12 @@ class PoseWindow:
     def with_motion(self, node: int, motion: Motion) -> Alternative:
         """The window with the motion into ``node`` replaced by ``motion`` (later nodes keep their
         guesses), and ``node``'s marginal covariance under it."""
-        relative = [f if not (f.j == node and f.i == node - 1) else
-                    RelativeFactor(node - 1, node, motion.cur_from_prev, motion.covariance)
-                    for f in self.relative]
+        relative = [
+            f
+            if not (f.j == node and f.i == node - 1)
+            else RelativeFactor(node - 1, node, motion.cur_from_prev, motion.covariance)
+            for f in self.relative
+        ]
         poses = self.poses
         poses[node] = motion.cur_from_prev @ poses[node - 1]
         cov = marginal_covariances(poses, self.absolute, relative)[node]
@@ -196,8 +199,11 @@ class PoseWindow:
         """Restart the window at ``node`` from ``pose`` (a confirmed kidnap), keeping the motions
         measured since (the nodes after it are chained from it again)."""
         kept = self.nodes[node:]
-        relative = [RelativeFactor(f.i - node, f.j - node, f.j_from_i, f.covariance)
-                    for f in self.relative if f.i >= node]
+        relative = [
+            RelativeFactor(f.i - node, f.j - node, f.j_from_i, f.covariance)
+            for f in self.relative
+            if f.i >= node
+        ]
         self.start(pose, covariance, kept[0].stamp)
         self.nodes += [replace(n, fixed=False) for n in kept[1:]]
         self.relative = relative
@@ -219,8 +225,14 @@ class PoseWindow:
                 m = motion(n.visual)
                 self.relative[k] = RelativeFactor(f.i, f.j, m.cur_from_prev, m.covariance)
 
-    def carried(self, pose: Pose, covariance: np.ndarray, prev: int, node: int,
-                weak: Callable[[int, float], np.ndarray]) -> tuple[Pose, np.ndarray]:
+    def carried(
+        self,
+        pose: Pose,
+        covariance: np.ndarray,
+        prev: int,
+        node: int,
+        weak: Callable[[int, float], np.ndarray],
+    ) -> tuple[Pose, np.ndarray]:
         """A pose estimate of node ``prev`` moved to node ``node`` through the window's motion
         between them, its covariance grown by those motions' and, where the motion was not
         wheel odometry, by ``weak(i, dt)`` (the weak constant-velocity model's from node ``i``:

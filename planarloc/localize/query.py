@@ -64,7 +64,9 @@ def load_gray(image: ImageSource, name: str = "image") -> np.ndarray:
         return decode_gray(bytes(image), name)
     if isinstance(image, (str, os.PathLike)):
         return read_gray(Path(image))
-    raise InputError(f"{name}: expected an image array, JPEG/PNG bytes or a file path, got {type(image).__name__}")
+    raise InputError(
+        f"{name}: expected an image array, JPEG/PNG bytes or a file path, got {type(image).__name__}"
+    )
 
 
 def prepare_query(
@@ -107,7 +109,9 @@ def prepare_query(
         references = tuple(str(r) for r in references)
         unknown = [r for r in references if r not in map_names]
         if unknown:
-            raise InputError(f"{name}: references not in the map: {unknown[:3]}{'...' if len(unknown) > 3 else ''}")
+            raise InputError(
+                f"{name}: references not in the map: {unknown[:3]}{'...' if len(unknown) > 3 else ''}"
+            )
     gray = load_gray(image, name)
     height, width = gray.shape[:2]
     from_map = camera is None
@@ -118,6 +122,8 @@ def prepare_query(
         camera = next(iter(cameras))
     if (camera.width, camera.height) != (width, height):
         whose = "the map's camera (the query has none of its own)" if from_map else "its camera"
-        raise InputError(f"{name}: image is {width}x{height} but {whose} is {camera.width}x{camera.height}; "
-                         "give the intrinsics of this image size")
+        raise InputError(
+            f"{name}: image is {width}x{height} but {whose} is {camera.width}x{camera.height}; "
+            "give the intrinsics of this image size"
+        )
     return Query(name, gray, camera, g, references, from_map)

@@ -65,7 +65,7 @@ def _pose_fields(pose: Pose | None, covariance: np.ndarray | None) -> dict:
     cov = None
     if pose is not None and covariance is not None:
         C = np.asarray(covariance, dtype=float)
-        cov = np.where(np.isfinite(C), C, np.nan).tolist()   # strict JSON writes non-finite as null
+        cov = np.where(np.isfinite(C), C, np.nan).tolist()  # strict JSON writes non-finite as null
     return {
         "quat_wxyz": None if pose is None else [float(v) for v in pose.quat_wxyz],
         "t": None if pose is None else [float(v) for v in pose.t],
@@ -77,12 +77,20 @@ def _pose_fields(pose: Pose | None, covariance: np.ndarray | None) -> dict:
 
 
 def _head(kind: str, name: str, success: bool, status: str, message: str, stamp: float | None) -> dict:
-    return {"schema": SCHEMA, "kind": kind, "name": str(name), "success": bool(success), "status": str(status),
-            "message": " ".join(str(message).split()), "stamp": None if stamp is None else _finite(stamp)}
+    return {
+        "schema": SCHEMA,
+        "kind": kind,
+        "name": str(name),
+        "success": bool(success),
+        "status": str(status),
+        "message": " ".join(str(message).split()),
+        "stamp": None if stamp is None else _finite(stamp),
+    }
 
 
-def query_record(name: str, estimate: PoseEstimate, gravity: object | None = None,
-                 stamp: float | None = None) -> dict:
+def query_record(
+    name: str, estimate: PoseEstimate, gravity: object | None = None, stamp: float | None = None
+) -> dict:
     """The record of one single-image fix (``kind`` ``"fix"``); ``gravity``: the query's gravity
     prior (``query_gravity``; None: assumed mounted like the map cameras); ``stamp``: its time."""
     d = estimate.to_dict()
@@ -93,7 +101,9 @@ def query_record(name: str, estimate: PoseEstimate, gravity: object | None = Non
         **_head("fix", name, estimate.success, estimate.status, estimate.message, stamp),
         **_pose_fields(pose, covariance),
         "position_std_m": std,
-        "rotation_std_deg": None if (r := _block_std(covariance, slice(3, 6))) is None else float(np.degrees(r)),
+        "rotation_std_deg": None
+        if (r := _block_std(covariance, slice(3, 6))) is None
+        else float(np.degrees(r)),
         "time_s": {k: _finite(v) for k, v in d["time_s"].items()},
         "num_inliers": d["num_inliers"],
         "num_inliers_3d": d["num_inliers_3d"],
@@ -103,8 +113,12 @@ def query_record(name: str, estimate: PoseEstimate, gravity: object | None = Non
         "model": d["model"],
         "stats": d["stats"],
         "query_gravity": None if gravity is None else [float(v) for v in gravity],  # type: ignore[union-attr]
-        "map_prior": None if estimate.map_prior is None else {
-            "rotation_std_deg": float(estimate.map_prior[0]), "position_std_m": float(estimate.map_prior[1])},
+        "map_prior": None
+        if estimate.map_prior is None
+        else {
+            "rotation_std_deg": float(estimate.map_prior[0]),
+            "position_std_m": float(estimate.map_prior[1]),
+        },
     }
 
 
@@ -135,16 +149,27 @@ def frame_record(name: str, estimate: SequenceEstimate) -> dict:
     }
 
 
-def error_record(name: str, reason: str, *, kind: str = "fix", stamp: float | None = None,
-                 seconds: float | None = None, status: str = "error") -> dict:
+def error_record(
+    name: str,
+    reason: str,
+    *,
+    kind: str = "fix",
+    stamp: float | None = None,
+    seconds: float | None = None,
+    status: str = "error",
+) -> dict:
     """The record of a query or frame that could not be processed (an unreadable image, a size
     its camera does not have): status ``"error"``, ``message`` the reason. An evaluation's
     frame the camera replaced before the stream took it has status ``"dropped"``."""
     if kind not in ("fix", "frame"):
         raise ValueError(f"kind: expected 'fix' or 'frame', got {kind!r}")
-    return {**_head(kind, name, False, status, reason, stamp), **_pose_fields(None, None),
-            "position_std_m": None, "rotation_std_deg": None,
-            "time_s": {} if seconds is None else {"total": _finite(seconds)}}
+    return {
+        **_head(kind, name, False, status, reason, stamp),
+        **_pose_fields(None, None),
+        "position_std_m": None,
+        "rotation_std_deg": None,
+        "time_s": {} if seconds is None else {"total": _finite(seconds)},
+    }
 
 
 def record_pose(record: dict) -> Pose | None:

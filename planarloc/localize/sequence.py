@@ -73,8 +73,15 @@ from planarloc.numerics.blas_threads import BLAS_ONE_THREAD
 from planarloc.robust.pose_graph import so3_log
 from planarloc.robust.result import PoseEstimate
 
-__all__ = ["FrameStatus", "SequenceConfig", "SequenceEstimate", "SequenceLocalizer", "StreamStats",
-           "graph_covariance", "ros_covariance"]
+__all__ = [
+    "FrameStatus",
+    "SequenceConfig",
+    "SequenceEstimate",
+    "SequenceLocalizer",
+    "StreamStats",
+    "graph_covariance",
+    "ros_covariance",
+]
 
 logger = logging.getLogger(__name__)
 
@@ -142,8 +149,9 @@ class SequenceLocalizer:
         self._kidnap = KidnapMonitor(self._gate, self.config.kidnap_confirmations)
         self._fixes: ImmediateFixes | BackgroundFixes = (
             ImmediateFixes(self._solver, self.config.fix_delay, self._history, self.config.tracker)
-            if self.config.fixes == "wait" else
-            BackgroundFixes(localizer, self.config, self._history, self.config.tracker))
+            if self.config.fixes == "wait"
+            else BackgroundFixes(localizer, self.config, self._history, self.config.tracker)
+        )
         self._generation = 0
         self.reset()
 
@@ -166,7 +174,7 @@ class SequenceLocalizer:
         self._window.clear()
         self._motion.reset()
         self._kidnap.clear()
-        self._prev: tuple[float, Pose | None] | None = None   # stamp, odometry of the last tracked frame
+        self._prev: tuple[float, Pose | None] | None = None  # stamp, odometry of the last tracked frame
         self._clock.reset()
         self._latest_fix = "none"
         self._frame = 0
@@ -206,8 +214,12 @@ class SequenceLocalizer:
         vo = tracked.relative
         weak = self._weak(len(self._window) - 1, dt)
         if vo is not None and vo.success and vo.pose is not None:
-            since = prev_stamp - self._window.anchor_stamp(len(self._window) - 1) if len(self._window) else 0.0
-            step = VisualStep(vo.pose.R, vo.pose.inverse().t, stamp, dt, tracked.covariance, since_anchor_s=since)
+            since = (
+                prev_stamp - self._window.anchor_stamp(len(self._window) - 1) if len(self._window) else 0.0
+            )
+            step = VisualStep(
+                vo.pose.R, vo.pose.inverse().t, stamp, dt, tracked.covariance, since_anchor_s=since
+            )
             return self._motion.disputed(self._motion.visual(step, vo.model), weak)
         return weak
 
@@ -229,9 +241,11 @@ class SequenceLocalizer:
         w.solve()
         if self._motion.speed is None:
             anchored = w.anchored_nodes()[-2:]
-            if len(anchored) == 2:       # a first speed from the solved poses
+            if len(anchored) == 2:  # a first speed from the solved poses
                 a, b = (w.nodes[k] for k in anchored)
-                if self._motion.first_speed(float(np.linalg.norm(b.pose.center - a.pose.center)), b.stamp - a.stamp):
+                if self._motion.first_speed(
+                    float(np.linalg.norm(b.pose.center - a.pose.center)), b.stamp - a.stamp
+                ):
                     w.rescale(self._motion.visual)
                     w.solve()
 
@@ -270,7 +284,7 @@ class SequenceLocalizer:
         w.restart_at(node, pose, cov)
         self._motion.restart(stamp, pose.center, keep_speed=True)
         self._kidnap.clear()
-        w.rescale(self._motion.visual)     # with the guessed speed's larger std
+        w.rescale(self._motion.visual)  # with the guessed speed's larger std
         w.rechain(0)
         self._tracker.set_points(None)
         self.stats.reinitializations += 1
@@ -283,7 +297,7 @@ class SequenceLocalizer:
         handled.result = result
         self.stats.fix_cpu_s += result.cpu_s
         w = self._window
-        if not len(w):          # the stream starts: the result belongs to the current frame
+        if not len(w):  # the stream starts: the result belongs to the current frame
             if out.accepted is not None:
                 pose, cov = out.accepted
                 self._start(pose, cov, result.stamp)
@@ -310,7 +324,7 @@ class SequenceLocalizer:
                 self._tracker.set_points(result.tracked_to(self._history, self.config.tracker).points)
         else:
             self._track_kidnap(node, out, handled)
-            if handled.reinitialized and result.points is not None:   # the points of the fix restarted from
+            if handled.reinitialized and result.points is not None:  # the points of the fix restarted from
                 self._tracker.set_points(result.tracked_to(self._history, self.config.tracker).points)
         self._count_fix(out.status, handled)
         if handled.reinitialized:
@@ -338,7 +352,12 @@ class SequenceLocalizer:
             return
         w.adopt(alt, "visual_rejected")
         w.rechain(node)
-        fixes.accepted, fixes.status, fixes.mahalanobis_sq, fixes.rejected = (b.pose, cov_b), "accepted", d2, []
+        fixes.accepted, fixes.status, fixes.mahalanobis_sq, fixes.rejected = (
+            (b.pose, cov_b),
+            "accepted",
+            d2,
+            [],
+        )
 
     def _track_kidnap(self, node: int, fixes: FixOutcome, handled: _Handled) -> None:
         """Rejected global fixes feed the kidnap monitor; a confirmed kidnap restarts the window."""
@@ -348,15 +367,22 @@ class SequenceLocalizer:
         for attempt in fixes.rejected:
             if not attempt.global_retrieval:
                 continue
-            if any(s not in MEASURED for s in w.sources_after(anchor)[:node - anchor]):
+            if any(s not in MEASURED for s in w.sources_after(anchor)[: node - anchor]):
                 self._kidnap.doubt = True
-            self._kidnap.consider(attempt.pose, _rejected_covariance(attempt), w.nodes[node].stamp,
-                                  lambda c: self._carry(c, node))
+            self._kidnap.consider(
+                attempt.pose,
+                _rejected_covariance(attempt),
+                w.nodes[node].stamp,
+                lambda c: self._carry(c, node),
+            )
         c = self._kidnap.confirmed()
         if c is not None:
             self._restart_at(node, c.pose, c.covariance)
-            logger.info("stream re-initialised at t=%.3f from %d consistent global fixes", c.stamp,
-                        self.config.kidnap_confirmations)
+            logger.info(
+                "stream re-initialised at t=%.3f from %d consistent global fixes",
+                c.stamp,
+                self.config.kidnap_confirmations,
+            )
             fixes.status = "accepted"
             handled.reinitialized = True
 
@@ -371,7 +397,7 @@ class SequenceLocalizer:
         (:class:`~planarloc.localize.motion_model.ScaleDoubt`); a new doubt rescales them."""
         w = self._window
         prev = max((f.node for f in w.absolute if f.node < node), default=-1)
-        if prev < 0 or any(n.source != "visual" for n in w.nodes[prev + 1:node + 1]):
+        if prev < 0 or any(n.source != "visual" for n in w.nodes[prev + 1 : node + 1]):
             return
         origin = w.nodes[prev].pose.center
         predicted = float(np.linalg.norm(w.nodes[node].pose.center - origin))
@@ -409,13 +435,22 @@ class SequenceLocalizer:
         if fit is None:
             return
         cov = tracked_points_covariance(
-            fit[0], points.points, rays, focal, fit[1], points.hops, pixel_std=cfg.pixel_std,
-            min_std_m=cfg.point_fix_min_std_m, rotation_std_deg=cfg.point_fix_rotation_std_deg,
-            std_per_frame=cfg.point_fix_std_per_frame)
+            fit[0],
+            points.points,
+            rays,
+            focal,
+            fit[1],
+            points.hops,
+            pixel_std=cfg.pixel_std,
+            min_std_m=cfg.point_fix_min_std_m,
+            rotation_std_deg=cfg.point_fix_rotation_std_deg,
+            std_per_frame=cfg.point_fix_std_per_frame,
+        )
         node = len(w) - 1
         self._observe_scale(node, fit[0], cov)
-        if not mahalanobis_sq(fit[0], cov, w.current.pose, w.covariance) <= self._gate \
-                and not self._replace_visual(fit[0], cov):
+        if not mahalanobis_sq(
+            fit[0], cov, w.current.pose, w.covariance
+        ) <= self._gate and not self._replace_visual(fit[0], cov):
             self._tracker.set_points(None)
             self.stats.point_fixes_rejected += 1
             return
@@ -424,22 +459,40 @@ class SequenceLocalizer:
 
     def _check_frame(self, stamp: object, odometry: object) -> float:
         if odometry is not None and not isinstance(odometry, Pose):
-            raise InputError(f"odometry: expected a planarloc Pose (cam_from_odom) or None, "
-                             f"got {type(odometry).__name__}")
+            raise InputError(
+                f"odometry: expected a planarloc Pose (cam_from_odom) or None, got {type(odometry).__name__}"
+            )
         return self._clock.check(stamp)
 
     def _job(self, query: Query, stamp: float) -> FixJob:
         w = self._window
         if not len(w):
-            return FixJob(stamp, query.image, query.camera, query.gravity, None, False, float("inf"), self._generation)
+            return FixJob(
+                stamp, query.image, query.camera, query.gravity, None, False, float("inf"), self._generation
+            )
         std, _ = covariance_stds(w.covariance)
         # a suspected kidnap: the map images near the prediction are the wrong place to look
         usable = std <= self.config.lost_std_m and not self._kidnap.suspected and not self._kidnap.doubted
-        return FixJob(stamp, query.image, query.camera, query.gravity, (w.current.pose, w.covariance),
-                      usable, std, self._generation)
+        return FixJob(
+            stamp,
+            query.image,
+            query.camera,
+            query.gravity,
+            (w.current.pose, w.covariance),
+            usable,
+            std,
+            self._generation,
+        )
 
-    def step(self, image: ImageSource, camera: Camera | None, stamp: float, odometry: Pose | None = None,
-             gravity: object | None = None, arrival: float | None = None) -> SequenceEstimate:
+    def step(
+        self,
+        image: ImageSource,
+        camera: Camera | None,
+        stamp: float,
+        odometry: Pose | None = None,
+        gravity: object | None = None,
+        arrival: float | None = None,
+    ) -> SequenceEstimate:
         """Localize the next frame of the stream.
 
         Args:
@@ -467,8 +520,9 @@ class SequenceLocalizer:
         query = self.localizer.prepare(image, camera, gravity=gravity)
         return self.step_query(query, stamp, odometry, t0)
 
-    def step_query(self, query: Query, stamp: float, odometry: Pose | None = None,
-                   started: float | None = None) -> SequenceEstimate:
+    def step_query(
+        self, query: Query, stamp: float, odometry: Pose | None = None, started: float | None = None
+    ) -> SequenceEstimate:
         """Localize the next frame, prepared with :meth:`Localizer.prepare` (see :meth:`step`;
         ``started`` is its ``arrival``)."""
         t_call, cpu0 = time.perf_counter(), time.thread_time()
@@ -481,8 +535,9 @@ class SequenceLocalizer:
             return self._blank(stamp, missing, t_call, t0, cpu0)
         handled = _Handled()
         self._history.append(stamp, query.image)
-        tracked = self._tracker.track(query.image, query.camera, stamp,
-                                      estimate_motion=bool(len(self._window)))
+        tracked = self._tracker.track(
+            query.image, query.camera, stamp, estimate_motion=bool(len(self._window))
+        )
         motion = Motion.none()
         if not len(self._window):
             self._first_fix(query, stamp, handled)
@@ -524,14 +579,19 @@ class SequenceLocalizer:
         # frames faster than the fixes: bound how far odometry chains from the last one (in frames
         # when the stamp gaps have been seen to lie about time)
         behind = stamp - self._last_job_stamp > self.config.max_fix_lag_s or (
-            self._motion.stamps_doubted and self._last_job is not None and frame - self._last_job >= DOUBTED_FIX_LAG_FRAMES)
+            self._motion.stamps_doubted
+            and self._last_job is not None
+            and frame - self._last_job >= DOUBTED_FIX_LAG_FRAMES
+        )
         lagging = background and self._fixes.busy and behind
         if lagging:
             self.stats.fix_waits += 1
         for result in self._fixes.collect(frame, wait=lagging):
             self._handle(result, handled)
         self._refresh()
-        lost = covariance_stds(self._window.covariance)[0] > min(self.config.lost_std_m, self.config.max_pose_std_m)
+        lost = covariance_stds(self._window.covariance)[0] > min(
+            self.config.lost_std_m, self.config.max_pose_std_m
+        )
         if background and self._fixes.busy and (self._kidnap.doubted or lost):
             for result in self._fixes.collect(frame, wait=True):
                 self._handle(result, handled)
@@ -553,10 +613,17 @@ class SequenceLocalizer:
         self.stats.blank += 1
         self._frame += 1
         return self._estimate(
-            stamp, FrameStatus.LOST, pose, cov, missing, (t_call, t0, cpu0),
-            fix_status="pending" if self._fixes.busy else "none", motion_source="none" if pose is None else "constant",
+            stamp,
+            FrameStatus.LOST,
+            pose,
+            cov,
+            missing,
+            (t_call, t0, cpu0),
+            fix_status="pending" if self._fixes.busy else "none",
+            motion_source="none" if pose is None else "constant",
             message="blank frame: no texture to track or localize (black, white or uniform); the stream goes on "
-                    "from the last frame with texture")
+            "from the last frame with texture",
+        )
 
     def _status(self) -> FrameStatus:
         w = self._window
@@ -566,13 +633,27 @@ class SequenceLocalizer:
             return FrameStatus.LOST  # never report a pose as usable beyond it
         anchor = w.last_fixed()
         current = len(w) - 1
-        if (anchor is not None and self._latest_fix == "accepted" and pos_std <= self.config.localized_std_m
-                and w.last_absolute() == current and all(s in MEASURED for s in w.sources_after(anchor))):
+        if (
+            anchor is not None
+            and self._latest_fix == "accepted"
+            and pos_std <= self.config.localized_std_m
+            and w.last_absolute() == current
+            and all(s in MEASURED for s in w.sources_after(anchor))
+        ):
             return FrameStatus.LOCALIZED
         return FrameStatus.PREDICTED
 
-    def _report(self, stamp: float, motion: Motion, tracked: Tracked, handled: _Handled, missing: int,
-                t_call: float, t0: float, cpu0: float) -> SequenceEstimate:
+    def _report(
+        self,
+        stamp: float,
+        motion: Motion,
+        tracked: Tracked,
+        handled: _Handled,
+        missing: int,
+        t_call: float,
+        t0: float,
+        cpu0: float,
+    ) -> SequenceEstimate:
         w = self._window
         pose = w.current.pose if len(w) else None
         out = handled.result.outcome if handled.result is not None else FixOutcome()
@@ -581,17 +662,37 @@ class SequenceLocalizer:
             fix_status = "pending" if self._fixes.busy else "none"
         source = motion.source
         if len(w) and w.current.stamp == stamp and w.current.source == "visual_rejected":
-            source = w.current.source            # a fix replaced this frame's visual motion
+            source = w.current.source  # a fix replaced this frame's visual motion
         return self._estimate(
-            stamp, self._status(), pose, w.covariance, missing, (t_call, t0, cpu0), fix=out.last,
-            fix_status=fix_status, fix_stamp=None if handled.result is None else handled.result.stamp,
-            rejected=[a.report() for a in out.rejected], mahalanobis_sq=out.mahalanobis_sq,
-            motion_source=source, motion_model=motion.model, tracks=tracked.tracks,
-            global_retrieval=out.global_retrieval, kidnap_suspected=self._kidnap.suspected,
-            reinitialized=handled.reinitialized)
+            stamp,
+            self._status(),
+            pose,
+            w.covariance,
+            missing,
+            (t_call, t0, cpu0),
+            fix=out.last,
+            fix_status=fix_status,
+            fix_stamp=None if handled.result is None else handled.result.stamp,
+            rejected=[a.report() for a in out.rejected],
+            mahalanobis_sq=out.mahalanobis_sq,
+            motion_source=source,
+            motion_model=motion.model,
+            tracks=tracked.tracks,
+            global_retrieval=out.global_retrieval,
+            kidnap_suspected=self._kidnap.suspected,
+            reinitialized=handled.reinitialized,
+        )
 
-    def _estimate(self, stamp: float, status: FrameStatus, pose: Pose | None, cov: np.ndarray, missing: int,
-                  times: tuple[float, float, float], **fields: Any) -> SequenceEstimate:
+    def _estimate(
+        self,
+        stamp: float,
+        status: FrameStatus,
+        pose: Pose | None,
+        cov: np.ndarray,
+        missing: int,
+        times: tuple[float, float, float],
+        **fields: Any,
+    ) -> SequenceEstimate:
         """The frame's :class:`SequenceEstimate`, counted in :attr:`stats`; ``times``: the step's
         start, the frame's arrival and the thread's CPU time at the start."""
         t_call, t0, cpu0 = times
@@ -605,8 +706,17 @@ class SequenceLocalizer:
         self.stats.late += int(late)
         self.stats.missing += missing
         return SequenceEstimate(
-            stamp=stamp, status=status.value, pose=pose,
+            stamp=stamp,
+            status=status.value,
+            pose=pose,
             covariance=ros_covariance(pose, cov) if pose is not None else np.full((6, 6), np.inf),
-            position_std_m=pos_std, rotation_std_deg=rot_std, seconds=now - t_call, latency_s=latency, late=late,
-            missing_frames=missing, cpu_s=time.thread_time() - cpu0, graph_covariance=cov.copy(),
-            **fields)
+            position_std_m=pos_std,
+            rotation_std_deg=rot_std,
+            seconds=now - t_call,
+            latency_s=latency,
+            late=late,
+            missing_frames=missing,
+            cpu_s=time.thread_time() - cpu0,
+            graph_covariance=cov.copy(),
+            **fields,
+        )

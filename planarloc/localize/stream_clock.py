@@ -36,8 +36,10 @@ class StreamClock:
             raise InputError(f"stamp: expected a finite time in seconds, got {t}")
         if self.last is not None and t <= self.last:
             what = "the same as" if t == self.last else "before"
-            raise InputError(f"stamp {t:.6f}: {what} the previous frame's {self.last:.6f}; frames must come in "
-                             "time order, each once (reset() starts a new stream)")
+            raise InputError(
+                f"stamp {t:.6f}: {what} the previous frame's {self.last:.6f}; frames must come in "
+                "time order, each once (reset() starts a new stream)"
+            )
         return t
 
     def advance(self, stamp: float) -> int:

@@ -125,23 +125,49 @@ class SequenceConfig:
             check_integer(f"SequenceConfig.{name}", getattr(self, name), lo)
         check_integer("SequenceConfig.fix_resize_max", self.fix_resize_max, 16, allow_none=True)
         if not isinstance(self.tracking, TrackerOptions):
-            raise InputError(f"SequenceConfig.tracking: expected TrackerOptions, got {type(self.tracking).__name__}")
+            raise InputError(
+                f"SequenceConfig.tracking: expected TrackerOptions, got {type(self.tracking).__name__}"
+            )
         if self.vo_model not in MODELS:
             raise InputError(f"SequenceConfig.vo_model: expected one of {MODELS}, got {self.vo_model!r}")
         if self.tracking.model not in (TrackerOptions().model, self.vo_model):
-            raise InputError(f"SequenceConfig.tracking.model ({self.tracking.model!r}) is not used: the stream's "
-                             f"visual-odometry model is SequenceConfig.vo_model ({self.vo_model!r}); set that")
+            raise InputError(
+                f"SequenceConfig.tracking.model ({self.tracking.model!r}) is not used: the stream's "
+                f"visual-odometry model is SequenceConfig.vo_model ({self.vo_model!r}); set that"
+            )
         if not 0.5 < self.gate_probability < 1:
-            raise InputError(f"SequenceConfig.gate_probability: expected a probability in (0.5, 1), "
-                             f"got {self.gate_probability}")
-        for name in ("max_fix_lag_s", "max_latency_s", "local_radius_m", "local_max_angle_deg", "fix_std_scale", "fix_std_scale_2d",
-                     "min_fix_std_m", "pixel_std", "min_rotation_std_deg", "odometry_translation_std",
-                     "odometry_min_std_m", "odometry_rotation_std", "odometry_min_rotation_std_deg",
-                     "vo_direction_std_deg", "vo_rotation_std_deg", "vo_scale_std", "vo_first_scale_std",
-                     "point_fix_min_std_m",
-                     "point_fix_std_per_frame", "point_fix_rotation_std_deg",
-                     "max_speed_mps", "lost_std_m", "max_pose_std_m", "localized_std_m", "frame_period_s",
-                     "refix_radius_m"):
+            raise InputError(
+                f"SequenceConfig.gate_probability: expected a probability in (0.5, 1), "
+                f"got {self.gate_probability}"
+            )
+        for name in (
+            "max_fix_lag_s",
+            "max_latency_s",
+            "local_radius_m",
+            "local_max_angle_deg",
+            "fix_std_scale",
+            "fix_std_scale_2d",
+            "min_fix_std_m",
+            "pixel_std",
+            "min_rotation_std_deg",
+            "odometry_translation_std",
+            "odometry_min_std_m",
+            "odometry_rotation_std",
+            "odometry_min_rotation_std_deg",
+            "vo_direction_std_deg",
+            "vo_rotation_std_deg",
+            "vo_scale_std",
+            "vo_first_scale_std",
+            "point_fix_min_std_m",
+            "point_fix_std_per_frame",
+            "point_fix_rotation_std_deg",
+            "max_speed_mps",
+            "lost_std_m",
+            "max_pose_std_m",
+            "localized_std_m",
+            "frame_period_s",
+            "refix_radius_m",
+        ):
             check_positive(f"SequenceConfig.{name}", getattr(self, name))
 
     @property

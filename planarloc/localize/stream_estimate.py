@@ -107,15 +107,14 @@ class StreamStats:
     fixes_rejected: int = 0
     fixes_failed: int = 0
     fixes_stale: int = 0
-    fix_waits: int = 0           # frames that waited for a fix more than ``max_fix_lag_s`` behind
+    fix_waits: int = 0  # frames that waited for a fix more than ``max_fix_lag_s`` behind
     fix_cpu_s: float = 0.0
     point_fixes: int = 0
     point_fixes_rejected: int = 0
     reinitializations: int = 0
-    blank: int = 0               # blank frames (not tracked, not fixed; status lost)
+    blank: int = 0  # blank frames (not tracked, not fixed; status lost)
 
     def count_fix(self, status: str) -> None:
         name = f"fixes_{status}"
         if hasattr(self, name):
             setattr(self, name, getattr(self, name) + 1)
-

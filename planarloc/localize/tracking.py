@@ -96,8 +96,10 @@ class TrackerOptions:
             check_integer(f"TrackerOptions.{name}", getattr(self, name), 0 if name == "levels" else 3)
         check_positive("TrackerOptions.threshold_px", self.threshold_px)
         if not 0 <= self.min_inlier_ratio < 1:
-            raise InputError(f"TrackerOptions.min_inlier_ratio: expected a fraction in [0, 1), got "
-                             f"{self.min_inlier_ratio!r}")
+            raise InputError(
+                f"TrackerOptions.min_inlier_ratio: expected a fraction in [0, 1), got "
+                f"{self.min_inlier_ratio!r}"
+            )
 
 
 def detect_corners(gray: np.ndarray, count: int) -> np.ndarray:
@@ -111,14 +113,17 @@ def detect_corners(gray: np.ndarray, count: int) -> np.ndarray:
         y0, y1 = r * h // rows, (r + 1) * h // rows
         for c in range(cols):
             x0, x1 = c * w // cols, (c + 1) * w // cols
-            found = cv2.goodFeaturesToTrack(gray[y0:y1, x0:x1], per_cell, CORNER_QUALITY, CORNER_MIN_DISTANCE_PX)
+            found = cv2.goodFeaturesToTrack(
+                gray[y0:y1, x0:x1], per_cell, CORNER_QUALITY, CORNER_MIN_DISTANCE_PX
+            )
             if found is not None:
                 out.append(found.reshape(-1, 2) + np.array([x0, y0], dtype=np.float32))
     return np.concatenate(out).astype(np.float32) if out else np.zeros((0, 2), np.float32)
 
 
-def track_points(prev: np.ndarray, cur: np.ndarray, points: np.ndarray, options: TrackerOptions
-                 ) -> tuple[np.ndarray, np.ndarray]:
+def track_points(
+    prev: np.ndarray, cur: np.ndarray, points: np.ndarray, options: TrackerOptions
+) -> tuple[np.ndarray, np.ndarray]:
     """Pixels ``points`` (N, 2) of ``prev`` tracked into ``cur``: ``(found (N,) bool, (N, 2) float32)``.
 
     Points tracked outside the image are not found.
@@ -126,8 +131,14 @@ def track_points(prev: np.ndarray, cur: np.ndarray, points: np.ndarray, options:
     if len(points) == 0:
         return np.zeros(0, bool), np.zeros((0, 2), np.float32)
     win = int(options.window_px)
-    nxt, status, _ = cv2.calcOpticalFlowPyrLK(prev, cur, np.ascontiguousarray(points, np.float32).reshape(-1, 1, 2),
-                                              None, winSize=(win, win), maxLevel=int(options.levels))
+    nxt, status, _ = cv2.calcOpticalFlowPyrLK(
+        prev,
+        cur,
+        np.ascontiguousarray(points, np.float32).reshape(-1, 1, 2),
+        None,
+        winSize=(win, win),
+        maxLevel=int(options.levels),
+    )
     nxt = nxt.reshape(-1, 2)
     h, w = cur.shape[:2]
     found = (status.ravel() == 1) & np.isfinite(nxt).all(axis=1)
@@ -135,14 +146,17 @@ def track_points(prev: np.ndarray, cur: np.ndarray, points: np.ndarray, options:
     return found, nxt
 
 
-def track_checked(prev: np.ndarray, cur: np.ndarray, points: np.ndarray, options: TrackerOptions
-                  ) -> tuple[np.ndarray, np.ndarray]:
+def track_checked(
+    prev: np.ndarray, cur: np.ndarray, points: np.ndarray, options: TrackerOptions
+) -> tuple[np.ndarray, np.ndarray]:
     """:func:`track_points` with a forward-backward check: a point is found only when tracking
     it back lands within ``FB_MAX_ERROR_PX`` of where it started."""
     found, nxt = track_points(prev, cur, points, options)
     if found.any():
         back_found, back = track_points(cur, prev, nxt, options)
-        found &= back_found & (np.linalg.norm(back - np.asarray(points, np.float32), axis=1) < FB_MAX_ERROR_PX)
+        found &= back_found & (
+            np.linalg.norm(back - np.asarray(points, np.float32), axis=1) < FB_MAX_ERROR_PX
+        )
     return found, nxt
 
 
@@ -170,8 +184,9 @@ class TrackedPoints:
         return TrackedPoints(stamp, np.asarray(pixels, np.float32)[keep], self.points[keep], self.hops + 1)
 
 
-def track_through(frames: list[tuple[float, np.ndarray]], points: TrackedPoints, options: TrackerOptions
-                  ) -> TrackedPoints:
+def track_through(
+    frames: list[tuple[float, np.ndarray]], points: TrackedPoints, options: TrackerOptions
+) -> TrackedPoints:
     """``points`` tracked (:func:`track_checked`) through ``frames`` (``(stamp, gray)`` in order,
     the first being the points' own frame); returns them in the last frame (those still found)."""
     cur = points
@@ -183,8 +198,9 @@ def track_through(frames: list[tuple[float, np.ndarray]], points: TrackedPoints,
     return cur
 
 
-def pose_from_points(prior: Pose, points: np.ndarray, rays: np.ndarray, focal: float
-                     ) -> tuple[Pose, int] | None:
+def pose_from_points(
+    prior: Pose, points: np.ndarray, rays: np.ndarray, focal: float
+) -> tuple[Pose, int] | None:
     """The camera pose from world points seen along rays (PnP).
 
     ``cv2.solvePnPRansac`` with the AP3P minimal solver (Ke, Roumeliotis, CVPR 2017) on
@@ -211,9 +227,16 @@ def pose_from_points(prior: Pose, points: np.ndarray, rays: np.ndarray, focal: f
         return None
     X, x = X[ok], x[ok]
     threshold = PNP_THRESHOLD_PX / focal
-    found, rvec, tvec, inliers = cv2.solvePnPRansac(X, x, np.eye(3), None, iterationsCount=PNP_ITERATIONS,
-                                                    reprojectionError=threshold, confidence=0.999,
-                                                    flags=cv2.SOLVEPNP_AP3P)
+    found, rvec, tvec, inliers = cv2.solvePnPRansac(
+        X,
+        x,
+        np.eye(3),
+        None,
+        iterationsCount=PNP_ITERATIONS,
+        reprojectionError=threshold,
+        confidence=0.999,
+        flags=cv2.SOLVEPNP_AP3P,
+    )
     if not found or inliers is None or len(inliers) < MIN_POINTS:
         return None
     idx = inliers.ravel()
@@ -254,9 +277,15 @@ def view_broken(tracked: Tracked, min_tracks: int, expected_rotation_deg: float 
         return False
     if expected_rotation_deg is not None and expected_rotation_deg >= BREAK_MAX_ROTATION_DEG:
         return False
-    if rel.status == "too_few_matches":      # the corners of a textured frame were lost (blank frames never get here)
+    if (
+        rel.status == "too_few_matches"
+    ):  # the corners of a textured frame were lost (blank frames never get here)
         return True
-    return rel.status == "too_few_inliers" and tracked.tracks >= min_tracks and tracked.flow_px >= BREAK_MIN_FLOW_PX
+    return (
+        rel.status == "too_few_inliers"
+        and tracked.tracks >= min_tracks
+        and tracked.flow_px >= BREAK_MIN_FLOW_PX
+    )
 
 
 #: a frame whose pixels vary less than this (std, grey levels) has nothing to track or match
@@ -270,8 +299,9 @@ def is_blank(gray: np.ndarray) -> bool:
     return float(std.ravel()[0]) < BLANK_PIXEL_STD
 
 
-def points_pose_covariance(cam_from_world: Pose, points: np.ndarray, rays: np.ndarray, ray_std: float
-                           ) -> np.ndarray | None:
+def points_pose_covariance(
+    cam_from_world: Pose, points: np.ndarray, rays: np.ndarray, ray_std: float
+) -> np.ndarray | None:
     """The (6, 6) pose-graph covariance ``(ω, δc)`` of a pose from world points (PnP), measured
     from the points' geometry: ``σ² (JᵀJ)⁻¹`` with ``J`` the Jacobian of the normalized
     reprojections (2N, 6) and ``σ`` the larger of ``ray_std`` and the residuals' own RMS (with
@@ -319,9 +349,19 @@ def points_pose_covariance(cam_from_world: Pose, points: np.ndarray, rays: np.nd
 POINT_FIX_FULL_SUPPORT = 60
 
 
-def tracked_points_covariance(pose: Pose, points: np.ndarray, rays: np.ndarray, focal: float, inliers: int,
-                              hops: int, *, pixel_std: float, min_std_m: float, rotation_std_deg: float,
-                              std_per_frame: float) -> np.ndarray:
+def tracked_points_covariance(
+    pose: Pose,
+    points: np.ndarray,
+    rays: np.ndarray,
+    focal: float,
+    inliers: int,
+    hops: int,
+    *,
+    pixel_std: float,
+    min_std_m: float,
+    rotation_std_deg: float,
+    std_per_frame: float,
+) -> np.ndarray:
     """The (6, 6) pose-graph covariance of a pose from tracked map points (:func:`pose_from_points`).
 
     The geometry's own (:func:`points_pose_covariance` on the points within ``PNP_THRESHOLD_PX``:
@@ -356,7 +396,7 @@ class FrameHistory:
         self._frames: list[tuple[float, np.ndarray]] = []
 
     def append(self, stamp: float, gray: np.ndarray) -> None:
-        self._frames = (self._frames + [(float(stamp), gray)])[-self.size:]
+        self._frames = (self._frames + [(float(stamp), gray)])[-self.size :]
 
     def clear(self) -> None:
         self._frames = []
@@ -378,8 +418,9 @@ def _signed_sampson(R: np.ndarray, t: np.ndarray, xa: np.ndarray, xb: np.ndarray
     return focal * num / np.sqrt(Ex[:, 0] ** 2 + Ex[:, 1] ** 2 + Etx[:, 0] ** 2 + Etx[:, 1] ** 2)
 
 
-def relative_pose_covariance(rel: RelativePoseEstimate, camera_a: Camera, camera_b: Camera, points_a: np.ndarray,
-                             points_b: np.ndarray) -> np.ndarray | None:
+def relative_pose_covariance(
+    rel: RelativePoseEstimate, camera_a: Camera, camera_b: Camera, points_a: np.ndarray, points_b: np.ndarray
+) -> np.ndarray | None:
     """(5, 5) covariance of a relative pose ``b_from_a`` from its inlier tracks: of ``(δ, β)``
     with ``R' = exp([δ]×) R`` and the direction of camera b's centre in camera a's frame
     ``u' ∝ u + B β`` (``B``: (3, 2) orthonormal, ⊥ ``u``, from :func:`direction_basis`).
@@ -393,8 +434,12 @@ def relative_pose_covariance(rel: RelativePoseEstimate, camera_a: Camera, camera
     if rel.pose is None:
         return None
     m = np.asarray(rel.inliers, bool)
-    xa = np.concatenate([camera_a.cam_from_img(np.asarray(points_a, float)[m]), np.ones((int(m.sum()), 1))], axis=1)
-    xb = np.concatenate([camera_b.cam_from_img(np.asarray(points_b, float)[m]), np.ones((int(m.sum()), 1))], axis=1)
+    xa = np.concatenate(
+        [camera_a.cam_from_img(np.asarray(points_a, float)[m]), np.ones((int(m.sum()), 1))], axis=1
+    )
+    xb = np.concatenate(
+        [camera_b.cam_from_img(np.asarray(points_b, float)[m]), np.ones((int(m.sum()), 1))], axis=1
+    )
     if len(xa) < 6:
         return None
     focal = float(np.mean(camera_b.focal))
@@ -456,8 +501,11 @@ class FrameTracker:
 
     def __init__(self, options: TrackerOptions | None = None) -> None:
         self.options = options or TrackerOptions()
-        self._ransac = RansacOptions(threshold_px=self.options.threshold_px, min_iterations=VO_MIN_ITERATIONS,
-                                     max_iterations=VO_MAX_ITERATIONS)
+        self._ransac = RansacOptions(
+            threshold_px=self.options.threshold_px,
+            min_iterations=VO_MIN_ITERATIONS,
+            max_iterations=VO_MAX_ITERATIONS,
+        )
         self.reset()
 
     def reset(self) -> None:
@@ -476,7 +524,7 @@ class FrameTracker:
         odometry gives it), and detect this frame's corners for the next call."""
         out = Tracked(None)
         prev = self._prev
-        if prev is not None and prev[0].shape != gray.shape:   # another image size: nothing to track
+        if prev is not None and prev[0].shape != gray.shape:  # another image size: nothing to track
             prev, self.points = None, None
         if prev is not None:
             if self.points is not None and len(self.points):
@@ -485,15 +533,34 @@ class FrameTracker:
             if estimate_motion:
                 image, prev_camera, corners = prev
                 found, nxt = track_points(image, gray, corners, self.options)
-                rel = estimate_relative_pose(prev_camera, camera, corners[found].astype(float),
-                                             nxt[found].astype(float), model=self.options.model,
-                                             options=self._ransac, min_inliers=self.options.min_inliers)
+                rel = estimate_relative_pose(
+                    prev_camera,
+                    camera,
+                    corners[found].astype(float),
+                    nxt[found].astype(float),
+                    model=self.options.model,
+                    options=self._ransac,
+                    min_inliers=self.options.min_inliers,
+                )
                 if rel.success and rel.num_inliers < self.options.min_inlier_ratio * found.sum():
-                    rel = RelativePoseEstimate(None, False, Status.TOO_FEW_INLIERS, inliers=rel.inliers,
-                                               num_inliers=rel.num_inliers, stats=rel.stats)
-                cov = relative_pose_covariance(rel, prev_camera, camera, corners[found], nxt[found]) \
-                    if rel.success else None
-                flow = float(np.median(np.linalg.norm(nxt[found] - corners[found], axis=1))) if found.any() else 0.0
+                    rel = RelativePoseEstimate(
+                        None,
+                        False,
+                        Status.TOO_FEW_INLIERS,
+                        inliers=rel.inliers,
+                        num_inliers=rel.num_inliers,
+                        stats=rel.stats,
+                    )
+                cov = (
+                    relative_pose_covariance(rel, prev_camera, camera, corners[found], nxt[found])
+                    if rel.success
+                    else None
+                )
+                flow = (
+                    float(np.median(np.linalg.norm(nxt[found] - corners[found], axis=1)))
+                    if found.any()
+                    else 0.0
+                )
                 out = Tracked(rel, int(found.sum()), covariance=cov, flow_px=flow)
         elif self.points is not None and self.points.stamp != stamp:
             self.points = None

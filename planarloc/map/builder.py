@@ -69,7 +69,9 @@ Progress = Callable[[str, int, int], None]  # (stage, done, total)
 #: ``skipped(image, reason)``: an image left out of the map, and why (one line).
 Skipped = Callable[[PosedImage, str], None]
 #: ``mapper(fn, items)`` -> ``fn(item)`` for each item, in order (like the builtin ``map``).
-Mapper = Callable[[Callable[[PosedImage], "Features | str"], Sequence[PosedImage]], Iterable["Features | str"]]
+Mapper = Callable[
+    [Callable[[PosedImage], "Features | str"], Sequence[PosedImage]], Iterable["Features | str"]
+]
 
 
 def _hash_checked(image: PosedImage) -> str:
@@ -91,8 +93,10 @@ def _hash_checked(image: PosedImage) -> str:
     except ImageFormatError:
         w = h = None  # another format: its size is checked once it is decoded
     if w is not None and (w, h) != (image.camera.width, image.camera.height):
-        raise InputError(f"{image.path}: image is {w}x{h} but its camera is "
-                         f"{image.camera.width}x{image.camera.height}; fix the dataset's intrinsics")
+        raise InputError(
+            f"{image.path}: image is {w}x{h} but its camera is "
+            f"{image.camera.width}x{image.camera.height}; fix the dataset's intrinsics"
+        )
     return hashlib.sha256(data).hexdigest()
 
 
@@ -226,7 +230,9 @@ def build_map(
         checked = _hash_images(images, pool, progress)
         bad = [(im, reason) for im, (_, reason) in zip(images, checked) if reason is not None]
         if len(bad) == len(images):
-            raise InputError(f"{path}: none of the {len(images)} images can go into the map; the first: {bad[0][1]}")
+            raise InputError(
+                f"{path}: none of the {len(images)} images can go into the map; the first: {bad[0][1]}"
+            )
         for im, reason in bad:
             skip(im, reason)  # type: ignore[arg-type]
         images = [im for im, (sha, _) in zip(images, checked) if sha is not None]
@@ -237,10 +243,12 @@ def build_map(
             frames, num_new = finding
             line = f"{path}: the {num_new} new images look unrelated to the map's world frame: {frames.summary()}"
             if not allow_unrelated_frames:
-                raise UnrelatedFramesError(f"{line}; if they are another sequence with its own origin, build a "
-                                           "separate map; to append them anyway, run `planarloc map build` with "
-                                           "--allow-unrelated-frames (allow_unrelated_frames=True); the map is "
-                                           "unchanged")
+                raise UnrelatedFramesError(
+                    f"{line}; if they are another sequence with its own origin, build a "
+                    "separate map; to append them anyway, run `planarloc map build` with "
+                    "--allow-unrelated-frames (allow_unrelated_frames=True); the map is "
+                    "unchanged"
+                )
             tell(f"{line}; appending them anyway (allow_unrelated_frames)")
         try:
             db = MapDatabase.open_or_create(path, config, lock_timeout=lock_timeout, storage=storage)
@@ -255,17 +263,22 @@ def build_map(
             for line in plan.summary_lines(path):
                 tell(line)
             if plan.keep:
-                logger.info("%s: %d of %d images already in the map, resuming", path, len(plan.keep), len(images))
+                logger.info(
+                    "%s: %d of %d images already in the map, resuming", path, len(plan.keep), len(images)
+                )
             _store_images(db, plan, features, mapper or pool.map, progress, skip, ready)
             if db.num_images() == 0:
-                raise InputError(f"{path}: none of the {len(images) + len(bad)} images could be decoded; see the "
-                                 "reasons above")
+                raise InputError(
+                    f"{path}: none of the {len(images) + len(bad)} images could be decoded; see the "
+                    "reasons above"
+                )
             _finish(db, plan, declared, num_words, seed, progress)
     return path
 
 
-def _hash_images(images: Sequence[PosedImage], pool: ThreadPoolExecutor,
-                 progress: Progress | None) -> list[tuple[str | None, str | None]]:
+def _hash_images(
+    images: Sequence[PosedImage], pool: ThreadPoolExecutor, progress: Progress | None
+) -> list[tuple[str | None, str | None]]:
     """Stage 1: every image file read once (whole, size checked, SHA-256), before the map is
     touched: ``(sha256, None)`` or ``(None, reason)`` per image."""
     out = []
@@ -276,8 +289,15 @@ def _hash_images(images: Sequence[PosedImage], pool: ThreadPoolExecutor,
     return out
 
 
-def _store_images(db: MapDatabase, plan: MapUpdatePlan, features: FeatureConfig, mapper: Mapper,
-                  progress: Progress | None, skip: Skipped, ready: dict[Path, Features | str] | None = None) -> None:
+def _store_images(
+    db: MapDatabase,
+    plan: MapUpdatePlan,
+    features: FeatureConfig,
+    mapper: Mapper,
+    progress: Progress | None,
+    skip: Skipped,
+    ready: dict[Path, Features | str] | None = None,
+) -> None:
     """Stage 2: the plan's pose updates, then the new and changed images' features.
 
     Reading and SIFT run in worker threads (OpenCV releases the GIL) or on the given mapper (e.g.
@@ -302,9 +322,17 @@ def _store_images(db: MapDatabase, plan: MapUpdatePlan, features: FeatureConfig,
             progress("features", i + 1, len(todo))
 
 
-def _check_frames(path: Path, config: dict, images: Sequence[PosedImage], hashes: Sequence[str],
-                  features: FeatureConfig, declared: WorldDown | None, lock_timeout: float | None,
-                  pool: ThreadPoolExecutor, ready: dict[Path, Features | str]) -> tuple[FrameCheck, int] | None:
+def _check_frames(
+    path: Path,
+    config: dict,
+    images: Sequence[PosedImage],
+    hashes: Sequence[str],
+    features: FeatureConfig,
+    declared: WorldDown | None,
+    lock_timeout: float | None,
+    pool: ThreadPoolExecutor,
+    ready: dict[Path, Features | str],
+) -> tuple[FrameCheck, int] | None:
     """Before the map is opened for writing: do the images it would add share its world frame
     (:func:`planarloc.map.frame_check.check_appended_frames`)? The finding and the number of
     images the build would add, or None when there is nothing to
@@ -327,7 +355,9 @@ def _check_frames(path: Path, config: dict, images: Sequence[PosedImage], hashes
         if not path.is_file():  # removed while waiting for another writer
             return None
         with MapDatabase.open(path) as db:
-            if db.num_images() == 0 or json.dumps(db.config, sort_keys=True) != json.dumps(config, sort_keys=True):
+            if db.num_images() == 0 or json.dumps(db.config, sort_keys=True) != json.dumps(
+                config, sort_keys=True
+            ):
                 return None
             resolve_world_down(db, declared)  # a contradicting gravity declaration fails first, as it did
             new = [record for record, _ in plan_map_update(db, images, hashes).add]
@@ -344,8 +374,14 @@ def _check_frames(path: Path, config: dict, images: Sequence[PosedImage], hashes
     return found, len(new)
 
 
-def _finish(db: MapDatabase, plan: MapUpdatePlan, declared: WorldDown | None, num_words: int, seed: int,
-            progress: Progress | None) -> None:
+def _finish(
+    db: MapDatabase,
+    plan: MapUpdatePlan,
+    declared: WorldDown | None,
+    num_words: int,
+    seed: int,
+    progress: Progress | None,
+) -> None:
     """Stage 3: when anything changed (or the last build did not finish), the retrieval index,
     the map's gravity and how well its poses agree with its images
     (:mod:`planarloc.map.pose_accuracy`), then the map is marked complete; a map built before gravity was stored
@@ -359,8 +395,9 @@ def _finish(db: MapDatabase, plan: MapUpdatePlan, declared: WorldDown | None, nu
         store_map_gravity(db, declared)
 
 
-def _check_read_only_map_is_current(path: Path, config: dict, images: Sequence[PosedImage], hashes: Sequence[str],
-                                    exc: OSError) -> None:
+def _check_read_only_map_is_current(
+    path: Path, config: dict, images: Sequence[PosedImage], hashes: Sequence[str], exc: OSError
+) -> None:
     """A map that cannot be written (read-only media) is fine if it already is this build."""
     with MapDatabase.open(path) as db:
         if json.dumps(db.config, sort_keys=True) != json.dumps(config, sort_keys=True):
@@ -370,12 +407,15 @@ def _check_read_only_map_is_current(path: Path, config: dict, images: Sequence[P
             logger.info("%s: read-only and already complete with these images; nothing to do", path)
             return
     need = len(plan.add) + len(plan.replace) + len(plan.update)
-    raise InputError(f"{path}: cannot write the map ({exc.strerror}: {exc.filename}) but {need} image(s) must be "
-                     "added or updated; copy it to a writable location or build a new map there")
+    raise InputError(
+        f"{path}: cannot write the map ({exc.strerror}: {exc.filename}) but {need} image(s) must be "
+        "added or updated; copy it to a writable location or build a new map there"
+    )
 
 
-def index_map(db: MapDatabase, num_words: int = DEFAULT_NUM_WORDS, seed: int = 0,
-              progress: Progress | None = None) -> None:
+def index_map(
+    db: MapDatabase, num_words: int = DEFAULT_NUM_WORDS, seed: int = 0, progress: Progress | None = None
+) -> None:
     """Train the VLAD vocabulary on the map's descriptors and store every image's VLAD vector."""
     ids = db.image_ids()
     if not ids:

@@ -100,7 +100,9 @@ PROJECTED_DIM = 512
 _DTYPE: dict[str, DTypeLike] = {"uint8": np.uint8, "float16": "<f2", "float32": "<f4"}
 _ITEM_SIZE = {"uint8": 1, "float16": 2, "float32": 4}
 _UINT4_LEVELS = 15
-_KP_HEADER = struct.Struct("<Bb2xfff")  # mode (0 float32, 1 fixed point), k, origin x, origin y, smallest scale
+_KP_HEADER = struct.Struct(
+    "<Bb2xfff"
+)  # mode (0 float32, 1 fixed point), k, origin x, origin y, smallest scale
 _SCALE_STEPS = 16.0  # log-scale codes per octave
 _KP_MIN_SHIFT = 3  # fixed point only while the step 2^-k is at most 1/8 px
 _BASIS_HEADER = struct.Struct("<8sII")  # magic, D, d
@@ -142,8 +144,16 @@ def damaged_poses(rows: Sequence[Sequence[float]]) -> np.ndarray:
     return ~np.isfinite(vals).all(axis=1) | (np.abs(norms - 1.0) > 1e-6)
 
 
-def record_digest(name: str, camera_row: Sequence[object], pose7: Sequence[float], num: int,
-                  kp_blob: bytes, dim: int, encoding: str, desc_blob: bytes) -> str:
+def record_digest(
+    name: str,
+    camera_row: Sequence[object],
+    pose7: Sequence[float],
+    num: int,
+    kp_blob: bytes,
+    dim: int,
+    encoding: str,
+    desc_blob: bytes,
+) -> str:
     """SHA-256 (hex) of one stored image row: what ``planarloc map check`` re-computes.
 
     Args:
@@ -228,8 +238,9 @@ class DescriptorBasis:
         return _normalised(d.astype(np.float32))
 
 
-def fit_descriptor_basis(descriptors: np.ndarray, variance: float = KLT_VARIANCE,
-                         step: float = KLT_STEP) -> DescriptorBasis:
+def fit_descriptor_basis(
+    descriptors: np.ndarray, variance: float = KLT_VARIANCE, step: float = KLT_STEP
+) -> DescriptorBasis:
     """The basis of ``klt`` rows from one image's (N, D) descriptors: their mean and the fewest
     principal axes that hold ``variance`` of their variance, rounded as stored (float16)."""
     x = descriptors.astype(np.float64)
@@ -282,8 +293,9 @@ def _klt_blob(descriptors: np.ndarray, basis: DescriptorBasis) -> bytes | None:
     return _huffman(np.ascontiguousarray(codes.T).tobytes())  # column by column: one axis' values together
 
 
-def encode_descriptors(descriptors: np.ndarray, encoding: str, storage: str = "full",
-                       basis: DescriptorBasis | None = None) -> tuple[str, bytes]:
+def encode_descriptors(
+    descriptors: np.ndarray, encoding: str, storage: str = "full", basis: DescriptorBasis | None = None
+) -> tuple[str, bytes]:
     """Encode (N, D) float32 descriptors.
 
     Args:
@@ -328,18 +340,23 @@ def encode_descriptors(descriptors: np.ndarray, encoding: str, storage: str = "f
     )
 
 
-def decode_descriptors(blob: bytes, num: int, dim: int, encoding: str,
-                       basis: DescriptorBasis | None = None) -> np.ndarray:
+def decode_descriptors(
+    blob: bytes, num: int, dim: int, encoding: str, basis: DescriptorBasis | None = None
+) -> np.ndarray:
     """Decode a descriptor blob to (num, dim) float32 L2-normalised rows (zero rows stay zero);
     ``klt`` rows need the map's ``basis``."""
     if encoding not in ("klt", "uint4") and encoding not in _ITEM_SIZE:
-        raise MapCorruptError(f"descriptor encoding {encoding!r} is not one of klt, uint4, uint8, float16, float32")
+        raise MapCorruptError(
+            f"descriptor encoding {encoding!r} is not one of klt, uint4, uint8, float16, float32"
+        )
     if num < 0 or dim < 0:
         raise MapCorruptError(f"descriptor row has {num} x {dim} values")
     if encoding == "klt":
         if basis is None or basis.axes.shape[0] != dim:
-            raise MapCorruptError(f"a klt descriptor row needs the map's {dim}-D descriptor basis, "
-                                  f"{'missing' if basis is None else 'of another dimension'}")
+            raise MapCorruptError(
+                f"a klt descriptor row needs the map's {dim}-D descriptor basis, "
+                f"{'missing' if basis is None else 'of another dimension'}"
+            )
         k = basis.axes.shape[1]
         codes = np.frombuffer(_inflate(blob, num * k, "klt descriptor"), dtype=np.int8).reshape(k, num)
         return basis.rebuild(codes.T)
@@ -381,7 +398,11 @@ def _fixed_point(keypoints: np.ndarray, scales: np.ndarray) -> bytes | None:
     if c.max(initial=0) > 255:
         return None
     q = np.rint((keypoints - origin) * np.float32(2.0**k)).astype("<u2")
-    return _KP_HEADER.pack(1, k, float(origin[0]), float(origin[1]), s0) + q.tobytes() + _huffman(c.astype(np.uint8).tobytes())
+    return (
+        _KP_HEADER.pack(1, k, float(origin[0]), float(origin[1]), s0)
+        + q.tobytes()
+        + _huffman(c.astype(np.uint8).tobytes())
+    )
 
 
 def encode_keypoints(keypoints: np.ndarray, scales: np.ndarray, layout: str = "float32") -> bytes:
@@ -408,14 +429,18 @@ def decode_keypoints(blob: bytes, num: int, layout: str = "float32") -> tuple[np
         if len(blob) < _KP_HEADER.size:
             raise MapCorruptError(f"keypoint blob is {len(blob)} bytes, shorter than its header")
         mode, k, ox, oy, s0 = _KP_HEADER.unpack_from(blob)
-        body = blob[_KP_HEADER.size:]
+        body = blob[_KP_HEADER.size :]
         if mode == 1:
             if len(body) < 4 * num or not 0 <= k <= 16:
-                raise MapCorruptError(f"fixed-point keypoint blob is {len(blob)} bytes (k = {k}), shorter than "
-                                      f"the {_KP_HEADER.size + 4 * num} of {num} keypoints' positions")
+                raise MapCorruptError(
+                    f"fixed-point keypoint blob is {len(blob)} bytes (k = {k}), shorter than "
+                    f"the {_KP_HEADER.size + 4 * num} of {num} keypoints' positions"
+                )
             q = np.frombuffer(body, dtype="<u2", count=2 * num).reshape(num, 2).astype(np.float32)
             keypoints = q * np.float32(2.0**-k) + np.array([ox, oy], dtype=np.float32)
-            codes = np.frombuffer(_inflate(body[4 * num:], num, "keypoint scale"), dtype=np.uint8).astype(np.float32)
+            codes = np.frombuffer(_inflate(body[4 * num :], num, "keypoint scale"), dtype=np.uint8).astype(
+                np.float32
+            )
             return keypoints, (np.float32(s0) * np.exp2(codes / np.float32(_SCALE_STEPS))).astype(np.float32)
         if mode != 0:
             raise MapCorruptError(f"keypoint blob has an unknown mode {mode}")
@@ -425,11 +450,18 @@ def decode_keypoints(blob: bytes, num: int, layout: str = "float32") -> tuple[np
     if len(blob) != 12 * num:
         raise MapCorruptError(f"keypoint blob is {len(blob)} bytes, expected {12 * num} for {num} keypoints")
     flat = np.frombuffer(blob, dtype="<f4")
-    return flat[: 2 * num].reshape(num, 2).astype(np.float32), flat[2 * num:].astype(np.float32)
+    return flat[: 2 * num].reshape(num, 2).astype(np.float32), flat[2 * num :].astype(np.float32)
 
 
-def decode_features(num: int, kp_blob: object, dim: int, encoding: str, desc_blob: object,
-                    keypoint_layout: str = "float32", basis: DescriptorBasis | None = None) -> Features:
+def decode_features(
+    num: int,
+    kp_blob: object,
+    dim: int,
+    encoding: str,
+    desc_blob: object,
+    keypoint_layout: str = "float32",
+    basis: DescriptorBasis | None = None,
+) -> Features:
     """Features (read-only float32 arrays) from a keypoint and a descriptor row (``basis``: the
     map's descriptor basis, for ``klt`` rows).
 
@@ -457,8 +489,9 @@ def encode_global(vectors: np.ndarray, encoding: str) -> list[bytes]:
     if encoding == "projected":
         return [v.astype("<f2").tobytes() for v in vectors]
     if encoding != "int4":
-        raise InputError(f"global descriptor encoding: expected one of {', '.join(GLOBAL_ENCODINGS)}, "
-                         f"got {encoding!r}")
+        raise InputError(
+            f"global descriptor encoding: expected one of {', '.join(GLOBAL_ENCODINGS)}, got {encoding!r}"
+        )
     top = np.abs(vectors).max(axis=1, initial=0.0) if vectors.size else np.zeros(len(vectors))
     scale = np.where(top > 0, top / 7.0, 1.0).astype("<f4")
     codes = (np.clip(np.rint(vectors / scale[:, None]), -7, 7) + 8).astype(np.uint8)
@@ -508,8 +541,10 @@ def decode_basis(data: bytes) -> np.ndarray:
         raise MapCorruptError("global descriptor basis: missing its PLBASIS1 header")
     _, D, d = _BASIS_HEADER.unpack_from(data)
     if len(data) != _BASIS_HEADER.size + 4 * D * d:
-        raise MapCorruptError(f"global descriptor basis: {len(data)} bytes, expected "
-                              f"{_BASIS_HEADER.size + 4 * D * d} for {D} x {d}")
+        raise MapCorruptError(
+            f"global descriptor basis: {len(data)} bytes, expected "
+            f"{_BASIS_HEADER.size + 4 * D * d} for {D} x {d}"
+        )
     basis = np.frombuffer(data, dtype="<f4", offset=_BASIS_HEADER.size).reshape(D, d).astype(np.float32)
     if not np.isfinite(basis).all():
         raise MapCorruptError("global descriptor basis: non-finite values")

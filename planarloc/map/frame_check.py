@@ -171,19 +171,27 @@ class FrameCheck:
     def summary(self) -> str:
         """What was found, in one line (no trailing period)."""
         agree, contra = self.count("agrees"), self.count("contradicts")
-        head = f"{len(self.checked)} of them checked against {len({p.map_image for p in self.pairs})} map images"
+        head = (
+            f"{len(self.checked)} of them checked against {len({p.map_image for p in self.pairs})} map images"
+        )
         if contra:
-            worst = min((p for p in self.pairs if p.verdict == "contradicts"), key=lambda p: p.agreeing / p.shared)
-            return (f"{head}: {contra} pair(s) share matches that contradict the images' poses (e.g. "
-                    f"{worst.appended} and {worst.map_image}: {worst.shared} shared matches, {worst.agreeing} agree "
-                    f"with their poses), {agree} pair(s) agree")
+            worst = min(
+                (p for p in self.pairs if p.verdict == "contradicts"), key=lambda p: p.agreeing / p.shared
+            )
+            return (
+                f"{head}: {contra} pair(s) share matches that contradict the images' poses (e.g. "
+                f"{worst.appended} and {worst.map_image}: {worst.shared} shared matches, {worst.agreeing} agree "
+                f"with their poses), {agree} pair(s) agree"
+            )
         if agree:
             return f"{head}: {agree} pair(s) share matches that agree with the images' poses"
         if not self.pairs:
             return f"{head}: no pair to match"
-        return (f"{head}: no pair shares matches (at most {max(p.matches for p in self.pairs)} descriptor matches and "
-                f"{max(p.shared for p in self.pairs)} geometrically consistent ones in a pair, "
-                f"{self.options.min_shared} needed)")
+        return (
+            f"{head}: no pair shares matches (at most {max(p.matches for p in self.pairs)} descriptor matches and "
+            f"{max(p.shared for p in self.pairs)} geometrically consistent ones in a pair, "
+            f"{self.options.min_shared} needed)"
+        )
 
 
 def pair_verdict(shared: int, agreeing: int, options: FrameCheckOptions = DEFAULT_FRAME_CHECK) -> Verdict:
@@ -200,8 +208,14 @@ def frames_related(verdicts: Sequence[Verdict]) -> bool:
     return agree >= 1 and 2 * sum(v == "contradicts" for v in verdicts) <= agree
 
 
-def known_pose_errors_px(R: np.ndarray, t: np.ndarray, x_a: np.ndarray, x_b: np.ndarray,
-                         f_a: np.ndarray | tuple[float, float], f_b: np.ndarray | tuple[float, float]) -> np.ndarray:
+def known_pose_errors_px(
+    R: np.ndarray,
+    t: np.ndarray,
+    x_a: np.ndarray,
+    x_b: np.ndarray,
+    f_a: np.ndarray | tuple[float, float],
+    f_b: np.ndarray | tuple[float, float],
+) -> np.ndarray:
     """Pixel error of each ray pair under a known relative pose ``b_from_a = (R, t)``.
 
     A point seen along ray ``x_a`` at depth λ > 0 appears in image b at ``π(R x_a + t / λ)``: on the
@@ -246,9 +260,9 @@ def known_pose_errors_px(R: np.ndarray, t: np.ndarray, x_a: np.ndarray, x_b: np.
     x_a = check_array("x_a", x_a, (None, 3))
     x_b = check_array("x_b", x_b, (len(x_a), 3))
     f_b = np.asarray(f_b, dtype=float)
-    a = x_a @ R.T                       # (N, 3): the rays of a in camera b's axes
+    a = x_a @ R.T  # (N, 3): the rays of a in camera b's axes
     ahead = a[:, 2] > 0
-    inf_px = np.zeros((len(a), 2))      # π(R x_a) and x_b, pixels of image b (without the principal point)
+    inf_px = np.zeros((len(a), 2))  # π(R x_a) and x_b, pixels of image b (without the principal point)
     inf_px[ahead] = a[ahead, :2] / a[ahead, 2:3] * f_b
     b_px = x_b[:, :2] / x_b[:, 2:3] * f_b
     norm = float(np.linalg.norm(t))
@@ -258,7 +272,7 @@ def known_pose_errors_px(R: np.ndarray, t: np.ndarray, x_a: np.ndarray, x_b: np.
         return out
     t = t / norm
     sampson = np.sqrt(sampson_error_sq(essential_from_relpose(R, t), x_a, x_b, f_a, f_b))
-    v = (t[:2] - inf_px / f_b * t[2]) * f_b   # (N, 2) direction from π(R x_a) to the epipole, pixels
+    v = (t[:2] - inf_px / f_b * t[2]) * f_b  # (N, 2) direction from π(R x_a) to the epipole, pixels
     length = np.linalg.norm(v, axis=1)
     test = ahead & (length > 1e-12)
     behind = np.zeros(len(a))
@@ -271,8 +285,14 @@ def _rays(camera: Camera, px: np.ndarray) -> np.ndarray:
     return np.concatenate([x, np.ones((len(x), 1))], axis=1)
 
 
-def pair_support(camera_a: Camera, camera_b: Camera, b_from_a: Pose, points_a: object, points_b: object,
-                 options: FrameCheckOptions = DEFAULT_FRAME_CHECK) -> tuple[int, int]:
+def pair_support(
+    camera_a: Camera,
+    camera_b: Camera,
+    b_from_a: Pose,
+    points_a: object,
+    points_b: object,
+    options: FrameCheckOptions = DEFAULT_FRAME_CHECK,
+) -> tuple[int, int]:
     """``(shared, agreeing)`` of N pixel matches between images a and b with known poses.
 
     Args:
@@ -294,10 +314,12 @@ def pair_support(camera_a: Camera, camera_b: Camera, b_from_a: Pose, points_a: o
     ok = np.isfinite(xa).all(axis=1) & np.isfinite(xb).all(axis=1)
     if ok.sum() < 5:
         return 0, 0
-    ransac = RansacOptions(threshold_px=options.threshold_px, min_iterations=50, max_iterations=300,
-                           seed=options.seed)
-    est = estimate_relative_pose(camera_a, camera_b, pa[ok], pb[ok], model="6dof", options=ransac,
-                                 min_inliers=options.min_shared)
+    ransac = RansacOptions(
+        threshold_px=options.threshold_px, min_iterations=50, max_iterations=300, seed=options.seed
+    )
+    est = estimate_relative_pose(
+        camera_a, camera_b, pa[ok], pb[ok], model="6dof", options=ransac, min_inliers=options.min_shared
+    )
     errors = known_pose_errors_px(b_from_a.R, b_from_a.t, xa[ok], xb[ok], camera_a.focal, camera_b.focal)
     return int(est.num_inliers), int(np.count_nonzero(errors < options.pose_threshold_px))
 
@@ -359,15 +381,24 @@ class _MapView:
         """Map rows to match ``image`` with: retrieved first, then the nearest by centre."""
         rows: list[int] = []
         if self.index is not None and self.vocabulary is not None and options.retrieved:
-            found, _ = self.index.search(vlad_descriptor(self.vocabulary, feats.descriptors), options.retrieved)
+            found, _ = self.index.search(
+                vlad_descriptor(self.vocabulary, feats.descriptors), options.retrieved
+            )
             rows += [self.index_rows[int(i)] for i in found]
         d = np.linalg.norm(self.centers - image.cam_from_world.center, axis=1)
-        rows += [int(i) for i in np.argsort(d, kind="stable")[: options.nearest + len(rows)] if int(i) not in rows]
+        rows += [
+            int(i) for i in np.argsort(d, kind="stable")[: options.nearest + len(rows)] if int(i) not in rows
+        ]
         return rows[: options.retrieved + options.nearest]
 
 
-def check_appended_frames(db: MapDatabase, images: Sequence[PosedImage], extract: Extract,
-                          options: FrameCheckOptions = DEFAULT_FRAME_CHECK, mapper: Mapper = map) -> FrameCheck:
+def check_appended_frames(
+    db: MapDatabase,
+    images: Sequence[PosedImage],
+    extract: Extract,
+    options: FrameCheckOptions = DEFAULT_FRAME_CHECK,
+    mapper: Mapper = map,
+) -> FrameCheck:
     """Whether ``images`` (to be appended) share the world frame of the map ``db`` (module doc).
 
     Args:
@@ -396,7 +427,9 @@ def check_appended_frames(db: MapDatabase, images: Sequence[PosedImage], extract
         raise InputError(f"{db.path}: the map has no images to check appended images against")
     centers = np.array([im.cam_from_world.center for im in images])
     chosen = [images[int(k)] for k in nearest_first(centers, view.centers)[: options.max_images]]
-    extracted = list(mapper(extract, chosen))  # all of them (in parallel with a pool's map): none left running
+    extracted = list(
+        mapper(extract, chosen)
+    )  # all of them (in parallel with a pool's map): none left running
     for image, feats in zip(chosen, extracted):
         if isinstance(feats, str):
             continue
@@ -407,14 +440,28 @@ def check_appended_frames(db: MapDatabase, images: Sequence[PosedImage], extract
             ref_feats = view.features(row, options.max_features)
             m = match_features(feats, ref_feats)
             ref_from_image = ref.cam_from_world @ image.cam_from_world.inverse()
-            shared, agreeing = pair_support(image.camera, ref.camera, ref_from_image, feats.keypoints[m[:, 0]],
-                                            ref_feats.keypoints[m[:, 1]], options)
-            out.pairs.append(PairEvidence(image.name, ref.name, len(m), shared, agreeing,
-                                          pair_verdict(shared, agreeing, options)))
+            shared, agreeing = pair_support(
+                image.camera,
+                ref.camera,
+                ref_from_image,
+                feats.keypoints[m[:, 0]],
+                ref_feats.keypoints[m[:, 1]],
+                options,
+            )
+            out.pairs.append(
+                PairEvidence(
+                    image.name, ref.name, len(m), shared, agreeing, pair_verdict(shared, agreeing, options)
+                )
+            )
         if out.count("agrees") >= options.enough_agreeing and frames_related([p.verdict for p in out.pairs]):
             break
     out.related = frames_related([p.verdict for p in out.pairs]) if out.checked else True
     out.seconds = time.perf_counter() - start
-    logger.info("%s: world frame check of %d appended images in %.1f s: %s", db.path, len(images), out.seconds,
-                out.summary())
+    logger.info(
+        "%s: world frame check of %d appended images in %.1f s: %s",
+        db.path,
+        len(images),
+        out.seconds,
+        out.summary(),
+    )
     return out

@@ -27,13 +27,17 @@ def declared_world_down(images: Sequence[PosedImage]) -> WorldDown | None:
     """The ``world_down`` the images declare (all must agree), or None if none declares one."""
     found = {im.world_down for im in images if im.world_down is not None}
     if len(found) > 1:
-        raise InputError("the images declare different world gravity directions: "
-                         + "; ".join(f"{w.direction} ({w.detail})" for w in found)
-                         + "; hint: pass the dataset option up=... for all of them")
+        raise InputError(
+            "the images declare different world gravity directions: "
+            + "; ".join(f"{w.direction} ({w.detail})" for w in found)
+            + "; hint: pass the dataset option up=... for all of them"
+        )
     return next(iter(found), None)
 
 
-def resolve_world_down(db: MapDatabase, declared: WorldDown | None) -> tuple[WorldDown | None, WorldDown | None]:
+def resolve_world_down(
+    db: MapDatabase, declared: WorldDown | None
+) -> tuple[WorldDown | None, WorldDown | None]:
     """``(stored, to use)`` world down of a map given the new images' declaration (rules in
     :func:`store_map_gravity`); InputError on a contradiction."""
     raw = db.get_meta(WORLD_DOWN_META)
@@ -45,7 +49,8 @@ def resolve_world_down(db: MapDatabase, declared: WorldDown | None) -> tuple[Wor
     if stored.source == "declared" and not np.allclose(stored.direction, declared.direction, atol=1e-9):
         raise InputError(
             f"{db.path}: the map's world has down = {stored.direction} ({stored.detail}) but the new images "
-            f"declare {declared.direction} ({declared.detail}); hint: pass the dataset option up=...")
+            f"declare {declared.direction} ({declared.detail}); hint: pass the dataset option up=..."
+        )
     return stored, stored
 
 
@@ -88,8 +93,9 @@ def map_gravity(db: MapDatabase) -> GravityReport:
     raw = db.get_meta(GRAVITY_META)
     if raw:
         return GravityReport.from_dict(json.loads(raw))
-    logger.info("%s: the map stores no gravity (built by an older planarloc); estimating it from its poses",
-                db.path)
+    logger.info(
+        "%s: the map stores no gravity (built by an older planarloc); estimating it from its poses", db.path
+    )
     raw_down = db.get_meta(WORLD_DOWN_META)
     declared = WorldDown.from_dict(json.loads(raw_down)) if raw_down else None
     return gravity_from_map_poses(list(db.load_all_poses().values()), declared)[1]

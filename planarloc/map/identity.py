@@ -59,11 +59,11 @@ def file_sha256(path: Path) -> str:
 class MapUpdatePlan:
     """What a build does with its images; lists of the incoming (possibly renamed) records."""
 
-    add: list[tuple[PosedImage, str]] = field(default_factory=list)        # new: extract and insert
-    keep: list[str] = field(default_factory=list)                           # identical: nothing to do
-    update: list[tuple[PosedImage, str]] = field(default_factory=list)     # pose / path / camera params
-    replace: list[tuple[PosedImage, str]] = field(default_factory=list)    # content changed: re-extract
-    renamed: list[tuple[str, str]] = field(default_factory=list)           # (original name, stored name)
+    add: list[tuple[PosedImage, str]] = field(default_factory=list)  # new: extract and insert
+    keep: list[str] = field(default_factory=list)  # identical: nothing to do
+    update: list[tuple[PosedImage, str]] = field(default_factory=list)  # pose / path / camera params
+    replace: list[tuple[PosedImage, str]] = field(default_factory=list)  # content changed: re-extract
+    renamed: list[tuple[str, str]] = field(default_factory=list)  # (original name, stored name)
 
     @property
     def changes_map(self) -> bool:
@@ -73,15 +73,21 @@ class MapUpdatePlan:
         """One line per action taken (empty if the map only gets resumed)."""
         lines = []
         if self.update:
-            lines.append(f"{map_path}: {len(self.update)} image(s) already in the map have a new pose, camera or "
-                         f"path (e.g. {self.update[0][0].name}); updated them, their features stay")
+            lines.append(
+                f"{map_path}: {len(self.update)} image(s) already in the map have a new pose, camera or "
+                f"path (e.g. {self.update[0][0].name}); updated them, their features stay"
+            )
         if self.replace:
-            lines.append(f"{map_path}: {len(self.replace)} image file(s) changed since they were mapped "
-                         f"(e.g. {self.replace[0][0].name}); re-extracted their features")
+            lines.append(
+                f"{map_path}: {len(self.replace)} image file(s) changed since they were mapped "
+                f"(e.g. {self.replace[0][0].name}); re-extracted their features"
+            )
         if self.renamed:
             o, n = self.renamed[0]
-            lines.append(f"{map_path}: {len(self.renamed)} image name(s) are already used by different images "
-                         f"of another dataset (e.g. {o}); stored these as {n} etc. to keep both")
+            lines.append(
+                f"{map_path}: {len(self.renamed)} image name(s) are already used by different images "
+                f"of another dataset (e.g. {o}); stored these as {n} etc. to keep both"
+            )
         return lines
 
 
@@ -91,10 +97,14 @@ def _same_pose(a: PosedImage, b: PosedImage) -> bool:
 
 
 def _same_record(stored: PosedImage, new: PosedImage) -> bool:
-    return (_same_pose(stored, new) and stored.camera == new.camera
-            and Path(stored.path) == Path(new.path)
-            and stored.timestamp == new.timestamp and stored.depth_path == new.depth_path
-            and stored.depth_scale == new.depth_scale)
+    return (
+        _same_pose(stored, new)
+        and stored.camera == new.camera
+        and Path(stored.path) == Path(new.path)
+        and stored.timestamp == new.timestamp
+        and stored.depth_path == new.depth_path
+        and stored.depth_scale == new.depth_scale
+    )
 
 
 def _dataset_prefix(image: PosedImage) -> str:
@@ -123,8 +133,11 @@ def plan_map_update(db: MapDatabase, images: Sequence[PosedImage], hashes: Seque
         if image.name in seen:
             raise InputError(f"two images of the input are named {image.name!r}; names must be unique")
         seen.add(image.name)
-        candidates = [image.name, f"{_dataset_prefix(image)}/{image.name}",
-                      f"{_dataset_prefix(image)}-{sha[:8]}/{image.name}"]
+        candidates = [
+            image.name,
+            f"{_dataset_prefix(image)}/{image.name}",
+            f"{_dataset_prefix(image)}-{sha[:8]}/{image.name}",
+        ]
         for k, name in enumerate(candidates):
             record = image if name == image.name else dataclasses.replace(image, name=name)
             source = db.image_source(name)

@@ -98,17 +98,24 @@ def check_map(path: str | Path, progress: Callable[[int, int], None] | None = No
     return report
 
 
-def _check_rows(conn: sqlite3.Connection, report: MapCheckReport,
-                progress: Callable[[int, int], None] | None) -> None:
+def _check_rows(
+    conn: sqlite3.Connection, report: MapCheckReport, progress: Callable[[int, int], None] | None
+) -> None:
     meta = _check_meta(conn, report)
     cameras = _check_cameras(conn, report)
-    has_sources = conn.execute(
-        "SELECT 1 FROM sqlite_master WHERE type = 'table' AND name = 'image_sources'").fetchone() is not None
+    has_sources = (
+        conn.execute("SELECT 1 FROM sqlite_master WHERE type = 'table' AND name = 'image_sources'").fetchone()
+        is not None
+    )
     digests, global_sums = {}, {}
     if has_sources:
-        for image_id, rec, glob in conn.execute("SELECT image_id, record_sha256, global_sha256 FROM image_sources"):
+        for image_id, rec, glob in conn.execute(
+            "SELECT image_id, record_sha256, global_sha256 FROM image_sources"
+        ):
             digests[image_id], global_sums[image_id] = rec, glob
-    _check_images(conn, report, _MapContext(meta, cameras, digests, _descriptor_basis(conn, report)), progress)
+    _check_images(
+        conn, report, _MapContext(meta, cameras, digests, _descriptor_basis(conn, report)), progress
+    )
     _check_global_descriptors(conn, report, meta, global_sums)
     _check_blobs(conn, report, meta)
 
@@ -151,8 +158,12 @@ def _check_cameras(conn: sqlite3.Connection, report: MapCheckReport) -> dict[int
     return cameras
 
 
-def _check_images(conn: sqlite3.Connection, report: MapCheckReport, ctx: _MapContext,
-                  progress: Callable[[int, int], None] | None) -> None:
+def _check_images(
+    conn: sqlite3.Connection,
+    report: MapCheckReport,
+    ctx: _MapContext,
+    progress: Callable[[int, int], None] | None,
+) -> None:
     """Every image row with its keypoints and descriptors: name, camera, pose, features, checksum."""
     total = int(conn.execute("SELECT COUNT(*) FROM images").fetchone()[0])
     report.num_images = total
@@ -160,7 +171,8 @@ def _check_images(conn: sqlite3.Connection, report: MapCheckReport, ctx: _MapCon
     cursor = conn.execute(
         "SELECT i.id, i.name, i.camera_id, i.qw, i.qx, i.qy, i.qz, i.tx, i.ty, i.tz, "
         "k.num, k.data, d.num, d.dim, d.encoding, d.data FROM images i "
-        "LEFT JOIN keypoints k ON k.image_id = i.id LEFT JOIN descriptors d ON d.image_id = i.id ORDER BY i.id")
+        "LEFT JOIN keypoints k ON k.image_id = i.id LEFT JOIN descriptors d ON d.image_id = i.id ORDER BY i.id"
+    )
     for done, row in enumerate(cursor, 1):
         image_id, name, cam_id = row[0], row[1], row[2]
         where = f"images row {image_id} ({name!r})"
@@ -201,8 +213,9 @@ def _image_row_problems(row: tuple, ctx: _MapContext) -> list[str]:
     return problems
 
 
-def _check_global_descriptors(conn: sqlite3.Connection, report: MapCheckReport, meta: dict,
-                              global_sums: dict) -> None:
+def _check_global_descriptors(
+    conn: sqlite3.Connection, report: MapCheckReport, meta: dict, global_sums: dict
+) -> None:
     """Global descriptor rows: encoding, finite values, checksum, no orphans."""
     global_encoding = meta.get("global_encoding", "float32")
     for image_id, gdim, data in conn.execute("SELECT image_id, dim, data FROM global_descriptors"):
@@ -213,7 +226,9 @@ def _check_global_descriptors(conn: sqlite3.Connection, report: MapCheckReport, 
             report.add(f"global_descriptors row {image_id}: non-finite values")
         elif global_sums.get(image_id) not in (None, hashlib.sha256(data).hexdigest()):
             report.add(f"global_descriptors row {image_id}: checksum mismatch")
-    orphans = conn.execute("SELECT COUNT(*) FROM global_descriptors WHERE image_id NOT IN (SELECT id FROM images)")
+    orphans = conn.execute(
+        "SELECT COUNT(*) FROM global_descriptors WHERE image_id NOT IN (SELECT id FROM images)"
+    )
     if (n := orphans.fetchone()[0]) > 0:
         report.add(f"global_descriptors: {n} row(s) of images that are not in the map")
 
@@ -260,8 +275,16 @@ def _descriptor_basis(conn: sqlite3.Connection, report: MapCheckReport) -> Descr
         return None
 
 
-def _check_features(kp_num: object, kp_blob: bytes, d_num: object, dim: object, encoding: object,
-                    d_blob: bytes, meta: dict, basis: DescriptorBasis | None) -> str | None:
+def _check_features(
+    kp_num: object,
+    kp_blob: bytes,
+    d_num: object,
+    dim: object,
+    encoding: object,
+    d_blob: bytes,
+    meta: dict,
+    basis: DescriptorBasis | None,
+) -> str | None:
     if not all(isinstance(v, int) for v in (kp_num, d_num, dim)) or not isinstance(encoding, str):
         return "damaged feature counts"
     if kp_num != d_num:
@@ -269,8 +292,15 @@ def _check_features(kp_num: object, kp_blob: bytes, d_num: object, dim: object, 
     if meta.get("descriptor_dim") not in (None, str(dim)):
         return f"descriptor dimension {dim}, the map's is {meta.get('descriptor_dim')}"
     try:
-        decode_features(kp_num, kp_blob, dim, encoding, d_blob, KEYPOINT_LAYOUTS.get(meta.get("storage", "full"), "?"),
-                        basis)
+        decode_features(
+            kp_num,
+            kp_blob,
+            dim,
+            encoding,
+            d_blob,
+            KEYPOINT_LAYOUTS.get(meta.get("storage", "full"), "?"),
+            basis,
+        )
     except MapFormatError as exc:
         return str(exc)
     return None

@@ -50,8 +50,12 @@ def _open_lock(path: Path, flags: int) -> int:
         return os.open(path, flags | os.O_NOFOLLOW, 0o644)
     except OSError as exc:
         if exc.errno == errno.ELOOP:
-            raise OSError(errno.ELOOP, "the map's lock file is a symbolic link; planarloc does not follow it "
-                          "(remove it if no build runs)", str(path)) from None
+            raise OSError(
+                errno.ELOOP,
+                "the map's lock file is a symbolic link; planarloc does not follow it "
+                "(remove it if no build runs)",
+                str(path),
+            ) from None
         raise
 
 
@@ -97,8 +101,12 @@ class MapWriterLock:
         OSError: the lock file cannot be created (e.g. read-only folder).
     """
 
-    def __init__(self, map_path: str | os.PathLike, timeout: float | None = None,
-                 on_wait: Callable[[str], None] | None = None) -> None:
+    def __init__(
+        self,
+        map_path: str | os.PathLike,
+        timeout: float | None = None,
+        on_wait: Callable[[str], None] | None = None,
+    ) -> None:
         self.map_path = Path(map_path)
         self.path = lock_path_of(self.map_path)
         self.timeout = timeout
@@ -137,7 +145,9 @@ class MapWriterLock:
                     ) from None
                 if not told:
                     told = True
-                    logger.warning("%s is being built by PID %s; waiting for it to finish", self.map_path, owner)
+                    logger.warning(
+                        "%s is being built by PID %s; waiting for it to finish", self.map_path, owner
+                    )
                     if self.on_wait is not None:
                         self.on_wait(owner)
                 time.sleep(0.05)

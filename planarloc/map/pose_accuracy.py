@@ -122,20 +122,30 @@ class MapPoseAccuracy:
         return cls(**json.loads(text))
 
     def summary(self) -> str:
-        return (f"map poses agree with their images to {self.rotation_std_deg:.2g}° / {self.position_std_m:.2g} m "
-                f"per image, keypoint noise {self.keypoint_std_px:.2g} px (measured on {self.pairs} image pairs)")
+        return (
+            f"map poses agree with their images to {self.rotation_std_deg:.2g}° / {self.position_std_m:.2g} m "
+            f"per image, keypoint noise {self.keypoint_std_px:.2g} px (measured on {self.pairs} image pairs)"
+        )
 
 
-def _signed_sampson_px(R: np.ndarray, t: np.ndarray, xa: np.ndarray, xb: np.ndarray, fa: np.ndarray,
-                       fb: np.ndarray) -> np.ndarray:
+def _signed_sampson_px(
+    R: np.ndarray, t: np.ndarray, xa: np.ndarray, xb: np.ndarray, fa: np.ndarray, fb: np.ndarray
+) -> np.ndarray:
     """(N,) signed Sampson errors (pixels) of ``x_bᵀ [t]x R x_a = 0``."""
     E = essential_from_relpose(R, t)
     sign = np.sign(np.einsum("ij,ij->i", xb, xa @ E.T))
     return sign * np.sqrt(sampson_error_sq(E, xa, xb, fa, fb))
 
 
-def _refined_with_covariance(R: np.ndarray, t: np.ndarray, xa: np.ndarray, xb: np.ndarray, fa: np.ndarray,
-                             fb: np.ndarray, iterations: int = 3) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+def _refined_with_covariance(
+    R: np.ndarray,
+    t: np.ndarray,
+    xa: np.ndarray,
+    xb: np.ndarray,
+    fa: np.ndarray,
+    fb: np.ndarray,
+    iterations: int = 3,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
     """A relative pose ``(R, t)`` (unit ``t``) refined by Gauss-Newton on the Sampson residuals
     (pixels) of its N inliers ``xa``, ``xb`` (N, 3), and its (5, 5) covariance ``σ̂² (JᵀJ)⁻¹``
     (rotation increment, direction offset; central-difference Jacobian) and ``σ̂`` (pixels).
@@ -143,6 +153,7 @@ def _refined_with_covariance(R: np.ndarray, t: np.ndarray, xa: np.ndarray, xb: n
     The RANSAC's own refinement stops at a tolerance, and its robust loss weighs the inliers; the
     covariance is of the least-squares optimum it linearises at, so the pose is taken there.
     """
+
     def residuals(R0: np.ndarray, t0: np.ndarray, B: np.ndarray, p: np.ndarray) -> np.ndarray:
         t_p = t0 + B @ p[3:]
         return _signed_sampson_px(so3_exp(p[:3])[0] @ R0, t_p / np.linalg.norm(t_p), xa, xb, fa, fb)
@@ -167,8 +178,15 @@ def _refined_with_covariance(R: np.ndarray, t: np.ndarray, xa: np.ndarray, xb: n
     return R, t, sigma2 * np.linalg.pinv(JtJ), math.sqrt(sigma2)
 
 
-def pair_discrepancy(camera_a: Camera, camera_b: Camera, b_from_a: Pose, points_a: object, points_b: object,
-                     threshold_px: float = 2.0, seed: int = 0) -> PairDiscrepancy | None:
+def pair_discrepancy(
+    camera_a: Camera,
+    camera_b: Camera,
+    b_from_a: Pose,
+    points_a: object,
+    points_b: object,
+    threshold_px: float = 2.0,
+    seed: int = 0,
+) -> PairDiscrepancy | None:
     """How far the relative pose of N pixel matches is from the claimed ``b_from_a``.
 
     Args:
@@ -189,21 +207,27 @@ def pair_discrepancy(camera_a: Camera, camera_b: Camera, b_from_a: Pose, points_
     if len(pa) < MIN_PAIR_INLIERS or not baseline > 0:
         return None
     options = RansacOptions(threshold_px=threshold_px, min_iterations=50, max_iterations=300, seed=seed)
-    est = estimate_relative_pose(camera_a, camera_b, pa, pb, model="6dof", options=options,
-                                 min_inliers=MIN_PAIR_INLIERS)
+    est = estimate_relative_pose(
+        camera_a, camera_b, pa, pb, model="6dof", options=options, min_inliers=MIN_PAIR_INLIERS
+    )
     if not est.success or est.pose is None:
         return None
     R, t = est.pose.R, est.pose.t / np.linalg.norm(est.pose.t)
     xa = np.column_stack([camera_a.cam_from_img(pa[est.inliers]), np.ones(est.num_inliers)])
     xb = np.column_stack([camera_b.cam_from_img(pb[est.inliers]), np.ones(est.num_inliers)])
-    R, t, cov, sigma = _refined_with_covariance(R, t, xa, xb, np.asarray(camera_a.focal, float),
-                                                np.asarray(camera_b.focal, float))
+    R, t, cov, sigma = _refined_with_covariance(
+        R, t, xa, xb, np.asarray(camera_a.focal, float), np.asarray(camera_b.focal, float)
+    )
     delta = np.concatenate([so3_log(b_from_a.R @ R.T)[0], direction_basis(t).T @ (b_from_a.t / baseline)])
     return PairDiscrepancy(delta, cov, baseline, int(est.num_inliers), sigma)
 
 
-def _log_likelihood(pairs: Sequence[PairDiscrepancy], rotation_var: np.ndarray, position_var: np.ndarray,
-                    noise_scale: np.ndarray) -> np.ndarray:
+def _log_likelihood(
+    pairs: Sequence[PairDiscrepancy],
+    rotation_var: np.ndarray,
+    position_var: np.ndarray,
+    noise_scale: np.ndarray,
+) -> np.ndarray:
     """Log-likelihood of the pairs' discrepancies for each pair of per-image variances (rotation
     rad², position m²; arrays of one shape).
 
@@ -213,9 +237,14 @@ def _log_likelihood(pairs: Sequence[PairDiscrepancy], rotation_var: np.ndarray, 
     so that a few wrong pairs do not raise the stds, while a map whose every pair disagrees is
     not mistaken for one whose pairs are all wrong.
     """
+
     def log_normal(delta: np.ndarray, S: np.ndarray) -> np.ndarray:
         sign, logdet = np.linalg.slogdet(S)
-        z = np.einsum("...i,...i->...", delta, np.linalg.solve(S, np.broadcast_to(delta, S.shape[:-1])[..., None])[..., 0])
+        z = np.einsum(
+            "...i,...i->...",
+            delta,
+            np.linalg.solve(S, np.broadcast_to(delta, S.shape[:-1])[..., None])[..., 0],
+        )
         return np.where(sign > 0, -0.5 * (z + logdet + 5 * math.log(2 * math.pi)), -np.inf)
 
     total = np.zeros(rotation_var.shape)
@@ -247,9 +276,12 @@ def accuracy_from_discrepancies(pairs: Sequence[PairDiscrepancy]) -> MapPoseAccu
     R2, P2, K = np.meshgrid(rot**2, pos**2, NOISE_SCALES, indexing="ij")
     ll = _log_likelihood(pairs, R2, P2, K)
     i, j, _ = np.unravel_index(int(np.argmax(ll)), ll.shape)
-    return MapPoseAccuracy(max(math.degrees(float(rot[i])), MIN_ROTATION_STD_DEG),
-                           max(float(pos[j]), MIN_POSITION_STD_M), len(pairs),
-                           float(np.median([p.residual_px for p in pairs])))
+    return MapPoseAccuracy(
+        max(math.degrees(float(rot[i])), MIN_ROTATION_STD_DEG),
+        max(float(pos[j]), MIN_POSITION_STD_M),
+        len(pairs),
+        float(np.median([p.residual_px for p in pairs])),
+    )
 
 
 def neighbour_pairs(centers: object, neighbours: int = 2, max_pairs: int = 60) -> list[tuple[int, int]]:
@@ -280,14 +312,16 @@ def neighbour_pairs(centers: object, neighbours: int = 2, max_pairs: int = 60) -
 Progress = Callable[[str, int, int], None]
 
 
-def measure_map_accuracy(db: MapDatabase, max_pairs: int = 60, threshold_px: float = 2.0,
-                         progress: Progress | None = None) -> MapPoseAccuracy | None:
+def measure_map_accuracy(
+    db: MapDatabase, max_pairs: int = 60, threshold_px: float = 2.0, progress: Progress | None = None
+) -> MapPoseAccuracy | None:
     """:class:`MapPoseAccuracy` of the map ``db`` over at most ``max_pairs`` neighbour pairs
     (:func:`neighbour_pairs`); None when fewer than :data:`MIN_PAIRS` pairs measure a relative
     pose (too few images, or images that share too little)."""
     images = db.posed_images()
-    pairs = neighbour_pairs(np.array([im.cam_from_world.center for im in images]).reshape(-1, 3),
-                            max_pairs=max_pairs)
+    pairs = neighbour_pairs(
+        np.array([im.cam_from_world.center for im in images]).reshape(-1, 3), max_pairs=max_pairs
+    )
     features: dict[int, object] = {}
 
     def feats(k: int):
@@ -301,15 +335,26 @@ def measure_map_accuracy(db: MapDatabase, max_pairs: int = 60, threshold_px: flo
         fa, fb = feats(i), feats(j)
         m = match_features(fa, fb)
         if len(m) >= MIN_PAIR_INLIERS:
-            found_pair = pair_discrepancy(a.camera, b.camera, b.cam_from_world @ a.cam_from_world.inverse(),
-                                          fa.keypoints[m[:, 0]], fb.keypoints[m[:, 1]], threshold_px)
+            found_pair = pair_discrepancy(
+                a.camera,
+                b.camera,
+                b.cam_from_world @ a.cam_from_world.inverse(),
+                fa.keypoints[m[:, 0]],
+                fb.keypoints[m[:, 1]],
+                threshold_px,
+            )
             if found_pair is not None:
                 found.append(found_pair)
         if progress:
             progress("measure map poses", n + 1, len(pairs))
     accuracy = accuracy_from_discrepancies(found)
-    logger.info("%s: %s", db.path, accuracy.summary() if accuracy else f"map pose accuracy not measured "
-                f"({len(found)} of {len(pairs)} pairs gave a relative pose)")
+    logger.info(
+        "%s: %s",
+        db.path,
+        accuracy.summary()
+        if accuracy
+        else f"map pose accuracy not measured ({len(found)} of {len(pairs)} pairs gave a relative pose)",
+    )
     return accuracy
 
 

@@ -68,8 +68,16 @@ GRAVITY_META = "gravity"
 WORLD_DOWN_META = "world_down"
 #: Meta keys only :class:`~planarloc.map.store.MapDatabase` itself writes.
 RESERVED_META = frozenset(
-    {"schema_version", "created_by", "config", "descriptor_encoding", "descriptor_dim", "build_complete", "storage",
-     "global_encoding"}
+    {
+        "schema_version",
+        "created_by",
+        "config",
+        "descriptor_encoding",
+        "descriptor_dim",
+        "build_complete",
+        "storage",
+        "global_encoding",
+    }
 )
 
 SOURCES_TABLE = """CREATE TABLE IF NOT EXISTS image_sources (
@@ -115,7 +123,9 @@ class MapCorruptError(MapFormatError):
 
 def row_error(path: Path, image: str, what: str) -> MapCorruptError:
     """The error for a damaged row of the map at ``path`` (names it and what to do)."""
-    return MapCorruptError(f"{path}: image {image}: {what}; run `planarloc map check {path}` and rebuild the map")
+    return MapCorruptError(
+        f"{path}: image {image}: {what}; run `planarloc map check {path}` and rebuild the map"
+    )
 
 
 def has_map_header(path: Path) -> bool:
@@ -174,7 +184,9 @@ def validate(conn: sqlite3.Connection, path: Path) -> None:
             raise MapCorruptError(f"{path}: damaged planarloc map ({exc}); rebuild it") from None
         raise MapFormatError(f"{path} is not a planarloc map (not an SQLite database: {exc})") from None
     if "meta" not in tables:
-        raise MapFormatError(f"{path} is not a planarloc map (SQLite database without a planarloc meta table)")
+        raise MapFormatError(
+            f"{path} is not a planarloc map (SQLite database without a planarloc meta table)"
+        )
     try:
         meta = dict(conn.execute("SELECT key, value FROM meta WHERE key IN ('created_by', 'schema_version')"))
     except sqlite3.DatabaseError as exc:

@@ -77,21 +77,29 @@ def _flatten(config: Mapping[str, object], prefix: str = "") -> dict[str, object
 def config_diff(stored: Mapping[str, object], given: Mapping[str, object]) -> str:
     """``key: map has X, given Y`` for every differing (nested) key, e.g. ``features.tilt``."""
     a, b = _flatten(stored), _flatten(given)
-    diffs = [f"{k}: map has {json.dumps(a.get(k))}, given {json.dumps(b.get(k))}"
-             for k in sorted(set(a) | set(b))
-             if json.dumps(a.get(k)) != json.dumps(b.get(k)) and not k.endswith("feature_name")]
+    diffs = [
+        f"{k}: map has {json.dumps(a.get(k))}, given {json.dumps(b.get(k))}"
+        for k in sorted(set(a) | set(b))
+        if json.dumps(a.get(k)) != json.dumps(b.get(k)) and not k.endswith("feature_name")
+    ]
     return "; ".join(diffs) or "feature config differs"
 
 
-def settings_mismatch_error(path: Path, stored: Mapping[str, object], given: Mapping[str, object]) -> InputError:
+def settings_mismatch_error(
+    path: Path, stored: Mapping[str, object], given: Mapping[str, object]
+) -> InputError:
     """The error for building into a map made with other settings (names the differing keys, or
     the two feature types when they differ: a map holds one type)."""
     kinds = feature_kind_of_config(dict(stored)), feature_kind_of_config(dict(given))
     if kinds[0] != kinds[1]:
-        return InputError(f"{path} was built with {kinds[0]} features, not {kinds[1]} (--features): a map holds "
-                          "one feature type; use a new map file, or --features " + kinds[0])
-    return InputError(f"{path} was built with another feature config ({config_diff(stored, dict(given))}); use a "
-                      "new map file, or the map's settings to resume or extend it")
+        return InputError(
+            f"{path} was built with {kinds[0]} features, not {kinds[1]} (--features): a map holds "
+            "one feature type; use a new map file, or --features " + kinds[0]
+        )
+    return InputError(
+        f"{path} was built with another feature config ({config_diff(stored, dict(given))}); use a "
+        "new map file, or the map's settings to resume or extend it"
+    )
 
 
 def check_num_words(num_words: object) -> int:
@@ -106,8 +114,11 @@ def map_config(features: FeatureConfig, num_words: int) -> dict:
     stored = dataclasses.asdict(features)
     if stored["kind"] == DEFAULT_FEATURE_TYPE:
         del stored["kind"]  # RootSIFT maps read as before (see the module docstring)
-    return {"features": stored, "feature_name": features.name,
-            "retrieval": {"type": "vlad", "num_words": int(num_words)}}
+    return {
+        "features": stored,
+        "feature_name": features.name,
+        "retrieval": {"type": "vlad", "num_words": int(num_words)},
+    }
 
 
 def feature_config_from_map(db: object) -> FeatureConfig:

@@ -116,8 +116,10 @@ def _check_pages(conn: sqlite3.Connection, path: Path) -> None:
     rows = conn.execute("PRAGMA quick_check(1)").fetchall()
     if [r[0] for r in rows] != ["ok"]:
         first = " ".join(str(rows[0][0]).split()) if rows else "no answer"
-        raise MapCorruptError(f"{path}: damaged map file (SQLite quick_check: {first}); run `planarloc map check "
-                              f"{path}` and rebuild the map")
+        raise MapCorruptError(
+            f"{path}: damaged map file (SQLite quick_check: {first}); run `planarloc map check "
+            f"{path}` and rebuild the map"
+        )
     if state is not None:
         _PAGES_SOUND.add(state)
 
@@ -140,8 +142,14 @@ class MapDatabase(MapReading, MapWriting):
         ...     feats = db.get_features("image_l/000012.png")
     """
 
-    def __init__(self, conn: sqlite3.Connection, path: Path, writable: bool, cache_size: int,
-                 lock: MapWriterLock | None = None) -> None:
+    def __init__(
+        self,
+        conn: sqlite3.Connection,
+        path: Path,
+        writable: bool,
+        cache_size: int,
+        lock: MapWriterLock | None = None,
+    ) -> None:
         # Use create()/open(); the connection must hold a validated planarloc map.
         self._conn = conn
         self._lock = lock
@@ -157,8 +165,10 @@ class MapDatabase(MapReading, MapWriting):
         self._storage = meta.get("storage", "full")  # maps from before storage layouts
         self._global_encoding = meta.get("global_encoding", "float32")
         if self._storage not in STORAGE_LAYOUTS or self._global_encoding not in GLOBAL_ENCODINGS:
-            raise MapCorruptError(f"{path}: meta.storage {self._storage!r} / meta.global_encoding "
-                                  f"{self._global_encoding!r} unknown; run `planarloc map check {path}`")
+            raise MapCorruptError(
+                f"{path}: meta.storage {self._storage!r} / meta.global_encoding "
+                f"{self._global_encoding!r} unknown; run `planarloc map check {path}`"
+            )
         self._kp_layout = KEYPOINT_LAYOUTS[self._storage]
         self._basis: DescriptorBasis | None = None  # of klt rows, read on first use
         self._poses: tuple[tuple[int, int], dict[int, Pose]] | None = None  # (map version, {id: pose})
@@ -166,9 +176,13 @@ class MapDatabase(MapReading, MapWriting):
             self._dim: int | None = int(meta["descriptor_dim"]) if "descriptor_dim" in meta else None
             self._config: dict = json.loads(meta.get("config", "{}"))
         except (ValueError, TypeError) as exc:
-            raise MapCorruptError(f"{path}: damaged meta table ({exc}); run `planarloc map check {path}`") from None
+            raise MapCorruptError(
+                f"{path}: damaged meta table ({exc}); run `planarloc map check {path}`"
+            ) from None
         if not isinstance(self._config, dict):
-            raise MapCorruptError(f"{path}: meta.config is not a JSON object; run `planarloc map check {path}`")
+            raise MapCorruptError(
+                f"{path}: meta.config is not a JSON object; run `planarloc map check {path}`"
+            )
 
     # ---- opening -------------------------------------------------------------------------------
     @classmethod
@@ -215,15 +229,28 @@ class MapDatabase(MapReading, MapWriting):
         lock = _lock or MapWriterLock(path, timeout=lock_timeout)
         lock.acquire()
         try:
-            return cls._create_locked(path, config_json, descriptor_encoding, storage, overwrite, cache_size, lock)
+            return cls._create_locked(
+                path, config_json, descriptor_encoding, storage, overwrite, cache_size, lock
+            )
         except BaseException:
             lock.release()
             raise
 
     @classmethod
-    def _create_locked(cls, path: Path, config_json: str, descriptor_encoding: str, storage: str, overwrite: bool,
-                       cache_size: int, lock: MapWriterLock) -> MapDatabase:
-        given, path = path, Path(os.path.realpath(path))  # through a symbolic link: the file it names (the lock's)
+    def _create_locked(
+        cls,
+        path: Path,
+        config_json: str,
+        descriptor_encoding: str,
+        storage: str,
+        overwrite: bool,
+        cache_size: int,
+        lock: MapWriterLock,
+    ) -> MapDatabase:
+        given, path = (
+            path,
+            Path(os.path.realpath(path)),
+        )  # through a symbolic link: the file it names (the lock's)
         if path.exists():
             if not overwrite:
                 raise InputError(
@@ -233,7 +260,9 @@ class MapDatabase(MapReading, MapWriting):
             path.unlink()
         for side in schema.sidecars(path):
             side.unlink(missing_ok=True)
-        for stale in path.parent.glob(f".{path.name}.*.creating*"):  # left by a killed create (we hold the lock)
+        for stale in path.parent.glob(
+            f".{path.name}.*.creating*"
+        ):  # left by a killed create (we hold the lock)
             stale.unlink(missing_ok=True)
 
         from planarloc.version import __version__
@@ -270,7 +299,11 @@ class MapDatabase(MapReading, MapWriting):
 
     @classmethod
     def open(
-        cls, path: str | os.PathLike, mode: Literal["r", "a"] = "r", *, cache_size: int = DEFAULT_CACHE_SIZE,
+        cls,
+        path: str | os.PathLike,
+        mode: Literal["r", "a"] = "r",
+        *,
+        cache_size: int = DEFAULT_CACHE_SIZE,
         lock_timeout: float | None = None,
     ) -> MapDatabase:
         """Open an existing map.

@@ -40,6 +40,7 @@ class MapReading(MapState):
     """The reading methods of :class:`~planarloc.map.store.MapDatabase` (its connection and caches)."""
 
     if TYPE_CHECKING:  # MapDatabase's own helpers these methods call; for the type checker only
+
         def _has_sources(self) -> bool: ...
         def descriptor_basis(self) -> DescriptorBasis | None: ...
         def get_meta(self, key: str) -> str | None: ...
@@ -50,12 +51,16 @@ class MapReading(MapState):
                 "SELECT model, width, height, params FROM cameras WHERE id = ?", (camera_id,)
             ).fetchone()
             if row is None:
-                raise MapCorruptError(f"{self.path}: camera row {camera_id} is missing; run `planarloc map check`")
+                raise MapCorruptError(
+                    f"{self.path}: camera row {camera_id} is missing; run `planarloc map check`"
+                )
             try:
                 self._cameras[camera_id] = Camera(row[0], row[1], row[2], tuple(json.loads(row[3])))
             except (ValueError, TypeError) as exc:
-                raise MapCorruptError(f"{self.path}: camera row {camera_id} is damaged ({exc}); "
-                                      f"run `planarloc map check {self.path}`") from None
+                raise MapCorruptError(
+                    f"{self.path}: camera row {camera_id} is damaged ({exc}); "
+                    f"run `planarloc map check {self.path}`"
+                ) from None
         return self._cameras[camera_id]
 
     def _posed_from_row(self, row: tuple, pose: Pose | None = None) -> PosedImage:
@@ -78,9 +83,7 @@ class MapReading(MapState):
 
     def _image_row(self, key: str | int) -> tuple:
         if isinstance(key, (int, np.integer)) and not isinstance(key, bool):
-            row = self._db.execute(
-                f"SELECT {IMAGE_COLUMNS} FROM images WHERE id = ?", (int(key),)
-            ).fetchone()
+            row = self._db.execute(f"SELECT {IMAGE_COLUMNS} FROM images WHERE id = ?", (int(key),)).fetchone()
         else:
             row = self._db.execute(
                 f"SELECT {IMAGE_COLUMNS} FROM images WHERE name = ?", (str(key),)
@@ -109,7 +112,9 @@ class MapReading(MapState):
 
     def load_all_poses(self) -> dict[str, Pose]:
         """``{name: cam_from_world}`` of all images, in id order."""
-        rows = self._db.execute("SELECT id, name, qw, qx, qy, qz, tx, ty, tz FROM images ORDER BY id").fetchall()
+        rows = self._db.execute(
+            "SELECT id, name, qw, qx, qy, qz, tx, ty, tz FROM images ORDER BY id"
+        ).fetchall()
         return dict(zip((r[1] for r in rows), self._poses_of(rows, 2)))
 
     def _poses_of(self, rows: Sequence[tuple], first: int) -> list[Pose]:
@@ -127,19 +132,30 @@ class MapReading(MapState):
 
     def _poses_checked(self, rows: Sequence[tuple], first: int) -> list[Pose]:
         """Poses of rows whose columns ``first:first + 7`` are (qw..tz); damaged rows are named."""
-        columns = [r[first:first + 7] for r in rows]
+        columns = [r[first : first + 7] for r in rows]
         bad = damaged_poses(columns)
         if bad.any():
             r = rows[int(np.argmax(bad))]
-            raise row_error(self.path, f"{r[1]!r} (row id {r[0]})", "damaged pose (not a unit quaternion "
-                            "and finite translation)")
+            raise row_error(
+                self.path,
+                f"{r[1]!r} (row id {r[0]})",
+                "damaged pose (not a unit quaternion and finite translation)",
+            )
         return poses_from_columns(columns)
 
-    def _features_from_blobs(self, label: str, num: int, kp_blob: bytes, dim: int, encoding: str,
-                             desc_blob: bytes) -> Features:
+    def _features_from_blobs(
+        self, label: str, num: int, kp_blob: bytes, dim: int, encoding: str, desc_blob: bytes
+    ) -> Features:
         try:
-            return decode_features(num, kp_blob, dim, encoding, desc_blob, self._kp_layout,
-                                   self.descriptor_basis() if encoding == "klt" else None)
+            return decode_features(
+                num,
+                kp_blob,
+                dim,
+                encoding,
+                desc_blob,
+                self._kp_layout,
+                self.descriptor_basis() if encoding == "klt" else None,
+            )
         except MapCorruptError as exc:
             raise row_error(self.path, label, str(exc)) from None
 
@@ -163,7 +179,9 @@ class MapReading(MapState):
             name = self._db.execute("SELECT name FROM images WHERE id = ?", (image_id,)).fetchone()
             if name is None:
                 raise MapKeyError(f"image id {image_id} is not in map {self.path}")
-            raise row_error(self.path, f"{name[0]!r} (row id {image_id})", "its keypoints or descriptors are missing")
+            raise row_error(
+                self.path, f"{name[0]!r} (row id {image_id})", "its keypoints or descriptors are missing"
+            )
         feats = self._features_from_blobs(f"row id {image_id}", *row)
         self._verify_record(image_id, row)
         if self._cache_size > 0:
@@ -191,13 +209,18 @@ class MapReading(MapState):
         row = self._db.execute(
             "SELECT i.name, c.model, c.width, c.height, c.params, i.qw, i.qx, i.qy, i.qz, i.tx, i.ty, i.tz, "
             "s.record_sha256 FROM images i JOIN image_sources s ON s.image_id = i.id "
-            "LEFT JOIN cameras c ON c.id = i.camera_id WHERE i.id = ?", (image_id,)).fetchone()
+            "LEFT JOIN cameras c ON c.id = i.camera_id WHERE i.id = ?",
+            (image_id,),
+        ).fetchone()
         if row is None:
             return
         num, kp_blob, dim, encoding, desc_blob = blobs
         if record_digest(row[0], row[1:5], row[5:12], num, kp_blob, dim, encoding, desc_blob) != row[12]:
-            raise row_error(self.path, f"{row[0]!r} (row id {image_id})",
-                              "checksum mismatch (name, camera, pose or features changed on disk)")
+            raise row_error(
+                self.path,
+                f"{row[0]!r} (row id {image_id})",
+                "checksum mismatch (name, camera, pose or features changed on disk)",
+            )
 
     def get_global_descriptors(self) -> tuple[np.ndarray, np.ndarray]:
         """All stored global descriptors.
@@ -210,10 +233,19 @@ class MapReading(MapState):
         rows = self._db.execute(
             "SELECT image_id, dim, data FROM global_descriptors ORDER BY image_id"
         ).fetchall()
-        sums = dict(self._db.execute("SELECT image_id, global_sha256 FROM image_sources "
-                                     "WHERE global_sha256 IS NOT NULL")) if self._has_sources() else {}
+        sums = (
+            dict(
+                self._db.execute(
+                    "SELECT image_id, global_sha256 FROM image_sources WHERE global_sha256 IS NOT NULL"
+                )
+            )
+            if self._has_sources()
+            else {}
+        )
         for image_id, _dim, data in rows:
-            if image_id in sums and (not isinstance(data, bytes) or hashlib.sha256(data).hexdigest() != sums[image_id]):
+            if image_id in sums and (
+                not isinstance(data, bytes) or hashlib.sha256(data).hexdigest() != sums[image_id]
+            ):
                 raise row_error(self.path, f"row id {image_id}", "global descriptor checksum mismatch")
         if not rows:
             return np.zeros(0, dtype=np.int64), np.zeros((0, 0), dtype=np.float32)
@@ -237,7 +269,9 @@ class MapReading(MapState):
             return None
         data = self.get_blob(GLOBAL_BASIS_BLOB)
         if data is None:
-            raise row_error(self.path, f"blob {GLOBAL_BASIS_BLOB!r}", "missing (global descriptors are projected)")
+            raise row_error(
+                self.path, f"blob {GLOBAL_BASIS_BLOB!r}", "missing (global descriptors are projected)"
+            )
         try:
             return decode_basis(data)
         except MapCorruptError as exc:

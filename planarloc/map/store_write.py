@@ -52,6 +52,7 @@ class MapWriting(MapState):
     transactions)."""
 
     if TYPE_CHECKING:  # MapDatabase's own helpers these methods call; for the type checker only
+
         def _require_writable(self) -> None: ...
         def _transaction(self) -> AbstractContextManager[sqlite3.Connection]: ...
         def _find_id(self, name: str) -> int | None: ...
@@ -104,13 +105,20 @@ class MapWriting(MapState):
         kp, desc, scales = check_features(features, self._dim)
         n, dim = desc.shape
         basis, new_basis = self.descriptor_basis(), None
-        if basis is None and self._storage == "compact" and self._encoding == "auto" and n >= KLT_MIN_FEATURES \
-                and bool(desc.min() >= 0):
+        if (
+            basis is None
+            and self._storage == "compact"
+            and self._encoding == "auto"
+            and n >= KLT_MIN_FEATURES
+            and bool(desc.min() >= 0)
+        ):
             basis = new_basis = fit_descriptor_basis(desc)  # the map's first image with enough features
         encoding, desc_blob = encode_descriptors(desc, self._encoding, self._storage, basis)
         kp_blob = encode_keypoints(kp, scales, self._kp_layout)
         pose7 = pose_columns(posed.cam_from_world)
-        digest = record_digest(posed.name, camera_key(posed.camera), pose7, n, kp_blob, dim, encoding, desc_blob)
+        digest = record_digest(
+            posed.name, camera_key(posed.camera), pose7, n, kp_blob, dim, encoding, desc_blob
+        )
         pending: dict = {}
         with self._transaction() as conn:
             if new_basis is not None and encoding == "klt":
@@ -166,19 +174,25 @@ class MapWriting(MapState):
     def image_source(self, name: str) -> tuple[str | None, str | None] | None:
         """``(stored path, content SHA-256)`` of image ``name`` (None entries when unknown);
         None if no image has this name."""
-        row = self._db.execute(
-            "SELECT i.path, s.content_sha256 FROM images i LEFT JOIN image_sources s ON s.image_id = i.id "
-            "WHERE i.name = ?", (name,)
-        ).fetchone() if self._has_sources() else self._db.execute(
-            "SELECT path, NULL FROM images WHERE name = ?", (name,)
-        ).fetchone()
+        row = (
+            self._db.execute(
+                "SELECT i.path, s.content_sha256 FROM images i LEFT JOIN image_sources s ON s.image_id = i.id "
+                "WHERE i.name = ?",
+                (name,),
+            ).fetchone()
+            if self._has_sources()
+            else self._db.execute("SELECT path, NULL FROM images WHERE name = ?", (name,)).fetchone()
+        )
         return None if row is None else (row[0], row[1])
 
     def _has_sources(self) -> bool:
         if self._sources is None:
-            self._sources = self._db.execute(
-                "SELECT 1 FROM sqlite_master WHERE type = 'table' AND name = 'image_sources'"
-            ).fetchone() is not None
+            self._sources = (
+                self._db.execute(
+                    "SELECT 1 FROM sqlite_master WHERE type = 'table' AND name = 'image_sources'"
+                ).fetchone()
+                is not None
+            )
         return self._sources
 
     def update_image_record(self, name: str, posed: PosedImage, content_sha256: str | None = None) -> None:
@@ -195,7 +209,8 @@ class MapWriting(MapState):
         pose7 = pose_columns(posed.cam_from_world)
         num, kp_blob, dim, encoding, desc_blob = self._db.execute(
             "SELECT k.num, k.data, d.dim, d.encoding, d.data FROM keypoints k JOIN descriptors d "
-            "ON d.image_id = k.image_id WHERE k.image_id = ?", (image_id,)
+            "ON d.image_id = k.image_id WHERE k.image_id = ?",
+            (image_id,),
         ).fetchone()
         digest = record_digest(name, camera_key(posed.camera), pose7, num, kp_blob, dim, encoding, desc_blob)
         pending: dict = {}
@@ -204,11 +219,19 @@ class MapWriting(MapState):
             conn.execute(
                 "UPDATE images SET camera_id = ?, qw = ?, qx = ?, qy = ?, qz = ?, tx = ?, ty = ?, tz = ?, "
                 "path = ?, timestamp = ?, depth_path = ?, depth_scale = ? WHERE id = ?",
-                (cam_id, *pose7, str(posed.path), None if posed.timestamp is None else float(posed.timestamp),
-                 None if posed.depth_path is None else str(posed.depth_path), float(posed.depth_scale), image_id),
+                (
+                    cam_id,
+                    *pose7,
+                    str(posed.path),
+                    None if posed.timestamp is None else float(posed.timestamp),
+                    None if posed.depth_path is None else str(posed.depth_path),
+                    float(posed.depth_scale),
+                    image_id,
+                ),
             )
             old_sha = conn.execute(
-                "SELECT content_sha256 FROM image_sources WHERE image_id = ?", (image_id,)).fetchone()
+                "SELECT content_sha256 FROM image_sources WHERE image_id = ?", (image_id,)
+            ).fetchone()
             conn.execute(
                 "INSERT OR REPLACE INTO image_sources (image_id, content_sha256, record_sha256) VALUES (?, ?, ?)",
                 (image_id, content_sha256 or (old_sha[0] if old_sha else None), digest),
@@ -271,8 +294,11 @@ class MapWriting(MapState):
         replace_all = stored <= set(ids)
         basis = self.global_basis()
         if not replace_all:
-            dim = basis.shape[0] if basis is not None else self._db.execute(
-                "SELECT dim FROM global_descriptors LIMIT 1").fetchone()[0]
+            dim = (
+                basis.shape[0]
+                if basis is not None
+                else self._db.execute("SELECT dim FROM global_descriptors LIMIT 1").fetchone()[0]
+            )
             if mat.shape[1] != dim:
                 raise InputError(
                     f"global descriptors: the map stores {dim}-D vectors, got {mat.shape[1]}-D; "
@@ -293,12 +319,16 @@ class MapWriting(MapState):
             if replace_all:
                 conn.execute("DELETE FROM global_descriptors")
                 self._store_basis(conn, basis if encoding == "projected" else None)
-                conn.execute("INSERT OR REPLACE INTO meta (key, value) VALUES ('global_encoding', ?)", (encoding,))
+                conn.execute(
+                    "INSERT OR REPLACE INTO meta (key, value) VALUES ('global_encoding', ?)", (encoding,)
+                )
             conn.executemany(
                 "INSERT OR REPLACE INTO global_descriptors (image_id, dim, data) VALUES (?, ?, ?)", rows
             )
-            conn.executemany("UPDATE image_sources SET global_sha256 = ? WHERE image_id = ?",
-                             [(hashlib.sha256(r[2]).hexdigest(), r[0]) for r in rows])
+            conn.executemany(
+                "UPDATE image_sources SET global_sha256 = ? WHERE image_id = ?",
+                [(hashlib.sha256(r[2]).hexdigest(), r[0]) for r in rows],
+            )
         self._global_encoding = encoding
 
     @staticmethod
@@ -319,5 +349,7 @@ class MapWriting(MapState):
     def _put_blob(conn: sqlite3.Connection, key: str, data: bytes) -> None:
         """Write a blob and its checksum inside the caller's transaction."""
         conn.execute("INSERT OR REPLACE INTO blobs (key, data) VALUES (?, ?)", (key, data))
-        conn.execute("INSERT OR REPLACE INTO meta (key, value) VALUES (?, ?)",
-                     (BLOB_SHA_PREFIX + key, hashlib.sha256(data).hexdigest()))
+        conn.execute(
+            "INSERT OR REPLACE INTO meta (key, value) VALUES (?, ?)",
+            (BLOB_SHA_PREFIX + key, hashlib.sha256(data).hexdigest()),
+        )

@@ -265,5 +265,3 @@ def real_eigenvalues(M: np.ndarray, out: np.ndarray) -> int:
             out[count] = wr[i]
             count += 1
     return count
-
-

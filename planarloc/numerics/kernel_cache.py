@@ -186,8 +186,9 @@ class _LayeredCacheFile:
 
     def _file(self, path: str):
         if path not in self._files:
-            self._files[path] = _IndexDataFile(cache_path=path, filename_base=self._base,
-                                               source_stamp=self._stamp)
+            self._files[path] = _IndexDataFile(
+                cache_path=path, filename_base=self._base, source_stamp=self._stamp
+            )
         return self._files[path]
 
     def folders(self) -> list[str]:
@@ -232,18 +233,31 @@ class _LayeredCacheFile:
             self._chosen = True
             if _writable(self._home, private=False):
                 self._writer = self._file(self._home)
-                self._note = (logging.INFO, "%s is read-only: planarloc's kernels compiled now are cached in %s",
-                              self._tree, os.path.dirname(self._home))
+                self._note = (
+                    logging.INFO,
+                    "%s is read-only: planarloc's kernels compiled now are cached in %s",
+                    self._tree,
+                    os.path.dirname(self._home),
+                )
             elif _temp_folder_problem() is None and _writable(self._temp, private=True):
                 self._writer = self._file(self._temp)
-                self._note = (logging.WARNING, "%s is read-only and HOME is not writable: planarloc's kernels "
-                              "compiled now are cached in %s", self._tree, os.path.dirname(self._temp))
+                self._note = (
+                    logging.WARNING,
+                    "%s is read-only and HOME is not writable: planarloc's kernels "
+                    "compiled now are cached in %s",
+                    self._tree,
+                    os.path.dirname(self._temp),
+                )
             else:
                 why = _temp_folder_problem() or f"{self._temp} is not writable"
-                self._note = (logging.WARNING, "%s is read-only, HOME is not writable and %s: planarloc's kernels "
-                              "compiled now stay in memory (compiled again in each process); run `planarloc "
-                              "warmup` where the install is writable, or set NUMBA_CACHE_DIR to a writable folder",
-                              self._tree, why)
+                self._note = (
+                    logging.WARNING,
+                    "%s is read-only, HOME is not writable and %s: planarloc's kernels "
+                    "compiled now stay in memory (compiled again in each process); run `planarloc "
+                    "warmup` where the install is writable, or set NUMBA_CACHE_DIR to a writable folder",
+                    self._tree,
+                    why,
+                )
         return self._writer
 
     def save(self, key, data) -> None:
@@ -280,9 +294,14 @@ class KernelCache(_FunctionCache):
                 temp = os.path.join(user_temp_root(), TEMP_SUBFOLDER, subpath)
             except OSError:  # no usable temp folder at all
                 temp = os.path.join(os.sep, "nonexistent", TEMP_SUBFOLDER, subpath)
-            self._cache_file = _LayeredCacheFile(self._cache_file, self._impl.filename_base,
-                                                 self._impl.locator.get_source_stamp(), home, temp,
-                                                 os.path.dirname(self._cache_path))
+            self._cache_file = _LayeredCacheFile(
+                self._cache_file,
+                self._impl.filename_base,
+                self._impl.locator.get_source_stamp(),
+                home,
+                temp,
+                os.path.dirname(self._cache_path),
+            )
 
 
 def cache_folders(cache) -> list[str]:

@@ -47,16 +47,22 @@ def check_private_folder(path: str | os.PathLike) -> None:
     path = Path(path)
     st = os.lstat(path)
     if stat.S_ISLNK(st.st_mode):
-        raise UnsafeFolderError(f"{path} is a symbolic link (to {os.readlink(path)}), not a folder of yours; "
-                                "planarloc does not follow it: remove it, or set TMPDIR to a folder of yours")
+        raise UnsafeFolderError(
+            f"{path} is a symbolic link (to {os.readlink(path)}), not a folder of yours; "
+            "planarloc does not follow it: remove it, or set TMPDIR to a folder of yours"
+        )
     if not stat.S_ISDIR(st.st_mode):
         raise UnsafeFolderError(f"{path} is not a folder; remove it, or set TMPDIR to a folder of yours")
     if st.st_uid != os.geteuid():
-        raise UnsafeFolderError(f"{path} belongs to {_owner(st.st_uid)}, not to you ({_owner(os.geteuid())}); "
-                                "planarloc does not use it: remove it, or set TMPDIR to a folder of yours")
+        raise UnsafeFolderError(
+            f"{path} belongs to {_owner(st.st_uid)}, not to you ({_owner(os.geteuid())}); "
+            "planarloc does not use it: remove it, or set TMPDIR to a folder of yours"
+        )
     if st.st_mode & (stat.S_IWGRP | stat.S_IWOTH):
-        raise UnsafeFolderError(f"{path} can be written by other users (mode {stat.S_IMODE(st.st_mode):o}); "
-                                "planarloc does not use it: remove it, or set TMPDIR to a folder of yours")
+        raise UnsafeFolderError(
+            f"{path} can be written by other users (mode {stat.S_IMODE(st.st_mode):o}); "
+            "planarloc does not use it: remove it, or set TMPDIR to a folder of yours"
+        )
     if st.st_mode & 0o077:
         os.chmod(path, stat.S_IMODE(st.st_mode) & 0o700)
 

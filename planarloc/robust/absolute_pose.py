@@ -50,12 +50,24 @@ from planarloc.robust.verification import (
 logger = logging.getLogger(__name__)
 
 
-MIN_SAMPLE = {Method.AUTO: (2, 1), Method.P2P1: (2, 1), Method.P2P2: (2, 2), Method.NISTER: (5, 5),
-              Method.STEWENIUS: (5, 5), Method.EIGHT: (8, 8)}
+MIN_SAMPLE = {
+    Method.AUTO: (2, 1),
+    Method.P2P1: (2, 1),
+    Method.P2P2: (2, 2),
+    Method.NISTER: (5, 5),
+    Method.STEWENIUS: (5, 5),
+    Method.EIGHT: (8, 8),
+}
 PLANAR = (Method.P2P1, Method.P2P2)
 # Hypothesis families searched per method, in order.
-FAMILIES = {Method.AUTO: (Method.P2P1, Method.NISTER), Method.P2P1: (Method.P2P1,), Method.P2P2: (Method.P2P2,),
-            Method.NISTER: (Method.NISTER,), Method.STEWENIUS: (Method.STEWENIUS,), Method.EIGHT: (Method.EIGHT,)}
+FAMILIES = {
+    Method.AUTO: (Method.P2P1, Method.NISTER),
+    Method.P2P1: (Method.P2P1,),
+    Method.P2P2: (Method.P2P2,),
+    Method.NISTER: (Method.NISTER,),
+    Method.STEWENIUS: (Method.STEWENIUS,),
+    Method.EIGHT: (Method.EIGHT,),
+}
 E_Y = np.array([0.0, 1.0, 0.0])
 E_Y.setflags(write=False)
 # An explicit planar method fails when a 6DoF pose elsewhere has less than this share of its cost.
@@ -73,9 +85,9 @@ class _Gravity:
 
     ``levelled``: every camera is already upright (no rectification needed)."""
 
-    refs: np.ndarray | None   # (P, 3) unit, reference camera frames (None when all are upright)
-    world: np.ndarray         # (3,) unit, world frame (mean over references)
-    query: np.ndarray         # (3,) unit, query camera frame (given, or the references' mount)
+    refs: np.ndarray | None  # (P, 3) unit, reference camera frames (None when all are upright)
+    world: np.ndarray  # (3,) unit, world frame (mean over references)
+    query: np.ndarray  # (3,) unit, query camera frame (given, or the references' mount)
     query_given: bool
     levelled: bool
 
@@ -84,7 +96,9 @@ def _is_upright(g: np.ndarray) -> bool:
     return bool(np.abs(g - E_Y).max() <= 1e-12)
 
 
-def _gravity(pairs: Sequence[PairMatches], problem: AbsolutePoseProblem, query_gravity: object | None) -> _Gravity:
+def _gravity(
+    pairs: Sequence[PairMatches], problem: AbsolutePoseProblem, query_gravity: object | None
+) -> _Gravity:
     if query_gravity is None and all(p.ref_gravity is None for p in pairs):  # the paper's case: all upright
         # World gravity = mean of R_kᵀ e_y = the references' second rows (unit already).
         s = problem.ref_R[:, 1, :].sum(axis=0)
@@ -92,7 +106,9 @@ def _gravity(pairs: Sequence[PairMatches], problem: AbsolutePoseProblem, query_g
     given = [p.ref_gravity for p in pairs if p.ref_gravity is not None]
     g_refs = np.array([E_Y if p.ref_gravity is None else p.ref_gravity for p in pairs], dtype=float)
     g_world = mean_direction(np.einsum("pji,pj->pi", problem.ref_R, g_refs))
-    g_query = mean_direction(g_refs) if query_gravity is None else unit_gravity("query_gravity", query_gravity)
+    g_query = (
+        mean_direction(g_refs) if query_gravity is None else unit_gravity("query_gravity", query_gravity)
+    )
     levelled = all(_is_upright(g) for g in given) and _is_upright(g_query)
     return _Gravity(g_refs, g_world, g_query, query_gravity is not None, levelled)
 
@@ -101,8 +117,11 @@ def _estimator(problem: AbsolutePoseProblem, options: RansacOptions, family: Met
     """The estimator of one hypothesis family; planar families run on levelled bearings."""
     if family not in PLANAR:
         return RelativePairEstimator(problem, options, family)
-    make = Planar2p1pEstimator if family == Method.P2P1 else (
-        lambda prob, opt: RelativePairEstimator(prob, opt, Method.P2P2))
+    make = (
+        Planar2p1pEstimator
+        if family == Method.P2P1
+        else (lambda prob, opt: RelativePairEstimator(prob, opt, Method.P2P2))
+    )
     scorer = make(problem, options)
     if gravity.levelled:
         return scorer  # upright cameras: nothing to rectify
@@ -111,7 +130,9 @@ def _estimator(problem: AbsolutePoseProblem, options: RansacOptions, family: Met
     return RectifiedHypotheses(upright, scorer, Uq)
 
 
-def _cross_check_families(method: Method, options: RansacOptions, problem: AbsolutePoseProblem) -> list[Method]:
+def _cross_check_families(
+    method: Method, options: RansacOptions, problem: AbsolutePoseProblem
+) -> list[Method]:
     """The searches that check a method chosen by name (``options.cross_check``): the other motion
     model's, and for a 6DoF baseline a second run of its own search (its own random samples).
 
@@ -176,14 +197,18 @@ def estimate_absolute_pose(
     stats = RansacStatistics()
     problem, gravity = _prepare(query_camera, pairs, options, query_gravity, stats)
     stats.add_time("setup", time.perf_counter() - t_start)
-    run = _Estimation(EstimateContext(problem, options, gravity.world, gravity.query, stats, t_start), gravity, method)
+    run = _Estimation(
+        EstimateContext(problem, options, gravity.world, gravity.query, stats, t_start), gravity, method
+    )
     families = [f for f in FAMILIES[method] if _eligible(problem, f)]
     if not families:
         m1, m2 = MIN_SAMPLE[method]
-        return run.failure(Status.TOO_FEW_MATCHES,
-                           f"{method.value} needs {m1} matches in one map image and {m2} in another, or 2D-3D "
-                           f"constraints; got {problem.counts.tolist()} matches per map image and {len(problem.X3d)} "
-                           "2D-3D constraints: retrieve more map images or check the intrinsics")
+        return run.failure(
+            Status.TOO_FEW_MATCHES,
+            f"{method.value} needs {m1} matches in one map image and {m2} in another, or 2D-3D "
+            f"constraints; got {problem.counts.tolist()} matches per map image and {len(problem.X3d)} "
+            "2D-3D constraints: retrieve more map images or check the intrinsics",
+        )
     run.rng = np.random.default_rng(options.seed)
     return run.estimate(families)
 
@@ -206,16 +231,31 @@ class _Estimation:
         """One family's search; ``iterations``: a short check, refined with a quick look only."""
         ctx = self.ctx
         budget = ctx.options if iterations is None else ctx.options.with_iterations(iterations)
-        return _search(ctx.problem, budget, family, self.gravity, self.rng, ctx.stats, counted,
-                       quick=iterations is not None)
+        return _search(
+            ctx.problem,
+            budget,
+            family,
+            self.gravity,
+            self.rng,
+            ctx.stats,
+            counted,
+            quick=iterations is not None,
+        )
 
     def judge(self, best: _Search, searches: Sequence[_Search]) -> PoseEstimate:
-        candidate = Candidate(best.scorer, best.refined, best.alternatives, best.pool,
-                              FinalRefiner(best.scorer, self.ctx.options), any_plane_degenerate=best.family == Method.EIGHT)
+        candidate = Candidate(
+            best.scorer,
+            best.refined,
+            best.alternatives,
+            best.pool,
+            FinalRefiner(best.scorer, self.ctx.options),
+            any_plane_degenerate=best.family == Method.EIGHT,
+        )
         return judge_pose(self.ctx, candidate, _rivals(best, searches))
 
-    def or_supported(self, est: PoseEstimate, best: _Search, searches: list[_Search], checks: list[_Search]
-                     ) -> tuple[PoseEstimate, _Search]:
+    def or_supported(
+        self, est: PoseEstimate, best: _Search, searches: list[_Search], checks: list[_Search]
+    ) -> tuple[PoseEstimate, _Search]:
         """``est`` of ``best``, or, where it failed for want of data, the estimate of the pose the
         2D-3D constraints support (:func:`_better_supported`; with a search on them alone when no
         full search kept them) if that one passes. ``checks``: quick searches, rivals only."""
@@ -224,8 +264,11 @@ class _Estimation:
         ctx = self.ctx
         candidates = list(searches)
         if np.count_nonzero(best.refined.in3d) < ctx.options.min_inliers <= len(ctx.problem.X3d):
-            candidates += [r for r in [_points_search(ctx.problem, ctx.options, self.gravity, self.rng, ctx.stats)]
-                           if r is not None]
+            candidates += [
+                r
+                for r in [_points_search(ctx.problem, ctx.options, self.gravity, self.rng, ctx.stats)]
+                if r is not None
+            ]
         supported = _better_supported(best, candidates)
         if supported is None:
             return est, best
@@ -256,14 +299,19 @@ class _Estimation:
                 if isinstance(checked, PoseEstimate):
                     return checked
                 others.append(checked)
-        elif found and method in PLANAR:  # the paper's methods without the cross-check: the planar answer alone
+        elif (
+            found and method in PLANAR
+        ):  # the paper's methods without the cross-check: the planar answer alone
             best = min(found, key=lambda s: s.refined.score)
             return self.judge(best, found)
         for family in families:
             if family not in first:
                 found += [r for r in [self.search(family, counted=True)] if r is not None]
-        others += [r for r in (self.search(f, counted=False) for f in _cross_check_families(method, options, problem))
-                   if r is not None]
+        others += [
+            r
+            for r in (self.search(f, counted=False) for f in _cross_check_families(method, options, problem))
+            if r is not None
+        ]
         if not found:
             return self.failure(*_no_hypothesis(self.ctx.stats, method, options))
         best = min(found, key=lambda s: s.refined.score)
@@ -272,7 +320,9 @@ class _Estimation:
             return _planar_model_check(est, method, options, problem, best, others)
         return est
 
-    def _checked_planar(self, est: PoseEstimate, best: _Search, found: list[_Search]) -> PoseEstimate | _Search:
+    def _checked_planar(
+        self, est: PoseEstimate, best: _Search, found: list[_Search]
+    ) -> PoseEstimate | _Search:
         """The planar estimate checked by a short 6DoF search: the estimate when the check finds
         no clearly better pose, else the check's search (the full 6DoF search then runs)."""
         problem = self.ctx.problem
@@ -309,8 +359,13 @@ class _Search:
     scorer: object
 
 
-def _prepare(query_camera: Camera, pairs: Sequence[PairMatches], options: RansacOptions, query_gravity: object | None,
-             stats: RansacStatistics) -> tuple[AbsolutePoseProblem, _Gravity]:
+def _prepare(
+    query_camera: Camera,
+    pairs: Sequence[PairMatches],
+    options: RansacOptions,
+    query_gravity: object | None,
+    stats: RansacStatistics,
+) -> tuple[AbsolutePoseProblem, _Gravity]:
     """Validated, flattened problem with its tracks (structure mode) and 2D-3D error scale."""
     problem = build_problem(query_camera, pairs)
     gravity = _gravity(pairs, problem, query_gravity)
@@ -319,11 +374,21 @@ def _prepare(query_camera: Camera, pairs: Sequence[PairMatches], options: Ransac
         xq3, X3, C3, V3, J3 = triangulate_tracks(problem, options.threshold_px, options.track_min_angle_deg)
         problem = problem.with_points3d(xq3, X3, np.full(len(X3), -1), C3, V3, J3)
         stats.add_time("structure", time.perf_counter() - t0)
-    return problem.with_reprojection_threshold(options.threshold_px / reprojection_threshold_px(options)), gravity
+    return problem.with_reprojection_threshold(
+        options.threshold_px / reprojection_threshold_px(options)
+    ), gravity
 
 
-def _search(problem: AbsolutePoseProblem, options: RansacOptions, family: Method, gravity: _Gravity,
-            rng: np.random.Generator, stats: RansacStatistics, counted: bool, quick: bool = False) -> _Search | None:
+def _search(
+    problem: AbsolutePoseProblem,
+    options: RansacOptions,
+    family: Method,
+    gravity: _Gravity,
+    rng: np.random.Generator,
+    stats: RansacStatistics,
+    counted: bool,
+    quick: bool = False,
+) -> _Search | None:
     """RANSAC of one family (its own full iteration budget), then the final refinement of its best.
 
     ``counted``: its counters join the estimate's statistics (False for the cross-check of a
@@ -342,7 +407,9 @@ def _search(problem: AbsolutePoseProblem, options: RansacOptions, family: Method
     t0 = time.perf_counter()
     refined = FinalRefiner(scorer, options)(out.R, out.t, quick)
     stats.add_time("refinement", time.perf_counter() - t0)
-    return _Search(family, refined, list(zip(out.alt_R, out.alt_t, out.alt_cost)), (out.pool_R, out.pool_t), scorer)
+    return _Search(
+        family, refined, list(zip(out.alt_R, out.alt_t, out.alt_cost)), (out.pool_R, out.pool_t), scorer
+    )
 
 
 def rival_check_samples(inliers: np.ndarray, counts: np.ndarray, sample_size: int = 5) -> int:
@@ -357,7 +424,9 @@ def rival_check_samples(inliers: np.ndarray, counts: np.ndarray, sample_size: in
     Args:
         inliers: (P,) inliers per map image of the planar pose; counts: (P,) matches per map image.
     """
-    ratios = sorted((i / c for i, c in zip(inliers.tolist(), counts.tolist()) if c >= sample_size), reverse=True)
+    ratios = sorted(
+        (i / c for i, c in zip(inliers.tolist(), counts.tolist()) if c >= sample_size), reverse=True
+    )
     if len(ratios) < 2:
         return RIVAL_CHECK_ITERATIONS
     clean = ratios[1] ** sample_size
@@ -372,14 +441,18 @@ def rival_check_samples(inliers: np.ndarray, counts: np.ndarray, sample_size: in
 def _no_hypothesis(stats: RansacStatistics, method: Method, options: RansacOptions) -> tuple[Status, str]:
     """Status and message when no search produced a pose."""
     if stats.rejected_degenerate > 0 and stats.rejected_degenerate >= (
-            stats.rejected_rcheck + stats.rejected_pdcheck + stats.rejected_consistency):
+        stats.rejected_rcheck + stats.rejected_pdcheck + stats.rejected_consistency
+    ):
         hint = "" if options.structure == Structure.TRACKS else "; try structure='tracks'"
-        return Status.DEGENERATE_SCALE, (f"no hypothesis: {stats.rejected_degenerate} samples were degenerate "
-                                    "(triangulation singular: query collinear with the map images)" + hint)
+        return Status.DEGENERATE_SCALE, (
+            f"no hypothesis: {stats.rejected_degenerate} samples were degenerate "
+            "(triangulation singular: query collinear with the map images)" + hint
+        )
     return Status.NO_CONSISTENT_HYPOTHESIS, (
         f"none of the {stats.hypotheses} {method.value} hypotheses passed the checks (Rcheck {stats.rejected_rcheck}, "
         f"Pdcheck {stats.rejected_pdcheck}, consistency {stats.rejected_consistency}, degenerate "
-        f"{stats.rejected_degenerate}): check the intrinsics and that the retrieved map images show the query's scene")
+        f"{stats.rejected_degenerate}): check the intrinsics and that the retrieved map images show the query's scene"
+    )
 
 
 def _rivals(best: _Search, searches: Sequence[_Search]) -> list[np.ndarray]:
@@ -391,9 +464,13 @@ def _rivals(best: _Search, searches: Sequence[_Search]) -> list[np.ndarray]:
     MSAC cost, and with a 2D-3D share within that ratio (plus a couple of inliers' worth) of the
     best's: a pose that keeps the 2D-2D matches of a road but loses hundreds of 2D-3D
     constraints is no rival (2D-2D constraints barely see the position along the road)."""
-    return [-s.refined.R.T @ s.refined.t for s in searches
-            if s is not best and s.refined.score <= RIVAL_COST_RATIO * best.refined.score
-            and _keeps_points(s, best)]
+    return [
+        -s.refined.R.T @ s.refined.t
+        for s in searches
+        if s is not best
+        and s.refined.score <= RIVAL_COST_RATIO * best.refined.score
+        and _keeps_points(s, best)
+    ]
 
 
 def _keeps_points(a: _Search, b: _Search) -> bool:
@@ -405,12 +482,19 @@ def _keeps_points(a: _Search, b: _Search) -> bool:
     return a.refined.score3d <= RIVAL_COST_RATIO * b.refined.score3d + margin
 
 
-def _points_search(problem: AbsolutePoseProblem, options: RansacOptions, gravity: _Gravity, rng: np.random.Generator,
-                   stats: RansacStatistics) -> _Search | None:
+def _points_search(
+    problem: AbsolutePoseProblem,
+    options: RansacOptions,
+    gravity: _Gravity,
+    rng: np.random.Generator,
+    stats: RansacStatistics,
+) -> _Search | None:
     """A 6DoF search (P3P samples) scored by the 2D-3D constraints alone, its best refined on every
     constraint: the pose the points support when 2D-2D matches that cannot fix the position (a
     road, a corridor) outvote them in every other search."""
-    points = _search(problem.points_only(), options, Method.NISTER, gravity, rng, stats, counted=False, quick=True)
+    points = _search(
+        problem.points_only(), options, Method.NISTER, gravity, rng, stats, counted=False, quick=True
+    )
     if points is None:
         return None
     scorer = _estimator(problem, options, Method.NISTER, gravity)
@@ -436,8 +520,14 @@ def _better_supported(best: _Search, found: Sequence[_Search]) -> _Search | None
     return min(better, key=lambda s: s.refined.score) if better else None
 
 
-def _planar_model_check(est: PoseEstimate, method: Method, options: RansacOptions, problem: AbsolutePoseProblem,
-                        best: _Search, checks: Sequence[_Search]) -> PoseEstimate:
+def _planar_model_check(
+    est: PoseEstimate,
+    method: Method,
+    options: RansacOptions,
+    problem: AbsolutePoseProblem,
+    best: _Search,
+    checks: Sequence[_Search],
+) -> PoseEstimate:
     """An explicit planar method's estimate, or ``planar_model_violated`` where its model fails:
     the more useful reason, also when the pose failed another check (a rival 6DoF pose can make
     it look ambiguous when the real trouble is the model)."""
@@ -445,22 +535,41 @@ def _planar_model_check(est: PoseEstimate, method: Method, options: RansacOption
     if not options.cross_check or pose is None:
         return est
     if est.model != "planar":
-        why = (f"the {method.value} pose does not fit the planar model it assumes (it implies a tilt or an elevation "
-               f"above {options.planar_tolerance_deg}° relative to the map images)")
+        why = (
+            f"the {method.value} pose does not fit the planar model it assumes (it implies a tilt or an elevation "
+            f"above {options.planar_tolerance_deg}° relative to the map images)"
+        )
     else:
         # A 6DoF pose elsewhere that explains the matches clearly better: the planar model failed.
         # "Clearly": by a share of the cost and by a few inliers' worth (noise-free data cost ~0).
         margin = RIVAL_MARGIN_INLIERS * best.scorer.threshold_sq
-        better = [c for c in checks if c.refined.score < PLANAR_VIOLATION_RATIO * best.refined.score - margin
-                  and _different(problem, (pose.R, pose.t), (c.refined.R, c.refined.t))]
+        better = [
+            c
+            for c in checks
+            if c.refined.score < PLANAR_VIOLATION_RATIO * best.refined.score - margin
+            and _different(problem, (pose.R, pose.t), (c.refined.R, c.refined.t))
+        ]
         if not better:
             return est
-        why = (f"a 6DoF pose explains the matches better than the {method.value} pose (MSAC cost "
-               f"{better[0].refined.score:.4g} < {best.refined.score:.4g}) and lies elsewhere: the query is tilted or "
-               "off the map's plane")
-    return PoseEstimate(None, False, Status.PLANAR_MODEL_VIOLATED, why + "; use method='auto'", est.inliers,
-                        est.num_inliers, est.num_inliers_3d, est.iterations, est.position_std_m, pose, est.stats,
-                        model="6dof")
+        why = (
+            f"a 6DoF pose explains the matches better than the {method.value} pose (MSAC cost "
+            f"{better[0].refined.score:.4g} < {best.refined.score:.4g}) and lies elsewhere: the query is tilted or "
+            "off the map's plane"
+        )
+    return PoseEstimate(
+        None,
+        False,
+        Status.PLANAR_MODEL_VIOLATED,
+        why + "; use method='auto'",
+        est.inliers,
+        est.num_inliers,
+        est.num_inliers_3d,
+        est.iterations,
+        est.position_std_m,
+        pose,
+        est.stats,
+        model="6dof",
+    )
 
 
 def _different(problem: AbsolutePoseProblem, a: tuple, b: tuple) -> bool:

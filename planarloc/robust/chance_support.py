@@ -36,8 +36,13 @@ inliers against 4-23 by chance, tail probabilities below 1e-29; the 14 m entry_p
 1e-2.2 and 1e-2.0)."""
 
 
-def chance_inliers(problem: AbsolutePoseProblem, R: np.ndarray, t: np.ndarray, threshold_px: float,
-                   shifts: int = CHANCE_SHIFTS) -> np.ndarray:
+def chance_inliers(
+    problem: AbsolutePoseProblem,
+    R: np.ndarray,
+    t: np.ndarray,
+    threshold_px: float,
+    shifts: int = CHANCE_SHIFTS,
+) -> np.ndarray:
     """(P,) expected 2D-2D inliers of each pair for ``cam_from_world = (R, t)`` if its matches were
     wrong: the mean inlier count over ``shifts`` re-pairings of the pair's matches.
 
@@ -55,15 +60,37 @@ def chance_inliers(problem: AbsolutePoseProblem, R: np.ndarray, t: np.ndarray, t
     if len(problem.xq) == 0:
         return np.zeros(problem.num_pairs)
     order = np.lexsort((problem.xq[:, 1], problem.pair))  # pair blocks stay in place
-    return _chance_kernel(np.ascontiguousarray(R, dtype=float), np.ascontiguousarray(t, dtype=float),
-                          problem.xq, problem.xr, problem.offsets, order, problem.f_query, problem.f_ref,
-                          problem.ref_R, problem.ref_t, float(threshold_px) ** 2, int(shifts))
+    return _chance_kernel(
+        np.ascontiguousarray(R, dtype=float),
+        np.ascontiguousarray(t, dtype=float),
+        problem.xq,
+        problem.xr,
+        problem.offsets,
+        order,
+        problem.f_query,
+        problem.f_ref,
+        problem.ref_R,
+        problem.ref_t,
+        float(threshold_px) ** 2,
+        int(shifts),
+    )
 
 
 @njit(cache=True, error_model="numpy")
-def _chance_kernel(R: np.ndarray, t: np.ndarray, xq: np.ndarray, xr: np.ndarray, offsets: np.ndarray,
-                   order: np.ndarray, f_query: np.ndarray, f_ref: np.ndarray, ref_R: np.ndarray,
-                   ref_t: np.ndarray, threshold_sq: float, shifts: int) -> np.ndarray:
+def _chance_kernel(
+    R: np.ndarray,
+    t: np.ndarray,
+    xq: np.ndarray,
+    xr: np.ndarray,
+    offsets: np.ndarray,
+    order: np.ndarray,
+    f_query: np.ndarray,
+    f_ref: np.ndarray,
+    ref_R: np.ndarray,
+    ref_t: np.ndarray,
+    threshold_sq: float,
+    shifts: int,
+) -> np.ndarray:
     # Compiled: numpy's per-call overhead for a few dozen matches was ~8 % of a query's time.
     out = np.zeros(offsets.shape[0] - 1)
     E = np.empty((3, 3))
@@ -77,7 +104,10 @@ def _chance_kernel(R: np.ndarray, t: np.ndarray, xq: np.ndarray, xr: np.ndarray,
             i = order[lo + r]
             for s in range(1, shifts + 1):
                 k = order[lo + (r + s) % m]
-                if sampson_sq(E, xq[i], xr[k], f_query[0], f_query[1], f_ref[p, 0], f_ref[p, 1]) <= threshold_sq:
+                if (
+                    sampson_sq(E, xq[i], xr[k], f_query[0], f_query[1], f_ref[p, 0], f_ref[p, 1])
+                    <= threshold_sq
+                ):
                     hits += 1
         out[p] = hits / shifts
     return out

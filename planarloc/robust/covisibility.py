@@ -34,8 +34,14 @@ def seeing_support(num_matches: int) -> int:
     return int(np.ceil(MIN_SEEN_INLIERS + CHANCE_SHARE * max(int(num_matches), 0)))
 
 
-def epipolar_support(query_points: np.ndarray, ref_points: np.ndarray, query_camera: Camera, ref_camera: Camera,
-                     threshold_px: float = 1.0, seed: int = 0) -> int:
+def epipolar_support(
+    query_points: np.ndarray,
+    ref_points: np.ndarray,
+    query_camera: Camera,
+    ref_camera: Camera,
+    threshold_px: float = 1.0,
+    seed: int = 0,
+) -> int:
     """The most matches one essential matrix explains (5-point RANSAC, 99.9 % confidence).
 
     Args:
@@ -61,8 +67,9 @@ def epipolar_support(query_points: np.ndarray, ref_points: np.ndarray, query_cam
     focal = float(np.mean([*query_camera.focal, *ref_camera.focal]))
     cv2.setRNGSeed(int(seed))
     try:
-        E, mask = cv2.findEssentialMat(xq[ok], xr[ok], np.eye(3), method=cv2.RANSAC, prob=0.999,
-                                       threshold=float(threshold_px) / focal)
+        E, mask = cv2.findEssentialMat(
+            xq[ok], xr[ok], np.eye(3), method=cv2.RANSAC, prob=0.999, threshold=float(threshold_px) / focal
+        )
     except cv2.error:  # a degenerate set (e.g. repeated points) has no essential matrix at all
         return 0
     if E is None or mask is None:

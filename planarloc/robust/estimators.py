@@ -66,8 +66,22 @@ class _ProblemEstimator:
 
     def score(self, R: np.ndarray, t: np.ndarray, bound: float = np.inf) -> tuple[np.ndarray, np.ndarray]:
         p = self.p
-        return msac_scores(np.ascontiguousarray(R), np.ascontiguousarray(t), len(R), p.xq, p.xr, p.offsets,
-                           p.f_query, p.f_ref, p.ref_R, p.ref_t, p.xq3d, p.X3d, self.threshold_sq, bound)
+        return msac_scores(
+            np.ascontiguousarray(R),
+            np.ascontiguousarray(t),
+            len(R),
+            p.xq,
+            p.xr,
+            p.offsets,
+            p.f_query,
+            p.f_ref,
+            p.ref_R,
+            p.ref_t,
+            p.xq3d,
+            p.X3d,
+            self.threshold_sq,
+            bound,
+        )
 
     def distinct(self, R: np.ndarray, t: np.ndarray, Rb: np.ndarray, tb: np.ndarray) -> np.ndarray:
         """Which hypotheses (R (n, 3, 3), t (n, 3)) are distinct models from (Rb, tb): their
@@ -75,33 +89,79 @@ class _ProblemEstimator:
         scatter of correct hypotheses is not; a pose slid along a weak direction is). (n,) bool."""
         return distinct_centres(R, t, -(tb @ Rb), self._ref_centres)
 
-    def inliers(self, R: np.ndarray, t: np.ndarray, threshold_sq: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+    def inliers(
+        self, R: np.ndarray, t: np.ndarray, threshold_sq: float | None = None
+    ) -> tuple[np.ndarray, np.ndarray]:
         p = self.p
         th = self.threshold_sq if threshold_sq is None else threshold_sq
         e2d, e3d = errors_sq(R, t, p.xq, p.xr, p.offsets, p.f_query, p.f_ref, p.ref_R, p.ref_t, p.xq3d, p.X3d)
         return e2d < th, e3d < th
 
-    def _refine(self, R: np.ndarray, c0: np.ndarray, in2d: np.ndarray, in3d: np.ndarray, max_iterations: int,
-                B: np.ndarray = _IDENTITY, fixed: np.ndarray = _FREE) -> tuple:
+    def _refine(
+        self,
+        R: np.ndarray,
+        c0: np.ndarray,
+        in2d: np.ndarray,
+        in3d: np.ndarray,
+        max_iterations: int,
+        B: np.ndarray = _IDENTITY,
+        fixed: np.ndarray = _FREE,
+    ) -> tuple:
         p = self.p
         return refine_pose(
-            np.ascontiguousarray(R), -R @ c0, p.arrays, np.flatnonzero(in2d), np.flatnonzero(in3d),
-            self.options.threshold_px, max_iterations, SIGMA_FLOOR_PX, np.ascontiguousarray(c0), B, fixed,
+            np.ascontiguousarray(R),
+            -R @ c0,
+            p.arrays,
+            np.flatnonzero(in2d),
+            np.flatnonzero(in3d),
+            self.options.threshold_px,
+            max_iterations,
+            SIGMA_FLOOR_PX,
+            np.ascontiguousarray(c0),
+            B,
+            fixed,
         )
 
-    def _refine_with_map_prior(self, R: np.ndarray, c0: np.ndarray, in2d: np.ndarray, in3d: np.ndarray,
-                               max_iterations: int, B: np.ndarray = _IDENTITY, fixed: np.ndarray = _FREE) -> tuple:
+    def _refine_with_map_prior(
+        self,
+        R: np.ndarray,
+        c0: np.ndarray,
+        in2d: np.ndarray,
+        in3d: np.ndarray,
+        max_iterations: int,
+        B: np.ndarray = _IDENTITY,
+        fixed: np.ndarray = _FREE,
+    ) -> tuple:
         """:meth:`_refine` under the map prior (:func:`planarloc.robust.map_prior.refine_with_map_prior`)."""
         p, o = self.p, self.options
         return refine_with_map_prior(
-            np.ascontiguousarray(R), -R @ c0, p.arrays, np.flatnonzero(in2d), np.flatnonzero(in3d), o.threshold_px,
-            max_iterations, SIGMA_FLOOR_PX, (float(np.radians(o.map_rotation_std_deg)), float(o.map_position_std_m)),
-            np.ascontiguousarray(c0), B, fixed)
+            np.ascontiguousarray(R),
+            -R @ c0,
+            p.arrays,
+            np.flatnonzero(in2d),
+            np.flatnonzero(in3d),
+            o.threshold_px,
+            max_iterations,
+            SIGMA_FLOOR_PX,
+            (float(np.radians(o.map_rotation_std_deg)), float(o.map_position_std_m)),
+            np.ascontiguousarray(c0),
+            B,
+            fixed,
+        )
 
-    def _refine_on_inliers(self, R: np.ndarray, t: np.ndarray, threshold_sq: float, max_iterations: int) -> tuple:
+    def _refine_on_inliers(
+        self, R: np.ndarray, t: np.ndarray, threshold_sq: float, max_iterations: int
+    ) -> tuple:
         p = self.p
-        return refine_on_inliers(np.ascontiguousarray(R), np.ascontiguousarray(t), p.arrays, threshold_sq,
-                                 self.options.threshold_px, max_iterations, SIGMA_FLOOR_PX)
+        return refine_on_inliers(
+            np.ascontiguousarray(R),
+            np.ascontiguousarray(t),
+            p.arrays,
+            threshold_sq,
+            self.options.threshold_px,
+            max_iterations,
+            SIGMA_FLOOR_PX,
+        )
 
     def refine_full(self, R: np.ndarray, t: np.ndarray, max_iterations: int) -> tuple:
         """Refine on the current inliers; returns (R, t, cov_center, sigma, cost, in2d, in3d)."""
@@ -129,9 +189,18 @@ class _ProblemEstimator:
         success at 20 matches per pair and 60 % outliers (3000 scenes, BENCHMARKS.md)."""
         p = self.p
         return refine_planar_then_6dof(
-            np.ascontiguousarray(R), np.ascontiguousarray(t), p.arrays, LO_WIDENING**2 * self.threshold_sq,
-            self.options.threshold_px, self._level, self._cos_level, LO_PLANAR_ITERATIONS, LO_ITERATIONS,
-            SIGMA_FLOOR_PX, LO_MAX_DATA)
+            np.ascontiguousarray(R),
+            np.ascontiguousarray(t),
+            p.arrays,
+            LO_WIDENING**2 * self.threshold_sq,
+            self.options.threshold_px,
+            self._level,
+            self._cos_level,
+            LO_PLANAR_ITERATIONS,
+            LO_ITERATIONS,
+            SIGMA_FLOOR_PX,
+            LO_MAX_DATA,
+        )
 
     def _flush(self, stats: RansacStatistics) -> None:
         c = self.counters
@@ -158,14 +227,17 @@ class Planar2p1pEstimator(_ProblemEstimator):
     peaks = 1  # scale maxima per relative pose
     max_votes = 128  # matches of the other pairs that vote for the scale (strided beyond)
 
-    def __init__(self, problem: AbsolutePoseProblem, options: RansacOptions, consensus_scale: bool = True) -> None:
+    def __init__(
+        self, problem: AbsolutePoseProblem, options: RansacOptions, consensus_scale: bool = True
+    ) -> None:
         super().__init__(problem, options)
         self.use_3d = len(problem.X3d) > 0
         self.consensus_scale = consensus_scale
         self._any_eligible = bool((problem.counts >= 2).any())
 
-    def _generate_consensus(self, rng: np.random.Generator, n: int, stats: RansacStatistics
-                            ) -> tuple[np.ndarray, np.ndarray]:
+    def _generate_consensus(
+        self, rng: np.random.Generator, n: int, stats: RansacStatistics
+    ) -> tuple[np.ndarray, np.ndarray]:
         """2p1p with the third datum chosen by consensus instead of at random.
 
         The ``n`` minimal samples are pairs of matches of one reference (the pair drawn in
@@ -182,20 +254,52 @@ class Planar2p1pEstimator(_ProblemEstimator):
             return np.zeros((0, 3, 3)), np.zeros((0, 3))
         samples = np.empty((n, 2), dtype=np.int64)
         sample_pair = np.empty(n, dtype=np.int64)
-        draw_pair_samples(rng.random((n, 4)), p.offsets, 2, 0, samples, sample_pair, np.empty(n, dtype=np.int64))
+        draw_pair_samples(
+            rng.random((n, 4)), p.offsets, 2, 0, samples, sample_pair, np.empty(n, dtype=np.int64)
+        )
         K = self.top_k * p.num_pairs
         Rrel, trel, prel = np.empty((K, 3, 3)), np.empty((K, 3)), np.empty(K, dtype=np.int64)
-        c = planar_relative_candidates(samples, sample_pair, p.xq, p.xr, p.offsets, p.f_query, p.f_ref,
-                                       self.threshold_sq, self.top_k, self.max_votes // 2, Rrel, trel, prel,
-                                       self.counters)
+        c = planar_relative_candidates(
+            samples,
+            sample_pair,
+            p.xq,
+            p.xr,
+            p.offsets,
+            p.f_query,
+            p.f_ref,
+            self.threshold_sq,
+            self.top_k,
+            self.max_votes // 2,
+            Rrel,
+            trel,
+            prel,
+            self.counters,
+        )
         out_R, out_t = np.empty((c * self.peaks, 3, 3)), np.empty((c * self.peaks, 3))
-        m = hypotheses_2p1p_consensus(Rrel[:c], trel[:c], prel[:c], p.xq, p.xr, p.offsets, p.f_query, p.f_ref,
-                                      p.ref_R, p.ref_t, self.threshold_sq, self.peaks, self.max_votes, out_R, out_t,
-                                      self.counters)
+        m = hypotheses_2p1p_consensus(
+            Rrel[:c],
+            trel[:c],
+            prel[:c],
+            p.xq,
+            p.xr,
+            p.offsets,
+            p.f_query,
+            p.f_ref,
+            p.ref_R,
+            p.ref_t,
+            self.threshold_sq,
+            self.peaks,
+            self.max_votes,
+            out_R,
+            out_t,
+            self.counters,
+        )
         self._flush(stats)
         return out_R[:m], out_t[:m]
 
-    def generate(self, rng: np.random.Generator, n: int, stats: RansacStatistics) -> tuple[np.ndarray, np.ndarray]:
+    def generate(
+        self, rng: np.random.Generator, n: int, stats: RansacStatistics
+    ) -> tuple[np.ndarray, np.ndarray]:
         if not self.use_3d and self.consensus_scale:
             return self._generate_consensus(rng, n, stats)
         p = self.p
@@ -221,7 +325,9 @@ class Planar2p1pEstimator(_ProblemEstimator):
                 s_up = np.stack([first, second], axis=1)
                 R_up = np.empty((2 * len(up), 3, 3))
                 t_up = np.empty((2 * len(up), 3))
-                m_up = hypotheses_up2p(s_up, pj[up], p.ref_R, p.ref_t, p.xq3d, p.X3d, R_up, t_up, self.counters)
+                m_up = hypotheses_up2p(
+                    s_up, pj[up], p.ref_R, p.ref_t, p.xq3d, p.X3d, R_up, t_up, self.counters
+                )
                 R_up, t_up = R_up[:m_up], t_up[:m_up]
             keep = kind != 2
             samples, pj, pk, third_3d = samples[keep], pj[keep], pk[keep], third_3d[keep]
@@ -229,8 +335,21 @@ class Planar2p1pEstimator(_ProblemEstimator):
         samples, pj, pk, third_3d = samples[ok], pj[ok], pk[ok], third_3d[ok]
         out_R = np.empty((2 * len(samples), 3, 3))
         out_t = np.empty((2 * len(samples), 3))
-        m = hypotheses_2p1p(samples, third_3d, pj, pk, p.xq, p.xr, p.ref_R, p.ref_t, p.xq3d, p.X3d,
-                            out_R, out_t, self.counters)
+        m = hypotheses_2p1p(
+            samples,
+            third_3d,
+            pj,
+            pk,
+            p.xq,
+            p.xr,
+            p.ref_R,
+            p.ref_t,
+            p.xq3d,
+            p.X3d,
+            out_R,
+            out_t,
+            self.counters,
+        )
         self._flush(stats)
         return np.concatenate([out_R[:m], R_up]), np.concatenate([out_t[:m], t_up])
 
@@ -302,15 +421,18 @@ class RelativePairEstimator(_ProblemEstimator):
         draw_within_pairs(rng.random((len(sample_pair), m)), p.offsets, sample_pair, m, samples)
         R, t, valid = self.solver(p.xq[samples], p.xr[samples])
         R, t, valid = np.ascontiguousarray(R), np.ascontiguousarray(t), np.ascontiguousarray(valid)
-        cost = relative_msac_scores(R, t, valid, sample_pair, p.xq, p.xr, p.offsets, p.f_query, p.f_ref,
-                                    self.threshold_sq)
+        cost = relative_msac_scores(
+            R, t, valid, sample_pair, p.xq, p.xr, p.offsets, p.f_query, p.f_ref, self.threshold_sq
+        )
         K = self.top_k
         top_R, top_t = np.zeros((p.num_pairs, K, 3, 3)), np.zeros((p.num_pairs, K, 3))
         count = np.zeros(p.num_pairs, dtype=np.int64)
         top_distinct_relative(R, t, cost, eligible.astype(np.int64), n, K, top_R, top_t, count)
         return top_R, top_t, count
 
-    def generate(self, rng: np.random.Generator, n: int, stats: RansacStatistics) -> tuple[np.ndarray, np.ndarray]:
+    def generate(
+        self, rng: np.random.Generator, n: int, stats: RansacStatistics
+    ) -> tuple[np.ndarray, np.ndarray]:
         p = self.p
         top_R, top_t, count = self._best_relative(rng, n)
         K = self.top_k
@@ -323,8 +445,23 @@ class RelativePairEstimator(_ProblemEstimator):
         Rb, tb, vb = top_R[pk], top_t[pk], slots[None, :] < count[pk][:, None]
         out_R = np.empty((C * K * K, 3, 3))
         out_t = np.empty((C * K * K, 3))
-        cnt = hypotheses_from_relative_poses(Ra, ta, va, Rb, tb, vb, pj, pk, p.ref_R, p.ref_t, self.cos_rcheck,
-                                             self.cos_consistency, out_R, out_t, self.counters)
+        cnt = hypotheses_from_relative_poses(
+            Ra,
+            ta,
+            va,
+            Rb,
+            tb,
+            vb,
+            pj,
+            pk,
+            p.ref_R,
+            p.ref_t,
+            self.cos_rcheck,
+            self.cos_consistency,
+            out_R,
+            out_t,
+            self.counters,
+        )
         self._flush(stats)
         R, t = out_R[:cnt], out_t[:cnt]
         if self._planar is not None:
@@ -337,13 +474,19 @@ class RelativePairEstimator(_ProblemEstimator):
             R, t = np.concatenate([R, R3]), np.concatenate([t, t3])
         return R, t
 
-    def _generate_p3p(self, rng: np.random.Generator, n: int, stats: RansacStatistics
-                      ) -> tuple[np.ndarray, np.ndarray]:
+    def _generate_p3p(
+        self, rng: np.random.Generator, n: int, stats: RansacStatistics
+    ) -> tuple[np.ndarray, np.ndarray]:
         """P3P hypotheses from ``n`` samples of three distinct 2D-3D constraints."""
         p = self.p
         samples = np.empty((n, 3), dtype=np.int64)
-        draw_within_pairs(rng.random((n, 3)), np.array([0, len(p.X3d)], dtype=np.int64), np.zeros(n, dtype=np.int64),
-                          3, samples)
+        draw_within_pairs(
+            rng.random((n, 3)),
+            np.array([0, len(p.X3d)], dtype=np.int64),
+            np.zeros(n, dtype=np.int64),
+            3,
+            samples,
+        )
         out_R, out_t = np.empty((4 * n, 3, 3)), np.empty((4 * n, 3))
         m = hypotheses_p3p(samples, p.xq3d, p.X3d, out_R, out_t, self.counters)
         self._flush(stats)
@@ -361,8 +504,9 @@ class RectifiedHypotheses:
     original problem's (``scorer``).
     """
 
-    def __init__(self, hypotheses: _ProblemEstimator, scorer: _ProblemEstimator, upright_from_query: np.ndarray
-                 ) -> None:
+    def __init__(
+        self, hypotheses: _ProblemEstimator, scorer: _ProblemEstimator, upright_from_query: np.ndarray
+    ) -> None:
         self.hypotheses = hypotheses
         self.scorer = scorer
         self.p = scorer.p
@@ -371,11 +515,15 @@ class RectifiedHypotheses:
         self.num_data = scorer.num_data
         self.Uq_T = np.ascontiguousarray(upright_from_query.T)
 
-    def generate(self, rng: np.random.Generator, n: int, stats: RansacStatistics) -> tuple[np.ndarray, np.ndarray]:
+    def generate(
+        self, rng: np.random.Generator, n: int, stats: RansacStatistics
+    ) -> tuple[np.ndarray, np.ndarray]:
         R, t = self.hypotheses.generate(rng, n, stats)
         return np.ascontiguousarray(self.Uq_T @ R), np.ascontiguousarray(t @ self.Uq_T.T)
 
-    def __getattr__(self, name: str):  # score, refine, inliers, distinct, _refine, refine_full: the original problem's
+    def __getattr__(
+        self, name: str
+    ):  # score, refine, inliers, distinct, _refine, refine_full: the original problem's
         return getattr(self.scorer, name)
 
 
@@ -387,8 +535,9 @@ def _rotate_rays(x: np.ndarray, U: np.ndarray) -> np.ndarray:
     return np.ascontiguousarray(np.where(z > 0.05, y / np.where(z > 0.05, z, 1.0), y))
 
 
-def rectify_problem(p: AbsolutePoseProblem, upright_from_query: np.ndarray,
-                    upright_from_refs: np.ndarray) -> AbsolutePoseProblem:
+def rectify_problem(
+    p: AbsolutePoseProblem, upright_from_query: np.ndarray, upright_from_refs: np.ndarray
+) -> AbsolutePoseProblem:
     """The problem seen from gravity-levelled frames.
 
     Args:
@@ -401,10 +550,19 @@ def rectify_problem(p: AbsolutePoseProblem, upright_from_query: np.ndarray,
     """
     Ur = upright_from_refs[p.pair]
     return AbsolutePoseProblem(
-        _rotate_rays(p.xq, upright_from_query), _rotate_rays(p.xr, Ur), p.pair, p.offsets, p.query_ids,
-        p.f_query, p.f_ref,
+        _rotate_rays(p.xq, upright_from_query),
+        _rotate_rays(p.xr, Ur),
+        p.pair,
+        p.offsets,
+        p.query_ids,
+        p.f_query,
+        p.f_ref,
         np.ascontiguousarray(upright_from_refs @ p.ref_R),
         np.ascontiguousarray(np.einsum("pij,pj->pi", upright_from_refs, p.ref_t)),
-        _rotate_rays(p.xq3d, upright_from_query) if len(p.xq3d) else p.xq3d, p.X3d, p.source3d, p.X3d_cov,
-        p.X3d_views, p.X3d_pose_jac,
+        _rotate_rays(p.xq3d, upright_from_query) if len(p.xq3d) else p.xq3d,
+        p.X3d,
+        p.source3d,
+        p.X3d_cov,
+        p.X3d_views,
+        p.X3d_pose_jac,
     )

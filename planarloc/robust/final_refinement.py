@@ -74,8 +74,14 @@ class FinalRefiner:
     def __call__(self, R: np.ndarray, t: np.ndarray, quick: bool = False) -> RefinedPose:
         iterations, rounds = self._budget(quick)
         R, t, H, sigma, cost, in2d, in3d, score, score3d = refine_until_stable(
-            np.ascontiguousarray(R), np.ascontiguousarray(t), *self._problem(), iterations, rounds, SIGMA_FLOOR_PX,
-            *self._prior())
+            np.ascontiguousarray(R),
+            np.ascontiguousarray(t),
+            *self._problem(),
+            iterations,
+            rounds,
+            SIGMA_FLOOR_PX,
+            *self._prior(),
+        )
         return RefinedPose(R, t, centre_covariance(H, sigma), sigma, cost, score, in2d, in3d, score3d, H)
 
     def restart_distance(self, ref: RefinedPose, beyond: float, margin: float) -> float:
@@ -103,7 +109,8 @@ class FinalRefiner:
             step = sgn * (beyond / nc) * v
             R0 = exp_so3(np.ascontiguousarray(step[:3])) @ ref.R
             R1, t1, *_, score1, _ = refine_until_stable(
-                R0, -R0 @ (c + step[3:]), *self._problem(), iterations, rounds, SIGMA_FLOOR_PX, *self._prior())
+                R0, -R0 @ (c + step[3:]), *self._problem(), iterations, rounds, SIGMA_FLOOR_PX, *self._prior()
+            )
             d = float(np.linalg.norm(-R1.T @ t1 - c))
             if d > beyond and score1 - ref.score <= margin:
                 found = max(found, d)
@@ -112,8 +119,15 @@ class FinalRefiner:
 
 @njit(cache=True, error_model="numpy")
 def refine_until_stable(
-    Rq: np.ndarray, tq: np.ndarray, prob: ProblemArrays, inlier_threshold_sq: float, loss_scale: float,
-    max_iterations: int, rounds: int, sigma_floor: float, map_rotation_std_rad: float = 0.0,
+    Rq: np.ndarray,
+    tq: np.ndarray,
+    prob: ProblemArrays,
+    inlier_threshold_sq: float,
+    loss_scale: float,
+    max_iterations: int,
+    rounds: int,
+    sigma_floor: float,
+    map_rotation_std_rad: float = 0.0,
     map_position_std_m: float = 0.0,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, float, float, np.ndarray, np.ndarray, float, float]:
     """The final refinement: :func:`refine_pose` on the inliers of the current pose, repeated on
@@ -152,11 +166,33 @@ def refine_until_stable(
         its = max_iterations if rnd == 0 else min(max_iterations, LATER_ROUND_ITERATIONS)
         if prior and in3d.any():
             R, t, H, sigma, cost = refine_with_map_prior(
-                R, t, prob, np.flatnonzero(in2d), np.flatnonzero(in3d), loss_scale, its, sigma_floor,
-                (map_rotation_std_rad, map_position_std_m), -m3.t_vec(R, t), eye, free)
+                R,
+                t,
+                prob,
+                np.flatnonzero(in2d),
+                np.flatnonzero(in3d),
+                loss_scale,
+                its,
+                sigma_floor,
+                (map_rotation_std_rad, map_position_std_m),
+                -m3.t_vec(R, t),
+                eye,
+                free,
+            )
         else:
-            R, t, H, sigma, cost = refine_pose(R, t, prob, np.flatnonzero(in2d), np.flatnonzero(in3d), loss_scale,
-                                               its, sigma_floor, -m3.t_vec(R, t), eye, free)
+            R, t, H, sigma, cost = refine_pose(
+                R,
+                t,
+                prob,
+                np.flatnonzero(in2d),
+                np.flatnonzero(in3d),
+                loss_scale,
+                its,
+                sigma_floor,
+                -m3.t_vec(R, t),
+                eye,
+                free,
+            )
         e2d, e3d = errors_sq(R, t, p.xq, p.xr, p.offsets, p.f_query, p.f_ref, p.ref_R, p.ref_t, p.xq3d, p.X3d)
         new2d = e2d < inlier_threshold_sq
         new3d = e3d < inlier_threshold_sq
@@ -171,4 +207,3 @@ def refine_until_stable(
     for i in range(e3d.shape[0]):
         msac3d += min(e3d[i], inlier_threshold_sq)
     return R, t, H, sigma, cost, in2d, in3d, msac2d + msac3d, msac3d
-

@@ -40,8 +40,18 @@ def _positive_depths(R: np.ndarray, t: np.ndarray, xq: np.ndarray, xr: np.ndarra
 
 
 @njit(cache=True, error_model="numpy", inline="always")
-def _emit_planar(rho: float, in_front: bool, R: np.ndarray, tt: np.ndarray, Rj: np.ndarray, tj: np.ndarray,
-                 out_R: np.ndarray, out_t: np.ndarray, out: int, counters: np.ndarray) -> int:
+def _emit_planar(
+    rho: float,
+    in_front: bool,
+    R: np.ndarray,
+    tt: np.ndarray,
+    Rj: np.ndarray,
+    tj: np.ndarray,
+    out_R: np.ndarray,
+    out_t: np.ndarray,
+    out: int,
+    counters: np.ndarray,
+) -> int:
     """Pdcheck of a scaled planar relative pose, then its ``query_from_world`` at ``out``.
 
     ``j_from_query = (R, ρ t̃)`` with reference ``j_from_world = (Rj, tj)`` gives
@@ -61,9 +71,19 @@ def _emit_planar(rho: float, in_front: bool, R: np.ndarray, tt: np.ndarray, Rj: 
 
 @njit(cache=True, error_model="numpy")
 def hypotheses_2p1p(
-    samples: np.ndarray, third_is_3d: np.ndarray, pj: np.ndarray, pk: np.ndarray,
-    xq: np.ndarray, xr: np.ndarray, ref_R: np.ndarray, ref_t: np.ndarray,
-    xq3d: np.ndarray, X3d: np.ndarray, out_R: np.ndarray, out_t: np.ndarray, counters: np.ndarray,
+    samples: np.ndarray,
+    third_is_3d: np.ndarray,
+    pj: np.ndarray,
+    pk: np.ndarray,
+    xq: np.ndarray,
+    xr: np.ndarray,
+    ref_R: np.ndarray,
+    ref_t: np.ndarray,
+    xq3d: np.ndarray,
+    X3d: np.ndarray,
+    out_R: np.ndarray,
+    out_t: np.ndarray,
+    counters: np.ndarray,
 ) -> int:
     """2p1p hypotheses (paper Sec. IV-C) with Pdcheck.
 
@@ -125,10 +145,21 @@ def hypotheses_2p1p(
 
 @njit(cache=True, error_model="numpy")
 def hypotheses_from_relative_poses(
-    Ra: np.ndarray, ta: np.ndarray, va: np.ndarray, Rb: np.ndarray, tb: np.ndarray, vb: np.ndarray,
-    pj: np.ndarray, pk: np.ndarray, ref_R: np.ndarray, ref_t: np.ndarray,
-    cos_rcheck: float, cos_consistency: float,
-    out_R: np.ndarray, out_t: np.ndarray, counters: np.ndarray,
+    Ra: np.ndarray,
+    ta: np.ndarray,
+    va: np.ndarray,
+    Rb: np.ndarray,
+    tb: np.ndarray,
+    vb: np.ndarray,
+    pj: np.ndarray,
+    pk: np.ndarray,
+    ref_R: np.ndarray,
+    ref_t: np.ndarray,
+    cos_rcheck: float,
+    cos_consistency: float,
+    out_R: np.ndarray,
+    out_t: np.ndarray,
+    counters: np.ndarray,
 ) -> int:
     """Absolute hypotheses from relative poses to two references (2p2p and the baselines).
 
@@ -189,8 +220,15 @@ def hypotheses_from_relative_poses(
 
 @njit(cache=True, error_model="numpy")
 def hypotheses_up2p(
-    samples: np.ndarray, pj: np.ndarray, ref_R: np.ndarray, ref_t: np.ndarray, xq3d: np.ndarray, X3d: np.ndarray,
-    out_R: np.ndarray, out_t: np.ndarray, counters: np.ndarray,
+    samples: np.ndarray,
+    pj: np.ndarray,
+    ref_R: np.ndarray,
+    ref_t: np.ndarray,
+    xq3d: np.ndarray,
+    X3d: np.ndarray,
+    out_R: np.ndarray,
+    out_t: np.ndarray,
+    counters: np.ndarray,
 ) -> int:
     """Upright P2P hypotheses (structure mode): two 2D-3D constraints, yaw relative to pair ``pj``.
 
@@ -227,8 +265,14 @@ def hypotheses_up2p(
 
 
 @njit(cache=True, error_model="numpy")
-def hypotheses_p3p(samples: np.ndarray, xq3d: np.ndarray, X3d: np.ndarray, out_R: np.ndarray, out_t: np.ndarray,
-                   counters: np.ndarray) -> int:
+def hypotheses_p3p(
+    samples: np.ndarray,
+    xq3d: np.ndarray,
+    X3d: np.ndarray,
+    out_R: np.ndarray,
+    out_t: np.ndarray,
+    counters: np.ndarray,
+) -> int:
     """6DoF P3P hypotheses from three 2D-3D constraints (:mod:`planarloc.solvers.abspose_p3p`).
 
     Args:
@@ -257,8 +301,17 @@ def hypotheses_p3p(samples: np.ndarray, xq3d: np.ndarray, X3d: np.ndarray, out_R
 
 
 @njit(cache=True, error_model="numpy")
-def top_distinct_relative(R: np.ndarray, t: np.ndarray, cost: np.ndarray, eligible: np.ndarray, n: int, top_k: int,
-                          out_R: np.ndarray, out_t: np.ndarray, out_count: np.ndarray) -> None:
+def top_distinct_relative(
+    R: np.ndarray,
+    t: np.ndarray,
+    cost: np.ndarray,
+    eligible: np.ndarray,
+    n: int,
+    top_k: int,
+    out_R: np.ndarray,
+    out_t: np.ndarray,
+    out_count: np.ndarray,
+) -> None:
     """Stage 1 of the relative-pose families: per pair, the ``top_k`` cheapest distinct relative poses.
 
     Args:
@@ -275,7 +328,7 @@ def top_distinct_relative(R: np.ndarray, t: np.ndarray, cost: np.ndarray, eligib
     out_count[:] = 0
     for e in range(eligible.shape[0]):
         pair = eligible[e]
-        c = cost[e * n:(e + 1) * n].ravel()
+        c = cost[e * n : (e + 1) * n].ravel()
         order = np.argsort(c)
         k = 0
         for o in order:
@@ -284,7 +337,10 @@ def top_distinct_relative(R: np.ndarray, t: np.ndarray, cost: np.ndarray, eligib
             s_, a_ = e * n + o // A, o % A
             same = False
             for q in range(k):
-                if np.sum(R[s_, a_] * out_R[pair, q]) > 3.0 - 1e-4 and m3.dot(t[s_, a_], out_t[pair, q]) > 0.9998:
+                if (
+                    np.sum(R[s_, a_] * out_R[pair, q]) > 3.0 - 1e-4
+                    and m3.dot(t[s_, a_], out_t[pair, q]) > 0.9998
+                ):
                     same = True
                     break
             if same:
@@ -297,9 +353,20 @@ def top_distinct_relative(R: np.ndarray, t: np.ndarray, cost: np.ndarray, eligib
 
 @njit(cache=True, error_model="numpy")
 def planar_relative_candidates(
-    samples: np.ndarray, sample_pair: np.ndarray, xq: np.ndarray, xr: np.ndarray, offsets: np.ndarray,
-    f_query: np.ndarray, f_ref: np.ndarray, threshold_sq: float, top_k: int, max_scored: int,
-    out_R: np.ndarray, out_t: np.ndarray, out_pair: np.ndarray, counters: np.ndarray,
+    samples: np.ndarray,
+    sample_pair: np.ndarray,
+    xq: np.ndarray,
+    xr: np.ndarray,
+    offsets: np.ndarray,
+    f_query: np.ndarray,
+    f_ref: np.ndarray,
+    threshold_sq: float,
+    top_k: int,
+    max_scored: int,
+    out_R: np.ndarray,
+    out_t: np.ndarray,
+    out_pair: np.ndarray,
+    counters: np.ndarray,
 ) -> int:
     """Stage 1 of the consensus 2p1p: per pair, the ``top_k`` best distinct planar relative poses.
 
@@ -374,8 +441,11 @@ def planar_relative_candidates(
         th, ph = thetas[s, m], phis[s, m]
         same = False
         for q in range(out):
-            if out_pair[q] == p and abs(np.sin(0.5 * (th - out_t[q, 1]))) < 1e-3 and \
-                    abs(np.sin(0.5 * (ph - out_R[q, 1, 0]))) < 1e-3:
+            if (
+                out_pair[q] == p
+                and abs(np.sin(0.5 * (th - out_t[q, 1]))) < 1e-3
+                and abs(np.sin(0.5 * (ph - out_R[q, 1, 0]))) < 1e-3
+            ):
                 same = True
                 break
         if same:
@@ -392,8 +462,18 @@ def planar_relative_candidates(
 
 
 @njit(cache=True, error_model="numpy")
-def _majority_in_front(rho: float, lo: np.ndarray, hi: np.ndarray, row: np.ndarray, row_pair: np.ndarray,
-                       Rkq: np.ndarray, a: np.ndarray, b: np.ndarray, xq: np.ndarray, xr: np.ndarray) -> bool:
+def _majority_in_front(
+    rho: float,
+    lo: np.ndarray,
+    hi: np.ndarray,
+    row: np.ndarray,
+    row_pair: np.ndarray,
+    Rkq: np.ndarray,
+    a: np.ndarray,
+    b: np.ndarray,
+    xq: np.ndarray,
+    xr: np.ndarray,
+) -> bool:
     """Pdcheck of a consensus scale: at least half of the matches voting for ``rho`` (their
     interval contains it) triangulate in front of the query and their reference
     (``k_from_query = (Rkq[k], ρ a[k] + b[k])``)."""
@@ -414,9 +494,22 @@ def _majority_in_front(rho: float, lo: np.ndarray, hi: np.ndarray, row: np.ndarr
 
 @njit(cache=True, error_model="numpy")
 def hypotheses_2p1p_consensus(
-    Rrel: np.ndarray, trel: np.ndarray, prel: np.ndarray, xq: np.ndarray, xr: np.ndarray, offsets: np.ndarray,
-    f_query: np.ndarray, f_ref: np.ndarray, ref_R: np.ndarray, ref_t: np.ndarray, threshold_sq: float,
-    peaks: int, max_votes: int, out_R: np.ndarray, out_t: np.ndarray, counters: np.ndarray,
+    Rrel: np.ndarray,
+    trel: np.ndarray,
+    prel: np.ndarray,
+    xq: np.ndarray,
+    xr: np.ndarray,
+    offsets: np.ndarray,
+    f_query: np.ndarray,
+    f_ref: np.ndarray,
+    ref_R: np.ndarray,
+    ref_t: np.ndarray,
+    threshold_sq: float,
+    peaks: int,
+    max_votes: int,
+    out_R: np.ndarray,
+    out_t: np.ndarray,
+    counters: np.ndarray,
 ) -> int:
     """Stage 2 of the consensus 2p1p: the scale of each relative pose from all other matches.
 
@@ -577,7 +670,8 @@ def hypotheses_2p1p_consensus(
             used_hi[best_found] = rho * 1.1
             best_found += 1
             counters[HYPOTHESES] += 1
-            in_front = rho > 0.0 and _majority_in_front(rho, lo[:m], hi[:m], row[:m], row_pair[:m], Rkq_all, a_all,
-                                                        b_all, xq, xr)
+            in_front = rho > 0.0 and _majority_in_front(
+                rho, lo[:m], hi[:m], row[:m], row_pair[:m], Rkq_all, a_all, b_all, xq, xr
+            )
             out = _emit_planar(rho, in_front, R, tt, Rj, tj, out_R, out_t, out, counters)
     return out

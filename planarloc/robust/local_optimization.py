@@ -87,8 +87,18 @@ def distinct_centres(R: np.ndarray, t: np.ndarray, cb: np.ndarray, ref_centres: 
 
 
 @njit(cache=True, error_model="numpy")
-def _refine_stage(R: np.ndarray, t: np.ndarray, prob: ProblemArrays, inlier_threshold_sq: float, loss_scale: float,
-                  iterations: int, sigma_floor: float, B: np.ndarray, fixed: np.ndarray, max_data: int) -> tuple:
+def _refine_stage(
+    R: np.ndarray,
+    t: np.ndarray,
+    prob: ProblemArrays,
+    inlier_threshold_sq: float,
+    loss_scale: float,
+    iterations: int,
+    sigma_floor: float,
+    B: np.ndarray,
+    fixed: np.ndarray,
+    max_data: int,
+) -> tuple:
     p = prob
     e2d, e3d = errors_sq(R, t, p.xq, p.xr, p.offsets, p.f_query, p.f_ref, p.ref_R, p.ref_t, p.xq3d, p.X3d)
     idx2d = np.flatnonzero(e2d < inlier_threshold_sq)
@@ -100,15 +110,36 @@ def _refine_stage(R: np.ndarray, t: np.ndarray, prob: ProblemArrays, inlier_thre
     if stride > 1:
         idx2d, idx3d = idx2d[::stride].copy(), idx3d[::stride].copy()
     # Only the pose is wanted: no normal matrix after the last step.
-    refined = refine_pose_core(R, t, prob, idx2d, idx3d, loss_scale, iterations, sigma_floor, -m3.t_vec(R, t), B,
-                               fixed.copy(), np.bool_(False))  # writable, typed: refine_pose's one signature
+    refined = refine_pose_core(
+        R,
+        t,
+        prob,
+        idx2d,
+        idx3d,
+        loss_scale,
+        iterations,
+        sigma_floor,
+        -m3.t_vec(R, t),
+        B,
+        fixed.copy(),
+        np.bool_(False),
+    )  # writable, typed: refine_pose's one signature
     return refined.R, refined.t
 
 
 @njit(cache=True, error_model="numpy")
 def refine_planar_then_6dof(
-    Rq: np.ndarray, tq: np.ndarray, prob: ProblemArrays, inlier_threshold_sq: float, loss_scale: float,
-    level: np.ndarray, cos_level: float, planar_iterations: int, iterations: int, sigma_floor: float, max_data: int,
+    Rq: np.ndarray,
+    tq: np.ndarray,
+    prob: ProblemArrays,
+    inlier_threshold_sq: float,
+    loss_scale: float,
+    level: np.ndarray,
+    cos_level: float,
+    planar_iterations: int,
+    iterations: int,
+    sigma_floor: float,
+    max_data: int,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Local optimisation of one hypothesis: planar, then 6DoF robust refinement on its inliers.
 
@@ -137,9 +168,32 @@ def refine_planar_then_6dof(
         the refined (R (3, 3), t (3,)); the input when fewer than 6 inliers.
     """
     R, t = Rq.copy(), tq.copy()
-    if planar_iterations > 0 and level.shape[0] == 3 and (
-            R[1, 0] * level[0, 1] + R[1, 1] * level[1, 1] + R[1, 2] * level[2, 1]) > cos_level:
-        R, t = _refine_stage(R, t, prob, inlier_threshold_sq, loss_scale, planar_iterations, sigma_floor, level,
-                             PLANAR_FIXED, max_data)
-    return _refine_stage(R, t, prob, inlier_threshold_sq, loss_scale, iterations, sigma_floor, np.eye(3), _FREE,
-                         np.int64(1 << 62))
+    if (
+        planar_iterations > 0
+        and level.shape[0] == 3
+        and (R[1, 0] * level[0, 1] + R[1, 1] * level[1, 1] + R[1, 2] * level[2, 1]) > cos_level
+    ):
+        R, t = _refine_stage(
+            R,
+            t,
+            prob,
+            inlier_threshold_sq,
+            loss_scale,
+            planar_iterations,
+            sigma_floor,
+            level,
+            PLANAR_FIXED,
+            max_data,
+        )
+    return _refine_stage(
+        R,
+        t,
+        prob,
+        inlier_threshold_sq,
+        loss_scale,
+        iterations,
+        sigma_floor,
+        np.eye(3),
+        _FREE,
+        np.int64(1 << 62),
+    )

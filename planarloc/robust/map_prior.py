@@ -36,8 +36,15 @@ from planarloc.robust.refinement import (
 
 
 @njit(cache=True, error_model="numpy", inline="always")
-def _perturbed_refs(ref_R: np.ndarray, ref_c: np.ndarray, omega: np.ndarray, d: np.ndarray, B: np.ndarray,
-                    R_out: np.ndarray, t_out: np.ndarray) -> None:
+def _perturbed_refs(
+    ref_R: np.ndarray,
+    ref_c: np.ndarray,
+    omega: np.ndarray,
+    d: np.ndarray,
+    B: np.ndarray,
+    R_out: np.ndarray,
+    t_out: np.ndarray,
+) -> None:
     """``R_p' = Exp(ω_p) R_p``, ``t_p' = −R_p' (c_p + B d_p)`` for every pair."""
     for p in range(ref_R.shape[0]):
         Rp = m3.mul(exp_so3(omega[p]), ref_R[p])
@@ -56,8 +63,17 @@ def _prior_cost(omega: np.ndarray, d: np.ndarray, lam_rot: float, lam_pos: float
 
 
 @njit(cache=True, error_model="numpy", fastmath=FASTMATH)
-def _pair_blocks(J: np.ndarray, Jrot: np.ndarray, r: np.ndarray, rows_pair: np.ndarray, s2: float,
-                 fixed: np.ndarray, Bp: np.ndarray, Dp: np.ndarray, hp: np.ndarray) -> None:
+def _pair_blocks(
+    J: np.ndarray,
+    Jrot: np.ndarray,
+    r: np.ndarray,
+    rows_pair: np.ndarray,
+    s2: float,
+    fixed: np.ndarray,
+    Bp: np.ndarray,
+    Dp: np.ndarray,
+    hp: np.ndarray,
+) -> None:
     """Per pair, the IRLS blocks of the reference corrections' normal equations from the 2D-2D
     rows (pair ``rows_pair[i]`` of row i): ``B_p`` (query x reference), the upper triangle of
     ``D_p`` and the gradient ``h_p``. Zeroes the ``fixed`` query columns of J afterwards."""
@@ -87,8 +103,9 @@ def _pair_blocks(J: np.ndarray, Jrot: np.ndarray, r: np.ndarray, rows_pair: np.n
 
 
 @njit(cache=True, error_model="numpy", fastmath=FASTMATH)
-def _add_prior(Dp: np.ndarray, hp: np.ndarray, omega: np.ndarray, dvec: np.ndarray, lam_rot: float,
-               lam_pos: float) -> None:
+def _add_prior(
+    Dp: np.ndarray, hp: np.ndarray, omega: np.ndarray, dvec: np.ndarray, lam_rot: float, lam_pos: float
+) -> None:
     """Symmetrise ``D_p`` and add the prior's information and gradient at the corrections."""
     for p in range(Dp.shape[0]):
         for a in range(6):
@@ -102,8 +119,9 @@ def _add_prior(Dp: np.ndarray, hp: np.ndarray, omega: np.ndarray, dvec: np.ndarr
 
 
 @njit(cache=True, error_model="numpy", fastmath=FASTMATH)
-def _marginal_information(H: np.ndarray, Bp: np.ndarray, Dp: np.ndarray, Hm: np.ndarray,
-                          Dinv: np.ndarray) -> bool:
+def _marginal_information(
+    H: np.ndarray, Bp: np.ndarray, Dp: np.ndarray, Hm: np.ndarray, Dinv: np.ndarray
+) -> bool:
     """``Hm = H − Σ_p B_p D_p⁻¹ B_pᵀ`` (undamped Schur complement: the query's marginal
     information, symmetrised); False, Hm unfinished, when a ``D_p`` is not positive definite."""
     Hm[:] = H
@@ -136,8 +154,15 @@ def _marginal_information(H: np.ndarray, Bp: np.ndarray, Dp: np.ndarray, Hm: np.
 
 
 @njit(cache=True, error_model="numpy", fastmath=FASTMATH)
-def _damped_query_step(H: np.ndarray, g: np.ndarray, blocks: tuple, lam: float, fixed: np.ndarray,
-                       Dinv: np.ndarray, step: np.ndarray) -> bool:
+def _damped_query_step(
+    H: np.ndarray,
+    g: np.ndarray,
+    blocks: tuple,
+    lam: float,
+    fixed: np.ndarray,
+    Dinv: np.ndarray,
+    step: np.ndarray,
+) -> bool:
     """The query's LM step (damping ``lam``) with the references eliminated: solves
     ``(S + λ diag S) step = rhs``, ``S = H − Σ B D_λ⁻¹ Bᵀ``, ``rhs = −g + Σ B D_λ⁻¹ h`` for
     ``blocks = (B_p, D_p, h_p)``, leaving ``D_λ⁻¹`` in ``Dinv``; False if not solvable."""
@@ -173,8 +198,9 @@ def _damped_query_step(H: np.ndarray, g: np.ndarray, blocks: tuple, lam: float, 
 
 
 @njit(cache=True, error_model="numpy", fastmath=FASTMATH)
-def _reference_corrections(blocks: tuple, Dinv: np.ndarray, step: np.ndarray, omega: np.ndarray,
-                           dvec: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _reference_corrections(
+    blocks: tuple, Dinv: np.ndarray, step: np.ndarray, omega: np.ndarray, dvec: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
     """The references' corrections after the query's ``step``: ``δ_p −= D_λ⁻¹ (h_p + B_pᵀ step)``,
     as new (ω (P, 3), d (P, 3)) arrays."""
     Bp, _, hp = blocks
@@ -213,9 +239,18 @@ def _prior_weights(r: np.ndarray, s2: float, sigma_floor: float, prior_std: tupl
 
 @njit(cache=True, error_model="numpy", fastmath=FASTMATH)
 def refine_with_map_prior(
-    Rq: np.ndarray, tq: np.ndarray, prob: ProblemArrays, idx2d: np.ndarray, idx3d: np.ndarray,
-    loss_scale: float, max_iterations: int, sigma_floor: float, prior_std: tuple[float, float],
-    c0: np.ndarray, B: np.ndarray, fixed: np.ndarray,
+    Rq: np.ndarray,
+    tq: np.ndarray,
+    prob: ProblemArrays,
+    idx2d: np.ndarray,
+    idx3d: np.ndarray,
+    loss_scale: float,
+    max_iterations: int,
+    sigma_floor: float,
+    prior_std: tuple[float, float],
+    c0: np.ndarray,
+    B: np.ndarray,
+    fixed: np.ndarray,
 ) -> Refinement:
     """Levenberg-Marquardt (IRLS, Cauchy loss at ``loss_scale``) of the query pose and one pose
     correction per reference with the map prior; same arguments and returns as
@@ -276,7 +311,9 @@ def refine_with_map_prior(
             new_R, new_t = np.empty_like(ref_R), np.empty_like(ref_t)
             _perturbed_refs(ref_R, ref_c, om_new, d_new, B, new_R, new_t)
             residuals(zero, R_new, c_new, B, with_references(prob, new_R, new_t), idx2d, idx3d, rp)
-            new_cost = 0.5 * s2 * np.sum(np.log1p(rp * rp / s2)) + _prior_cost(om_new, d_new, lam_rot, lam_pos)
+            new_cost = 0.5 * s2 * np.sum(np.log1p(rp * rp / s2)) + _prior_cost(
+                om_new, d_new, lam_rot, lam_pos
+            )
             if new_cost <= cost:
                 R, c, omega, dvec, cur_R, cur_t = R_new, c_new, om_new, d_new, new_R, new_t
                 improved = cost - new_cost > max(1e-6 * cost, 5e-4 * wr2 / max(m - 6, 1))

@@ -64,8 +64,9 @@ def supporting_pairs(problem, in2d: np.ndarray, min_inliers: int = MIN_PAIR_INLI
     return np.flatnonzero(counts >= min_inliers)
 
 
-def correlation_inflation(num_inliers: int, num_supporting: int,
-                          per_reference: int = EFFECTIVE_CONSTRAINTS_PER_REFERENCE) -> float:
+def correlation_inflation(
+    num_inliers: int, num_supporting: int, per_reference: int = EFFECTIVE_CONSTRAINTS_PER_REFERENCE
+) -> float:
     """Factor (≥ 1) on standard deviations for residuals that are correlated per reference.
 
     The linearised covariance ``σ̂² (JᵀWJ)⁻¹`` treats every inlier as an independent
@@ -82,9 +83,17 @@ def correlation_inflation(num_inliers: int, num_supporting: int,
 
 
 @njit(cache=True, error_model="numpy")
-def support_kernel(R: np.ndarray, t: np.ndarray, in2d: np.ndarray, offsets: np.ndarray, ref_R: np.ndarray,
-                   ref_t: np.ndarray, gravity_world: np.ndarray, query_gravity: np.ndarray,
-                   min_pair_inliers: int) -> tuple[np.ndarray, float, float, float, float]:
+def support_kernel(
+    R: np.ndarray,
+    t: np.ndarray,
+    in2d: np.ndarray,
+    offsets: np.ndarray,
+    ref_R: np.ndarray,
+    ref_t: np.ndarray,
+    gravity_world: np.ndarray,
+    query_gravity: np.ndarray,
+    min_pair_inliers: int,
+) -> tuple[np.ndarray, float, float, float, float]:
     """The numbers of :class:`PoseSupport` in one compiled call; see :func:`pose_support`."""
     P = offsets.shape[0] - 1
     counts = np.zeros(P, dtype=np.int64)
@@ -125,8 +134,9 @@ def support_kernel(R: np.ndarray, t: np.ndarray, in2d: np.ndarray, offsets: np.n
     median_distance = np.median(dist[:k]) if k else np.nan
     # planar fit: tilt of the implied gravity, elevation over the supporting references
     g_pred = m3.vec(R, gravity_world)
-    cos_t = np.sum(g_pred * query_gravity) / max(np.sqrt(np.sum(g_pred * g_pred) * np.sum(query_gravity ** 2)),
-                                                 1e-300)
+    cos_t = np.sum(g_pred * query_gravity) / max(
+        np.sqrt(np.sum(g_pred * g_pred) * np.sum(query_gravity**2)), 1e-300
+    )
     tilt = np.degrees(np.arccos(min(1.0, max(-1.0, cos_t))))
     heights = np.empty(P)
     horizontal = np.empty(P)
@@ -186,8 +196,15 @@ class PoseSupport:
     fit: PlanarFit
 
 
-def pose_support(problem, R: np.ndarray, t: np.ndarray, in2d: np.ndarray, gravity_world: np.ndarray,
-                 query_gravity: np.ndarray, min_pair_inliers: int = MIN_PAIR_INLIERS) -> PoseSupport:
+def pose_support(
+    problem,
+    R: np.ndarray,
+    t: np.ndarray,
+    in2d: np.ndarray,
+    gravity_world: np.ndarray,
+    query_gravity: np.ndarray,
+    min_pair_inliers: int = MIN_PAIR_INLIERS,
+) -> PoseSupport:
     """:class:`PoseSupport` of ``cam_from_world = (R, t)`` with 2D-2D inliers ``in2d`` (N,).
 
     Args:
@@ -202,14 +219,28 @@ def pose_support(problem, R: np.ndarray, t: np.ndarray, in2d: np.ndarray, gravit
     # argument, and a readonly gravity or pose (a cached or broadcast array) made the first
     # query after `planarloc warmup` compile this kernel again (6 s on KITTI; cold_start.py).
     counts, col, dist, tilt, elev = support_kernel(
-        np.array(R, dtype=float), np.array(t, dtype=float), in2d, problem.offsets,
-        problem.ref_R, problem.ref_t, np.array(gravity_world, dtype=float),
-        np.array(query_gravity, dtype=float), min_pair_inliers)
-    return PoseSupport(counts, np.flatnonzero(counts >= min_pair_inliers), float(col), float(dist),
-                       PlanarFit(float(tilt), float(elev)))
+        np.array(R, dtype=float),
+        np.array(t, dtype=float),
+        in2d,
+        problem.offsets,
+        problem.ref_R,
+        problem.ref_t,
+        np.array(gravity_world, dtype=float),
+        np.array(query_gravity, dtype=float),
+        min_pair_inliers,
+    )
+    return PoseSupport(
+        counts,
+        np.flatnonzero(counts >= min_pair_inliers),
+        float(col),
+        float(dist),
+        PlanarFit(float(tilt), float(elev)),
+    )
 
 
-def weak_directions(est, R: np.ndarray, t: np.ndarray, support: np.ndarray, cov: np.ndarray) -> list[np.ndarray]:
+def weak_directions(
+    est, R: np.ndarray, t: np.ndarray, support: np.ndarray, cov: np.ndarray
+) -> list[np.ndarray]:
     """Directions along which the position may be unobservable (world frame).
 
     The weakest axis of the bearing configuration (and the largest axis of the linearised
@@ -236,8 +267,18 @@ def weak_directions(est, R: np.ndarray, t: np.ndarray, support: np.ndarray, cov:
     return dirs
 
 
-def profile_std(est, R: np.ndarray, t: np.ndarray, in2d: np.ndarray, in3d: np.ndarray, sigma: float,
-                cost: float | None, direction: np.ndarray, distance: float, map_prior: bool = False) -> float:
+def profile_std(
+    est,
+    R: np.ndarray,
+    t: np.ndarray,
+    in2d: np.ndarray,
+    in3d: np.ndarray,
+    sigma: float,
+    cost: float | None,
+    direction: np.ndarray,
+    distance: float,
+    map_prior: bool = False,
+) -> float:
     """Secant estimate of the position std along ``direction`` (unit, world frame).
 
     The centre is moved by ``±distance`` along ``direction`` and held there while the
@@ -271,15 +312,30 @@ def profile_std(est, R: np.ndarray, t: np.ndarray, in2d: np.ndarray, in3d: np.nd
     return worst
 
 
-def map_covariance(est, R: np.ndarray, t: np.ndarray, in2d: np.ndarray, in3d: np.ndarray,
-                   prior: tuple[float, float] | None = None) -> np.ndarray:
+def map_covariance(
+    est,
+    R: np.ndarray,
+    t: np.ndarray,
+    in2d: np.ndarray,
+    in3d: np.ndarray,
+    prior: tuple[float, float] | None = None,
+) -> np.ndarray:
     """(3, 3) position covariance caused by the map's pose uncertainty: ``prior`` (rotation std
     in degrees, position std in metres), default the options' ``map_*_std``."""
     p, o = est.p, est.options
     rotation_deg, position_m = prior if prior is not None else (o.map_rotation_std_deg, o.map_position_std_m)
-    return map_centre_covariance(*map_uncertainty_covariance(
-        np.ascontiguousarray(R), np.ascontiguousarray(t), p.arrays, np.flatnonzero(in2d), np.flatnonzero(in3d),
-        o.threshold_px, float(np.radians(rotation_deg)), float(position_m)))
+    return map_centre_covariance(
+        *map_uncertainty_covariance(
+            np.ascontiguousarray(R),
+            np.ascontiguousarray(t),
+            p.arrays,
+            np.flatnonzero(in2d),
+            np.flatnonzero(in3d),
+            o.threshold_px,
+            float(np.radians(rotation_deg)),
+            float(position_m),
+        )
+    )
 
 
 @dataclass(frozen=True)
@@ -304,8 +360,15 @@ class Jackknife:
 
 @njit(cache=True, error_model="numpy")
 def jackknife_kernel(
-    R: np.ndarray, t: np.ndarray, prob: ProblemArrays, in2d: np.ndarray, in3d: np.ndarray, support: np.ndarray,
-    loss_scale: float, max_iterations: int, sigma_floor: float,
+    R: np.ndarray,
+    t: np.ndarray,
+    prob: ProblemArrays,
+    in2d: np.ndarray,
+    in3d: np.ndarray,
+    support: np.ndarray,
+    loss_scale: float,
+    max_iterations: int,
+    sigma_floor: float,
 ) -> tuple[float, float, float, int]:
     """The numbers of :func:`reference_jackknife` in one compiled call (one refinement per
     supporting reference with its rows left out, started at the full estimate).
@@ -360,8 +423,20 @@ def jackknife_kernel(
         if max_iterations >= 1 and solve_spd(A, gp[k] - gt, step):
             R1 = m3.mul(exp_so3(step[:3]), R)
             c1 = c + step[3:]
-        Rk, tk, _, _, _ = refine_pose_core(R1, t, prob, keep, idx3d, loss_scale, max(max_iterations - 1, 0),
-                                           sigma_floor, c1, eye, free, np.bool_(False))
+        Rk, tk, _, _, _ = refine_pose_core(
+            R1,
+            t,
+            prob,
+            keep,
+            idx3d,
+            loss_scale,
+            max(max_iterations - 1, 0),
+            sigma_floor,
+            c1,
+            eye,
+            free,
+            np.bool_(False),
+        )
         ck = -m3.t_vec(Rk, tk)
         for a in range(3):
             centres[i, a] = ck[a]
@@ -385,8 +460,15 @@ def jackknife_kernel(
     return np.sqrt(max(lam, 0.0)), np.sqrt(max(max_shift, 0.0)), max_rot, worst
 
 
-def reference_jackknife(est, R: np.ndarray, t: np.ndarray, in2d: np.ndarray, in3d: np.ndarray,
-                        max_iterations: int = 2, support: np.ndarray | None = None) -> Jackknife:
+def reference_jackknife(
+    est,
+    R: np.ndarray,
+    t: np.ndarray,
+    in2d: np.ndarray,
+    in3d: np.ndarray,
+    max_iterations: int = 2,
+    support: np.ndarray | None = None,
+) -> Jackknife:
     """Refine the pose once per supporting reference with that reference's matches left out.
 
     2D-3D constraints (tracks, depth) stay in every refinement: they tie the query to world
@@ -407,13 +489,28 @@ def reference_jackknife(est, R: np.ndarray, t: np.ndarray, in2d: np.ndarray, in3
     if n < 3:
         return Jackknife(n, float("nan"), float("nan"), float("nan"), -1)
     std, shift, rot, worst = jackknife_kernel(
-        np.ascontiguousarray(R), np.ascontiguousarray(t), p.arrays, in2d, in3d, np.asarray(support, dtype=np.int64),
-        est.options.threshold_px, max_iterations, SIGMA_FLOOR_PX)
+        np.ascontiguousarray(R),
+        np.ascontiguousarray(t),
+        p.arrays,
+        in2d,
+        in3d,
+        np.asarray(support, dtype=np.int64),
+        est.options.threshold_px,
+        max_iterations,
+        SIGMA_FLOOR_PX,
+    )
     return Jackknife(n, float(std), float(shift), float(rot), int(support[worst]))
 
 
-def reference_jackknife_with_prior(est, R: np.ndarray, t: np.ndarray, in2d: np.ndarray, in3d: np.ndarray,
-                                   support: np.ndarray, max_iterations: int = 3) -> Jackknife:
+def reference_jackknife_with_prior(
+    est,
+    R: np.ndarray,
+    t: np.ndarray,
+    in2d: np.ndarray,
+    in3d: np.ndarray,
+    support: np.ndarray,
+    max_iterations: int = 3,
+) -> Jackknife:
     """:func:`reference_jackknife` for a pose refined under the map prior
     (:func:`planarloc.robust.map_prior.refine_with_map_prior`): each leave-one-out refinement
     minimises the same objective. The 2D-3D points stay in every refinement, as in
@@ -432,23 +529,51 @@ def reference_jackknife_with_prior(est, R: np.ndarray, t: np.ndarray, in2d: np.n
     rot_std, pos_std = math.radians(o.map_rotation_std_deg), float(o.map_position_std_m)
     for i, k in enumerate(support):
         idx2d = np.flatnonzero(in2d & (p.pair != k))
-        Rk, tk, *_ = refine_with_map_prior(np.ascontiguousarray(R), np.ascontiguousarray(t), p.arrays, idx2d, idx3d,
-                                           o.threshold_px, max_iterations, SIGMA_FLOOR_PX, (rot_std, pos_std), c, eye,
-                                           free)
+        Rk, tk, *_ = refine_with_map_prior(
+            np.ascontiguousarray(R),
+            np.ascontiguousarray(t),
+            p.arrays,
+            idx2d,
+            idx3d,
+            o.threshold_px,
+            max_iterations,
+            SIGMA_FLOOR_PX,
+            (rot_std, pos_std),
+            c,
+            eye,
+            free,
+        )
         centres[i] = -Rk.T @ tk
-        max_rot = max(max_rot, math.degrees(math.acos(min(1.0, max(-1.0, (float(np.sum(Rk * R)) - 1.0) / 2.0)))))
+        max_rot = max(
+            max_rot, math.degrees(math.acos(min(1.0, max(-1.0, (float(np.sum(Rk * R)) - 1.0) / 2.0))))
+        )
     dev = centres - centres.mean(axis=0)
     cov = (n - 1.0) / n * dev.T @ dev
     shifts = np.linalg.norm(centres - c, axis=1)
     worst = int(np.argmax(shifts))
-    return Jackknife(n, float(np.sqrt(max(np.linalg.eigvalsh(cov)[-1], 0.0))), float(shifts[worst]), max_rot,
-                     int(support[worst]))
+    return Jackknife(
+        n,
+        float(np.sqrt(max(np.linalg.eigvalsh(cov)[-1], 0.0))),
+        float(shifts[worst]),
+        max_rot,
+        int(support[worst]),
+    )
 
 
 @njit(cache=True, error_model="numpy")
-def points_centre_covariance(R: np.ndarray, t: np.ndarray, prob: ProblemArrays, X3d_cov: np.ndarray,
-                             X3d_views: np.ndarray, X3d_pose_jac: np.ndarray, idx3d: np.ndarray, H: np.ndarray,
-                             loss_scale: float, map_rotation_var: float, map_position_var: float) -> np.ndarray:
+def points_centre_covariance(
+    R: np.ndarray,
+    t: np.ndarray,
+    prob: ProblemArrays,
+    X3d_cov: np.ndarray,
+    X3d_views: np.ndarray,
+    X3d_pose_jac: np.ndarray,
+    idx3d: np.ndarray,
+    H: np.ndarray,
+    loss_scale: float,
+    map_rotation_var: float,
+    map_position_var: float,
+) -> np.ndarray:
     """(3, 3) covariance of the query centre caused by the 2D-3D points' own uncertainty.
 
     The refinement solves ``Σ w Jᵀ r = 0``; a point moved by ``δX`` moves its residuals by
@@ -545,6 +670,16 @@ def points_covariance(est, R: np.ndarray, t: np.ndarray, in3d: np.ndarray, H: np
     idx3d = np.flatnonzero(in3d)
     if len(idx3d) == 0 or not (np.any(p.X3d_cov[idx3d]) or np.any(p.X3d_views[idx3d] >= 0)):
         return np.zeros((3, 3))
-    return points_centre_covariance(np.ascontiguousarray(R), np.ascontiguousarray(t), p.arrays, p.X3d_cov,
-                                    p.X3d_views, p.X3d_pose_jac, idx3d, np.ascontiguousarray(H), o.threshold_px, math.radians(o.map_rotation_std_deg) ** 2,
-                                    float(o.map_position_std_m) ** 2)
+    return points_centre_covariance(
+        np.ascontiguousarray(R),
+        np.ascontiguousarray(t),
+        p.arrays,
+        p.X3d_cov,
+        p.X3d_views,
+        p.X3d_pose_jac,
+        idx3d,
+        np.ascontiguousarray(H),
+        o.threshold_px,
+        math.radians(o.map_rotation_std_deg) ** 2,
+        float(o.map_position_std_m) ** 2,
+    )

@@ -45,9 +45,18 @@ class Structure(str, Enum):
 
 _E = TypeVar("_E", Method, Structure)
 
-_FINITE_FIELDS = ("threshold_px", "rcheck_deg", "consistency_deg", "max_position_std_m", "map_rotation_std_deg",
-                  "map_position_std_m", "min_collinearity_ratio", "track_min_angle_deg", "planar_tolerance_deg",
-                  "max_reference_shift_std")
+_FINITE_FIELDS = (
+    "threshold_px",
+    "rcheck_deg",
+    "consistency_deg",
+    "max_position_std_m",
+    "map_rotation_std_deg",
+    "map_position_std_m",
+    "min_collinearity_ratio",
+    "track_min_angle_deg",
+    "planar_tolerance_deg",
+    "max_reference_shift_std",
+)
 
 
 @dataclass(frozen=True)
@@ -139,7 +148,9 @@ class RansacOptions:
     seed: int | None = 0
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "structure", parse_choice(Structure, self.structure, "RansacOptions.structure"))
+        object.__setattr__(
+            self, "structure", parse_choice(Structure, self.structure, "RansacOptions.structure")
+        )
         for name in ("max_iterations", "min_iterations", "min_inliers"):
             check_integer(f"RansacOptions.{name}", getattr(self, name), 0)
         check_integer("RansacOptions.seed", self.seed, 0, allow_none=True)
@@ -155,16 +166,29 @@ class RansacOptions:
                 f"RansacOptions: need 1 <= min_iterations <= max_iterations, got {self.min_iterations}, "
                 f"{self.max_iterations}"
             )
-        for name in ("threshold_px", "rcheck_deg", "consistency_deg", "max_position_std_m",
-                     "planar_tolerance_deg", "max_reference_shift_std"):
+        for name in (
+            "threshold_px",
+            "rcheck_deg",
+            "consistency_deg",
+            "max_position_std_m",
+            "planar_tolerance_deg",
+            "max_reference_shift_std",
+        ):
             if not getattr(self, name) > 0:
                 raise InputError(f"RansacOptions.{name}: must be > 0, got {getattr(self, name)}")
-        for name in ("map_rotation_std_deg", "map_position_std_m", "min_collinearity_ratio", "track_min_angle_deg"):
+        for name in (
+            "map_rotation_std_deg",
+            "map_position_std_m",
+            "min_collinearity_ratio",
+            "track_min_angle_deg",
+        ):
             if not getattr(self, name) >= 0:
                 raise InputError(f"RansacOptions.{name}: must be >= 0, got {getattr(self, name)}")
         if self.min_collinearity_ratio > 1:
-            raise InputError(f"RansacOptions.min_collinearity_ratio: a singular value ratio, must be <= 1, "
-                             f"got {self.min_collinearity_ratio}")
+            raise InputError(
+                f"RansacOptions.min_collinearity_ratio: a singular value ratio, must be <= 1, "
+                f"got {self.min_collinearity_ratio}"
+            )
         if not (0.0 < self.confidence < 1.0):
             raise InputError(f"RansacOptions.confidence: must be in (0, 1), got {self.confidence}")
 

@@ -72,7 +72,9 @@ class PairMatches:
 
     def __post_init__(self) -> None:
         if not isinstance(self.ref_pose, Pose):
-            raise InputError(f"PairMatches.ref_pose: expected a planarloc.Pose, got {type(self.ref_pose).__name__}")
+            raise InputError(
+                f"PairMatches.ref_pose: expected a planarloc.Pose, got {type(self.ref_pose).__name__}"
+            )
         if not isinstance(self.ref_camera, Camera):
             raise InputError(
                 f"PairMatches.ref_camera: expected a planarloc.Camera, got {type(self.ref_camera).__name__}"
@@ -87,7 +89,9 @@ class PairMatches:
             ids = raw.astype(np.int64)
             if np.any(ids != raw):  # 2.5 would silently become keypoint 2 (another track)
                 bad = int(np.argmax(ids != raw))
-                raise InputError(f"PairMatches.query_indices: expected whole numbers, got {raw[bad]} at index {bad}")
+                raise InputError(
+                    f"PairMatches.query_indices: expected whole numbers, got {raw[bad]} at index {bad}"
+                )
             if len(np.unique(ids)) != n:
                 raise InputError("PairMatches.query_indices: ids must be unique within one pair")
             object.__setattr__(self, "query_indices", ids)
@@ -105,29 +109,43 @@ class PairMatches:
             C = check_array("PairMatches.ref_points3d_cov", self.ref_points3d_cov, (n, 3, 3), finite=False)
             has = ~np.isnan(self.ref_points3d[:, 0])
             if not np.isfinite(C[has]).all():
-                raise InputError("PairMatches.ref_points3d_cov: must be finite where ref_points3d has a point")
+                raise InputError(
+                    "PairMatches.ref_points3d_cov: must be finite where ref_points3d has a point"
+                )
             sym = C[has]
-            if np.any(np.abs(sym - sym.transpose(0, 2, 1)) > 1e-9 * (1.0 + np.abs(sym).max(initial=0.0))) or \
-                    np.any(np.einsum("nii->n", sym) < 0):
-                raise InputError("PairMatches.ref_points3d_cov: expected symmetric positive semi-definite (3, 3) "
-                                 "covariances")
+            if np.any(
+                np.abs(sym - sym.transpose(0, 2, 1)) > 1e-9 * (1.0 + np.abs(sym).max(initial=0.0))
+            ) or np.any(np.einsum("nii->n", sym) < 0):
+                raise InputError(
+                    "PairMatches.ref_points3d_cov: expected symmetric positive semi-definite (3, 3) "
+                    "covariances"
+                )
             object.__setattr__(self, "ref_points3d_cov", C)
         if (self.ref_points3d_partner is None) != (self.ref_points3d_pose_jac is None):
-            raise InputError("PairMatches.ref_points3d_partner and ref_points3d_pose_jac: give both or neither")
+            raise InputError(
+                "PairMatches.ref_points3d_partner and ref_points3d_pose_jac: give both or neither"
+            )
         if self.ref_points3d_partner is not None:
             if self.ref_points3d is None:
                 raise InputError("PairMatches.ref_points3d_partner: given without ref_points3d")
-            raw = check_array("PairMatches.ref_points3d_partner", self.ref_points3d_partner, (n,), dtype=np.float64)
+            raw = check_array(
+                "PairMatches.ref_points3d_partner", self.ref_points3d_partner, (n,), dtype=np.float64
+            )
             partner = raw.astype(np.int64)
             if np.any(partner != raw) or np.any(partner < -1):
                 bad = int(np.argmax((partner != raw) | (partner < -1)))
-                raise InputError(f"PairMatches.ref_points3d_partner: expected whole numbers >= -1, got {raw[bad]} at "
-                                 f"index {bad}")
-            jac = check_array("PairMatches.ref_points3d_pose_jac", self.ref_points3d_pose_jac, (n, 2, 3, 6),
-                              finite=False)
+                raise InputError(
+                    f"PairMatches.ref_points3d_partner: expected whole numbers >= -1, got {raw[bad]} at "
+                    f"index {bad}"
+                )
+            jac = check_array(
+                "PairMatches.ref_points3d_pose_jac", self.ref_points3d_pose_jac, (n, 2, 3, 6), finite=False
+            )
             used = (partner >= 0) & ~np.isnan(self.ref_points3d[:, 0])
             if not np.isfinite(jac[used]).all():
-                raise InputError("PairMatches.ref_points3d_pose_jac: must be finite where a point has a partner")
+                raise InputError(
+                    "PairMatches.ref_points3d_pose_jac: must be finite where a point has a partner"
+                )
             object.__setattr__(self, "ref_points3d_partner", partner)
             object.__setattr__(self, "ref_points3d_pose_jac", jac)
 

@@ -59,7 +59,9 @@ def _normalizer(x: np.ndarray, rows: np.ndarray, keep: np.ndarray) -> tuple[floa
     d = 0.0
     for i in range(rows.shape[0]):
         if keep[i]:
-            d += np.sqrt((x[rows[i], 0] / x[rows[i], 2] - mx) ** 2 + (x[rows[i], 1] / x[rows[i], 2] - my) ** 2)
+            d += np.sqrt(
+                (x[rows[i], 0] / x[rows[i], 2] - mx) ** 2 + (x[rows[i], 1] / x[rows[i], 2] - my) ** 2
+            )
     d /= max(n, 1)
     return mx, my, np.sqrt(2.0) / max(d, 1e-12)
 
@@ -116,8 +118,9 @@ def _fit(xq: np.ndarray, xr: np.ndarray, rows: np.ndarray, keep: np.ndarray, H: 
 
 
 @njit(cache=True, error_model="numpy")
-def homography_inlier_ratio(xq: np.ndarray, xr: np.ndarray, rows: np.ndarray, f_ref: np.ndarray,
-                            threshold_px: float) -> float:
+def homography_inlier_ratio(
+    xq: np.ndarray, xr: np.ndarray, rows: np.ndarray, f_ref: np.ndarray, threshold_px: float
+) -> float:
     """Share of the matches ``rows`` that one homography maps within ``threshold_px``.
 
     Args:
@@ -160,8 +163,15 @@ def homography_inlier_ratio(xq: np.ndarray, xr: np.ndarray, rows: np.ndarray, f_
 
 
 @njit(cache=True, error_model="numpy")
-def median_depth(R: np.ndarray, t: np.ndarray, xq: np.ndarray, xr: np.ndarray, rows: np.ndarray,
-                 ref_R: np.ndarray, ref_t: np.ndarray) -> float:
+def median_depth(
+    R: np.ndarray,
+    t: np.ndarray,
+    xq: np.ndarray,
+    xr: np.ndarray,
+    rows: np.ndarray,
+    ref_R: np.ndarray,
+    ref_t: np.ndarray,
+) -> float:
     """Median distance from the query centre of the midpoint triangulations of the matches
     ``rows`` of one pair (query ``cam_from_world = (R, t)``, reference ``(ref_R, ref_t)``);
     NaN if none triangulates in front of the query."""
@@ -184,8 +194,15 @@ def median_depth(R: np.ndarray, t: np.ndarray, xq: np.ndarray, xr: np.ndarray, r
     return np.median(depth[:k]) if k else np.nan
 
 
-def distant_planar_pairs(problem, R: np.ndarray, t: np.ndarray, in2d: np.ndarray, pairs: np.ndarray,
-                         threshold_px: float, any_plane: bool = False) -> np.ndarray:
+def distant_planar_pairs(
+    problem,
+    R: np.ndarray,
+    t: np.ndarray,
+    in2d: np.ndarray,
+    pairs: np.ndarray,
+    threshold_px: float,
+    any_plane: bool = False,
+) -> np.ndarray:
     """(len(pairs),) bool: which of the given pairs see a distant plane through few inliers from
     the pose ``(R, t)``.
 
@@ -198,15 +215,30 @@ def distant_planar_pairs(problem, R: np.ndarray, t: np.ndarray, in2d: np.ndarray
     geometry of points on a plane is not unique; generated offices seen 0.8 m from the map images
     gave 8-point poses 15-21° off with a 0.1 m position std)."""
     out = np.zeros(len(pairs), dtype=np.bool_)
-    _distant_planar_kernel(np.ascontiguousarray(R, dtype=float), np.ascontiguousarray(t, dtype=float), problem.arrays,
-                           np.ascontiguousarray(in2d), np.asarray(pairs, dtype=np.int64), float(threshold_px),
-                           bool(any_plane), out)
+    _distant_planar_kernel(
+        np.ascontiguousarray(R, dtype=float),
+        np.ascontiguousarray(t, dtype=float),
+        problem.arrays,
+        np.ascontiguousarray(in2d),
+        np.asarray(pairs, dtype=np.int64),
+        float(threshold_px),
+        bool(any_plane),
+        out,
+    )
     return out
 
 
 @njit(cache=True, error_model="numpy")
-def _distant_planar_kernel(R: np.ndarray, t: np.ndarray, prob: ProblemArrays, in2d: np.ndarray, pairs: np.ndarray,
-                           threshold_px: float, any_plane: bool, out: np.ndarray) -> None:
+def _distant_planar_kernel(
+    R: np.ndarray,
+    t: np.ndarray,
+    prob: ProblemArrays,
+    in2d: np.ndarray,
+    pairs: np.ndarray,
+    threshold_px: float,
+    any_plane: bool,
+    out: np.ndarray,
+) -> None:
     """The loop of :func:`distant_planar_pairs` over ``pairs`` (K,) into ``out`` (K,) bool, in one
     compiled call (the cheap tests first: few inliers, far; then the homography)."""
     xq, xr, offsets, ref_R, ref_t, f_ref = prob.xq, prob.xr, prob.offsets, prob.ref_R, prob.ref_t, prob.f_ref
@@ -230,6 +262,9 @@ def _distant_planar_kernel(R: np.ndarray, t: np.ndarray, prob: ProblemArrays, in
                 rows[n] = j
                 n += 1
         if not any_plane:
-            if n >= FEW_INLIERS or not median_depth(R, t, xq, xr, rows, ref_R[k], ref_t[k]) > FAR_RATIO * spread:
+            if (
+                n >= FEW_INLIERS
+                or not median_depth(R, t, xq, xr, rows, ref_R[k], ref_t[k]) > FAR_RATIO * spread
+            ):
                 continue
         out[i] = homography_inlier_ratio(xq, xr, rows, f_ref[k], threshold_px) >= PLANAR_INLIER_RATIO

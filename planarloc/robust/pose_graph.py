@@ -59,8 +59,9 @@ class _Factor:
     covariance: np.ndarray
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "covariance",
-                           check_array(f"{type(self).__name__}.covariance", self.covariance, (6, 6)))
+        object.__setattr__(
+            self, "covariance", check_array(f"{type(self).__name__}.covariance", self.covariance, (6, 6))
+        )
 
 
 @dataclass(frozen=True, eq=False)
@@ -114,28 +115,40 @@ class PoseGraphSolution:
 class _Packed:
     """Factors as stacked arrays for vectorised residuals and Jacobians."""
 
-    def __init__(self, n: int, absolute: Sequence[AbsoluteFactor], relative: Sequence[RelativeFactor]) -> None:
+    def __init__(
+        self, n: int, absolute: Sequence[AbsoluteFactor], relative: Sequence[RelativeFactor]
+    ) -> None:
         for f in absolute:
             if not 0 <= f.node < n:
                 raise InputError(f"AbsoluteFactor.node {f.node} is not a node index (0..{n - 1})")
         for f in relative:
             if not (0 <= f.i < n and 0 <= f.j < n) or f.i == f.j:
-                raise InputError(f"RelativeFactor ({f.i}, {f.j}): need two different node indices in 0..{n - 1}")
+                raise InputError(
+                    f"RelativeFactor ({f.i}, {f.j}): need two different node indices in 0..{n - 1}"
+                )
         self.n = n
         self.a_idx = np.array([f.node for f in absolute], dtype=np.int64)
         self.a_R = np.array([f.pose.R for f in absolute]).reshape(-1, 3, 3)
         self.a_c = np.array([f.pose.center for f in absolute]).reshape(-1, 3)
-        self.a_U = np.array([_whitener("AbsoluteFactor.covariance", f.covariance) for f in absolute]).reshape(-1, 6, 6)
+        self.a_U = np.array([_whitener("AbsoluteFactor.covariance", f.covariance) for f in absolute]).reshape(
+            -1, 6, 6
+        )
         self.r_i = np.array([f.i for f in relative], dtype=np.int64)
         self.r_j = np.array([f.j for f in relative], dtype=np.int64)
         self.r_R = np.array([f.j_from_i.R for f in relative]).reshape(-1, 3, 3)
         self.r_d = np.array([f.j_from_i.inverse().t for f in relative]).reshape(-1, 3)
-        self.r_U = np.array([_whitener("RelativeFactor.covariance", f.covariance) for f in relative]).reshape(-1, 6, 6)
+        self.r_U = np.array([_whitener("RelativeFactor.covariance", f.covariance) for f in relative]).reshape(
+            -1, 6, 6
+        )
         self.m = 6 * (len(absolute) + len(relative))
 
     def residuals(self, R: np.ndarray, c: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Whitened residuals (m,), and the rotation errors of absolute and relative factors."""
-        phi_a = so3_log(R[self.a_idx] @ np.transpose(self.a_R, (0, 2, 1))) if len(self.a_idx) else np.zeros((0, 3))
+        phi_a = (
+            so3_log(R[self.a_idx] @ np.transpose(self.a_R, (0, 2, 1)))
+            if len(self.a_idx)
+            else np.zeros((0, 3))
+        )
         ra = np.concatenate([phi_a, c[self.a_idx] - self.a_c], axis=1)
         Ri, Rj = R[self.r_i], R[self.r_j]
         if len(self.r_i):
@@ -144,8 +157,9 @@ class _Packed:
         else:
             phi_r, d = np.zeros((0, 3)), np.zeros((0, 3))
         rr = np.concatenate([phi_r, d - self.r_d], axis=1)
-        r = np.concatenate([np.einsum("nij,nj->ni", self.a_U, ra).ravel(),
-                            np.einsum("nij,nj->ni", self.r_U, rr).ravel()])
+        r = np.concatenate(
+            [np.einsum("nij,nj->ni", self.a_U, ra).ravel(), np.einsum("nij,nj->ni", self.r_U, rr).ravel()]
+        )
         return r, phi_a, phi_r
 
     def jacobian(self, R: np.ndarray, c: np.ndarray) -> np.ndarray:
@@ -179,7 +193,9 @@ class _Packed:
 
 
 def _unpack(poses: Sequence[Pose]) -> tuple[np.ndarray, np.ndarray]:
-    return np.array([p.R for p in poses]).reshape(-1, 3, 3), np.array([p.center for p in poses]).reshape(-1, 3)
+    return np.array([p.R for p in poses]).reshape(-1, 3, 3), np.array([p.center for p in poses]).reshape(
+        -1, 3
+    )
 
 
 def _retract(R0: np.ndarray, c0: np.ndarray, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -195,11 +211,12 @@ def _covariances(J: np.ndarray, n: int) -> np.ndarray:
         return np.full((n, 6, 6), np.inf)
     if not np.all(np.isfinite(cov)) or np.any(np.diag(cov) <= 0):
         return np.full((n, 6, 6), np.inf)
-    return np.stack([cov[6 * k:6 * k + 6, 6 * k:6 * k + 6] for k in range(n)])
+    return np.stack([cov[6 * k : 6 * k + 6, 6 * k : 6 * k + 6] for k in range(n)])
 
 
-def marginal_covariances(poses: Sequence[Pose], absolute: Sequence[AbsoluteFactor],
-                         relative: Sequence[RelativeFactor]) -> np.ndarray:
+def marginal_covariances(
+    poses: Sequence[Pose], absolute: Sequence[AbsoluteFactor], relative: Sequence[RelativeFactor]
+) -> np.ndarray:
     """(N, 6, 6) marginal covariances of the nodes linearised at ``poses`` (no optimisation).
 
     Used to predict: add a node at ``j_from_i @ pose_i`` with its relative factor and read its
@@ -210,8 +227,12 @@ def marginal_covariances(poses: Sequence[Pose], absolute: Sequence[AbsoluteFacto
     return _covariances(packed.jacobian(R, c), len(poses))
 
 
-def solve_pose_graph(initial: Sequence[Pose], absolute: Sequence[AbsoluteFactor],
-                     relative: Sequence[RelativeFactor], max_evaluations: int = 50) -> PoseGraphSolution:
+def solve_pose_graph(
+    initial: Sequence[Pose],
+    absolute: Sequence[AbsoluteFactor],
+    relative: Sequence[RelativeFactor],
+    max_evaluations: int = 50,
+) -> PoseGraphSolution:
     """Least-squares poses of all nodes given the factors.
 
     Args:
@@ -275,8 +296,9 @@ def _orthonormalize(R: np.ndarray) -> np.ndarray:
     return (U * D[:, None, :]) @ Vt
 
 
-def marginalize_first(poses: Sequence[Pose], absolute: Sequence[AbsoluteFactor],
-                      relative: Sequence[RelativeFactor]) -> tuple[list[AbsoluteFactor], list[RelativeFactor]]:
+def marginalize_first(
+    poses: Sequence[Pose], absolute: Sequence[AbsoluteFactor], relative: Sequence[RelativeFactor]
+) -> tuple[list[AbsoluteFactor], list[RelativeFactor]]:
     """Drop node 0 and replace the factors touching it by a prior on node 1 (Schur complement).
 
     Requires that node 0's relative factors all connect it to node 1 (a chain). The remaining
@@ -292,7 +314,9 @@ def marginalize_first(poses: Sequence[Pose], absolute: Sequence[AbsoluteFactor],
     if any({f.i, f.j} != {0, 1} for f in touch_r):
         raise InputError("marginalize_first: node 0 must only be linked to node 1")
     keep_a = [AbsoluteFactor(f.node - 1, f.pose, f.covariance) for f in absolute if f.node != 0]
-    keep_r = [RelativeFactor(f.i - 1, f.j - 1, f.j_from_i, f.covariance) for f in relative if 0 not in (f.i, f.j)]
+    keep_r = [
+        RelativeFactor(f.i - 1, f.j - 1, f.j_from_i, f.covariance) for f in relative if 0 not in (f.i, f.j)
+    ]
     if touch_r and touch_a:
         packed = _Packed(2, [AbsoluteFactor(0, f.pose, f.covariance) for f in touch_a], touch_r)
         R, c = _unpack(poses[:2])

@@ -36,8 +36,9 @@ class ProblemArrays(NamedTuple):
 @njit(cache=True)
 def with_references(prob: ProblemArrays, ref_R: np.ndarray, ref_t: np.ndarray) -> ProblemArrays:
     """``prob`` with other reference poses (the map prior's nuisance refinement)."""
-    return ProblemArrays(prob.xq, prob.xr, prob.pair, prob.offsets, prob.f_query, prob.f_ref, ref_R, ref_t,
-                         prob.xq3d, prob.X3d)
+    return ProblemArrays(
+        prob.xq, prob.xr, prob.pair, prob.offsets, prob.f_query, prob.f_ref, ref_R, ref_t, prob.xq3d, prob.X3d
+    )
 
 
 @dataclass(frozen=True, eq=False)
@@ -91,8 +92,18 @@ class AbsolutePoseProblem:
     @cached_property
     def arrays(self) -> ProblemArrays:
         """The kernels' record of this problem's arrays (built once)."""
-        return ProblemArrays(self.xq, self.xr, self.pair, self.offsets, self.f_query, self.f_ref, self.ref_R,
-                             self.ref_t, self.xq3d, self.X3d)
+        return ProblemArrays(
+            self.xq,
+            self.xr,
+            self.pair,
+            self.offsets,
+            self.f_query,
+            self.f_ref,
+            self.ref_R,
+            self.ref_t,
+            self.xq3d,
+            self.X3d,
+        )
 
     @cached_property
     def counts(self) -> np.ndarray:
@@ -111,12 +122,23 @@ class AbsolutePoseProblem:
         on it is judged by the constraints that fix the position, not by 2D-2D ones that may
         not (:func:`planarloc.robust.absolute_pose.estimate_absolute_pose`)."""
         return dataclasses.replace(
-            self, xq=np.zeros((0, 3)), xr=np.zeros((0, 3)), pair=np.zeros(0, dtype=np.int64),
-            offsets=np.zeros_like(self.offsets), query_ids=np.zeros(0, dtype=np.int64))
+            self,
+            xq=np.zeros((0, 3)),
+            xr=np.zeros((0, 3)),
+            pair=np.zeros(0, dtype=np.int64),
+            offsets=np.zeros_like(self.offsets),
+            query_ids=np.zeros(0, dtype=np.int64),
+        )
 
-    def with_points3d(self, xq3d: np.ndarray, X3d: np.ndarray, source3d: np.ndarray,
-                      X3d_cov: np.ndarray | None = None, X3d_views: np.ndarray | None = None,
-                      X3d_pose_jac: np.ndarray | None = None) -> AbsolutePoseProblem:
+    def with_points3d(
+        self,
+        xq3d: np.ndarray,
+        X3d: np.ndarray,
+        source3d: np.ndarray,
+        X3d_cov: np.ndarray | None = None,
+        X3d_views: np.ndarray | None = None,
+        X3d_pose_jac: np.ndarray | None = None,
+    ) -> AbsolutePoseProblem:
         """This problem with more 2D-3D constraints appended (``X3d_cov`` None: exact points;
         ``X3d_views`` and ``X3d_pose_jac`` None: points that do not depend on the map's poses)."""
         m = len(X3d)
@@ -124,8 +146,15 @@ class AbsolutePoseProblem:
         views = np.full((m, 2), -1, dtype=np.int64) if X3d_views is None else X3d_views
         jac = np.zeros((m, 2, 3, 6)) if X3d_pose_jac is None else X3d_pose_jac
         return AbsolutePoseProblem(
-            self.xq, self.xr, self.pair, self.offsets, self.query_ids, self.f_query, self.f_ref,
-            self.ref_R, self.ref_t,
+            self.xq,
+            self.xr,
+            self.pair,
+            self.offsets,
+            self.query_ids,
+            self.f_query,
+            self.f_ref,
+            self.ref_R,
+            self.ref_t,
             np.ascontiguousarray(np.vstack([self.xq3d, xq3d])),
             np.ascontiguousarray(np.vstack([self.X3d, X3d])),
             np.concatenate([self.source3d, source3d]).astype(np.int64),
@@ -197,12 +226,14 @@ def build_problem(query_camera: Camera, pairs: Sequence[PairMatches]) -> Absolut
     if all(p.ref_camera is cam0 or p.ref_camera == cam0 for p in pairs):  # one map camera: one call
         xr_all = _rays(cam0, np.concatenate([p.ref_points for p in pairs]))
     else:
-        xr_all = np.concatenate([_rays(p.ref_camera, p.ref_points) if len(p) else np.zeros((0, 3)) for p in pairs])
+        xr_all = np.concatenate(
+            [_rays(p.ref_camera, p.ref_points) if len(p) else np.zeros((0, 3)) for p in pairs]
+        )
     for p_idx, p in enumerate(pairs):
         base, n = int(offsets[p_idx]), counts[p_idx]
         if p.ref_points3d is not None and n:
             has = ~np.isnan(p.ref_points3d[:, 0])
-            xq3.append(xq_all[base:base + n][has])
+            xq3.append(xq_all[base : base + n][has])
             X3.append(p.ref_points3d[has])
             src.append(base + np.flatnonzero(has))
             k = int(has.sum())
@@ -220,8 +251,12 @@ def build_problem(query_camera: Camera, pairs: Sequence[PairMatches]) -> Absolut
     if all(p.query_indices is None for p in pairs):
         qids = np.full(len(xq_all), -1, dtype=np.int64)
     else:
-        qids = np.concatenate([p.query_indices if p.query_indices is not None else np.full(len(p), -1, dtype=np.int64)
-                               for p in pairs]).astype(np.int64)
+        qids = np.concatenate(
+            [
+                p.query_indices if p.query_indices is not None else np.full(len(p), -1, dtype=np.int64)
+                for p in pairs
+            ]
+        ).astype(np.int64)
     return AbsolutePoseProblem(
         xq=xq_all,
         xr=xr_all,
@@ -236,6 +271,8 @@ def build_problem(query_camera: Camera, pairs: Sequence[PairMatches]) -> Absolut
         X3d=np.ascontiguousarray(np.vstack(X3)) if X3 else np.zeros((0, 3)),
         source3d=np.concatenate(src).astype(np.int64) if src else np.zeros(0, dtype=np.int64),
         X3d_cov=np.ascontiguousarray(np.concatenate(cov3)) if cov3 else np.zeros((0, 3, 3)),
-        X3d_views=np.ascontiguousarray(np.concatenate(views3)) if views3 else np.zeros((0, 2), dtype=np.int64),
+        X3d_views=np.ascontiguousarray(np.concatenate(views3))
+        if views3
+        else np.zeros((0, 2), dtype=np.int64),
         X3d_pose_jac=np.ascontiguousarray(np.concatenate(jac3)) if jac3 else np.zeros((0, 2, 3, 6)),
     )

@@ -35,7 +35,9 @@ class Estimator(Protocol):
     sample_size: int
     num_data: int
 
-    def generate(self, rng: np.random.Generator, n: int, stats: RansacStatistics) -> tuple[np.ndarray, np.ndarray]: ...
+    def generate(
+        self, rng: np.random.Generator, n: int, stats: RansacStatistics
+    ) -> tuple[np.ndarray, np.ndarray]: ...
 
     def score(self, R: np.ndarray, t: np.ndarray, bound: float = ...) -> tuple[np.ndarray, np.ndarray]: ...
 
@@ -117,8 +119,14 @@ def _lo_candidates(estimator: Estimator, R: np.ndarray, t: np.ndarray, cost: np.
     return chosen
 
 
-def ransac(estimator: Estimator, options: RansacOptions, rng: np.random.Generator,
-           stats: RansacStatistics | None = None, batch_size: int = 50, first_batch: int = 10**9) -> RansacOutput:
+def ransac(
+    estimator: Estimator,
+    options: RansacOptions,
+    rng: np.random.Generator,
+    stats: RansacStatistics | None = None,
+    batch_size: int = 50,
+    first_batch: int = 10**9,
+) -> RansacOutput:
     """Run MSAC with adaptive termination between ``min_iterations`` and ``max_iterations``
     (and not before :data:`MIN_HYPOTHESES` hypotheses).
 
@@ -138,7 +146,11 @@ def ransac(estimator: Estimator, options: RansacOptions, rng: np.random.Generato
     needed = float(options.max_iterations)
     hypotheses = 0  # of this search (``stats`` may carry counts of earlier ones)
     while stats.iterations < options.max_iterations:
-        todo = min(options.min_iterations - stats.iterations, first_batch) if stats.iterations < options.min_iterations else batch_size
+        todo = (
+            min(options.min_iterations - stats.iterations, first_batch)
+            if stats.iterations < options.min_iterations
+            else batch_size
+        )
         n = int(min(max(todo, 1), options.max_iterations - stats.iterations))
         t0 = time.perf_counter()
         R, t = estimator.generate(rng, n, stats)
@@ -169,17 +181,29 @@ def ransac(estimator: Estimator, options: RansacOptions, rng: np.random.Generato
                     stats.add_time("local_optimization", time.perf_counter() - t2)
                 ratio = best_inl / max(estimator.num_data, 1)
                 needed = required_iterations(ratio, estimator.sample_size, options.confidence)
-        if stats.iterations >= options.min_iterations and stats.iterations >= needed and hypotheses >= MIN_HYPOTHESES:
+        if (
+            stats.iterations >= options.min_iterations
+            and stats.iterations >= needed
+            and hypotheses >= MIN_HYPOTHESES
+        ):
             break
     # Runner-ups: the other locally optimised models within the margin of the best, lowest first.
-    alts = sorted((a for a in optimised if a[1] is not best_R and a[0] <= best_cost + margin),
-                  key=lambda a: a[0])[:MAX_ALTERNATIVES]
+    alts = sorted(
+        (a for a in optimised if a[1] is not best_R and a[0] <= best_cost + margin), key=lambda a: a[0]
+    )[:MAX_ALTERNATIVES]
     shape_R = (0, *np.shape(best_R)) if best_R is not None else (0, 3, 3)  # the loop is model-agnostic
     shape_t = (0, *np.shape(best_t)) if best_t is not None else (0, 3)
     alt_R = np.array([a[1] for a in alts]) if alts else np.zeros(shape_R)
     alt_t = np.array([a[2] for a in alts]) if alts else np.zeros(shape_t)
-    return RansacOutput(best_R, best_t, best_cost, best_inl, stats, alt_R, alt_t, np.array([a[0] for a in alts]),
-                        np.concatenate(pool_R) if pool_R else np.zeros(shape_R),
-                        np.concatenate(pool_t) if pool_t else np.zeros(shape_t))
-
-
+    return RansacOutput(
+        best_R,
+        best_t,
+        best_cost,
+        best_inl,
+        stats,
+        alt_R,
+        alt_t,
+        np.array([a[0] for a in alts]),
+        np.concatenate(pool_R) if pool_R else np.zeros(shape_R),
+        np.concatenate(pool_t) if pool_t else np.zeros(shape_t),
+    )

@@ -45,8 +45,14 @@ class Refinement(NamedTuple):
 
 @njit(cache=True, error_model="numpy", fastmath=FASTMATH)
 def residuals(
-    params: np.ndarray, R0: np.ndarray, c0: np.ndarray, B: np.ndarray, prob: ProblemArrays, idx2d: np.ndarray,
-    idx3d: np.ndarray, out: np.ndarray,
+    params: np.ndarray,
+    R0: np.ndarray,
+    c0: np.ndarray,
+    B: np.ndarray,
+    prob: ProblemArrays,
+    idx2d: np.ndarray,
+    idx3d: np.ndarray,
+    out: np.ndarray,
 ) -> None:
     """Signed Sampson errors (pixels) of the 2D-2D rows ``idx2d``, then reprojection errors (2 per
     2D-3D row ``idx3d``) of the problem ``prob``, through the shared kernels of
@@ -75,8 +81,9 @@ def residuals(
 
 
 @njit(cache=True, error_model="numpy", fastmath=FASTMATH)
-def _essential_derivatives(R: np.ndarray, c: np.ndarray, B: np.ndarray, ref_R: np.ndarray,
-                           ref_t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _essential_derivatives(
+    R: np.ndarray, c: np.ndarray, B: np.ndarray, ref_R: np.ndarray, ref_t: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
     """Per pair p, ``E_p = [t]x R_pq`` (P, 3, 3) of the query ``(R, c)`` and ``D_p`` (P, 9, 6), the
     derivatives of its entries w.r.t. ``(δ, p)`` (:func:`residuals_jacobian`)."""
     P = ref_R.shape[0]
@@ -107,8 +114,15 @@ def _essential_derivatives(R: np.ndarray, c: np.ndarray, B: np.ndarray, ref_R: n
 
 
 @njit(cache=True, error_model="numpy", fastmath=FASTMATH)
-def _sampson_rows(E: np.ndarray, D: np.ndarray, prob: ProblemArrays, idx2d: np.ndarray, r: np.ndarray,
-                  J: np.ndarray, Jrot: np.ndarray) -> None:
+def _sampson_rows(
+    E: np.ndarray,
+    D: np.ndarray,
+    prob: ProblemArrays,
+    idx2d: np.ndarray,
+    r: np.ndarray,
+    J: np.ndarray,
+    Jrot: np.ndarray,
+) -> None:
     """The 2D-2D rows of :func:`residuals_jacobian`: Sampson residuals, their Jacobian chained
     through ``D`` and, when ``Jrot`` is not empty, their reference-rotation derivatives."""
     xq, xr, pair, f_query, f_ref = prob.xq, prob.xr, prob.pair, prob.f_query, prob.f_ref
@@ -147,18 +161,40 @@ def _sampson_rows(E: np.ndarray, D: np.ndarray, prob: ProblemArrays, idx2d: np.n
         g20, g21, g22 = a2 * q0 - r2 * b0, a2 * q1 - r2 * b1, a2 * q2
         Dp = D[p]
         for k in range(6):
-            J[n, k] = (g00 * Dp[0, k] + g01 * Dp[1, k] + g02 * Dp[2, k] + g10 * Dp[3, k] + g11 * Dp[4, k]
-                       + g12 * Dp[5, k] + g20 * Dp[6, k] + g21 * Dp[7, k] + g22 * Dp[8, k])
+            J[n, k] = (
+                g00 * Dp[0, k]
+                + g01 * Dp[1, k]
+                + g02 * Dp[2, k]
+                + g10 * Dp[3, k]
+                + g11 * Dp[4, k]
+                + g12 * Dp[5, k]
+                + g20 * Dp[6, k]
+                + g21 * Dp[7, k]
+                + g22 * Dp[8, k]
+            )
         if want_ref:
             e0, e1, e2 = E[p, 0], E[p, 1], E[p, 2]
-            Jrot[n, 0] = -(g10 * e2[0] + g11 * e2[1] + g12 * e2[2]) + (g20 * e1[0] + g21 * e1[1] + g22 * e1[2])
+            Jrot[n, 0] = -(g10 * e2[0] + g11 * e2[1] + g12 * e2[2]) + (
+                g20 * e1[0] + g21 * e1[1] + g22 * e1[2]
+            )
             Jrot[n, 1] = (g00 * e2[0] + g01 * e2[1] + g02 * e2[2]) - (g20 * e0[0] + g21 * e0[1] + g22 * e0[2])
-            Jrot[n, 2] = -(g00 * e1[0] + g01 * e1[1] + g02 * e1[2]) + (g10 * e0[0] + g11 * e0[1] + g12 * e0[2])
+            Jrot[n, 2] = -(g00 * e1[0] + g01 * e1[1] + g02 * e1[2]) + (
+                g10 * e0[0] + g11 * e0[1] + g12 * e0[2]
+            )
 
 
 @njit(cache=True, error_model="numpy", fastmath=FASTMATH)
-def _reprojection_rows(R: np.ndarray, c: np.ndarray, B: np.ndarray, prob: ProblemArrays, m0: int,
-                       idx3d: np.ndarray, r: np.ndarray, J: np.ndarray, Jrot: np.ndarray) -> None:
+def _reprojection_rows(
+    R: np.ndarray,
+    c: np.ndarray,
+    B: np.ndarray,
+    prob: ProblemArrays,
+    m0: int,
+    idx3d: np.ndarray,
+    r: np.ndarray,
+    J: np.ndarray,
+    Jrot: np.ndarray,
+) -> None:
     """The 2D-3D rows of :func:`residuals_jacobian` (from row ``m0``): reprojection residuals and
     their Jacobian; 0 in ``Jrot`` when it is not empty."""
     xq3d, X3d, f_query = prob.xq3d, prob.X3d, prob.f_query
@@ -193,8 +229,15 @@ def _reprojection_rows(R: np.ndarray, c: np.ndarray, B: np.ndarray, prob: Proble
 
 @njit(cache=True, error_model="numpy", fastmath=FASTMATH)
 def residuals_jacobian(
-    R: np.ndarray, c: np.ndarray, B: np.ndarray, prob: ProblemArrays, idx2d: np.ndarray, idx3d: np.ndarray,
-    r: np.ndarray, J: np.ndarray, Jrot: np.ndarray,
+    R: np.ndarray,
+    c: np.ndarray,
+    B: np.ndarray,
+    prob: ProblemArrays,
+    idx2d: np.ndarray,
+    idx3d: np.ndarray,
+    r: np.ndarray,
+    J: np.ndarray,
+    Jrot: np.ndarray,
 ) -> None:
     """Residuals and their analytic Jacobian w.r.t. ``(δ, p)`` at ``δ = 0, p = 0`` for the query
     ``R' = Exp(δ) R``, ``c' = c + B p``.
@@ -240,8 +283,18 @@ def irls_normal_equations(J: np.ndarray, r: np.ndarray, s2: float, H: np.ndarray
 
 @njit(cache=True, error_model="numpy", fastmath=FASTMATH)
 def refine_pose_core(
-    Rq: np.ndarray, tq: np.ndarray, prob: ProblemArrays, idx2d: np.ndarray, idx3d: np.ndarray, loss_scale: float,
-    max_iterations: int, sigma_floor: float, c0: np.ndarray, B: np.ndarray, fixed: np.ndarray, final_normal: bool,
+    Rq: np.ndarray,
+    tq: np.ndarray,
+    prob: ProblemArrays,
+    idx2d: np.ndarray,
+    idx3d: np.ndarray,
+    loss_scale: float,
+    max_iterations: int,
+    sigma_floor: float,
+    c0: np.ndarray,
+    B: np.ndarray,
+    fixed: np.ndarray,
+    final_normal: bool,
 ) -> Refinement:
     """:func:`refine_pose`; with ``final_normal`` False the normal matrix and σ̂ are not
     re-evaluated after the last step (stale), which saves one residual-and-Jacobian pass
@@ -309,8 +362,17 @@ def refine_pose_core(
 
 @njit(cache=True, error_model="numpy")
 def refine_pose(
-    Rq: np.ndarray, tq: np.ndarray, prob: ProblemArrays, idx2d: np.ndarray, idx3d: np.ndarray, loss_scale: float,
-    max_iterations: int, sigma_floor: float, c0: np.ndarray, B: np.ndarray, fixed: np.ndarray,
+    Rq: np.ndarray,
+    tq: np.ndarray,
+    prob: ProblemArrays,
+    idx2d: np.ndarray,
+    idx3d: np.ndarray,
+    loss_scale: float,
+    max_iterations: int,
+    sigma_floor: float,
+    c0: np.ndarray,
+    B: np.ndarray,
+    fixed: np.ndarray,
 ) -> Refinement:
     """Refine ``query_from_world`` on the given inliers.
 
@@ -331,14 +393,20 @@ def refine_pose(
         ``(δ, p)``; see :func:`centre_covariance`), the residual scale σ̂ in pixels, and the
         final robust cost.
     """
-    return refine_pose_core(Rq, tq, prob, idx2d, idx3d, loss_scale, max_iterations, sigma_floor, c0, B, fixed,
-                            np.bool_(True))
+    return refine_pose_core(
+        Rq, tq, prob, idx2d, idx3d, loss_scale, max_iterations, sigma_floor, c0, B, fixed, np.bool_(True)
+    )
 
 
 @njit(cache=True, error_model="numpy")
 def refine_on_inliers(
-    Rq: np.ndarray, tq: np.ndarray, prob: ProblemArrays, inlier_threshold_sq: float, loss_scale: float,
-    max_iterations: int, sigma_floor: float,
+    Rq: np.ndarray,
+    tq: np.ndarray,
+    prob: ProblemArrays,
+    inlier_threshold_sq: float,
+    loss_scale: float,
+    max_iterations: int,
+    sigma_floor: float,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, float, float, np.ndarray, np.ndarray]:
     """:func:`refine_pose` on the inliers of the initial pose, in one call.
 
@@ -359,15 +427,32 @@ def refine_on_inliers(
     if idx2d.shape[0] + idx3d.shape[0] < 6:
         return Rq.copy(), tq.copy(), np.zeros((6, 6)), np.inf, np.inf, in2d, in3d
     c0 = -m3.t_vec(Rq, tq)
-    R, t, H, sigma, cost = refine_pose(Rq, tq, prob, idx2d, idx3d, loss_scale, max_iterations, sigma_floor, c0,
-                                       np.eye(3), np.zeros(6, dtype=np.bool_))
+    R, t, H, sigma, cost = refine_pose(
+        Rq,
+        tq,
+        prob,
+        idx2d,
+        idx3d,
+        loss_scale,
+        max_iterations,
+        sigma_floor,
+        c0,
+        np.eye(3),
+        np.zeros(6, dtype=np.bool_),
+    )
     return R, t, H, sigma, cost, in2d, in3d
 
 
 @njit(cache=True, error_model="numpy")
 def map_uncertainty_covariance(
-    Rq: np.ndarray, tq: np.ndarray, prob: ProblemArrays, idx2d: np.ndarray, idx3d: np.ndarray, loss_scale: float,
-    rotation_std_rad: float, position_std_m: float,
+    Rq: np.ndarray,
+    tq: np.ndarray,
+    prob: ProblemArrays,
+    idx2d: np.ndarray,
+    idx3d: np.ndarray,
+    loss_scale: float,
+    rotation_std_rad: float,
+    position_std_m: float,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Covariance of the query centre caused by errors of the map's reference poses.
 
@@ -454,5 +539,8 @@ def centre_covariance(H: np.ndarray, sigma: float, B: np.ndarray | None = None) 
     Cholesky pivot below 1e-12 of H's largest diagonal entry. Compiled: it runs once per
     search and a LAPACK ``eigh`` from Python cost ~20 µs for this 6x6 matrix.
     """
-    return _centre_covariance(np.ascontiguousarray(H, dtype=float), float(sigma),
-                              _EYE3 if B is None else np.ascontiguousarray(B, dtype=float))
+    return _centre_covariance(
+        np.ascontiguousarray(H, dtype=float),
+        float(sigma),
+        _EYE3 if B is None else np.ascontiguousarray(B, dtype=float),
+    )

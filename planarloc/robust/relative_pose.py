@@ -64,15 +64,24 @@ class RelativePoseEstimate:
         self.status = Status.of(self.status)
 
 
-def _sampson_sq(R: np.ndarray, t: np.ndarray, xa: np.ndarray, xb: np.ndarray, fa: np.ndarray,
-                fb: np.ndarray) -> np.ndarray:
+def _sampson_sq(
+    R: np.ndarray, t: np.ndarray, xa: np.ndarray, xb: np.ndarray, fa: np.ndarray, fb: np.ndarray
+) -> np.ndarray:
     """(K, N) squared Sampson errors in pixels of K poses ``b_from_a`` on N ray pairs (N, 3)."""
     return np.stack([sampson_error_sq(E, xa, xb, fa, fb) for E in essential_from_relpose(R, t)])
 
 
 @njit(cache=True, error_model="numpy", nogil=True)
-def _msac_kernel(R: np.ndarray, t: np.ndarray, xa: np.ndarray, xb: np.ndarray, fa: np.ndarray, fb: np.ndarray,
-                 threshold_sq: float, bound: float) -> tuple[np.ndarray, np.ndarray]:
+def _msac_kernel(
+    R: np.ndarray,
+    t: np.ndarray,
+    xa: np.ndarray,
+    xb: np.ndarray,
+    fa: np.ndarray,
+    fb: np.ndarray,
+    threshold_sq: float,
+    bound: float,
+) -> tuple[np.ndarray, np.ndarray]:
     """MSAC costs (K,) and inlier counts (K,) of K poses ``b_from_a`` on N ray pairs.
 
     A pose's scoring stops once its cost exceeds ``bound`` or the lowest cost of this call so
@@ -116,8 +125,9 @@ def distinct_samples(rng: np.random.Generator, n: int, num_data: int, size: int)
 class _RelativeEstimator:
     """Adapter of one minimal relative-pose solver to the generic loop."""
 
-    def __init__(self, xa: np.ndarray, xb: np.ndarray, fa: np.ndarray, fb: np.ndarray, model: str,
-                 threshold_px: float) -> None:
+    def __init__(
+        self, xa: np.ndarray, xb: np.ndarray, fa: np.ndarray, fb: np.ndarray, model: str, threshold_px: float
+    ) -> None:
         self.xa, self.xb, self.fa, self.fb = xa, xb, fa, fb
         self.num_data = len(xa)
         self.threshold_sq = threshold_px**2
@@ -130,9 +140,11 @@ class _RelativeEstimator:
 
             self.sample_size, self.solver = 5, relpose_5p_nister_batch
 
-    def generate(self, rng: np.random.Generator, n: int, stats: RansacStatistics) -> tuple[np.ndarray, np.ndarray]:
+    def generate(
+        self, rng: np.random.Generator, n: int, stats: RansacStatistics
+    ) -> tuple[np.ndarray, np.ndarray]:
         samples = distinct_samples(rng, n, self.num_data, self.sample_size)
-        R, t, valid = self.solver(self.xa[samples], self.xb[samples])   # b_from_a ("ref_from_query")
+        R, t, valid = self.solver(self.xa[samples], self.xb[samples])  # b_from_a ("ref_from_query")
         stats.hypotheses += int(valid.sum())
         return np.asarray(R)[valid], np.asarray(t)[valid]
 
@@ -145,8 +157,16 @@ class _RelativeEstimator:
         return (cos_r < np.cos(np.radians(1.0))) | (cos_t < np.cos(np.radians(2.0)))
 
     def score(self, R: np.ndarray, t: np.ndarray, bound: float = np.inf) -> tuple[np.ndarray, np.ndarray]:
-        return _msac_kernel(np.ascontiguousarray(R, dtype=float), np.ascontiguousarray(t, dtype=float),
-                            self.xa, self.xb, self.fa, self.fb, self.threshold_sq, float(bound))
+        return _msac_kernel(
+            np.ascontiguousarray(R, dtype=float),
+            np.ascontiguousarray(t, dtype=float),
+            self.xa,
+            self.xb,
+            self.fa,
+            self.fb,
+            self.threshold_sq,
+            float(bound),
+        )
 
     def refine(self, R: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Gauss-Newton on the Sampson errors (pixels) of the inliers, in the model's own
@@ -258,7 +278,9 @@ def estimate_relative_pose(
     pb = check_array("points_b", points_b, (len(pa), 2))
     options = options or RansacOptions(min_iterations=50, max_iterations=300)
     options = replace(options, local_optimization=False)
-    ok = np.isfinite(camera_a.cam_from_img(pa)).all(axis=1) & np.isfinite(camera_b.cam_from_img(pb)).all(axis=1)
+    ok = np.isfinite(camera_a.cam_from_img(pa)).all(axis=1) & np.isfinite(camera_b.cam_from_img(pb)).all(
+        axis=1
+    )
     idx = np.flatnonzero(ok)
     inliers = np.zeros(len(pa), dtype=bool)
     if len(idx) < max(min_inliers, 5):
@@ -267,12 +289,12 @@ def estimate_relative_pose(
     fa, fb = np.asarray(camera_a.focal, dtype=float), np.asarray(camera_b.focal, dtype=float)
     stats = RansacStatistics()
     best: tuple[str, np.ndarray, np.ndarray, int] | None = None
-    for m in (("planar", "6dof") if model == "auto" else (model,)):
+    for m in ("planar", "6dof") if model == "auto" else (model,):
         if m == "6dof" and best is not None and SIX_DOF_MARGIN * best[3] >= len(idx):
-            stats.searches_skipped += 1   # more inliers than there are matches: 6DoF cannot win
+            stats.searches_skipped += 1  # more inliers than there are matches: 6DoF cannot win
             continue
         est = _RelativeEstimator(xa, xb, fa, fb, m, options.threshold_px)
-        own = RansacStatistics()           # each model gets its own iteration budget
+        own = RansacStatistics()  # each model gets its own iteration budget
         out = ransac(est, options, np.random.default_rng(options.seed), own)
         stats.merge(own)
         if out.R is None:
@@ -280,8 +302,14 @@ def estimate_relative_pose(
         if best is None or out.num_inliers > SIX_DOF_MARGIN * best[3]:
             best = (m, out.R, out.t, out.num_inliers)
     if best is None or best[3] < min_inliers:
-        return RelativePoseEstimate(None, False, Status.TOO_FEW_INLIERS, inliers=inliers, stats=stats,
-                                    num_inliers=0 if best is None else best[3])
+        return RelativePoseEstimate(
+            None,
+            False,
+            Status.TOO_FEW_INLIERS,
+            inliers=inliers,
+            stats=stats,
+            num_inliers=0 if best is None else best[3],
+        )
     m, R, t, _ = best
     R, t = _RelativeEstimator(xa, xb, fa, fb, m, options.threshold_px).refine(R, t)
     e = _sampson_sq(R[None], t[None], xa, xb, fa, fb)[0]
@@ -291,4 +319,6 @@ def estimate_relative_pose(
     if _depths_positive(R, -t, xa[inl], xb[inl]) > _depths_positive(R, t, xa[inl], xb[inl]):
         t = -t
     inliers[idx] = inl
-    return RelativePoseEstimate(Pose(R, t / np.linalg.norm(t)), True, Status.SUCCESS, m, inliers, int(inliers.sum()), stats)
+    return RelativePoseEstimate(
+        Pose(R, t / np.linalg.norm(t)), True, Status.SUCCESS, m, inliers, int(inliers.sum()), stats
+    )

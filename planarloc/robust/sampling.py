@@ -56,8 +56,13 @@ def _distinct(u: np.ndarray, n: int, out: np.ndarray, start: int, m: int, base: 
 
 @njit(cache=True)
 def draw_pair_samples(
-    u: np.ndarray, offsets: np.ndarray, m_first: int, m_second: int,
-    samples: np.ndarray, pj: np.ndarray, pk: np.ndarray,
+    u: np.ndarray,
+    offsets: np.ndarray,
+    m_first: int,
+    m_second: int,
+    samples: np.ndarray,
+    pj: np.ndarray,
+    pk: np.ndarray,
 ) -> None:
     """Draw S samples of ``m_first`` matches from a pair j and ``m_second`` from a pair k ≠ j.
 
@@ -81,9 +86,13 @@ def draw_pair_samples(
         k = _pick_weighted(u[s, 1], w2, j)
         pj[s] = j
         pk[s] = k
-        _distinct(u[s, 2:2 + m_first], offsets[j + 1] - offsets[j], samples[s], np.int64(0), m_first, offsets[j])
+        _distinct(
+            u[s, 2 : 2 + m_first], offsets[j + 1] - offsets[j], samples[s], np.int64(0), m_first, offsets[j]
+        )
         if m_second > 0 and k >= 0:
-            _distinct(u[s, 2 + m_first:], offsets[k + 1] - offsets[k], samples[s], m_first, m_second, offsets[k])
+            _distinct(
+                u[s, 2 + m_first :], offsets[k + 1] - offsets[k], samples[s], m_first, m_second, offsets[k]
+            )
 
 
 def eligible_pairs(counts: Sequence[int] | np.ndarray, m_first: int, m_second: int) -> bool:
@@ -96,7 +105,9 @@ def eligible_pairs(counts: Sequence[int] | np.ndarray, m_first: int, m_second: i
 
 
 @njit(cache=True)
-def draw_within_pairs(u: np.ndarray, offsets: np.ndarray, sample_pair: np.ndarray, m: int, samples: np.ndarray) -> None:
+def draw_within_pairs(
+    u: np.ndarray, offsets: np.ndarray, sample_pair: np.ndarray, m: int, samples: np.ndarray
+) -> None:
     """Draw ``m`` distinct matches of pair ``sample_pair[s]`` for every sample ``s``.
 
     Args:

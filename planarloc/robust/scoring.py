@@ -30,9 +30,17 @@ def msac_add(cost: float, inliers: int, e: float, threshold_sq: float) -> tuple[
 
 @njit(cache=True, error_model="numpy")
 def errors_sq(
-    Rq: np.ndarray, tq: np.ndarray, xq: np.ndarray, xr: np.ndarray, offsets: np.ndarray,
-    f_query: np.ndarray, f_ref: np.ndarray, ref_R: np.ndarray, ref_t: np.ndarray,
-    xq3d: np.ndarray, X3d: np.ndarray,
+    Rq: np.ndarray,
+    tq: np.ndarray,
+    xq: np.ndarray,
+    xr: np.ndarray,
+    offsets: np.ndarray,
+    f_query: np.ndarray,
+    f_ref: np.ndarray,
+    ref_R: np.ndarray,
+    ref_t: np.ndarray,
+    xq3d: np.ndarray,
+    X3d: np.ndarray,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Squared pixel errors of one hypothesis: (N,) Sampson and (M,) reprojection (scaled by
     ``f_query[2:]``, see :class:`planarloc.robust.problem.AbsolutePoseProblem`)."""
@@ -51,9 +59,20 @@ def errors_sq(
 
 @njit(cache=True, error_model="numpy")
 def msac_scores(
-    Rs: np.ndarray, ts: np.ndarray, num: int, xq: np.ndarray, xr: np.ndarray, offsets: np.ndarray,
-    f_query: np.ndarray, f_ref: np.ndarray, ref_R: np.ndarray, ref_t: np.ndarray,
-    xq3d: np.ndarray, X3d: np.ndarray, threshold_sq: float, bound: float = np.inf,
+    Rs: np.ndarray,
+    ts: np.ndarray,
+    num: int,
+    xq: np.ndarray,
+    xr: np.ndarray,
+    offsets: np.ndarray,
+    f_query: np.ndarray,
+    f_ref: np.ndarray,
+    ref_R: np.ndarray,
+    ref_t: np.ndarray,
+    xq3d: np.ndarray,
+    X3d: np.ndarray,
+    threshold_sq: float,
+    bound: float = np.inf,
 ) -> tuple[np.ndarray, np.ndarray]:
     """MSAC cost ``Σ min(e², τ²)`` and inlier count of the first ``num`` hypotheses.
 
@@ -100,8 +119,16 @@ def msac_scores(
 
 @njit(cache=True, error_model="numpy")
 def relative_msac_scores(
-    R: np.ndarray, t: np.ndarray, valid: np.ndarray, sample_pair: np.ndarray, xq: np.ndarray, xr: np.ndarray,
-    offsets: np.ndarray, f_query: np.ndarray, f_ref: np.ndarray, threshold_sq: float,
+    R: np.ndarray,
+    t: np.ndarray,
+    valid: np.ndarray,
+    sample_pair: np.ndarray,
+    xq: np.ndarray,
+    xr: np.ndarray,
+    offsets: np.ndarray,
+    f_query: np.ndarray,
+    f_ref: np.ndarray,
+    threshold_sq: float,
 ) -> np.ndarray:
     """MSAC cost of relative-pose candidates ``ref_from_query`` over the matches of their own pair.
 

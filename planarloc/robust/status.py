@@ -47,5 +47,12 @@ class Status(StrEnum):
 
 
 #: failures of a pose that say the matches cannot single out a position, whatever the model
-DATA_LIMITED = frozenset({Status.DEGENERATE_SCALE, Status.DEGENERATE_STRUCTURE, Status.SINGLE_REFERENCE,
-                          Status.INCONSISTENT_REFERENCES, Status.AMBIGUOUS_POSE})
+DATA_LIMITED = frozenset(
+    {
+        Status.DEGENERATE_SCALE,
+        Status.DEGENERATE_STRUCTURE,
+        Status.SINGLE_REFERENCE,
+        Status.INCONSISTENT_REFERENCES,
+        Status.AMBIGUOUS_POSE,
+    }
+)

@@ -42,8 +42,13 @@ def triangulate_tracks(
         points' motion under corrections of those references' poses (T, 2, 3, 6)
         (:func:`~planarloc.geometry.epipolar.triangulation_uncertainty`) of the accepted tracks.
     """
-    none = np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((0, 3, 3)), np.zeros((0, 2), dtype=np.int64), \
-        np.zeros((0, 2, 3, 6))
+    none = (
+        np.zeros((0, 3)),
+        np.zeros((0, 3)),
+        np.zeros((0, 3, 3)),
+        np.zeros((0, 2), dtype=np.int64),
+        np.zeros((0, 2, 3, 6)),
+    )
     ids = problem.query_ids
     rows = np.flatnonzero(ids >= 0)
     src = problem.source3d[problem.source3d >= 0]
@@ -81,8 +86,10 @@ def triangulate_tracks(
             Xs, ang = triangulate_points((Ra, ta), (Rb, tb), problem.xr[a[sel]], problem.xr[b[sel]])
             X[sel], angle[sel] = Xs, ang
             e = np.zeros(sel.sum())
-            for R, t, x, f in ((Ra, ta, problem.xr[a[sel]], problem.f_ref[p1]),
-                               (Rb, tb, problem.xr[b[sel]], problem.f_ref[p2])):
+            for R, t, x, f in (
+                (Ra, ta, problem.xr[a[sel]], problem.f_ref[p1]),
+                (Rb, tb, problem.xr[b[sel]], problem.f_ref[p2]),
+            ):
                 Xc = Xs @ R.T + t
                 with np.errstate(invalid="ignore", divide="ignore"):
                     d = (Xc[:, :2] / Xc[:, 2:3] - x[:, :2]) * f
@@ -98,11 +105,21 @@ def triangulate_tracks(
     first = np.r_[True, track[cand][1:] != track[cand][:-1]]
     keep = cand[first]
     pa, pb = problem.pair[a[keep]], problem.pair[b[keep]]
-    cov, jac = triangulation_uncertainty(X[keep], (problem.ref_R[pa], problem.ref_t[pa]),
-                                         (problem.ref_R[pb], problem.ref_t[pb]), problem.f_ref[pa],
-                                         problem.f_ref[pb], KEYPOINT_STD_PX)
+    cov, jac = triangulation_uncertainty(
+        X[keep],
+        (problem.ref_R[pa], problem.ref_t[pa]),
+        (problem.ref_R[pb], problem.ref_t[pb]),
+        problem.f_ref[pa],
+        problem.f_ref[pb],
+        KEYPOINT_STD_PX,
+    )
     good = np.isfinite(cov).all(axis=(1, 2)) & np.isfinite(jac).all(axis=(1, 2, 3))
     keep, cov, jac = keep[good], cov[good], jac[good]
     views = np.stack([pa[good], pb[good]], axis=1).astype(np.int64)
-    return (np.ascontiguousarray(problem.xq[a[keep]]), np.ascontiguousarray(X[keep]), np.ascontiguousarray(cov),
-            np.ascontiguousarray(views), np.ascontiguousarray(jac))
+    return (
+        np.ascontiguousarray(problem.xq[a[keep]]),
+        np.ascontiguousarray(X[keep]),
+        np.ascontiguousarray(cov),
+        np.ascontiguousarray(views),
+        np.ascontiguousarray(jac),
+    )

@@ -56,9 +56,15 @@ RESTART_MARGIN_INLIERS = 1
 MAX_POOL_CANDIDATES = 8
 
 
-def _rival_distance(estimator, ref: RefinedPose, num_inliers: int,
-                    alternatives: Sequence[tuple[np.ndarray, np.ndarray, float]], pool: tuple[np.ndarray, np.ndarray],
-                    refine: Callable[[np.ndarray, np.ndarray, bool], RefinedPose], beyond: float) -> float:
+def _rival_distance(
+    estimator,
+    ref: RefinedPose,
+    num_inliers: int,
+    alternatives: Sequence[tuple[np.ndarray, np.ndarray, float]],
+    pool: tuple[np.ndarray, np.ndarray],
+    refine: Callable[[np.ndarray, np.ndarray, bool], RefinedPose],
+    beyond: float,
+) -> float:
     """Largest distance (> ``beyond``) from ``ref``'s centre of a refined runner-up that explains
     the matches as well as ``ref`` but for ``RIVAL_MARGIN_INLIERS`` inliers' worth of MSAC cost
     (``score − ref.score ≤ margin·τ²``); 0 if none.
@@ -75,8 +81,11 @@ def _rival_distance(estimator, ref: RefinedPose, num_inliers: int,
     if num_inliers < RIVAL_POOL_BELOW_INLIERS and len(pool[0]):
         full, _ = estimator.score(*pool)
         order = np.argsort(full)
-        candidates += [(pool[0][i], pool[1][i], float(full[i])) for i in order[:MAX_POOL_CANDIDATES]
-                       if full[i] - ref.score <= 2.0 * margin]
+        candidates += [
+            (pool[0][i], pool[1][i], float(full[i]))
+            for i in order[:MAX_POOL_CANDIDATES]
+            if full[i] - ref.score <= 2.0 * margin
+        ]
     if not candidates:
         return 0.0
     c = -ref.R.T @ ref.t
@@ -107,22 +116,38 @@ def with_rival(est: PoseEstimate, rival_centre: np.ndarray, options: RansacOptio
     if not d > est.position_std_m:
         return est
     if d > options.max_position_std_m:
-        return PoseEstimate(None, False, Status.AMBIGUOUS_POSE, f"another search's pose {d:.3g} m away explains the matches "
-                            f"nearly as well (MSAC cost within {100 * (RIVAL_COST_RATIO - 1):.0f} %): the data do not "
-                            "single out one position; more matches or map images", est.inliers, est.num_inliers,
-                            est.num_inliers_3d, est.iterations, d, est.pose, est.stats, model=est.model)
+        return PoseEstimate(
+            None,
+            False,
+            Status.AMBIGUOUS_POSE,
+            f"another search's pose {d:.3g} m away explains the matches "
+            f"nearly as well (MSAC cost within {100 * (RIVAL_COST_RATIO - 1):.0f} %): the data do not "
+            "single out one position; more matches or map images",
+            est.inliers,
+            est.num_inliers,
+            est.num_inliers_3d,
+            est.iterations,
+            d,
+            est.pose,
+            est.stats,
+            model=est.model,
+        )
     scale = d / est.position_std_m
     cov = None if est.covariance is None else est.covariance.copy()
     if cov is not None:
         cov[:3, :] *= scale
         cov[:, :3] *= scale
-    return dataclasses.replace(est, position_std_m=d, covariance=cov,
-                               message=est.message.replace(f"position std {est.position_std_m:.3g} m",
-                                                           f"position std {d:.3g} m"))
+    return dataclasses.replace(
+        est,
+        position_std_m=d,
+        covariance=cov,
+        message=est.message.replace(f"position std {est.position_std_m:.3g} m", f"position std {d:.3g} m"),
+    )
 
 
-def _position_covariance(estimator, options: RansacOptions, ref: RefinedPose, support: obs.PoseSupport,
-                         correlation: float) -> np.ndarray:
+def _position_covariance(
+    estimator, options: RansacOptions, ref: RefinedPose, support: obs.PoseSupport, correlation: float
+) -> np.ndarray:
     """(3, 3) position covariance of a refined pose, from every source of error.
 
     * pixel noise, ``σ̂² H⁻¹``, inflated by ``correlation`` (residuals within one reference are
@@ -147,7 +172,9 @@ def _position_covariance(estimator, options: RansacOptions, ref: RefinedPose, su
     rotation_std, position_std = _map_prior(options, n3d)
     if rotation_std > 0 or position_std > 0:
         if n3d == 0:
-            cov = cov + obs.map_covariance(estimator, ref.R, ref.t, ref.in2d, ref.in3d, (rotation_std, position_std))
+            cov = cov + obs.map_covariance(
+                estimator, ref.R, ref.t, ref.in2d, ref.in3d, (rotation_std, position_std)
+            )
         rigid = position_std**2 + (support.median_distance_m * math.radians(rotation_std)) ** 2
         if options.map_prior_measured and n3d >= options.min_inliers:
             # Measured per-image errors are independent: the query inherits their mean over the
@@ -166,12 +193,16 @@ def _map_prior(options: RansacOptions, n3d: int) -> tuple[float, float]:
     fountain_p11's map measured 0.002°, and an entry_p10 query 0.98 m off got a 0.09 m std)."""
     rotation, position = options.map_rotation_std_deg, options.map_position_std_m
     if options.map_prior_measured and n3d < options.min_inliers and options.assumed_map_prior is not None:
-        rotation, position = max(rotation, options.assumed_map_prior[0]), max(position, options.assumed_map_prior[1])
+        rotation, position = (
+            max(rotation, options.assumed_map_prior[0]),
+            max(position, options.assumed_map_prior[1]),
+        )
     return rotation, position
 
 
-def pose_covariance(ref: RefinedPose, position_cov: np.ndarray, std: float, correlation: float,
-                    options: RansacOptions) -> np.ndarray | None:
+def pose_covariance(
+    ref: RefinedPose, position_cov: np.ndarray, std: float, correlation: float, options: RansacOptions
+) -> np.ndarray | None:
     """(6, 6) covariance of ``world_from_camera`` in ROS order (centre x y z, rotation vector about
     the world axes; :attr:`PoseEstimate.covariance`).
 
@@ -185,9 +216,15 @@ def pose_covariance(ref: RefinedPose, position_cov: np.ndarray, std: float, corr
     if ref.H is None or not (np.isfinite(ref.H).all() and np.isfinite(position_cov).all()):
         return None
     out = np.empty((6, 6))
-    status = _pose_covariance_kernel(np.ascontiguousarray(ref.H), ref.sigma * correlation, ref.R,
-                                     np.ascontiguousarray(position_cov), std,
-                                     math.radians(options.map_rotation_std_deg) ** 2, out)
+    status = _pose_covariance_kernel(
+        np.ascontiguousarray(ref.H),
+        ref.sigma * correlation,
+        ref.R,
+        np.ascontiguousarray(position_cov),
+        std,
+        math.radians(options.map_rotation_std_deg) ** 2,
+        out,
+    )
     if status == 0:
         return None
     if status == 2:  # not positive definite after the replacement: clip the eigenvalues
@@ -197,8 +234,15 @@ def pose_covariance(ref: RefinedPose, position_cov: np.ndarray, std: float, corr
 
 
 @njit(cache=True, error_model="numpy")
-def _pose_covariance_kernel(H: np.ndarray, noise: float, R: np.ndarray, position_cov: np.ndarray, std: float,
-                            rotation_var: float, out: np.ndarray) -> int:
+def _pose_covariance_kernel(
+    H: np.ndarray,
+    noise: float,
+    R: np.ndarray,
+    position_cov: np.ndarray,
+    std: float,
+    rotation_var: float,
+    out: np.ndarray,
+) -> int:
     """:func:`pose_covariance` into ``out`` (6, 6): 0 if H (6, 6) is singular or the position
     covariance (3, 3) not positive, 2 if ``out`` is not positive definite, else 1. ``noise``:
     σ̂ times the correlation inflation; ``rotation_var``: the map's rotation variance (rad²).
@@ -259,8 +303,9 @@ def split_by_pair(mask: np.ndarray, offsets: np.ndarray) -> list[np.ndarray]:
     return [mask[a:b] for a, b in zip(bounds[:-1], bounds[1:])]
 
 
-def failed_estimate(problem: AbsolutePoseProblem, stats: RansacStatistics, t_start: float, status: Status, message: str,
-                    **kw) -> PoseEstimate:
+def failed_estimate(
+    problem: AbsolutePoseProblem, stats: RansacStatistics, t_start: float, status: Status, message: str, **kw
+) -> PoseEstimate:
     """A :class:`PoseEstimate` without a pose (``kw``: inliers, counts, std, unreliable_pose, model)."""
     stats.time_s["total"] = time.perf_counter() - t_start  # elapsed, set: a pose may be judged twice
     inliers = kw.pop("inliers", None)
@@ -331,9 +376,19 @@ class _Judging:
         ctx = self.ctx
         ctx.stats.add_time("verification", time.perf_counter() - self.t0)
         kw = dict(unreliable_pose=self.pose) if with_pose else {}
-        return failed_estimate(ctx.problem, ctx.stats, ctx.t_start, status, message, position_std_m=self.std,
-                               inliers=self.inliers, num_inliers=self.n2d, num_inliers_3d=self.n3d, model=self.model,
-                               **kw)
+        return failed_estimate(
+            ctx.problem,
+            ctx.stats,
+            ctx.t_start,
+            status,
+            message,
+            position_std_m=self.std,
+            inliers=self.inliers,
+            num_inliers=self.n2d,
+            num_inliers_3d=self.n3d,
+            model=self.model,
+            **kw,
+        )
 
 
 def judge_pose(ctx: EstimateContext, cand: Candidate, rivals: Sequence[np.ndarray] = ()) -> PoseEstimate:
@@ -362,9 +417,21 @@ def judge_pose(ctx: EstimateContext, cand: Candidate, rivals: Sequence[np.ndarra
     stats.add_time("verification", time.perf_counter() - j.t0)
     stats.time_s["total"] = time.perf_counter() - ctx.t_start  # elapsed, set: a pose may be judged twice
     covariance = pose_covariance(cand.ref, j.cov, std, j.correlation, ctx.options)
-    return PoseEstimate(j.pose, True, Status.SUCCESS, f"{j.n2d} 2D-2D and {j.n3d} 2D-3D inliers, position std "
-                        f"{std:.3g} m, {j.model} model", j.inliers, j.n2d, j.n3d, stats.iterations, std, None, stats,
-                        model=j.model, covariance=covariance)
+    return PoseEstimate(
+        j.pose,
+        True,
+        Status.SUCCESS,
+        f"{j.n2d} 2D-2D and {j.n3d} 2D-3D inliers, position std {std:.3g} m, {j.model} model",
+        j.inliers,
+        j.n2d,
+        j.n3d,
+        stats.iterations,
+        std,
+        None,
+        stats,
+        model=j.model,
+        covariance=covariance,
+    )
 
 
 def _uncertainty(ctx: EstimateContext, cand: Candidate, rivals: Sequence[np.ndarray], t0: float) -> _Judging:
@@ -401,14 +468,29 @@ def _uncertainty(ctx: EstimateContext, cand: Candidate, rivals: Sequence[np.ndar
         probes = [(min(max(3.0 * std, 0.02), 2.0), False), (min(options.max_position_std_m, 2.0), prior)]
         for u in obs.weak_directions(estimator, R, t, support.supporting, cov):
             for d, with_prior in probes:
-                std = max(std, correlation * obs.profile_std(estimator, R, t, in2d, in3d, ref.sigma,
-                                                             None if with_prior else ref.cost, u, d,
-                                                             map_prior=with_prior))
+                std = max(
+                    std,
+                    correlation
+                    * obs.profile_std(
+                        estimator,
+                        R,
+                        t,
+                        in2d,
+                        in3d,
+                        ref.sigma,
+                        None if with_prior else ref.cost,
+                        u,
+                        d,
+                        map_prior=with_prior,
+                    ),
+                )
     rival = max((float(np.linalg.norm(other - (-R.T @ t))) for other in rivals), default=0.0)
     linear_std, std = std, max(std, rival)
     model = "planar" if support.fit.holds(options.planar_tolerance_deg) else "6dof"
     pose = Pose._unchecked(R, t)  # a refined rotation (exp map of a rotation): valid by construction
-    return _Judging(ctx, cand, t0, support, correlation, cov, std, linear_std, rival, pose, model, inliers, n2d, n3d)
+    return _Judging(
+        ctx, cand, t0, support, correlation, cov, std, linear_std, rival, pose, model, inliers, n2d, n3d
+    )
 
 
 def _check_support(j: _Judging) -> PoseEstimate | None:
@@ -416,12 +498,17 @@ def _check_support(j: _Judging) -> PoseEstimate | None:
     options, problem, ref = j.ctx.options, j.ctx.problem, j.cand.ref
     n2d, n3d, supporting = j.n2d, j.n3d, j.support.supporting
     if n2d + n3d < options.min_inliers:
-        return j.fail(Status.TOO_FEW_INLIERS, f"best pose has {n2d + n3d} inliers, fewer than min_inliers="
-                      f"{options.min_inliers}", with_pose=False)
+        return j.fail(
+            Status.TOO_FEW_INLIERS,
+            f"best pose has {n2d + n3d} inliers, fewer than min_inliers={options.min_inliers}",
+            with_pose=False,
+        )
     if len(supporting) < 2 and n3d < options.min_inliers:
-        return j.fail(Status.SINGLE_REFERENCE,
-                      f"only {len(supporting)} reference image(s) support the pose with >= {obs.MIN_PAIR_INLIERS} "
-                      "inliers: the position along the baseline cannot be verified; retrieve more map images")
+        return j.fail(
+            Status.SINGLE_REFERENCE,
+            f"only {len(supporting)} reference image(s) support the pose with >= {obs.MIN_PAIR_INLIERS} "
+            "inliers: the position along the baseline cannot be verified; retrieve more map images",
+        )
     if n3d < options.min_inliers:
         # Without 2D-3D constraints the pose rests on its 2D-2D inliers alone: at least two map
         # images must support it beyond what random matches would give it.
@@ -429,10 +516,12 @@ def _check_support(j: _Judging) -> PoseEstimate | None:
         real = beyond_chance(j.support.pair_inliers[supporting], chance[supporting])
         if int(real.sum()) < 2:
             detail = ", ".join(f"{int(j.support.pair_inliers[k])} vs {chance[k]:.1f}" for k in supporting)
-            return j.fail(Status.TOO_FEW_INLIERS,
-                          f"{int(real.sum())} of the {len(supporting)} supporting map images have more inliers than "
-                          f"random matches would give this pose (inliers vs chance: {detail}): the matches do not "
-                          "see the same scene; retrieve other map images or add map images of this place")
+            return j.fail(
+                Status.TOO_FEW_INLIERS,
+                f"{int(real.sum())} of the {len(supporting)} supporting map images have more inliers than "
+                f"random matches would give this pose (inliers vs chance: {detail}): the matches do not "
+                "see the same scene; retrieve other map images or add map images of this place",
+            )
     return None
 
 
@@ -441,8 +530,9 @@ def _check_distant_plane(j: _Judging) -> PoseEstimate | None:
     options, problem, estimator, ref = j.ctx.options, j.ctx.problem, j.cand.estimator, j.cand.ref
     R, t, in2d, in3d, n3d, supporting = ref.R, ref.t, ref.in2d, ref.in3d, j.n3d, j.support.supporting
     any_plane = j.cand.any_plane_degenerate
-    planar = distant_planar_pairs(problem, R, t, in2d, supporting, PLANAR_TRANSFER_SCALE * options.threshold_px,
-                                  any_plane=any_plane)
+    planar = distant_planar_pairs(
+        problem, R, t, in2d, supporting, PLANAR_TRANSFER_SCALE * options.threshold_px, any_plane=any_plane
+    )
     if not planar.any():
         return None
     # A distant plane: one homography explains a pair's matches and the map images stand
@@ -451,18 +541,31 @@ def _check_distant_plane(j: _Judging) -> PoseEstimate | None:
     # own: with fewer than two others and no 2D-3D constraints the pose is refused;
     # otherwise the pose without them, and its uncertainty, bound the std.
     if n3d < options.min_inliers and len(supporting) - int(planar.sum()) < 2:
-        why = ("(one homography explains their matches: a plane, or too little parallax), on which the "
-               "8-point algorithm cannot tell the epipolar geometry; use method='auto'") if any_plane else (
-               "(one homography explains their matches, far beyond the map images' spread): rotation and "
-               "translation cannot be told apart; add map images that see the scene from closer or from other "
-               "directions")
-        return j.fail(Status.DEGENERATE_STRUCTURE, f"{int(planar.sum())} of the {len(supporting)} supporting map "
-                      f"images see {'a plane' if any_plane else 'a distant plane'} {why}")
+        why = (
+            (
+                "(one homography explains their matches: a plane, or too little parallax), on which the "
+                "8-point algorithm cannot tell the epipolar geometry; use method='auto'"
+            )
+            if any_plane
+            else (
+                "(one homography explains their matches, far beyond the map images' spread): rotation and "
+                "translation cannot be told apart; add map images that see the scene from closer or from other "
+                "directions"
+            )
+        )
+        return j.fail(
+            Status.DEGENERATE_STRUCTURE,
+            f"{int(planar.sum())} of the {len(supporting)} supporting map "
+            f"images see {'a plane' if any_plane else 'a distant plane'} {why}",
+        )
     keep2d = in2d & ~np.isin(problem.pair, supporting[planar])
     prior = n3d > 0 and (options.map_rotation_std_deg > 0 or options.map_position_std_m > 0)
     R_w, t_w, H_w, sigma_w, cost_w = (estimator._refine_with_map_prior if prior else estimator._refine)(
-        R, -R.T @ t, keep2d, in3d, 6)
-    alone = RefinedPose(R_w, t_w, centre_covariance(H_w, sigma_w), sigma_w, cost_w, ref.score, keep2d, in3d, H=H_w)
+        R, -R.T @ t, keep2d, in3d, 6
+    )
+    alone = RefinedPose(
+        R_w, t_w, centre_covariance(H_w, sigma_w), sigma_w, cost_w, ref.score, keep2d, in3d, H=H_w
+    )
     cov_w = _position_covariance(estimator, options, alone, j.support, j.correlation)
     std_w = math.sqrt(max(sym_eigvals(cov_w)[0], 0.0)) if np.isfinite(cov_w).all() else math.inf
     j.std = max(j.std, float(np.linalg.norm(-R_w.T @ t_w - (-R.T @ t))), std_w)
@@ -475,30 +578,46 @@ def _check_position(j: _Judging) -> PoseEstimate | None:
     spread, n3d = j.support.collinearity, j.n3d
     collinear = n3d < options.min_inliers and spread < options.min_collinearity_ratio
     if not collinear and j.rival > options.max_position_std_m and j.linear_std <= options.max_position_std_m:
-        return j.fail(Status.AMBIGUOUS_POSE, f"another search's pose {j.rival:.3g} m away explains the matches nearly "
-                      f"as well (MSAC cost within {100 * (RIVAL_COST_RATIO - 1):.0f} %): the data do not single out "
-                      "one position; more matches or map images")
+        return j.fail(
+            Status.AMBIGUOUS_POSE,
+            f"another search's pose {j.rival:.3g} m away explains the matches nearly "
+            f"as well (MSAC cost within {100 * (RIVAL_COST_RATIO - 1):.0f} %): the data do not single out "
+            "one position; more matches or map images",
+        )
     if collinear or not j.std <= options.max_position_std_m:
         hint = "" if options.structure == Structure.TRACKS else "; try structure='tracks'"
-        why = (f"the query and reference centres are nearly collinear (ratio {spread:.2g} < "
-               f"min_collinearity_ratio = {options.min_collinearity_ratio})") if collinear else (
-               f"std {j.std:.3g} m > max_position_std_m = {options.max_position_std_m} m")
+        why = (
+            (
+                f"the query and reference centres are nearly collinear (ratio {spread:.2g} < "
+                f"min_collinearity_ratio = {options.min_collinearity_ratio})"
+            )
+            if collinear
+            else (f"std {j.std:.3g} m > max_position_std_m = {options.max_position_std_m} m")
+        )
         return j.fail(Status.DEGENERATE_SCALE, f"position unobservable from the inliers: {why}{hint}")
     if options.refine:
         R, t, in2d, in3d, supporting = ref.R, ref.t, ref.in2d, ref.in3d, j.support.supporting
         prior = n3d > 0 and (options.map_rotation_std_deg > 0 or options.map_position_std_m > 0)
-        jk = (obs.reference_jackknife_with_prior(estimator, R, t, in2d, in3d, supporting) if prior
-              else obs.reference_jackknife(estimator, R, t, in2d, in3d, support=supporting))
+        jk = (
+            obs.reference_jackknife_with_prior(estimator, R, t, in2d, in3d, supporting)
+            if prior
+            else obs.reference_jackknife(estimator, R, t, in2d, in3d, support=supporting)
+        )
         if math.isfinite(jk.position_std_m):
             j.std = max(j.std, jk.position_std_m)
             limit = min(options.max_reference_shift_std * j.std, options.max_position_std_m)
             if jk.max_shift_m > limit or jk.max_rotation_deg > 5.0:
-                return j.fail(Status.INCONSISTENT_REFERENCES,
-                              f"leaving out reference {jk.worst_reference} moves the pose by {jk.max_shift_m:.3g} m / "
-                              f"{jk.max_rotation_deg:.2g}° (limit {limit:.3g} m / 5°): the references disagree")
+                return j.fail(
+                    Status.INCONSISTENT_REFERENCES,
+                    f"leaving out reference {jk.worst_reference} moves the pose by {jk.max_shift_m:.3g} m / "
+                    f"{jk.max_rotation_deg:.2g}° (limit {limit:.3g} m / 5°): the references disagree",
+                )
     if not j.std <= options.max_position_std_m:
-        return j.fail(Status.DEGENERATE_SCALE, f"position std {j.std:.3g} m > max_position_std_m = "
-                      f"{options.max_position_std_m} m after leave-one-reference-out verification")
+        return j.fail(
+            Status.DEGENERATE_SCALE,
+            f"position std {j.std:.3g} m > max_position_std_m = "
+            f"{options.max_position_std_m} m after leave-one-reference-out verification",
+        )
     return None
 
 
@@ -511,14 +630,24 @@ def _check_runner_ups(j: _Judging) -> PoseEstimate | None:
         # as well as the truth, far beyond what the curvature at either optimum says
         # (benchmarks/robustness.py --protocol hard, 20 matches per pair: ~1 % of successes
         # were 0.2-3 m off with std 0.04-0.2 m before this check; about half are left).
-        d = _rival_distance(cand.estimator, cand.ref, j.n2d + j.n3d, cand.alternatives, cand.pool, cand.refine,
-                            3.0 * j.std + 0.05)
+        d = _rival_distance(
+            cand.estimator,
+            cand.ref,
+            j.n2d + j.n3d,
+            cand.alternatives,
+            cand.pool,
+            cand.refine,
+            3.0 * j.std + 0.05,
+        )
         if d > 0.0:
             j.std = max(j.std, d)
             if not j.std <= options.max_position_std_m:
-                return j.fail(Status.AMBIGUOUS_POSE, f"another pose {d:.3g} m away explains the matches nearly as "
-                              f"well (within {RIVAL_MARGIN_INLIERS} inliers' worth of MSAC cost): the data do not "
-                              "single out one position; more matches or map images, or structure='tracks'")
+                return j.fail(
+                    Status.AMBIGUOUS_POSE,
+                    f"another pose {d:.3g} m away explains the matches nearly as "
+                    f"well (within {RIVAL_MARGIN_INLIERS} inliers' worth of MSAC cost): the data do not "
+                    "single out one position; more matches or map images, or structure='tracks'",
+                )
     if cand.refine is not None and j.n2d + j.n3d < PROFILE_BELOW_INLIERS:
         # Few constraints: other basins of the cost, with other inlier sets, may explain the
         # matches as well (Strecha entry_p10 against the fountain_p11 map: a pose 0.95 m off with
@@ -527,8 +656,11 @@ def _check_runner_ups(j: _Judging) -> PoseEstimate | None:
         if d > 0.0:
             j.std = max(j.std, d)
             if not j.std <= options.max_position_std_m:
-                return j.fail(Status.AMBIGUOUS_POSE, f"a restart of the refinement {d:.3g} m away converged to a pose "
-                              f"that explains the matches as well (within {RESTART_MARGIN_INLIERS} inlier's worth of "
-                              "MSAC cost, or better): the data do not single out one position; more matches or map "
-                              "images")
+                return j.fail(
+                    Status.AMBIGUOUS_POSE,
+                    f"a restart of the refinement {d:.3g} m away converged to a pose "
+                    f"that explains the matches as well (within {RESTART_MARGIN_INLIERS} inlier's worth of "
+                    "MSAC cost, or better): the data do not single out one position; more matches or map "
+                    "images",
+                )
     return None

@@ -40,7 +40,9 @@ from planarloc.io.ros_messages import (  # noqa: F401  (the node's message conve
 from planarloc.robust.pair_matches import unit_gravity
 
 
-def ros_covariance_of_child(parent_from_frame: Pose, covariance: np.ndarray, frame_from_child: Pose) -> np.ndarray:
+def ros_covariance_of_child(
+    parent_from_frame: Pose, covariance: np.ndarray, frame_from_child: Pose
+) -> np.ndarray:
     """ROS-order covariance of ``parent_from_child = parent_from_frame · frame_from_child`` (a rigid
     offset, e.g. the base of a camera) from that of ``parent_from_frame``.
 
@@ -105,8 +107,9 @@ def ros_covariance_of_parent(new_from_parent: Pose, covariance: np.ndarray) -> n
     return 0.5 * (out + out.T)
 
 
-def map_pose_of_child(world_from_camera: Pose, covariance: np.ndarray, camera_from_child: Pose,
-                      map_from_world: Pose) -> tuple[Pose, np.ndarray]:
+def map_pose_of_child(
+    world_from_camera: Pose, covariance: np.ndarray, camera_from_child: Pose, map_from_world: Pose
+) -> tuple[Pose, np.ndarray]:
     """The published pose: ``map_from_child = map_from_world · world_from_camera · camera_from_child``
     and its ROS-order covariance.
 

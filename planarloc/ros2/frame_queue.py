@@ -23,7 +23,7 @@ class FrameQueue:
         if size < 1:
             raise InputError(f"queue_size: expected an integer >= 1, got {size}")
         self.size = size
-        self._items: deque[tuple[Any, float, bool]] = deque()   # frame, arrival time, restart before it
+        self._items: deque[tuple[Any, float, bool]] = deque()  # frame, arrival time, restart before it
         self._restart = False
 
     def __len__(self) -> int:
@@ -56,8 +56,8 @@ class FrameCounts:
 
     received: int = 0
     processed: int = 0
-    dropped: int = 0     # replaced by a newer frame before the worker took it
-    failed: int = 0      # not localizable: no CameraInfo yet, a bad image or camera
+    dropped: int = 0  # replaced by a newer frame before the worker took it
+    failed: int = 0  # not localizable: no CameraInfo yet, a bad image or camera
     localized: int = 0
     predicted: int = 0
     lost: int = 0

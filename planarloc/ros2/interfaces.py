@@ -55,7 +55,10 @@ GENERATORS = {
     "c": ("rosidl_generator_c.cli", "GenerateC"),
     "typesupport_c": ("rosidl_typesupport_c.cli", "GenerateCTypesupport"),
     "typesupport_fastrtps_c": ("rosidl_typesupport_fastrtps_c.cli", "GenerateFastRTPSCTypesupport"),
-    "typesupport_introspection_c": ("rosidl_typesupport_introspection_c.cli", "GenerateIntrospectionCTypesupport"),
+    "typesupport_introspection_c": (
+        "rosidl_typesupport_introspection_c.cli",
+        "GenerateIntrospectionCTypesupport",
+    ),
     "py": ("rosidl_generator_py.cli", "GeneratePython"),
 }
 _GENERATE = """
@@ -75,7 +78,8 @@ class InterfaceBuildError(MissingExtraError):
 def cache_root() -> Path:
     """The folder of planarloc's built ROS interfaces."""
     base = os.environ.get("PLANARLOC_CACHE") or os.path.join(
-        os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache"), "planarloc")
+        os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache"), "planarloc"
+    )
     return Path(base) / "ros2-interfaces"
 
 
@@ -89,18 +93,27 @@ def _ros_prefix() -> Path:
         prefix = Path(sys.prefix)
         if (prefix / "share" / "geometry_msgs" / "msg" / "TransformStamped.idl").is_file():
             return prefix
-    raise InterfaceBuildError("cannot build tf2_msgs: geometry_msgs' interface files are not installed; "
-                              "install the extra: pip install 'planarloc[ros2]'")
+    raise InterfaceBuildError(
+        "cannot build tf2_msgs: geometry_msgs' interface files are not installed; "
+        "install the extra: pip install 'planarloc[ros2]'"
+    )
 
 
 def _build_key(prefix: Path) -> str:
     versions = []
-    for dist in ("ros-geometry-msgs", "ros-rosidl-generator-py", "ros-rosidl-typesupport-fastrtps-c", "ros-rclpy"):
+    for dist in (
+        "ros-geometry-msgs",
+        "ros-rosidl-generator-py",
+        "ros-rosidl-typesupport-fastrtps-c",
+        "ros-rclpy",
+    ):
         try:
             versions.append(f"{dist}={importlib.metadata.version(dist)}")
         except importlib.metadata.PackageNotFoundError:
             versions.append(f"{dist}=?")
-    text = "|".join([str(prefix.resolve()), sysconfig.get_config_var("EXT_SUFFIX") or "", *versions, TF_MESSAGE_IDL])
+    text = "|".join(
+        [str(prefix.resolve()), sysconfig.get_config_var("EXT_SUFFIX") or "", *versions, TF_MESSAGE_IDL]
+    )
     return hashlib.sha1(text.encode()).hexdigest()[:12]
 
 
@@ -110,7 +123,8 @@ def _compiler(var: str, default: str) -> str:
         raise InterfaceBuildError(
             f"tf2_msgs (the type of /tf) is not installed and cannot be built: no C/C++ compiler "
             f"({var}={os.environ.get(var, default)}); install gcc and g++ (apt-get install g++), or source a "
-            "ROS 2 installation that has tf2_msgs")
+            "ROS 2 installation that has tf2_msgs"
+        )
     return exe
 
 
@@ -118,7 +132,9 @@ def _run(cmd: list[str], cwd: Path, env: dict[str, str] | None = None) -> None:
     proc = subprocess.run(cmd, cwd=cwd, env=env, capture_output=True, text=True)
     if proc.returncode != 0:
         tail = " ".join((proc.stderr or proc.stdout).strip().splitlines()[-3:])
-        raise InterfaceBuildError(f"building tf2_msgs failed: {Path(cmd[0]).name} exited {proc.returncode}: {tail}")
+        raise InterfaceBuildError(
+            f"building tf2_msgs failed: {Path(cmd[0]).name} exited {proc.returncode}: {tail}"
+        )
 
 
 def build_tf2_msgs(out: Path, prefix: Path) -> None:
@@ -134,8 +150,19 @@ def build_tf2_msgs(out: Path, prefix: Path) -> None:
     env["AMENT_PREFIX_PATH"] = os.pathsep.join(filter(None, [str(prefix), env.get("AMENT_PREFIX_PATH")]))
     specs = [f"{name}:{module}:{cls}" for name, (module, cls) in GENERATORS.items()]
     gen = work / "gen"
-    _run([sys.executable, "-c", _GENERATE, str(gen), f"{work / 'idl'}:msg/TFMessage.idl", str(prefix / "share"),
-          *specs], work, env)
+    _run(
+        [
+            sys.executable,
+            "-c",
+            _GENERATE,
+            str(gen),
+            f"{work / 'idl'}:msg/TFMessage.idl",
+            str(prefix / "share"),
+            *specs,
+        ],
+        work,
+        env,
+    )
     include = work / "include" / PACKAGE
     for name in ("c", "typesupport_fastrtps_c", "typesupport_introspection_c"):
         for header in (gen / name).rglob("*.h"):
@@ -143,35 +170,94 @@ def build_tf2_msgs(out: Path, prefix: Path) -> None:
             target.parent.mkdir(parents=True, exist_ok=True)
             shutil.copy2(header, target)
     inc = prefix / "include"
-    flags = ["-shared", "-fPIC", "-O2", f"-I{work / 'include'}", f"-I{inc}",
-             *[f"-I{d}" for d in sorted(inc.iterdir()) if d.is_dir()],
-             f"-I{sysconfig.get_paths()['include']}", f"-I{numpy.get_include()}"]
+    flags = [
+        "-shared",
+        "-fPIC",
+        "-O2",
+        f"-I{work / 'include'}",
+        f"-I{inc}",
+        *[f"-I{d}" for d in sorted(inc.iterdir()) if d.is_dir()],
+        f"-I{sysconfig.get_paths()['include']}",
+        f"-I{numpy.get_include()}",
+    ]
     lib = out / "lib"
     lib.mkdir()
     link = [f"-L{lib}", f"-L{prefix / 'lib'}", f"-Wl,-rpath,{prefix / 'lib'}"]
     detail = "msg/detail"
     libraries = [  # (compiler, sources, library, libraries linked), in dependency order
-        (cc, sorted((gen / "c" / detail).glob("*.c")), "rosidl_generator_c",
-         ["rosidl_runtime_c", "rcutils", "geometry_msgs__rosidl_generator_c"]),
-        (cc, [gen / "typesupport_introspection_c" / detail / "tf_message__type_support.c"],
-         "rosidl_typesupport_introspection_c",
-         ["tf2_msgs__rosidl_generator_c", "rosidl_runtime_c", "geometry_msgs__rosidl_typesupport_introspection_c"]),
-        (cxx, [gen / "typesupport_fastrtps_c" / detail / "tf_message__type_support_c.cpp"],
-         "rosidl_typesupport_fastrtps_c",
-         ["tf2_msgs__rosidl_generator_c", "rosidl_runtime_c", "rosidl_typesupport_fastrtps_c",
-          "rosidl_typesupport_fastrtps_cpp", "fastcdr", "rmw", "geometry_msgs__rosidl_typesupport_fastrtps_c",
-          "geometry_msgs__rosidl_generator_c"]),
-        (cxx, [gen / "typesupport_c" / "msg" / "tf_message__type_support.cpp"], "rosidl_typesupport_c",
-         ["tf2_msgs__rosidl_generator_c", "rosidl_runtime_c", "rosidl_typesupport_c", "rcpputils", "rcutils"]),
-        (cc, [gen / "py" / "msg" / "_tf_message_s.c"], "rosidl_generator_py",
-         ["tf2_msgs__rosidl_generator_c", "geometry_msgs__rosidl_generator_py", "geometry_msgs__rosidl_generator_c",
-          "rosidl_runtime_c"]),
+        (
+            cc,
+            sorted((gen / "c" / detail).glob("*.c")),
+            "rosidl_generator_c",
+            ["rosidl_runtime_c", "rcutils", "geometry_msgs__rosidl_generator_c"],
+        ),
+        (
+            cc,
+            [gen / "typesupport_introspection_c" / detail / "tf_message__type_support.c"],
+            "rosidl_typesupport_introspection_c",
+            [
+                "tf2_msgs__rosidl_generator_c",
+                "rosidl_runtime_c",
+                "geometry_msgs__rosidl_typesupport_introspection_c",
+            ],
+        ),
+        (
+            cxx,
+            [gen / "typesupport_fastrtps_c" / detail / "tf_message__type_support_c.cpp"],
+            "rosidl_typesupport_fastrtps_c",
+            [
+                "tf2_msgs__rosidl_generator_c",
+                "rosidl_runtime_c",
+                "rosidl_typesupport_fastrtps_c",
+                "rosidl_typesupport_fastrtps_cpp",
+                "fastcdr",
+                "rmw",
+                "geometry_msgs__rosidl_typesupport_fastrtps_c",
+                "geometry_msgs__rosidl_generator_c",
+            ],
+        ),
+        (
+            cxx,
+            [gen / "typesupport_c" / "msg" / "tf_message__type_support.cpp"],
+            "rosidl_typesupport_c",
+            [
+                "tf2_msgs__rosidl_generator_c",
+                "rosidl_runtime_c",
+                "rosidl_typesupport_c",
+                "rcpputils",
+                "rcutils",
+            ],
+        ),
+        (
+            cc,
+            [gen / "py" / "msg" / "_tf_message_s.c"],
+            "rosidl_generator_py",
+            [
+                "tf2_msgs__rosidl_generator_c",
+                "geometry_msgs__rosidl_generator_py",
+                "geometry_msgs__rosidl_generator_c",
+                "rosidl_runtime_c",
+            ],
+        ),
     ]
     for compiler, sources, name, libs in libraries:
         extra = ["-std=c++17"] if compiler == cxx else []
         soname = f"lib{PACKAGE}__{name}.so"
-        _run([compiler, *flags, *extra, *map(str, sources), "-o", str(lib / soname), f"-Wl,-soname,{soname}", *link,
-              "-Wl,-rpath,$ORIGIN", *[f"-l{x}" for x in libs]], work)
+        _run(
+            [
+                compiler,
+                *flags,
+                *extra,
+                *map(str, sources),
+                "-o",
+                str(lib / soname),
+                f"-Wl,-soname,{soname}",
+                *link,
+                "-Wl,-rpath,$ORIGIN",
+                *[f"-l{x}" for x in libs],
+            ],
+            work,
+        )
     package = out / PACKAGE
     (package / "msg").mkdir(parents=True)
     (package / "__init__.py").write_text("")
@@ -179,10 +265,21 @@ def build_tf2_msgs(out: Path, prefix: Path) -> None:
         shutil.copy2(py, package / "msg" / py.name)
     suffix = sysconfig.get_config_var("EXT_SUFFIX")
     for ts in ("c", "fastrtps_c", "introspection_c"):
-        _run([cc, *flags, str(gen / "py" / f"_{PACKAGE}_s.ep.rosidl_typesupport_{ts}.c"),
-              "-o", str(package / f"{PACKAGE}_s__rosidl_typesupport_{ts}{suffix}"), *link, "-Wl,-rpath,$ORIGIN/../lib",
-              f"-l{PACKAGE}__rosidl_generator_py", f"-l{PACKAGE}__rosidl_typesupport_{ts}",
-              f"-l{PACKAGE}__rosidl_generator_c"], work)
+        _run(
+            [
+                cc,
+                *flags,
+                str(gen / "py" / f"_{PACKAGE}_s.ep.rosidl_typesupport_{ts}.c"),
+                "-o",
+                str(package / f"{PACKAGE}_s__rosidl_typesupport_{ts}{suffix}"),
+                *link,
+                "-Wl,-rpath,$ORIGIN/../lib",
+                f"-l{PACKAGE}__rosidl_generator_py",
+                f"-l{PACKAGE}__rosidl_typesupport_{ts}",
+                f"-l{PACKAGE}__rosidl_generator_c",
+            ],
+            work,
+        )
     shutil.rmtree(work)
 
 

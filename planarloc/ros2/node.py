@@ -101,8 +101,9 @@ logger = logging.getLogger(__name__)
 NO_CAMERA_INFO = "no CameraInfo received yet"
 
 
-def frame_camera(camera: Camera | None, camera_error: str, map_cameras: Collection[Camera],
-                 camera_info_topic: str) -> tuple[Camera | None, str, str, str]:
+def frame_camera(
+    camera: Camera | None, camera_error: str, map_cameras: Collection[Camera], camera_info_topic: str
+) -> tuple[Camera | None, str, str, str]:
     """The camera of the next frame: ``(camera, source, error, warning)``.
 
     Args:
@@ -120,17 +121,21 @@ def frame_camera(camera: Camera | None, camera_error: str, map_cameras: Collecti
     """
     if camera is not None:
         return camera, "camera_info", "", ""
-    if camera_error != NO_CAMERA_INFO:   # a CameraInfo arrived but is not usable
+    if camera_error != NO_CAMERA_INFO:  # a CameraInfo arrived but is not usable
         return None, "", camera_error, ""
     cameras = list(map_cameras)
     if len(cameras) != 1:
-        error = (f"no CameraInfo on {camera_info_topic} and the map has {len(cameras)} cameras: publish the "
-                 f"camera's CameraInfo on {camera_info_topic} (or set camera_info_topic)")
+        error = (
+            f"no CameraInfo on {camera_info_topic} and the map has {len(cameras)} cameras: publish the "
+            f"camera's CameraInfo on {camera_info_topic} (or set camera_info_topic)"
+        )
         return None, "", error, error
     (only,) = cameras
-    warning = (f"no CameraInfo on {camera_info_topic}: using the map's only camera ({only.model.value} "
-               f"{only.width}x{only.height}, params {' '.join(f'{p:g}' for p in only.params)}); publish the "
-               "camera's CameraInfo if the images come from another camera")
+    warning = (
+        f"no CameraInfo on {camera_info_topic}: using the map's only camera ({only.model.value} "
+        f"{only.width}x{only.height}, params {' '.join(f'{p:g}' for p in only.params)}); publish the "
+        "camera's CameraInfo if the images come from another camera"
+    )
     return None, "map", "", warning
 
 
@@ -175,7 +180,7 @@ class LocalizerNode:
         self.counts = FrameCounts()
         self._base_from_camera_param = settings.base_from_camera
         self._camera: Any = None
-        self._camera_error = NO_CAMERA_INFO   # empty once a usable CameraInfo arrived
+        self._camera_error = NO_CAMERA_INFO  # empty once a usable CameraInfo arrived
         self.map_from_world = Pose.identity()  # set by _open (map_frame_convention)
         self.map_frame_note = ""
         self._pending = FrameQueue(settings.queue_size)
@@ -187,19 +192,37 @@ class LocalizerNode:
 
         reliable = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
         image_qos = qos_profile_sensor_data if settings.image_qos == "sensor_data" else reliable
-        node.create_subscription(CompressedImage if settings.compressed else Image, settings.image_topic,
-                                 self._on_image, image_qos)
-        node.create_subscription(CameraInfo, settings.camera_info_topic, self._on_camera_info, qos_profile_sensor_data)
+        node.create_subscription(
+            CompressedImage if settings.compressed else Image, settings.image_topic, self._on_image, image_qos
+        )
+        node.create_subscription(
+            CameraInfo, settings.camera_info_topic, self._on_camera_info, qos_profile_sensor_data
+        )
         if settings.odom_topic:
-            node.create_subscription(Odometry, settings.odom_topic, self._on_odometry,
-                                     QoSProfile(depth=100, reliability=ReliabilityPolicy.BEST_EFFORT))
-        node.create_subscription(PoseWithCovarianceStamped, settings.initialpose_topic, self._on_initialpose, reliable)
+            node.create_subscription(
+                Odometry,
+                settings.odom_topic,
+                self._on_odometry,
+                QoSProfile(depth=100, reliability=ReliabilityPolicy.BEST_EFFORT),
+            )
+        node.create_subscription(
+            PoseWithCovarianceStamped, settings.initialpose_topic, self._on_initialpose, reliable
+        )
         node.create_subscription(self.TFMessage, "/tf", self._on_tf, QoSProfile(depth=100))
-        node.create_subscription(self.TFMessage, "/tf_static", self._on_tf, QoSProfile(
-            depth=100, durability=DurabilityPolicy.TRANSIENT_LOCAL, reliability=ReliabilityPolicy.RELIABLE))
+        node.create_subscription(
+            self.TFMessage,
+            "/tf_static",
+            self._on_tf,
+            QoSProfile(
+                depth=100, durability=DurabilityPolicy.TRANSIENT_LOCAL, reliability=ReliabilityPolicy.RELIABLE
+            ),
+        )
         self.pose_pub = node.create_publisher(PoseWithCovarianceStamped, settings.pose_topic, reliable)
-        self.tf_pub = node.create_publisher(self.TFMessage, "/tf", QoSProfile(depth=100)) if settings.tf_broadcast \
+        self.tf_pub = (
+            node.create_publisher(self.TFMessage, "/tf", QoSProfile(depth=100))
+            if settings.tf_broadcast
             else None
+        )
         self.diag_pub = node.create_publisher(DiagnosticArray, settings.diagnostics_topic, reliable)
         # The map (SQLite) is opened by the thread that localizes; its errors are raised here.
         self._opened = threading.Event()
@@ -216,7 +239,9 @@ class LocalizerNode:
         s = self.settings
         localizer = Localizer(s.map, s.localizer_config())
         check_map_feature_kind(s.map, localizer.features.kind, s.features or None, "parameter features")
-        learned.load_backend(localizer.features.kind)  # a learned map's models (torch) now, not at the first frame
+        learned.load_backend(
+            localizer.features.kind
+        )  # a learned map's models (torch) now, not at the first frame
         self.sequence = SequenceLocalizer(localizer, s.sequence_config())
         # The first query of a process is ~10x slower than the next (kernels loaded from the compile
         # cache, first calls into OpenCV): pay for it before the first frame, not with dropped frames.
@@ -224,8 +249,10 @@ class LocalizerNode:
         if s.map_frame_convention == "z_up":
             self.map_from_world = map_from_world_from_gravity(gravity.g_world)
             g = ", ".join(f"{v:+.3f}" for v in gravity.g_world)
-            self.map_frame_note = (f"z-up (REP-103), rotated from the map's world by its gravity ({g}, "
-                                   f"{gravity.source}{': ' + gravity.detail if gravity.detail else ''})")
+            self.map_frame_note = (
+                f"z-up (REP-103), rotated from the map's world by its gravity ({g}, "
+                f"{gravity.source}{': ' + gravity.detail if gravity.detail else ''})"
+            )
         else:
             self.map_frame_note = "the map's world (map_frame_convention world)"
         logger.info("warming up the localizer on the map's own images")
@@ -254,8 +281,12 @@ class LocalizerNode:
             self._warn_once(f"odometry: {exc}")
             return
         with self._cond:
-            self.odometry.add(stamp_seconds(msg.header.stamp), pose, msg.header.frame_id.lstrip("/"),
-                              msg.child_frame_id.lstrip("/"))
+            self.odometry.add(
+                stamp_seconds(msg.header.stamp),
+                pose,
+                msg.header.frame_id.lstrip("/"),
+                msg.child_frame_id.lstrip("/"),
+            )
             self._cond.notify_all()  # a frame may wait for the odometry at its stamp
 
     def _on_initialpose(self, msg: Any) -> None:
@@ -271,7 +302,10 @@ class LocalizerNode:
             except InputError as exc:
                 self._warn_once(f"/tf: {exc}")
                 continue
-            if (parent, child) != (self.settings.map_frame, self.settings.odom_frame):  # not our own map -> odom
+            if (parent, child) != (
+                self.settings.map_frame,
+                self.settings.odom_frame,
+            ):  # not our own map -> odom
                 edges.append((parent, child, pose))
         with self._cond:
             self.tf.add_many(edges)
@@ -300,7 +334,9 @@ class LocalizerNode:
                 msg, received, reset = self._pending.pop()
             try:
                 self._process(msg, received, reset)
-            except Exception as exc:  # a bug must not stop the node silently: log it, count and report the frame
+            except (
+                Exception
+            ) as exc:  # a bug must not stop the node silently: log it, count and report the frame
                 logger.exception("frame at %.3f failed", stamp_seconds(msg.header.stamp))
                 self._fail(msg, f"internal error: {type(exc).__name__}: {exc}", received)
 
@@ -328,9 +364,12 @@ class LocalizerNode:
         self._diagnose(msg.header.stamp, "failed", reason, received, camera_source=camera_source)
 
     def _camera_for_frame(self) -> tuple[Camera | None, str, str]:
-        camera, source, error, warning = frame_camera(self._camera, self._camera_error,
-                                                      self.sequence.localizer.map_cameras,  # type: ignore[union-attr]
-                                                      self.settings.camera_info_topic)
+        camera, source, error, warning = frame_camera(
+            self._camera,
+            self._camera_error,
+            self.sequence.localizer.map_cameras,  # type: ignore[union-attr]
+            self.settings.camera_info_topic,
+        )
         if warning:
             self._warn_once(warning)
         return camera, source, error
@@ -344,7 +383,7 @@ class LocalizerNode:
             return
         try:
             image = frame_pixels(msg, self.settings.compressed)
-        except (InputError, ValueError, cv2.error) as exc:   # the data's fault: cv2.error from decoding
+        except (InputError, ValueError, cv2.error) as exc:  # the data's fault: cv2.error from decoding
             self._fail(msg, f"bad frame: {' '.join(str(exc).split())}", received, camera_source)
             return
         notes = []
@@ -381,7 +420,7 @@ class LocalizerNode:
         odometry = None if odom_from_child is None else (odom_from_child @ child_from_camera).inverse()
         try:
             est = self.sequence.step(image, camera, stamp, odometry=odometry)  # type: ignore[union-attr]
-        except InputError as exc:   # the frame's (e.g. not the size of its camera), not the node's
+        except InputError as exc:  # the frame's (e.g. not the size of its camera), not the node's
             self._fail(msg, f"bad frame: {exc}", received, camera_source)
             return
         self.counts.processed += 1
@@ -394,10 +433,17 @@ class LocalizerNode:
         if est.pose is None or not est.position_std_m <= self.settings.max_published_std_m:
             return False
         return est.status == FrameStatus.LOCALIZED.value or (
-            est.status == FrameStatus.PREDICTED.value and self.settings.publish_predicted)
+            est.status == FrameStatus.PREDICTED.value and self.settings.publish_predicted
+        )
 
-    def _publish(self, stamp: Any, est: SequenceEstimate, camera_frame: str, odom_from_child: Pose | None,
-                 child_from_camera: Pose | None) -> bool:
+    def _publish(
+        self,
+        stamp: Any,
+        est: SequenceEstimate,
+        camera_frame: str,
+        odom_from_child: Pose | None,
+        child_from_camera: Pose | None,
+    ) -> bool:
         from geometry_msgs.msg import PoseWithCovarianceStamped, TransformStamped
 
         if est.status == FrameStatus.LOST.value:
@@ -405,18 +451,24 @@ class LocalizerNode:
         if not self._publishable(est):
             return False
         world_from_camera = est.pose.inverse()  # type: ignore[union-attr]
-        cov = np.asarray(est.covariance, dtype=float)  # (6, 6), ROS order already (SequenceEstimate.covariance)
+        cov = np.asarray(
+            est.covariance, dtype=float
+        )  # (6, 6), ROS order already (SequenceEstimate.covariance)
         if not np.isfinite(cov).all():
             return False  # no promise without a finite covariance
         base_from_camera = self._frame_from_camera(self.settings.base_frame, camera_frame)
         if base_from_camera is None:
-            self._warn_once(f"no transform {self.settings.base_frame} -> {camera_frame}: publishing the pose of "
-                            f"{camera_frame}")
+            self._warn_once(
+                f"no transform {self.settings.base_frame} -> {camera_frame}: publishing the pose of "
+                f"{camera_frame}"
+            )
         camera_from_child = Pose.identity() if base_from_camera is None else base_from_camera.inverse()
         pose, cov = map_pose_of_child(world_from_camera, cov, camera_from_child, self.map_from_world)
         out = PoseWithCovarianceStamped()
         out.header.stamp, out.header.frame_id = stamp, self.settings.map_frame
-        (out.pose.pose.position.x, out.pose.pose.position.y, out.pose.pose.position.z), q = ros_from_pose(pose)
+        (out.pose.pose.position.x, out.pose.pose.position.y, out.pose.pose.position.z), q = ros_from_pose(
+            pose
+        )
         o = out.pose.pose.orientation
         o.x, o.y, o.z, o.w = q
         out.pose.covariance = [float(v) for v in cov.ravel()]
@@ -437,43 +489,72 @@ class LocalizerNode:
             self.tf_pub.publish(self.TFMessage(transforms=[tf]))
         return True
 
-    def _diagnose(self, stamp: Any, status: str, note: str, received: float, est: SequenceEstimate | None = None,
-                  published: bool = False, camera_source: str = "") -> None:
+    def _diagnose(
+        self,
+        stamp: Any,
+        status: str,
+        note: str,
+        received: float,
+        est: SequenceEstimate | None = None,
+        published: bool = False,
+        camera_source: str = "",
+    ) -> None:
         from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 
-        level = {"localized": DiagnosticStatus.OK, "predicted": DiagnosticStatus.WARN}.get(status,
-                                                                                            DiagnosticStatus.ERROR)
+        level = {"localized": DiagnosticStatus.OK, "predicted": DiagnosticStatus.WARN}.get(
+            status, DiagnosticStatus.ERROR
+        )
         c = self.counts
         values = {
-            "status": status, "published": str(published).lower(), "stamp": f"{stamp_seconds(stamp):.9f}",
-            "frames_received": c.received, "frames_processed": c.processed, "frames_dropped": c.dropped,
-            "frames_failed": c.failed, "frames_localized": c.localized, "frames_predicted": c.predicted,
-            "frames_lost": c.lost, "poses_published": c.published, "fix_rate": f"{c.fix_rate:.4f}",
+            "status": status,
+            "published": str(published).lower(),
+            "stamp": f"{stamp_seconds(stamp):.9f}",
+            "frames_received": c.received,
+            "frames_processed": c.processed,
+            "frames_dropped": c.dropped,
+            "frames_failed": c.failed,
+            "frames_localized": c.localized,
+            "frames_predicted": c.predicted,
+            "frames_lost": c.lost,
+            "poses_published": c.published,
+            "fix_rate": f"{c.fix_rate:.4f}",
             "latency_ms": f"{1000 * (time.perf_counter() - received):.1f}",
         }
         if est is not None:
-            values.update(fix_status=est.fix_status, motion_source=est.motion_source,
-                          position_std_m=f"{est.position_std_m:.4g}", rotation_std_deg=f"{est.rotation_std_deg:.4g}")
+            values.update(
+                fix_status=est.fix_status,
+                motion_source=est.motion_source,
+                position_std_m=f"{est.position_std_m:.4g}",
+                rotation_std_deg=f"{est.rotation_std_deg:.4g}",
+            )
         if camera_source:
-            values["camera_source"] = camera_source   # camera_info, or map (no CameraInfo received)
+            values["camera_source"] = camera_source  # camera_info, or map (no CameraInfo received)
         if note:
             values["reason" if status == "failed" else "note"] = note
         # The frame's record (docs/schema/record.schema.json), as `localize --sequence` and the
         # service's sessions write it: one schema for every front door.
         name = f"{self.settings.image_topic}@{stamp_seconds(stamp):.9f}"
-        record = (frame_record(name, est) if est is not None else
-                  error_record(name, note or status, kind="frame", stamp=stamp_seconds(stamp)))
+        record = (
+            frame_record(name, est)
+            if est is not None
+            else error_record(name, note or status, kind="frame", stamp=stamp_seconds(stamp))
+        )
         values["record"] = strict_json.dumps(record)
-        d = DiagnosticStatus(level=level, name=f"{NODE_NAME}: localization", hardware_id=self.settings.map,
-                             message=f"{status}{': ' + note if note else ''}",
-                             values=[KeyValue(key=k, value=str(v)) for k, v in values.items()])
+        d = DiagnosticStatus(
+            level=level,
+            name=f"{NODE_NAME}: localization",
+            hardware_id=self.settings.map,
+            message=f"{status}{': ' + note if note else ''}",
+            values=[KeyValue(key=k, value=str(v)) for k, v in values.items()],
+        )
         out = DiagnosticArray(status=[d])
         out.header.stamp = stamp
         self.diag_pub.publish(out)
 
 
-def declare_settings(node: Any, defaults: NodeSettings | dict | None = None,
-                     overrides: dict[str, object] | None = None) -> NodeSettings:
+def declare_settings(
+    node: Any, defaults: NodeSettings | dict | None = None, overrides: dict[str, object] | None = None
+) -> NodeSettings:
     """Declare every :class:`NodeSettings` field as a ROS parameter (its meaning as the description)
     and read the settings back.
 
@@ -528,9 +609,12 @@ def run(map_path: str | None, ros_args: Sequence[str]) -> int:
         node = rclpy.create_node(NODE_NAME)
         settings = declare_settings(node, overrides={"map": map_path} if map_path else None)
         worker = LocalizerNode(node, settings)
-        print(f"planarloc ros2: localizing {settings.image_topic} against {settings.map}; poses on "
-              f"{settings.pose_topic} in {settings.map_frame}: {worker.map_frame_note} (Ctrl-C stops)",
-              file=sys.stderr, flush=True)
+        print(
+            f"planarloc ros2: localizing {settings.image_topic} against {settings.map}; poses on "
+            f"{settings.pose_topic} in {settings.map_frame}: {worker.map_frame_note} (Ctrl-C stops)",
+            file=sys.stderr,
+            flush=True,
+        )
         executor = SingleThreadedExecutor()
         executor.add_node(node)
         try:
@@ -538,9 +622,12 @@ def run(map_path: str | None, ros_args: Sequence[str]) -> int:
         except (KeyboardInterrupt, ExternalShutdownException):
             pass
         c = worker.counts
-        print(f"planarloc ros2: stopped after {c.received} frames: {c.localized} localized, {c.predicted} "
-              f"predicted, {c.lost} lost, {c.dropped} dropped, {c.failed} failed; {c.published} poses published",
-              file=sys.stderr, flush=True)
+        print(
+            f"planarloc ros2: stopped after {c.received} frames: {c.localized} localized, {c.predicted} "
+            f"predicted, {c.lost} lost, {c.dropped} dropped, {c.failed} failed; {c.published} poses published",
+            file=sys.stderr,
+            flush=True,
+        )
         return 0
     finally:
         if worker is not None:

@@ -63,7 +63,9 @@ class ReplayFrame:
 class ReplayResult:
     """What the node published, keyed by the image stamp (seconds, rounded to the nanosecond)."""
 
-    poses: dict[float, tuple[Pose, np.ndarray, str]] = field(default_factory=dict)  # parent_from_child, cov, frame
+    poses: dict[float, tuple[Pose, np.ndarray, str]] = field(
+        default_factory=dict
+    )  # parent_from_child, cov, frame
     map_from_odom: dict[float, tuple[Pose, str, str]] = field(default_factory=dict)  # pose, parent, child
     diagnostics: dict[float, dict[str, str]] = field(default_factory=dict)
     published: int = 0
@@ -122,27 +124,38 @@ class _Replayer:
 
         node, s = self.node, self.s
         reliable = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
-        self.image_pub = node.create_publisher(CompressedImage if s.compressed else Image, s.image_topic, reliable)
+        self.image_pub = node.create_publisher(
+            CompressedImage if s.compressed else Image, s.image_topic, reliable
+        )
         self.info_pub = node.create_publisher(CameraInfo, s.camera_info_topic, reliable)
         self.odom_pub = node.create_publisher(Odometry, s.odom_topic, reliable)
         self.initial_pub = node.create_publisher(PoseWithCovarianceStamped, "/initialpose", reliable)
-        self.static_pub = node.create_publisher(self.TFMessage, "/tf_static", QoSProfile(
-            depth=10, durability=DurabilityPolicy.TRANSIENT_LOCAL, reliability=ReliabilityPolicy.RELIABLE))
+        self.static_pub = node.create_publisher(
+            self.TFMessage,
+            "/tf_static",
+            QoSProfile(
+                depth=10, durability=DurabilityPolicy.TRANSIENT_LOCAL, reliability=ReliabilityPolicy.RELIABLE
+            ),
+        )
         node.create_subscription(PoseWithCovarianceStamped, s.pose_topic, self._on_pose, reliable)
         node.create_subscription(self.TFMessage, "/tf", self._on_tf, QoSProfile(depth=100))
         node.create_subscription(DiagnosticArray, s.diagnostics_topic, self._on_diagnostics, reliable)
 
     def _on_pose(self, msg: Any) -> None:
         p = msg.pose.pose
-        self.result.poses[_key(msg.header.stamp)] = (pose_from_ros(p.position, p.orientation),
-                                                      np.asarray(msg.pose.covariance, dtype=float).reshape(6, 6),
-                                                      msg.header.frame_id)
+        self.result.poses[_key(msg.header.stamp)] = (
+            pose_from_ros(p.position, p.orientation),
+            np.asarray(msg.pose.covariance, dtype=float).reshape(6, 6),
+            msg.header.frame_id,
+        )
 
     def _on_tf(self, msg: Any) -> None:
         for tf in msg.transforms:
             self.result.map_from_odom[_key(tf.header.stamp)] = (
-                pose_from_ros(tf.transform.translation, tf.transform.rotation), tf.header.frame_id,
-                tf.child_frame_id)
+                pose_from_ros(tf.transform.translation, tf.transform.rotation),
+                tf.header.frame_id,
+                tf.child_frame_id,
+            )
 
     def _on_diagnostics(self, msg: Any) -> None:
         for status in msg.status:
@@ -158,7 +171,10 @@ class _Replayer:
 
         s = self.s
         deadline = time.monotonic() + s.wait_s
-        while self.image_pub.get_subscription_count() == 0 or self.node.count_publishers(s.diagnostics_topic) == 0:
+        while (
+            self.image_pub.get_subscription_count() == 0
+            or self.node.count_publishers(s.diagnostics_topic) == 0
+        ):
             if time.monotonic() > deadline:
                 raise InputError(f"no planarloc node subscribes to {s.image_topic} within {s.wait_s:.0f} s")
             self.rclpy.spin_once(self.node, timeout_sec=0.1)
@@ -208,15 +224,22 @@ class _Replayer:
 
         if isinstance(frame.image, bytes):
             if not self.s.compressed:
-                raise InputError(f"frame {i}: bytes are sent as a CompressedImage; use a /compressed image_topic")
+                raise InputError(
+                    f"frame {i}: bytes are sent as a CompressedImage; use a /compressed image_topic"
+                )
             msg = CompressedImage(format="png", data=frame.image)
         elif self.s.compressed:
             gray = frame.image if isinstance(frame.image, np.ndarray) else read_gray(frame.image)
             msg = CompressedImage(format="png", data=cv2.imencode(".png", gray)[1].tobytes())
         else:
             gray = frame.image if isinstance(frame.image, np.ndarray) else read_gray(frame.image)
-            msg = Image(height=gray.shape[0], width=gray.shape[1], encoding="mono8", step=gray.shape[1],
-                        data=np.ascontiguousarray(gray).tobytes())
+            msg = Image(
+                height=gray.shape[0],
+                width=gray.shape[1],
+                encoding="mono8",
+                step=gray.shape[1],
+                data=np.ascontiguousarray(gray).tobytes(),
+            )
         msg.header.stamp.sec, msg.header.stamp.nanosec = sec, nanosec
         msg.header.frame_id = self.s.camera_frame
         return msg
@@ -250,10 +273,15 @@ class _Replayer:
             if s.lockstep:
                 self.wait_for_diagnostic(i, frame)
             else:
-                paced = i + 1 < len(frames) and frames[i + 1].capture_time is not None \
+                paced = (
+                    i + 1 < len(frames)
+                    and frames[i + 1].capture_time is not None
                     and frames[0].capture_time is not None
-                self.wait_until(t0 + (frames[i + 1].capture_time - frames[0].capture_time if paced
-                                      else (i + 1) / s.rate_hz))
+                )
+                self.wait_until(
+                    t0
+                    + (frames[i + 1].capture_time - frames[0].capture_time if paced else (i + 1) / s.rate_hz)
+                )
         self.result.seconds = time.perf_counter() - t0 if t0 is not None else 0.0
         end = time.monotonic() + s.settle_s
         while time.monotonic() < end:  # the last answers (poses after their diagnostics, trailing frames)
@@ -262,7 +290,9 @@ class _Replayer:
         return self.result
 
 
-def replay(frames: Sequence[ReplayFrame], settings: ReplaySettings | None = None, **overrides: Any) -> ReplayResult:
+def replay(
+    frames: Sequence[ReplayFrame], settings: ReplaySettings | None = None, **overrides: Any
+) -> ReplayResult:
     """Publish ``frames`` in order to a running ``planarloc ros2`` and collect its answers.
 
     ``settings`` (None: defaults), with keyword ``overrides`` of any :class:`ReplaySettings` field,
@@ -329,26 +359,40 @@ def exclusive_domain() -> Iterator[int]:
 def loopback_env(domain: int) -> dict[str, str]:
     """The environment of a ROS 2 process that discovers peers on this machine only, on ``domain``
     (Fast DDS), so that parallel runs on one machine never meet."""
-    return {"ROS_DOMAIN_ID": str(domain), "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST",
-            "RMW_IMPLEMENTATION": "rmw_fastrtps_cpp"}
+    return {
+        "ROS_DOMAIN_ID": str(domain),
+        "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST",
+        "RMW_IMPLEMENTATION": "rmw_fastrtps_cpp",
+    }
 
 
 def planarloc_command() -> list[str]:
     """The ``planarloc`` console script of this Python (``python -m planarloc.cli.main`` without one)."""
     exe = Path(sys.executable).with_name("planarloc")
-    return [str(exe)] if exe.exists() else [shutil.which("planarloc") or sys.executable, "-m", "planarloc.cli.main"]
+    return (
+        [str(exe)]
+        if exe.exists()
+        else [shutil.which("planarloc") or sys.executable, "-m", "planarloc.cli.main"]
+    )
 
 
 class NodeProcess:
     """``planarloc ros2 ARGS`` running as a subprocess with ``env`` added; its output is collected."""
 
     def __init__(self, args: list[str], env: dict[str, str]) -> None:
-        self.proc = subprocess.Popen([*planarloc_command(), "ros2", *args], stdout=subprocess.PIPE,
-                                     stderr=subprocess.PIPE, text=True, env={**os.environ, **env})
+        self.proc = subprocess.Popen(
+            [*planarloc_command(), "ros2", *args],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+            env={**os.environ, **env},
+        )
         self.stderr: list[str] = []
         self.stdout: list[str] = []
-        self._threads = [threading.Thread(target=self._read, args=(s, out), daemon=True)
-                         for s, out in ((self.proc.stderr, self.stderr), (self.proc.stdout, self.stdout))]
+        self._threads = [
+            threading.Thread(target=self._read, args=(s, out), daemon=True)
+            for s, out in ((self.proc.stderr, self.stderr), (self.proc.stdout, self.stdout))
+        ]
         for t in self._threads:
             t.start()
 
@@ -384,8 +428,9 @@ class NodeProcess:
             rc = self.proc.wait(timeout=timeout)
         except subprocess.TimeoutExpired:
             self.kill()
-            raise RuntimeError(f"the node did not exit within {timeout:.0f} s of SIGINT: "
-                               f"{''.join(self.stderr)[-2000:]}") from None
+            raise RuntimeError(
+                f"the node did not exit within {timeout:.0f} s of SIGINT: {''.join(self.stderr)[-2000:]}"
+            ) from None
         for t in self._threads:
             t.join(timeout=5)
         return rc

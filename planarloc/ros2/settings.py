@@ -137,40 +137,67 @@ class NodeSettings:
     def __post_init__(self) -> None:
         if not self.map:
             raise InputError("parameter map: give the map file (--map MAP.db or -p map:=MAP.db)")
-        choices = {"method": [m.value for m in Method], "structure": [s.value for s in Structure],
-                   "fixes": list(FIX_MODES),
-                   "image_qos": ["sensor_data", "reliable"], "map_frame_convention": list(MAP_FRAME_CONVENTIONS)}
+        choices = {
+            "method": [m.value for m in Method],
+            "structure": [s.value for s in Structure],
+            "fixes": list(FIX_MODES),
+            "image_qos": ["sensor_data", "reliable"],
+            "map_frame_convention": list(MAP_FRAME_CONVENTIONS),
+        }
         if self.features:
             choices["features"] = list(FEATURE_TYPES)
         for name, allowed in choices.items():
             if getattr(self, name) not in allowed:
-                raise InputError(f"parameter {name}: expected one of {', '.join(allowed)}, got {getattr(self, name)!r}")
+                raise InputError(
+                    f"parameter {name}: expected one of {', '.join(allowed)}, got {getattr(self, name)!r}"
+                )
         for name in ("odom_tolerance_s", "max_position_std_m", "max_published_std_m"):
             if not getattr(self, name) > 0:
                 raise InputError(f"parameter {name}: expected a number > 0, got {getattr(self, name)}")
         if self.queue_size < 1:
             raise InputError(f"parameter queue_size: expected an integer >= 1, got {self.queue_size}")
         if not self.transform_tolerance_s >= 0:
-            raise InputError(f"parameter transform_tolerance_s: expected >= 0, got {self.transform_tolerance_s}")
-        for name in ("image_topic", "camera_info_topic", "pose_topic", "diagnostics_topic", "map_frame",
-                     "odom_frame", "base_frame"):
+            raise InputError(
+                f"parameter transform_tolerance_s: expected >= 0, got {self.transform_tolerance_s}"
+            )
+        for name in (
+            "image_topic",
+            "camera_info_topic",
+            "pose_topic",
+            "diagnostics_topic",
+            "map_frame",
+            "odom_frame",
+            "base_frame",
+        ):
             if not getattr(self, name):
                 raise InputError(f"parameter {name}: must not be empty")
 
     def localizer_config(self) -> LocalizerConfig:
         """The fixes' single-frame localizer configuration (``method`` and ``structure`` parsed here,
         the ROS parameters' edge; what is not a parameter keeps :class:`LocalizerConfig`'s default)."""
-        return localizer_config(method=self.method, structure=self.structure, seed=self.seed, top_n=self.top_n,
-                                max_position_std_m=self.max_position_std_m)
+        return localizer_config(
+            method=self.method,
+            structure=self.structure,
+            seed=self.seed,
+            top_n=self.top_n,
+            max_position_std_m=self.max_position_std_m,
+        )
 
     def sequence_config(self) -> SequenceConfig:
         """The stream's configuration (what is not a parameter keeps :class:`SequenceConfig`'s default)."""
-        return SequenceConfig(window=self.window, local_top_n=self.local_top_n, vo_model=self.vo_model,
-                              kidnap_confirmations=self.kidnap_confirmations, fixes=self.fixes)
+        return SequenceConfig(
+            window=self.window,
+            local_top_n=self.local_top_n,
+            vo_model=self.vo_model,
+            kidnap_confirmations=self.kidnap_confirmations,
+            fixes=self.fixes,
+        )
 
     @property
     def base_from_camera(self) -> Pose | None:
-        return parse_transform(self.base_to_camera, "parameter base_to_camera") if self.base_to_camera else None
+        return (
+            parse_transform(self.base_to_camera, "parameter base_to_camera") if self.base_to_camera else None
+        )
 
     @property
     def rectified(self) -> bool:
@@ -208,8 +235,10 @@ def parameter_help() -> dict[str, str]:
             found[name] = text.replace("``", "")
     missing, extra = set(PARAMETERS) - set(found), set(found) - set(PARAMETERS)
     if missing or extra:
-        raise RuntimeError(f"NodeSettings' docstring and fields disagree: undocumented {sorted(missing)}, "
-                           f"not fields {sorted(extra)}")
+        raise RuntimeError(
+            f"NodeSettings' docstring and fields disagree: undocumented {sorted(missing)}, "
+            f"not fields {sorted(extra)}"
+        )
     return {name: found[name] for name in PARAMETERS}
 
 
@@ -227,8 +256,9 @@ def parameters_listing(width: int = 100) -> str:
     lines = ["", "", "parameters (--ros-args -p NAME:=VALUE or --params-file FILE; name = default: meaning):"]
     for name, text in parameter_help().items():
         default = getattr(NodeSettings, name)
-        lines += textwrap.wrap(f"{name} = {yaml_value(default)}: {text}", width, initial_indent="  ",
-                               subsequent_indent="      ")
+        lines += textwrap.wrap(
+            f"{name} = {yaml_value(default)}: {text}", width, initial_indent="  ", subsequent_indent="      "
+        )
     return "\n".join(lines)
 
 
@@ -239,10 +269,13 @@ def params_yaml() -> str:
     rewrite it with ``python -c "from planarloc.ros2.settings import *; (SHARE_DIR / 'params.yaml')
     .write_text(params_yaml())"``.
     """
-    out = ["# planarloc ros2: every parameter with its default (generated by planarloc.ros2.settings.params_yaml).",
-           "# Copy it, change what you need, and pass it: planarloc ros2 --map MAP.db --ros-args --params-file FILE",
-           "# (--map takes precedence over `map` here).",
-           f"{NODE_NAME}:", "  ros__parameters:"]
+    out = [
+        "# planarloc ros2: every parameter with its default (generated by planarloc.ros2.settings.params_yaml).",
+        "# Copy it, change what you need, and pass it: planarloc ros2 --map MAP.db --ros-args --params-file FILE",
+        "# (--map takes precedence over `map` here).",
+        f"{NODE_NAME}:",
+        "  ros__parameters:",
+    ]
     for name, text in parameter_help().items():
         out += textwrap.wrap(text, 96, initial_indent="    # ", subsequent_indent="    # ")
         out.append(f"    {name}: {yaml_value(getattr(NodeSettings, name))}")
@@ -261,15 +294,21 @@ def check_parameter_names(ros_args: Sequence[str]) -> None:
         if flag in ("-p", "--param"):
             name = value.split(":=", 1)[0]
             if ":=" not in value or not value.split(":=", 1)[1]:
-                raise InputError(f"--ros-args {flag} {value}: expected name:=value (an empty string: name:='')")
+                raise InputError(
+                    f"--ros-args {flag} {value}: expected name:=value (an empty string: name:='')"
+                )
             if name.rpartition(".")[2] not in PARAMETERS and name not in ROS_PARAMETERS:
-                raise InputError(f"--ros-args {flag} {value}: unknown parameter {name!r}; parameters: "
-                                 f"{', '.join(PARAMETERS)}")
+                raise InputError(
+                    f"--ros-args {flag} {value}: unknown parameter {name!r}; parameters: "
+                    f"{', '.join(PARAMETERS)}"
+                )
         elif flag == "--params-file":
             unknown = [n for n in params_file_names(value) if n not in PARAMETERS and n not in ROS_PARAMETERS]
             if unknown:
-                raise InputError(f"--ros-args --params-file {value}: unknown parameter {unknown[0]!r}; parameters: "
-                                 f"{', '.join(PARAMETERS)}")
+                raise InputError(
+                    f"--ros-args --params-file {value}: unknown parameter {unknown[0]!r}; parameters: "
+                    f"{', '.join(PARAMETERS)}"
+                )
 
 
 def _applies_to_node(key: str) -> bool:
@@ -295,8 +334,10 @@ def params_file_names(path: str | Path) -> list[str]:
     except yaml.YAMLError as exc:
         raise InputError(f"--ros-args --params-file {path}: not YAML: {' '.join(str(exc).split())}") from None
     if not isinstance(data, dict):
-        raise InputError(f"--ros-args --params-file {path}: expected a mapping 'node: ros__parameters: ...', "
-                         f"got {type(data).__name__}")
+        raise InputError(
+            f"--ros-args --params-file {path}: expected a mapping 'node: ros__parameters: ...', "
+            f"got {type(data).__name__}"
+        )
     names: list[str] = []
 
     def flat(d: dict, prefix: str) -> None:

@@ -67,7 +67,14 @@ def map_summaries(maps: MapSet) -> list[dict]:
     for name, path in maps.paths.items():
         with MapDatabase.open(path, mode="r") as db:
             cameras = sorted({camera_text(p.camera) for p in db.posed_images()})
-            out.append({"name": name, "images": db.num_images(), "complete": bool(db.is_complete), "cameras": cameras})
+            out.append(
+                {
+                    "name": name,
+                    "images": db.num_images(),
+                    "complete": bool(db.is_complete),
+                    "cameras": cameras,
+                }
+            )
     return out
 
 
@@ -80,8 +87,13 @@ class PathScrubber:
         for p in paths:
             for q in (Path(p), Path(p).resolve()):
                 found |= {str(q), str(q.parent)}
-        found |= {os.getcwd(), tempfile.gettempdir(), str(Path.home()), sys.prefix,
-                  str(Path(__file__).resolve().parents[1])}
+        found |= {
+            os.getcwd(),
+            tempfile.gettempdir(),
+            str(Path.home()),
+            sys.prefix,
+            str(Path(__file__).resolve().parents[1]),
+        }
         self._paths = sorted((f for f in found if len(f) > 1), key=len, reverse=True)
 
     def __call__(self, text: str) -> str:
@@ -108,9 +120,14 @@ class Service:
     def __init__(self, settings: ServeSettings) -> None:
         self.settings = settings
         self.watch = MapWatch(settings.maps.paths)
-        self.pool = WorkerPool(settings.maps.paths, settings.workers, settings.queue_size,
-                               queue_timeout_s=settings.queue_timeout_s, job_timeout_s=settings.job_timeout_s,
-                               expected=self.watch.original)
+        self.pool = WorkerPool(
+            settings.maps.paths,
+            settings.workers,
+            settings.queue_size,
+            queue_timeout_s=settings.queue_timeout_s,
+            job_timeout_s=settings.job_timeout_s,
+            expected=self.watch.original,
+        )
         self.sessions = SessionTable(settings.workers, settings.max_sessions, settings.session_idle_s)
         self.pool.on_worker_lost = self._worker_lost
         self.pool.on_map_changed = self.watch.mark
@@ -186,8 +203,9 @@ class Service:
         """``(body, status, headers)`` of one ``POST /v1/localize`` (module docstring)."""
         s = self.settings
         try:
-            req = await read_localize_form(request, s.maps, s.max_image_bytes, body_timeout_s=s.body_timeout_s,
-                                           budget=self.budget)
+            req = await read_localize_form(
+                request, s.maps, s.max_image_bytes, body_timeout_s=s.body_timeout_s, budget=self.budget
+            )
         except RequestError as exc:
             return self._refused(exc)
         refusal = self.watch.refusal(req.map_name)
@@ -198,8 +216,11 @@ class Service:
             self.pool.admit()
         except Overloaded as exc:
             self.metrics.rejected.labels("overloaded").inc()
-            return ({"error": f"server busy ({self.pool.admitted} requests admitted); retry later"}, 503,
-                    {"Retry-After": str(exc.retry_after_s)})
+            return (
+                {"error": f"server busy ({self.pool.admitted} requests admitted); retry later"},
+                503,
+                {"Retry-After": str(exc.retry_after_s)},
+            )
         try:
             record = await self._run(req)
             refusal = self.watch.refusal(req.map_name)  # changed while the worker ran: not this answer
@@ -242,8 +263,9 @@ class Service:
             self.sessions.done(entry, answered)
 
     def _refused(self, exc: RequestError) -> tuple[dict, int, dict]:
-        reason = {408: "timeout", 413: "too_large", 503: "overloaded", 410: "session_gone"}.get(exc.status,
-                                                                                             "bad_request")
+        reason = {408: "timeout", 413: "too_large", 503: "overloaded", 410: "session_gone"}.get(
+            exc.status, "bad_request"
+        )
         self.metrics.rejected.labels(reason).inc()
         headers = {"Connection": "close"} if exc.status in _CLOSE_AFTER else {}
         if exc.retry_after_s is not None:

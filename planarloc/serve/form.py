@@ -41,8 +41,9 @@ class UploadBudget:
 
     def take(self, n: int) -> None:
         if self.held + n > self.limit_bytes:
-            raise RequestError(503, f"too many uploads in progress ({self.held} bytes held); retry later",
-                               retry_after_s=1)
+            raise RequestError(
+                503, f"too many uploads in progress ({self.held} bytes held); retry later", retry_after_s=1
+            )
         self.held += n
 
     def give(self, n: int) -> None:
@@ -68,10 +69,14 @@ class _Parts:
 
     def callbacks(self) -> dict:
         return {
-            "on_part_begin": self._part_begin, "on_header_field": self._header_field,
-            "on_header_value": self._header_value, "on_header_end": self._header_end,
-            "on_headers_finished": self._headers_finished, "on_part_data": self._part_data,
-            "on_part_end": self._part_end, "on_end": self._end,
+            "on_part_begin": self._part_begin,
+            "on_header_field": self._header_field,
+            "on_header_value": self._header_value,
+            "on_header_end": self._header_end,
+            "on_headers_finished": self._headers_finished,
+            "on_part_data": self._part_data,
+            "on_part_end": self._part_end,
+            "on_end": self._end,
         }
 
     def _part_begin(self) -> None:
@@ -91,8 +96,9 @@ class _Parts:
         multipart = require("python_multipart.multipart", "serve")
         disposition, options = multipart.parse_options_header(self._headers.get(b"content-disposition", b""))
         if disposition != b"form-data" or b"name" not in options:
-            raise RequestError(400, "malformed multipart form: a part without 'Content-Disposition: form-data; "
-                                    "name=...'")
+            raise RequestError(
+                400, "malformed multipart form: a part without 'Content-Disposition: form-data; name=...'"
+            )
         name = options[b"name"].decode("utf-8", "replace")
         if name not in FIELDS:
             raise RequestError(400, f"unknown form field {name[:40]!r}; expected {', '.join(FIELDS)}")
@@ -139,9 +145,14 @@ def _content_length(request) -> int | None:
     return int(length)
 
 
-async def read_localize_form(request, maps: MapSet, max_image_bytes: int, *,
-                             body_timeout_s: float = DEFAULT_BODY_TIMEOUT_S,
-                             budget: UploadBudget | None = None) -> LocalizeRequest:
+async def read_localize_form(
+    request,
+    maps: MapSet,
+    max_image_bytes: int,
+    *,
+    body_timeout_s: float = DEFAULT_BODY_TIMEOUT_S,
+    budget: UploadBudget | None = None,
+) -> LocalizeRequest:
     """Read, parse and validate the multipart form of a ``starlette.requests.Request`` (module docstring).
 
     Raises:
@@ -153,8 +164,11 @@ async def read_localize_form(request, maps: MapSet, max_image_bytes: int, *,
     ctype = request.headers.get("content-type", "")
     kind, params = multipart.parse_options_header(ctype)
     if kind == b"application/x-www-form-urlencoded":
-        raise RequestError(400, "image: missing; a urlencoded form cannot carry it: send multipart/form-data with "
-                                "the file field 'image' (a JPEG or PNG)")
+        raise RequestError(
+            400,
+            "image: missing; a urlencoded form cannot carry it: send multipart/form-data with "
+            "the file field 'image' (a JPEG or PNG)",
+        )
     if kind != b"multipart/form-data":
         raise RequestError(415, f"expected a multipart/form-data body, got {ctype[:60]!r}")
     boundary = params.get(b"boundary")
@@ -175,7 +189,9 @@ async def read_localize_form(request, maps: MapSet, max_image_bytes: int, *,
                     continue
                 received += len(chunk)
                 if received > limit:
-                    raise RequestError(413, f"request body is over the limit of {limit} bytes (cut off there)")
+                    raise RequestError(
+                        413, f"request body is over the limit of {limit} bytes (cut off there)"
+                    )
                 if budget is not None:
                     budget.take(len(chunk))
                     held += len(chunk)
@@ -185,10 +201,15 @@ async def read_localize_form(request, maps: MapSet, max_image_bytes: int, *,
                     raise RequestError(400, f"malformed multipart form: {exc}") from None
         parser.finalize()
     except disconnect:
-        raise RequestError(400, f"the client closed the connection after {received} bytes of the body") from None
+        raise RequestError(
+            400, f"the client closed the connection after {received} bytes of the body"
+        ) from None
     except TimeoutError:
-        raise RequestError(408, f"the request body did not arrive within {body_timeout_s:g} s "
-                                f"({received} bytes received); send it faster or smaller") from None
+        raise RequestError(
+            408,
+            f"the request body did not arrive within {body_timeout_s:g} s "
+            f"({received} bytes received); send it faster or smaller",
+        ) from None
     finally:
         if budget is not None:
             budget.give(held)

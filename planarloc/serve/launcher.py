@@ -42,8 +42,9 @@ class ServerOutput:
         return "\n".join(self.lines)
 
 
-def start_server(args: list[str], timeout_s: float = 120.0,
-                 env: dict[str, str] | None = None) -> tuple[str, subprocess.Popen]:
+def start_server(
+    args: list[str], timeout_s: float = 120.0, env: dict[str, str] | None = None
+) -> tuple[str, subprocess.Popen]:
     """Run ``planarloc serve ARGS --host 127.0.0.1 --port 0`` and wait until ``/healthz`` answers.
 
     The server binds any free port and names it in its banner, so two servers never race for one.
@@ -58,8 +59,11 @@ def start_server(args: list[str], timeout_s: float = 120.0,
     """
     httpx = require("httpx", "serve")
     root = str(Path(__file__).resolve().parents[2])
-    env = {**os.environ, **(env or {}),
-           "PYTHONPATH": os.pathsep.join(filter(None, [root, os.environ.get("PYTHONPATH")]))}
+    env = {
+        **os.environ,
+        **(env or {}),
+        "PYTHONPATH": os.pathsep.join(filter(None, [root, os.environ.get("PYTHONPATH")])),
+    }
     proc = subprocess.Popen(
         [sys.executable, "-m", "planarloc.cli.main", "serve", *args, "--host", "127.0.0.1", "--port", "0"],
         env=env,

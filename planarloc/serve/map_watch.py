@@ -85,8 +85,12 @@ class MapWatch:
         """Latch a change found elsewhere (e.g. by a worker that opened another version)."""
         if name not in self.changed:
             self.changed[name] = change
-            logger.error("map %s: the file was %s after the server started; it is refused until the server is "
-                         "restarted", name, change)
+            logger.error(
+                "map %s: the file was %s after the server started; it is refused until the server is "
+                "restarted",
+                name,
+                change,
+            )
 
     def check(self, name: str) -> str | None:
         """The change of one map since start (None: unchanged), re-checked on disk."""
@@ -104,5 +108,7 @@ class MapWatch:
         change = self.check(name)
         if change is None:
             return None
-        return (f"map {name!r}: its file was {change} after the server started; the server refuses it until it "
-                "is restarted (so that every answer comes from one version of the map)")
+        return (
+            f"map {name!r}: its file was {change} after the server started; the server refuses it until it "
+            "is restarted (so that every answer comes from one version of the map)"
+        )

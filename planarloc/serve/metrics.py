@@ -50,19 +50,27 @@ class ServiceMetrics:
         gauges = {
             "planarloc_queue_admitted": ("requests running or waiting", lambda: pool.admitted),
             "planarloc_workers_busy": ("workers running a request", lambda: pool.busy),
-            "planarloc_workers_alive": ("worker processes alive with their maps open", lambda: sum(pool.alive())),
-            "planarloc_worker_restarts_total": ("worker processes replaced after dying", lambda: pool.restarts),
+            "planarloc_workers_alive": (
+                "worker processes alive with their maps open",
+                lambda: sum(pool.alive()),
+            ),
+            "planarloc_worker_restarts_total": (
+                "worker processes replaced after dying",
+                lambda: pool.restarts,
+            ),
             "planarloc_worker_deaths_total": ("worker processes that died", lambda: pool.deaths),
             "planarloc_sessions": ("open sessions", lambda: sessions.count),
         }
         for name, (doc, fn) in gauges.items():
             prom.Gauge(name, doc, registry=self.registry).set_function(fn)
-        map_ok = prom.Gauge("planarloc_map_ok", "1 while the map file is the version served", ["map"],
-                            registry=self.registry)
+        map_ok = prom.Gauge(
+            "planarloc_map_ok", "1 while the map file is the version served", ["map"], registry=self.registry
+        )
         for name in watch.paths:
             map_ok.labels(name).set_function(lambda name=name: float(watch.check(name) is None))
-        evicted = prom.Gauge("planarloc_sessions_evicted_total", "sessions evicted or lost", ["reason"],
-                             registry=self.registry)
+        evicted = prom.Gauge(
+            "planarloc_sessions_evicted_total", "sessions evicted or lost", ["reason"], registry=self.registry
+        )
         for reason in ("idle", "limit", "worker_died", "fault"):
             evicted.labels(reason).set_function(lambda reason=reason: sessions.evicted.get(reason, 0))
         self._prom = prom

@@ -77,9 +77,15 @@ class LocalizerReplica:
     ``planarloc serve`` would answer it.
     """
 
-    def __init__(self, map_name: str, map_path: str, max_image_bytes: int = DEFAULT_MAX_IMAGE_BYTES,
-                 sessions: bool = False, max_sessions: int = DEFAULT_MAX_SESSIONS,
-                 session_idle_s: float = DEFAULT_SESSION_IDLE_S) -> None:
+    def __init__(
+        self,
+        map_name: str,
+        map_path: str,
+        max_image_bytes: int = DEFAULT_MAX_IMAGE_BYTES,
+        sessions: bool = False,
+        max_sessions: int = DEFAULT_MAX_SESSIONS,
+        session_idle_s: float = DEFAULT_SESSION_IDLE_S,
+    ) -> None:
         from concurrent.futures import ThreadPoolExecutor
 
         from planarloc.localize.localizer import Localizer
@@ -112,12 +118,15 @@ class LocalizerReplica:
         try:
             if req.session is not None:
                 if self.sessions is None:
-                    raise RequestError(400, "session: this deployment has no session shards (deploy_fleet("
-                                            "session_shards=...))")
+                    raise RequestError(
+                        400,
+                        "session: this deployment has no session shards (deploy_fleet(session_shards=...))",
+                    )
                 entry = self.sessions.open(req, [True])
                 self._states.drop([e.id for e in self.sessions.take_drops()])
-            record = await asyncio.wrap_future(self._thread.submit(
-                self._compute, req, None if entry is None else entry.generation))
+            record = await asyncio.wrap_future(
+                self._thread.submit(self._compute, req, None if entry is None else entry.generation)
+            )
             if entry is not None:
                 self.sessions.done(entry, True)  # type: ignore[union-attr]
                 entry = None
@@ -197,18 +206,34 @@ def localizer_app(
     if session_shards < 0:
         raise ValueError(f"session_shards: must be >= 0, got {session_shards}")
     path = str(Path(map_path).resolve())
-    limits = {"max_ongoing_requests": int(max_ongoing_requests), "max_queued_requests": int(max_queued_requests)}
-    pool = serve.deployment(LocalizerReplica, name=f"localizer-{map_name}", num_replicas=int(replicas),
-                            ray_actor_options={"num_cpus": 1}, **limits).bind(map_name, path, max_image_bytes)
+    limits = {
+        "max_ongoing_requests": int(max_ongoing_requests),
+        "max_queued_requests": int(max_queued_requests),
+    }
+    pool = serve.deployment(
+        LocalizerReplica,
+        name=f"localizer-{map_name}",
+        num_replicas=int(replicas),
+        ray_actor_options={"num_cpus": 1},
+        **limits,
+    ).bind(map_name, path, max_image_bytes)
     shards = [
-        serve.deployment(LocalizerReplica, name=f"sessions-{map_name}-{k}", num_replicas=1,
-                         ray_actor_options={"num_cpus": 1}, **limits).bind(
-            map_name, path, max_image_bytes, True, max_sessions_per_shard, session_idle_s)
+        serve.deployment(
+            LocalizerReplica,
+            name=f"sessions-{map_name}-{k}",
+            num_replicas=1,
+            ray_actor_options={"num_cpus": 1},
+            **limits,
+        ).bind(map_name, path, max_image_bytes, True, max_sessions_per_shard, session_idle_s)
         for k in range(int(session_shards))
     ]
-    ingress = serve.deployment(LocalizerIngress, name=f"ingress-{map_name}", num_replicas=1,
-                               ray_actor_options={"num_cpus": 0},
-                               max_ongoing_requests=4 * (int(replicas) + len(shards)) * int(max_ongoing_requests))
+    ingress = serve.deployment(
+        LocalizerIngress,
+        name=f"ingress-{map_name}",
+        num_replicas=1,
+        ray_actor_options={"num_cpus": 0},
+        max_ongoing_requests=4 * (int(replicas) + len(shards)) * int(max_ongoing_requests),
+    )
     return ingress.bind(map_name, path, max_image_bytes, pool, *shards)
 
 

@@ -96,8 +96,11 @@ def classify_error(exc: BaseException, what: str = "request") -> RequestError | 
         return exc
     detail = f"{what}: {type(exc).__name__}: {exc}"
     if isinstance(exc, MapFormatError):
-        return ServerFault("the map is damaged or unreadable on the server (logged there); the operator must check "
-                           "it with `planarloc map check`", detail)
+        return ServerFault(
+            "the map is damaged or unreadable on the server (logged there); the operator must check "
+            "it with `planarloc map check`",
+            detail,
+        )
     if isinstance(exc, ImageTooLargeError):
         return RequestError(413, str(exc) if str(exc).startswith(f"{what}:") else f"{what}: {exc}")
     if isinstance(exc, InputError):
@@ -231,14 +234,19 @@ def parse_stamp_field(text: str, now: float | None = None) -> float:
     :data:`MAX_STAMP_AHEAD_S` ahead of the server's clock ``now`` (default: ``time.time()``), else a 400."""
     text = text.strip()
     if len(text) > 40 or not STAMP.match(text) or not abs(float(text)) <= MAX_STAMP_S:
-        raise RequestError(400, f"stamp: expected the frame's time in seconds (e.g. 1305031102.175), got {text[:40]!r}")
+        raise RequestError(
+            400, f"stamp: expected the frame's time in seconds (e.g. 1305031102.175), got {text[:40]!r}"
+        )
     stamp = float(text)
     now = time.time() if now is None else float(now)
     if stamp > now + MAX_STAMP_AHEAD_S:
-        raise RequestError(400, f"stamp: {text[:40]} is {stamp - now:.3g} s ahead of the server's clock (Unix time "
-                                f"{now:.0f}); a frame's stamp is the time it was taken, in seconds (Unix time or a "
-                                f"clock started later), at most {MAX_STAMP_AHEAD_S:g} s ahead; the frame was not "
-                                "used and the session is unchanged")
+        raise RequestError(
+            400,
+            f"stamp: {text[:40]} is {stamp - now:.3g} s ahead of the server's clock (Unix time "
+            f"{now:.0f}); a frame's stamp is the time it was taken, in seconds (Unix time or a "
+            f"clock started later), at most {MAX_STAMP_AHEAD_S:g} s ahead; the frame was not "
+            "used and the session is unchanged",
+        )
     return stamp
 
 
@@ -251,15 +259,18 @@ def parse_odometry_field(text: str) -> Pose:
         raise RequestError(400, f"odometry {text[:80]!r}: {str(exc)[:200]}") from None
 
 
-def _choice_field(kind: type[Method] | type[Structure], name: str, text: str | None) -> Method | Structure | None:
+def _choice_field(
+    kind: type[Method] | type[Structure], name: str, text: str | None
+) -> Method | Structure | None:
     """A form field naming a member of ``kind`` (empty: the default, None), else a 400."""
     if not text:
         return None
     try:
         return parse_choice(kind, text, name)
     except InputError:
-        raise RequestError(400, f"{name}: expected one of {', '.join(m.value for m in kind)}, "
-                                f"got {text[:40]!r}") from None
+        raise RequestError(
+            400, f"{name}: expected one of {', '.join(m.value for m in kind)}, got {text[:40]!r}"
+        ) from None
 
 
 def parse_method_field(text: str | None) -> Method | None:
@@ -316,15 +327,21 @@ def parse_localize_request(
     stamp = parse_stamp_field(fields["stamp"], now) if fields.get("stamp") else None
     odometry = parse_odometry_field(fields["odometry"]) if fields.get("odometry") else None
     if session is None and (stamp is not None or odometry is not None):
-        raise RequestError(400, "stamp, odometry: only for a frame of a session (give the field session=ROBOT_ID)")
+        raise RequestError(
+            400, "stamp, odometry: only for a frame of a session (give the field session=ROBOT_ID)"
+        )
     if session is not None and stamp is None:
         raise RequestError(400, "stamp: required with session (the frame's time in seconds)")
     seed = fields.get("seed") or None
     if seed is not None and not SEED.match(seed):
-        raise RequestError(400, f"seed: expected a non-negative integer of at most 18 digits, got {seed[:40]!r}")
+        raise RequestError(
+            400, f"seed: expected a non-negative integer of at most 18 digits, got {seed[:40]!r}"
+        )
     name = Path(filename or "query").name or "query"
     if len(name) > 255 or not name.isprintable() or any(c.isspace() for c in name):
-        raise RequestError(400, "image: the file name must be at most 255 printable characters without whitespace")
+        raise RequestError(
+            400, "image: the file name must be at most 255 printable characters without whitespace"
+        )
     return LocalizeRequest(
         map_name=map_name,
         name=name,

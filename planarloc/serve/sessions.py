@@ -62,8 +62,11 @@ class SessionGone(RequestError):
     """The session's stream state is gone (evicted, or its worker died); HTTP 410, once."""
 
     def __init__(self, session: str, reason: str) -> None:
-        super().__init__(410, f"session {session!r} {reason}; its stream state is gone: send the frame again to "
-                              "start a new stream with this id")
+        super().__init__(
+            410,
+            f"session {session!r} {reason}; its stream state is gone: send the frame again to "
+            "start a new stream with this id",
+        )
         self.session, self.reason = session, reason
 
 
@@ -123,8 +126,12 @@ class SessionTable:
         now = self.clock()
         for entry in list(self.entries.values()):
             if entry.pending == 0 and now - entry.last_used > self.idle_s:
-                self._forget(entry, "idle", f"was evicted after {now - entry.last_used:.0f} s without a frame (the "
-                                            f"server keeps idle sessions for {self.idle_s:g} s)")
+                self._forget(
+                    entry,
+                    "idle",
+                    f"was evicted after {now - entry.last_used:.0f} s without a frame (the "
+                    f"server keeps idle sessions for {self.idle_s:g} s)",
+                )
 
     def lose_slot(self, slot: int, reason: str) -> None:
         """Forget every session of a worker whose state is gone (the worker died)."""
@@ -156,24 +163,38 @@ class SessionTable:
         entry = self.entries.get(req.session)
         if entry is not None:
             if (entry.map_name, entry.settings) != (req.map_name, req.settings):
-                raise RequestError(409, f"session {req.session!r}: started on map {entry.map_name!r} with "
-                                        f"{entry.settings}; a frame cannot change them (use "
-                                        "another session id)")
+                raise RequestError(
+                    409,
+                    f"session {req.session!r}: started on map {entry.map_name!r} with "
+                    f"{entry.settings}; a frame cannot change them (use "
+                    "another session id)",
+                )
         else:
             if len(self.entries) >= self.max_sessions:
                 idle = [e for e in self.entries.values() if e.pending == 0]
                 if not idle:
-                    raise RequestError(503, f"{self.max_sessions} sessions are open, all with frames in progress; "
-                                            "retry later", retry_after_s=1)
-                self._forget(idle[0], "limit", f"was evicted: {self.max_sessions} sessions were open (the server's "
-                                               "limit) and it was the least recently used")
+                    raise RequestError(
+                        503,
+                        f"{self.max_sessions} sessions are open, all with frames in progress; retry later",
+                        retry_after_s=1,
+                    )
+                self._forget(
+                    idle[0],
+                    "limit",
+                    f"was evicted: {self.max_sessions} sessions were open (the server's "
+                    "limit) and it was the least recently used",
+                )
             counts = [0] * self.slots
             for e in self.entries.values():
                 counts[e.slot] += 1
-            candidates = [s for s in range(self.slots) if s < len(alive) and alive[s]] or list(range(self.slots))
+            candidates = [s for s in range(self.slots) if s < len(alive) and alive[s]] or list(
+                range(self.slots)
+            )
             slot = min(candidates, key=lambda s: (counts[s], s))
             self._generation += 1
-            entry = SessionEntry(req.session, req.map_name, req.settings, slot, self._generation, self.clock())
+            entry = SessionEntry(
+                req.session, req.map_name, req.settings, slot, self._generation, self.clock()
+            )
             self.entries[entry.id] = entry
         entry.pending += 1
         return entry
@@ -234,16 +255,24 @@ class SessionStates:
                 raise RequestError(400, str(exc)) from None
             # Each request is answered with its frame's fix (``fixes="wait"``): a served frame has no
             # frame path to keep at camera rate, and its answer is then the CLI's for the same frames.
-            state = _State(generation, SequenceLocalizer(localizer.with_config(config), SequenceConfig(fixes="wait")))
+            state = _State(
+                generation, SequenceLocalizer(localizer.with_config(config), SequenceConfig(fixes="wait"))
+            )
             self._states[sid] = state
         if state.last_stamp is not None and not req.stamp > state.last_stamp:
-            raise RequestError(409, f"stamp: {req.stamp!r} is not after the last frame of session {sid!r} "
-                                    f"({state.last_stamp!r}); send the frames of a session in time order")
+            raise RequestError(
+                409,
+                f"stamp: {req.stamp!r} is not after the last frame of session {sid!r} "
+                f"({state.last_stamp!r}); send the frames of a session in time order",
+            )
         if state.last_stamp is not None and req.stamp - state.last_stamp > MAX_FRAME_GAP_S:
-            raise RequestError(409, f"stamp: {req.stamp!r} is {req.stamp - state.last_stamp:.6g} s after the last "
-                                    f"frame of session {sid!r} ({state.last_stamp!r}), more than "
-                                    f"{MAX_FRAME_GAP_S:g} s; the frame was not used and the session goes on (if "
-                                    "the robot's clock jumped, start a new session id)")
+            raise RequestError(
+                409,
+                f"stamp: {req.stamp!r} is {req.stamp - state.last_stamp:.6g} s after the last "
+                f"frame of session {sid!r} ({state.last_stamp!r}), more than "
+                f"{MAX_FRAME_GAP_S:g} s; the frame was not used and the session goes on (if "
+                "the robot's clock jumped, start a new session id)",
+            )
         extra = {} if req.gravity is None else {"gravity": req.gravity}
         try:
             estimate = state.sequence.step(req.image, req.camera, req.stamp, odometry=req.odometry, **extra)

@@ -21,9 +21,19 @@ DEFAULT_HEADER_TIMEOUT_S = 10.0
 #: Environment variable holding the bearer token (instead of ``--token``).
 TOKEN_ENV = "PLANARLOC_TOKEN"
 
-__all__ = ["DEFAULT_BODY_TIMEOUT_S", "DEFAULT_HEADER_TIMEOUT_S", "DEFAULT_JOB_TIMEOUT_S", "DEFAULT_MAX_IMAGE_BYTES",
-           "DEFAULT_MAX_SESSIONS", "DEFAULT_QUEUE", "DEFAULT_QUEUE_TIMEOUT_S", "DEFAULT_SESSION_IDLE_S",
-           "DEFAULT_WORKERS", "TOKEN_ENV", "ServeSettings"]
+__all__ = [
+    "DEFAULT_BODY_TIMEOUT_S",
+    "DEFAULT_HEADER_TIMEOUT_S",
+    "DEFAULT_JOB_TIMEOUT_S",
+    "DEFAULT_MAX_IMAGE_BYTES",
+    "DEFAULT_MAX_SESSIONS",
+    "DEFAULT_QUEUE",
+    "DEFAULT_QUEUE_TIMEOUT_S",
+    "DEFAULT_SESSION_IDLE_S",
+    "DEFAULT_WORKERS",
+    "TOKEN_ENV",
+    "ServeSettings",
+]
 
 
 @dataclass(frozen=True)

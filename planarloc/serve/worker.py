@@ -46,8 +46,9 @@ def _exit_with_parent(parent: int, period_s: float = 1.0) -> None:
     os._exit(0)
 
 
-def open_localizers(maps: Mapping[str, str | Path],
-                    expected: Mapping[str, MapFingerprint] | None = None) -> dict[str, str]:
+def open_localizers(
+    maps: Mapping[str, str | Path], expected: Mapping[str, MapFingerprint] | None = None
+) -> dict[str, str]:
     """Open every map read-only (once per process; kept for the process' life).
 
     Args:
@@ -63,7 +64,9 @@ def open_localizers(maps: Mapping[str, str | Path],
     for name, path in maps.items():
         before = map_fingerprint(path)
         _LOCALIZERS[name] = Localizer(Path(path))
-        learned.load_backend(_LOCALIZERS[name].features.kind)  # a learned map's models load now, not in a request
+        learned.load_backend(
+            _LOCALIZERS[name].features.kind
+        )  # a learned map's models load now, not in a request
         after = map_fingerprint(path)
         if expected is not None and name in expected:
             change = fingerprint_change(expected[name], before) or fingerprint_change(expected[name], after)
@@ -88,8 +91,13 @@ def localize_with(base: Localizer, req: LocalizeRequest) -> dict:
         estimate = loc.localize_query(query)
     except Exception as exc:  # noqa: BLE001 - the query was accepted: whatever fails now is the server's
         error = classify_error(exc, req.name)
-        raise (error if isinstance(error, ServerFault) else ServerFault(
-            f"internal error ({type(exc).__name__}, logged on the server)", f"{req.name}: {exc}")) from None
+        raise (
+            error
+            if isinstance(error, ServerFault)
+            else ServerFault(
+                f"internal error ({type(exc).__name__}, logged on the server)", f"{req.name}: {exc}"
+            )
+        ) from None
     return query_record(req.name, estimate, query.gravity)
 
 
@@ -97,8 +105,11 @@ def _localizer(name: str) -> Localizer:
     if name not in _LOCALIZERS:
         raise RequestError(404, f"map: {name!r} is not open in this worker")
     if name in _CHANGED:
-        raise RequestError(503, f"map {name!r}: this worker opened another version of it than the server serves",
-                           retry_after_s=1)
+        raise RequestError(
+            503,
+            f"map {name!r}: this worker opened another version of it than the server serves",
+            retry_after_s=1,
+        )
     return _LOCALIZERS[name]
 
 
@@ -152,7 +163,9 @@ def worker_main(conn, maps: Mapping[str, str], expected: Mapping[str, MapFingerp
     retry_after)`` or ``("fault", public message)``. Ends when the server closes the pipe, or when
     the server process is gone.
     """
-    logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s [worker %(process)d]: %(message)s")
+    logging.basicConfig(
+        level=logging.WARNING, format="%(levelname)s %(name)s [worker %(process)d]: %(message)s"
+    )
     threading.Thread(target=_exit_with_parent, args=(os.getppid(),), daemon=True).start()
     try:
         changed = open_localizers(maps, expected)

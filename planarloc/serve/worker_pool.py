@@ -109,16 +109,24 @@ class WorkerPool:
     ``on_map_changed(name, change)``.
     """
 
-    def __init__(self, maps: Mapping[str, str | Path], workers: int = 2, queue_size: int = 8, *,
-                 queue_timeout_s: float = DEFAULT_QUEUE_TIMEOUT_S, job_timeout_s: float = DEFAULT_JOB_TIMEOUT_S,
-                 expected: Mapping[str, MapFingerprint] | None = None) -> None:
+    def __init__(
+        self,
+        maps: Mapping[str, str | Path],
+        workers: int = 2,
+        queue_size: int = 8,
+        *,
+        queue_timeout_s: float = DEFAULT_QUEUE_TIMEOUT_S,
+        job_timeout_s: float = DEFAULT_JOB_TIMEOUT_S,
+        expected: Mapping[str, MapFingerprint] | None = None,
+    ) -> None:
         if workers < 1:
             raise ValueError(f"--workers: need at least 1 worker process, got {workers}")
         if queue_size < 0:
             raise ValueError(f"--queue: must be >= 0, got {queue_size}")
         if not queue_timeout_s > 0 or not job_timeout_s > 0:
-            raise ValueError(f"--queue-timeout and --job-timeout must be > 0 s, got {queue_timeout_s} and "
-                             f"{job_timeout_s}")
+            raise ValueError(
+                f"--queue-timeout and --job-timeout must be > 0 s, got {queue_timeout_s} and {job_timeout_s}"
+            )
         self.maps = {k: str(v) for k, v in maps.items()}
         self.expected = dict(expected or {})
         self.workers = int(workers)
@@ -149,8 +157,12 @@ class WorkerPool:
     # ---- processes --------------------------------------------------------------------------
     def _spawn(self) -> _Worker:
         parent, child = self._ctx.Pipe()
-        proc = self._ctx.Process(target=worker.worker_main, args=(child, self.maps, self.expected), daemon=True,
-                                 name="planarloc-worker")
+        proc = self._ctx.Process(
+            target=worker.worker_main,
+            args=(child, self.maps, self.expected),
+            daemon=True,
+            name="planarloc-worker",
+        )
         proc.start()
         child.close()
         return _Worker(proc, parent)
@@ -176,12 +188,19 @@ class WorkerPool:
         answer = await self._loop.run_in_executor(self._threads, self._wait_ready, w, STARTUP_TIMEOUT_S)
         if answer[0] != "ready":
             self._kill(w)
-            raise ValueError(f"a worker process failed to open the maps ({answer[1]}); run `planarloc map info` "
-                             "on each map")
+            raise ValueError(
+                f"a worker process failed to open the maps ({answer[1]}); run `planarloc map info` "
+                "on each map"
+            )
         _, w.pid, changed = answer
         for name, change in changed.items():
-            logger.error("worker %d (pid %d) opened another version of map %s than the server's (%s)",
-                         slot, w.pid, name, change)
+            logger.error(
+                "worker %d (pid %d) opened another version of map %s than the server's (%s)",
+                slot,
+                w.pid,
+                name,
+                change,
+            )
             if self.on_map_changed is not None:
                 self.on_map_changed(name, change)
         if w.dead:  # died between its answer and now
@@ -208,7 +227,9 @@ class WorkerPool:
         if self._closing or self._current[slot] is not w:
             return
         self.deaths += 1
-        logger.warning("worker %d (pid %s) died (exit code %s); restarting it", slot, w.pid, w.process.exitcode)
+        logger.warning(
+            "worker %d (pid %s) died (exit code %s); restarting it", slot, w.pid, w.process.exitcode
+        )
         for job in self._pinned[slot]:
             if not job.future.done():
                 job.future.set_exception(WorkerDied("the worker process holding this session died; retry"))
@@ -251,7 +272,9 @@ class WorkerPool:
     async def start(self) -> None:
         """Spawn the workers and wait until each has opened its maps (ValueError if one cannot)."""
         self._loop = asyncio.get_running_loop()
-        self._threads = ThreadPoolExecutor(max_workers=2 * self.workers + 2, thread_name_prefix="planarloc-pool")
+        self._threads = ThreadPoolExecutor(
+            max_workers=2 * self.workers + 2, thread_name_prefix="planarloc-pool"
+        )
         self._wake = [asyncio.Event() for _ in range(self.workers)]
         try:
             await asyncio.gather(*(self._boot(i) for i in range(self.workers)))
@@ -337,8 +360,13 @@ class WorkerPool:
         if self._loop is None or self._current[slot] is None or self._current[slot].dead:  # type: ignore[union-attr]
             return
         job = _Job(fn, args, self._loop.create_future(), slot)
-        job.future.add_done_callback(lambda f: f.cancelled() or f.exception() is None
-                                     or logger.warning("control job failed: %s", f.exception()))
+        job.future.add_done_callback(
+            lambda f: (
+                f.cancelled()
+                or f.exception() is None
+                or logger.warning("control job failed: %s", f.exception())
+            )
+        )
         self._enqueue(job, front=True)
 
     def _take(self, slot: int) -> _Job | None:
@@ -381,10 +409,16 @@ class WorkerPool:
             except _Died:
                 error: BaseException = WorkerDied("the worker process running this request died; retry")
             except _TimedOut:
-                logger.error("worker %d (pid %s): a request ran longer than %g s; killing the worker", slot, w.pid,
-                             self.job_timeout_s)
+                logger.error(
+                    "worker %d (pid %s): a request ran longer than %g s; killing the worker",
+                    slot,
+                    w.pid,
+                    self.job_timeout_s,
+                )
                 self._kill(w)  # its sentinel fires: the worker is replaced
-                error = WorkerDied(f"the request ran longer than {self.job_timeout_s:g} s; its worker was restarted")
+                error = WorkerDied(
+                    f"the request ran longer than {self.job_timeout_s:g} s; its worker was restarted"
+                )
             else:
                 error = None
             finally:

@@ -47,7 +47,11 @@ from planarloc.solvers.abspose_2p1p import abspose_2p1p
 from planarloc.solvers.abspose_2p2p import abspose_2p2p
 from planarloc.solvers.abspose_p3p import abspose_p3p
 from planarloc.solvers.abspose_up2p import abspose_up2p
-from planarloc.solvers.relpose_5p_nister import essentials_5p_nister, relpose_5p_nister, relpose_5p_nister_batch
+from planarloc.solvers.relpose_5p_nister import (
+    essentials_5p_nister,
+    relpose_5p_nister,
+    relpose_5p_nister_batch,
+)
 from planarloc.solvers.relpose_5p_stewenius import (
     essentials_5p_stewenius,
     relpose_5p_stewenius,
@@ -57,8 +61,19 @@ from planarloc.solvers.relpose_8p import essential_8p, relpose_8p, relpose_8p_ba
 from planarloc.solvers.relpose_planar_2p import relpose_planar_2p, relpose_planar_2p_batch
 
 __all__ = [
-    "abspose_2p1p", "abspose_2p2p", "abspose_p3p", "abspose_up2p",
-    "essential_8p", "essentials_5p_nister", "essentials_5p_stewenius",
-    "relpose_5p_nister", "relpose_5p_nister_batch", "relpose_5p_stewenius", "relpose_5p_stewenius_batch",
-    "relpose_8p", "relpose_8p_batch", "relpose_planar_2p", "relpose_planar_2p_batch",
+    "abspose_2p1p",
+    "abspose_2p2p",
+    "abspose_p3p",
+    "abspose_up2p",
+    "essential_8p",
+    "essentials_5p_nister",
+    "essentials_5p_stewenius",
+    "relpose_5p_nister",
+    "relpose_5p_nister_batch",
+    "relpose_5p_stewenius",
+    "relpose_5p_stewenius_batch",
+    "relpose_8p",
+    "relpose_8p_batch",
+    "relpose_planar_2p",
+    "relpose_planar_2p_batch",
 ]

@@ -324,8 +324,17 @@ def refine_five_point_root(
 
 
 @njit(cache=True)
-def store_essential(C: np.ndarray, basis: np.ndarray, sol: np.ndarray, refine_iters: int, refine_rtol: float,
-                    m: np.ndarray, dm: np.ndarray, E_out: np.ndarray, count: int) -> int:
+def store_essential(
+    C: np.ndarray,
+    basis: np.ndarray,
+    sol: np.ndarray,
+    refine_iters: int,
+    refine_rtol: float,
+    m: np.ndarray,
+    dm: np.ndarray,
+    E_out: np.ndarray,
+    count: int,
+) -> int:
     """Polish the root ``sol`` (3,) of the constraints C (:func:`refine_five_point_root`), then
     write ``E = x B₀ + y B₁ + z B₂ + B₃`` (``basis`` (9, 4), row-major E) with unit Frobenius
     norm into ``E_out[count]``. Returns ``count + 1``, or ``count`` when E is zero or not

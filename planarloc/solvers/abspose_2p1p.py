@@ -141,8 +141,14 @@ def abspose_2p1p(
         the two reference centres collinear, or the match on the epipolar plane). The
         scale may be negative: Pdcheck is the caller's (``rho`` and ``depths`` are returned).
     """
-    poses = (ref_from_query.R, ref_from_query.t, ref_cam_from_world.R, ref_cam_from_world.t,
-             ref2_cam_from_world.R, ref2_cam_from_world.t)
+    poses = (
+        ref_from_query.R,
+        ref_from_query.t,
+        ref_cam_from_world.R,
+        ref_cam_from_world.t,
+        ref2_cam_from_world.R,
+        ref2_cam_from_world.t,
+    )
     out = np.empty((1, 4, 3))
     n = -1
     if are_plain_float64(x_query, x_ref2, 1):

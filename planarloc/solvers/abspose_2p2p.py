@@ -128,8 +128,15 @@ def abspose_2p2p(
     """
     out = np.empty((1, 4, 3))
     ok, rho, rho2, rcheck, reg, sin_par = _abspose(
-        ref_from_query.R, ref_from_query.t, ref2_from_query.R, ref2_from_query.t,
-        ref_cam_from_world.R, ref_cam_from_world.t, ref2_cam_from_world.R, ref2_cam_from_world.t, out,
+        ref_from_query.R,
+        ref_from_query.t,
+        ref2_from_query.R,
+        ref2_from_query.t,
+        ref_cam_from_world.R,
+        ref_cam_from_world.t,
+        ref2_cam_from_world.R,
+        ref2_cam_from_world.t,
+        out,
     )
     if not ok:
         raise ValueError("abspose_2p2p: relative translations must be non-zero unit directions")

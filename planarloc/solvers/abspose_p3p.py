@@ -44,13 +44,17 @@ def _frame(a: np.ndarray, b: np.ndarray, c: np.ndarray, F: np.ndarray) -> bool:
     d1 = b - a
     d2 = c - a
     n1 = np.sqrt(np.sum(d1 * d1))
-    e3 = np.array([d1[1] * d2[2] - d1[2] * d2[1], d1[2] * d2[0] - d1[0] * d2[2], d1[0] * d2[1] - d1[1] * d2[0]])
+    e3 = np.array(
+        [d1[1] * d2[2] - d1[2] * d2[1], d1[2] * d2[0] - d1[0] * d2[2], d1[0] * d2[1] - d1[1] * d2[0]]
+    )
     n3 = np.sqrt(np.sum(e3 * e3))
     if not (n1 > 1e-12 and n3 > 1e-12 * n1 * np.sqrt(np.sum(d2 * d2))):
         return False
     e1 = d1 / n1
     e3 = e3 / n3
-    e2 = np.array([e3[1] * e1[2] - e3[2] * e1[1], e3[2] * e1[0] - e3[0] * e1[2], e3[0] * e1[1] - e3[1] * e1[0]])
+    e2 = np.array(
+        [e3[1] * e1[2] - e3[2] * e1[1], e3[2] * e1[0] - e3[0] * e1[2], e3[0] * e1[1] - e3[1] * e1[0]]
+    )
     for i in range(3):
         F[i, 0], F[i, 1], F[i, 2] = e1[i], e2[i], e3[i]
     return True
@@ -79,8 +83,9 @@ def _refine_depths(s: np.ndarray, ca: float, cb: float, cg: float, d2: np.ndarra
 
 
 @njit(cache=True, error_model="numpy", inline="always")
-def _add_pose(j: np.ndarray, s: np.ndarray, X: np.ndarray, Fw: np.ndarray, Rs: np.ndarray, ts: np.ndarray,
-              count: int) -> int:
+def _add_pose(
+    j: np.ndarray, s: np.ndarray, X: np.ndarray, Fw: np.ndarray, Rs: np.ndarray, ts: np.ndarray, count: int
+) -> int:
     """Write the pose that puts ray i at depth s[i] onto X[i] at ``count`` unless degenerate or a
     duplicate; returns the new count."""
     P = np.empty((3, 3))

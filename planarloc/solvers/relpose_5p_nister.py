@@ -89,7 +89,12 @@ from planarloc.solvers._five_point import (
     unit_rows,
 )
 
-__all__ = ["essentials_5p_nister", "relpose_5p_nister", "relpose_5p_nister_batch", "relpose_5p_nister_batch_unchecked"]
+__all__ = [
+    "essentials_5p_nister",
+    "relpose_5p_nister",
+    "relpose_5p_nister_batch",
+    "relpose_5p_nister_batch_unchecked",
+]
 
 # Nistér 2004, Sec. 3, monomial order of the 10 x 20 matrix.
 _NISTER_ORDER = [
@@ -203,8 +208,9 @@ def _batch(xq, xr, R, t, valid):
 def _batch_parallel(xq, xr, R, t, valid):
     for m in prange(xq.shape[0]):
         Es = np.empty((MAX_SOLUTIONS, 3, 3))
-        five_point_sample(nister_essentials, xq[m], xr[m], Es, R[m], t[m], valid[m], BATCH_REFINE_ITERS,
-                          BATCH_REFINE_RTOL)
+        five_point_sample(
+            nister_essentials, xq[m], xr[m], Es, R[m], t[m], valid[m], BATCH_REFINE_ITERS, BATCH_REFINE_RTOL
+        )
 
 
 def essentials_5p_nister(x_query: object, x_ref: object) -> list[np.ndarray]:
@@ -288,11 +294,14 @@ def relpose_5p_nister_batch(
         Nistér, TPAMI 2004, Sec. 3; the pose comes from the closed-form decomposition
         ``R = cof(E) ∓ [t]x E`` (Horn 1990) instead of the SVD of the single-call API.
     """
-    return relpose_5p_nister_batch_unchecked(*check_correspondence_batch(x_query, x_ref, 5), parallel=parallel)
+    return relpose_5p_nister_batch_unchecked(
+        *check_correspondence_batch(x_query, x_ref, 5), parallel=parallel
+    )
 
 
-def relpose_5p_nister_batch_unchecked(xq: np.ndarray, xr: np.ndarray, *,
-                                         parallel: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def relpose_5p_nister_batch_unchecked(
+    xq: np.ndarray, xr: np.ndarray, *, parallel: bool = False
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """:func:`relpose_5p_nister_batch` on validated contiguous float64 (M, 5, 3) rays (the RANSAC
     estimators' entry point: their problem is validated once)."""
     return solve_relpose_batch(_batch_parallel if parallel else _batch, xq, xr, MAX_SOLUTIONS)

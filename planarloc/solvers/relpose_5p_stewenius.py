@@ -79,7 +79,12 @@ from planarloc.solvers._five_point import (
     unit_rows,
 )
 
-__all__ = ["essentials_5p_stewenius", "relpose_5p_stewenius", "relpose_5p_stewenius_batch", "relpose_5p_stewenius_batch_unchecked"]
+__all__ = [
+    "essentials_5p_stewenius",
+    "relpose_5p_stewenius",
+    "relpose_5p_stewenius_batch",
+    "relpose_5p_stewenius_batch_unchecked",
+]
 
 _PIVOT_TOL = 1e-12
 
@@ -219,8 +224,17 @@ def _batch(xq, xr, R, t, valid):
 def _batch_parallel(xq, xr, R, t, valid):
     for m in prange(xq.shape[0]):
         Es = np.empty((MAX_SOLUTIONS, 3, 3))
-        five_point_sample(stewenius_essentials, xq[m], xr[m], Es, R[m], t[m], valid[m], BATCH_REFINE_ITERS,
-                          BATCH_REFINE_RTOL)
+        five_point_sample(
+            stewenius_essentials,
+            xq[m],
+            xr[m],
+            Es,
+            R[m],
+            t[m],
+            valid[m],
+            BATCH_REFINE_ITERS,
+            BATCH_REFINE_RTOL,
+        )
 
 
 def essentials_5p_stewenius(x_query: object, x_ref: object) -> list[np.ndarray]:
@@ -300,11 +314,14 @@ def relpose_5p_stewenius_batch(
         Stewénius, Engels & Nistér, ISPRS J. 2006; pose by the closed form of
         :func:`planarloc.geometry.essential_decomposition.relpose_from_essential_kernel`.
     """
-    return relpose_5p_stewenius_batch_unchecked(*check_correspondence_batch(x_query, x_ref, 5), parallel=parallel)
+    return relpose_5p_stewenius_batch_unchecked(
+        *check_correspondence_batch(x_query, x_ref, 5), parallel=parallel
+    )
 
 
-def relpose_5p_stewenius_batch_unchecked(xq: np.ndarray, xr: np.ndarray, *,
-                                            parallel: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def relpose_5p_stewenius_batch_unchecked(
+    xq: np.ndarray, xr: np.ndarray, *, parallel: bool = False
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """:func:`relpose_5p_stewenius_batch` on validated contiguous float64 (M, 5, 3) rays (the RANSAC
     estimators' entry point: their problem is validated once)."""
     return solve_relpose_batch(_batch_parallel if parallel else _batch, xq, xr, MAX_SOLUTIONS)

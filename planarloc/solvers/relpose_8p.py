@@ -128,8 +128,17 @@ def _null_vector_8(A, e) -> bool:
 @njit(cache=True)
 def _scratch_8p():
     """Work buffers of :func:`_solve_8p` (allocated once per batch)."""
-    return (np.empty((8, 3)), np.empty((8, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty((8, 9)),
-            np.empty((9, 1)), np.empty((3, 3)), np.empty((3, 3)), np.empty((4, 3, 3)))
+    return (
+        np.empty((8, 3)),
+        np.empty((8, 3)),
+        np.empty((3, 3)),
+        np.empty((3, 3)),
+        np.empty((8, 9)),
+        np.empty((9, 1)),
+        np.empty((3, 3)),
+        np.empty((3, 3)),
+        np.empty((4, 3, 3)),
+    )
 
 
 @njit(cache=True)

@@ -63,13 +63,23 @@ from planarloc.geometry.pose import Pose
 from planarloc.geometry.validation import InputError, are_plain_float64, check_array
 from planarloc.solvers.relpose_planar_2p import planar_pose_into
 
-_EPS_RANK = 1e-10   # minimum 3-volume of the three unit rows (rank 3 test)
-_EPS_PAIR = 1e-12   # minimum squared norm of a circle pair (x1, x2) or (x3, x4)
+_EPS_RANK = 1e-10  # minimum 3-volume of the three unit rows (rank 3 test)
+_EPS_PAIR = 1e-12  # minimum squared norm of a circle pair (x1, x2) or (x3, x4)
 
 
 @njit(cache=True, inline="always", error_model="numpy")
-def _point_depth_sign(ct: float, st: float, sp: float, cp: float, q0: float, q1: float, q2: float,
-                      r0: float, r1: float, r2: float) -> int:
+def _point_depth_sign(
+    ct: float,
+    st: float,
+    sp: float,
+    cp: float,
+    q0: float,
+    q1: float,
+    q2: float,
+    r0: float,
+    r1: float,
+    r2: float,
+) -> int:
     """+1 if the point is in front of both cameras for (θ, φ), -1 for (θ, φ + π), 0 for neither,
     2 for parallel rays (a point at infinity). ``ct, st = cos θ, sin θ``; ``sp, cp = sin φ, cos φ``.
 
@@ -98,8 +108,9 @@ def _point_depth_sign(ct: float, st: float, sp: float, cp: float, q0: float, q1:
 
 
 @njit(cache=True, inline="always", error_model="numpy")
-def _least_eigvec_sym3(a00: float, a01: float, a02: float, a11: float, a12: float,
-                       a22: float) -> tuple[bool, float, float, float]:
+def _least_eigvec_sym3(
+    a00: float, a01: float, a02: float, a11: float, a12: float, a22: float
+) -> tuple[bool, float, float, float]:
     """Unit eigenvector of the smallest eigenvalue of a symmetric 3x3 matrix, in closed form
     (trigonometric eigenvalues, O. K. Smith, CACM 4(4), 1961; the vector as the largest cross
     product of two rows of ``A - λ I``). False when it is not unique (a repeated smallest
@@ -110,7 +121,7 @@ def _least_eigvec_sym3(a00: float, a01: float, a02: float, a11: float, a12: floa
     p = np.sqrt((b00 * b00 + b11 * b11 + b22 * b22 + 2.0 * p1) / 6.0)
     if not p > 1e-12 * max(abs(q), 1e-300):
         return False, 0.0, 0.0, 0.0
-    det = (b00 * (b11 * b22 - a12 * a12) - a01 * (a01 * b22 - a12 * a02) + a02 * (a01 * a12 - b11 * a02))
+    det = b00 * (b11 * b22 - a12 * a12) - a01 * (a01 * b22 - a12 * a02) + a02 * (a01 * a12 - b11 * a02)
     r = det / (2.0 * p * p * p)
     r = min(1.0, max(-1.0, r))
     lam = q + 2.0 * p * np.cos(np.arccos(r) / 3.0 + 2.0 * np.pi / 3.0)
@@ -152,8 +163,12 @@ def _ac_system(xq: np.ndarray, A: np.ndarray, xr: np.ndarray):
     n2 = np.sqrt(m20 * m20 + m21 * m21 + m22 * m22 + m23 * m23)
     if not (n0 > 1e-300 and n1 > 1e-300 and n2 > 1e-300):
         return False, _ZERO4, _ZERO4, _ZERO4
-    return (True, (m00 / n0, m01 / n0, m02 / n0, m03 / n0), (m10 / n1, m11 / n1, m12 / n1, m13 / n1),
-            (m20 / n2, m21 / n2, m22 / n2, m23 / n2))
+    return (
+        True,
+        (m00 / n0, m01 / n0, m02 / n0, m03 / n0),
+        (m10 / n1, m11 / n1, m12 / n1, m13 / n1),
+        (m20 / n2, m21 / n2, m22 / n2, m23 / n2),
+    )
 
 
 @njit(cache=True, error_model="numpy", inline="always")
@@ -185,8 +200,9 @@ def _project_on_cone(m0, m1, m2, x, c1: float, c2: float):
     ok if a circle pair vanishes after the move; without a real intersection x is returned
     unchanged (each pair is then put on its circle, the authors' 1AC_CS).
     """
-    ok, w0, w1, w2 = _least_eigvec_sym3(_dot4(m0, m0), _dot4(m0, m1), _dot4(m0, m2), _dot4(m1, m1),
-                                        _dot4(m1, m2), _dot4(m2, m2))
+    ok, w0, w1, w2 = _least_eigvec_sym3(
+        _dot4(m0, m0), _dot4(m0, m1), _dot4(m0, m2), _dot4(m1, m1), _dot4(m1, m2), _dot4(m2, m2)
+    )
     if not ok:
         return True, x, c1, c2
     y1 = w0 * m0[0] + w1 * m1[0] + w2 * m2[0]
@@ -290,7 +306,9 @@ def _solve_batch(xq: np.ndarray, xr: np.ndarray, A: np.ndarray, sol: np.ndarray,
 
 
 @njit(cache=True, error_model="numpy", parallel=True)
-def _solve_batch_parallel(xq: np.ndarray, xr: np.ndarray, A: np.ndarray, sol: np.ndarray, counts: np.ndarray) -> None:
+def _solve_batch_parallel(
+    xq: np.ndarray, xr: np.ndarray, A: np.ndarray, sol: np.ndarray, counts: np.ndarray
+) -> None:
     for i in prange(xq.shape[0]):
         counts[i] = solve_planar_1ac(xq[i], xr[i], A[i], sol[i])
 
@@ -306,7 +324,9 @@ def _check_rays(name: str, x: object, shape: tuple) -> np.ndarray:
     return np.ascontiguousarray(check_array(name, arr, shape))
 
 
-def relpose_planar_1ac(x_query: object, x_ref: object, affine: object, max_imbalance: float = 1.0) -> list[Pose]:
+def relpose_planar_1ac(
+    x_query: object, x_ref: object, affine: object, max_imbalance: float = 1.0
+) -> list[Pose]:
     """The planar relative pose ``ref_from_query`` of one affine correspondence.
 
     Args:

@@ -251,7 +251,9 @@ def _relposes(xq: np.ndarray, xr: np.ndarray, out: np.ndarray) -> int:
 
 
 @njit(cache=True, error_model="numpy")
-def _solve_batch(xq: np.ndarray, xr: np.ndarray, thetas: np.ndarray, phis: np.ndarray, counts: np.ndarray) -> None:
+def _solve_batch(
+    xq: np.ndarray, xr: np.ndarray, thetas: np.ndarray, phis: np.ndarray, counts: np.ndarray
+) -> None:
     for i in range(xq.shape[0]):
         counts[i] = solve_planar_2p(xq[i], xr[i], thetas[i], phis[i])
 
@@ -270,8 +272,10 @@ _PARALLEL_MIN_BATCH = 4096  # below this, thread start-up costs more than it sav
 def _check_points(name: str, x: object, shape: tuple) -> np.ndarray:
     """Checked rays of ``shape`` (last axis 3); normalized points with a last axis of 2 get z = 1."""
     arr = check_array(name, x)
-    if arr.ndim == len(shape) and arr.shape[-1] == 2 and all(
-        s is None or s == a for s, a in zip(shape[:-1], arr.shape[:-1])
+    if (
+        arr.ndim == len(shape)
+        and arr.shape[-1] == 2
+        and all(s is None or s == a for s, a in zip(shape[:-1], arr.shape[:-1]))
     ):
         arr = np.concatenate([arr, np.ones(arr.shape[:-1] + (1,))], axis=-1)
     return check_array(name, arr, shape)

@@ -70,18 +70,30 @@ def _transform_world(scene: SyntheticScene, world_from_upright: Pose) -> Synthet
         return p @ upright_from_world
 
     W, w = world_from_upright.R, world_from_upright.t
-    pairs = [replace(p, ref_pose=move(p.ref_pose),
-                     ref_points3d=None if p.ref_points3d is None else p.ref_points3d @ W.T + w) for p in scene.pairs]
-    return SyntheticScene(scene.query_camera, move(scene.query_pose), pairs, scene.points @ W.T + w, scene.is_outlier)
+    pairs = [
+        replace(
+            p,
+            ref_pose=move(p.ref_pose),
+            ref_points3d=None if p.ref_points3d is None else p.ref_points3d @ W.T + w,
+        )
+        for p in scene.pairs
+    ]
+    return SyntheticScene(
+        scene.query_camera, move(scene.query_pose), pairs, scene.points @ W.T + w, scene.is_outlier
+    )
 
 
-def _project(camera: Camera, pose: Pose, X: np.ndarray, min_depth: float = 0.5) -> tuple[np.ndarray, np.ndarray]:
+def _project(
+    camera: Camera, pose: Pose, X: np.ndarray, min_depth: float = 0.5
+) -> tuple[np.ndarray, np.ndarray]:
     Xc = X @ pose.R.T + pose.t
     z = Xc[:, 2]
     uv = np.full((len(X), 2), np.nan)
     front = z > min_depth
     uv[front] = camera.img_from_cam(Xc[front])
-    inside = front & (uv[:, 0] >= 0) & (uv[:, 0] < camera.width) & (uv[:, 1] >= 0) & (uv[:, 1] < camera.height)
+    inside = (
+        front & (uv[:, 0] >= 0) & (uv[:, 0] < camera.width) & (uv[:, 1] >= 0) & (uv[:, 1] < camera.height)
+    )
     return uv, inside
 
 
@@ -113,8 +125,12 @@ class _Mount:
 
     def __init__(self, spec: SceneSpec, rng: np.random.Generator):
         self.rng = rng
-        self.tilted = (spec.mount_pitch_deg != 0.0 or spec.mount_roll_deg != 0.0 or spec.query_tilt_deg > 0
-                       or spec.query_height_m != 0.0)
+        self.tilted = (
+            spec.mount_pitch_deg != 0.0
+            or spec.mount_roll_deg != 0.0
+            or spec.query_tilt_deg > 0
+            or spec.query_height_m != 0.0
+        )
         self.cam_from_upright = upright_from_cam_rotation(spec.mount_pitch_deg, spec.mount_roll_deg).T
 
     def __call__(self, pose: Pose, extra_tilt: float = 0.0, drop: float = 0.0) -> Pose:
@@ -139,6 +155,7 @@ class _Layout:
 
 def _draw_layout(rng: np.random.Generator, spec: SceneSpec, mount: _Mount) -> _Layout:
     if spec.collinear:
+
         def pose_on_line(z: float) -> Pose:
             R = rotation_from_yaw(rng.uniform(-0.05, 0.05))
             return Pose(R, -R @ np.array([0.0, 0.0, z]))
@@ -161,14 +178,25 @@ def _wrong_projection(rng: np.random.Generator, camera: Camera, X: np.ndarray) -
     Xc = np.einsum("kij,kj->ki", Rw, X - cw)
     with np.errstate(divide="ignore", invalid="ignore"):
         uv_w = (Xc @ camera.K.T)[:, :2] / Xc[:, 2:3]
-    ok = (Xc[:, 2] > 0.5) & (uv_w[:, 0] >= 0) & (uv_w[:, 0] < camera.width) & (
-        uv_w[:, 1] >= 0) & (uv_w[:, 1] < camera.height)
+    ok = (
+        (Xc[:, 2] > 0.5)
+        & (uv_w[:, 0] >= 0)
+        & (uv_w[:, 0] < camera.width)
+        & (uv_w[:, 1] >= 0)
+        & (uv_w[:, 1] < camera.height)
+    )
     hit = np.flatnonzero(ok)
     return uv_w[hit[0]] if len(hit) else rng.uniform([0, 0], [camera.width, camera.height])
 
 
-def _make_pair(rng: np.random.Generator, spec: SceneSpec, ref: Pose, X: np.ndarray, ids: np.ndarray,
-               uv: tuple[np.ndarray, np.ndarray]) -> tuple[PairMatches, np.ndarray]:
+def _make_pair(
+    rng: np.random.Generator,
+    spec: SceneSpec,
+    ref: Pose,
+    X: np.ndarray,
+    ids: np.ndarray,
+    uv: tuple[np.ndarray, np.ndarray],
+) -> tuple[PairMatches, np.ndarray]:
     """Noisy matches of points ``ids`` between query and ``ref`` (pixels ``uv``), with outliers."""
     m, camera = spec.matches_per_pair, spec.camera
     q = uv[0][ids] + rng.normal(0.0, spec.noise_px, (m, 2))
@@ -196,14 +224,20 @@ def _try_scene(rng: np.random.Generator, spec: SceneSpec, mount: _Mount) -> Synt
     if spec.track_pool is not None:
         # The query detects a limited set of keypoints; references re-observe them, so
         # the same query keypoint is matched in several pairs (tracks).
-        pool = rng.choice(np.flatnonzero(vis_q), min(int(vis_q.sum()), int(spec.track_pool * m)), replace=False)
+        pool = rng.choice(
+            np.flatnonzero(vis_q), min(int(vis_q.sum()), int(spec.track_pool * m)), replace=False
+        )
         vis_q = np.zeros_like(vis_q)
         vis_q[pool] = True
     pairs, outl = [], []
     tries = 0
     while len(pairs) < spec.num_refs and tries < 50:
         tries += 1
-        ref = layout.refs[len(pairs)] if spec.collinear else mount(random_planar_pose(rng, tilt_deg=spec.ref_tilt_deg))
+        ref = (
+            layout.refs[len(pairs)]
+            if spec.collinear
+            else mount(random_planar_pose(rng, tilt_deg=spec.ref_tilt_deg))
+        )
         uv_r, vis_r = _project(camera, ref, X)
         common = np.flatnonzero(vis_q & vis_r)
         if len(common) < m:

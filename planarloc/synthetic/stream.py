@@ -36,8 +36,9 @@ class StreamFrame:
     kidnapped: bool
 
 
-def stream_order(n: int, kidnap_at: int | None = None, skip: int | None = None,
-                 drop: Iterable[int] = ()) -> list[int]:
+def stream_order(
+    n: int, kidnap_at: int | None = None, skip: int | None = None, drop: Iterable[int] = ()
+) -> list[int]:
     """Indices of ``n`` frames in stream order.
 
     Without a kidnap: ``0..n-1``. With ``kidnap_at = k``: frames ``0..k-1``, then the robot is
@@ -58,13 +59,18 @@ def stream_order(n: int, kidnap_at: int | None = None, skip: int | None = None,
         skip = (n - kidnap_at) // 2 if skip is None else int(skip)
         if not 1 <= skip < n - kidnap_at:
             raise InputError(f"kidnap skip: expected 1..{n - kidnap_at - 1} frames, got {skip}")
-        order = order[:kidnap_at] + order[kidnap_at + skip:] + order[kidnap_at:kidnap_at + skip]
+        order = order[:kidnap_at] + order[kidnap_at + skip :] + order[kidnap_at : kidnap_at + skip]
     dropped = set(int(d) for d in drop)
     return [i for i in order if i not in dropped]
 
 
-def simulate_odometry(truth: Sequence[Pose], kidnapped: Sequence[bool], rng: np.random.Generator,
-                      translation_std: float = 0.03, rotation_std_deg: float = 0.3) -> list[Pose]:
+def simulate_odometry(
+    truth: Sequence[Pose],
+    kidnapped: Sequence[bool],
+    rng: np.random.Generator,
+    translation_std: float = 0.03,
+    rotation_std_deg: float = 0.3,
+) -> list[Pose]:
     """Wheel odometry along a stream: ``cam_from_odom`` per frame.
 
     Each frame-to-frame motion is the true one (identity across a kidnap) with its
@@ -90,8 +96,13 @@ def simulate_odometry(truth: Sequence[Pose], kidnapped: Sequence[bool], rng: np.
     return out
 
 
-def make_stream(images: Sequence[PosedImage], order: Sequence[int], rng: np.random.Generator,
-                frame_period_s: float = 0.1, **odometry_noise: float) -> list[StreamFrame]:
+def make_stream(
+    images: Sequence[PosedImage],
+    order: Sequence[int],
+    rng: np.random.Generator,
+    frame_period_s: float = 0.1,
+    **odometry_noise: float,
+) -> list[StreamFrame]:
     """The stream of ``images[order]``.
 
     Stamps are the images' timestamps when all have one, else ``index · frame_period_s``. A
@@ -111,7 +122,11 @@ def make_stream(images: Sequence[PosedImage], order: Sequence[int], rng: np.rand
         # a kidnap takes time: stamps keep increasing along the stream
         t, out = 0.0, []
         for k, s in enumerate(stamps):
-            t = s if k == 0 else t + (frame_period_s if kidnapped[k] else max(s - stamps[k - 1], frame_period_s))
+            t = (
+                s
+                if k == 0
+                else t + (frame_period_s if kidnapped[k] else max(s - stamps[k - 1], frame_period_s))
+            )
             out.append(t)
         stamps = out
     odo = simulate_odometry([f.cam_from_world for f in frames], kidnapped, rng, **odometry_noise)

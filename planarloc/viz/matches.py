@@ -36,8 +36,9 @@ MAX_LINES = 100
 OUTLIER_SHARE = 0.25
 
 
-def query_pairs(localizer: Localizer, features: Features, camera: Camera,
-                estimate: PoseEstimate) -> tuple[list[PairMatches], list[np.ndarray | None]]:
+def query_pairs(
+    localizer: Localizer, features: Features, camera: Camera, estimate: PoseEstimate
+) -> tuple[list[PairMatches], list[np.ndarray | None]]:
     """The matched pairs behind ``estimate`` and their inlier masks (None for a pair the
     estimator did not score, e.g. after ``too_few_matches``).
 
@@ -58,7 +59,9 @@ def _rgb(path: Path | str) -> np.ndarray:
     return cv2.cvtColor(read_bgr(path), cv2.COLOR_BGR2RGB)  # pixels as stored, as the keypoints
 
 
-def lines_to_draw(inliers: np.ndarray, max_lines: int = MAX_LINES, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+def lines_to_draw(
+    inliers: np.ndarray, max_lines: int = MAX_LINES, seed: int = 0
+) -> tuple[np.ndarray, np.ndarray]:
     """``(outlier indices, inlier indices)``, sorted, of the matches whose lines are drawn.
 
     At most ``max_lines`` in all, chosen at random with ``numpy.random.default_rng(seed)``,
@@ -88,8 +91,16 @@ def lines_to_draw(inliers: np.ndarray, max_lines: int = MAX_LINES, seed: int = 0
     return pick(out_idx, n_out), pick(in_idx, n_in)
 
 
-def plot_pair(ax, query_image: np.ndarray, ref_image: np.ndarray, pair: PairMatches, inliers: np.ndarray | None,
-              ref_label: str = "", seed: int = 0, max_lines: int = MAX_LINES) -> None:
+def plot_pair(
+    ax,
+    query_image: np.ndarray,
+    ref_image: np.ndarray,
+    pair: PairMatches,
+    inliers: np.ndarray | None,
+    ref_label: str = "",
+    seed: int = 0,
+    max_lines: int = MAX_LINES,
+) -> None:
     """Query (left) and reference (right) side by side: a dot at both ends of every match and
     lines for a subsample of them (:func:`lines_to_draw`), inliers drawn last, on top.
 
@@ -117,21 +128,27 @@ def plot_pair(ax, query_image: np.ndarray, ref_image: np.ndarray, pair: PairMatc
     out_idx, in_idx = lines_to_draw(inl, max_lines, seed)
     # unscored matches are all the pair has: drawn stronger than the outliers of a scored pair
     out_style = (0.6, 0.75) if inliers is None else (0.6, 0.55)  # (line width, alpha)
-    for idx, mask, color, (width, alpha), z in ((out_idx, ~inl, OUTLIER_COLOR, out_style, 2),
-                                                 (in_idx, inl, INLIER_COLOR, (0.8, 0.9), 3)):
+    for idx, mask, color, (width, alpha), z in (
+        (out_idx, ~inl, OUTLIER_COLOR, out_style, 2),
+        (in_idx, inl, INLIER_COLOR, (0.8, 0.9), 3),
+    ):
         ends = np.concatenate([q[mask], r[mask] + [off, 0]])
         if len(ends):
             ax.scatter(ends[:, 0], ends[:, 1], s=2, color=color, zorder=z)
         if len(idx):
             segments = np.stack([q[idx], r[idx] + [off, 0]], axis=1)  # (n, 2 ends, xy)
-            ax.add_collection(LineCollection(list(segments), colors=color, linewidths=width, alpha=alpha, zorder=z))
+            ax.add_collection(
+                LineCollection(list(segments), colors=color, linewidths=width, alpha=alpha, zorder=z)
+            )
     ax.set_axis_off()
     n_in, n_out = int(inl.sum()), int((~inl).sum())
     if inliers is None:
         counts = f"{len(q)} matches, not scored (red); lines for {len(out_idx)} of them"
     else:
-        counts = (f"{n_in} inliers (green), {n_out} outliers (red); lines for {len(in_idx)} of {n_in} inliers, "
-                  f"{len(out_idx)} of {n_out} outliers")
+        counts = (
+            f"{n_in} inliers (green), {n_out} outliers (red); lines for {len(in_idx)} of {n_in} inliers, "
+            f"{len(out_idx)} of {n_out} outliers"
+        )
     ax.set_title(f"query | {ref_label}: {counts}", fontsize="small")
 
 
@@ -148,9 +165,16 @@ def estimate_caption(name: str, estimate: PoseEstimate, truth: Pose | None) -> s
     return ", ".join(parts)
 
 
-def save_match_plot(path: Path | str, query_path: Path | str, ref_paths: Sequence[Path | str],
-                    pairs: Sequence[PairMatches], inliers: Sequence[np.ndarray | None], estimate: PoseEstimate,
-                    name: str, truth: Pose | None = None) -> Path:
+def save_match_plot(
+    path: Path | str,
+    query_path: Path | str,
+    ref_paths: Sequence[Path | str],
+    pairs: Sequence[PairMatches],
+    inliers: Sequence[np.ndarray | None],
+    estimate: PoseEstimate,
+    name: str,
+    truth: Pose | None = None,
+) -> Path:
     """Write one figure: a row per reference (query | reference with its matches), the
     estimate's status and, if ``truth`` (the query's ``cam_from_world``) is known, its error."""
     import matplotlib
@@ -167,7 +191,9 @@ def save_match_plot(path: Path | str, query_path: Path | str, ref_paths: Sequenc
     fig, axes = plt.subplots(rows, 1, figsize=(10, 10 * aspect * rows + 0.6), squeeze=False)
     for k, ax in enumerate(axes[:, 0]):
         if k < len(pairs):
-            plot_pair(ax, query, _rgb(ref_paths[k]), pairs[k], inliers[k], str(estimate.references[k]), seed=k)
+            plot_pair(
+                ax, query, _rgb(ref_paths[k]), pairs[k], inliers[k], str(estimate.references[k]), seed=k
+            )
         else:
             ax.imshow(query)
             ax.set_axis_off()
@@ -207,13 +233,29 @@ class MatchPlotter:
             self._paths[key] = {p.name: Path(p.path) for p in localizer.map_images}
         return self._paths[key]
 
-    def plot(self, localizer: Localizer, name: str, query_path: Path | str, camera: Camera, features: Features,
-             estimate: PoseEstimate, truth: Pose | None = None) -> Path:
+    def plot(
+        self,
+        localizer: Localizer,
+        name: str,
+        query_path: Path | str,
+        camera: Camera,
+        features: Features,
+        estimate: PoseEstimate,
+        truth: Pose | None = None,
+    ) -> Path:
         """Plot one estimate; returns the written file."""
         pairs, inliers = query_pairs(localizer, features, camera, estimate)
         paths = self._map_paths(localizer)
-        path = save_match_plot(self.out_dir / match_plot_name(name), query_path,
-                               [paths[n] for n in estimate.references], pairs, inliers, estimate, name, truth)
+        path = save_match_plot(
+            self.out_dir / match_plot_name(name),
+            query_path,
+            [paths[n] for n in estimate.references],
+            pairs,
+            inliers,
+            estimate,
+            name,
+            truth,
+        )
         self.written.append(path)
         return path
 

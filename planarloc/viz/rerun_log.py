@@ -69,14 +69,30 @@ class RerunLogger:
         self.rec.flush()
         self.rec.disconnect()
 
-    def _camera(self, entity: str, cam_from_world: Pose, camera: Camera, color: tuple[int, int, int],
-                static: bool = False) -> None:
+    def _camera(
+        self,
+        entity: str,
+        cam_from_world: Pose,
+        camera: Camera,
+        color: tuple[int, int, int],
+        static: bool = False,
+    ) -> None:
         rr = self.rr
         world_from_cam = cam_from_world.inverse()
-        self.rec.log(entity, rr.Transform3D(translation=world_from_cam.t, mat3x3=world_from_cam.R), static=static)
-        self.rec.log(entity, rr.Pinhole(image_from_camera=camera.K, resolution=[camera.width, camera.height],
-                                        camera_xyz=rr.ViewCoordinates.RDF, image_plane_distance=0.3, color=color),
-                     static=static)
+        self.rec.log(
+            entity, rr.Transform3D(translation=world_from_cam.t, mat3x3=world_from_cam.R), static=static
+        )
+        self.rec.log(
+            entity,
+            rr.Pinhole(
+                image_from_camera=camera.K,
+                resolution=[camera.width, camera.height],
+                camera_xyz=rr.ViewCoordinates.RDF,
+                image_plane_distance=0.3,
+                color=color,
+            ),
+            static=static,
+        )
 
     def _truth(self, entity: str, truth: Pose, anchor: np.ndarray | None) -> None:
         """The ground-truth centre at ``entity``, and a line to the estimate's centre ``anchor``."""
@@ -99,9 +115,16 @@ class RerunLogger:
         for k, im in enumerate(images[::step]):
             self._camera(f"world/map/cameras/{k}", im.cam_from_world, im.camera, GRAY, static=True)
 
-    def log_query(self, name: str, image_path: Path | str | None, camera: Camera, estimate: PoseEstimate,
-                  truth: Pose | None = None, pairs: Sequence[PairMatches] = (),
-                  inliers: Sequence[np.ndarray | None] = ()) -> None:
+    def log_query(
+        self,
+        name: str,
+        image_path: Path | str | None,
+        camera: Camera,
+        estimate: PoseEstimate,
+        truth: Pose | None = None,
+        pairs: Sequence[PairMatches] = (),
+        inliers: Sequence[np.ndarray | None] = (),
+    ) -> None:
         """One query at the next step of the ``query`` timeline (``inliers[k]``: mask of
         ``pairs[k]``, None if not scored)."""
         rr = self.rr
@@ -114,8 +137,10 @@ class RerunLogger:
             anchor = estimate.pose.center
             std = estimate.position_std_m
             if np.isfinite(std):
-                self.rec.log("world/query/uncertainty",
-                             rr.Ellipsoids3D(centers=[anchor], half_sizes=[[std, std, std]], colors=ORANGE))
+                self.rec.log(
+                    "world/query/uncertainty",
+                    rr.Ellipsoids3D(centers=[anchor], half_sizes=[[std, std, std]], colors=ORANGE),
+                )
             else:
                 self.rec.log("world/query/uncertainty", rr.Clear(recursive=False))
         else:
@@ -136,18 +161,32 @@ class RerunLogger:
                 q_in.append(p.query_points[inl])
                 q_out.append(p.query_points[~inl])
             if pairs:
-                self.rec.log("query/image/inliers", rr.Points2D(np.concatenate(q_in), colors=GREEN, radii=2.0))
-                self.rec.log("query/image/outliers", rr.Points2D(np.concatenate(q_out), colors=RED, radii=1.5))
+                self.rec.log(
+                    "query/image/inliers", rr.Points2D(np.concatenate(q_in), colors=GREEN, radii=2.0)
+                )
+                self.rec.log(
+                    "query/image/outliers", rr.Points2D(np.concatenate(q_out), colors=RED, radii=1.5)
+                )
 
-    def log_frame(self, name: str, record: dict, camera: Camera, image_path: Path | str | None = None,
-                  truth: Pose | None = None) -> None:
+    def log_frame(
+        self,
+        name: str,
+        record: dict,
+        camera: Camera,
+        image_path: Path | str | None = None,
+        truth: Pose | None = None,
+    ) -> None:
         """One frame of a stream, from its record (:func:`planarloc.localize.records.frame_record`), at its stamp."""
         rr = self.rr
         self.rec.set_time("stamp", duration=float(record["stamp"]))
         latency = (record.get("time_s") or {}).get("latency")
-        self.rec.log("stream/status", rr.TextDocument(
-            f"{name}: {record['status']}, fix {record.get('fix_status')}, motion {record.get('motion_source')}"
-            + ("" if latency is None else f", latency {1e3 * float(latency):.0f} ms")))
+        self.rec.log(
+            "stream/status",
+            rr.TextDocument(
+                f"{name}: {record['status']}, fix {record.get('fix_status')}, motion {record.get('motion_source')}"
+                + ("" if latency is None else f", latency {1e3 * float(latency):.0f} ms")
+            ),
+        )
         anchor = None
         if record.get("success"):
             pose = Pose.from_quat_wxyz(record["quat_wxyz"], record["t"])
@@ -161,9 +200,15 @@ class RerunLogger:
                 if np.linalg.det(V) < 0:
                     V[:, 0] = -V[:, 0]
                 q = Rotation.from_matrix(V).as_quat()  # x, y, z, w
-                self.rec.log("world/stream/uncertainty", rr.Ellipsoids3D(
-                    centers=[anchor], half_sizes=[3.0 * np.sqrt(np.maximum(w, 0.0))],
-                    quaternions=[rr.Quaternion(xyzw=q)], colors=ORANGE))
+                self.rec.log(
+                    "world/stream/uncertainty",
+                    rr.Ellipsoids3D(
+                        centers=[anchor],
+                        half_sizes=[3.0 * np.sqrt(np.maximum(w, 0.0))],
+                        quaternions=[rr.Quaternion(xyzw=q)],
+                        colors=ORANGE,
+                    ),
+                )
         else:
             self.rec.log("world/stream/estimate", rr.Clear(recursive=True))
             self.rec.log("world/stream/uncertainty", rr.Clear(recursive=False))

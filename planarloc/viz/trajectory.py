@@ -82,7 +82,9 @@ def gravity_plane_basis(g_world: object) -> tuple[np.ndarray, np.ndarray, str]:
     g = np.asarray(g_world, dtype=float).reshape(-1)
     n = float(np.linalg.norm(g)) if g.shape == (3,) else 0.0
     if not (np.isfinite(n) and n > 1e-9):
-        raise InputError(f"g_world: expected a non-zero (3,) gravity direction, got {np.asarray(g_world).tolist()}")
+        raise InputError(
+            f"g_world: expected a non-zero (3,) gravity direction, got {np.asarray(g_world).tolist()}"
+        )
     g = g / n
     k = int(np.argmin(np.round(np.abs(g), 9)))  # the least aligned world axis (the first of equals)
     a = np.eye(3)[k]
@@ -127,7 +129,9 @@ def error_norm(errors: object, max_error_m: float | None = None):
     check_positive("max_error_m", max_error_m, allow_none=True)
     e = np.asarray(errors, dtype=float).reshape(-1)
     e = e[np.isfinite(e)]
-    lo, hi = (max(float(e.min()), ERROR_FLOOR_M), max(float(e.max()), ERROR_FLOOR_M)) if e.size else (1e-3, 1.0)
+    lo, hi = (
+        (max(float(e.min()), ERROR_FLOOR_M), max(float(e.max()), ERROR_FLOOR_M)) if e.size else (1e-3, 1.0)
+    )
     if max_error_m is not None:
         hi = float(max_error_m)
         lo = min(lo, hi / MIN_ERROR_SPAN)
@@ -165,7 +169,9 @@ def _cmap():
 
 
 def _errors(results: Sequence) -> np.ndarray:
-    return np.array([getattr(r, "translation_error_m", float("nan")) for r in results], dtype=float).reshape(-1)
+    return np.array([getattr(r, "translation_error_m", float("nan")) for r in results], dtype=float).reshape(
+        -1
+    )
 
 
 def _usable_errors(results: Sequence) -> np.ndarray:
@@ -192,11 +198,20 @@ def _failure_label(results: Sequence, failed: np.ndarray) -> str:
             counts[s] = counts.get(s, 0) + 1
     if len(counts) > 3:
         return f"no usable pose ({int(failed.sum())})"
-    return "no usable pose: " + ", ".join(f"{n} {s}" for s, n in sorted(counts.items(), key=lambda kv: -kv[1]))
+    return "no usable pose: " + ", ".join(
+        f"{n} {s}" for s, n in sorted(counts.items(), key=lambda kv: -kv[1])
+    )
 
 
-def plot_localization(ax, map_centers: np.ndarray, results: Sequence, max_error_m: float | None = None,
-                      title: str | None = None, g_world: object = (0.0, 1.0, 0.0), norm=None):
+def plot_localization(
+    ax,
+    map_centers: np.ndarray,
+    results: Sequence,
+    max_error_m: float | None = None,
+    title: str | None = None,
+    g_world: object = (0.0, 1.0, 0.0),
+    norm=None,
+):
     """Draw the top view (module docstring): the map trajectory, the ground truth, a marker per
     result at its true position (coloured by error, failures marked) and estimate → truth lines.
 
@@ -230,7 +245,14 @@ def plot_localization(ax, map_centers: np.ndarray, results: Sequence, max_error_
     c = np.clip(err, norm.vmin, norm.vmax)
 
     if len(map_xy):  # one map image: a square, as a line of one point is not drawn
-        ax.plot(map_xy[:, 0], map_xy[:, 1], "-" if len(map_xy) > 1 else "s", color="0.6", lw=2, label="map cameras")
+        ax.plot(
+            map_xy[:, 0],
+            map_xy[:, 1],
+            "-" if len(map_xy) > 1 else "s",
+            color="0.6",
+            lw=2,
+            label="map cameras",
+        )
     if len(gt) > 1:  # one result: its marker is all there is
         ax.plot(gt[:, 0], gt[:, 1], "-", color="tab:green", lw=1, alpha=0.6, label="ground truth")
     seg = (kinds != FAILED) & np.isfinite(est).all(axis=1)
@@ -238,18 +260,47 @@ def plot_localization(ax, map_centers: np.ndarray, results: Sequence, max_error_
         # a legend entry only when some segment shows beside its marker (longer than 0.5% of the view)
         drawn = np.concatenate([map_xy, gt, est[seg]])
         shows = np.linalg.norm(est[seg] - gt[seg], axis=1).max() > 0.005 * float(np.ptp(drawn, axis=0).max())
-        ax.add_collection(LineCollection(list(np.stack([est[seg], gt[seg]], axis=1)), colors=_SEGMENT_COLOR,
-                                         linewidths=0.8, alpha=0.8, zorder=2.5,
-                                         label="estimate → ground truth" if shows else None))
+        ax.add_collection(
+            LineCollection(
+                list(np.stack([est[seg], gt[seg]], axis=1)),
+                colors=_SEGMENT_COLOR,
+                linewidths=0.8,
+                alpha=0.8,
+                zorder=2.5,
+                label="estimate → ground truth" if shows else None,
+            )
+        )
         ax.scatter(est[seg, 0], est[seg, 1], s=5, color=_SEGMENT_COLOR, zorder=2.6)
     loc, pred, fail = kinds == LOCALIZED, kinds == PREDICTED, kinds == FAILED
-    sc = ax.scatter(gt[loc, 0], gt[loc, 1], c=c[loc], cmap=_cmap(), norm=norm, s=30, zorder=3, plotnonfinite=True,
-                    label=f"localized ({int(loc.sum())}), colour = error" if loc.any() else None, **_LOCALIZED_STYLE)
+    sc = ax.scatter(
+        gt[loc, 0],
+        gt[loc, 1],
+        c=c[loc],
+        cmap=_cmap(),
+        norm=norm,
+        s=30,
+        zorder=3,
+        plotnonfinite=True,
+        label=f"localized ({int(loc.sum())}), colour = error" if loc.any() else None,
+        **_LOCALIZED_STYLE,
+    )
     if pred.any():
-        ax.scatter(gt[pred, 0], gt[pred, 1], c=c[pred], cmap=_cmap(), norm=norm, s=36, zorder=3, plotnonfinite=True,
-                   label=f"predicted ({int(pred.sum())}), colour = error", **_PREDICTED_STYLE)
+        ax.scatter(
+            gt[pred, 0],
+            gt[pred, 1],
+            c=c[pred],
+            cmap=_cmap(),
+            norm=norm,
+            s=36,
+            zorder=3,
+            plotnonfinite=True,
+            label=f"predicted ({int(pred.sum())}), colour = error",
+            **_PREDICTED_STYLE,
+        )
     if fail.any():
-        ax.scatter(gt[fail, 0], gt[fail, 1], s=40, zorder=4, label=_failure_label(results, fail), **_FAIL_STYLE)
+        ax.scatter(
+            gt[fail, 0], gt[fail, 1], s=40, zorder=4, label=_failure_label(results, fail), **_FAIL_STYLE
+        )
     ax.set_aspect("equal", adjustable="datalim")
     xlabel, ylabel = axis_labels(g_world)
     ax.set_xlabel(xlabel)
@@ -309,22 +360,54 @@ def plot_error_over_time(ax, results: Sequence, norm=None, max_error_m: float | 
     order = np.argsort(t, kind="stable")  # a line through the usable errors, broken where a pose is missing
     ax.plot(t[order], np.where(usable, shown, np.nan)[order], "-", color="0.75", lw=0.8, zorder=1)
     loc, pred, fail = usable & (kinds == LOCALIZED), usable & (kinds == PREDICTED), kinds == FAILED
-    sc = ax.scatter(t[loc], shown[loc], c=np.clip(err[loc], norm.vmin, norm.vmax), cmap=_cmap(), norm=norm, s=18,
-                    zorder=3, **_LOCALIZED_STYLE)
+    sc = ax.scatter(
+        t[loc],
+        shown[loc],
+        c=np.clip(err[loc], norm.vmin, norm.vmax),
+        cmap=_cmap(),
+        norm=norm,
+        s=18,
+        zorder=3,
+        **_LOCALIZED_STYLE,
+    )
     if pred.any():
-        ax.scatter(t[pred], shown[pred], c=np.clip(err[pred], norm.vmin, norm.vmax), cmap=_cmap(), norm=norm, s=24,
-                   zorder=3, **_PREDICTED_STYLE)
+        ax.scatter(
+            t[pred],
+            shown[pred],
+            c=np.clip(err[pred], norm.vmin, norm.vmax),
+            cmap=_cmap(),
+            norm=norm,
+            s=24,
+            zorder=3,
+            **_PREDICTED_STYLE,
+        )
     threshold = THRESHOLDS[0][0]
     ax.axhline(threshold, color="tab:red", lw=0.8, ls="--", alpha=0.7, zorder=0)
     ax.set_yscale("log")
     lo = min(norm.vmin, float(shown[usable].min()) if usable.any() else norm.vmin)
     hi = max(norm.vmax, threshold, float(shown[usable].max()) if usable.any() else norm.vmax)
     ax.set_ylim(lo / 1.6, hi * 1.6)
-    ax.text(1.0, threshold, f" {format_metres(threshold)}\n threshold", transform=ax.get_yaxis_transform(),
-            color="tab:red", fontsize="x-small", va="center", ha="left", clip_on=False)
+    ax.text(
+        1.0,
+        threshold,
+        f" {format_metres(threshold)}\n threshold",
+        transform=ax.get_yaxis_transform(),
+        color="tab:red",
+        fontsize="x-small",
+        va="center",
+        ha="left",
+        clip_on=False,
+    )
     if fail.any():  # on the time axis: y in axes coordinates
-        ax.scatter(t[fail], np.zeros(int(fail.sum())), s=30, transform=ax.get_xaxis_transform(), clip_on=False,
-                   zorder=4, **_FAIL_STYLE)
+        ax.scatter(
+            t[fail],
+            np.zeros(int(fail.sum())),
+            s=30,
+            transform=ax.get_xaxis_transform(),
+            clip_on=False,
+            zorder=4,
+            **_FAIL_STYLE,
+        )
     log_metre_axis(ax.yaxis)
     ax.set_xlabel(t_label)
     ax.set_ylabel("position error")
@@ -344,16 +427,26 @@ _TOP_VIEW_WIDTH_IN, _TIME_PANEL_IN = 5.4, 2.0  # inches: the top view's width, t
 def _top_view_height(map_centers: np.ndarray, results: Sequence, g_world: object) -> float:
     """Height in inches of the top view's panel that fits the drawn points at equal aspect."""
     ex, ey, _ = gravity_plane_basis(g_world)
-    pts = np.concatenate([np.asarray(map_centers, dtype=float).reshape(-1, 3),
-                          np.array([r.truth_center for r in results], dtype=float).reshape(-1, 3)])
+    pts = np.concatenate(
+        [
+            np.asarray(map_centers, dtype=float).reshape(-1, 3),
+            np.array([r.truth_center for r in results], dtype=float).reshape(-1, 3),
+        ]
+    )
     pts = pts[np.isfinite(pts).all(axis=1)] @ np.stack([ex, ey], axis=1)
-    dx, dy = (np.ptp(pts, axis=0) if len(pts) else (1.0, 1.0))
+    dx, dy = np.ptp(pts, axis=0) if len(pts) else (1.0, 1.0)
     aspect = float(np.clip((dy + 1e-9) / (dx + 1e-9), 0.4, 1.5))
     return _TOP_VIEW_WIDTH_IN * aspect + 0.9  # + title and axis label
 
 
-def save_localization_plot(path, map_centers: np.ndarray, results: Sequence, title: str | None = None,
-                           max_error_m: float | None = None, g_world: object = (0.0, 1.0, 0.0)) -> None:
+def save_localization_plot(
+    path,
+    map_centers: np.ndarray,
+    results: Sequence,
+    title: str | None = None,
+    max_error_m: float | None = None,
+    g_world: object = (0.0, 1.0, 0.0),
+) -> None:
     """Write the top view (:func:`plot_localization`) above the error over time
     (:func:`plot_error_over_time`), one colour scale for both, to an image file (headless backend).
 
@@ -375,7 +468,9 @@ def save_localization_plot(path, map_centers: np.ndarray, results: Sequence, tit
     plot_error_over_time(ax_t, results, norm=norm)
     usable = err[(kinds != FAILED) & np.isfinite(err)]
     below, above = bool((usable < norm.vmin).any()), bool((usable > norm.vmax).any())
-    extend = {(False, False): "neither", (True, False): "min", (False, True): "max", (True, True): "both"}[below, above]
+    extend = {(False, False): "neither", (True, False): "min", (False, True): "max", (True, True): "both"}[
+        below, above
+    ]
     if usable.size:  # a colour bar without coloured points would only be noise
         bar = fig.colorbar(sc, ax=[ax, ax_t], label="position error (log scale)", extend=extend, shrink=0.9)
         log_metre_axis(bar.ax.yaxis)

@@ -20,17 +20,29 @@ from planarloc.map.store import MapDatabase
 
 
 def cli(*args: object, env: dict) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "planarloc.cli.main", *map(str, args)], capture_output=True,
-                          text=True, env=env, timeout=600)
+    return subprocess.run(
+        [sys.executable, "-m", "planarloc.cli.main", *map(str, args)],
+        capture_output=True,
+        text=True,
+        env=env,
+        timeout=600,
+    )
 
 
 def _small_map(path: Path) -> None:
     rng = np.random.default_rng(0)
     with MapDatabase.create(path, {"features": "test"}) as db:
         d = rng.random((20, 128), dtype=np.float32)
-        db.add_image(PosedImage("a.png", Path("a.png"), Pose.identity(), Camera("PINHOLE", 64, 48, (50, 50, 32, 24)), 0),
-                     Features(rng.random((20, 2), dtype=np.float32) * 40, d / np.linalg.norm(d, axis=1, keepdims=True),
-                              np.ones(20, np.float32)))
+        db.add_image(
+            PosedImage(
+                "a.png", Path("a.png"), Pose.identity(), Camera("PINHOLE", 64, 48, (50, 50, 32, 24)), 0
+            ),
+            Features(
+                rng.random((20, 2), dtype=np.float32) * 40,
+                d / np.linalg.norm(d, axis=1, keepdims=True),
+                np.ones(20, np.float32),
+            ),
+        )
 
 
 @pytest.fixture
@@ -40,7 +52,9 @@ def env(tmp_path: Path) -> dict:
     return {**os.environ, "TMPDIR": str(tmp_path / "tmp"), "NUMBA_CACHE_DIR": str(tmp_path / "numba")}
 
 
-def test_list_says_where_and_clean_removes_maps_and_bags_but_not_a_map_being_built(env: dict, tmp_path: Path) -> None:
+def test_list_says_where_and_clean_removes_maps_and_bags_but_not_a_map_being_built(
+    env: dict, tmp_path: Path
+) -> None:
     mine = tmp_path / "tmp" / f"planarloc-{os.geteuid()}"
     maps, bags = mine / "maps", mine / "bags"
     for name in ("kitti_seq2-every4-0123.db", "busy.db"):
@@ -54,28 +68,46 @@ def test_list_says_where_and_clean_removes_maps_and_bags_but_not_a_map_being_bui
     assert f"{bags}: 1 files, 5 KB" in lines["bags"]
     assert str(tmp_path / "numba") in lines["kernels"] and "planarloc warmup" in lines["kernels"]
 
-    holder = subprocess.Popen([sys.executable, "-c", "import sys; from planarloc.map.lock import MapWriterLock; "
-                               f"l = MapWriterLock({str(maps / 'busy.db')!r}); l.acquire(); print('held', flush=True); "
-                               "sys.stdin.read()"], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, env=env)
+    holder = subprocess.Popen(
+        [
+            sys.executable,
+            "-c",
+            "import sys; from planarloc.map.lock import MapWriterLock; "
+            f"l = MapWriterLock({str(maps / 'busy.db')!r}); l.acquire(); print('held', flush=True); "
+            "sys.stdin.read()",
+        ],
+        stdin=subprocess.PIPE,
+        stdout=subprocess.PIPE,
+        text=True,
+        env=env,
+    )
     try:
         assert holder.stdout.readline().strip() == "held"
         cleaned = cli("cache", "clean", env=env)
     finally:
         holder.communicate("", timeout=60)
     assert cleaned.returncode == 0, cleaned.stderr
-    assert "maps" in cleaned.stdout and "removed 1 maps" in cleaned.stdout and "removed 1 files, 5 KB" in cleaned.stdout
+    assert (
+        "maps" in cleaned.stdout
+        and "removed 1 maps" in cleaned.stdout
+        and "removed 1 files, 5 KB" in cleaned.stdout
+    )
     assert f"kept {maps / 'busy.db'}: a map build holds it" in cleaned.stderr
     assert sorted(p.name for p in maps.glob("*.db")) == ["busy.db"] and not list(bags.rglob("*.png"))
 
 
 def test_clean_kernels_removes_the_compiled_kernels_only(env: dict, tmp_path: Path) -> None:
-    compile_one = ("import numpy as np; from planarloc.robust.sampling import _pick_weighted; "
-                   "_pick_weighted(0.5, np.ones(3), -1)")
+    compile_one = (
+        "import numpy as np; from planarloc.robust.sampling import _pick_weighted; "
+        "_pick_weighted(0.5, np.ones(3), -1)"
+    )
     subprocess.run([sys.executable, "-c", compile_one], env=env, check=True, timeout=600)
     cached = sorted((tmp_path / "numba").rglob("*.nb[ic]"))
     assert cached and all(p.name.startswith("sampling.") for p in cached)
     (tmp_path / "numba" / "keep.txt").write_text("not a kernel")
-    kernels = [line for line in cli("cache", "list", env=env).stdout.splitlines() if line.startswith("kernels")]
+    kernels = [
+        line for line in cli("cache", "list", env=env).stdout.splitlines() if line.startswith("kernels")
+    ]
     assert str(cached[0].parent) in kernels[0] and f": {len(cached)} files" in kernels[0]
     out = cli("cache", "clean", "kernels", env=env)
     assert out.returncode == 0 and f"removed {len(cached)} files" in out.stdout
@@ -86,8 +118,9 @@ def test_unknown_cache_is_one_line(capsys: pytest.CaptureFixture[str]) -> None:
     from planarloc.cli.main import main
 
     assert main(["cache", "clean", "pictures"]) == 1
-    assert capsys.readouterr().err.strip() == ("planarloc cache: error: unknown cache 'pictures': expected maps, "
-                                               "bags, kernels or all")
+    assert capsys.readouterr().err.strip() == (
+        "planarloc cache: error: unknown cache 'pictures': expected maps, bags, kernels or all"
+    )
 
 
 def test_cache_folders_are_this_users_and_closed_to_others(env: dict, tmp_path: Path) -> None:
@@ -144,8 +177,13 @@ def test_a_link_planted_by_another_user_never_makes_cache_clean_delete_roots_fil
         assert made.returncode == 0, made.stderr
         refused = cli("cache", "clean", env=env)
         assert refused.returncode == 1 and f"belongs to {user.pw_name}" in refused.stderr
-        made_map = subprocess.run([sys.executable, "-c", "from planarloc.map.settings import cache_dir; "
-                                   "cache_dir('maps')"], env=env, capture_output=True, text=True, timeout=300)
+        made_map = subprocess.run(
+            [sys.executable, "-c", "from planarloc.map.settings import cache_dir; cache_dir('maps')"],
+            env=env,
+            capture_output=True,
+            text=True,
+            timeout=300,
+        )
         assert made_map.returncode != 0 and "belongs to" in made_map.stderr  # evaluate's maps never go there
 
 

@@ -14,8 +14,22 @@ def run(argv: list[str]) -> int:
     return main([str(a) for a in argv])
 
 
-@pytest.mark.parametrize("argv", [[], ["map"], ["map", "build"], ["map", "info"], ["localize"], ["evaluate"],
-                                  ["demo"], ["warmup"], ["cache"], ["cache", "list"], ["cache", "clean"]])
+@pytest.mark.parametrize(
+    "argv",
+    [
+        [],
+        ["map"],
+        ["map", "build"],
+        ["map", "info"],
+        ["localize"],
+        ["evaluate"],
+        ["demo"],
+        ["warmup"],
+        ["cache"],
+        ["cache", "list"],
+        ["cache", "clean"],
+    ],
+)
 def test_help_teaches(argv: list[str], capsys: pytest.CaptureFixture[str]) -> None:
     with pytest.raises(SystemExit) as exc:
         build_parser().parse_args([*argv, "--help"])
@@ -32,7 +46,10 @@ def test_map_build_storage_compact_is_a_smaller_map_that_localizes(tiny_world: P
     sizes = {}
     for storage in ("full", "compact"):
         db = tmp_path / f"{storage}.db"
-        assert run(["map", "build", tiny_world / "map", "--format", "tum", "--out", db, "--storage", storage]) == 0
+        assert (
+            run(["map", "build", tiny_world / "map", "--format", "tum", "--out", db, "--storage", storage])
+            == 0
+        )
         with MapDatabase.open(db) as m:
             assert m.storage == storage
         sizes[storage] = db.stat().st_size
@@ -43,10 +60,24 @@ def test_map_build_storage_compact_is_a_smaller_map_that_localizes(tiny_world: P
     assert run(["localize", "--map", tmp_path / "compact.db", query, "--camera", cam, "--out", out]) == 0
     assert len(out.read_text().splitlines()) == 1
     with pytest.raises(SystemExit):
-        run(["map", "build", tiny_world / "map", "--format", "tum", "--out", tmp_path / "x.db", "--storage", "tiny"])
+        run(
+            [
+                "map",
+                "build",
+                tiny_world / "map",
+                "--format",
+                "tum",
+                "--out",
+                tmp_path / "x.db",
+                "--storage",
+                "tiny",
+            ]
+        )
 
 
-def test_map_build_localize_evaluate(tiny_world: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+def test_map_build_localize_evaluate(
+    tiny_world: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     db = tmp_path / "map.db"
     assert run(["map", "build", tiny_world / "map", "--format", "tum", "--out", db]) == 0
     capsys.readouterr()
@@ -55,23 +86,50 @@ def test_map_build_localize_evaluate(tiny_world: Path, tmp_path: Path, capsys: p
     out = tmp_path / "poses.txt"
     queries = sorted((tiny_world / "query" / "rgb").glob("*.png"))[:3]
     cam = (tiny_world / "query" / "camera.txt").read_text().splitlines()[-1]
-    assert run(["localize", "--map", db, *queries, "--camera", cam, "--structure", "tracks", "--out", out]) == 0
+    assert (
+        run(["localize", "--map", db, *queries, "--camera", cam, "--structure", "tracks", "--out", out]) == 0
+    )
     lines = out.read_text().splitlines()
     assert len(lines) == 3 and all(len(line.split()) == 8 for line in lines)
     records = [json.loads(p.read_text()) for p in sorted((tmp_path / "poses.txt.json.d").glob("*.json"))]
     assert len(records) == 3 and all(r["success"] and r["num_inliers"] > 0 for r in records)
     # the rendered world's poses are exact: the measured prior is far below the 0.1° / 2 cm default
-    assert all(r["map_prior"]["rotation_std_deg"] < 0.05 and r["map_prior"]["position_std_m"] < 0.01
-               for r in records), [r["map_prior"] for r in records]
+    assert all(
+        r["map_prior"]["rotation_std_deg"] < 0.05 and r["map_prior"]["position_std_m"] < 0.01 for r in records
+    ), [r["map_prior"] for r in records]
     summary = tmp_path / "eval.json"
     plot = tmp_path / "eval.png"
-    assert run(["evaluate", tiny_world / "map", "--format", "tum", "--map-every", "2", "--map", tmp_path / "e.db",
-                "--structure", "tracks", "--json", summary, "--plot", plot]) == 0
+    assert (
+        run(
+            [
+                "evaluate",
+                tiny_world / "map",
+                "--format",
+                "tum",
+                "--map-every",
+                "2",
+                "--map",
+                tmp_path / "e.db",
+                "--structure",
+                "tracks",
+                "--json",
+                summary,
+                "--plot",
+                plot,
+            ]
+        )
+        == 0
+    )
     s = json.loads(summary.read_text())
     assert s["queries"] == 6 and s["method"] == "auto" and s["structure"] == "tracks"
     assert set(s["success"]) == {"0.25m/10deg", "0.5m/10deg", "1m/20deg"}
     assert s["success"]["0.25m/10deg"] >= 80.0 and plot.stat().st_size > 1000
-    for key in ("median_translation_error_m", "median_rotation_error_deg", "failed_queries", "seconds_per_query"):
+    for key in (
+        "median_translation_error_m",
+        "median_rotation_error_deg",
+        "failed_queries",
+        "seconds_per_query",
+    ):
         assert key in s
 
 
@@ -100,8 +158,9 @@ def test_help_pages_say_what_the_code_does(capsys: pytest.CaptureFixture[str]) -
     assert "'-' for stdout" in page("localize")
 
 
-def test_map_build_interrupted_says_it_resumes(tiny_world: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
-                                               capsys: pytest.CaptureFixture[str]) -> None:
+def test_map_build_interrupted_says_it_resumes(
+    tiny_world: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
     from planarloc.cli import map_command
 
     def interrupted(*args, **kwargs):
@@ -109,5 +168,9 @@ def test_map_build_interrupted_says_it_resumes(tiny_world: Path, tmp_path: Path,
 
     monkeypatch.setattr(map_command, "build_map", interrupted)
     assert run(["map", "build", tiny_world / "map", "-f", "tum", "--out", tmp_path / "m.db"]) == 130
-    assert capsys.readouterr().err.strip().splitlines()[-1].startswith("interrupted; re-run the same command to "
-                                                                       "resume the build")
+    assert (
+        capsys.readouterr()
+        .err.strip()
+        .splitlines()[-1]
+        .startswith("interrupted; re-run the same command to resume the build")
+    )

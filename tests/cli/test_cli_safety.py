@@ -73,13 +73,17 @@ def test_localize_out_equal_to_a_query_is_refused(world_map: Path, queries, tmp_
 
 
 @pytest.mark.parametrize("case", ["out_is_dir", "json_dir_is_file", "parent_is_file"])
-def test_bad_output_paths_one_line_before_work(world_map: Path, queries, tmp_path: Path, capsys, case: str) -> None:
+def test_bad_output_paths_one_line_before_work(
+    world_map: Path, queries, tmp_path: Path, capsys, case: str
+) -> None:
     images, cam = queries
     (tmp_path / "a_file").write_text("x")
     (tmp_path / "a_dir").mkdir()
-    extra = {"out_is_dir": ["--out", tmp_path / "a_dir"],
-             "json_dir_is_file": ["--out", tmp_path / "p.txt", "--json-dir", tmp_path / "a_file"],
-             "parent_is_file": ["--out", tmp_path / "a_file" / "p.txt"]}[case]
+    extra = {
+        "out_is_dir": ["--out", tmp_path / "a_dir"],
+        "json_dir_is_file": ["--out", tmp_path / "p.txt", "--json-dir", tmp_path / "a_file"],
+        "parent_is_file": ["--out", tmp_path / "a_file" / "p.txt"],
+    }[case]
     assert run(["localize", "--map", world_map, *images, "--camera", cam, *extra]) == 1
     one_error_line(capsys, "planarloc localize: error:")
     assert (tmp_path / "a_file").read_text() == "x" and not (tmp_path / "p.txt").exists()
@@ -91,7 +95,9 @@ def test_os_errors_are_one_line(capsys) -> None:
 
 
 # ---- batches ------------------------------------------------------------------------------------
-def test_bad_queries_are_recorded_and_the_batch_goes_on(world_map: Path, queries, tmp_path: Path, capsys) -> None:
+def test_bad_queries_are_recorded_and_the_batch_goes_on(
+    world_map: Path, queries, tmp_path: Path, capsys
+) -> None:
     images, cam = queries
     broken = tmp_path / "broken.png"
     broken.write_bytes(b"not an image")
@@ -100,32 +106,69 @@ def test_bad_queries_are_recorded_and_the_batch_goes_on(world_map: Path, queries
 
     cv2.imwrite(str(small), np.zeros((60, 80), np.uint8))
     out = tmp_path / "poses.txt"
-    rc = run(["localize", "--map", world_map, broken, images[0], small, images[1], "--camera", cam,
-              "--structure", "tracks", "--out", out])
+    rc = run(
+        [
+            "localize",
+            "--map",
+            world_map,
+            broken,
+            images[0],
+            small,
+            images[1],
+            "--camera",
+            cam,
+            "--structure",
+            "tracks",
+            "--out",
+            out,
+        ]
+    )
     assert rc == 3
     lines = out.read_text().splitlines()
     assert sorted(line.split()[0] for line in lines) == sorted(p.name for p in images)
-    records = {r["name"]: r for r in (json.loads(p.read_text()) for p in (tmp_path / "poses.txt.json.d").glob("*"))}
-    assert records["broken.png"]["status"] == "error" and "cannot read image" in records["broken.png"]["message"]
+    records = {
+        r["name"]: r for r in (json.loads(p.read_text()) for p in (tmp_path / "poses.txt.json.d").glob("*"))
+    }
+    assert (
+        records["broken.png"]["status"] == "error" and "cannot read image" in records["broken.png"]["message"]
+    )
     assert records["small.png"]["status"] == "error" and "80x60" in records["small.png"]["message"]
     captured = capsys.readouterr()
     assert "localized 2 of 4 queries (2 failed, 2 could not be processed)" in captured.out
-    assert "query broken.png not processed: " in captured.err and "query small.png not processed: " in captured.err
+    assert (
+        "query broken.png not processed: " in captured.err
+        and "query small.png not processed: " in captured.err
+    )
 
 
 def test_camera_of_another_size_is_not_silently_used(world_map: Path, queries, tmp_path: Path) -> None:
     images, _ = queries
     out = tmp_path / "poses.txt"
-    assert run(["localize", "--map", world_map, images[0], "--camera", "PINHOLE 640 480 500 500 320 240",
-                "--out", out]) == 3
+    assert (
+        run(
+            [
+                "localize",
+                "--map",
+                world_map,
+                images[0],
+                "--camera",
+                "PINHOLE 640 480 500 500 320 240",
+                "--out",
+                out,
+            ]
+        )
+        == 3
+    )
     assert out.read_text() == ""
     record = json.loads(next((tmp_path / "poses.txt.json.d").glob("*")).read_text())
     assert not record["success"] and "640x480" in record["message"]
 
 
 # ---- validation before work ---------------------------------------------------------------------
-@pytest.mark.parametrize("option", [["--vocabulary-size", "0"], ["--max-features", "0"], ["--every", "0"],
-                                    ["--dataset-option", "nonsense"]])
+@pytest.mark.parametrize(
+    "option",
+    [["--vocabulary-size", "0"], ["--max-features", "0"], ["--every", "0"], ["--dataset-option", "nonsense"]],
+)
 def test_map_build_options_checked_before_any_file(tiny_world: Path, tmp_path: Path, capsys, option) -> None:
     db = tmp_path / "m.db"
     assert run(["map", "build", tiny_world / "map", "-f", "tum", "--out", db, *option]) == 1
@@ -135,7 +178,12 @@ def test_map_build_options_checked_before_any_file(tiny_world: Path, tmp_path: P
 
 def test_localize_options_checked_before_the_map(tmp_path: Path, queries, capsys) -> None:
     images, _ = queries
-    assert run(["localize", "--map", tmp_path / "missing.db", images[0], "--camera", "PINHOLE 640.5 480 1 1 1 1"]) == 1
+    assert (
+        run(
+            ["localize", "--map", tmp_path / "missing.db", images[0], "--camera", "PINHOLE 640.5 480 1 1 1 1"]
+        )
+        == 1
+    )
     one_error_line(capsys, "--camera", "whole")
 
 
@@ -157,13 +205,19 @@ def test_map_build_out_equal_to_an_image_is_refused(tiny_world: Path, tmp_path: 
     assert image.read_bytes() == before
 
 
-def test_evaluate_outputs_must_differ_from_inputs_and_each_other(tiny_world: Path, tmp_path: Path, capsys) -> None:
+def test_evaluate_outputs_must_differ_from_inputs_and_each_other(
+    tiny_world: Path, tmp_path: Path, capsys
+) -> None:
     m = tmp_path / "e.db"
-    assert run(["evaluate", tiny_world / "map", "-f", "tum", "--map-every", "2", "--map", m, "--json", m]) == 1
+    assert (
+        run(["evaluate", tiny_world / "map", "-f", "tum", "--map-every", "2", "--map", m, "--json", m]) == 1
+    )
     one_error_line(capsys, "--json", "same path")
     gt = tiny_world / "map" / "groundtruth.txt"
     before = gt.read_bytes()
-    assert run(["evaluate", tiny_world / "map", "-f", "tum", "--map-every", "2", "--map", m, "--json", gt]) == 1
+    assert (
+        run(["evaluate", tiny_world / "map", "-f", "tum", "--map-every", "2", "--map", m, "--json", gt]) == 1
+    )
     one_error_line(capsys, "is also an input")
     assert gt.read_bytes() == before and not m.exists()
 
@@ -180,7 +234,9 @@ def _shift_groundtruth(folder: Path, dx: float) -> None:
     gt.write_text("\n".join(lines) + "\n")
 
 
-def test_fixed_poses_replace_stale_ones_in_map_and_evaluate_cache(tiny_world: Path, tmp_path: Path, capsys) -> None:
+def test_fixed_poses_replace_stale_ones_in_map_and_evaluate_cache(
+    tiny_world: Path, tmp_path: Path, capsys
+) -> None:
     data = tmp_path / "data"
     shutil.copytree(tiny_world / "map", data)
     db = tmp_path / "m.db"
@@ -220,18 +276,39 @@ def test_same_file_names_in_two_folders_do_not_mix_up(world_map: Path, queries, 
         (tmp_path / sub).mkdir()
         shutil.copy(src, tmp_path / sub / "q.png")
     out = tmp_path / "poses.txt"
-    assert run(["localize", "--map", world_map, tmp_path / "a" / "q.png", tmp_path / "b" / "q.png",
-                "--camera", cam, "--structure", "tracks", "--out", out]) == 0
+    assert (
+        run(
+            [
+                "localize",
+                "--map",
+                world_map,
+                tmp_path / "a" / "q.png",
+                tmp_path / "b" / "q.png",
+                "--camera",
+                cam,
+                "--structure",
+                "tracks",
+                "--out",
+                out,
+            ]
+        )
+        == 0
+    )
     names = sorted(line.split()[0] for line in out.read_text().splitlines())
     assert names == ["a/q.png", "b/q.png"]
     assert len(list((tmp_path / "poses.txt.json.d").glob("*.json"))) == 2
 
 
-def test_query_names_with_whitespace_refused_before_work(world_map: Path, queries, tmp_path: Path, capsys) -> None:
+def test_query_names_with_whitespace_refused_before_work(
+    world_map: Path, queries, tmp_path: Path, capsys
+) -> None:
     images, cam = queries
     odd = tmp_path / "my query.png"
     shutil.copy(images[0], odd)
-    assert run(["localize", "--map", world_map, images[1], odd, "--camera", cam, "--out", tmp_path / "p.txt"]) == 1
+    assert (
+        run(["localize", "--map", world_map, images[1], odd, "--camera", cam, "--out", tmp_path / "p.txt"])
+        == 1
+    )
     one_error_line(capsys, "whitespace")
     assert not (tmp_path / "p.txt").exists()
 
@@ -249,16 +326,36 @@ def test_evaluate_records_a_broken_query_and_goes_on(tiny_world: Path, tmp_path:
     broken = read_dataset(data, "tum")[1]  # odd index: a query at --map-every 2
     broken.path.write_bytes(b"truncated")
     summary = tmp_path / "e.json"
-    assert run(["evaluate", data, "-f", "tum", "--map-every", "2", "--map", tmp_path / "e.db", "--vocabulary-size",
-                "16", "--structure", "tracks", "--json", summary]) == 3
+    assert (
+        run(
+            [
+                "evaluate",
+                data,
+                "-f",
+                "tum",
+                "--map-every",
+                "2",
+                "--map",
+                tmp_path / "e.db",
+                "--vocabulary-size",
+                "16",
+                "--structure",
+                "tracks",
+                "--json",
+                summary,
+            ]
+        )
+        == 3
+    )
     s = json.loads(summary.read_text())
     errors = [q for q in s["per_query"] if q["status"] == "error"]
     assert s["queries"] == 6 and len(errors) == 1 and errors[0]["name"] == broken.name
     assert "cannot read image" in errors[0]["message"] and s["localized"] >= 4
 
 
-def test_interrupted_batch_keeps_the_poses_so_far(world_map: Path, queries, tmp_path: Path,
-                                                  monkeypatch: pytest.MonkeyPatch, capsys) -> None:
+def test_interrupted_batch_keeps_the_poses_so_far(
+    world_map: Path, queries, tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys
+) -> None:
     from planarloc.localize.localizer import Localizer
 
     images, cam = queries
@@ -272,7 +369,10 @@ def test_interrupted_batch_keeps_the_poses_so_far(world_map: Path, queries, tmp_
 
     monkeypatch.setattr(Localizer, "localize_query", interrupt_second)
     out = tmp_path / "poses.txt"
-    assert run(["localize", "--map", world_map, *images, "--camera", cam, "--structure", "tracks", "--out", out]) == 130
+    assert (
+        run(["localize", "--map", world_map, *images, "--camera", cam, "--structure", "tracks", "--out", out])
+        == 130
+    )
     assert [line.split()[0] for line in out.read_text().splitlines()] == [images[0].name]
     # The message tells the truth: what is in the results file, and that localize does not resume.
     last = capsys.readouterr().err.strip().splitlines()[-1]

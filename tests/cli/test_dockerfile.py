@@ -59,9 +59,24 @@ def test_the_dockerfile_warms_up_as_root_then_runs_as_a_user_without_home() -> N
 def _pip_install(site: Path) -> None:
     """``RUN pip install .`` here: pip without network or build isolation when it can build the
     wheel offline, else the files setuptools installs (the package's modules and its package data)."""
-    pip = subprocess.run([sys.executable, "-m", "pip", "install", "--quiet", "--no-deps", "--no-index",
-                          "--no-build-isolation", "--target", str(site), str(REPO)], capture_output=True, text=True,
-                         timeout=600)
+    pip = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "pip",
+            "install",
+            "--quiet",
+            "--no-deps",
+            "--no-index",
+            "--no-build-isolation",
+            "--target",
+            str(site),
+            str(REPO),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
     if pip.returncode == 0:
         return
     data = tomllib.loads((REPO / "pyproject.toml").read_text())["tool"]["setuptools"]["package-data"]
@@ -88,13 +103,31 @@ def test_the_dockerfile_commands_run_as_its_user(tiny_world: Path) -> None:
         env = base_env(PYTHONPATH=str(site))
         cli = [sys.executable, "-m", "planarloc.cli.main"]
         # RUN, as root (cwd: `python -m` puts it first on sys.path, before PYTHONPATH)
-        warm = subprocess.run([*cli, "warmup"], env=env, capture_output=True, text=True, timeout=1800, cwd=root)
+        warm = subprocess.run(
+            [*cli, "warmup"], env=env, capture_output=True, text=True, timeout=1800, cwd=root
+        )
         assert warm.returncode == 0, warm.stderr
         assert re.match(r"warm-up done in", warm.stdout)
         shutil.copytree(tiny_world, root / "world")
-        built = subprocess.run([*cli, "map", "build", root / "world" / "map", "-f", "tum", "--out", root / "map.db",
-                                "--vocabulary-size", "16"], env=env, capture_output=True, text=True, timeout=900,
-                               cwd=root)
+        built = subprocess.run(
+            [
+                *cli,
+                "map",
+                "build",
+                root / "world" / "map",
+                "-f",
+                "tum",
+                "--out",
+                root / "map.db",
+                "--vocabulary-size",
+                "16",
+            ],
+            env=env,
+            capture_output=True,
+            text=True,
+            timeout=900,
+            cwd=root,
+        )
         assert built.returncode == 0, built.stderr
         subprocess.run(["chmod", "-R", "a+rX", str(root)], check=True)
         work = root / "work"  # WORKDIR /work, the user's
@@ -104,14 +137,22 @@ def test_the_dockerfile_commands_run_as_its_user(tiny_world: Path) -> None:
         tmp.mkdir(mode=0o1777)
         tmp.chmod(0o1777)
         as_user = base_env(PYTHONPATH=str(site), HOME="/nonexistent", TMPDIR=str(tmp))
-        entry = [json.loads(v) for w, v in instructions((REPO / "Dockerfile").read_text()) if w in ("ENTRYPOINT", "CMD")]
+        entry = [
+            json.loads(v)
+            for w, v in instructions((REPO / "Dockerfile").read_text())
+            if w in ("ENTRYPOINT", "CMD")
+        ]
         assert entry[0] == ["planarloc"]
         helped = run_as(user, [*cli, *entry[1]], env=as_user, cwd=work)  # ENTRYPOINT + CMD
         assert helped.returncode == 0 and "usage: planarloc" in helped.stdout, helped.stderr
         query = sorted((root / "world" / "query" / "rgb").glob("*.png"))[0]
         cam = (root / "world" / "query" / "camera.txt").read_text().splitlines()[-1]
-        proc = run_as(user, [*cli, "localize", "--map", root / "map.db", query, "--camera", cam],
-                      env={**as_user, "NUMBA_DEBUG_CACHE": "1"}, cwd=work)
+        proc = run_as(
+            user,
+            [*cli, "localize", "--map", root / "map.db", query, "--camera", cam],
+            env={**as_user, "NUMBA_DEBUG_CACHE": "1"},
+            cwd=work,
+        )
         assert proc.returncode == 0, proc.stderr
         assert len((work / "poses.txt").read_text().splitlines()) == 1
         loaded = [x for x in proc.stdout.splitlines() if "data loaded from" in x]

@@ -18,8 +18,18 @@ def test_evaluate_says_which_map_images_were_left_out(tiny_world: Path, tmp_path
     images = sorted((world / "map" / "rgb").glob("*.png"))
     bad = images[3]  # index 3: a map frame with --map-every 3
     bad.write_bytes(bad.read_bytes()[:500])
-    args = ["evaluate", str(world / "map"), "-f", "tum", "--map-every", "3", "--map", str(tmp_path / "m.db"),
-            "--json", str(tmp_path / "eval.json")]
+    args = [
+        "evaluate",
+        str(world / "map"),
+        "-f",
+        "tum",
+        "--map-every",
+        "3",
+        "--map",
+        str(tmp_path / "m.db"),
+        "--json",
+        str(tmp_path / "eval.json"),
+    ]
     for run in ("build", "reuse"):
         assert main(args) == EXIT_PARTIAL, run
         summary = json.loads((tmp_path / "eval.json").read_text())

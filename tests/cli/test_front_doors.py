@@ -23,10 +23,18 @@ from planarloc.cli.main import main
 POSE_LINE_FIELDS = 8
 
 
-def cli(*argv: object, cwd: Path | None = None, preexec=None, timeout: float = 600) -> subprocess.CompletedProcess:
+def cli(
+    *argv: object, cwd: Path | None = None, preexec=None, timeout: float = 600
+) -> subprocess.CompletedProcess:
     """Run `planarloc ARGV` in a new process (PYTHONPATH is inherited: this checkout's package)."""
-    return subprocess.run([sys.executable, "-m", "planarloc.cli.main", *map(str, argv)], capture_output=True,
-                          text=True, cwd=cwd, preexec_fn=preexec, timeout=timeout)
+    return subprocess.run(
+        [sys.executable, "-m", "planarloc.cli.main", *map(str, argv)],
+        capture_output=True,
+        text=True,
+        cwd=cwd,
+        preexec_fn=preexec,
+        timeout=timeout,
+    )
 
 
 def error_lines(proc: subprocess.CompletedProcess) -> list[str]:
@@ -36,7 +44,22 @@ def error_lines(proc: subprocess.CompletedProcess) -> list[str]:
 @pytest.fixture(scope="module")
 def world_map(tiny_world: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
     db = tmp_path_factory.mktemp("doors") / "map.db"
-    assert main(["map", "build", str(tiny_world / "map"), "-f", "tum", "--out", str(db), "--vocabulary-size", "16"]) == 0
+    assert (
+        main(
+            [
+                "map",
+                "build",
+                str(tiny_world / "map"),
+                "-f",
+                "tum",
+                "--out",
+                str(db),
+                "--vocabulary-size",
+                "16",
+            ]
+        )
+        == 0
+    )
     return db
 
 
@@ -46,8 +69,12 @@ def two_queries(tiny_world: Path) -> tuple[list[Path], str]:
     return images, (tiny_world / "query" / "camera.txt").read_text().splitlines()[-1]
 
 
-def localize(world_map: Path, images: list[Path], camera: str, *extra: object, **kw) -> subprocess.CompletedProcess:
-    return cli("localize", "--map", world_map, *images, "--camera", camera, "--structure", "tracks", *extra, **kw)
+def localize(
+    world_map: Path, images: list[Path], camera: str, *extra: object, **kw
+) -> subprocess.CompletedProcess:
+    return cli(
+        "localize", "--map", world_map, *images, "--camera", camera, "--structure", "tracks", *extra, **kw
+    )
 
 
 # ---- streams --------------------------------------------------------------------------------------
@@ -73,20 +100,39 @@ def test_map_info_and_check_streams_and_long_paths_stay_on_one_line(world_map, t
     assert first.startswith(f"{long_map}: 12 images") and len(first) > 160  # never hard-wrapped
     assert "gravity (down, world frame)" in info.stdout
     ok = cli("map", "check", long_map)
-    assert ok.returncode == 0 and ok.stdout.strip() == f"{long_map}: ok (12 images, complete)" and ok.stderr == ""
+    assert (
+        ok.returncode == 0
+        and ok.stdout.strip() == f"{long_map}: ok (12 images, complete)"
+        and ok.stderr == ""
+    )
     with sqlite3.connect(long_map) as conn:
         conn.execute("UPDATE images SET tx = tx + 1 WHERE id = 2")
     bad = cli("map", "check", long_map)
     assert bad.returncode == 1 and bad.stdout == ""
     problems = bad.stderr.splitlines()
-    assert problems[0] == f"{long_map}: images row 2 ('rgb/0.100000.png'): checksum mismatch (name, camera, pose or " \
-                          "features changed on disk)"
+    assert (
+        problems[0]
+        == f"{long_map}: images row 2 ('rgb/0.100000.png'): checksum mismatch (name, camera, pose or "
+        "features changed on disk)"
+    )
     assert problems[-1].startswith("planarloc map check: error:") and len(error_lines(bad)) == 1
 
 
 def test_evaluate_table_and_files_to_stdout_progress_to_stderr(tiny_world, tmp_path) -> None:
-    proc = cli("evaluate", tiny_world / "map", "-f", "tum", "--map-every", "2", "--map", tmp_path / "e.db",
-               "--vocabulary-size", "16", "--json", tmp_path / "e.json")
+    proc = cli(
+        "evaluate",
+        tiny_world / "map",
+        "-f",
+        "tum",
+        "--map-every",
+        "2",
+        "--map",
+        tmp_path / "e.db",
+        "--vocabulary-size",
+        "16",
+        "--json",
+        tmp_path / "e.json",
+    )
     assert proc.returncode == 0, proc.stderr
     assert "0.25m/10deg" in proc.stdout and f"wrote {tmp_path / 'e.json'}" in proc.stdout
     assert "0.25m/10deg" not in proc.stderr and "map: 6 frames" in proc.stderr
@@ -125,7 +171,8 @@ def test_a_device_and_a_symlink_to_it_are_written_through(world_map, two_queries
 
 
 def test_regular_results_are_replaced_atomically_through_a_symlink_with_umask_permissions(
-        world_map, two_queries, tmp_path) -> None:
+    world_map, two_queries, tmp_path
+) -> None:
     images, cam = two_queries
     real, link = tmp_path / "real.txt", tmp_path / "poses.txt"
     real.write_text("old.png 1 0 0 0 0 0 0\n")
@@ -151,7 +198,9 @@ def test_an_existing_map_or_image_is_never_replaced_by_results(world_map, two_qu
         before = target.read_bytes()
         proc = localize(world_map, images, cam, "--out", target)
         assert proc.returncode == 1 and len(proc.stderr.strip().splitlines()) == 1
-        assert proc.stderr.startswith(f"planarloc localize: error: --out {target}: exists and is not a results file")
+        assert proc.stderr.startswith(
+            f"planarloc localize: error: --out {target}: exists and is not a results file"
+        )
         assert target.read_bytes() == before
 
 
@@ -176,26 +225,50 @@ def test_a_full_disk_leaves_the_old_results_intact(world_map, two_queries, tmp_p
 def test_a_stream_records_an_unreadable_frame_and_goes_on(world_map, tiny_world, tmp_path) -> None:
     query = tiny_world / "query"
     frames = sorted((query / "rgb").glob("*.png"))
-    stamps = [float(line.split()[0]) for line in (query / "rgb.txt").read_text().splitlines() if line[0] != "#"]
+    stamps = [
+        float(line.split()[0]) for line in (query / "rgb.txt").read_text().splitlines() if line[0] != "#"
+    ]
     broken = tmp_path / "broken.png"
     broken.write_bytes(b"not an image")
-    listing = tmp_path / "frames.txt"  # the broken frame between the 3rd and the 4th, with a stamp between theirs
-    entries = [*zip(stamps[:3], frames[:3]), ((stamps[2] + stamps[3]) / 2, broken), *zip(stamps[3:], frames[3:])]
+    listing = (
+        tmp_path / "frames.txt"
+    )  # the broken frame between the 3rd and the 4th, with a stamp between theirs
+    entries = [
+        *zip(stamps[:3], frames[:3]),
+        ((stamps[2] + stamps[3]) / 2, broken),
+        *zip(stamps[3:], frames[3:]),
+    ]
     listing.write_text("".join(f"{t:.6f} {p}\n" for t, p in entries))
     out = tmp_path / "poses.txt"
     out.write_text("")
-    proc = cli("localize", "--map", world_map, "--sequence", listing, "--odometry", query / "groundtruth.txt",
-               "--structure", "tracks", "--out", out)
+    proc = cli(
+        "localize",
+        "--map",
+        world_map,
+        "--sequence",
+        listing,
+        "--odometry",
+        query / "groundtruth.txt",
+        "--structure",
+        "tracks",
+        "--out",
+        out,
+    )
     assert proc.returncode == 3, proc.stderr
-    records = {r["name"]: r for r in (json.loads(p.read_text()) for p in (tmp_path / "poses.txt.json.d").iterdir())}
-    assert records["broken.png"]["status"] == "error" and "cannot read image" in records["broken.png"]["message"]
+    records = {
+        r["name"]: r for r in (json.loads(p.read_text()) for p in (tmp_path / "poses.txt.json.d").iterdir())
+    }
+    assert (
+        records["broken.png"]["status"] == "error" and "cannot read image" in records["broken.png"]["message"]
+    )
     assert records["broken.png"]["stamp"] == pytest.approx((stamps[2] + stamps[3]) / 2)
     others = [records[p.name] for p in frames]
     assert all(r["status"] in ("localized", "predicted", "lost") for r in others)
     assert sum(r["success"] for r in others) >= 5 and others[3]["motion_source"] == "odometry"
     # predicted frames are marked by a comment line before their pose (`--predicted mark`, the default)
-    assert {line.split()[0] for line in out.read_text().splitlines() if not line.startswith("#")} == \
-        {r["name"] for r in others if r["success"]}
+    assert {line.split()[0] for line in out.read_text().splitlines() if not line.startswith("#")} == {
+        r["name"] for r in others if r["success"]
+    }
     assert "query broken.png not processed" in proc.stderr and "7 frames:" in proc.stdout
 
 
@@ -208,8 +281,24 @@ def test_query_names_follow_one_rule(world_map, tiny_world, tmp_path) -> None:
     listing.write_text("".join(f"{p}\n" for p in frames))
 
     def names(*args: object, out: str) -> list[str]:
-        assert main([str(a) for a in ["localize", "--map", world_map, *args, "--structure", "tracks", "--out",
-                                      tmp_path / out]]) == 0
+        assert (
+            main(
+                [
+                    str(a)
+                    for a in [
+                        "localize",
+                        "--map",
+                        world_map,
+                        *args,
+                        "--structure",
+                        "tracks",
+                        "--out",
+                        tmp_path / out,
+                    ]
+                ]
+            )
+            == 0
+        )
         return sorted(json.loads(p.read_text())["name"] for p in (tmp_path / f"{out}.json.d").iterdir())
 
     files = names(*frames, out="files.txt")

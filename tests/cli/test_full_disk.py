@@ -23,8 +23,13 @@ OLD_RESULTS = "old.png 1.0 0.0 0.0 0.0 1.0 2.0 3.0\n"
 
 
 def cli(*argv: object, preexec=None) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "planarloc.cli.main", *map(str, argv)], capture_output=True,
-                          text=True, preexec_fn=preexec, timeout=600)
+    return subprocess.run(
+        [sys.executable, "-m", "planarloc.cli.main", *map(str, argv)],
+        capture_output=True,
+        text=True,
+        preexec_fn=preexec,
+        timeout=600,
+    )
 
 
 @pytest.fixture
@@ -32,7 +37,9 @@ def small_disk(tmp_path) -> Iterator[Path]:
     """A 256 KB tmpfs (root only; skipped elsewhere — the RLIMIT test below runs everywhere)."""
     mount = tmp_path / "disk"
     mount.mkdir()
-    done = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=256k", "tmpfs", str(mount)], capture_output=True)
+    done = subprocess.run(
+        ["mount", "-t", "tmpfs", "-o", "size=256k", "tmpfs", str(mount)], capture_output=True
+    )
     if done.returncode != 0:
         pytest.skip(f"cannot mount a tmpfs here ({done.stderr.decode().strip()})")
     try:
@@ -53,10 +60,12 @@ def earlier_run(folder: Path) -> dict[Path, bytes]:
     """What a previous run left: results, a TUM trajectory and two records."""
     records = folder / "poses.txt.json.d"
     records.mkdir(parents=True)
-    files = {folder / "poses.txt": OLD_RESULTS.encode(),
-             folder / "poses.tum": b"# timestamp tx ty tz qx qy qz qw (camera-to-world)\n1.0 0 0 0 0 0 0 1\n",
-             records / "0.000000.png.json": json.dumps({"name": "0.000000.png", "old": True}).encode(),
-             records / "0.100000.png.json": json.dumps({"name": "0.100000.png", "old": True}).encode()}
+    files = {
+        folder / "poses.txt": OLD_RESULTS.encode(),
+        folder / "poses.tum": b"# timestamp tx ty tz qx qy qz qw (camera-to-world)\n1.0 0 0 0 0 0 0 1\n",
+        records / "0.000000.png.json": json.dumps({"name": "0.000000.png", "old": True}).encode(),
+        records / "0.100000.png.json": json.dumps({"name": "0.100000.png", "old": True}).encode(),
+    }
     for path, data in files.items():
         path.write_bytes(data)
     return files
@@ -78,17 +87,32 @@ def world_map(tiny_world, tmp_path_factory) -> Path:
 
 
 def queries(tiny_world: Path) -> tuple[list[Path], str]:
-    return sorted((tiny_world / "query" / "rgb").glob("*.png")), \
-        (tiny_world / "query" / "camera.txt").read_text().splitlines()[-1]
+    return sorted((tiny_world / "query" / "rgb").glob("*.png")), (
+        tiny_world / "query" / "camera.txt"
+    ).read_text().splitlines()[-1]
 
 
-@pytest.mark.parametrize("pages", [0, 3, 6])  # tmpfs pages of 4 KB left: the 1st record, the 4th, the trajectory
-def test_a_full_disk_during_a_batch_run_keeps_everything_earlier(small_disk, world_map, tiny_world, pages) -> None:
+@pytest.mark.parametrize(
+    "pages", [0, 3, 6]
+)  # tmpfs pages of 4 KB left: the 1st record, the 4th, the trajectory
+def test_a_full_disk_during_a_batch_run_keeps_everything_earlier(
+    small_disk, world_map, tiny_world, pages
+) -> None:
     files = earlier_run(small_disk)
     fill(small_disk, pages * 4096)
     images, camera = queries(tiny_world)
-    proc = cli("localize", "--map", world_map, *images, "--camera", camera, "--out", small_disk / "poses.txt",
-               "--tum", small_disk / "poses.tum")
+    proc = cli(
+        "localize",
+        "--map",
+        world_map,
+        *images,
+        "--camera",
+        camera,
+        "--out",
+        small_disk / "poses.txt",
+        "--tum",
+        small_disk / "poses.tum",
+    )
     assert proc.returncode == 1, proc.stdout + proc.stderr
     errors = [line for line in proc.stderr.splitlines() if "error:" in line]
     assert len(errors) == 1 and "No space left on device" in errors[0] and "disk is full" in errors[0]
@@ -96,45 +120,81 @@ def test_a_full_disk_during_a_batch_run_keeps_everything_earlier(small_disk, wor
     assert failed_at in errors[0], errors[0]
     assert unchanged(files) and no_temporaries(small_disk)
     assert sorted(p.name for p in (small_disk / "poses.txt.json.d").iterdir()) == [
-        "0.000000.png.json", "0.100000.png.json"]
+        "0.000000.png.json",
+        "0.100000.png.json",
+    ]
 
 
-def test_a_full_disk_under_the_results_file_only_keeps_the_records_too(small_disk, world_map, tiny_world,
-                                                                       tmp_path) -> None:
+def test_a_full_disk_under_the_results_file_only_keeps_the_records_too(
+    small_disk, world_map, tiny_world, tmp_path
+) -> None:
     """Records on a roomy disk, the results file on the full one: the records written during the
     run are dropped with it (one run, all or nothing)."""
     files = earlier_run(tmp_path / "roomy")
     (small_disk / "poses.txt").write_text(OLD_RESULTS)
     fill(small_disk, 0)
     images, camera = queries(tiny_world)
-    proc = cli("localize", "--map", world_map, *images, "--camera", camera, "--out", small_disk / "poses.txt",
-               "--json-dir", tmp_path / "roomy" / "poses.txt.json.d")
+    proc = cli(
+        "localize",
+        "--map",
+        world_map,
+        *images,
+        "--camera",
+        camera,
+        "--out",
+        small_disk / "poses.txt",
+        "--json-dir",
+        tmp_path / "roomy" / "poses.txt.json.d",
+    )
     assert proc.returncode == 1
     assert (small_disk / "poses.txt").read_text() == OLD_RESULTS and unchanged(files)
     assert no_temporaries(tmp_path) and no_temporaries(small_disk)
 
 
-def test_a_full_disk_during_a_stream_keeps_every_earlier_frame_record(small_disk, world_map, tiny_world) -> None:
+def test_a_full_disk_during_a_stream_keeps_every_earlier_frame_record(
+    small_disk, world_map, tiny_world
+) -> None:
     files = earlier_run(small_disk)
     images, camera = queries(tiny_world)
     listing = small_disk / "frames.txt"
     listing.write_text("".join(f"{0.1 * k:.6f} {p}\n" for k, p in enumerate(images)))
     fill(small_disk, 6000)
-    proc = cli("localize", "--map", world_map, "--sequence", listing, "--camera", camera,
-               "--out", small_disk / "poses.txt")
+    proc = cli(
+        "localize",
+        "--map",
+        world_map,
+        "--sequence",
+        listing,
+        "--camera",
+        camera,
+        "--out",
+        small_disk / "poses.txt",
+    )
     assert proc.returncode == 1, proc.stderr
     assert unchanged(files) and no_temporaries(small_disk)
     for record in (small_disk / "poses.txt.json.d").iterdir():
         json.loads(record.read_text())  # every JSON there is whole
 
 
-def test_a_full_disk_in_server_mode_keeps_everything_earlier(small_disk, served_world_map, tiny_world) -> None:
+def test_a_full_disk_in_server_mode_keeps_everything_earlier(
+    small_disk, served_world_map, tiny_world
+) -> None:
     url, _proc = served_world_map
     files = earlier_run(small_disk)
     fill(small_disk, 3000)
     images, camera = queries(tiny_world)
-    proc = cli("localize", "--server", url, "--map", "office", *images, "--camera", camera,
-               "--out", small_disk / "poses.txt")
+    proc = cli(
+        "localize",
+        "--server",
+        url,
+        "--map",
+        "office",
+        *images,
+        "--camera",
+        camera,
+        "--out",
+        small_disk / "poses.txt",
+    )
     assert proc.returncode == 1, proc.stderr
     assert unchanged(files) and no_temporaries(small_disk)
 
@@ -160,8 +220,19 @@ def test_rlimit_full_disk_keeps_the_records(world_map, tiny_world, tmp_path) -> 
         signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
         resource.setrlimit(resource.RLIMIT_FSIZE, (600, 600))
 
-    proc = cli("localize", "--map", world_map, *images, "--camera", camera, "--out", tmp_path / "poses.txt",
-               "--tum", tmp_path / "poses.tum", preexec=limit)
+    proc = cli(
+        "localize",
+        "--map",
+        world_map,
+        *images,
+        "--camera",
+        camera,
+        "--out",
+        tmp_path / "poses.txt",
+        "--tum",
+        tmp_path / "poses.tum",
+        preexec=limit,
+    )
     assert proc.returncode == 1 and "File too large" in proc.stderr
     assert unchanged(files) and no_temporaries(tmp_path)
 
@@ -172,8 +243,21 @@ def test_temporaries_of_a_killed_run_are_removed_by_the_next(world_map, tiny_wor
     dead = subprocess.Popen([sys.executable, "-c", "pass"])
     dead.wait()
     stale = records / f".0.000000.png.{dead.pid}.0123abcd.tmp.json"
-    stale.write_text("{\"cut\": ")
+    stale.write_text('{"cut": ')
     images, camera = queries(tiny_world)
-    assert main(["localize", "--map", str(world_map), str(images[0]), "--camera", camera,
-                 "--out", str(tmp_path / "poses.txt")]) == 0
+    assert (
+        main(
+            [
+                "localize",
+                "--map",
+                str(world_map),
+                str(images[0]),
+                "--camera",
+                camera,
+                "--out",
+                str(tmp_path / "poses.txt"),
+            ]
+        )
+        == 0
+    )
     assert not stale.exists() and [p.name for p in records.iterdir()] == [f"{images[0].name}.json"]

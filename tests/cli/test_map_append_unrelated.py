@@ -25,8 +25,9 @@ def corridor_map(straight_corridor: Path, tmp_path_factory: pytest.TempPathFacto
     return db
 
 
-def test_appending_another_world_is_refused_in_one_line(corridor_map: Path, tiny_world: Path, tmp_path: Path,
-                                                        capsys: pytest.CaptureFixture[str]) -> None:
+def test_appending_another_world_is_refused_in_one_line(
+    corridor_map: Path, tiny_world: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     db = tmp_path / "m.db"
     shutil.copyfile(corridor_map, db)
     before = db.read_bytes()
@@ -39,12 +40,16 @@ def test_appending_another_world_is_refused_in_one_line(corridor_map: Path, tiny
     assert db.read_bytes() == before
 
 
-def test_allow_unrelated_frames_appends_them(corridor_map: Path, tiny_world: Path, tmp_path: Path,
-                                             capsys: pytest.CaptureFixture[str]) -> None:
+def test_allow_unrelated_frames_appends_them(
+    corridor_map: Path, tiny_world: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     db = tmp_path / "m.db"
     shutil.copyfile(corridor_map, db)
     capsys.readouterr()
-    assert run(["map", "build", tiny_world / "map", "-f", "tum", "--out", db, "--allow-unrelated-frames"]) == EXIT_OK
+    assert (
+        run(["map", "build", tiny_world / "map", "-f", "tum", "--out", db, "--allow-unrelated-frames"])
+        == EXIT_OK
+    )
     captured = capsys.readouterr()
     assert "appending them anyway (allow_unrelated_frames)" in captured.err
     assert f"{db}: 22 images" in captured.out

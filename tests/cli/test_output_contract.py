@@ -52,7 +52,11 @@ def _records(folder: Path) -> list[dict]:
 
 def test_localize_records_follow_the_schema(tiny_world: Path, world_map: Path, tmp_path: Path) -> None:
     _query_list(tiny_world, tmp_path)
-    images = [*sorted((tiny_world / "query" / "rgb").glob("*.png")), tmp_path / "black.png", tmp_path / "broken.png"]
+    images = [
+        *sorted((tiny_world / "query" / "rgb").glob("*.png")),
+        tmp_path / "black.png",
+        tmp_path / "broken.png",
+    ]
     out = tmp_path / "poses.txt"
     assert run(["localize", "--map", world_map, *images, "--structure", "tracks", "--out", out]) == 3
     records = {r["name"].rsplit("/", 1)[-1]: r for r in _records(tmp_path / "poses.txt.json.d")}
@@ -63,8 +67,9 @@ def test_localize_records_follow_the_schema(tiny_world: Path, world_map: Path, t
         pose = Pose.from_quat_wxyz(r["quat_wxyz"], r["t"])
         np.testing.assert_allclose(r["center"], pose.center, atol=1e-9)
         assert r["covariance_frame"] == "world_from_camera"
-        assert np.sqrt(np.linalg.eigvalsh(np.array(r["covariance_xyz_rotvec"])[:3, :3]).max()) == \
-            pytest.approx(r["position_std_m"], rel=1e-3)
+        assert np.sqrt(
+            np.linalg.eigvalsh(np.array(r["covariance_xyz_rotvec"])[:3, :3]).max()
+        ) == pytest.approx(r["position_std_m"], rel=1e-3)
         assert r["time_s"]["total"] > 0
     broken, black = records["broken.png"], records["black.png"]
     assert broken["status"] == "error" and "broken.png" in broken["message"] and broken["quat_wxyz"] is None
@@ -75,10 +80,13 @@ def test_localize_records_follow_the_schema(tiny_world: Path, world_map: Path, t
 def test_stream_records_follow_the_schema(tiny_world: Path, world_map: Path, tmp_path: Path) -> None:
     queries = _query_list(tiny_world, tmp_path)
     out = tmp_path / "stream.txt"
-    assert run(["localize", "--map", world_map, "--sequence", queries, "--structure", "tracks", "--out", out]) == 3
+    assert (
+        run(["localize", "--map", world_map, "--sequence", queries, "--structure", "tracks", "--out", out])
+        == 3
+    )
     records = _records(tmp_path / "stream.txt.json.d")
     assert len(records) == 8 and all(r["kind"] == "frame" for r in records)
-    assert all(r["stamp"] is not None for r in records)   # the list's times
+    assert all(r["stamp"] is not None for r in records)  # the list's times
     assert {r["status"] for r in records} >= {"localized", "error"}
     assert any(r["fix"] is not None and r["fix"]["kind"] == "fix" for r in records)
     assert all(set(r["time_s"]) == {"total", "latency", "cpu"} for r in records if r["status"] != "error")
@@ -88,10 +96,27 @@ def test_evaluate_outputs_follow_the_schema(tiny_world: Path, tmp_path: Path) ->
     data = tmp_path / "map"
     shutil.copytree(tiny_world / "map", data)
     first = sorted((data / "rgb").glob("*.png"))[1]
-    first.write_bytes(first.read_bytes()[:100])       # one query that cannot be read
+    first.write_bytes(first.read_bytes()[:100])  # one query that cannot be read
     summary = tmp_path / "eval.json"
-    assert run(["evaluate", data, "--format", "tum", "--map-every", "2", "--map", tmp_path / "e.db",
-                "--structure", "tracks", "--json", summary]) == 3
+    assert (
+        run(
+            [
+                "evaluate",
+                data,
+                "--format",
+                "tum",
+                "--map-every",
+                "2",
+                "--map",
+                tmp_path / "e.db",
+                "--structure",
+                "tracks",
+                "--json",
+                summary,
+            ]
+        )
+        == 3
+    )
     s = check_file("evaluation", summary)
     assert s["queries"] == len(s["per_query"]) == 6  # type: ignore[index]
     statuses = [q["status"] for q in s["per_query"]]  # type: ignore[index]
@@ -99,19 +124,41 @@ def test_evaluate_outputs_follow_the_schema(tiny_world: Path, tmp_path: Path) ->
     for q in s["per_query"]:  # type: ignore[index]
         assert (q["translation_error_m"] is None) == (not q["success"])
         if q["success"]:
-            assert q["translation_error_m"] == pytest.approx(np.linalg.norm(np.subtract(q["center"], q["truth_center"])))
+            assert q["translation_error_m"] == pytest.approx(
+                np.linalg.norm(np.subtract(q["center"], q["truth_center"]))
+            )
 
 
 def test_sequential_evaluation_follows_the_schema(tiny_world: Path, tmp_path: Path) -> None:
     summary = tmp_path / "seq.json"
-    assert run(["evaluate", tiny_world / "query", "--format", "tum", "--map-every", "2", "--map", tmp_path / "e.db",
-                "--structure", "tracks", "--sequential", "--json", summary]) == 0
+    assert (
+        run(
+            [
+                "evaluate",
+                tiny_world / "query",
+                "--format",
+                "tum",
+                "--map-every",
+                "2",
+                "--map",
+                tmp_path / "e.db",
+                "--structure",
+                "tracks",
+                "--sequential",
+                "--json",
+                summary,
+            ]
+        )
+        == 0
+    )
     s = check_file("sequence-evaluation", summary)
     assert s["late_frames"] == s["stream"]["late"]  # type: ignore[index]
     assert sum(f["late"] for f in s["per_frame"]) == s["late_frames"]  # type: ignore[index]
 
 
-def test_the_checker_rejects_what_breaks_the_contract(tiny_world: Path, world_map: Path, tmp_path: Path) -> None:
+def test_the_checker_rejects_what_breaks_the_contract(
+    tiny_world: Path, world_map: Path, tmp_path: Path
+) -> None:
     """The schema is not vacuous: NaN, a missing field, an unknown field, a success without a pose fail."""
     out = tmp_path / "one.txt"
     q = sorted((tiny_world / "query" / "rgb").glob("*.png"))[0]
@@ -120,8 +167,13 @@ def test_the_checker_rejects_what_breaks_the_contract(tiny_world: Path, world_ma
     assert record["success"]
     with pytest.raises(ValueError, match="NaN"):
         check("record", json.dumps({**record, "position_std_m": float("nan")}))
-    broken: list[dict] = [{k: v for k, v in record.items() if k != "message"}, {**record, "reason": "x"},
-                          {**record, "quat_wxyz": None}, {**record, "status": "lost"}, {**record, "schema": "planarloc.record/0"}]
+    broken: list[dict] = [
+        {k: v for k, v in record.items() if k != "message"},
+        {**record, "reason": "x"},
+        {**record, "quat_wxyz": None},
+        {**record, "status": "lost"},
+        {**record, "schema": "planarloc.record/0"},
+    ]
     for bad in broken:
         with pytest.raises(AssertionError, match="schema error"):
             check("record", bad)

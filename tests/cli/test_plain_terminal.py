@@ -12,16 +12,34 @@ from planarloc.cli.main import main
 from planarloc.cli.report import print_summary_table
 from planarloc.cli.sequence_cli import print_sequence_table
 
-SEQUENCE_HEADERS = ("run", "0.25m/10deg", "0.5m/10deg", "1m/20deg", "localized/predicted/lost", "confident wrong",
-                    "rejected", "first correct", "after kidnap", "frames/s", "latency p50/p99 [ms]", "late/dropped")
+SEQUENCE_HEADERS = (
+    "run",
+    "0.25m/10deg",
+    "0.5m/10deg",
+    "1m/20deg",
+    "localized/predicted/lost",
+    "confident wrong",
+    "rejected",
+    "first correct",
+    "after kidnap",
+    "frames/s",
+    "latency p50/p99 [ms]",
+    "late/dropped",
+)
 
 
 def sequence_summary() -> dict:
-    return {"success": {"0.25m/10deg": 83.3, "0.5m/10deg": 91.7, "1m/20deg": 100.0},
-            "status_counts": {"localized": 4123, "predicted": 1, "lost": 17},
-            "relocalization": {"start": {"frames": 3}, "kidnaps": [None, {"frames": 12}]},
-            "frames_per_second": 14.92, "latency_ms": {"p50": 78, "p99": 1096}, "confident_wrong": 2,
-            "rejected_fixes": 5, "late_frames": 1234, "dropped_frames": 56}
+    return {
+        "success": {"0.25m/10deg": 83.3, "0.5m/10deg": 91.7, "1m/20deg": 100.0},
+        "status_counts": {"localized": 4123, "predicted": 1, "lost": 17},
+        "relocalization": {"start": {"frames": 3}, "kidnaps": [None, {"frames": 12}]},
+        "frames_per_second": 14.92,
+        "latency_ms": {"p50": 78, "p99": 1096},
+        "confident_wrong": 2,
+        "rejected_fixes": 5,
+        "late_frames": 1234,
+        "dropped_frames": 56,
+    }
 
 
 def printed(capsys: pytest.CaptureFixture[str]) -> str:
@@ -50,18 +68,34 @@ def test_sequence_table_is_whole_off_a_terminal(capsys: pytest.CaptureFixture[st
 
 
 def test_summary_table_is_whole_off_a_terminal(capsys: pytest.CaptureFixture[str]) -> None:
-    summary = {"method": "5p5p-stewenius", "structure": "tracks",
-               "success": {"0.25m/10deg": 12.5, "0.5m/10deg": 50.0, "1m/20deg": 100.0},
-               "median_translation_error_m": 0.123, "median_rotation_error_deg": 1.25, "failed_queries": 3,
-               "queries": 1000, "status_counts": {"degenerate_scale": 7}, "seconds_per_query": 0.42}
+    summary = {
+        "method": "5p5p-stewenius",
+        "structure": "tracks",
+        "success": {"0.25m/10deg": 12.5, "0.5m/10deg": 50.0, "1m/20deg": 100.0},
+        "median_translation_error_m": 0.123,
+        "median_rotation_error_deg": 1.25,
+        "failed_queries": 3,
+        "queries": 1000,
+        "status_counts": {"degenerate_scale": 7},
+        "seconds_per_query": 0.42,
+    }
     capsys.readouterr()
     print_summary_table([summary], "kitti_seq2, map every 2")
     text = printed(capsys)
     assert "…" not in text
     header = lines_with(text, "structure")
     assert len(header) == 1
-    for col in ("method", "0.25m/10deg", "0.5m/10deg", "1m/20deg", "median t [m]", "median R [°]", "failed",
-                "degenerate", "s/query"):
+    for col in (
+        "method",
+        "0.25m/10deg",
+        "0.5m/10deg",
+        "1m/20deg",
+        "median t [m]",
+        "median R [°]",
+        "failed",
+        "degenerate",
+        "s/query",
+    ):
         assert col in header[0], col
     row = lines_with(text, "5p5p-stewenius")
     assert len(row) == 1
@@ -69,12 +103,34 @@ def test_summary_table_is_whole_off_a_terminal(capsys: pytest.CaptureFixture[str
         assert value in row[0], value
 
 
-def test_evaluate_sequential_table_piped(tiny_world: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+def test_evaluate_sequential_table_piped(
+    tiny_world: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     """The command itself, its stdout captured (not a terminal): the whole table, as in its JSON."""
     capsys.readouterr()
-    assert main([str(a) for a in ["evaluate", tiny_world / "query", "--format", "tum", "--map-every", "2",
-                                  "--map", tmp_path / "e.db", "--structure", "tracks", "--sequential",
-                                  "--json", tmp_path / "s.json"]]) == 0
+    assert (
+        main(
+            [
+                str(a)
+                for a in [
+                    "evaluate",
+                    tiny_world / "query",
+                    "--format",
+                    "tum",
+                    "--map-every",
+                    "2",
+                    "--map",
+                    tmp_path / "e.db",
+                    "--structure",
+                    "tracks",
+                    "--sequential",
+                    "--json",
+                    tmp_path / "s.json",
+                ]
+            ]
+        )
+        == 0
+    )
     text = printed(capsys)
     assert "…" not in text
     header = lines_with(text, "localized/predicted/lost")

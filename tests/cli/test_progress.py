@@ -47,11 +47,15 @@ def test_elapsed_times_count_from_the_stage_start() -> None:
 def test_updates_from_threads_print_whole_lines() -> None:
     console = Console(file=io.StringIO(), force_terminal=False, width=200)
     with progress_reporter(console, interval=0.0) as update:
-        threads = [threading.Thread(target=lambda k=k: [update(f"stage {k}", i, 50) for i in range(51)])
-                   for k in range(4)]
+        threads = [
+            threading.Thread(target=lambda k=k: [update(f"stage {k}", i, 50) for i in range(51)])
+            for k in range(4)
+        ]
         for t in threads:
             t.start()
         for t in threads:
             t.join()
     lines = _lines(console)
-    assert len(lines) == 4 * 51 and all(re.fullmatch(r"stage \d: \d+/50( \(0 s\)|, done in 0 s)", x) for x in lines)
+    assert len(lines) == 4 * 51 and all(
+        re.fullmatch(r"stage \d: \d+/50( \(0 s\)|, done in 0 s)", x) for x in lines
+    )

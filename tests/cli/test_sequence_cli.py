@@ -31,8 +31,24 @@ def test_localize_a_stream_with_odometry(tiny_world: Path, world_map: Path, tmp_
     out = tmp_path / "poses.txt"
     q = tiny_world / "query"
     # rgb.txt is an image list 'timestamp path'; the ground truth is a perfect odometry file (TUM layout)
-    assert run(["localize", "--map", world_map, "--sequence", q / "rgb.txt", "--odometry", q / "groundtruth.txt",
-                "--structure", "tracks", "--out", out]) == 0
+    assert (
+        run(
+            [
+                "localize",
+                "--map",
+                world_map,
+                "--sequence",
+                q / "rgb.txt",
+                "--odometry",
+                q / "groundtruth.txt",
+                "--structure",
+                "tracks",
+                "--out",
+                out,
+            ]
+        )
+        == 0
+    )
     records = [json.loads(p.read_text()) for p in sorted((tmp_path / "poses.txt.json.d").glob("*.json"))]
     assert len(records) == 6
     assert all(r["status"] in ("localized", "predicted", "lost") for r in records)
@@ -44,8 +60,27 @@ def test_localize_a_stream_with_odometry(tiny_world: Path, world_map: Path, tmp_
 
 def test_evaluate_sequential_counts_every_frame(tiny_world: Path, tmp_path: Path) -> None:
     summary = tmp_path / "seq.json"
-    assert run(["evaluate", tiny_world / "query", "--format", "tum", "--map-every", "2", "--map", tmp_path / "e.db",
-                "--structure", "tracks", "--sequential", "--simulate-odometry", "--json", summary]) == 0
+    assert (
+        run(
+            [
+                "evaluate",
+                tiny_world / "query",
+                "--format",
+                "tum",
+                "--map-every",
+                "2",
+                "--map",
+                tmp_path / "e.db",
+                "--structure",
+                "tracks",
+                "--sequential",
+                "--simulate-odometry",
+                "--json",
+                summary,
+            ]
+        )
+        == 0
+    )
     s = json.loads(summary.read_text())
     assert s["frames"] == 3 == len(s["per_frame"]) and s["motion"] == "simulated odometry"
     assert set(s["success"]) == {"0.25m/10deg", "0.5m/10deg", "1m/20deg"}
@@ -53,16 +88,35 @@ def test_evaluate_sequential_counts_every_frame(tiny_world: Path, tmp_path: Path
         assert key in s
 
 
-@pytest.mark.parametrize("argv, message", [
-    (["localize", "--map", "m.db", "x.png", "--odometry", "o.txt"], "--odometry: only used with --sequence"),
-    (["evaluate", "d", "-f", "tum", "--map-every", "2", "--kidnap-at", "3"], "--kidnap-at: only used with --sequential"),
-    (["evaluate", "d", "-f", "tum", "--map-every", "2", "--rate", "10"], "--rate: only used with --sequential"),
-    (["evaluate", "d", "-f", "tum", "--map-every", "2", "--sequential", "--fix-delay", "2"],
-     "--fix-delay: only used with --fixes wait"),
-    (["localize", "--map", "m.db", "x.png", "--fixes", "wait"], "--fixes: only used with --sequence"),
-    (["evaluate", "d", "-f", "tum", "--map-every", "2", "--sequential", "--rate", "0"], "--rate: expected a frame rate"),
-])
-def test_misused_options_are_one_line_errors(argv: list, message: str, capsys: pytest.CaptureFixture[str]) -> None:
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        (
+            ["localize", "--map", "m.db", "x.png", "--odometry", "o.txt"],
+            "--odometry: only used with --sequence",
+        ),
+        (
+            ["evaluate", "d", "-f", "tum", "--map-every", "2", "--kidnap-at", "3"],
+            "--kidnap-at: only used with --sequential",
+        ),
+        (
+            ["evaluate", "d", "-f", "tum", "--map-every", "2", "--rate", "10"],
+            "--rate: only used with --sequential",
+        ),
+        (
+            ["evaluate", "d", "-f", "tum", "--map-every", "2", "--sequential", "--fix-delay", "2"],
+            "--fix-delay: only used with --fixes wait",
+        ),
+        (["localize", "--map", "m.db", "x.png", "--fixes", "wait"], "--fixes: only used with --sequence"),
+        (
+            ["evaluate", "d", "-f", "tum", "--map-every", "2", "--sequential", "--rate", "0"],
+            "--rate: expected a frame rate",
+        ),
+    ],
+)
+def test_misused_options_are_one_line_errors(
+    argv: list, message: str, capsys: pytest.CaptureFixture[str]
+) -> None:
     assert run(argv) == 1
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and message in err[0]
@@ -71,21 +125,42 @@ def test_misused_options_are_one_line_errors(argv: list, message: str, capsys: p
 def _frames(tiny_world: Path) -> tuple[list[Path], list[float]]:
     query = tiny_world / "query"
     frames = sorted((query / "rgb").glob("*.png"))
-    stamps = [float(line.split()[0]) for line in (query / "rgb.txt").read_text().splitlines() if line[0] != "#"]
+    stamps = [
+        float(line.split()[0]) for line in (query / "rgb.txt").read_text().splitlines() if line[0] != "#"
+    ]
     return frames, stamps
 
 
 def test_localize_a_stream_with_tum_and_rerun(tiny_world: Path, world_map: Path, tmp_path: Path) -> None:
     out, tum, rrd = tmp_path / "poses.txt", tmp_path / "stream.tum", tmp_path / "stream.rrd"
     rerun = ["--rerun", rrd] if importlib.util.find_spec("rerun") else []
-    query = tiny_world / "query"   # its frames are 1-5 m apart: too far to track, odometry gives the motion
-    assert run(["localize", "--map", world_map, "--sequence", query / "rgb.txt", "--odometry", query / "groundtruth.txt",
-                "--fixes", "wait", "--out", out, "--tum", tum, *rerun]) == 0
+    query = tiny_world / "query"  # its frames are 1-5 m apart: too far to track, odometry gives the motion
+    assert (
+        run(
+            [
+                "localize",
+                "--map",
+                world_map,
+                "--sequence",
+                query / "rgb.txt",
+                "--odometry",
+                query / "groundtruth.txt",
+                "--fixes",
+                "wait",
+                "--out",
+                out,
+                "--tum",
+                tum,
+                *rerun,
+            ]
+        )
+        == 0
+    )
     records = [json.loads(p.read_text()) for p in sorted((tmp_path / "poses.txt.json.d").glob("*.json"))]
     usable = sorted((r for r in records if r["success"]), key=lambda r: r["stamp"])
     rows = [line.split() for line in tum.read_text().splitlines() if not line.startswith("#")]
     assert len(rows) == len(usable) >= 4
-    for row, r in zip(rows, usable):            # TUM: stamp, camera-to-world
+    for row, r in zip(rows, usable):  # TUM: stamp, camera-to-world
         assert float(row[0]) == pytest.approx(r["stamp"])
         c = -np.array(Pose.from_quat_wxyz(r["quat_wxyz"], r["t"]).R).T @ np.array(r["t"])
         np.testing.assert_allclose([float(v) for v in row[1:4]], c, atol=1e-5)
@@ -95,12 +170,35 @@ def test_localize_a_stream_with_tum_and_rerun(tiny_world: Path, world_map: Path,
         assert b"world/stream/estimate" in data and b"world/map/centers" in data
 
 
-def test_evaluate_sequential_reports_speed_and_writes_tum_plot_rerun(tiny_world: Path, tmp_path: Path) -> None:
+def test_evaluate_sequential_reports_speed_and_writes_tum_plot_rerun(
+    tiny_world: Path, tmp_path: Path
+) -> None:
     summary, plot, rrd = tmp_path / "seq.json", tmp_path / "traj.png", tmp_path / "seq.rrd"
     rerun = ["--rerun", rrd] if importlib.util.find_spec("rerun") else []
-    assert run(["evaluate", tiny_world / "map", "--format", "tum", "--map-every", "2", "--map", tmp_path / "e.db",
-                "--sequential", "--simulate-odometry", "--json", summary, "--tum", tmp_path / "tum", "--plot", plot,
-                *rerun]) == 0
+    assert (
+        run(
+            [
+                "evaluate",
+                tiny_world / "map",
+                "--format",
+                "tum",
+                "--map-every",
+                "2",
+                "--map",
+                tmp_path / "e.db",
+                "--sequential",
+                "--simulate-odometry",
+                "--json",
+                summary,
+                "--tum",
+                tmp_path / "tum",
+                "--plot",
+                plot,
+                *rerun,
+            ]
+        )
+        == 0
+    )
     s = json.loads(summary.read_text())
     assert s["fixes"] == "background" and s["frames"] == 6 and s["frames_with_pose"] >= 4
     assert s["frames_per_second"] > 0 and set(s["latency_ms"]) == {"p50", "p99", "max"}
@@ -121,30 +219,67 @@ def test_a_stream_records_bad_frames_and_goes_on(tiny_world: Path, world_map: Pa
     data = frames[2].read_bytes()
     truncated.write_bytes(data[: len(data) // 2])
     cv2.imwrite(str(small), cv2.resize(cv2.imread(str(frames[3])), (160, 120)))
-    entries = [*zip(stamps[:3], frames[:3]), ((stamps[2] + stamps[3]) / 2, truncated), (stamps[3], frames[3]),
-               ((stamps[3] + stamps[4]) / 2, small), *zip(stamps[4:], frames[4:])]
+    entries = [
+        *zip(stamps[:3], frames[:3]),
+        ((stamps[2] + stamps[3]) / 2, truncated),
+        (stamps[3], frames[3]),
+        ((stamps[3] + stamps[4]) / 2, small),
+        *zip(stamps[4:], frames[4:]),
+    ]
     listing = tmp_path / "frames.txt"
     listing.write_text("".join(f"{t:.6f} {p}\n" for t, p in entries))
     camera = (tiny_world / "query" / "camera.txt").read_text().splitlines()[-1]
     out = tmp_path / "poses.txt"
-    assert run(["localize", "--map", world_map, "--sequence", listing, "--camera", camera, "--fixes", "wait",
-                "--odometry", tiny_world / "query" / "groundtruth.txt", "--out", out]) == 3
-    records = {r["name"]: r for r in (json.loads(p.read_text()) for p in (tmp_path / "poses.txt.json.d").iterdir())}
+    assert (
+        run(
+            [
+                "localize",
+                "--map",
+                world_map,
+                "--sequence",
+                listing,
+                "--camera",
+                camera,
+                "--fixes",
+                "wait",
+                "--odometry",
+                tiny_world / "query" / "groundtruth.txt",
+                "--out",
+                out,
+            ]
+        )
+        == 3
+    )
+    records = {
+        r["name"]: r for r in (json.loads(p.read_text()) for p in (tmp_path / "poses.txt.json.d").iterdir())
+    }
     assert records["cut.png"]["status"] == "error" and "cannot read image" in records["cut.png"]["message"]
     assert records["small.png"]["status"] == "error" and "160x120" in records["small.png"]["message"]
     others = [records[p.name] for p in frames]
     assert all(r["status"] in ("localized", "predicted", "lost") for r in others)
     assert sum(r["success"] for r in others) >= 4
-    assert {line.split()[0] for line in out.read_text().splitlines()} == {r["name"] for r in others if r["success"]}
+    assert {line.split()[0] for line in out.read_text().splitlines()} == {
+        r["name"] for r in others if r["success"]
+    }
 
 
-@pytest.mark.parametrize("bad, message", [("backwards", "is not after line 2's"), ("twice", "is already listed on line 1")])
-def test_an_image_list_out_of_order_is_a_one_line_error(tiny_world: Path, world_map: Path, tmp_path: Path,
-                                                        capsys: pytest.CaptureFixture[str], bad: str,
-                                                        message: str) -> None:
+@pytest.mark.parametrize(
+    "bad, message", [("backwards", "is not after line 2's"), ("twice", "is already listed on line 1")]
+)
+def test_an_image_list_out_of_order_is_a_one_line_error(
+    tiny_world: Path,
+    world_map: Path,
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+    bad: str,
+    message: str,
+) -> None:
     frames, stamps = _frames(tiny_world)
-    entries = [(stamps[0], frames[0]), (stamps[1], frames[1]),
-               (stamps[0] - 1.0, frames[2]) if bad == "backwards" else (stamps[2], frames[0])]
+    entries = [
+        (stamps[0], frames[0]),
+        (stamps[1], frames[1]),
+        (stamps[0] - 1.0, frames[2]) if bad == "backwards" else (stamps[2], frames[0]),
+    ]
     listing = tmp_path / "frames.txt"
     listing.write_text("".join(f"{t:.6f} {p}\n" for t, p in entries))
     out = tmp_path / "poses.txt"
@@ -152,7 +287,7 @@ def test_an_image_list_out_of_order_is_a_one_line_error(tiny_world: Path, world_
     assert run(["localize", "--map", world_map, "--sequence", listing, "--out", out]) == 1
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "frames.txt:3:" in err[0] and message in err[0]
-    assert out.read_text() == "old results\n"          # nothing was touched
+    assert out.read_text() == "old results\n"  # nothing was touched
     # the same frame twice on the command line
     assert run(["localize", "--map", world_map, "--sequence", frames[0], frames[0], "--out", out]) == 1
     assert "given twice" in capsys.readouterr().err
@@ -163,10 +298,28 @@ def test_evaluate_sequential_records_a_bad_frame(tiny_world: Path, tmp_path: Pat
     shutil.copytree(tiny_world / "query", data)
     frames = sorted((data / "rgb").glob("*.png"))
     raw = frames[3].read_bytes()
-    frames[3].write_bytes(raw[: len(raw) // 3])                 # a query frame (index 3), truncated
+    frames[3].write_bytes(raw[: len(raw) // 3])  # a query frame (index 3), truncated
     summary = tmp_path / "seq.json"
-    assert run(["evaluate", data, "--format", "tum", "--map-every", "2", "--map", tmp_path / "e.db", "--sequential",
-                "--fixes", "wait", "--json", summary]) == 3
+    assert (
+        run(
+            [
+                "evaluate",
+                data,
+                "--format",
+                "tum",
+                "--map-every",
+                "2",
+                "--map",
+                tmp_path / "e.db",
+                "--sequential",
+                "--fixes",
+                "wait",
+                "--json",
+                summary,
+            ]
+        )
+        == 3
+    )
     s = json.loads(summary.read_text())
     bad = [f for f in s["per_frame"] if f["status"] == "error"]
     assert len(bad) == 1 and "cannot read image" in bad[0]["message"] and s["frames"] == 3

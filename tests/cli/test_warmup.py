@@ -30,8 +30,9 @@ def test_the_kernel_list_names_real_cached_kernels_for_every_step() -> None:
         assert isinstance(d, Dispatcher) and hasattr(d._cache, "_cache_file"), key  # a cache=True kernel
         # every signature parses but literal ones (``Literal[int](0)``: those specialisations compile with
         # the kernels that call them, or when the steps run)
-        assert kernel.signatures and all(parse_signature(s) is not None for s in kernel.signatures
-                                         if "Literal[" not in s), key
+        assert kernel.signatures and all(
+            parse_signature(s) is not None for s in kernel.signatures if "Literal[" not in s
+        ), key
         assert kernel.compile_s >= 0
 
 
@@ -89,29 +90,34 @@ def test_compile_ahead_says_so_and_fills_an_empty_cache_in_parallel(tmp_path: Pa
     notice = [x for x in lines if "for first use" in x]
     assert len(notice) == 1 and re.fullmatch(
         r"compiling planarloc's kernels for first use \(\d+ kernels, about \d+ s on 2 cores, once\); run "
-        r"`planarloc warmup` at install or image-build time to do it ahead", notice[0])
+        r"`planarloc warmup` at install or image-build time to do it ahead",
+        notice[0],
+    )
     assert re.fullmatch(r"compile kernels: 0/\d+ \(0 s\)", lines[1])  # plain progress lines: no terminal here
     assert re.fullmatch(r"compile kernels: (\d+)/\1, done in \d+ s", lines[-1])
     assert sorted((tmp_path / "numba").rglob("*.nbi"))
     # a new process finds everything cached: no notice, and the single-call solvers compile nothing
-    check = ("from numba.core import event\n"
-             "compiled = []\n"
-             "class L(event.Listener):\n"
-             "    def on_start(self, e): compiled.append(e.data['dispatcher'].py_func.__qualname__)\n"
-             "    def on_end(self, e): pass\n"
-             "event.register('numba:compile', L())\n"
-             f"{ahead}\n"
-             "from planarloc.compile import run_steps\n"
-             "run_steps(['solvers'])\n"
-             "print(compiled)\n")
+    check = (
+        "from numba.core import event\n"
+        "compiled = []\n"
+        "class L(event.Listener):\n"
+        "    def on_start(self, e): compiled.append(e.data['dispatcher'].py_func.__qualname__)\n"
+        "    def on_end(self, e): pass\n"
+        "event.register('numba:compile', L())\n"
+        f"{ahead}\n"
+        "from planarloc.compile import run_steps\n"
+        "run_steps(['solvers'])\n"
+        "print(compiled)\n"
+    )
     second = _python(check, env)
     assert second.returncode == 0, second.stderr
     assert second.stdout.strip() == "[]" and "for first use" not in second.stderr
 
 
 def test_warmup_without_a_terminal_prints_plain_progress(tmp_path: Path) -> None:
-    proc = subprocess.run([sys.executable, "-m", "planarloc.cli.main", "warmup"], capture_output=True, text=True,
-                          timeout=3600)
+    proc = subprocess.run(
+        [sys.executable, "-m", "planarloc.cli.main", "warmup"], capture_output=True, text=True, timeout=3600
+    )
     assert proc.returncode == 0, proc.stderr
     assert "\x1b[" not in proc.stderr  # no terminal: no bar, no escape codes
     done = [x for x in proc.stderr.splitlines() if x.startswith("run steps: ")]
@@ -124,7 +130,10 @@ def test_bad_jobs_is_one_line(jobs: str, capsys: pytest.CaptureFixture[str]) -> 
     from planarloc.cli.main import main
 
     assert main(["warmup", "--jobs", jobs]) == 1
-    assert capsys.readouterr().err.strip() == f"planarloc warmup: error: --jobs: expected an integer >= 1, got {jobs}"
+    assert (
+        capsys.readouterr().err.strip()
+        == f"planarloc warmup: error: --jobs: expected an integer >= 1, got {jobs}"
+    )
 
 
 # ---- a damaged kernel list ------------------------------------------------------------------------------
@@ -158,12 +167,32 @@ def bad_list_install(tiny_world: Path, tmp_path_factory: pytest.TempPathFactory)
 
     root = tmp_path_factory.mktemp("badlist")
     site = root / "site"
-    shutil.copytree(Path(planarloc.__file__).parent, site / "planarloc", ignore=shutil.ignore_patterns("*.pyc"))
+    shutil.copytree(
+        Path(planarloc.__file__).parent, site / "planarloc", ignore=shutil.ignore_patterns("*.pyc")
+    )
     env = {**os.environ, "PYTHONPATH": str(site)}
     env.pop("NUMBA_CACHE_DIR", None)
-    built = subprocess.run([sys.executable, "-m", "planarloc.cli.main", "map", "build", tiny_world / "map", "-f", "tum",
-                            "--out", root / "map.db", "--vocabulary-size", "16"], env=env, capture_output=True,
-                           text=True, timeout=900, cwd=root)  # cwd: `python -m` puts it first on sys.path
+    built = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "planarloc.cli.main",
+            "map",
+            "build",
+            tiny_world / "map",
+            "-f",
+            "tum",
+            "--out",
+            root / "map.db",
+            "--vocabulary-size",
+            "16",
+        ],
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=900,
+        cwd=root,
+    )  # cwd: `python -m` puts it first on sys.path
     assert built.returncode == 0, built.stderr
     manifest = site / "planarloc" / "compile" / "kernels.json"
     manifest.write_text(BAD_LISTS["kernels a list"])
@@ -172,29 +201,60 @@ def bad_list_install(tiny_world: Path, tmp_path_factory: pytest.TempPathFactory)
 
 def test_warmup_with_a_kernel_list_of_the_wrong_shape_is_one_line_naming_it(bad_list_install) -> None:
     _root, env, manifest = bad_list_install
-    proc = subprocess.run([sys.executable, "-m", "planarloc.cli.main", "warmup"], env=env, capture_output=True,
-                          text=True, timeout=900, cwd=_root)
+    proc = subprocess.run(
+        [sys.executable, "-m", "planarloc.cli.main", "warmup"],
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=900,
+        cwd=_root,
+    )
     err = proc.stderr.strip().splitlines()
     assert proc.returncode == 1 and len(err) == 1, proc.stderr
-    assert err[0].startswith(f"planarloc warmup: error: {manifest}: not planarloc's kernel list ('kernels' must be")
+    assert err[0].startswith(
+        f"planarloc warmup: error: {manifest}: not planarloc's kernel list ('kernels' must be"
+    )
 
 
 def test_localize_goes_on_without_a_well_formed_kernel_list(bad_list_install, tiny_world: Path) -> None:
     root, env, manifest = bad_list_install
     query = sorted((tiny_world / "query" / "rgb").glob("*.png"))[0]
     cam = (tiny_world / "query" / "camera.txt").read_text().splitlines()[-1]
-    proc = subprocess.run([sys.executable, "-m", "planarloc.cli.main", "localize", "--map", root / "map.db", query,
-                           "--camera", cam, "--out", "-"], env=env, capture_output=True, text=True, timeout=900,
-                          cwd=root)
+    proc = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "planarloc.cli.main",
+            "localize",
+            "--map",
+            root / "map.db",
+            query,
+            "--camera",
+            cam,
+            "--out",
+            "-",
+        ],
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=900,
+        cwd=root,
+    )
     assert proc.returncode == 0, proc.stderr
     assert len([x for x in proc.stdout.splitlines() if len(x.split()) == 8]) == 1
     warned = [x for x in proc.stderr.splitlines() if str(manifest) in x]
-    assert len(warned) == 1 and warned[0].startswith("WARNING") and "kernels compile on first use" in warned[0]
+    assert (
+        len(warned) == 1 and warned[0].startswith("WARNING") and "kernels compile on first use" in warned[0]
+    )
 
 
-@pytest.mark.parametrize("text", ["9**9**9**9", "().__class__.__mro__", "[x for x in ()]", "(float64,) * 10**12"])
+@pytest.mark.parametrize(
+    "text", ["9**9**9**9", "().__class__.__mro__", "[x for x in ()]", "(float64,) * 10**12"]
+)
 def test_a_signature_in_the_list_is_data_never_code(text: str) -> None:
-    assert parse_signature(text) is None  # returns at once: no operator, attribute or comprehension is evaluated
+    assert (
+        parse_signature(text) is None
+    )  # returns at once: no operator, attribute or comprehension is evaluated
 
 
 def test_steps_for_names_the_step_of_each_method_and_structure() -> None:

@@ -50,16 +50,27 @@ def shown(capsys: pytest.CaptureFixture[str], caplog: pytest.LogCaptureFixture) 
     return "\n".join([out.out, out.err, logged])
 
 
-def test_evaluate_prints_it_once_per_run_and_the_advice_works(tilted_kitti: Path, tmp_path: Path,
-                                                              capsys: pytest.CaptureFixture[str],
-                                                              caplog: pytest.LogCaptureFixture) -> None:
+def test_evaluate_prints_it_once_per_run_and_the_advice_works(
+    tilted_kitti: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str], caplog: pytest.LogCaptureFixture
+) -> None:
     db = tmp_path / "map.db"
-    evaluate = ["evaluate", tilted_kitti, "-f", "kitti", "--map-every", "2", "--map", db, "--structure", "tracks"]
+    evaluate = [
+        "evaluate",
+        tilted_kitti,
+        "-f",
+        "kitti",
+        "--map-every",
+        "2",
+        "--map",
+        db,
+        "--structure",
+        "tracks",
+    ]
     capsys.readouterr()
-    assert run(evaluate) == 0   # builds the map
+    assert run(evaluate) == 0  # builds the map
     text = shown(capsys, caplog)
     assert text.count(WARNING) == 1 and text.count(ADVICE) == 1
-    assert run(evaluate) == 0   # the same map again: the warning concerns this run's queries too, once
+    assert run(evaluate) == 0  # the same map again: the warning concerns this run's queries too, once
     assert shown(capsys, caplog).count(WARNING) == 1
     with MapDatabase.open(db) as m:
         before = map_gravity(m)
@@ -76,8 +87,9 @@ def test_evaluate_prints_it_once_per_run_and_the_advice_works(tilted_kitti: Path
     assert after.warnings == ()
 
 
-def test_map_build_prints_it_once(tilted_kitti: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str],
-                                  caplog: pytest.LogCaptureFixture) -> None:
+def test_map_build_prints_it_once(
+    tilted_kitti: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str], caplog: pytest.LogCaptureFixture
+) -> None:
     capsys.readouterr()
     assert run(["map", "build", tilted_kitti, "-f", "kitti", "--every", "2", "--out", tmp_path / "m.db"]) == 0
     text = shown(capsys, caplog)
@@ -91,7 +103,9 @@ def test_the_advice_is_given_only_where_it_helps(tilted_kitti: Path) -> None:
     warnings = gravity_from_map_poses(poses, WORLD_DOWN)[1].warnings
     assert len(warnings) == 1 and WARNING in warnings[0] and ADVICE in warnings[0]
     rng = np.random.default_rng(0)
-    shaky = [Pose(Rotation.from_rotvec(np.radians(rng.normal(0, 4, 3) * [1, 0, 1])).as_matrix() @ p.R,
-                  p.t) for p in poses]
+    shaky = [
+        Pose(Rotation.from_rotvec(np.radians(rng.normal(0, 4, 3) * [1, 0, 1])).as_matrix() @ p.R, p.t)
+        for p in poses
+    ]
     warnings = gravity_from_map_poses(shaky, WORLD_DOWN)[1].warnings
     assert len(warnings) == 1 and WARNING in warnings[0] and "up=estimate" not in warnings[0]

@@ -142,20 +142,30 @@ def check_ray_serve_deployment_serves_the_cli_pose(world: Path, tmp_path: Path) 
         for robot in robots:
             numbers = []
             for k, image in enumerate(frames):
-                r = httpx.post(url, files={"image": (image.name, image.read_bytes())},
-                               data={"camera": camera, "session": robot, "stamp": str(0.1 * k)}, timeout=120)
+                r = httpx.post(
+                    url,
+                    files={"image": (image.name, image.read_bytes())},
+                    data={"camera": camera, "session": robot, "stamp": str(0.1 * k)},
+                    timeout=120,
+                )
                 assert r.status_code == 200, r.text
                 assert r.json()["status"] in ("localized", "predicted", "lost")
                 numbers.append(r.json()["session"]["frame"])
             assert numbers == [1, 2, 3], (robot, numbers)
-        r = httpx.post(url, files={"image": (frames[0].name, frames[0].read_bytes())},
-                       data={"camera": camera, "session": "robot-1", "stamp": "0"}, timeout=120)
+        r = httpx.post(
+            url,
+            files={"image": (frames[0].name, frames[0].read_bytes())},
+            data={"camera": camera, "session": "robot-1", "stamp": "0"},
+            timeout=120,
+        )
         assert r.status_code == 409
         status = serve.status().applications["planarloc-office"]
         assert status.status == "RUNNING"
         replicas = status.deployments["localizer-office"].replica_states
         assert replicas.get("RUNNING", 0) == 2
-        assert all(status.deployments[f"sessions-office-{k}"].replica_states.get("RUNNING", 0) == 1 for k in (0, 1))
+        assert all(
+            status.deployments[f"sessions-office-{k}"].replica_states.get("RUNNING", 0) == 1 for k in (0, 1)
+        )
     finally:
         serve.shutdown()
 

@@ -24,13 +24,31 @@ from planarloc.map.posed_image import PosedImage
 
 
 def _r(k: int, status: str, t_err: float, kidnapped: bool = False) -> FrameResult:
-    return FrameResult(f"{k}", 0.1 * k, status, "accepted", "odometry", kidnapped, t_err,
-                       1.0 if t_err == t_err else float("nan"), 0.05, 0.2, None, (0.0, 0.0, 0.0))
+    return FrameResult(
+        f"{k}",
+        0.1 * k,
+        status,
+        "accepted",
+        "odometry",
+        kidnapped,
+        t_err,
+        1.0 if t_err == t_err else float("nan"),
+        0.05,
+        0.2,
+        None,
+        (0.0, 0.0, 0.0),
+    )
 
 
 def test_every_frame_counts_and_lost_is_a_failure() -> None:
-    res = [_r(0, "lost", float("nan")), _r(1, "localized", 0.1), _r(2, "predicted", 0.2), _r(3, "lost", 0.01),
-           _r(4, "localized", 1.5), _r(5, "predicted", 3.0)]
+    res = [
+        _r(0, "lost", float("nan")),
+        _r(1, "localized", 0.1),
+        _r(2, "predicted", 0.2),
+        _r(3, "lost", 0.01),
+        _r(4, "localized", 1.5),
+        _r(5, "predicted", 3.0),
+    ]
     s = summarize_sequence(res)
     assert s["frames"] == 6 and s["success"]["0.25m/10deg"] == 100 * 2 / 6
     assert s["success"]["1m/20deg"] == 100 * 2 / 6
@@ -39,13 +57,19 @@ def test_every_frame_counts_and_lost_is_a_failure() -> None:
 
 
 def test_relocalization_counts_frames_from_start_and_each_kidnap() -> None:
-    res = [_r(0, "lost", float("nan")), _r(1, "localized", 0.05), _r(2, "localized", 0.05),
-           _r(3, "predicted", 9.0, kidnapped=True), _r(4, "lost", 9.0), _r(5, "localized", 0.1),
-           _r(6, "localized", 9.0, kidnapped=True)]
+    res = [
+        _r(0, "lost", float("nan")),
+        _r(1, "localized", 0.05),
+        _r(2, "localized", 0.05),
+        _r(3, "predicted", 9.0, kidnapped=True),
+        _r(4, "lost", 9.0),
+        _r(5, "localized", 0.1),
+        _r(6, "localized", 9.0, kidnapped=True),
+    ]
     r = relocalization(res)
     assert r["start"]["frames"] == 1
     assert [k["frames"] if k else None for k in r["kidnaps"]] == [2, None]
-    assert r["max_frames_after_kidnap"] is None      # one kidnap never recovered
+    assert r["max_frames_after_kidnap"] is None  # one kidnap never recovered
 
 
 def test_ground_truth_jumps() -> None:
@@ -69,14 +93,24 @@ class _SlowStream:
         if path == "bad.png":
             raise InputError("bad.png: cannot read image")
         pose = self.truth[path]
-        return SequenceEstimate(stamp, "localized", pose, np.eye(6) * 1e-4, 0.01, 0.1, seconds=self.seconds,
-                                latency_s=time.perf_counter() - arrival)
+        return SequenceEstimate(
+            stamp,
+            "localized",
+            pose,
+            np.eye(6) * 1e-4,
+            0.01,
+            0.1,
+            seconds=self.seconds,
+            latency_s=time.perf_counter() - arrival,
+        )
 
 
 def _images(n: int) -> list[PosedImage]:
     cam = Camera("PINHOLE", 64, 48, (50.0, 50.0, 32.0, 24.0))
-    return [PosedImage(f"{k}.png", f"{k}.png", Pose.from_center(np.eye(3), [0, 0, k]), cam, index=k)
-            for k in range(n)]
+    return [
+        PosedImage(f"{k}.png", f"{k}.png", Pose.from_center(np.eye(3), [0, 0, k]), cam, index=k)
+        for k in range(n)
+    ]
 
 
 def test_a_camera_rate_drops_frames_the_stream_cannot_take() -> None:
@@ -89,7 +123,7 @@ def test_a_camera_rate_drops_frames_the_stream_cannot_take() -> None:
     dropped = [r for r in res if r.status == DROPPED]
     assert len(res) == 20 and s["dropped_frames"] == len(dropped) >= 8 and len(seq.steps) == 20 - len(dropped)
     assert all(np.isnan(r.translation_error_m) for r in dropped)
-    assert s["success"]["0.25m/10deg"] == pytest.approx(100 * len(seq.steps) / 20)   # a dropped frame fails
+    assert s["success"]["0.25m/10deg"] == pytest.approx(100 * len(seq.steps) / 20)  # a dropped frame fails
     assert 10 < s["frames_per_second"] < 25 and s["latency_ms"]["p50"] >= 50
     unpaced = summarize_sequence(evaluate_stream(seq, images, [0.02 * k for k in range(20)]))
     assert unpaced["dropped_frames"] == 0 and unpaced["frames_with_pose"] == 20

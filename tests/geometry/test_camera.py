@@ -54,7 +54,12 @@ def pixel_grid(cam: Camera, nu: int = 321, nv: int = 241) -> np.ndarray:
 
 def test_param_counts_follow_colmap() -> None:
     assert {m.value: n for m, n in NUM_PARAMS.items()} == {
-        "SIMPLE_PINHOLE": 3, "PINHOLE": 4, "SIMPLE_RADIAL": 4, "RADIAL": 5, "OPENCV": 8, "OPENCV_FISHEYE": 8
+        "SIMPLE_PINHOLE": 3,
+        "PINHOLE": 4,
+        "SIMPLE_RADIAL": 4,
+        "RADIAL": 5,
+        "OPENCV": 8,
+        "OPENCV_FISHEYE": 8,
     }
     assert [m.value for m in Camera.SUPPORTED_MODELS] == SUPPORTED.split(", ")
 
@@ -119,11 +124,14 @@ def test_unknown_model_is_rejected_with_the_supported_list() -> None:
 
 
 @pytest.mark.parametrize(
-    "model", ["FULL_OPENCV", "THIN_PRISM_FISHEYE", "FOV", "SIMPLE_RADIAL_FISHEYE", "radial_fisheye", "FISHEYE"]
+    "model",
+    ["FULL_OPENCV", "THIN_PRISM_FISHEYE", "FOV", "SIMPLE_RADIAL_FISHEYE", "radial_fisheye", "FISHEYE"],
 )
 def test_unsupported_colmap_model_is_rejected_as_not_supported_yet(model: str) -> None:
     assert model.upper() in UNSUPPORTED_COLMAP_MODELS
-    with pytest.raises(InputError, match=f"COLMAP model {model.upper()} is not supported yet; supported: {SUPPORTED}$"):
+    with pytest.raises(
+        InputError, match=f"COLMAP model {model.upper()} is not supported yet; supported: {SUPPORTED}$"
+    ):
         Camera(model, W, H, (500.0, 500.0, 320.0, 240.0, 0.0))
 
 
@@ -135,8 +143,12 @@ def test_bad_image_size_is_rejected(size) -> None:
 
 @pytest.mark.parametrize(
     ("model", "params"),
-    [("SIMPLE_PINHOLE", (0.0, 320.0, 240.0)), ("PINHOLE", (500.0, -1.0, 320.0, 240.0)),
-     ("SIMPLE_RADIAL", (-5.0, 320.0, 240.0, 0.1)), ("OPENCV_FISHEYE", (190.0, 0.0, 320.0, 240.0, 0, 0, 0, 0))],
+    [
+        ("SIMPLE_PINHOLE", (0.0, 320.0, 240.0)),
+        ("PINHOLE", (500.0, -1.0, 320.0, 240.0)),
+        ("SIMPLE_RADIAL", (-5.0, 320.0, 240.0, 0.1)),
+        ("OPENCV_FISHEYE", (190.0, 0.0, 320.0, 240.0, 0, 0, 0, 0)),
+    ],
 )
 def test_non_positive_focal_is_rejected(model: str, params) -> None:
     with pytest.raises(ValueError, match="focal lengths must be positive"):
@@ -298,9 +310,11 @@ def test_whole_float_sizes_are_accepted_as_ints() -> None:
 
 @pytest.mark.parametrize(
     "cam",
-    [Camera("OPENCV", 1241, 376, (718.856, 718.856, 607.19, 185.22, -0.3, 0.0, 0.0, 0.0)),
-     Camera("SIMPLE_RADIAL", 1241, 376, (718.856, 607.19, 185.22, -0.3)),
-     Camera("RADIAL", 1241, 376, (718.856, 607.19, 185.22, -0.3, 0.0))],
+    [
+        Camera("OPENCV", 1241, 376, (718.856, 718.856, 607.19, 185.22, -0.3, 0.0, 0.0, 0.0)),
+        Camera("SIMPLE_RADIAL", 1241, 376, (718.856, 607.19, 185.22, -0.3)),
+        Camera("RADIAL", 1241, 376, (718.856, 607.19, 185.22, -0.3, 0.0)),
+    ],
     ids=["OPENCV", "SIMPLE_RADIAL", "RADIAL"],
 )
 def test_pixels_beyond_the_radial_fold_are_nan(cam: Camera) -> None:
@@ -320,9 +334,18 @@ def test_pixels_beyond_the_radial_fold_are_nan(cam: Camera) -> None:
     assert np.isnan(cam.img_from_cam([[1.2, 0.0]])).all()  # beyond the fold: no pixel
 
 
-@pytest.mark.parametrize(("k1", "k2", "expected"), [(0.1, 0.01, np.inf), (0.0, 0.0, np.inf), (-0.3, 0.0, 1.0 / np.sqrt(0.9)),
-                                                    (0.0, -0.1, 2.0 ** 0.25), (-0.3, 1e-20, 1.0 / np.sqrt(0.9)),
-                                                    (-0.3, -1e-20, 1.0 / np.sqrt(0.9)), (0.3, 1e-20, np.inf)])
+@pytest.mark.parametrize(
+    ("k1", "k2", "expected"),
+    [
+        (0.1, 0.01, np.inf),
+        (0.0, 0.0, np.inf),
+        (-0.3, 0.0, 1.0 / np.sqrt(0.9)),
+        (0.0, -0.1, 2.0**0.25),
+        (-0.3, 1e-20, 1.0 / np.sqrt(0.9)),
+        (-0.3, -1e-20, 1.0 / np.sqrt(0.9)),
+        (0.3, 1e-20, np.inf),
+    ],
+)
 def test_max_undistorted_radius(k1: float, k2: float, expected: float) -> None:
     r = max_undistorted_radius([k1, k2, 0.0, 0.0])
     assert r == pytest.approx(expected)
@@ -335,7 +358,7 @@ def test_with_principal_point_offset_shifts_cx_cy_of_every_model() -> None:
         cam = Camera(model, W, H, p).with_principal_point_offset(-0.5, 0.25)
         assert cam.model == CameraModel(model) and cam.focal == Camera(model, W, H, p).focal
         i = 1 if model in ONE_FOCAL else 2
-        assert cam.params == (*p[:i], p[i] - 0.5, p[i + 1] + 0.25, *p[i + 2:])
+        assert cam.params == (*p[:i], p[i] - 0.5, p[i + 1] + 0.25, *p[i + 2 :])
 
 
 # ---- radial and fisheye models ----------------------------------------------------------------
@@ -397,9 +420,11 @@ def test_fisheye_unit_bearings_round_trip_beyond_90_degrees() -> None:
 def test_fisheye_projects_points_behind_the_image_plane_by_their_angle() -> None:
     cam = Camera("OPENCV_FISHEYE", W, H, (200.0, 210.0, 320.0, 240.0, 0.0, 0.0, 0.0, 0.0))
     # Equidistant with k = 0: the radius in normalized units is the angle; x right, y down.
-    np.testing.assert_allclose(cam.img_from_cam([[1.0, 0.0, -1.0], [0.0, -2.0, 0.0], [0.0, 0.0, 5.0]]),
-                               [[320.0 + 200.0 * 0.75 * np.pi, 240.0], [320.0, 240.0 - 210.0 * 0.5 * np.pi],
-                                [320.0, 240.0]], atol=1e-12)
+    np.testing.assert_allclose(
+        cam.img_from_cam([[1.0, 0.0, -1.0], [0.0, -2.0, 0.0], [0.0, 0.0, 5.0]]),
+        [[320.0 + 200.0 * 0.75 * np.pi, 240.0], [320.0, 240.0 - 210.0 * 0.5 * np.pi], [320.0, 240.0]],
+        atol=1e-12,
+    )
     assert np.isnan(cam.img_from_cam([[0.0, 0.0, -1.0]])).all()  # 180 degrees: no pixel
     with pytest.raises(InputError, match="non-zero"):
         cam.img_from_cam([[0.0, 0.0, 0.0]])
@@ -428,9 +453,14 @@ def test_fisheye_beyond_the_fold_is_nan() -> None:
 
 @pytest.mark.parametrize(
     ("dist", "expected"),
-    [((0.0, 0.0, 0.0, 0.0), np.pi), ((0.05, 0.01, 0.0, 0.0), np.pi), ((-0.1, 0.0, 0.0, 0.0), 1.0 / np.sqrt(0.3)),
-     ((0.0, 0.0, 0.0, -0.01), (1.0 / 0.09) ** 0.125), ((0.02, -0.01, 0.002, -0.001), None),
-     ((0.0, -0.03125, 0.0, 1e-68), np.sqrt(np.sqrt(1.0 / 0.15625)))],
+    [
+        ((0.0, 0.0, 0.0, 0.0), np.pi),
+        ((0.05, 0.01, 0.0, 0.0), np.pi),
+        ((-0.1, 0.0, 0.0, 0.0), 1.0 / np.sqrt(0.3)),
+        ((0.0, 0.0, 0.0, -0.01), (1.0 / 0.09) ** 0.125),
+        ((0.02, -0.01, 0.002, -0.001), None),
+        ((0.0, -0.03125, 0.0, 1e-68), np.sqrt(np.sqrt(1.0 / 0.15625))),
+    ],
 )
 def test_max_fisheye_angle(dist, expected) -> None:
     theta = max_fisheye_angle(dist)
@@ -438,7 +468,9 @@ def test_max_fisheye_angle(dist, expected) -> None:
         assert theta == pytest.approx(expected)
     if theta < np.pi:  # the derivative of θ_d(θ) vanishes there, and is positive before
         k1, k2, k3, k4 = dist
-        slope = [1 + 3 * k1 * t**2 + 5 * k2 * t**4 + 7 * k3 * t**6 + 9 * k4 * t**8 for t in (theta, 0.99 * theta)]
+        slope = [
+            1 + 3 * k1 * t**2 + 5 * k2 * t**4 + 7 * k3 * t**6 + 9 * k4 * t**8 for t in (theta, 0.99 * theta)
+        ]
         assert slope[0] == pytest.approx(0.0, abs=1e-12) and slope[1] > 0
 
 
@@ -496,7 +528,9 @@ def test_fisheye_matches_cv2_fisheye(cam: Camera, seed: int) -> None:
     np.testing.assert_allclose(cam.cam_from_img(uv), x, rtol=1e-9, atol=1e-12)
     # cv2.fisheye.undistortPoints clamps θ_d to π/2, so it is only comparable below that radius.
     crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 200, 1e-15)
-    und = cv2.fisheye.undistortPoints(uv.reshape(-1, 1, 2), cam.K, cam.distortion, criteria=crit).reshape(-1, 2)
+    und = cv2.fisheye.undistortPoints(uv.reshape(-1, 1, 2), cam.K, cam.distortion, criteria=crit).reshape(
+        -1, 2
+    )
     below = np.hypot(*((uv - cam.principal_point) / cam.focal).T) < 0.5 * np.pi
     # OpenCV marks points its iteration gave up on with -1e6; ours must still invert them (above).
     compared = below & (np.abs(und) < 1e5).all(axis=1)

@@ -11,8 +11,15 @@ from planarloc.geometry import mat3
 
 @njit
 def _products(A, B, v):
-    return (mat3.mul(A, B), mat3.mul_t(A, B), mat3.t_mul(A, B), mat3.vec(A, v), mat3.t_vec(A, v),
-            mat3.dot(v, B[0]), mat3.cross(v, B[1]))
+    return (
+        mat3.mul(A, B),
+        mat3.mul_t(A, B),
+        mat3.t_mul(A, B),
+        mat3.vec(A, v),
+        mat3.t_vec(A, v),
+        mat3.dot(v, B[0]),
+        mat3.cross(v, B[1]),
+    )
 
 
 def test_products_match_numpy_for_contiguous_and_strided_matrices() -> None:

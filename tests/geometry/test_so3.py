@@ -20,7 +20,9 @@ def test_exp_is_rodrigues_and_log_inverts_it() -> None:
     R = so3_exp(w)
     np.testing.assert_allclose(R, Rotation.from_rotvec(w).as_matrix(), atol=1e-14)
     np.testing.assert_allclose(so3_log(R), w, atol=1e-9)
-    np.testing.assert_allclose(R @ np.transpose(R, (0, 2, 1)), np.broadcast_to(np.eye(3), R.shape), atol=1e-14)
+    np.testing.assert_allclose(
+        R @ np.transpose(R, (0, 2, 1)), np.broadcast_to(np.eye(3), R.shape), atol=1e-14
+    )
 
 
 def test_the_kernel_is_the_stacked_map_of_one_vector() -> None:

@@ -90,7 +90,10 @@ def test_collinear_centres_recover_pitch_exactly(world_rotation):
     assert 2.5 < angle_deg(g2, g_true) < 3.5
     assert abs(rep2.roll_deg) < 0.5 and rep2.pitch_deg == pytest.approx(9.0, abs=0.1)
     # two cameras are always collinear
-    assert gravity_from_map_poses(robot_poses(world_rotation, centers[:2], yaws[:2], 9.0, 0.0))[1].method == "line"
+    assert (
+        gravity_from_map_poses(robot_poses(world_rotation, centers[:2], yaws[:2], 9.0, 0.0))[1].method
+        == "line"
+    )
 
 
 def test_inconsistent_tilt_warns(world_rotation):
@@ -98,7 +101,9 @@ def test_inconsistent_tilt_warns(world_rotation):
     n = 20
     centers = np.column_stack([rng.uniform(-5, 5, n), np.zeros(n), rng.uniform(-5, 5, n)])
     yaws = rng.uniform(-3, 3, n)
-    _, calm = gravity_from_map_poses(robot_poses(world_rotation, centers, yaws, 4 + rng.normal(0, 0.3, n), 0.0))
+    _, calm = gravity_from_map_poses(
+        robot_poses(world_rotation, centers, yaws, 4 + rng.normal(0, 0.3, n), 0.0)
+    )
     assert calm.warnings == () and calm.pitch_spread_deg < 0.6
     _, shaky = gravity_from_map_poses(robot_poses(world_rotation, centers, yaws, rng.normal(0, 6, n), 0.0))
     assert shaky.pitch_spread_deg > 2.0 and any("inconsistent" in w for w in shaky.warnings)
@@ -141,7 +146,10 @@ def test_up_estimate_estimates_even_when_declared(world_rotation):
     g, rep = gravity_from_map_poses(poses, world_down_from_up("estimate"))
     np.testing.assert_allclose(g, world_rotation @ [0, 1, 0], atol=1e-9)
     assert rep.source == "estimated" and rep.method == "plane" and rep.detail.startswith("up=estimate")
-    assert WorldDown.from_dict(json.loads(json.dumps(world_down_from_up("estimate").to_dict()))).direction is None
+    assert (
+        WorldDown.from_dict(json.loads(json.dumps(world_down_from_up("estimate").to_dict()))).direction
+        is None
+    )
     with pytest.raises(InputError, match="only an option"):
         WorldDown(None, "declared", "")
 
@@ -153,7 +161,11 @@ def test_report_round_trips_through_json(world_rotation):
     back = GravityReport.from_dict(json.loads(json.dumps(rep.to_dict())))
     assert back == rep
     assert any("source: estimated" in line for line in back.summary_lines())
-    assert WorldDown.from_dict(json.loads(json.dumps(world_down_from_up("z").to_dict()))).direction == (0, 0, -1)
+    assert WorldDown.from_dict(json.loads(json.dumps(world_down_from_up("z").to_dict()))).direction == (
+        0,
+        0,
+        -1,
+    )
 
 
 def test_bad_input():
@@ -172,8 +184,10 @@ def test_bad_input():
     assert rep.method == "line" and np.allclose(g, [0, 1, 0])
 
 
-@pytest.mark.parametrize(("text", "up"), [("z", (0, 0, 1)), ("-Y", (0, -1, 0)), ("+x", (1, 0, 0)),
-                                          ("1, 1, 0", (2 ** -0.5, 2 ** -0.5, 0))])
+@pytest.mark.parametrize(
+    ("text", "up"),
+    [("z", (0, 0, 1)), ("-Y", (0, -1, 0)), ("+x", (1, 0, 0)), ("1, 1, 0", (2**-0.5, 2**-0.5, 0))],
+)
 def test_parse_up(text, up):
     np.testing.assert_allclose(parse_up(text), up, atol=1e-12)
 

@@ -14,7 +14,10 @@ def test_the_rotation_makes_the_camera_upright(pitch, roll):
     """Points of the upright frame (y = gravity) seen by the mounted camera come back upright,
     a vertical line stays vertical, and the rotation is a rotation."""
     R_upright_from_cam = upright_from_cam_rotation(pitch, roll)
-    assert np.allclose(R_upright_from_cam @ R_upright_from_cam.T, np.eye(3)) and np.linalg.det(R_upright_from_cam) > 0
+    assert (
+        np.allclose(R_upright_from_cam @ R_upright_from_cam.T, np.eye(3))
+        and np.linalg.det(R_upright_from_cam) > 0
+    )
     X_up = np.column_stack([np.full(10, 0.7), np.linspace(-1, 1.5, 10), np.full(10, 6.0)])  # a vertical line
     X_cam = X_up @ R_upright_from_cam  # R_cam_from_upright applied row-wise
     back = X_cam @ R_upright_from_cam.T

@@ -68,7 +68,9 @@ def test_points_line_omitted(tmp_path, write_image, random_poses, pose_close):
 
 
 def test_radial_and_fisheye_models_are_read_with_the_pixel_shift(tmp_path, write_image, random_poses):
-    cameras = "1 SIMPLE_RADIAL 64 48 50 32 24 0.01\n2 OPENCV_FISHEYE 64 48 20 21 32 24 0.1 0.01 0.001 0.0001\n"
+    cameras = (
+        "1 SIMPLE_RADIAL 64 48 50 32 24 0.01\n2 OPENCV_FISHEYE 64 48 20 21 32 24 0.1 0.01 0.001 0.0001\n"
+    )
     model = write_model(tmp_path, random_poses(1), write_image, cameras=cameras)
     cams = read_colmap_cameras(model / "cameras.txt")
     assert cams[1].params == (50.0, 31.5, 23.5, 0.01)
@@ -81,9 +83,7 @@ def test_unsupported_model_named(tmp_path, write_image, random_poses):
     model = write_model(
         tmp_path, random_poses(1), write_image, cameras="# cams\n1 FOV 64 48 50 51 32 24 0.01\n"
     )
-    with pytest.raises(
-        FormatError, match=r"cameras\.txt:2: camera model FOV is not supported .*PINHOLE"
-    ):
+    with pytest.raises(FormatError, match=r"cameras\.txt:2: camera model FOV is not supported .*PINHOLE"):
         read_colmap(model)
     (model / "cameras.txt").write_text("1 FISHY 64 48 50 32 24\n")
     with pytest.raises(FormatError, match=r"cameras\.txt:1: expected '\[KEY\] MODEL"):

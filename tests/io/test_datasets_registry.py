@@ -12,7 +12,9 @@ from planarloc.io.datasets import format_options
 
 def test_formats_registered():
     assert set(FORMATS) == {"kitti", "tum", "openloris", "kapture", "colmap", "list", "rosbag"}
-    assert {"image_topic", "pose_topic", "tf_parent", "tf_child", "base_to_camera", "every"} <= set(format_options("rosbag"))
+    assert {"image_topic", "pose_topic", "tf_parent", "tf_child", "base_to_camera", "every"} <= set(
+        format_options("rosbag")
+    )
     assert "max_dt" in format_options("tum") and "image_dir" in format_options("colmap")
 
 

@@ -23,12 +23,19 @@ def tum_line(stamp: str, pose) -> str:
     return stamp + " " + " ".join(f"{v:.12f}" for v in (*pose.t, x, y, z, w))
 
 
-def test_tum_ground_truth_with_two_poses_at_one_stamp(tmp_path, write_image, random_poses, pose_close, caplog):
+def test_tum_ground_truth_with_two_poses_at_one_stamp(
+    tmp_path, write_image, random_poses, pose_close, caplog
+):
     poses = random_poses(4, seed=7)
     write_tum(tmp_path, poses[:3], write_image, n_rgb=3, depth=False)  # ground truth on lines 3-5
     gt = tmp_path / "groundtruth.txt"
-    add_lines(gt, [tum_line("10.104000", poses[3]),    # line 6: frame 1's stamp, another pose
-                   tum_line("10.204000", poses[2])])   # line 7: frame 2's pose again
+    add_lines(
+        gt,
+        [
+            tum_line("10.104000", poses[3]),  # line 6: frame 1's stamp, another pose
+            tum_line("10.204000", poses[2]),
+        ],
+    )  # line 7: frame 2's pose again
     with caplog.at_level(logging.WARNING, logger="planarloc.io.tum"):
         frames = read_tum(tmp_path, tum_camera="fr1")
     assert [f.index for f in frames] == [0, 2]  # frame 1 has no usable pose: none is guessed
@@ -56,13 +63,20 @@ def test_an_odometry_file_read_line_by_line_keeps_its_lines(tmp_path, random_pos
     assert len(read_odometry(path)) == 2
 
 
-def test_kapture_trajectory_with_two_poses_at_one_stamp(tmp_path, write_image, random_poses, pose_close, caplog):
+def test_kapture_trajectory_with_two_poses_at_one_stamp(
+    tmp_path, write_image, random_poses, pose_close, caplog
+):
     p = random_poses(4, seed=10)
     write_kapture(tmp_path, [(0, "cam0", p[0]), (1, "cam0", p[1]), (2, "cam0", p[2])], write_image)
     traj = tmp_path / "sensors" / "trajectories.txt"
     line = lambda ts, pose: f"{ts}, cam0, " + ", ".join(f"{v:.15g}" for v in (*pose.quat_wxyz, *pose.t))  # noqa: E731
-    add_lines(traj, [line("1.0", p[3]),  # line 6: the stamp of line 4 (1 == 1.0), another pose
-                     line("2", p[2])])   # line 7: line 5 again
+    add_lines(
+        traj,
+        [
+            line("1.0", p[3]),  # line 6: the stamp of line 4 (1 == 1.0), another pose
+            line("2", p[2]),
+        ],
+    )  # line 7: line 5 again
     with caplog.at_level(logging.WARNING, logger="planarloc.io.kapture"):
         frames = read_kapture(tmp_path)
     assert [f.name for f in frames] == ["cam0/0000.png", "cam0/0002.png"]
@@ -76,9 +90,13 @@ def test_kapture_trajectory_with_two_poses_at_one_stamp(tmp_path, write_image, r
 def test_kapture_rig_with_two_poses_for_one_sensor(tmp_path, write_image, random_poses, caplog):
     p = random_poses(3, seed=11)
     rig_line = lambda pose: "rig, cam0, " + ", ".join(f"{v:.15g}" for v in (*pose.quat_wxyz, *pose.t))  # noqa: E731
-    write_kapture(tmp_path, [(0, "rig", p[0]), (0, "cam1", p[0])], write_image,
-                  records=[(0, "cam0", "cam0/0000.png"), (0, "cam1", "cam1/0000.png")],
-                  rigs=rig_line(p[1]) + "\n" + rig_line(p[2]) + "\n")
+    write_kapture(
+        tmp_path,
+        [(0, "rig", p[0]), (0, "cam1", p[0])],
+        write_image,
+        records=[(0, "cam0", "cam0/0000.png"), (0, "cam1", "cam1/0000.png")],
+        rigs=rig_line(p[1]) + "\n" + rig_line(p[2]) + "\n",
+    )
     with caplog.at_level(logging.WARNING, logger="planarloc.io.kapture"):
         frames = read_kapture(tmp_path)
     assert [f.name for f in frames] == ["cam1/0000.png"]  # cam0's pose in the rig is ambiguous

@@ -19,11 +19,13 @@ def test_read_normalises_and_skips_comments(tmp_path):
 
 @pytest.mark.parametrize(
     ("text", "message"),
-    [("a.png 0 1 0\na.png 0 1 0\n", r"g.txt:2: expected unique names, found 'a.png' again \(line 1\)"),
-     ("a.png 0 1 x\n", r"g.txt:1: expected a number in column 4 \(gravity component\), found 'x'"),
-     ("a.png 0 1 0 0\n", r"g.txt:1: expected 4 fields 'name gx gy gz', found 5"),
-     ("a.png 0 0 0\n", r"g.txt:1: expected a non-zero gravity direction"),
-     ("a.png inf 1 0\n", r"g.txt:1: expected a finite number in column 2")],
+    [
+        ("a.png 0 1 0\na.png 0 1 0\n", r"g.txt:2: expected unique names, found 'a.png' again \(line 1\)"),
+        ("a.png 0 1 x\n", r"g.txt:1: expected a number in column 4 \(gravity component\), found 'x'"),
+        ("a.png 0 1 0 0\n", r"g.txt:1: expected 4 fields 'name gx gy gz', found 5"),
+        ("a.png 0 0 0\n", r"g.txt:1: expected a non-zero gravity direction"),
+        ("a.png inf 1 0\n", r"g.txt:1: expected a finite number in column 2"),
+    ],
 )
 def test_errors_name_file_and_line(tmp_path, text, message):
     (tmp_path / "g.txt").write_text(text)

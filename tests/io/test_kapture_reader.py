@@ -86,7 +86,10 @@ def test_rig(tmp_path, write_image, random_poses, pose_close):
             "cam0, , camera, FOV, 64, 48, 50, 51, 32, 24, 0.1\n",
             r"sensors\.txt:3: camera model FOV is not supported",
         ),
-        ("cam0, , camera, PINHOLE, 64, 48, 50, 51, 32\n", r"sensors\.txt:3: Camera.params: PINHOLE takes 4 parameters, got 3"),
+        (
+            "cam0, , camera, PINHOLE, 64, 48, 50, 51, 32\n",
+            r"sensors\.txt:3: Camera.params: PINHOLE takes 4 parameters, got 3",
+        ),
         (
             "cam0, , camera, PINHOLE, 64, x, 50, 51, 32, 24\n",
             r"sensors\.txt:3: expected a number in column 6",

@@ -160,7 +160,9 @@ def test_image_files_get_the_times_of_their_sequence(tmp_path, write_image, rand
     # one file that is no frame with a time: none gets one (no mix of seconds and frame numbers)
     other = write_image(tmp_path / "other" / "000001.png")
     assert kitti_frame_times([files[0], other]) is None
-    assert kitti_frame_times([files[0], write_image(tmp_path / "image_0" / "000003.png")]) is None  # past times.txt
+    assert (
+        kitti_frame_times([files[0], write_image(tmp_path / "image_0" / "000003.png")]) is None
+    )  # past times.txt
     assert kitti_frame_times([]) is None
     (tmp_path / "times.txt").write_text("0.0\nsoon\n")
     with pytest.raises(FormatError, match=r"times\.txt:2"):

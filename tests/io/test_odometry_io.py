@@ -17,7 +17,7 @@ def test_round_trip_and_association(tmp_path: Path) -> None:
     path = tmp_path / "odom.txt"
     lines = []
     for s, p in zip([0.0, 0.1, 0.2, 0.3], poses):
-        q = p.inverse()                                       # the file holds odom_from_cam
+        q = p.inverse()  # the file holds odom_from_cam
         w, x, y, z = q.quat_wxyz
         lines.append(" ".join(f"{v:.12g}" for v in (s, *q.t, x, y, z, w)))
     path.write_text("# timestamp tx ty tz qx qy qz qw\n" + "\n".join(lines) + "\n")

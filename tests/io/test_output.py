@@ -26,7 +26,12 @@ def test_kinds_of_targets(tmp_path: Path) -> None:
     assert output_kind("-") == "stdout"
     assert output_kind(fifo) == output_kind(tmp_path / "to_fifo") == "through"
     assert output_kind("/dev/null") == "through"
-    assert output_kind(regular) == output_kind(tmp_path / "to_regular") == output_kind(tmp_path / "new") == "file"
+    assert (
+        output_kind(regular)
+        == output_kind(tmp_path / "to_regular")
+        == output_kind(tmp_path / "new")
+        == "file"
+    )
     assert output_kind(folder) == "file"  # refused by the checks as a folder, never written through
 
 
@@ -47,7 +52,9 @@ def test_only_results_files_may_be_replaced(tmp_path: Path) -> None:
     assert not is_results_file(file("words.txt", b"a b c d e f g h\n"))
 
 
-def test_a_failed_write_leaves_the_old_file_and_no_temporary(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+def test_a_failed_write_leaves_the_old_file_and_no_temporary(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
     target = tmp_path / "poses.txt"
     target.write_text("old\n")
     real = os.write

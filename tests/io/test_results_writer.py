@@ -18,8 +18,15 @@ from planarloc.io.tum import read_tum_trajectory
 
 def _record(name: str, stamp: float, status: str, z: float) -> dict:
     success = status != "lost"
-    return {"name": name, "stamp": stamp, "status": status, "success": success, "position_std_m": 0.2,
-            "quat_wxyz": [1.0, 0.0, 0.0, 0.0], "t": [0.0, 0.0, -z]}
+    return {
+        "name": name,
+        "stamp": stamp,
+        "status": status,
+        "success": success,
+        "position_std_m": 0.2,
+        "quat_wxyz": [1.0, 0.0, 0.0, 0.0],
+        "t": [0.0, 0.0, -z],
+    }
 
 
 def _names(path: Path) -> list[str]:
@@ -46,7 +53,12 @@ def test_predicted_frames_are_marked_by_default_and_still_read(tmp_path: Path) -
     stamps, _ = read_tum_trajectory(tum)
     assert np.allclose(stamps, [0.0, 0.1, 0.3])
     records = sorted((tmp_path / "mark.d").glob("*.json"))
-    assert [json.loads(p.read_text())["status"] for p in records] == ["localized", "predicted", "lost", "localized"]
+    assert [json.loads(p.read_text())["status"] for p in records] == [
+        "localized",
+        "predicted",
+        "lost",
+        "localized",
+    ]
 
 
 def test_predicted_frames_can_be_left_out_of_the_pose_files(tmp_path: Path) -> None:

@@ -42,8 +42,11 @@ def test_frames_sharing_a_stamp_never_get_each_others_pose(tmp_path, caplog, pos
     are skipped with a warning each; every other frame gets exactly its own pose."""
     truth = posed(tmp_path, 5, stamps=[100.0, 100.1, 100.1, 100.3, 100.4])
     bag = write_rosbag(tmp_path / "dup", truth, storage="sqlite3", pose_message=pose_message)
-    options = {"pose_topic": "/pose"} if pose_message != "tf" else {"tf_parent": "map",
-                                                                     "tf_child": "camera_optical_frame"}
+    options = (
+        {"pose_topic": "/pose"}
+        if pose_message != "tf"
+        else {"tf_parent": "map", "tf_child": "camera_optical_frame"}
+    )
     with caplog.at_level(logging.WARNING):
         read = read_rosbag(bag, image_dir=tmp_path / "img", **options)
     assert [im.timestamp for im in read] == pytest.approx([100.0, 100.3, 100.4])
@@ -65,7 +68,9 @@ def test_frames_sharing_a_stamp_never_get_each_others_pose(tmp_path, caplog, pos
 def test_equal_duplicate_pose_samples_count_once(tmp_path, caplog) -> None:
     truth = posed(tmp_path, 3)
     doubled = [truth[0], truth[1], dataclasses.replace(truth[1], name="x.png", index=9), truth[2]]
-    bag = write_rosbag(tmp_path / "eq", doubled, storage="sqlite3")  # frame 1 and its copy: one stamp, one pose
+    bag = write_rosbag(
+        tmp_path / "eq", doubled, storage="sqlite3"
+    )  # frame 1 and its copy: one stamp, one pose
     with caplog.at_level(logging.WARNING):
         read = read_rosbag(bag, pose_topic="/pose", image_dir=tmp_path / "img")
     assert len(read) == 2  # the two images at one stamp are still ambiguous
@@ -96,23 +101,41 @@ def types():
 
 def header(ns: int, frame: str = "cam"):
     T = types()
-    return T["std_msgs/msg/Header"](stamp=T["builtin_interfaces/msg/Time"](sec=ns // 10**9, nanosec=ns % 10**9),
-                                    frame_id=frame)
+    return T["std_msgs/msg/Header"](
+        stamp=T["builtin_interfaces/msg/Time"](sec=ns // 10**9, nanosec=ns % 10**9), frame_id=frame
+    )
 
 
 def image_msg(ns: int, encoding: str, data: np.ndarray, step: int, h: int = 24, w: int = 32):
-    return types()["sensor_msgs/msg/Image"](header=header(ns), height=h, width=w, encoding=encoding, is_bigendian=0,
-                                            step=step, data=np.ascontiguousarray(data).reshape(-1).view(np.uint8))
+    return types()["sensor_msgs/msg/Image"](
+        header=header(ns),
+        height=h,
+        width=w,
+        encoding=encoding,
+        is_bigendian=0,
+        step=step,
+        data=np.ascontiguousarray(data).reshape(-1).view(np.uint8),
+    )
 
 
 def camera_info(ns: int, model: str = "plumb_bob", D=(0.0,) * 5):
     T = types()
     fx, fy, cx, cy = 30.0, 31.0, 15.5, 11.5
     return T["sensor_msgs/msg/CameraInfo"](
-        header=header(ns), height=24, width=32, distortion_model=model, d=np.array(D, dtype=float),
-        k=np.array([fx, 0, cx, 0, fy, cy, 0, 0, 1.0]), r=np.eye(3).reshape(-1),
-        p=np.array([fx, 0, cx, 0, 0, fy, cy, 0, 0, 0, 1.0, 0]), binning_x=0, binning_y=0,
-        roi=T["sensor_msgs/msg/RegionOfInterest"](x_offset=0, y_offset=0, height=0, width=0, do_rectify=False))
+        header=header(ns),
+        height=24,
+        width=32,
+        distortion_model=model,
+        d=np.array(D, dtype=float),
+        k=np.array([fx, 0, cx, 0, fy, cy, 0, 0, 1.0]),
+        r=np.eye(3).reshape(-1),
+        p=np.array([fx, 0, cx, 0, 0, fy, cy, 0, 0, 0, 1.0, 0]),
+        binning_x=0,
+        binning_y=0,
+        roi=T["sensor_msgs/msg/RegionOfInterest"](
+            x_offset=0, y_offset=0, height=0, width=0, do_rectify=False
+        ),
+    )
 
 
 NS = 5_000_000_123
@@ -120,13 +143,19 @@ IMG = "sensor_msgs/msg/Image"
 INFO = "sensor_msgs/msg/CameraInfo"
 
 
-@pytest.mark.parametrize("encoding,dtype", [("16UC1", np.uint16), ("32FC1", np.float32), ("16SC1", np.int16),
-                                            ("64FC1", np.float64)])
+@pytest.mark.parametrize(
+    "encoding,dtype",
+    [("16UC1", np.uint16), ("32FC1", np.float32), ("16SC1", np.int16), ("64FC1", np.float64)],
+)
 def test_depth_topics_are_refused_naming_topic_and_stamp(tmp_path, encoding, dtype) -> None:
     data = np.ones((24, 32), dtype)
-    bag = custom_bag(tmp_path / "depth", [("/camera/camera_info", INFO, NS, camera_info(NS)),
-                                         ("/depth/image_raw", IMG, NS, image_msg(NS, encoding, data,
-                                                                                 32 * data.itemsize))])
+    bag = custom_bag(
+        tmp_path / "depth",
+        [
+            ("/camera/camera_info", INFO, NS, camera_info(NS)),
+            ("/depth/image_raw", IMG, NS, image_msg(NS, encoding, data, 32 * data.itemsize)),
+        ],
+    )
     with pytest.raises(FormatError) as exc:
         read_rosbag_images(bag, image_dir=tmp_path / "i")
     text = str(exc.value)
@@ -136,31 +165,54 @@ def test_depth_topics_are_refused_naming_topic_and_stamp(tmp_path, encoding, dty
 
 def test_compressed_depth_and_garbage_are_refused(tmp_path) -> None:
     T = types()
-    for k, (fmt, data) in enumerate([("16UC1; compressedDepth", b"\x89PNG\r\n\x1a\n" + b"\0" * 30),
-                                     ("16UC1; png compressed", b"\x89PNG\r\n\x1a\n" + b"\0" * 30),
-                                     ("jpeg", b"not a jpeg at all")]):
-        msg = T["sensor_msgs/msg/CompressedImage"](header=header(NS), format=fmt,
-                                                   data=np.frombuffer(data, np.uint8))
-        bag = custom_bag(tmp_path / f"c{k}", [("/camera/camera_info", INFO, NS, camera_info(NS)),
-                                             ("/cam/compressed", "sensor_msgs/msg/CompressedImage", NS, msg)])
+    for k, (fmt, data) in enumerate(
+        [
+            ("16UC1; compressedDepth", b"\x89PNG\r\n\x1a\n" + b"\0" * 30),
+            ("16UC1; png compressed", b"\x89PNG\r\n\x1a\n" + b"\0" * 30),
+            ("jpeg", b"not a jpeg at all"),
+        ]
+    ):
+        msg = T["sensor_msgs/msg/CompressedImage"](
+            header=header(NS), format=fmt, data=np.frombuffer(data, np.uint8)
+        )
+        bag = custom_bag(
+            tmp_path / f"c{k}",
+            [
+                ("/camera/camera_info", INFO, NS, camera_info(NS)),
+                ("/cam/compressed", "sensor_msgs/msg/CompressedImage", NS, msg),
+            ],
+        )
         with pytest.raises(FormatError, match="/cam/compressed at stamp 5.000000123"):
             read_rosbag_images(bag, image_dir=tmp_path / f"i{k}")
 
 
 def test_short_and_damaged_messages_name_topic_and_stamp(tmp_path) -> None:
     short = image_msg(NS, "mono8", np.zeros(100, np.uint8), 32)  # 100 bytes for 24 rows of 32
-    bag = custom_bag(tmp_path / "short", [("/camera/camera_info", INFO, NS, camera_info(NS)),
-                                         ("/camera/image_raw", IMG, NS, short)])
-    with pytest.raises(FormatError, match=r"/camera/image_raw at stamp 5.000000123: image message: 100 bytes"):
+    bag = custom_bag(
+        tmp_path / "short",
+        [("/camera/camera_info", INFO, NS, camera_info(NS)), ("/camera/image_raw", IMG, NS, short)],
+    )
+    with pytest.raises(
+        FormatError, match=r"/camera/image_raw at stamp 5.000000123: image message: 100 bytes"
+    ):
         read_rosbag_images(bag, image_dir=tmp_path / "i")
-    bag = custom_bag(tmp_path / "broken", [("/camera/camera_info", INFO, NS, camera_info(NS)),
-                                          ("/camera/image_raw", IMG, NS, b"\x00\x01\x00\x00garbage")])
-    with pytest.raises(FormatError, match=r"/camera/image_raw at stamp 5.000000123 \(bag time\): cannot decode"):
+    bag = custom_bag(
+        tmp_path / "broken",
+        [
+            ("/camera/camera_info", INFO, NS, camera_info(NS)),
+            ("/camera/image_raw", IMG, NS, b"\x00\x01\x00\x00garbage"),
+        ],
+    )
+    with pytest.raises(
+        FormatError, match=r"/camera/image_raw at stamp 5.000000123 \(bag time\): cannot decode"
+    ):
         read_rosbag_images(bag, image_dir=tmp_path / "j")
     info = camera_info(NS, "plumb_bob", (0.1, 0.0, 0.0, 0.0, 0.3))  # k3 != 0: no supported model
     good = image_msg(NS, "mono8", np.zeros((24, 32), np.uint8), 32)
     bag = custom_bag(tmp_path / "k3", [("/cam/info", INFO, NS, info), ("/camera/image_raw", IMG, NS, good)])
-    with pytest.raises(FormatError, match=r"/cam/info at stamp 5.000000123: CameraInfo distortion model 'plumb_bob'"):
+    with pytest.raises(
+        FormatError, match=r"/cam/info at stamp 5.000000123: CameraInfo distortion model 'plumb_bob'"
+    ):
         read_rosbag_images(bag, image_dir=tmp_path / "k")
 
 
@@ -168,24 +220,31 @@ def test_short_and_damaged_messages_name_topic_and_stamp(tmp_path) -> None:
 def test_equidistant_camera_info_is_opencv_fisheye(tmp_path, model) -> None:
     D = (0.1, -0.02, 0.003, -0.0004)
     good = image_msg(NS, "mono8", np.zeros((24, 32), np.uint8), 32)
-    bag = custom_bag(tmp_path / "fe", [("/cam/info", INFO, NS, camera_info(NS, model, D)),
-                                      ("/camera/image_raw", IMG, NS, good)])
+    bag = custom_bag(
+        tmp_path / "fe",
+        [("/cam/info", INFO, NS, camera_info(NS, model, D)), ("/camera/image_raw", IMG, NS, good)],
+    )
     cam = read_rosbag_images(bag, image_dir=tmp_path / "i")[0].camera
     assert cam == Camera("OPENCV_FISHEYE", 32, 24, (30.0, 31.0, 15.5, 11.5, *D))
 
 
-@pytest.mark.parametrize("camera", [
-    Camera("SIMPLE_PINHOLE", 32, 24, (30.0, 15.5, 11.5)),
-    Camera("PINHOLE", 32, 24, (30.0, 31.0, 15.5, 11.5)),
-    Camera("SIMPLE_RADIAL", 32, 24, (30.0, 15.5, 11.5, -0.05)),
-    Camera("RADIAL", 32, 24, (30.0, 15.5, 11.5, -0.05, 0.01)),
-    Camera("OPENCV", 32, 24, (30.0, 31.0, 15.5, 11.5, -0.1, 0.01, 0.001, -0.002)),
-    Camera("OPENCV_FISHEYE", 32, 24, (30.0, 31.0, 15.5, 11.5, 0.1, -0.02, 0.003, -0.0004)),
-])
+@pytest.mark.parametrize(
+    "camera",
+    [
+        Camera("SIMPLE_PINHOLE", 32, 24, (30.0, 15.5, 11.5)),
+        Camera("PINHOLE", 32, 24, (30.0, 31.0, 15.5, 11.5)),
+        Camera("SIMPLE_RADIAL", 32, 24, (30.0, 15.5, 11.5, -0.05)),
+        Camera("RADIAL", 32, 24, (30.0, 15.5, 11.5, -0.05, 0.01)),
+        Camera("OPENCV", 32, 24, (30.0, 31.0, 15.5, 11.5, -0.1, 0.01, 0.001, -0.002)),
+        Camera("OPENCV_FISHEYE", 32, 24, (30.0, 31.0, 15.5, 11.5, 0.1, -0.02, 0.003, -0.0004)),
+    ],
+)
 @pytest.mark.parametrize("storage", ["rosbag1", "sqlite3"])
 def test_the_bag_writer_writes_each_camera_model_so_that_it_reads_back(tmp_path, camera, storage) -> None:
-    assert set(CameraModel) == {CameraModel(c) for c in ("SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL",
-                                                         "OPENCV", "OPENCV_FISHEYE")}  # every model is tested
+    assert set(CameraModel) == {
+        CameraModel(c)
+        for c in ("SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV", "OPENCV_FISHEYE")
+    }  # every model is tested
     truth = posed(tmp_path, 2, camera=camera)
     bag = write_rosbag(tmp_path / ("run.bag" if storage == "rosbag1" else "run"), truth, storage=storage)
     read = read_rosbag(bag, pose_topic="/pose", image_dir=tmp_path / "img")[0].camera

@@ -47,16 +47,23 @@ def assert_same(read: list[PosedImage], truth: list[PosedImage]) -> None:
         np.testing.assert_allclose(a.cam_from_world.matrix4, b.cam_from_world.matrix4, atol=1e-9)
         assert a.camera == b.camera
         assert a.timestamp == pytest.approx(b.timestamp, abs=1e-9)
-        np.testing.assert_array_equal(cv2.imread(str(a.path), cv2.IMREAD_UNCHANGED),
-                                      cv2.imread(str(b.path), cv2.IMREAD_UNCHANGED))
+        np.testing.assert_array_equal(
+            cv2.imread(str(a.path), cv2.IMREAD_UNCHANGED), cv2.imread(str(b.path), cv2.IMREAD_UNCHANGED)
+        )
 
 
 @pytest.mark.parametrize("storage", ["rosbag1", "sqlite3", "mcap"])
 @pytest.mark.parametrize("compressed", [False, True])
 def test_tf_chain_with_static_camera_round_trip(tmp_path, random_poses, storage, compressed):
     truth = posed_images(tmp_path, random_poses)
-    bag = write_rosbag(bag_path(tmp_path, storage), truth, storage=storage, compressed=compressed,
-                       pose_message="tf", base_from_camera=BASE_FROM_CAMERA)
+    bag = write_rosbag(
+        bag_path(tmp_path, storage),
+        truth,
+        storage=storage,
+        compressed=compressed,
+        pose_message="tf",
+        base_from_camera=BASE_FROM_CAMERA,
+    )
     read = read_rosbag(bag, tf_parent="map", tf_child="base_link", image_dir=tmp_path / "img")
     assert_same(read, truth)
     assert read[0].name.startswith("camera_image_raw/100.")
@@ -67,9 +74,16 @@ def test_tf_chain_with_static_camera_round_trip(tmp_path, random_poses, storage,
 @pytest.mark.parametrize("message", ["PoseStamped", "PoseWithCovarianceStamped", "Odometry"])
 def test_pose_topics_of_the_base_with_base_to_camera(tmp_path, random_poses, storage, message):
     truth = posed_images(tmp_path, random_poses, color=False)
-    bag = write_rosbag(bag_path(tmp_path, storage), truth, storage=storage, pose_message=message,
-                       base_from_camera=BASE_FROM_CAMERA)
-    read = read_rosbag(bag, pose_topic="/pose", base_to_camera=BASE_TO_CAMERA_OPTION, image_dir=tmp_path / "i")
+    bag = write_rosbag(
+        bag_path(tmp_path, storage),
+        truth,
+        storage=storage,
+        pose_message=message,
+        base_from_camera=BASE_FROM_CAMERA,
+    )
+    read = read_rosbag(
+        bag, pose_topic="/pose", base_to_camera=BASE_TO_CAMERA_OPTION, image_dir=tmp_path / "i"
+    )
     assert_same(read, truth)
     if message == "Odometry":  # names its child frame: /tf_static supplies base -> camera
         assert_same(read_rosbag(bag, pose_topic="/pose", image_dir=tmp_path / "i"), truth)
@@ -110,23 +124,28 @@ def test_images_only_and_camera_option(tmp_path, random_poses):
 
 def test_distorted_camera_info_becomes_opencv(tmp_path, random_poses):
     cam = Camera("OPENCV", 32, 24, (30.0, 31.0, 15.5, 11.5, -0.1, 0.01, 0.001, -0.002))
-    truth = [PosedImage(p.name, p.path, p.cam_from_world, cam, p.index, p.timestamp)
-             for p in posed_images(tmp_path, random_poses, n=2)]
+    truth = [
+        PosedImage(p.name, p.path, p.cam_from_world, cam, p.index, p.timestamp)
+        for p in posed_images(tmp_path, random_poses, n=2)
+    ]
     bag = write_rosbag(tmp_path / "run.bag", truth, storage="rosbag1")
     assert read_rosbag(bag, pose_topic="/pose", image_dir=tmp_path / "i")[0].camera == cam
 
 
 def test_errors_name_the_option_and_the_choices(tmp_path, random_poses):
     truth = posed_images(tmp_path, random_poses, n=2)
-    bag = write_rosbag(tmp_path / "run", truth, storage="sqlite3", pose_message="tf",
-                       base_from_camera=BASE_FROM_CAMERA)
+    bag = write_rosbag(
+        tmp_path / "run", truth, storage="sqlite3", pose_message="tf", base_from_camera=BASE_FROM_CAMERA
+    )
     with pytest.raises(InputError, match="pose_topic=TOPIC or both tf_parent"):
         read_rosbag(bag)
     with pytest.raises(FormatError, match=r"image_topic='/nope': no such topic; topics: .*/camera/image_raw"):
         read_rosbag(bag, image_topic="/nope", tf_parent="map", tf_child="base_link")
     with pytest.raises(FormatError, match="has type sensor_msgs/msg/CameraInfo"):
         read_rosbag(bag, image_topic="/camera/camera_info", tf_parent="map", tf_child="base_link")
-    with pytest.raises(FormatError, match=r"not an ancestor .* \(frames: base_link, camera_optical_frame, map\)"):
+    with pytest.raises(
+        FormatError, match=r"not an ancestor .* \(frames: base_link, camera_optical_frame, map\)"
+    ):
         read_rosbag(bag, tf_parent="odom", tf_child="base_link", image_dir=tmp_path / "i")
     with pytest.raises(InputError, match="base_to_camera: expected 7 numbers"):
         read_rosbag(bag, tf_parent="map", tf_child="base_link", base_to_camera="1 2 3")
@@ -138,8 +157,13 @@ def test_errors_name_the_option_and_the_choices(tmp_path, random_poses):
 
 def test_pose_of_the_base_without_extrinsic_warns(tmp_path, random_poses, caplog):
     truth = posed_images(tmp_path, random_poses, n=2)
-    bag = write_rosbag(tmp_path / "run", truth, storage="sqlite3", pose_message="PoseStamped",
-                       base_from_camera=BASE_FROM_CAMERA)
+    bag = write_rosbag(
+        tmp_path / "run",
+        truth,
+        storage="sqlite3",
+        pose_message="PoseStamped",
+        base_from_camera=BASE_FROM_CAMERA,
+    )
     with caplog.at_level(logging.WARNING):
         read_rosbag(bag, pose_topic="/pose", image_dir=tmp_path / "i")
     assert "pass base_to_camera" in caplog.text
@@ -171,23 +195,55 @@ def _rosbags_own_bag(path: Path, truth: list[PosedImage]) -> Path:
             q, t = world_from_cam.quat_wxyz, world_from_cam.t
             pose = T["geometry_msgs/msg/Pose"](
                 position=T["geometry_msgs/msg/Point"](x=t[0], y=t[1], z=t[2]),
-                orientation=T["geometry_msgs/msg/Quaternion"](x=q[1], y=q[2], z=q[3], w=q[0]))
+                orientation=T["geometry_msgs/msg/Quaternion"](x=q[1], y=q[2], z=q[3], w=q[0]),
+            )
             zero = T["geometry_msgs/msg/Vector3"](x=0.0, y=0.0, z=0.0)
             msgs = [
-                (odom, ns + 2_000_000, T["nav_msgs/msg/Odometry"](
-                    header=header(ns + 1_000_000, "map", seq), child_frame_id="cam_optical",
-                    pose=T["geometry_msgs/msg/PoseWithCovariance"](pose=pose, covariance=np.zeros(36)),
-                    twist=T["geometry_msgs/msg/TwistWithCovariance"](
-                        twist=T["geometry_msgs/msg/Twist"](linear=zero, angular=zero), covariance=np.zeros(36)))),
-                (infos, ns + 3_000_000, T["sensor_msgs/msg/CameraInfo"](
-                    header=header(ns, "cam_optical", seq), height=CAMERA.height, width=CAMERA.width,
-                    distortion_model="plumb_bob", D=np.zeros(5), K=np.array([fx, 0, cx, 0, fy, cy, 0, 0, 1.0]),
-                    R=np.eye(3).reshape(-1), P=np.array([fx, 0, cx, 0, 0, fy, cy, 0, 0, 0, 1.0, 0]),
-                    binning_x=0, binning_y=0, roi=T["sensor_msgs/msg/RegionOfInterest"](
-                        x_offset=0, y_offset=0, height=0, width=0, do_rectify=False))),
-                (images, ns + 4_000_000, T["sensor_msgs/msg/Image"](
-                    header=header(ns, "cam_optical", seq), height=rgb.shape[0], width=rgb.shape[1],
-                    encoding="rgb8", is_bigendian=0, step=3 * rgb.shape[1], data=rgb.reshape(-1))),
+                (
+                    odom,
+                    ns + 2_000_000,
+                    T["nav_msgs/msg/Odometry"](
+                        header=header(ns + 1_000_000, "map", seq),
+                        child_frame_id="cam_optical",
+                        pose=T["geometry_msgs/msg/PoseWithCovariance"](pose=pose, covariance=np.zeros(36)),
+                        twist=T["geometry_msgs/msg/TwistWithCovariance"](
+                            twist=T["geometry_msgs/msg/Twist"](linear=zero, angular=zero),
+                            covariance=np.zeros(36),
+                        ),
+                    ),
+                ),
+                (
+                    infos,
+                    ns + 3_000_000,
+                    T["sensor_msgs/msg/CameraInfo"](
+                        header=header(ns, "cam_optical", seq),
+                        height=CAMERA.height,
+                        width=CAMERA.width,
+                        distortion_model="plumb_bob",
+                        D=np.zeros(5),
+                        K=np.array([fx, 0, cx, 0, fy, cy, 0, 0, 1.0]),
+                        R=np.eye(3).reshape(-1),
+                        P=np.array([fx, 0, cx, 0, 0, fy, cy, 0, 0, 0, 1.0, 0]),
+                        binning_x=0,
+                        binning_y=0,
+                        roi=T["sensor_msgs/msg/RegionOfInterest"](
+                            x_offset=0, y_offset=0, height=0, width=0, do_rectify=False
+                        ),
+                    ),
+                ),
+                (
+                    images,
+                    ns + 4_000_000,
+                    T["sensor_msgs/msg/Image"](
+                        header=header(ns, "cam_optical", seq),
+                        height=rgb.shape[0],
+                        width=rgb.shape[1],
+                        encoding="rgb8",
+                        is_bigendian=0,
+                        step=3 * rgb.shape[1],
+                        data=rgb.reshape(-1),
+                    ),
+                ),
             ]
             for conn, bag_ns, msg in msgs:
                 writer.write(conn, bag_ns, ts.serialize_ros1(msg, conn.msgtype))

@@ -23,11 +23,18 @@ def test_two_sessions_get_prefixed_unique_names(tmp_path, write_image, random_po
     one = read_sessions([a], "list")
     assert [im.name for im in one] == ["img/0.png", "img/1.png", "img/2.png"]
     both = read_sessions([a, b], "list")
-    assert [im.name for im in both] == ["home1/img/0.png", "home1/img/1.png", "home1/img/2.png",
-                                        "home1-2/img/0.png", "home1-2/img/1.png"]
+    assert [im.name for im in both] == [
+        "home1/img/0.png",
+        "home1/img/1.png",
+        "home1/img/2.png",
+        "home1-2/img/0.png",
+        "home1-2/img/1.png",
+    ]
     np.testing.assert_allclose(both[3].cam_from_world.matrix4, random_poses(2, 1)[0].matrix4, atol=1e-12)
     (tmp_path / "run.bag").write_bytes(b"")
     assert session_labels([a, b, tmp_path / "run.bag"]) == ["home1", "home1-2", "run"]
     p1 = sessions_map_path([a, b], "list", {}, "f")
-    assert p1 != sessions_map_path([a], "list", {}, "f") and p1 != sessions_map_path([a, b], "list", {"k": 1}, "f")
+    assert p1 != sessions_map_path([a], "list", {}, "f") and p1 != sessions_map_path(
+        [a, b], "list", {"k": 1}, "f"
+    )
     assert p1.name.startswith("home1+home1-2-")

@@ -29,7 +29,11 @@ from planarloc.serve.requests import RequestError, parse_camera_field, parse_gra
 def _a_camera(model: CameraModel) -> Camera | None:
     """A camera of ``model`` that Camera accepts (None if these simple parameters do not fit it)."""
     n = NUM_PARAMS[model]
-    for params in ([300.0] * n, [300.0] * min(n, 4) + [0.0] * max(n - 4, 0), [300.0] * min(n, 3) + [0.0] * (n - 3)):
+    for params in (
+        [300.0] * n,
+        [300.0] * min(n, 4) + [0.0] * max(n - 4, 0),
+        [300.0] * min(n, 3) + [0.0] * (n - 3),
+    ):
         try:
             return Camera(model, 640, 480, tuple(params))
         except ValueError:
@@ -38,14 +42,22 @@ def _a_camera(model: CameraModel) -> Camera | None:
 
 
 @pytest.mark.parametrize("model", list(CameraModel))
-def test_every_model_camera_takes_is_taken_by_every_reader_and_front_door(model: CameraModel, tmp_path: Path) -> None:
+def test_every_model_camera_takes_is_taken_by_every_reader_and_front_door(
+    model: CameraModel, tmp_path: Path
+) -> None:
     camera = _a_camera(model)
     if camera is None:
         pytest.skip(f"no simple parameters fit {model.value}")
     text = camera_text(camera)
     (tmp_path / "cameras.txt").write_text(f"# a camera file\n1 {text}\n")
-    parsed = [parse_camera(text), parse_camera(text.lower().replace(" ", ", ")), camera_option(text),
-              parse_camera_field(text), parse_camera_option(text), read_camera_file(tmp_path / "cameras.txt")["1"]]
+    parsed = [
+        parse_camera(text),
+        parse_camera(text.lower().replace(" ", ", ")),
+        camera_option(text),
+        parse_camera_field(text),
+        parse_camera_option(text),
+        read_camera_file(tmp_path / "cameras.txt")["1"],
+    ]
     assert all(p == camera for p in parsed)
 
 
@@ -53,7 +65,9 @@ def test_camera_errors_come_from_camera_and_name_their_place(tmp_path: Path) -> 
     supported = ", ".join(m.value for m in CameraModel)
     with pytest.raises(TextError, match=f"camera model FOV is not supported \\(supported: {supported}\\)"):
         parse_camera("FOV 64 48 50 51 32 24 0.1")
-    with pytest.raises(TextError, match=f"expected a camera model name \\({supported}\\) in column 1, found 'FOO'"):
+    with pytest.raises(
+        TextError, match=f"expected a camera model name \\({supported}\\) in column 1, found 'FOO'"
+    ):
         parse_camera("FOO 1 2 3")
     with pytest.raises(TextError, match="Camera.params: PINHOLE takes 4 parameters, got 3"):
         parse_camera("PINHOLE 64 48 1 2 3")
@@ -70,14 +84,20 @@ def test_camera_errors_come_from_camera_and_name_their_place(tmp_path: Path) -> 
     (tmp_path / "camera.txt").write_text("PINHOLE 64 48 1 x 3 4\n")
     with pytest.raises(FormatError, match=r"camera.txt:1: expected a number in column 5"):
         read_camera_file(tmp_path / "camera.txt")
-    (tmp_path / "cameras.txt").write_text("7 PINHOLE 64 48 1 x 3 4\n")  # keyed: the columns count from the key
+    (tmp_path / "cameras.txt").write_text(
+        "7 PINHOLE 64 48 1 x 3 4\n"
+    )  # keyed: the columns count from the key
     with pytest.raises(FormatError, match=r"cameras.txt:1: expected a number in column 6"):
         read_camera_file(tmp_path / "cameras.txt")
 
 
 def test_gravity_is_normalised_the_same_everywhere() -> None:
-    for g in (parse_gravity("0 2 0"), parse_gravity("0, 2, 0"), gravity_option("0 2 0"),
-              np.array(parse_gravity_field("0 2 0"))):
+    for g in (
+        parse_gravity("0 2 0"),
+        parse_gravity("0, 2, 0"),
+        gravity_option("0 2 0"),
+        np.array(parse_gravity_field("0 2 0")),
+    ):
         np.testing.assert_array_equal(g, [0.0, 1.0, 0.0])
     for bad in ("0 1", "0 0 0", "0 1 nan", "a b c"):
         with pytest.raises(TextError):

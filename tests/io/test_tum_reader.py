@@ -78,9 +78,7 @@ def test_intrinsics_sources(tmp_path, write_image, random_poses):
     with pytest.raises(InputError, match="fr1, fr2, fr3"):
         read_tum(tmp_path, tum_camera="fr9")
     (tmp_path / "camera.txt").write_text("PINHOLE 640 480 500 501 320\n")
-    with pytest.raises(
-        FormatError, match=r"camera\.txt:1: Camera.params: PINHOLE takes 4 parameters, got 3"
-    ):
+    with pytest.raises(FormatError, match=r"camera\.txt:1: Camera.params: PINHOLE takes 4 parameters, got 3"):
         read_tum(tmp_path)
 
 

@@ -66,8 +66,14 @@ def test_formats_without_up_axis(tmp_path, write_image, random_poses):
 
 @pytest.mark.parametrize(
     ("up", "down"),
-    [("z", (0, 0, -1)), ("+x", (-1, 0, 0)), ("-y", (0, 1, 0)), ("0,0,2", (0, 0, -1)),
-     ("0 3 -4", (0, -0.6, 0.8)), ([1, 0, 0], (-1, 0, 0))],
+    [
+        ("z", (0, 0, -1)),
+        ("+x", (-1, 0, 0)),
+        ("-y", (0, 1, 0)),
+        ("0,0,2", (0, 0, -1)),
+        ("0 3 -4", (0, -0.6, 0.8)),
+        ([1, 0, 0], (-1, 0, 0)),
+    ],
 )
 def test_up_option_overrides_declared(tmp_path, write_image, random_poses, up, down):
     write_sequence(tmp_path, random_poses(2), write_image)

@@ -27,8 +27,13 @@ def pose_at(x: float, z: float, yaw: float) -> Pose:
     return Pose(R, -R @ np.array([x, 0.0, z]))
 
 
-def views_of(points: np.ndarray, poses: list[Pose], rng: np.random.Generator, noise_px: float = 0.0,
-             distractors: int = 50) -> tuple[list[MapView], list[np.ndarray]]:
+def views_of(
+    points: np.ndarray,
+    poses: list[Pose],
+    rng: np.random.Generator,
+    noise_px: float = 0.0,
+    distractors: int = 50,
+) -> tuple[list[MapView], list[np.ndarray]]:
     """One MapView per pose: the visible points' projections with a descriptor per point (the
     same in every view), plus distractor keypoints; and per view the keypoint index of each point
     (-1 where not visible)."""
@@ -71,15 +76,31 @@ def test_points_are_exact_on_noise_free_views_and_come_from_the_widest_partner()
         assert np.all(pts.partner[has] != k) and np.all(pts.angle_deg[has] >= 1.0)
         assert np.isfinite(pts.cov[has]).all() and np.all(np.linalg.eigvalsh(pts.cov[has]) > 0)
         # Moving both map images' centres by d moves each point by d.
-        np.testing.assert_allclose(pts.pose_jac[has, 0, :, 3:] + pts.pose_jac[has, 1, :, 3:],
-                                   np.broadcast_to(np.eye(3), (len(has), 3, 3)), atol=1e-6)
+        np.testing.assert_allclose(
+            pts.pose_jac[has, 0, :, 3:] + pts.pose_jac[has, 1, :, 3:],
+            np.broadcast_to(np.eye(3), (len(has), 3, 3)),
+            atol=1e-6,
+        )
         assert np.isnan(pts.pose_jac[~np.isfinite(pts.X[:, 0])]).all()
         # The partner is the view that sees the point at the widest triangulation angle.
         centres = [v.cam_from_world.center for v in views]
         for i, Xi in zip(has, truth):
-            angles = {j: np.degrees(np.arccos(np.clip(
-                (Xi - centres[k]) @ (Xi - centres[j]) / np.linalg.norm(Xi - centres[k]) / np.linalg.norm(Xi - centres[j]),
-                -1, 1))) for j in range(len(views)) if j != k and index[j][point_of[int(rows[k][i])]] >= 0}
+            angles = {
+                j: np.degrees(
+                    np.arccos(
+                        np.clip(
+                            (Xi - centres[k])
+                            @ (Xi - centres[j])
+                            / np.linalg.norm(Xi - centres[k])
+                            / np.linalg.norm(Xi - centres[j]),
+                            -1,
+                            1,
+                        )
+                    )
+                )
+                for j in range(len(views))
+                if j != k and index[j][point_of[int(rows[k][i])]] >= 0
+            }
             assert pts.partner[i] == max(angles, key=angles.get)
             assert pts.angle_deg[i] == pytest.approx(angles[pts.partner[i]], abs=1e-3)
 
@@ -94,9 +115,16 @@ def test_wrong_matches_are_refused_by_the_known_poses() -> None:
     d = views[1].features.descriptors.copy()
     both = np.flatnonzero((index[0] >= 0) & (index[1] >= 0))
     a, b = both[:40:2], both[1:40:2]
-    d[index[1][a]], d[index[1][b]] = views[1].features.descriptors[index[1][b]], views[1].features.descriptors[index[1][a]]
-    views[1] = MapView(views[1].name, Features(views[1].features.keypoints, d, views[1].features.scales),
-                       views[1].cam_from_world, CAMERA)
+    d[index[1][a]], d[index[1][b]] = (
+        views[1].features.descriptors[index[1][b]],
+        views[1].features.descriptors[index[1][a]],
+    )
+    views[1] = MapView(
+        views[1].name,
+        Features(views[1].features.keypoints, d, views[1].features.scales),
+        views[1].cam_from_world,
+        CAMERA,
+    )
     swapped = index[0][np.r_[a, b]]
     out = view_points(views, [swapped, np.zeros(0, dtype=np.int64)], PairMatchCache())
     assert not np.isfinite(out[0].X[:, 0]).any()
@@ -124,9 +152,12 @@ def test_triangulation_covariance_matches_monte_carlo() -> None:
     a, b = pose_at(0, 0, 0), pose_at(1.0, 1.0, 0.05)
     sigma = 1.0
     predicted = triangulation_uncertainty(X, (a.R, a.t), (b.R, b.t), CAMERA.focal, CAMERA.focal, sigma).cov
-    Ja, Jb = (projection_jacobians(X, p.R, p.t, CAMERA.focal) for p in (a, b))   # σ² (Σ_v J_vᵀ J_v)⁻¹
-    np.testing.assert_allclose(predicted, sigma**2 * np.linalg.inv(Ja.transpose(0, 2, 1) @ Ja + Jb.transpose(0, 2, 1) @ Jb),
-                               rtol=1e-9)
+    Ja, Jb = (projection_jacobians(X, p.R, p.t, CAMERA.focal) for p in (a, b))  # σ² (Σ_v J_vᵀ J_v)⁻¹
+    np.testing.assert_allclose(
+        predicted,
+        sigma**2 * np.linalg.inv(Ja.transpose(0, 2, 1) @ Ja + Jb.transpose(0, 2, 1) @ Jb),
+        rtol=1e-9,
+    )
     assert np.array_equal(predicted, predicted.transpose(0, 2, 1))
     from planarloc.geometry.epipolar import triangulate_points
 
@@ -151,7 +182,9 @@ def _least_squares_point(poses: list[Pose], pixels: list[np.ndarray], X0: np.nda
     """Gauss-Newton on the reprojection errors of one point in the given views."""
     X = X0.copy()
     for _ in range(30):
-        r = np.concatenate([CAMERA.img_from_cam((X @ p.R.T + p.t)[None])[0] - uv for p, uv in zip(poses, pixels)])
+        r = np.concatenate(
+            [CAMERA.img_from_cam((X @ p.R.T + p.t)[None])[0] - uv for p, uv in zip(poses, pixels)]
+        )
         J = np.vstack([projection_jacobians(X[None], p.R, p.t, CAMERA.focal)[0] for p in poses])
         X = X - np.linalg.lstsq(J, r, rcond=None)[0]
     return X
@@ -174,9 +207,15 @@ def test_pose_jacobians_follow_the_least_squares_point_when_a_map_pose_is_correc
             R = Rotation.from_rotvec(step[:3]).as_matrix() @ p.R
             moved = Pose.from_center(R, p.center + step[3:])
             poses = [moved, b] if view == 0 else [a, moved]
-            numeric = np.array([(_least_squares_point(poses, [uv[i] for uv in pixels], X[i]) - X[i]) / eps
-                                for i in range(len(X))])
-            np.testing.assert_allclose(S[:, view, :, k], numeric, rtol=1e-3, atol=1e-3 * np.abs(numeric).max())
+            numeric = np.array(
+                [
+                    (_least_squares_point(poses, [uv[i] for uv in pixels], X[i]) - X[i]) / eps
+                    for i in range(len(X))
+                ]
+            )
+            np.testing.assert_allclose(
+                S[:, view, :, k], numeric, rtol=1e-3, atol=1e-3 * np.abs(numeric).max()
+            )
     # 0.1° of yaw of one view moves a point 40 m ahead of a 3 m forward baseline by metres.
     assert np.abs(S[2, 1, :, 1]).max() * np.radians(0.1) > 0.5
 

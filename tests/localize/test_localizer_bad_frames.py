@@ -27,9 +27,13 @@ def localizer(tiny_world: Path, tmp_path_factory: pytest.TempPathFactory) -> Loc
 def blank_frames(shape: tuple[int, int]) -> dict[str, np.ndarray]:
     h, w = shape
     gradient = np.tile(np.linspace(0, 255, w), (h, 1)).astype(np.uint8)  # not blank to the eye: no corners
-    return {"black": np.zeros(shape, np.uint8), "white": np.full(shape, 255, np.uint8),
-            "grey": np.full(shape, 128, np.uint8), "gradient": gradient,
-            "colour": np.zeros((h, w, 3), np.uint8)}
+    return {
+        "black": np.zeros(shape, np.uint8),
+        "white": np.full(shape, 255, np.uint8),
+        "grey": np.full(shape, 128, np.uint8),
+        "gradient": gradient,
+        "colour": np.zeros((h, w, 3), np.uint8),
+    }
 
 
 def assert_failed_with_reason(est) -> None:
@@ -58,8 +62,11 @@ def test_features_that_match_nothing_fail_without_an_index_error(localizer: Loca
     keeps none): local structure gets zero matches and the query fails with not_in_map."""
     camera = next(iter(localizer.map_cameras))
     n = 20
-    features = Features(np.random.default_rng(0).uniform(0, 200, (n, 2)).astype(np.float32),
-                        np.full((n, 128), 128 ** -0.5, np.float32), np.full(n, 2.0, np.float32))
+    features = Features(
+        np.random.default_rng(0).uniform(0, 200, (n, 2)).astype(np.float32),
+        np.full((n, 128), 128**-0.5, np.float32),
+        np.full(n, 2.0, np.float32),
+    )
     references = [p.name for p in localizer.map_images][:4]
     est = localizer.localize_features(features, camera, references)
     # no map image sees features that match nothing: the map does not hold the place (issue 32)
@@ -72,12 +79,14 @@ def test_empty_and_broken_images_are_one_input_error(localizer: Localizer, tmp_p
     empty.write_bytes(b"")
     cut = tmp_path / "cut.png"
     cut.write_bytes(cv2.imencode(".png", np.zeros((240, 320), np.uint8))[1].tobytes()[:60])
-    for image, match in [(b"", r"query: cannot decode: the image is empty \(0 bytes\)"),
-                         (bytearray(), "the image is empty"),
-                         (str(empty), r"empty\.png: cannot read image: the image is empty"),
-                         (cut, r"cut\.png: cannot read image: truncated PNG"),
-                         (b"\x89PNG\r\n\x1a\n", "truncated PNG"),
-                         (b"not an image at all", "not a PNG, JPEG"),
-                         (np.zeros((0, 320), np.uint8), "empty image")]:
+    for image, match in [
+        (b"", r"query: cannot decode: the image is empty \(0 bytes\)"),
+        (bytearray(), "the image is empty"),
+        (str(empty), r"empty\.png: cannot read image: the image is empty"),
+        (cut, r"cut\.png: cannot read image: truncated PNG"),
+        (b"\x89PNG\r\n\x1a\n", "truncated PNG"),
+        (b"not an image at all", "not a PNG, JPEG"),
+        (np.zeros((0, 320), np.uint8), "empty image"),
+    ]:
         with pytest.raises(InputError, match=match):
             localizer.localize(image)

@@ -71,7 +71,9 @@ def test_given_references_bypass_retrieval_and_unknown_names_are_errors(built: t
     image = read_gray(queries[0].path)
     with pytest.raises(ValueError, match="not in the map"):
         loc.localize(image, queries[0].camera, references=["nope.png", map_images[0].name])
-    d = sorted(map_images, key=lambda m: np.linalg.norm(m.cam_from_world.center - queries[0].cam_from_world.center))
+    d = sorted(
+        map_images, key=lambda m: np.linalg.norm(m.cam_from_world.center - queries[0].cam_from_world.center)
+    )
     est = loc.localize(image, queries[0].camera, references=[m.name for m in d[:4]])
     assert est.references == [m.name for m in d[:4]][: len(est.references)]
 

@@ -80,7 +80,9 @@ def test_bad_query_gravity_fails_before_any_work(small_map: tuple, captured: lis
     assert captured == []
 
 
-def test_up_option_replaces_and_declarations_must_agree(small_map: tuple, tmp_path: Path, captured: list) -> None:
+def test_up_option_replaces_and_declarations_must_agree(
+    small_map: tuple, tmp_path: Path, captured: list
+) -> None:
     _, map_images, queries = small_map
     path = tmp_path / "m.db"
     images = map_images[:4]
@@ -100,7 +102,9 @@ def test_up_option_replaces_and_declarations_must_agree(small_map: tuple, tmp_pa
 
     other = tmp_path / "o.db"
     build_map(images, other)  # declared y down
-    relabeled = [dataclasses.replace(m, world_down=WorldDown((1.0, 0.0, 0.0), "declared", "other")) for m in images]
+    relabeled = [
+        dataclasses.replace(m, world_down=WorldDown((1.0, 0.0, 0.0), "declared", "other")) for m in images
+    ]
     with pytest.raises(InputError, match="declare"):
         build_map(relabeled, other)
 

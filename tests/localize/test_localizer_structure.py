@@ -30,8 +30,11 @@ def test_straight_corridor_is_degenerate_in_2d2d_and_exact_with_structure(corrid
     for q in queries:
         image = read_gray(q.path)
         est = flat.localize(image, q.camera)
-        assert not est.success and est.status in ("degenerate_scale", "degenerate_structure", "inconsistent_references"), \
-            est.status
+        assert not est.success and est.status in (
+            "degenerate_scale",
+            "degenerate_structure",
+            "inconsistent_references",
+        ), est.status
         assert est.message  # a reason a user can act on
         est = default.localize(image, q.camera)
         assert est.success, (q.name, est.status, est.message)
@@ -41,7 +44,9 @@ def test_straight_corridor_is_degenerate_in_2d2d_and_exact_with_structure(corrid
         assert "disagree" not in est.message  # a rendered map's poses are its images' own
 
 
-def test_map_images_give_points_to_keypoints_the_query_matched_only_once(tiny_world: Path, tmp_path: Path) -> None:
+def test_map_images_give_points_to_keypoints_the_query_matched_only_once(
+    tiny_world: Path, tmp_path: Path
+) -> None:
     """Tracks need a query keypoint matched in two map images; local structure triangulates a
     map keypoint with another map image, so a keypoint the query matched once gets a point too,
     and the points project onto the query's keypoints at its true pose."""
@@ -64,7 +69,9 @@ def test_map_images_give_points_to_keypoints_the_query_matched_only_once(tiny_wo
             seen |= seen_now
             Xc = p.ref_points3d[has] @ q.cam_from_world.R.T + q.cam_from_world.t
             front = Xc[:, 2] > 0  # a wrong match may triangulate anywhere; RANSAC's business
-            residuals += list(np.linalg.norm(q.camera.img_from_cam(Xc[front]) - p.query_points[has][front], axis=1))
+            residuals += list(
+                np.linalg.norm(q.camera.img_from_cam(Xc[front]) - p.query_points[has][front], axis=1)
+            )
     assert once_with_point > 20
     assert np.median(residuals) < 2.0
     none = Localizer(path, LocalizerConfig(ransac=RansacOptions(structure="none")))
@@ -82,11 +89,14 @@ def test_warm_up_localizes_a_map_image_once_and_changes_no_answer(corridor_map: 
         image = read_gray(q.path)
         a, b = warm.localize(image, q.camera), cold.localize(image, q.camera)
         assert a.status == b.status and a.success
-        assert np.allclose(a.pose.matrix, b.pose.matrix) and a.position_std_m == pytest.approx(b.position_std_m)
+        assert np.allclose(a.pose.matrix, b.pose.matrix) and a.position_std_m == pytest.approx(
+            b.position_std_m
+        )
 
 
-def test_map_poses_that_disagree_with_their_images_widen_the_promise(straight_corridor: Path, tmp_path: Path,
-                                                                     monkeypatch: pytest.MonkeyPatch) -> None:
+def test_map_poses_that_disagree_with_their_images_widen_the_promise(
+    straight_corridor: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
     """Map poses rotated by ~0.5° (per axis 0.29°) from where their images were taken (KITTI's
     first seconds disagree by 2 px): the localizer measures the disagreement on the map images'
     own matches and hands the estimator that map rotation std instead of the default 0.1°; every
@@ -101,7 +111,10 @@ def test_map_poses_that_disagree_with_their_images_widen_the_promise(straight_co
     rng = np.random.default_rng(0)
     perturbed = []
     for m in read_dataset(straight_corridor / "map", "tum"):
-        R = Rotation.from_rotvec(np.radians(0.5) * rng.normal(size=3) / np.sqrt(3)).as_matrix() @ m.cam_from_world.R
+        R = (
+            Rotation.from_rotvec(np.radians(0.5) * rng.normal(size=3) / np.sqrt(3)).as_matrix()
+            @ m.cam_from_world.R
+        )
         perturbed.append(dataclasses.replace(m, cam_from_world=Pose(R, -R @ m.cam_from_world.center)))
     path = tmp_path / "perturbed.db"
     build_map(perturbed, path)
@@ -116,7 +129,9 @@ def test_map_poses_that_disagree_with_their_images_widen_the_promise(straight_co
     monkeypatch.setattr(localizer_module, "estimate_absolute_pose", spy)
     # The map's own measurement at build time finds the error (planarloc.map.pose_accuracy) ...
     loc = Localizer(path)
-    assert loc.pose_accuracy is not None and 0.15 <= loc.pose_accuracy.rotation_std_deg <= 0.6, loc.pose_accuracy
+    assert loc.pose_accuracy is not None and 0.15 <= loc.pose_accuracy.rotation_std_deg <= 0.6, (
+        loc.pose_accuracy
+    )
     for q in queries:
         est = loc.localize(read_gray(q.path), q.camera)
         # the measured error, map-wide or (few 2D-3D inliers: judged under the configured prior) per query
@@ -134,4 +149,6 @@ def test_map_poses_that_disagree_with_their_images_widen_the_promise(straight_co
             t_err, _ = pose_errors(est.pose, q.cam_from_world)
             assert t_err <= 3 * est.position_std_m + 0.05, (q.name, t_err, est.position_std_m)
     assert len(used_std) == len(queries)
-    assert all(0.12 <= s <= 1.0 for s in used_std), used_std  # the measured error (0.18-0.68°), not the default 0.1°
+    assert all(0.12 <= s <= 1.0 for s in used_std), (
+        used_std
+    )  # the measured error (0.18-0.68°), not the default 0.1°

@@ -59,8 +59,12 @@ def test_configured_prior_ignores_the_measurement(tiny_map: Path) -> None:
 
 
 def test_a_pose_on_2d2d_constraints_alone_keeps_the_assumed_prior_as_floor() -> None:
-    measured = RansacOptions(map_rotation_std_deg=0.002, map_position_std_m=0.0003, map_prior_measured=True,
-                             assumed_map_prior=(0.1, 0.02))
+    measured = RansacOptions(
+        map_rotation_std_deg=0.002,
+        map_position_std_m=0.0003,
+        map_prior_measured=True,
+        assumed_map_prior=(0.1, 0.02),
+    )
     assert _map_prior(measured, n3d=500) == (0.002, 0.0003)
     assert _map_prior(measured, n3d=0) == (0.1, 0.02)
     assumed = RansacOptions(map_rotation_std_deg=0.3, map_position_std_m=0.05)

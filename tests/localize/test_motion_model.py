@@ -42,7 +42,7 @@ def _model_with_fixes(stamps: list[float], positions: list[float], std: float = 
 def test_speed_fit_extrapolates_at_most_a_second_and_never_backwards() -> None:
     fit = SpeedFit(t_ref=10.0, speed=2.0, acceleration=-1.0)
     assert fit.at(10.5) == pytest.approx(1.5)
-    assert fit.at(30.0) == pytest.approx(1.0)       # clipped to 1 s of extrapolation
+    assert fit.at(30.0) == pytest.approx(1.0)  # clipped to 1 s of extrapolation
     assert SpeedFit(0.0, 0.5, -5.0).at(1.0) == 0.0
 
 
@@ -84,7 +84,7 @@ def test_chained_visual_steps_add_their_length_errors_linearly() -> None:
     var, dt = 0.0, 0.1
     for k in range(6):
         step = VisualStep(np.eye(3), FORWARD, 0.5 + k * dt, dt, since_anchor_s=k * dt)
-        var += (_along_std(m.visual(step)) - 0.05) ** 2       # without the per-step 5 cm
+        var += (_along_std(m.visual(step)) - 0.05) ** 2  # without the per-step 5 cm
     speed_std = float(np.hypot(m.scale_std * m.speed_at(0.75), m.fit.std_at(0.75)))
     assert np.sqrt(var) == pytest.approx(chain_std(speed_std, 0.6), rel=0.05)
     # a step far from its anchor is less sure than the same step just after a fix
@@ -122,7 +122,7 @@ def test_the_first_fixes_cannot_vouch_for_the_stamps() -> None:
 
 def test_a_visual_step_the_constant_velocity_model_disputes_is_not_surer_than_the_dispute() -> None:
     m = _model_with_fixes([0.0, 0.1, 0.2, 0.3, 0.4], [0.0, 1.0, 2.0, 3.0, 4.0])
-    weak = m.constant(Pose(np.eye(3), [0.0, 0.0, -1.0]), 0.1)             # 1 m forward again
+    weak = m.constant(Pose(np.eye(3), [0.0, 0.0, -1.0]), 0.1)  # 1 m forward again
     sideways = np.array([np.sin(np.radians(60)), 0.0, np.cos(np.radians(60))])
     visual = m.visual(VisualStep(np.eye(3), sideways, 0.5, 0.1))
     disputed = m.disputed(visual, weak)
@@ -145,7 +145,7 @@ def test_the_scale_doubt_grows_with_contradictions_and_forgets_them() -> None:
     for _ in range(4):
         d.observe(1.0, 1.0, 0.05)
     assert d.std == 0.1
-    d.observe(1.04, 1.0, 0.05)       # within the measurement's own std: agreement
+    d.observe(1.04, 1.0, 0.05)  # within the measurement's own std: agreement
     assert d.std == 0.1
 
 
@@ -153,7 +153,7 @@ def test_without_a_speed_visual_odometry_has_no_length_and_a_wide_std() -> None:
     m = MotionModel(SequenceConfig(max_speed_mps=10.0))
     motion = m.visual(VisualStep(so3_exp(np.array([[0.0, 0.1, 0.0]]))[0], FORWARD, 0.1, 0.1))
     assert np.allclose(motion.cur_from_prev.t, 0)
-    assert motion.covariance[5, 5] == pytest.approx(1.0)      # max_speed_mps · dt along the direction
+    assert motion.covariance[5, 5] == pytest.approx(1.0)  # max_speed_mps · dt along the direction
 
 
 def test_odometry_motion_and_its_std_grow_with_distance_and_angle() -> None:

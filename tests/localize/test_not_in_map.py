@@ -33,7 +33,7 @@ def test_another_place_is_not_in_map(office: Localizer, straight_corridor: Path)
         est = office.localize(frame, camera)
         assert not est.success and est.status == "not_in_map", (name, est.status, est.message)
         assert est.pose is None and "no map image sees the query: tried" in est.message
-        assert "the estimator said" in est.message          # its own reason is kept
+        assert "the estimator said" in est.message  # its own reason is kept
         record = check("record", query_record(name, est))
         assert record["status"] == "not_in_map" and record["quat_wxyz"] is None
 

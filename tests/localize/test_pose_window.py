@@ -12,9 +12,9 @@ from planarloc.localize.kidnap import KidnapMonitor
 from planarloc.localize.motion_model import Motion
 from planarloc.localize.pose_window import PoseWindow
 
-STEP = Pose(np.eye(3), [0.0, 0.0, -1.0])        # 1 m forward (cur_from_prev)
-FIX_COV = np.diag([1e-4] * 3 + [0.01] * 3)      # 0.57°, 0.1 m
-MOTION_COV = np.diag([1e-4] * 3 + [0.04] * 3)   # 0.57°, 0.2 m
+STEP = Pose(np.eye(3), [0.0, 0.0, -1.0])  # 1 m forward (cur_from_prev)
+FIX_COV = np.diag([1e-4] * 3 + [0.01] * 3)  # 0.57°, 0.1 m
+MOTION_COV = np.diag([1e-4] * 3 + [0.04] * 3)  # 0.57°, 0.2 m
 
 
 def _forward(n: int) -> PoseWindow:
@@ -38,7 +38,7 @@ def test_a_chain_of_motions_predicts_and_grows_the_covariance() -> None:
 
 def test_an_absolute_factor_pulls_the_chain_and_shrinks_the_covariance() -> None:
     w = _forward(4)
-    truth = Pose(np.eye(3), [0.0, 0.0, -3.3])          # the current node is really 3.3 m ahead
+    truth = Pose(np.eye(3), [0.0, 0.0, -3.3])  # the current node is really 3.3 m ahead
     w.add_absolute(3, truth, FIX_COV)
     assert w.dirty
     w.solve()
@@ -62,7 +62,7 @@ def test_a_replaced_motion_is_adopted_with_its_source() -> None:
     weak = Motion(Pose(np.eye(3), [0.0, 0.0, -2.0]), np.diag([1e-2] * 3 + [1.0] * 3), "constant")
     alt = w.with_motion(2, weak)
     assert np.allclose(alt.poses[2].center, [0, 0, 3])
-    assert np.allclose(w.current.pose.center, [0, 0, 2])          # not adopted yet
+    assert np.allclose(w.current.pose.center, [0, 0, 2])  # not adopted yet
     w.adopt(alt, "visual_rejected")
     assert w.current.source == "visual_rejected" and w.current.visual is None
     assert np.allclose(w.current.pose.center, [0, 0, 3])
@@ -82,15 +82,16 @@ def test_a_restart_keeps_the_motions_measured_since() -> None:
 def test_agreeing_rejected_fixes_confirm_a_kidnap_and_disagreeing_ones_restart_the_count() -> None:
     w = _forward(4)
     monitor = KidnapMonitor(gate=22.46, confirmations=2)
-    there = Pose(np.eye(3), [-40.0, 0.0, 0.0])          # centre (40, 0, 0)
-    carry = lambda c, node: w.carried(c.pose, c.covariance, w.node_at(c.stamp), node,
-                                      lambda i, dt: np.zeros((6, 6)))
+    there = Pose(np.eye(3), [-40.0, 0.0, 0.0])  # centre (40, 0, 0)
+    carry = lambda c, node: w.carried(
+        c.pose, c.covariance, w.node_at(c.stamp), node, lambda i, dt: np.zeros((6, 6))
+    )
     monitor.consider(there, FIX_COV, 0.1, lambda c: carry(c, 1))
     assert monitor.suspected and monitor.confirmed() is None
     elsewhere = Pose(np.eye(3), [40.0, 0.0, 0.0])
     monitor.consider(elsewhere, FIX_COV, 0.2, lambda c: carry(c, 2))
-    assert monitor.candidate.count == 1                   # disagreed: a new candidate
-    moved = Pose(np.eye(3), [40.0, 0.0, -1.0])            # `elsewhere` one step later
+    assert monitor.candidate.count == 1  # disagreed: a new candidate
+    moved = Pose(np.eye(3), [40.0, 0.0, -1.0])  # `elsewhere` one step later
     monitor.consider(moved, FIX_COV, 0.3, lambda c: carry(c, 3))
     assert monitor.confirmed() is not None and monitor.confirmed().count == 2
     monitor.clear()

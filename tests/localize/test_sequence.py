@@ -31,8 +31,11 @@ PERFECT_MAP = {"map_rotation_std_deg": 0.0, "map_position_std_m": 0.0}
 
 def _office(tmp_path_factory: pytest.TempPathFactory, n_query: int) -> tuple[Path, list]:
     """office at 320x240, 16 map frames and ``n_query`` query frames around the loop: its map and queries."""
-    root = generate(shrunk(get_preset("office"), scale=0.5, n_map=16, n_query=n_query),
-                    tmp_path_factory.mktemp("world") / "office", seed=0)
+    root = generate(
+        shrunk(get_preset("office"), scale=0.5, n_map=16, n_query=n_query),
+        tmp_path_factory.mktemp("world") / "office",
+        seed=0,
+    )
     path = root.parent / "map.db"
     # compact: the layout where a near-collinear local fix passes; the stream must not follow a wrong
     # constant-velocity prediction to it (fails with a prior std of a fifth of max_speed_mps * dt)
@@ -48,15 +51,21 @@ def stream_world(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, list]:
 
 def _stream(queries: list):
     # kidnap after frame 5 to frame 9 and back to 5 later; frames 2 and 10 dropped
-    return make_stream(queries, stream_order(len(queries), kidnap_at=5, skip=4, drop=[2, 10]),
-                       np.random.default_rng(0))
+    return make_stream(
+        queries, stream_order(len(queries), kidnap_at=5, skip=4, drop=[2, 10]), np.random.default_rng(0)
+    )
 
 
 def _run(map_path: Path, frames: list, structure: str, odometry: bool, **config) -> list:
     loc = Localizer(map_path, LocalizerConfig(ransac=RansacOptions(structure=structure, **PERFECT_MAP)))
     seq = SequenceLocalizer(loc, SequenceConfig(**{"fixes": "wait", **config}))
-    return evaluate_stream(seq, [f.image for f in frames], [f.stamp for f in frames],
-                           [f.odometry for f in frames] if odometry else None, [f.kidnapped for f in frames])
+    return evaluate_stream(
+        seq,
+        [f.image for f in frames],
+        [f.stamp for f in frames],
+        [f.odometry for f in frames] if odometry else None,
+        [f.kidnapped for f in frames],
+    )
 
 
 @pytest.mark.parametrize("structure, odometry", [("tracks", True), ("none", False)])
@@ -67,7 +76,7 @@ def test_stream_with_kidnap_and_dropped_frames(stream_world: tuple, structure: s
     results = _run(map_path, frames, structure, odometry)
     summary = summarize_sequence(results)
     assert summary["frames"] == len(frames) == 12
-    assert summary["frames_with_pose"] == 12                    # every frame gets a pose
+    assert summary["frames_with_pose"] == 12  # every frame gets a pose
     assert summary["confident_wrong"] == 0
     reloc = summary["relocalization"]
     assert reloc["start"]["frames"] == 0
@@ -81,7 +90,9 @@ def test_stream_with_kidnap_and_dropped_frames(stream_world: tuple, structure: s
     assert summary["success"]["0.25m/10deg"] >= 100 * 9 / 12
 
 
-def test_outlier_fix_is_rejected_and_the_stream_continues(stream_world: tuple, monkeypatch: pytest.MonkeyPatch) -> None:
+def test_outlier_fix_is_rejected_and_the_stream_continues(
+    stream_world: tuple, monkeypatch: pytest.MonkeyPatch
+) -> None:
     map_path, queries = stream_world
     frames = make_stream(queries, list(range(6)), np.random.default_rng(1))
     loc = Localizer(map_path, LocalizerConfig(ransac=RansacOptions(structure="tracks", **PERFECT_MAP)))
@@ -91,10 +102,19 @@ def test_outlier_fix_is_rejected_and_the_stream_continues(stream_world: tuple, m
 
     def wrong_at_frame_3(features, camera, references=None, **kw):
         est, pairs = real(features, camera, references, **kw)
-        if calls["frame"] == 3 and est.success:   # a confident fix 2 m off
+        if calls["frame"] == 3 and est.success:  # a confident fix 2 m off
             shifted = Pose.from_center(est.pose.R, est.pose.center + [2.0, 0, 0])
-            est = PoseEstimate(shifted, True, "success", "injected", est.inliers, est.num_inliers,
-                               est.num_inliers_3d, est.iterations, 0.02)
+            est = PoseEstimate(
+                shifted,
+                True,
+                "success",
+                "injected",
+                est.inliers,
+                est.num_inliers,
+                est.num_inliers_3d,
+                est.iterations,
+                0.02,
+            )
         return est, pairs
 
     monkeypatch.setattr(loc, "localize_pairs", wrong_at_frame_3)
@@ -105,20 +125,25 @@ def test_outlier_fix_is_rejected_and_the_stream_continues(stream_world: tuple, m
     bad = out[3]
     assert bad.fix_status == "rejected" and bad.status == "predicted" and bad.kidnap_suspected
     assert len(bad.rejected) == 2 and all(r["mahalanobis_sq"] > 22 for r in bad.rejected)
-    assert pose_errors(bad.pose, frames[3].image.cam_from_world)[0] < 0.2   # the outlier was not used
-    assert out[4].status == "localized" and not out[4].reinitialized      # one outlier is not a kidnap
+    assert pose_errors(bad.pose, frames[3].image.cam_from_world)[0] < 0.2  # the outlier was not used
+    assert out[4].status == "localized" and not out[4].reinitialized  # one outlier is not a kidnap
     assert all(e.status == "localized" for k, e in enumerate(out) if k != 3)
 
 
-def test_without_fixes_the_prediction_grows_until_lost(stream_world: tuple, monkeypatch: pytest.MonkeyPatch) -> None:
+def test_without_fixes_the_prediction_grows_until_lost(
+    stream_world: tuple, monkeypatch: pytest.MonkeyPatch
+) -> None:
     map_path, queries = stream_world
     frames = make_stream(queries, list(range(8)), np.random.default_rng(2))
     loc = Localizer(map_path)
     seq = SequenceLocalizer(loc, SequenceConfig(lost_std_m=0.2, fixes="wait"))
-    first = seq.step(read_gray(frames[0].image.path), frames[0].image.camera, frames[0].stamp, frames[0].odometry)
+    first = seq.step(
+        read_gray(frames[0].image.path), frames[0].image.camera, frames[0].stamp, frames[0].odometry
+    )
     assert first.status == "localized" and first.motion_source == "none", (first.status, first.position_std_m)
-    monkeypatch.setattr(loc, "localize_pairs",
-                        lambda *a, **k: (PoseEstimate(None, False, "too_few_matches", "x", []), []))
+    monkeypatch.setattr(
+        loc, "localize_pairs", lambda *a, **k: (PoseEstimate(None, False, "too_few_matches", "x", []), [])
+    )
     stds, statuses = [], []
     for f in frames[1:]:
         est = seq.step(read_gray(f.image.path), f.image.camera, f.stamp, f.odometry)
@@ -127,7 +152,7 @@ def test_without_fixes_the_prediction_grows_until_lost(stream_world: tuple, monk
         statuses.append(est.status)
     assert np.all(np.diff(stds) > 0)
     assert statuses[0] == "predicted" and statuses[-1] == "lost"
-    assert all(s == "lost" for s in statuses[statuses.index("lost"):])
+    assert all(s == "lost" for s in statuses[statuses.index("lost") :])
 
 
 def test_bad_input_is_an_error(stream_world: tuple) -> None:
@@ -157,10 +182,10 @@ def test_retrieval_prior_prefers_map_images_near_the_prediction(stream_world: tu
     refs = seq.references_near(q, 0.1)
     assert len(refs) == 3
     dist = {n: np.linalg.norm(p.center - q.center) for n, p in posed.items()}
-    assert max(dist[r] for r in refs) <= sorted(dist.values())[5]          # among the nearest
+    assert max(dist[r] for r in refs) <= sorted(dist.values())[5]  # among the nearest
     far = Pose.from_center(q.R, q.center + [100.0, 0, 0])
-    assert seq.references_near(far, 0.1) is None                           # nothing near: global retrieval
-    assert seq.references_near(far, 40.0) is not None                      # an uncertain prediction widens the radius
+    assert seq.references_near(far, 0.1) is None  # nothing near: global retrieval
+    assert seq.references_near(far, 40.0) is not None  # an uncertain prediction widens the radius
 
 
 # ---- camera rate: background fixes, deterministic fixes with a delay ------------------------------
@@ -216,11 +241,10 @@ def test_waiting_for_fixes_is_deterministic_and_delays_them(dense_world: tuple) 
         assert x.status == y.status and x.fix_status == y.fix_status
     stamps = [f.stamp for f, _ in a]
     handled = [(k, e) for k, (_, e) in enumerate(a) if e.fix_stamp is not None]
-    assert handled[0][0] == 0                              # the first frame waits for its own fix
+    assert handled[0][0] == 0  # the first frame waits for its own fix
     for k, e in handled[1:]:
-        assert e.fix_stamp == pytest.approx(stamps[k - 2])    # the fix of two frames before
+        assert e.fix_stamp == pytest.approx(stamps[k - 2])  # the fix of two frames before
     assert stats["fixes_submitted"] == 8
-
 
 
 def test_a_kidnap_with_delayed_fixes_restarts_from_the_fix_and_tracks_its_points(dense_world: tuple) -> None:
@@ -241,8 +265,10 @@ def test_a_kidnap_with_delayed_fixes_restarts_from_the_fix_and_tracks_its_points
     assert len(restarts) == 2 and all(e.fix_stamp < e.stamp for _, e, _ in restarts)
     for f, e, points in restarts:
         assert points == 1 and pose_errors(e.pose, f.image.cam_from_world)[0] < 0.1
-    assert not any(e.status == "localized" and pose_errors(e.pose, f.image.cam_from_world)[0] > 1.0
-                   for f, e, _ in run)
+    assert not any(
+        e.status == "localized" and pose_errors(e.pose, f.image.cam_from_world)[0] > 1.0 for f, e, _ in run
+    )
+
 
 def test_a_kidnap_is_confirmed_by_fixes_further_apart_than_the_window(dense_world: tuple) -> None:
     """Fixes every 4th frame, 3 frames late, in a window of 6 nodes (as a worker delivers them
@@ -257,9 +283,13 @@ def test_a_kidnap_is_confirmed_by_fixes_further_apart_than_the_window(dense_worl
     # 0.3-0.5 m here (speed unknown), which the default max_pose_std_m (0.3 m) reports as lost
     config = SequenceConfig(fixes="wait", fix_every=4, fix_delay=3, window=6, max_pose_std_m=1.0)
     with SequenceLocalizer(loc, config) as seq:
-        results = evaluate_stream(seq, [f.image for f in frames], [f.stamp for f in frames],
-                                  kidnapped=[f.kidnapped for f in frames],
-                                  on_frame=lambda image, e: restarts.append(e.reinitialized))
+        results = evaluate_stream(
+            seq,
+            [f.image for f in frames],
+            [f.stamp for f in frames],
+            kidnapped=[f.kidnapped for f in frames],
+            on_frame=lambda image, e: restarts.append(e.reinitialized),
+        )
     kidnaps = [k for k, f in enumerate(frames) if f.kidnapped]
     restarts = [k for k, r in enumerate(restarts) if r]
     assert len(kidnaps) == 2 and len(restarts) == 2, (kidnaps, restarts)
@@ -288,8 +318,10 @@ def test_with_background_fixes_a_suspected_kidnap_waits_for_the_fix_in_flight(de
     assert len(kidnaps) == len(restarts) == 2
     for k, r in zip(kidnaps, restarts):
         doubt = next(j for j in range(k, r + 1) if run[j][1].kidnap_suspected or run[j][1].reinitialized)
-        assert r - doubt <= 2, (k, doubt, r)   # the next fix confirms it, computed while the frame waits
-    assert not any(e.status == "localized" and pose_errors(e.pose, f.image.cam_from_world)[0] > 1.0 for f, e in run)
+        assert r - doubt <= 2, (k, doubt, r)  # the next fix confirms it, computed while the frame waits
+    assert not any(
+        e.status == "localized" and pose_errors(e.pose, f.image.cam_from_world)[0] > 1.0 for f, e in run
+    )
 
 
 def test_stamps_and_sizes_are_checked_and_the_stream_goes_on(stream_world: tuple) -> None:
@@ -300,12 +332,12 @@ def test_stamps_and_sizes_are_checked_and_the_stream_goes_on(stream_world: tuple
     first = seq.step(images[0], cam, 1.0)
     assert first.status == "localized"
     with pytest.raises(InputError, match="the same as the previous frame's"):
-        seq.step(images[1], cam, 1.0)                         # a frame given twice
+        seq.step(images[1], cam, 1.0)  # a frame given twice
     with pytest.raises(InputError, match="before the previous frame's"):
-        seq.step(images[1], cam, 0.5)                         # going backwards
+        seq.step(images[1], cam, 0.5)  # going backwards
     with pytest.raises(InputError, match="image is 160x120 but its camera is 320x240"):
         seq.step(cv2.resize(images[1], (160, 120)), cam, 1.1)
-    nxt = seq.step(images[1], cam, 1.1)                       # the stream is unchanged by the errors
+    nxt = seq.step(images[1], cam, 1.1)  # the stream is unchanged by the errors
     assert nxt.motion_source != "none" and nxt.pose is not None and seq.stats.frames == 2
     late = seq.step(images[2], cam, 1.2, arrival=time.perf_counter() - 1.0)
     assert late.late and late.latency_s > 1.0 and seq.stats.late >= 1
@@ -316,7 +348,7 @@ def test_missing_frames_are_counted(stream_world: tuple) -> None:
     map_path, queries = stream_world
     seq = SequenceLocalizer(Localizer(map_path), SequenceConfig(fixes="wait", fix_every=100))
     cam = queries[0].camera
-    stamps = [0.0, 0.1, 0.2, 0.3, 0.6, 0.7]                   # two frames missing before 0.6
+    stamps = [0.0, 0.1, 0.2, 0.3, 0.6, 0.7]  # two frames missing before 0.6
     out = [seq.step(read_gray(queries[k].path), cam, t) for k, t in enumerate(stamps)]
     assert [e.missing_frames for e in out] == [0, 0, 0, 0, 2, 0] and seq.stats.missing == 2
     seq.close()
@@ -341,8 +373,8 @@ def test_the_covariance_is_in_ros_order(stream_world: tuple) -> None:
     samples = []
     for _ in range(4000):
         w, dc = np.split(L @ rng.standard_normal(6), 2)
-        R = Rotation.from_rotvec(w).as_matrix() @ est.pose.R               # R_cw' = exp(ω) R_cw
-        phi = Rotation.from_matrix(R.T @ est.pose.R).as_rotvec()           # R_wc' = exp(φ) R_wc
+        R = Rotation.from_rotvec(w).as_matrix() @ est.pose.R  # R_cw' = exp(ω) R_cw
+        phi = Rotation.from_matrix(R.T @ est.pose.R).as_rotvec()  # R_wc' = exp(φ) R_wc
         samples.append(np.r_[dc, phi])
     np.testing.assert_allclose(np.cov(np.array(samples).T), C, rtol=0.1, atol=0.1 * np.abs(C).max())
     assert "covariance" not in rec
@@ -359,9 +391,9 @@ def test_a_stream_holds_blas_to_one_thread_while_open(stream_world: tuple) -> No
     b = SequenceLocalizer(Localizer(stream_world[0]), SequenceConfig(fixes="wait"))
     assert set(blas()) == {1}
     a.close()
-    assert set(blas()) == {1}                                 # b is still open
+    assert set(blas()) == {1}  # b is still open
     b.close()
-    b.close()                                                 # closing twice changes nothing
+    b.close()  # closing twice changes nothing
     assert blas() == before
 
 
@@ -381,7 +413,8 @@ def test_a_fix_worker_error_reaches_the_caller(stream_world: tuple, tmp_path: Pa
 
 
 def test_frames_faster_than_the_fixes_wait_once_the_fix_in_flight_is_too_old(
-        dense_world: tuple, monkeypatch: pytest.MonkeyPatch) -> None:
+    dense_world: tuple, monkeypatch: pytest.MonkeyPatch
+) -> None:
     """A recording replayed as fast as it goes against a slow fix worker: without a bound the
     frames would be chained by tracking ever farther from their last fix; a frame more than
     ``max_fix_lag_s`` of stream time after the fix in flight waits for it, so that fix results
@@ -404,4 +437,6 @@ def test_frames_faster_than_the_fixes_wait_once_the_fix_in_flight_is_too_old(
         longest = max(longest, pending)
     assert stats["fix_waits"] >= 2
     assert longest <= int(np.ceil(0.25 / period)) + 1, (longest, period)
-    assert not any(e.status == "localized" and pose_errors(e.pose, f.image.cam_from_world)[0] > 1.0 for f, e in run)
+    assert not any(
+        e.status == "localized" and pose_errors(e.pose, f.image.cam_from_world)[0] > 1.0 for f, e in run
+    )

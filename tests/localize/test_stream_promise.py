@@ -29,16 +29,20 @@ LATE_FIXES = {"fixes": "wait", "fix_every": 2, "fix_delay": 2}
 @pytest.fixture(scope="module")
 def camera_rate_world(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, list]:
     """The office at 320x240: 16 map frames, 40 query frames ~0.35 m and ~9° apart, 10 Hz stamps."""
-    root = generate(shrunk(get_preset("office"), scale=0.5, n_map=16, n_query=40),
-                    tmp_path_factory.mktemp("world") / "office", seed=0)
+    root = generate(
+        shrunk(get_preset("office"), scale=0.5, n_map=16, n_query=40),
+        tmp_path_factory.mktemp("world") / "office",
+        seed=0,
+    )
     path = root.parent / "map.db"
     build_map(read_dataset(root / "map", "tum"), path)
     queries = read_dataset(root / "query", "tum")
     return path, make_stream(queries, stream_order(len(queries)), np.random.default_rng(0))
 
 
-def _run(map_path: Path, frames: list, stamps: list[float], images: list | None = None,
-         **config: object) -> list:
+def _run(
+    map_path: Path, frames: list, stamps: list[float], images: list | None = None, **config: object
+) -> list:
     """(frame, estimate) of each frame streamed with ``stamps`` (and ``images`` instead of the frames')."""
     loc = Localizer(map_path, LocalizerConfig(ransac=RansacOptions(structure="tracks")))
     out = []

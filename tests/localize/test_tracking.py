@@ -39,8 +39,11 @@ from planarloc.synthetic.world.presets import get_preset, shrunk
 @pytest.fixture(scope="module")
 def dense_stream(tmp_path_factory: pytest.TempPathFactory) -> list:
     """office at 320x240, 40 query frames ~0.26 m and ~7° apart (a camera-rate stream)."""
-    root = generate(shrunk(get_preset("office"), scale=0.5, n_map=12, n_query=40),
-                    tmp_path_factory.mktemp("dense") / "office", seed=0)
+    root = generate(
+        shrunk(get_preset("office"), scale=0.5, n_map=12, n_query=40),
+        tmp_path_factory.mktemp("dense") / "office",
+        seed=0,
+    )
     return read_dataset(root / "query", "tum")
 
 
@@ -49,7 +52,7 @@ def test_corners_spread_over_the_image() -> None:
     c = detect_corners(img, 120)
     assert 60 <= len(c) <= 120 and c.dtype == np.float32
     counts, _, _ = np.histogram2d(c[:, 0], c[:, 1], bins=(4, 2), range=((0, 480), (0, 240)))
-    assert counts.min() >= 5          # every quarter-half of the image has its share
+    assert counts.min() >= 5  # every quarter-half of the image has its share
     assert len(detect_corners(np.full((100, 100), 128, np.uint8), 50)) == 0
 
 
@@ -65,7 +68,7 @@ def test_a_shifted_image_is_tracked_to_a_fraction_of_a_pixel() -> None:
     ok, back = track_checked(img, moved, c, TrackerOptions())
     assert ok.sum() >= 0.8 * found.sum()
     off, _ = track_points(img, moved, np.array([[-50.0, -50.0]], np.float32), TrackerOptions())
-    assert not off.any()                    # outside the image: not found
+    assert not off.any()  # outside the image: not found
 
 
 def test_relative_pose_of_a_rendered_stream(dense_stream: list) -> None:
@@ -98,25 +101,27 @@ def test_the_tracker_refuses_motion_it_lost() -> None:
     out = tracker.track(textured_image(np.random.default_rng(3)), cam, 0.1)
     assert out.relative is not None and not out.relative.success and out.covariance is None
     # another image size: nothing to track from
-    out = tracker.track(textured_image(np.random.default_rng(4), 200, 300), Camera("PINHOLE", 300, 200, (250.0, 250.0,
-                                                                                                       150.0, 100.0)),
-                        0.2)
+    out = tracker.track(
+        textured_image(np.random.default_rng(4), 200, 300),
+        Camera("PINHOLE", 300, 200, (250.0, 250.0, 150.0, 100.0)),
+        0.2,
+    )
     assert out.relative is None
 
 
 def test_pose_from_points_with_outliers() -> None:
     rng = np.random.default_rng(5)
     truth = Pose.from_center(Rotation.from_rotvec([0.02, 0.3, -0.01]).as_matrix(), [1.0, -0.2, 3.0])
-    X = truth.inverse().transform(rng.uniform([-4, -2, 4], [4, 2, 20], (120, 3)))   # in front of the camera
+    X = truth.inverse().transform(rng.uniform([-4, -2, 4], [4, 2, 20], (120, 3)))  # in front of the camera
     x = truth.transform(X)
     rays = x[:, :2] / x[:, 2:]
-    rays[:30] += rng.normal(0, 0.05, (30, 2))                                       # 25 % outliers
+    rays[:30] += rng.normal(0, 0.05, (30, 2))  # 25 % outliers
     prior = Pose(Rotation.from_rotvec([0.0, 0.28, 0.0]).as_matrix(), truth.t + [0.2, 0.0, -0.3])
     fit = pose_from_points(prior, X, rays, 500.0)
     assert fit is not None and fit[1] >= 85
     t_err, r_err = pose_errors(fit[0], truth)
     assert t_err < 1e-4 and r_err < 1e-3
-    assert pose_from_points(prior, X[:10], rays[:10], 500.0) is None                # too few points
+    assert pose_from_points(prior, X[:10], rays[:10], 500.0) is None  # too few points
     assert pose_from_points(prior, X, rng.normal(0, 0.3, rays.shape), 500.0) is None  # nothing agrees
 
 
@@ -138,14 +143,18 @@ def test_world_points_tracked_through_frames(dense_stream: list) -> None:
     points = track_through(history.since(0.0), TrackedPoints(0.0, corners[ok], X), TrackerOptions())
     assert points.stamp == pytest.approx(0.2) and points.hops == 2 and len(points) >= 20
     last = dense_stream[2]
-    fit = pose_from_points(dense_stream[1].cam_from_world, points.points,
-                           last.camera.cam_from_img(points.pixels.astype(float)), last.camera.focal[0])
+    fit = pose_from_points(
+        dense_stream[1].cam_from_world,
+        points.points,
+        last.camera.cam_from_img(points.pixels.astype(float)),
+        last.camera.focal[0],
+    )
     assert fit is not None
     t_err, r_err = pose_errors(fit[0], last.cam_from_world)
     assert t_err < 0.1 and r_err < 2.0
     assert history.since(5.0) == [] and len(history.since(0.1)) == 2
     history.append(0.3, read_gray(dense_stream[3].path))
-    assert history.since(0.0) == []                          # only the last 3 frames are kept
+    assert history.since(0.0) == []  # only the last 3 frames are kept
 
 
 def test_direction_basis_is_orthonormal_and_options_are_checked() -> None:
@@ -202,18 +211,20 @@ def test_far_bunched_points_are_weak_along_the_view() -> None:
 def test_blank_frames_are_told_from_dark_textured_ones() -> None:
     assert is_blank(np.zeros((120, 160), np.uint8))
     assert is_blank(np.full((120, 160), 255, np.uint8))
-    dark = (np.random.default_rng(0).random((120, 160)) * 12).astype(np.uint8)   # underexposed, not blank
+    dark = (np.random.default_rng(0).random((120, 160)) * 12).astype(np.uint8)  # underexposed, not blank
     assert not is_blank(dark)
 
 
 def test_a_view_break_is_lost_corners_or_tracks_that_fit_no_motion_but_not_standing_still() -> None:
     failed = RelativePoseEstimate(None, False, "too_few_inliers", num_inliers=5)
     moved = Tracked(failed, tracks=200, flow_px=40.0)
-    assert view_broken(moved, 20, None)                     # nothing says it was a fast turn
-    assert view_broken(moved, 20, 3.0)                      # odometry: a small turn
-    assert not view_broken(moved, 20, 25.0)                 # odometry: a turn too fast to track
-    assert not view_broken(Tracked(failed, tracks=200, flow_px=0.5), 20, None)   # standing still
+    assert view_broken(moved, 20, None)  # nothing says it was a fast turn
+    assert view_broken(moved, 20, 3.0)  # odometry: a small turn
+    assert not view_broken(moved, 20, 25.0)  # odometry: a turn too fast to track
+    assert not view_broken(Tracked(failed, tracks=200, flow_px=0.5), 20, None)  # standing still
     lost = Tracked(RelativePoseEstimate(None, False, "too_few_matches"), tracks=3, flow_px=60.0)
     assert view_broken(lost, 20, None)
-    ok = Tracked(RelativePoseEstimate(Pose.identity(), True, "success", num_inliers=150), tracks=200, flow_px=9.0)
+    ok = Tracked(
+        RelativePoseEstimate(Pose.identity(), True, "success", num_inliers=150), tracks=200, flow_px=9.0
+    )
     assert not view_broken(ok, 20, None) and not view_broken(Tracked(None), 20, None)

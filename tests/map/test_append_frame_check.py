@@ -42,11 +42,15 @@ OTHER_FROM_WORLD = Pose(Rotation.from_euler("y", 90, degrees=True).as_matrix(), 
 
 
 # ---- generated two-view geometry --------------------------------------------------------------
-def two_views(rng: np.random.Generator, n: int = 200, baseline: float = 1.0) -> tuple[Pose, np.ndarray, np.ndarray]:
+def two_views(
+    rng: np.random.Generator, n: int = 200, baseline: float = 1.0
+) -> tuple[Pose, np.ndarray, np.ndarray]:
     """``b_from_a`` (b about ``baseline`` m ahead and to the side of a, turned 5°) and (N, 2) pixels of
     N points 3-30 m in front of a that both cameras see."""
-    b_from_a = Pose.from_center(Rotation.from_euler("y", 5, degrees=True).as_matrix(),
-                                baseline * np.array([0.3, 0.0, 1.0]) / np.hypot(0.3, 1.0))
+    b_from_a = Pose.from_center(
+        Rotation.from_euler("y", 5, degrees=True).as_matrix(),
+        baseline * np.array([0.3, 0.0, 1.0]) / np.hypot(0.3, 1.0),
+    )
     pa, pb = [], []
     while len(pa) < n:
         depth = rng.uniform(3.0, 30.0)
@@ -113,17 +117,32 @@ def test_pair_support_counts_shared_and_agreeing_matches() -> None:
     assert pair_support(CAMERA, CAMERA, b_from_a, pa[:3], pb[:3]) == (0, 0)
 
 
-@pytest.mark.parametrize(("shared", "agreeing", "verdict"), [
-    (10, 10, "unmatched"), (29, 29, "unmatched"), (30, 24, "agrees"), (100, 79, "contradicts"), (500, 3, "contradicts"),
-])
+@pytest.mark.parametrize(
+    ("shared", "agreeing", "verdict"),
+    [
+        (10, 10, "unmatched"),
+        (29, 29, "unmatched"),
+        (30, 24, "agrees"),
+        (100, 79, "contradicts"),
+        (500, 3, "contradicts"),
+    ],
+)
 def test_pair_verdict(shared: int, agreeing: int, verdict: str) -> None:
     assert pair_verdict(shared, agreeing, FrameCheckOptions(min_shared=30, min_agreement=0.8)) == verdict
 
 
-@pytest.mark.parametrize(("verdicts", "related"), [
-    ([], False), (["unmatched"] * 40, False), (["agrees"], True), (["agrees", "unmatched", "unmatched"], True),
-    (["agrees", "contradicts"], False), (["agrees", "agrees", "contradicts"], True), (["contradicts"] * 3, False),
-])
+@pytest.mark.parametrize(
+    ("verdicts", "related"),
+    [
+        ([], False),
+        (["unmatched"] * 40, False),
+        (["agrees"], True),
+        (["agrees", "unmatched", "unmatched"], True),
+        (["agrees", "contradicts"], False),
+        (["agrees", "agrees", "contradicts"], True),
+        (["contradicts"] * 3, False),
+    ],
+)
 def test_frames_related(verdicts: list[str], related: bool) -> None:
     assert frames_related(verdicts) is related
 
@@ -137,15 +156,26 @@ def test_nearest_first_and_capped() -> None:
         nearest_first(centers, np.zeros((0, 3)))
     rng = np.random.default_rng(3)
     d = rng.random((10, 4)).astype(np.float32)
-    f = Features(np.arange(20, dtype=np.float32).reshape(10, 2), d / np.linalg.norm(d, axis=1, keepdims=True),
-                 np.ones(10, np.float32))
+    f = Features(
+        np.arange(20, dtype=np.float32).reshape(10, 2),
+        d / np.linalg.norm(d, axis=1, keepdims=True),
+        np.ones(10, np.float32),
+    )
     assert capped(f, 10) is f
     few = capped(f, 4)
     assert len(few) == 4 and few.keypoints[:, 0].tolist() == [0.0, 6.0, 12.0, 18.0]  # spread: rows 0, 3, 6, 9
 
 
-@pytest.mark.parametrize("bad", [{"max_images": 0}, {"min_shared": 0}, {"min_agreement": 0.0},
-                                 {"pose_threshold_px": -1.0}, {"retrieved": -1}])
+@pytest.mark.parametrize(
+    "bad",
+    [
+        {"max_images": 0},
+        {"min_shared": 0},
+        {"min_agreement": 0.0},
+        {"pose_threshold_px": -1.0},
+        {"retrieved": -1},
+    ],
+)
 def test_bad_options_are_refused(bad: dict) -> None:
     with pytest.raises(InputError, match="FrameCheckOptions"):
         FrameCheckOptions(**bad)
@@ -172,11 +202,15 @@ def map_copy(half_map: Path, tmp_path: Path) -> Path:
 
 def moved(images: list) -> list:
     """The same images with their poses in another world frame (``OTHER_FROM_WORLD``)."""
-    return [dataclasses.replace(im, cam_from_world=im.cam_from_world @ OTHER_FROM_WORLD.inverse()) for im in images]
+    return [
+        dataclasses.replace(im, cam_from_world=im.cam_from_world @ OTHER_FROM_WORLD.inverse())
+        for im in images
+    ]
 
 
-def test_second_half_of_the_trajectory_appends_silently(office: list, map_copy: Path,
-                                                        caplog: pytest.LogCaptureFixture) -> None:
+def test_second_half_of_the_trajectory_appends_silently(
+    office: list, map_copy: Path, caplog: pytest.LogCaptureFixture
+) -> None:
     lines: list[str] = []
     with caplog.at_level(logging.INFO, logger="planarloc.map.frame_check"):
         build_map(office[6:], map_copy, workers=2, notify=lines.append)
@@ -188,8 +222,9 @@ def test_second_half_of_the_trajectory_appends_silently(office: list, map_copy: 
 
 
 @pytest.mark.parametrize("case", ["moved", "another world"])
-def test_unrelated_frames_are_refused_and_the_map_is_unchanged(case: str, office: list, straight_corridor: Path,
-                                                               map_copy: Path) -> None:
+def test_unrelated_frames_are_refused_and_the_map_is_unchanged(
+    case: str, office: list, straight_corridor: Path, map_copy: Path
+) -> None:
     images = moved(office[6:]) if case == "moved" else read_dataset(straight_corridor / "map", "tum")
     before = map_copy.read_bytes()
     extracted: list[str] = []
@@ -200,7 +235,9 @@ def test_unrelated_frames_are_refused_and_the_map_is_unchanged(case: str, office
     with pytest.raises(UnrelatedFramesError) as info:
         build_map(images, map_copy, workers=2, progress=count)
     message = str(info.value)
-    assert "\n" not in message and message.startswith(f"{map_copy}: the {len(images)} new images look unrelated")
+    assert "\n" not in message and message.startswith(
+        f"{map_copy}: the {len(images)} new images look unrelated"
+    )
     assert "--allow-unrelated-frames" in message
     if case == "moved":
         assert "contradict the images' poses" in message and "0 pair(s) agree" in message
@@ -208,7 +245,9 @@ def test_unrelated_frames_are_refused_and_the_map_is_unchanged(case: str, office
         assert "no pair shares matches" in message
     assert isinstance(info.value, ValueError)
     assert map_copy.read_bytes() == before  # byte for byte
-    assert sorted(p.name for p in map_copy.parent.iterdir()) == ["map.db"]  # no lock file, WAL or journal left
+    assert sorted(p.name for p in map_copy.parent.iterdir()) == [
+        "map.db"
+    ]  # no lock file, WAL or journal left
     assert "features" not in extracted  # refused before the build's extraction stage
 
 
@@ -219,12 +258,14 @@ def test_allow_unrelated_frames_appends_with_a_warning(office: list, map_copy: P
     assert lines[0].endswith("appending them anyway (allow_unrelated_frames)")
     with MapDatabase.open(map_copy) as db:
         assert db.num_images() == 12 and db.is_complete
-        np.testing.assert_allclose(db.get_pose(office[8].name).center, moved(office)[8].cam_from_world.center,
-                                   atol=1e-9)
+        np.testing.assert_allclose(
+            db.get_pose(office[8].name).center, moved(office)[8].cam_from_world.center, atol=1e-9
+        )
 
 
-def test_features_extracted_by_the_check_are_stored_not_extracted_again(office: list, map_copy: Path,
-                                                                        monkeypatch: pytest.MonkeyPatch) -> None:
+def test_features_extracted_by_the_check_are_stored_not_extracted_again(
+    office: list, map_copy: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
     calls: list[str] = []
     real = builder.extract_image_features
 
@@ -237,7 +278,9 @@ def test_features_extracted_by_the_check_are_stored_not_extracted_again(office: 
     assert sorted(calls) == sorted(im.name for im in office[6:])  # each new image once
 
 
-def test_a_new_or_empty_map_is_not_checked(office: list, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+def test_a_new_or_empty_map_is_not_checked(
+    office: list, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
     def fail(*args, **kwargs):
         raise AssertionError("the frame check ran")
 

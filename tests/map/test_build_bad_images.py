@@ -19,8 +19,12 @@ from planarloc.map.store import MapDatabase
 
 
 def cli(*argv: object) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "planarloc.cli.main", *map(str, argv)], capture_output=True,
-                          text=True, timeout=600)
+    return subprocess.run(
+        [sys.executable, "-m", "planarloc.cli.main", *map(str, argv)],
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
 
 
 @pytest.fixture
@@ -46,8 +50,12 @@ def test_map_build_leaves_bad_images_out_lists_them_and_exits_3(bad_dataset, tmp
     proc = cli("map", "build", root, "-f", "tum", "--out", out, "--vocabulary-size", "16")
     assert proc.returncode == 3, proc.stderr
     names = sorted(originals)
-    bad = {names[1]: "truncated PNG", names[4]: "fails its CRC", names[6]: "is 70x50 but its camera is 320x240",
-           names[9]: "truncated PNG"}
+    bad = {
+        names[1]: "truncated PNG",
+        names[4]: "fails its CRC",
+        names[6]: "is 70x50 but its camera is 320x240",
+        names[9]: "truncated PNG",
+    }
     tail = proc.stderr.splitlines()[-5:]
     assert tail[0].startswith("4 of 12 images were left out of the map")
     for name, why in bad.items():
@@ -69,7 +77,9 @@ def test_the_library_reports_each_image_and_refuses_a_build_with_none(bad_datase
     root, _ = bad_dataset
     images = read_dataset(root, "tum")
     left_out: list[tuple[str, str]] = []
-    build_map(images, tmp_path / "a.db", num_words=16, skipped=lambda im, why: left_out.append((im.name, why)))
+    build_map(
+        images, tmp_path / "a.db", num_words=16, skipped=lambda im, why: left_out.append((im.name, why))
+    )
     assert len(left_out) == 4 and all(why for _, why in left_out)
     broken = [im for im in images if any(im.name == n for n, _ in left_out)]
     with pytest.raises(ValueError, match="none of the 4 images can go into the map"):

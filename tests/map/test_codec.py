@@ -91,9 +91,18 @@ def test_fixed_keypoints_error_bound(rng: np.random.Generator, width: int, step:
 
 def test_fixed_keeps_float32_when_it_cannot_hold_them(rng: np.random.Generator) -> None:
     for kp, scales in [
-        (rng.uniform(0, 20000, (50, 2)).astype(np.float32), rng.uniform(1, 9, 50).astype(np.float32)),  # too wide
-        (rng.uniform(0, 600, (50, 2)).astype(np.float32), np.geomspace(1e-3, 1e3, 50).astype(np.float32)),  # > 2^16
-        (rng.uniform(0, 600, (50, 2)).astype(np.float32), np.linspace(-1, 9, 50).astype(np.float32)),  # not > 0
+        (
+            rng.uniform(0, 20000, (50, 2)).astype(np.float32),
+            rng.uniform(1, 9, 50).astype(np.float32),
+        ),  # too wide
+        (
+            rng.uniform(0, 600, (50, 2)).astype(np.float32),
+            np.geomspace(1e-3, 1e3, 50).astype(np.float32),
+        ),  # > 2^16
+        (
+            rng.uniform(0, 600, (50, 2)).astype(np.float32),
+            np.linspace(-1, 9, 50).astype(np.float32),
+        ),  # not > 0
     ]:
         blob = encode_keypoints(kp, scales, "fixed")
         assert len(blob) == 16 + 12 * 50
@@ -162,7 +171,9 @@ def _store(path: Path, features: list[Features], storage: str) -> None:
         db.set_global_descriptors((ids, g / np.linalg.norm(g, axis=1, keepdims=True)))
 
 
-def test_compact_map_is_under_100_kb_per_kitti_sized_image(tmp_path: Path, sift_images: list[Features]) -> None:
+def test_compact_map_is_under_100_kb_per_kitti_sized_image(
+    tmp_path: Path, sift_images: list[Features]
+) -> None:
     """~2,900 RootSIFT features per image (KITTI: 1,450 and 3,030) and an 8192-D VLAD vector."""
     sizes = {}
     for storage in ("compact", "full"):
@@ -177,8 +188,9 @@ def test_compact_map_is_under_100_kb_per_kitti_sized_image(tmp_path: Path, sift_
     assert sizes["compact"] < 100_000 and sizes["full"] > 3.5 * sizes["compact"]
 
 
-def test_projected_global_descriptors_search_like_the_full_vectors(tmp_path: Path, rng: np.random.Generator,
-                                                                   monkeypatch: pytest.MonkeyPatch) -> None:
+def test_projected_global_descriptors_search_like_the_full_vectors(
+    tmp_path: Path, rng: np.random.Generator, monkeypatch: pytest.MonkeyPatch
+) -> None:
     monkeypatch.setattr(store_write, "PROJECT_ABOVE", 8)  # the writer projects
     monkeypatch.setattr(store_write, "PROJECTED_DIM", 6)
     basis_true = np.linalg.qr(rng.normal(size=(64, 5)))[0]  # the 12 vectors span 5 of the 64 dimensions

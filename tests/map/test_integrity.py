@@ -70,8 +70,9 @@ def test_changed_image_file_is_reextracted(seq_a, built: Path, caplog: pytest.Lo
     assert check_map(built).ok
 
 
-def test_colliding_names_of_another_dataset_are_namespaced(built: Path, tmp_path: Path,
-                                                           caplog: pytest.LogCaptureFixture) -> None:
+def test_colliding_names_of_another_dataset_are_namespaced(
+    built: Path, tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
     seq_b = posed_folder(tmp_path / "seq_b", n=3, seed=2)  # same names image_l/00000k.png, other files
     with caplog.at_level(logging.WARNING):  # random textures that share nothing: appended on purpose
         build_map(seq_b, built, FEATURES, num_words=WORDS, workers=1, allow_unrelated_frames=True)
@@ -98,8 +99,14 @@ def test_image_size_differing_from_camera_is_left_out_before_storing(tmp_path: P
     images = posed_folder(tmp_path / "s", n=3)
     cv2.imwrite(str(images[1].path), np.zeros((50, 60), np.uint8))
     left_out: list[tuple[str, str]] = []
-    build_map(images, tmp_path / "m.db", FEATURES, num_words=WORDS, workers=1,
-              skipped=lambda im, why: left_out.append((im.name, why)))
+    build_map(
+        images,
+        tmp_path / "m.db",
+        FEATURES,
+        num_words=WORDS,
+        workers=1,
+        skipped=lambda im, why: left_out.append((im.name, why)),
+    )
     assert len(left_out) == 1 and left_out[0][0] == images[1].name
     assert "image is 60x50 but its camera is 160x120" in left_out[0][1]
     with MapDatabase.open(tmp_path / "m.db") as db:
@@ -154,7 +161,7 @@ def test_garbage_in_the_middle_of_the_file_is_detected(built: Path) -> None:
     data = bytearray(built.read_bytes())
     assert len(data) > 3 * 8192
     mid = len(data) // 2
-    data[mid:mid + 8192] = np.random.default_rng(0).integers(0, 256, 8192, dtype=np.uint8).tobytes()
+    data[mid : mid + 8192] = np.random.default_rng(0).integers(0, 256, 8192, dtype=np.uint8).tobytes()
     built.write_bytes(bytes(data))
     try:
         report = check_map(built)
@@ -169,21 +176,28 @@ def _planarloc(*argv: object, **kw) -> subprocess.Popen:
     return subprocess.Popen([sys.executable, "-m", "planarloc.cli.main", *map(str, argv)], **kw)
 
 
-def _wait_for(condition, what: str, timeout: float = 120.0, proc: subprocess.Popen | None = None,
-              output: list[str] | None = None) -> None:
+def _wait_for(
+    condition,
+    what: str,
+    timeout: float = 120.0,
+    proc: subprocess.Popen | None = None,
+    output: list[str] | None = None,
+) -> None:
     """Poll ``condition``; fail at the timeout, or at once when ``proc`` exits first (with its output)."""
     deadline = time.monotonic() + timeout
     while not condition():
         said = "".join(output or [])
-        assert proc is None or proc.poll() is None or condition(), \
+        assert proc is None or proc.poll() is None or condition(), (
             f"{what}: the process exited ({proc.returncode}) first; it said: {said}"
+        )
         assert time.monotonic() < deadline, f"timed out waiting for {what}; it said: {said}"
         time.sleep(0.005)
 
 
 @pytest.mark.parametrize("first_builder", ["finishes", "is SIGKILLed"])
-def test_concurrent_builds_overlap_and_the_second_waits_on_the_lock(tiny_world: Path, tmp_path: Path,
-                                                                    first_builder: str) -> None:
+def test_concurrent_builds_overlap_and_the_second_waits_on_the_lock(
+    tiny_world: Path, tmp_path: Path, first_builder: str
+) -> None:
     """Two `planarloc map build` of one map at once: the second finds the first holding the lock
     (mid-build, frozen there) and waits, naming its PID; the first then finishes or is killed
     with SIGKILL; the second completes the map either way."""
@@ -192,7 +206,9 @@ def test_concurrent_builds_overlap_and_the_second_waits_on_the_lock(tiny_world: 
     lock = lock_path_of(path)
     a = _planarloc(*build, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     try:
-        _wait_for(lambda: lock.is_file() and lock.read_text().strip() == str(a.pid), "the first builder's lock")
+        _wait_for(
+            lambda: lock.is_file() and lock.read_text().strip() == str(a.pid), "the first builder's lock"
+        )
         os.kill(a.pid, signal.SIGSTOP)  # frozen while it holds the lock: the builds must overlap
         assert lock.read_text().strip() == str(a.pid) and a.poll() is None
         b = _planarloc(*build, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
@@ -200,7 +216,9 @@ def test_concurrent_builds_overlap_and_the_second_waits_on_the_lock(tiny_world: 
         seen: list[str] = []
         reader = threading.Thread(target=lambda: seen.extend(b.stderr))
         reader.start()
-        _wait_for(lambda: any(waiting in line for line in seen), "the second builder to wait", proc=b, output=seen)
+        _wait_for(
+            lambda: any(waiting in line for line in seen), "the second builder to wait", proc=b, output=seen
+        )
         assert b.poll() is None  # it waits for the first, it does not build alongside
         os.kill(a.pid, signal.SIGKILL if first_builder == "is SIGKILLed" else signal.SIGCONT)
         assert b.wait(300) == 0, "".join(seen)
@@ -222,9 +240,16 @@ def test_settings_check_leaves_a_map_another_process_is_writing_to_the_build(tmp
     path = tmp_path / "m.db"
     path.write_bytes(b"")  # what a reader may see while the writer is frozen mid-creation
     holder = subprocess.Popen(
-        [sys.executable, "-c", "import sys; from planarloc.map.lock import MapWriterLock; "
-         f"lock = MapWriterLock({str(path)!r}); lock.acquire(); print('held', flush=True); sys.stdin.read()"],
-        stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+        [
+            sys.executable,
+            "-c",
+            "import sys; from planarloc.map.lock import MapWriterLock; "
+            f"lock = MapWriterLock({str(path)!r}); lock.acquire(); print('held', flush=True); sys.stdin.read()",
+        ],
+        stdin=subprocess.PIPE,
+        stdout=subprocess.PIPE,
+        text=True,
+    )
     try:
         assert holder.stdout.readline().strip() == "held"
         assert writer_of(path) == str(holder.pid)
@@ -239,9 +264,16 @@ def test_settings_check_leaves_a_map_another_process_is_writing_to_the_build(tmp
 
 def test_second_writer_waits_or_names_the_pid(built: Path) -> None:
     holder = subprocess.Popen(  # another process holds the map's writer lock until its stdin closes
-        [sys.executable, "-c", "import sys; from planarloc.map.lock import MapWriterLock; "
-         f"lock = MapWriterLock({str(built)!r}); lock.acquire(); print('held', flush=True); sys.stdin.read()"],
-        stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+        [
+            sys.executable,
+            "-c",
+            "import sys; from planarloc.map.lock import MapWriterLock; "
+            f"lock = MapWriterLock({str(built)!r}); lock.acquire(); print('held', flush=True); sys.stdin.read()",
+        ],
+        stdin=subprocess.PIPE,
+        stdout=subprocess.PIPE,
+        text=True,
+    )
     try:
         assert holder.stdout.readline().strip() == "held"
         with pytest.raises(MapBusyError, match=f"being built by PID {holder.pid}"):
@@ -270,10 +302,15 @@ def test_finished_map_is_one_file_outside_wal(built: Path) -> None:
     with open(built, "rb") as f:
         header = f.read(20)
     assert header[18] == 1 and header[19] == 1  # legacy (rollback) journal: no -shm needed to read
-    assert not built.with_name(built.name + "-wal").exists() and not built.with_name(built.name + "-shm").exists()
+    assert (
+        not built.with_name(built.name + "-wal").exists()
+        and not built.with_name(built.name + "-shm").exists()
+    )
 
 
-def test_map_in_wal_mode_opens_immutable_where_not_writable(built: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+def test_map_in_wal_mode_opens_immutable_where_not_writable(
+    built: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
     with MapDatabase.open(built, mode="a") as db:  # an interrupted append: WAL mode, incomplete
         db.set_meta("note", "x")
         db.remove_image("image_l/000003.png")
@@ -292,8 +329,9 @@ def test_map_in_wal_mode_opens_immutable_where_not_writable(built: Path, monkeyp
         assert db.num_images() == 3 and db.get_meta("note") == "x" and not db.is_complete
 
 
-def test_build_on_read_only_media_passes_if_current_else_says_why(seq_a, built: Path,
-                                                                  monkeypatch: pytest.MonkeyPatch) -> None:
+def test_build_on_read_only_media_passes_if_current_else_says_why(
+    seq_a, built: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
     import errno
 
     def read_only(self) -> None:

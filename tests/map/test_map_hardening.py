@@ -35,7 +35,9 @@ def world_map(tiny_world: Path, tmp_path_factory: pytest.TempPathFactory) -> Pat
 
 
 def _query(world: Path) -> tuple[Path, str]:
-    return sorted((world / "query" / "rgb").glob("*.png"))[0], (world / "query" / "camera.txt").read_text().splitlines()[-1]
+    return sorted((world / "query" / "rgb").glob("*.png"))[0], (
+        world / "query" / "camera.txt"
+    ).read_text().splitlines()[-1]
 
 
 def _sha(path: Path) -> str:
@@ -45,9 +47,16 @@ def _sha(path: Path) -> str:
 # ---- one writer per file ----------------------------------------------------------------------------
 def _holder(path: Path) -> subprocess.Popen:
     holder = subprocess.Popen(
-        [sys.executable, "-c", "import sys; from planarloc.map.lock import MapWriterLock; "
-         f"lock = MapWriterLock({str(path)!r}); lock.acquire(); print('held', flush=True); sys.stdin.read()"],
-        stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+        [
+            sys.executable,
+            "-c",
+            "import sys; from planarloc.map.lock import MapWriterLock; "
+            f"lock = MapWriterLock({str(path)!r}); lock.acquire(); print('held', flush=True); sys.stdin.read()",
+        ],
+        stdin=subprocess.PIPE,
+        stdout=subprocess.PIPE,
+        text=True,
+    )
     assert holder.stdout.readline().strip() == "held"
     return holder
 
@@ -100,10 +109,21 @@ def shared_world(tiny_world: Path):
     user = other_user()
     with shared_folder() as root:
         shutil.copytree(tiny_world, root / "world")
-        built = cli("map", "build", root / "world" / "map", "-f", "tum", "--out", root / "map.db",
-                    "--vocabulary-size", "16")
+        built = cli(
+            "map",
+            "build",
+            root / "world" / "map",
+            "-f",
+            "tum",
+            "--out",
+            root / "map.db",
+            "--vocabulary-size",
+            "16",
+        )
         assert built.returncode == 0, built.stderr
-        evaluated = cli("evaluate", root / "world" / "map", "-f", "tum", "--map-every", "2", "--map", root / "e.db")
+        evaluated = cli(
+            "evaluate", root / "world" / "map", "-f", "tum", "--map-every", "2", "--map", root / "e.db"
+        )
         assert evaluated.returncode == 0, evaluated.stderr
         subprocess.run(["chmod", "-R", "a+rX,go-w", str(root)], check=True)
         yield root, user
@@ -113,30 +133,74 @@ def test_map_build_onto_a_read_only_map_holding_those_images_succeeds_without_wr
     root, user = shared_world
     env = base_env()
     before = _sha(root / "map.db")
-    proc = run_as(user, [*CLI, "map", "build", root / "world" / "map", "-f", "tum", "--out", root / "map.db",
-                         "--vocabulary-size", "16"], env=env)
+    proc = run_as(
+        user,
+        [
+            *CLI,
+            "map",
+            "build",
+            root / "world" / "map",
+            "-f",
+            "tum",
+            "--out",
+            root / "map.db",
+            "--vocabulary-size",
+            "16",
+        ],
+        env=env,
+    )
     assert proc.returncode == 0, proc.stderr
     assert "12 images" in proc.stdout and _sha(root / "map.db") == before
     assert not list(root.glob(".map.db*")) and not list(root.glob("map.db-*"))  # no lock, no journal
 
 
-def test_map_build_onto_a_read_only_map_file_in_a_writable_folder_succeeds_without_writing(shared_world) -> None:
+def test_map_build_onto_a_read_only_map_file_in_a_writable_folder_succeeds_without_writing(
+    shared_world,
+) -> None:
     root, user = shared_world
     folder = root / "users-folder"
     folder.mkdir()
     shutil.copy(root / "map.db", folder / "map.db")  # root's file, mode 0644, in the user's folder
     os.chown(folder, user.pw_uid, user.pw_gid)
     before = _sha(folder / "map.db")
-    proc = run_as(user, [*CLI, "map", "build", root / "world" / "map", "-f", "tum", "--out", folder / "map.db",
-                         "--vocabulary-size", "16"], env=base_env())
+    proc = run_as(
+        user,
+        [
+            *CLI,
+            "map",
+            "build",
+            root / "world" / "map",
+            "-f",
+            "tum",
+            "--out",
+            folder / "map.db",
+            "--vocabulary-size",
+            "16",
+        ],
+        env=base_env(),
+    )
     assert proc.returncode == 0, proc.stderr
     assert _sha(folder / "map.db") == before and not list(folder.glob("map.db-*"))
 
 
 def test_a_read_only_map_missing_images_says_why_in_one_line(shared_world) -> None:
     root, user = shared_world
-    proc = run_as(user, [*CLI, "map", "build", root / "world" / "query", "-f", "tum", "--out", root / "map.db",
-                         "--vocabulary-size", "16"], env=base_env())
+    proc = run_as(
+        user,
+        [
+            *CLI,
+            "map",
+            "build",
+            root / "world" / "query",
+            "-f",
+            "tum",
+            "--out",
+            root / "map.db",
+            "--vocabulary-size",
+            "16",
+        ],
+        env=base_env(),
+    )
     err = proc.stderr.strip().splitlines()
     assert proc.returncode == 1 and len(err) >= 1
     assert "cannot write the map" in err[-1] and "must be added or updated" in err[-1]
@@ -148,8 +212,11 @@ def test_evaluate_with_a_read_only_map_succeeds_without_writing(shared_world) ->
     tmp = root / "tmp"
     tmp.mkdir(mode=0o1777, exist_ok=True)
     tmp.chmod(0o1777)
-    proc = run_as(user, [*CLI, "evaluate", root / "world" / "map", "-f", "tum", "--map-every", "2", "--map",
-                         root / "e.db"], env=base_env(TMPDIR=str(tmp)))
+    proc = run_as(
+        user,
+        [*CLI, "evaluate", root / "world" / "map", "-f", "tum", "--map-every", "2", "--map", root / "e.db"],
+        env=base_env(TMPDIR=str(tmp)),
+    )
     assert proc.returncode == 0, proc.stderr
     assert "localize: 6/6" in proc.stderr and _sha(root / "e.db") == before
 
@@ -159,12 +226,13 @@ def _garbage_in_the_middle(path: Path) -> None:
     data = bytearray(path.read_bytes())
     assert len(data) > 3 * 8192
     mid = len(data) // 2
-    data[mid:mid + 8192] = np.random.default_rng(0).integers(0, 256, 8192, dtype=np.uint8).tobytes()
+    data[mid : mid + 8192] = np.random.default_rng(0).integers(0, 256, 8192, dtype=np.uint8).tobytes()
     path.write_bytes(bytes(data))
 
 
-def test_a_map_with_garbage_in_its_middle_is_refused_at_open(world_map: Path, tiny_world: Path,
-                                                             tmp_path: Path) -> None:
+def test_a_map_with_garbage_in_its_middle_is_refused_at_open(
+    world_map: Path, tiny_world: Path, tmp_path: Path
+) -> None:
     damaged = tmp_path / "damaged.db"
     shutil.copy(world_map, damaged)
     _garbage_in_the_middle(damaged)
@@ -179,8 +247,9 @@ def test_a_map_with_garbage_in_its_middle_is_refused_at_open(world_map: Path, ti
     assert not (tmp_path / "poses.txt").exists()
 
 
-def test_a_sound_map_is_page_checked_once_per_process_while_unchanged(world_map: Path,
-                                                                       monkeypatch: pytest.MonkeyPatch) -> None:
+def test_a_sound_map_is_page_checked_once_per_process_while_unchanged(
+    world_map: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
     import planarloc.map.store as store
 
     monkeypatch.setattr(store, "_PAGES_SOUND", set())

@@ -28,12 +28,16 @@ def _corridor(n_images: int, rng: np.random.Generator) -> tuple[list[Pose], np.n
         yaw = 0.05 * np.sin(k)
         R = so3_exp(np.array([0.0, yaw, 0.0]))[0]
         poses.append(Pose.from_center(R, np.array([0.3 * np.sin(0.7 * k), 0.0, float(k)])))
-    X = np.column_stack([rng.uniform(-8, 8, 4000), rng.uniform(-3, 3, 4000), rng.uniform(4, 40, 4000) + n_images])
+    X = np.column_stack(
+        [rng.uniform(-8, 8, 4000), rng.uniform(-3, 3, 4000), rng.uniform(4, 40, 4000) + n_images]
+    )
     X[:, 2] -= rng.uniform(0, n_images + 2, 4000)
     return poses, X
 
 
-def _observe(pose: Pose, X: np.ndarray, noise_px: float, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+def _observe(
+    pose: Pose, X: np.ndarray, noise_px: float, rng: np.random.Generator
+) -> tuple[np.ndarray, np.ndarray]:
     """Pixels of the points in front of the camera and inside the image, with noise; and their mask."""
     Xc = X @ pose.R.T + pose.t
     front = Xc[:, 2] > 0.5
@@ -49,7 +53,9 @@ def _perturbed(pose: Pose, rotation_std_rad: float, position_std: float, rng: np
     return Pose.from_center(R, pose.center + rng.normal(0, position_std, 3))
 
 
-def _measure(rotation_std_deg: float, position_std: float, seed: int, noise_px: float = 0.3) -> MapPoseAccuracy:
+def _measure(
+    rotation_std_deg: float, position_std: float, seed: int, noise_px: float = 0.3
+) -> MapPoseAccuracy:
     rng = np.random.default_rng(seed)
     truth, X = _corridor(14, rng)
     claimed = [_perturbed(p, np.radians(rotation_std_deg), position_std, rng) for p in truth]
@@ -99,8 +105,9 @@ def test_a_wrong_pair_does_not_move_the_estimate():
         found.append(pair_discrepancy(CAMERA, CAMERA, truth[j] @ truth[i].inverse(), pa[both], pb[both]))
     clean = accuracy_from_discrepancies(found)
     bad = found[0]
-    wrong = PairDiscrepancy(bad.delta + np.array([0.2, 0.0, 0.0, 0.3, 0.0]), bad.cov, bad.baseline_m, bad.inliers,
-                            bad.residual_px)
+    wrong = PairDiscrepancy(
+        bad.delta + np.array([0.2, 0.0, 0.0, 0.3, 0.0]), bad.cov, bad.baseline_m, bad.inliers, bad.residual_px
+    )
     assert accuracy_from_discrepancies([wrong, *found[1:]]) == clean
 
 

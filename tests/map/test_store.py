@@ -169,13 +169,17 @@ def test_resume_skips_existing_and_append(tmp_path: Path, rng: np.random.Generat
         db.mark_complete()
     with MapDatabase.open(path) as db:
         assert db.num_images() == 5 and db.is_complete
-        np.testing.assert_allclose(db.get_features(make_posed(4).name).keypoints, feats[4].keypoints, atol=1 / 64)
+        np.testing.assert_allclose(
+            db.get_features(make_posed(4).name).keypoints, feats[4].keypoints, atol=1 / 64
+        )
 
 
 def test_open_or_create_refuses_other_config(tmp_path: Path) -> None:
     with MapDatabase.create(tmp_path / "m.db", CONFIG) as db:
         db.add_image(make_posed(0), make_features(np.random.default_rng(0), 10))
-    with pytest.raises(InputError, match=r"built with another feature config \(tilt: map has true, given false\)"):
+    with pytest.raises(
+        InputError, match=r"built with another feature config \(tilt: map has true, given false\)"
+    ):
         MapDatabase.open_or_create(tmp_path / "m.db", {**CONFIG, "tilt": False})
     with pytest.raises(InputError, match="already exists"):
         MapDatabase.create(tmp_path / "m.db", CONFIG)
@@ -356,7 +360,9 @@ def test_poses_are_built_once_while_the_map_is_unchanged(tmp_path: Path, rng: np
         assert_pose_close(after[make_posed(3).name], make_posed(3).cam_from_world)
         moved = Pose.identity()
         with sqlite3.connect(path) as conn:  # a pose rewritten in place (same id)
-            conn.execute("UPDATE images SET qw = 1, qx = 0, qy = 0, qz = 0, tx = 0, ty = 0, tz = 0 WHERE name = ?",
-                         (make_posed(0).name,))
+            conn.execute(
+                "UPDATE images SET qw = 1, qx = 0, qy = 0, qz = 0, tx = 0, ty = 0, tz = 0 WHERE name = ?",
+                (make_posed(0).name,),
+            )
         assert_pose_close(reader.load_all_poses()[make_posed(0).name], moved)
         assert_pose_close(reader.posed_images()[0].cam_from_world, moved)

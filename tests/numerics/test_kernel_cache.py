@@ -20,7 +20,7 @@ import planarloc
 PACKAGE = Path(planarloc.__file__).parent
 #: Runs the CLI (or one kernel call, ``--kernel``) in-process and reports on stderr, as ``PROBE {json}``,
 #: what numba compiled (its ``numba:compile`` events) and how many kernels came from its cache.
-PROBE = '''
+PROBE = """
 import json, logging, sys
 from numba.core import event
 compiled = []
@@ -45,7 +45,7 @@ from planarloc.compile.dispatchers import planarloc_dispatchers
 hits = sum(sum(d.stats.cache_hits.values()) for d in planarloc_dispatchers().values())
 print("PROBE " + json.dumps({"file": planarloc.__file__, "rc": rc, "compiled": compiled, "hits": hits}),
       file=sys.stderr)
-'''
+"""
 
 
 @dataclass
@@ -60,7 +60,7 @@ class Install:
 def _report(proc: subprocess.CompletedProcess) -> dict:
     lines = [x for x in proc.stderr.splitlines() if x.startswith("PROBE ")]
     assert proc.returncode == 0 and lines, f"exit {proc.returncode}; stderr:\n{proc.stderr[-3000:]}"
-    return json.loads(lines[-1][len("PROBE "):])
+    return json.loads(lines[-1][len("PROBE ") :])
 
 
 def _files(folder: Path) -> set[str]:
@@ -92,14 +92,34 @@ def install(tiny_world: Path):
         probe = root / "probe.py"
         probe.write_text(PROBE)
         env = base_env(PYTHONPATH=str(site))
-        built = subprocess.run([sys.executable, "-m", "planarloc.cli.main", "map", "build", world / "map", "-f", "tum",
-                                "--out", root / "map.db", "--vocabulary-size", "16"], env=env, capture_output=True,
-                               text=True, timeout=900, cwd=root)
+        built = subprocess.run(
+            [
+                sys.executable,
+                "-m",
+                "planarloc.cli.main",
+                "map",
+                "build",
+                world / "map",
+                "-f",
+                "tum",
+                "--out",
+                root / "map.db",
+                "--vocabulary-size",
+                "16",
+            ],
+            env=env,
+            capture_output=True,
+            text=True,
+            timeout=900,
+            cwd=root,
+        )
         assert built.returncode == 0, built.stderr
         query = sorted((world / "query" / "rgb").glob("*.png"))[0]
         cam = (world / "query" / "camera.txt").read_text().splitlines()[-1]
         localize = ["localize", "--map", str(root / "map.db"), str(query), "--camera", cam, "--out", "-"]
-        warm = subprocess.run([sys.executable, probe, *localize], env=env, capture_output=True, text=True, timeout=900)
+        warm = subprocess.run(
+            [sys.executable, probe, *localize], env=env, capture_output=True, text=True, timeout=900
+        )
         assert _report(warm)["file"] == str(site / "planarloc" / "__init__.py")  # the copy, not the checkout
         subprocess.run(["chmod", "-R", "a-w", str(site)], check=True)
         subprocess.run(["chmod", "-R", "a+rX", str(root)], check=True)
@@ -107,8 +127,9 @@ def install(tiny_world: Path):
 
 
 @pytest.mark.parametrize("home", ["no HOME", "a writable HOME"])
-def test_localize_as_another_user_loads_the_read_only_warm_cache_and_compiles_nothing(install: Install,
-                                                                                       home: str) -> None:
+def test_localize_as_another_user_loads_the_read_only_warm_cache_and_compiles_nothing(
+    install: Install, home: str
+) -> None:
     tmp = _sticky(install.root / f"tmp-{home.replace(' ', '-')}")
     env = base_env(PYTHONPATH=str(install.site), TMPDIR=str(tmp))
     if home != "no HOME":
@@ -134,7 +155,9 @@ def test_a_kernel_the_install_lacks_is_kept_in_the_users_temp_folder(install: In
     assert "planarloc.geometry.mat3:dot" in _report(first)["compiled"]
     folder = tmp / f"planarloc-{install.user.pw_uid}"
     lines = _cache_lines(first)
-    assert len(lines) == 1 and lines[0].startswith("WARNING") and f"cached in {folder / 'kernels'}" in lines[0]
+    assert (
+        len(lines) == 1 and lines[0].startswith("WARNING") and f"cached in {folder / 'kernels'}" in lines[0]
+    )
     st = folder.stat()
     assert st.st_uid == install.user.pw_uid and st.st_mode & 0o777 == 0o700
     assert list((folder / "kernels").rglob("mat3.dot-*.nbi"))
@@ -163,11 +186,13 @@ def test_a_temp_folder_of_that_name_made_by_someone_else_is_never_used(install: 
 
 
 def test_every_kernel_is_defined_after_the_cache_class_is_in_place() -> None:
-    code = ("import planarloc.cli.main, planarloc.localize.localizer\n"
-            "from planarloc.compile.dispatchers import planarloc_dispatchers\n"
-            "from planarloc.numerics.kernel_cache import KernelCache\n"
-            "ds = planarloc_dispatchers()\n"
-            "print(len(ds), sorted(k for k, d in ds.items() if type(d._cache) is not KernelCache))\n")
+    code = (
+        "import planarloc.cli.main, planarloc.localize.localizer\n"
+        "from planarloc.compile.dispatchers import planarloc_dispatchers\n"
+        "from planarloc.numerics.kernel_cache import KernelCache\n"
+        "ds = planarloc_dispatchers()\n"
+        "print(len(ds), sorted(k for k, d in ds.items() if type(d._cache) is not KernelCache))\n"
+    )
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stderr
     count, others = proc.stdout.split(" ", 1)

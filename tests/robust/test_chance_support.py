@@ -19,7 +19,9 @@ def shuffled_scene(seed: int, matches: int):
     keypoints are real projections, the associations random (a query of another place)."""
     rng = np.random.default_rng(seed)
     sc = make_scene(rng, num_refs=3, matches_per_pair=matches, noise_px=1.0)
-    pairs = [dataclasses.replace(p, ref_points=p.ref_points[rng.permutation(len(p.ref_points))]) for p in sc.pairs]
+    pairs = [
+        dataclasses.replace(p, ref_points=p.ref_points[rng.permutation(len(p.ref_points))]) for p in sc.pairs
+    ]
     return sc, pairs
 
 
@@ -30,7 +32,9 @@ def test_random_associations_are_never_a_success(method: str) -> None:
     for seed in range(20):
         for matches in (100, 300):
             sc, pairs = shuffled_scene(seed, matches)
-            est = estimate_absolute_pose(sc.query_camera, pairs, method, RansacOptions(structure="none", seed=seed))
+            est = estimate_absolute_pose(
+                sc.query_camera, pairs, method, RansacOptions(structure="none", seed=seed)
+            )
             statuses.append(est.status)
             if est.status == "too_few_inliers" and "random matches" in est.message:
                 assert est.message.count(" vs ") >= 2 and "retrieve other map images" in est.message
@@ -39,7 +43,9 @@ def test_random_associations_are_never_a_success(method: str) -> None:
 
 
 def test_chance_is_measured_on_the_pose_and_real_matches_exceed_it() -> None:
-    sc = make_scene(np.random.default_rng(3), num_refs=3, matches_per_pair=200, noise_px=1.0, outlier_ratio=0.5)
+    sc = make_scene(
+        np.random.default_rng(3), num_refs=3, matches_per_pair=200, noise_px=1.0, outlier_ratio=0.5
+    )
     problem = build_problem(sc.query_camera, sc.pairs)
     truth = sc.query_pose
     chance = chance_inliers(problem, truth.R, truth.t, threshold_px=2.0)
@@ -63,5 +69,7 @@ def test_wrong_matches_that_keep_the_horizon_rarely_pass() -> None:
     successes = 0
     for seed in range(20):
         sc = make_scene(np.random.default_rng(seed), num_refs=3, matches_per_pair=300, outlier_ratio=1.0)
-        successes += estimate_absolute_pose(sc.query_camera, sc.pairs, "auto", RansacOptions(structure="none", seed=seed)).success
+        successes += estimate_absolute_pose(
+            sc.query_camera, sc.pairs, "auto", RansacOptions(structure="none", seed=seed)
+        ).success
     assert successes <= 2

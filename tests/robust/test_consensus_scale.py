@@ -32,21 +32,28 @@ Q = planar_pose(0.3, 1.0, -2.0)
 REFS = [planar_pose(-0.4, -2.0, 1.0), planar_pose(1.0, 3.0, 2.0), planar_pose(0.2, 0.5, 3.5)]
 
 
-def matches(rng: np.random.Generator, ref: Pose, n: int, outliers: int = 0, query: Pose = Q
-            ) -> tuple[np.ndarray, np.ndarray]:
+def matches(
+    rng: np.random.Generator, ref: Pose, n: int, outliers: int = 0, query: Pose = Q
+) -> tuple[np.ndarray, np.ndarray]:
     """``n`` matches of points in front of ``query`` and ``ref`` (rays (x, y, 1)); the last
     ``outliers`` have a random reference ray."""
     xq, xr = [], []
     while len(xq) < n:
         X = rng.uniform(-10.0, 10.0, 3)
         a, b = query.R @ X + query.t, ref.R @ X + ref.t
-        if a[2] > 1.0 and b[2] > 1.0 and abs(a[0]) < a[2] and abs(b[0]) < b[2] and abs(a[1]) < a[2] \
-                and abs(b[1]) < b[2]:
+        if (
+            a[2] > 1.0
+            and b[2] > 1.0
+            and abs(a[0]) < a[2]
+            and abs(b[0]) < b[2]
+            and abs(a[1]) < a[2]
+            and abs(b[1]) < b[2]
+        ):
             xq.append(a / a[2])
             xr.append(b / b[2])
     xq, xr = np.array(xq), np.array(xr)
     if outliers:
-        xr[n - outliers:, :2] = rng.uniform(-0.8, 0.8, (outliers, 2))
+        xr[n - outliers :, :2] = rng.uniform(-0.8, 0.8, (outliers, 2))
     return xq, xr
 
 
@@ -68,13 +75,29 @@ def true_relative(p: int = 0) -> tuple[np.ndarray, np.ndarray]:
     return rel.R.copy(), rel.t / np.linalg.norm(rel.t)
 
 
-def consensus(pb: dict, R: np.ndarray, t: np.ndarray, peaks: int = 1, max_votes: int = 1000,
-              threshold_px: float = 2.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def consensus(
+    pb: dict, R: np.ndarray, t: np.ndarray, peaks: int = 1, max_votes: int = 1000, threshold_px: float = 2.0
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     out_R, out_t = np.empty((peaks, 3, 3)), np.empty((peaks, 3))
     counters = np.zeros(5, dtype=np.int64)
-    m = hypotheses_2p1p_consensus(R[None], t[None], np.array([0]), pb["xq"], pb["xr"], pb["offsets"], F,
-                                  pb["f_ref"], pb["ref_R"], pb["ref_t"], threshold_px**2, peaks, max_votes,
-                                  out_R, out_t, counters)
+    m = hypotheses_2p1p_consensus(
+        R[None],
+        t[None],
+        np.array([0]),
+        pb["xq"],
+        pb["xr"],
+        pb["offsets"],
+        F,
+        pb["f_ref"],
+        pb["ref_R"],
+        pb["ref_t"],
+        threshold_px**2,
+        peaks,
+        max_votes,
+        out_R,
+        out_t,
+        counters,
+    )
     return out_R[:m], out_t[:m], counters
 
 
@@ -107,8 +130,7 @@ def test_consensus_rejects_scale_behind_cameras() -> None:
     reflected = Pose.from_center(Q.R, 2.0 * REFS[0].center - Q.center)
     pb = problem(np.random.default_rng(3), 30, third_query=reflected)
     R, _, counters = consensus(pb, *true_relative())
-    assert not any(np.abs(Ri - Q.R).max() < 1e-6 and centre_error(Ri, ti) < 0.5
-                   for Ri, ti in zip(R, _))
+    assert not any(np.abs(Ri - Q.R).max() < 1e-6 and centre_error(Ri, ti) < 0.5 for Ri, ti in zip(R, _))
     assert counters[PDCHECK] + counters[DEGENERATE] >= 1
 
 
@@ -133,8 +155,22 @@ def test_stage1_ranks_true_relative_pose_first(outliers: int) -> None:
     sample_pair = np.zeros(S, dtype=np.int64)
     out_R, out_t, out_pair = np.empty((6, 3, 3)), np.empty((6, 3)), np.empty(6, dtype=np.int64)
     counters = np.zeros(5, dtype=np.int64)
-    c = planar_relative_candidates(samples, sample_pair, pb["xq"], pb["xr"], pb["offsets"], F, pb["f_ref"], 4.0,
-                                   2, 1000, out_R, out_t, out_pair, counters)
+    c = planar_relative_candidates(
+        samples,
+        sample_pair,
+        pb["xq"],
+        pb["xr"],
+        pb["offsets"],
+        F,
+        pb["f_ref"],
+        4.0,
+        2,
+        1000,
+        out_R,
+        out_t,
+        out_pair,
+        counters,
+    )
     assert 1 <= c <= 2 and (out_pair[:c] == 0).all()
     R_true, t_true = true_relative()
     np.testing.assert_allclose(out_R[0], R_true, atol=1e-8)

@@ -32,8 +32,12 @@ def sampson_sq_reference(pb, pose: Pose) -> np.ndarray:
         q, r = pb.xq[sl], pb.xr[sl]
         Eq, Etr = q @ E.T, r @ E
         num = np.einsum("ni,ni->n", r, Eq) ** 2
-        den = (Eq[:, 0] / pb.f_ref[p, 0]) ** 2 + (Eq[:, 1] / pb.f_ref[p, 1]) ** 2 + \
-            (Etr[:, 0] / pb.f_query[0]) ** 2 + (Etr[:, 1] / pb.f_query[1]) ** 2
+        den = (
+            (Eq[:, 0] / pb.f_ref[p, 0]) ** 2
+            + (Eq[:, 1] / pb.f_ref[p, 1]) ** 2
+            + (Etr[:, 0] / pb.f_query[0]) ** 2
+            + (Etr[:, 1] / pb.f_query[1]) ** 2
+        )
         out[sl] = num / den
     return out
 
@@ -84,8 +88,19 @@ def test_refine_pose_converges_to_truth_on_exact_inliers(scene) -> None:
     pb = build_problem(sc.query_camera, sc.pairs)
     start = perturbed(sc.query_pose, np.random.default_rng(2), 0.01, 0.1)
     idx = np.arange(len(pb.xq))
-    R, t, H, sigma, cost = refine_pose(start.R, start.t, pb.arrays, idx, np.zeros(0, dtype=np.int64), 2.0, 20, 0.5,
-                                       start.center, np.eye(3), np.zeros(6, dtype=np.bool_))
+    R, t, H, sigma, cost = refine_pose(
+        start.R,
+        start.t,
+        pb.arrays,
+        idx,
+        np.zeros(0, dtype=np.int64),
+        2.0,
+        20,
+        0.5,
+        start.center,
+        np.eye(3),
+        np.zeros(6, dtype=np.bool_),
+    )
     assert np.linalg.norm(-R.T @ t - sc.query_pose.center) < 1e-6 and np.abs(R - sc.query_pose.R).max() < 1e-7
     assert cost < 1e-9 and sigma == 0.5  # residual scale floored at sigma_floor
     assert np.all(np.linalg.eigvalsh(H) > 0)
@@ -123,7 +138,11 @@ def test_draw_pair_samples_rows_and_weights() -> None:
     offsets = np.array([0, 10, 40, 41, 101], dtype=np.int64)  # pair 2 has one match
     S = 20000
     u = np.random.default_rng(6).random((S, 5))
-    samples, pj, pk = np.empty((S, 3), dtype=np.int64), np.empty(S, dtype=np.int64), np.empty(S, dtype=np.int64)
+    samples, pj, pk = (
+        np.empty((S, 3), dtype=np.int64),
+        np.empty(S, dtype=np.int64),
+        np.empty(S, dtype=np.int64),
+    )
     draw_pair_samples(u, offsets, 2, 1, samples, pj, pk)
     assert np.all(pj != pk) and np.all(pj != 2)  # pair 2 cannot give two matches
     assert np.all((samples[:, 0] >= offsets[pj]) & (samples[:, 1] < offsets[pj + 1]))
@@ -157,14 +176,21 @@ def test_triangulate_tracks_recovers_points(scene) -> None:
     ids, counts = np.unique(pb.query_ids, return_counts=True)
     assert 0 < len(X3) <= (counts >= 2).sum()
     # Two different references triangulated each point; moving both of their centres by d moves it by d.
-    assert views.shape == (len(X3), 2) and np.all((views >= 0) & (views < pb.num_pairs)) and np.all(views[:, 0] != views[:, 1])
-    np.testing.assert_allclose(jac[:, 0, :, 3:] + jac[:, 1, :, 3:], np.broadcast_to(np.eye(3), (len(X3), 3, 3)), atol=1e-9)
+    assert (
+        views.shape == (len(X3), 2)
+        and np.all((views >= 0) & (views < pb.num_pairs))
+        and np.all(views[:, 0] != views[:, 1])
+    )
+    np.testing.assert_allclose(
+        jac[:, 0, :, 3:] + jac[:, 1, :, 3:], np.broadcast_to(np.eye(3), (len(X3), 3, 3)), atol=1e-9
+    )
     # Each triangulated point is a true scene point seen by the query along its ray.
     d = np.linalg.norm(X3[:, None] - sc.points[ids[counts >= 2]][None], axis=2).min(axis=1)
     assert d.max() < 1e-6
     Xc = X3 @ sc.query_pose.R.T + sc.query_pose.t
     np.testing.assert_allclose(Xc[:, :2] / Xc[:, 2:], xq3[:, :2] / xq3[:, 2:], atol=1e-9)
     # Without ids there are no tracks.
-    none = build_problem(sc.query_camera, [type(p)(p.ref_pose, p.ref_camera, p.query_points, p.ref_points)
-                                            for p in sc.pairs])
+    none = build_problem(
+        sc.query_camera, [type(p)(p.ref_pose, p.ref_camera, p.query_points, p.ref_points) for p in sc.pairs]
+    )
     assert len(triangulate_tracks(none, 2.0, 1.0)[1]) == 0

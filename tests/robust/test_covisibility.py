@@ -17,7 +17,9 @@ OTHER = Camera.from_K([[300.0, 0, 160], [0, 310.0, 120], [0, 0, 1]], 320, 240)
 def two_views(n: int, rng: np.random.Generator, noise_px: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
     """(n, 2) pixels of random points seen by CAM at the origin and by OTHER moved and turned."""
     X = rng.uniform([-3, -2, 4], [3, 2, 12], (n, 3))
-    ref = Pose(Pose.from_quat_wxyz([np.cos(0.1), 0, np.sin(0.1), 0], np.zeros(3)).R, np.array([0.8, 0.05, -0.3]))
+    ref = Pose(
+        Pose.from_quat_wxyz([np.cos(0.1), 0, np.sin(0.1), 0], np.zeros(3)).R, np.array([0.8, 0.05, -0.3])
+    )
     q = CAM.img_from_cam(X) + rng.normal(0, noise_px, (n, 2))
     r = OTHER.img_from_cam((ref.R @ X.T).T + ref.t) + rng.normal(0, noise_px, (n, 2))
     return q, r

@@ -18,8 +18,9 @@ PAPER_ITERATIONS = dict(max_iterations=100, min_iterations=100)
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_noise_free_recovery_is_exact(scene, pose_errors_precise, method: str, seed: int) -> None:
     sc = scene(seed, num_refs=5, matches_per_pair=50, noise_px=0.0)
-    est = estimate_absolute_pose(sc.query_camera, sc.pairs, method,
-                                 RansacOptions(**PAPER_ITERATIONS, seed=seed))
+    est = estimate_absolute_pose(
+        sc.query_camera, sc.pairs, method, RansacOptions(**PAPER_ITERATIONS, seed=seed)
+    )
     assert est.success, est.message
     dc, dr = pose_errors_precise(est.pose, sc.query_pose)
     assert dc < 1e-6 and dr < 1e-6
@@ -33,8 +34,9 @@ def test_noise_and_outliers_success_rate(scene, method: str) -> None:
     ok = 0
     for seed in range(10):
         sc = scene(100 + seed, num_refs=5, matches_per_pair=100, noise_px=1.0, outlier_ratio=0.4)
-        est = estimate_absolute_pose(sc.query_camera, sc.pairs, method,
-                                     RansacOptions(**PAPER_ITERATIONS, seed=seed))
+        est = estimate_absolute_pose(
+            sc.query_camera, sc.pairs, method, RansacOptions(**PAPER_ITERATIONS, seed=seed)
+        )
         if est.success:
             dc, dr = pose_errors(est.pose, sc.query_pose)
             ok += dc < 0.1 and dr < 1.0
@@ -74,8 +76,12 @@ def test_same_seed_same_pose(scene, method: str) -> None:
 
 def test_seed_changes_samples(scene) -> None:
     sc = scene(7, num_refs=5, matches_per_pair=50, noise_px=1.0, outlier_ratio=0.3)
-    a, b = (estimate_absolute_pose(sc.query_camera, sc.pairs, "2p1p",
-                                   RansacOptions(**PAPER_ITERATIONS, seed=s, refine=False)) for s in (1, 2))
+    a, b = (
+        estimate_absolute_pose(
+            sc.query_camera, sc.pairs, "2p1p", RansacOptions(**PAPER_ITERATIONS, seed=s, refine=False)
+        )
+        for s in (1, 2)
+    )
     assert a.stats.hypotheses != b.stats.hypotheses or not np.array_equal(a.pose.t, b.pose.t)
 
 
@@ -105,7 +111,8 @@ def test_statistics_and_result_summary(scene) -> None:
 
 def test_adaptive_termination_on_clean_data(scene) -> None:
     sc = scene(0, num_refs=5, matches_per_pair=50, noise_px=0.5)
-    est = estimate_absolute_pose(sc.query_camera, sc.pairs, "2p1p",
-                                 RansacOptions(max_iterations=10_000, min_iterations=1))
+    est = estimate_absolute_pose(
+        sc.query_camera, sc.pairs, "2p1p", RansacOptions(max_iterations=10_000, min_iterations=1)
+    )
     assert est.success
     assert est.iterations < 200

@@ -74,8 +74,12 @@ def same_pose(R: np.ndarray, t: np.ndarray, truth: Pose, tol: float = 1e-8) -> b
 # --------------------------------------------------------------------------------------------
 # 2p2p and baselines: hypotheses_from_relative_poses
 # --------------------------------------------------------------------------------------------
-def run_relative(cands_a: list[tuple[np.ndarray, np.ndarray]], cands_b: list[tuple[np.ndarray, np.ndarray]],
-                 j: Pose = J, k: Pose = K) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def run_relative(
+    cands_a: list[tuple[np.ndarray, np.ndarray]],
+    cands_b: list[tuple[np.ndarray, np.ndarray]],
+    j: Pose = J,
+    k: Pose = K,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Run the kernel on one sample with the given candidate relative poses to j and k."""
     A = max(len(cands_a), len(cands_b))
     Ra = np.zeros((1, A, 3, 3))
@@ -89,9 +93,21 @@ def run_relative(cands_a: list[tuple[np.ndarray, np.ndarray]], cands_b: list[tup
     out_t = np.empty((A * A, 3))
     counters = np.zeros(5, dtype=np.int64)
     n = hypotheses_from_relative_poses(
-        Ra, ta, va, Rb, tb, vb, np.array([0]), np.array([1]),
-        np.ascontiguousarray(np.stack([j.R, k.R])), np.ascontiguousarray(np.stack([j.t, k.t])),
-        COS_2DEG, COS_2DEG, out_R, out_t, counters,
+        Ra,
+        ta,
+        va,
+        Rb,
+        tb,
+        vb,
+        np.array([0]),
+        np.array([1]),
+        np.ascontiguousarray(np.stack([j.R, k.R])),
+        np.ascontiguousarray(np.stack([j.t, k.t])),
+        COS_2DEG,
+        COS_2DEG,
+        out_R,
+        out_t,
+        counters,
     )
     return out_R[:n], out_t[:n], counters
 
@@ -167,8 +183,9 @@ def test_collinear_centres_are_degenerate_not_a_position() -> None:
 # --------------------------------------------------------------------------------------------
 # 2p1p: hypotheses_2p1p
 # --------------------------------------------------------------------------------------------
-def run_2p1p(third_query_cam: Pose, third_is_3d: bool,
-             seed: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def run_2p1p(
+    third_query_cam: Pose, third_is_3d: bool, seed: int = 0
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Two true Q-J matches plus a third datum observed from ``third_query_cam``.
 
     The third datum is a Q-K match (or a 2D-3D constraint) of a point seen from
@@ -187,9 +204,19 @@ def run_2p1p(third_query_cam: Pose, third_is_3d: bool,
     out_t = np.empty((2, 3))
     counters = np.zeros(5, dtype=np.int64)
     n = hypotheses_2p1p(
-        np.array([[0, 1, third]]), np.array([third_is_3d]), np.array([0]), np.array([1]), xq, xr,
-        np.ascontiguousarray(np.stack([J.R, K.R])), np.ascontiguousarray(np.stack([J.t, K.t])),
-        xq3d, X3d, out_R, out_t, counters,
+        np.array([[0, 1, third]]),
+        np.array([third_is_3d]),
+        np.array([0]),
+        np.array([1]),
+        xq,
+        xr,
+        np.ascontiguousarray(np.stack([J.R, K.R])),
+        np.ascontiguousarray(np.stack([J.t, K.t])),
+        xq3d,
+        X3d,
+        out_R,
+        out_t,
+        counters,
     )
     return out_R[:n], out_t[:n], counters
 
@@ -219,8 +246,12 @@ def test_pdcheck_rejects_negative_scale_2p1p(third_is_3d: bool, seed: int) -> No
 @pytest.mark.parametrize("method", ["2p1p", "2p2p"])
 def test_statistics_account_for_every_hypothesis(scene, method: str) -> None:
     sc = scene(3, num_refs=5, matches_per_pair=50, noise_px=1.0, outlier_ratio=0.5)
-    est = estimate_absolute_pose(sc.query_camera, sc.pairs, method,
-                                 RansacOptions(max_iterations=100, min_iterations=100, structure="none", seed=3))
+    est = estimate_absolute_pose(
+        sc.query_camera,
+        sc.pairs,
+        method,
+        RansacOptions(max_iterations=100, min_iterations=100, structure="none", seed=3),
+    )
     s = est.stats
     rejected = s.rejected_rcheck + s.rejected_pdcheck + s.rejected_consistency
     # A degenerate count is either a solver without solution (no hypothesis) or a hypothesis

@@ -32,8 +32,19 @@ def _scene(seed: int, **kw):
 
 
 def _lo(p, R, t, level, planar_iterations: int, iterations: int) -> tuple[np.ndarray, np.ndarray]:
-    return refine_planar_then_6dof(np.ascontiguousarray(R), np.ascontiguousarray(t), p.arrays, TH_SQ, 2.0, level,
-                                   COS_LEVEL, planar_iterations, iterations, 0.5, 128)
+    return refine_planar_then_6dof(
+        np.ascontiguousarray(R),
+        np.ascontiguousarray(t),
+        p.arrays,
+        TH_SQ,
+        2.0,
+        level,
+        COS_LEVEL,
+        planar_iterations,
+        iterations,
+        0.5,
+        128,
+    )
 
 
 def _planar_perturbed(sc, yaw_deg: float, shift: tuple[float, float]) -> tuple[np.ndarray, np.ndarray]:

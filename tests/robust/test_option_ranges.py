@@ -11,8 +11,9 @@ from planarloc.robust.options import RansacOptions
 from planarloc.robust.pair_matches import PairMatches
 
 
-@pytest.mark.parametrize("field", ["map_position_std_m", "map_rotation_std_deg", "track_min_angle_deg",
-                                   "min_collinearity_ratio"])
+@pytest.mark.parametrize(
+    "field", ["map_position_std_m", "map_rotation_std_deg", "track_min_angle_deg", "min_collinearity_ratio"]
+)
 def test_negative_values_rejected(field: str) -> None:
     with pytest.raises(ValueError, match=field):
         RansacOptions(**{field: -0.1})
@@ -37,9 +38,9 @@ def test_with_iterations_sets_exact_budget_on_a_copy() -> None:
     base = RansacOptions(max_iterations=50, min_iterations=20, threshold_px=1.5, seed=3)
     short = base.with_iterations(7)
     assert (short.min_iterations, short.max_iterations) == (7, 7)
-    assert (base.min_iterations, base.max_iterations) == (20, 50)          # the original is untouched
+    assert (base.min_iterations, base.max_iterations) == (20, 50)  # the original is untouched
     assert short.threshold_px == 1.5 and short.seed == 3 and short.structure == base.structure
-    assert base.with_iterations(500).max_iterations == 50                  # clipped to the budget
+    assert base.with_iterations(500).max_iterations == 50  # clipped to the budget
     with pytest.raises(ValueError, match="with_iterations"):
         base.with_iterations(0)
 

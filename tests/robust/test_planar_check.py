@@ -19,7 +19,9 @@ PERFECT_MAP = dict(map_rotation_std_deg=0.0, map_position_std_m=0.0)
 def test_a_check_without_hypotheses_looks_again(monkeypatch) -> None:
     # a planar pose with nearly every match an inlier: the check's budget is its minimum (2 samples)
     rng = np.random.default_rng(0)
-    sc = make_scene(rng, num_refs=5, matches_per_pair=150, noise_px=0.5, outlier_ratio=0.05, query_tilt_deg=1.0)
+    sc = make_scene(
+        rng, num_refs=5, matches_per_pair=150, noise_px=0.5, outlier_ratio=0.05, query_tilt_deg=1.0
+    )
     real_search = absolute_pose._Estimation.search
     budgets: list[int | None] = []
 
@@ -27,7 +29,7 @@ def test_a_check_without_hypotheses_looks_again(monkeypatch) -> None:
         if family == Method.NISTER and iterations is not None:
             budgets.append(iterations)
             if len(budgets) == 1:
-                return None          # the short check's samples gave no hypothesis
+                return None  # the short check's samples gave no hypothesis
         return real_search(self, family, counted, iterations)
 
     monkeypatch.setattr(absolute_pose._Estimation, "search", first_check_finds_nothing)

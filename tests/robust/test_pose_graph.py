@@ -31,9 +31,14 @@ def _cov(rot_std: float, pos_std: float) -> np.ndarray:
 def test_analytic_jacobian_matches_finite_differences() -> None:
     rng = np.random.default_rng(0)
     poses = [_random_pose(rng) for _ in range(3)]
-    absolute = [AbsoluteFactor(0, _random_pose(rng), _cov(0.1, 0.3)), AbsoluteFactor(2, _random_pose(rng), _cov(0.05, 1))]
-    relative = [RelativeFactor(0, 1, _random_pose(rng), _cov(0.02, 0.1) + 0.001),
-                RelativeFactor(1, 2, _random_pose(rng), _cov(0.2, 0.5))]
+    absolute = [
+        AbsoluteFactor(0, _random_pose(rng), _cov(0.1, 0.3)),
+        AbsoluteFactor(2, _random_pose(rng), _cov(0.05, 1)),
+    ]
+    relative = [
+        RelativeFactor(0, 1, _random_pose(rng), _cov(0.02, 0.1) + 0.001),
+        RelativeFactor(1, 2, _random_pose(rng), _cov(0.2, 0.5)),
+    ]
     packed = _Packed(3, absolute, relative)
     R0, c0 = _unpack(poses)
     J = packed.jacobian(R0, c0)
@@ -69,14 +74,16 @@ def test_fixes_and_odometry_fuse_better_than_either() -> None:
         relative.append(RelativeFactor(i, i + 1, noisy, rel_cov))
     fixes = []
     for k, p in enumerate(truth):
-        noisy = Pose.from_center(so3_exp(rng.normal(0, np.radians(1), (1, 3)))[0] @ p.R, p.center + rng.normal(0, 0.3, 3))
+        noisy = Pose.from_center(
+            so3_exp(rng.normal(0, np.radians(1), (1, 3)))[0] @ p.R, p.center + rng.normal(0, 0.3, 3)
+        )
         fixes.append(AbsoluteFactor(k, noisy, abs_cov))
     sol = solve_pose_graph([Pose.identity()] * 8, fixes, relative)
     fused = np.mean([pose_errors(a, b)[0] for a, b in zip(sol.poses, truth)])
     raw = np.mean([np.linalg.norm(f.pose.center - p.center) for f, p in zip(fixes, truth)])
     assert fused < 0.6 * raw
     std = np.sqrt(np.diagonal(sol.covariances[:, 3:, 3:], axis1=1, axis2=2))
-    assert np.all(std < 0.3) and np.all(std > 0.02)   # fused: better than one fix, worse than odometry alone
+    assert np.all(std < 0.3) and np.all(std > 0.02)  # fused: better than one fix, worse than odometry alone
     # exact data: the solution is exact
     exact_rel = [RelativeFactor(i, i + 1, truth[i + 1] @ truth[i].inverse(), rel_cov) for i in range(7)]
     sol = solve_pose_graph([Pose.identity()] * 8, [AbsoluteFactor(0, truth[0], abs_cov)], exact_rel)
@@ -90,15 +97,17 @@ def test_prediction_covariance_grows_with_each_motion() -> None:
     cov = marginal_covariances(truth, [AbsoluteFactor(0, truth[0], _cov(0.01, 0.1))], rel)
     pos_var = np.trace(cov[:, 3:, 3:], axis1=1, axis2=2)
     assert np.all(np.diff(pos_var) > 0)
-    assert np.isinf(marginal_covariances(truth, [], rel)).all()   # not anchored
+    assert np.isinf(marginal_covariances(truth, [], rel)).all()  # not anchored
 
 
 def test_marginalising_the_first_node_keeps_the_solution_of_the_chain() -> None:
     rng = np.random.default_rng(3)
     truth = _chain(rng, 5)
     rel = [RelativeFactor(i, i + 1, truth[i + 1] @ truth[i].inverse(), _cov(0.01, 0.05)) for i in range(4)]
-    fixes = [AbsoluteFactor(k, Pose.from_center(p.R, p.center + rng.normal(0, 0.2, 3)), _cov(0.02, 0.2))
-             for k, p in enumerate(truth)]
+    fixes = [
+        AbsoluteFactor(k, Pose.from_center(p.R, p.center + rng.normal(0, 0.2, 3)), _cov(0.02, 0.2))
+        for k, p in enumerate(truth)
+    ]
     full = solve_pose_graph(truth, fixes, rel)
     a, r = marginalize_first(full.poses, fixes, rel)
     reduced = solve_pose_graph(full.poses[1:], a, r)

@@ -18,8 +18,12 @@ poselib = pytest.importorskip("poselib")
 
 
 def _camera_dict(camera) -> dict:
-    return {"model": camera.model.value, "width": camera.width, "height": camera.height,
-            "params": list(camera.params)}
+    return {
+        "model": camera.model.value,
+        "width": camera.width,
+        "height": camera.height,
+        "params": list(camera.params),
+    }
 
 
 def _camera_pose(pose: Pose):
@@ -36,9 +40,14 @@ def poselib_world_from_query(sc) -> Pose:
         matches.append(m)
     cam = _camera_dict(sc.query_camera)
     pose, _ = poselib.estimate_generalized_relative_pose(
-        matches, [_camera_pose(Pose.identity())], [cam], [_camera_pose(p.ref_pose) for p in sc.pairs],
+        matches,
+        [_camera_pose(Pose.identity())],
+        [cam],
+        [_camera_pose(p.ref_pose) for p in sc.pairs],
         [_camera_dict(p.ref_camera) for p in sc.pairs],
-        {"min_iterations": 100, "max_iterations": 100, "max_epipolar_error": 2.0}, {})
+        {"min_iterations": 100, "max_iterations": 100, "max_epipolar_error": 2.0},
+        {},
+    )
     return Pose(pose.R, pose.t)
 
 
@@ -55,8 +64,9 @@ def test_poselib_returns_world_from_query(scene, seed: int) -> None:
 def test_agrees_with_poselib_on_noisy_scene(scene, method: str) -> None:
     """Both estimators on the same matches land within the noise of each other."""
     sc = scene(5, num_refs=5, matches_per_pair=100, noise_px=1.0, outlier_ratio=0.2)
-    ours = estimate_absolute_pose(sc.query_camera, sc.pairs, method,
-                                  RansacOptions(max_iterations=100, min_iterations=100))
+    ours = estimate_absolute_pose(
+        sc.query_camera, sc.pairs, method, RansacOptions(max_iterations=100, min_iterations=100)
+    )
     peer = poselib_world_from_query(sc).inverse()
     assert ours.success
     assert np.linalg.norm(ours.pose.center - peer.center) < 0.1

@@ -44,8 +44,9 @@ class LineEstimator:
         e2 = (self.y[None] - a[:, None] * self.x[None] - b[:, None]) ** 2
         return np.minimum(e2, self.th2).sum(axis=1), (e2 < self.th2).sum(axis=1)
 
-    def generate(self, rng: np.random.Generator, n: int,
-                 stats: RansacStatistics) -> tuple[np.ndarray, np.ndarray]:
+    def generate(
+        self, rng: np.random.Generator, n: int, stats: RansacStatistics
+    ) -> tuple[np.ndarray, np.ndarray]:
         self.generate_sizes.append(n)
         idx = np.array([rng.choice(self.num_data, 2, replace=False) for _ in range(n)])
         self.samples.append(idx)
@@ -62,7 +63,9 @@ class LineEstimator:
         return self._cost(R[:, 0], R[:, 1])
 
     def distinct(self, R: np.ndarray, t: np.ndarray, Rb: np.ndarray, tb: np.ndarray) -> np.ndarray:
-        return np.zeros(len(R), dtype=bool)  # one line model: local optimisation refines only each batch's best
+        return np.zeros(
+            len(R), dtype=bool
+        )  # one line model: local optimisation refines only each batch's best
 
     def refine(self, R: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         self.refine_inputs.append((R.copy(), float(self.score(R[None], t[None])[0][0])))
@@ -251,6 +254,7 @@ def test_termination_waits_for_enough_hypotheses_where_the_checks_refuse_most_sa
     """The adaptive bound counts samples; where the checks refuse most of them, the few
     hypotheses that survive can all be the wrong model with support. With the floor of
     MIN_HYPOTHESES every seed finds the true line; without it some stop on the twin."""
+
     def found_truth(seeds) -> list[bool]:
         out = []
         for seed in seeds:

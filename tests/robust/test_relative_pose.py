@@ -14,7 +14,9 @@ from planarloc.robust.relative_pose import estimate_relative_pose
 CAM = Camera("PINHOLE", 640, 480, (500.0, 500.0, 320.0, 240.0))
 
 
-def _matches(b_from_a: Pose, rng: np.random.Generator, n: int = 150, outliers: float = 0.3, noise: float = 0.5):
+def _matches(
+    b_from_a: Pose, rng: np.random.Generator, n: int = 150, outliers: float = 0.3, noise: float = 0.5
+):
     X = np.column_stack([rng.uniform(-4, 4, n), rng.uniform(-2, 2, n), rng.uniform(4, 12, n)])
     Xb = b_from_a.transform(X)
     pa = X[:, :2] / X[:, 2:] * 500 + [320, 240]
@@ -53,8 +55,9 @@ def test_failures_are_statuses_and_bad_input_is_an_error() -> None:
     rng = np.random.default_rng(2)
     est = estimate_relative_pose(CAM, CAM, rng.uniform(0, 400, (8, 2)), rng.uniform(0, 400, (8, 2)))
     assert not est.success and est.status == "too_few_matches" and est.pose is None
-    est = estimate_relative_pose(CAM, CAM, rng.uniform(0, 400, (80, 2)), rng.uniform(0, 400, (80, 2)),
-                                 model="planar")
+    est = estimate_relative_pose(
+        CAM, CAM, rng.uniform(0, 400, (80, 2)), rng.uniform(0, 400, (80, 2)), model="planar"
+    )
     assert not est.success and est.status == "too_few_inliers"
     with pytest.raises(InputError, match="model"):
         estimate_relative_pose(CAM, CAM, np.zeros((20, 2)), np.zeros((20, 2)), model="5pt")
@@ -77,7 +80,12 @@ def test_each_model_of_auto_gets_its_own_iteration_budget() -> None:
     planar = Pose.from_center(so3_exp([[0, 0.15, 0]])[0], [0.2, 0, 1.0])
     pa, pb = _matches(planar, rng, outliers=0.0, noise=0.1)
     est = estimate_relative_pose(CAM, CAM, pa, pb, model="auto", options=opts)
-    assert est.success and est.model == "planar" and est.stats.searches_skipped == 1 and est.stats.iterations == 300
+    assert (
+        est.success
+        and est.model == "planar"
+        and est.stats.searches_skipped == 1
+        and est.stats.iterations == 300
+    )
 
 
 def test_minimal_samples_are_distinct_and_uniform() -> None:

@@ -90,8 +90,10 @@ def test_partial_or_infinite_depth_rejected(small_scene) -> None:
         pair_like(p, ref_points3d=X)
 
 
-@pytest.mark.parametrize("R", [2.0 * np.eye(3), np.diag([1.0, 1.0, -1.0]), np.ones((3, 3)),
-                               np.eye(3) + 1e-3, np.full((3, 3), np.nan)])
+@pytest.mark.parametrize(
+    "R",
+    [2.0 * np.eye(3), np.diag([1.0, 1.0, -1.0]), np.ones((3, 3)), np.eye(3) + 1e-3, np.full((3, 3), np.nan)],
+)
 def test_non_rotation_pose_rejected(R: np.ndarray) -> None:
     with pytest.raises(ValueError):
         Pose(R, np.zeros(3))
@@ -152,20 +154,23 @@ def test_falsy_options_rejected(small_scene, options) -> None:
         estimate_absolute_pose(small_scene.query_camera, small_scene.pairs, "2p1p", options)
 
 
-@pytest.mark.parametrize("kwargs, field", [
-    (dict(min_iterations=200, max_iterations=100), "min_iterations"),
-    (dict(min_iterations=0), "min_iterations"),
-    (dict(threshold_px=-1.0), "threshold_px"),
-    (dict(threshold_px=0.0), "threshold_px"),
-    (dict(threshold_px=float("nan")), "threshold_px"),
-    (dict(rcheck_deg=-2.0), "rcheck_deg"),
-    (dict(consistency_deg=0.0), "consistency_deg"),
-    (dict(max_position_std_m=-0.1), "max_position_std_m"),
-    (dict(confidence=1.0), "confidence"),
-    (dict(confidence=0.0), "confidence"),
-    (dict(structure="points"), "structure"),
-    (dict(structure=None), "structure"),
-])
+@pytest.mark.parametrize(
+    "kwargs, field",
+    [
+        (dict(min_iterations=200, max_iterations=100), "min_iterations"),
+        (dict(min_iterations=0), "min_iterations"),
+        (dict(threshold_px=-1.0), "threshold_px"),
+        (dict(threshold_px=0.0), "threshold_px"),
+        (dict(threshold_px=float("nan")), "threshold_px"),
+        (dict(rcheck_deg=-2.0), "rcheck_deg"),
+        (dict(consistency_deg=0.0), "consistency_deg"),
+        (dict(max_position_std_m=-0.1), "max_position_std_m"),
+        (dict(confidence=1.0), "confidence"),
+        (dict(confidence=0.0), "confidence"),
+        (dict(structure="points"), "structure"),
+        (dict(structure=None), "structure"),
+    ],
+)
 def test_bad_options_rejected(kwargs: dict, field: str) -> None:
     with pytest.raises(ValueError, match=field):
         RansacOptions(**kwargs)
@@ -176,16 +181,21 @@ def _unvalidated(kwargs: dict, consequence: str):
     return pytest.param(kwargs, id=",".join(kwargs))
 
 
-@pytest.mark.parametrize("kwargs", [
-    _unvalidated(dict(max_iterations=2.5, min_iterations=1),
-                 "ransac.py then loops forever once 0 < max_iterations - iterations < 1 "
-                 "(batch of int(0.5) = 0)"),
-    _unvalidated(dict(seed=-1),
-                 "numpy raises 'expected non-negative integer' only inside estimate_absolute_pose"),
-    _unvalidated(dict(seed=1.5), "numpy raises TypeError (not ValueError) inside estimate_absolute_pose"),
-    _unvalidated(dict(threshold_px=float("inf")), "every match becomes an inlier, silently"),
-    _unvalidated(dict(min_inliers=-3), "the min_inliers check can never fail"),
-])
+@pytest.mark.parametrize(
+    "kwargs",
+    [
+        _unvalidated(
+            dict(max_iterations=2.5, min_iterations=1),
+            "ransac.py then loops forever once 0 < max_iterations - iterations < 1 (batch of int(0.5) = 0)",
+        ),
+        _unvalidated(
+            dict(seed=-1), "numpy raises 'expected non-negative integer' only inside estimate_absolute_pose"
+        ),
+        _unvalidated(dict(seed=1.5), "numpy raises TypeError (not ValueError) inside estimate_absolute_pose"),
+        _unvalidated(dict(threshold_px=float("inf")), "every match becomes an inlier, silently"),
+        _unvalidated(dict(min_inliers=-3), "the min_inliers check can never fail"),
+    ],
+)
 def test_invalid_options_rejected_at_construction(kwargs: dict) -> None:
     with pytest.raises(ValueError):
         RansacOptions(**kwargs)
@@ -198,15 +208,22 @@ def test_options_accept_enum_and_string_structure() -> None:
 
 # ---- too few matches: a status, not an exception --------------------------------------------
 def _truncated(sc, n: int) -> list[PairMatches]:
-    return [pair_like(p, query_points=p.query_points[:n], ref_points=p.ref_points[:n],
-                      query_indices=p.query_indices[:n]) for p in sc.pairs]
+    return [
+        pair_like(
+            p, query_points=p.query_points[:n], ref_points=p.ref_points[:n], query_indices=p.query_indices[:n]
+        )
+        for p in sc.pairs
+    ]
 
 
-@pytest.mark.parametrize("method, n", [("2p1p", 1), ("2p2p", 1), ("5p5p-nister", 4), ("5p5p-stewenius", 4),
-                                       ("8p8p", 7), ("2p1p", 0)])
+@pytest.mark.parametrize(
+    "method, n",
+    [("2p1p", 1), ("2p2p", 1), ("5p5p-nister", 4), ("5p5p-stewenius", 4), ("8p8p", 7), ("2p1p", 0)],
+)
 def test_too_few_matches_is_a_status(small_scene, no_work, method: str, n: int) -> None:
-    est = estimate_absolute_pose(small_scene.query_camera, _truncated(small_scene, n), method,
-                                 RansacOptions(structure="none"))  # the 2D-2D minimal samples
+    est = estimate_absolute_pose(
+        small_scene.query_camera, _truncated(small_scene, n), method, RansacOptions(structure="none")
+    )  # the 2D-2D minimal samples
     assert not est.success and est.pose is None
     assert est.status == "too_few_matches"
     assert [len(m) for m in est.inliers] == [n] * 3
@@ -216,8 +233,9 @@ def test_too_few_matches_in_one_pair_only(small_scene, no_work) -> None:
     """2p2p needs two matches in each of two pairs: one pair with 2 and the others with 1 is too few."""
     pairs = _truncated(small_scene, 1)
     p = small_scene.pairs[0]
-    pairs[0] = pair_like(p, query_points=p.query_points[:2], ref_points=p.ref_points[:2],
-                         query_indices=p.query_indices[:2])
+    pairs[0] = pair_like(
+        p, query_points=p.query_points[:2], ref_points=p.ref_points[:2], query_indices=p.query_indices[:2]
+    )
     est = estimate_absolute_pose(small_scene.query_camera, pairs, "2p2p", RansacOptions(structure="none"))
     assert est.status == "too_few_matches"
 
@@ -226,7 +244,8 @@ def test_other_camera_model_is_accepted(scene) -> None:
     """SIMPLE_PINHOLE with the same intrinsics describes the same camera."""
     sc = scene(0, num_refs=3, matches_per_pair=30, noise_px=0.0)
     cam = Camera("SIMPLE_PINHOLE", 1280, 1080, (800.0, 640.0, 540.0))
-    est = estimate_absolute_pose(cam, sc.pairs, "2p1p", RansacOptions(max_iterations=100, min_iterations=100,
-                                                                   structure="none"))
+    est = estimate_absolute_pose(
+        cam, sc.pairs, "2p1p", RansacOptions(max_iterations=100, min_iterations=100, structure="none")
+    )
     assert est.success
     assert np.linalg.norm(est.pose.center - sc.query_pose.center) < 1e-6

@@ -23,10 +23,15 @@ CASES = [(m, n) for n in (0.0, 1.0) for m in ALL_METHODS if (m, n) != ("8p8p", 0
 def test_collinear_without_structure_is_degenerate(scene, method: str, noise_px: float) -> None:
     for seed in SEEDS:
         sc = scene(seed, noise_px=noise_px, **COLLINEAR)
-        est = estimate_absolute_pose(sc.query_camera, sc.pairs, method,
-                                     RansacOptions(max_iterations=100, min_iterations=100, structure="none", seed=seed))
-        assert not est.success, f"seed {seed}: reported success, centre error " \
-                                f"{pose_errors(est.pose, sc.query_pose)[0]:.3f} m"
+        est = estimate_absolute_pose(
+            sc.query_camera,
+            sc.pairs,
+            method,
+            RansacOptions(max_iterations=100, min_iterations=100, structure="none", seed=seed),
+        )
+        assert not est.success, (
+            f"seed {seed}: reported success, centre error {pose_errors(est.pose, sc.query_pose)[0]:.3f} m"
+        )
         assert est.status == "degenerate_scale", est.message
         assert est.pose is None
         assert est.unreliable_pose is not None
@@ -38,8 +43,12 @@ def test_exact_collinear_8p8p_reports_degenerate_without_a_hypothesis(scene) -> 
     """Noise-free 8p8p: every relative pose is exact, every triangulation singular (eq. 15)."""
     for seed in SEEDS:
         sc = scene(seed, noise_px=0.0, **COLLINEAR)
-        est = estimate_absolute_pose(sc.query_camera, sc.pairs, "8p8p",
-                                     RansacOptions(max_iterations=100, min_iterations=100, structure="none", seed=seed))
+        est = estimate_absolute_pose(
+            sc.query_camera,
+            sc.pairs,
+            "8p8p",
+            RansacOptions(max_iterations=100, min_iterations=100, structure="none", seed=seed),
+        )
         assert not est.success and est.pose is None
         assert est.status == "degenerate_scale", est.message
         assert est.stats.rejected_degenerate > 0 and "tracks" in est.message
@@ -50,8 +59,12 @@ def test_collinear_never_succeeds_with_a_wrong_position(scene, method: str) -> N
     """The safety property, whatever the failure status: no success without structure."""
     for seed in SEEDS:
         sc = scene(seed, noise_px=0.0, **COLLINEAR)
-        est = estimate_absolute_pose(sc.query_camera, sc.pairs, method,
-                                     RansacOptions(max_iterations=100, min_iterations=100, structure="none", seed=seed))
+        est = estimate_absolute_pose(
+            sc.query_camera,
+            sc.pairs,
+            method,
+            RansacOptions(max_iterations=100, min_iterations=100, structure="none", seed=seed),
+        )
         assert not est.success and est.pose is None
         assert est.status in ("degenerate_scale", "no_consistent_hypothesis")
 
@@ -60,9 +73,12 @@ def test_collinear_never_succeeds_with_a_wrong_position(scene, method: str) -> N
 def test_collinear_with_tracks_is_solved(scene, method: str) -> None:
     for seed in SEEDS:
         sc = scene(seed, noise_px=1.0, **COLLINEAR)
-        est = estimate_absolute_pose(sc.query_camera, sc.pairs, method,
-                                     RansacOptions(max_iterations=100, min_iterations=100, structure="tracks",
-                                                   seed=seed))
+        est = estimate_absolute_pose(
+            sc.query_camera,
+            sc.pairs,
+            method,
+            RansacOptions(max_iterations=100, min_iterations=100, structure="tracks", seed=seed),
+        )
         assert est.success, f"seed {seed}: {est.status}: {est.message}"
         dc, dr = pose_errors(est.pose, sc.query_pose)
         assert dc < 0.1 and dr < 1.0
@@ -72,8 +88,12 @@ def test_collinear_with_tracks_is_solved(scene, method: str) -> None:
 @pytest.mark.parametrize("method", ["2p1p", "2p2p"])
 def test_collinear_with_reference_depth_is_solved(scene, method: str) -> None:
     sc = scene(0, noise_px=1.0, with_depth=True, **COLLINEAR)
-    est = estimate_absolute_pose(sc.query_camera, sc.pairs, method,
-                                 RansacOptions(max_iterations=100, min_iterations=100, structure="none"))
+    est = estimate_absolute_pose(
+        sc.query_camera,
+        sc.pairs,
+        method,
+        RansacOptions(max_iterations=100, min_iterations=100, structure="none"),
+    )
     assert est.success, est.message
     assert pose_errors(est.pose, sc.query_pose)[0] < 0.1
 
@@ -83,8 +103,12 @@ def test_spread_scene_is_not_flagged(scene) -> None:
     flagged = 0
     for seed in range(10):
         sc = scene(100 + seed, num_refs=5, matches_per_pair=100, noise_px=1.0, outlier_ratio=0.4)
-        est = estimate_absolute_pose(sc.query_camera, sc.pairs, "2p1p",
-                                     RansacOptions(max_iterations=100, min_iterations=100, structure="none", seed=seed))
+        est = estimate_absolute_pose(
+            sc.query_camera,
+            sc.pairs,
+            "2p1p",
+            RansacOptions(max_iterations=100, min_iterations=100, structure="none", seed=seed),
+        )
         flagged += est.status == "degenerate_scale"
         assert np.isfinite(est.position_std_m)
     assert flagged == 0

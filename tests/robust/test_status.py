@@ -56,19 +56,30 @@ def test_estimates_carry_members(scene) -> None:
     est = estimate_absolute_pose(sc.query_camera, sc.pairs, "2p2p", RansacOptions(seed=0))
     seen.append(est.status)
     assert est.success and est.status is Status.SUCCESS
-    one_each = [dataclasses.replace(p, query_points=p.query_points[:1], ref_points=p.ref_points[:1],
-                                    query_indices=p.query_indices[:1]) for p in sc.pairs]
+    one_each = [
+        dataclasses.replace(
+            p, query_points=p.query_points[:1], ref_points=p.ref_points[:1], query_indices=p.query_indices[:1]
+        )
+        for p in sc.pairs
+    ]
     few = estimate_absolute_pose(sc.query_camera, one_each, "2p2p", RansacOptions(structure="none", seed=0))
     seen.append(few.status)
     assert few.status is Status.TOO_FEW_MATCHES
     line = scene(0, noise_px=0.0, num_refs=5, matches_per_pair=100, collinear=True, track_pool=2)
-    flat = estimate_absolute_pose(line.query_camera, line.pairs, "2p1p",
-                                  RansacOptions(max_iterations=100, min_iterations=100, structure="none", seed=0))
+    flat = estimate_absolute_pose(
+        line.query_camera,
+        line.pairs,
+        "2p1p",
+        RansacOptions(max_iterations=100, min_iterations=100, structure="none", seed=0),
+    )
     seen.append(flat.status)
     assert flat.status is Status.DEGENERATE_SCALE
     assert all(type(s) is Status for s in seen)
     assert [json.loads(json.dumps(e.to_dict()))["status"] for e in (est, few, flat)] == [
-        "success", "too_few_matches", "degenerate_scale"]
+        "success",
+        "too_few_matches",
+        "degenerate_scale",
+    ]
 
 
 def _status_literals(path: Path) -> list[tuple[int, str]]:
@@ -77,19 +88,31 @@ def _status_literals(path: Path) -> list[tuple[int, str]]:
     skip = set()
     for node in ast.walk(tree):
         body = getattr(node, "body", None)
-        if isinstance(body, list) and body and isinstance(body[0], ast.Expr) \
-                and isinstance(body[0].value, ast.Constant):
+        if (
+            isinstance(body, list)
+            and body
+            and isinstance(body[0], ast.Expr)
+            and isinstance(body[0].value, ast.Constant)
+        ):
             skip.add(id(body[0].value))
         if isinstance(node, ast.Dict):
             skip.update(id(k) for k in node.keys if k is not None)
     values = set(VALUES.values())
-    return [(n.lineno, n.value) for n in ast.walk(tree)
-            if isinstance(n, ast.Constant) and n.value in values and id(n) not in skip]
+    return [
+        (n.lineno, n.value)
+        for n in ast.walk(tree)
+        if isinstance(n, ast.Constant) and n.value in values and id(n) not in skip
+    ]
 
 
 def test_no_module_of_robust_spells_a_status_as_a_string() -> None:
     root = Path(planarloc.robust.__file__).parent
-    found = {p.name: hits for p in sorted(root.glob("*.py")) if p.name != "status.py"
-             for hits in [_status_literals(p)] if hits}
+    found = {
+        p.name: hits
+        for p in sorted(root.glob("*.py"))
+        if p.name != "status.py"
+        for hits in [_status_literals(p)]
+        if hits
+    }
     assert found == {}
     assert _status_literals(root / "status.py")  # the check sees the values where they are defined

@@ -26,8 +26,16 @@ def test_mounted_pitch_in_a_rotated_world_is_exact(method: str) -> None:
     for seed in range(3):
         rng = np.random.default_rng(seed)
         W = _world(seed)
-        sc = make_scene(rng, num_refs=4, matches_per_pair=60, noise_px=0.0, mount_pitch_deg=10.0,
-                        mount_roll_deg=3.0, world_from_upright=W, with_gravity=True)
+        sc = make_scene(
+            rng,
+            num_refs=4,
+            matches_per_pair=60,
+            noise_px=0.0,
+            mount_pitch_deg=10.0,
+            mount_roll_deg=3.0,
+            world_from_upright=W,
+            with_gravity=True,
+        )
         est = estimate_absolute_pose(sc.query_camera, sc.pairs, method, RansacOptions(**PERFECT_MAP))
         assert est.success, est.message
         assert est.model == "planar"
@@ -39,25 +47,39 @@ def test_query_gravity_from_an_imu_is_used() -> None:
     # The query is tilted 3° more than the map: given its true gravity, 2p1p stays planar-exact.
     rng = np.random.default_rng(4)
     W = _world(4)
-    sc = make_scene(rng, num_refs=4, matches_per_pair=60, noise_px=0.0, mount_pitch_deg=8.0, query_tilt_deg=3.0,
-                    world_from_upright=W, with_gravity=True)
+    sc = make_scene(
+        rng,
+        num_refs=4,
+        matches_per_pair=60,
+        noise_px=0.0,
+        mount_pitch_deg=8.0,
+        query_tilt_deg=3.0,
+        world_from_upright=W,
+        with_gravity=True,
+    )
     g_q = sc.query_pose.R @ gravity_world(sc, W)
-    est = estimate_absolute_pose(sc.query_camera, sc.pairs, "2p1p", RansacOptions(**PERFECT_MAP), query_gravity=g_q)
+    est = estimate_absolute_pose(
+        sc.query_camera, sc.pairs, "2p1p", RansacOptions(**PERFECT_MAP), query_gravity=g_q
+    )
     assert est.success and est.model == "planar", est.message
     t_err, r_err = pose_errors(est.pose, sc.query_pose)
     assert t_err < 1e-6 and r_err < 1e-4  # degrees: arccos resolution near 0
 
 
-@pytest.mark.parametrize(("condition", "planar_failures"), [
-    # 3° of tilt is within reach of the planar search on some scenes: a pose within its
-    # uncertainty, or one of the two statuses that say why not.
-    (dict(query_tilt_deg=3.0), ("planar_model_violated", "degenerate_scale")),
-    # 0.5 m off the map's plane, or a 10° pitch without gravity: the planar model cannot hold.
-    (dict(query_height_m=0.5), ("planar_model_violated",)),
-    (dict(mount_pitch_deg=10.0), ("planar_model_violated",)),
-])
-def test_auto_falls_back_to_6dof_and_explicit_planar_is_never_confidently_wrong(condition: dict,
-                                                                                 planar_failures: tuple) -> None:
+@pytest.mark.parametrize(
+    ("condition", "planar_failures"),
+    [
+        # 3° of tilt is within reach of the planar search on some scenes: a pose within its
+        # uncertainty, or one of the two statuses that say why not.
+        (dict(query_tilt_deg=3.0), ("planar_model_violated", "degenerate_scale")),
+        # 0.5 m off the map's plane, or a 10° pitch without gravity: the planar model cannot hold.
+        (dict(query_height_m=0.5), ("planar_model_violated",)),
+        (dict(mount_pitch_deg=10.0), ("planar_model_violated",)),
+    ],
+)
+def test_auto_falls_back_to_6dof_and_explicit_planar_is_never_confidently_wrong(
+    condition: dict, planar_failures: tuple
+) -> None:
     # Tilted query, query below the map's plane, or a pitched mount without gravity: the
     # planar model does not hold. auto localizes every one; the paper's 2p1p either returns a
     # pose within its uncertainty or says that the planar model is violated.
@@ -73,7 +95,11 @@ def test_auto_falls_back_to_6dof_and_explicit_planar_is_never_confidently_wrong(
         planar = estimate_absolute_pose(sc.query_camera, sc.pairs, "2p1p", RansacOptions(**PERFECT_MAP))
         if planar.success:
             t_err, r_err = pose_errors(planar.pose, sc.query_pose)
-            assert t_err <= 3 * planar.position_std_m + 0.05 and r_err < 1.0, (seed, t_err, planar.position_std_m)
+            assert t_err <= 3 * planar.position_std_m + 0.05 and r_err < 1.0, (
+                seed,
+                t_err,
+                planar.position_std_m,
+            )
         else:
             assert planar.status in planar_failures, (seed, planar.status)
     assert auto_ok == 8
@@ -98,7 +124,11 @@ def test_a_reference_with_a_wrong_pose_is_caught() -> None:
         sc = make_scene(rng, num_refs=4, matches_per_pair=80, noise_px=0.5)
         bad = sc.pairs[1]
         moved = Pose(bad.ref_pose.R, bad.ref_pose.t + bad.ref_pose.R @ np.array([1.5, 0.0, 0.0]))
-        pairs = [sc.pairs[0], PairMatches(moved, bad.ref_camera, bad.query_points, bad.ref_points), *sc.pairs[2:]]
+        pairs = [
+            sc.pairs[0],
+            PairMatches(moved, bad.ref_camera, bad.query_points, bad.ref_points),
+            *sc.pairs[2:],
+        ]
         est = estimate_absolute_pose(sc.query_camera, pairs, "auto", RansacOptions(**PERFECT_MAP))
         if est.success:  # the bad reference dropped
             t_err, _ = pose_errors(est.pose, sc.query_pose)
@@ -111,8 +141,10 @@ def test_one_supporting_reference_is_not_a_pose() -> None:
     rng = np.random.default_rng(5)
     sc = make_scene(rng, num_refs=3, matches_per_pair=80, noise_px=0.5)
     # Only the first reference keeps its true matches; the others are pure noise.
-    pairs = [sc.pairs[0]] + [PairMatches(p.ref_pose, p.ref_camera, p.query_points,
-                                         rng.uniform(0, 1000, p.ref_points.shape)) for p in sc.pairs[1:]]
+    pairs = [sc.pairs[0]] + [
+        PairMatches(p.ref_pose, p.ref_camera, p.query_points, rng.uniform(0, 1000, p.ref_points.shape))
+        for p in sc.pairs[1:]
+    ]
     est = estimate_absolute_pose(sc.query_camera, pairs, "2p1p", RansacOptions(**PERFECT_MAP))
     assert not est.success and est.pose is None
     assert est.status == "single_reference", est.status
@@ -126,8 +158,13 @@ def test_bad_gravity_is_a_clear_error() -> None:
     with pytest.raises(InputError, match="query_gravity"):
         estimate_absolute_pose(sc.query_camera, sc.pairs, query_gravity=[np.nan, 1.0, 0.0])
     with pytest.raises(InputError, match="ref_gravity"):
-        PairMatches(sc.pairs[0].ref_pose, sc.query_camera, sc.pairs[0].query_points, sc.pairs[0].ref_points,
-                    ref_gravity=[0.0, 1.0])
+        PairMatches(
+            sc.pairs[0].ref_pose,
+            sc.query_camera,
+            sc.pairs[0].query_points,
+            sc.pairs[0].ref_points,
+            ref_gravity=[0.0, 1.0],
+        )
 
 
 @pytest.mark.parametrize("tilt_deg", [1.0, 3.0])
@@ -141,8 +178,9 @@ def test_returned_pose_never_costs_more_than_the_refined_truth(tilt_deg: float) 
     options = RansacOptions(**PERFECT_MAP)
     for seed in range(6):
         rng = np.random.default_rng(300 + seed)
-        sc = make_scene(rng, num_refs=5, matches_per_pair=100, noise_px=1.0, outlier_ratio=0.4,
-                        query_tilt_deg=tilt_deg)
+        sc = make_scene(
+            rng, num_refs=5, matches_per_pair=100, noise_px=1.0, outlier_ratio=0.4, query_tilt_deg=tilt_deg
+        )
         est = estimate_absolute_pose(sc.query_camera, sc.pairs, "auto", options)
         assert est.pose is not None or est.unreliable_pose is not None, est.status
         pose = est.pose if est.pose is not None else est.unreliable_pose
@@ -160,7 +198,9 @@ def _refined(centre, score, n=20):
     from planarloc.robust.verification import RefinedPose
 
     c = np.asarray(centre, dtype=float)
-    return RefinedPose(np.eye(3), -c, np.eye(3) * 1e-4, 1.0, score, score, np.ones(n, bool), np.zeros(0, bool))
+    return RefinedPose(
+        np.eye(3), -c, np.eye(3) * 1e-4, 1.0, score, score, np.ones(n, bool), np.zeros(0, bool)
+    )
 
 
 class _Scorer:
@@ -183,24 +223,44 @@ def test_rival_distance_margin_in_inliers() -> None:
         def refine(R, t, quick):
             calls.append(1)
             return _refined(centre, score)
+
         return refine
 
     # A runner-up refining 1 m away within the margin is a rival: its distance bounds the std.
-    d = _rival_distance(_Scorer(), ref, 60, [(*far, 100.0 + margin)], none, refine_to([1, 0, 0], 100 + margin), 0.2)
+    d = _rival_distance(
+        _Scorer(), ref, 60, [(*far, 100.0 + margin)], none, refine_to([1, 0, 0], 100 + margin), 0.2
+    )
     assert d == pytest.approx(1.0)
     # Beyond the margin after refinement, or back at the best pose: no rival.
-    assert _rival_distance(_Scorer(), ref, 60, [(*far, 100.0)], none, refine_to([1, 0, 0], 100 + 1.5 * margin),
-                           0.2) == 0.0
-    assert _rival_distance(_Scorer(), ref, 60, [(*far, 100.0)], none, refine_to([0.05, 0, 0], 100.0), 0.2) == 0.0
+    assert (
+        _rival_distance(
+            _Scorer(), ref, 60, [(*far, 100.0)], none, refine_to([1, 0, 0], 100 + 1.5 * margin), 0.2
+        )
+        == 0.0
+    )
+    assert (
+        _rival_distance(_Scorer(), ref, 60, [(*far, 100.0)], none, refine_to([0.05, 0, 0], 100.0), 0.2) == 0.0
+    )
     # Far in cost before refinement, or already near: never refined.
     calls.clear()
-    assert _rival_distance(_Scorer(), ref, 60, [(*far, 100.0 + 3 * margin)], none, refine_to([1, 0, 0], 100), 0.2) == 0
-    assert _rival_distance(_Scorer(), ref, 60, [(np.eye(3), np.zeros(3), 100.0)], none, refine_to([1, 0, 0], 100),
-                           0.2) == 0.0
+    assert (
+        _rival_distance(
+            _Scorer(), ref, 60, [(*far, 100.0 + 3 * margin)], none, refine_to([1, 0, 0], 100), 0.2
+        )
+        == 0
+    )
+    assert (
+        _rival_distance(
+            _Scorer(), ref, 60, [(np.eye(3), np.zeros(3), 100.0)], none, refine_to([1, 0, 0], 100), 0.2
+        )
+        == 0.0
+    )
     assert not calls
     # The raw pool is only examined for poses on few inliers.
     pool = (np.eye(3)[None].copy(), -np.array([[2.0, 0, 0]]))
-    assert _rival_distance(_Scorer(), ref, 10, [], pool, refine_to([2, 0, 0], 100.0), 0.2) == pytest.approx(2.0)
+    assert _rival_distance(_Scorer(), ref, 10, [], pool, refine_to([2, 0, 0], 100.0), 0.2) == pytest.approx(
+        2.0
+    )
     assert _rival_distance(_Scorer(), ref, 400, [], pool, refine_to([2, 0, 0], 100.0), 0.2) == 0.0
 
 
@@ -212,9 +272,17 @@ def test_few_inliers_far_runner_up_is_not_a_confident_success(case) -> None:
     seed, ri, trial = case
     ss = np.random.SeedSequence([seed, 1, ri, trial])
     rng, ransac_seed = np.random.default_rng(ss), int(ss.generate_state(1)[0])
-    sc = make_scene(rng, num_refs=3, matches_per_pair=20, noise_px=1.5, outlier_ratio=(0.0, 0.2, 0.4, 0.5, 0.6)[ri])
-    opts = RansacOptions(max_iterations=100, min_iterations=100, threshold_px=2.0, seed=ransac_seed, structure="none",
-                         cross_check=False)
+    sc = make_scene(
+        rng, num_refs=3, matches_per_pair=20, noise_px=1.5, outlier_ratio=(0.0, 0.2, 0.4, 0.5, 0.6)[ri]
+    )
+    opts = RansacOptions(
+        max_iterations=100,
+        min_iterations=100,
+        threshold_px=2.0,
+        seed=ransac_seed,
+        structure="none",
+        cross_check=False,
+    )
     est = estimate_absolute_pose(sc.query_camera, sc.pairs, "2p1p", opts)
     if est.success:
         err, _ = pose_errors(est.pose, sc.query_pose)

@@ -39,7 +39,9 @@ def problem_with_points(sc, rng: np.random.Generator, n3d: int = 4):
 
 
 def refine_to_convergence(pb, pose: Pose, idx2d: np.ndarray, idx3d: np.ndarray = NO3D) -> Pose:
-    R, t, *_ = refine_pose(pose.R, pose.t, pb.arrays, idx2d, idx3d, 2.0, 60, 0.5, pose.center, np.eye(3), FREE)
+    R, t, *_ = refine_pose(
+        pose.R, pose.t, pb.arrays, idx2d, idx3d, 2.0, 60, 0.5, pose.center, np.eye(3), FREE
+    )
     return Pose(R, t)
 
 
@@ -63,7 +65,9 @@ def test_jacobian_matches_finite_differences(scene) -> None:
         plus, minus = np.empty(m), np.empty(m)
         residuals(step, R, c, B, pb.arrays, idx2d, idx3d, plus)
         residuals(-step, R, c, B, pb.arrays, idx2d, idx3d, minus)
-        np.testing.assert_allclose(J[:, k], (plus - minus) / (2 * h), rtol=1e-4, atol=1e-4 * np.abs(J[:, k]).max())
+        np.testing.assert_allclose(
+            J[:, k], (plus - minus) / (2 * h), rtol=1e-4, atol=1e-4 * np.abs(J[:, k]).max()
+        )
     for k in range(3):  # a rotation increment of each 2D-2D row's own reference, centre fixed
         fd = np.empty(len(idx2d))
         for p in range(pb.num_pairs):
@@ -80,8 +84,8 @@ def test_jacobian_matches_finite_differences(scene) -> None:
                 residuals(np.zeros(6), R, c, B, pb.arrays._replace(ref_R=Rp, ref_t=tp), idx2d, idx3d, e)
                 out.append(e[rows])
             fd[rows] = (out[0] - out[1]) / (2 * h)
-        np.testing.assert_allclose(Jrot[:len(idx2d), k], fd, rtol=1e-4, atol=1e-4 * np.abs(fd).max())
-    assert np.all(Jrot[len(idx2d):] == 0.0)  # world points do not move with a reference
+        np.testing.assert_allclose(Jrot[: len(idx2d), k], fd, rtol=1e-4, atol=1e-4 * np.abs(fd).max())
+    assert np.all(Jrot[len(idx2d) :] == 0.0)  # world points do not move with a reference
 
 
 def test_map_propagation_predicts_the_refined_shift(scene) -> None:
@@ -89,7 +93,9 @@ def test_map_propagation_predicts_the_refined_shift(scene) -> None:
     sc = scene(12, num_refs=3, matches_per_pair=40, noise_px=0.0, outlier_ratio=0.0)
     pb = build_problem(sc.query_camera, sc.pairs)
     idx2d = np.arange(len(pb.xq))
-    H, M, _ = map_uncertainty_covariance(sc.query_pose.R, sc.query_pose.t, pb.arrays, idx2d, NO3D, 2.0, 1.0, 1.0)
+    H, M, _ = map_uncertainty_covariance(
+        sc.query_pose.R, sc.query_pose.t, pb.arrays, idx2d, NO3D, 2.0, 1.0, 1.0
+    )
     # The refined query cancels the residual change: J δq + J_r δr = 0, so δq = -H⁻¹ M δr
     # (noise-free data: W = I). The covariance B diag(var) Bᵀ does not see the sign.
     Bm = -np.linalg.solve(H, M)
@@ -108,13 +114,24 @@ def test_map_propagation_predicts_the_refined_shift(scene) -> None:
             tp[p] = -pb.ref_R[p] @ (c_ref + dc)
         moved = refine_to_convergence(replace(pb, ref_R=Rp, ref_t=tp), sc.query_pose, idx2d)
         shift = (moved.center - sc.query_pose.center) / h
-        np.testing.assert_allclose(shift, Bm[3:, 6 * p + k], rtol=2e-3, atol=2e-3 * np.abs(Bm[3:, 6 * p + k]).max())
+        np.testing.assert_allclose(
+            shift, Bm[3:, 6 * p + k], rtol=2e-3, atol=2e-3 * np.abs(Bm[3:, 6 * p + k]).max()
+        )
 
 
 def test_map_centre_covariance_matches_numpy(scene) -> None:
     sc = scene(12, num_refs=3, matches_per_pair=40, noise_px=0.0, outlier_ratio=0.0)
     pb = build_problem(sc.query_camera, sc.pairs)
-    args = (sc.query_pose.R, sc.query_pose.t, pb.arrays, np.arange(len(pb.xq)), NO3D, 2.0, np.radians(0.1), 0.05)
+    args = (
+        sc.query_pose.R,
+        sc.query_pose.t,
+        pb.arrays,
+        np.arange(len(pb.xq)),
+        NO3D,
+        2.0,
+        np.radians(0.1),
+        0.05,
+    )
     H, M, var = map_uncertainty_covariance(*args)
     Bm = np.linalg.solve(H, M)
     np.testing.assert_allclose(map_centre_covariance(H, M, var), ((Bm * var) @ Bm.T)[3:, 3:], rtol=1e-9)
@@ -130,7 +147,7 @@ def test_jackknife_matches_explicit_leave_one_out(scene) -> None:
     centres, rots = [], []
     for k in range(pb.num_pairs):
         keep = in2d.copy()
-        keep[pb.offsets[k]:pb.offsets[k + 1]] = False
+        keep[pb.offsets[k] : pb.offsets[k + 1]] = False
         loo = refine_to_convergence(pb, full, np.flatnonzero(keep))
         centres.append(loo.center)
         rots.append(np.degrees(Rotation.from_matrix(loo.R @ full.R.T).magnitude()))
@@ -145,19 +162,21 @@ def test_jackknife_matches_explicit_leave_one_out(scene) -> None:
     assert jk.max_rotation_deg == pytest.approx(max(rots), rel=1e-3, abs=1e-6)
     assert jk.worst_reference == int(np.argmax(shifts))
     # Two steps (the default) already land within a few percent of the converged spread.
-    assert obs.reference_jackknife(est, full.R, full.t, in2d, in3d).position_std_m == pytest.approx(std, rel=0.1)
+    assert obs.reference_jackknife(est, full.R, full.t, in2d, in3d).position_std_m == pytest.approx(
+        std, rel=0.1
+    )
 
 
 def test_pose_support_numbers(scene) -> None:
     sc = scene(14, num_refs=4, matches_per_pair=30, noise_px=1.0, outlier_ratio=0.3)
     pb = build_problem(sc.query_camera, sc.pairs)
     in2d = ~np.concatenate(sc.is_outlier)
-    in2d[pb.offsets[2]:pb.offsets[2] + 27] = False  # pair 2 keeps at most 3 inliers: not supporting
+    in2d[pb.offsets[2] : pb.offsets[2] + 27] = False  # pair 2 keeps at most 3 inliers: not supporting
     g_world = np.array([0.0, 1.0, 0.0])
     g_query = np.array([0.0, np.cos(0.03), np.sin(0.03)])
     R, t, c = sc.query_pose.R, sc.query_pose.t, sc.query_pose.center
     s = obs.pose_support(pb, R, t, in2d, g_world, g_query)
-    counts = np.array([in2d[pb.offsets[p]:pb.offsets[p + 1]].sum() for p in range(pb.num_pairs)])
+    counts = np.array([in2d[pb.offsets[p] : pb.offsets[p + 1]].sum() for p in range(pb.num_pairs)])
     np.testing.assert_array_equal(s.pair_inliers, counts)
     np.testing.assert_array_equal(s.supporting, np.flatnonzero(counts >= obs.MIN_PAIR_INLIERS))
     centres = obs.reference_centres(pb)
@@ -170,11 +189,16 @@ def test_pose_support_numbers(scene) -> None:
     b = c - centres[s.supporting]
     h = b @ g_world
     horizontal = np.sqrt((b * b).sum(axis=1) - h * h)
-    assert s.fit.elevation_deg == pytest.approx(np.degrees(np.arctan2(abs(np.median(h)), np.median(horizontal))))
+    assert s.fit.elevation_deg == pytest.approx(
+        np.degrees(np.arctan2(abs(np.median(h)), np.median(horizontal)))
+    )
     # Reference centres on the line through the query: collinearity 0.
     line = Pose.from_center(np.eye(3), c + np.array([1.0, 0.0, 0.0]))
-    pb_line = replace(pb, ref_R=np.array([np.eye(3)] * pb.num_pairs),
-                      ref_t=np.array([-(c + (k + 1) * (line.center - c)) for k in range(pb.num_pairs)]))
+    pb_line = replace(
+        pb,
+        ref_R=np.array([np.eye(3)] * pb.num_pairs),
+        ref_t=np.array([-(c + (k + 1) * (line.center - c)) for k in range(pb.num_pairs)]),
+    )
     assert obs.pose_support(pb_line, R, t, ~np.zeros(len(in2d), bool), g_world, g_world).collinearity < 1e-7
 
 
@@ -182,18 +206,26 @@ def test_refine_until_stable_returns_consistent_inliers_and_score(scene) -> None
     sc = scene(15, num_refs=3, matches_per_pair=40, noise_px=1.0, outlier_ratio=0.5)
     pb = build_problem(sc.query_camera, sc.pairs)
     rng = np.random.default_rng(5)
-    start = Pose.from_center(Rotation.from_rotvec(rng.normal(0, 0.003, 3)).as_matrix() @ sc.query_pose.R,
-                             sc.query_pose.center + rng.normal(0, 0.03, 3))
+    start = Pose.from_center(
+        Rotation.from_rotvec(rng.normal(0, 0.003, 3)).as_matrix() @ sc.query_pose.R,
+        sc.query_pose.center + rng.normal(0, 0.03, 3),
+    )
     th2 = 4.0
     R, t, H, sigma, cost, in2d, in3d, score, _ = refine_until_stable(
-        start.R, start.t, pb.arrays, th2, 2.0, 6, 4, SIGMA_FLOOR_PX)
-    e2d, _ = errors_sq(R, t, pb.xq, pb.xr, pb.offsets, pb.f_query, pb.f_ref, pb.ref_R, pb.ref_t, pb.xq3d, pb.X3d)
+        start.R, start.t, pb.arrays, th2, 2.0, 6, 4, SIGMA_FLOOR_PX
+    )
+    e2d, _ = errors_sq(
+        R, t, pb.xq, pb.xr, pb.offsets, pb.f_query, pb.f_ref, pb.ref_R, pb.ref_t, pb.xq3d, pb.X3d
+    )
     np.testing.assert_array_equal(in2d, e2d < th2)
     assert score == pytest.approx(np.minimum(e2d, th2).sum(), rel=1e-12)
-    e_start, _ = errors_sq(start.R, start.t, pb.xq, pb.xr, pb.offsets, pb.f_query, pb.f_ref, pb.ref_R, pb.ref_t,
-                           pb.xq3d, pb.X3d)
+    e_start, _ = errors_sq(
+        start.R, start.t, pb.xq, pb.xr, pb.offsets, pb.f_query, pb.f_ref, pb.ref_R, pb.ref_t, pb.xq3d, pb.X3d
+    )
     assert score < np.minimum(e_start, th2).sum()
-    assert np.linalg.norm(-R.T @ t - sc.query_pose.center) < np.linalg.norm(start.center - sc.query_pose.center)
+    assert np.linalg.norm(-R.T @ t - sc.query_pose.center) < np.linalg.norm(
+        start.center - sc.query_pose.center
+    )
     assert sigma >= SIGMA_FLOOR_PX and np.all(np.linalg.eigvalsh(H) > 0) and np.isfinite(cost)
 
 
@@ -207,4 +239,6 @@ def test_sym_eigvals_match_numpy(seed: int) -> None:
         A = Q @ np.diag([2.0, 2.0, -1.0]) @ Q.T
     if seed == 5:
         A = np.eye(3) * 3.0
-    np.testing.assert_allclose(sorted(sym_eigvals(A)), np.linalg.eigvalsh(A), atol=1e-9 * max(1.0, np.abs(A).max()))
+    np.testing.assert_allclose(
+        sorted(sym_eigvals(A)), np.linalg.eigvalsh(A), atol=1e-9 * max(1.0, np.abs(A).max())
+    )

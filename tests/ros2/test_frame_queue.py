@@ -30,13 +30,13 @@ def test_a_restart_applies_to_the_next_frame_and_survives_its_drop() -> None:
     q.push("before", 0.0)
     q.restart()
     q.push("after", 0.1)
-    q.push("later", 0.2)               # drops "before": the restart stays on "after"
-    q.push("latest", 0.3)              # drops "after": the restart moves to "later"
+    q.push("later", 0.2)  # drops "before": the restart stays on "after"
+    q.push("latest", 0.3)  # drops "after": the restart moves to "later"
     assert [q.pop() for _ in range(2)] == [("later", 0.2, True), ("latest", 0.3, False)]
     q = FrameQueue(1)
     q.restart()
     q.push("x", 0.0)
-    q.push("y", 0.1)                   # the only frame carrying the restart is dropped
+    q.push("y", 0.1)  # the only frame carrying the restart is dropped
     assert q.pop() == ("y", 0.1, True)
 
 

@@ -37,13 +37,25 @@ def _frames(tiny_world: Path, odometry: bool) -> tuple[list[ReplayFrame], list[P
     queries = read_dataset(tiny_world / "query", "tum")
     stream = make_stream(queries, stream_order(len(queries)), np.random.default_rng(0))
     cam_from_base = BASE_FROM_CAMERA.inverse()
-    frames = [ReplayFrame(f.image.path, f.image.camera, f.stamp,
-                          (f.odometry.inverse() @ cam_from_base) if odometry else None) for f in stream]
+    frames = [
+        ReplayFrame(
+            f.image.path,
+            f.image.camera,
+            f.stamp,
+            (f.odometry.inverse() @ cam_from_base) if odometry else None,
+        )
+        for f in stream
+    ]
     return frames, [f.image.cam_from_world for f in stream]
 
 
-def _check_poses(result, truths: list[Pose], frames: list[ReplayFrame], child_from_camera: Pose,
-                 map_from_world: Pose = MAP_FROM_WORLD) -> int:
+def _check_poses(
+    result,
+    truths: list[Pose],
+    frames: list[ReplayFrame],
+    child_from_camera: Pose,
+    map_from_world: Pose = MAP_FROM_WORLD,
+) -> int:
     """Every published pose is within 0.25 m / 10° of the truth taken into the map frame (never
     beyond 1 m, and within 3σ + 5 cm of its covariance); returns how many."""
     good = 0
@@ -56,7 +68,7 @@ def _check_poses(result, truths: list[Pose], frames: list[ReplayFrame], child_fr
         map_from_child, cov, frame_id = result.poses[key]
         assert frame_id == "map"
         assert cov.shape == (6, 6) and np.allclose(cov, cov.T) and np.all(np.linalg.eigvalsh(cov) > 0)
-        truth = map_from_world @ cam_from_world.inverse() @ child_from_camera.inverse()   # map_from_child
+        truth = map_from_world @ cam_from_world.inverse() @ child_from_camera.inverse()  # map_from_child
         t_err, r_err = pose_errors(map_from_child.inverse(), truth.inverse())
         assert t_err < 1.0
         # the position block is the camera's (or base's) position in the map: the error is within it
@@ -65,7 +77,9 @@ def _check_poses(result, truths: list[Pose], frames: list[ReplayFrame], child_fr
     return good
 
 
-def _gravity_tilts_deg(result, truths: list[Pose], frames: list[ReplayFrame], child_from_camera: Pose) -> list:
+def _gravity_tilts_deg(
+    result, truths: list[Pose], frames: list[ReplayFrame], child_from_camera: Pose
+) -> list:
     """Per published pose: the angle between -z of the published frame and the world's gravity carried
     through the pose (the truth's gravity in the child frame, rotated by the published map_from_child)."""
     tilts = []
@@ -78,10 +92,20 @@ def _gravity_tilts_deg(result, truths: list[Pose], frames: list[ReplayFrame], ch
 
 
 def test_node_localizes_a_replayed_stream_with_odometry_and_publishes_map_to_odom(
-        tiny_world: Path, world_map: Path, start_node) -> None:
+    tiny_world: Path, world_map: Path, start_node
+) -> None:
     """Defaults: a z-up map, map -> odom stamped transform_tolerance_s = 1 s ahead (as AMCL)."""
-    node = start_node("--map", world_map, "--ros-args", "-p", "odom_topic:=/odom", "-p", "base_frame:=base_link",
-                      "-p", "fixes:=wait")  # a sparse stream: each frame needs its fix
+    node = start_node(
+        "--map",
+        world_map,
+        "--ros-args",
+        "-p",
+        "odom_topic:=/odom",
+        "-p",
+        "base_frame:=base_link",
+        "-p",
+        "fixes:=wait",
+    )  # a sparse stream: each frame needs its fix
     frames, truths = _frames(tiny_world, odometry=True)
     result = replay(frames, base_from_camera=BASE_FROM_CAMERA, wait_s=WAIT_S)
     good = _check_poses(result, truths, frames, BASE_FROM_CAMERA)
@@ -89,13 +113,13 @@ def test_node_localizes_a_replayed_stream_with_odometry_and_publishes_map_to_odo
     # z-up: the world's gravity is -z of the published frame (a base_link is z-up itself: its z is up too)
     tilts = _gravity_tilts_deg(result, truths, frames, BASE_FROM_CAMERA)
     assert len(tilts) == len(result.poses) and max(tilts) < 1.0, tilts
-    assert all(p.R[2, 2] > np.cos(np.radians(1.0)) for p, _, _ in result.poses.values())   # base z is map z
+    assert all(p.R[2, 2] > np.cos(np.radians(1.0)) for p, _, _ in result.poses.values())  # base z is map z
     # AMCL's contract: map_from_odom · odom_from_base(t) is the base's pose in the map at t, stamped t + 1 s
     assert result.map_from_odom, "no map -> odom transform on /tf"
     assert len(result.map_from_odom) == len(result.poses)
     for frame, cam_from_world in zip(frames, truths):
         key = round(frame.stamp, 9)
-        assert key not in result.map_from_odom   # never stamped with the image's own stamp
+        assert key not in result.map_from_odom  # never stamped with the image's own stamp
         if key in result.poses:
             map_from_odom, parent, child = result.map_from_odom[round(frame.stamp + 1.0, 9)]
             assert (parent, child) == ("map", "odom")
@@ -110,28 +134,47 @@ def test_node_localizes_a_replayed_stream_with_odometry_and_publishes_map_to_odo
     assert "Traceback" not in err and f"stopped after {len(frames)} frames" in err
 
 
-def test_bad_frames_and_no_camera_info_never_stop_the_node(tiny_world: Path, world_map: Path, start_node) -> None:
+def test_bad_frames_and_no_camera_info_never_stop_the_node(
+    tiny_world: Path, world_map: Path, start_node
+) -> None:
     """Compressed images without CameraInfo (the map's only camera, a warning once) and without
     odometry, the packaged params.yaml; a black, an empty and a damaged frame in the stream are
     failed diagnostics with their reason, and good poses follow them."""
-    node = start_node("--map", world_map, "--ros-args", "--params-file", SHARE_DIR / "params.yaml",
-                      "-p", "image_topic:=/cam/image/compressed", "-p", "camera_info_topic:=/cam/camera_info",
-                      "-p", "odom_topic:=''", "-p", "fixes:=wait")
+    node = start_node(
+        "--map",
+        world_map,
+        "--ros-args",
+        "--params-file",
+        SHARE_DIR / "params.yaml",
+        "-p",
+        "image_topic:=/cam/image/compressed",
+        "-p",
+        "camera_info_topic:=/cam/camera_info",
+        "-p",
+        "odom_topic:=''",
+        "-p",
+        "fixes:=wait",
+    )
     frames, truths = _frames(tiny_world, odometry=False)
     frames = [replace(f, camera=None) for f in frames]
     at = frames[2].stamp
-    bad = {round(at + 0.02, 9): (np.zeros((240, 320), np.uint8), "uniform image"),
-           round(at + 0.04, 9): (b"", "0 bytes"),
-           round(at + 0.06, 9): (b"\x89PNG\r\n\x1a\n" + bytes(range(64)), "PNG")}
+    bad = {
+        round(at + 0.02, 9): (np.zeros((240, 320), np.uint8), "uniform image"),
+        round(at + 0.04, 9): (b"", "0 bytes"),
+        round(at + 0.06, 9): (b"\x89PNG\r\n\x1a\n" + bytes(range(64)), "PNG"),
+    }
     stream = frames[:3] + [ReplayFrame(image, None, stamp) for stamp, (image, _) in bad.items()] + frames[3:]
-    result = replay(stream, image_topic="/cam/image/compressed", camera_info_topic="/cam/camera_info",
-                    wait_s=WAIT_S)
+    result = replay(
+        stream, image_topic="/cam/image/compressed", camera_info_topic="/cam/camera_info", wait_s=WAIT_S
+    )
     for stamp, (_, reason) in bad.items():
         diag = result.diagnostics[stamp]
         assert diag["status"] == "failed" and diag["published"] == "false" and stamp not in result.poses
         assert diag["reason"].startswith("bad frame: ") and reason in diag["reason"], diag
         record = check("record", diag["record"], f"diagnostic record of the bad frame at {stamp}")
-        assert record["kind"] == "frame" and record["status"] == "error" and record["message"] == diag["reason"]
+        assert (
+            record["kind"] == "frame" and record["status"] == "error" and record["message"] == diag["reason"]
+        )
     for f in frames:  # every diagnostic carries the frame's record (one schema for every front door)
         record = check("record", result.diagnostics[round(f.stamp, 9)]["record"], f"record at {f.stamp}")
         assert record["status"] == result.diagnostics[round(f.stamp, 9)]["status"]
@@ -146,45 +189,70 @@ def test_bad_frames_and_no_camera_info_never_stop_the_node(tiny_world: Path, wor
     assert node.interrupt() == 0
     err = "".join(node.stderr)
     assert "Traceback" not in err and "3 failed" in err
-    warnings = [line for line in err.splitlines() if "no CameraInfo on /cam/camera_info: using the map's only camera" in line]
+    warnings = [
+        line
+        for line in err.splitlines()
+        if "no CameraInfo on /cam/camera_info: using the map's only camera" in line
+    ]
     assert len(warnings) == 1 and "WARN" in warnings[0], err
 
 
-def test_initial_pose_and_time_going_back_restart_the_stream(tiny_world: Path, world_map: Path, start_node) -> None:
+def test_initial_pose_and_time_going_back_restart_the_stream(
+    tiny_world: Path, world_map: Path, start_node
+) -> None:
     """Also the old frame (map_frame_convention:=world) and no TF (tf_broadcast:=false)."""
-    node = start_node("--map", world_map, "--ros-args", "-p", "tf_broadcast:=false",
-                      "-p", "map_frame_convention:=world")
+    node = start_node(
+        "--map", world_map, "--ros-args", "-p", "tf_broadcast:=false", "-p", "map_frame_convention:=world"
+    )
     assert "in map: the map's world" in "".join(node.stderr)
     frames, truths = _frames(tiny_world, odometry=True)
     first = replay(frames[:3], base_from_camera=BASE_FROM_CAMERA, wait_s=WAIT_S, initialpose_before=2)
     assert first.diagnostics[round(frames[2].stamp, 9)]["note"] == "restarted by the initial pose"
-    assert first.diagnostics[round(frames[2].stamp, 9)]["motion_source"] == "none"   # a new stream
-    again = replay(frames[:2], base_from_camera=BASE_FROM_CAMERA, wait_s=WAIT_S)     # a bag played again
+    assert first.diagnostics[round(frames[2].stamp, 9)]["motion_source"] == "none"  # a new stream
+    again = replay(frames[:2], base_from_camera=BASE_FROM_CAMERA, wait_s=WAIT_S)  # a bag played again
     assert again.diagnostics[round(frames[0].stamp, 9)]["note"].startswith("time went back")
     assert _check_poses(again, truths[:2], frames[:2], BASE_FROM_CAMERA, map_from_world=Pose.identity()) >= 1
-    assert first.poses and not first.map_from_odom and not again.map_from_odom   # poses, with odometry, no TF
+    assert first.poses and not first.map_from_odom and not again.map_from_odom  # poses, with odometry, no TF
     assert node.interrupt() == 0
 
 
-@pytest.mark.parametrize("args, message", [
-    (["--ros-args", "-p", "nosuch:=1"], "unknown parameter 'nosuch'"),
-    (["--ros-args", "-p", "method:=bogus"], "parameter method: expected one of auto"),
-    (["--ros-args", "-p", "top_n:=abc"], "parameter top_n: expected an integer"),
-    (["--ros-args", "-p", "image_qos:=fast"], "parameter image_qos"),
-    (["--ros-args", "-p", "base_to_camera:=1 2 3"], "parameter base_to_camera"),
-])
-def test_bad_parameters_are_one_line_errors(world_map: Path, ros_domain: int, args: list, message: str) -> None:
-    proc = subprocess.run([*planarloc_command(), "ros2", "--map", str(world_map), *args], capture_output=True,
-                          text=True, timeout=300, env={**os.environ, **loopback_env(ros_domain)})
+@pytest.mark.parametrize(
+    "args, message",
+    [
+        (["--ros-args", "-p", "nosuch:=1"], "unknown parameter 'nosuch'"),
+        (["--ros-args", "-p", "method:=bogus"], "parameter method: expected one of auto"),
+        (["--ros-args", "-p", "top_n:=abc"], "parameter top_n: expected an integer"),
+        (["--ros-args", "-p", "image_qos:=fast"], "parameter image_qos"),
+        (["--ros-args", "-p", "base_to_camera:=1 2 3"], "parameter base_to_camera"),
+    ],
+)
+def test_bad_parameters_are_one_line_errors(
+    world_map: Path, ros_domain: int, args: list, message: str
+) -> None:
+    proc = subprocess.run(
+        [*planarloc_command(), "ros2", "--map", str(world_map), *args],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        env={**os.environ, **loopback_env(ros_domain)},
+    )
     assert proc.returncode == 1
     lines = proc.stderr.strip().splitlines()
     assert len(lines) == 1 and message in lines[0], proc.stderr
 
 
 def test_a_missing_map_is_a_one_line_error(tmp_path: Path, ros_domain: int) -> None:
-    proc = subprocess.run([*planarloc_command(), "ros2", "--map", str(tmp_path / "none.db")], capture_output=True,
-                          text=True, timeout=300, env={**os.environ, **loopback_env(ros_domain)})
-    assert proc.returncode == 1 and proc.stderr.strip() == f"planarloc ros2: error: {tmp_path / 'none.db'}: no such map file"
+    proc = subprocess.run(
+        [*planarloc_command(), "ros2", "--map", str(tmp_path / "none.db")],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        env={**os.environ, **loopback_env(ros_domain)},
+    )
+    assert (
+        proc.returncode == 1
+        and proc.stderr.strip() == f"planarloc ros2: error: {tmp_path / 'none.db'}: no such map file"
+    )
 
 
 def test_sigint_before_any_frame_exits_cleanly(world_map: Path, start_node) -> None:
@@ -194,10 +262,17 @@ def test_sigint_before_any_frame_exits_cleanly(world_map: Path, start_node) -> N
     assert "Traceback" not in err and "stopped after 0 frames" in err
 
 
-def test_tf2_msgs_that_cannot_be_built_is_a_one_line_error(world_map: Path, tmp_path: Path, ros_domain: int) -> None:
+def test_tf2_msgs_that_cannot_be_built_is_a_one_line_error(
+    world_map: Path, tmp_path: Path, ros_domain: int
+) -> None:
     env = {**os.environ, **loopback_env(ros_domain), "PLANARLOC_CACHE": str(tmp_path), "CC": "no-such-cc"}
-    proc = subprocess.run([*planarloc_command(), "ros2", "--map", str(world_map)], capture_output=True, text=True,
-                          timeout=300, env=env)
+    proc = subprocess.run(
+        [*planarloc_command(), "ros2", "--map", str(world_map)],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        env=env,
+    )
     lines = proc.stderr.strip().splitlines()
     assert proc.returncode == 1 and len(lines) == 1, proc.stderr
     assert "tf2_msgs" in lines[0] and "no C/C++ compiler (CC=no-such-cc)" in lines[0]

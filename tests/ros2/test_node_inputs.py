@@ -18,8 +18,14 @@ OTHER = Camera("PINHOLE", 640, 480, (500, 500, 320, 240))
 
 
 def _image(pixels: np.ndarray) -> SimpleNamespace:
-    return SimpleNamespace(height=pixels.shape[0], width=pixels.shape[1], encoding="mono8", step=pixels.shape[1],
-                           is_bigendian=0, data=pixels.tobytes())
+    return SimpleNamespace(
+        height=pixels.shape[0],
+        width=pixels.shape[1],
+        encoding="mono8",
+        step=pixels.shape[1],
+        is_bigendian=0,
+        data=pixels.tobytes(),
+    )
 
 
 def _compressed(data: bytes) -> SimpleNamespace:
@@ -33,14 +39,21 @@ def test_good_frames_give_their_pixels() -> None:
     assert np.array_equal(frame_pixels(_compressed(png), compressed=True), pixels)
 
 
-@pytest.mark.parametrize("msg, compressed, message", [
-    (_image(np.zeros((24, 32), np.uint8)), False, "uniform image .every pixel 0."),
-    (_compressed(cv2.imencode(".png", np.zeros((24, 32), np.uint8))[1].tobytes()), True, "uniform image"),
-    (_compressed(b""), True, "0 bytes"),
-    (_compressed(b"\x89PNG\r\n\x1a\n" + b"\x00" * 40), True, "PNG"),
-    (_compressed(b"not an image at all"), True, "CompressedImage"),
-    (SimpleNamespace(height=24, width=32, encoding="mono8", step=32, is_bigendian=0, data=b""), False, "bytes"),
-])
+@pytest.mark.parametrize(
+    "msg, compressed, message",
+    [
+        (_image(np.zeros((24, 32), np.uint8)), False, "uniform image .every pixel 0."),
+        (_compressed(cv2.imencode(".png", np.zeros((24, 32), np.uint8))[1].tobytes()), True, "uniform image"),
+        (_compressed(b""), True, "0 bytes"),
+        (_compressed(b"\x89PNG\r\n\x1a\n" + b"\x00" * 40), True, "PNG"),
+        (_compressed(b"not an image at all"), True, "CompressedImage"),
+        (
+            SimpleNamespace(height=24, width=32, encoding="mono8", step=32, is_bigendian=0, data=b""),
+            False,
+            "bytes",
+        ),
+    ],
+)
 def test_bad_frames_are_input_errors(msg: SimpleNamespace, compressed: bool, message: str) -> None:
     with pytest.raises(InputError, match=message):
         frame_pixels(msg, compressed)
@@ -52,16 +65,19 @@ def test_a_camera_info_wins_over_the_map() -> None:
 
 def test_without_camera_info_the_map_s_only_camera_is_used_with_a_warning() -> None:
     camera, source, error, warning = frame_camera(None, NO_CAMERA_INFO, {CAM}, "/cam/info")
-    assert (camera, source, error) == (None, "map", "")   # None: the stream takes the map's camera
-    assert warning.startswith("no CameraInfo on /cam/info: using the map's only camera (PINHOLE 320x240, params "
-                              "250 250 160 120)")
+    assert (camera, source, error) == (None, "map", "")  # None: the stream takes the map's camera
+    assert warning.startswith(
+        "no CameraInfo on /cam/info: using the map's only camera (PINHOLE 320x240, params 250 250 160 120)"
+    )
 
 
 def test_without_camera_info_a_map_with_several_cameras_is_an_error_naming_the_topic() -> None:
     camera, source, error, warning = frame_camera(None, NO_CAMERA_INFO, {CAM, OTHER}, "/cam/info")
     assert camera is None and source == "" and error == warning
-    assert error == ("no CameraInfo on /cam/info and the map has 2 cameras: publish the camera's CameraInfo on "
-                     "/cam/info (or set camera_info_topic)")
+    assert error == (
+        "no CameraInfo on /cam/info and the map has 2 cameras: publish the camera's CameraInfo on "
+        "/cam/info (or set camera_info_topic)"
+    )
 
 
 def test_a_bad_camera_info_is_not_replaced_by_the_map_s_camera() -> None:

@@ -33,7 +33,9 @@ DEFAULTS = {f.name: f.default for f in fields(NodeSettings)}
 
 def test_params_yaml_lists_exactly_the_parameters_with_their_defaults() -> None:
     text = (SHARE_DIR / "params.yaml").read_text()
-    assert text == params_yaml(), "share/params.yaml is stale: regenerate it (planarloc.ros2.settings.params_yaml)"
+    assert text == params_yaml(), (
+        "share/params.yaml is stale: regenerate it (planarloc.ros2.settings.params_yaml)"
+    )
     loaded = yaml.safe_load(text)
     assert list(loaded) == [NODE_NAME] and list(loaded[NODE_NAME]) == ["ros__parameters"]
     params = loaded[NODE_NAME]["ros__parameters"]
@@ -48,14 +50,14 @@ def test_every_parameter_has_its_own_meaning() -> None:
     meaning = parameter_help()
     assert list(meaning) == list(PARAMETERS)
     assert all(len(text) > 15 for text in meaning.values())
-    assert len(set(meaning.values())) == len(meaning)   # no shared, vague group text
+    assert len(set(meaning.values())) == len(meaning)  # no shared, vague group text
 
 
 def test_help_lists_every_parameter_with_its_default_and_an_example(capsys: pytest.CaptureFixture) -> None:
     with pytest.raises(SystemExit) as stop:
         build_parser().parse_args(["ros2", "--help"])
     assert stop.value.code == 0
-    out = " ".join(capsys.readouterr().out.split())   # unwrapped
+    out = " ".join(capsys.readouterr().out.split())  # unwrapped
     for name, text in parameter_help().items():
         assert f" {name} = {yaml_value(DEFAULTS[name])}: {' '.join(text.split())}" in out, name
     assert "examples: planarloc ros2 --map" in out and "--params-file" in out and "planarloc.launch.py" in out
@@ -86,11 +88,15 @@ def test_parameter_files_are_checked_for_unknown_names(tmp_path: Path) -> None:
     check_parameter_names(["--params-file", str(SHARE_DIR / "params.yaml"), "-p", "tf_broadcast:=false"])
     assert params_file_names(SHARE_DIR / "params.yaml") == list(PARAMETERS)
     typo = tmp_path / "typo.yaml"
-    typo.write_text("other_node:\n  ros__parameters:\n    anything: 1\n"
-                    "/**:\n  ros__parameters:\n    use_sim_time: true\n"
-                    "planarloc:\n  ros__parameters:\n    transform_tolerance: 0.5\n")
-    assert params_file_names(typo) == ["use_sim_time", "transform_tolerance"]   # other nodes' are theirs
-    with pytest.raises(InputError, match=r"--params-file .*typo.yaml: unknown parameter 'transform_tolerance'"):
+    typo.write_text(
+        "other_node:\n  ros__parameters:\n    anything: 1\n"
+        "/**:\n  ros__parameters:\n    use_sim_time: true\n"
+        "planarloc:\n  ros__parameters:\n    transform_tolerance: 0.5\n"
+    )
+    assert params_file_names(typo) == ["use_sim_time", "transform_tolerance"]  # other nodes' are theirs
+    with pytest.raises(
+        InputError, match=r"--params-file .*typo.yaml: unknown parameter 'transform_tolerance'"
+    ):
         check_parameter_names(["--params-file", str(typo)])
     with pytest.raises(InputError, match="--params-file .*none.yaml"):
         check_parameter_names(["--params-file", str(tmp_path / "none.yaml")])
@@ -107,8 +113,12 @@ class _Recorded:
 
 
 def _fake_launch(monkeypatch: pytest.MonkeyPatch) -> None:
-    names = {"launch": ["LaunchDescription"], "launch.actions": ["DeclareLaunchArgument", "ExecuteProcess"],
-             "launch.conditions": ["IfCondition"], "launch.substitutions": ["LaunchConfiguration"]}
+    names = {
+        "launch": ["LaunchDescription"],
+        "launch.actions": ["DeclareLaunchArgument", "ExecuteProcess"],
+        "launch.conditions": ["IfCondition"],
+        "launch.substitutions": ["LaunchConfiguration"],
+    }
     for module, classes in names.items():
         fake = types.ModuleType(module)
         for cls in classes:
@@ -118,13 +128,21 @@ def _fake_launch(monkeypatch: pytest.MonkeyPatch) -> None:
 
 def test_the_launch_file_starts_planarloc_ros2_with_the_params_file(monkeypatch: pytest.MonkeyPatch) -> None:
     path = SHARE_DIR / "planarloc.launch.py"
-    ast.parse(path.read_text())   # valid Python
+    ast.parse(path.read_text())  # valid Python
     _fake_launch(monkeypatch)
     description = runpy.run_path(str(path))["generate_launch_description"]()
     entities = description.args[0]
-    declared = {e.args[0]: e.kwargs.get("default_value") for e in entities if type(e).__name__ == "DeclareLaunchArgument"}
-    assert declared == {"map": None, "params_file": str(SHARE_DIR / "params.yaml"), "planarloc": "planarloc",
-                        "rviz": "false"}
+    declared = {
+        e.args[0]: e.kwargs.get("default_value")
+        for e in entities
+        if type(e).__name__ == "DeclareLaunchArgument"
+    }
+    assert declared == {
+        "map": None,
+        "params_file": str(SHARE_DIR / "params.yaml"),
+        "planarloc": "planarloc",
+        "rviz": "false",
+    }
     node, rviz = [e for e in entities if type(e).__name__ == "ExecuteProcess"]
     # the command with the launch arguments substituted is one `planarloc ros2` accepts
     values = {"map": "office.db", "params_file": declared["params_file"], "planarloc": "planarloc"}
@@ -144,7 +162,7 @@ def test_the_rviz_config_shows_the_pose_with_covariance_tf_and_the_map_frame() -
     displays = {d["Class"]: d for d in config["Displays"]}
     pose = displays["rviz_default_plugins/PoseWithCovariance"]
     assert pose["Topic"]["Value"] == DEFAULTS["pose_topic"] and pose["Covariance"]["Value"] is True
-    assert pose["Topic"]["Reliability Policy"] == "Reliable"   # the node publishes reliably
+    assert pose["Topic"]["Reliability Policy"] == "Reliable"  # the node publishes reliably
     assert displays["rviz_default_plugins/TF"]["Enabled"] is True
     assert displays["rviz_default_plugins/Image"]["Topic"]["Value"] == DEFAULTS["image_topic"]
     tools = {t["Class"]: t for t in config["Tools"]}

@@ -54,7 +54,9 @@ def test_the_node_field_defaults_are_the_librarys() -> None:
     defaults = {f.name: f.default for f in fields(NodeSettings)}
     for name, value in LIBRARY.items():
         assert defaults[name] == value and type(defaults[name]) is type(value), name
-    assert isinstance(defaults["method"], str) and isinstance(defaults["structure"], str)  # ROS parameters: text
+    assert isinstance(defaults["method"], str) and isinstance(
+        defaults["structure"], str
+    )  # ROS parameters: text
     assert LOC.method is Method.AUTO and LOC.ransac.structure is Structure.TRACKS
 
 
@@ -79,7 +81,9 @@ def test_the_publishing_limit_is_a_named_node_setting() -> None:
 
 def test_parameters_are_parsed_into_the_enums_at_the_edge() -> None:
     config = NodeSettings(map="m.db", method="2p1p", structure="none", seed=3).localizer_config()
-    assert config.method is Method.P2P1 and config.ransac.structure is Structure.NONE and config.ransac.seed == 3
+    assert (
+        config.method is Method.P2P1 and config.ransac.structure is Structure.NONE and config.ransac.seed == 3
+    )
     for name in ("method", "structure"):
         with pytest.raises(InputError, match=f"parameter {name}: expected one of"):
             NodeSettings(map="m.db", **{name: "bogus"})

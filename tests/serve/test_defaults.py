@@ -41,9 +41,13 @@ def test_form_fields_become_enums_once(request_parts: tuple[bytes, MapSet]) -> N
     assert req.method is Method.P2P1 and req.structure is Structure.NONE and req.seed == 7
     assert pickle.loads(pickle.dumps(req)) == req  # crosses into worker processes
     config = req.settings.config()
-    assert config.method is Method.P2P1 and config.ransac.structure is Structure.NONE and config.ransac.seed == 7
-    for fields, match in [({"method": "9p"}, "method: expected one of auto, 2p1p"),
-                          ({"structure": "Tracks"}, "structure: expected one of none, tracks")]:
+    assert (
+        config.method is Method.P2P1 and config.ransac.structure is Structure.NONE and config.ransac.seed == 7
+    )
+    for fields, match in [
+        ({"method": "9p"}, "method: expected one of auto, 2p1p"),
+        ({"structure": "Tracks"}, "structure: expected one of none, tracks"),
+    ]:
         with pytest.raises(RequestError, match=match) as exc:
             parse_localize_request(fields, png, "q.png", maps)
         assert exc.value.status == 400

@@ -59,7 +59,10 @@ def test_killed_workers_are_seen_at_once(served_world) -> None:
         assert code == 200 and body["status"] == "degraded" and body["worker_deaths"] == 1
         assert seen < 1.0
         assert wait_for(lambda: health(url)[1]["status"] == "ok")  # replaced
-        assert metric(url, "planarloc_workers_alive") == 2 and metric(url, "planarloc_worker_restarts_total") == 1
+        assert (
+            metric(url, "planarloc_workers_alive") == 2
+            and metric(url, "planarloc_worker_restarts_total") == 1
+        )
         both = worker_pids(proc.pid)
         for pid in both:
             os.kill(pid, signal.SIGKILL)
@@ -86,8 +89,12 @@ def own_map(served_world, tmp_path) -> tuple[Path, Path, str, Path]:
 
 
 def refused(url: str, image: Path, camera: str) -> tuple[int, str]:
-    r = httpx.post(url + "/v1/localize", files={"image": (image.name, image.read_bytes())}, data={"camera": camera},
-                   timeout=120)
+    r = httpx.post(
+        url + "/v1/localize",
+        files={"image": (image.name, image.read_bytes())},
+        data={"camera": camera},
+        timeout=120,
+    )
     return r.status_code, r.json().get("error", "")
 
 
@@ -152,9 +159,14 @@ def test_a_damaged_map_is_a_500_logged_without_paths(own_map) -> None:
                 client.localize(query_images(world)[0], camera)
         assert exc.value.status == 500
         assert "damaged" in exc.value.reason and "map check" in exc.value.reason
-        assert str(mine) not in exc.value.reason and str(mine.parent) not in exc.value.reason and "/" not in \
-            exc.value.reason.replace("`planarloc map check`", "")
-        assert wait_for(lambda: any("keypoint" in line for line in proc.output.lines), 10)  # logged with details
+        assert (
+            str(mine) not in exc.value.reason
+            and str(mine.parent) not in exc.value.reason
+            and "/" not in exc.value.reason.replace("`planarloc map check`", "")
+        )
+        assert wait_for(
+            lambda: any("keypoint" in line for line in proc.output.lines), 10
+        )  # logged with details
         assert proc.poll() is None and health(url)[1]["status"] == "ok"  # the map file itself did not change
         assert metric(url, 'planarloc_rejected_total{reason="server_fault"}') == 1
     finally:

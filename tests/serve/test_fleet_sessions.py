@@ -84,8 +84,20 @@ def test_the_table_bounds_sessions_in_number_and_idle_time() -> None:
 @pytest.fixture(scope="module")
 def fleet(served_world) -> Iterator[Served]:
     world, map_path, camera = served_world
-    url, proc = start_server(["--map", f"office={map_path}", "--workers", "2", "--queue", "6", "--max-sessions", "3",
-                              "--session-idle", "6"])
+    url, proc = start_server(
+        [
+            "--map",
+            f"office={map_path}",
+            "--workers",
+            "2",
+            "--queue",
+            "6",
+            "--max-sessions",
+            "3",
+            "--session-idle",
+            "6",
+        ]
+    )
     try:
         yield Served(url, proc, world, map_path, camera, "")
     finally:
@@ -95,16 +107,25 @@ def fleet(served_world) -> Iterator[Served]:
 def stream(world: Path) -> list[tuple[float, Path, Pose]]:
     """(stamp, image, ground-truth cam_from_world) of the query frames, in order."""
     images = sorted((world / "query" / "rgb").glob("*.png"))
-    stamps = [float(line.split()[0]) for line in (world / "query" / "rgb.txt").read_text().splitlines()
-              if line and line[0] != "#"]
+    stamps = [
+        float(line.split()[0])
+        for line in (world / "query" / "rgb.txt").read_text().splitlines()
+        if line and line[0] != "#"
+    ]
     times, world_from_cam = read_tum_trajectory(world / "query" / "groundtruth.txt")
     truth = {round(float(t), 6): p.inverse() for t, p in zip(times, world_from_cam)}
     return [(t, im, truth[round(t, 6)]) for t, im in zip(stamps, images)]
 
 
-def post_frame(url: str, image: Path, stamp: float, session: str, camera: str, **extra: str) -> httpx.Response:
-    return httpx.post(url + "/v1/localize", files={"image": (image.name, image.read_bytes())},
-                      data={"camera": camera, "session": session, "stamp": repr(stamp), **extra}, timeout=120)
+def post_frame(
+    url: str, image: Path, stamp: float, session: str, camera: str, **extra: str
+) -> httpx.Response:
+    return httpx.post(
+        url + "/v1/localize",
+        files={"image": (image.name, image.read_bytes())},
+        data={"camera": camera, "session": session, "stamp": repr(stamp), **extra},
+        timeout=120,
+    )
 
 
 def test_a_robot_streams_its_frames_and_gets_the_sequence_record(fleet, tmp_path) -> None:
@@ -114,13 +135,36 @@ def test_a_robot_streams_its_frames_and_gets_the_sequence_record(fleet, tmp_path
     listing.write_text("".join(f"{t!r} {image}\n" for t, image, _ in frames))
     out = tmp_path / "poses.txt"
     odometry = fleet.world / "query" / "groundtruth.txt"  # the true motion as wheel odometry
-    assert main(["localize", "--map", str(fleet.map_path), "--sequence", str(listing), "--odometry", str(odometry),
-                 "--camera", fleet.camera, "--fixes", "wait", "--out", str(out)]) == 0
-    local = [json.loads((tmp_path / "poses.txt.json.d" / f"{image.name}.json").read_text()) for _, image, _ in frames]
+    assert (
+        main(
+            [
+                "localize",
+                "--map",
+                str(fleet.map_path),
+                "--sequence",
+                str(listing),
+                "--odometry",
+                str(odometry),
+                "--camera",
+                fleet.camera,
+                "--fixes",
+                "wait",
+                "--out",
+                str(out),
+            ]
+        )
+        == 0
+    )
+    local = [
+        json.loads((tmp_path / "poses.txt.json.d" / f"{image.name}.json").read_text())
+        for _, image, _ in frames
+    ]
     with Client(fleet.url) as client:
         robot = client.session("robot-a", camera=fleet.camera)
         records = [robot.localize(image, stamp, odometry=truth) for stamp, image, truth in frames]
-    assert [r["session"]["frame"] for r in records] == list(range(1, len(frames) + 1))  # one stream, one worker
+    assert [r["session"]["frame"] for r in records] == list(
+        range(1, len(frames) + 1)
+    )  # one stream, one worker
     for rec, loc in zip(records, local):  # one record schema for the CLI's frames and the service's
         check("record", rec, "session answer")
         check("record", loc, "localize --sequence record")
@@ -131,10 +175,15 @@ def test_a_robot_streams_its_frames_and_gets_the_sequence_record(fleet, tmp_path
         if rec["success"]:
             np.testing.assert_allclose(rec["quat_wxyz"], loc["quat_wxyz"], atol=1e-6)
             np.testing.assert_allclose(rec["t"], loc["t"], atol=1e-6)
-            np.testing.assert_allclose(np.array(rec["covariance_xyz_rotvec"], float),
-                                       np.array(loc["covariance_xyz_rotvec"], float),
-                                       rtol=1e-4, atol=1e-9)
-            assert np.linalg.norm(Pose.from_quat_wxyz(rec["quat_wxyz"], rec["t"]).center - truth.center) < 0.25
+            np.testing.assert_allclose(
+                np.array(rec["covariance_xyz_rotvec"], float),
+                np.array(loc["covariance_xyz_rotvec"], float),
+                rtol=1e-4,
+                atol=1e-9,
+            )
+            assert (
+                np.linalg.norm(Pose.from_quat_wxyz(rec["quat_wxyz"], rec["t"]).center - truth.center) < 0.25
+            )
     assert all(r["status"] == "localized" for r in records) and robot.restarts == 0
     # Out of order: refused (409), the stream unchanged.
     r = post_frame(fleet.url, frames[0][1], frames[0][0], "robot-a", fleet.camera, structure="tracks")
@@ -145,11 +194,21 @@ def test_a_robot_streams_its_frames_and_gets_the_sequence_record(fleet, tmp_path
     r = post_frame(fleet.url, frames[0][1], frames[-1][0] + 2, "robot-a", fleet.camera, structure="none")
     assert r.status_code == 409 and "cannot change" in r.json()["error"]
     for extra, status in [({"odometry": "1 2 3"}, 400), ({"odometry": "0 0 0 0 0 0 1"}, 200)]:
-        r = post_frame(fleet.url, frames[1][1], frames[-1][0] + 3 + len(extra["odometry"]), "robot-b", fleet.camera,
-                       **extra)
+        r = post_frame(
+            fleet.url,
+            frames[1][1],
+            frames[-1][0] + 3 + len(extra["odometry"]),
+            "robot-b",
+            fleet.camera,
+            **extra,
+        )
         assert r.status_code == status, r.text
-    r = httpx.post(fleet.url + "/v1/localize", files={"image": ("a.png", frames[0][1].read_bytes())},
-                   data={"camera": fleet.camera, "session": "robot-c"}, timeout=60)
+    r = httpx.post(
+        fleet.url + "/v1/localize",
+        files={"image": ("a.png", frames[0][1].read_bytes())},
+        data={"camera": fleet.camera, "session": "robot-c"},
+        timeout=60,
+    )
     assert r.status_code == 400 and "stamp" in r.json()["error"]
 
 
@@ -188,7 +247,9 @@ def test_evicted_and_lost_sessions_get_a_clear_410(fleet) -> None:
     # Idle for more than 6 s: evicted by the server's sweep.
     time.sleep(9)
     metrics = httpx.get(fleet.url + "/metrics").text
-    assert "planarloc_sessions 0.0" in metrics and 'planarloc_sessions_evicted_total{reason="idle"}' in metrics
+    assert (
+        "planarloc_sessions 0.0" in metrics and 'planarloc_sessions_evicted_total{reason="idle"}' in metrics
+    )
     r = post_frame(fleet.url, image, stamp + 3, "e4", fleet.camera)
     assert r.status_code == 410 and "without a frame" in r.json()["error"]
     # Its worker killed: the session is lost, and says so.

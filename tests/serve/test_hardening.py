@@ -32,9 +32,25 @@ def strict(served_world, tmp_path_factory) -> Iterator[Served]:
     tmp = tmp_path_factory.mktemp("server-tmp")
     token_file = tmp_path_factory.mktemp("secret") / "token"
     token_file.write_text(TOKEN + "\n")
-    url, proc = start_server(["--map", f"office={map_path}", "--workers", "2", "--queue", "2", "--max-image-mb", "1",
-                              "--body-timeout", "3", "--header-timeout", "2", "--token-file", str(token_file)],
-                             env={"TMPDIR": str(tmp)})
+    url, proc = start_server(
+        [
+            "--map",
+            f"office={map_path}",
+            "--workers",
+            "2",
+            "--queue",
+            "2",
+            "--max-image-mb",
+            "1",
+            "--body-timeout",
+            "3",
+            "--header-timeout",
+            "2",
+            "--token-file",
+            str(token_file),
+        ],
+        env={"TMPDIR": str(tmp)},
+    )
     proc.tmpdir = tmp  # type: ignore[attr-defined]
     try:
         yield Served(url, proc, world, map_path, camera, TOKEN)
@@ -51,15 +67,21 @@ def multipart(fields: dict[str, str], image: bytes | None, filename: str = "q.pn
     for k, v in fields.items():
         parts.append(f'--{BOUNDARY}\r\nContent-Disposition: form-data; name="{k}"\r\n\r\n{v}\r\n'.encode())
     if image is not None:
-        parts.append(f'--{BOUNDARY}\r\nContent-Disposition: form-data; name="image"; filename="{filename}"\r\n'
-                     "Content-Type: image/png\r\n\r\n".encode() + image + b"\r\n")
+        parts.append(
+            f'--{BOUNDARY}\r\nContent-Disposition: form-data; name="image"; filename="{filename}"\r\n'
+            "Content-Type: image/png\r\n\r\n".encode()
+            + image
+            + b"\r\n"
+        )
     return b"".join(parts) + f"--{BOUNDARY}--\r\n".encode()
 
 
 def head(server: Served, extra: str = "", token: str | None = TOKEN) -> bytes:
     auth = f"Authorization: Bearer {token}\r\n" if token else ""
-    return (f"POST /v1/localize HTTP/1.1\r\nHost: 127.0.0.1\r\n{auth}"
-            f"Content-Type: multipart/form-data; boundary={BOUNDARY}\r\n{extra}\r\n").encode()
+    return (
+        f"POST /v1/localize HTTP/1.1\r\nHost: 127.0.0.1\r\n{auth}"
+        f"Content-Type: multipart/form-data; boundary={BOUNDARY}\r\n{extra}\r\n"
+    ).encode()
 
 
 def read_response(sock: socket.socket, timeout: float = 60) -> tuple[int, bytes]:
@@ -84,7 +106,7 @@ def read_response(sock: socket.socket, timeout: float = 60) -> tuple[int, bytes]
 
 def chunked(data: bytes, size: int = 65536) -> Iterator[bytes]:
     for i in range(0, len(data), size):
-        piece = data[i:i + size]
+        piece = data[i : i + size]
         yield f"{len(piece):x}\r\n".encode() + piece + b"\r\n"
     yield b"0\r\n\r\n"
 
@@ -148,12 +170,19 @@ def test_per_part_limits(strict) -> None:
         ({"camera": strict.camera, "gravity": "0 1 0"}, 200),
     ]
     for fields, status in cases:
-        r = httpx.post(url, headers=auth, files={"image": ("q.png", png_of(strict))}, data=fields, timeout=120)
+        r = httpx.post(
+            url, headers=auth, files={"image": ("q.png", png_of(strict))}, data=fields, timeout=120
+        )
         assert r.status_code == status, r.text
     twice = multipart({"camera": strict.camera, "seed": "1"}, png_of(strict)).replace(
-        b'name="seed"', b'name="camera"')
-    r = httpx.post(url, headers={**auth, "Content-Type": f"multipart/form-data; boundary={BOUNDARY}"},
-                   content=twice, timeout=60)
+        b'name="seed"', b'name="camera"'
+    )
+    r = httpx.post(
+        url,
+        headers={**auth, "Content-Type": f"multipart/form-data; boundary={BOUNDARY}"},
+        content=twice,
+        timeout=60,
+    )
     assert r.status_code == 400 and "given twice" in r.json()["error"]
 
 
@@ -214,8 +243,20 @@ def test_waiting_and_running_are_bounded(served_world) -> None:
     """Frozen worker: the running request is answered 503 when its job time is up (its worker
     replaced), the queued one 503 when its queue time is up; then the pool serves again."""
     world, map_path, camera = served_world
-    url, proc = start_server(["--map", str(map_path), "--workers", "1", "--queue", "1", "--queue-timeout", "2",
-                              "--job-timeout", "5"])
+    url, proc = start_server(
+        [
+            "--map",
+            str(map_path),
+            "--workers",
+            "1",
+            "--queue",
+            "1",
+            "--queue-timeout",
+            "2",
+            "--job-timeout",
+            "5",
+        ]
+    )
     try:
         image = sorted((world / "query" / "rgb").glob("*.png"))[0]
         before = worker_pids(proc.pid)
@@ -224,8 +265,12 @@ def test_waiting_and_running_are_bounded(served_world) -> None:
 
         def one(key: str) -> None:
             t0 = time.monotonic()
-            r = httpx.post(url + "/v1/localize", files={"image": (image.name, image.read_bytes())},
-                           data={"camera": camera}, timeout=60)
+            r = httpx.post(
+                url + "/v1/localize",
+                files={"image": (image.name, image.read_bytes())},
+                data={"camera": camera},
+                timeout=60,
+            )
             results[key] = (r.status_code, r.json()["error"], time.monotonic() - t0)
 
         first = threading.Thread(target=one, args=("running",))
@@ -237,7 +282,9 @@ def test_waiting_and_running_are_bounded(served_world) -> None:
         second.start()
         first.join(60)
         second.join(60)
-        assert results["queued"][0] == 503 and "within 2 s" in results["queued"][1] and results["queued"][2] < 4
+        assert (
+            results["queued"][0] == 503 and "within 2 s" in results["queued"][1] and results["queued"][2] < 4
+        )
         assert results["running"][0] == 503 and "longer than 5 s" in results["running"][1]
         deadline = time.monotonic() + 60
         while httpx.get(url + "/healthz").json()["status"] != "ok" and time.monotonic() < deadline:
@@ -250,8 +297,30 @@ def test_waiting_and_running_are_bounded(served_world) -> None:
 
 
 # ---- hostile field values: always a one-line 4xx -------------------------------------------------------
-HOSTILE = ["9" * 400, "-" + "9" * 400, "1e400", "1e308", "nan", "inf", "-inf", "1e-400", "0x10", "²", "١٢",
-           "\x00", "😀", " ", "1_000", "+5", "0", "-0", "1" * 5000, "\u202e", "%00", "'; DROP TABLE images; --"]
+HOSTILE = [
+    "9" * 400,
+    "-" + "9" * 400,
+    "1e400",
+    "1e308",
+    "nan",
+    "inf",
+    "-inf",
+    "1e-400",
+    "0x10",
+    "²",
+    "١٢",
+    "\x00",
+    "😀",
+    " ",
+    "1_000",
+    "+5",
+    "0",
+    "-0",
+    "1" * 5000,
+    "\u202e",
+    "%00",
+    "'; DROP TABLE images; --",
+]
 
 
 def test_hostile_field_values_are_4xx_never_5xx(strict) -> None:
@@ -261,7 +330,7 @@ def test_hostile_field_values_are_4xx_never_5xx(strict) -> None:
     forms = []
     for v in HOSTILE:
         for i in range(1, len(cam)):
-            forms.append({"camera": " ".join([*cam[:i], v, *cam[i + 1:]])})
+            forms.append({"camera": " ".join([*cam[:i], v, *cam[i + 1 :]])})
         forms.append({"camera": " ".join([v, *cam[1:]])})
         forms.append({"camera": strict.camera, "gravity": f"0 {v} 0"})
         forms.append({"camera": strict.camera, "gravity": f"{v} {v} {v}"})
@@ -289,7 +358,9 @@ def test_hostile_field_values_are_4xx_never_5xx(strict) -> None:
 def test_the_token_comes_from_a_file_or_the_environment(strict, served_world, tmp_path, monkeypatch) -> None:
     assert TOKEN.encode() not in Path(f"/proc/{strict.process.pid}/cmdline").read_bytes()
     image = png_of(strict)
-    r = httpx.post(strict.url + "/v1/localize", files={"image": ("q.png", image)}, data={"camera": strict.camera})
+    r = httpx.post(
+        strict.url + "/v1/localize", files={"image": ("q.png", image)}, data={"camera": strict.camera}
+    )
     assert r.status_code == 401
     with Client(strict.url, token=TOKEN) as client:
         assert client.localize(image, strict.camera, name="q.png")["name"] == "q.png"
@@ -302,16 +373,51 @@ def test_the_token_comes_from_a_file_or_the_environment(strict, served_world, tm
         # `localize --server` reads the same sources.
         monkeypatch.setenv("PLANARLOC_TOKEN", "from-env")
         query = sorted((strict.world / "query" / "rgb").glob("*.png"))[0]
-        assert main(["localize", "--server", url, "--map", map_path.stem, str(query), "--camera", camera,
-                     "--out", str(tmp_path / "p.txt")]) == 0
+        assert (
+            main(
+                [
+                    "localize",
+                    "--server",
+                    url,
+                    "--map",
+                    map_path.stem,
+                    str(query),
+                    "--camera",
+                    camera,
+                    "--out",
+                    str(tmp_path / "p.txt"),
+                ]
+            )
+            == 0
+        )
         token_file = tmp_path / "t"
         token_file.write_text("wrong\n")
-        assert main(["localize", "--server", url, "--map", map_path.stem, str(query), "--camera", camera,
-                     "--token-file", str(token_file), "--out", str(tmp_path / "q.txt")]) == 1
+        assert (
+            main(
+                [
+                    "localize",
+                    "--server",
+                    url,
+                    "--map",
+                    map_path.stem,
+                    str(query),
+                    "--camera",
+                    camera,
+                    "--token-file",
+                    str(token_file),
+                    "--out",
+                    str(tmp_path / "q.txt"),
+                ]
+            )
+            == 1
+        )
     finally:
         stop_server(proc)
-    for bad, match in [((None, tmp_path / "missing"), "cannot read"), (("a", tmp_path / "t"), "give one"),
-                       (("a b", None), "printable ASCII")]:
+    for bad, match in [
+        ((None, tmp_path / "missing"), "cannot read"),
+        (("a", tmp_path / "t"), "give one"),
+        (("a b", None), "printable ASCII"),
+    ]:
         with pytest.raises(ValueError, match=match):
             resolve_token(*bad)
     (tmp_path / "empty").write_text("\n")

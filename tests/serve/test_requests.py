@@ -67,21 +67,28 @@ def test_session_fields(tmp_path: Path) -> None:
     (tmp_path / "m.db").write_bytes(b"x")
     maps = MapSet.from_specs([str(tmp_path / "m.db")])
     png = cv2.imencode(".png", np.zeros((24, 32), np.uint8))[1].tobytes()
-    req = parse_localize_request({"session": "r1", "stamp": "0.30000000000000004", "odometry": "1 2 3 0 0 0 1"},
-                                 png, "q.png", maps)
+    req = parse_localize_request(
+        {"session": "r1", "stamp": "0.30000000000000004", "odometry": "1 2 3 0 0 0 1"}, png, "q.png", maps
+    )
     assert req.stamp == 0.30000000000000004 and req.session == "r1"
     np.testing.assert_allclose(req.odometry.center, [1, 2, 3])  # cam_from_odom of a camera at (1, 2, 3)
     from planarloc.localize.localizer import LocalizerConfig
     from planarloc.robust.options import Method, RansacOptions, Structure
     from planarloc.serve.requests import QuerySettings
 
-    assert req.settings == QuerySettings(Method.AUTO, Structure.TRACKS, RansacOptions().seed)  # the defaults, filled in
+    assert req.settings == QuerySettings(
+        Method.AUTO, Structure.TRACKS, RansacOptions().seed
+    )  # the defaults, filled in
     assert req.method is None and req.settings.config() == LocalizerConfig()
-    for fields, match in [({"session": "r1"}, "stamp: required"), ({"stamp": "1"}, "only for a frame of a session"),
-                          ({"session": "r1", "stamp": "1e400"}, "stamp"), ({"session": "r1", "stamp": "0x1"}, "stamp"),
-                          ({"session": "r 1", "stamp": "1"}, "session"),
-                          ({"session": "r1", "stamp": "1", "odometry": "0 0 0 0 0 0 2"}, "odometry"),
-                          ({"seed": "²"}, "seed")]:
+    for fields, match in [
+        ({"session": "r1"}, "stamp: required"),
+        ({"stamp": "1"}, "only for a frame of a session"),
+        ({"session": "r1", "stamp": "1e400"}, "stamp"),
+        ({"session": "r1", "stamp": "0x1"}, "stamp"),
+        ({"session": "r 1", "stamp": "1"}, "session"),
+        ({"session": "r1", "stamp": "1", "odometry": "0 0 0 0 0 0 2"}, "odometry"),
+        ({"seed": "²"}, "seed"),
+    ]:
         with pytest.raises(RequestError, match=match) as exc:
             parse_localize_request(fields, png, "q.png", maps)
         assert exc.value.status == 400
@@ -95,9 +102,13 @@ def test_whose_fault_an_error_is() -> None:
     from planarloc.serve.requests import ServerFault, classify_error
 
     assert classify_error(InputError("q.png: cannot decode"), "q.png").status == 400
-    for exc in (MapCorruptError("/srv/maps/office.db: image a.png: bad blob"), sqlite3.DatabaseError("malformed"),
-                OSError(5, "Input/output error", "/srv/maps/office.db"), OverflowError("int too large"),
-                KeyError("x")):
+    for exc in (
+        MapCorruptError("/srv/maps/office.db: image a.png: bad blob"),
+        sqlite3.DatabaseError("malformed"),
+        OSError(5, "Input/output error", "/srv/maps/office.db"),
+        OverflowError("int too large"),
+        KeyError("x"),
+    ):
         fault = classify_error(exc, "q.png")
         assert isinstance(fault, ServerFault) and fault.public and "/srv" not in fault.public
         assert type(exc).__name__ in fault.detail  # the log gets the details

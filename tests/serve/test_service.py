@@ -119,7 +119,9 @@ def test_malformed_requests_get_one_line_4xx_and_the_server_stays_up(server) -> 
         assert given["name"] == image.name
         # Without a camera the map's only camera is used, as by `planarloc localize`.
         default = client.localize(image, None, map="office", seed=3)
-        assert default["success"] and default["quat_wxyz"] == given["quat_wxyz"] and default["t"] == given["t"]
+        assert (
+            default["success"] and default["quat_wxyz"] == given["quat_wxyz"] and default["t"] == given["t"]
+        )
         with pytest.raises(ServiceError) as exc:
             client.localize(b"not an image", cam, map="office")
         assert exc.value.status == 415
@@ -230,6 +232,7 @@ def test_workers_never_outlive_a_killed_server(served_world) -> None:
     assert len(workers) == 1
     os.kill(proc.pid, signal.SIGKILL)
     proc.wait(10)
+
     def running(pid: int) -> bool:  # a zombie (exited, not yet reaped by init) is not running
         try:
             return "\tZ" not in Path(f"/proc/{pid}/status").read_text().split("State:")[1].split("\n")[0]
@@ -256,11 +259,26 @@ def test_port_0_prints_the_bound_port_and_a_busy_port_is_one_line(server, served
         busy.bind(("127.0.0.1", 0))
         busy.listen()
         taken = busy.getsockname()[1]
-        proc = subprocess.run([sys.executable, "-m", "planarloc.cli.main", "serve", "--map", str(map_path),
-                               "--port", str(taken)], capture_output=True, text=True, timeout=120)
+        proc = subprocess.run(
+            [
+                sys.executable,
+                "-m",
+                "planarloc.cli.main",
+                "serve",
+                "--map",
+                str(map_path),
+                "--port",
+                str(taken),
+            ],
+            capture_output=True,
+            text=True,
+            timeout=120,
+        )
     assert proc.returncode == 1 and proc.stdout == ""
-    assert proc.stderr.splitlines() == [f"planarloc serve: error: --port {taken}: 127.0.0.1:{taken} is already in "
-                                        "use (another server?); choose another port, or --port 0 for any free one"]
+    assert proc.stderr.splitlines() == [
+        f"planarloc serve: error: --port {taken}: 127.0.0.1:{taken} is already in "
+        "use (another server?); choose another port, or --port 0 for any free one"
+    ]
 
 
 def test_localize_server_records_an_undecodable_image_and_goes_on(server, tmp_path: Path) -> None:
@@ -268,10 +286,26 @@ def test_localize_server_records_an_undecodable_image_and_goes_on(server, tmp_pa
     broken = tmp_path / "broken.png"
     broken.write_bytes(images[0].read_bytes()[:3000])  # a PNG header, then nothing: undecodable
     out = tmp_path / "poses.txt"
-    args = ["localize", "--server", server.url, "--token", server.token, "--map", "office", images[0], broken,
-            images[1], "--structure", "tracks", "--out", out]
+    args = [
+        "localize",
+        "--server",
+        server.url,
+        "--token",
+        server.token,
+        "--map",
+        "office",
+        images[0],
+        broken,
+        images[1],
+        "--structure",
+        "tracks",
+        "--out",
+        out,
+    ]
     assert main([str(a) for a in args]) == 3
-    records = {r["name"]: r for r in (json.loads(p.read_text()) for p in (tmp_path / "poses.txt.json.d").iterdir())}
+    records = {
+        r["name"]: r for r in (json.loads(p.read_text()) for p in (tmp_path / "poses.txt.json.d").iterdir())
+    }
     assert records["broken.png"]["status"] == "error" and "cannot decode" in records["broken.png"]["message"]
     assert sorted(line.split()[0] for line in out.read_text().splitlines()) == sorted(p.name for p in images)
     # A server that cannot be reached stops the run (exit 1) and leaves the results file as it was.
@@ -288,9 +322,13 @@ def test_a_failed_query_answers_strict_json(server) -> None:
     w, h = (int(v) for v in server.camera.split()[1:3])
     ok, png = cv2.imencode(".png", np.zeros((h, w), np.uint8))
     assert ok
-    response = httpx.post(server.url + "/v1/localize", headers={"Authorization": f"Bearer {server.token}"},
-                          files={"image": ("black.png", png.tobytes())},
-                          data={"camera": server.camera, "map": "office"}, timeout=120)
+    response = httpx.post(
+        server.url + "/v1/localize",
+        headers={"Authorization": f"Bearer {server.token}"},
+        files={"image": ("black.png", png.tobytes())},
+        data={"camera": server.camera, "map": "office"},
+        timeout=120,
+    )
     body = check("record", response.text, "answer to a black frame")
     assert response.status_code == 200 and body["success"] is False
     assert "position_std_m" in body and body["position_std_m"] is None

@@ -52,16 +52,22 @@ def png(pixels: np.ndarray) -> bytes:
 
 
 def blank_and_featureless() -> dict[str, bytes]:
-    return {"black": png(np.zeros((240, 320), np.uint8)),
-            "gradient": png(np.tile(np.linspace(0, 255, 320), (240, 1)).astype(np.uint8))}
+    return {
+        "black": png(np.zeros((240, 320), np.uint8)),
+        "gradient": png(np.tile(np.linspace(0, 255, 320), (240, 1)).astype(np.uint8)),
+    }
 
 
 def png_bomb() -> bytes:
     def chunk(kind: bytes, data: bytes) -> bytes:
         return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
 
-    return (b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", struct.pack(">IIBBBBB", 30000, 30000, 8, 0, 0, 0, 0))
-            + chunk(b"IDAT", zlib.compress(b"\0" * 30001 * 4)) + chunk(b"IEND", b""))
+    return (
+        b"\x89PNG\r\n\x1a\n"
+        + chunk(b"IHDR", struct.pack(">IIBBBBB", 30000, 30000, 8, 0, 0, 0, 0))
+        + chunk(b"IDAT", zlib.compress(b"\0" * 30001 * 4))
+        + chunk(b"IEND", b"")
+    )
 
 
 # ---- request checks, no server ------------------------------------------------------------------------
@@ -72,8 +78,10 @@ def test_ids_and_fields_are_anchored_at_the_very_end(tmp_path: Path) -> None:
     (tmp_path / "m.db").write_bytes(b"x")
     maps = MapSet.from_specs([f"m={tmp_path / 'm.db'}"])
     image = png(np.zeros((24, 32), np.uint8))
-    for fields, match in [({"session": "robot-1\n", "stamp": "1"}, "session: expected"),
-                          ({"seed": "5\n"}, "seed: expected")]:
+    for fields, match in [
+        ({"session": "robot-1\n", "stamp": "1"}, "session: expected"),
+        ({"seed": "5\n"}, "seed: expected"),
+    ]:
         with pytest.raises(RequestError, match=match) as exc:
             parse_localize_request(fields, image, "q.png", maps)
         assert exc.value.status == 400
@@ -89,7 +97,9 @@ def test_a_stamp_far_ahead_of_the_servers_clock_is_refused(tmp_path: Path) -> No
     image = png(np.zeros((24, 32), np.uint8))
     ok = parse_localize_request({"session": "r", "stamp": repr(NOW + 60)}, image, "q.png", maps, now=NOW)
     assert ok.stamp == NOW + 60  # clocks differ a little: fine
-    assert parse_localize_request({"session": "r", "stamp": "0.1"}, image, "q.png", maps, now=NOW).stamp == 0.1
+    assert (
+        parse_localize_request({"session": "r", "stamp": "0.1"}, image, "q.png", maps, now=NOW).stamp == 0.1
+    )
     for stamp in (NOW + MAX_STAMP_AHEAD_S + 1, 1e11, 9.9e11):
         with pytest.raises(RequestError, match="ahead of the server's clock.*session is unchanged") as exc:
             parse_localize_request({"session": "r", "stamp": repr(stamp)}, image, "q.png", maps, now=NOW)
@@ -99,8 +109,18 @@ def test_a_stamp_far_ahead_of_the_servers_clock_is_refused(tmp_path: Path) -> No
 def test_bearer_scheme_is_case_insensitive_and_the_token_exact() -> None:
     for header in ("Bearer tok", "bearer tok", "BEARER tok", "bEaReR   tok", " Bearer tok "):
         assert bearer_token_matches(header, "tok"), header
-    for header in ("", "Bearer", "Bearer ", "Bearertok", "Bearer TOK", "Bearer tok2", "Basic tok", "tok",
-                   "Bearer\ttok", "Bearer tok tok"):
+    for header in (
+        "",
+        "Bearer",
+        "Bearer ",
+        "Bearertok",
+        "Bearer TOK",
+        "Bearer tok2",
+        "Basic tok",
+        "tok",
+        "Bearer\ttok",
+        "Bearer tok tok",
+    ):
         assert not bearer_token_matches(header, "tok"), header
 
 
@@ -141,8 +161,9 @@ def test_a_session_goes_on_after_bad_frames_and_stamps(localizer: Localizer, ser
     states = SessionStates()
 
     def send(data: bytes, stamp: float) -> dict:
-        return session_frame_with(localizer, states, LocalizeRequest("office", "f.png", data, None, session="r",
-                                                                     stamp=stamp), 1)
+        return session_frame_with(
+            localizer, states, LocalizeRequest("office", "f.png", data, None, session="r", stamp=stamp), 1
+        )
 
     assert send(images[0], 0.0)["session"]["frame"] == 1
     for k, (name, data) in enumerate(blank_and_featureless().items(), start=1):
@@ -152,7 +173,11 @@ def test_a_session_goes_on_after_bad_frames_and_stamps(localizer: Localizer, ser
     with pytest.raises(RequestError, match=f"more than {MAX_FRAME_GAP_S:g} s.*session goes on") as exc:
         send(images[1], 0.2 + MAX_FRAME_GAP_S + 1)
     assert exc.value.status == 409
-    for data, match in [(b"", "the image is empty"), (images[1][:500], "truncated PNG"), (png_bomb(), "30000x30000")]:
+    for data, match in [
+        (b"", "the image is empty"),
+        (images[1][:500], "truncated PNG"),
+        (png_bomb(), "30000x30000"),
+    ]:
         with pytest.raises(RequestError, match=match) as exc:
             send(data, 0.3)
         assert 400 <= exc.value.status < 500
@@ -165,8 +190,20 @@ def test_a_session_goes_on_after_bad_frames_and_stamps(localizer: Localizer, ser
 @pytest.fixture(scope="module")
 def served(served_world) -> Iterator[Served]:
     world, map_path, camera = served_world
-    url, proc = start_server(["--map", f"office={map_path}", "--workers", "1", "--queue", "4", "--token", TOKEN,
-                              "--session-idle", "3"])
+    url, proc = start_server(
+        [
+            "--map",
+            f"office={map_path}",
+            "--workers",
+            "1",
+            "--queue",
+            "4",
+            "--token",
+            TOKEN,
+            "--session-idle",
+            "3",
+        ]
+    )
     try:
         yield Served(url, proc, world, map_path, camera, TOKEN)
     finally:
@@ -174,8 +211,13 @@ def served(served_world) -> Iterator[Served]:
 
 
 def post(server: Served, image: bytes, auth: str = f"Bearer {TOKEN}", **fields: str) -> httpx.Response:
-    return httpx.post(server.url + "/v1/localize", files={"image": ("f.png", image)},
-                      data={"camera": server.camera, **fields}, headers={"Authorization": auth}, timeout=120)
+    return httpx.post(
+        server.url + "/v1/localize",
+        files={"image": ("f.png", image)},
+        data={"camera": server.camera, **fields},
+        headers={"Authorization": auth},
+        timeout=120,
+    )
 
 
 def query_pngs(server: Served) -> list[bytes]:
@@ -190,12 +232,14 @@ def test_bad_frames_and_future_stamps_leave_the_session_running(served) -> None:
         sent.append(post(served, data, session="robot-1", stamp=f"{0.1 * k:.1f}"))
     assert [r.status_code for r in sent] == [200, 200, 200], [r.text for r in sent]
     assert [r.json()["status"] for r in sent[1:]] == ["lost", "lost"]
-    refused = [post(served, images[1], session="robot-1", stamp=repr(now + 10 * MAX_STAMP_AHEAD_S)),
-               post(served, images[1], session="robot-1", stamp="1e11"),
-               post(served, images[1], session="robot-1", stamp=repr(1e6)),  # before now, but an age after 0.2
-               post(served, b"", session="robot-1", stamp="0.25"),
-               post(served, png_bomb(), session="robot-1", stamp="0.25"),
-               post(served, images[1], session="robot-1\n", stamp="0.25")]
+    refused = [
+        post(served, images[1], session="robot-1", stamp=repr(now + 10 * MAX_STAMP_AHEAD_S)),
+        post(served, images[1], session="robot-1", stamp="1e11"),
+        post(served, images[1], session="robot-1", stamp=repr(1e6)),  # before now, but an age after 0.2
+        post(served, b"", session="robot-1", stamp="0.25"),
+        post(served, png_bomb(), session="robot-1", stamp="0.25"),
+        post(served, images[1], session="robot-1\n", stamp="0.25"),
+    ]
     assert [r.status_code for r in refused] == [400, 400, 409, 400, 413, 400], [r.text for r in refused]
     assert "ahead of the server's clock" in refused[0].json()["error"]
     assert "30000x30000 pixels, over the limit" in refused[4].json()["error"]
@@ -216,18 +260,29 @@ def test_a_session_fed_only_refused_frames_is_evicted(served) -> None:
         time.sleep(0.3)
     assert r.status_code == 410 and "without a frame" in r.json()["error"]
     assert time.monotonic() - accepted > 3
-    assert post(served, images[1], session="robot-2", stamp="1.0").json()["session"]["frame"] == 1  # a new stream
+    assert (
+        post(served, images[1], session="robot-2", stamp="1.0").json()["session"]["frame"] == 1
+    )  # a new stream
 
 
 def test_the_bearer_scheme_in_any_case_and_integer_sizes(served) -> None:
     image = query_pngs(served)[0]
-    for auth, status in [(f"bearer {TOKEN}", 200), (f"BEARER  {TOKEN}", 200), (f"Bearer {TOKEN.upper()}", 401),
-                         (f"Basic {TOKEN}", 401), (f"Bearer{TOKEN}", 401)]:
+    for auth, status in [
+        (f"bearer {TOKEN}", 200),
+        (f"BEARER  {TOKEN}", 200),
+        (f"Bearer {TOKEN.upper()}", 401),
+        (f"Basic {TOKEN}", 401),
+        (f"Bearer{TOKEN}", 401),
+    ]:
         assert httpx.get(served.url + "/v1/maps", headers={"Authorization": auth}).status_code == status, auth
     assert post(served, image, auth=f"bearer {TOKEN}").status_code == 200
     camera = served.camera.split()
     for width in (f"{camera[1]}.5", "1241.5"):
-        r = httpx.post(served.url + "/v1/localize", files={"image": ("f.png", image)},
-                       data={"camera": " ".join([camera[0], width, *camera[2:]])},
-                       headers={"Authorization": f"Bearer {TOKEN}"}, timeout=60)
+        r = httpx.post(
+            served.url + "/v1/localize",
+            files={"image": ("f.png", image)},
+            data={"camera": " ".join([camera[0], width, *camera[2:]])},
+            headers={"Authorization": f"Bearer {TOKEN}"},
+            timeout=60,
+        )
         assert r.status_code == 400 and "camera" in r.json()["error"] and "whole pixel" in r.json()["error"]

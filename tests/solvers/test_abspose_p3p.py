@@ -10,7 +10,9 @@ from planarloc.geometry.validation import InputError
 from planarloc.solvers import abspose_p3p
 
 
-def p3p_case(rng: np.random.Generator, unit_rays: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+def p3p_case(
+    rng: np.random.Generator, unit_rays: bool = False
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     R = Rotation.random(random_state=int(rng.integers(1 << 31))).as_matrix()
     t = rng.uniform(-3, 3, 3)
     Xc = rng.uniform([-3, -3, 1], [3, 3, 12], (3, 3))
@@ -30,8 +32,11 @@ def test_exact_recovery_and_cheirality(unit_rays: bool) -> None:
             assert np.allclose(p.R @ p.R.T, np.eye(3), atol=1e-9) and np.linalg.det(p.R) > 0
             Xc = X @ p.R.T + p.t
             assert np.all(Xc[:, 2] > 0)
-            cos = np.einsum("ij,ij->i", Xc / np.linalg.norm(Xc, axis=1, keepdims=True),
-                            x / np.linalg.norm(x, axis=1, keepdims=True))
+            cos = np.einsum(
+                "ij,ij->i",
+                Xc / np.linalg.norm(Xc, axis=1, keepdims=True),
+                x / np.linalg.norm(x, axis=1, keepdims=True),
+            )
             assert np.all(cos > 1 - 1e-9)
 
 

@@ -9,8 +9,15 @@ import pytest
 
 import planarloc.solvers as S
 
-NAMES = ["relpose_planar_2p", "relpose_5p_nister", "relpose_5p_stewenius", "relpose_8p", "abspose_2p1p",
-         "abspose_2p2p", "abspose_up2p"]
+NAMES = [
+    "relpose_planar_2p",
+    "relpose_5p_nister",
+    "relpose_5p_stewenius",
+    "relpose_8p",
+    "abspose_2p1p",
+    "abspose_2p2p",
+    "abspose_up2p",
+]
 
 
 @pytest.mark.parametrize("name", NAMES)
@@ -29,4 +36,6 @@ def test_package_function_solves() -> None:
     xq = X / X[:, 2:]
     Xr = X @ truth.R.T + truth.t
     poses = S.relpose_planar_2p(xq, Xr / Xr[:, 2:])
-    assert any(np.allclose(p.R, truth.R) and np.allclose(p.t, truth.t / np.linalg.norm(truth.t)) for p in poses)
+    assert any(
+        np.allclose(p.R, truth.R) and np.allclose(p.t, truth.t / np.linalg.norm(truth.t)) for p in poses
+    )

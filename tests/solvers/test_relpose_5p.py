@@ -31,10 +31,6 @@ SOLVERS = {
 }
 
 
-
-
-
-
 def best_error(poses, R, t):
     return min((pose_error(p, R, t) for p in poses), default=np.inf)
 

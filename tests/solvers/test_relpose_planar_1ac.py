@@ -79,7 +79,9 @@ def test_batch_matches_single_calls_and_reports_zero_imbalance() -> None:
 def test_parallel_batch_path_agrees() -> None:
     _theta, _phi, _R, t, xq, xr, A = affine_scenes(np.random.default_rng(4), 300)
     reps = 5000 // 300 + 1  # above the parallel threshold
-    _Rb, tb, valid, _ = relpose_planar_1ac_batch(np.tile(xq, (reps, 1)), np.tile(xr, (reps, 1)), np.tile(A, (reps, 1, 1)))
+    _Rb, tb, valid, _ = relpose_planar_1ac_batch(
+        np.tile(xq, (reps, 1)), np.tile(xr, (reps, 1)), np.tile(A, (reps, 1, 1))
+    )
     assert valid.all()
     np.testing.assert_allclose(tb[:, 0], np.tile(t, (reps, 1)), atol=EXACT)
 

@@ -102,7 +102,11 @@ def test_batch_agrees_with_single(seed: int) -> None:
     rng = np.random.default_rng(100 + seed)
     theta, phi, R, t, xq, xr, _ = planar_scenes(rng, 1000)
     Rs, ts, valid = relpose_planar_2p_batch(xq, xr)
-    assert valid.shape == (len(theta), 2) and Rs.shape == (len(theta), 2, 3, 3) and ts.shape == (len(theta), 2, 3)
+    assert (
+        valid.shape == (len(theta), 2)
+        and Rs.shape == (len(theta), 2, 3, 3)
+        and ts.shape == (len(theta), 2, 3)
+    )
     assert not np.any(valid[:, 1] & ~valid[:, 0])  # valid solutions are packed first
     # Identical to the single-call API on a subset.
     for i in rng.choice(len(theta), 300, replace=False):

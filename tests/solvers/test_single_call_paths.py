@@ -30,7 +30,9 @@ RELPOSE = {  # name: (function, number of matches, planar scene)
 
 
 def _arrays(result: list) -> list[np.ndarray]:
-    return [np.concatenate([r.R.ravel(), r.t]) if isinstance(r, Pose) else np.asarray(r).ravel() for r in result]
+    return [
+        np.concatenate([r.R.ravel(), r.t]) if isinstance(r, Pose) else np.asarray(r).ravel() for r in result
+    ]
 
 
 def _same(a: list, b: list) -> None:

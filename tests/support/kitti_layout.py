@@ -18,8 +18,12 @@ def kitti_row(values: object) -> str:
     return " ".join(f"{v:.17g}" for v in np.ravel(values)) + "\n"
 
 
-def write_kitti_sequence(frames: Sequence[PosedImage], root: Path, times: Sequence[float] | None = None,
-                         world_from_kitti: Pose | None = None) -> Path:
+def write_kitti_sequence(
+    frames: Sequence[PosedImage],
+    root: Path,
+    times: Sequence[float] | None = None,
+    world_from_kitti: Pose | None = None,
+) -> Path:
     """``frames`` (one pinhole camera) as the KITTI sequence ``root``: images ``image_l/<k>.png``,
     their poses (camera-to-world rows of ``poses.txt``; in the KITTI world ``world_from_kitti``
     relates to the frames' world, default the same), ``calib.txt`` and ``times.txt`` when
@@ -29,7 +33,8 @@ def write_kitti_sequence(frames: Sequence[PosedImage], root: Path, times: Sequen
     for k, im in enumerate(frames):
         shutil.copy(im.path, root / "image_l" / f"{k:06d}.png")
     (root / "poses.txt").write_text(
-        "".join(kitti_row((im.cam_from_world @ world_from_kitti).inverse().matrix) for im in frames))
+        "".join(kitti_row((im.cam_from_world @ world_from_kitti).inverse().matrix) for im in frames)
+    )
     fx, fy, cx, cy = frames[0].camera.params
     (root / "calib.txt").write_text(kitti_row([[fx, 0, cx, 0], [0, fy, cy, 0], [0, 0, 1, 0]]))
     if times is not None:

@@ -41,8 +41,20 @@ def other_user() -> pwd.struct_passwd:
     except KeyError:
         if shutil.which("useradd") is None:
             pytest.skip(f"needs a user {USER!r} or useradd to create it")
-        subprocess.run(["useradd", "--system", "--no-create-home", "--home-dir", "/nonexistent", "--shell",
-                        "/usr/sbin/nologin", USER], check=True, capture_output=True)
+        subprocess.run(
+            [
+                "useradd",
+                "--system",
+                "--no-create-home",
+                "--home-dir",
+                "/nonexistent",
+                "--shell",
+                "/usr/sbin/nologin",
+                USER,
+            ],
+            check=True,
+            capture_output=True,
+        )
         return pwd.getpwnam(USER)
 
 
@@ -74,7 +86,9 @@ def _enterable_by_others(path: Path) -> Path | None:
 
 def _interpreter_mounts(stage: Path) -> list[str]:
     """Shell lines that expose the interpreter's installation where its folder is closed to others."""
-    needed = sorted({Path(sys.base_prefix).resolve(), Path(os.path.realpath(sys.executable)).parent, Path(sys.prefix)})
+    needed = sorted(
+        {Path(sys.base_prefix).resolve(), Path(os.path.realpath(sys.executable)).parent, Path(sys.prefix)}
+    )
     lines, hidden = [], []
     for i, path in enumerate(needed):
         closed = _enterable_by_others(path)
@@ -86,8 +100,10 @@ def _interpreter_mounts(stage: Path) -> list[str]:
     for closed in sorted({c for c, _, _ in hidden}):
         lines.append(f"mount -t tmpfs -o mode=755 tmpfs {shlex.quote(str(closed))}")
     for _, path, staged in hidden:
-        lines.append(f"mkdir -p {shlex.quote(str(path))} && mount --move {shlex.quote(str(staged))} "
-                     f"{shlex.quote(str(path))}")
+        lines.append(
+            f"mkdir -p {shlex.quote(str(path))} && mount --move {shlex.quote(str(staged))} "
+            f"{shlex.quote(str(path))}"
+        )
     return lines
 
 
@@ -95,11 +111,23 @@ def _interpreter_mounts(stage: Path) -> list[str]:
 def _can_unshare() -> bool:
     if shutil.which("unshare") is None:
         return False
-    return subprocess.run(["unshare", "--mount", "--propagation", "private", "true"], capture_output=True).returncode == 0
+    return (
+        subprocess.run(
+            ["unshare", "--mount", "--propagation", "private", "true"], capture_output=True
+        ).returncode
+        == 0
+    )
 
 
-def run_as(user: pwd.struct_passwd, argv: Sequence[object], *, env: dict[str, str], cwd: Path | str = "/",
-           read_only_tmp: bool = False, timeout: float = 900) -> subprocess.CompletedProcess:
+def run_as(
+    user: pwd.struct_passwd,
+    argv: Sequence[object],
+    *,
+    env: dict[str, str],
+    cwd: Path | str = "/",
+    read_only_tmp: bool = False,
+    timeout: float = 900,
+) -> subprocess.CompletedProcess:
     """Run ``argv`` as ``user`` with exactly ``env`` (add ``HOME`` to give one)."""
     argv = [str(a) for a in argv]
     drop = ["setpriv", f"--reuid={user.pw_uid}", f"--regid={user.pw_gid}", "--clear-groups", *argv]
@@ -112,8 +140,10 @@ def run_as(user: pwd.struct_passwd, argv: Sequence[object], *, env: dict[str, st
     if lines:
         if not _can_unshare():
             shutil.rmtree(stage, ignore_errors=True)
-            pytest.skip("needs a private mount namespace (unshare --mount): the interpreter is in a folder other "
-                        "users cannot enter, or read_only_tmp was asked for")
+            pytest.skip(
+                "needs a private mount namespace (unshare --mount): the interpreter is in a folder other "
+                "users cannot enter, or read_only_tmp was asked for"
+            )
         script = " && ".join([*lines, 'exec "$@"'])
         drop = ["unshare", "--mount", "--propagation", "private", "sh", "-c", script, "sh", *drop]
     try:
@@ -127,7 +157,10 @@ def base_env(**extra: str) -> dict[str, str]:
     (no HOME, no TMPDIR, no NUMBA_*)."""
     import planarloc
 
-    env = {"PATH": os.environ.get("PATH", "/usr/bin:/bin"), "LANG": "C.UTF-8",
-           "PYTHONPATH": str(Path(planarloc.__file__).resolve().parents[1])}
+    env = {
+        "PATH": os.environ.get("PATH", "/usr/bin:/bin"),
+        "LANG": "C.UTF-8",
+        "PYTHONPATH": str(Path(planarloc.__file__).resolve().parents[1]),
+    }
     env.update(extra)
     return env

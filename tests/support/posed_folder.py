@@ -26,8 +26,11 @@ def posed_folder(root: Path, n: int = 4, seed: int = 0, camera: Camera = CAMERA)
     for k in range(n):
         name = f"image_l/{k:06d}.png"
         cv2.imwrite(str(root / name), textured_image(rng, camera.height, camera.width))
-        out.append(PosedImage(name, (root / name).absolute(), Pose(np.eye(3), np.array([-float(k), 0.0, 0.0])),
-                              camera, k))
+        out.append(
+            PosedImage(
+                name, (root / name).absolute(), Pose(np.eye(3), np.array([-float(k), 0.0, 0.0])), camera, k
+            )
+        )
     return out
 
 
@@ -35,5 +38,7 @@ def shifted(images: list[PosedImage], dx: float) -> list[PosedImage]:
     """The same images with every camera moved by ``dx`` metres along x."""
     import dataclasses
 
-    return [dataclasses.replace(im, cam_from_world=Pose(im.cam_from_world.R, im.cam_from_world.t - [dx, 0, 0]))
-            for im in images]
+    return [
+        dataclasses.replace(im, cam_from_world=Pose(im.cam_from_world.R, im.cam_from_world.t - [dx, 0, 0]))
+        for im in images
+    ]

@@ -42,8 +42,10 @@ def check(name: str, value: object, where: str = "") -> object:
     errors = sorted(validator(name).iter_errors(doc), key=lambda e: list(e.absolute_path))
     if errors:
         e = errors[0]
-        raise AssertionError(f"{where or name}: {len(errors)} schema error(s); first at "
-                             f"/{'/'.join(map(str, e.absolute_path))}: {e.message[:300]}")
+        raise AssertionError(
+            f"{where or name}: {len(errors)} schema error(s); first at "
+            f"/{'/'.join(map(str, e.absolute_path))}: {e.message[:300]}"
+        )
     return doc
 
 

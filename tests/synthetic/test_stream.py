@@ -18,8 +18,16 @@ CAM = Camera("PINHOLE", 64, 48, (50.0, 50.0, 32.0, 24.0))
 
 
 def _images(n: int) -> list[PosedImage]:
-    return [PosedImage(f"{k}.png", Path(f"{k}.png"), Pose.from_center(so3_exp([[0, 0.1 * k, 0]])[0], [0, 0, 1.0 * k]),
-                       CAM, k) for k in range(n)]
+    return [
+        PosedImage(
+            f"{k}.png",
+            Path(f"{k}.png"),
+            Pose.from_center(so3_exp([[0, 0.1 * k, 0]])[0], [0, 0, 1.0 * k]),
+            CAM,
+            k,
+        )
+        for k in range(n)
+    ]
 
 
 def test_order_keeps_every_frame_once_and_drops() -> None:
@@ -36,7 +44,7 @@ def test_kidnaps_are_jumps_not_drops_and_stamps_increase() -> None:
     assert [f.kidnapped for f in frames] == [False, False, True, False, True, False, False]
     stamps = [f.stamp for f in frames]
     assert np.all(np.diff(stamps) > 0)
-    assert stamps[3] - stamps[2] == pytest.approx(0.2)   # 5 -> 7: one frame dropped
+    assert stamps[3] - stamps[2] == pytest.approx(0.2)  # 5 -> 7: one frame dropped
 
 
 def test_odometry_follows_the_truth_and_ignores_kidnaps() -> None:
@@ -46,7 +54,7 @@ def test_odometry_follows_the_truth_and_ignores_kidnaps() -> None:
     for k in (1, 3):
         measured = odo[k] @ odo[k - 1].inverse()
         assert max(pose_errors(measured, truth[k] @ truth[k - 1].inverse())) < 1e-9
-    assert max(pose_errors(odo[2], odo[1])) < 1e-9                      # carried: the wheels did not turn
+    assert max(pose_errors(odo[2], odo[1])) < 1e-9  # carried: the wheels did not turn
     noisy = simulate_odometry(truth, [False] * 4, np.random.default_rng(0), 0.05, 1.0)
     err = pose_errors(noisy[1] @ noisy[0].inverse(), truth[1] @ truth[0].inverse())
     assert 0 < err[0] < 0.5 and 0 < err[1] < 5

@@ -118,9 +118,11 @@ def test_existing_presets_unchanged():
     # options must not change them (nor the random streams of their floor jitter).
     c = get_preset("office")
     m, q = build_sessions(dataclasses.replace(c, scene=dataclasses.replace(c.scene, px_per_m=40.0)), seed=0)
-    R3 = [[0.8825761584140888, 0.009201720980649806, 0.4700794113019881],
-          [-0.004257638222708759, 0.999923889816133, -0.01157959808191193],
-          [-0.4701501857021796, 0.008218449121845207, 0.882548162979357]]
+    R3 = [
+        [0.8825761584140888, 0.009201720980649806, 0.4700794113019881],
+        [-0.004257638222708759, 0.999923889816133, -0.01157959808191193],
+        [-0.4701501857021796, 0.008218449121845207, 0.882548162979357],
+    ]
     np.testing.assert_allclose(q.R[3], R3, atol=1e-12)
     t3 = [-7.405734647348958, 1.075905718506971, -0.934279342664057]
     np.testing.assert_allclose(q.t[3], t3, atol=1e-12)
@@ -130,8 +132,13 @@ def test_existing_presets_unchanged():
 def test_mount_pitch_and_roll_exact_centres_kept():
     base = shrunk(get_preset("office"), n_map=6, n_query=5)
     pitch, roll, q_pitch, q_roll = 10.0, -2.0, 13.0, 1.5
-    tc = dataclasses.replace(base.trajectory, mount_pitch_deg=pitch, mount_roll_deg=roll,
-                             query_mount_pitch_deg=q_pitch, query_mount_roll_deg=q_roll)
+    tc = dataclasses.replace(
+        base.trajectory,
+        mount_pitch_deg=pitch,
+        mount_roll_deg=roll,
+        query_mount_pitch_deg=q_pitch,
+        query_mount_roll_deg=q_roll,
+    )
     upright = dataclasses.replace(base, query_effects=dataclasses.replace(base.query_effects, tilt_deg=0.0))
     mounted = dataclasses.replace(upright, trajectory=tc)
     mounts = [(pitch, roll), (q_pitch, q_roll)]

@@ -22,23 +22,40 @@ HERE = os.path.dirname(os.path.abspath(__file__))
 
 
 def generate_launch_description():
-    return LaunchDescription([
-        DeclareLaunchArgument("map", description="the map file (planarloc map build ... --out MAP.db)"),
-        DeclareLaunchArgument("params_file", default_value=os.path.join(HERE, "params.yaml"),
-                              description="the node's ROS parameters (every one with its default in params.yaml)"),
-        DeclareLaunchArgument("planarloc", default_value="planarloc",
-                              description="the planarloc executable (e.g. /path/to/venv/bin/planarloc)"),
-        DeclareLaunchArgument("rviz", default_value="false", description="also start rviz2 with planarloc.rviz"),
-        ExecuteProcess(
-            name="planarloc",
-            cmd=[LaunchConfiguration("planarloc"), "ros2", "--map", LaunchConfiguration("map"),
-                 "--ros-args", "--params-file", LaunchConfiguration("params_file")],
-            output="screen",
-        ),
-        ExecuteProcess(
-            name="rviz2",
-            cmd=["rviz2", "-d", os.path.join(HERE, "planarloc.rviz")],
-            condition=IfCondition(LaunchConfiguration("rviz")),
-            output="screen",
-        ),
-    ])
+    return LaunchDescription(
+        [
+            DeclareLaunchArgument("map", description="the map file (planarloc map build ... --out MAP.db)"),
+            DeclareLaunchArgument(
+                "params_file",
+                default_value=os.path.join(HERE, "params.yaml"),
+                description="the node's ROS parameters (every one with its default in params.yaml)",
+            ),
+            DeclareLaunchArgument(
+                "planarloc",
+                default_value="planarloc",
+                description="the planarloc executable (e.g. /path/to/venv/bin/planarloc)",
+            ),
+            DeclareLaunchArgument(
+                "rviz", default_value="false", description="also start rviz2 with planarloc.rviz"
+            ),
+            ExecuteProcess(
+                name="planarloc",
+                cmd=[
+                    LaunchConfiguration("planarloc"),
+                    "ros2",
+                    "--map",
+                    LaunchConfiguration("map"),
+                    "--ros-args",
+                    "--params-file",
+                    LaunchConfiguration("params_file"),
+                ],
+                output="screen",
+            ),
+            ExecuteProcess(
+                name="rviz2",
+                cmd=["rviz2", "-d", os.path.join(HERE, "planarloc.rviz")],
+                condition=IfCondition(LaunchConfiguration("rviz")),
+                output="screen",
+            ),
+        ]
+    )

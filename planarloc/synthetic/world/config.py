@@ -44,8 +44,10 @@ class CameraConfig:
     cy: float | None = None
 
     def __post_init__(self) -> None:
-        _require(_ints_at_least(16, self.width, self.height),
-                 f"camera size must be integers >= 16, got {self.width}x{self.height}")
+        _require(
+            _ints_at_least(16, self.width, self.height),
+            f"camera size must be integers >= 16, got {self.width}x{self.height}",
+        )
         _require(
             _finite(self.fx, self.fy) and self.fx > 0 and self.fy > 0,
             f"camera focal lengths must be positive, got {self.fx}, {self.fy}",
@@ -178,8 +180,10 @@ class TrajectoryConfig:
         _require(
             self.shape in ("loop", "line"), f"trajectory shape must be 'loop' or 'line', got {self.shape!r}"
         )
-        _require(_ints_at_least(2, self.n_map, self.n_query),
-                 f"n_map and n_query must be integers >= 2, got {self.n_map}, {self.n_query}")
+        _require(
+            _ints_at_least(2, self.n_map, self.n_query),
+            f"n_map and n_query must be integers >= 2, got {self.n_map}, {self.n_query}",
+        )
         _require(
             _finite(self.camera_height) and self.camera_height >= 0.1,
             f"camera_height must be >= 0.1 m, got {self.camera_height}",

@@ -129,8 +129,14 @@ class FreeFloor:
     size_max: tuple[float, float, float]
 
 
-def place_boxes(rng: np.random.Generator, floor: FreeFloor, count: int, existing: tuple[Box, ...] = (),
-                against_wall_fraction: float = 0.6, gap_m: float = 0.1) -> tuple[Box, ...]:
+def place_boxes(
+    rng: np.random.Generator,
+    floor: FreeFloor,
+    count: int,
+    existing: tuple[Box, ...] = (),
+    against_wall_fraction: float = 0.6,
+    gap_m: float = 0.1,
+) -> tuple[Box, ...]:
     """Randomly place ``count`` boxes on the free floor, clear of its keep-out points and each other.
 
     A fraction of the boxes stands against a wall facing into the room, the rest anywhere at a
@@ -160,8 +166,9 @@ def place_boxes(rng: np.random.Generator, floor: FreeFloor, count: int, existing
     return tuple(placed)
 
 
-def rearrange_boxes(rng: np.random.Generator, floor: FreeFloor, boxes: tuple[Box, ...], n_move: int,
-                    n_add: int) -> tuple[Box, ...]:
+def rearrange_boxes(
+    rng: np.random.Generator, floor: FreeFloor, boxes: tuple[Box, ...], n_move: int, n_add: int
+) -> tuple[Box, ...]:
     """Move ``n_move`` of ``boxes`` to new random spots (same size and look) and add ``n_add`` new boxes.
 
     Returns:

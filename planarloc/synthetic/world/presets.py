@@ -36,8 +36,15 @@ def office() -> WorldConfig:
         name="office",
         camera=CameraConfig(),
         scene=SceneConfig(kind="room", size_x=8.0, size_z=6.0, height=2.6, n_boxes=6, n_posters=12),
-        trajectory=TrajectoryConfig(shape="loop", n_map=40, n_query=30, wall_margin=1.4, lateral_offset=0.3,
-                                    yaw_offset_deg=20.0, yaw_wobble_deg=8.0),
+        trajectory=TrajectoryConfig(
+            shape="loop",
+            n_map=40,
+            n_query=30,
+            wall_margin=1.4,
+            lateral_offset=0.3,
+            yaw_offset_deg=20.0,
+            yaw_wobble_deg=8.0,
+        ),
         map_effects=EffectsConfig(),
         query_effects=EffectsConfig(noise_sigma=2.0, tilt_deg=1.0),
     )
@@ -49,10 +56,19 @@ def corridor() -> WorldConfig:
     return dataclasses.replace(
         base,
         name="corridor",
-        scene=SceneConfig(kind="corridor", size_x=2.6, size_z=20.0, height=2.6, n_boxes=3,
-                          box_size_min=(0.4, 0.4, 0.3), box_size_max=(1.0, 1.4, 0.5), n_posters=10),
-        trajectory=dataclasses.replace(base.trajectory, shape="line", wall_margin=1.0, yaw_offset_deg=0.0,
-                                       yaw_wobble_deg=0.0),
+        scene=SceneConfig(
+            kind="corridor",
+            size_x=2.6,
+            size_z=20.0,
+            height=2.6,
+            n_boxes=3,
+            box_size_min=(0.4, 0.4, 0.3),
+            box_size_max=(1.0, 1.4, 0.5),
+            n_posters=10,
+        ),
+        trajectory=dataclasses.replace(
+            base.trajectory, shape="line", wall_margin=1.0, yaw_offset_deg=0.0, yaw_wobble_deg=0.0
+        ),
     )
 
 
@@ -66,8 +82,17 @@ def lifelong() -> WorldConfig:
         scene=base.scene,
         trajectory=base.trajectory,
         map_effects=base.map_effects,
-        query_effects=EffectsConfig(gain=0.75, gamma=1.3, shading_gradient=0.35, shading_angle_deg=30.0,
-                                    noise_sigma=3.0, blur_sigma=0.7, tilt_deg=1.5, moved_boxes=2, added_boxes=2),
+        query_effects=EffectsConfig(
+            gain=0.75,
+            gamma=1.3,
+            shading_gradient=0.35,
+            shading_angle_deg=30.0,
+            noise_sigma=3.0,
+            blur_sigma=0.7,
+            tilt_deg=1.5,
+            moved_boxes=2,
+            added_boxes=2,
+        ),
     )
 
 
@@ -126,7 +151,10 @@ def preset_names() -> tuple[str, ...]:
 
 def preset_summaries() -> dict[str, str]:
     """``{name: one line}`` of every preset (its docstring's first paragraph), e.g. for a help page."""
-    return {name: " ".join((fn.__doc__ or "").split("\n\n")[0].split()).replace("``", "") for name, fn in PRESETS.items()}
+    return {
+        name: " ".join((fn.__doc__ or "").split("\n\n")[0].split()).replace("``", "")
+        for name, fn in PRESETS.items()
+    }
 
 
 def get_preset(name: str) -> WorldConfig:

@@ -414,8 +414,14 @@ def box_planes(box: Box, px_per_m: float = 200.0, name: str = "box") -> list[Pla
     wooden = rng.random() < 0.35
     planes = []
 
-    def face(corner_xz: np.ndarray, u: np.ndarray, v: np.ndarray, extent_m: tuple[float, float],
-             normal_xz: np.ndarray | None, label: str) -> None:
+    def face(
+        corner_xz: np.ndarray,
+        u: np.ndarray,
+        v: np.ndarray,
+        extent_m: tuple[float, float],
+        normal_xz: np.ndarray | None,
+        label: str,
+    ) -> None:
         """One face from its top corner and edges, in wood or cardboard, shaded by its normal (a side)."""
         size = _texture_size(*extent_m, px_per_m)
         tex = materials.wood(rng, *size, px_per_m) if wooden else materials.cardboard(rng, *size, px_per_m)
@@ -423,11 +429,28 @@ def box_planes(box: Box, px_per_m: float = 200.0, name: str = "box") -> list[Pla
         planes.append(Plane(_xz_to_3d(corner_xz, -height), u, v, shaded, f"{name}.{label}"))
 
     # (outward normal, half extent along it, face width); viewer's right on a face is (-n_z, n_x).
-    sides = ((fwd, depth / 2, width), (right, width / 2, depth), (-fwd, depth / 2, width), (-right, width / 2, depth))
+    sides = (
+        (fwd, depth / 2, width),
+        (right, width / 2, depth),
+        (-fwd, depth / 2, width),
+        (-right, width / 2, depth),
+    )
     for k, (n, half, face_w) in enumerate(sides):
         face_right = np.array([-n[1], n[0]])
-        face(c + n * half - face_right * face_w / 2, _xz_to_3d(face_right * face_w, 0.0),
-             np.array([0.0, height, 0.0]), (face_w, height), n, f"side{k}")
-    face(c - right * width / 2 - fwd * depth / 2, _xz_to_3d(right * width, 0.0), _xz_to_3d(fwd * depth, 0.0),
-         (width, depth), None, "top")
+        face(
+            c + n * half - face_right * face_w / 2,
+            _xz_to_3d(face_right * face_w, 0.0),
+            np.array([0.0, height, 0.0]),
+            (face_w, height),
+            n,
+            f"side{k}",
+        )
+    face(
+        c - right * width / 2 - fwd * depth / 2,
+        _xz_to_3d(right * width, 0.0),
+        _xz_to_3d(fwd * depth, 0.0),
+        (width, depth),
+        None,
+        "top",
+    )
     return planes

@@ -49,8 +49,11 @@ def planar_poses(
     yaw = np.asarray(yaw, dtype=np.float64).reshape(-1)
     if len(xz) != len(yaw):
         raise ValueError(f"planar_poses: {len(xz)} positions but {len(yaw)} yaws")
-    height = np.broadcast_to(np.asarray(camera_height, dtype=np.float64), (len(xz),)) \
-        if np.ndim(camera_height) == 0 else np.asarray(camera_height, dtype=np.float64)
+    height = (
+        np.broadcast_to(np.asarray(camera_height, dtype=np.float64), (len(xz),))
+        if np.ndim(camera_height) == 0
+        else np.asarray(camera_height, dtype=np.float64)
+    )
     if height.shape != (len(xz),) or not np.all(height > 0):
         raise ValueError(f"camera_height must be positive, one value or one per pose, got {camera_height!r}")
     centers = np.column_stack([xz[:, 0], -height, xz[:, 1]])

@@ -36,12 +36,17 @@ def main(out: Path) -> None:
                 f = db.get_features(name)
                 record["images"][name] = {
                     "num": len(f),
-                    "sha256": {k: hashlib.sha256(getattr(f, k).tobytes()).hexdigest()
-                               for k in ("keypoints", "descriptors", "scales")},
+                    "sha256": {
+                        k: hashlib.sha256(getattr(f, k).tobytes()).hexdigest()
+                        for k in ("keypoints", "descriptors", "scales")
+                    },
                 }
             ids, g = db.get_global_descriptors()
-            record["global"] = {"ids": ids.tolist(), "shape": list(g.shape),
-                                "sha256": hashlib.sha256(g.tobytes()).hexdigest()}
+            record["global"] = {
+                "ids": ids.tolist(),
+                "shape": list(g.shape),
+                "sha256": hashlib.sha256(g.tobytes()).hexdigest(),
+            }
         with open(path, "rb") as src, gzip.open(out / "map_v1.db.gz", "wb", compresslevel=9) as dst:
             shutil.copyfileobj(src, dst)
         (out / "map_v1.json").write_text(json.dumps(record, indent=1) + "\n")
