@@ -210,7 +210,8 @@ class Camera:
         and ``RADIAL`` -> ``OPENCV`` with ``p1 = p2 = 0``); distortion is unchanged."""
         sy = sx if sy is None else sy
         (fx, fy), (cx, cy) = self.focal, self.principal_point
-        model = _TWO_FOCAL.get(self.model, self.model)
+        model = CameraModel(self.model)  # already one (__post_init__); typed for the lookup
+        model = _TWO_FOCAL.get(model, model)
         p = (fx * sx, fy * sy, sx * (cx + 0.5) - 0.5, sy * (cy + 0.5) - 0.5)
         if model != CameraModel.PINHOLE:
             p = (*p, *self.distortion)
@@ -439,8 +440,8 @@ def distort_fisheye_angle(theta: np.ndarray, dist: np.ndarray) -> np.ndarray:
     return theta * (1.0 + t2 * (k1 + t2 * (k2 + t2 * (k3 + t2 * k4))))
 
 
-def _fisheye_slope(theta: np.ndarray, dist: np.ndarray) -> np.ndarray:
-    """(N,) derivative ``dθ_d / dθ`` of :func:`distort_fisheye_angle`."""
+def _fisheye_slope(theta: np.ndarray | float, dist: np.ndarray) -> np.ndarray | float:
+    """(N,) (or scalar) derivative ``dθ_d / dθ`` of :func:`distort_fisheye_angle`."""
     k1, k2, k3, k4 = dist
     t2 = theta * theta
     return 1.0 + t2 * (3.0 * k1 + t2 * (5.0 * k2 + t2 * (7.0 * k3 + t2 * 9.0 * k4)))

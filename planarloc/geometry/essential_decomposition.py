@@ -19,7 +19,7 @@ from numba import njit
 
 from planarloc.geometry.epipolar import triangulation_depths
 from planarloc.geometry.pose import Pose
-from planarloc.geometry.validation import InputError, are_plain_float64, check_array
+from planarloc.geometry.validation import InputError, check_array, plain_float64_pair
 
 __all__ = [
     "check_correspondence_batch",
@@ -95,10 +95,11 @@ def solve_correspondences(
     Returns:
         ``(n, xq, xr)``: the kernel's result and the arrays it ran on.
     """
-    if are_plain_float64(x_query, x_ref, 2):
-        n = kernel(x_query, x_ref, out)
+    pair = plain_float64_pair(x_query, x_ref, 2)
+    if pair is not None:
+        n = kernel(*pair, out)
         if n != -1:
-            return n, x_query, x_ref  # type: ignore[return-value]
+            return n, *pair
     xq, xr = check_correspondences(x_query, x_ref, rows=rows, min_rows=min_rows)
     n = kernel(xq, xr, out)
     if n == -1:  # pragma: no cover - the kernel and the checks reject the same input

@@ -91,7 +91,7 @@ class Pose:
         if n < 1e-12:
             raise ValueError("quat_wxyz: zero quaternion does not describe a rotation")
         R = Rotation.from_quat(q[[1, 2, 3, 0]] / n).as_matrix()
-        return cls(R, t)
+        return cls(R, check_array("t", t, (3,)))
 
     @classmethod
     def from_matrix(cls, T: object) -> Pose:

@@ -87,7 +87,7 @@ def check_array(
         InputError: with expected vs. actual shape, or the index of the first non-finite entry.
     """
     try:
-        arr = np.ascontiguousarray(value, dtype=dtype)
+        arr: np.ndarray = np.ascontiguousarray(value, dtype=dtype)
     except (TypeError, ValueError) as exc:
         raise InputError(f"{name}: expected a numeric array, got {type(value).__name__} ({exc})") from None
     if not arr.flags.writeable:
@@ -105,21 +105,31 @@ def check_array(
     return arr
 
 
-def are_plain_float64(a: object, b: object, ndim: int) -> bool:
-    """True if ``a`` and ``b`` are both exactly writable C-contiguous float64 ``ndarray``s with
-    ``ndim`` dimensions.
+def plain_float64_pair(a: object, b: object, ndim: int) -> tuple[np.ndarray, np.ndarray] | None:
+    """``(a, b)`` if both are exactly writable C-contiguous float64 ``ndarray``s with ``ndim``
+    dimensions, else None.
 
     The gate of the single-call solver APIs (which all take two arrays): such input goes
     straight to a compiled kernel that validates the values itself (:func:`rays_invalid`);
     anything else (lists, other dtypes, views with strides, read-only arrays, subclasses) goes
     through :func:`check_array`, which converts it or raises its usual message. Costs ~0.35 µs.
+    The pair comes back typed as arrays, so a caller passes it on without a cast::
+
+        pair = plain_float64_pair(x_query, x_ref, 2)
+        n = kernel(*pair, out) if pair is not None else -1
     """
     if type(a) is not np.ndarray or type(b) is not np.ndarray:
-        return False
+        return None
     if a.dtype is not _FLOAT64 or b.dtype is not _FLOAT64 or a.ndim != ndim or b.ndim != ndim:
-        return False
+        return None
     fa, fb = a.flags, b.flags
-    return fa.c_contiguous and fb.c_contiguous and fa.writeable and fb.writeable
+    return (a, b) if fa.c_contiguous and fb.c_contiguous and fa.writeable and fb.writeable else None
+
+
+def are_plain_float64(a: object, b: object, ndim: int) -> bool:
+    """True if :func:`plain_float64_pair` accepts ``a`` and ``b``: both exactly writable
+    C-contiguous float64 ``ndarray``s with ``ndim`` dimensions."""
+    return plain_float64_pair(a, b, ndim) is not None
 
 
 @njit(cache=True)

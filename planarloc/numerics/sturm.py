@@ -18,7 +18,7 @@ __all__ = ["polyval", "real_roots_sturm"]
 
 
 @njit(cache=True)
-def polyval(c: np.ndarray, deg: int, z: float) -> float:
+def polyval(c: np.ndarray, deg: int | np.integer, z: float) -> float:
     """Horner evaluation of ``c[0] + ... + c[deg] z^deg``."""
     r = c[deg]
     for k in range(deg - 1, -1, -1):
@@ -57,7 +57,7 @@ def _sign_changes(S, degs, ns, quot, linear, z) -> int:
 
 
 @njit(cache=True)
-def _sign_changes_at_infinity(S: np.ndarray, degs: np.ndarray, ns: int, positive: bool) -> int:
+def _sign_changes_at_infinity(S: np.ndarray, degs: np.ndarray, ns: int, positive: bool | np.bool_) -> int:
     count = 0
     last = 0.0
     for k in range(ns):

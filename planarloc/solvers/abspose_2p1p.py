@@ -25,7 +25,7 @@ from numba import njit
 from planarloc.geometry import mat3 as m3
 from planarloc.geometry.essential_decomposition import midpoint_depths
 from planarloc.geometry.pose import Pose
-from planarloc.geometry.validation import are_plain_float64, check_array
+from planarloc.geometry.validation import check_array, plain_float64_pair
 
 
 @dataclass(frozen=True)
@@ -151,8 +151,9 @@ def abspose_2p1p(
     )
     out = np.empty((1, 4, 3))
     n = -1
-    if are_plain_float64(x_query, x_ref2, 1):
-        n, rho, lq, lr = _abspose(*poses, x_query, x_ref2, out)
+    pair = plain_float64_pair(x_query, x_ref2, 1)
+    if pair is not None:
+        n, rho, lq, lr = _abspose(*poses, *pair, out)
     if n == -1:  # not a plain float64 array, or invalid: convert, or raise the usual message
         xq = check_array("x_query", x_query, (3,))
         n, rho, lq, lr = _abspose(*poses, xq, check_array("x_ref2", x_ref2, (3,)), out)

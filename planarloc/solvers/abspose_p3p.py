@@ -24,7 +24,7 @@ from numba import njit
 
 from planarloc.geometry import mat3 as m3
 from planarloc.geometry.pose import Pose
-from planarloc.geometry.validation import InputError, are_plain_float64, check_array, rays_invalid
+from planarloc.geometry.validation import InputError, check_array, plain_float64_pair, rays_invalid
 from planarloc.numerics.sturm import real_roots_sturm
 
 MAX_SOLUTIONS = 4
@@ -203,7 +203,8 @@ def abspose_p3p(x_query: object, points: object) -> list[Pose]:
         True
     """
     out = np.empty((MAX_SOLUTIONS, 4, 3))
-    n = _poses(x_query, points, out) if are_plain_float64(x_query, points, 3) else -1
+    pair = plain_float64_pair(x_query, points, 3)
+    n = _poses(*pair, out) if pair is not None else -1
     if n == -1:
         n = _poses(check_array("x_query", x_query, (3, 3)), check_array("points", points, (3, 3)), out)
         if n == -1:

@@ -17,7 +17,7 @@ import numpy as np
 from numba import njit
 
 from planarloc.geometry.pose import Pose
-from planarloc.geometry.validation import are_plain_float64, check_array, rays_invalid
+from planarloc.geometry.validation import check_array, plain_float64_pair, rays_invalid
 
 
 @njit(cache=True, error_model="numpy")
@@ -107,7 +107,8 @@ def abspose_up2p(x_query: object, points: object) -> list[Pose]:
         when degenerate (identical rays or points, no real solution).
     """
     out = np.empty((2, 4, 3))
-    n = _poses(x_query, points, out) if are_plain_float64(x_query, points, 2) else -1
+    pair = plain_float64_pair(x_query, points, 2)
+    n = _poses(*pair, out) if pair is not None else -1
     if n == -1:  # not a plain float64 array, or invalid: convert, or raise the usual message
         n = _poses(check_array("x_query", x_query, (2, 3)), check_array("points", points, (2, 3)), out)
     return Pose._from_buffer(out, n)

@@ -60,7 +60,7 @@ import numpy as np
 from numba import njit, prange
 
 from planarloc.geometry.pose import Pose
-from planarloc.geometry.validation import InputError, are_plain_float64, check_array
+from planarloc.geometry.validation import InputError, check_array, plain_float64_pair
 from planarloc.solvers.relpose_planar_2p import planar_pose_into
 
 _EPS_RANK = 1e-10  # minimum 3-volume of the three unit rows (rank 3 test)
@@ -367,8 +367,10 @@ def relpose_planar_1ac(
         raise InputError(f"max_imbalance: expected a number >= 0, got {max_imbalance!r}")
     out = np.empty((1, 4, 3))
     n = -1
-    if are_plain_float64(x_query, x_ref, 1) and are_plain_float64(affine, affine, 2):
-        n = _relposes(x_query, x_ref, affine, float(max_imbalance), out)
+    rays = plain_float64_pair(x_query, x_ref, 1)
+    plain_affine = plain_float64_pair(affine, affine, 2) if rays is not None else None
+    if rays is not None and plain_affine is not None:
+        n = _relposes(*rays, plain_affine[0], float(max_imbalance), out)
     if n == -1:  # not plain float64 arrays, (2,) points, or invalid: convert, or raise the message
         xq = _check_rays("x_query", x_query, (3,))
         xr = _check_rays("x_ref", x_ref, (3,))

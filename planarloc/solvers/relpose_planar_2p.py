@@ -28,7 +28,7 @@ import numpy as np
 from numba import njit, prange
 
 from planarloc.geometry.pose import Pose
-from planarloc.geometry.validation import InputError, are_plain_float64, check_array
+from planarloc.geometry.validation import InputError, check_array, plain_float64_pair
 
 _EPS_RANK = 1e-9
 _EPS_FORM = 1e-12
@@ -310,7 +310,8 @@ def relpose_planar_2p(x_query: object, x_ref: object) -> list[Pose]:
         >>> [round(float(p.t @ truth.t), 6) for p in relpose_planar_2p(xq, xr)]  # doctest: +SKIP
     """
     out = np.empty((2, 4, 3))
-    n = _relposes(x_query, x_ref, out) if are_plain_float64(x_query, x_ref, 2) else -1
+    pair = plain_float64_pair(x_query, x_ref, 2)
+    n = _relposes(*pair, out) if pair is not None else -1
     if n == -1:  # not a plain float64 array, (2, 2) points, or invalid: convert, or raise the message
         n = _relposes(_check_points("x_query", x_query, (2, 3)), _check_points("x_ref", x_ref, (2, 3)), out)
     return Pose._from_buffer(out, n)

@@ -229,7 +229,8 @@ def _try_scene(rng: np.random.Generator, spec: SceneSpec, mount: _Mount) -> Synt
         )
         vis_q = np.zeros_like(vis_q)
         vis_q[pool] = True
-    pairs, outl = [], []
+    pairs: list[PairMatches] = []
+    outl: list[np.ndarray] = []
     tries = 0
     while len(pairs) < spec.num_refs and tries < 50:
         tries += 1

@@ -114,8 +114,9 @@ def make_stream(
     present = sorted(set(order))
     nxt = {a: b for a, b in zip(present, present[1:])}
     kidnapped = [False] + [nxt.get(order[k - 1]) != order[k] for k in range(1, len(order))]
-    if all(f.timestamp is not None for f in frames):
-        stamps = [float(f.timestamp) for f in frames]
+    timestamps = [f.timestamp for f in frames if f.timestamp is not None]
+    if len(timestamps) == len(frames):  # every image has a timestamp
+        stamps = [float(s) for s in timestamps]
     else:
         stamps = [f.index * frame_period_s for f in frames]
     if any(kidnapped):
