@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import ast
 import re
+from collections.abc import Callable
 
 
 def numba_types() -> dict[str, object]:
@@ -15,10 +16,25 @@ def numba_types() -> dict[str, object]:
     names["bool"] = types.boolean  # repr(types.boolean) is 'bool'
     names["omitted"] = lambda default: types.Omitted(default)  # repr: 'omitted(default=...)'
     # the kernels' named records (typing.NamedTuple): repr 'ProblemArrays(array(float64, 2d, C), ...)'
+    for record in kernel_records():
+        names[record.__name__] = _record_type(record)
+    return names
+
+
+def kernel_records() -> tuple[type, ...]:
+    """The named records (``typing.NamedTuple`` of arrays) the kernels take as arguments."""
+    from planarloc.robust.consensus_scale import PairMotions, ScaleVotes
+    from planarloc.robust.hypotheses import RelativePoses
     from planarloc.robust.problem import ProblemArrays
 
-    names["ProblemArrays"] = lambda *fields: types.NamedTuple(fields, ProblemArrays)
-    return names
+    return (ProblemArrays, RelativePoses, PairMotions, ScaleVotes)
+
+
+def _record_type(record: type) -> Callable[..., object]:
+    """``Record(field types...)`` -> numba's type of that record."""
+    from numba.core import types
+
+    return lambda *fields: types.NamedTuple(fields, record)
 
 
 #: An array as a record's repr writes its fields (``str`` of the type): ``array(float64, 2d, C)``.

@@ -24,6 +24,7 @@ from planarloc.geometry.gravity import mean_direction, upright_from_gravity
 from planarloc.robust import observability as obs
 from planarloc.robust.estimators import (
     Planar2p1pEstimator,
+    ProblemEstimator,
     RectifiedHypotheses,
     RelativePairEstimator,
     rectify_problem,
@@ -34,18 +35,11 @@ from planarloc.robust.pair_matches import PairMatches, unit_gravity
 from planarloc.robust.problem import AbsolutePoseProblem, build_problem
 from planarloc.robust.ransac import ransac
 from planarloc.robust.result import PoseEstimate, RansacStatistics
+from planarloc.robust.rivals import RIVAL_COST_RATIO, RIVAL_MARGIN_INLIERS, with_rival
 from planarloc.robust.sampling import eligible_pairs
 from planarloc.robust.status import DATA_LIMITED, Status
 from planarloc.robust.structure import triangulate_tracks
-from planarloc.robust.verification import (
-    RIVAL_COST_RATIO,
-    RIVAL_MARGIN_INLIERS,
-    Candidate,
-    EstimateContext,
-    failed_estimate,
-    judge_pose,
-    with_rival,
-)
+from planarloc.robust.verification import Candidate, EstimateContext, failed_estimate, judge_pose
 
 logger = logging.getLogger(__name__)
 
@@ -123,7 +117,7 @@ def _estimator(problem: AbsolutePoseProblem, options: RansacOptions, family: Met
         else (lambda prob, opt: RelativePairEstimator(prob, opt, Method.P2P2))
     )
     scorer = make(problem, options)
-    if gravity.levelled:
+    if gravity.levelled or gravity.refs is None:  # refs is None only when levelled
         return scorer  # upright cameras: nothing to rectify
     Uq = upright_from_gravity(gravity.query)
     upright = make(rectify_problem(problem, Uq, upright_from_gravity(gravity.refs)), options)
@@ -198,7 +192,10 @@ def estimate_absolute_pose(
     problem, gravity = _prepare(query_camera, pairs, options, query_gravity, stats)
     stats.add_time("setup", time.perf_counter() - t_start)
     run = _Estimation(
-        EstimateContext(problem, options, gravity.world, gravity.query, stats, t_start), gravity, method
+        EstimateContext(problem, options, gravity.world, gravity.query, stats, t_start),
+        gravity,
+        method,
+        np.random.default_rng(options.seed),
     )
     families = [f for f in FAMILIES[method] if _eligible(problem, f)]
     if not families:
@@ -209,7 +206,6 @@ def estimate_absolute_pose(
             f"constraints; got {problem.counts.tolist()} matches per map image and {len(problem.X3d)} "
             "2D-3D constraints: retrieve more map images or check the intrinsics",
         )
-    run.rng = np.random.default_rng(options.seed)
     return run.estimate(families)
 
 
@@ -221,7 +217,7 @@ class _Estimation:
     ctx: EstimateContext
     gravity: _Gravity
     method: Method
-    rng: np.random.Generator | None = None
+    rng: np.random.Generator
 
     def failure(self, status: Status, message: str) -> PoseEstimate:
         ctx = self.ctx
@@ -356,7 +352,7 @@ class _Search:
     refined: RefinedPose
     alternatives: list
     pool: tuple[np.ndarray, np.ndarray]
-    scorer: object
+    scorer: ProblemEstimator
 
 
 def _prepare(
@@ -402,7 +398,7 @@ def _search(
         stats.merge(search)
     else:
         stats.add_time("cross_check", sum(search.time_s.values()))
-    if out.R is None:
+    if out.R is None or out.t is None:  # both or neither
         return None
     t0 = time.perf_counter()
     refined = FinalRefiner(scorer, options)(out.R, out.t, quick)

@@ -21,19 +21,20 @@ from collections.abc import Callable
 
 import numpy as np
 
+from planarloc.robust.consensus_scale import hypotheses_2p1p_consensus, planar_relative_candidates
 from planarloc.robust.hypotheses import (
+    RelativePoses,
     hypotheses_2p1p,
-    hypotheses_2p1p_consensus,
     hypotheses_from_relative_poses,
     hypotheses_p3p,
     hypotheses_up2p,
-    planar_relative_candidates,
     top_distinct_relative,
 )
 from planarloc.robust.local_optimization import distinct_centres, level_plane, refine_planar_then_6dof
 from planarloc.robust.map_prior import refine_with_map_prior
 from planarloc.robust.options import Method, RansacOptions
 from planarloc.robust.problem import AbsolutePoseProblem
+from planarloc.robust.ransac import Estimator
 from planarloc.robust.refinement import centre_covariance, refine_on_inliers, refine_pose
 from planarloc.robust.result import RansacStatistics
 from planarloc.robust.sampling import draw_pair_samples, draw_within_pairs
@@ -49,7 +50,7 @@ _IDENTITY = np.eye(3)
 _FREE = np.zeros(6, dtype=np.bool_)
 
 
-class _ProblemEstimator:
+class ProblemEstimator:
     """Scoring, inliers and refinement shared by every hypothesis family."""
 
     sample_size = 3
@@ -67,20 +68,7 @@ class _ProblemEstimator:
     def score(self, R: np.ndarray, t: np.ndarray, bound: float = np.inf) -> tuple[np.ndarray, np.ndarray]:
         p = self.p
         return msac_scores(
-            np.ascontiguousarray(R),
-            np.ascontiguousarray(t),
-            len(R),
-            p.xq,
-            p.xr,
-            p.offsets,
-            p.f_query,
-            p.f_ref,
-            p.ref_R,
-            p.ref_t,
-            p.xq3d,
-            p.X3d,
-            self.threshold_sq,
-            bound,
+            np.ascontiguousarray(R), np.ascontiguousarray(t), len(R), p.arrays, self.threshold_sq, bound
         )
 
     def distinct(self, R: np.ndarray, t: np.ndarray, Rb: np.ndarray, tb: np.ndarray) -> np.ndarray:
@@ -212,7 +200,7 @@ class _ProblemEstimator:
         c[:] = 0
 
 
-class Planar2p1pEstimator(_ProblemEstimator):
+class Planar2p1pEstimator(ProblemEstimator):
     """The paper's 2p1p (Sec. IV-C) with Pdcheck; optional 2D-3D third datum.
 
     Without 2D-3D constraints (``structure="none"``) and ``consensus_scale`` (default), the
@@ -262,11 +250,7 @@ class Planar2p1pEstimator(_ProblemEstimator):
         c = planar_relative_candidates(
             samples,
             sample_pair,
-            p.xq,
-            p.xr,
-            p.offsets,
-            p.f_query,
-            p.f_ref,
+            p.arrays,
             self.threshold_sq,
             self.top_k,
             self.max_votes // 2,
@@ -280,13 +264,7 @@ class Planar2p1pEstimator(_ProblemEstimator):
             Rrel[:c],
             trel[:c],
             prel[:c],
-            p.xq,
-            p.xr,
-            p.offsets,
-            p.f_query,
-            p.f_ref,
-            p.ref_R,
-            p.ref_t,
+            p.arrays,
             self.threshold_sq,
             self.peaks,
             self.max_votes,
@@ -340,12 +318,7 @@ class Planar2p1pEstimator(_ProblemEstimator):
             third_3d,
             pj,
             pk,
-            p.xq,
-            p.xr,
-            p.ref_R,
-            p.ref_t,
-            p.xq3d,
-            p.X3d,
+            p.arrays,
             out_R,
             out_t,
             self.counters,
@@ -385,7 +358,7 @@ def _baseline_solver(method: Method) -> tuple[int, RelposeBatchSolver]:
     raise ValueError(f"no relative-pose solver for {method}")
 
 
-class RelativePairEstimator(_ProblemEstimator):
+class RelativePairEstimator(ProblemEstimator):
     """2p2p and the 5p5p / 8p8p baselines, in the paper's two stages (Sec. IV-B).
 
     Stage 1, per pair: relative poses from ``n`` minimal samples of that pair, scored by
@@ -446,12 +419,8 @@ class RelativePairEstimator(_ProblemEstimator):
         out_R = np.empty((C * K * K, 3, 3))
         out_t = np.empty((C * K * K, 3))
         cnt = hypotheses_from_relative_poses(
-            Ra,
-            ta,
-            va,
-            Rb,
-            tb,
-            vb,
+            RelativePoses(Ra, ta, va),
+            RelativePoses(Rb, tb, vb),
             pj,
             pk,
             p.ref_R,
@@ -505,7 +474,7 @@ class RectifiedHypotheses:
     """
 
     def __init__(
-        self, hypotheses: _ProblemEstimator, scorer: _ProblemEstimator, upright_from_query: np.ndarray
+        self, hypotheses: Estimator, scorer: ProblemEstimator, upright_from_query: np.ndarray
     ) -> None:
         self.hypotheses = hypotheses
         self.scorer = scorer

@@ -17,7 +17,7 @@ from numba import njit
 from planarloc.geometry import mat3 as m3
 from planarloc.geometry.so3 import exp_so3
 from planarloc.numerics.symmetric_eigen import symmetric_eigen
-from planarloc.robust.estimators import SIGMA_FLOOR_PX
+from planarloc.robust.estimators import SIGMA_FLOOR_PX, ProblemEstimator
 from planarloc.robust.map_prior import refine_with_map_prior
 from planarloc.robust.options import RansacOptions
 from planarloc.robust.problem import ProblemArrays
@@ -57,7 +57,7 @@ class FinalRefiner:
     (:func:`restart_distance`). ``scorer``: the estimator holding the flattened problem ``p`` and
     ``threshold_sq`` (τ², pixels²)."""
 
-    scorer: object
+    scorer: ProblemEstimator
     options: RansacOptions
 
     def _budget(self, quick: bool) -> tuple[int, int]:
@@ -65,7 +65,7 @@ class FinalRefiner:
         iterations, rounds = (QUICK_ITERATIONS, 1) if quick else (FINAL_ITERATIONS, FINAL_REFINEMENT_ROUNDS)
         return (iterations, rounds) if self.options.refine else (0, 1)
 
-    def _problem(self) -> tuple:
+    def _problem(self) -> tuple[ProblemArrays, float, float]:
         return self.scorer.p.arrays, self.scorer.threshold_sq, self.options.threshold_px
 
     def _prior(self) -> tuple[float, float]:

@@ -97,7 +97,7 @@ def _refine_stage(
     sigma_floor: float,
     B: np.ndarray,
     fixed: np.ndarray,
-    max_data: int,
+    max_data: int | np.integer,
 ) -> tuple:
     p = prob
     e2d, e3d = errors_sq(R, t, p.xq, p.xr, p.offsets, p.f_query, p.f_ref, p.ref_R, p.ref_t, p.xq3d, p.X3d)

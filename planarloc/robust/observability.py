@@ -14,12 +14,14 @@ function takes the problem (or its estimator, for refinement) and a refined pose
 * :func:`points_covariance` — the uncertainty of triangulated 2D-3D points (their keypoint noise
   and their map images' pose errors) propagated into it;
 * :func:`correlation_inflation` — residuals correlated within one reference;
-* :func:`reference_jackknife` — leave-one-reference-out refinements: an empirical spread that
-  sees what the linearised covariance cannot (one reference with a wrong pose, a wrong
-  basin supported by one reference, model errors), and the disagreement between references.
+* :func:`~planarloc.robust.jackknife.reference_jackknife` (its own module) —
+  leave-one-reference-out refinements: an empirical spread that sees what the linearised
+  covariance cannot (one reference with a wrong pose, a wrong basin supported by one
+  reference, model errors), and the disagreement between references.
 
 The per-estimate numbers come from compiled kernels (:func:`support_kernel`,
-:func:`jackknife_kernel`, :func:`~planarloc.robust.refinement.map_centre_covariance`): they run
+:func:`~planarloc.robust.jackknife.jackknife_kernel`,
+:func:`~planarloc.robust.refinement.map_centre_covariance`): they run
 once per query on a few hundred inliers, where Python and numpy call overhead would cost more
 than the arithmetic (issue 10: the whole verification is a fraction of PoseLib's RANSAC time).
 """
@@ -33,15 +35,11 @@ import numpy as np
 from numba import njit
 
 from planarloc.geometry import mat3 as m3
-from planarloc.geometry.so3 import exp_so3
-from planarloc.numerics.cholesky import solve_spd, spd_inverse
-from planarloc.robust.estimators import SIGMA_FLOOR_PX
-from planarloc.robust.map_prior import refine_with_map_prior
+from planarloc.numerics.cholesky import spd_inverse
 from planarloc.robust.problem import ProblemArrays
 from planarloc.robust.refinement import (
     map_centre_covariance,
     map_uncertainty_covariance,
-    refine_pose_core,
     residuals_jacobian,
 )
 
@@ -335,228 +333,6 @@ def map_covariance(
             float(np.radians(rotation_deg)),
             float(position_m),
         )
-    )
-
-
-@dataclass(frozen=True)
-class Jackknife:
-    """Leave-one-reference-out refinements of a pose.
-
-    Attributes:
-        num_references: references that support the pose (≥ ``MIN_PAIR_INLIERS`` inliers).
-        position_std_m: jackknife standard deviation of the centre along its worst axis,
-            ``sqrt(λ_max((n-1)/n Σ (c_k - c̄)(c_k - c̄)ᵀ))``; nan with fewer than 3 references.
-        max_shift_m: largest distance of a leave-one-out centre from the full estimate.
-        max_rotation_deg: largest rotation between a leave-one-out estimate and the full one.
-        worst_reference: the pair whose removal moves the pose most (-1 if none).
-    """
-
-    num_references: int
-    position_std_m: float
-    max_shift_m: float
-    max_rotation_deg: float
-    worst_reference: int
-
-
-@njit(cache=True, error_model="numpy")
-def jackknife_kernel(
-    R: np.ndarray,
-    t: np.ndarray,
-    prob: ProblemArrays,
-    in2d: np.ndarray,
-    in3d: np.ndarray,
-    support: np.ndarray,
-    loss_scale: float,
-    max_iterations: int,
-    sigma_floor: float,
-) -> tuple[float, float, float, int]:
-    """The numbers of :func:`reference_jackknife` in one compiled call (one refinement per
-    supporting reference with its rows left out, started at the full estimate).
-
-    Returns:
-        (jackknife position std, largest centre shift, largest rotation in degrees, index into
-        ``support`` of the reference whose removal moves the pose most).
-    """
-    pair, offsets = prob.pair, prob.offsets
-    n = support.shape[0]
-    c = -m3.t_vec(R, t)
-    idx3d = np.flatnonzero(in3d)
-    all2d = np.flatnonzero(in2d)
-    # First Gauss-Newton step of every leave-one-out problem from one pass over the inliers:
-    # at the full estimate, the normal equations without reference k are the full ones minus
-    # k's share (H - H_k, g - g_k), so the step costs a 6x6 solve instead of a residual and
-    # Jacobian pass per reference. The remaining iterations refine from there.
-    m = all2d.shape[0] + 2 * idx3d.shape[0]
-    r = np.empty(m)
-    J = np.empty((m, 6))
-    eye = np.eye(3)
-    residuals_jacobian(R, c, eye, prob, all2d, idx3d, r, J, np.empty((0, 3)))
-    P = offsets.shape[0] - 1
-    Hp = np.zeros((P + 1, 6, 6))  # per pair; row P: the 2D-3D constraints (kept in every problem)
-    gp = np.zeros((P + 1, 6))
-    s2 = loss_scale * loss_scale
-    for row in range(m):
-        q = pair[all2d[row]] if row < all2d.shape[0] else P
-        w = 1.0 / (1.0 + r[row] * r[row] / s2)
-        for a in range(6):
-            wa = w * J[row, a]
-            gp[q, a] += wa * r[row]
-            for b in range(6):
-                Hp[q, a, b] += wa * J[row, b]
-    Ht = np.zeros((6, 6))
-    gt = np.zeros(6)
-    for q in range(P + 1):
-        Ht += Hp[q]
-        gt += gp[q]
-    centres = np.empty((n, 3))
-    mean = np.zeros(3)
-    max_rot = 0.0
-    free = np.zeros(6, dtype=np.bool_)
-    step = np.zeros(6)
-    for i in range(n):
-        k = support[i]
-        keep = all2d[(all2d < offsets[k]) | (all2d >= offsets[k + 1])]
-        A = Ht - Hp[k]
-        for a in range(6):
-            A[a, a] += 1e-4 * max(A[a, a], 1e-12)  # the refinement's initial LM damping
-        R1, c1 = R, c
-        if max_iterations >= 1 and solve_spd(A, gp[k] - gt, step):
-            R1 = m3.mul(exp_so3(step[:3]), R)
-            c1 = c + step[3:]
-        Rk, tk, _, _, _ = refine_pose_core(
-            R1,
-            t,
-            prob,
-            keep,
-            idx3d,
-            loss_scale,
-            max(max_iterations - 1, 0),
-            sigma_floor,
-            c1,
-            eye,
-            free,
-            np.bool_(False),
-        )
-        ck = -m3.t_vec(Rk, tk)
-        for a in range(3):
-            centres[i, a] = ck[a]
-            mean[a] += ck[a] / n
-        tr = 0.0
-        for a in range(3):
-            for b in range(3):
-                tr += Rk[a, b] * R[a, b]
-        max_rot = max(max_rot, np.degrees(np.arccos(min(1.0, max(-1.0, (tr - 1.0) / 2.0)))))
-    cov = np.zeros((3, 3))
-    worst, max_shift = 0, -1.0
-    for i in range(n):
-        shift = 0.0
-        for a in range(3):
-            shift += (centres[i, a] - c[a]) ** 2
-            for b in range(3):
-                cov[a, b] += (n - 1.0) / n * (centres[i, a] - mean[a]) * (centres[i, b] - mean[b])
-        if shift > max_shift:
-            worst, max_shift = i, shift
-    lam, _, _ = m3.sym_eigvals(cov)
-    return np.sqrt(max(lam, 0.0)), np.sqrt(max(max_shift, 0.0)), max_rot, worst
-
-
-def reference_jackknife(
-    est,
-    R: np.ndarray,
-    t: np.ndarray,
-    in2d: np.ndarray,
-    in3d: np.ndarray,
-    max_iterations: int = 2,
-    support: np.ndarray | None = None,
-) -> Jackknife:
-    """Refine the pose once per supporting reference with that reference's matches left out.
-
-    2D-3D constraints (tracks, depth) stay in every refinement: they tie the query to world
-    points, not to one reference. Each refinement starts at the full estimate, so a few
-    Gauss-Newton steps reach the leave-one-out optimum (``max_iterations``). With fewer than
-    3 supporting references nothing is left to compare and the spread is nan.
-
-    Args:
-        support: the supporting pairs when the caller has them (:func:`supporting_pairs`).
-
-    References:
-        Efron & Stein (1981), the jackknife estimate of variance; used here per reference
-        because map-pose errors and wrong matches are correlated within a reference.
-    """
-    p = est.p
-    support = supporting_pairs(p, in2d) if support is None else support
-    n = len(support)
-    if n < 3:
-        return Jackknife(n, float("nan"), float("nan"), float("nan"), -1)
-    std, shift, rot, worst = jackknife_kernel(
-        np.ascontiguousarray(R),
-        np.ascontiguousarray(t),
-        p.arrays,
-        in2d,
-        in3d,
-        np.asarray(support, dtype=np.int64),
-        est.options.threshold_px,
-        max_iterations,
-        SIGMA_FLOOR_PX,
-    )
-    return Jackknife(n, float(std), float(shift), float(rot), int(support[worst]))
-
-
-def reference_jackknife_with_prior(
-    est,
-    R: np.ndarray,
-    t: np.ndarray,
-    in2d: np.ndarray,
-    in3d: np.ndarray,
-    support: np.ndarray,
-    max_iterations: int = 3,
-) -> Jackknife:
-    """:func:`reference_jackknife` for a pose refined under the map prior
-    (:func:`planarloc.robust.map_prior.refine_with_map_prior`): each leave-one-out refinement
-    minimises the same objective. The 2D-3D points stay in every refinement, as in
-    :func:`reference_jackknife`: a point was triangulated from two map images whose poses agreed
-    on it, and it ties the query to the world, not to one reference.
-    """
-    p, o = est.p, est.options
-    n = len(support)
-    if n < 3:
-        return Jackknife(n, float("nan"), float("nan"), float("nan"), -1)
-    c = -R.T @ t
-    eye, free = np.eye(3), np.zeros(6, dtype=np.bool_)
-    idx3d = np.flatnonzero(in3d)
-    centres = np.empty((n, 3))
-    max_rot = 0.0
-    rot_std, pos_std = math.radians(o.map_rotation_std_deg), float(o.map_position_std_m)
-    for i, k in enumerate(support):
-        idx2d = np.flatnonzero(in2d & (p.pair != k))
-        Rk, tk, *_ = refine_with_map_prior(
-            np.ascontiguousarray(R),
-            np.ascontiguousarray(t),
-            p.arrays,
-            idx2d,
-            idx3d,
-            o.threshold_px,
-            max_iterations,
-            SIGMA_FLOOR_PX,
-            (rot_std, pos_std),
-            c,
-            eye,
-            free,
-        )
-        centres[i] = -Rk.T @ tk
-        max_rot = max(
-            max_rot, math.degrees(math.acos(min(1.0, max(-1.0, (float(np.sum(Rk * R)) - 1.0) / 2.0))))
-        )
-    dev = centres - centres.mean(axis=0)
-    cov = (n - 1.0) / n * dev.T @ dev
-    shifts = np.linalg.norm(centres - c, axis=1)
-    worst = int(np.argmax(shifts))
-    return Jackknife(
-        n,
-        float(np.sqrt(max(np.linalg.eigvalsh(cov)[-1], 0.0))),
-        float(shifts[worst]),
-        max_rot,
-        int(support[worst]),
     )
 
 

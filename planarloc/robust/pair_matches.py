@@ -71,81 +71,28 @@ class PairMatches:
     ref_points3d_pose_jac: np.ndarray | None = None
 
     def __post_init__(self) -> None:
-        if not isinstance(self.ref_pose, Pose):
-            raise InputError(
-                f"PairMatches.ref_pose: expected a planarloc.Pose, got {type(self.ref_pose).__name__}"
-            )
-        if not isinstance(self.ref_camera, Camera):
-            raise InputError(
-                f"PairMatches.ref_camera: expected a planarloc.Camera, got {type(self.ref_camera).__name__}"
-            )
+        _check_pose_and_camera(self.ref_pose, self.ref_camera)
         q = check_array("PairMatches.query_points", self.query_points, (None, 2))
         n = len(q)
         r = check_array("PairMatches.ref_points", self.ref_points, (n, 2))
         object.__setattr__(self, "query_points", q)
         object.__setattr__(self, "ref_points", r)
         if self.query_indices is not None:
-            raw = check_array("PairMatches.query_indices", self.query_indices, (n,), dtype=np.float64)
-            ids = raw.astype(np.int64)
-            if np.any(ids != raw):  # 2.5 would silently become keypoint 2 (another track)
-                bad = int(np.argmax(ids != raw))
-                raise InputError(
-                    f"PairMatches.query_indices: expected whole numbers, got {raw[bad]} at index {bad}"
-                )
-            if len(np.unique(ids)) != n:
-                raise InputError("PairMatches.query_indices: ids must be unique within one pair")
-            object.__setattr__(self, "query_indices", ids)
-        if self.ref_points3d is not None:
-            X = check_array("PairMatches.ref_points3d", self.ref_points3d, (n, 3), finite=False)
-            if np.any(np.isinf(X)):
-                raise InputError("PairMatches.ref_points3d: contains inf; use NaN rows for missing depth")
-            partial = np.isnan(X).any(axis=1) & ~np.isnan(X).all(axis=1)
-            if partial.any():
-                raise InputError("PairMatches.ref_points3d: rows must be all finite or all NaN")
-            object.__setattr__(self, "ref_points3d", X)
+            object.__setattr__(self, "query_indices", _checked_query_indices(self.query_indices, n))
+        X = None if self.ref_points3d is None else _checked_points3d(self.ref_points3d, n)
+        object.__setattr__(self, "ref_points3d", X)
         if self.ref_points3d_cov is not None:
-            if self.ref_points3d is None:
+            if X is None:
                 raise InputError("PairMatches.ref_points3d_cov: given without ref_points3d")
-            C = check_array("PairMatches.ref_points3d_cov", self.ref_points3d_cov, (n, 3, 3), finite=False)
-            has = ~np.isnan(self.ref_points3d[:, 0])
-            if not np.isfinite(C[has]).all():
-                raise InputError(
-                    "PairMatches.ref_points3d_cov: must be finite where ref_points3d has a point"
-                )
-            sym = C[has]
-            if np.any(
-                np.abs(sym - sym.transpose(0, 2, 1)) > 1e-9 * (1.0 + np.abs(sym).max(initial=0.0))
-            ) or np.any(np.einsum("nii->n", sym) < 0):
-                raise InputError(
-                    "PairMatches.ref_points3d_cov: expected symmetric positive semi-definite (3, 3) "
-                    "covariances"
-                )
-            object.__setattr__(self, "ref_points3d_cov", C)
+            object.__setattr__(self, "ref_points3d_cov", _checked_points3d_cov(self.ref_points3d_cov, X))
         if (self.ref_points3d_partner is None) != (self.ref_points3d_pose_jac is None):
             raise InputError(
                 "PairMatches.ref_points3d_partner and ref_points3d_pose_jac: give both or neither"
             )
         if self.ref_points3d_partner is not None:
-            if self.ref_points3d is None:
+            if X is None:
                 raise InputError("PairMatches.ref_points3d_partner: given without ref_points3d")
-            raw = check_array(
-                "PairMatches.ref_points3d_partner", self.ref_points3d_partner, (n,), dtype=np.float64
-            )
-            partner = raw.astype(np.int64)
-            if np.any(partner != raw) or np.any(partner < -1):
-                bad = int(np.argmax((partner != raw) | (partner < -1)))
-                raise InputError(
-                    f"PairMatches.ref_points3d_partner: expected whole numbers >= -1, got {raw[bad]} at "
-                    f"index {bad}"
-                )
-            jac = check_array(
-                "PairMatches.ref_points3d_pose_jac", self.ref_points3d_pose_jac, (n, 2, 3, 6), finite=False
-            )
-            used = (partner >= 0) & ~np.isnan(self.ref_points3d[:, 0])
-            if not np.isfinite(jac[used]).all():
-                raise InputError(
-                    "PairMatches.ref_points3d_pose_jac: must be finite where a point has a partner"
-                )
+            partner, jac = _checked_partners(self.ref_points3d_partner, self.ref_points3d_pose_jac, X)
             object.__setattr__(self, "ref_points3d_partner", partner)
             object.__setattr__(self, "ref_points3d_pose_jac", jac)
 
@@ -154,3 +101,73 @@ class PairMatches:
 
     def __len__(self) -> int:
         return len(self.query_points)
+
+
+def _check_pose_and_camera(ref_pose: object, ref_camera: object) -> None:
+    """InputError unless ``ref_pose`` is a Pose and ``ref_camera`` a Camera."""
+    if not isinstance(ref_pose, Pose):
+        raise InputError(f"PairMatches.ref_pose: expected a planarloc.Pose, got {type(ref_pose).__name__}")
+    if not isinstance(ref_camera, Camera):
+        raise InputError(
+            f"PairMatches.ref_camera: expected a planarloc.Camera, got {type(ref_camera).__name__}"
+        )
+
+
+def _checked_query_indices(query_indices: object, n: int) -> np.ndarray:
+    """(n,) int64 query keypoint ids: whole numbers, unique within the pair."""
+    raw = check_array("PairMatches.query_indices", query_indices, (n,), dtype=np.float64)
+    ids = raw.astype(np.int64)
+    if np.any(ids != raw):  # 2.5 would silently become keypoint 2 (another track)
+        bad = int(np.argmax(ids != raw))
+        raise InputError(f"PairMatches.query_indices: expected whole numbers, got {raw[bad]} at index {bad}")
+    if len(np.unique(ids)) != n:
+        raise InputError("PairMatches.query_indices: ids must be unique within one pair")
+    return ids
+
+
+def _checked_points3d(ref_points3d: object, n: int) -> np.ndarray:
+    """(n, 3) world points: rows all finite or all NaN (no point), never inf."""
+    X = check_array("PairMatches.ref_points3d", ref_points3d, (n, 3), finite=False)
+    if np.any(np.isinf(X)):
+        raise InputError("PairMatches.ref_points3d: contains inf; use NaN rows for missing depth")
+    partial = np.isnan(X).any(axis=1) & ~np.isnan(X).all(axis=1)
+    if partial.any():
+        raise InputError("PairMatches.ref_points3d: rows must be all finite or all NaN")
+    return X
+
+
+def _checked_points3d_cov(ref_points3d_cov: object, X: np.ndarray) -> np.ndarray:
+    """(n, 3, 3) covariances of the points ``X`` (n, 3): finite, symmetric and of non-negative
+    trace where ``X`` has a point."""
+    C = check_array("PairMatches.ref_points3d_cov", ref_points3d_cov, (len(X), 3, 3), finite=False)
+    has = ~np.isnan(X[:, 0])
+    if not np.isfinite(C[has]).all():
+        raise InputError("PairMatches.ref_points3d_cov: must be finite where ref_points3d has a point")
+    sym = C[has]
+    if np.any(np.abs(sym - sym.transpose(0, 2, 1)) > 1e-9 * (1.0 + np.abs(sym).max(initial=0.0))) or np.any(
+        np.einsum("nii->n", sym) < 0
+    ):
+        raise InputError(
+            "PairMatches.ref_points3d_cov: expected symmetric positive semi-definite (3, 3) covariances"
+        )
+    return C
+
+
+def _checked_partners(
+    ref_points3d_partner: object, ref_points3d_pose_jac: object, X: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """(n,) int64 partner map images (whole numbers >= -1) and their (n, 2, 3, 6) pose Jacobians
+    of the points ``X`` (n, 3), finite where a point has a partner."""
+    n = len(X)
+    raw = check_array("PairMatches.ref_points3d_partner", ref_points3d_partner, (n,), dtype=np.float64)
+    partner = raw.astype(np.int64)
+    if np.any(partner != raw) or np.any(partner < -1):
+        bad = int(np.argmax((partner != raw) | (partner < -1)))
+        raise InputError(
+            f"PairMatches.ref_points3d_partner: expected whole numbers >= -1, got {raw[bad]} at index {bad}"
+        )
+    jac = check_array("PairMatches.ref_points3d_pose_jac", ref_points3d_pose_jac, (n, 2, 3, 6), finite=False)
+    used = (partner >= 0) & ~np.isnan(X[:, 0])
+    if not np.isfinite(jac[used]).all():
+        raise InputError("PairMatches.ref_points3d_pose_jac: must be finite where a point has a partner")
+    return partner, jac

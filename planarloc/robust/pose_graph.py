@@ -118,13 +118,13 @@ class _Packed:
     def __init__(
         self, n: int, absolute: Sequence[AbsoluteFactor], relative: Sequence[RelativeFactor]
     ) -> None:
-        for f in absolute:
-            if not 0 <= f.node < n:
-                raise InputError(f"AbsoluteFactor.node {f.node} is not a node index (0..{n - 1})")
-        for f in relative:
-            if not (0 <= f.i < n and 0 <= f.j < n) or f.i == f.j:
+        for a in absolute:
+            if not 0 <= a.node < n:
+                raise InputError(f"AbsoluteFactor.node {a.node} is not a node index (0..{n - 1})")
+        for r in relative:
+            if not (0 <= r.i < n and 0 <= r.j < n) or r.i == r.j:
                 raise InputError(
-                    f"RelativeFactor ({f.i}, {f.j}): need two different node indices in 0..{n - 1}"
+                    f"RelativeFactor ({r.i}, {r.j}): need two different node indices in 0..{n - 1}"
                 )
         self.n = n
         self.a_idx = np.array([f.node for f in absolute], dtype=np.int64)

@@ -239,7 +239,7 @@ def build_problem(query_camera: Camera, pairs: Sequence[PairMatches]) -> Absolut
             k = int(has.sum())
             cov3.append(np.zeros((k, 3, 3)) if p.ref_points3d_cov is None else p.ref_points3d_cov[has])
             views, jac = np.full((k, 2), -1, dtype=np.int64), np.zeros((k, 2, 3, 6))
-            if p.ref_points3d_partner is not None:
+            if p.ref_points3d_partner is not None and p.ref_points3d_pose_jac is not None:  # both or neither
                 partner = p.ref_points3d_partner[has]
                 dep = partner >= 0
                 views[dep, 0], views[dep, 1] = p_idx, partner[dep]

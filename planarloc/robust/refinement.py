@@ -294,7 +294,7 @@ def refine_pose_core(
     c0: np.ndarray,
     B: np.ndarray,
     fixed: np.ndarray,
-    final_normal: bool,
+    final_normal: bool | np.bool_,
 ) -> Refinement:
     """:func:`refine_pose`; with ``final_normal`` False the normal matrix and σ̂ are not
     re-evaluated after the last step (stale), which saves one residual-and-Jacobian pass

@@ -13,6 +13,7 @@ norm. The scale comes from elsewhere (wheel odometry or absolute fixes).
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -61,7 +62,9 @@ class RelativePoseEstimate:
     stats: RansacStatistics = field(default_factory=RansacStatistics)
 
     def __post_init__(self) -> None:
-        self.status = Status.of(self.status)
+        status = Status.of(self.status)
+        if isinstance(status, Status):  # else a status made outside the estimators, kept as given
+            self.status = status
 
 
 def _sampson_sq(
@@ -125,6 +128,9 @@ def distinct_samples(rng: np.random.Generator, n: int, num_data: int, size: int)
 class _RelativeEstimator:
     """Adapter of one minimal relative-pose solver to the generic loop."""
 
+    #: the batch solver: (S, m, 3) rays of both cameras -> ``b_from_a`` R, t and valid flags per sample
+    solver: Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray, np.ndarray]]
+
     def __init__(
         self, xa: np.ndarray, xb: np.ndarray, fa: np.ndarray, fb: np.ndarray, model: str, threshold_px: float
     ) -> None:
@@ -186,7 +192,7 @@ class _RelativeEstimator:
 
         def poses(X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
             """(K, p) parameter vectors -> K poses around (R, t)."""
-            if planar:
+            if B is None:  # planar
                 Ry = so3_exp(np.stack([np.zeros(len(X)), X[:, 0], np.zeros(len(X))], axis=1))
                 Rt = so3_exp(np.stack([np.zeros(len(X)), X[:, 1], np.zeros(len(X))], axis=1))
                 return Ry @ R, Rt @ t
@@ -297,7 +303,7 @@ def estimate_relative_pose(
         own = RansacStatistics()  # each model gets its own iteration budget
         out = ransac(est, options, np.random.default_rng(options.seed), own)
         stats.merge(own)
-        if out.R is None:
+        if out.R is None or out.t is None:  # both or neither
             continue
         if best is None or out.num_inliers > SIX_DOF_MARGIN * best[3]:
             best = (m, out.R, out.t, out.num_inliers)

@@ -97,7 +97,9 @@ class PoseEstimate:
     map_prior: tuple[float, float] | None = None
 
     def __post_init__(self) -> None:
-        self.status = Status.of(self.status)
+        status = Status.of(self.status)
+        if isinstance(status, Status):  # else a status made outside the estimators, kept as given
+            self.status = status
 
     def to_dict(self) -> dict:
         """JSON-serialisable summary (for result files)."""

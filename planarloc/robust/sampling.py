@@ -14,7 +14,7 @@ from numba import njit
 
 
 @njit(cache=True)
-def _pick_weighted(u: float, weights: np.ndarray, exclude: int) -> int:
+def _pick_weighted(u: float, weights: np.ndarray, exclude: int | np.integer) -> int:
     total = 0.0
     for p in range(weights.shape[0]):
         if p != exclude:
@@ -33,7 +33,7 @@ def _pick_weighted(u: float, weights: np.ndarray, exclude: int) -> int:
 
 
 @njit(cache=True)
-def _distinct(u: np.ndarray, n: int, out: np.ndarray, start: int, m: int, base: int) -> None:
+def _distinct(u: np.ndarray, n: int, out: np.ndarray, start: int | np.integer, m: int, base: int) -> None:
     """Write m distinct integers from [0, n) (plus base) into out[start:start+m]."""
     chosen = np.empty(m, dtype=np.int64)
     for i in range(m):

@@ -18,6 +18,7 @@ from planarloc.geometry.epipolar_kernels import (
     reprojection_sq,
     sampson_sq,
 )
+from planarloc.robust.problem import ProblemArrays
 
 
 @njit(cache=True, inline="always")
@@ -62,15 +63,7 @@ def msac_scores(
     Rs: np.ndarray,
     ts: np.ndarray,
     num: int,
-    xq: np.ndarray,
-    xr: np.ndarray,
-    offsets: np.ndarray,
-    f_query: np.ndarray,
-    f_ref: np.ndarray,
-    ref_R: np.ndarray,
-    ref_t: np.ndarray,
-    xq3d: np.ndarray,
-    X3d: np.ndarray,
+    prob: ProblemArrays,
     threshold_sq: float,
     bound: float = np.inf,
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -78,6 +71,7 @@ def msac_scores(
 
     Args:
         Rs, ts: (H, 3, 3), (H, 3) hypotheses ``query_from_world``.
+        prob: the problem's arrays (matches, focal lengths, reference poses, 2D-3D constraints).
         threshold_sq: τ² in pixels².
         bound: cost of the best model so far. Scoring of a hypothesis stops (after a pair)
             once its partial cost exceeds the best cost seen, so most bad hypotheses cost a
@@ -87,6 +81,8 @@ def msac_scores(
     Returns:
         cost (num,), inliers (num,).
     """
+    xq, xr, offsets, f_query, f_ref = prob.xq, prob.xr, prob.offsets, prob.f_query, prob.f_ref
+    ref_R, ref_t, xq3d, X3d = prob.ref_R, prob.ref_t, prob.xq3d, prob.X3d
     cost = np.empty(num)
     inl = np.zeros(num, dtype=np.int64)
     E = np.empty((3, 3))

@@ -49,52 +49,10 @@ def triangulate_tracks(
         np.zeros((0, 2), dtype=np.int64),
         np.zeros((0, 2, 3, 6)),
     )
-    ids = problem.query_ids
-    rows = np.flatnonzero(ids >= 0)
-    src = problem.source3d[problem.source3d >= 0]
-    if len(src):
-        rows = rows[~np.isin(ids[rows], ids[src])]
-    if len(rows) == 0:
+    a, b = _track_observation_pairs(problem)
+    if len(a) == 0:
         return none
-    order = rows[np.argsort(ids[rows], kind="stable")]
-    sid = ids[order]
-    starts = np.flatnonzero(np.r_[True, sid[1:] != sid[:-1]])
-    ends = np.r_[starts[1:], len(sid)]
-    a_idx, b_idx = [], []
-    for s, e in zip(starts, ends):
-        if e - s < 2:
-            continue
-        members = order[s:e]
-        for i in range(len(members)):
-            for j in range(i + 1, len(members)):
-                if problem.pair[members[i]] != problem.pair[members[j]]:
-                    a_idx.append(members[i])
-                    b_idx.append(members[j])
-    if not a_idx:
-        return none
-    a = np.asarray(a_idx)
-    b = np.asarray(b_idx)
-    pa, pb = problem.pair[a], problem.pair[b]
-    X = np.empty((len(a), 3))
-    angle = np.empty(len(a))
-    err = np.empty(len(a))
-    for p1 in np.unique(pa):
-        for p2 in np.unique(pb[pa == p1]):
-            sel = (pa == p1) & (pb == p2)
-            Ra, ta = problem.ref_R[p1], problem.ref_t[p1]
-            Rb, tb = problem.ref_R[p2], problem.ref_t[p2]
-            Xs, ang = triangulate_points((Ra, ta), (Rb, tb), problem.xr[a[sel]], problem.xr[b[sel]])
-            X[sel], angle[sel] = Xs, ang
-            e = np.zeros(sel.sum())
-            for R, t, x, f in (
-                (Ra, ta, problem.xr[a[sel]], problem.f_ref[p1]),
-                (Rb, tb, problem.xr[b[sel]], problem.f_ref[p2]),
-            ):
-                Xc = Xs @ R.T + t
-                with np.errstate(invalid="ignore", divide="ignore"):
-                    d = (Xc[:, :2] / Xc[:, 2:3] - x[:, :2]) * f
-                    e = np.maximum(e, np.hypot(d[:, 0], d[:, 1]))
-            err[sel] = e
+    X, angle, err = _triangulate_observation_pairs(problem, a, b)
     ok = np.isfinite(X).all(axis=1) & (angle >= min_angle_deg) & (err <= max_reproj_px)
     if not ok.any():
         return none
@@ -123,3 +81,61 @@ def triangulate_tracks(
         np.ascontiguousarray(views),
         np.ascontiguousarray(jac),
     )
+
+
+def _track_observation_pairs(problem: AbsolutePoseProblem) -> tuple[np.ndarray, np.ndarray]:
+    """Match rows ``a``, ``b`` (K,) of every two observations of one track (the same query
+    keypoint id) in different pairs; query keypoints with a 2D-3D constraint already
+    (``problem.source3d``) are left out."""
+    ids = problem.query_ids
+    rows = np.flatnonzero(ids >= 0)
+    src = problem.source3d[problem.source3d >= 0]
+    if len(src):
+        rows = rows[~np.isin(ids[rows], ids[src])]
+    if len(rows) == 0:
+        return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
+    order = rows[np.argsort(ids[rows], kind="stable")]
+    sid = ids[order]
+    starts = np.flatnonzero(np.r_[True, sid[1:] != sid[:-1]])
+    ends = np.r_[starts[1:], len(sid)]
+    a_idx, b_idx = [], []
+    for s, e in zip(starts, ends):
+        if e - s < 2:
+            continue
+        members = order[s:e]
+        for i in range(len(members)):
+            for j in range(i + 1, len(members)):
+                if problem.pair[members[i]] != problem.pair[members[j]]:
+                    a_idx.append(members[i])
+                    b_idx.append(members[j])
+    return np.asarray(a_idx, dtype=np.int64), np.asarray(b_idx, dtype=np.int64)
+
+
+def _triangulate_observation_pairs(
+    problem: AbsolutePoseProblem, a: np.ndarray, b: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Midpoint triangulation of the reference observations ``a``, ``b`` (K,) of each track:
+    world points (K, 3), triangulation angles (K,) in degrees and the larger reprojection error
+    in the two references (K,) in pixels."""
+    pa, pb = problem.pair[a], problem.pair[b]
+    X = np.empty((len(a), 3))
+    angle = np.empty(len(a))
+    err = np.empty(len(a))
+    for p1 in np.unique(pa):
+        for p2 in np.unique(pb[pa == p1]):
+            sel = (pa == p1) & (pb == p2)
+            Ra, ta = problem.ref_R[p1], problem.ref_t[p1]
+            Rb, tb = problem.ref_R[p2], problem.ref_t[p2]
+            Xs, ang = triangulate_points((Ra, ta), (Rb, tb), problem.xr[a[sel]], problem.xr[b[sel]])
+            X[sel], angle[sel] = Xs, ang
+            e = np.zeros(sel.sum())
+            for R, t, x, f in (
+                (Ra, ta, problem.xr[a[sel]], problem.f_ref[p1]),
+                (Rb, tb, problem.xr[b[sel]], problem.f_ref[p2]),
+            ):
+                Xc = Xs @ R.T + t
+                with np.errstate(invalid="ignore", divide="ignore"):
+                    d = (Xc[:, :2] / Xc[:, 2:3] - x[:, :2]) * f
+                    e = np.maximum(e, np.hypot(d[:, 0], d[:, 1]))
+            err[sel] = e
+    return X, angle, err

@@ -14,8 +14,8 @@ from planarloc.io.datasets import read_dataset
 from planarloc.localize.localizer import CARRYING_3D_INLIERS, Localizer, LocalizerConfig
 from planarloc.map.builder import build_map
 from planarloc.map.pose_accuracy import MapPoseAccuracy
+from planarloc.robust.covariance import _map_prior
 from planarloc.robust.options import RansacOptions
-from planarloc.robust.verification import _map_prior
 
 
 @pytest.fixture(scope="module")

@@ -1,4 +1,4 @@
-"""The consensus 2p1p kernels (robust/hypotheses.py) on constructed inputs.
+"""The consensus 2p1p kernels (robust/consensus_scale.py) on constructed inputs.
 
 Stage 1 (:func:`planar_relative_candidates`) must rank the true relative pose first among
 samples of one pair; stage 2 (:func:`hypotheses_2p1p_consensus`) must recover the scale that
@@ -13,13 +13,9 @@ import pytest
 
 from planarloc.geometry.planar import rotation_from_yaw
 from planarloc.geometry.pose import Pose
-from planarloc.robust.hypotheses import (
-    DEGENERATE,
-    HYPOTHESES,
-    PDCHECK,
-    hypotheses_2p1p_consensus,
-    planar_relative_candidates,
-)
+from planarloc.robust.consensus_scale import hypotheses_2p1p_consensus, planar_relative_candidates
+from planarloc.robust.hypotheses import DEGENERATE, HYPOTHESES, PDCHECK
+from planarloc.robust.problem import ProblemArrays
 
 F = np.array([800.0, 800.0])
 
@@ -57,16 +53,20 @@ def matches(
     return xq, xr
 
 
-def problem(rng: np.random.Generator, n: int, outliers: int = 0, third_query: Pose = Q) -> dict:
+def problem(rng: np.random.Generator, n: int, outliers: int = 0, third_query: Pose = Q) -> ProblemArrays:
     """Pair 0 seen from Q; pairs 1 and 2 seen from ``third_query``."""
     parts = [matches(rng, r, n, outliers, Q if p == 0 else third_query) for p, r in enumerate(REFS)]
-    return dict(
+    return ProblemArrays(
         xq=np.ascontiguousarray(np.vstack([q for q, _ in parts])),
         xr=np.ascontiguousarray(np.vstack([r for _, r in parts])),
+        pair=np.repeat(np.arange(3, dtype=np.int64), n),
         offsets=np.arange(0, 3 * n + 1, n, dtype=np.int64),
+        f_query=np.concatenate([F, F]),
         f_ref=np.tile(F, (3, 1)),
         ref_R=np.ascontiguousarray(np.stack([r.R for r in REFS])),
         ref_t=np.ascontiguousarray(np.stack([r.t for r in REFS])),
+        xq3d=np.zeros((0, 3)),
+        X3d=np.zeros((0, 3)),
     )
 
 
@@ -76,7 +76,12 @@ def true_relative(p: int = 0) -> tuple[np.ndarray, np.ndarray]:
 
 
 def consensus(
-    pb: dict, R: np.ndarray, t: np.ndarray, peaks: int = 1, max_votes: int = 1000, threshold_px: float = 2.0
+    pb: ProblemArrays,
+    R: np.ndarray,
+    t: np.ndarray,
+    peaks: int = 1,
+    max_votes: int = 1000,
+    threshold_px: float = 2.0,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     out_R, out_t = np.empty((peaks, 3, 3)), np.empty((peaks, 3))
     counters = np.zeros(5, dtype=np.int64)
@@ -84,13 +89,7 @@ def consensus(
         R[None],
         t[None],
         np.array([0]),
-        pb["xq"],
-        pb["xr"],
-        pb["offsets"],
-        F,
-        pb["f_ref"],
-        pb["ref_R"],
-        pb["ref_t"],
+        pb,
         threshold_px**2,
         peaks,
         max_votes,
@@ -158,11 +157,7 @@ def test_stage1_ranks_true_relative_pose_first(outliers: int) -> None:
     c = planar_relative_candidates(
         samples,
         sample_pair,
-        pb["xq"],
-        pb["xr"],
-        pb["offsets"],
-        F,
-        pb["f_ref"],
+        pb,
         4.0,
         2,
         1000,

@@ -66,7 +66,7 @@ def test_msac_cost_and_bound(scene) -> None:
     R = np.ascontiguousarray([p.R for p in poses])
     t = np.ascontiguousarray([p.t for p in poses])
     th2 = 4.0
-    cost, inl = msac_scores(R, t, len(R), *args(pb), th2)
+    cost, inl = msac_scores(R, t, len(R), pb.arrays, th2)
     exact = np.array([np.minimum(errors_sq(p.R, p.t, *args(pb))[0], th2).sum() for p in poses])
     count = np.array([(errors_sq(p.R, p.t, *args(pb))[0] < th2).sum() for p in poses])
     best = np.inf
@@ -78,7 +78,7 @@ def test_msac_cost_and_bound(scene) -> None:
             assert best < cost[k] <= exact[k] + 1e-9
     assert np.argmin(cost) == np.argmin(exact) == 0  # the truth wins
     # An external bound below every cost prunes all of them without changing the argmin.
-    cost_b, _ = msac_scores(R, t, len(R), *args(pb), th2, 0.5 * exact.min())
+    cost_b, _ = msac_scores(R, t, len(R), pb.arrays, th2, 0.5 * exact.min())
     assert np.all(cost_b > 0.5 * exact.min()) and np.all(cost_b <= exact + 1e-9)
 
 

@@ -18,10 +18,12 @@ from planarloc.robust.hypotheses import (
     HYPOTHESES,
     PDCHECK,
     RCHECK,
+    RelativePoses,
     hypotheses_2p1p,
     hypotheses_from_relative_poses,
 )
 from planarloc.robust.options import RansacOptions
+from planarloc.robust.problem import ProblemArrays
 
 COS_2DEG = float(np.cos(np.radians(2.0)))
 E_Y = np.array([0.0, 1.0, 0.0])
@@ -67,6 +69,26 @@ def yaw_rotation_deg(deg: float) -> np.ndarray:
     return rotation_from_yaw(np.radians(deg))
 
 
+def problem_arrays(
+    xq: np.ndarray, xr: np.ndarray, refs: tuple[Pose, ...], xq3d: np.ndarray, X3d: np.ndarray
+) -> ProblemArrays:
+    """The kernels' record of matches ``xq``, ``xr`` (all of pair 0) to the references ``refs``
+    (unit focal lengths) with the 2D-3D constraints ``xq3d``, ``X3d``."""
+    n, P = len(xq), len(refs)
+    return ProblemArrays(
+        np.ascontiguousarray(xq, dtype=float),
+        np.ascontiguousarray(xr, dtype=float),
+        np.zeros(n, dtype=np.int64),
+        np.array([0] + [n] * P, dtype=np.int64),
+        np.ones(4),
+        np.ones((P, 2)),
+        np.ascontiguousarray(np.stack([r.R for r in refs])),
+        np.ascontiguousarray(np.stack([r.t for r in refs])),
+        np.ascontiguousarray(xq3d, dtype=float),
+        np.ascontiguousarray(X3d, dtype=float),
+    )
+
+
 def same_pose(R: np.ndarray, t: np.ndarray, truth: Pose, tol: float = 1e-8) -> bool:
     return bool(np.abs(R - truth.R).max() < tol and np.linalg.norm(-R.T @ t - truth.center) < tol)
 
@@ -93,12 +115,8 @@ def run_relative(
     out_t = np.empty((A * A, 3))
     counters = np.zeros(5, dtype=np.int64)
     n = hypotheses_from_relative_poses(
-        Ra,
-        ta,
-        va,
-        Rb,
-        tb,
-        vb,
+        RelativePoses(Ra, ta, va),
+        RelativePoses(Rb, tb, vb),
         np.array([0]),
         np.array([1]),
         np.ascontiguousarray(np.stack([j.R, k.R])),
@@ -208,12 +226,7 @@ def run_2p1p(
         np.array([third_is_3d]),
         np.array([0]),
         np.array([1]),
-        xq,
-        xr,
-        np.ascontiguousarray(np.stack([J.R, K.R])),
-        np.ascontiguousarray(np.stack([J.t, K.t])),
-        xq3d,
-        X3d,
+        problem_arrays(xq, xr, (J, K), xq3d, X3d),
         out_R,
         out_t,
         counters,

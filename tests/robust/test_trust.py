@@ -195,7 +195,7 @@ def test_returned_pose_never_costs_more_than_the_refined_truth(tilt_deg: float) 
 
 # ---- runner-up answers (ambiguous_pose) -----------------------------------------------------------
 def _refined(centre, score, n=20):
-    from planarloc.robust.verification import RefinedPose
+    from planarloc.robust.final_refinement import RefinedPose
 
     c = np.asarray(centre, dtype=float)
     return RefinedPose(
@@ -211,7 +211,7 @@ class _Scorer:
 
 
 def test_rival_distance_margin_in_inliers() -> None:
-    from planarloc.robust.verification import RIVAL_MARGIN_INLIERS, _rival_distance
+    from planarloc.robust.rivals import RIVAL_MARGIN_INLIERS, rival_distance
 
     ref = _refined([0, 0, 0], 100.0)
     margin = RIVAL_MARGIN_INLIERS * _Scorer.threshold_sq
@@ -227,30 +227,28 @@ def test_rival_distance_margin_in_inliers() -> None:
         return refine
 
     # A runner-up refining 1 m away within the margin is a rival: its distance bounds the std.
-    d = _rival_distance(
+    d = rival_distance(
         _Scorer(), ref, 60, [(*far, 100.0 + margin)], none, refine_to([1, 0, 0], 100 + margin), 0.2
     )
     assert d == pytest.approx(1.0)
     # Beyond the margin after refinement, or back at the best pose: no rival.
     assert (
-        _rival_distance(
+        rival_distance(
             _Scorer(), ref, 60, [(*far, 100.0)], none, refine_to([1, 0, 0], 100 + 1.5 * margin), 0.2
         )
         == 0.0
     )
     assert (
-        _rival_distance(_Scorer(), ref, 60, [(*far, 100.0)], none, refine_to([0.05, 0, 0], 100.0), 0.2) == 0.0
+        rival_distance(_Scorer(), ref, 60, [(*far, 100.0)], none, refine_to([0.05, 0, 0], 100.0), 0.2) == 0.0
     )
     # Far in cost before refinement, or already near: never refined.
     calls.clear()
     assert (
-        _rival_distance(
-            _Scorer(), ref, 60, [(*far, 100.0 + 3 * margin)], none, refine_to([1, 0, 0], 100), 0.2
-        )
+        rival_distance(_Scorer(), ref, 60, [(*far, 100.0 + 3 * margin)], none, refine_to([1, 0, 0], 100), 0.2)
         == 0
     )
     assert (
-        _rival_distance(
+        rival_distance(
             _Scorer(), ref, 60, [(np.eye(3), np.zeros(3), 100.0)], none, refine_to([1, 0, 0], 100), 0.2
         )
         == 0.0
@@ -258,10 +256,10 @@ def test_rival_distance_margin_in_inliers() -> None:
     assert not calls
     # The raw pool is only examined for poses on few inliers.
     pool = (np.eye(3)[None].copy(), -np.array([[2.0, 0, 0]]))
-    assert _rival_distance(_Scorer(), ref, 10, [], pool, refine_to([2, 0, 0], 100.0), 0.2) == pytest.approx(
+    assert rival_distance(_Scorer(), ref, 10, [], pool, refine_to([2, 0, 0], 100.0), 0.2) == pytest.approx(
         2.0
     )
-    assert _rival_distance(_Scorer(), ref, 400, [], pool, refine_to([2, 0, 0], 100.0), 0.2) == 0.0
+    assert rival_distance(_Scorer(), ref, 400, [], pool, refine_to([2, 0, 0], 100.0), 0.2) == 0.0
 
 
 @pytest.mark.parametrize("case", [(2, 4, 77), (3, 3, 56), (1, 4, 86)])
