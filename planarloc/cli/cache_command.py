@@ -71,7 +71,8 @@ def _kernel_files() -> tuple[list[Path], list[Path]]:
 def _walk(folder: Path) -> tuple[list[Path], list[Path]]:
     """``(entries, folders)`` below ``folder``: every file and symbolic link (never followed), and
     every real subfolder, deepest first."""
-    entries, folders = [], []
+    entries: list[Path] = []
+    folders: list[Path] = []
     for root, dirs, files in os.walk(folder, topdown=True, followlinks=False):
         here = Path(root)
         for d in dirs:

@@ -17,8 +17,9 @@ from __future__ import annotations
 
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
+from typing import cast
 
-from rich.console import Console
+from rich.console import Console, RenderableType
 from rich.errors import NotRenderableError
 from rich.measure import Measurement
 
@@ -49,7 +50,7 @@ def _natural_width(console: Console, obj: object, markup: bool) -> int:
         return 0
     options = console.options.update(markup=markup).update_width(_MAX_PLAIN_WIDTH)
     try:
-        return Measurement.get(console, options, obj).maximum
+        return Measurement.get(console, options, cast("RenderableType", obj)).maximum
     except NotRenderableError:  # e.g. a Path: printed as its text
         return 0
 

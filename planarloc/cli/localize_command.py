@@ -172,7 +172,7 @@ def _queries(args: argparse.Namespace, camera: Camera | None) -> tuple[list[Quer
         return (queries if timed else _with_source_times(queries, stream=True)), timed
     if args.sequence:
         files = [p for p in args.images if not p.is_dir()]
-        seen = {}
+        seen: dict[str, Path] = {}
         for p in files:
             if os.path.realpath(p) in seen:
                 raise ValueError(
@@ -344,8 +344,9 @@ def _stream_localizer(
     from planarloc.io.odometry import read_odometry
     from planarloc.localize.sequence import SequenceLocalizer
 
-    stamps = [q.timestamp for q in queries]
-    odometry = read_odometry(args.odometry, stamps if timed else None) if args.odometry else None
+    # timed: every query has its time (from the image list); otherwise the odometry is one line per frame
+    stamps = [q.timestamp for q in queries if q.timestamp is not None] if timed else None
+    odometry = read_odometry(args.odometry, stamps) if args.odometry else None
     if odometry is not None and len(odometry) != len(queries):
         raise ValueError(
             f"{args.odometry}: {len(odometry)} odometry poses for {len(queries)} frames (without "
@@ -358,6 +359,8 @@ def _stream_localizer(
     def localize(q: QuerySource) -> dict:
         k = next(frames)
         try:  # one bad frame is recorded with its reason; the stream goes on
+            if q.timestamp is None:
+                raise InputError(f"{q.path}: a frame of a stream needs a time")
             query = loc.prepare(q.path, camera, name=q.name, gravity=gravity)
             est = seq.step_query(query, float(q.timestamp), None if odometry is None else odometry[k])
         except MapFormatError:

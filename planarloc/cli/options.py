@@ -178,7 +178,7 @@ def add_localizer_args(p: argparse.ArgumentParser) -> None:
     g.add_argument(
         "--structure",
         "-s",
-        default=_RANSAC.structure.value,
+        default=Structure(_RANSAC.structure).value,
         choices=[s.value for s in Structure],
         help="none = the paper's 2D-2D constraints only (position unobservable when the query is "
         "collinear with the map images: reported as degenerate_scale); tracks = also "

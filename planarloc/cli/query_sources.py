@@ -19,6 +19,7 @@ import os
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import cast
 
 from planarloc.geometry.camera import Camera
 from planarloc.geometry.pose import Pose
@@ -64,7 +65,7 @@ def list_queries(path: Path, frame_period_s: float) -> tuple[list[QuerySource], 
     entries = read_image_list(path)
     timed = entries[0][0] is not None
     out = [
-        QuerySource(p.name, p, timestamp=float(s) if timed else k * frame_period_s)
+        QuerySource(p.name, p, timestamp=float(cast(float, s)) if timed else k * frame_period_s)
         for k, (s, p) in enumerate(entries)
     ]
     return unique_names(out, keep_repeats=True), timed

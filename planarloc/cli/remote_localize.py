@@ -12,7 +12,7 @@ the results file is left as it was).
 from __future__ import annotations
 
 import argparse
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from pathlib import Path
 
 from planarloc.cli.query_sources import QuerySource
@@ -74,7 +74,7 @@ def check_remote_args(args: argparse.Namespace) -> None:
 
 
 def remote_localizer(
-    client, args: argparse.Namespace, camera: Camera | None, gravity: object | None
+    client, args: argparse.Namespace, camera: Camera | None, gravity: Iterable[float] | None
 ) -> Callable[[QuerySource], dict]:
     """``localize(query) -> record`` through ``client`` (a :class:`planarloc.client.Client`),
     after checking that the served map exists and, without ``camera``, has exactly one camera."""

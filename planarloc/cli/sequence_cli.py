@@ -7,6 +7,7 @@ from __future__ import annotations
 import argparse
 from contextlib import ExitStack
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 from rich.table import Table
@@ -15,7 +16,13 @@ from planarloc.cli.console import info, progress_bar
 from planarloc.io.results import PREDICTED_MODES
 from planarloc.localize.sequence import SequenceLocalizer
 from planarloc.localize.stream_config import FIX_MODES, SequenceConfig
+from planarloc.robust.options import Structure
 from planarloc.robust.relative_pose import MODELS
+
+if TYPE_CHECKING:
+    from planarloc.geometry.pose import Pose
+    from planarloc.localize.localizer import Localizer, LocalizerConfig
+    from planarloc.viz.rerun_log import RerunLogger
 
 _SEQ = SequenceConfig()
 
@@ -231,7 +238,11 @@ def check_sequential_args(args: argparse.Namespace) -> None:
 
 
 def evaluate_sequential(
-    args: argparse.Namespace, map_path: Path, map_images: list, queries: list, localizer_config: object
+    args: argparse.Namespace,
+    map_path: Path,
+    map_images: list,
+    queries: list,
+    localizer_config: LocalizerConfig,
 ) -> int:
     """`planarloc evaluate --sequential`: the queries in order as one stream; prints and writes the
     summary, the TUM files (``--tum``), the plot (``--plot``) and the Rerun recording (``--rerun``).
@@ -249,6 +260,7 @@ def evaluate_sequential(
     order = stream_order(n, kidnap_at=args.kidnap_at, drop=drop)
     frames = make_stream(queries, order, np.random.default_rng(args.seed), frame_period_s=_SEQ.frame_period_s)
     stamps = [f.stamp for f in frames]
+    odometry: list[Pose | None] | None
     if args.simulate_odometry:
         odometry = [f.odometry for f in frames]
     elif args.odometry:
@@ -289,7 +301,7 @@ def evaluate_sequential(
         dataset=" ".join(str(d) for d in args.dataset),
         map_every=args.map_every,
         motion=motion,
-        structure=localizer_config.ransac.structure.value,  # type: ignore[attr-defined]
+        structure=Structure(localizer_config.ransac.structure).value,
         kidnap_at=args.kidnap_at,
         drop_every=args.drop_every,
         dropped=len(drop),
@@ -310,13 +322,18 @@ def evaluate_sequential(
     return partial_exit(results, "frames")
 
 
-def stream_rerun(path: Path | None, loc: object, stack: ExitStack) -> object | None:
+def stream_rerun(path: Path | None, loc: Localizer, stack: ExitStack) -> RerunLogger | None:
     """A Rerun recording of a stream (``--rerun``) with the map logged, closed by ``stack``; None without a path."""
     if path is None:
         return None
     from planarloc.viz.rerun_log import RerunLogger
 
     rerun = RerunLogger(path)
-    stack.callback(lambda: (rerun.close(), info(f"wrote {rerun.path}")))
-    rerun.log_map(loc.map_images)  # type: ignore[attr-defined]
+
+    def close() -> None:
+        rerun.close()
+        info(f"wrote {rerun.path}")
+
+    stack.callback(close)
+    rerun.log_map(loc.map_images)
     return rerun

@@ -77,7 +77,7 @@ def run(args: argparse.Namespace) -> int:
         else "every listed kernel was cached"
     )
     failed = f", {len(report.failed)} compiled by the steps instead" if report.failed else ""
-    slowest = max(times, key=times.get)
+    slowest = max(times, key=times.__getitem__)
     info(
         f"warm-up done in {time.perf_counter() - t0:.1f} s ({compiled}{failed}; "
         f"slowest step: {slowest}, {times[slowest]:.1f} s)"

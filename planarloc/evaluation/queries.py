@@ -9,7 +9,7 @@ nearest map pose.
 from __future__ import annotations
 
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -125,7 +125,7 @@ def split_map_queries(
 
 
 def query_result(
-    query: PosedImage, est: PoseEstimate, seconds: float, gravity: object | None = None
+    query: PosedImage, est: PoseEstimate, seconds: float, gravity: Iterable[float] | None = None
 ) -> QueryResult:
     if est.success and est.pose is not None:
         t_err, r_err = pose_errors(est.pose, query.cam_from_world)

@@ -27,8 +27,9 @@ estimates it from its poses, or the user gives it with the dataset option ``up=`
 from __future__ import annotations
 
 import logging
-from collections.abc import Callable, Hashable
+from collections.abc import Callable
 from pathlib import Path
+from typing import TypeVar
 
 import numpy as np
 
@@ -57,19 +58,23 @@ def _timestamp_key(path: Path, lineno: int, token: str) -> int | float:
 SAME_POSE_TOL = 1e-9
 
 
+PoseKey = TypeVar("PoseKey", bound=tuple)
+"""A pose line's key: (timestamp, device) in trajectories, (rig, sensor) in rigs."""
+
+
 def _read_poses(
-    path: Path, fields: str, key: Callable[[int, str, str], Hashable]
-) -> dict[Hashable, tuple[int, Pose]]:
+    path: Path, fields: str, key: Callable[[int, str, str], PoseKey]
+) -> dict[PoseKey, tuple[int, Pose]]:
     """``{key(lineno, field0, field1): (lineno, pose)}`` of a 9-field kapture pose file
     (trajectories, rigs). A key given on several lines with different poses is dropped, with a
     warning per line (module docstring); with the same pose, its first line counts."""
-    lines: dict[Hashable, list[tuple[int, Pose]]] = {}
+    lines: dict[PoseKey, list[tuple[int, Pose]]] = {}
     for lineno, tokens in iter_data_lines(path, FORMAT, f"poses {fields}", sep=","):
         if len(tokens) != 9:
             raise FormatError(path, lineno, f"expected 9 fields {fields}, found {len(tokens)}")
         pose = parse_pose_fields(path, lineno, tokens[2:], WXYZ_T, 3)
         lines.setdefault(key(lineno, tokens[0], tokens[1]), []).append((lineno, pose))
-    poses: dict[Hashable, tuple[int, Pose]] = {}
+    poses: dict[PoseKey, tuple[int, Pose]] = {}
     for k, given in lines.items():
         first = given[0][1]
         if all(np.allclose(first.matrix, pose.matrix, atol=SAME_POSE_TOL) for _, pose in given[1:]):

@@ -55,7 +55,7 @@ import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal, overload
 
 import cv2
 import numpy as np
@@ -164,9 +164,24 @@ def default_image_dir(paths: Sequence[Path], image_topic: str) -> Path:
     return cache_dir("bags") / f"{Path(paths[0]).stem}-{h.hexdigest()[:12]}"
 
 
+@overload
+def _pick_topic(
+    topics: dict[str, str],
+    wanted: str | None,
+    types: Sequence[str],
+    option: str,
+    root: Path,
+    required: Literal[True],
+) -> str: ...
+@overload
+def _pick_topic(
+    topics: dict[str, str], wanted: str | None, types: Sequence[str], option: str, root: Path, required: bool
+) -> str | None: ...
 def _pick_topic(
     topics: dict[str, str], wanted: str | None, types: Sequence[str], option: str, root: Path, required: bool
 ) -> str | None:
+    """The topic of one of ``types`` to read: ``wanted`` (checked), else the bag's only one; None
+    when there is none and the topic is not ``required`` (FormatError otherwise, naming ``option``)."""
     if wanted is not None:
         if wanted not in topics:
             raise FormatError(

@@ -272,12 +272,13 @@ class FixSolver:
         if near is None or cov is None or set(near) <= set(est.references):
             return est, pairs
         again, again_pairs = localize(features, camera, near, gravity=gravity)
-        cov2 = self.fix_covariance(again, camera) if again.success and again.pose is not None else None
-        if (
-            cov2 is not None
-            and np.linalg.norm(again.pose.center - est.pose.center) <= self.config.refix_radius_m
-        ):
-            return again, again_pairs
+        if again.success and again.pose is not None:
+            cov2 = self.fix_covariance(again, camera)
+            if (
+                cov2 is not None
+                and np.linalg.norm(again.pose.center - est.pose.center) <= self.config.refix_radius_m
+            ):
+                return again, again_pairs
         return est, pairs
 
     def attempts(
@@ -295,16 +296,17 @@ class FixSolver:
             out.global_retrieval |= references is None
             est, pairs = self._fix(features, camera, references, gravity)
             out.last, out.last_pairs = est, pairs
-            cov = self.fix_covariance(est, camera) if est.success and est.pose is not None else None
-            if cov is None:
+            pose = est.pose if est.success else None
+            cov = self.fix_covariance(est, camera) if pose is not None else None
+            if pose is None or cov is None:
                 out.status = "failed"
                 continue
             if job.prediction is None:
-                out.accepted, out.status = (est.pose, cov), "accepted"
+                out.accepted, out.status = (pose, cov), "accepted"
                 break
-            out.mahalanobis_sq = mahalanobis_sq(est.pose, cov, *job.prediction)
+            out.mahalanobis_sq = mahalanobis_sq(pose, cov, *job.prediction)
             if out.mahalanobis_sq <= self.gate:
-                out.accepted, out.status = (est.pose, cov), "accepted"
+                out.accepted, out.status = (pose, cov), "accepted"
                 break
             out.status = "rejected"
             out.rejected.append(FixAttempt(est, cov, references is None, out.mahalanobis_sq, pairs))

@@ -31,6 +31,8 @@ record handled in its step).
 
 from __future__ import annotations
 
+from collections.abc import Iterable
+
 import numpy as np
 
 from planarloc.geometry.pose import Pose
@@ -89,7 +91,7 @@ def _head(kind: str, name: str, success: bool, status: str, message: str, stamp:
 
 
 def query_record(
-    name: str, estimate: PoseEstimate, gravity: object | None = None, stamp: float | None = None
+    name: str, estimate: PoseEstimate, gravity: Iterable[float] | None = None, stamp: float | None = None
 ) -> dict:
     """The record of one single-image fix (``kind`` ``"fix"``); ``gravity``: the query's gravity
     prior (``query_gravity``; None: assumed mounted like the map cameras); ``stamp``: its time."""
@@ -112,7 +114,7 @@ def query_record(
         "references": d["references"],
         "model": d["model"],
         "stats": d["stats"],
-        "query_gravity": None if gravity is None else [float(v) for v in gravity],  # type: ignore[union-attr]
+        "query_gravity": None if gravity is None else [float(v) for v in gravity],
         "map_prior": None
         if estimate.map_prior is None
         else {

@@ -88,13 +88,15 @@ def _hash_checked(image: PosedImage) -> str:
     problem = image_problem(data)
     if problem is not None:
         raise InputError(f"{image.path}: {problem}")
+    size: tuple[int, int] | None
     try:
         _fmt, w, h = image_size_from_header(data)
+        size = (w, h)
     except ImageFormatError:
-        w = h = None  # another format: its size is checked once it is decoded
-    if w is not None and (w, h) != (image.camera.width, image.camera.height):
+        size = None  # another format: its size is checked once it is decoded
+    if size is not None and size != (image.camera.width, image.camera.height):
         raise InputError(
-            f"{image.path}: image is {w}x{h} but its camera is "
+            f"{image.path}: image is {size[0]}x{size[1]} but its camera is "
             f"{image.camera.width}x{image.camera.height}; fix the dataset's intrinsics"
         )
     return hashlib.sha256(data).hexdigest()
@@ -234,7 +236,7 @@ def build_map(
                 f"{path}: none of the {len(images)} images can go into the map; the first: {bad[0][1]}"
             )
         for im, reason in bad:
-            skip(im, reason)  # type: ignore[arg-type]
+            skip(im, reason)
         images = [im for im, (sha, _) in zip(images, checked) if sha is not None]
         hashes = [sha for sha, _ in checked if sha is not None]
         ready: dict[Path, Features | str] = {}  # features extracted by the frame check, kept for stage 2
@@ -311,7 +313,8 @@ def _store_images(
     rest = [r for (r, _), d in zip(todo, done) if d is None]
     fresh = iter(mapper(functools.partial(extract_image_features, features=features), rest))
     for i, (record, sha) in enumerate(todo):
-        feats = done[i] if done[i] is not None else next(fresh)
+        got = done[i]
+        feats = got if got is not None else next(fresh)
         if isinstance(feats, str):  # unreadable after all (e.g. a damaged JPEG): left out, the rest goes on
             skip(record, feats)
             continue

@@ -46,7 +46,12 @@ def resolve_world_down(
         return stored, stored
     if stored is None or declared.source == "option":
         return stored, declared
-    if stored.source == "declared" and not np.allclose(stored.direction, declared.direction, atol=1e-9):
+    if (
+        stored.source == "declared"
+        and stored.direction is not None  # a declared world down has a direction (WorldDown)
+        and declared.direction is not None
+        and not np.allclose(stored.direction, declared.direction, atol=1e-9)
+    ):
         raise InputError(
             f"{db.path}: the map's world has down = {stored.direction} ({stored.detail}) but the new images "
             f"declare {declared.direction} ({declared.detail}); hint: pass the dataset option up=..."

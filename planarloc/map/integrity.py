@@ -285,7 +285,9 @@ def _check_features(
     meta: dict,
     basis: DescriptorBasis | None,
 ) -> str | None:
-    if not all(isinstance(v, int) for v in (kp_num, d_num, dim)) or not isinstance(encoding, str):
+    if not (isinstance(kp_num, int) and isinstance(d_num, int) and isinstance(dim, int)):
+        return "damaged feature counts"
+    if not isinstance(encoding, str):
         return "damaged feature counts"
     if kp_num != d_num:
         return f"{kp_num} keypoints but {d_num} descriptors"

@@ -74,8 +74,10 @@ class MapWriting(MapState):
                 "INSERT INTO cameras (model, width, height, params) VALUES (?, ?, ?, ?)", key
             ).lastrowid
         )
+        if cam_id is None:
+            raise sqlite3.DatabaseError(f"cameras: no row id for {key}")
         pending[key] = cam_id
-        return cam_id
+        return int(cam_id)
 
     def add_image(self, posed: PosedImage, features: Features, *, content_sha256: str | None = None) -> int:
         """Add one image with its local features in one transaction; skip it if present.
@@ -153,6 +155,8 @@ class MapWriting(MapState):
                     "INSERT OR REPLACE INTO meta (key, value) VALUES ('descriptor_dim', ?)", (str(dim),)
                 )
             conn.execute("UPDATE meta SET value = '0' WHERE key = 'build_complete' AND value != '0'")
+        if image_id is None:
+            raise sqlite3.DatabaseError(f"images: no row id for {posed.name!r}")
         self._camera_ids.update(pending)
         self._dim = dim
         if new_basis is not None and encoding == "klt":

@@ -65,7 +65,7 @@ from planarloc.extras import require
 from planarloc.features import learned
 from planarloc.features.images import decode_gray
 from planarloc.features.registry import check_map_feature_kind
-from planarloc.geometry.camera import Camera
+from planarloc.geometry.camera import Camera, CameraModel
 from planarloc.geometry.pose import Pose
 from planarloc.geometry.validation import InputError
 from planarloc.io import strict_json
@@ -132,7 +132,7 @@ def frame_camera(
         return None, "", error, error
     (only,) = cameras
     warning = (
-        f"no CameraInfo on {camera_info_topic}: using the map's only camera ({only.model.value} "
+        f"no CameraInfo on {camera_info_topic}: using the map's only camera ({CameraModel(only.model).value} "
         f"{only.width}x{only.height}, params {' '.join(f'{p:g}' for p in only.params)}); publish the "
         "camera's CameraInfo if the images come from another camera"
     )
@@ -417,7 +417,11 @@ class LocalizerNode:
                     odom_from_child = None
             elif self.odometry.stamps:
                 notes.append("no odometry at the image's stamp")
-        odometry = None if odom_from_child is None else (odom_from_child @ child_from_camera).inverse()
+        odometry = (
+            None
+            if odom_from_child is None or child_from_camera is None
+            else (odom_from_child @ child_from_camera).inverse()
+        )
         try:
             est = self.sequence.step(image, camera, stamp, odometry=odometry)  # type: ignore[union-attr]
         except InputError as exc:  # the frame's (e.g. not the size of its camera), not the node's
@@ -571,12 +575,12 @@ def declare_settings(
     if isinstance(defaults, NodeSettings):
         defaults = {f.name: getattr(defaults, f.name) for f in fields(defaults)}
     base, overrides, meaning = defaults or {}, overrides or {}, parameter_help()
-    values = {}
+    values: dict[str, Any] = {}
     for f in fields(NodeSettings):
         default = base.get(f.name, f.default)
         # Typed by the default, but `-p odom_tolerance_s:=1` (an integer) is a fine number of seconds.
         descriptor = ParameterDescriptor(description=meaning[f.name], dynamic_typing=True)
-        value = node.declare_parameter(f.name, default, descriptor).value
+        value: Any = node.declare_parameter(f.name, default, descriptor).value
         if f.name in overrides:
             value = overrides[f.name]
             node.set_parameters([Parameter(f.name, value=value)])

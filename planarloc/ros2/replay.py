@@ -52,7 +52,7 @@ class ReplayFrame:
     for every frame: at ``rate_hz``.
     """
 
-    image: object
+    image: str | Path | np.ndarray | bytes
     camera: Camera | None
     stamp: float
     odom_from_base: Pose | None = None
@@ -273,14 +273,11 @@ class _Replayer:
             if s.lockstep:
                 self.wait_for_diagnostic(i, frame)
             else:
-                paced = (
-                    i + 1 < len(frames)
-                    and frames[i + 1].capture_time is not None
-                    and frames[0].capture_time is not None
-                )
+                assert t0 is not None  # set at the first frame
+                first = frames[0].capture_time
+                later = frames[i + 1].capture_time if i + 1 < len(frames) else None
                 self.wait_until(
-                    t0
-                    + (frames[i + 1].capture_time - frames[0].capture_time if paced else (i + 1) / s.rate_hz)
+                    t0 + (later - first if later is not None and first is not None else (i + 1) / s.rate_hz)
                 )
         self.result.seconds = time.perf_counter() - t0 if t0 is not None else 0.0
         end = time.monotonic() + s.settle_s

@@ -122,8 +122,8 @@ class NodeSettings:
     publish_predicted: bool = True
     max_position_std_m: float = _LOC.ransac.max_position_std_m
     max_published_std_m: float = MAX_PUBLISHED_STD_M
-    method: str = _LOC.method.value  # type: ignore[union-attr]  # LocalizerConfig holds a Method
-    structure: str = _LOC.ransac.structure.value
+    method: str = Method(_LOC.method).value
+    structure: str = Structure(_LOC.ransac.structure).value
     top_n: int = _LOC.top_n
     features: str = ""
     seed: int = int(_LOC.ransac.seed or 0)

@@ -320,7 +320,9 @@ def create_app(settings: ServeSettings):  # -> fastapi.FastAPI
         return response
 
     @app.post("/v1/localize")
-    async def localize(request: fastapi.Request):
+    # FastAPI reads the annotation at run time to pass the request; fastapi is the optional extra,
+    # imported in this function, so mypy cannot name its type here.
+    async def localize(request: fastapi.Request):  # type: ignore[name-defined]
         body, status, headers = await service.localize(request)
         if status == 200:
             return responses.Response(strict_json.dumps(body), media_type="application/json")

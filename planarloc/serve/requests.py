@@ -22,6 +22,9 @@ import time
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TypeVar
+
+import numpy as np
 
 from planarloc.features.images import (
     ImageFormatError,
@@ -161,8 +164,8 @@ class QuerySettings:
     defaults are :class:`~planarloc.localize.localizer.LocalizerConfig`'s, so the service, the CLI
     and the ROS node configure alike."""
 
-    method: Method = _DEFAULT.method  # type: ignore[assignment]  # LocalizerConfig holds a Method
-    structure: Structure = _DEFAULT.ransac.structure
+    method: Method = Method(_DEFAULT.method)
+    structure: Structure = Structure(_DEFAULT.ransac.structure)
     seed: int | None = _DEFAULT.ransac.seed
 
     def config(self) -> LocalizerConfig:
@@ -183,7 +186,7 @@ class LocalizeRequest:
 
     map_name: str
     name: str
-    image: bytes
+    image: bytes | np.ndarray  # the request's bytes; a session frame's decoded image once checked
     camera: Camera | None
     gravity: tuple[float, float, float] | None = None
     session: str | None = None
@@ -259,9 +262,10 @@ def parse_odometry_field(text: str) -> Pose:
         raise RequestError(400, f"odometry {text[:80]!r}: {str(exc)[:200]}") from None
 
 
-def _choice_field(
-    kind: type[Method] | type[Structure], name: str, text: str | None
-) -> Method | Structure | None:
+_Choice = TypeVar("_Choice", Method, Structure)
+
+
+def _choice_field(kind: type[_Choice], name: str, text: str | None) -> _Choice | None:
     """A form field naming a member of ``kind`` (empty: the default, None), else a 400."""
     if not text:
         return None
@@ -275,12 +279,12 @@ def _choice_field(
 
 def parse_method_field(text: str | None) -> Method | None:
     """``method`` (a :class:`Method`'s name; empty: the default), else a 400."""
-    return _choice_field(Method, "method", text)  # type: ignore[return-value]
+    return _choice_field(Method, "method", text)
 
 
 def parse_structure_field(text: str | None) -> Structure | None:
     """``structure`` (a :class:`Structure`'s name; empty: the default), else a 400."""
-    return _choice_field(Structure, "structure", text)  # type: ignore[return-value]
+    return _choice_field(Structure, "structure", text)
 
 
 def parse_localize_request(

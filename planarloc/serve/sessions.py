@@ -247,6 +247,9 @@ class SessionStates:
             ServerFault: a fault of the server (the session is dropped).
         """
         sid = str(req.session)
+        stamp = req.stamp
+        if stamp is None:  # parse_request requires it of a session's frame
+            raise RequestError(400, "stamp: required for a frame of a session (seconds)")
         state = self._states.get(sid)
         if state is None or state.generation != generation:
             try:
@@ -259,23 +262,24 @@ class SessionStates:
                 generation, SequenceLocalizer(localizer.with_config(config), SequenceConfig(fixes="wait"))
             )
             self._states[sid] = state
-        if state.last_stamp is not None and not req.stamp > state.last_stamp:
+        if state.last_stamp is not None and not stamp > state.last_stamp:
             raise RequestError(
                 409,
-                f"stamp: {req.stamp!r} is not after the last frame of session {sid!r} "
+                f"stamp: {stamp!r} is not after the last frame of session {sid!r} "
                 f"({state.last_stamp!r}); send the frames of a session in time order",
             )
-        if state.last_stamp is not None and req.stamp - state.last_stamp > MAX_FRAME_GAP_S:
+        if state.last_stamp is not None and stamp - state.last_stamp > MAX_FRAME_GAP_S:
             raise RequestError(
                 409,
-                f"stamp: {req.stamp!r} is {req.stamp - state.last_stamp:.6g} s after the last "
+                f"stamp: {stamp!r} is {stamp - state.last_stamp:.6g} s after the last "
                 f"frame of session {sid!r} ({state.last_stamp!r}), more than "
                 f"{MAX_FRAME_GAP_S:g} s; the frame was not used and the session goes on (if "
                 "the robot's clock jumped, start a new session id)",
             )
-        extra = {} if req.gravity is None else {"gravity": req.gravity}
         try:
-            estimate = state.sequence.step(req.image, req.camera, req.stamp, odometry=req.odometry, **extra)
+            estimate = state.sequence.step(
+                req.image, req.camera, stamp, odometry=req.odometry, gravity=req.gravity
+            )
         except Exception as exc:  # noqa: BLE001 - sorted into the client's and the server's below
             error = classify_error(exc, req.name)
             if isinstance(error, ServerFault):

@@ -92,6 +92,12 @@ class _Worker:
     started_at: float = field(default_factory=time.monotonic)
 
 
+def _log_control_failure(future: asyncio.Future) -> None:
+    """Done callback of a control job (:meth:`WorkerPool.post`): its failure is only logged."""
+    if not future.cancelled() and future.exception() is not None:
+        logger.warning("control job failed: %s", future.exception())
+
+
 class WorkerPool:
     """``workers`` processes with the maps open, FIFO queues of at most ``queue_size`` waiting jobs.
 
@@ -360,13 +366,7 @@ class WorkerPool:
         if self._loop is None or self._current[slot] is None or self._current[slot].dead:  # type: ignore[union-attr]
             return
         job = _Job(fn, args, self._loop.create_future(), slot)
-        job.future.add_done_callback(
-            lambda f: (
-                f.cancelled()
-                or f.exception() is None
-                or logger.warning("control job failed: %s", f.exception())
-            )
-        )
+        job.future.add_done_callback(_log_control_failure)
         self._enqueue(job, front=True)
 
     def _take(self, slot: int) -> _Job | None:
@@ -398,16 +398,17 @@ class WorkerPool:
         while True:
             w = self._current[slot]
             job = self._take(slot) if w is not None and w.ready and not w.dead else None
-            if job is None:
+            if w is None or job is None:
                 self._wake[slot].clear()
                 await self._wake[slot].wait()
                 continue
             job.started = True
             self.busy += 1
+            error: BaseException | None
             try:
                 answer = await self._loop.run_in_executor(self._threads, self._call, w, job.fn, job.args)
             except _Died:
-                error: BaseException = WorkerDied("the worker process running this request died; retry")
+                error = WorkerDied("the worker process running this request died; retry")
             except _TimedOut:
                 logger.error(
                     "worker %d (pid %s): a request ran longer than %g s; killing the worker",
