@@ -55,7 +55,7 @@ import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Literal, overload
+from typing import Any
 
 import cv2
 import numpy as np
@@ -100,6 +100,7 @@ from planarloc.io.rosbag_messages import (  # noqa: F401  (re-exported: the read
     parse_transform,
 )
 from planarloc.io.rosbag_poses import TfBuffer, distinct_samples
+from planarloc.io.rosbag_topics import BagTopics, pick_topic
 from planarloc.io.rosbag_write import POSE_MESSAGES, STORAGES, write_rosbag  # noqa: F401  (re-exported)
 from planarloc.io.tum import associate_timestamps
 from planarloc.map.posed_image import PosedImage
@@ -164,47 +165,6 @@ def default_image_dir(paths: Sequence[Path], image_topic: str) -> Path:
     return cache_dir("bags") / f"{Path(paths[0]).stem}-{h.hexdigest()[:12]}"
 
 
-@overload
-def _pick_topic(
-    topics: dict[str, str],
-    wanted: str | None,
-    types: Sequence[str],
-    option: str,
-    root: Path,
-    required: Literal[True],
-) -> str: ...
-@overload
-def _pick_topic(
-    topics: dict[str, str], wanted: str | None, types: Sequence[str], option: str, root: Path, required: bool
-) -> str | None: ...
-def _pick_topic(
-    topics: dict[str, str], wanted: str | None, types: Sequence[str], option: str, root: Path, required: bool
-) -> str | None:
-    """The topic of one of ``types`` to read: ``wanted`` (checked), else the bag's only one; None
-    when there is none and the topic is not ``required`` (FormatError otherwise, naming ``option``)."""
-    if wanted is not None:
-        if wanted not in topics:
-            raise FormatError(
-                root, None, f"{option}={wanted!r}: no such topic; topics: {_topic_list(topics)}"
-            )
-        if topics[wanted] not in types:
-            raise FormatError(
-                root,
-                None,
-                f"{option}={wanted!r} has type {topics[wanted]}, expected one of {', '.join(types)}",
-            )
-        return wanted
-    candidates = sorted(t for t, ty in topics.items() if ty in types)
-    if len(candidates) == 1:
-        return candidates[0]
-    if not required and not candidates:
-        return None
-    found = ", ".join(candidates) if candidates else "none"
-    raise FormatError(
-        root, None, f"give the dataset option {option}=TOPIC ({', '.join(types)} topics in the bag: {found})"
-    )
-
-
 def _shared_stamps(images: Sequence[BagImage], topic: str, action: str) -> set[int]:
     """Indices of the images whose header stamp another image has too (each warned, with ``action``)."""
     count: dict[float, int] = {}
@@ -218,10 +178,6 @@ def _shared_stamps(images: Sequence[BagImage], topic: str, action: str) -> set[i
             "%s (%s): %d images share this header stamp; %s", where, im.name, count[im.timestamp], action
         )
     return shared
-
-
-def _topic_list(topics: dict[str, str]) -> str:
-    return ", ".join(f"{t} ({ty})" for t, ty in sorted(topics.items())) or "none"
 
 
 @dataclass
@@ -259,11 +215,11 @@ def _read_bag(
         raise FormatError(root, None, f"cannot open the bag: {exc}") from None
     try:
         topics = {c.topic: c.msgtype for c in reader.connections}
-        img_topic = _pick_topic(topics, image_topic, (IMAGE, COMPRESSED_IMAGE), "image_topic", root, True)
+        img_topic = pick_topic(topics, image_topic, (IMAGE, COMPRESSED_IMAGE), "image_topic", root, True)
         cam = parse_camera_option(camera) if camera is not None else None
         info_topic = None
         if cam is None:
-            info_topic = _pick_topic(
+            info_topic = pick_topic(
                 topics, camera_info_topic, (CAMERA_INFO,), "camera_info_topic", root, False
             )
             if info_topic is None:
@@ -274,13 +230,13 @@ def _read_bag(
                     "the option camera='PINHOLE W H fx fy cx cy' (localize: --camera)",
                 )
         if pose_topic is not None:
-            _pick_topic(topics, pose_topic, POSE_TYPES, "pose_topic", root, True)
+            pick_topic(topics, pose_topic, POSE_TYPES, "pose_topic", root, True)
         wanted = {img_topic, info_topic, pose_topic}
         if with_tf:
             wanted |= {t for t, ty in topics.items() if ty == TF_MESSAGE and t in ("/tf", "/tf_static")}
         out_dir = Path(image_dir) if image_dir is not None else default_image_dir(paths, img_topic)
         collector = _BagCollector(
-            root, _BagTopics(img_topic, info_topic, pose_topic), cam, out_dir, int(every)
+            root, BagTopics(img_topic, info_topic, pose_topic), cam, out_dir, int(every)
         )
         for conn, bag_ns, raw in reader.messages(
             connections=[c for c in reader.connections if c.topic in wanted]
@@ -291,20 +247,11 @@ def _read_bag(
     return collector.content()
 
 
-@dataclass(frozen=True)
-class _BagTopics:
-    """The topics read: images, CameraInfo (None when the camera is given) and poses (None: tf or none)."""
-
-    image: str
-    camera_info: str | None
-    pose: str | None
-
-
 class _BagCollector:
     """Decodes a bag's messages in order: stores the kept images, takes the camera from CameraInfo,
     collects poses and the tf tree."""
 
-    def __init__(self, root: Path, topics: _BagTopics, cam: Camera | None, out_dir: Path, every: int):
+    def __init__(self, root: Path, topics: BagTopics, cam: Camera | None, out_dir: Path, every: int):
         self.root, self.topics, self.cam, self.out_dir, self.every = root, topics, cam, out_dir, every
         self.slug = topics.image.strip("/").replace("/", "_") or "image"
         self.pending: list[tuple[str, Path, int, int, str]] = []  # name, file, index, stamp, frame
