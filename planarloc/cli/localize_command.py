@@ -85,6 +85,27 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         run,
         interrupted=None,
     )
+    _add_input_args(p)
+    add_gravity_args(
+        p,
+        "--gravity",
+        metavar="'GX GY GZ'",
+        help="gravity of all queries (direction, pointing down) in the query camera frame (x right, "
+        "y down, z forward), e.g. from an IMU; default: the map cameras' mount tilt",
+    )
+    add_localizer_args(p)
+    add_map_features_arg(p)
+    add_output_args(
+        p,
+        "also write the localized queries as a TUM trajectory (timestamp tx ty tz qx qy qz qw, "
+        "camera-to-world) for evo",
+    )
+    add_server_args(p)
+    add_sequence_args(p, evaluate=False)
+
+
+def _add_input_args(p: argparse.ArgumentParser) -> None:
+    """The map, the queries (files, folders or a dataset), their camera and the outputs."""
     p.add_argument(
         "--map",
         required=True,
@@ -124,22 +145,6 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         help="folder for one JSON record per query (default: <out>.json.d; none with --out - "
         "or a device unless given)",
     )
-    add_gravity_args(
-        p,
-        "--gravity",
-        metavar="'GX GY GZ'",
-        help="gravity of all queries (direction, pointing down) in the query camera frame (x right, "
-        "y down, z forward), e.g. from an IMU; default: the map cameras' mount tilt",
-    )
-    add_localizer_args(p)
-    add_map_features_arg(p)
-    add_output_args(
-        p,
-        "also write the localized queries as a TUM trajectory (timestamp tx ty tz qx qy qz qw, "
-        "camera-to-world) for evo",
-    )
-    add_server_args(p)
-    add_sequence_args(p, evaluate=False)
 
 
 def _check_outputs(args: argparse.Namespace, inputs: list[Path]) -> Path | None:

@@ -39,6 +39,12 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         ],
     )
     msub = p.add_subparsers(dest="map_command", required=True)
+    _add_build_parser(msub)
+    _add_inspect_parsers(msub)
+
+
+def _add_build_parser(msub: argparse._SubParsersAction) -> None:
+    """`map build` and its options."""
     b = add_command(
         msub,
         "build",
@@ -73,6 +79,11 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         run_build,
         interrupted=BUILD_RESUMES,
     )
+    _add_build_options(b)
+
+
+def _add_build_options(b: argparse.ArgumentParser) -> None:
+    """The options of `map build`: the dataset, the map file, the features and the storage."""
     add_dataset_args(b)
     b.add_argument(
         "--every", type=int, default=1, help="only frames with index %% N == 0 go into the map (default: 1)"
@@ -111,6 +122,10 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         help="distribute over a Ray cluster (auto, HOST:PORT, ray://HOST:PORT; a local one without "
         "ADDRESS); needs pip install 'planarloc[ray]'",
     )
+
+
+def _add_inspect_parsers(msub: argparse._SubParsersAction) -> None:
+    """`map info` and `map check`: a map file each."""
     for name, summary, description, func in (
         (
             "info",

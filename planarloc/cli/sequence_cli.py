@@ -29,6 +29,12 @@ _SEQ = SequenceConfig()
 
 def add_sequence_args(p: argparse.ArgumentParser, evaluate: bool) -> None:
     g = p.add_argument_group("sequential localization")
+    _add_stream_source_args(g, evaluate)
+    _add_stream_motion_args(g)
+
+
+def _add_stream_source_args(g: argparse._ArgumentGroup, evaluate: bool) -> None:
+    """What makes the stream: `evaluate --sequential` (its simulated stream) or `localize --sequence`."""
     if evaluate:
         g.add_argument(
             "--sequential",
@@ -80,6 +86,10 @@ def add_sequence_args(p: argparse.ArgumentParser, evaluate: bool) -> None:
             "comment line before the pose, or 'drop' them; the JSON records keep every frame "
             "(default: %(default)s)",
         )
+
+
+def _add_stream_motion_args(g: argparse._ArgumentGroup) -> None:
+    """The stream's motion sources, fixes and kidnap handling (both commands)."""
     g.add_argument(
         "--odometry",
         type=Path,

@@ -99,6 +99,11 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         default=DEFAULT_MAX_IMAGE_BYTES / (1024 * 1024),
         help="image upload limit in MB, for every transfer encoding (default: %(default)s)",
     )
+    _add_limit_args(p)
+
+
+def _add_limit_args(p: argparse.ArgumentParser) -> None:
+    """The service's time limits and its number of sessions."""
     limits = p.add_argument_group("limits (seconds unless stated)")
     for option, default, text in (
         ("--header-timeout", DEFAULT_HEADER_TIMEOUT_S, "time for a request's headers once connected"),

@@ -203,6 +203,29 @@ def _failure_label(results: Sequence, failed: np.ndarray) -> str:
     )
 
 
+def _draw_segments(ax, map_xy: np.ndarray, gt: np.ndarray, est: np.ndarray, usable: np.ndarray) -> None:
+    """Estimate → truth lines of the usable results with an estimate ((N, 2) top-view points),
+    and a dot at each estimate."""
+    from matplotlib.collections import LineCollection
+
+    seg = usable & np.isfinite(est).all(axis=1)
+    if seg.any():
+        # a legend entry only when some segment shows beside its marker (longer than 0.5% of the view)
+        drawn = np.concatenate([map_xy, gt, est[seg]])
+        shows = np.linalg.norm(est[seg] - gt[seg], axis=1).max() > 0.005 * float(np.ptp(drawn, axis=0).max())
+        ax.add_collection(
+            LineCollection(
+                list(np.stack([est[seg], gt[seg]], axis=1)),
+                colors=_SEGMENT_COLOR,
+                linewidths=0.8,
+                alpha=0.8,
+                zorder=2.5,
+                label="estimate → ground truth" if shows else None,
+            )
+        )
+        ax.scatter(est[seg, 0], est[seg, 1], s=5, color=_SEGMENT_COLOR, zorder=2.6)
+
+
 def plot_localization(
     ax,
     map_centers: np.ndarray,
@@ -232,7 +255,6 @@ def plot_localization(
         The scatter artist of the localized results (for a colour bar; it carries the norm even
         when it has no points).
     """
-    from matplotlib.collections import LineCollection
 
     ex, ey, _ = gravity_plane_basis(g_world)
     P = np.stack([ex, ey], axis=1)
@@ -255,22 +277,7 @@ def plot_localization(
         )
     if len(gt) > 1:  # one result: its marker is all there is
         ax.plot(gt[:, 0], gt[:, 1], "-", color="tab:green", lw=1, alpha=0.6, label="ground truth")
-    seg = (kinds != FAILED) & np.isfinite(est).all(axis=1)
-    if seg.any():
-        # a legend entry only when some segment shows beside its marker (longer than 0.5% of the view)
-        drawn = np.concatenate([map_xy, gt, est[seg]])
-        shows = np.linalg.norm(est[seg] - gt[seg], axis=1).max() > 0.005 * float(np.ptp(drawn, axis=0).max())
-        ax.add_collection(
-            LineCollection(
-                list(np.stack([est[seg], gt[seg]], axis=1)),
-                colors=_SEGMENT_COLOR,
-                linewidths=0.8,
-                alpha=0.8,
-                zorder=2.5,
-                label="estimate → ground truth" if shows else None,
-            )
-        )
-        ax.scatter(est[seg, 0], est[seg, 1], s=5, color=_SEGMENT_COLOR, zorder=2.6)
+    _draw_segments(ax, map_xy, gt, est, kinds != FAILED)
     loc, pred, fail = kinds == LOCALIZED, kinds == PREDICTED, kinds == FAILED
     sc = ax.scatter(
         gt[loc, 0],
