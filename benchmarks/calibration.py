@@ -112,21 +112,22 @@ RATIO_QUANTILES = (0.1, 0.5, 0.9)
 
 
 # ---- data sets ------------------------------------------------------------------------------------
-def gallery_config(n_map: int = GALLERY_FRAMES[0], n_query: int = GALLERY_FRAMES[1]) -> WorldConfig:
-    """The two-session gallery: large images, perfect map poses, queries from another session
-    passing 0.5 m to the side and 0.3 m lower, a room of textured walls with many posters."""
+def _two_session_hall(
+    name: str, scene: SceneConfig, wall_margin: float, n_map: int, n_query: int
+) -> WorldConfig:
+    """A generated two-session world: 1600 x 1200 images at f = 1200, perfect map poses on a loop
+    ``wall_margin`` from the walls, queries of another session passing 0.5 m to the side and
+    0.3 m lower (with 1 px of image noise)."""
     return WorldConfig(
-        name=GALLERY,
+        name=name,
         camera=CameraConfig(width=1600, height=1200, fx=1200.0, fy=1200.0),
-        scene=SceneConfig(
-            kind="room", size_x=10.0, size_z=7.0, height=3.0, n_boxes=4, n_posters=24, px_per_m=300.0
-        ),
+        scene=scene,
         trajectory=TrajectoryConfig(
             shape="loop",
             n_map=n_map,
             n_query=n_query,
             camera_height=1.2,
-            wall_margin=1.8,
+            wall_margin=wall_margin,
             lateral_offset=0.5,
             yaw_offset_deg=10.0,
             yaw_wobble_deg=5.0,
@@ -135,33 +136,25 @@ def gallery_config(n_map: int = GALLERY_FRAMES[0], n_query: int = GALLERY_FRAMES
         map_effects=EffectsConfig(),
         query_effects=EffectsConfig(noise_sigma=1.0),
     )
+
+
+def gallery_config(n_map: int = GALLERY_FRAMES[0], n_query: int = GALLERY_FRAMES[1]) -> WorldConfig:
+    """The two-session gallery: a 10 x 7 x 3 m room of textured walls with 24 posters."""
+    scene = SceneConfig(
+        kind="room", size_x=10.0, size_z=7.0, height=3.0, n_boxes=4, n_posters=24, px_per_m=300.0
+    )
+    return _two_session_hall(GALLERY, scene, 1.8, n_map, n_query)
 
 
 def sparse_gallery_config(
     n_map: int = SPARSE_GALLERY_FRAMES[0], n_query: int = SPARSE_GALLERY_FRAMES[1]
 ) -> WorldConfig:
     """The gallery with deep views and wide baselines: a 24 x 16 x 5 m hall, 10 map images about
-    5 m apart on a loop 4 m from the walls, 6 queries of another session (0.5 m aside, 0.3 m lower)."""
-    return WorldConfig(
-        name=SPARSE_GALLERY,
-        camera=CameraConfig(width=1600, height=1200, fx=1200.0, fy=1200.0),
-        scene=SceneConfig(
-            kind="room", size_x=24.0, size_z=16.0, height=5.0, n_boxes=4, n_posters=40, px_per_m=150.0
-        ),
-        trajectory=TrajectoryConfig(
-            shape="loop",
-            n_map=n_map,
-            n_query=n_query,
-            camera_height=1.2,
-            wall_margin=4.0,
-            lateral_offset=0.5,
-            yaw_offset_deg=10.0,
-            yaw_wobble_deg=5.0,
-            query_height_drop=0.3,
-        ),
-        map_effects=EffectsConfig(),
-        query_effects=EffectsConfig(noise_sigma=1.0),
+    5 m apart on a loop 4 m from the walls, 6 queries of another session."""
+    scene = SceneConfig(
+        kind="room", size_x=24.0, size_z=16.0, height=5.0, n_boxes=4, n_posters=40, px_per_m=150.0
     )
+    return _two_session_hall(SPARSE_GALLERY, scene, 4.0, n_map, n_query)
 
 
 GALLERIES: dict[str, Callable[[], WorldConfig]] = {
