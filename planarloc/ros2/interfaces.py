@@ -183,8 +183,33 @@ def build_tf2_msgs(out: Path, prefix: Path) -> None:
     lib = out / "lib"
     lib.mkdir()
     link = [f"-L{lib}", f"-L{prefix / 'lib'}", f"-Wl,-rpath,{prefix / 'lib'}"]
+    libraries = _tf2_libraries(cc, cxx, gen)
+    for compiler, sources, name, libs in libraries:
+        extra = ["-std=c++17"] if compiler == cxx else []
+        soname = f"lib{PACKAGE}__{name}.so"
+        _run(
+            [
+                compiler,
+                *flags,
+                *extra,
+                *map(str, sources),
+                "-o",
+                str(lib / soname),
+                f"-Wl,-soname,{soname}",
+                *link,
+                "-Wl,-rpath,$ORIGIN",
+                *[f"-l{x}" for x in libs],
+            ],
+            work,
+        )
+    _build_tf2_package(out, gen, cc, flags, link, work)
+    shutil.rmtree(work)
+
+
+def _tf2_libraries(cc: str, cxx: str, gen: Path) -> list[tuple[str, list[Path], str, list[str]]]:
+    """The shared libraries of the tf2_msgs interface: (compiler, sources, library, libraries linked)."""
     detail = "msg/detail"
-    libraries = [  # (compiler, sources, library, libraries linked), in dependency order
+    return [  # (compiler, sources, library, libraries linked), in dependency order
         (
             cc,
             sorted((gen / "c" / detail).glob("*.c")),
@@ -240,24 +265,10 @@ def build_tf2_msgs(out: Path, prefix: Path) -> None:
             ],
         ),
     ]
-    for compiler, sources, name, libs in libraries:
-        extra = ["-std=c++17"] if compiler == cxx else []
-        soname = f"lib{PACKAGE}__{name}.so"
-        _run(
-            [
-                compiler,
-                *flags,
-                *extra,
-                *map(str, sources),
-                "-o",
-                str(lib / soname),
-                f"-Wl,-soname,{soname}",
-                *link,
-                "-Wl,-rpath,$ORIGIN",
-                *[f"-l{x}" for x in libs],
-            ],
-            work,
-        )
+
+
+def _build_tf2_package(out: Path, gen: Path, cc: str, flags: list[str], link: list[str], work: Path) -> None:
+    """The Python package: the generated message modules and their type-support extensions."""
     package = out / PACKAGE
     (package / "msg").mkdir(parents=True)
     (package / "__init__.py").write_text("")
@@ -280,7 +291,6 @@ def build_tf2_msgs(out: Path, prefix: Path) -> None:
             ],
             work,
         )
-    shutil.rmtree(work)
 
 
 def tf_message_type() -> Any:

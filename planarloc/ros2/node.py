@@ -54,7 +54,7 @@ import logging
 import sys
 import threading
 import time
-from collections.abc import Collection, Sequence
+from collections.abc import Sequence
 from dataclasses import fields
 from typing import Any
 
@@ -63,13 +63,11 @@ import numpy as np
 
 from planarloc.extras import require
 from planarloc.features import learned
-from planarloc.features.images import decode_gray
 from planarloc.features.registry import check_map_feature_kind
-from planarloc.geometry.camera import Camera, CameraModel
+from planarloc.geometry.camera import Camera
 from planarloc.geometry.pose import Pose
 from planarloc.geometry.validation import InputError
 from planarloc.io import strict_json
-from planarloc.io.rosbag import decode_image
 from planarloc.localize.localizer import Localizer
 from planarloc.localize.records import error_record, frame_record
 from planarloc.localize.sequence import FrameStatus, SequenceEstimate, SequenceLocalizer
@@ -86,6 +84,7 @@ from planarloc.ros2.conversions import (
     stamp_seconds,
     transform_edge,
 )
+from planarloc.ros2.frame_inputs import NO_CAMERA_INFO, frame_camera, frame_pixels
 from planarloc.ros2.frame_queue import FrameCounts, FrameQueue
 from planarloc.ros2.interfaces import tf_message_type
 from planarloc.ros2.settings import (  # noqa: F401  (NodeSettings, PARAMETERS: the node's public names)
@@ -97,64 +96,6 @@ from planarloc.ros2.settings import (  # noqa: F401  (NodeSettings, PARAMETERS: 
 )
 
 logger = logging.getLogger(__name__)
-#: why there is no camera yet: no CameraInfo received (the map's only camera is used, :func:`frame_camera`)
-NO_CAMERA_INFO = "no CameraInfo received yet"
-
-
-def frame_camera(
-    camera: Camera | None, camera_error: str, map_cameras: Collection[Camera], camera_info_topic: str
-) -> tuple[Camera | None, str, str, str]:
-    """The camera of the next frame: ``(camera, source, error, warning)``.
-
-    Args:
-        camera: the last usable CameraInfo's camera, or None.
-        camera_error: why ``camera`` is None: :data:`NO_CAMERA_INFO` (none received yet) or the
-            last CameraInfo's problem.
-        map_cameras: the map's distinct cameras.
-        camera_info_topic: named in the messages.
-
-    Returns:
-        ``(camera, "camera_info", "", "")`` with a CameraInfo; ``(None, "map", "", warning)`` while
-        none has been received and the map has exactly one camera (None: the stream takes the
-        map's; the warning names it); ``(None, "", error, error)`` otherwise (a bad CameraInfo, or
-        a map with several cameras: the error says to publish the CameraInfo).
-    """
-    if camera is not None:
-        return camera, "camera_info", "", ""
-    if camera_error != NO_CAMERA_INFO:  # a CameraInfo arrived but is not usable
-        return None, "", camera_error, ""
-    cameras = list(map_cameras)
-    if len(cameras) != 1:
-        error = (
-            f"no CameraInfo on {camera_info_topic} and the map has {len(cameras)} cameras: publish the "
-            f"camera's CameraInfo on {camera_info_topic} (or set camera_info_topic)"
-        )
-        return None, "", error, error
-    (only,) = cameras
-    warning = (
-        f"no CameraInfo on {camera_info_topic}: using the map's only camera ({CameraModel(only.model).value} "
-        f"{only.width}x{only.height}, params {' '.join(f'{p:g}' for p in only.params)}); publish the "
-        "camera's CameraInfo if the images come from another camera"
-    )
-    return None, "map", "", warning
-
-
-def frame_pixels(msg: Any, compressed: bool) -> np.ndarray:
-    """The pixels of a ``sensor_msgs/Image`` ((H, W) or (H, W, 3), :func:`~planarloc.io.rosbag.decode_image`)
-    or of a ``CompressedImage`` (``compressed``: (H, W) gray).
-
-    Raises:
-        InputError: an empty or undecodable image, or a uniform one (every pixel the same, e.g. a
-            black frame: nothing to localize).
-    """
-    if compressed:
-        data = bytes(msg.data)
-        image = decode_gray(data, f"CompressedImage ({msg.format!r}, {len(data)} bytes)")
-    else:
-        image = decode_image(msg)
-    if image.size and image.min() == image.max():
-        raise InputError(f"a uniform image (every pixel {image.flat[0]}): nothing to localize")
-    return image
 
 
 class LocalizerNode:
