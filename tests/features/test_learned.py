@@ -106,6 +106,35 @@ def test_xfeat_features_are_unit_float32_64d_inside_the_image(image_pair) -> Non
     assert np.all(f.scales == learned.LEARNED_KEYPOINT_SIZE)
 
 
+def test_xfeat_detection_equals_xfeats_own_detect_and_compute(image_pair) -> None:
+    """Our non-maximum suppression (cv2.dilate) keeps XFeat's keypoints and descriptors exactly."""
+    import torch
+
+    img, _, _ = image_pair
+    model = learned._xfeat()
+    x = torch.from_numpy(img.astype(np.float32) / 255.0)[None, None]  # 480x640: multiples of 32
+    with torch.inference_mode():
+        ref = model.detectAndCompute(x, top_k=1500)[0]
+        kp, desc = learned._xfeat_detect_and_compute(model, x, 1500)
+    ref_kp, ref_desc = ref["keypoints"].numpy(), ref["descriptors"].numpy()
+    assert len(kp) == len(ref_kp) >= 1000
+    i, j = np.lexsort(ref_kp.T), np.lexsort(kp.T)
+    np.testing.assert_array_equal(kp[j], ref_kp[i])
+    np.testing.assert_allclose(desc[j], ref_desc[i], atol=1e-6)
+
+
+def test_matching_reuses_its_similarity_block_without_changing_matches(image_pair) -> None:
+    img, moved, _ = image_pair
+    config = FeatureConfig(kind="xfeat", max_features=1200)
+    a, b = extract_features(img, config), extract_features(moved, config)
+    small = extract_features(img[:240, :320], config)
+    first = match_query_to_refs(a, [b], kind="xfeat")[0]
+    match_query_to_refs(small, [a, small], kind="xfeat")  # other shapes in the same block
+    again = match_query_to_refs(a, [b, b], kind="xfeat")
+    for m in again:
+        np.testing.assert_array_equal(m, first)
+
+
 def test_xfeat_matches_follow_a_known_shift_also_downscaled_and_tilted(image_pair) -> None:
     img, moved, shift = image_pair
     for config in (
