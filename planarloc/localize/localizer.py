@@ -18,18 +18,19 @@ import logging
 import time
 from collections import OrderedDict
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import replace
 from pathlib import Path
 
 import cv2
 import numpy as np
 
 from planarloc.features.extract import Features, extract_features
-from planarloc.features.matching import DEFAULT_RATIO, match_query_to_refs
-from planarloc.features.retrieval import DEFAULT_TOP_N, GlobalIndex, VladVocabulary, vlad_descriptor
+from planarloc.features.matching import match_query_to_refs
+from planarloc.features.retrieval import GlobalIndex, VladVocabulary, vlad_descriptor
 from planarloc.geometry.camera import Camera
 from planarloc.geometry.validation import InputError
 from planarloc.localize.local_structure import MapView, PairMatchCache, map_rotation_std_deg, view_points
+from planarloc.localize.localizer_config import MAP_PRIORS, LocalizerConfig, localizer_config  # noqa: F401  (re-exported)
 from planarloc.localize.query import ImageSource, Query, prepare_query
 from planarloc.map.gravity import map_gravity
 from planarloc.map.pose_accuracy import load_accuracy
@@ -39,7 +40,7 @@ from planarloc.map.settings import feature_config_from_map
 from planarloc.map.store import MapDatabase
 from planarloc.robust.absolute_pose import estimate_absolute_pose
 from planarloc.robust.covisibility import epipolar_support, seeing_support
-from planarloc.robust.options import Method, RansacOptions, Structure, parse_method
+from planarloc.robust.options import RansacOptions, Structure
 from planarloc.robust.pair_matches import PairMatches, unit_gravity
 from planarloc.robust.result import PoseEstimate
 from planarloc.robust.status import Status
@@ -60,80 +61,6 @@ MIN_KEYPOINT_STD_PX = 0.1
 """Floor of the measured keypoint noise of the map images (pixels)."""
 CARRYING_3D_INLIERS = 50
 """A success with fewer 2D-3D inliers is judged under the configured map prior (not the measured one)."""
-MAP_PRIORS = ("measured", "configured")
-"""Where :attr:`LocalizerConfig.map_prior` takes the map pose prior from."""
-
-
-@dataclass(frozen=True)
-class LocalizerConfig:
-    """Settings of the localization pipeline; the CLI uses these defaults.
-
-    Attributes:
-        top_n: number of retrieved map images (paper: 5).
-        method: hypothesis families (``"auto"`` default: planar where it holds, 6DoF
-            otherwise; the paper's ``"2p1p"`` etc. by name, see :class:`Method`).
-        ransac: estimator options (structure mode, thresholds, iterations).
-        ratio: ratio-test threshold of the matcher.
-        use_depth: use the map images' depth maps (if any) as 2D-3D constraints.
-        min_matches: references with fewer matches are dropped before estimation.
-        map_prior: ``"measured"`` (default): the map pose prior is the map's own measurement
-            (:mod:`planarloc.map.pose_accuracy`, stored by ``map build``) where the map has one,
-            else ``ransac.map_rotation_std_deg`` / ``map_position_std_m``; ``"configured"``:
-            always those two options.
-    """
-
-    top_n: int = DEFAULT_TOP_N
-    method: Method | str = Method.AUTO
-    ransac: RansacOptions = field(default_factory=RansacOptions)
-    ratio: float = DEFAULT_RATIO
-    use_depth: bool = False
-    min_matches: int = 3
-    map_prior: str = "measured"
-
-    def __post_init__(self) -> None:
-        object.__setattr__(self, "method", parse_method(self.method))  # a name ("2p1p") becomes its Method
-        if self.map_prior not in MAP_PRIORS:
-            raise InputError(f"map_prior: expected one of {', '.join(MAP_PRIORS)}, got {self.map_prior!r}")
-        if int(self.top_n) < 2:
-            raise InputError(f"top_n: need at least 2 reference images to fix the scale, got {self.top_n}")
-
-
-def localizer_config(
-    *,
-    method: Method | str | None = None,
-    structure: Structure | str | None = None,
-    seed: int | None = None,
-    top_n: int | None = None,
-    iterations: int | None = None,
-    threshold_px: float | None = None,
-    max_position_std_m: float | None = None,
-    use_depth: bool | None = None,
-) -> LocalizerConfig:
-    """A :class:`LocalizerConfig` from the settings a front door lets its user choose.
-
-    Every argument left None keeps the default of :class:`LocalizerConfig` /
-    :class:`~planarloc.robust.options.RansacOptions`, so the CLI, the service and a ROS node
-    configure alike. ``iterations`` fixes the number of RANSAC iterations (the paper: 100).
-
-    Raises:
-        InputError: a value the options refuse (unknown method or structure, out of range).
-    """
-    ransac: dict[str, object] = {}
-    for key, value in (
-        ("structure", structure),
-        ("seed", seed),
-        ("threshold_px", threshold_px),
-        ("max_position_std_m", max_position_std_m),
-    ):
-        if value is not None:
-            ransac[key] = value
-    if iterations is not None:
-        ransac.update(min_iterations=iterations, max_iterations=iterations)
-    config: dict[str, object] = {"ransac": RansacOptions(**ransac)}  # type: ignore[arg-type]
-    for key, value in (("method", method), ("top_n", top_n), ("use_depth", use_depth)):
-        if value is not None:
-            config[key] = value
-    return LocalizerConfig(**config)  # type: ignore[arg-type]
 
 
 def _partners_as_pairs(
