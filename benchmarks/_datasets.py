@@ -9,7 +9,9 @@ Used by ``kitti.py``, ``world_presets.py`` and ``trust.py``. Caches live under o
   modification times, poses, cameras), the feature settings, the storage layout and the sources of the code that
   builds maps (``planarloc/geometry``, ``planarloc/io``, ``planarloc/features``, ``planarloc/gravity``
   and ``planarloc/map``), so an edit of the map code rebuilds them and an edit of the estimator
-  (or of ``planarloc/localize``, ``planarloc/evaluation``) does not.
+  (or of ``planarloc/localize``, ``planarloc/evaluation``) does not. A map's std calibration
+  (:mod:`planarloc.localize.held_out`), which the estimator's code decides, is measured again
+  when that code changed (its key is stored in the map).
 
 Not part of the package: benchmarks sit on top of it and may import anything.
 """
@@ -28,6 +30,7 @@ import numpy as np
 
 import planarloc
 from planarloc.features.extract import FeatureConfig
+from planarloc.localize.held_out import calibrate_map_std
 from planarloc.map.builder import build_map
 from planarloc.map.codec import DEFAULT_STORAGE
 from planarloc.map.posed_image import PosedImage
@@ -42,6 +45,7 @@ GATE_T, GATE_R = 1.0, 20.0
 
 _MAP_CODE = ("geometry", "io", "features", "gravity", "map")
 _NOT_MAP_CODE: set[str] = set()
+_CALIBRATION_KEY_META = "benchmark_calibration_code"
 
 
 def is_wrong(q: dict, t_max: float = WRONG_T, r_max: float = WRONG_R) -> bool:
@@ -83,9 +87,13 @@ def content_key(*parts: object) -> str:
 
 def map_code_key() -> str:
     """Hash of the sources that determine a built map (see the module docstring)."""
+    return _code_key(_MAP_CODE)
+
+
+def _code_key(subpackages: Sequence[str]) -> str:
     pkg = Path(planarloc.__file__).resolve().parent
     h = hashlib.sha1()
-    for sub in _MAP_CODE:
+    for sub in subpackages:
         for f in sorted((pkg / sub).rglob("*.py")):
             rel = f.relative_to(pkg).as_posix()
             if rel not in _NOT_MAP_CODE:
@@ -134,13 +142,29 @@ def build_or_reuse(
             p.unlink(missing_ok=True)
     if path.exists():
         with MapDatabase.open(path) as db:
-            if db.is_complete and db.num_images() == len(map_images):
-                peer.log(f"reusing {path}")
-                return 0.0
+            complete = db.is_complete and db.num_images() == len(map_images)
+            calibrated = db.get_meta(_CALIBRATION_KEY_META) == calibration_code_key()
+        if complete:
+            peer.log(f"reusing {path}")
+            if not calibrated:  # cached before the std calibration, or the localizer changed since
+                _calibrate(path, progress)
+            return 0.0
     peer.log(f"building {path.name}: {len(map_images)} images, features {features.name}, storage {storage}")
     t0 = time.perf_counter()
     build_map(map_images, path, features, progress=progress or peer.Progress(), storage=storage)
+    _calibrate(path, progress)  # as `planarloc map build` does
     return time.perf_counter() - t0
+
+
+def calibration_code_key() -> str:
+    """Hash of the sources that determine a map's std calibration (the localizer's)."""
+    return _code_key(("geometry", "numerics", "solvers", "robust", "features", "map", "localize"))
+
+
+def _calibrate(path: Path, progress: Callable[[str, int, int], None] | None) -> None:
+    calibrate_map_std(path, progress=progress or peer.Progress())
+    with MapDatabase.open(path, mode="a") as db:
+        db.set_meta(_CALIBRATION_KEY_META, calibration_code_key())
 
 
 def cached_map(

@@ -37,6 +37,7 @@ from planarloc.map.pose_accuracy import load_accuracy
 from planarloc.map.posed_image import PosedImage
 from planarloc.map.schema import VOCABULARY_BLOB
 from planarloc.map.settings import feature_config_from_map
+from planarloc.map.std_calibration import load_std_calibration
 from planarloc.map.store import MapDatabase
 from planarloc.robust.absolute_pose import estimate_absolute_pose
 from planarloc.robust.covisibility import epipolar_support, seeing_support
@@ -118,6 +119,9 @@ class Localizer:
         self.pose_accuracy = load_accuracy(self.db)
         """How well the map's poses agree with its images (:mod:`planarloc.map.pose_accuracy`),
         None for a map without the measurement."""
+        self.std_calibration = load_std_calibration(self.db)
+        """How the modelled std relates to the errors of the map's held-out images
+        (:mod:`planarloc.map.std_calibration`), None for a map without the measurement."""
         self._g_world = self.gravity.g_world_array
 
     def with_config(self, config: LocalizerConfig) -> Localizer:
@@ -132,7 +136,8 @@ class Localizer:
     def ransac_options(self) -> RansacOptions:
         """The estimator options queries use: ``config.ransac`` with the map pose prior taken from
         the map's measurement (:attr:`pose_accuracy`) when ``config.map_prior`` is ``"measured"``:
-        as measured with structure (``tracks``), at least the configured one without."""
+        as measured with structure (``tracks``), at least the configured one without; with
+        structure, the map's std calibration (:attr:`std_calibration`) as ``std_scale``."""
         ransac, accuracy = self.config.ransac, self.pose_accuracy
         if self.config.map_prior != "measured" or accuracy is None:
             return ransac
@@ -150,6 +155,7 @@ class Localizer:
             map_position_std_m=accuracy.position_std_m,
             map_prior_measured=True,
             assumed_map_prior=(ransac.map_rotation_std_deg, ransac.map_position_std_m),
+            std_scale=self.std_calibration.scale if self.std_calibration is not None else ransac.std_scale,
         )
 
     @property
@@ -448,7 +454,8 @@ class Localizer:
             ransac = map_wide = self.ransac_options
             measured = map_rotation_std_deg(residual_px, focal_px)
             if measured > ransac.map_rotation_std_deg:
-                ransac = replace(ransac, map_rotation_std_deg=measured)
+                # Not the regime the map's std calibration measured: the model's own std.
+                ransac = replace(ransac, map_rotation_std_deg=measured, std_scale=1.0)
             est = estimate_absolute_pose(
                 camera, pairs, self.config.method, ransac, query_gravity=query_gravity
             )
@@ -461,6 +468,11 @@ class Localizer:
                 )
             if ransac.map_prior_measured and est.success and est.num_inliers_3d < CARRYING_3D_INLIERS:
                 return self._under_assumed_prior(features, camera, refs, query_gravity, est.num_inliers_3d)
+            if ransac.map_prior_measured and est.success and ransac.std_scale != 1.0:
+                est.message += (
+                    f"; modelled position std x {ransac.std_scale:.2g}, as the map's held-out images measured "
+                    "(planarloc map info)"
+                )
         if not est.success:  # any failure: whether a map image sees the query at all decides the advice
             t3 = time.perf_counter()
             est = self._unless_unseen(est, refs, pairs, camera)

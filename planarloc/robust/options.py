@@ -56,6 +56,7 @@ _FINITE_FIELDS = (
     "track_min_angle_deg",
     "planar_tolerance_deg",
     "max_reference_shift_std",
+    "std_scale",
 )
 
 
@@ -98,6 +99,10 @@ class RansacOptions:
             map stds it propagates.
         assumed_map_prior: the map stds assumed before the measurement, ``(rotation degrees,
             position metres)`` (set by the Localizer with ``map_prior_measured``).
+        std_scale: factor on the modelled position covariance's std of a pose carried by 2D-3D
+            constraints under a measured map prior, measured on the map's own images held out
+            in turn (:mod:`planarloc.localize.std_calibration`; set by the Localizer, 1 without
+            that measurement). The leave-one-reference-out spread and rivals are not scaled.
         min_collinearity_ratio: with fewer than ``min_inliers`` 2D-3D inliers, the query
             centre and the centres of the references with inliers must not lie on one line:
             the ratio of the second to the first singular value of the centred centres must
@@ -140,6 +145,7 @@ class RansacOptions:
     map_position_std_m: float = 0.02
     map_prior_measured: bool = False
     assumed_map_prior: tuple[float, float] | None = None
+    std_scale: float = 1.0
     min_collinearity_ratio: float = 0.01
     track_min_angle_deg: float = 1.0
     planar_tolerance_deg: float = 1.5
@@ -173,6 +179,7 @@ class RansacOptions:
             "max_position_std_m",
             "planar_tolerance_deg",
             "max_reference_shift_std",
+            "std_scale",
         ):
             if not getattr(self, name) > 0:
                 raise InputError(f"RansacOptions.{name}: must be > 0, got {getattr(self, name)}")

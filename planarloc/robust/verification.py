@@ -203,6 +203,8 @@ def _uncertainty(ctx: EstimateContext, cand: Candidate, rivals: Sequence[np.ndar
     modelled = options.map_prior_measured and n3d >= options.min_inliers
     correlation = 1.0 if modelled else obs.correlation_inflation(n2d + n3d, len(support.supporting))
     cov = position_covariance(estimator, options, ref, support, correlation)
+    if modelled:  # the map's own held-out images measured how the model's std relates to errors
+        cov = cov * options.std_scale**2
     finite = bool(np.isfinite(cov).all())
     std = math.sqrt(max(sym_eigvals(cov)[0], 0.0)) if finite else math.inf
     if math.isfinite(std) and near_collinear:

@@ -1,0 +1,94 @@
+"""The map's std calibration measured: each of a spread sample of map images held out in turn
+and localized against the others (its own features, retrieval without it, the local structure
+of the other map images), its error against its stored pose over the reported std
+(:mod:`planarloc.map.std_calibration` holds the record and the factor it gives).
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+
+from planarloc.geometry.pose import pose_errors
+from planarloc.localize.localizer import CARRYING_3D_INLIERS, Localizer
+from planarloc.map.std_calibration import (
+    MAX_HELD_OUT,
+    MIN_SAMPLES,
+    StdCalibration,
+    scale_from_ratios,
+    store_std_calibration,
+)
+from planarloc.map.store import MapDatabase
+
+logger = logging.getLogger(__name__)
+
+Progress = Callable[[str, int, int], None]
+
+
+def held_out_names(names: list[str], most: int = MAX_HELD_OUT) -> list[str]:
+    """At most ``most`` of ``names``, spread evenly over the list (the map's order)."""
+    if len(names) <= most:
+        return list(names)
+    return [names[int(i)] for i in np.linspace(0, len(names) - 1, most).round().astype(int)]
+
+
+def held_out_ratio(loc: Localizer, name: str) -> float | None:
+    """Error / std of map image ``name`` localized against the other map images (its own
+    features, retrieval without it, the localizer's configuration); None when
+    it fails or is not in the calibrated regime: fewer than ``CARRYING_3D_INLIERS`` 2D-3D inliers
+    (judged under the configured prior), or a map prior raised for this query because its
+    retrieved map images disagree with their poses; the factor touches neither."""
+    posed = next(p for p in loc.map_images if p.name == name)
+    features = loc.db.get_features(name)
+    refs = [r for r in loc.retrieve(features, loc.config.top_n + 1) if r != name][: loc.config.top_n]
+    est = loc.localize_features(features, posed.camera, refs)
+    if not est.success or est.pose is None or est.num_inliers_3d < CARRYING_3D_INLIERS:
+        return None
+    if est.map_prior is not None and est.map_prior[0] > loc.ransac_options.map_rotation_std_deg:
+        return None  # the retrieved map images disagree with their poses: a raised prior, no factor
+    std = est.position_std_m
+    if std is None or not std > 0:
+        return None
+    error = pose_errors(est.pose, posed.cam_from_world)[0]
+    return error / std
+
+
+def calibrate_std(loc: Localizer, progress: Progress | None = None) -> StdCalibration | None:
+    """:class:`StdCalibration` of the map behind ``loc`` over at most :data:`MAX_HELD_OUT`
+    held-out map images; None when the map has no measured pose accuracy (the factor applies
+    only under the measured prior) or fewer than :data:`MIN_SAMPLES` held-out images count."""
+    if loc.pose_accuracy is None or loc.config.map_prior != "measured" or len(loc.map_images) < 3:
+        return None
+    uncalibrated = loc.with_config(loc.config)
+    uncalibrated.std_calibration = None  # the model's own std
+    names = held_out_names([p.name for p in loc.map_images])
+    ratios = []
+    for n, name in enumerate(names):
+        r = held_out_ratio(uncalibrated, name)
+        if r is not None:
+            ratios.append(r)
+        if progress:
+            progress("calibrate the std", n + 1, len(names))
+    if len(ratios) < MIN_SAMPLES:
+        logger.info(
+            "%s: std not calibrated (%d of %d held-out images counted)", loc.db.path, len(ratios), len(names)
+        )
+        return None
+    values = np.array(ratios)
+    out = StdCalibration(
+        scale_from_ratios(values), len(values), len(names), float(np.median(values)), float(values.max())
+    )
+    logger.info("%s: %s", loc.db.path, out.summary())
+    return out
+
+
+def calibrate_map_std(path: str | Path, progress: Progress | None = None) -> StdCalibration | None:
+    """Measure the std calibration of the map file ``path`` with the default localizer and
+    store it in the map (cleared when it cannot be measured)."""
+    with MapDatabase.open(path, mode="a") as db:
+        calibration = calibrate_std(Localizer(db), progress)
+        store_std_calibration(db, calibration)
+    return calibration
