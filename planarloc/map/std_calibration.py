@@ -67,13 +67,6 @@ class StdCalibration:
     median_ratio: float
     max_ratio: float
 
-    def to_json(self) -> str:
-        return json.dumps(asdict(self), sort_keys=True)
-
-    @classmethod
-    def from_json(cls, text: str) -> StdCalibration:
-        return cls(**json.loads(text))
-
     def summary(self) -> str:
         return (
             f"position std x {self.scale:.2g} (held-out map images: median error / std {self.median_ratio:.2g}, "
@@ -101,7 +94,7 @@ def scale_from_ratios(ratios: np.ndarray) -> float:
 
 def store_std_calibration(db: MapDatabase, calibration: StdCalibration | None) -> None:
     """Store (or, for None, clear) the map's std calibration."""
-    db.set_meta(STD_CALIBRATION_META, "" if calibration is None else calibration.to_json())
+    db.set_meta(STD_CALIBRATION_META, "" if calibration is None else json.dumps(asdict(calibration)))
 
 
 def load_std_calibration(db: MapDatabase) -> StdCalibration | None:
@@ -110,7 +103,7 @@ def load_std_calibration(db: MapDatabase) -> StdCalibration | None:
     if not text:
         return None
     try:
-        out = StdCalibration.from_json(text)
+        out = StdCalibration(**json.loads(text))
     except (TypeError, ValueError, json.JSONDecodeError):
         logger.warning("%s: unreadable %s meta value ignored", db.path, STD_CALIBRATION_META)
         return None
