@@ -21,10 +21,7 @@ MAX_MODULE_LINES = 600
 PACKAGE = Path(planarloc.__file__).parent
 
 # "module" or "module:function" -> its size today ((parameters, lines) of a function, lines of a module).
-LEFT_TO_SPLIT: dict[str, tuple[int, int] | int] = {
-    "localize/sequence.py": 722,
-    "map/builder.py:build_map": (13, 88),
-}
+LEFT_TO_SPLIT: dict[str, tuple[int, int] | int] = {}
 
 
 def function_sizes(path: Path) -> dict[str, tuple[int, int, bool]]:

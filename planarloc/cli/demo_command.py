@@ -18,6 +18,7 @@ from planarloc.evaluation.queries import config_label, evaluate_configs, summari
 from planarloc.features.extract import FeatureConfig
 from planarloc.io.datasets import read_dataset
 from planarloc.io.output import atomic_output, check_output_dir
+from planarloc.localize.held_out import calibrate_map_std_when_due
 from planarloc.localize.localizer import LocalizerConfig
 from planarloc.map.builder import build_map
 from planarloc.map.store import MapDatabase
@@ -78,6 +79,7 @@ def run(args: argparse.Namespace) -> int:
         queries = read_dataset(world / "query", "tum")
         map_path = out / f"map-{features.name}.db"
         build_map(map_images, map_path, features, progress=update)
+        calibrate_map_std_when_due(map_path, progress=update)
         with MapDatabase.open(map_path) as db:
             results = evaluate_configs(db, configs, queries, lambda d, n: update("localize", d, n))
     summaries = [

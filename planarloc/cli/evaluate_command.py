@@ -32,6 +32,7 @@ from planarloc.features.extract import FeatureConfig
 from planarloc.io.gravity_file import read_gravity_file
 from planarloc.io.hloc_pairs import read_hloc_pairs
 from planarloc.io.output import check_output_file, dataset_files, input_files
+from planarloc.localize.held_out import calibrate_map_std_when_due
 from planarloc.localize.localizer import Localizer, LocalizerConfig
 from planarloc.map.builder import build_map, check_map_settings
 from planarloc.map.gravity import map_gravity
@@ -140,6 +141,7 @@ def run(args: argparse.Namespace) -> int:
                 notify=notify,
                 skipped=_skipped(left_out),
             )
+            calibrate_map_std_when_due(map_path, progress=update)
         _map_gravity_warnings(map_path)
         return _left_out_exit(
             evaluate_sequential(args, map_path, map_images, queries, config), left_out, len(map_images)
@@ -244,6 +246,7 @@ def _build_and_localize(
             mapper=ray_backend.map if ray_backend else None,
             skipped=_skipped(left_out),
         )
+        calibrate_map_std_when_due(map_path, progress=update)
         if args.gravity_from_truth:
             # the dataset's declared down direction, else the map's (estimated) gravity
             with MapDatabase.open(map_path) as db:

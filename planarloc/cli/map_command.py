@@ -18,11 +18,13 @@ from planarloc.cli.options import (
 from planarloc.distributed.ray_backend import ray_session
 from planarloc.io.datasets import read_dataset
 from planarloc.io.output import check_output_file, dataset_files, input_files
+from planarloc.localize.held_out import calibrate_map_std_when_due
 from planarloc.map.builder import build_map, check_map_settings
 from planarloc.map.codec import DEFAULT_STORAGE, STORAGE_LAYOUTS
 from planarloc.map.gravity import map_gravity
 from planarloc.map.integrity import check_map
 from planarloc.map.pose_accuracy import load_accuracy
+from planarloc.map.std_calibration import load_std_calibration
 from planarloc.map.store import MapDatabase
 
 
@@ -184,6 +186,7 @@ def run_build(args: argparse.Namespace) -> int:
             storage=args.storage,
             allow_unrelated_frames=args.allow_unrelated_frames,
         )
+        calibrate_map_std_when_due(args.out, progress=update)
     code = run_info(argparse.Namespace(map=args.out))
     if left_out:
         note(
@@ -225,6 +228,13 @@ def run_info(args: argparse.Namespace) -> int:
                 if accuracy is not None
                 else "map pose accuracy: not measured (a map built before planarloc measured it, or too few "
                 "overlapping images); queries assume the configured map prior"
+            )
+            calibration = load_std_calibration(db)
+            info(
+                f"std calibration: {calibration.summary()}"
+                if calibration is not None
+                else "std calibration: not measured (no measured pose accuracy, too few held-out map images "
+                "localized, or a map built before planarloc measured it); the modelled std is reported as is"
             )
     return 0
 

@@ -7,6 +7,7 @@ of the other map images), its error against its stored pose over the reported st
 from __future__ import annotations
 
 import logging
+import os
 from collections.abc import Callable
 from pathlib import Path
 
@@ -18,7 +19,9 @@ from planarloc.map.std_calibration import (
     MAX_HELD_OUT,
     MIN_SAMPLES,
     StdCalibration,
+    load_std_calibration,
     scale_from_ratios,
+    std_calibration_due,
     store_std_calibration,
 )
 from planarloc.map.store import MapDatabase
@@ -92,3 +95,19 @@ def calibrate_map_std(path: str | Path, progress: Progress | None = None) -> Std
         calibration = calibrate_std(Localizer(db), progress)
         store_std_calibration(db, calibration)
     return calibration
+
+
+def calibrate_map_std_when_due(path: str | Path, progress: Progress | None = None) -> StdCalibration | None:
+    """The std calibration of the map file ``path``, measured and stored (:func:`calibrate_map_std`)
+    when a build changed the map since, or never measured it; a read-only map keeps what it
+    has (None when it has nothing). Returns the map's calibration."""
+    path = Path(path)
+    with MapDatabase.open(path) as db:
+        due = std_calibration_due(db)
+        stored = load_std_calibration(db)
+    if not due:
+        return stored
+    if not (os.access(path, os.W_OK) and os.access(path.parent, os.W_OK)):
+        logger.info("%s: read-only map, its std calibration is not measured", path)
+        return stored
+    return calibrate_map_std(path, progress)

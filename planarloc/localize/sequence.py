@@ -22,7 +22,8 @@ Who holds what: :class:`~planarloc.localize.pose_window.PoseWindow` the nodes, f
 covariance (pose-graph order, :mod:`planarloc.geometry.pose_covariance`);
 :class:`~planarloc.localize.motion_model.MotionModel` odometry, visual odometry and constant
 velocity; :class:`~planarloc.localize.kidnap.KidnapMonitor` rejected global fixes that agree;
-:mod:`planarloc.localize.fixes` the absolute fixes, inside :meth:`SequenceLocalizer.step`
+:class:`~planarloc.localize.fix_fusion.FixFusion` what a fix result or the tracked map points do
+to them; :mod:`planarloc.localize.fixes` the absolute fixes, inside :meth:`SequenceLocalizer.step`
 (``fixes="wait"``: deterministic) or in a worker thread (``"background"``, default: the frame path
 waits only on its first frame, when it has no pose to give early, and more than ``max_fix_lag_s``
 of stamps after the fix in flight); this module one step per frame and its report.
@@ -32,7 +33,6 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -41,17 +41,16 @@ from planarloc.geometry.camera import Camera
 from planarloc.geometry.pose import Pose
 from planarloc.geometry.pose_covariance import covariance_stds, graph_covariance, ros_covariance
 from planarloc.geometry.validation import InputError
+from planarloc.localize.fix_fusion import MEASURED, FixFusion, HandledFixes
 from planarloc.localize.fixes import (
     BackgroundFixes,
-    FixAttempt,
     FixJob,
     FixOutcome,
     FixResult,
     FixSolver,
     ImmediateFixes,
-    mahalanobis_sq,
 )
-from planarloc.localize.kidnap import KidnapCandidate, KidnapMonitor
+from planarloc.localize.kidnap import KidnapMonitor
 from planarloc.localize.localizer import Localizer
 from planarloc.localize.motion_model import Motion, MotionModel, VisualStep
 from planarloc.localize.pose_window import PoseWindow
@@ -60,13 +59,10 @@ from planarloc.localize.stream_clock import StreamClock
 from planarloc.localize.stream_config import SequenceConfig
 from planarloc.localize.stream_estimate import FrameStatus, SequenceEstimate, StreamStats
 from planarloc.localize.tracking import (
-    MIN_POINTS,
     FrameHistory,
     FrameTracker,
     Tracked,
     is_blank,
-    pose_from_points,
-    tracked_points_covariance,
     view_broken,
 )
 from planarloc.numerics.blas_threads import BLAS_ONE_THREAD
@@ -85,27 +81,9 @@ __all__ = [
 
 logger = logging.getLogger(__name__)
 
-#: motions that count as measured (a pose after them may be ``localized``)
-MEASURED = ("odometry", "visual")
 #: while the stamps are in doubt (:attr:`MotionModel.stamps_doubted`), a frame this many frames
 #: after the fix in flight waits for it: visual odometry's length is then unknown to 100 %
 DOUBTED_FIX_LAG_FRAMES = 2
-
-
-def _rejected_covariance(attempt: FixAttempt) -> np.ndarray:
-    """The covariance of a rejected fix: only fixes with one are gated, hence rejected."""
-    if attempt.covariance is None:
-        raise ValueError("a rejected fix without a covariance")
-    return attempt.covariance
-
-
-@dataclass
-class _Handled:
-    """What the fix results handled in one step say (for the frame's record)."""
-
-    result: FixResult | None = None
-    status: str = "none"
-    reinitialized: bool = False
 
 
 class SequenceLocalizer:
@@ -152,6 +130,9 @@ class SequenceLocalizer:
             if self.config.fixes == "wait"
             else BackgroundFixes(localizer, self.config, self._history, self.config.tracker)
         )
+        self._fusion = FixFusion(
+            self.config, self._gate, self._window, self._motion, self._kidnap, self._tracker, self._history
+        )
         self._generation = 0
         self.reset()
 
@@ -176,11 +157,11 @@ class SequenceLocalizer:
         self._kidnap.clear()
         self._prev: tuple[float, Pose | None] | None = None  # stamp, odometry of the last tracked frame
         self._clock.reset()
-        self._latest_fix = "none"
         self._frame = 0
         self._last_job: int | None = None
         self._last_job_stamp = float("-inf")
         self.stats = StreamStats()
+        self._fusion.reset(self.stats)
 
     def close(self) -> None:
         """Stop the fix worker (background fixes) and release the BLAS limit."""
@@ -203,6 +184,12 @@ class SequenceLocalizer:
         """(6, 6) pose-graph covariance of a successful fix (:mod:`planarloc.localize.fixes`)."""
         return self._solver.fix_covariance(est, camera)
 
+    def _handle(self, result: FixResult, handled: HandledFixes) -> None:
+        """Fuse one fix result (:class:`~planarloc.localize.fix_fusion.FixFusion`) unless it is of
+        a stream before the last :meth:`reset`."""
+        if result.generation == self._generation:
+            self._fusion.handle(result, handled)
+
     def _frame_motion(self, tracked: Tracked, stamp: float, odometry: Pose | None) -> Motion:
         """The motion since the previous frame: odometry, else visual odometry, else constant velocity."""
         if self._prev is None:  # step() calls this only once a frame has been tracked
@@ -212,7 +199,7 @@ class SequenceLocalizer:
         if odometry is not None and prev_odometry is not None:
             return self._motion.odometry(odometry, prev_odometry)
         vo = tracked.relative
-        weak = self._weak(len(self._window) - 1, dt)
+        weak = self._fusion.weak(len(self._window) - 1, dt)
         if vo is not None and vo.success and vo.pose is not None:
             since = (
                 prev_stamp - self._window.anchor_stamp(len(self._window) - 1) if len(self._window) else 0.0
@@ -228,10 +215,6 @@ class SequenceLocalizer:
         if odometry is None or self._prev is None or self._prev[1] is None:
             return None
         return float(np.degrees(np.linalg.norm(so3_log((odometry @ self._prev[1].inverse()).R[None])[0])))
-
-    def _weak(self, last: int, dt: float) -> Motion:
-        """The constant-velocity motion from node ``last`` over ``dt`` seconds."""
-        return self._motion.constant(self._window.last_step(last), dt)
 
     def _solve(self) -> None:
         """Solve the window (after new factors), with the speed the fixes measure."""
@@ -264,198 +247,9 @@ class SequenceLocalizer:
         while len(w) > self.config.window:
             c = self._kidnap.candidate
             if c is not None and c.stamp == w.nodes[0].stamp:
-                pose, cov = w.carried(c.pose, c.covariance, 0, 1, self._weak_covariance)
+                pose, cov = w.carried(c.pose, c.covariance, 0, 1, self._fusion.weak_covariance)
                 self._kidnap.moved(c.stamp, pose, cov, w.nodes[1].stamp)
             w.drop_oldest()
-
-    def _weak_covariance(self, last: int, dt: float) -> np.ndarray:
-        return self._weak(last, dt).covariance
-
-    def _start(self, pose: Pose, cov: np.ndarray, stamp: float) -> None:
-        self._window.start(pose, cov, stamp)
-        self._motion.restart(stamp, pose.center, keep_speed=True)
-        self._kidnap.clear()
-
-    def _restart_at(self, node: int, pose: Pose, cov: np.ndarray) -> None:
-        """Restart the window at ``node`` from ``pose`` (a confirmed kidnap), keeping the
-        motions measured since; the last speed stays a guess until two fixes measure it again."""
-        w = self._window
-        stamp = w.nodes[node].stamp
-        w.restart_at(node, pose, cov)
-        self._motion.restart(stamp, pose.center, keep_speed=True)
-        self._kidnap.clear()
-        w.rescale(self._motion.visual)  # with the guessed speed's larger std
-        w.rechain(0)
-        self._tracker.set_points(None)
-        self.stats.reinitializations += 1
-
-    def _handle(self, result: FixResult, handled: _Handled) -> None:
-        """Fuse one fix result at its frame's node (stale if that node left the window)."""
-        if result.generation != self._generation:
-            return
-        out = result.outcome
-        handled.result = result
-        self.stats.fix_cpu_s += result.cpu_s
-        w = self._window
-        if not len(w):  # the stream starts: the result belongs to the current frame
-            if out.accepted is not None:
-                pose, cov = out.accepted
-                self._start(pose, cov, result.stamp)
-            self._count_fix(out.status, handled)
-            return
-        node = w.node_at(result.stamp)
-        if node is None:
-            handled.status = "stale"
-            self.stats.fixes_stale += 1
-            logger.debug("fix of t=%.3f arrived after its frame left the window", result.stamp)
-            return
-        if out.accepted is None:
-            self._reject_visual_odometry(node, out)
-        if out.accepted is not None:
-            pose, cov = out.accepted
-            self._observe_scale(node, pose, cov)
-            w.add_absolute(node, pose, cov)
-            w.nodes[node].fixed = True
-            # the fix's own std (its covariance is scaled by fix_std_scale for the graph)
-            std = float(np.sqrt(np.linalg.eigvalsh(cov[3:, 3:])[-1])) / self.config.fix_std_scale
-            self._motion.add_fix(result.stamp, pose.center, std)
-            self._kidnap.accept(result.stamp)
-            if result.points is not None:
-                self._tracker.set_points(result.tracked_to(self._history, self.config.tracker).points)
-        else:
-            self._track_kidnap(node, out, handled)
-            if handled.reinitialized and result.points is not None:  # the points of the fix restarted from
-                self._tracker.set_points(result.tracked_to(self._history, self.config.tracker).points)
-        self._count_fix(out.status, handled)
-        if handled.reinitialized:
-            self._latest_fix = "accepted"
-
-    def _count_fix(self, status: str, handled: _Handled) -> None:
-        handled.status = status
-        self._latest_fix = status
-        self.stats.count_fix(status)
-
-    def _reject_visual_odometry(self, node: int, fixes: FixOutcome) -> None:
-        """Two fixes (local, global) that agree with each other and with constant velocity but not
-        with the visual motion into ``node``: that motion is replaced and the fix accepted."""
-        w = self._window
-        if node < 1 or w.nodes[node].source != "visual" or len(fixes.rejected) < 2:
-            return
-        a, b = fixes.rejected[:2]
-        cov_a, cov_b = _rejected_covariance(a), _rejected_covariance(b)
-        if mahalanobis_sq(a.pose, cov_a, b.pose, cov_b) > self._gate:
-            return
-        weak = self._weak(node - 1, w.nodes[node].stamp - w.nodes[node - 1].stamp)
-        alt = w.with_motion(node, weak)
-        d2 = mahalanobis_sq(b.pose, cov_b, alt.poses[node], alt.covariance)
-        if d2 > self._gate:
-            return
-        w.adopt(alt, "visual_rejected")
-        w.rechain(node)
-        fixes.accepted, fixes.status, fixes.mahalanobis_sq, fixes.rejected = (
-            (b.pose, cov_b),
-            "accepted",
-            d2,
-            [],
-        )
-
-    def _track_kidnap(self, node: int, fixes: FixOutcome, handled: _Handled) -> None:
-        """Rejected global fixes feed the kidnap monitor; a confirmed kidnap restarts the window."""
-        w = self._window
-        anchor = w.last_fixed()
-        anchor = -1 if anchor is None else anchor
-        for attempt in fixes.rejected:
-            if not attempt.global_retrieval:
-                continue
-            if any(s not in MEASURED for s in w.sources_after(anchor)[: node - anchor]):
-                self._kidnap.doubt = True
-            self._kidnap.consider(
-                attempt.pose,
-                _rejected_covariance(attempt),
-                w.nodes[node].stamp,
-                lambda c: self._carry(c, node),
-            )
-        c = self._kidnap.confirmed()
-        if c is not None:
-            self._restart_at(node, c.pose, c.covariance)
-            logger.info(
-                "stream re-initialised at t=%.3f from %d consistent global fixes",
-                c.stamp,
-                self.config.kidnap_confirmations,
-            )
-            fixes.status = "accepted"
-            handled.reinitialized = True
-
-    def _carry(self, c: KidnapCandidate, node: int) -> tuple[Pose, np.ndarray] | None:
-        prev = self._window.node_at(c.stamp)
-        if prev is None or prev >= node:
-            return None
-        return self._window.carried(c.pose, c.covariance, prev, node, self._weak_covariance)
-
-    def _observe_scale(self, node: int, pose: Pose, cov: np.ndarray) -> None:
-        """An absolute pose at ``node`` against the visual steps since the previous one
-        (:class:`~planarloc.localize.motion_model.ScaleDoubt`); a new doubt rescales them."""
-        w = self._window
-        prev = max((f.node for f in w.absolute if f.node < node), default=-1)
-        if prev < 0 or any(n.source != "visual" for n in w.nodes[prev + 1 : node + 1]):
-            return
-        origin = w.nodes[prev].pose.center
-        predicted = float(np.linalg.norm(w.nodes[node].pose.center - origin))
-        measured = float(np.linalg.norm(pose.center - origin))
-        std = float(np.sqrt(max(np.linalg.eigvalsh(cov[3:, 3:])[-1], 0.0)))
-        before = self._motion.doubt.std
-        self._motion.doubt.observe(measured, predicted, 3.0 * std)
-        if self._motion.doubt.std != before:
-            w.rescale(self._motion.visual)
-            w.marginalize()
-
-    def _replace_visual(self, pose: Pose, cov: np.ndarray) -> bool:
-        """A point fix that contradicts a visual-odometry prediction but agrees with constant
-        velocity: the visual factor is the outlier (a wrong 2D-2D basin) and is replaced."""
-        w = self._window
-        n = len(w) - 1
-        if n < 1 or w.nodes[n].source != "visual":
-            return False
-        alt = w.with_motion(n, self._weak(n - 1, w.nodes[n].stamp - w.nodes[n - 1].stamp))
-        if not mahalanobis_sq(pose, cov, alt.poses[n], alt.covariance) <= self._gate:
-            return False
-        w.adopt(alt, "visual_rejected")
-        return True
-
-    def _point_fix(self, stamp: float, camera: Camera) -> None:
-        """The current node's pose from the map points tracked into this frame, gated by χ²(6)
-        against the prediction; a contradicting one drops the points."""
-        cfg = self.config
-        points = self._tracker.points
-        if points is None or points.stamp != stamp or len(points) < MIN_POINTS:
-            return
-        w = self._window
-        rays, focal = camera.cam_from_img(points.pixels.astype(float)), float(np.mean(camera.focal))
-        fit = pose_from_points(w.current.pose, points.points, rays, focal)
-        if fit is None:
-            return
-        cov = tracked_points_covariance(
-            fit[0],
-            points.points,
-            rays,
-            focal,
-            fit[1],
-            points.hops,
-            pixel_std=cfg.pixel_std,
-            min_std_m=cfg.point_fix_min_std_m,
-            rotation_std_deg=cfg.point_fix_rotation_std_deg,
-            std_per_frame=cfg.point_fix_std_per_frame,
-        )
-        node = len(w) - 1
-        self._observe_scale(node, fit[0], cov)
-        if not mahalanobis_sq(
-            fit[0], cov, w.current.pose, w.covariance
-        ) <= self._gate and not self._replace_visual(fit[0], cov):
-            self._tracker.set_points(None)
-            self.stats.point_fixes_rejected += 1
-            return
-        w.add_absolute(node, fit[0], cov)
-        self.stats.point_fixes += 1
 
     def _check_frame(self, stamp: object, odometry: object) -> float:
         if odometry is not None and not isinstance(odometry, Pose):
@@ -533,7 +327,7 @@ class SequenceLocalizer:
         missing = self._clock.advance(stamp)
         if is_blank(query.image):
             return self._blank(stamp, missing, t_call, t0, cpu0)
-        handled = _Handled()
+        handled = HandledFixes()
         self._history.append(stamp, query.image)
         tracked = self._tracker.track(
             query.image, query.camera, stamp, estimate_motion=bool(len(self._window))
@@ -552,7 +346,7 @@ class SequenceLocalizer:
         self._frame += 1
         return self._report(stamp, motion, tracked, handled, missing, t_call, t0, cpu0)
 
-    def _first_fix(self, query: Query, stamp: float, handled: _Handled) -> None:
+    def _first_fix(self, query: Query, stamp: float, handled: HandledFixes) -> None:
         """Nothing to track from: this frame waits for its fix."""
         result = self._fixes.solve_now(self._job(query, stamp))
         self.stats.fixes_submitted += 1
@@ -561,14 +355,14 @@ class SequenceLocalizer:
         if len(self._window):
             self._tracker.set_points(result.points)
 
-    def _take_fixes(self, query: Query, stamp: float, handled: _Handled) -> None:
+    def _take_fixes(self, query: Query, stamp: float, handled: HandledFixes) -> None:
         """Fuse the fix results that arrived and the tracked map points, submit this frame's fix
         job when the worker is idle; a frame too far ahead of the fix in flight, or with no pose
         to give early (doubted, a std beyond ``max_pose_std_m`` or ``lost_std_m``), waits for it."""
         frame = self._frame
         for result in self._fixes.collect(frame):
             self._handle(result, handled)
-        self._point_fix(stamp, query.camera)
+        self._fusion.point_fix(stamp, query.camera)
         self._refresh()
         due = self._last_job is None or frame - self._last_job >= self.config.fix_every
         if due and not self._fixes.busy:
@@ -604,7 +398,7 @@ class SequenceLocalizer:
         w = self._window
         pose, cov = None, np.full((6, 6), np.inf)
         if len(w):
-            weak = self._weak(len(w) - 1, stamp - w.current.stamp)
+            weak = self._fusion.weak(len(w) - 1, stamp - w.current.stamp)
             pose = weak.cur_from_prev @ w.current.pose
             R = w.current.pose.R.T
             cov = w.covariance.copy()
@@ -635,7 +429,7 @@ class SequenceLocalizer:
         current = len(w) - 1
         if (
             anchor is not None
-            and self._latest_fix == "accepted"
+            and self._fusion.latest_fix == "accepted"
             and pos_std <= self.config.localized_std_m
             and w.last_absolute() == current
             and all(s in MEASURED for s in w.sources_after(anchor))
@@ -648,7 +442,7 @@ class SequenceLocalizer:
         stamp: float,
         motion: Motion,
         tracked: Tracked,
-        handled: _Handled,
+        handled: HandledFixes,
         missing: int,
         t_call: float,
         t0: float,

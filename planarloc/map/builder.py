@@ -33,6 +33,7 @@ import sqlite3
 from collections.abc import Callable, Iterable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
+from typing import TypedDict, Unpack
 
 import numpy as np
 
@@ -61,6 +62,7 @@ from planarloc.map.pose_accuracy import measure_map_accuracy, store_accuracy
 from planarloc.map.posed_image import PosedImage
 from planarloc.map.schema import GRAVITY_META, VOCABULARY_BLOB, MapFormatError
 from planarloc.map.settings import check_num_words, map_config, settings_mismatch_error
+from planarloc.map.std_calibration import mark_std_calibration_stale
 from planarloc.map.store import MapDatabase
 
 logger = logging.getLogger(__name__)
@@ -158,13 +160,11 @@ def build_map(
     num_words: int = DEFAULT_NUM_WORDS,
     seed: int = 0,
     progress: Progress | None = None,
-    workers: int | None = None,
-    lock_timeout: float | None = None,
     notify: Callable[[str], None] | None = None,
-    mapper: Mapper | None = None,
     skipped: Skipped | None = None,
     storage: str = DEFAULT_STORAGE,
     allow_unrelated_frames: bool = False,
+    **run: Unpack[BuildRun],
 ) -> Path:
     """Create (or resume / append to) the map at ``path`` from posed images.
 
@@ -176,12 +176,8 @@ def build_map(
         num_words: VLAD vocabulary size.
         seed: seeds the vocabulary training.
         progress: optional ``(stage, done, total)`` callback.
-        workers: feature extraction threads (default: one per core).
-        lock_timeout: seconds to wait while another process builds the same map (None: wait).
         notify: receives one line per identity action (updated poses, re-extracted or
             namespaced images); default: logged as warnings.
-        mapper: runs the feature extraction instead of the threads: ``mapper(fn, images)`` yields
-            ``fn(image)`` in input order (e.g. :func:`planarloc.distributed.ray_backend.RayBackend.map`).
         storage: the layout of a new map, ``"compact"`` (default: about a fifth of the size of
             ``"full"``; :mod:`planarloc.map.codec`) or ``"full"``; an existing map keeps its own.
         skipped: receives each image left out of the map (missing, unreadable, truncated,
@@ -190,6 +186,7 @@ def build_map(
         allow_unrelated_frames: append images to a non-empty map even when their world frame
             looks unrelated to the map's (:mod:`planarloc.map.frame_check`); the finding is then
             reported through ``notify`` (default: a logged warning) instead of raised.
+        **run: how the build runs (:class:`BuildRun`: ``workers``, ``lock_timeout``, ``mapper``).
 
     Returns:
         The map path.
@@ -204,6 +201,10 @@ def build_map(
         MapBusyError: another process still builds the map after ``lock_timeout``.
     """
     path = Path(path)
+    unknown = sorted(set(run) - set(BuildRun.__annotations__))
+    if unknown:
+        raise TypeError(f"build_map() got unexpected keyword argument(s): {', '.join(unknown)}")
+    workers, lock_timeout, mapper = run.get("workers"), run.get("lock_timeout"), run.get("mapper")
     num_words = check_num_words(num_words)
     if not isinstance(features, FeatureConfig):
         raise InputError(f"features: expected a FeatureConfig, got {type(features).__name__}")
@@ -215,18 +216,8 @@ def build_map(
         raise InputError("images: expected PosedImage records (e.g. from planarloc.io.datasets.read_dataset)")
     config = map_config(features, num_words)
     declared = declared_world_down(images)
-
-    def skip(image: PosedImage, reason: str) -> None:
-        if skipped is not None:
-            skipped(image, reason)
-        else:
-            logger.warning("%s: left out of the map: %s", image.name, reason)
-
-    def tell(line: str) -> None:
-        if notify is not None:
-            notify(line)
-        else:
-            logger.warning("%s", line)
+    skip: Skipped = skipped or _log_skipped
+    tell: Callable[[str], None] = notify or _log_line
 
     with ThreadPoolExecutor(max_workers=workers or os.cpu_count() or 1) as pool:
         checked = _hash_images(images, pool, progress)
@@ -242,16 +233,7 @@ def build_map(
         ready: dict[Path, Features | str] = {}  # features extracted by the frame check, kept for stage 2
         finding = _check_frames(path, config, images, hashes, features, declared, lock_timeout, pool, ready)
         if finding is not None and not finding[0].related:
-            frames, num_new = finding
-            line = f"{path}: the {num_new} new images look unrelated to the map's world frame: {frames.summary()}"
-            if not allow_unrelated_frames:
-                raise UnrelatedFramesError(
-                    f"{line}; if they are another sequence with its own origin, build a "
-                    "separate map; to append them anyway, run `planarloc map build` with "
-                    "--allow-unrelated-frames (allow_unrelated_frames=True); the map is "
-                    "unchanged"
-                )
-            tell(f"{line}; appending them anyway (allow_unrelated_frames)")
+            _unrelated_frames(path, *finding, allow_unrelated_frames, tell)
         try:
             db = MapDatabase.open_or_create(path, config, lock_timeout=lock_timeout, storage=storage)
         except OSError as exc:
@@ -276,6 +258,42 @@ def build_map(
                 )
             _finish(db, plan, declared, num_words, seed, progress)
     return path
+
+
+class BuildRun(TypedDict, total=False):
+    """How :func:`build_map` runs (keyword arguments, all optional)."""
+
+    #: feature extraction threads (default: one per core)
+    workers: int | None
+    #: seconds to wait while another process builds the same map (None: wait)
+    lock_timeout: float | None
+    #: runs the feature extraction instead of the threads: ``mapper(fn, images)`` yields
+    #: ``fn(image)`` in input order (e.g. :func:`planarloc.distributed.ray_backend.RayBackend.map`)
+    mapper: Mapper | None
+
+
+def _log_skipped(image: PosedImage, reason: str) -> None:
+    logger.warning("%s: left out of the map: %s", image.name, reason)
+
+
+def _log_line(line: str) -> None:
+    logger.warning("%s", line)
+
+
+def _unrelated_frames(
+    path: Path, frames: FrameCheck, num_new: int, allow: bool, tell: Callable[[str], None]
+) -> None:
+    """New images whose world frame looks unrelated to the map's: refused (the map unchanged),
+    or with ``allow`` told and appended."""
+    line = f"{path}: the {num_new} new images look unrelated to the map's world frame: {frames.summary()}"
+    if not allow:
+        raise UnrelatedFramesError(
+            f"{line}; if they are another sequence with its own origin, build a "
+            "separate map; to append them anyway, run `planarloc map build` with "
+            "--allow-unrelated-frames (allow_unrelated_frames=True); the map is "
+            "unchanged"
+        )
+    tell(f"{line}; appending them anyway (allow_unrelated_frames)")
 
 
 def _hash_images(
@@ -387,12 +405,13 @@ def _finish(
 ) -> None:
     """Stage 3: when anything changed (or the last build did not finish), the retrieval index,
     the map's gravity and how well its poses agree with its images
-    (:mod:`planarloc.map.pose_accuracy`), then the map is marked complete; a map built before gravity was stored
-    gets it."""
+    (:mod:`planarloc.map.pose_accuracy`), its std calibration marked due, then the map is marked
+    complete; a map built before gravity was stored gets it."""
     if plan.changes_map or not db.is_complete or db.get_blob(VOCABULARY_BLOB) is None:
         index_map(db, num_words=num_words, seed=seed, progress=progress)
         store_map_gravity(db, declared)
         store_accuracy(db, measure_map_accuracy(db, progress=progress))
+        mark_std_calibration_stale(db)  # measured on the held-out images by the localizer's layer
         db.mark_complete()
     elif db.get_meta(GRAVITY_META) is None or world_down_changes(db, declared):  # e.g. up= given for this map
         store_map_gravity(db, declared)

@@ -34,7 +34,10 @@ logger = logging.getLogger(__name__)
 
 
 STD_CALIBRATION_META = "std_calibration"
-"""Meta key of the stored :class:`StdCalibration` (JSON)."""
+"""Meta key of the stored :class:`StdCalibration` (JSON); ``""`` once measured without a result,
+:data:`STALE` after a build changed the map, absent before the first measurement."""
+STALE = "stale"
+"""The meta value of a calibration a build has made out of date (the map changed since)."""
 TARGET_MEDIAN_RATIO = 1.0
 """Median held-out error / std the factor aims at: about a calibrated Gaussian's (0.67 along one
 dominant axis, 1.5 for three equal ones). Queries among the map images land lower (their
@@ -97,10 +100,20 @@ def store_std_calibration(db: MapDatabase, calibration: StdCalibration | None) -
     db.set_meta(STD_CALIBRATION_META, "" if calibration is None else json.dumps(asdict(calibration)))
 
 
+def mark_std_calibration_stale(db: MapDatabase) -> None:
+    """The map changed: its calibration no longer counts and is due (:func:`std_calibration_due`)."""
+    db.set_meta(STD_CALIBRATION_META, STALE)
+
+
+def std_calibration_due(db: MapDatabase) -> bool:
+    """Whether the map's calibration is still to be measured (never, or changed since)."""
+    return db.get_meta(STD_CALIBRATION_META) in (None, STALE)
+
+
 def load_std_calibration(db: MapDatabase) -> StdCalibration | None:
-    """The stored calibration; None for a map without one."""
+    """The stored calibration; None for a map without one (or a stale one)."""
     text = db.get_meta(STD_CALIBRATION_META)
-    if not text:
+    if not text or text == STALE:
         return None
     try:
         out = StdCalibration(**json.loads(text))

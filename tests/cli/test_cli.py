@@ -8,6 +8,8 @@ from pathlib import Path
 import pytest
 
 from planarloc.cli.main import build_parser, main
+from planarloc.map.std_calibration import MIN_SAMPLES, load_std_calibration
+from planarloc.map.store import MapDatabase
 
 
 def run(argv: list[str]) -> int:
@@ -82,7 +84,12 @@ def test_map_build_localize_evaluate(
     assert run(["map", "build", tiny_world / "map", "--format", "tum", "--out", db]) == 0
     capsys.readouterr()
     assert run(["map", "info", db]) == 0
-    assert "map poses agree with their images to" in capsys.readouterr().out  # the measured map prior
+    printed = capsys.readouterr().out
+    assert "map poses agree with their images to" in printed  # the measured map prior
+    with MapDatabase.open(db) as m:  # `map build` measured the std calibration on held-out map images
+        calibration = load_std_calibration(m)
+    assert calibration is not None and calibration.samples >= MIN_SAMPLES, printed
+    assert f"std calibration: {calibration.summary()}" in printed
     out = tmp_path / "poses.txt"
     queries = sorted((tiny_world / "query" / "rgb").glob("*.png"))[:3]
     cam = (tiny_world / "query" / "camera.txt").read_text().splitlines()[-1]

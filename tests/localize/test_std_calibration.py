@@ -4,14 +4,22 @@ on the modelled std (planarloc.map.std_calibration, planarloc.localize.held_out)
 from __future__ import annotations
 
 import shutil
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
+from other_user import base_env, other_user, run_as, shared_folder
 
 from planarloc.geometry.validation import InputError
 from planarloc.io.datasets import read_dataset
-from planarloc.localize.held_out import calibrate_map_std, held_out_names, held_out_ratio
+from planarloc.localize.held_out import (
+    calibrate_map_std,
+    calibrate_map_std_when_due,
+    held_out_names,
+    held_out_ratio,
+)
 from planarloc.localize.localizer import Localizer, LocalizerConfig
 from planarloc.map.builder import build_map
 from planarloc.map.std_calibration import (
@@ -21,7 +29,9 @@ from planarloc.map.std_calibration import (
     TARGET_MEDIAN_RATIO,
     StdCalibration,
     load_std_calibration,
+    mark_std_calibration_stale,
     scale_from_ratios,
+    std_calibration_due,
     store_std_calibration,
 )
 from planarloc.map.store import MapDatabase
@@ -109,3 +119,48 @@ def test_a_damaged_or_out_of_range_record_is_ignored(
         store_std_calibration(db, None)
         assert load_std_calibration(db) is None
     assert Localizer(path).ransac_options.std_scale == 1.0
+
+
+def test_a_build_that_changes_the_map_makes_the_calibration_due(
+    calibrated_map: tuple[Path, StdCalibration], tiny_world: Path, tmp_path: Path
+) -> None:
+    images = read_dataset(tiny_world / "map", "tum")
+    path = tmp_path / "same.db"
+    shutil.copy(calibrated_map[0], path)
+    with MapDatabase.open(path) as db:
+        assert not std_calibration_due(db)
+    build_map(images, path)  # the same images: nothing changes, the calibration stays
+    with MapDatabase.open(path) as db:
+        assert not std_calibration_due(db) and load_std_calibration(db) == calibrated_map[1]
+    grown = tmp_path / "grown.db"
+    build_map(images[:8], grown)
+    with MapDatabase.open(grown) as db:
+        assert std_calibration_due(db) and load_std_calibration(db) is None
+    calibrate_map_std_when_due(grown)
+    with MapDatabase.open(grown) as db:
+        assert not std_calibration_due(db)
+    build_map(images, grown)  # four images appended: the map changed
+    with MapDatabase.open(grown) as db:
+        assert std_calibration_due(db) and load_std_calibration(db) is None
+    measured = calibrate_map_std_when_due(grown)
+    assert measured is not None and measured.held_out == len(images)
+    with MapDatabase.open(grown) as db:
+        assert not std_calibration_due(db) and load_std_calibration(db) == measured
+
+
+def test_a_read_only_map_keeps_what_it_has(calibrated_map: tuple[Path, StdCalibration]) -> None:
+    user = other_user()  # a user who may read the map but not write it (skips unless root)
+    with shared_folder() as root:
+        path = root / "map.db"
+        shutil.copy(calibrated_map[0], path)
+        with MapDatabase.open(path, mode="a") as db:
+            mark_std_calibration_stale(db)
+        subprocess.run(["chmod", "-R", "a+rX,go-w", str(root)], check=True)
+        before = path.read_bytes()
+        code = (
+            "import sys; from planarloc.localize.held_out import calibrate_map_std_when_due as c; "
+            "print(c(sys.argv[1]))"
+        )
+        proc = run_as(user, [sys.executable, "-c", code, path], env=base_env())
+        assert proc.returncode == 0 and proc.stdout.strip() == "None", proc.stderr
+        assert path.read_bytes() == before and sorted(p.name for p in root.iterdir()) == ["map.db"]

@@ -85,3 +85,10 @@ def test_the_library_reports_each_image_and_refuses_a_build_with_none(bad_datase
     with pytest.raises(ValueError, match="none of the 4 images can go into the map"):
         build_map(broken, tmp_path / "b.db", num_words=16)
     assert not (tmp_path / "b.db").exists()
+
+
+def test_a_misspelt_run_option_is_refused_before_any_work(bad_dataset, tmp_path) -> None:
+    root, _ = bad_dataset
+    with pytest.raises(TypeError, match="unexpected keyword argument.*worker"):
+        build_map(read_dataset(root, "tum"), tmp_path / "c.db", num_words=16, worker=2)  # type: ignore[call-arg]
+    assert not (tmp_path / "c.db").exists()
