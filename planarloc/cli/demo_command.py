@@ -11,16 +11,16 @@ import numpy as np
 from planarloc.cli.commands import add_command
 from planarloc.cli.console import info, progress_bar
 from planarloc.cli.exit_codes import DEMO_RESUMES
+from planarloc.cli.map_building import build_calibrated_map
 from planarloc.cli.report import print_summary_table, write_json
 from planarloc.cli.warmup_command import compile_ahead
 from planarloc.compile import steps_for
 from planarloc.evaluation.queries import config_label, evaluate_configs, summarize
 from planarloc.features.extract import FeatureConfig
+from planarloc.features.retrieval import DEFAULT_NUM_WORDS
 from planarloc.io.datasets import read_dataset
 from planarloc.io.output import atomic_output, check_output_dir
-from planarloc.localize.held_out import calibrate_map_std_when_due
 from planarloc.localize.localizer import LocalizerConfig
-from planarloc.map.builder import build_map
 from planarloc.map.store import MapDatabase
 from planarloc.robust.options import Method, RansacOptions
 from planarloc.synthetic.world.export import generate
@@ -78,8 +78,7 @@ def run(args: argparse.Namespace) -> int:
         map_images = read_dataset(world / "map", "tum")
         queries = read_dataset(world / "query", "tum")
         map_path = out / f"map-{features.name}.db"
-        build_map(map_images, map_path, features, progress=update)
-        calibrate_map_std_when_due(map_path, progress=update)
+        build_calibrated_map(map_images, map_path, features, DEFAULT_NUM_WORDS, update)
         with MapDatabase.open(map_path) as db:
             results = evaluate_configs(db, configs, queries, lambda d, n: update("localize", d, n))
     summaries = [

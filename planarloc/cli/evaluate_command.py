@@ -9,9 +9,10 @@ from contextlib import closing
 from pathlib import Path
 
 from planarloc.cli.commands import add_command
-from planarloc.cli.console import note, notify, progress_bar
+from planarloc.cli.console import note, progress_bar
 from planarloc.cli.cross_session import add_cross_session_args, read_map_and_queries
 from planarloc.cli.exit_codes import EVALUATE_RESUMES, EXIT_PARTIAL
+from planarloc.cli.map_building import build_calibrated_map
 from planarloc.cli.options import (
     add_dataset_args,
     add_feature_args,
@@ -32,9 +33,8 @@ from planarloc.features.extract import FeatureConfig
 from planarloc.io.gravity_file import read_gravity_file
 from planarloc.io.hloc_pairs import read_hloc_pairs
 from planarloc.io.output import check_output_file, dataset_files, input_files
-from planarloc.localize.held_out import calibrate_map_std_when_due
 from planarloc.localize.localizer import Localizer, LocalizerConfig
-from planarloc.map.builder import build_map, check_map_settings
+from planarloc.map.builder import check_map_settings
 from planarloc.map.gravity import map_gravity
 from planarloc.map.store import MapDatabase
 
@@ -129,25 +129,15 @@ def run(args: argparse.Namespace) -> int:
         check_output_file(path, option, image_paths)
     note(f"map: {len(map_images)} frames -> {map_path}; queries: {len(queries)} frames")
     compile_ahead(steps_for([config]))
-    left_out: list[tuple[str, str]] = []
     if args.sequential:
         with progress_bar() as update:
-            build_map(
-                map_images,
-                map_path,
-                features,
-                num_words=num_words,
-                progress=update,
-                notify=notify,
-                skipped=_skipped(left_out),
-            )
-            calibrate_map_std_when_due(map_path, progress=update)
+            left_out = build_calibrated_map(map_images, map_path, features, num_words, update)
         _map_gravity_warnings(map_path)
         return _left_out_exit(
             evaluate_sequential(args, map_path, map_images, queries, config), left_out, len(map_images)
         )
-    results, gravity = _build_and_localize(
-        args, map_images, queries, map_path, features, num_words, config, pairs, gravity, left_out
+    results, gravity, left_out = _build_and_localize(
+        args, map_images, queries, map_path, features, num_words, config, pairs, gravity
     )
     method, structure = config_label(config)
     summary = summarize(
@@ -163,16 +153,6 @@ def run(args: argparse.Namespace) -> int:
     return _left_out_exit(
         _report(args, summary, results, map_images, map_path, title), left_out, len(map_images)
     )
-
-
-def _skipped(left_out: list[tuple[str, str]]):
-    """``build_map``'s ``skipped``: collects the map images left out (and says so, as `map build`)."""
-
-    def skipped(image, reason: str) -> None:
-        left_out.append((image.name, reason))
-        note(f"image {image.name} left out of the map: {reason}")
-
-    return skipped
 
 
 def _map_gravity_warnings(map_path: Path) -> None:
@@ -230,23 +210,19 @@ def _build_and_localize(
     config: LocalizerConfig,
     pairs: dict | None,
     gravity: dict | None,
-    left_out: list[tuple[str, str]],
-) -> tuple[list, dict | None]:
-    """Build (or resume) the map, then localize every query, here or on Ray; returns the results
-    and the query gravity used; the map images left out go to ``left_out`` (name, reason)."""
+) -> tuple[list, dict | None, list[tuple[str, str]]]:
+    """Build (or resume) the map, then localize every query, here or on Ray; returns the results,
+    the query gravity used and the map images left out (name, reason)."""
     outputs = EstimateOutputs(args.plot_matches, args.rerun)
     with closing(outputs), ray_session(args.ray) as ray_backend, progress_bar() as update:
-        build_map(
+        left_out = build_calibrated_map(
             map_images,
             map_path,
             features,
-            num_words=num_words,
-            progress=update,
-            notify=notify,
+            num_words,
+            update,
             mapper=ray_backend.map if ray_backend else None,
-            skipped=_skipped(left_out),
         )
-        calibrate_map_std_when_due(map_path, progress=update)
         if args.gravity_from_truth:
             # the dataset's declared down direction, else the map's (estimated) gravity
             with MapDatabase.open(map_path) as db:
@@ -255,15 +231,17 @@ def _build_and_localize(
             _map_gravity_warnings(map_path)
         progress = lambda d, n: update("localize", d, n)  # noqa: E731
         if ray_backend:
-            return ray_backend.evaluate(map_path, config, queries, pairs, progress, gravity=gravity), gravity
-        return evaluate_queries(
-            Localizer(map_path, config),
-            queries,
-            progress,
-            pairs,
-            outputs if outputs.active else None,
-            gravity=gravity,
-        ), gravity
+            results = ray_backend.evaluate(map_path, config, queries, pairs, progress, gravity=gravity)
+        else:
+            results = evaluate_queries(
+                Localizer(map_path, config),
+                queries,
+                progress,
+                pairs,
+                outputs if outputs.active else None,
+                gravity=gravity,
+            )
+    return results, gravity, left_out
 
 
 def _report(

@@ -6,8 +6,9 @@ import argparse
 from pathlib import Path
 
 from planarloc.cli.commands import add_command
-from planarloc.cli.console import info, note, notify, progress_bar
+from planarloc.cli.console import info, note, progress_bar
 from planarloc.cli.exit_codes import BUILD_RESUMES, EXIT_PARTIAL
+from planarloc.cli.map_building import build_calibrated_map
 from planarloc.cli.options import (
     add_dataset_args,
     add_feature_args,
@@ -18,8 +19,7 @@ from planarloc.cli.options import (
 from planarloc.distributed.ray_backend import ray_session
 from planarloc.io.datasets import read_dataset
 from planarloc.io.output import check_output_file, dataset_files, input_files
-from planarloc.localize.held_out import calibrate_map_std_when_due
-from planarloc.map.builder import build_map, check_map_settings
+from planarloc.map.builder import check_map_settings
 from planarloc.map.codec import DEFAULT_STORAGE, STORAGE_LAYOUTS
 from planarloc.map.gravity import map_gravity
 from planarloc.map.integrity import check_map
@@ -167,26 +167,17 @@ def run_build(args: argparse.Namespace) -> int:
     check_output_file(args.out, "--out", input_files(im.path for im in images))
     check_map_settings(args.out, features, num_words)  # before the first image is read
     note(f"building map {args.out} from {len(images)} images of {args.dataset}")
-    left_out: list[tuple[str, str]] = []
-
-    def skipped(image, reason: str) -> None:
-        left_out.append((image.name, reason))
-        note(f"image {image.name} left out of the map: {reason}")
-
     with ray_session(args.ray) as ray_backend, progress_bar() as update:
-        build_map(
+        left_out = build_calibrated_map(
             images,
             args.out,
             features,
-            num_words=num_words,
-            progress=update,
-            notify=notify,
+            num_words,
+            update,
             mapper=ray_backend.map if ray_backend else None,
-            skipped=skipped,
             storage=args.storage,
             allow_unrelated_frames=args.allow_unrelated_frames,
         )
-        calibrate_map_std_when_due(args.out, progress=update)
     code = run_info(argparse.Namespace(map=args.out))
     if left_out:
         note(

@@ -23,12 +23,22 @@ from planarloc.geometry.camera import Camera
 from planarloc.geometry.validation import InputError
 from planarloc.io.datasets import FORMATS, format_options, parse_option_text
 from planarloc.io.text import parse_camera, parse_gravity
-from planarloc.localize.localizer import LocalizerConfig, localizer_config
+from planarloc.localize.localizer_config import SHARED_SETTINGS, LocalizerConfig, localizer_config_from
 from planarloc.robust.options import Method, RansacOptions, Structure
 
 T = TypeVar("T")
 _RANSAC = RansacOptions()
 _LOC = LocalizerConfig()
+METHOD_HELP = (
+    "auto = planar 2p1p where the planar model holds, 6DoF 5-point where it does not "
+    "(tilted or off-plane queries); 2p1p / 2p2p = the paper's planar methods; 5p5p-nister, "
+    "5p5p-stewenius, 8p8p = its 6DoF baselines (default: %(default)s)"
+)
+STRUCTURE_HELP = (
+    "none = the paper's 2D-2D constraints only (position unobservable when the query is "
+    "collinear with the map images: reported as degenerate_scale); tracks = also "
+    "triangulate query keypoints seen in 2+ map images (default: %(default)s)"
+)
 
 
 FORMAT_HELP = (
@@ -166,24 +176,11 @@ def check_map_file_features(path: Path, given: str | None, option: str = "--feat
 
 def add_localizer_args(p: argparse.ArgumentParser) -> None:
     g = p.add_argument_group("localization")
-    g.add_argument(
-        "--method",
-        "-m",
-        default=Method(_LOC.method).value,
-        choices=[m.value for m in Method],
-        help="auto = planar 2p1p where the planar model holds, 6DoF 5-point where it does not "
-        "(tilted or off-plane queries); 2p1p / 2p2p = the paper's planar methods; 5p5p-nister, "
-        "5p5p-stewenius, 8p8p = its 6DoF baselines (default: %(default)s)",
-    )
-    g.add_argument(
-        "--structure",
-        "-s",
-        default=Structure(_RANSAC.structure).value,
-        choices=[s.value for s in Structure],
-        help="none = the paper's 2D-2D constraints only (position unobservable when the query is "
-        "collinear with the map images: reported as degenerate_scale); tracks = also "
-        "triangulate query keypoints seen in 2+ map images (default: %(default)s)",
-    )
+    for flags, kind, default, text in (
+        (("--method", "-m"), Method, _LOC.method, METHOD_HELP),
+        (("--structure", "-s"), Structure, _RANSAC.structure, STRUCTURE_HELP),
+    ):
+        g.add_argument(*flags, default=kind(default).value, choices=[v.value for v in kind], help=text)
     g.add_argument(
         "--top-n", "-k", type=int, default=_LOC.top_n, help="retrieved map images (default: %(default)s)"
     )
@@ -213,15 +210,11 @@ def add_localizer_args(p: argparse.ArgumentParser) -> None:
 
 def localizer_config_of(args: argparse.Namespace) -> LocalizerConfig:
     """The :class:`LocalizerConfig` of the localization options (:func:`localizer_config`)."""
-    return localizer_config(
-        method=args.method,
-        structure=args.structure,
-        seed=args.seed,
-        top_n=args.top_n,
-        iterations=args.iterations,
+    return localizer_config_from(
+        args,
+        (*SHARED_SETTINGS, "iterations", "use_depth"),
         threshold_px=args.threshold,
         max_position_std_m=args.max_position_std,
-        use_depth=args.use_depth,
     )
 
 

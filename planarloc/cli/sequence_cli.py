@@ -15,7 +15,7 @@ from rich.table import Table
 from planarloc.cli.console import info, progress_bar
 from planarloc.io.results import PREDICTED_MODES
 from planarloc.localize.sequence import SequenceLocalizer
-from planarloc.localize.stream_config import FIX_MODES, SequenceConfig
+from planarloc.localize.stream_config import FIX_MODES, SHARED_SETTINGS, SequenceConfig, sequence_config_from
 from planarloc.robust.options import Structure
 from planarloc.robust.relative_pose import MODELS
 
@@ -25,6 +25,7 @@ if TYPE_CHECKING:
     from planarloc.viz.rerun_log import RerunLogger
 
 _SEQ = SequenceConfig()
+FIX_DELAY_HELP = "--fixes wait: frames between a fix and its fusion, as a worker would deliver it"
 
 
 def add_sequence_args(p: argparse.ArgumentParser, evaluate: bool) -> None:
@@ -103,28 +104,13 @@ def _add_stream_motion_args(g: argparse._ArgumentGroup) -> None:
         help="absolute fixes in a background worker (camera rate) or inside each frame's step (wait: "
         "deterministic, for reproducible offline runs) (default: %(default)s)",
     )
-    g.add_argument(
-        "--fix-every",
-        type=int,
-        default=_SEQ.fix_every,
-        help="frames between two absolute fixes at least (default: %(default)s)",
-    )
-    g.add_argument(
-        "--fix-delay",
-        type=int,
-        default=_SEQ.fix_delay,
-        help="--fixes wait: frames between a fix and its fusion, as a worker would deliver it "
-        "(default: %(default)s)",
-    )
-    g.add_argument(
-        "--window", type=int, default=_SEQ.window, help="poses in the sliding window (default: %(default)s)"
-    )
-    g.add_argument(
-        "--local-top-n",
-        type=int,
-        default=_SEQ.local_top_n,
-        help="map images nearest to the prediction used per frame (default: %(default)s)",
-    )
+    for flag, field, text in (
+        ("--fix-every", "fix_every", "frames between two absolute fixes at least"),
+        ("--fix-delay", "fix_delay", FIX_DELAY_HELP),
+        ("--window", "window", "poses in the sliding window"),
+        ("--local-top-n", "local_top_n", "map images nearest to the prediction used per frame"),
+    ):
+        g.add_argument(flag, type=int, default=getattr(_SEQ, field), help=f"{text} (default: %(default)s)")
     g.add_argument(
         "--vo-model",
         default=_SEQ.vo_model,
@@ -140,19 +126,9 @@ def _add_stream_motion_args(g: argparse._ArgumentGroup) -> None:
 
 
 def sequence_config(args: argparse.Namespace) -> SequenceConfig:
-    kw = {}
-    if getattr(args, "frame_period", None) is not None:
-        kw["frame_period_s"] = args.frame_period
-    return SequenceConfig(
-        window=args.window,
-        local_top_n=args.local_top_n,
-        vo_model=args.vo_model,
-        kidnap_confirmations=args.kidnap_confirmations,
-        fixes=args.fixes,
-        fix_every=args.fix_every,
-        fix_delay=args.fix_delay,
-        **kw,
-    )
+    """The stream's :class:`SequenceConfig` of the sequential options."""
+    kw = {} if getattr(args, "frame_period", None) is None else {"frame_period_s": args.frame_period}
+    return sequence_config_from(args, (*SHARED_SETTINGS, "fix_every", "fix_delay"), **kw)
 
 
 def check_stream_args(args: argparse.Namespace, stream: bool, flag: str) -> None:

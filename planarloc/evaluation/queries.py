@@ -12,6 +12,7 @@ import time
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -85,33 +86,22 @@ class QueryResult:
         with the ground truth (``truth_quat_wxyz``, ``truth_center``), the errors (null without
         a pose) and ``seconds`` (features, retrieval, matching and estimation)."""
         return {
-            **with_truth(
-                self.record,
-                self.truth_quat_wxyz,
-                self.truth_center,
-                self.translation_error_m,
-                self.rotation_error_deg,
-            ),
+            **with_truth(self),
             "seconds": self.seconds,
         }
 
 
-def with_truth(
-    record: dict,
-    truth_quat_wxyz: Sequence[float] | None,
-    truth_center: Sequence[float],
-    translation_error_m: float,
-    rotation_error_deg: float,
-) -> dict:
-    """``record`` with its evaluation (docs/schema/record.schema.json, "evaluation_fields"): the
-    true ``cam_from_world`` rotation and centre and the errors (NaN without a pose, ``null`` once
-    written)."""
+def with_truth(entry: Any) -> dict:
+    """The record of an evaluated query or frame ``entry`` (its ``record``) with its evaluation
+    (docs/schema/record.schema.json, "evaluation_fields"): the true ``cam_from_world`` rotation and
+    centre (``truth_quat_wxyz``, ``truth_center``) and the errors (``translation_error_m``,
+    ``rotation_error_deg``: NaN without a pose, ``null`` once written)."""
     return {
-        **record,
-        "truth_quat_wxyz": None if truth_quat_wxyz is None else list(truth_quat_wxyz),
-        "truth_center": list(truth_center),
-        "translation_error_m": translation_error_m,
-        "rotation_error_deg": rotation_error_deg,
+        **entry.record,
+        "truth_quat_wxyz": None if entry.truth_quat_wxyz is None else list(entry.truth_quat_wxyz),
+        "truth_center": list(entry.truth_center),
+        "translation_error_m": entry.translation_error_m,
+        "rotation_error_deg": entry.rotation_error_deg,
     }
 
 

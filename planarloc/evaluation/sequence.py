@@ -82,13 +82,7 @@ class FrameResult:
         """The evaluation's entry of this frame: its record (docs/schema/record.schema.json) with
         the ground truth, the errors (null without a pose), ``kidnapped`` and ``finished_s``."""
         return {
-            **with_truth(
-                self.record,
-                self.truth_quat_wxyz,
-                self.truth_center,
-                self.translation_error_m,
-                self.rotation_error_deg,
-            ),
+            **with_truth(self),
             "kidnapped": self.kidnapped,
             "finished_s": self.finished_s,
         }

@@ -190,17 +190,25 @@ class _BagContent:
     tf: TfBuffer
 
 
-def _read_bag(
-    root: Path,
-    *,
-    image_topic: str | None,
-    camera_info_topic: str | None,
-    camera: object,
-    pose_topic: str | None,
-    with_tf: bool,
-    every: int,
-    image_dir: str | Path | None,
-) -> _BagContent:
+@dataclass(frozen=True)
+class _ImageSelection:
+    """Which images of a bag are read, with which camera, and where they are unpacked (the
+    options of :func:`read_rosbag`)."""
+
+    image_topic: str | None
+    camera_info_topic: str | None
+    camera: object
+    every: int
+    image_dir: str | Path | None
+
+
+def _read_bag(root: Path, selection: _ImageSelection, pose_topic: str | None, with_tf: bool) -> _BagContent:
+    image_topic, camera_info_topic, camera = (
+        selection.image_topic,
+        selection.camera_info_topic,
+        selection.camera,
+    )
+    every, image_dir = selection.every, selection.image_dir
     rb = _rosbags()
     from rosbags.highlevel import AnyReader
     from rosbags.typesys import Stores, get_typestore
@@ -391,16 +399,8 @@ def read_rosbag_images(
     Returns:
         One :class:`BagImage` per selected message of ``image_topic``, in message order.
     """
-    content = _read_bag(
-        Path(root),
-        image_topic=image_topic,
-        camera_info_topic=camera_info_topic,
-        camera=camera,
-        pose_topic=None,
-        with_tf=False,
-        every=every,
-        image_dir=image_dir,
-    )
+    selection = _ImageSelection(image_topic, camera_info_topic, camera, every, image_dir)
+    content = _read_bag(Path(root), selection, pose_topic=None, with_tf=False)
     _shared_stamps(
         content.images,
         content.image_topic,
@@ -457,16 +457,8 @@ def read_rosbag(
     base_from_camera = (
         parse_transform(base_to_camera, "base_to_camera") if base_to_camera is not None else None
     )
-    content = _read_bag(
-        root,
-        image_topic=image_topic,
-        camera_info_topic=camera_info_topic,
-        camera=camera,
-        pose_topic=pose_topic,
-        with_tf=True,
-        every=every,
-        image_dir=image_dir,
-    )
+    selection = _ImageSelection(image_topic, camera_info_topic, camera, every, image_dir)
+    content = _read_bag(root, selection, pose_topic=pose_topic, with_tf=True)
     images = content.images
     ambiguous = _shared_stamps(
         images, content.image_topic, "skipped: a pose cannot be paired with one of them"

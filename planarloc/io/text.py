@@ -34,7 +34,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from planarloc.geometry.camera import Camera, CameraModel
+from planarloc.geometry.camera import UNSUPPORTED_COLMAP_MODELS, Camera, CameraModel
 from planarloc.geometry.pose import Pose
 from planarloc.geometry.validation import InputError
 from planarloc.robust.pair_matches import unit_gravity
@@ -47,24 +47,8 @@ QUAT_NORM_TOL = 5e-3
 WXYZ_T = "qw qx qy qz tx ty tz"
 T_XYZW = "tx ty tz qx qy qz qw"
 #: Every camera model name COLMAP knows, so that an unsupported one is reported as such.
-COLMAP_MODELS = frozenset(
-    {
-        "SIMPLE_PINHOLE",
-        "PINHOLE",
-        "SIMPLE_RADIAL",
-        "RADIAL",
-        "OPENCV",
-        "OPENCV_FISHEYE",
-        "FULL_OPENCV",
-        "FOV",
-        "SIMPLE_RADIAL_FISHEYE",
-        "RADIAL_FISHEYE",
-        "THIN_PRISM_FISHEYE",
-        "RAD_TAN_THIN_PRISM_FISHEYE",
-        "SIMPLE_DIVISION",
-        "DIVISION",
-    }
-)
+#: every camera model COLMAP knows: the supported ones and those refused with their own message
+COLMAP_MODELS = frozenset({m.value for m in CameraModel} | set(UNSUPPORTED_COLMAP_MODELS))
 CAMERA_SYNTAX = "'MODEL WIDTH HEIGHT PARAMS...' (COLMAP syntax), e.g. 'PINHOLE 640 480 500 500 320 240'"
 _COLUMN = "\x00column\x00"
 
@@ -125,7 +109,7 @@ def _model_hint(name: str) -> str:
 
 def is_camera_model(name: str) -> bool:
     """True for a model name :class:`Camera` takes or COLMAP knows (to tell ``KEY MODEL ...`` lines)."""
-    return name.upper() in COLMAP_MODELS or name.upper() in {m.value for m in CameraModel}
+    return name.upper() in COLMAP_MODELS
 
 
 def parse_camera(text: str | Sequence[str]) -> Camera:

@@ -3,7 +3,9 @@ source of defaults every front door (CLI, service, ROS node) builds its configur
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from dataclasses import dataclass, field
+from typing import Any
 
 from planarloc.features.matching import DEFAULT_RATIO
 from planarloc.features.retrieval import DEFAULT_TOP_N
@@ -84,3 +86,15 @@ def localizer_config(
         if value is not None:
             config[key] = value
     return LocalizerConfig(**config)  # type: ignore[arg-type]
+
+
+#: the localizer settings every front door names alike (its options' or parameters' attributes)
+SHARED_SETTINGS = ("method", "structure", "seed", "top_n")
+
+
+def localizer_config_from(
+    source: object, names: Iterable[str] = SHARED_SETTINGS, **more: Any
+) -> LocalizerConfig:
+    """:func:`localizer_config` of the attributes ``names`` of ``source`` (an argparse namespace, a
+    node's parameters) and of ``more``."""
+    return localizer_config(**{name: getattr(source, name) for name in names}, **more)

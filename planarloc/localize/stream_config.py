@@ -5,7 +5,9 @@ takes its defaults from here."""
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Iterable
 from dataclasses import dataclass
+from typing import Any
 
 from planarloc.geometry.validation import InputError, check_integer, check_positive
 from planarloc.localize.tracking import TrackerOptions
@@ -13,6 +15,8 @@ from planarloc.robust.relative_pose import MODELS
 
 #: where fixes are computed (``SequenceConfig.fixes``)
 FIX_MODES = ("background", "wait")
+#: the stream settings every front door names alike (its options' or parameters' attributes)
+SHARED_SETTINGS = ("window", "local_top_n", "vo_model", "kidnap_confirmations", "fixes")
 
 
 @dataclass(frozen=True)
@@ -174,3 +178,11 @@ class SequenceConfig:
     def tracker(self) -> TrackerOptions:
         """The corner tracker's options."""
         return dataclasses.replace(self.tracking, model=self.vo_model)
+
+
+def sequence_config_from(
+    source: object, names: Iterable[str] = SHARED_SETTINGS, **more: Any
+) -> SequenceConfig:
+    """A :class:`SequenceConfig` of the attributes ``names`` of ``source`` (an argparse namespace,
+    a node's parameters) and of ``more``; the rest keeps its default."""
+    return SequenceConfig(**{name: getattr(source, name) for name in names}, **more)

@@ -121,6 +121,16 @@ class _Judging:
     n2d: int
     n3d: int
 
+    def widen(self, rival_m: float, message: str) -> PoseEstimate | None:
+        """A rival pose ``rival_m`` away (0: none) that explains the matches as well: the std
+        becomes at least that distance; ``ambiguous_pose`` with ``message`` once it is beyond
+        ``max_position_std_m``, else None."""
+        if rival_m > 0.0:
+            self.std = max(self.std, rival_m)
+            if not self.std <= self.ctx.options.max_position_std_m:
+                return self.fail(Status.AMBIGUOUS_POSE, message)
+        return None
+
     def fail(self, status: Status, message: str, with_pose: bool = True) -> PoseEstimate:
         """The failed estimate (the pose as ``unreliable_pose`` when ``with_pose``)."""
         ctx = self.ctx
@@ -376,7 +386,7 @@ def _check_position(j: _Judging) -> PoseEstimate | None:
 def _check_runner_ups(j: _Judging) -> PoseEstimate | None:
     """No other pose, a runner-up of the search or a restart of the refinement, far away
     explains the matches about as well."""
-    options, cand = j.ctx.options, j.cand
+    cand = j.cand
     if cand.refine is not None and (len(cand.alternatives) or len(cand.pool[0])):
         # Few inliers per reference: a pose that absorbs a few outliers can explain the matches
         # as well as the truth, far beyond what the curvature at either optimum says
@@ -391,28 +401,24 @@ def _check_runner_ups(j: _Judging) -> PoseEstimate | None:
             cand.refine,
             3.0 * j.std + 0.05,
         )
-        if d > 0.0:
-            j.std = max(j.std, d)
-            if not j.std <= options.max_position_std_m:
-                return j.fail(
-                    Status.AMBIGUOUS_POSE,
-                    f"another pose {d:.3g} m away explains the matches nearly as "
-                    f"well (within {RIVAL_MARGIN_INLIERS} inliers' worth of MSAC cost): the data do not "
-                    "single out one position; more matches or map images, or structure='tracks'",
-                )
+        failed = j.widen(
+            d,
+            f"another pose {d:.3g} m away explains the matches nearly as "
+            f"well (within {RIVAL_MARGIN_INLIERS} inliers' worth of MSAC cost): the data do not "
+            "single out one position; more matches or map images, or structure='tracks'",
+        )
+        if failed is not None:
+            return failed
     if cand.refine is not None and j.n2d + j.n3d < PROFILE_BELOW_INLIERS:
         # Few constraints: other basins of the cost, with other inlier sets, may explain the
         # matches as well (Strecha entry_p10 against the fountain_p11 map: a pose 0.95 m off with
         # std 0.23 m, while restarts 0.7 m away found lower costs).
         d = basin_distance(cand.estimator, cand.ref, cand.refine, 3.0 * j.std + 0.05)
-        if d > 0.0:
-            j.std = max(j.std, d)
-            if not j.std <= options.max_position_std_m:
-                return j.fail(
-                    Status.AMBIGUOUS_POSE,
-                    f"a restart of the refinement {d:.3g} m away converged to a pose "
-                    f"that explains the matches as well (within {RESTART_MARGIN_INLIERS} inlier's worth of "
-                    "MSAC cost, or better): the data do not single out one position; more matches or map "
-                    "images",
-                )
+        return j.widen(
+            d,
+            f"a restart of the refinement {d:.3g} m away converged to a pose "
+            f"that explains the matches as well (within {RESTART_MARGIN_INLIERS} inlier's worth of "
+            "MSAC cost, or better): the data do not single out one position; more matches or map "
+            "images",
+        )
     return None

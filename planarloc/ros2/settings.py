@@ -20,8 +20,9 @@ from planarloc.geometry.pose import Pose
 from planarloc.geometry.validation import InputError
 from planarloc.io.ros_messages import rectified_topic
 from planarloc.io.rosbag import parse_transform
-from planarloc.localize.localizer import LocalizerConfig, localizer_config
-from planarloc.localize.stream_config import FIX_MODES, SequenceConfig
+from planarloc.localize.localizer_config import SHARED_SETTINGS as LOCALIZER_SETTINGS
+from planarloc.localize.localizer_config import LocalizerConfig, localizer_config_from
+from planarloc.localize.stream_config import FIX_MODES, SequenceConfig, sequence_config_from
 from planarloc.robust.options import Method, Structure
 
 NODE_NAME = "planarloc"
@@ -175,23 +176,11 @@ class NodeSettings:
     def localizer_config(self) -> LocalizerConfig:
         """The fixes' single-frame localizer configuration (``method`` and ``structure`` parsed here,
         the ROS parameters' edge; what is not a parameter keeps :class:`LocalizerConfig`'s default)."""
-        return localizer_config(
-            method=self.method,
-            structure=self.structure,
-            seed=self.seed,
-            top_n=self.top_n,
-            max_position_std_m=self.max_position_std_m,
-        )
+        return localizer_config_from(self, (*LOCALIZER_SETTINGS, "max_position_std_m"))
 
     def sequence_config(self) -> SequenceConfig:
         """The stream's configuration (what is not a parameter keeps :class:`SequenceConfig`'s default)."""
-        return SequenceConfig(
-            window=self.window,
-            local_top_n=self.local_top_n,
-            vo_model=self.vo_model,
-            kidnap_confirmations=self.kidnap_confirmations,
-            fixes=self.fixes,
-        )
+        return sequence_config_from(self)
 
     @property
     def base_from_camera(self) -> Pose | None:

@@ -226,6 +226,22 @@ def _draw_segments(ax, map_xy: np.ndarray, gt: np.ndarray, est: np.ndarray, usab
         ax.scatter(est[seg, 0], est[seg, 1], s=5, color=_SEGMENT_COLOR, zorder=2.6)
 
 
+def _error_scatter(ax, xy: np.ndarray, error: np.ndarray, norm, size: float, label: str | None, style: dict):
+    """Positions ``xy`` (N, 2) coloured by their ``error`` (N,) on the shared colour scale."""
+    return ax.scatter(
+        xy[:, 0],
+        xy[:, 1],
+        c=error,
+        cmap=_cmap(),
+        norm=norm,
+        s=size,
+        zorder=3,
+        plotnonfinite=True,
+        label=label,
+        **style,
+    )
+
+
 def plot_localization(
     ax,
     map_centers: np.ndarray,
@@ -279,30 +295,17 @@ def plot_localization(
         ax.plot(gt[:, 0], gt[:, 1], "-", color="tab:green", lw=1, alpha=0.6, label="ground truth")
     _draw_segments(ax, map_xy, gt, est, kinds != FAILED)
     loc, pred, fail = kinds == LOCALIZED, kinds == PREDICTED, kinds == FAILED
-    sc = ax.scatter(
-        gt[loc, 0],
-        gt[loc, 1],
-        c=c[loc],
-        cmap=_cmap(),
-        norm=norm,
-        s=30,
-        zorder=3,
-        plotnonfinite=True,
-        label=f"localized ({int(loc.sum())}), colour = error" if loc.any() else None,
-        **_LOCALIZED_STYLE,
-    )
+    loc_label = f"localized ({int(loc.sum())}), colour = error" if loc.any() else None
+    sc = _error_scatter(ax, gt[loc], c[loc], norm, 30, loc_label, _LOCALIZED_STYLE)
     if pred.any():
-        ax.scatter(
-            gt[pred, 0],
-            gt[pred, 1],
-            c=c[pred],
-            cmap=_cmap(),
-            norm=norm,
-            s=36,
-            zorder=3,
-            plotnonfinite=True,
-            label=f"predicted ({int(pred.sum())}), colour = error",
-            **_PREDICTED_STYLE,
+        _error_scatter(
+            ax,
+            gt[pred],
+            c[pred],
+            norm,
+            36,
+            f"predicted ({int(pred.sum())}), colour = error",
+            _PREDICTED_STYLE,
         )
     if fail.any():
         ax.scatter(
