@@ -23,6 +23,7 @@ from planarloc.map.std_calibration import (
     scale_from_ratios,
     std_calibration_due,
     store_std_calibration,
+    tail_ratios,
 )
 from planarloc.map.store import MapDatabase
 
@@ -38,12 +39,13 @@ def held_out_names(names: list[str], most: int = MAX_HELD_OUT) -> list[str]:
     return [names[int(i)] for i in np.linspace(0, len(names) - 1, most).round().astype(int)]
 
 
-def held_out_ratio(loc: Localizer, name: str) -> float | None:
-    """Error / std of map image ``name`` localized against the other map images (its own
-    features, retrieval without it, the localizer's configuration); None when
-    it fails or is not in the calibrated regime: fewer than ``CARRYING_3D_INLIERS`` 2D-3D inliers
-    (judged under the configured prior), or a map prior raised for this query because its
-    retrieved map images disagree with their poses; the factor touches neither."""
+def held_out_error(loc: Localizer, name: str) -> tuple[float, float] | None:
+    """``(error_m, std_m)`` of map image ``name`` localized against the other map images (its own
+    features, retrieval without it, the localizer's configuration): its position error against
+    its stored pose and the reported std; None when it fails or is not in the calibrated regime:
+    fewer than ``CARRYING_3D_INLIERS`` 2D-3D inliers (judged under the configured prior), or a map
+    prior raised for this query because its retrieved map images disagree with their poses; the
+    factor touches neither."""
     posed = next(p for p in loc.map_images if p.name == name)
     features = loc.db.get_features(name)
     refs = [r for r in loc.retrieve(features, loc.config.top_n + 1) if r != name][: loc.config.top_n]
@@ -55,8 +57,13 @@ def held_out_ratio(loc: Localizer, name: str) -> float | None:
     std = est.position_std_m
     if std is None or not std > 0:
         return None
-    error = pose_errors(est.pose, posed.cam_from_world)[0]
-    return error / std
+    return pose_errors(est.pose, posed.cam_from_world)[0], std
+
+
+def held_out_ratio(loc: Localizer, name: str) -> float | None:
+    """Error / std of :func:`held_out_error` (None where it is None)."""
+    measured = held_out_error(loc, name)
+    return None if measured is None else measured[0] / measured[1]
 
 
 def calibrate_std(loc: Localizer, progress: Progress | None = None) -> StdCalibration | None:
@@ -68,22 +75,25 @@ def calibrate_std(loc: Localizer, progress: Progress | None = None) -> StdCalibr
     uncalibrated = loc.with_config(loc.config)
     uncalibrated.std_calibration = None  # the model's own std
     names = held_out_names([p.name for p in loc.map_images])
-    ratios = []
+    measured = []
     for n, name in enumerate(names):
-        r = held_out_ratio(uncalibrated, name)
-        if r is not None:
-            ratios.append(r)
+        m = held_out_error(uncalibrated, name)
+        if m is not None:
+            measured.append(m)
         if progress:
             progress("calibrate the std", n + 1, len(names))
-    if len(ratios) < MIN_SAMPLES:
+    if len(measured) < MIN_SAMPLES:
         logger.info(
-            "%s: std not calibrated (%d of %d held-out images counted)", loc.db.path, len(ratios), len(names)
+            "%s: std not calibrated (%d of %d held-out images counted)",
+            loc.db.path,
+            len(measured),
+            len(names),
         )
         return None
-    values = np.array(ratios)
-    out = StdCalibration(
-        scale_from_ratios(values), len(values), len(names), float(np.median(values)), float(values.max())
-    )
+    errors, stds = np.array(measured).T
+    ratios = errors / stds
+    scale = scale_from_ratios(ratios, tail_ratios(errors, stds))
+    out = StdCalibration(scale, len(ratios), len(names), float(np.median(ratios)), float(ratios.max()))
     logger.info("%s: %s", loc.db.path, out.summary())
     return out
 

@@ -44,6 +44,10 @@ dominant axis, 1.5 for three equal ones). Queries among the map images land lowe
 neighbours are nearer): the rendered gallery's held-out 0.48 went with queries at 0.31."""
 MAX_RATIO = 2.0
 """The largest held-out error / std the factor may leave (few samples: keep the tail inside 3σ)."""
+TAIL_SLACK_M = 0.02
+"""Metres of a held-out error the tail bound (:data:`MAX_RATIO`) does not count: a promise is
+``3σ + 5 cm``, so an error of a few centimetres says nothing against a smaller std (KITTI seq 1,
+map every 2nd frame: the largest held-out ratio 1.8 was 2.1 cm against a 1.2 cm std)."""
 MIN_SCALE = 0.25
 """The std is never shrunk more than 4 times."""
 MIN_SAMPLES = 5
@@ -77,22 +81,30 @@ class StdCalibration:
         )
 
 
-def scale_from_ratios(ratios: np.ndarray) -> float:
+def scale_from_ratios(ratios: np.ndarray, tail_ratios: np.ndarray | None = None) -> float:
     """The factor on the std from held-out ``ratios`` (N,) (error / std): shrink the std until
-    the median reaches :data:`TARGET_MEDIAN_RATIO`, never so far that the largest exceeds
-    :data:`MAX_RATIO`, never below :data:`MIN_SCALE`; 1 with fewer than :data:`MIN_SAMPLES`
-    ratios.
+    the median reaches :data:`TARGET_MEDIAN_RATIO`, never so far that the largest of
+    ``tail_ratios`` (N,) (default: ``ratios``; :func:`tail_ratios` discounts the promise's slack)
+    exceeds :data:`MAX_RATIO`, never below :data:`MIN_SCALE`; 1 with fewer than
+    :data:`MIN_SAMPLES` ratios.
 
     It never grows the std: a held-out image is localized without itself, its neighbours further
     away than a query's among the map images, so it overstates the errors of the queries the map
     covers (KITTI seq 2, map every 4th frame: held-out median 1.07, largest 3.3; the queries
     between them 0.46 and 1.84 without a factor; ``fountain_p11``: 1.16 against 0.67)."""
     ratios = np.asarray(ratios, dtype=float)
-    ratios = ratios[np.isfinite(ratios)]
+    tail = ratios if tail_ratios is None else np.asarray(tail_ratios, dtype=float)
+    keep = np.isfinite(ratios) & np.isfinite(tail)
+    ratios, tail = ratios[keep], tail[keep]
     if len(ratios) < MIN_SAMPLES:
         return 1.0
-    scale = max(float(np.median(ratios)) / TARGET_MEDIAN_RATIO, float(ratios.max()) / MAX_RATIO, MIN_SCALE)
+    scale = max(float(np.median(ratios)) / TARGET_MEDIAN_RATIO, float(tail.max()) / MAX_RATIO, MIN_SCALE)
     return float(min(scale, 1.0))
+
+
+def tail_ratios(errors_m: np.ndarray, stds_m: np.ndarray) -> np.ndarray:
+    """``(error − TAIL_SLACK_M) / std`` (N,) of held-out ``errors_m`` and ``stds_m`` (N,), at least 0."""
+    return np.maximum(np.asarray(errors_m, float) - TAIL_SLACK_M, 0.0) / np.asarray(stds_m, float)
 
 
 def store_std_calibration(db: MapDatabase, calibration: StdCalibration | None) -> None:

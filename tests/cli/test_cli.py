@@ -168,12 +168,12 @@ def test_help_pages_say_what_the_code_does(capsys: pytest.CaptureFixture[str]) -
 def test_map_build_interrupted_says_it_resumes(
     tiny_world: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    from planarloc.cli import map_command
+    from planarloc.cli import map_building
 
     def interrupted(*args, **kwargs):
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(map_command, "build_map", interrupted)
+    monkeypatch.setattr(map_building, "build_map", interrupted)  # the build `map build` runs
     assert run(["map", "build", tiny_world / "map", "-f", "tum", "--out", tmp_path / "m.db"]) == 130
     assert (
         capsys.readouterr()

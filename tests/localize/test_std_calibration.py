@@ -26,6 +26,7 @@ from planarloc.map.std_calibration import (
     MAX_RATIO,
     MIN_SCALE,
     STD_CALIBRATION_META,
+    TAIL_SLACK_M,
     TARGET_MEDIAN_RATIO,
     StdCalibration,
     load_std_calibration,
@@ -33,6 +34,7 @@ from planarloc.map.std_calibration import (
     scale_from_ratios,
     std_calibration_due,
     store_std_calibration,
+    tail_ratios,
 )
 from planarloc.map.store import MapDatabase
 from planarloc.robust.options import RansacOptions
@@ -49,6 +51,20 @@ def test_the_factor_shrinks_to_the_median_target_and_keeps_the_tail() -> None:
     assert scale_from_ratios(np.full(8, 50.0)) == 1.0
     assert scale_from_ratios(np.array([1.1, 1.2, 1.2, 1.3, 1.5])) == 1.0
     assert scale_from_ratios(np.array([0.1, 0.1, np.nan, 0.1])) == 1.0  # too few: no measurement
+
+
+def test_centimetres_inside_the_promise_do_not_hold_the_factor_back() -> None:
+    stds = np.full(6, 0.012)
+    errors = np.array([0.003, 0.004, 0.005, 0.005, 0.006, 0.022])  # the largest: 1.8 σ, but 2.2 cm
+    ratios = errors / stds
+    assert scale_from_ratios(ratios) == pytest.approx(ratios.max() / MAX_RATIO)  # without the slack
+    slack = scale_from_ratios(ratios, tail_ratios(errors, stds))
+    assert slack == pytest.approx(max(float(np.median(ratios)) / TARGET_MEDIAN_RATIO, MIN_SCALE))
+    # The calibrated std keeps every held-out error within MAX_RATIO σ + TAIL_SLACK_M.
+    assert np.all(errors <= MAX_RATIO * slack * stds + TAIL_SLACK_M + 1e-12)
+    far = errors.copy()
+    far[-1] = 0.30  # a held-out image 30 cm off: the slack changes nothing
+    assert scale_from_ratios(far / stds, tail_ratios(far, stds)) == 1.0
 
 
 def test_held_out_names_spread_over_the_map() -> None:
