@@ -106,18 +106,8 @@ def add_feature_args(p: argparse.ArgumentParser) -> None:
         help="tilt-augment map features (paper Sec. III-B: 6 vertical tilts, ~3x slower build, "
         "more matches under viewpoint change)",
     )
-    p.add_argument(
-        "--max-features",
-        type=int,
-        default=DEFAULT_FEATURE_CONFIG.max_features,
-        help="keypoints per image (default: %(default)s)",
-    )
-    p.add_argument(
-        "--vocabulary-size",
-        type=int,
-        default=DEFAULT_NUM_WORDS,
-        help="VLAD visual words for retrieval (default: %(default)s)",
-    )
+    add_number(p, "--max-features", int, DEFAULT_FEATURE_CONFIG.max_features, "keypoints per image")
+    add_number(p, "--vocabulary-size", int, DEFAULT_NUM_WORDS, "VLAD visual words for retrieval")
 
 
 def check_vocabulary_size(value: int) -> int:
@@ -174,6 +164,13 @@ def check_map_file_features(path: Path, given: str | None, option: str = "--feat
     return kind
 
 
+def add_number(
+    g: argparse.ArgumentParser | argparse._ArgumentGroup, flag: str, kind: type, default: object, text: str
+) -> None:
+    """A numeric option ``flag`` of type ``kind`` whose help ``text`` ends with its default."""
+    g.add_argument(flag, type=kind, default=default, help=f"{text} (default: %(default)s)")
+
+
 def add_localizer_args(p: argparse.ArgumentParser) -> None:
     g = p.add_argument_group("localization")
     for flags, kind, default, text in (
@@ -193,17 +190,13 @@ def add_localizer_args(p: argparse.ArgumentParser) -> None:
         help="fixed number of RANSAC iterations (the paper uses 100); default: adaptive "
         f"between {_RANSAC.min_iterations} and {_RANSAC.max_iterations}",
     )
-    g.add_argument(
-        "--threshold",
-        type=float,
-        default=_RANSAC.threshold_px,
-        help="inlier threshold, Sampson error in pixels (default: %(default)s)",
-    )
-    g.add_argument(
+    add_number(g, "--threshold", float, _RANSAC.threshold_px, "inlier threshold, Sampson error in pixels")
+    add_number(
+        g,
         "--max-position-std",
-        type=float,
-        default=_RANSAC.max_position_std_m,
-        help="report degenerate_scale above this position std in metres (default: %(default)s)",
+        float,
+        _RANSAC.max_position_std_m,
+        "report degenerate_scale above this position std in metres",
     )
     g.add_argument("--seed", type=int, default=_RANSAC.seed, help="RANSAC seed (default: %(default)s)")
 

@@ -13,6 +13,7 @@ import numpy as np
 from rich.table import Table
 
 from planarloc.cli.console import info, progress_bar
+from planarloc.cli.options import add_number
 from planarloc.io.results import PREDICTED_MODES
 from planarloc.localize.sequence import SequenceLocalizer
 from planarloc.localize.stream_config import FIX_MODES, SHARED_SETTINGS, SequenceConfig, sequence_config_from
@@ -72,11 +73,12 @@ def _add_stream_source_args(g: argparse._ArgumentGroup, evaluate: bool) -> None:
             help="the images are one ordered stream (files in the given order, folders sorted, or one "
             "image-list file 'path' / 'timestamp path' per line)",
         )
-        g.add_argument(
+        add_number(
+            g,
             "--frame-period",
-            type=float,
-            default=_SEQ.frame_period_s,
-            help="seconds between frames when the list has no timestamps (default: %(default)s)",
+            float,
+            _SEQ.frame_period_s,
+            "seconds between frames when the list has no timestamps",
         )
         g.add_argument(
             "--predicted",
@@ -110,7 +112,7 @@ def _add_stream_motion_args(g: argparse._ArgumentGroup) -> None:
         ("--window", "window", "poses in the sliding window"),
         ("--local-top-n", "local_top_n", "map images nearest to the prediction used per frame"),
     ):
-        g.add_argument(flag, type=int, default=getattr(_SEQ, field), help=f"{text} (default: %(default)s)")
+        add_number(g, flag, int, getattr(_SEQ, field), text)
     g.add_argument(
         "--vo-model",
         default=_SEQ.vo_model,

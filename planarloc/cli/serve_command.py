@@ -13,7 +13,7 @@ from pathlib import Path
 
 from planarloc.cli.commands import add_command
 from planarloc.cli.console import note
-from planarloc.cli.options import add_map_features_arg, check_map_file_features
+from planarloc.cli.options import add_map_features_arg, add_number, check_map_file_features
 from planarloc.serve.settings import (
     DEFAULT_BODY_TIMEOUT_S,
     DEFAULT_HEADER_TIMEOUT_S,
@@ -124,7 +124,7 @@ def _add_limit_args(p: argparse.ArgumentParser) -> None:
         ),
         ("--session-idle", DEFAULT_SESSION_IDLE_S, "a session without a frame for this long is evicted"),
     ):
-        limits.add_argument(option, type=float, default=default, help=f"{text} (default: %(default)s)")
+        add_number(limits, option, float, default, text)
     limits.add_argument(
         "--max-sessions",
         type=int,

@@ -38,10 +38,12 @@ STD_CALIBRATION_META = "std_calibration"
 :data:`STALE` after a build changed the map, absent before the first measurement."""
 STALE = "stale"
 """The meta value of a calibration a build has made out of date (the map changed since)."""
-TARGET_MEDIAN_RATIO = 1.0
-"""Median held-out error / std the factor aims at: about a calibrated Gaussian's (0.67 along one
-dominant axis, 1.5 for three equal ones). Queries among the map images land lower (their
-neighbours are nearer): the rendered gallery's held-out 0.48 went with queries at 0.31."""
+TARGET_MEDIAN_RATIO = 0.85
+"""Median held-out error / std the factor aims at, about a calibrated Gaussian's (0.67 along one
+dominant axis, 1.5 for three equal ones). Held-out images are not queries: some maps' queries land
+lower (the rendered gallery: held-out 0.48, queries 0.31 without a factor), others higher (the
+office worlds with the camera tilted by 3°: 0.5 and 0.9); aiming at 1.0 left those at 1.66, at
+0.85 every benchmark set's queries sit between 0.5 and 1.5 (BENCHMARKS.md, the calibration row)."""
 MAX_RATIO = 2.0
 """The largest held-out error / std the factor may leave (few samples: keep the tail inside 3σ)."""
 TAIL_SLACK_M = 0.02
