@@ -24,7 +24,7 @@ from planarloc.map.codec import DEFAULT_STORAGE, STORAGE_LAYOUTS
 from planarloc.map.gravity import map_gravity
 from planarloc.map.integrity import check_map
 from planarloc.map.pose_accuracy import load_accuracy
-from planarloc.map.std_calibration import load_std_calibration
+from planarloc.map.std_calibration import MIN_SAMPLES, load_std_calibration, std_calibration_due
 from planarloc.map.store import MapDatabase
 
 
@@ -220,14 +220,24 @@ def run_info(args: argparse.Namespace) -> int:
                 else "map pose accuracy: not measured (a map built before planarloc measured it, or too few "
                 "overlapping images); queries assume the configured map prior"
             )
-            calibration = load_std_calibration(db)
-            info(
-                f"std calibration: {calibration.summary()}"
-                if calibration is not None
-                else "std calibration: not measured (no measured pose accuracy, too few held-out map images "
-                "localized, or a map built before planarloc measured it); the modelled std is reported as is"
-            )
+            info(f"std calibration: {_calibration_line(db)}")
     return 0
+
+
+def _calibration_line(db: MapDatabase) -> str:
+    """What `map info` says of the map's std calibration."""
+    calibration = load_std_calibration(db)
+    if calibration is not None:
+        return calibration.summary()
+    if std_calibration_due(db):
+        return (
+            "not measured yet (a map built before planarloc measured it, or a build that did not finish "
+            "it; `planarloc map build` on the same images measures it); the modelled std is reported as is"
+        )
+    return (
+        f"none (fewer than {MIN_SAMPLES} held-out map images localized with a measured map prior and "
+        "enough 2D-3D inliers); the modelled std is reported as is"
+    )
 
 
 def run_check(args: argparse.Namespace) -> int:

@@ -181,3 +181,21 @@ def test_map_build_interrupted_says_it_resumes(
         .splitlines()[-1]
         .startswith("interrupted; re-run the same command to resume the build")
     )
+
+
+def test_map_info_says_when_the_std_calibration_is_still_due(
+    tiny_world: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from planarloc.io.datasets import read_dataset
+    from planarloc.map.builder import build_map
+
+    db = build_map(
+        read_dataset(tiny_world / "map", "tum"), tmp_path / "lib.db", num_words=16
+    )  # no calibration
+    capsys.readouterr()
+    assert run(["map", "info", db]) == 0
+    assert "std calibration: not measured yet" in capsys.readouterr().out
+    assert run(["map", "build", tiny_world / "map", "-f", "tum", "--out", db, "--vocabulary-size", "16"]) == 0
+    assert (
+        "std calibration: position std x" in capsys.readouterr().out
+    )  # the same images: measured, unchanged map
