@@ -12,13 +12,13 @@ import time
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
 from planarloc.features.extract import Features, extract_features
 from planarloc.features.retrieval import retrieve_from_pairs
-from planarloc.geometry.pose import pose_errors
+from planarloc.geometry.pose import Pose, pose_errors
 from planarloc.geometry.validation import InputError
 from planarloc.gravity.world import gravity_in_camera
 from planarloc.localize.localizer import Localizer, LocalizerConfig
@@ -114,29 +114,42 @@ def split_map_queries(
     return [i for i in images if i.index % map_every == 0], [i for i in images if i.index % map_every != 0]
 
 
+class PoseComparison(NamedTuple):
+    """An estimate against the truth: its errors (NaN without an estimate) and its centre and
+    rotation as written to the records (None without)."""
+
+    translation_error_m: float
+    rotation_error_deg: float
+    center: tuple[float, float, float] | None
+    quat_wxyz: tuple[float, float, float, float] | None
+
+
+def compared(pose: Pose | None, truth: Pose) -> PoseComparison:
+    """:class:`PoseComparison` of the estimated ``pose`` (None: no pose) with ``truth``."""
+    if pose is None:
+        return PoseComparison(float("nan"), float("nan"), None, None)
+    t_err, r_err = pose_errors(pose, truth)
+    return PoseComparison(t_err, r_err, center_tuple(pose.center), quat_wxyz_tuple(pose.quat_wxyz))
+
+
 def query_result(
     query: PosedImage, est: PoseEstimate, seconds: float, gravity: Iterable[float] | None = None
 ) -> QueryResult:
-    if est.success and est.pose is not None:
-        t_err, r_err = pose_errors(est.pose, query.cam_from_world)
-        c: tuple[float, float, float] | None = center_tuple(est.pose.center)
-        q: tuple[float, float, float, float] | None = quat_wxyz_tuple(est.pose.quat_wxyz)
-    else:
-        t_err, r_err, c, q = float("nan"), float("nan"), None, None
+    cmp = compared(est.pose if est.success else None, query.cam_from_world)
     return QueryResult(
         query.name,
         est.status,
         bool(est.success),
-        t_err,
-        r_err,
+        cmp.translation_error_m,
+        cmp.rotation_error_deg,
         float(est.position_std_m),
         int(est.num_inliers),
         int(est.num_inliers_3d),
         seconds,
-        c,
+        cmp.center,
         center_tuple(query.cam_from_world.center),
         query.timestamp,
-        q,
+        cmp.quat_wxyz,
         quat_wxyz_tuple(query.cam_from_world.quat_wxyz),
         tuple(est.references),
         reason="" if est.success else est.message,

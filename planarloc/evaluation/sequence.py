@@ -28,8 +28,15 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from planarloc.evaluation.queries import THRESHOLDS, center_tuple, quat_wxyz_tuple, threshold_name, with_truth
-from planarloc.geometry.pose import Pose, pose_errors
+from planarloc.evaluation.queries import (
+    THRESHOLDS,
+    center_tuple,
+    compared,
+    quat_wxyz_tuple,
+    threshold_name,
+    with_truth,
+)
+from planarloc.geometry.pose import Pose
 from planarloc.geometry.validation import InputError
 from planarloc.localize.records import error_record, frame_record
 from planarloc.localize.sequence import FrameStatus, SequenceEstimate, SequenceLocalizer
@@ -94,12 +101,7 @@ def frame_result(
     """The outcome of one frame; ``finished_s``: when its pose was returned (seconds since the
     stream started)."""
     truth = image.cam_from_world
-    if est.pose is not None:
-        t_err, r_err = pose_errors(est.pose, truth)
-        c: tuple[float, float, float] | None = center_tuple(est.pose.center)
-        q: tuple[float, float, float, float] | None = quat_wxyz_tuple(est.pose.quat_wxyz)
-    else:
-        t_err, r_err, c, q = float("nan"), float("nan"), None, None
+    cmp = compared(est.pose, truth)
     return FrameResult(
         image.name,
         est.stamp,
@@ -107,13 +109,13 @@ def frame_result(
         est.fix_status,
         est.motion_source,
         bool(kidnapped),
-        t_err,
-        r_err,
+        cmp.translation_error_m,
+        cmp.rotation_error_deg,
         float(est.position_std_m),
         float(est.seconds),
-        c,
+        cmp.center,
         center_tuple(truth.center),
-        q,
+        cmp.quat_wxyz,
         quat_wxyz_tuple(truth.quat_wxyz),
         float(est.latency_s),
         float(finished_s),
