@@ -6,8 +6,8 @@ Used by ``kitti.py``, ``world_presets.py`` and ``trust.py``. Caches live under o
 - worlds: ``worlds/<name>-<sha1 of config and seed>``; :func:`planarloc.synthetic.world.generate`
   itself reuses a complete generation of the same config and seed.
 - maps: ``maps/<label>-<sha1>.db`` where the hash covers the map images (names, files' sizes and
-  modification times, poses, cameras), the feature settings, the storage layout and the sources of the code that
-  builds maps (``planarloc/geometry``, ``planarloc/io``, ``planarloc/features``, ``planarloc/gravity``
+  modification times, poses, cameras), the feature settings, the storage layout and the sources of the code
+  that builds maps (``planarloc/geometry``, ``planarloc/io``, ``planarloc/features``, ``planarloc/gravity``
   and ``planarloc/map``), so an edit of the map code rebuilds them and an edit of the estimator
   (or of ``planarloc/localize``, ``planarloc/evaluation``) does not. A map's std calibration
   (:mod:`planarloc.localize.held_out`), which the estimator's code decides, is measured again
@@ -59,7 +59,8 @@ def confident_wrong(summary: dict, t_max: float = WRONG_T, r_max: float = WRONG_
 
 
 PROMISE_SIGMAS, PROMISE_MARGIN_M = 3.0, 0.05
-"""A success farther from the truth than ``PROMISE_SIGMAS · position_std_m + PROMISE_MARGIN_M`` is a broken promise."""
+"""A success farther from the truth than ``PROMISE_SIGMAS · position_std_m + PROMISE_MARGIN_M``
+is a broken promise."""
 
 
 def broken_promises(summary: dict) -> list[str]:

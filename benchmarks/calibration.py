@@ -1,4 +1,5 @@
-"""Calibration: planarloc's default localizer next to an hloc-style pipeline, same splits, same run (issue 30).
+"""Calibration: planarloc's default localizer next to an hloc-style pipeline, same splits, same run
+(issue 30).
 
 Per data set, both pipelines localize every query of the same map / query split:
 

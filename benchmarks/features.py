@@ -20,8 +20,8 @@ all of the other). Maps are cached under ``--cache-dir`` keyed by content and fe
 
 Threads follow the machine (torch: one per core this process may use; OpenCV and BLAS: their
 defaults); ``--torch-threads N`` sets torch's (``PLANARLOC_TORCH_THREADS``: on a loaded machine one
-thread is several times faster, see :mod:`planarloc.features.learned`). ``aliked-lightglue`` needs torchvision built for the installed torch: measure it in its
-own venv, e.g.::
+thread is several times faster, see :mod:`planarloc.features.learned`). ``aliked-lightglue`` needs torchvision
+built for the installed torch: measure it in its own venv, e.g.::
 
     python benchmarks/features.py                                  # rootsift and xfeat (main venv)
     python benchmarks/features.py --datasets kitti1-every4 fountain_p11 --features rootsift xfeat

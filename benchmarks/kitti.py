@@ -19,7 +19,7 @@ Targets (printed as PASS/FAIL, never the exit code — this is a benchmark): str
     python benchmarks/kitti.py --quick             # CI: map-every 2, 2p1p and 2p2p, < 3 min on 2 cores
     python benchmarks/kitti.py --tilt --json kitti.json
     python benchmarks/kitti.py --storage full compact --methods auto --no-peer   # map layouts side by side
-    python benchmarks/kitti.py --storage full compact --methods auto --no-peer --seed 1   # another RANSAC seed
+    python benchmarks/kitti.py --storage full compact --methods auto --no-peer --seed 1  # another RANSAC seed
 
 With several ``--storage`` layouts (:mod:`planarloc.map.codec`) each map is built in each layout
 from the same map images and evaluated alike; a last table gives, per layout, the map file's KB

@@ -210,7 +210,7 @@ def ray_throughput(data: list[Path], workdir: Path) -> dict | None:
     return out
 
 
-# ---- driver -------------------------------------------------------------------------------------------------
+# ---- driver ------------------------------------------------------------------------------------------------
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     if args.child is not None:
@@ -306,7 +306,8 @@ def main(argv: list[str] | None = None) -> int:
             )
         )
         print(
-            f"Ray 2 CPUs / 1 CPU: {ray['ray, 2 CPUs']['images_per_s'] / ray['ray, 1 CPU']['images_per_s']:.2f}x"
+            "Ray 2 CPUs / 1 CPU: "
+            f"{ray['ray, 2 CPUs']['images_per_s'] / ray['ray, 1 CPU']['images_per_s']:.2f}x"
         )
     report["load_average_end"] = peer.load_average()
     print(peer.load_note())
@@ -318,7 +319,8 @@ def main(argv: list[str] | None = None) -> int:
         ),
         (
             np.median(largest["retrieval_ms"]) <= TARGET_RETRIEVAL_MS,
-            f"retrieval {np.median(largest['retrieval_ms']):.1f} ms per query (target ≤ {TARGET_RETRIEVAL_MS:g} ms)",
+            f"retrieval {np.median(largest['retrieval_ms']):.1f} ms per query (target ≤ "
+            f"{TARGET_RETRIEVAL_MS:g} ms)",
         ),
         (
             largest["vm_hwm_mb"] / 1024 <= TARGET_RSS_GB,

@@ -69,8 +69,9 @@ def run(label: str, kind: str, map_images: list, queries: list, folder: Path, tr
     }
     other = ", ".join(f"{k} {v}" for k, v in sorted(statuses.items()) if k not in ("success", "not_in_map"))
     print(
-        f"{label:34s} {kind:9s} {n:3d} queries  success {out['success']:3d}  not_in_map {out['not_in_map']:3d}  "
-        f"wrong {out['wrong_successes']}  other: {other or '-'}  ({out['seconds_per_query']:.2f} s/query)",
+        f"{label:34s} {kind:9s} {n:3d} queries  success {out['success']:3d}  not_in_map "
+        f"{out['not_in_map']:3d}  wrong {out['wrong_successes']}  other: {other or '-'}  "
+        f"({out['seconds_per_query']:.2f} s/query)",
         flush=True,
     )
     return out
@@ -105,10 +106,10 @@ def main(argv: list[str] | None = None) -> int:
     elsewhere = [r for r in results if r["kind"] == "elsewhere"]
     held = [r for r in results if r["kind"] == "held"]
     print(
-        f"elsewhere: {sum(r['not_in_map'] for r in elsewhere)} of {sum(r['queries'] for r in elsewhere)} queries "
-        f"not_in_map, {sum(r['success'] for r in elsewhere)} successes; held: "
-        f"{sum(r['not_in_map'] for r in held)} of {sum(r['queries'] for r in held)} queries called not_in_map, "
-        f"{sum(r['wrong_successes'] for r in held)} wrong successes"
+        f"elsewhere: {sum(r['not_in_map'] for r in elsewhere)} of {sum(r['queries'] for r in elsewhere)} "
+        f"queries not_in_map, {sum(r['success'] for r in elsewhere)} successes; held: "
+        f"{sum(r['not_in_map'] for r in held)} of {sum(r['queries'] for r in held)} queries called "
+        f"not_in_map, {sum(r['wrong_successes'] for r in held)} wrong successes"
     )
     if args.json:
         args.json.write_text(json.dumps(results, indent=1) + "\n")

@@ -136,8 +136,8 @@ def main() -> None:
     }
     print(
         f"{a.matches} matches/pair, {100 * a.outliers:.0f} % outliers, {n} scenes (seeds {a.seeds}): "
-        f"{a.method} {rate['ok']:.1f} %, oracle {rate['oracle']:.1f} %, gap {rate['oracle'] - rate['ok']:.1f} points"
-        + (f", 2p2p {rate['2p2p']:.1f} %" if a.with_2p2p else "")
+        f"{a.method} {rate['ok']:.1f} %, oracle {rate['oracle']:.1f} %, gap "
+        f"{rate['oracle'] - rate['ok']:.1f} points" + (f", 2p2p {rate['2p2p']:.1f} %" if a.with_2p2p else "")
     )
     classes = Counter(r["class"] for r in res if "class" in r)
     print(

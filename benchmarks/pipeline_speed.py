@@ -476,7 +476,8 @@ def main(argv: list[str] | None = None) -> int:
             ),
             (
                 loc_ms <= TARGET_LOCALIZE_MS,
-                f"localize {loc_ms:.0f} ms/query end to end, default config (target <= {TARGET_LOCALIZE_MS:g})",
+                f"localize {loc_ms:.0f} ms/query end to end, default config (target <= "
+                f"{TARGET_LOCALIZE_MS:g})",
             ),
         ]
         for ok, text in verdicts:

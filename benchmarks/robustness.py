@@ -279,7 +279,8 @@ def print_tables(cells: dict, names: tuple[str, ...], trials: int, protocol: str
             print(f"  {name:<{w}}{vals}")
     ours = [n for n in names if n != PEER]
     print(
-        f"\nBroken promises (success with centre error > 3 x its position_std_m + 5 cm), count per cell of {trials}:"
+        "\nBroken promises (success with centre error > 3 x its position_std_m + 5 cm), count per cell of "
+        f"{trials}:"
     )
     for m in matches:
         print(f"\n  matches/pair = {m}\n  {'method':<{w}}{head}")

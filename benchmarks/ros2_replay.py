@@ -1,4 +1,5 @@
-"""ROS 2 node on the shared KITTI (issue 19): `planarloc ros2` as a subprocess, the stream replayed on loopback.
+"""ROS 2 node on the shared KITTI (issue 19): `planarloc ros2` as a subprocess,
+the stream replayed on loopback.
 
 Protocol: per sequence (``kitti_seq2``, ``kitti_seq1``) frames with ``index % 4 == 0`` form the map,
 the others are streamed in order (stamps 0.1 s apart) as ``sensor_msgs/Image`` mono8 with their
@@ -181,8 +182,8 @@ def run_sequence(data: Path, rate: bool, root: Path) -> dict:
         score["load_average"] = load
         out["runs"][label] = score
         log(
-            f"{data.name} {label}: {score['success_pct']:.1f}% within 0.25 m/10deg, {score['beyond_1m']} beyond 1 m, "
-            f"{score['posed']}/{score['frames']} posed, {score['frames_dropped']} dropped"
+            f"{data.name} {label}: {score['success_pct']:.1f}% within 0.25 m/10deg, {score['beyond_1m']} "
+            f"beyond 1 m, {score['posed']}/{score['frames']} posed, {score['frames_dropped']} dropped"
         )
     frames, truths = _frames(queries, odometry=True)
     out["peer in-process odometry"] = _peer(map_path, frames, truths)
@@ -214,8 +215,9 @@ def main() -> int:
             tf = "-" if not s["tf_checked"] else f"{s['tf_checked']} ({s['tf_max_residual']:.1e})"
             print(
                 f"| {r['dataset']} | {label} | {s['frames']} | {s['posed']} | {s['success_pct']:.1f} % | "
-                f"{s['beyond_1m']} | {mx} | {tf} | {s['frames_dropped']} | {s['node_latency_ms_median']:.0f} ms | "
-                f"{s['exit_code_on_sigint']}{' (traceback)' if s['traceback'] else ''} | {s['load_average']:.1f} |"
+                f"{s['beyond_1m']} | {mx} | {tf} | {s['frames_dropped']} | {s['node_latency_ms_median']:.0f} "
+                f"ms | {s['exit_code_on_sigint']}{' (traceback)' if s['traceback'] else ''} | "
+                f"{s['load_average']:.1f} |"
             )
             ok = (
                 s["success_pct"] >= 95
@@ -231,8 +233,8 @@ def main() -> int:
             verdicts.append((f"{r['dataset']} {label}", ok))
         p = r["peer in-process odometry"]
         print(
-            f"| {r['dataset']} | peer: SequenceLocalizer in-process, odometry | {p['frames']} | {p['posed']} | "
-            f"{p['success_pct']:.1f} % | | | | | {p['ms_per_frame_median']:.0f} ms/frame "
+            f"| {r['dataset']} | peer: SequenceLocalizer in-process, odometry | {p['frames']} | {p['posed']} "
+            f"| {p['success_pct']:.1f} % | | | | | {p['ms_per_frame_median']:.0f} ms/frame "
             f"(CPU {p['cpu_ms_per_frame_median']:.0f} ms) | | |"
         )
     for name, ok in verdicts:

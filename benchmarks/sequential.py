@@ -150,8 +150,8 @@ def _row(s: dict) -> str:
     fixes = s["stream"].get("fixes_submitted")
     fix_cpu = "-" if not fixes else f"{1e3 * s['stream']['fix_cpu_s'] / fixes:.0f}"
     return (
-        f"| {s['dataset']} | {s['run']} | {s['success'][STRICT]:.1f} % | {s['max_translation_error_m']:.3f} | "
-        f"{c.get('localized', 0)}/{c.get('predicted', 0)}/{c.get('lost', 0)}/{c.get('dropped', 0)} | "
+        f"| {s['dataset']} | {s['run']} | {s['success'][STRICT]:.1f} % | {s['max_translation_error_m']:.3f} "
+        f"| {c.get('localized', 0)}/{c.get('predicted', 0)}/{c.get('lost', 0)}/{c.get('dropped', 0)} | "
         f"{s['confident_wrong']} | {s['predicted_wrong']} | {after} | {fixes or '-'} | "
         f"{s['frames_per_second']:.1f} | {lat['p50']:.0f} / {lat['p99']:.0f} | {s['late_frames']} | "
         f"{1e3 * s['cpu_seconds_per_frame']:.0f} | {s['cpu_ms_per_frame']:.0f} | {fix_cpu} | "
@@ -160,10 +160,10 @@ def _row(s: dict) -> str:
 
 
 HEADER = (
-    "| sequence | run | 0.25 m/10° | max error [m] | localized/predicted/lost/dropped | localized beyond 1 m | "
-    "predicted beyond 1 m | frames to recover after kidnap | fixes computed | frames/s | latency p50 / p99 [ms] | "
-    "late (> 100 ms) | CPU per frame, all threads [ms] | CPU per frame, calling thread [ms] | CPU per fix [ms] | "
-    "load average at start |\n|" + "---|" * 16
+    "| sequence | run | 0.25 m/10° | max error [m] | localized/predicted/lost/dropped | localized beyond 1 m "
+    "| predicted beyond 1 m | frames to recover after kidnap | fixes computed | frames/s | latency p50 / p99 "
+    "[ms] | late (> 100 ms) | CPU per frame, all threads [ms] | CPU per frame, calling thread [ms] | CPU per "
+    "fix [ms] | load average at start |\n|" + "---|" * 16
 )
 
 
@@ -290,8 +290,9 @@ def main(argv: list[str] | None = None) -> int:
         print(
             f"\npose graph, window of 10, {solver['trials']} random windows: ours (scipy least_squares) "
             f"{solver['ours_ms']:.2f} ms, GTSAM {solver['gtsam_ms']:.2f} ms per solve "
-            f"(ratio {solver['time_ratio_ours_over_gtsam']:.2f}); mean error {solver['ours_mean_error_m']:.4f} m vs "
-            f"{solver['gtsam_mean_error_m']:.4f} m; max difference {solver['max_difference_m']:.2e} m"
+            f"(ratio {solver['time_ratio_ours_over_gtsam']:.2f}); mean error "
+            f"{solver['ours_mean_error_m']:.4f} m vs {solver['gtsam_mean_error_m']:.4f} m; max difference "
+            f"{solver['max_difference_m']:.2e} m"
         )
     for s in rows:
         if not s["run"].startswith("camera-rate") or "kidnap" in s["run"]:

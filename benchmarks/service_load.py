@@ -387,15 +387,16 @@ def main(argv: list[str] | None = None) -> int:
 def run_sessions(url: str, camera: str, world: Path, args: argparse.Namespace) -> dict:
     s = sessions_phase(url, camera, robot_streams(world, args.robots, args.laps))
     print(
-        f"{s['robots']} robot sessions on {args.workers} workers: {s['frames']} frames in {s['seconds']:.0f} s "
-        f"({s['frames_per_second']:.2f} frames/s), p50 {s['p50_s']:.3f} s, p99 {s['p99_s']:.3f} s, HTTP "
+        f"{s['robots']} robot sessions on {args.workers} workers: {s['frames']} frames in {s['seconds']:.0f} "
+        f"s ({s['frames_per_second']:.2f} frames/s), p50 {s['p50_s']:.3f} s, p99 {s['p99_s']:.3f} s, HTTP "
         f"{s['http_statuses']}, 5xx other than 503: {s['fivexx_other_than_503'] or 'none'}",
         flush=True,
     )
     for r in s["per_robot"]:
         print(
-            f"  robot {r['robot']}: {r['statuses']}, {r['within_0.25m_10deg']} of {r['frames']} within 0.25 m / "
-            f"10°, worst error {r['max_error_m'] if r['max_error_m'] is None else round(r['max_error_m'], 3)} m",
+            f"  robot {r['robot']}: {r['statuses']}, {r['within_0.25m_10deg']} of {r['frames']} "
+            "within 0.25 m / 10°, worst error "
+            f"{r['max_error_m'] if r['max_error_m'] is None else round(r['max_error_m'], 3)} m",
             flush=True,
         )
     return s

@@ -34,6 +34,10 @@ percentage of all frames; **promise breaks**: a pose farther from the truth than
 and for the pose, if any, of a black or corrupt frame whatever its status (split
 localized/predicted/other); poses beyond 1 m (the same poses); the worst break; refused and
 crashed frames; sustained frames/s and p99 latency (``est.latency_s``, after the first frame).
+How well the stds fit the errors (what a filter fusing the stream's covariance relies on): the
+median and largest error / ``position_std_m`` over the same poses (about 1 for a calibrated std,
+well below 1 for a conservative one), and the mean squared Mahalanobis distance of the accepted
+fixes to their predictions (``fix NIS``, 6 degrees of freedom: about 6 when both covariances fit).
 ``lost`` frames of good images that carry a pose breaking the promise are counted apart (JSON
 ``lost_pose_breaks``, not gated: a lost pose is not given as usable).
 
@@ -187,6 +191,13 @@ def score(records: list[dict]) -> dict:
     errors = [r for r in records if r["status"] == "error"]
     worst = max(breaks, key=lambda r: r["translation_error_m"], default=None)
     errs = [r["translation_error_m"] for r in gated]
+    ratios = [r["translation_error_m"] / r["position_std_m"] for r in gated if r["position_std_m"] > 0]
+    nis = [
+        float(r["record"]["mahalanobis_sq"])
+        for r in records
+        if (r.get("record") or {}).get("fix_status") == "accepted"
+        and np.isfinite(float((r.get("record") or {}).get("mahalanobis_sq") or np.nan))
+    ]
     return {
         "frames": n,
         "image_frames": len(image_frames),
@@ -203,6 +214,9 @@ def score(records: list[dict]) -> dict:
         "beyond_1m": len(beyond),
         "lost_pose_breaks": len(lost_breaks),
         "max_error_m": max(errs) if errs else None,
+        "median_error_over_std": float(np.median(ratios)) if ratios else None,
+        "max_error_over_std": max(ratios) if ratios else None,
+        "fix_nis_mean": float(np.mean(nis)) if nis else None,
         "worst_breaks": [_brief(r) for r in sorted(breaks, key=lambda r: -r["translation_error_m"])[:5]],
         "beyond_1m_frames": [_brief(r) for r in beyond],
         "lost_pose_break_frames": [_brief(r) for r in lost_breaks[:5]],
@@ -449,6 +463,8 @@ HEADERS = [
     "breaks L/P/other",
     "> 1 m",
     "worst break: status error (std)",
+    "error/σ median (max)",
+    "fix NIS",
     "refused/crash",
     "frames/s",
     "p99 ms",
@@ -472,6 +488,10 @@ def table_row(r: dict) -> list[str]:
         f"{r['promise_breaks']} ({r['breaks_localized']}/{r['breaks_predicted']}/{r['breaks_other']})",
         str(r["beyond_1m"]),
         worst,
+        "-"
+        if r.get("median_error_over_std") is None
+        else f"{r['median_error_over_std']:.2f} ({r['max_error_over_std']:.2f})",
+        peer.fmt_num(r.get("fix_nis_mean"), 2),
         f"{r['refused']}/{len(r['crashes'])}",
         peer.fmt_num(r["fps"], 1),
         peer.fmt_num(r["p99_ms"], 0),

@@ -31,8 +31,8 @@ Localizer whose ``localize_features`` accepts ``gravity=``). Worlds and maps are
 ``--cache-dir`` (default ``$TMPDIR/planarloc-bench``), keyed by content (``_datasets.py``).
 
 ``--quick`` (CI, a few minutes on 2 cores): ``office-tilt3-pitch10``, ``kitti-every4``,
-``fountain_p11`` and ``fountain-to-entry`` with the default method and both structure modes; the exit code is 1 when any
-success is off by more than 1 m or 20° (each offending query is printed), 0 otherwise. Without
+``fountain_p11`` and ``fountain-to-entry`` with the default method and both structure modes; the exit code is
+1 when any success is off by more than 1 m or 20° (each offending query is printed), 0 otherwise. Without
 ``--quick`` the exit code only reports crashes and bad options (2).
 
     python benchmarks/trust.py --quick

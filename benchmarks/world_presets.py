@@ -166,8 +166,8 @@ def targets(runs: list[dict]) -> list[tuple[bool, str]]:
             (
                 not wrong and len(degenerate) > 0,
                 f"corridor: none reports {len(degenerate)}/{none['queries']} queries degenerate and "
-                f"{len(wrong)} confident-but-wrong (> {WRONG_T:g} m or > {WRONG_R:g}°; target: > 0 degenerate, "
-                f"0 wrong){': ' + ', '.join(wrong[:5]) if wrong else ''}",
+                f"{len(wrong)} confident-but-wrong (> {WRONG_T:g} m or > {WRONG_R:g}°; target: > 0 "
+                f"degenerate, 0 wrong){': ' + ', '.join(wrong[:5]) if wrong else ''}",
             )
         )
         solved = [
@@ -179,9 +179,10 @@ def targets(runs: list[dict]) -> list[tuple[bool, str]]:
         out.append(
             (
                 len(degenerate) > 0 and pct >= TARGET_SUCCESS,
-                f"corridor: tracks localizes {len(solved)}/{len(degenerate)} of the queries none reported degenerate "
-                f"within {WRONG_T:g} m/{WRONG_R:g}° ({pct:.0f}%, target >= {TARGET_SUCCESS:g}%); tracks overall "
-                f"{tracks['success'][STRICT]:.1f}% at {STRICT}, {len(confident_wrong(tracks))} confident-but-wrong",
+                f"corridor: tracks localizes {len(solved)}/{len(degenerate)} of the queries none reported "
+                f"degenerate within {WRONG_T:g} m/{WRONG_R:g}° ({pct:.0f}%, target >= {TARGET_SUCCESS:g}%); "
+                f"tracks overall {tracks['success'][STRICT]:.1f}% at {STRICT}, "
+                f"{len(confident_wrong(tracks))} confident-but-wrong",
             )
         )
     for tilt in (False, True):

@@ -192,7 +192,8 @@ def test_no_private_name_crosses_a_package() -> None:
 def test_the_base_install_imports_no_extra(entry: str) -> None:
     code = (
         f"import sys, {entry}; "
-        f"print(' '.join(m for m in {EXTRAS!r} if m in sys.modules or any(k.startswith(m + '.') for k in sys.modules)))"
+        f"print(' '.join(m for m in {EXTRAS!r} if m in sys.modules or any(k.startswith(m + '.') for k in "
+        "sys.modules)))"
     )
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr

@@ -35,7 +35,10 @@ from planarloc.map.schema import sidecars
 from planarloc.map.settings import CACHES, cache_dir
 
 KINDS = (*CACHES, "kernels")
-KERNELS = "numba's compiled kernels; `planarloc warmup` compiles them again (about 3 minutes of CPU, spread over every core)"
+KERNELS = (
+    "numba's compiled kernels; `planarloc warmup` compiles them again "
+    "(about 3 minutes of CPU, spread over every core)"
+)
 
 
 @dataclass
@@ -107,8 +110,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         "cache",
         "list or clean what planarloc caches (evaluate's maps, unpacked bags, kernels)",
         """List the caches — evaluate's maps and the images unpacked from ROS bags (in the temp folder,
-                    TMPDIR) and numba's compiled kernels — with their folders, files and sizes, or remove them.
-                    Everything in them is rebuilt when needed.""",
+                    TMPDIR) and numba's compiled kernels — with their folders, files and sizes, or remove
+                    them. Everything in them is rebuilt when needed.""",
         [
             "planarloc cache list",
             "planarloc cache clean            # evaluate's maps and unpacked bags",
@@ -204,7 +207,8 @@ def run_clean(args: argparse.Namespace) -> int:
             note(f"kept {f}: a map build holds it")
         if kept:
             note(
-                f"kept {kept} {e.kind} files that you may not remove (e.g. the kernels of a read-only install)"
+                f"kept {kept} {e.kind} files that you may not remove "
+                "(e.g. the kernels of a read-only install)"
             )
     return 0
 

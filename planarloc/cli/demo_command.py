@@ -35,8 +35,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         "map and localize a generated indoor world in one go (no data needed)",
         """Renders a small indoor world (textured rooms, furniture) seen by a wheeled robot along a map
         trajectory and a different query trajectory, builds the map from the map images and their poses, and
-        localizes every query image with the paper's 2D-2D method (structure none) and with the structure-aware
-        mode (tracks). Prints success rates at the paper's thresholds (stdout) and writes a trajectory plot.
+        localizes every query image with the paper's 2D-2D method (structure none) and with the
+        structure-aware mode (tracks). Prints success rates at the paper's thresholds (stdout) and writes a
+        trajectory plot.
 
         The generated world is in TUM RGB-D layout, so it also works with
           planarloc map build DIR/world/map --format tum --out map.db""",

@@ -54,8 +54,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         map datasets and --queries QUERY_DATASET instead of --map-every. The JSON lists, per query, the map
         images it used (references).""",
         [
-            "planarloc evaluate data/kitti_seq2 --format kitti --map-every 2 --structure tracks --json kitti.json "
-            "--plot kitti.png",
+            "planarloc evaluate data/kitti_seq2 --format kitti --map-every 2 --structure tracks --json "
+            "kitti.json --plot kitti.png",
             "planarloc evaluate worlds/office/map -f tum --map-every 3 --gravity-from-truth",
             "planarloc evaluate home1 home3 -f openloris --queries home2 --json home2.json --tum home2-tum",
             "planarloc evaluate monday/ -f tum --queries friday.bag --queries-format rosbag --queries-option "
@@ -168,8 +168,8 @@ def _left_out_exit(code: int, left_out: list[tuple[str, str]], total: int) -> in
     if not left_out:
         return code
     note(
-        f"{len(left_out)} of {total} map images were left out of the map (fix or remove them, then re-run the same "
-        "command to add them):"
+        f"{len(left_out)} of {total} map images were left out of the map (fix or remove them, then re-run "
+        "the same command to add them):"
     )
     for name, reason in left_out:
         note(f"  {name}: {reason}")

@@ -73,11 +73,11 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         name of an image given directly, the path relative to a folder or dataset given; parent folders are
         added to tell equal names apart.""",
         [
-            "planarloc localize --map kitti.db queries/*.png --camera 'PINHOLE 1241 376 718.856 718.856 607.19 185.22' "
-            "--structure tracks --out poses.txt",
+            "planarloc localize --map kitti.db queries/*.png --camera 'PINHOLE 1241 376 718.856 718.856 "
+            "607.19 185.22' --structure tracks --out poses.txt",
             "planarloc localize --map office.db frame.png --gravity '0 0.996 0.087'   # camera pitched 5°",
-            "planarloc localize --map office.db run2.bag --format rosbag --dataset-option image_topic=/camera/image_raw "
-            "--tum run2.tum --plot-matches matches/",
+            "planarloc localize --map office.db run2.bag --format rosbag --dataset-option "
+            "image_topic=/camera/image_raw --tum run2.tum --plot-matches matches/",
             "planarloc localize --server http://127.0.0.1:8080 --map office frame.png --out -",
             "planarloc localize --map kitti.db --sequence frames.txt --odometry odom.txt --out poses.txt"
             "   # a stream: pose, covariance and status (localized/predicted/lost) per frame",
@@ -259,8 +259,8 @@ def run(args: argparse.Namespace) -> int:
             if gravity is None and gravity_file is None:
                 rep = loc.gravity
                 note(
-                    f"map gravity: {rep.source}; queries without their own gravity are assumed mounted like the "
-                    f"map cameras (pitch {rep.pitch_deg:+.1f}°, roll {rep.roll_deg:+.1f}°)"
+                    f"map gravity: {rep.source}; queries without their own gravity are assumed mounted like "
+                    f"the map cameras (pitch {rep.pitch_deg:+.1f}°, roll {rep.roll_deg:+.1f}°)"
                 )
             if args.sequence:
                 localize = _stream_localizer(loc, args, camera, gravity, queries, timed, stack)
@@ -277,8 +277,8 @@ def run(args: argparse.Namespace) -> int:
     stale = writer.stale_records()
     if stale:
         note(
-            f"note: {len(stale)} JSON file(s) in {records_dir}/ are from an earlier run (e.g. {stale[0]}), not from "
-            "these queries"
+            f"note: {len(stale)} JSON file(s) in {records_dir}/ are from an earlier run (e.g. {stale[0]}), "
+            "not from these queries"
         )
     _summary(writer, args, records_dir, where)
     return code
@@ -405,13 +405,13 @@ def _gravity_file_notes(path: Path, gravity: dict, names: set[str]) -> None:
     missing, unused = len(names - set(gravity)), sorted(set(gravity) - names)
     if missing:
         note(
-            f"{path}: no gravity for {missing} of {len(names)} queries; they were assumed mounted like the map "
-            "cameras"
+            f"{path}: no gravity for {missing} of {len(names)} queries; they were assumed mounted like the "
+            "map cameras"
         )
     if unused:
         note(
-            f"{path}: {len(unused)} name(s) match no query, e.g. {unused[0]!r} (names follow the query naming "
-            "rule: file names, or paths relative to a query folder)"
+            f"{path}: {len(unused)} name(s) match no query, e.g. {unused[0]!r} (names follow the query "
+            "naming rule: file names, or paths relative to a query folder)"
         )
 
 

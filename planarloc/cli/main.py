@@ -73,7 +73,10 @@ def main(argv: list[str] | None = None) -> int:
         elif isinstance(exc, sqlite3.Error):
             text = sqlite_error_message(exc)
         elif isinstance(exc, MapKeyError):  # only the map's own: any other KeyError is a bug
-            text = f"map lookup failed ({exc.args[0] if exc.args else exc}); run `planarloc map check` on the map"
+            text = (
+                f"map lookup failed ({exc.args[0] if exc.args else exc}); "
+                "run `planarloc map check` on the map"
+            )
         else:
             text = str(exc)
         print(f"planarloc {command}: error: {' '.join(text.split())}", file=sys.stderr)

@@ -55,11 +55,11 @@ def _add_build_parser(msub: argparse._SubParsersAction) -> None:
         the map for retrieval (VLAD); then print `map info` of it.
 
         Re-running the same command resumes an interrupted build; running it on another dataset with the same
-        --out appends those images. An image that cannot be used (missing, truncated or damaged, undecodable, of
-        another size than its camera) is left out and named, the build goes on, and the list of them ends the
-        output (exit code 3, "partly done"). Images are identified by content: changed poses are updated, changed image
-        files re-extracted, and another dataset's image with a name already in the map is stored as
-        DATASET/NAME (each reported in one line). A second build of the same file waits for the first (it
+        --out appends those images. An image that cannot be used (missing, truncated or damaged, undecodable,
+        of another size than its camera) is left out and named, the build goes on, and the list of them ends
+        the output (exit code 3, "partly done"). Images are identified by content: changed poses are updated,
+        changed image files re-extracted, and another dataset's image with a name already in the map is stored
+        as DATASET/NAME (each reported in one line). A second build of the same file waits for the first (it
         names its PID).
 
         Appending to a map that holds images first matches up to 10 of the new images (those nearest to the
@@ -132,19 +132,19 @@ def _add_inspect_parsers(msub: argparse._SubParsersAction) -> None:
         (
             "info",
             "summarise a map (images, features, gravity, camera mount tilt) and check its integrity",
-            "Prints (on stdout) the number of images, the feature settings, whether the build is complete, and the "
-            "map's gravity: where it comes from (declared by the format, the up= option, or estimated from the camera "
-            "centres' plane) and the map cameras' mount pitch/roll relative to it; after the checks of `planarloc map "
-            "check` (exit code 1 if the map is damaged).",
+            "Prints (on stdout) the number of images, the feature settings, whether the build is complete, "
+            "and the map's gravity: where it comes from (declared by the format, the up= option, or "
+            "estimated from the camera centres' plane) and the map cameras' mount pitch/roll relative to it; "
+            "after the checks of `planarloc map check` (exit code 1 if the map is damaged).",
             run_info,
         ),
         (
             "check",
             "verify every row of a map (SQLite integrity, blobs, checksums)",
-            "Runs SQLite's integrity_check and then decodes every stored row: cameras, poses, keypoint and descriptor "
-            "blobs (lengths, finite values, checksums), global descriptors and the retrieval vocabulary. Prints one "
-            "line per problem naming the row (on stderr); exit code 0 if the map is sound (one line on stdout), 1 if "
-            "not (rebuild it with `planarloc map build`).",
+            "Runs SQLite's integrity_check and then decodes every stored row: cameras, poses, keypoint and "
+            "descriptor blobs (lengths, finite values, checksums), global descriptors and the retrieval "
+            "vocabulary. Prints one line per problem naming the row (on stderr); exit code 0 if the map is "
+            "sound (one line on stdout), 1 if not (rebuild it with `planarloc map build`).",
             run_check,
         ),
     ):
@@ -181,8 +181,8 @@ def run_build(args: argparse.Namespace) -> int:
     code = run_info(argparse.Namespace(map=args.out))
     if left_out:
         note(
-            f"{len(left_out)} of {len(images)} images were left out of the map (fix or remove them, then re-run "
-            "the same command to add them):"
+            f"{len(left_out)} of {len(images)} images were left out of the map (fix or remove them, then "
+            "re-run the same command to add them):"
         )
         for name, reason in left_out:
             note(f"  {name}: {reason}")
@@ -250,6 +250,7 @@ def run_check(args: argparse.Namespace) -> int:
             "rebuild the map (planarloc map build ... --out NEW.db)"
         )
     info(
-        f"{args.map}: ok ({report.num_images} images, {'complete' if report.complete else 'incomplete build'})"
+        f"{args.map}: ok ({report.num_images} images, "
+        f"{'complete' if report.complete else 'incomplete build'})"
     )
     return 0

@@ -155,7 +155,8 @@ def check_map_features(
 
 
 def check_map_file_features(path: Path, given: str | None, option: str = "--features") -> str:
-    """:func:`check_map_features` for a map file (opened read-only for its stored config); its feature type."""
+    """:func:`check_map_features` for a map file (opened read-only for its stored config);
+    its feature type."""
     from planarloc.map.store import MapDatabase
 
     with MapDatabase.open(path) as db:

@@ -66,8 +66,8 @@ def partial_exit(results: Sequence, what: str) -> int:
     errors = [r for r in results if r.status == "error"]
     if errors:
         note(
-            f"{len(errors)} of {len(results)} {what} could not be processed (e.g. {errors[0].reason}); they count "
-            "as failed"
+            f"{len(errors)} of {len(results)} {what} could not be processed (e.g. {errors[0].reason}); they "
+            "count as failed"
         )
         return EXIT_PARTIAL
     return EXIT_OK

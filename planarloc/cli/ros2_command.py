@@ -14,15 +14,15 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         sub,
         "ros2",
         "run the ROS 2 localization node (poses, map -> odom, diagnostics)",
-        """Subscribes to camera images with their CameraInfo (without one: the map's camera, if the map has only
-        one) and optionally nav_msgs/Odometry, /tf, /tf_static and /initialpose; publishes
-        geometry_msgs/PoseWithCovarianceStamped on /planarloc/pose in frame map, the map -> odom transform on /tf
-        when odometry is given (as nav2's AMCL, stamped transform_tolerance_s ahead), and
-        diagnostic_msgs/DiagnosticArray on /diagnostics (one per frame; a bad frame is a failed diagnostic with
-        its reason). The map frame is z-up (REP-103/105): the map's world rotated by the map's gravity
+        """Subscribes to camera images with their CameraInfo (without one: the map's camera, if the map has
+        only one) and optionally nav_msgs/Odometry, /tf, /tf_static and /initialpose; publishes
+        geometry_msgs/PoseWithCovarianceStamped on /planarloc/pose in frame map, the map -> odom transform on
+        /tf when odometry is given (as nav2's AMCL, stamped transform_tolerance_s ahead), and
+        diagnostic_msgs/DiagnosticArray on /diagnostics (one per frame; a bad frame is a failed diagnostic
+        with its reason). The map frame is z-up (REP-103/105): the map's world rotated by the map's gravity
         (map_frame_convention:=world keeps the map's own world, e.g. y down for KITTI). Only frames that are
-        localized (and, with publish_predicted, predicted) within max_position_std_m are published. Ctrl-C stops
-        it (exit 0). Needs: pip install 'planarloc[ros2]'.
+        localized (and, with publish_predicted, predicted) within max_position_std_m are published. Ctrl-C
+        stops it (exit 0). Needs: pip install 'planarloc[ros2]'.
 
         A ROS 2 launch file, a parameter file with every default and an rviz configuration are in the folder
         `planarloc ros2 --share-dir` prints (planarloc.launch.py, params.yaml, planarloc.rviz).""",
@@ -30,7 +30,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
             "planarloc ros2 --map kitti.db",
             (
                 "planarloc ros2 --map office.db --ros-args -p image_topic:=/camera/image_raw/compressed "
-                "-p odom_topic:=/odom -p base_to_camera:='0.3 0 0.2 -0.5 0.5 -0.5 0.5' -p transform_tolerance_s:=0.5"
+                "-p odom_topic:=/odom -p base_to_camera:='0.3 0 0.2 -0.5 0.5 -0.5 0.5' -p "
+                "transform_tolerance_s:=0.5"
             ),
             "planarloc ros2 --map office.db --ros-args --params-file my_params.yaml",
             "ros2 launch $(planarloc ros2 --share-dir)/planarloc.launch.py map:=$PWD/office.db rviz:=true",

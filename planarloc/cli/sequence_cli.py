@@ -311,7 +311,8 @@ def evaluate_sequential(
 
 
 def stream_rerun(path: Path | None, loc: Localizer, stack: ExitStack) -> RerunLogger | None:
-    """A Rerun recording of a stream (``--rerun``) with the map logged, closed by ``stack``; None without a path."""
+    """A Rerun recording of a stream (``--rerun``) with the map logged, closed by ``stack``;
+    None without a path."""
     if path is None:
         return None
     from planarloc.viz.rerun_log import RerunLogger

@@ -49,9 +49,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         "compile every numba kernel once, on all cores (run at install or image build time)",
         """Compile every numba kernel a query uses into numba's on-disk cache: in parallel worker
                     processes (--jobs, default one per core), then by running each estimator once on small
-                    generated scenes, which loads them all. The first run on a machine takes about 3 minutes of
-                    CPU, spread over the cores; later runs, and queries, only load the cache. Progress goes to stderr (plain
-                    lines without a terminal). In a Dockerfile, after pip install:
+                    generated scenes, which loads them all. The first run on a machine takes about 3 minutes
+                    of CPU, spread over the cores; later runs, and queries, only load the cache. Progress goes
+                    to stderr (plain lines without a terminal). In a Dockerfile, after pip install:
                     RUN planarloc warmup""",
         ["planarloc warmup", "planarloc warmup --jobs 8"],
         run,

@@ -61,8 +61,8 @@ def write_manifest(path: Path = MANIFEST) -> None:
         + "\n"
     )
     print(
-        f"wrote {path}: {len(kernels)} kernels, {sum(len(k['signatures']) for k in kernels.values())} signatures, "
-        f"{sum(k['compile_s'] for k in kernels.values()):.0f} s of compilation",
+        f"wrote {path}: {len(kernels)} kernels, {sum(len(k['signatures']) for k in kernels.values())} "
+        f"signatures, {sum(k['compile_s'] for k in kernels.values()):.0f} s of compilation",
         file=sys.stderr,
     )
 

@@ -52,8 +52,8 @@ class AheadPlan:
         """The one line that says a first use compiles, and how to do it ahead."""
         about = max(10, round(estimated_seconds(self.missing, self.manifest, self.jobs), -1))
         return (
-            f"compiling planarloc's kernels for first use ({len(self.missing)} kernels, about {about:.0f} s on "
-            f"{self.jobs} core{'s' if self.jobs > 1 else ''}, once); run `planarloc warmup` at install or "
+            f"compiling planarloc's kernels for first use ({len(self.missing)} kernels, about {about:.0f} s "
+            f"on {self.jobs} core{'s' if self.jobs > 1 else ''}, once); run `planarloc warmup` at install or "
             "image-build time to do it ahead"
         )
 

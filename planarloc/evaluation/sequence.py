@@ -82,7 +82,8 @@ class FrameResult:
     timestamp: float | None = None
     reason: str = ""
     cpu_s: float = float("nan")
-    #: the frame's record (:func:`planarloc.localize.records.frame_record`), as ``localize --sequence`` writes it
+    #: the frame's record (:func:`planarloc.localize.records.frame_record`), as ``localize --sequence``
+    #: writes it
     record: dict = field(default_factory=dict, compare=False, repr=False)
 
     def to_dict(self) -> dict:

@@ -4,7 +4,8 @@ One reader for every path an image takes (map images, query files, uploaded byte
 frames, stream frames): :func:`read_gray` (a file), :func:`decode_gray` (JPEG/PNG bytes) and
 :func:`to_gray` (an array); :func:`read_bgr` for pictures of them. :func:`image_size_from_header`
 reads the size of a PNG or JPEG from its first bytes without decoding it (cheap checks before any
-work), :func:`declared_size` that of every supported format. Every error is an :class:`~planarloc.geometry.validation.InputError` naming the image.
+work), :func:`declared_size` that of every supported format. Every error is an
+:class:`~planarloc.geometry.validation.InputError` naming the image.
 
 - **Pixels as stored.** EXIF orientation is ignored (OpenCV's ``IMREAD_IGNORE_ORIENTATION``, as
   COLMAP does): a camera's intrinsics describe the sensor's pixels, and a JPEG rotated on read

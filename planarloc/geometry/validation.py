@@ -167,6 +167,7 @@ def check_rotation(name: str, R: object, tol: float = 1e-6) -> np.ndarray:
     if err > tol or np.linalg.det(R) < 0:
         raise InputError(
             f"{name}: not a rotation matrix (|R Rᵀ - I|max = {err:.2e}, det = {np.linalg.det(R):+.3f}); "
-            "hint: poses must be proper rigid transforms; re-orthonormalise with scipy.spatial.transform.Rotation"
+            "hint: poses must be proper rigid transforms; re-orthonormalise with "
+            "scipy.spatial.transform.Rotation"
         )
     return R

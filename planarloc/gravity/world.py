@@ -243,7 +243,8 @@ class GravityReport:
         lines.append(
             f"  mount tilt of the {self.num_cameras} map cameras: pitch {self.pitch_deg:+.2f}° "
             f"(spread {self.pitch_spread_deg:.2f}°, max dev {self.pitch_max_dev_deg:.2f}°), "
-            f"roll {self.roll_deg:+.2f}° (spread {self.roll_spread_deg:.2f}°, max dev {self.roll_max_dev_deg:.2f}°)"
+            f"roll {self.roll_deg:+.2f}° (spread {self.roll_spread_deg:.2f}°, max dev "
+            f"{self.roll_max_dev_deg:.2f}°)"
         )
         if self.plane_rms is not None:
             lines.append(
@@ -324,8 +325,9 @@ def _estimate(poses: list[Pose]) -> tuple[np.ndarray, str, str, float | None, np
         )
     if s[2] > NOT_PLANAR_RATIO * s[1]:
         warnings.append(
-            f"the camera centres do not lie on a plane (residual {s[2]:.3g} vs extent {s[1]:.3g} rms): gravity "
-            "is the mean camera y-axis, which assumes upright cameras on average; pass the dataset option up=..."
+            f"the camera centres do not lie on a plane (residual {s[2]:.3g} vs extent {s[1]:.3g} rms): "
+            "gravity is the mean camera y-axis, which assumes upright cameras on average; pass the dataset "
+            "option up=..."
         )
         return mean_y, "camera_y", "centres span 3D: mean camera y-axis", None, extent, warnings
     normal = vt[2]
@@ -430,15 +432,15 @@ def gravity_from_map_poses(
     if max(p_spread, r_spread) > TILT_SPREAD_WARN_DEG:
         warnings.append(
             f"the cameras' tilt relative to gravity is inconsistent (spread pitch {p_spread:.1f}°, roll "
-            f"{r_spread:.1f}°): not one rigid mount on level ground; queries without their own gravity get the "
-            "median tilt, which may be wrong for them"
+            f"{r_spread:.1f}°): not one rigid mount on level ground; queries without their own gravity get "
+            "the median tilt, which may be wrong for them"
             + (_estimate_advice(poses) if source == "declared" else "")
         )
     tilt = math.degrees(math.acos(float(np.clip(median_g[1] / np.linalg.norm(median_g), -1.0, 1.0))))
     if method in ("plane", "line") and tilt > LARGE_TILT_WARN_DEG:
         warnings.append(
-            f"the cameras are tilted {tilt:.0f}° from the estimated gravity: the centres' {method} is probably not "
-            "level (e.g. a handheld or vertical path); pass the dataset option up=..."
+            f"the cameras are tilted {tilt:.0f}° from the estimated gravity: the centres' {method} is "
+            "probably not level (e.g. a handheld or vertical path); pass the dataset option up=..."
         )
     report = GravityReport(
         g_world=_floats3(g),

@@ -196,7 +196,8 @@ def read_dataset(root: Path, fmt: str, **options: object) -> list[PosedImage]:
     unknown = sorted(set(options) - set(allowed))
     if unknown:
         raise InputError(
-            f"format {fmt!r}: unknown option(s) {', '.join(unknown)}; accepted: {', '.join(allowed) or 'none'}"
+            f"format {fmt!r}: unknown option(s) {', '.join(unknown)}; accepted: "
+            f"{', '.join(allowed) or 'none'}"
         )
     options = {k: check_option_value(fmt, k, v) for k, v in options.items()}
     up = options.pop(UP_OPTION, None)

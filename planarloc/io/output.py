@@ -146,7 +146,8 @@ def check_output_file(
     if path.is_dir():
         raise OutputPathError(f"{option} {path}: is a folder; give a file path, e.g. {path / 'out'}")
     if not results and path.is_file() and has_map_header(path):
-        return  # an existing map, maybe read-only: the map builder reuses it or says why not (module docstring)
+        # an existing map, maybe read-only: the map builder reuses it or says why not (module docstring)
+        return
     if path.exists() and not os.access(path, os.W_OK):
         raise OutputPathError(
             f"{option} {path}: the file is not writable; choose another path or fix its permissions"

@@ -75,7 +75,8 @@ def read_pose_list(
                 list_path,
                 None,
                 "cannot determine the camera intrinsics: pass camera=Camera(...) or "
-                "cameras_file= (lines '[KEY] MODEL WIDTH HEIGHT PARAMS...'), or put cameras.txt next to the list",
+                "cameras_file= (lines '[KEY] MODEL WIDTH HEIGHT PARAMS...'), "
+                "or put cameras.txt next to the list",
             )
         cams = read_camera_file(cam_path, FORMAT)
     fallback = (

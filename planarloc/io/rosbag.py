@@ -543,8 +543,8 @@ def _static_extrinsic(
             extrinsic = content.tf.static_chain(posed_frame, image_frame)
             if extrinsic is None:
                 logger.warning(
-                    "%s: the poses are of frame %r, the images of frame %r, and /tf_static does not link them; "
-                    "taking the poses as the camera's (pass base_to_camera='x y z qx qy qz qw' if not)",
+                    "%s: the poses are of frame %r, the images of frame %r, and /tf_static does not link "
+                    "them; taking the poses as the camera's (pass base_to_camera='x y z qx qy qz qw' if not)",
                     root,
                     posed_frame,
                     image_frame,

@@ -74,7 +74,8 @@ def _stamp_ns(msg: Any, bag_ns: int) -> int:
 
 
 def parse_transform(value: object, option: str) -> Pose:
-    """``'x y z qx qy qz qw'`` (or 7 numbers): the child's pose in the parent frame -> ``parent_from_child``."""
+    """``'x y z qx qy qz qw'`` (or 7 numbers): the child's pose in the parent frame
+    -> ``parent_from_child``."""
     if isinstance(value, Pose):
         return value
     try:

@@ -19,10 +19,11 @@ Two schedulers run the jobs for :class:`planarloc.localize.sequence.SequenceLoca
   most of a fix's time, so the frame path keeps running while a fix is computed (the
   numba kernels of the absolute-pose RANSAC, a few ms of a fix, hold it).
 
-An accepted fix (and a rejected global one) also brings the world points its frame sees (:meth:`FixSolver.world_points`),
-tracked on through the frames that came since (:func:`~planarloc.localize.tracking.track_through`
-over the stream's :class:`~planarloc.localize.tracking.FrameHistory`; by the worker for
-background fixes), so that the stream can go on tracking them from its current frame.
+An accepted fix (and a rejected global one) also brings the world points its frame sees
+(:meth:`FixSolver.world_points`), tracked on through the frames that came since
+(:func:`~planarloc.localize.tracking.track_through` over the stream's
+:class:`~planarloc.localize.tracking.FrameHistory`; by the worker for background fixes), so that the stream
+can go on tracking them from its current frame.
 
 Fix jobs detect their features on the image downscaled to at most ``SequenceConfig.fix_resize_max``
 pixels (640): SIFT doubles the image for its first octave, and on ``kitti_seq2`` (map every 4th

@@ -94,7 +94,9 @@ class Localizer:
         >>> loc = Localizer("office.db")                      # doctest: +SKIP
         >>> est = loc.localize(gray_image, camera)              # doctest: +SKIP
         >>> est.pose if est.success else est.status             # doctest: +SKIP
-        >>> est = loc.localize(gray_image, camera, gravity=(0.0, 0.99, 0.14))  # IMU: pitched 8°  # doctest: +SKIP
+        >>> est = loc.localize(
+        ...     gray_image, camera, gravity=(0.0, 0.99, 0.14)
+        ... )  # IMU: pitched 8°  # doctest: +SKIP
     """
 
     def __init__(self, map_db: MapDatabase | str | Path, config: LocalizerConfig | None = None) -> None:
@@ -473,8 +475,8 @@ class Localizer:
                 return self._under_assumed_prior(features, camera, refs, query_gravity, est.num_inliers_3d)
             if ransac.map_prior_measured and est.success and ransac.std_scale != 1.0:
                 est.message += (
-                    f"; modelled position std x {ransac.std_scale:.2g}, as the map's held-out images measured "
-                    "(planarloc map info)"
+                    f"; modelled position std x {ransac.std_scale:.2g}, as the map's held-out images "
+                    "measured (planarloc map info)"
                 )
         if not est.success:  # any failure: whether a map image sees the query at all decides the advice
             t3 = time.perf_counter()
@@ -518,8 +520,8 @@ class Localizer:
         tried = (
             (
                 f"{len(pairs)} of them have >= {self.config.min_matches} matches, and at most "
-                f"{max(support, default=0)} matches of one image fit one essential matrix ({min(needed)} or more "
-                "would show it sees the query)"
+                f"{max(support, default=0)} matches of one image fit one essential matrix ({min(needed)} or "
+                "more would show it sees the query)"
             )
             if pairs
             else f"none of them has {self.config.min_matches} or more matches"

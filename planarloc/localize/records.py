@@ -8,7 +8,8 @@ against every writer.
 
 Every record has (``null`` where a value is absent — never NaN or Infinity, :mod:`planarloc.io.strict_json`):
 
-- ``schema`` (:data:`SCHEMA`), ``kind`` (``"fix"``: a single-image fix; ``"frame"``: a stream frame), ``name``;
+- ``schema`` (:data:`SCHEMA`), ``kind`` (``"fix"``: a single-image fix; ``"frame"``: a stream frame),
+  ``name``;
 - ``success`` — the pose may be used — and ``status``: a fix's
   :class:`~planarloc.robust.status.Status` (``success`` or why not), a frame's ``localized`` /
   ``predicted`` / ``lost``; ``"error"`` when the input could not be processed; ``message`` says why;

@@ -415,8 +415,8 @@ class SequenceLocalizer:
             (t_call, t0, cpu0),
             fix_status="pending" if self._fixes.busy else "none",
             motion_source="none" if pose is None else "constant",
-            message="blank frame: no texture to track or localize (black, white or uniform); the stream goes on "
-            "from the last frame with texture",
+            message="blank frame: no texture to track or localize (black, white or uniform); the stream "
+            "goes on from the last frame with texture",
         )
 
     def _status(self) -> FrameStatus:

@@ -3,8 +3,8 @@ pose of the two frames from the tracks, and the metric scale of that motion from
 
 This is the cheap part of :class:`planarloc.localize.sequence.SequenceLocalizer`'s frame path
 (about 30 ms of CPU for a 1241×376 frame, against ~270 ms for SIFT, matching and an absolute
-fix at full resolution): corners are detected on a grid over the previous frame (Shi-Tomasi, a few per cell so that
-they spread over the whole image), tracked into the current frame by
+fix at full resolution): corners are detected on a grid over the previous frame (Shi-Tomasi, a few per cell so
+that they spread over the whole image), tracked into the current frame by
 ``cv2.calcOpticalFlowPyrLK`` and fed to :func:`planarloc.robust.relative_pose.estimate_relative_pose`
 (planar 2-point and 5-point hypotheses, Sampson error in pixels).
 

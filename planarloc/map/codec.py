@@ -387,7 +387,8 @@ def check_features(features: Features, dim: int | None) -> tuple[np.ndarray, np.
 
 # ---- keypoints --------------------------------------------------------------------------------
 def _fixed_point(keypoints: np.ndarray, scales: np.ndarray) -> bytes | None:
-    """The ``fixed`` payload (header + uint16 pairs + Huffman-coded log-scales), None if it cannot hold them."""
+    """The ``fixed`` payload (header + uint16 pairs + Huffman-coded log-scales), None if it
+    cannot hold them."""
     origin = np.floor(keypoints.min(axis=0)) if len(keypoints) else np.zeros(2, dtype=np.float32)
     extent = float((keypoints - origin).max(initial=0.0))
     k = min(16, int(np.floor(np.log2(65535.0 / extent)))) if extent > 0 else 16

@@ -180,16 +180,16 @@ class FrameCheck:
             )
             return (
                 f"{head}: {contra} pair(s) share matches that contradict the images' poses (e.g. "
-                f"{worst.appended} and {worst.map_image}: {worst.shared} shared matches, {worst.agreeing} agree "
-                f"with their poses), {agree} pair(s) agree"
+                f"{worst.appended} and {worst.map_image}: {worst.shared} shared matches, {worst.agreeing} "
+                f"agree with their poses), {agree} pair(s) agree"
             )
         if agree:
             return f"{head}: {agree} pair(s) share matches that agree with the images' poses"
         if not self.pairs:
             return f"{head}: no pair to match"
         return (
-            f"{head}: no pair shares matches (at most {max(p.matches for p in self.pairs)} descriptor matches and "
-            f"{max(p.shared for p in self.pairs)} geometrically consistent ones in a pair, "
+            f"{head}: no pair shares matches (at most {max(p.matches for p in self.pairs)} descriptor "
+            f"matches and {max(p.shared for p in self.pairs)} geometrically consistent ones in a pair, "
             f"{self.options.min_shared} needed)"
         )
 
@@ -252,7 +252,8 @@ def known_pose_errors_px(
         >>> t = np.array([0.0, 0.0, 1.0])   # b is 1 m behind a: points move towards the centre
         >>> float(known_pose_errors_px(np.eye(3), t, x, 0.5 * x + [0, 0, 0.5], (500, 500), (500, 500))[0])
         0.0
-        >>> round(float(known_pose_errors_px(np.eye(3), -t, x, 0.5 * x + [0, 0, 0.5], (500, 500), (500, 500))[0]), 1)
+        >>> err = known_pose_errors_px(np.eye(3), -t, x, 0.5 * x + [0, 0, 0.5], (500, 500), (500, 500))
+        >>> round(float(err[0]), 1)
         55.9
     """
     R = check_array("R", R, (3, 3))
@@ -280,11 +281,6 @@ def known_pose_errors_px(
     return np.maximum(sampson, np.maximum(behind, 0.0))
 
 
-def _rays(camera: Camera, px: np.ndarray) -> np.ndarray:
-    x = camera.cam_from_img(px)
-    return np.concatenate([x, np.ones((len(x), 1))], axis=1)
-
-
 def pair_support(
     camera_a: Camera,
     camera_b: Camera,
@@ -310,7 +306,7 @@ def pair_support(
     """
     pa = check_array("points_a", points_a, (None, 2))
     pb = check_array("points_b", points_b, (len(pa), 2))
-    xa, xb = _rays(camera_a, pa), _rays(camera_b, pb)
+    xa, xb = camera_a.bearings_from_img(pa), camera_b.bearings_from_img(pb)
     ok = np.isfinite(xa).all(axis=1) & np.isfinite(xb).all(axis=1)
     if ok.sum() < 5:
         return 0, 0

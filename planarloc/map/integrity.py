@@ -122,7 +122,8 @@ def _check_rows(
 
 @dataclass(frozen=True)
 class _MapContext:
-    """What checking an image row needs: meta, the valid cameras by id, recorded digests, the descriptor basis."""
+    """What checking an image row needs: meta, the valid cameras by id, recorded digests,
+    the descriptor basis."""
 
     meta: dict
     cameras: dict[int, tuple]
@@ -171,7 +172,8 @@ def _check_images(
     cursor = conn.execute(
         "SELECT i.id, i.name, i.camera_id, i.qw, i.qx, i.qy, i.qz, i.tx, i.ty, i.tz, "
         "k.num, k.data, d.num, d.dim, d.encoding, d.data FROM images i "
-        "LEFT JOIN keypoints k ON k.image_id = i.id LEFT JOIN descriptors d ON d.image_id = i.id ORDER BY i.id"
+        "LEFT JOIN keypoints k ON k.image_id = i.id "
+        "LEFT JOIN descriptors d ON d.image_id = i.id ORDER BY i.id"
     )
     for done, row in enumerate(cursor, 1):
         image_id, name, cam_id = row[0], row[1], row[2]

@@ -123,7 +123,8 @@ class MapPoseAccuracy:
 
     def summary(self) -> str:
         return (
-            f"map poses agree with their images to {self.rotation_std_deg:.2g}° / {self.position_std_m:.2g} m "
+            f"map poses agree with their images to {self.rotation_std_deg:.2g}° / "
+            f"{self.position_std_m:.2g} m "
             f"per image, keypoint noise {self.keypoint_std_px:.2g} px (measured on {self.pairs} image pairs)"
         )
 

@@ -193,7 +193,8 @@ def validate(conn: sqlite3.Connection, path: Path) -> None:
         raise MapFormatError(f"{path} is not a planarloc map (unreadable meta table: {exc})") from None
     if meta.get("created_by") != CREATED_BY:
         raise MapFormatError(
-            f"{path} is not a planarloc map (meta.created_by is {meta.get('created_by')!r}, expected {CREATED_BY!r})"
+            f"{path} is not a planarloc map (meta.created_by is {meta.get('created_by')!r}, expected "
+            f"{CREATED_BY!r})"
         )
     try:
         version = int(meta["schema_version"])

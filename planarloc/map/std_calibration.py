@@ -78,8 +78,8 @@ class StdCalibration:
 
     def summary(self) -> str:
         return (
-            f"position std x {self.scale:.2g} (held-out map images: median error / std {self.median_ratio:.2g}, "
-            f"largest {self.max_ratio:.2g}, over {self.samples} of {self.held_out})"
+            f"position std x {self.scale:.2g} (held-out map images: median error / std "
+            f"{self.median_ratio:.2g}, largest {self.max_ratio:.2g}, over {self.samples} of {self.held_out})"
         )
 
 

@@ -223,7 +223,8 @@ class MapDatabase(MapReading, MapWriting):
         storage = check_storage(storage)
         if descriptor_encoding not in DESCRIPTOR_ENCODINGS:
             raise InputError(
-                f"descriptor_encoding: expected one of {', '.join(DESCRIPTOR_ENCODINGS)}, got {descriptor_encoding!r}"
+                f"descriptor_encoding: expected one of {', '.join(DESCRIPTOR_ENCODINGS)}, got "
+                f"{descriptor_encoding!r}"
             )
         path.parent.mkdir(parents=True, exist_ok=True)
         lock = _lock or MapWriterLock(path, timeout=lock_timeout)

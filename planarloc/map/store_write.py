@@ -127,7 +127,8 @@ class MapWriting(MapState):
                 self._put_blob(conn, DESCRIPTOR_BASIS_BLOB, encode_descriptor_basis(new_basis))
             cam_id = self._camera_id(conn, posed.camera, pending)
             image_id = conn.execute(
-                f"INSERT INTO images ({IMAGE_COLUMNS}) VALUES (NULL, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
+                f"INSERT INTO images ({IMAGE_COLUMNS}) "
+                "VALUES (NULL, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
                 (
                     posed.name,
                     cam_id,
@@ -180,8 +181,8 @@ class MapWriting(MapState):
         None if no image has this name."""
         row = (
             self._db.execute(
-                "SELECT i.path, s.content_sha256 FROM images i LEFT JOIN image_sources s ON s.image_id = i.id "
-                "WHERE i.name = ?",
+                "SELECT i.path, s.content_sha256 FROM images i "
+                "LEFT JOIN image_sources s ON s.image_id = i.id WHERE i.name = ?",
                 (name,),
             ).fetchone()
             if self._has_sources()
@@ -237,7 +238,8 @@ class MapWriting(MapState):
                 "SELECT content_sha256 FROM image_sources WHERE image_id = ?", (image_id,)
             ).fetchone()
             conn.execute(
-                "INSERT OR REPLACE INTO image_sources (image_id, content_sha256, record_sha256) VALUES (?, ?, ?)",
+                "INSERT OR REPLACE INTO image_sources (image_id, content_sha256, record_sha256) "
+                "VALUES (?, ?, ?)",
                 (image_id, content_sha256 or (old_sha[0] if old_sha else None), digest),
             )
             conn.execute("UPDATE meta SET value = '0' WHERE key = 'build_complete' AND value != '0'")

@@ -100,7 +100,8 @@ def _small_subdiagonal(a, nn, anorm) -> int:
 
 @njit(cache=True)
 def _two_roots(x, y, w, t, nn, wr, wi) -> None:
-    """Eigenvalues nn−1, nn of the deflated 2×2 block [[y, ·], [·, x]] with off-diagonal product w (shift t)."""
+    """Eigenvalues nn−1, nn of the deflated 2×2 block [[y, ·], [·, x]] with off-diagonal
+    product w (shift t)."""
     p = 0.5 * (y - x)
     q = p * p + w
     z = np.sqrt(abs(q))

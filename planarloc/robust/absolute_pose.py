@@ -180,7 +180,9 @@ def estimate_absolute_pose(
             non-rotation poses, unknown method, zero gravity) — before any work is done.
 
     Example:
-        >>> est = estimate_absolute_pose(cam, pairs, options=RansacOptions(structure="tracks"))  # doctest: +SKIP
+        >>> est = estimate_absolute_pose(
+        ...     cam, pairs, options=RansacOptions(structure="tracks")
+        ... )  # doctest: +SKIP
         >>> est.pose.center if est.success else est.status  # doctest: +SKIP
     """
     t_start = time.perf_counter()
@@ -445,9 +447,10 @@ def _no_hypothesis(stats: RansacStatistics, method: Method, options: RansacOptio
             "(triangulation singular: query collinear with the map images)" + hint
         )
     return Status.NO_CONSISTENT_HYPOTHESIS, (
-        f"none of the {stats.hypotheses} {method.value} hypotheses passed the checks (Rcheck {stats.rejected_rcheck}, "
-        f"Pdcheck {stats.rejected_pdcheck}, consistency {stats.rejected_consistency}, degenerate "
-        f"{stats.rejected_degenerate}): check the intrinsics and that the retrieved map images show the query's scene"
+        f"none of the {stats.hypotheses} {method.value} hypotheses passed the checks (Rcheck "
+        f"{stats.rejected_rcheck}, Pdcheck {stats.rejected_pdcheck}, consistency "
+        f"{stats.rejected_consistency}, degenerate {stats.rejected_degenerate}): check the intrinsics and "
+        "that the retrieved map images show the query's scene"
     )
 
 
@@ -532,8 +535,8 @@ def _planar_model_check(
         return est
     if est.model != "planar":
         why = (
-            f"the {method.value} pose does not fit the planar model it assumes (it implies a tilt or an elevation "
-            f"above {options.planar_tolerance_deg}° relative to the map images)"
+            f"the {method.value} pose does not fit the planar model it assumes (it implies a tilt or an "
+            f"elevation above {options.planar_tolerance_deg}° relative to the map images)"
         )
     else:
         # A 6DoF pose elsewhere that explains the matches clearly better: the planar model failed.
@@ -549,8 +552,8 @@ def _planar_model_check(
             return est
         why = (
             f"a 6DoF pose explains the matches better than the {method.value} pose (MSAC cost "
-            f"{better[0].refined.score:.4g} < {best.refined.score:.4g}) and lies elsewhere: the query is tilted or "
-            "off the map's plane"
+            f"{better[0].refined.score:.4g} < {best.refined.score:.4g}) and lies elsewhere: the query is "
+            "tilted or off the map's plane"
         )
     return PoseEstimate(
         None,

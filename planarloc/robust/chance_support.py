@@ -11,9 +11,9 @@ The test here is a-contrario (Moisan & Stival's contrario RANSAC, in its simples
 expected number of inliers that *wrong* matches would give this very pose is measured by
 re-pairing each map image's matches (each query keypoint with the map keypoint of a match whose
 query keypoint is a neighbour in image row, see :func:`chance_inliers`): the same keypoints,
-the same epipolar geometry, the associations destroyed. A map image supports the pose beyond chance when its inlier count is
-improbable under a Poisson law with that mean. Deterministic, and ``CHANCE_SHIFTS × N`` Sampson
-errors in one compiled call.
+the same epipolar geometry, the associations destroyed. A map image supports the pose beyond chance when its
+inlier count is improbable under a Poisson law with that mean. Deterministic, and ``CHANCE_SHIFTS × N``
+Sampson errors in one compiled call.
 """
 
 from __future__ import annotations

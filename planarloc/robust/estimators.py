@@ -94,35 +94,13 @@ class ProblemEstimator:
         max_iterations: int,
         B: np.ndarray = _IDENTITY,
         fixed: np.ndarray = _FREE,
+        map_prior: bool = False,
     ) -> tuple:
-        p = self.p
-        return refine_pose(
-            np.ascontiguousarray(R),
-            -R @ c0,
-            p.arrays,
-            np.flatnonzero(in2d),
-            np.flatnonzero(in3d),
-            self.options.threshold_px,
-            max_iterations,
-            SIGMA_FLOOR_PX,
-            np.ascontiguousarray(c0),
-            B,
-            fixed,
-        )
-
-    def _refine_with_map_prior(
-        self,
-        R: np.ndarray,
-        c0: np.ndarray,
-        in2d: np.ndarray,
-        in3d: np.ndarray,
-        max_iterations: int,
-        B: np.ndarray = _IDENTITY,
-        fixed: np.ndarray = _FREE,
-    ) -> tuple:
-        """:meth:`_refine` under the map prior (:func:`planarloc.robust.map_prior.refine_with_map_prior`)."""
+        """Robust 6DoF refinement from ``(R, c0)`` on the given inliers (:func:`refine_pose`), or,
+        with ``map_prior``, jointly with the reference poses under the options' map prior
+        (:func:`planarloc.robust.map_prior.refine_with_map_prior`)."""
         p, o = self.p, self.options
-        return refine_with_map_prior(
+        args = (
             np.ascontiguousarray(R),
             -R @ c0,
             p.arrays,
@@ -131,11 +109,15 @@ class ProblemEstimator:
             o.threshold_px,
             max_iterations,
             SIGMA_FLOOR_PX,
-            (float(np.radians(o.map_rotation_std_deg)), float(o.map_position_std_m)),
-            np.ascontiguousarray(c0),
-            B,
-            fixed,
         )
+        centre = (np.ascontiguousarray(c0), B, fixed)  # c = c0 + B p; ``fixed`` parameters held
+        if not map_prior:
+            return refine_pose(*args, *centre)
+        stds = (float(np.radians(o.map_rotation_std_deg)), float(o.map_position_std_m))
+        return refine_with_map_prior(*args, stds, *centre)
+
+    #: :meth:`_refine` under the map prior.
+    _refine_with_map_prior = functools.partialmethod(_refine, map_prior=True)
 
     def _refine_on_inliers(
         self, R: np.ndarray, t: np.ndarray, threshold_sq: float, max_iterations: int

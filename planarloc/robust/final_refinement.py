@@ -157,6 +157,7 @@ def refine_until_stable(
     eye = np.eye(3)
     free = np.zeros(6, dtype=np.bool_)
     prior = map_rotation_std_rad > 0.0 or map_position_std_m > 0.0
+    prior_std = (map_rotation_std_rad, map_position_std_m)
     H = np.zeros((6, 6))
     sigma = np.inf
     cost = np.inf
@@ -164,34 +165,14 @@ def refine_until_stable(
         # Later rounds start at an optimum whose inlier set changed by a few matches: a couple of
         # iterations reach the new one (the first round may start a few pixels away).
         its = max_iterations if rnd == 0 else min(max_iterations, LATER_ROUND_ITERATIONS)
+        idx2d, idx3d, c0 = np.flatnonzero(in2d), np.flatnonzero(in3d), -m3.t_vec(R, t)
         if prior and in3d.any():
             R, t, H, sigma, cost = refine_with_map_prior(
-                R,
-                t,
-                prob,
-                np.flatnonzero(in2d),
-                np.flatnonzero(in3d),
-                loss_scale,
-                its,
-                sigma_floor,
-                (map_rotation_std_rad, map_position_std_m),
-                -m3.t_vec(R, t),
-                eye,
-                free,
+                R, t, prob, idx2d, idx3d, loss_scale, its, sigma_floor, prior_std, c0, eye, free
             )
         else:
             R, t, H, sigma, cost = refine_pose(
-                R,
-                t,
-                prob,
-                np.flatnonzero(in2d),
-                np.flatnonzero(in3d),
-                loss_scale,
-                its,
-                sigma_floor,
-                -m3.t_vec(R, t),
-                eye,
-                free,
+                R, t, prob, idx2d, idx3d, loss_scale, its, sigma_floor, c0, eye, free
             )
         e2d, e3d = errors_sq(R, t, p.xq, p.xr, p.offsets, p.f_query, p.f_ref, p.ref_R, p.ref_t, p.xq3d, p.X3d)
         new2d = e2d < inlier_threshold_sq

@@ -244,11 +244,6 @@ def _depths_positive(R: np.ndarray, t: np.ndarray, xa: np.ndarray, xb: np.ndarra
     return int(np.sum(ok & (la > 0) & (lb > 0)))
 
 
-def _rays(camera: Camera, px: np.ndarray) -> np.ndarray:
-    x = camera.cam_from_img(px)
-    return np.concatenate([x, np.ones((len(x), 1))], axis=1)
-
-
 def estimate_relative_pose(
     camera_a: Camera,
     camera_b: Camera,
@@ -291,7 +286,7 @@ def estimate_relative_pose(
     inliers = np.zeros(len(pa), dtype=bool)
     if len(idx) < max(min_inliers, 5):
         return RelativePoseEstimate(None, False, Status.TOO_FEW_MATCHES, inliers=inliers)
-    xa, xb = _rays(camera_a, pa[idx]), _rays(camera_b, pb[idx])
+    xa, xb = camera_a.bearings_from_img(pa[idx]), camera_b.bearings_from_img(pb[idx])
     fa, fb = np.asarray(camera_a.focal, dtype=float), np.asarray(camera_b.focal, dtype=float)
     stats = RansacStatistics()
     best: tuple[str, np.ndarray, np.ndarray, int] | None = None

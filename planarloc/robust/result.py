@@ -17,8 +17,8 @@ class RansacStatistics:
     ``hypotheses`` counts solver outputs; each check counts the hypotheses it rejected:
     ``rejected_rcheck`` (eq. 12), ``rejected_pdcheck`` (ρ ≤ 0 or negative depth),
     ``rejected_consistency`` (direction mismatch), ``rejected_degenerate`` (a solver had no
-    finite solution for the sample). ``scored`` = hypotheses that reached scoring. ``searches_skipped``: hypothesis
-    families not searched because the planar pose passed every check (``auto`` and the planar
+    finite solution for the sample). ``scored`` = hypotheses that reached scoring. ``searches_skipped``:
+    hypothesis families not searched because the planar pose passed every check (``auto`` and the planar
     methods' cross-check run the 6DoF search only when the planar answer is in doubt).
     """
 

@@ -158,8 +158,9 @@ def judge_pose(ctx: EstimateContext, cand: Candidate, rivals: Sequence[np.ndarra
         ctx: the estimate's problem, options, gravity and statistics.
         cand: the search's refined pose and its runner-ups. A runner-up that refines to a pose
             beyond ``3·std + 5 cm`` explaining the matches as well but for
-            ``RIVAL_MARGIN_INLIERS`` inliers is a rival answer (:func:`~planarloc.robust.rivals.rival_distance`): the
-            distance bounds the std from below (``ambiguous_pose`` when that exceeds the limit).
+            ``RIVAL_MARGIN_INLIERS`` inliers is a rival answer
+            (:func:`~planarloc.robust.rivals.rival_distance`): the distance bounds the std from below
+            (``ambiguous_pose`` when that exceeds the limit).
         rivals: (3,) centres of other searches' refined poses of nearly the same cost.
 
     Returns:
@@ -311,8 +312,8 @@ def _check_distant_plane(j: _Judging) -> PoseEstimate | None:
             if any_plane
             else (
                 "(one homography explains their matches, far beyond the map images' spread): rotation and "
-                "translation cannot be told apart; add map images that see the scene from closer or from other "
-                "directions"
+                "translation cannot be told apart; add map images that see the scene from closer or from "
+                "other directions"
             )
         )
         return j.fail(

@@ -569,7 +569,8 @@ def run(map_path: str | None, ros_args: Sequence[str]) -> int:
         c = worker.counts
         print(
             f"planarloc ros2: stopped after {c.received} frames: {c.localized} localized, {c.predicted} "
-            f"predicted, {c.lost} lost, {c.dropped} dropped, {c.failed} failed; {c.published} poses published",
+            f"predicted, {c.lost} lost, {c.dropped} dropped, {c.failed} failed; "
+            f"{c.published} poses published",
             file=sys.stderr,
             flush=True,
         )

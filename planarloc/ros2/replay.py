@@ -107,7 +107,8 @@ class ReplaySettings:
 
 
 class _Replayer:
-    """The replay's rclpy node: its publishers, the subscriptions that fill ``result``, and one stage per step."""
+    """The replay's rclpy node: its publishers, the subscriptions that fill ``result``,
+    and one stage per step."""
 
     def __init__(self, rclpy: Any, s: ReplaySettings):
         self.rclpy, self.s, self.result = rclpy, s, ReplayResult()

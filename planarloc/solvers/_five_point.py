@@ -1,8 +1,9 @@
-"""The five-point polynomial system and the driver shared by Nistér's and Stewénius' solvers.
+"""The five-point polynomial system and the drivers shared by Nistér's and Stewénius' solvers.
 
 Both five-point solvers (:mod:`planarloc.solvers.relpose_5p_nister`,
 :mod:`planarloc.solvers.relpose_5p_stewenius`) differ only in how they solve the polynomial
-system; everything else lives here (numba kernels, no public Python API):
+system (their root extraction); everything else lives here (numba kernels, no public Python
+API):
 
 * **The five-point polynomial system** (Nistér 2004, Sec. 3, steps "extraction of the null
   space" and "expansion of the cubic constraints"; Stewénius et al. 2006 reuse it verbatim):
@@ -10,16 +11,25 @@ system; everything else lives here (numba kernels, no public Python API):
   constraints and the ten cubic constraints ``det E = 0`` and ``2 E Eᵀ E − tr(E Eᵀ) E = 0``
   as a 10 × 20 coefficient matrix over the 20 monomials of degree ≤ 3 in ``(x, y, z)``.
   Columns are in the graded reverse lexicographic order of :data:`MONOMIALS`; each solver
-  permutes them into the order its elimination needs (:func:`gauss_jordan`). Also the
+  names the order its elimination needs (:func:`monomial_permutation`). Also the
   degeneracy tests of a five-point sample and the Gauss-Newton polishing of a root of the
   system (:func:`refine_five_point_root`, not in either paper).
-* **The drivers**, parametrised by the solver's essentials kernel
-  ``essentials(xq (5, 3), xr (5, 3), E_out (10, 3, 3), refine_iters, refine_rtol) -> n``
+* **The solver skeleton** :func:`essentials_from_roots`: the reduced elimination template
+  (:func:`five_point_template`: unit rays, degeneracy tests, null space, constraints in the
+  solver's monomial order, Gauss-Jordan), then the solver's root extraction
+  ``roots(A (10, 20) reduced template, sols (10, 3)) -> n`` (real roots ``(x, y, z)`` in
+  ``sols[:n]``), then each root polished and turned into an essential matrix
+  (:func:`store_essential`). Bound to a solver's order and roots it is that solver's essentials
+  kernel ``essentials(xq (5, 3), xr (5, 3), E_out (10, 3, 3), refine_iters, refine_rtol) -> n``.
+* **The drivers**, parametrised by that essentials kernel
   (inlined into each solver's compiled entry points, ``inline="always"``, so the indirection
   costs nothing and the entry points stay cacheable; passing a kernel that can raise as a
   run-time argument would make numba refuse to cache the caller):
   :func:`five_point_relposes` (a validated single call: solve, decompose, cheirality on all
   points) and :func:`five_point_batch` / :func:`five_point_sample` (the RANSAC batches).
+
+The Python functions of both solvers (checked calls, docstrings) are written once in
+:mod:`planarloc.solvers._five_point_api`.
 
 Univariate real roots (Sturm sequences) and real eigenvalues are generic numerics and live
 in :mod:`planarloc.numerics`.
@@ -49,7 +59,8 @@ MAX_SOLUTIONS = 10  # real solutions of the five-point problem, at most
 #   x³ x²y x²z xy² xyz xz² y³ y²z yz² z³ | x² xy xz y² yz z² | x y z | 1
 # --------------------------------------------------------------------------------------------
 MONOMIALS: tuple[tuple[int, int, int], ...] = (
-    (3, 0, 0), (2, 1, 0), (2, 0, 1), (1, 2, 0), (1, 1, 1), (1, 0, 2), (0, 3, 0), (0, 2, 1), (0, 1, 2), (0, 0, 3),
+    (3, 0, 0), (2, 1, 0), (2, 0, 1), (1, 2, 0), (1, 1, 1),
+    (1, 0, 2), (0, 3, 0), (0, 2, 1), (0, 1, 2), (0, 0, 3),
     (2, 0, 0), (1, 1, 0), (1, 0, 1), (0, 2, 0), (0, 1, 1), (0, 0, 2),
     (1, 0, 0), (0, 1, 0), (0, 0, 1),
     (0, 0, 0),
@@ -76,6 +87,7 @@ REFINE_ITERS, REFINE_RTOL = 5, 1e-15
 BATCH_REFINE_ITERS, BATCH_REFINE_RTOL = 5, 1e-12
 # a sample is a pure rotation if max_ij | |x_q,i · x_q,j| − |x_r,i · x_r,j| | (unit rays) is below this
 ROTATION_ONLY_TOL = 1e-10
+PIVOT_TOL = 1e-12  # smallest Gauss-Jordan pivot of the template, relative to its largest entry
 
 
 @njit(cache=True)
@@ -407,12 +419,78 @@ def gauss_jordan(A: np.ndarray, ncols: int, pivot_tol: float, first_row: int) ->
 
 
 # --------------------------------------------------------------------------------------------
-# Drivers shared by both solvers, parametrised by the essentials kernel
+# The solver skeleton shared by both solvers, parametrised by the root extraction
+# --------------------------------------------------------------------------------------------
+
+
+@njit(cache=True)
+def five_point_template(
+    xq: np.ndarray,
+    xr: np.ndarray,
+    columns: np.ndarray,
+    first_row: int,
+    basis: np.ndarray,
+    C: np.ndarray,
+    A: np.ndarray,
+) -> bool:
+    """The reduced elimination template of a (5, 3) ray sample, the part both solvers share.
+
+    Rays scaled to unit length; a pure-rotation sample (:func:`is_rotation_only`, tolerance
+    ``ROTATION_ONLY_TOL``) or a rank-deficient one (:func:`five_point_nullspace`, ``RANK_TOL``)
+    is rejected. Writes the null-space basis into ``basis`` (9, 4), the ten cubic constraints
+    (:func:`five_point_constraints`, columns in :data:`MONOMIALS` order) into ``C`` (10, 20) and
+    into ``A`` (10, 20) the same constraints with column ``j`` taken from ``C[:, columns[j]]``
+    (the solver's monomial order), reduced by :func:`gauss_jordan` of the ten cubic columns with
+    back substitution from row ``first_row`` (pivots below ``PIVOT_TOL``).
+
+    Returns:
+        False for a degenerate sample (the outputs are then undefined).
+    """
+    uq = unit_rows(xq)
+    ur = unit_rows(xr)
+    if is_rotation_only(uq, ur, ROTATION_ONLY_TOL):
+        return False
+    if not five_point_nullspace(uq, ur, basis, RANK_TOL):
+        return False
+    C[:, :] = five_point_constraints(basis)
+    for i in range(10):
+        for j in range(20):
+            A[i, j] = C[i, columns[j]]
+    return gauss_jordan(A, 10, PIVOT_TOL, first_row)
+
+
+@njit(cache=True, inline="always")
+def essentials_from_roots(roots, columns, first_row, xq, xr, E_out, refine_iters, refine_rtol) -> int:
+    """A solver's essentials kernel: essential matrices of (5, 3) rays into ``E_out[:n]`` (unit
+    Frobenius norm), returning n.
+
+    The template of :func:`five_point_template` (monomial order ``columns``, back substitution
+    from ``first_row``), then the solver's ``roots(A, sols) -> k`` (module docstring), then each
+    root polished and turned into ``E = x X + y Y + z Z + W`` (:func:`store_essential`).
+    """
+    basis = np.empty((9, 4))
+    C = np.empty((10, 20))
+    A = np.empty((10, 20))
+    if not five_point_template(xq, xr, columns, first_row, basis, C, A):
+        return 0
+    sols = np.empty((MAX_SOLUTIONS, 3))
+    k = roots(A, sols)
+    m = np.empty(20)
+    dm = np.empty((3, 20))
+    count = 0
+    for s in range(k):
+        count = store_essential(C, basis, sols[s], refine_iters, refine_rtol, m, dm, E_out, count)
+    return count
+
+
+# --------------------------------------------------------------------------------------------
+# Drivers shared by both solvers, parametrised by the essentials kernel; single calls polish
+# the roots with (REFINE_ITERS, REFINE_RTOL), the RANSAC batches with the BATCH_ pair
 # --------------------------------------------------------------------------------------------
 
 
 @njit(cache=True, inline="always")
-def five_point_essentials(essentials, xq, xr, E_out, refine_iters, refine_rtol) -> int:
+def five_point_essentials(essentials, xq, xr, E_out) -> int:
     """Validated single call of an essentials kernel on (5, 3) rays; -1 for invalid input.
 
     Invalid: not (5, 3), NaN/inf, or an all-zero ray (the conditions of
@@ -421,18 +499,17 @@ def five_point_essentials(essentials, xq, xr, E_out, refine_iters, refine_rtol) 
     """
     if rays_invalid(xq, xr, 5, 5, True):
         return -1
-    return essentials(xq, xr, E_out, refine_iters, refine_rtol)
+    return essentials(xq, xr, E_out, REFINE_ITERS, REFINE_RTOL)
 
 
 @njit(cache=True, inline="always")
-def five_point_relposes(essentials, xq, xr, out, refine_iters, refine_rtol) -> int:
+def five_point_relposes(essentials, xq, xr, out) -> int:
     """Validated single call: poses from the first five of N ≥ 5 matches, cheirality on all N.
 
     Args:
         essentials: the solver's essentials kernel (see the module docstring).
         xq, xr: (N, 3) query / reference rays, any float64 input (validated here).
         out: (10, 4, 3) output; pose k is ``R = out[k, :3]``, ``t = out[k, 3]``.
-        refine_iters, refine_rtol: root polishing of :func:`refine_five_point_root`.
 
     Returns:
         -1 for invalid input (shape, fewer than 5 rows, NaN/inf, a zero ray), else the number
@@ -447,25 +524,25 @@ def five_point_relposes(essentials, xq, xr, out, refine_iters, refine_rtol) -> i
             q5[i, j] = xq[i, j]
             r5[i, j] = xr[i, j]
     Es = np.empty((MAX_SOLUTIONS, 3, 3))
-    n = essentials(q5, r5, Es, refine_iters, refine_rtol)
+    n = essentials(q5, r5, Es, REFINE_ITERS, REFINE_RTOL)
     return relposes_into(Es, n, xq, xr, out)
 
 
 @njit(cache=True, inline="always")
-def five_point_sample(essentials, xq, xr, Es, R, t, valid, refine_iters, refine_rtol) -> int:
+def five_point_sample(essentials, xq, xr, Es, R, t, valid) -> int:
     """One RANSAC sample: essentials of (5, 3) rays, then the poses passing cheirality on all
     five, packed into R (10, 3, 3), t (10, 3), valid (10,). ``Es`` is a (10, 3, 3) scratch
     buffer. Returns the number of poses."""
-    n = essentials(xq, xr, Es, refine_iters, refine_rtol)
+    n = essentials(xq, xr, Es, BATCH_REFINE_ITERS, BATCH_REFINE_RTOL)
     return relpose_batch_kernel(Es, n, xq, xr, R, t, valid)
 
 
 @njit(cache=True, inline="always")
-def five_point_batch(essentials, xq, xr, R, t, valid, refine_iters, refine_rtol) -> None:
+def five_point_batch(essentials, xq, xr, R, t, valid) -> None:
     """:func:`five_point_sample` over M samples: xq, xr (M, 5, 3); R (M, 10, 3, 3), t (M, 10, 3),
     valid (M, 10). The parallel twin of a solver is a ``prange`` loop over
     :func:`five_point_sample` in its own module (a parallel kernel is cached only if it is
     the outermost compiled function)."""
     Es = np.empty((MAX_SOLUTIONS, 3, 3))
     for m in range(xq.shape[0]):
-        five_point_sample(essentials, xq[m], xr[m], Es, R[m], t[m], valid[m], refine_iters, refine_rtol)
+        five_point_sample(essentials, xq[m], xr[m], Es, R[m], t[m], valid[m])

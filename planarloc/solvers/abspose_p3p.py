@@ -63,7 +63,8 @@ def _frame(a: np.ndarray, b: np.ndarray, c: np.ndarray, F: np.ndarray) -> bool:
 @njit(cache=True, error_model="numpy", inline="always")
 def _refine_depths(s: np.ndarray, ca: float, cb: float, cg: float, d2: np.ndarray) -> None:
     """Two Gauss-Newton steps on the depths ``s`` (3,) of the law of cosines
-    f_ik(s) = s_i² + s_k² − 2 s_i s_k cos θ_ik − d_ik², (i, k) = (2,3), (1,3), (1,2); ``d2`` = (a², b², c²)."""
+    f_ik(s) = s_i² + s_k² − 2 s_i s_k cos θ_ik − d_ik², (i, k) = (2,3), (1,3), (1,2);
+    ``d2`` = (a², b², c²)."""
     a2, b2, c2 = d2[0], d2[1], d2[2]
     for _ in range(2):
         f0 = s[1] * s[1] + s[2] * s[2] - 2.0 * s[1] * s[2] * ca - a2

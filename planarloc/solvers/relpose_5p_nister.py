@@ -61,32 +61,23 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
-from planarloc.geometry.essential_decomposition import (
-    check_correspondence_batch,
-    solve_correspondences,
-    solve_relpose_batch,
-)
 from planarloc.geometry.pose import Pose
 from planarloc.numerics.sturm import polyval, real_roots_sturm
 from planarloc.solvers._five_point import (
-    BATCH_REFINE_ITERS,
-    BATCH_REFINE_RTOL,
     MAX_SOLUTIONS,
-    RANK_TOL,
-    REFINE_ITERS,
-    REFINE_RTOL,
-    ROTATION_ONLY_TOL,
+    essentials_from_roots,
     five_point_batch,
-    five_point_constraints,
     five_point_essentials,
-    five_point_nullspace,
     five_point_relposes,
     five_point_sample,
-    gauss_jordan,
-    is_rotation_only,
     monomial_permutation,
-    store_essential,
-    unit_rows,
+)
+from planarloc.solvers._five_point_api import (
+    BATCH_DOC,
+    ESSENTIALS_DOC,
+    RELPOSES_DOC,
+    FivePointCalls,
+    five_point_doc,
 )
 
 __all__ = [
@@ -98,11 +89,13 @@ __all__ = [
 
 # Nistér 2004, Sec. 3, monomial order of the 10 x 20 matrix.
 _NISTER_ORDER = [
-    (3, 0, 0), (0, 3, 0), (2, 1, 0), (1, 2, 0), (2, 0, 1), (2, 0, 0), (0, 2, 1), (0, 2, 0), (1, 1, 1), (1, 1, 0),
-    (1, 0, 2), (1, 0, 1), (1, 0, 0), (0, 1, 2), (0, 1, 1), (0, 1, 0), (0, 0, 3), (0, 0, 2), (0, 0, 1), (0, 0, 0),
+    (3, 0, 0), (0, 3, 0), (2, 1, 0), (1, 2, 0), (2, 0, 1),
+    (2, 0, 0), (0, 2, 1), (0, 2, 0), (1, 1, 1), (1, 1, 0),
+    (1, 0, 2), (1, 0, 1), (1, 0, 0), (0, 1, 2), (0, 1, 1),
+    (0, 1, 0), (0, 0, 3), (0, 0, 2), (0, 0, 1), (0, 0, 0),
 ]  # fmt: skip
 _PERM = monomial_permutation(_NISTER_ORDER)
-_PIVOT_TOL = 1e-12
+_FIRST_ROW = 4  # back substitution from ⟨e⟩: rows ⟨a⟩ ... ⟨d⟩ are not used (step 3)
 
 
 @njit(cache=True)
@@ -133,24 +126,9 @@ def _mul_sub(a, b, c, d, out):
 
 
 @njit(cache=True)
-def nister_essentials(
-    xq: np.ndarray, xr: np.ndarray, E_out: np.ndarray, refine_iters: int, refine_rtol: float
-) -> int:
-    """Kernel: essential matrices from (5, 3) rays; writes E_out[:n] (unit Frobenius norm)."""
-    uq = unit_rows(xq)
-    ur = unit_rows(xr)
-    if is_rotation_only(uq, ur, ROTATION_ONLY_TOL):
-        return 0
-    basis = np.empty((9, 4))
-    if not five_point_nullspace(uq, ur, basis, RANK_TOL):
-        return 0
-    C = five_point_constraints(basis)
-    A = np.empty((10, 20))
-    for i in range(10):
-        for j in range(20):
-            A[i, j] = C[i, _PERM[j]]
-    if not gauss_jordan(A, 10, _PIVOT_TOL, 4):
-        return 0
+def nister_roots(A: np.ndarray, sols: np.ndarray) -> int:
+    """Steps 4-6 up to ``(x, y, z)``: the real roots of the template ``A`` (10, 20) reduced in
+    Nistér's monomial order (back substitution from ⟨e⟩) into ``sols[:n]`` (10, 3); returns n."""
     # rows: a=0 x³, b=1 y³, c=2 x²y, d=3 xy², e=4 x²z, f=5 x², g=6 y²z, h=7 y², i=8 xyz, j=9 xy
     B = np.empty((3, 3, 5))  # B(z): rows ⟨k⟩, ⟨l⟩, ⟨m⟩; columns: coefficients of x, y, 1
     for q in range(3):  # (e, f), (g, h), (i, j)
@@ -170,20 +148,25 @@ def nister_essentials(
     p3_scale = 0.0
     for k in range(7):
         p3_scale = max(p3_scale, abs(P[2, k]))
-    sol = np.empty(3)
-    m = np.empty(20)
-    dm = np.empty((3, 20))
     count = 0
     for s in range(nroots):
         z = roots[s]
         d = polyval(P[2], np.int64(6), z)  # typed degrees, not literals: polyval's one signature
         if abs(d) <= 1e-14 * p3_scale * max(1.0, abs(z)) ** 6:
             continue  # x, y at infinity
-        sol[0] = polyval(P[0], np.int64(7), z) / d
-        sol[1] = polyval(P[1], np.int64(7), z) / d
-        sol[2] = z
-        count = store_essential(C, basis, sol, refine_iters, refine_rtol, m, dm, E_out, count)
+        sols[count, 0] = polyval(P[0], np.int64(7), z) / d
+        sols[count, 1] = polyval(P[1], np.int64(7), z) / d
+        sols[count, 2] = z
+        count += 1
     return count
+
+
+@njit(cache=True)
+def nister_essentials(
+    xq: np.ndarray, xr: np.ndarray, E_out: np.ndarray, refine_iters: int, refine_rtol: float
+) -> int:
+    """Kernel: essential matrices from (5, 3) rays; writes E_out[:n] (unit Frobenius norm)."""
+    return essentials_from_roots(nister_roots, _PERM, _FIRST_ROW, xq, xr, E_out, refine_iters, refine_rtol)
 
 
 # ---- the shared five-point drivers bound to this solver's kernel --------------------------------
@@ -191,112 +174,48 @@ def nister_essentials(
 
 @njit(cache=True)
 def _essentials(xq, xr, E_out):
-    return five_point_essentials(nister_essentials, xq, xr, E_out, REFINE_ITERS, REFINE_RTOL)
+    return five_point_essentials(nister_essentials, xq, xr, E_out)
 
 
 @njit(cache=True)
 def _relposes(xq, xr, out):
-    return five_point_relposes(nister_essentials, xq, xr, out, REFINE_ITERS, REFINE_RTOL)
+    return five_point_relposes(nister_essentials, xq, xr, out)
 
 
 @njit(cache=True)
 def _batch(xq, xr, R, t, valid):
-    five_point_batch(nister_essentials, xq, xr, R, t, valid, BATCH_REFINE_ITERS, BATCH_REFINE_RTOL)
+    five_point_batch(nister_essentials, xq, xr, R, t, valid)
 
 
 @njit(cache=True, parallel=True)
 def _batch_parallel(xq, xr, R, t, valid):
     for m in prange(xq.shape[0]):
         Es = np.empty((MAX_SOLUTIONS, 3, 3))
-        five_point_sample(
-            nister_essentials, xq[m], xr[m], Es, R[m], t[m], valid[m], BATCH_REFINE_ITERS, BATCH_REFINE_RTOL
-        )
+        five_point_sample(nister_essentials, xq[m], xr[m], Es, R[m], t[m], valid[m])
 
 
+# ---- the public functions; their docstrings are the shared templates of _five_point_api ------
+
+_CALLS = FivePointCalls(_essentials, _relposes, _batch, _batch_parallel)
+_REFERENCES = "Nistér, TPAMI 2004, Sec. 3; deviations listed in the module docstring"
+_DOC = {"solver": "Nistér's five-point", "citation": "Nistér 2004", "references": _REFERENCES}
+
+
+@five_point_doc(ESSENTIALS_DOC, **_DOC)
 def essentials_5p_nister(x_query: object, x_ref: object) -> list[np.ndarray]:
-    """All real essential matrices consistent with five correspondences (Nistér 2004).
-
-    Args:
-        x_query: (5, 3) rays of the query camera: normalized homogeneous points ``(x, y, 1)``
-            or bearing vectors (any non-zero length, any direction).
-        x_ref: (5, 3) rays of the reference camera, row ``i`` matching ``x_query[i]``.
-
-    Returns:
-        Up to 10 (3, 3) essential matrices with ``x_refᵀ E x_query = 0``, unit Frobenius norm,
-        sign arbitrary. No cheirality filtering. Empty for a degenerate sample (see module
-        docstring).
-
-    Raises:
-        InputError: wrong shape, NaN/inf, or a zero-length ray.
-
-    References:
-        Nistér, TPAMI 2004, Sec. 3; deviations listed in the module docstring.
-
-    Example:
-        >>> Es = essentials_5p_nister(x_query, x_ref)   # doctest: +SKIP
-    """
-    Es = np.empty((MAX_SOLUTIONS, 3, 3))
-    n, _, _ = solve_correspondences(_essentials, x_query, x_ref, Es, rows=5)
-    return list(Es[:n])
+    return _CALLS.essentials_of(x_query, x_ref)
 
 
+@five_point_doc(RELPOSES_DOC, **_DOC)
 def relpose_5p_nister(x_query: object, x_ref: object) -> list[Pose]:
-    """All relative poses from five (or more) correspondences, Nistér's five-point method.
-
-    Args:
-        x_query: (N ≥ 5, 3) rays of the query camera (normalized homogeneous points or
-            bearings). Only the **first five** rows enter the minimal solve.
-        x_ref: (N, 3) matching rays of the reference camera.
-
-    Returns:
-        ``ref_from_query`` poses (``x_ref ∝ R x_query + t``, ``‖t‖ = 1``), one for each real
-        essential matrix whose decomposition puts **all N** points in front of both cameras
-        (the midpoint test of :func:`planarloc.geometry.epipolar.triangulation_depths`; the
-        pose from the closed form of the batched kernel, equal to
-        :func:`~planarloc.geometry.essential_decomposition.relposes_from_essential`).
-        Passing extra points thus prunes the up to 10 minimal solutions. Empty for degenerate
-        input: repeated points, pure rotation, points at infinity (parallel rays), all points on
-        one epipolar plane.
-
-    Raises:
-        InputError: wrong shape, fewer than 5 rows, NaN/inf, or a zero-length ray.
-
-    References:
-        Nistér, TPAMI 2004, Sec. 3; deviations listed in the module docstring.
-    """
-    out = np.empty((MAX_SOLUTIONS, 4, 3))
-    return Pose._from_buffer(out, solve_correspondences(_relposes, x_query, x_ref, out, min_rows=5)[0])
+    return _CALLS.relposes_of(x_query, x_ref)
 
 
+@five_point_doc(BATCH_DOC, **_DOC)
 def relpose_5p_nister_batch(
     x_query: object, x_ref: object, *, parallel: bool = False
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Nistér's five-point solver on M samples at once (for RANSAC).
-
-    Args:
-        x_query: (M, 5, 3) query rays (normalized homogeneous points or bearings).
-        x_ref: (M, 5, 3) matching reference rays.
-        parallel: spread the samples over numba's threads (``numba.set_num_threads``). Off by
-            default: the OpenMP/TBB thread pools are not fork-safe, so a process that later
-            forks workers (``multiprocessing`` on Linux) must not have used them.
-
-    Returns:
-        R: (M, 10, 3, 3) rotations ``ref_from_query``; NaN where not valid.
-        t: (M, 10, 3) unit translations; NaN where not valid.
-        valid: (M, 10) bool; True for a real solution whose pose puts all five sample points in
-        front of both cameras. Valid solutions are packed first: ``valid[m, :k]``.
-
-    Raises:
-        InputError: wrong shape, NaN/inf, or a zero-length ray. Degenerate samples raise
-        nothing; their rows of ``valid`` are all False.
-
-    References:
-        Nistér, TPAMI 2004, Sec. 3; the pose comes from the closed-form decomposition
-        ``R = cof(E) ∓ [t]x E`` (Horn 1990) instead of the SVD of the single-call API.
-    """
-    return relpose_5p_nister_batch_unchecked(
-        *check_correspondence_batch(x_query, x_ref, 5), parallel=parallel
-    )
+    return _CALLS.batch_of(x_query, x_ref, parallel)
 
 
 def relpose_5p_nister_batch_unchecked(
@@ -304,4 +223,4 @@ def relpose_5p_nister_batch_unchecked(
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """:func:`relpose_5p_nister_batch` on validated contiguous float64 (M, 5, 3) rays (the RANSAC
     estimators' entry point: their problem is validated once)."""
-    return solve_relpose_batch(_batch_parallel if parallel else _batch, xq, xr, MAX_SOLUTIONS)
+    return _CALLS.batch_unchecked(xq, xr, parallel)

@@ -52,31 +52,22 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
-from planarloc.geometry.essential_decomposition import (
-    check_correspondence_batch,
-    solve_correspondences,
-    solve_relpose_batch,
-)
 from planarloc.geometry.pose import Pose
 from planarloc.numerics.eigen import real_eigenvalues
 from planarloc.solvers._five_point import (
-    BATCH_REFINE_ITERS,
-    BATCH_REFINE_RTOL,
     MAX_SOLUTIONS,
-    RANK_TOL,
-    REFINE_ITERS,
-    REFINE_RTOL,
-    ROTATION_ONLY_TOL,
+    essentials_from_roots,
     five_point_batch,
-    five_point_constraints,
     five_point_essentials,
-    five_point_nullspace,
     five_point_relposes,
     five_point_sample,
-    gauss_jordan,
-    is_rotation_only,
-    store_essential,
-    unit_rows,
+)
+from planarloc.solvers._five_point_api import (
+    BATCH_DOC,
+    ESSENTIALS_DOC,
+    RELPOSES_DOC,
+    FivePointCalls,
+    five_point_doc,
 )
 
 __all__ = [
@@ -86,7 +77,7 @@ __all__ = [
     "relpose_5p_stewenius_batch_unchecked",
 ]
 
-_PIVOT_TOL = 1e-12
+_GREVLEX = np.arange(20)  # the template keeps the constraints' graded reverse lexicographic order
 
 
 @njit(cache=True)
@@ -154,33 +145,15 @@ def action_eigenvector(M: np.ndarray, lam: float, v: np.ndarray) -> bool:
     return True
 
 
-# ---- the solver ------------------------------------------------------------------------------
-
-
 @njit(cache=True)
-def stewenius_essentials(
-    xq: np.ndarray, xr: np.ndarray, E_out: np.ndarray, refine_iters: int, refine_rtol: float
-) -> int:
-    """Kernel: essential matrices from (5, 3) rays; writes E_out[:n] (unit Frobenius norm)."""
-    uq = unit_rows(xq)
-    ur = unit_rows(xr)
-    if is_rotation_only(uq, ur, ROTATION_ONLY_TOL):
-        return 0
-    basis = np.empty((9, 4))
-    if not five_point_nullspace(uq, ur, basis, RANK_TOL):
-        return 0
-    C = five_point_constraints(basis)  # columns already in graded reverse lexicographic order
-    G = np.empty((10, 20))
-    for i in range(10):
-        for j in range(20):
-            G[i, j] = C[i, j]
-    if not gauss_jordan(G, 10, _PIVOT_TOL, 0):
-        return 0
-    # action matrix of x on b = [x², xy, xz, y², yz, z², x, y, z, 1] (columns 10..19 of G)
+def stewenius_roots(A: np.ndarray, sols: np.ndarray) -> int:
+    """Steps 3-4: the real roots ``(x, y, z)`` of the fully reduced template ``A`` (10, 20) (the
+    reduced Gröbner basis) from the action matrix of x, into ``sols[:n]`` (10, 3); returns n."""
+    # action matrix of x on b = [x², xy, xz, y², yz, z², x, y, z, 1] (columns 10..19 of A)
     M = np.zeros((10, 10))
     for i in range(6):  # x·x² = x³, x·xy = x²y, x·xz = x²z, x·y² = xy², x·yz = xyz, x·z² = xz²
         for j in range(10):
-            M[i, j] = -G[i, 10 + j]
+            M[i, j] = -A[i, 10 + j]
     M[6, 0] = 1.0  # x·x = x²
     M[7, 1] = 1.0  # x·y = xy
     M[8, 2] = 1.0  # x·z = xz
@@ -188,18 +161,23 @@ def stewenius_essentials(
     lams = np.empty(10)
     nl = real_eigenvalues(M, lams)
     v = np.empty(10)
-    sol = np.empty(3)
-    m = np.empty(20)
-    dm = np.empty((3, 20))
     count = 0
     for s in range(nl):
         if not action_eigenvector(M, lams[s], v):
             continue
-        sol[0] = v[6]  # = lams[s]
-        sol[1] = v[7]
-        sol[2] = v[8]
-        count = store_essential(C, basis, sol, refine_iters, refine_rtol, m, dm, E_out, count)
+        sols[count, 0] = v[6]  # = lams[s]
+        sols[count, 1] = v[7]
+        sols[count, 2] = v[8]
+        count += 1
     return count
+
+
+@njit(cache=True)
+def stewenius_essentials(
+    xq: np.ndarray, xr: np.ndarray, E_out: np.ndarray, refine_iters: int, refine_rtol: float
+) -> int:
+    """Kernel: essential matrices from (5, 3) rays; writes E_out[:n] (unit Frobenius norm)."""
+    return essentials_from_roots(stewenius_roots, _GREVLEX, 0, xq, xr, E_out, refine_iters, refine_rtol)
 
 
 # ---- the shared five-point drivers bound to this solver's kernel --------------------------------
@@ -207,116 +185,51 @@ def stewenius_essentials(
 
 @njit(cache=True)
 def _essentials(xq, xr, E_out):
-    return five_point_essentials(stewenius_essentials, xq, xr, E_out, REFINE_ITERS, REFINE_RTOL)
+    return five_point_essentials(stewenius_essentials, xq, xr, E_out)
 
 
 @njit(cache=True)
 def _relposes(xq, xr, out):
-    return five_point_relposes(stewenius_essentials, xq, xr, out, REFINE_ITERS, REFINE_RTOL)
+    return five_point_relposes(stewenius_essentials, xq, xr, out)
 
 
 @njit(cache=True)
 def _batch(xq, xr, R, t, valid):
-    five_point_batch(stewenius_essentials, xq, xr, R, t, valid, BATCH_REFINE_ITERS, BATCH_REFINE_RTOL)
+    five_point_batch(stewenius_essentials, xq, xr, R, t, valid)
 
 
 @njit(cache=True, parallel=True)
 def _batch_parallel(xq, xr, R, t, valid):
     for m in prange(xq.shape[0]):
         Es = np.empty((MAX_SOLUTIONS, 3, 3))
-        five_point_sample(
-            stewenius_essentials,
-            xq[m],
-            xr[m],
-            Es,
-            R[m],
-            t[m],
-            valid[m],
-            BATCH_REFINE_ITERS,
-            BATCH_REFINE_RTOL,
-        )
+        five_point_sample(stewenius_essentials, xq[m], xr[m], Es, R[m], t[m], valid[m])
 
 
+# ---- the public functions; their docstrings are the shared templates of _five_point_api ------
+
+_CALLS = FivePointCalls(_essentials, _relposes, _batch, _batch_parallel)
+_REFERENCES = (
+    "Stewénius, Engels & Nistér, ISPRS J. 2006 (Gröbner basis, action matrix); deviations in the"
+    " module docstring"
+)
+_DOC = {"solver": "Stewénius' five-point", "citation": "Stewénius et al. 2006", "references": _REFERENCES}
+
+
+@five_point_doc(ESSENTIALS_DOC, **_DOC)
 def essentials_5p_stewenius(x_query: object, x_ref: object) -> list[np.ndarray]:
-    """All real essential matrices consistent with five correspondences (Stewénius et al. 2006).
-
-    Args:
-        x_query: (5, 3) rays of the query camera: normalized homogeneous points ``(x, y, 1)``
-            or bearing vectors (any non-zero length, any direction).
-        x_ref: (5, 3) rays of the reference camera, row ``i`` matching ``x_query[i]``.
-
-    Returns:
-        Up to 10 (3, 3) essential matrices with ``x_refᵀ E x_query = 0``, unit Frobenius norm,
-        sign arbitrary. No cheirality filtering. Empty for a degenerate sample (repeated points,
-        pure rotation, all points on one epipolar plane).
-
-    Raises:
-        InputError: wrong shape, NaN/inf, or a zero-length ray.
-
-    References:
-        Stewénius, Engels & Nistér, ISPRS J. 2006 (Gröbner basis, action matrix); deviations in
-        the module docstring.
-    """
-    Es = np.empty((MAX_SOLUTIONS, 3, 3))
-    n, _, _ = solve_correspondences(_essentials, x_query, x_ref, Es, rows=5)
-    return list(Es[:n])
+    return _CALLS.essentials_of(x_query, x_ref)
 
 
+@five_point_doc(RELPOSES_DOC, **_DOC)
 def relpose_5p_stewenius(x_query: object, x_ref: object) -> list[Pose]:
-    """All relative poses from five (or more) correspondences, Stewénius' five-point method.
-
-    Args:
-        x_query: (N ≥ 5, 3) rays of the query camera (normalized homogeneous points or
-            bearings). Only the **first five** rows enter the minimal solve.
-        x_ref: (N, 3) matching rays of the reference camera.
-
-    Returns:
-        ``ref_from_query`` poses (``x_ref ∝ R x_query + t``, ``‖t‖ = 1``), one for each real
-        essential matrix whose decomposition puts **all N** points in front of both cameras
-        (the midpoint test of :func:`planarloc.geometry.epipolar.triangulation_depths`).
-        Empty for degenerate input: repeated points, pure rotation, points at infinity
-        (parallel rays), all points on one epipolar plane.
-
-    Raises:
-        InputError: wrong shape, fewer than 5 rows, NaN/inf, or a zero-length ray.
-
-    References:
-        Stewénius, Engels & Nistér, ISPRS J. 2006 (Gröbner basis, action matrix); deviations in
-        the module docstring.
-    """
-    out = np.empty((MAX_SOLUTIONS, 4, 3))
-    return Pose._from_buffer(out, solve_correspondences(_relposes, x_query, x_ref, out, min_rows=5)[0])
+    return _CALLS.relposes_of(x_query, x_ref)
 
 
+@five_point_doc(BATCH_DOC, **_DOC)
 def relpose_5p_stewenius_batch(
     x_query: object, x_ref: object, *, parallel: bool = False
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Stewénius' five-point solver on M samples at once (for RANSAC).
-
-    Args:
-        x_query: (M, 5, 3) query rays (normalized homogeneous points or bearings).
-        x_ref: (M, 5, 3) matching reference rays.
-        parallel: spread the samples over numba's threads (``numba.set_num_threads``). Off by
-            default: the OpenMP/TBB thread pools are not fork-safe, so a process that later
-            forks workers (``multiprocessing`` on Linux) must not have used them.
-
-    Returns:
-        R: (M, 10, 3, 3) rotations ``ref_from_query``; NaN where not valid.
-        t: (M, 10, 3) unit translations; NaN where not valid.
-        valid: (M, 10) bool; True for a real solution whose pose puts all five sample points in
-        front of both cameras. Valid solutions are packed first: ``valid[m, :k]``.
-
-    Raises:
-        InputError: wrong shape, NaN/inf, or a zero-length ray. Degenerate samples raise
-        nothing; their rows of ``valid`` are all False.
-
-    References:
-        Stewénius, Engels & Nistér, ISPRS J. 2006; pose by the closed form of
-        :func:`planarloc.geometry.essential_decomposition.relpose_from_essential_kernel`.
-    """
-    return relpose_5p_stewenius_batch_unchecked(
-        *check_correspondence_batch(x_query, x_ref, 5), parallel=parallel
-    )
+    return _CALLS.batch_of(x_query, x_ref, parallel)
 
 
 def relpose_5p_stewenius_batch_unchecked(
@@ -324,4 +237,4 @@ def relpose_5p_stewenius_batch_unchecked(
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """:func:`relpose_5p_stewenius_batch` on validated contiguous float64 (M, 5, 3) rays (the RANSAC
     estimators' entry point: their problem is validated once)."""
-    return solve_relpose_batch(_batch_parallel if parallel else _batch, xq, xr, MAX_SOLUTIONS)
+    return _CALLS.batch_unchecked(xq, xr, parallel)

@@ -61,50 +61,15 @@ from numba import njit, prange
 
 from planarloc.geometry.pose import Pose
 from planarloc.geometry.validation import InputError, check_array, plain_float64_pair
-from planarloc.solvers.relpose_planar_2p import planar_pose_into
+from planarloc.solvers.relpose_planar_2p import (
+    check_rays_or_points,
+    planar_depth_sign,
+    planar_pose_into,
+    planar_poses,
+)
 
 _EPS_RANK = 1e-10  # minimum 3-volume of the three unit rows (rank 3 test)
 _EPS_PAIR = 1e-12  # minimum squared norm of a circle pair (x1, x2) or (x3, x4)
-
-
-@njit(cache=True, inline="always", error_model="numpy")
-def _point_depth_sign(
-    ct: float,
-    st: float,
-    sp: float,
-    cp: float,
-    q0: float,
-    q1: float,
-    q2: float,
-    r0: float,
-    r1: float,
-    r2: float,
-) -> int:
-    """+1 if the point is in front of both cameras for (θ, φ), -1 for (θ, φ + π), 0 for neither,
-    2 for parallel rays (a point at infinity). ``ct, st = cos θ, sin θ``; ``sp, cp = sin φ, cos φ``.
-
-    Midpoint depths of ``λ_r x_r ≈ λ_q R x_q + t`` with ``t = -R_y(θ) [sin φ, 0, cos φ]`` (eq. 1).
-    """
-    t0 = -(ct * sp - st * cp)
-    t2 = -(st * sp + ct * cp)
-    a0 = ct * q0 - st * q2
-    a1 = q1
-    a2 = st * q0 + ct * q2
-    aa = a0 * a0 + a1 * a1 + a2 * a2
-    bb = r0 * r0 + r1 * r1 + r2 * r2
-    ab = a0 * r0 + a1 * r1 + a2 * r2
-    at = a0 * t0 + a2 * t2
-    bt = r0 * t0 + r2 * t2
-    det = aa * bb - ab * ab
-    if det <= 1e-12 * aa * bb:
-        return 2
-    lq = (-at * bb + ab * bt) / det
-    lr = (aa * bt - ab * at) / det
-    if lq > 0 and lr > 0:
-        return 1
-    if lq < 0 and lr < 0:
-        return -1
-    return 0
 
 
 @njit(cache=True, inline="always", error_model="numpy")
@@ -268,7 +233,7 @@ def solve_planar_1ac(xq: np.ndarray, xr: np.ndarray, A: np.ndarray, out: np.ndar
     sp, cp = x[2] / r2, x[3] / r2  # sin φ, cos φ (up to the common sign of x)
     ct = co1 * cp - s1 * sp  # cos θ; invariant under x -> -x
     st = s1 * cp + co1 * sp
-    sign = _point_depth_sign(ct, st, sp, cp, xq[0], xq[1], xq[2], xr[0], xr[1], xr[2])
+    sign = planar_depth_sign(ct, st, sp, cp, xq[0], xq[1], xq[2], xr[0], xr[1], xr[2])
     if sign == 2 or sign == 0:
         return 0  # a point at infinity, or behind a camera for both signs of t
     out[0] = np.arctan2(st, ct)
@@ -314,14 +279,6 @@ def _solve_batch_parallel(
 
 
 _PARALLEL_MIN_BATCH = 4096  # below this, thread start-up costs more than it saves
-
-
-def _check_rays(name: str, x: object, shape: tuple) -> np.ndarray:
-    """Checked rays of ``shape`` (last axis 3); normalized points with a last axis of 2 get z = 1."""
-    arr = check_array(name, x)
-    if arr.ndim == len(shape) and arr.shape[-1] == 2:
-        arr = np.concatenate([arr, np.ones(arr.shape[:-1] + (1,))], axis=-1)
-    return np.ascontiguousarray(check_array(name, arr, shape))
 
 
 def relpose_planar_1ac(
@@ -372,8 +329,8 @@ def relpose_planar_1ac(
     if rays is not None and plain_affine is not None:
         n = _relposes(*rays, plain_affine[0], float(max_imbalance), out)
     if n == -1:  # not plain float64 arrays, (2,) points, or invalid: convert, or raise the message
-        xq = _check_rays("x_query", x_query, (3,))
-        xr = _check_rays("x_ref", x_ref, (3,))
+        xq = check_rays_or_points("x_query", x_query, (3,))
+        xr = check_rays_or_points("x_ref", x_ref, (3,))
         A = np.ascontiguousarray(check_array("affine", affine, (2, 2)))
         n = _relposes(xq, xr, A, float(max_imbalance), out)
     return Pose._from_buffer(out, n)
@@ -396,12 +353,13 @@ def relpose_planar_1ac_batch(
         solution axis of length 1 matches the other batched solvers' ``(M, K, ...)`` layout.
         No solution is filtered by its imbalance: threshold it as needed.
     """
-    xq = _check_rays("x_query", x_query, (None, 3))
-    xr = _check_rays("x_ref", x_ref, (None, 3))
+    xq = check_rays_or_points("x_query", x_query, (None, 3))
+    xr = check_rays_or_points("x_ref", x_ref, (None, 3))
     A = np.ascontiguousarray(check_array("affine", affine, (None, 2, 2)))
     if not xq.shape[0] == xr.shape[0] == A.shape[0]:
         raise InputError(
-            f"x_query, x_ref, affine: different numbers of correspondences ({xq.shape[0]}, {xr.shape[0]}, {A.shape[0]})"
+            "x_query, x_ref, affine: different numbers of correspondences "
+            f"({xq.shape[0]}, {xr.shape[0]}, {A.shape[0]})"
         )
     return planar_1ac_batch_unchecked(xq, xr, A)
 
@@ -416,14 +374,7 @@ def planar_1ac_batch_unchecked(
     counts = np.zeros(m, dtype=np.int64)
     (_solve_batch_parallel if m >= _PARALLEL_MIN_BATCH else _solve_batch)(xq, xr, A, sol, counts)
     valid = (counts > 0)[:, None]
-    theta, phi = sol[:, 0:1], sol[:, 1:2]
-    c, s = np.cos(theta), np.sin(theta)
-    R = np.zeros((m, 1, 3, 3))
-    R[..., 0, 0], R[..., 0, 2], R[..., 1, 1], R[..., 2, 0], R[..., 2, 2] = c, -s, 1.0, s, c
-    d = np.stack([np.sin(phi), np.zeros_like(phi), np.cos(phi)], axis=-1)
-    t = -np.einsum("smij,smj->smi", R, d)
+    R, t = planar_poses(sol[:, 0:1], sol[:, 1:2], valid)
     imbalance = sol[:, 2:3].copy()
-    R[~valid] = np.nan
-    t[~valid] = np.nan
     imbalance[~valid] = np.nan
     return R, t, valid, imbalance

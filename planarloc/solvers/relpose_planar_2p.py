@@ -35,36 +35,58 @@ _EPS_FORM = 1e-12
 
 
 @njit(cache=True, inline="always", error_model="numpy")
+def planar_depth_sign(
+    ct: float,
+    st: float,
+    sp: float,
+    cp: float,
+    q0: float,
+    q1: float,
+    q2: float,
+    r0: float,
+    r1: float,
+    r2: float,
+) -> int:
+    """+1 if the match ``(q, r)`` is in front of both cameras for (θ, φ), -1 for (θ, φ + π), 0 for
+    neither, 2 for parallel rays (a point at infinity or on the baseline). ``ct, st = cos θ,
+    sin θ``; ``sp, cp = sin φ, cos φ``.
+
+    Midpoint depths of ``λ_r x_r ≈ λ_q R x_q + t`` with ``t = -R_y(θ) [sin φ, 0, cos φ]`` (eq. 1).
+    """
+    t0 = -(ct * sp - st * cp)
+    t2 = -(st * sp + ct * cp)
+    a0 = ct * q0 - st * q2
+    a1 = q1
+    a2 = st * q0 + ct * q2
+    aa = a0 * a0 + a1 * a1 + a2 * a2
+    bb = r0 * r0 + r1 * r1 + r2 * r2
+    ab = a0 * r0 + a1 * r1 + a2 * r2
+    at = a0 * t0 + a2 * t2
+    bt = r0 * t0 + r2 * t2
+    det = aa * bb - ab * ab
+    if det <= 1e-12 * aa * bb:
+        return 2
+    lq = (-at * bb + ab * bt) / det
+    lr = (aa * bt - ab * at) / det
+    if lq > 0 and lr > 0:
+        return 1
+    if lq < 0 and lr < 0:
+        return -1
+    return 0
+
+
+@njit(cache=True, inline="always", error_model="numpy")
 def _depth_signs(c: float, s: float, sp: float, cp: float, xq: np.ndarray, xr: np.ndarray) -> int:
     """+1 if both matches have positive depths for (θ, φ), -1 if for (θ, φ + π), 0 if
     neither, 2 if a match has parallel rays (a point at infinity: no depth information).
 
-    ``c, s = cos θ, sin θ`` and ``sp, cp = sin φ, cos φ``; t = -R_y(θ) [sin φ, 0, cos φ].
+    ``c, s = cos θ, sin θ`` and ``sp, cp = sin φ, cos φ``; per match :func:`planar_depth_sign`.
     """
-    t0 = -(c * sp - s * cp)
-    t2 = -(s * sp + c * cp)
     sign = 0
     for k in range(2):
-        a0 = c * xq[k, 0] - s * xq[k, 2]  # a = R x_query
-        a1 = xq[k, 1]
-        a2 = s * xq[k, 0] + c * xq[k, 2]
-        b0, b1, b2 = xr[k, 0], xr[k, 1], xr[k, 2]
-        aa = a0 * a0 + a1 * a1 + a2 * a2
-        bb = b0 * b0 + b1 * b1 + b2 * b2
-        ab = a0 * b0 + a1 * b1 + a2 * b2
-        at = a0 * t0 + a2 * t2
-        bt = b0 * t0 + b2 * t2
-        det = aa * bb - ab * ab
-        if det <= 1e-12 * aa * bb:
-            return 2  # parallel rays: point at infinity or on the baseline
-        lq = (-at * bb + ab * bt) / det
-        lr = (aa * bt - ab * at) / det
-        if lq > 0 and lr > 0:
-            s_k = 1
-        elif lq < 0 and lr < 0:
-            s_k = -1
-        else:
-            return 0
+        s_k = planar_depth_sign(c, s, sp, cp, xq[k, 0], xq[k, 1], xq[k, 2], xr[k, 0], xr[k, 1], xr[k, 2])
+        if s_k == 2 or s_k == 0:
+            return s_k
         if sign == 0:
             sign = s_k
         elif sign != s_k:
@@ -269,8 +291,9 @@ def _solve_batch_parallel(
 _PARALLEL_MIN_BATCH = 4096  # below this, thread start-up costs more than it saves
 
 
-def _check_points(name: str, x: object, shape: tuple) -> np.ndarray:
-    """Checked rays of ``shape`` (last axis 3); normalized points with a last axis of 2 get z = 1."""
+def check_rays_or_points(name: str, x: object, shape: tuple) -> np.ndarray:
+    """Checked rays of ``shape`` (last axis 3); normalized points with a last axis of 2 (and the
+    other axes of ``shape``) get z = 1."""
     arr = check_array(name, x)
     if (
         arr.ndim == len(shape)
@@ -279,6 +302,19 @@ def _check_points(name: str, x: object, shape: tuple) -> np.ndarray:
     ):
         arr = np.concatenate([arr, np.ones(arr.shape[:-1] + (1,))], axis=-1)
     return check_array(name, arr, shape)
+
+
+def planar_poses(thetas: np.ndarray, phis: np.ndarray, valid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``ref_from_query`` of the paper's (θ, φ) (eq. 1, ρ = 1) of shape (M, K): R (M, K, 3, 3),
+    t (M, K, 3), NaN where ``valid`` (M, K) is False (the batched solvers' output)."""
+    c, s = np.cos(thetas), np.sin(thetas)
+    R = np.zeros(thetas.shape + (3, 3))
+    R[..., 0, 0], R[..., 0, 2], R[..., 1, 1], R[..., 2, 0], R[..., 2, 2] = c, -s, 1.0, s, c
+    d = np.stack([np.sin(phis), np.zeros_like(phis), np.cos(phis)], axis=-1)
+    t = -np.einsum("smij,smj->smi", R, d)
+    R[~valid] = np.nan
+    t[~valid] = np.nan
+    return R, t
 
 
 def relpose_planar_2p(x_query: object, x_ref: object) -> list[Pose]:
@@ -313,7 +349,11 @@ def relpose_planar_2p(x_query: object, x_ref: object) -> list[Pose]:
     pair = plain_float64_pair(x_query, x_ref, 2)
     n = _relposes(*pair, out) if pair is not None else -1
     if n == -1:  # not a plain float64 array, (2, 2) points, or invalid: convert, or raise the message
-        n = _relposes(_check_points("x_query", x_query, (2, 3)), _check_points("x_ref", x_ref, (2, 3)), out)
+        n = _relposes(
+            check_rays_or_points("x_query", x_query, (2, 3)),
+            check_rays_or_points("x_ref", x_ref, (2, 3)),
+            out,
+        )
     return Pose._from_buffer(out, n)
 
 
@@ -331,8 +371,8 @@ def relpose_planar_2p_batch(x_query: object, x_ref: object) -> tuple[np.ndarray,
         valid solutions come first, invalid slots are NaN. Solution ``k`` of sample ``i`` is
         ``relpose_from_planar_params(θ, φ)`` of the paper's parameters.
     """
-    xq = _check_points("x_query", x_query, (None, 2, 3))
-    xr = _check_points("x_ref", x_ref, (None, 2, 3))
+    xq = check_rays_or_points("x_query", x_query, (None, 2, 3))
+    xr = check_rays_or_points("x_ref", x_ref, (None, 2, 3))
     if xq.shape[0] != xr.shape[0]:
         raise InputError(f"x_query and x_ref: different numbers of samples ({xq.shape[0]} vs {xr.shape[0]})")
     return planar_2p_batch_unchecked(xq, xr)
@@ -347,11 +387,5 @@ def planar_2p_batch_unchecked(xq: np.ndarray, xr: np.ndarray) -> tuple[np.ndarra
     counts = np.zeros(m, dtype=np.int64)
     (_solve_batch_parallel if m >= _PARALLEL_MIN_BATCH else _solve_batch)(xq, xr, thetas, phis, counts)
     valid = np.arange(2)[None, :] < counts[:, None]
-    c, s = np.cos(thetas), np.sin(thetas)
-    R = np.zeros((m, 2, 3, 3))
-    R[..., 0, 0], R[..., 0, 2], R[..., 1, 1], R[..., 2, 0], R[..., 2, 2] = c, -s, 1.0, s, c
-    d = np.stack([np.sin(phis), np.zeros_like(phis), np.cos(phis)], axis=-1)
-    t = -np.einsum("smij,smj->smi", R, d)
-    R[~valid] = np.nan
-    t[~valid] = np.nan
+    R, t = planar_poses(thetas, phis, valid)
     return R, t, valid

@@ -176,14 +176,16 @@ class RerunLogger:
         image_path: Path | str | None = None,
         truth: Pose | None = None,
     ) -> None:
-        """One frame of a stream, from its record (:func:`planarloc.localize.records.frame_record`), at its stamp."""
+        """One frame of a stream, from its record (:func:`planarloc.localize.records.frame_record`),
+        at its stamp."""
         rr = self.rr
         self.rec.set_time("stamp", duration=float(record["stamp"]))
         latency = (record.get("time_s") or {}).get("latency")
         self.rec.log(
             "stream/status",
             rr.TextDocument(
-                f"{name}: {record['status']}, fix {record.get('fix_status')}, motion {record.get('motion_source')}"
+                f"{name}: {record['status']}, fix {record.get('fix_status')}, motion "
+                f"{record.get('motion_source')}"
                 + ("" if latency is None else f", latency {1e3 * float(latency):.0f} ms")
             ),
         )

@@ -28,7 +28,8 @@ def run(argv: list) -> int:
 
 @pytest.fixture(scope="module")
 def query_bag(tiny_world: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """The query session as a ROS 2 bag: sensor_msgs/Image, /tf map -> base_link, /tf_static base -> camera."""
+    """The query session as a ROS 2 bag: sensor_msgs/Image, /tf map -> base_link,
+    /tf_static base -> camera."""
     out = tmp_path_factory.mktemp("bags") / "query"
     return write_rosbag(
         out,

@@ -140,7 +140,9 @@ def test_bad_jobs_is_one_line(jobs: str, capsys: pytest.CaptureFixture[str]) -> 
 BAD_LISTS = {
     "kernels a list": '{"kernels": [], "steps": {}}',
     "not an object": "[1, 2]",
-    "signatures a number": '{"kernels": {"planarloc.geometry.mat3:dot": {"signatures": 3, "compile_s": 1}}, "steps": {}}',
+    "signatures a number": (
+        '{"kernels": {"planarloc.geometry.mat3:dot": {"signatures": 3, "compile_s": 1}}, "steps": {}}'
+    ),
     "steps of numbers": '{"kernels": {}, "steps": {"solvers": [1]}}',
     "not JSON": "{kernels",
 }

@@ -394,8 +394,8 @@ def test_a_missing_aliked_extra_names_what_to_install(monkeypatch: pytest.Monkey
 
 def test_the_base_install_never_imports_torch() -> None:
     code = (
-        "import sys, numpy as np, planarloc, planarloc.cli.main, planarloc.ros2.node, planarloc.serve.worker; "
-        "from planarloc.features.extract import FeatureConfig, extract_features; "
+        "import sys, numpy as np, planarloc, planarloc.cli.main, planarloc.ros2.node, "
+        "planarloc.serve.worker; from planarloc.features.extract import FeatureConfig, extract_features; "
         "from planarloc.features.matching import match_query_to_refs; "
         "f = extract_features((np.random.default_rng(0).random((120, 160)) * 255).astype(np.uint8)); "
         "match_query_to_refs(f, [f]); "

@@ -72,8 +72,9 @@ def test_a_shifted_image_is_tracked_to_a_fraction_of_a_pixel() -> None:
 
 
 def test_relative_pose_of_a_rendered_stream(dense_stream: list) -> None:
-    """Half the motions or more within 1° of rotation, each with a positive definite covariance (small steps next to turns have wrong basins that explain the tracks as well:
-    the stream checks visual odometry against map points and fixes)."""
+    """Half the motions or more within 1° of rotation, each with a positive definite covariance (small steps
+    next to turns have wrong basins that explain the tracks as well: the stream checks visual odometry against
+    map points and fixes)."""
     tracker = FrameTracker()
     rot, good = [], 0
     for k, im in enumerate(dense_stream[:20]):

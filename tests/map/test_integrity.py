@@ -244,7 +244,8 @@ def test_settings_check_leaves_a_map_another_process_is_writing_to_the_build(tmp
             sys.executable,
             "-c",
             "import sys; from planarloc.map.lock import MapWriterLock; "
-            f"lock = MapWriterLock({str(path)!r}); lock.acquire(); print('held', flush=True); sys.stdin.read()",
+            f"lock = MapWriterLock({str(path)!r}); lock.acquire(); print('held', flush=True); "
+            "sys.stdin.read()",
         ],
         stdin=subprocess.PIPE,
         stdout=subprocess.PIPE,
@@ -268,7 +269,8 @@ def test_second_writer_waits_or_names_the_pid(built: Path) -> None:
             sys.executable,
             "-c",
             "import sys; from planarloc.map.lock import MapWriterLock; "
-            f"lock = MapWriterLock({str(built)!r}); lock.acquire(); print('held', flush=True); sys.stdin.read()",
+            f"lock = MapWriterLock({str(built)!r}); lock.acquire(); print('held', flush=True); "
+            "sys.stdin.read()",
         ],
         stdin=subprocess.PIPE,
         stdout=subprocess.PIPE,

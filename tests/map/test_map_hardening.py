@@ -51,7 +51,8 @@ def _holder(path: Path) -> subprocess.Popen:
             sys.executable,
             "-c",
             "import sys; from planarloc.map.lock import MapWriterLock; "
-            f"lock = MapWriterLock({str(path)!r}); lock.acquire(); print('held', flush=True); sys.stdin.read()",
+            f"lock = MapWriterLock({str(path)!r}); lock.acquire(); print('held', flush=True); "
+            "sys.stdin.read()",
         ],
         stdin=subprocess.PIPE,
         stdout=subprocess.PIPE,

@@ -186,7 +186,7 @@ def test_a_session_goes_on_after_bad_frames_and_stamps(localizer: Localizer, ser
     assert send(images[4], 0.4)["session"]["frame"] == 5
 
 
-# ---- on a real server ---------------------------------------------------------------------------------------
+# ---- on a real server --------------------------------------------------------------------------------------
 @pytest.fixture(scope="module")
 def served(served_world) -> Iterator[Served]:
     world, map_path, camera = served_world
