@@ -29,7 +29,7 @@ API):
   points) and :func:`five_point_batch` / :func:`five_point_sample` (the RANSAC batches).
 
 The Python functions of both solvers (checked calls, docstrings) are written once in
-:mod:`planarloc.solvers._five_point_api`.
+:mod:`planarloc.solvers._five_point_calls`.
 
 Univariate real roots (Sturm sequences) and real eigenvalues are generic numerics and live
 in :mod:`planarloc.numerics`.

@@ -72,7 +72,7 @@ from planarloc.solvers._five_point import (
     five_point_sample,
     monomial_permutation,
 )
-from planarloc.solvers._five_point_api import (
+from planarloc.solvers._five_point_calls import (
     BATCH_DOC,
     ESSENTIALS_DOC,
     RELPOSES_DOC,
@@ -194,7 +194,7 @@ def _batch_parallel(xq, xr, R, t, valid):
         five_point_sample(nister_essentials, xq[m], xr[m], Es, R[m], t[m], valid[m])
 
 
-# ---- the public functions; their docstrings are the shared templates of _five_point_api ------
+# ---- the public functions; their docstrings are the shared templates of _five_point_calls ------
 
 _CALLS = FivePointCalls(_essentials, _relposes, _batch, _batch_parallel)
 _REFERENCES = "Nistér, TPAMI 2004, Sec. 3; deviations listed in the module docstring"

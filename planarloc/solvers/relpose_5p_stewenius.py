@@ -62,7 +62,7 @@ from planarloc.solvers._five_point import (
     five_point_relposes,
     five_point_sample,
 )
-from planarloc.solvers._five_point_api import (
+from planarloc.solvers._five_point_calls import (
     BATCH_DOC,
     ESSENTIALS_DOC,
     RELPOSES_DOC,
@@ -205,7 +205,7 @@ def _batch_parallel(xq, xr, R, t, valid):
         five_point_sample(stewenius_essentials, xq[m], xr[m], Es, R[m], t[m], valid[m])
 
 
-# ---- the public functions; their docstrings are the shared templates of _five_point_api ------
+# ---- the public functions; their docstrings are the shared templates of _five_point_calls ------
 
 _CALLS = FivePointCalls(_essentials, _relposes, _batch, _batch_parallel)
 _REFERENCES = (
