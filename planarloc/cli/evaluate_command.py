@@ -11,13 +11,14 @@ from pathlib import Path
 from planarloc.cli.commands import add_command
 from planarloc.cli.console import note, progress_bar
 from planarloc.cli.cross_session import add_cross_session_args, read_map_and_queries
-from planarloc.cli.exit_codes import EVALUATE_RESUMES, EXIT_PARTIAL
-from planarloc.cli.map_building import build_calibrated_map
+from planarloc.cli.exit_codes import EVALUATE_RESUMES
+from planarloc.cli.map_building import build_calibrated_map, left_out_exit
 from planarloc.cli.options import (
     add_dataset_args,
     add_feature_args,
     add_gravity_args,
     add_localizer_args,
+    add_ray_arg,
     check_vocabulary_size,
     feature_config,
     localizer_config_of,
@@ -98,14 +99,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         "write DIR/estimate.txt and DIR/groundtruth.txt (TUM, camera-to-world, localized queries) "
         "for `evo_ape tum DIR/groundtruth.txt DIR/estimate.txt`, and add evo's APE/RPE to the JSON",
     )
-    p.add_argument(
-        "--ray",
-        nargs="?",
-        const="local",
-        metavar="ADDRESS",
-        help="distribute over a Ray cluster (auto, HOST:PORT, ray://HOST:PORT; a local one without "
-        "ADDRESS); needs pip install 'planarloc[ray]'",
-    )
+    add_ray_arg(p)
     add_sequence_args(p, evaluate=True)
 
 
@@ -133,8 +127,11 @@ def run(args: argparse.Namespace) -> int:
         with progress_bar() as update:
             left_out = build_calibrated_map(map_images, map_path, features, num_words, update)
         _map_gravity_warnings(map_path)
-        return _left_out_exit(
-            evaluate_sequential(args, map_path, map_images, queries, config), left_out, len(map_images)
+        return left_out_exit(
+            evaluate_sequential(args, map_path, map_images, queries, config),
+            left_out,
+            len(map_images),
+            "map images",
         )
     results, gravity, left_out = _build_and_localize(
         args, map_images, queries, map_path, features, num_words, config, pairs, gravity
@@ -150,8 +147,8 @@ def run(args: argparse.Namespace) -> int:
         query_gravity="truth" if args.gravity_from_truth else ("file" if gravity else "map"),
     )
     summary["map_images_left_out"] = [{"name": name, "reason": reason} for name, reason in left_out]
-    return _left_out_exit(
-        _report(args, summary, results, map_images, map_path, title), left_out, len(map_images)
+    return left_out_exit(
+        _report(args, summary, results, map_images, map_path, title), left_out, len(map_images), "map images"
     )
 
 
@@ -161,19 +158,6 @@ def _map_gravity_warnings(map_path: Path) -> None:
     with MapDatabase.open(map_path) as db:
         for w in map_gravity(db).warnings:
             note(f"warning: {map_path}: {w}")
-
-
-def _left_out_exit(code: int, left_out: list[tuple[str, str]], total: int) -> int:
-    """The exit code, 3 when map images were left out (as `map build`), with their list."""
-    if not left_out:
-        return code
-    note(
-        f"{len(left_out)} of {total} map images were left out of the map (fix or remove them, then re-run "
-        "the same command to add them):"
-    )
-    for name, reason in left_out:
-        note(f"  {name}: {reason}")
-    return max(code, EXIT_PARTIAL)
 
 
 def _check_options(args: argparse.Namespace) -> None:

@@ -1,6 +1,7 @@
 """The map build the commands share (`map build`, `evaluate`, `demo`): :func:`build_map` with the
 console's notes, the images it leaves out collected, then the map's std calibration when the build
-changed the map (:func:`planarloc.localize.held_out.calibrate_map_std_when_due`)."""
+changed the map (:func:`planarloc.localize.held_out.calibrate_map_std_when_due`), and the list of
+the images it left out that ends those commands' output (exit code 3)."""
 
 from __future__ import annotations
 
@@ -8,6 +9,7 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from planarloc.cli.console import note, notify
+from planarloc.cli.exit_codes import EXIT_PARTIAL
 from planarloc.features.extract import FeatureConfig
 from planarloc.localize.held_out import Progress, calibrate_map_std_when_due
 from planarloc.map.builder import Mapper, build_map
@@ -48,3 +50,18 @@ def build_calibrated_map(
     )
     calibrate_map_std_when_due(path, progress=progress)
     return left_out
+
+
+def left_out_exit(code: int, left_out: list[tuple[str, str]], total: int, what: str = "images") -> int:
+    """The exit code ``code``, at least 3 ("partly done") when images were left out of the map
+    (``left_out`` of the ``total`` ``what`` given to :func:`build_calibrated_map`), whose list it
+    says on the console."""
+    if not left_out:
+        return code
+    note(
+        f"{len(left_out)} of {total} {what} were left out of the map (fix or remove them, then re-run "
+        "the same command to add them):"
+    )
+    for name, reason in left_out:
+        note(f"  {name}: {reason}")
+    return max(code, EXIT_PARTIAL)

@@ -7,11 +7,12 @@ from pathlib import Path
 
 from planarloc.cli.commands import add_command
 from planarloc.cli.console import info, note, progress_bar
-from planarloc.cli.exit_codes import BUILD_RESUMES, EXIT_PARTIAL
-from planarloc.cli.map_building import build_calibrated_map
+from planarloc.cli.exit_codes import BUILD_RESUMES
+from planarloc.cli.map_building import build_calibrated_map, left_out_exit
 from planarloc.cli.options import (
     add_dataset_args,
     add_feature_args,
+    add_ray_arg,
     check_vocabulary_size,
     feature_config,
     parse_dataset_options,
@@ -116,14 +117,7 @@ def _add_build_options(b: argparse.ArgumentParser) -> None:
         "matches contradict the poses (their world frame looks unrelated to the map's); default: "
         "refuse, leaving the map as it was",
     )
-    b.add_argument(
-        "--ray",
-        nargs="?",
-        const="local",
-        metavar="ADDRESS",
-        help="distribute over a Ray cluster (auto, HOST:PORT, ray://HOST:PORT; a local one without "
-        "ADDRESS); needs pip install 'planarloc[ray]'",
-    )
+    add_ray_arg(b)
 
 
 def _add_inspect_parsers(msub: argparse._SubParsersAction) -> None:
@@ -178,16 +172,7 @@ def run_build(args: argparse.Namespace) -> int:
             storage=args.storage,
             allow_unrelated_frames=args.allow_unrelated_frames,
         )
-    code = run_info(argparse.Namespace(map=args.out))
-    if left_out:
-        note(
-            f"{len(left_out)} of {len(images)} images were left out of the map (fix or remove them, then "
-            "re-run the same command to add them):"
-        )
-        for name, reason in left_out:
-            note(f"  {name}: {reason}")
-        return EXIT_PARTIAL
-    return code
+    return left_out_exit(run_info(argparse.Namespace(map=args.out)), left_out, len(images))
 
 
 def run_info(args: argparse.Namespace) -> int:

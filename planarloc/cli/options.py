@@ -172,6 +172,18 @@ def add_number(
     g.add_argument(flag, type=kind, default=default, help=f"{text} (default: %(default)s)")
 
 
+def add_ray_arg(p: argparse.ArgumentParser) -> None:
+    """``--ray [ADDRESS]`` of the commands that can build maps (and localize) on a Ray cluster."""
+    p.add_argument(
+        "--ray",
+        nargs="?",
+        const="local",
+        metavar="ADDRESS",
+        help="distribute over a Ray cluster (auto, HOST:PORT, ray://HOST:PORT; a local one without "
+        "ADDRESS); needs pip install 'planarloc[ray]'",
+    )
+
+
 def add_localizer_args(p: argparse.ArgumentParser) -> None:
     g = p.add_argument_group("localization")
     for flags, kind, default, text in (

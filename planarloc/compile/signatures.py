@@ -24,10 +24,10 @@ def numba_types() -> dict[str, object]:
 def kernel_records() -> tuple[type, ...]:
     """The named records (``typing.NamedTuple`` of arrays) the kernels take as arguments."""
     from planarloc.robust.consensus_scale import PairMotions, ScaleVotes
-    from planarloc.robust.hypotheses import RelativePoses
+    from planarloc.robust.hypotheses import Hypotheses, RelativePoses
     from planarloc.robust.problem import ProblemArrays
 
-    return (ProblemArrays, RelativePoses, PairMotions, ScaleVotes)
+    return (ProblemArrays, RelativePoses, Hypotheses, PairMotions, ScaleVotes)
 
 
 def _record_type(record: type) -> Callable[..., object]:

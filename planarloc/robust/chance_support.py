@@ -23,7 +23,7 @@ from numba import njit
 from scipy.special import pdtrc
 
 from planarloc.geometry.epipolar_kernels import relative_essential_into, sampson_sq
-from planarloc.robust.problem import AbsolutePoseProblem
+from planarloc.robust.problem import AbsolutePoseProblem, ProblemArrays
 
 CHANCE_SHIFTS = 4
 """Re-pairings averaged for the expected chance inliers of a pair."""
@@ -63,14 +63,8 @@ def chance_inliers(
     return _chance_kernel(
         np.ascontiguousarray(R, dtype=float),
         np.ascontiguousarray(t, dtype=float),
-        problem.xq,
-        problem.xr,
-        problem.offsets,
+        problem.arrays,
         order,
-        problem.f_query,
-        problem.f_ref,
-        problem.ref_R,
-        problem.ref_t,
         float(threshold_px) ** 2,
         int(shifts),
     )
@@ -80,18 +74,14 @@ def chance_inliers(
 def _chance_kernel(
     R: np.ndarray,
     t: np.ndarray,
-    xq: np.ndarray,
-    xr: np.ndarray,
-    offsets: np.ndarray,
+    prob: ProblemArrays,
     order: np.ndarray,
-    f_query: np.ndarray,
-    f_ref: np.ndarray,
-    ref_R: np.ndarray,
-    ref_t: np.ndarray,
     threshold_sq: float,
     shifts: int,
 ) -> np.ndarray:
     # Compiled: numpy's per-call overhead for a few dozen matches was ~8 % of a query's time.
+    xq, xr, offsets, f_query, f_ref = prob.xq, prob.xr, prob.offsets, prob.f_query, prob.f_ref
+    ref_R, ref_t = prob.ref_R, prob.ref_t
     out = np.zeros(offsets.shape[0] - 1)
     E = np.empty((3, 3))
     for p in range(offsets.shape[0] - 1):

@@ -15,7 +15,7 @@ from numba import njit
 
 from planarloc.geometry import mat3 as m3
 from planarloc.geometry.epipolar_kernels import sampson_sq
-from planarloc.robust.hypotheses import DEGENERATE, HYPOTHESES, emit_planar, positive_depths
+from planarloc.robust.hypotheses import DEGENERATE, HYPOTHESES, Hypotheses, emit_planar, positive_depths
 from planarloc.robust.problem import ProblemArrays
 from planarloc.solvers.relpose_planar_2p import planar_pose_into, solve_planar_2p
 
@@ -368,9 +368,7 @@ def hypotheses_2p1p_consensus(
     threshold_sq: float,
     peaks: int,
     max_votes: int,
-    out_R: np.ndarray,
-    out_t: np.ndarray,
-    counters: np.ndarray,
+    dest: Hypotheses,
 ) -> int:
     """Stage 2 of the consensus 2p1p: the scale of each relative pose from all other matches.
 
@@ -391,7 +389,7 @@ def hypotheses_2p1p_consensus(
         max_votes: with more matches in the other pairs than this, every s-th match of each
             pair votes (s = ⌈others / max_votes⌉): a hundred votes find the peak as well as
             a thousand, and the cost is linear in the votes.
-        out_R, out_t: (C * peaks, ...) ``query_from_world`` outputs.
+        dest: room for C * peaks hypotheses (:class:`~planarloc.robust.hypotheses.Hypotheses`).
 
     Returns:
         number of hypotheses written. A relative pose without any interval (all other
@@ -417,8 +415,8 @@ def hypotheses_2p1p_consensus(
         stride = max(1, (others + max_votes - 1) // max_votes)
         m = _scale_votes(j, R, tt, R_kj, t_kj, prob, stride, threshold_sq, motions, votes)
         if m == 0:
-            counters[HYPOTHESES] += 1
-            counters[DEGENERATE] += 1
+            dest.counters[HYPOTHESES] += 1
+            dest.counters[DEGENERATE] += 1
             continue
         slo = np.sort(votes.lo[:m])
         shi = np.sort(votes.hi[:m])
@@ -430,7 +428,7 @@ def hypotheses_2p1p_consensus(
             # Suppress the neighbourhood of this maximum (±10 % of ρ) for the next peak.
             used_lo[found] = rho * 0.9
             used_hi[found] = rho * 1.1
-            counters[HYPOTHESES] += 1
+            dest.counters[HYPOTHESES] += 1
             in_front = rho > 0.0 and _majority_in_front(rho, votes, m, motions, prob.xq, prob.xr)
-            out = emit_planar(rho, in_front, R, tt, prob.ref_R[j], prob.ref_t[j], out_R, out_t, out, counters)
+            out = emit_planar(rho, in_front, R, tt, prob.ref_R[j], prob.ref_t[j], dest, out)
     return out

@@ -23,6 +23,7 @@ import numpy as np
 
 from planarloc.robust.consensus_scale import hypotheses_2p1p_consensus, planar_relative_candidates
 from planarloc.robust.hypotheses import (
+    Hypotheses,
     RelativePoses,
     hypotheses_2p1p,
     hypotheses_from_relative_poses,
@@ -241,21 +242,12 @@ class Planar2p1pEstimator(ProblemEstimator):
             prel,
             self.counters,
         )
-        out_R, out_t = np.empty((c * self.peaks, 3, 3)), np.empty((c * self.peaks, 3))
+        found = Hypotheses.empty(c * self.peaks, self.counters)
         m = hypotheses_2p1p_consensus(
-            Rrel[:c],
-            trel[:c],
-            prel[:c],
-            p.arrays,
-            self.threshold_sq,
-            self.peaks,
-            self.max_votes,
-            out_R,
-            out_t,
-            self.counters,
+            Rrel[:c], trel[:c], prel[:c], p.arrays, self.threshold_sq, self.peaks, self.max_votes, found
         )
         self._flush(stats)
-        return out_R[:m], out_t[:m]
+        return found.first(m)
 
     def generate(
         self, rng: np.random.Generator, n: int, stats: RansacStatistics
@@ -283,30 +275,18 @@ class Planar2p1pEstimator(ProblemEstimator):
                 first = rng.integers(0, len(p.X3d), len(up))
                 second = (first + rng.integers(1, len(p.X3d), len(up))) % len(p.X3d)
                 s_up = np.stack([first, second], axis=1)
-                R_up = np.empty((2 * len(up), 3, 3))
-                t_up = np.empty((2 * len(up), 3))
-                m_up = hypotheses_up2p(
-                    s_up, pj[up], p.ref_R, p.ref_t, p.xq3d, p.X3d, R_up, t_up, self.counters
-                )
-                R_up, t_up = R_up[:m_up], t_up[:m_up]
+                upright = Hypotheses.empty(2 * len(up), self.counters)
+                m_up = hypotheses_up2p(s_up, pj[up], p.ref_R, p.ref_t, p.xq3d, p.X3d, upright)
+                R_up, t_up = upright.first(m_up)
             keep = kind != 2
             samples, pj, pk, third_3d = samples[keep], pj[keep], pk[keep], third_3d[keep]
         ok = (pk >= 0) | third_3d
         samples, pj, pk, third_3d = samples[ok], pj[ok], pk[ok], third_3d[ok]
-        out_R = np.empty((2 * len(samples), 3, 3))
-        out_t = np.empty((2 * len(samples), 3))
-        m = hypotheses_2p1p(
-            samples,
-            third_3d,
-            pj,
-            pk,
-            p.arrays,
-            out_R,
-            out_t,
-            self.counters,
-        )
+        found = Hypotheses.empty(2 * len(samples), self.counters)
+        m = hypotheses_2p1p(samples, third_3d, pj, pk, p.arrays, found)
         self._flush(stats)
-        return np.concatenate([out_R[:m], R_up]), np.concatenate([out_t[:m], t_up])
+        R, t = found.first(m)
+        return np.concatenate([R, R_up]), np.concatenate([t, t_up])
 
 
 RelposeBatchSolver = Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray, np.ndarray]]
@@ -398,8 +378,7 @@ class RelativePairEstimator(ProblemEstimator):
         slots = np.arange(K)
         Ra, ta, va = top_R[pj], top_t[pj], slots[None, :] < count[pj][:, None]
         Rb, tb, vb = top_R[pk], top_t[pk], slots[None, :] < count[pk][:, None]
-        out_R = np.empty((C * K * K, 3, 3))
-        out_t = np.empty((C * K * K, 3))
+        found = Hypotheses.empty(C * K * K, self.counters)
         cnt = hypotheses_from_relative_poses(
             RelativePoses(Ra, ta, va),
             RelativePoses(Rb, tb, vb),
@@ -409,12 +388,10 @@ class RelativePairEstimator(ProblemEstimator):
             p.ref_t,
             self.cos_rcheck,
             self.cos_consistency,
-            out_R,
-            out_t,
-            self.counters,
+            found,
         )
         self._flush(stats)
-        R, t = out_R[:cnt], out_t[:cnt]
+        R, t = found.first(cnt)
         if self._planar is not None:
             # Structure mode: the 2p relative pose of pair j with the scale from a 2D-3D
             # constraint survives collinear geometry, where eq. (15) is singular.
@@ -438,10 +415,10 @@ class RelativePairEstimator(ProblemEstimator):
             3,
             samples,
         )
-        out_R, out_t = np.empty((4 * n, 3, 3)), np.empty((4 * n, 3))
-        m = hypotheses_p3p(samples, p.xq3d, p.X3d, out_R, out_t, self.counters)
+        found = Hypotheses.empty(4 * n, self.counters)
+        m = hypotheses_p3p(samples, p.xq3d, p.X3d, found)
         self._flush(stats)
-        return out_R[:m], out_t[:m]
+        return found.first(m)
 
 
 class RectifiedHypotheses:

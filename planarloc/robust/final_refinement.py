@@ -21,7 +21,7 @@ from planarloc.robust.estimators import SIGMA_FLOOR_PX, ProblemEstimator
 from planarloc.robust.map_prior import refine_with_map_prior
 from planarloc.robust.options import RansacOptions
 from planarloc.robust.problem import ProblemArrays
-from planarloc.robust.refinement import centre_covariance, refine_pose
+from planarloc.robust.refinement import centre_covariance, refine_pose_core
 from planarloc.robust.scoring import errors_sq
 
 LATER_ROUND_ITERATIONS = 3  # LM iterations of the rounds after the first in refine_until_stable
@@ -171,8 +171,8 @@ def refine_until_stable(
                 R, t, prob, idx2d, idx3d, loss_scale, its, sigma_floor, prior_std, c0, eye, free
             )
         else:
-            R, t, H, sigma, cost = refine_pose(
-                R, t, prob, idx2d, idx3d, loss_scale, its, sigma_floor, c0, eye, free
+            R, t, H, sigma, cost = refine_pose_core(
+                R, t, prob, idx2d, idx3d, loss_scale, its, sigma_floor, c0, eye, free, np.bool_(True)
             )
         e2d, e3d = errors_sq(R, t, p.xq, p.xr, p.offsets, p.f_query, p.f_ref, p.ref_R, p.ref_t, p.xq3d, p.X3d)
         new2d = e2d < inlier_threshold_sq

@@ -34,6 +34,24 @@ class RelativePoses(NamedTuple):
     valid: np.ndarray
 
 
+class Hypotheses(NamedTuple):
+    """The output of the hypothesis kernels as one record: R (H, 3, 3), t (H, 3) rows for
+    ``query_from_world`` hypotheses, and the (5,) int64 counters (indices above), incremented."""
+
+    R: np.ndarray
+    t: np.ndarray
+    counters: np.ndarray
+
+    @classmethod
+    def empty(cls, rows: int, counters: np.ndarray) -> Hypotheses:
+        """Room for ``rows`` hypotheses, counting into ``counters``."""
+        return cls(np.empty((rows, 3, 3)), np.empty((rows, 3)), counters)
+
+    def first(self, m: int) -> tuple[np.ndarray, np.ndarray]:
+        """The ``m`` hypotheses a kernel wrote: R (m, 3, 3), t (m, 3)."""
+        return self.R[:m], self.t[:m]
+
+
 @njit(cache=True, error_model="numpy", inline="always")
 def positive_depths(R: np.ndarray, t: np.ndarray, xq: np.ndarray, xr: np.ndarray) -> bool:
     """Both midpoint depths of ``x_r λr ≈ λq R x_q + t`` positive."""
@@ -59,10 +77,8 @@ def emit_planar(
     tt: np.ndarray,
     Rj: np.ndarray,
     tj: np.ndarray,
-    out_R: np.ndarray,
-    out_t: np.ndarray,
+    dest: Hypotheses,
     out: int,
-    counters: np.ndarray,
 ) -> int:
     """Pdcheck of a scaled planar relative pose, then its ``query_from_world`` at ``out``.
 
@@ -74,10 +90,10 @@ def emit_planar(
         the next free output row.
     """
     if not (rho > 0.0 and in_front):
-        counters[PDCHECK] += 1
+        dest.counters[PDCHECK] += 1
         return out
-    out_R[out] = m3.t_mul(R, Rj)
-    out_t[out] = m3.t_vec(R, tj - rho * tt)
+    dest.R[out] = m3.t_mul(R, Rj)
+    dest.t[out] = m3.t_vec(R, tj - rho * tt)
     return out + 1
 
 
@@ -88,9 +104,7 @@ def hypotheses_2p1p(
     pj: np.ndarray,
     pk: np.ndarray,
     prob: ProblemArrays,
-    out_R: np.ndarray,
-    out_t: np.ndarray,
-    counters: np.ndarray,
+    dest: Hypotheses,
 ) -> int:
     """2p1p hypotheses (paper Sec. IV-C) with Pdcheck.
 
@@ -100,8 +114,7 @@ def hypotheses_2p1p(
             (structure mode: scale from a 2D-3D constraint, same unknown ρ).
         pj, pk: (S,) the pairs of the two matches and of the third (unused where ``third_is_3d``).
         prob: the problem's arrays (matches, reference poses, 2D-3D constraints).
-        out_R, out_t: (2S, 3, 3), (2S, 3) output buffers for ``query_from_world``.
-        counters: (5,) int64, incremented.
+        dest: room for 2S hypotheses (:class:`Hypotheses`).
 
     Returns:
         number of hypotheses written.
@@ -121,12 +134,12 @@ def hypotheses_2p1p(
         sr[0], sr[1] = xr[i1], xr[i2]
         n = solve_planar_2p(sq, sr, thetas, phis)
         if n == 0:
-            counters[DEGENERATE] += 1
+            dest.counters[DEGENERATE] += 1
             continue
         j = pj[s]
         Rj, tj = ref_R[j], ref_t[j]
         for m in range(n):
-            counters[HYPOTHESES] += 1
+            dest.counters[HYPOTHESES] += 1
             c, sn = np.cos(thetas[m]), np.sin(thetas[m])
             R[0, 0], R[0, 2], R[2, 0], R[2, 2] = c, -sn, sn, c
             sp, cp = np.sin(phis[m]), np.cos(phis[m])
@@ -147,9 +160,9 @@ def hypotheses_2p1p(
                 rho = scale_2p1p(a, t21, y, xr[i3])
                 in_front = rho > 0 and positive_depths(m3.mul(R21, R), rho * a + t21, xq[i3], xr[i3])
             if rho != rho:
-                counters[DEGENERATE] += 1
+                dest.counters[DEGENERATE] += 1
                 continue
-            out = emit_planar(rho, in_front, R, tt, Rj, tj, out_R, out_t, out, counters)
+            out = emit_planar(rho, in_front, R, tt, Rj, tj, dest, out)
     return out
 
 
@@ -163,9 +176,7 @@ def hypotheses_from_relative_poses(
     ref_t: np.ndarray,
     cos_rcheck: float,
     cos_consistency: float,
-    out_R: np.ndarray,
-    out_t: np.ndarray,
-    counters: np.ndarray,
+    dest: Hypotheses,
 ) -> int:
     """Absolute hypotheses from relative poses to two references (2p2p and the baselines).
 
@@ -179,7 +190,7 @@ def hypotheses_from_relative_poses(
         cos_rcheck, cos_consistency: cosines of ``e_th`` and ``α_th``.
 
     Returns:
-        number of ``query_from_world`` hypotheses written to out_R, out_t.
+        number of ``query_from_world`` hypotheses written to ``dest``.
     """
     Ra, ta, va = rel_j
     Rb, tb, vb = rel_k
@@ -197,19 +208,19 @@ def hypotheses_from_relative_poses(
                 if not vb[s, b]:
                     continue
                 any_valid = True
-                counters[HYPOTHESES] += 1
+                dest.counters[HYPOTHESES] += 1
                 Rab = m3.mul_t(Ra[s, a], Rb[s, b])
                 cos_e = 0.5 * (np.sum(R12 * Rab) - 1.0)  # tr(R12 Rabᵀ) = Σ R12 ∘ Rab
                 if cos_e < cos_rcheck:
-                    counters[RCHECK] += 1
+                    dest.counters[RCHECK] += 1
                     continue
                 t2_in_1 = m3.vec(Rab, tb[s, b])
                 rho, rho2, reg = triangulate_scales(ta[s, a], t2_in_1, t12)
                 if reg:
-                    counters[DEGENERATE] += 1
+                    dest.counters[DEGENERATE] += 1
                     continue
                 if rho <= 0 or rho2 <= 0:
-                    counters[PDCHECK] += 1
+                    dest.counters[PDCHECK] += 1
                     continue
                 Rq = m3.t_mul(Ra[s, a], Rj)
                 tq = m3.t_vec(Ra[s, a], tj - rho * ta[s, a])
@@ -217,13 +228,13 @@ def hypotheses_from_relative_poses(
                 that = m3.vec(Rk, cq) + tk  # query centre seen from k; must point along t̃₂
                 nt = np.sqrt(np.sum(that * that))
                 if nt < 1e-12 or np.sum(that * tb[s, b]) / nt < cos_consistency:
-                    counters[CONSISTENCY] += 1
+                    dest.counters[CONSISTENCY] += 1
                     continue
-                out_R[out] = Rq
-                out_t[out] = tq
+                dest.R[out] = Rq
+                dest.t[out] = tq
                 out += 1
         if not any_valid:
-            counters[DEGENERATE] += 1
+            dest.counters[DEGENERATE] += 1
     return out
 
 
@@ -235,16 +246,14 @@ def hypotheses_up2p(
     ref_t: np.ndarray,
     xq3d: np.ndarray,
     X3d: np.ndarray,
-    out_R: np.ndarray,
-    out_t: np.ndarray,
-    counters: np.ndarray,
+    dest: Hypotheses,
 ) -> int:
     """Upright P2P hypotheses (structure mode): two 2D-3D constraints, yaw relative to pair ``pj``.
 
     Args:
         samples: (S, 2) rows of ``xq3d`` / ``X3d``.
         pj: (S,) the reference whose frame is upright relative to the query (local planar motion).
-        out_R, out_t: (2S, 3, 3), (2S, 3) ``query_from_world`` outputs.
+        dest: room for 2S hypotheses (:class:`Hypotheses`).
     """
     x = np.empty((2, 3))
     X = np.empty((2, 3))
@@ -261,14 +270,14 @@ def hypotheses_up2p(
             X[k] = m3.vec(Rj, X3d[samples[s, k]]) + tj
         n = solve_up2p(x, X, th, ts)
         if n == 0:
-            counters[DEGENERATE] += 1
+            dest.counters[DEGENERATE] += 1
             continue
         for m in range(n):
-            counters[HYPOTHESES] += 1
+            dest.counters[HYPOTHESES] += 1
             c, sn = np.cos(th[m]), np.sin(th[m])
             R[0, 0], R[0, 2], R[2, 0], R[2, 2] = c, -sn, sn, c
-            out_R[out] = m3.mul(R, Rj)
-            out_t[out] = m3.vec(R, tj) + ts[m]
+            dest.R[out] = m3.mul(R, Rj)
+            dest.t[out] = m3.vec(R, tj) + ts[m]
             out += 1
     return out
 
@@ -278,15 +287,13 @@ def hypotheses_p3p(
     samples: np.ndarray,
     xq3d: np.ndarray,
     X3d: np.ndarray,
-    out_R: np.ndarray,
-    out_t: np.ndarray,
-    counters: np.ndarray,
+    dest: Hypotheses,
 ) -> int:
     """6DoF P3P hypotheses from three 2D-3D constraints (:mod:`planarloc.solvers.abspose_p3p`).
 
     Args:
         samples: (S, 3) rows of ``xq3d`` / ``X3d``.
-        out_R, out_t: (4S, 3, 3), (4S, 3) ``query_from_world`` outputs.
+        dest: room for 4S hypotheses (:class:`Hypotheses`).
 
     Returns:
         number of hypotheses written.
@@ -297,14 +304,14 @@ def hypotheses_p3p(
     for s in range(samples.shape[0]):
         n = solve_p3p(xq3d[samples[s]], X3d[samples[s]], Rs, ts)
         if n == 0:
-            counters[DEGENERATE] += 1
+            dest.counters[DEGENERATE] += 1
             continue
-        counters[HYPOTHESES] += n
+        dest.counters[HYPOTHESES] += n
         for k in range(n):  # element loops: a 3-D slice assignment compiles numba's shape-error formatting
             for a in range(3):
-                out_t[out + k, a] = ts[k, a]
+                dest.t[out + k, a] = ts[k, a]
                 for b in range(3):
-                    out_R[out + k, a, b] = Rs[k, a, b]
+                    dest.R[out + k, a, b] = Rs[k, a, b]
         out += n
     return out
 

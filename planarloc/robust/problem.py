@@ -92,18 +92,7 @@ class AbsolutePoseProblem:
     @cached_property
     def arrays(self) -> ProblemArrays:
         """The kernels' record of this problem's arrays (built once)."""
-        return ProblemArrays(
-            self.xq,
-            self.xr,
-            self.pair,
-            self.offsets,
-            self.f_query,
-            self.f_ref,
-            self.ref_R,
-            self.ref_t,
-            self.xq3d,
-            self.X3d,
-        )
+        return ProblemArrays(*(getattr(self, name) for name in ProblemArrays._fields))
 
     @cached_property
     def counts(self) -> np.ndarray:

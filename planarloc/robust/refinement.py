@@ -15,6 +15,7 @@ uses finite differences over the reference poses, once per query.
 
 from __future__ import annotations
 
+import functools
 from typing import NamedTuple
 
 import numpy as np
@@ -296,9 +297,28 @@ def refine_pose_core(
     fixed: np.ndarray,
     final_normal: bool | np.bool_,
 ) -> Refinement:
-    """:func:`refine_pose`; with ``final_normal`` False the normal matrix and σ̂ are not
-    re-evaluated after the last step (stale), which saves one residual-and-Jacobian pass
-    where only the pose is wanted (leave-one-out refinements)."""
+    """Refine ``query_from_world`` on the given inliers.
+
+    Args:
+        Rq: (3, 3) initial rotation of ``query_from_world``; tq is ignored in favour of
+            the centre ``c0`` (kept in the signature for symmetry with the loop).
+        prob: the problem's arrays (:attr:`planarloc.robust.problem.AbsolutePoseProblem.arrays`).
+        c0, B: the centre is parametrised as ``c = c0 + B p`` with B (3, 3) orthonormal.
+        fixed: (6,) bool; parameters held at their initial value (rotation 0-2, centre 3-5),
+            used to profile the cost along one direction (degeneracy test).
+        idx2d: (K,) rows of inlier 2D-2D matches; idx3d: (L,) rows of inlier 2D-3D constraints.
+        loss_scale: Cauchy scale σ in pixels.
+        sigma_floor: lower bound on σ̂ in pixels for the covariance, so that noise-free or
+            overfitted residuals cannot make an ill-conditioned position look certain.
+        final_normal: False: the normal matrix and σ̂ are not re-evaluated after the last step
+            (stale), which saves one residual-and-Jacobian pass where only the pose is wanted
+            (leave-one-out refinements); :func:`refine_pose` passes True.
+
+    Returns:
+        R (3, 3), t (3,), the (6, 6) normal matrix ``JᵀWJ`` at the solution (parameters
+        ``(δ, p)``; see :func:`centre_covariance`), the residual scale σ̂ in pixels, and the
+        final robust cost.
+    """
     m = idx2d.shape[0] + 2 * idx3d.shape[0]
     R = Rq.copy()
     c = c0.copy()
@@ -360,42 +380,9 @@ def refine_pose_core(
     return Refinement(R, t, H.copy(), np.sqrt(sigma2), cost)
 
 
-@njit(cache=True, error_model="numpy")
-def refine_pose(
-    Rq: np.ndarray,
-    tq: np.ndarray,
-    prob: ProblemArrays,
-    idx2d: np.ndarray,
-    idx3d: np.ndarray,
-    loss_scale: float,
-    max_iterations: int,
-    sigma_floor: float,
-    c0: np.ndarray,
-    B: np.ndarray,
-    fixed: np.ndarray,
-) -> Refinement:
-    """Refine ``query_from_world`` on the given inliers.
-
-    Args:
-        Rq: (3, 3) initial rotation of ``query_from_world``; tq is ignored in favour of
-            the centre ``c0`` (kept in the signature for symmetry with the loop).
-        prob: the problem's arrays (:attr:`planarloc.robust.problem.AbsolutePoseProblem.arrays`).
-        c0, B: the centre is parametrised as ``c = c0 + B p`` with B (3, 3) orthonormal.
-        fixed: (6,) bool; parameters held at their initial value (rotation 0-2, centre 3-5),
-            used to profile the cost along one direction (degeneracy test).
-        idx2d: (K,) rows of inlier 2D-2D matches; idx3d: (L,) rows of inlier 2D-3D constraints.
-        loss_scale: Cauchy scale σ in pixels.
-        sigma_floor: lower bound on σ̂ in pixels for the covariance, so that noise-free or
-            overfitted residuals cannot make an ill-conditioned position look certain.
-
-    Returns:
-        R (3, 3), t (3,), the (6, 6) normal matrix ``JᵀWJ`` at the solution (parameters
-        ``(δ, p)``; see :func:`centre_covariance`), the residual scale σ̂ in pixels, and the
-        final robust cost.
-    """
-    return refine_pose_core(
-        Rq, tq, prob, idx2d, idx3d, loss_scale, max_iterations, sigma_floor, c0, B, fixed, np.bool_(True)
-    )
+#: :func:`refine_pose_core` with the normal matrix and σ̂ evaluated at the solution: the call of
+#: every refinement that reports a covariance (same arguments but ``final_normal``).
+refine_pose = functools.partial(refine_pose_core, final_normal=np.bool_(True))
 
 
 @njit(cache=True, error_model="numpy")
@@ -427,7 +414,7 @@ def refine_on_inliers(
     if idx2d.shape[0] + idx3d.shape[0] < 6:
         return Rq.copy(), tq.copy(), np.zeros((6, 6)), np.inf, np.inf, in2d, in3d
     c0 = -m3.t_vec(Rq, tq)
-    R, t, H, sigma, cost = refine_pose(
+    R, t, H, sigma, cost = refine_pose_core(
         Rq,
         tq,
         prob,
@@ -439,6 +426,7 @@ def refine_on_inliers(
         c0,
         np.eye(3),
         np.zeros(6, dtype=np.bool_),
+        np.bool_(True),
     )
     return R, t, H, sigma, cost, in2d, in3d
 

@@ -3,16 +3,17 @@
 Nistér's (:mod:`planarloc.solvers.relpose_5p_nister`) and Stewénius' solver
 (:mod:`planarloc.solvers.relpose_5p_stewenius`) have the same public contract; they differ in
 their compiled entry points (the drivers of :mod:`planarloc.solvers._five_point` bound to each
-solver's essentials kernel) and their references. Each solver module defines its public
-functions on :class:`FivePointCalls` bound to its entry points, and :func:`five_point_doc` fills
-in their docstrings from the templates here with the solver's name and references.
+solver's essentials kernel) and their references. Each solver module puts its entry points in a
+:class:`FivePointCalls` and binds the four functions of :meth:`FivePointCalls.public_functions`
+to its public names; their docstrings are the templates here filled in with the solver's name
+and references.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import TypeVar
+from typing import NamedTuple, Protocol
 
 import numpy as np
 
@@ -24,10 +25,9 @@ from planarloc.geometry.essential_decomposition import (
 from planarloc.geometry.pose import Pose
 from planarloc.solvers._five_point import MAX_SOLUTIONS
 
-_F = TypeVar("_F", bound=Callable[..., object])
-
-# Templates of the public docstrings; fields: {name} (the function), {solver} (e.g. "Nistér's
-# five-point"), {citation} (e.g. "Nistér 2004"), {references} (no final full stop).
+# Templates of the public docstrings; fields: {name} (the function), {batch} (the name of the
+# batch function), {solver} (e.g. "Nistér's five-point"), {citation} (e.g. "Nistér 2004"),
+# {references} (no final full stop).
 ESSENTIALS_DOC = """All real essential matrices consistent with five correspondences ({citation}).
 
     Args:
@@ -101,15 +101,44 @@ BATCH_DOC = """{solver} solver on M samples at once (for RANSAC).
     """
 
 
-def five_point_doc(template: str, **fields: str) -> Callable[[_F], _F]:
-    """Decorator: the function's docstring is ``template`` (one of the ``*_DOC`` above) filled in
-    with ``fields`` and the function's own ``name``."""
+UNCHECKED_DOC = """:func:`{batch}` on validated contiguous float64 (M, 5, 3) rays (the RANSAC
+    estimators' entry point: their problem is validated once)."""
 
-    def document(fn: _F) -> _F:
-        fn.__doc__ = template.format(name=getattr(fn, "__name__", ""), **fields)
-        return fn
 
-    return document
+# The types of the four public functions (a Protocol, for the keyword-only ``parallel``).
+class Essentials(Protocol):
+    def __call__(self, x_query: object, x_ref: object) -> list[np.ndarray]: ...
+
+
+class Relposes(Protocol):
+    def __call__(self, x_query: object, x_ref: object) -> list[Pose]: ...
+
+
+class Batch(Protocol):
+    def __call__(
+        self, x_query: object, x_ref: object, *, parallel: bool = False
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]: ...
+
+
+class BatchUnchecked(Protocol):
+    def __call__(
+        self, xq: np.ndarray, xr: np.ndarray, *, parallel: bool = False
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]: ...
+
+
+class FivePointFunctions(NamedTuple):
+    """A solver's public functions, in the order its module binds them."""
+
+    essentials: Essentials
+    relposes: Relposes
+    batch: Batch
+    batch_unchecked: BatchUnchecked
+
+
+def _publish(fn: Callable[..., object], module: str, name: str, doc: str) -> None:
+    """Give ``fn`` the identity of the public function ``module.name`` (``help()``, pickling,
+    cross-references) and its docstring."""
+    fn.__module__, fn.__name__, fn.__qualname__, fn.__doc__ = module, name, name, doc
 
 
 @dataclass(frozen=True)
@@ -126,27 +155,44 @@ class FivePointCalls:
     batch: Callable[..., None]
     batch_parallel: Callable[..., None]
 
-    def essentials_of(self, x_query: object, x_ref: object) -> list[np.ndarray]:
-        """The essential matrices of five matches (:data:`ESSENTIALS_DOC`)."""
-        Es = np.empty((MAX_SOLUTIONS, 3, 3))
-        n, _, _ = solve_correspondences(self.essentials, x_query, x_ref, Es, rows=5)
-        return list(Es[:n])
+    def public_functions(
+        self, module: str, tag: str, *, solver: str, citation: str, references: str
+    ) -> FivePointFunctions:
+        """The four public functions of the solver module ``module``: ``essentials_5p_{tag}``,
+        ``relpose_5p_{tag}``, ``relpose_5p_{tag}_batch`` and ``relpose_5p_{tag}_batch_unchecked``
+        (``tag`` e.g. ``"nister"``), documented by the templates above with the other fields."""
+        essentials_kernel, relposes_kernel = self.essentials, self.relposes
+        batch_kernel, batch_parallel_kernel = self.batch, self.batch_parallel
 
-    def relposes_of(self, x_query: object, x_ref: object) -> list[Pose]:
-        """The poses of N ≥ 5 matches (:data:`RELPOSES_DOC`)."""
-        out = np.empty((MAX_SOLUTIONS, 4, 3))
-        return Pose._from_buffer(
-            out, solve_correspondences(self.relposes, x_query, x_ref, out, min_rows=5)[0]
-        )
+        def essentials(x_query: object, x_ref: object) -> list[np.ndarray]:
+            Es = np.empty((MAX_SOLUTIONS, 3, 3))
+            n, _, _ = solve_correspondences(essentials_kernel, x_query, x_ref, Es, rows=5)
+            return list(Es[:n])
 
-    def batch_of(
-        self, x_query: object, x_ref: object, parallel: bool
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """The batch of (M, 5, 3) samples, validated (:data:`BATCH_DOC`)."""
-        return self.batch_unchecked(*check_correspondence_batch(x_query, x_ref, 5), parallel)
+        def relposes(x_query: object, x_ref: object) -> list[Pose]:
+            out = np.empty((MAX_SOLUTIONS, 4, 3))
+            return Pose._from_buffer(
+                out, solve_correspondences(relposes_kernel, x_query, x_ref, out, min_rows=5)[0]
+            )
 
-    def batch_unchecked(
-        self, xq: np.ndarray, xr: np.ndarray, parallel: bool
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """:meth:`batch_of` on validated contiguous float64 (M, 5, 3) rays."""
-        return solve_relpose_batch(self.batch_parallel if parallel else self.batch, xq, xr, MAX_SOLUTIONS)
+        def batch(
+            x_query: object, x_ref: object, *, parallel: bool = False
+        ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+            return batch_unchecked(*check_correspondence_batch(x_query, x_ref, 5), parallel=parallel)
+
+        def batch_unchecked(
+            xq: np.ndarray, xr: np.ndarray, *, parallel: bool = False
+        ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+            kernel = batch_parallel_kernel if parallel else batch_kernel
+            return solve_relpose_batch(kernel, xq, xr, MAX_SOLUTIONS)
+
+        fields = {"solver": solver, "citation": citation, "references": references}
+        batch_name = f"relpose_5p_{tag}_batch"
+        for fn, name, template in (
+            (essentials, f"essentials_5p_{tag}", ESSENTIALS_DOC),
+            (relposes, f"relpose_5p_{tag}", RELPOSES_DOC),
+            (batch, batch_name, BATCH_DOC),
+            (batch_unchecked, f"{batch_name}_unchecked", UNCHECKED_DOC),
+        ):
+            _publish(fn, module, name, template.format(name=name, batch=batch_name, **fields))
+        return FivePointFunctions(essentials, relposes, batch, batch_unchecked)

@@ -61,7 +61,6 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
-from planarloc.geometry.pose import Pose
 from planarloc.numerics.sturm import polyval, real_roots_sturm
 from planarloc.solvers._five_point import (
     MAX_SOLUTIONS,
@@ -72,13 +71,7 @@ from planarloc.solvers._five_point import (
     five_point_sample,
     monomial_permutation,
 )
-from planarloc.solvers._five_point_calls import (
-    BATCH_DOC,
-    ESSENTIALS_DOC,
-    RELPOSES_DOC,
-    FivePointCalls,
-    five_point_doc,
-)
+from planarloc.solvers._five_point_calls import FivePointCalls
 
 __all__ = [
     "essentials_5p_nister",
@@ -194,33 +187,17 @@ def _batch_parallel(xq, xr, R, t, valid):
         five_point_sample(nister_essentials, xq[m], xr[m], Es, R[m], t[m], valid[m])
 
 
-# ---- the public functions; their docstrings are the shared templates of _five_point_calls ------
+# ---- the public functions, written once in _five_point_calls ------------------------------------
 
-_CALLS = FivePointCalls(_essentials, _relposes, _batch, _batch_parallel)
-_REFERENCES = "Nistér, TPAMI 2004, Sec. 3; deviations listed in the module docstring"
-_DOC = {"solver": "Nistér's five-point", "citation": "Nistér 2004", "references": _REFERENCES}
-
-
-@five_point_doc(ESSENTIALS_DOC, **_DOC)
-def essentials_5p_nister(x_query: object, x_ref: object) -> list[np.ndarray]:
-    return _CALLS.essentials_of(x_query, x_ref)
-
-
-@five_point_doc(RELPOSES_DOC, **_DOC)
-def relpose_5p_nister(x_query: object, x_ref: object) -> list[Pose]:
-    return _CALLS.relposes_of(x_query, x_ref)
-
-
-@five_point_doc(BATCH_DOC, **_DOC)
-def relpose_5p_nister_batch(
-    x_query: object, x_ref: object, *, parallel: bool = False
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    return _CALLS.batch_of(x_query, x_ref, parallel)
-
-
-def relpose_5p_nister_batch_unchecked(
-    xq: np.ndarray, xr: np.ndarray, *, parallel: bool = False
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """:func:`relpose_5p_nister_batch` on validated contiguous float64 (M, 5, 3) rays (the RANSAC
-    estimators' entry point: their problem is validated once)."""
-    return _CALLS.batch_unchecked(xq, xr, parallel)
+(
+    essentials_5p_nister,
+    relpose_5p_nister,
+    relpose_5p_nister_batch,
+    relpose_5p_nister_batch_unchecked,
+) = FivePointCalls(_essentials, _relposes, _batch, _batch_parallel).public_functions(
+    __name__,
+    "nister",
+    solver="Nistér's five-point",
+    citation="Nistér 2004",
+    references="Nistér, TPAMI 2004, Sec. 3; deviations listed in the module docstring",
+)

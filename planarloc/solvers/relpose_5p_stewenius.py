@@ -52,7 +52,6 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
-from planarloc.geometry.pose import Pose
 from planarloc.numerics.eigen import real_eigenvalues
 from planarloc.solvers._five_point import (
     MAX_SOLUTIONS,
@@ -62,13 +61,7 @@ from planarloc.solvers._five_point import (
     five_point_relposes,
     five_point_sample,
 )
-from planarloc.solvers._five_point_calls import (
-    BATCH_DOC,
-    ESSENTIALS_DOC,
-    RELPOSES_DOC,
-    FivePointCalls,
-    five_point_doc,
-)
+from planarloc.solvers._five_point_calls import FivePointCalls
 
 __all__ = [
     "essentials_5p_stewenius",
@@ -205,36 +198,20 @@ def _batch_parallel(xq, xr, R, t, valid):
         five_point_sample(stewenius_essentials, xq[m], xr[m], Es, R[m], t[m], valid[m])
 
 
-# ---- the public functions; their docstrings are the shared templates of _five_point_calls ------
+# ---- the public functions, written once in _five_point_calls ------------------------------------
 
-_CALLS = FivePointCalls(_essentials, _relposes, _batch, _batch_parallel)
-_REFERENCES = (
-    "Stewénius, Engels & Nistér, ISPRS J. 2006 (Gröbner basis, action matrix); deviations in the"
-    " module docstring"
+(
+    essentials_5p_stewenius,
+    relpose_5p_stewenius,
+    relpose_5p_stewenius_batch,
+    relpose_5p_stewenius_batch_unchecked,
+) = FivePointCalls(_essentials, _relposes, _batch, _batch_parallel).public_functions(
+    __name__,
+    "stewenius",
+    solver="Stewénius' five-point",
+    citation="Stewénius et al. 2006",
+    references=(
+        "Stewénius, Engels & Nistér, ISPRS J. 2006 (Gröbner basis, action matrix); deviations in the"
+        " module docstring"
+    ),
 )
-_DOC = {"solver": "Stewénius' five-point", "citation": "Stewénius et al. 2006", "references": _REFERENCES}
-
-
-@five_point_doc(ESSENTIALS_DOC, **_DOC)
-def essentials_5p_stewenius(x_query: object, x_ref: object) -> list[np.ndarray]:
-    return _CALLS.essentials_of(x_query, x_ref)
-
-
-@five_point_doc(RELPOSES_DOC, **_DOC)
-def relpose_5p_stewenius(x_query: object, x_ref: object) -> list[Pose]:
-    return _CALLS.relposes_of(x_query, x_ref)
-
-
-@five_point_doc(BATCH_DOC, **_DOC)
-def relpose_5p_stewenius_batch(
-    x_query: object, x_ref: object, *, parallel: bool = False
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    return _CALLS.batch_of(x_query, x_ref, parallel)
-
-
-def relpose_5p_stewenius_batch_unchecked(
-    xq: np.ndarray, xr: np.ndarray, *, parallel: bool = False
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """:func:`relpose_5p_stewenius_batch` on validated contiguous float64 (M, 5, 3) rays (the RANSAC
-    estimators' entry point: their problem is validated once)."""
-    return _CALLS.batch_unchecked(xq, xr, parallel)

@@ -174,9 +174,13 @@ def _errors(results: Sequence) -> np.ndarray:
     )
 
 
-def _usable_errors(results: Sequence) -> np.ndarray:
+def _kinds_and_errors(results: Sequence, max_error_m: float | None = None, norm=None):
+    """The results' kinds (:func:`result_kind`, an object array), their position errors (NaN
+    without one) and the colour scale: ``norm`` if given, else :func:`error_norm` of the errors
+    of the results that are not failures."""
     kinds = np.array([result_kind(r) for r in results], dtype=object)
-    return _errors(results)[kinds != FAILED]
+    err = _errors(results)
+    return kinds, err, error_norm(err[kinds != FAILED], max_error_m) if norm is None else norm
 
 
 def _estimates(results: Sequence) -> np.ndarray:
@@ -226,11 +230,13 @@ def _draw_segments(ax, map_xy: np.ndarray, gt: np.ndarray, est: np.ndarray, usab
         ax.scatter(est[seg, 0], est[seg, 1], s=5, color=_SEGMENT_COLOR, zorder=2.6)
 
 
-def _error_scatter(ax, xy: np.ndarray, error: np.ndarray, norm, size: float, label: str | None, style: dict):
-    """Positions ``xy`` (N, 2) coloured by their ``error`` (N,) on the shared colour scale."""
+def _error_scatter(
+    ax, x: np.ndarray, y: np.ndarray, error: np.ndarray, norm, size: float, label: str | None, style: dict
+):
+    """Markers at ``(x, y)`` (N,) each coloured by its ``error`` (N,) on the shared colour scale."""
     return ax.scatter(
-        xy[:, 0],
-        xy[:, 1],
+        x,
+        y,
         c=error,
         cmap=_cmap(),
         norm=norm,
@@ -277,9 +283,7 @@ def plot_localization(
     map_xy = np.asarray(map_centers, dtype=float).reshape(-1, 3) @ P
     gt = np.array([r.truth_center for r in results], dtype=float).reshape(-1, 3) @ P
     est = _estimates(results) @ P
-    kinds = np.array([result_kind(r) for r in results], dtype=object)
-    err = _errors(results)
-    norm = error_norm(err[kinds != FAILED], max_error_m) if norm is None else norm
+    kinds, err, norm = _kinds_and_errors(results, max_error_m, norm)
     c = np.clip(err, norm.vmin, norm.vmax)
 
     if len(map_xy):  # one map image: a square, as a line of one point is not drawn
@@ -296,11 +300,12 @@ def plot_localization(
     _draw_segments(ax, map_xy, gt, est, kinds != FAILED)
     loc, pred, fail = kinds == LOCALIZED, kinds == PREDICTED, kinds == FAILED
     loc_label = f"localized ({int(loc.sum())}), colour = error" if loc.any() else None
-    sc = _error_scatter(ax, gt[loc], c[loc], norm, 30, loc_label, _LOCALIZED_STYLE)
+    sc = _error_scatter(ax, gt[loc, 0], gt[loc, 1], c[loc], norm, 30, loc_label, _LOCALIZED_STYLE)
     if pred.any():
         _error_scatter(
             ax,
-            gt[pred],
+            gt[pred, 0],
+            gt[pred, 1],
             c[pred],
             norm,
             36,
@@ -362,35 +367,16 @@ def plot_error_over_time(ax, results: Sequence, norm=None, max_error_m: float | 
     from matplotlib.ticker import MaxNLocator
 
     t, t_label = result_times(results)
-    kinds = np.array([result_kind(r) for r in results], dtype=object)
-    err = _errors(results)
-    norm = error_norm(err[kinds != FAILED], max_error_m) if norm is None else norm
+    kinds, err, norm = _kinds_and_errors(results, max_error_m, norm)
     shown = np.maximum(err, ERROR_FLOOR_M)
     usable = (kinds != FAILED) & np.isfinite(err)
     order = np.argsort(t, kind="stable")  # a line through the usable errors, broken where a pose is missing
     ax.plot(t[order], np.where(usable, shown, np.nan)[order], "-", color="0.75", lw=0.8, zorder=1)
     loc, pred, fail = usable & (kinds == LOCALIZED), usable & (kinds == PREDICTED), kinds == FAILED
-    sc = ax.scatter(
-        t[loc],
-        shown[loc],
-        c=np.clip(err[loc], norm.vmin, norm.vmax),
-        cmap=_cmap(),
-        norm=norm,
-        s=18,
-        zorder=3,
-        **_LOCALIZED_STYLE,
-    )
+    c = np.clip(err, norm.vmin, norm.vmax)
+    sc = _error_scatter(ax, t[loc], shown[loc], c[loc], norm, 18, None, _LOCALIZED_STYLE)
     if pred.any():
-        ax.scatter(
-            t[pred],
-            shown[pred],
-            c=np.clip(err[pred], norm.vmin, norm.vmax),
-            cmap=_cmap(),
-            norm=norm,
-            s=24,
-            zorder=3,
-            **_PREDICTED_STYLE,
-        )
+        _error_scatter(ax, t[pred], shown[pred], c[pred], norm, 24, None, _PREDICTED_STYLE)
     threshold = THRESHOLDS[0][0]
     ax.axhline(threshold, color="tab:red", lw=0.8, ls="--", alpha=0.7, zorder=0)
     ax.set_yscale("log")
@@ -467,9 +453,7 @@ def save_localization_plot(
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    kinds = np.array([result_kind(r) for r in results], dtype=object)
-    err = _errors(results)
-    norm = error_norm(err[kinds != FAILED], max_error_m)
+    kinds, err, norm = _kinds_and_errors(results, max_error_m)
     top = _top_view_height(map_centers, results, g_world)
     fig = plt.figure(figsize=(7.5, top + _TIME_PANEL_IN + 0.9), layout="constrained")
     grid = fig.add_gridspec(2, 1, height_ratios=(top, _TIME_PANEL_IN))

@@ -14,7 +14,7 @@ import pytest
 from planarloc.geometry.planar import rotation_from_yaw
 from planarloc.geometry.pose import Pose
 from planarloc.robust.consensus_scale import hypotheses_2p1p_consensus, planar_relative_candidates
-from planarloc.robust.hypotheses import DEGENERATE, HYPOTHESES, PDCHECK
+from planarloc.robust.hypotheses import DEGENERATE, HYPOTHESES, PDCHECK, Hypotheses
 from planarloc.robust.problem import ProblemArrays
 
 F = np.array([800.0, 800.0])
@@ -93,9 +93,7 @@ def consensus(
         threshold_px**2,
         peaks,
         max_votes,
-        out_R,
-        out_t,
-        counters,
+        Hypotheses(out_R, out_t, counters),
     )
     return out_R[:m], out_t[:m], counters
 

@@ -18,6 +18,7 @@ from planarloc.robust.hypotheses import (
     HYPOTHESES,
     PDCHECK,
     RCHECK,
+    Hypotheses,
     RelativePoses,
     hypotheses_2p1p,
     hypotheses_from_relative_poses,
@@ -123,9 +124,7 @@ def run_relative(
         np.ascontiguousarray(np.stack([j.t, k.t])),
         COS_2DEG,
         COS_2DEG,
-        out_R,
-        out_t,
-        counters,
+        Hypotheses(out_R, out_t, counters),
     )
     return out_R[:n], out_t[:n], counters
 
@@ -227,9 +226,7 @@ def run_2p1p(
         np.array([0]),
         np.array([1]),
         problem_arrays(xq, xr, (J, K), xq3d, X3d),
-        out_R,
-        out_t,
-        counters,
+        Hypotheses(out_R, out_t, counters),
     )
     return out_R[:n], out_t[:n], counters
 

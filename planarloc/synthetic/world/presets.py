@@ -75,13 +75,9 @@ def corridor() -> WorldConfig:
 def lifelong() -> WorldConfig:
     """``office`` with a changed query session: darker, gamma, shading ramp, blur, noise,
     2 moved and 2 added boxes."""
-    base = office()
-    return WorldConfig(
+    return dataclasses.replace(
+        office(),
         name="lifelong",
-        camera=base.camera,
-        scene=base.scene,
-        trajectory=base.trajectory,
-        map_effects=base.map_effects,
         query_effects=EffectsConfig(
             gain=0.75,
             gamma=1.3,
