@@ -81,9 +81,8 @@ class ProblemEstimator:
     def inliers(
         self, R: np.ndarray, t: np.ndarray, threshold_sq: float | None = None
     ) -> tuple[np.ndarray, np.ndarray]:
-        p = self.p
         th = self.threshold_sq if threshold_sq is None else threshold_sq
-        e2d, e3d = errors_sq(R, t, p.xq, p.xr, p.offsets, p.f_query, p.f_ref, p.ref_R, p.ref_t, p.xq3d, p.X3d)
+        e2d, e3d = errors_sq(R, t, self.p.arrays)
         return e2d < th, e3d < th
 
     def _refine(
@@ -356,9 +355,7 @@ class RelativePairEstimator(ProblemEstimator):
         draw_within_pairs(rng.random((len(sample_pair), m)), p.offsets, sample_pair, m, samples)
         R, t, valid = self.solver(p.xq[samples], p.xr[samples])
         R, t, valid = np.ascontiguousarray(R), np.ascontiguousarray(t), np.ascontiguousarray(valid)
-        cost = relative_msac_scores(
-            R, t, valid, sample_pair, p.xq, p.xr, p.offsets, p.f_query, p.f_ref, self.threshold_sq
-        )
+        cost = relative_msac_scores(R, t, valid, sample_pair, p.arrays, self.threshold_sq)
         K = self.top_k
         top_R, top_t = np.zeros((p.num_pairs, K, 3, 3)), np.zeros((p.num_pairs, K, 3))
         count = np.zeros(p.num_pairs, dtype=np.int64)

@@ -149,9 +149,8 @@ def refine_until_stable(
         returned pose, its MSAC cost ``Σ min(e², τ²)`` (the score every search is judged by) and
         the 2D-3D constraints' share of that cost.
     """
-    p = prob
     R, t = Rq.copy(), tq.copy()
-    e2d, e3d = errors_sq(R, t, p.xq, p.xr, p.offsets, p.f_query, p.f_ref, p.ref_R, p.ref_t, p.xq3d, p.X3d)
+    e2d, e3d = errors_sq(R, t, prob)
     in2d = e2d < inlier_threshold_sq
     in3d = e3d < inlier_threshold_sq
     eye = np.eye(3)
@@ -174,7 +173,7 @@ def refine_until_stable(
             R, t, H, sigma, cost = refine_pose_core(
                 R, t, prob, idx2d, idx3d, loss_scale, its, sigma_floor, c0, eye, free, np.bool_(True)
             )
-        e2d, e3d = errors_sq(R, t, p.xq, p.xr, p.offsets, p.f_query, p.f_ref, p.ref_R, p.ref_t, p.xq3d, p.X3d)
+        e2d, e3d = errors_sq(R, t, prob)
         new2d = e2d < inlier_threshold_sq
         new3d = e3d < inlier_threshold_sq
         same = np.array_equal(new2d, in2d) and np.array_equal(new3d, in3d)

@@ -99,8 +99,7 @@ def _refine_stage(
     fixed: np.ndarray,
     max_data: int | np.integer,
 ) -> tuple:
-    p = prob
-    e2d, e3d = errors_sq(R, t, p.xq, p.xr, p.offsets, p.f_query, p.f_ref, p.ref_R, p.ref_t, p.xq3d, p.X3d)
+    e2d, e3d = errors_sq(R, t, prob)
     idx2d = np.flatnonzero(e2d < inlier_threshold_sq)
     idx3d = np.flatnonzero(e3d < inlier_threshold_sq)
     n = idx2d.shape[0] + idx3d.shape[0]

@@ -405,8 +405,7 @@ def refine_on_inliers(
         R, t, the normal matrix H, σ̂, cost (as :func:`refine_pose`), and the inlier masks
         (N,), (M,) bool at the initial pose.
     """
-    p = prob
-    e2d, e3d = errors_sq(Rq, tq, p.xq, p.xr, p.offsets, p.f_query, p.f_ref, p.ref_R, p.ref_t, p.xq3d, p.X3d)
+    e2d, e3d = errors_sq(Rq, tq, prob)
     in2d = e2d < inlier_threshold_sq
     in3d = e3d < inlier_threshold_sq
     idx2d = np.flatnonzero(in2d)

@@ -30,21 +30,12 @@ def msac_add(cost: float, inliers: int, e: float, threshold_sq: float) -> tuple[
 
 
 @njit(cache=True, error_model="numpy")
-def errors_sq(
-    Rq: np.ndarray,
-    tq: np.ndarray,
-    xq: np.ndarray,
-    xr: np.ndarray,
-    offsets: np.ndarray,
-    f_query: np.ndarray,
-    f_ref: np.ndarray,
-    ref_R: np.ndarray,
-    ref_t: np.ndarray,
-    xq3d: np.ndarray,
-    X3d: np.ndarray,
-) -> tuple[np.ndarray, np.ndarray]:
-    """Squared pixel errors of one hypothesis: (N,) Sampson and (M,) reprojection (scaled by
-    ``f_query[2:]``, see :class:`planarloc.robust.problem.AbsolutePoseProblem`)."""
+def errors_sq(Rq: np.ndarray, tq: np.ndarray, prob: ProblemArrays) -> tuple[np.ndarray, np.ndarray]:
+    """Squared pixel errors of one hypothesis ``query_from_world = (Rq (3, 3), tq (3,))`` on the
+    problem ``prob``: (N,) Sampson and (M,) reprojection (scaled by ``f_query[2:]``, see
+    :class:`planarloc.robust.problem.AbsolutePoseProblem`)."""
+    xq, xr, offsets, f_query, f_ref = prob.xq, prob.xr, prob.offsets, prob.f_query, prob.f_ref
+    ref_R, ref_t, xq3d, X3d = prob.ref_R, prob.ref_t, prob.xq3d, prob.X3d
     n = xq.shape[0]
     e2d = np.empty(n)
     E = np.empty((3, 3))
@@ -119,11 +110,7 @@ def relative_msac_scores(
     t: np.ndarray,
     valid: np.ndarray,
     sample_pair: np.ndarray,
-    xq: np.ndarray,
-    xr: np.ndarray,
-    offsets: np.ndarray,
-    f_query: np.ndarray,
-    f_ref: np.ndarray,
+    prob: ProblemArrays,
     threshold_sq: float,
 ) -> np.ndarray:
     """MSAC cost of relative-pose candidates ``ref_from_query`` over the matches of their own pair.
@@ -135,6 +122,7 @@ def relative_msac_scores(
     Returns:
         (S, A) costs, inf where not valid.
     """
+    xq, xr, offsets, f_query, f_ref = prob.xq, prob.xr, prob.offsets, prob.f_query, prob.f_ref
     S, A = valid.shape
     cost = np.full((S, A), np.inf)
     E = np.empty((3, 3))

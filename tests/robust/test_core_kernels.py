@@ -42,19 +42,15 @@ def sampson_sq_reference(pb, pose: Pose) -> np.ndarray:
     return out
 
 
-def args(pb):
-    return pb.xq, pb.xr, pb.offsets, pb.f_query, pb.f_ref, pb.ref_R, pb.ref_t, pb.xq3d, pb.X3d
-
-
 # ---- scoring ------------------------------------------------------------------------------------
 def test_errors_match_reference_and_vanish_at_truth(scene) -> None:
     sc = scene(1, num_refs=3, matches_per_pair=40, noise_px=0.0, outlier_ratio=0.25)
     pb = build_problem(sc.query_camera, sc.pairs)
-    e2d, _ = errors_sq(sc.query_pose.R, sc.query_pose.t, *args(pb))
+    e2d, _ = errors_sq(sc.query_pose.R, sc.query_pose.t, pb.arrays)
     inl = ~np.concatenate(sc.is_outlier)
     assert e2d[inl].max() < 1e-12 and np.median(e2d[~inl]) > 4.0
     wrong = perturbed(sc.query_pose, np.random.default_rng(0), 0.02, 0.3)
-    e_wrong, _ = errors_sq(wrong.R, wrong.t, *args(pb))
+    e_wrong, _ = errors_sq(wrong.R, wrong.t, pb.arrays)
     np.testing.assert_allclose(e_wrong, sampson_sq_reference(pb, wrong), rtol=1e-9)
 
 
@@ -67,8 +63,8 @@ def test_msac_cost_and_bound(scene) -> None:
     t = np.ascontiguousarray([p.t for p in poses])
     th2 = 4.0
     cost, inl = msac_scores(R, t, len(R), pb.arrays, th2)
-    exact = np.array([np.minimum(errors_sq(p.R, p.t, *args(pb))[0], th2).sum() for p in poses])
-    count = np.array([(errors_sq(p.R, p.t, *args(pb))[0] < th2).sum() for p in poses])
+    exact = np.array([np.minimum(errors_sq(p.R, p.t, pb.arrays)[0], th2).sum() for p in poses])
+    count = np.array([(errors_sq(p.R, p.t, pb.arrays)[0] < th2).sum() for p in poses])
     best = np.inf
     for k in range(len(poses)):
         if exact[k] < best:  # a new running best is scored in full
@@ -111,9 +107,9 @@ def test_refine_on_inliers_masks_and_too_few(scene) -> None:
     pb = build_problem(sc.query_camera, sc.pairs)
     start = perturbed(sc.query_pose, np.random.default_rng(3), 0.002, 0.02)
     R, t, H, sigma, cost, in2d, in3d = refine_on_inliers(start.R, start.t, pb.arrays, 4.0, 2.0, 6, 0.5)
-    e, _ = errors_sq(start.R, start.t, *args(pb))
+    e, _ = errors_sq(start.R, start.t, pb.arrays)
     np.testing.assert_array_equal(in2d, e < 4.0)
-    e_new, _ = errors_sq(R, t, *args(pb))
+    e_new, _ = errors_sq(R, t, pb.arrays)
 
     def cauchy(err_sq: np.ndarray) -> float:  # the refinement's loss, scale 2 px, on the initial inliers
         return float(0.5 * 4.0 * np.log1p(err_sq[in2d] / 4.0).sum())

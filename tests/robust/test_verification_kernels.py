@@ -213,14 +213,10 @@ def test_refine_until_stable_returns_consistent_inliers_and_score(scene) -> None
     R, t, H, sigma, cost, in2d, in3d, score, _ = refine_until_stable(
         start.R, start.t, pb.arrays, th2, 2.0, 6, 4, SIGMA_FLOOR_PX
     )
-    e2d, _ = errors_sq(
-        R, t, pb.xq, pb.xr, pb.offsets, pb.f_query, pb.f_ref, pb.ref_R, pb.ref_t, pb.xq3d, pb.X3d
-    )
+    e2d, _ = errors_sq(R, t, pb.arrays)
     np.testing.assert_array_equal(in2d, e2d < th2)
     assert score == pytest.approx(np.minimum(e2d, th2).sum(), rel=1e-12)
-    e_start, _ = errors_sq(
-        start.R, start.t, pb.xq, pb.xr, pb.offsets, pb.f_query, pb.f_ref, pb.ref_R, pb.ref_t, pb.xq3d, pb.X3d
-    )
+    e_start, _ = errors_sq(start.R, start.t, pb.arrays)
     assert score < np.minimum(e_start, th2).sum()
     assert np.linalg.norm(-R.T @ t - sc.query_pose.center) < np.linalg.norm(
         start.center - sc.query_pose.center
