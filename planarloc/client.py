@@ -18,7 +18,9 @@ from __future__ import annotations
 import os
 import time
 import uuid
+from collections.abc import Mapping
 from pathlib import Path
+from typing import TypedDict, Unpack
 
 from planarloc.extras import require
 from planarloc.geometry.camera import Camera
@@ -77,6 +79,28 @@ class SessionRestarted(ServiceError):
     """The server no longer holds the session's stream (HTTP 410: evicted after being idle or
     because too many sessions were open, or its worker died). The frame was not localized;
     sending it again starts a new stream (:attr:`Session.restarts` counts them)."""
+
+
+class QueryOptions(TypedDict, total=False):
+    """Optional fields of a query, sent as given (None or left out: the server's default; ``planarloc
+    serve --help``): keyword arguments of :meth:`Client.localize`, :meth:`Client.session` and
+    :class:`Session`."""
+
+    #: the map's name (needed when the server serves several)
+    map: str | None
+    #: hypothesis families, e.g. ``"auto"``, ``"2p1p"``
+    method: str | None
+    #: ``"none"`` or ``"tracks"``
+    structure: str | None
+    #: RANSAC seed
+    seed: int | None
+
+
+def _check_options(options: Mapping[str, object], where: str) -> None:
+    """A keyword that is not a :class:`QueryOptions` field is a TypeError, as for any signature."""
+    unknown = sorted(set(options) - set(QueryOptions.__annotations__))
+    if unknown:
+        raise TypeError(f"{where}() got unexpected keyword argument(s): {', '.join(unknown)}")
 
 
 class Client:
@@ -156,15 +180,12 @@ class Client:
         image: str | Path | bytes,
         camera: Camera | str | None = None,
         *,
-        map: str | None = None,
         name: str | None = None,
         gravity: tuple[float, float, float] | None = None,
         session: str | None = None,
         stamp: float | None = None,
         odometry: Pose | None = None,
-        method: str | None = None,
-        structure: str | None = None,
-        seed: int | None = None,
+        **options: Unpack[QueryOptions],
     ) -> dict:
         """``POST /v1/localize``; returns the per-query record (as ``planarloc localize`` writes it),
         or with ``session`` the per-frame record (as ``planarloc localize --sequence``; see :meth:`session`).
@@ -173,29 +194,32 @@ class Client:
             image: a JPEG/PNG file path or its bytes.
             camera: the query intrinsics (a :class:`Camera` or ``"MODEL W H PARAMS..."``); None: the
                 served map's camera (when it has exactly one).
-            map: map name (needed when the server serves several).
             name: the record's ``name`` (default: the file name, or ``"query.png"`` for bytes).
-            gravity, method, structure, seed: optional fields (see ``planarloc serve --help``).
+            gravity: an optional field, as ``options`` (see ``planarloc serve --help``).
             session, stamp, odometry: a frame of a robot's stream: its session id, its time (s)
                 and its ``cam_from_odom`` wheel-odometry pose (sent as the camera's pose in the
                 odometry frame, ``tx ty tz qx qy qz qw``).
+            **options: :class:`QueryOptions`: ``map`` (needed when the server serves several),
+                ``method``, ``structure``, ``seed``.
 
         Raises:
             ServiceError: 4xx (bad input, with the server's reason) or 5xx after ``retries``;
                 :class:`SessionRestarted` for a session the server no longer holds.
         """
+        _check_options(options, "Client.localize")
+        seed = options.get("seed")
         if isinstance(image, bytes):
             data, fname = image, name or "query.png"
         else:
             data, fname = Path(image).read_bytes(), name or Path(image).name
         fields = {
             "camera": camera if camera is None or isinstance(camera, str) else camera_text(camera),
-            "map": map,
+            "map": options.get("map"),
             "session": session,
             "stamp": None if stamp is None else repr(float(stamp)),
             "odometry": None if odometry is None else pose_text(odometry.inverse(), T_XYZW),
-            "method": method,
-            "structure": structure,
+            "method": options.get("method"),
+            "structure": options.get("structure"),
             "seed": None if seed is None else str(int(seed)),
             "gravity": None if gravity is None else " ".join(repr(float(g)) for g in gravity),
         }
@@ -206,21 +230,11 @@ class Client:
         session_id: str | None = None,
         *,
         camera: Camera | str | None = None,
-        map: str | None = None,
-        method: str | None = None,
-        structure: str | None = None,
-        seed: int | None = None,
+        **options: Unpack[QueryOptions],
     ) -> Session:
-        """A robot's stream on the server (:class:`Session`); ``session_id`` default: a new UUID."""
-        return Session(
-            self,
-            session_id or uuid.uuid4().hex,
-            camera=camera,
-            map=map,
-            method=method,
-            structure=structure,
-            seed=seed,
-        )
+        """A robot's stream on the server (:class:`Session`: ``camera`` and ``options`` are sent with
+        each frame); ``session_id`` default: a new UUID."""
+        return Session(self, session_id or uuid.uuid4().hex, camera=camera, **options)
 
 
 class Session:
@@ -245,13 +259,12 @@ class Session:
         session_id: str,
         *,
         camera: Camera | str | None = None,
-        map: str | None = None,
-        method: str | None = None,
-        structure: str | None = None,
-        seed: int | None = None,
+        **options: Unpack[QueryOptions],
     ) -> None:
-        self.client, self.id = client, str(session_id)
-        self.camera, self.map, self.method, self.structure, self.seed = camera, map, method, structure, seed
+        _check_options(options, "Session")
+        self.client, self.id, self.camera = client, str(session_id), camera
+        self.map, self.method = options.get("map"), options.get("method")
+        self.structure, self.seed = options.get("structure"), options.get("seed")
         self.frames = 0
         self.restarts = 0
 

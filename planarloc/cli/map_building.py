@@ -7,14 +7,24 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from pathlib import Path
+from typing import Unpack
 
 from planarloc.cli.console import note, notify
 from planarloc.cli.exit_codes import EXIT_PARTIAL
 from planarloc.features.extract import FeatureConfig
 from planarloc.localize.held_out import Progress, calibrate_map_std_when_due
-from planarloc.map.builder import Mapper, build_map
-from planarloc.map.codec import DEFAULT_STORAGE
+from planarloc.map.builder import BuildRun, build_map
 from planarloc.map.posed_image import PosedImage
+
+
+class BuildOptions(BuildRun, total=False):
+    """How :func:`build_calibrated_map` builds: keyword arguments of :func:`build_map`, all optional
+    (its defaults where not given)."""
+
+    #: the layout of a new map (:data:`planarloc.map.codec.STORAGE_LAYOUTS`)
+    storage: str
+    #: append images whose world frame looks unrelated to the map's
+    allow_unrelated_frames: bool
 
 
 def build_calibrated_map(
@@ -23,13 +33,11 @@ def build_calibrated_map(
     features: FeatureConfig,
     num_words: int,
     progress: Progress,
-    *,
-    mapper: Mapper | None = None,
-    storage: str = DEFAULT_STORAGE,
-    allow_unrelated_frames: bool = False,
+    **build: Unpack[BuildOptions],
 ) -> list[tuple[str, str]]:
     """Build (or resume) the map at ``path`` and measure its std calibration when due; returns the
-    images left out of the map, ``(name, reason)``, each also said on the console."""
+    images left out of the map, ``(name, reason)``, each also said on the console. ``build``: how
+    (:class:`BuildOptions`, e.g. ``mapper``, ``storage``)."""
     left_out: list[tuple[str, str]] = []
 
     def skipped(image: PosedImage, reason: str) -> None:
@@ -44,9 +52,7 @@ def build_calibrated_map(
         progress=progress,
         notify=notify,
         skipped=skipped,
-        storage=storage,
-        allow_unrelated_frames=allow_unrelated_frames,
-        mapper=mapper,
+        **build,
     )
     calibrate_map_std_when_due(path, progress=progress)
     return left_out

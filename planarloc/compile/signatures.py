@@ -22,12 +22,32 @@ def numba_types() -> dict[str, object]:
 
 
 def kernel_records() -> tuple[type, ...]:
-    """The named records (``typing.NamedTuple`` of arrays) the kernels take as arguments."""
-    from planarloc.robust.consensus_scale import PairMotions, ScaleVotes
+    """The named records (``typing.NamedTuple`` of arrays and numbers) the kernels take as arguments."""
+    from planarloc.robust.consensus_scale import (
+        ConsensusSettings,
+        PairMotions,
+        RelativeCandidates,
+        ScaleVotes,
+    )
     from planarloc.robust.hypotheses import Hypotheses, RelativePoses
+    from planarloc.robust.local_optimization import LocalOptimization
     from planarloc.robust.problem import ProblemArrays
+    from planarloc.robust.refinement import RefineSettings, StartPose
+    from planarloc.robust.relative_pose import RayPairs
 
-    return (ProblemArrays, RelativePoses, Hypotheses, PairMotions, ScaleVotes)
+    return (
+        ProblemArrays,
+        RelativePoses,
+        Hypotheses,
+        PairMotions,
+        ScaleVotes,
+        StartPose,
+        RefineSettings,
+        LocalOptimization,
+        ConsensusSettings,
+        RelativeCandidates,
+        RayPairs,
+    )
 
 
 def _record_type(record: type) -> Callable[..., object]:

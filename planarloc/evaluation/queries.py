@@ -65,26 +65,25 @@ class QueryResult:
     success: bool
     translation_error_m: float
     rotation_error_deg: float
-    position_std_m: float
-    num_inliers: int
-    num_inliers_3d: int
-    seconds: float
+    position_std_m: float  # the estimate's std along its worst axis
+    num_inliers: int  # 2D-2D inlier matches
+    num_inliers_3d: int  # 2D-3D inlier constraints (tracks / depth)
+    seconds: float  # wall time of features, retrieval, matching and estimation
     estimate_center: tuple[float, float, float] | None
     truth_center: tuple[float, float, float]
     timestamp: float | None = None
     estimate_quat_wxyz: tuple[float, float, float, float] | None = None
     truth_quat_wxyz: tuple[float, float, float, float] | None = None
     references: tuple[str, ...] = ()
-    reason: str = (
-        ""  # why a query failed: the estimator's message, or why it could not be processed (status "error")
-    )
+    #: why a query failed: the estimator's message, or why it could not be processed (status "error")
+    reason: str = ""
     #: the query's fix record (:func:`planarloc.localize.records.query_record`), as ``localize`` writes it
     record: dict = field(default_factory=dict, compare=False, repr=False)
 
     def to_dict(self) -> dict:
         """The evaluation's entry of this query: its fix record (docs/schema/record.schema.json)
         with the ground truth (``truth_quat_wxyz``, ``truth_center``), the errors (null without
-        a pose) and ``seconds`` (features, retrieval, matching and estimation)."""
+        a pose) and ``seconds``."""
         return {
             **with_truth(self),
             "seconds": self.seconds,

@@ -83,7 +83,7 @@ class FeatureConfig:
     contrast_threshold: float = 0.04
     edge_threshold: float = 10.0
     n_octave_layers: int = 3
-    sigma: float = 1.6
+    sigma: float = 1.6  # px
     rootsift: bool = True
     tilt: bool = False
     tilts: tuple[float, ...] = _tilt.DEFAULT_TILTS

@@ -460,11 +460,11 @@ def decode_features(
     dim: int,
     encoding: str,
     desc_blob: object,
-    keypoint_layout: str = "float32",
+    keypoint_layout: str,
     basis: DescriptorBasis | None = None,
 ) -> Features:
-    """Features (read-only float32 arrays) from a keypoint and a descriptor row (``basis``: the
-    map's descriptor basis, for ``klt`` rows).
+    """Features (read-only float32 arrays) from a keypoint and a descriptor row; ``keypoint_layout``:
+    the map's (:data:`KEYPOINT_LAYOUTS` of its storage), ``basis``: its descriptor basis, for ``klt`` rows.
 
     Raises:
         MapCorruptError: blobs of the wrong type or length, or non-finite values (what is wrong,

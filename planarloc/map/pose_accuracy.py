@@ -40,7 +40,7 @@ from planarloc.geometry.so3 import so3_exp, so3_log
 from planarloc.geometry.validation import check_array
 from planarloc.map.store import MapDatabase
 from planarloc.robust.options import RansacOptions
-from planarloc.robust.relative_pose import direction_basis, estimate_relative_pose
+from planarloc.robust.relative_pose import RayPairs, direction_basis, estimate_relative_pose
 
 logger = logging.getLogger(__name__)
 
@@ -129,26 +129,19 @@ class MapPoseAccuracy:
         )
 
 
-def _signed_sampson_px(
-    R: np.ndarray, t: np.ndarray, xa: np.ndarray, xb: np.ndarray, fa: np.ndarray, fb: np.ndarray
-) -> np.ndarray:
+def _signed_sampson_px(R: np.ndarray, t: np.ndarray, rays: RayPairs) -> np.ndarray:
     """(N,) signed Sampson errors (pixels) of ``x_bᵀ [t]x R x_a = 0``."""
+    xa, xb, fa, fb = rays
     E = essential_from_relpose(R, t)
     sign = np.sign(np.einsum("ij,ij->i", xb, xa @ E.T))
     return sign * np.sqrt(sampson_error_sq(E, xa, xb, fa, fb))
 
 
 def _refined_with_covariance(
-    R: np.ndarray,
-    t: np.ndarray,
-    xa: np.ndarray,
-    xb: np.ndarray,
-    fa: np.ndarray,
-    fb: np.ndarray,
-    iterations: int = 3,
+    R: np.ndarray, t: np.ndarray, rays: RayPairs, iterations: int = 3
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
     """A relative pose ``(R, t)`` (unit ``t``) refined by Gauss-Newton on the Sampson residuals
-    (pixels) of its N inliers ``xa``, ``xb`` (N, 3), and its (5, 5) covariance ``σ̂² (JᵀJ)⁻¹``
+    (pixels) of its N inliers ``rays``, and its (5, 5) covariance ``σ̂² (JᵀJ)⁻¹``
     (rotation increment, direction offset; central-difference Jacobian) and ``σ̂`` (pixels).
 
     The RANSAC's own refinement stops at a tolerance, and its robust loss weighs the inliers; the
@@ -157,7 +150,7 @@ def _refined_with_covariance(
 
     def residuals(R0: np.ndarray, t0: np.ndarray, B: np.ndarray, p: np.ndarray) -> np.ndarray:
         t_p = t0 + B @ p[3:]
-        return _signed_sampson_px(so3_exp(p[:3])[0] @ R0, t_p / np.linalg.norm(t_p), xa, xb, fa, fb)
+        return _signed_sampson_px(so3_exp(p[:3])[0] @ R0, t_p / np.linalg.norm(t_p), rays)
 
     h = 1e-6
     for k in range(iterations + 1):
@@ -216,9 +209,8 @@ def pair_discrepancy(
     R, t = est.pose.R, est.pose.t / np.linalg.norm(est.pose.t)
     xa = np.column_stack([camera_a.cam_from_img(pa[est.inliers]), np.ones(est.num_inliers)])
     xb = np.column_stack([camera_b.cam_from_img(pb[est.inliers]), np.ones(est.num_inliers)])
-    R, t, cov, sigma = _refined_with_covariance(
-        R, t, xa, xb, np.asarray(camera_a.focal, float), np.asarray(camera_b.focal, float)
-    )
+    rays = RayPairs(xa, xb, np.asarray(camera_a.focal, float), np.asarray(camera_b.focal, float))
+    R, t, cov, sigma = _refined_with_covariance(R, t, rays)
     delta = np.concatenate([so3_log(b_from_a.R @ R.T)[0], direction_basis(t).T @ (b_from_a.t / baseline)])
     return PairDiscrepancy(delta, cov, baseline, int(est.num_inliers), sigma)
 

@@ -20,6 +20,47 @@ from planarloc.robust.problem import ProblemArrays
 from planarloc.solvers.relpose_planar_2p import planar_pose_into, solve_planar_2p
 
 
+class ConsensusSettings(NamedTuple):
+    """The settings of both stages, as one record.
+
+    Attributes:
+        threshold_sq: MSAC threshold τ² (pixels²).
+        top_k: relative poses kept per pair (stage 1).
+        max_scored: stage 1 scores a pair with more matches on every s-th (s = ⌈n / max_scored⌉);
+            ranking relative poses needs no more.
+        peaks: separated scale maxima returned per relative pose (stage 2).
+        max_votes: with more matches in the other pairs than this, every s-th match of each
+            pair votes (s = ⌈others / max_votes⌉; stage 2): a hundred votes find the peak as well
+            as a thousand, and the cost is linear in the votes.
+    """
+
+    threshold_sq: float
+    top_k: int
+    max_scored: int
+    peaks: int
+    max_votes: int
+
+
+class RelativeCandidates(NamedTuple):
+    """Stage 1's output and stage 2's input as one record: R (C, 3, 3) rotations and t (C, 3) unit
+    translations of relative poses ``ref_from_query`` of pair ``pair`` (C,), and the (5,) int64
+    counters of :mod:`planarloc.robust.hypotheses` that stage 1 increments."""
+
+    R: np.ndarray
+    t: np.ndarray
+    pair: np.ndarray
+    counters: np.ndarray
+
+    @classmethod
+    def empty(cls, rows: int, counters: np.ndarray) -> RelativeCandidates:
+        """Room for ``rows`` relative poses, counting into ``counters``."""
+        return cls(np.empty((rows, 3, 3)), np.empty((rows, 3)), np.empty(rows, dtype=np.int64), counters)
+
+    def first(self, m: int) -> RelativeCandidates:
+        """The ``m`` relative poses stage 1 wrote."""
+        return RelativeCandidates(self.R[:m], self.t[:m], self.pair[:m], self.counters)
+
+
 class PairMotions(NamedTuple):
     """Every pair's motion under one unit relative pose of pair j and the unknown scale ρ:
     ``k_from_query = (R[k], ρ a[k] + b[k])`` (paper eq. 16-18: ``a = R_kj t̃``, ``b = t_kj``).
@@ -69,11 +110,8 @@ def _insert_sorted(smallest: np.ndarray, value: float) -> None:
 @njit(cache=True, error_model="numpy", inline="always")
 def _score_planar_samples(
     samples: np.ndarray,
-    sample_pair: np.ndarray,
     prob: ProblemArrays,
-    threshold_sq: float,
-    top_k: int,
-    max_scored: int,
+    settings: ConsensusSettings,
     thetas: np.ndarray,
     phis: np.ndarray,
     cost: np.ndarray,
@@ -82,6 +120,7 @@ def _score_planar_samples(
     """Solve every sample (``thetas``, ``phis`` (S, 2)) and score its solutions by MSAC on (every
     s-th match of, see :func:`planar_relative_candidates`) its own pair (``cost`` (2S,), left inf
     for a solution that cannot be among its pair's ``top_k``)."""
+    threshold_sq, top_k, max_scored = settings.threshold_sq, settings.top_k, settings.max_scored
     xq, xr, offsets, f_query, f_ref = prob.xq, prob.xr, prob.offsets, prob.f_query, prob.f_ref
     P = offsets.shape[0] - 1
     # Per pair, the top_k smallest costs so far (ascending): a candidate whose partial cost
@@ -96,7 +135,7 @@ def _score_planar_samples(
         n = solve_planar_2p(sq, sr, thetas[s], phis[s])
         if n == 0:
             counters[DEGENERATE] += 1
-        p = sample_pair[s]
+        p = prob.pair[samples[s, 0]]
         for m in range(n):  # relative poses are not counted as hypotheses; stage 2 counts those
             _planar_essential_into(thetas[s, m], phis[s, m], E)
             acc = 0.0
@@ -118,28 +157,27 @@ def _keep_distinct(
     cost: np.ndarray,
     thetas: np.ndarray,
     phis: np.ndarray,
-    sample_pair: np.ndarray,
-    num_pairs: int,
+    samples: np.ndarray,
+    prob: ProblemArrays,
     top_k: int,
-    out_R: np.ndarray,
-    out_t: np.ndarray,
-    out_pair: np.ndarray,
+    out: RelativeCandidates,
 ) -> int:
     """Per pair, the ``top_k`` cheapest solutions that differ from each other; their (θ, φ) are
-    parked in ``out_t[q, 1]``, ``out_R[q, 1, 0]`` (entries the pose matrices overwrite later)."""
+    parked in ``out.t[q, 1]``, ``out.R[q, 1, 0]`` (entries the pose matrices overwrite later)."""
+    out_R, out_t, out_pair = out.R, out.t, out.pair
     order = np.argsort(cost)
-    out = 0
-    kept = np.zeros(num_pairs, dtype=np.int64)
+    found = 0
+    kept = np.zeros(prob.offsets.shape[0] - 1, dtype=np.int64)
     for o in order:
         if not cost[o] < np.inf:
             break
         s, m = o // 2, o % 2
-        p = sample_pair[s]
+        p = prob.pair[samples[s, 0]]
         if kept[p] >= top_k:
             continue
         th, ph = thetas[s, m], phis[s, m]
         same = False
-        for q in range(out):
+        for q in range(found):
             if (
                 out_pair[q] == p
                 and abs(np.sin(0.5 * (th - out_t[q, 1]))) < 1e-3
@@ -149,26 +187,17 @@ def _keep_distinct(
                 break
         if same:
             continue
-        out_t[out, 1] = th
-        out_R[out, 1, 0] = ph
-        out_pair[out] = p
+        out_t[found, 1] = th
+        out_R[found, 1, 0] = ph
+        out_pair[found] = p
         kept[p] += 1
-        out += 1
-    return out
+        found += 1
+    return found
 
 
 @njit(cache=True, error_model="numpy")
 def planar_relative_candidates(
-    samples: np.ndarray,
-    sample_pair: np.ndarray,
-    prob: ProblemArrays,
-    threshold_sq: float,
-    top_k: int,
-    max_scored: int,
-    out_R: np.ndarray,
-    out_t: np.ndarray,
-    out_pair: np.ndarray,
-    counters: np.ndarray,
+    samples: np.ndarray, prob: ProblemArrays, settings: ConsensusSettings, out: RelativeCandidates
 ) -> int:
     """Stage 1 of the consensus 2p1p: per pair, the ``top_k`` best distinct planar relative poses.
 
@@ -177,13 +206,10 @@ def planar_relative_candidates(
     or translation direction) are kept.
 
     Args:
-        samples: (S, 2) match rows, both of pair ``sample_pair[s]``.
-        prob: the problem's arrays (matches, offsets, focal lengths).
-        threshold_sq: MSAC threshold τ² (pixels²).
-        max_scored: a pair with more matches is scored on every s-th (s = ⌈n / max_scored⌉);
-            ranking relative poses needs no more.
-        out_R, out_t, out_pair: (P * top_k, ...) outputs: ``ref_from_query`` rotation, unit
-            translation, pair index.
+        samples: (S, 2) match rows, both of one pair.
+        prob: the problem's arrays (matches, pairs, offsets, focal lengths).
+        settings: ``threshold_sq``, ``top_k`` and ``max_scored`` (:class:`ConsensusSettings`).
+        out: room for P * top_k relative poses (:class:`RelativeCandidates`).
 
     Returns:
         number of relative poses written.
@@ -192,14 +218,11 @@ def planar_relative_candidates(
     thetas = np.empty((S, 2))
     phis = np.empty((S, 2))
     cost = np.full(2 * S, np.inf)
-    _score_planar_samples(
-        samples, sample_pair, prob, threshold_sq, top_k, max_scored, thetas, phis, cost, counters
-    )
-    num_pairs = prob.offsets.shape[0] - 1
-    out = _keep_distinct(cost, thetas, phis, sample_pair, num_pairs, top_k, out_R, out_t, out_pair)
-    for q in range(out):
-        planar_pose_into(out_t[q, 1], out_R[q, 1, 0], out_R[q], out_t[q])
-    return out
+    _score_planar_samples(samples, prob, settings, thetas, phis, cost, out.counters)
+    found = _keep_distinct(cost, thetas, phis, samples, prob, settings.top_k, out)
+    for q in range(found):
+        planar_pose_into(out.t[q, 1], out.R[q, 1, 0], out.R[q], out.t[q])
+    return found
 
 
 @njit(cache=True, error_model="numpy", inline="always")
@@ -361,14 +384,7 @@ def _densest_segment(
 
 @njit(cache=True, error_model="numpy")
 def hypotheses_2p1p_consensus(
-    Rrel: np.ndarray,
-    trel: np.ndarray,
-    prel: np.ndarray,
-    prob: ProblemArrays,
-    threshold_sq: float,
-    peaks: int,
-    max_votes: int,
-    dest: Hypotheses,
+    rel: RelativeCandidates, prob: ProblemArrays, settings: ConsensusSettings, dest: Hypotheses
 ) -> int:
     """Stage 2 of the consensus 2p1p: the scale of each relative pose from all other matches.
 
@@ -379,16 +395,15 @@ def hypotheses_2p1p_consensus(
     quadratic inequality solved in closed form. Instead of drawing one third match at random
     (eq. 18 for one match), the ρ covered by the most intervals (the largest 1D consensus,
     found by sweeping the sorted interval ends) is taken: every match of the other pairs votes.
-    Matches of pair ``j`` do not depend on ρ. Up to ``peaks`` separated maxima are returned.
+    Matches of pair ``j`` do not depend on ρ. Up to ``settings.peaks`` separated maxima are
+    returned.
 
     Args:
-        Rrel, trel, prel: (C, 3, 3), (C, 3), (C,) relative poses ``ref_from_query`` of pair prel
-            (unit translation), e.g. from :func:`planar_relative_candidates`.
+        rel: C relative poses ``ref_from_query`` (unit translation), e.g. from
+            :func:`planar_relative_candidates`.
         prob: the problem's arrays (matches, offsets, focal lengths, reference poses).
-        threshold_sq: τ² in pixels².
-        max_votes: with more matches in the other pairs than this, every s-th match of each
-            pair votes (s = ⌈others / max_votes⌉): a hundred votes find the peak as well as
-            a thousand, and the cost is linear in the votes.
+        settings: ``threshold_sq`` (τ², pixels²), ``peaks`` and ``max_votes``
+            (:class:`ConsensusSettings`).
         dest: room for C * peaks hypotheses (:class:`~planarloc.robust.hypotheses.Hypotheses`).
 
     Returns:
@@ -397,6 +412,8 @@ def hypotheses_2p1p_consensus(
         degenerate; a maximum at ρ ≤ 0, or one where most of its voters triangulate behind a
         camera, is rejected by Pdcheck.
     """
+    Rrel, trel, prel = rel.R, rel.t, rel.pair
+    threshold_sq, peaks, max_votes = settings.threshold_sq, settings.peaks, settings.max_votes
     offsets = prob.offsets
     N = prob.xq.shape[0]
     P = offsets.shape[0] - 1

@@ -16,12 +16,19 @@ What a refined pose's matches can tell about it lives in :mod:`planarloc.robust.
 
 from __future__ import annotations
 
+import dataclasses
 import functools
+import math
 from collections.abc import Callable
 
 import numpy as np
 
-from planarloc.robust.consensus_scale import hypotheses_2p1p_consensus, planar_relative_candidates
+from planarloc.robust.consensus_scale import (
+    ConsensusSettings,
+    RelativeCandidates,
+    hypotheses_2p1p_consensus,
+    planar_relative_candidates,
+)
 from planarloc.robust.hypotheses import (
     Hypotheses,
     RelativePoses,
@@ -31,12 +38,23 @@ from planarloc.robust.hypotheses import (
     hypotheses_up2p,
     top_distinct_relative,
 )
-from planarloc.robust.local_optimization import distinct_centres, level_plane, refine_planar_then_6dof
+from planarloc.robust.local_optimization import (
+    LocalOptimization,
+    distinct_centres,
+    level_plane,
+    refine_planar_then_6dof,
+)
 from planarloc.robust.map_prior import refine_with_map_prior
 from planarloc.robust.options import Method, RansacOptions
 from planarloc.robust.problem import AbsolutePoseProblem
 from planarloc.robust.ransac import Estimator
-from planarloc.robust.refinement import centre_covariance, refine_on_inliers, refine_pose
+from planarloc.robust.refinement import (
+    RefineSettings,
+    StartPose,
+    centre_covariance,
+    refine_on_inliers,
+    refine_pose,
+)
 from planarloc.robust.result import RansacStatistics
 from planarloc.robust.sampling import draw_pair_samples, draw_within_pairs
 from planarloc.robust.scoring import errors_sq, msac_scores, relative_msac_scores
@@ -63,8 +81,28 @@ class ProblemEstimator:
         self.num_data = len(problem.xq) + len(problem.X3d)
         self.counters = np.zeros(5, dtype=np.int64)
         self._ref_centres = -np.einsum("pji,pj->pi", problem.ref_R, problem.ref_t)
-        self._cos_level = float(np.cos(np.radians(options.planar_tolerance_deg)))
-        self._level = level_plane(problem.ref_R, self._cos_level)
+        cos_level = float(np.cos(np.radians(options.planar_tolerance_deg)))
+        self._local_optimization = LocalOptimization(
+            self.refine_settings(LO_ITERATIONS, LO_WIDENING**2 * self.threshold_sq),
+            LO_PLANAR_ITERATIONS,
+            level_plane(problem.ref_R, cos_level),
+            cos_level,
+            LO_MAX_DATA,
+        )
+
+    def refine_settings(self, max_iterations: int, threshold_sq: float | None = None) -> RefineSettings:
+        """The settings of this problem's refinements: ``max_iterations`` LM iterations on the data
+        within ``threshold_sq`` (default τ²), loss scale τ, σ̂ floor :data:`SIGMA_FLOOR_PX` and the
+        options' map prior (numbers as floats: one compiled signature)."""
+        o = self.options
+        return RefineSettings(
+            float(self.threshold_sq if threshold_sq is None else threshold_sq),
+            float(o.threshold_px),
+            max_iterations,
+            SIGMA_FLOOR_PX,
+            math.radians(o.map_rotation_std_deg),
+            float(o.map_position_std_m),
+        )
 
     def score(self, R: np.ndarray, t: np.ndarray, bound: float = np.inf) -> tuple[np.ndarray, np.ndarray]:
         p = self.p
@@ -99,22 +137,10 @@ class ProblemEstimator:
         """Robust 6DoF refinement from ``(R, c0)`` on the given inliers (:func:`refine_pose`), or,
         with ``map_prior``, jointly with the reference poses under the options' map prior
         (:func:`planarloc.robust.map_prior.refine_with_map_prior`)."""
-        p, o = self.p, self.options
-        args = (
-            np.ascontiguousarray(R),
-            -R @ c0,
-            p.arrays,
-            np.flatnonzero(in2d),
-            np.flatnonzero(in3d),
-            o.threshold_px,
-            max_iterations,
-            SIGMA_FLOOR_PX,
-        )
-        centre = (np.ascontiguousarray(c0), B, fixed)  # c = c0 + B p; ``fixed`` parameters held
-        if not map_prior:
-            return refine_pose(*args, *centre)
-        stds = (float(np.radians(o.map_rotation_std_deg)), float(o.map_position_std_m))
-        return refine_with_map_prior(*args, stds, *centre)
+        start = StartPose(np.ascontiguousarray(R), np.ascontiguousarray(c0), B, fixed)  # c = c0 + B p
+        idx2d, idx3d = np.flatnonzero(in2d), np.flatnonzero(in3d)
+        refine = refine_with_map_prior if map_prior else refine_pose
+        return refine(start, self.p.arrays, idx2d, idx3d, self.refine_settings(max_iterations))
 
     #: :meth:`_refine` under the map prior.
     _refine_with_map_prior = functools.partialmethod(_refine, map_prior=True)
@@ -122,16 +148,8 @@ class ProblemEstimator:
     def _refine_on_inliers(
         self, R: np.ndarray, t: np.ndarray, threshold_sq: float, max_iterations: int
     ) -> tuple:
-        p = self.p
-        return refine_on_inliers(
-            np.ascontiguousarray(R),
-            np.ascontiguousarray(t),
-            p.arrays,
-            threshold_sq,
-            self.options.threshold_px,
-            max_iterations,
-            SIGMA_FLOOR_PX,
-        )
+        settings = self.refine_settings(max_iterations, threshold_sq)
+        return refine_on_inliers(np.ascontiguousarray(R), np.ascontiguousarray(t), self.p.arrays, settings)
 
     def refine_full(self, R: np.ndarray, t: np.ndarray, max_iterations: int) -> tuple:
         """Refine on the current inliers; returns (R, t, cov_center, sigma, cost, in2d, in3d)."""
@@ -157,19 +175,8 @@ class ProblemEstimator:
         ``LO_ITERATIONS`` 6DoF iterations on the inliers (3τ) of the planar optimum, which lets
         a slightly non-planar truth (uneven floor, mount) be reached. +1 to +2 points of
         success at 20 matches per pair and 60 % outliers (3000 scenes, BENCHMARKS.md)."""
-        p = self.p
         return refine_planar_then_6dof(
-            np.ascontiguousarray(R),
-            np.ascontiguousarray(t),
-            p.arrays,
-            LO_WIDENING**2 * self.threshold_sq,
-            self.options.threshold_px,
-            self._level,
-            self._cos_level,
-            LO_PLANAR_ITERATIONS,
-            LO_ITERATIONS,
-            SIGMA_FLOOR_PX,
-            LO_MAX_DATA,
+            np.ascontiguousarray(R), np.ascontiguousarray(t), self.p.arrays, self._local_optimization
         )
 
     def _flush(self, stats: RansacStatistics) -> None:
@@ -204,6 +211,9 @@ class Planar2p1pEstimator(ProblemEstimator):
         self.use_3d = len(problem.X3d) > 0
         self.consensus_scale = consensus_scale
         self._any_eligible = bool((problem.counts >= 2).any())
+        self._consensus = ConsensusSettings(
+            self.threshold_sq, self.top_k, self.max_votes // 2, self.peaks, self.max_votes
+        )
 
     def _generate_consensus(
         self, rng: np.random.Generator, n: int, stats: RansacStatistics
@@ -227,24 +237,10 @@ class Planar2p1pEstimator(ProblemEstimator):
         draw_pair_samples(
             rng.random((n, 4)), p.offsets, 2, 0, samples, sample_pair, np.empty(n, dtype=np.int64)
         )
-        K = self.top_k * p.num_pairs
-        Rrel, trel, prel = np.empty((K, 3, 3)), np.empty((K, 3)), np.empty(K, dtype=np.int64)
-        c = planar_relative_candidates(
-            samples,
-            sample_pair,
-            p.arrays,
-            self.threshold_sq,
-            self.top_k,
-            self.max_votes // 2,
-            Rrel,
-            trel,
-            prel,
-            self.counters,
-        )
+        candidates = RelativeCandidates.empty(self.top_k * p.num_pairs, self.counters)
+        c = planar_relative_candidates(samples, p.arrays, self._consensus, candidates)
         found = Hypotheses.empty(c * self.peaks, self.counters)
-        m = hypotheses_2p1p_consensus(
-            Rrel[:c], trel[:c], prel[:c], p.arrays, self.threshold_sq, self.peaks, self.max_votes, found
-        )
+        m = hypotheses_2p1p_consensus(candidates.first(c), p.arrays, self._consensus, found)
         self._flush(stats)
         return found.first(m)
 
@@ -275,7 +271,7 @@ class Planar2p1pEstimator(ProblemEstimator):
                 second = (first + rng.integers(1, len(p.X3d), len(up))) % len(p.X3d)
                 s_up = np.stack([first, second], axis=1)
                 upright = Hypotheses.empty(2 * len(up), self.counters)
-                m_up = hypotheses_up2p(s_up, pj[up], p.ref_R, p.ref_t, p.xq3d, p.X3d, upright)
+                m_up = hypotheses_up2p(s_up, pj[up], p.arrays, upright)
                 R_up, t_up = upright.first(m_up)
             keep = kind != 2
             samples, pj, pk, third_3d = samples[keep], pj[keep], pk[keep], third_3d[keep]
@@ -413,7 +409,7 @@ class RelativePairEstimator(ProblemEstimator):
             samples,
         )
         found = Hypotheses.empty(4 * n, self.counters)
-        m = hypotheses_p3p(samples, p.xq3d, p.X3d, found)
+        m = hypotheses_p3p(samples, p.arrays, found)
         self._flush(stats)
         return found.first(m)
 
@@ -474,20 +470,11 @@ def rectify_problem(
         ``ref_t ← U_k ref_t``, ``xq3d ← U_q xq3d``; world points unchanged.
     """
     Ur = upright_from_refs[p.pair]
-    return AbsolutePoseProblem(
-        _rotate_rays(p.xq, upright_from_query),
-        _rotate_rays(p.xr, Ur),
-        p.pair,
-        p.offsets,
-        p.query_ids,
-        p.f_query,
-        p.f_ref,
-        np.ascontiguousarray(upright_from_refs @ p.ref_R),
-        np.ascontiguousarray(np.einsum("pij,pj->pi", upright_from_refs, p.ref_t)),
-        _rotate_rays(p.xq3d, upright_from_query) if len(p.xq3d) else p.xq3d,
-        p.X3d,
-        p.source3d,
-        p.X3d_cov,
-        p.X3d_views,
-        p.X3d_pose_jac,
+    arrays = p.arrays._replace(
+        xq=_rotate_rays(p.xq, upright_from_query),
+        xr=_rotate_rays(p.xr, Ur),
+        ref_R=np.ascontiguousarray(upright_from_refs @ p.ref_R),
+        ref_t=np.ascontiguousarray(np.einsum("pij,pj->pi", upright_from_refs, p.ref_t)),
+        xq3d=_rotate_rays(p.xq3d, upright_from_query) if len(p.xq3d) else p.xq3d,
     )
+    return dataclasses.replace(p, arrays=arrays)

@@ -8,8 +8,8 @@ map-error share of the uncertainty is propagated afterwards).
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 from numba import njit
@@ -17,11 +17,17 @@ from numba import njit
 from planarloc.geometry import mat3 as m3
 from planarloc.geometry.so3 import exp_so3
 from planarloc.numerics.symmetric_eigen import symmetric_eigen
-from planarloc.robust.estimators import SIGMA_FLOOR_PX, ProblemEstimator
+from planarloc.robust.estimators import ProblemEstimator
 from planarloc.robust.map_prior import refine_with_map_prior
 from planarloc.robust.options import RansacOptions
 from planarloc.robust.problem import ProblemArrays
-from planarloc.robust.refinement import centre_covariance, refine_pose_core
+from planarloc.robust.refinement import (
+    RefineSettings,
+    StartPose,
+    centre_covariance,
+    refine_pose_core,
+    with_iterations,
+)
 from planarloc.robust.scoring import errors_sq
 
 LATER_ROUND_ITERATIONS = 3  # LM iterations of the rounds after the first in refine_until_stable
@@ -48,6 +54,23 @@ class RefinedPose:
     H: np.ndarray | None = None
 
 
+class StableRefinement(NamedTuple):
+    """The result of :func:`refine_until_stable`: R (3, 3), t (3,), H (6, 6), σ̂ and the robust
+    cost (as :class:`~planarloc.robust.refinement.Refinement`), the inlier masks in2d (N,), in3d
+    (M,) at the returned pose, its MSAC cost ``Σ min(e², τ²)`` (the score every search is judged
+    by) and the 2D-3D constraints' share of that cost."""
+
+    R: np.ndarray
+    t: np.ndarray
+    H: np.ndarray
+    sigma: float
+    cost: float
+    in2d: np.ndarray
+    in3d: np.ndarray
+    score: float
+    score3d: float
+
+
 @dataclass(frozen=True)
 class FinalRefiner:
     """The final refinement of poses of one problem with one set of options.
@@ -60,27 +83,18 @@ class FinalRefiner:
     scorer: ProblemEstimator
     options: RansacOptions
 
-    def _budget(self, quick: bool) -> tuple[int, int]:
-        """(LM iterations of the first round, rounds); no iterations when refinement is off."""
+    def _budget(self, quick: bool) -> tuple[RefineSettings, int]:
+        """The settings (LM iterations of the first round) and the rounds; no iterations when
+        refinement is off."""
         iterations, rounds = (QUICK_ITERATIONS, 1) if quick else (FINAL_ITERATIONS, FINAL_REFINEMENT_ROUNDS)
-        return (iterations, rounds) if self.options.refine else (0, 1)
-
-    def _problem(self) -> tuple[ProblemArrays, float, float]:
-        return self.scorer.p.arrays, self.scorer.threshold_sq, self.options.threshold_px
-
-    def _prior(self) -> tuple[float, float]:
-        return math.radians(self.options.map_rotation_std_deg), self.options.map_position_std_m
+        if not self.options.refine:
+            iterations, rounds = 0, 1
+        return self.scorer.refine_settings(iterations), rounds
 
     def __call__(self, R: np.ndarray, t: np.ndarray, quick: bool = False) -> RefinedPose:
-        iterations, rounds = self._budget(quick)
+        settings, rounds = self._budget(quick)
         R, t, H, sigma, cost, in2d, in3d, score, score3d = refine_until_stable(
-            np.ascontiguousarray(R),
-            np.ascontiguousarray(t),
-            *self._problem(),
-            iterations,
-            rounds,
-            SIGMA_FLOOR_PX,
-            *self._prior(),
+            np.ascontiguousarray(R), np.ascontiguousarray(t), self.scorer.p.arrays, settings, rounds
         )
         return RefinedPose(R, t, centre_covariance(H, sigma), sigma, cost, score, in2d, in3d, score3d, H)
 
@@ -102,14 +116,14 @@ class FinalRefiner:
         nc = float(np.linalg.norm(v[3:]))
         if not nc > 1e-12:
             return 0.0
-        iterations, rounds = self._budget(False)
+        settings, rounds = self._budget(False)
         c = -ref.R.T @ ref.t
         found = 0.0
         for sgn in (1.0, -1.0):
             step = sgn * (beyond / nc) * v
             R0 = exp_so3(np.ascontiguousarray(step[:3])) @ ref.R
             R1, t1, *_, score1, _ = refine_until_stable(
-                R0, -R0 @ (c + step[3:]), *self._problem(), iterations, rounds, SIGMA_FLOOR_PX, *self._prior()
+                R0, -R0 @ (c + step[3:]), self.scorer.p.arrays, settings, rounds
             )
             d = float(np.linalg.norm(-R1.T @ t1 - c))
             if d > beyond and score1 - ref.score <= margin:
@@ -119,44 +133,29 @@ class FinalRefiner:
 
 @njit(cache=True, error_model="numpy")
 def refine_until_stable(
-    Rq: np.ndarray,
-    tq: np.ndarray,
-    prob: ProblemArrays,
-    inlier_threshold_sq: float,
-    loss_scale: float,
-    max_iterations: int,
-    rounds: int,
-    sigma_floor: float,
-    map_rotation_std_rad: float = 0.0,
-    map_position_std_m: float = 0.0,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, float, float, np.ndarray, np.ndarray, float, float]:
+    Rq: np.ndarray, tq: np.ndarray, prob: ProblemArrays, settings: RefineSettings, rounds: int
+) -> StableRefinement:
     """The final refinement: :func:`refine_pose` on the inliers of the current pose, repeated on
     the refined pose's inliers while they change (at most ``rounds`` times), in one call.
 
     Args:
         Rq, tq: the RANSAC winner ``query_from_world``.
         prob: the problem's arrays (:attr:`planarloc.robust.problem.AbsolutePoseProblem.arrays`).
-        inlier_threshold_sq: τ² (pixels²) defining the inliers.
-        max_iterations: LM iterations of the first round (0: only evaluate H and the cost at
-            the pose); later rounds take at most ``LATER_ROUND_ITERATIONS``.
+        settings: τ² (pixels²) defining the inliers, the loss scale, the LM iterations of the
+            first round (0: only evaluate H and the cost at the pose; later rounds take at most
+            ``LATER_ROUND_ITERATIONS``), the σ̂ floor and the map prior: when either of its stds
+            is > 0 and the problem has 2D-3D inliers, :func:`refine_with_map_prior` refines (H is
+            then the marginal information of the query pose).
         rounds: at most this many refinements (≥ 1).
-        map_rotation_std_rad, map_position_std_m: the map prior; when either is > 0 and the
-            problem has 2D-3D inliers, :func:`refine_with_map_prior` refines (H is then the
-            marginal information of the query pose).
-
-    Returns:
-        R, t, H, σ̂, robust cost (as :func:`refine_pose`), the inlier masks (N,), (M,) at the
-        returned pose, its MSAC cost ``Σ min(e², τ²)`` (the score every search is judged by) and
-        the 2D-3D constraints' share of that cost.
     """
+    inlier_threshold_sq, max_iterations = settings.inlier_threshold_sq, settings.max_iterations
     R, t = Rq.copy(), tq.copy()
     e2d, e3d = errors_sq(R, t, prob)
     in2d = e2d < inlier_threshold_sq
     in3d = e3d < inlier_threshold_sq
     eye = np.eye(3)
     free = np.zeros(6, dtype=np.bool_)
-    prior = map_rotation_std_rad > 0.0 or map_position_std_m > 0.0
-    prior_std = (map_rotation_std_rad, map_position_std_m)
+    prior = settings.map_rotation_std_rad > 0.0 or settings.map_position_std_m > 0.0
     H = np.zeros((6, 6))
     sigma = np.inf
     cost = np.inf
@@ -164,15 +163,13 @@ def refine_until_stable(
         # Later rounds start at an optimum whose inlier set changed by a few matches: a couple of
         # iterations reach the new one (the first round may start a few pixels away).
         its = max_iterations if rnd == 0 else min(max_iterations, LATER_ROUND_ITERATIONS)
-        idx2d, idx3d, c0 = np.flatnonzero(in2d), np.flatnonzero(in3d), -m3.t_vec(R, t)
+        round_settings = with_iterations(settings, its)
+        start = StartPose(R, -m3.t_vec(R, t), eye, free)
+        idx2d, idx3d = np.flatnonzero(in2d), np.flatnonzero(in3d)
         if prior and in3d.any():
-            R, t, H, sigma, cost = refine_with_map_prior(
-                R, t, prob, idx2d, idx3d, loss_scale, its, sigma_floor, prior_std, c0, eye, free
-            )
+            R, t, H, sigma, cost = refine_with_map_prior(start, prob, idx2d, idx3d, round_settings)
         else:
-            R, t, H, sigma, cost = refine_pose_core(
-                R, t, prob, idx2d, idx3d, loss_scale, its, sigma_floor, c0, eye, free, np.bool_(True)
-            )
+            R, t, H, sigma, cost = refine_pose_core(start, prob, idx2d, idx3d, round_settings, np.bool_(True))
         e2d, e3d = errors_sq(R, t, prob)
         new2d = e2d < inlier_threshold_sq
         new3d = e3d < inlier_threshold_sq
@@ -186,4 +183,4 @@ def refine_until_stable(
     msac3d = 0.0
     for i in range(e3d.shape[0]):
         msac3d += min(e3d[i], inlier_threshold_sq)
-    return R, t, H, sigma, cost, in2d, in3d, msac2d + msac3d, msac3d
+    return StableRefinement(R, t, H, sigma, cost, in2d, in3d, msac2d + msac3d, msac3d)

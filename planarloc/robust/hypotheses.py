@@ -239,22 +239,16 @@ def hypotheses_from_relative_poses(
 
 
 @njit(cache=True, error_model="numpy")
-def hypotheses_up2p(
-    samples: np.ndarray,
-    pj: np.ndarray,
-    ref_R: np.ndarray,
-    ref_t: np.ndarray,
-    xq3d: np.ndarray,
-    X3d: np.ndarray,
-    dest: Hypotheses,
-) -> int:
+def hypotheses_up2p(samples: np.ndarray, pj: np.ndarray, prob: ProblemArrays, dest: Hypotheses) -> int:
     """Upright P2P hypotheses (structure mode): two 2D-3D constraints, yaw relative to pair ``pj``.
 
     Args:
-        samples: (S, 2) rows of ``xq3d`` / ``X3d``.
+        samples: (S, 2) rows of ``prob.xq3d`` / ``prob.X3d``.
         pj: (S,) the reference whose frame is upright relative to the query (local planar motion).
+        prob: the problem's arrays (reference poses, 2D-3D constraints).
         dest: room for 2S hypotheses (:class:`Hypotheses`).
     """
+    ref_R, ref_t, xq3d, X3d = prob.ref_R, prob.ref_t, prob.xq3d, prob.X3d
     x = np.empty((2, 3))
     X = np.empty((2, 3))
     th = np.empty(2)
@@ -283,16 +277,12 @@ def hypotheses_up2p(
 
 
 @njit(cache=True, error_model="numpy")
-def hypotheses_p3p(
-    samples: np.ndarray,
-    xq3d: np.ndarray,
-    X3d: np.ndarray,
-    dest: Hypotheses,
-) -> int:
+def hypotheses_p3p(samples: np.ndarray, prob: ProblemArrays, dest: Hypotheses) -> int:
     """6DoF P3P hypotheses from three 2D-3D constraints (:mod:`planarloc.solvers.abspose_p3p`).
 
     Args:
-        samples: (S, 3) rows of ``xq3d`` / ``X3d``.
+        samples: (S, 3) rows of ``prob.xq3d`` / ``prob.X3d``.
+        prob: the problem's arrays (2D-3D constraints).
         dest: room for 4S hypotheses (:class:`Hypotheses`).
 
     Returns:
@@ -302,7 +292,7 @@ def hypotheses_p3p(
     ts = np.empty((P3P_MAX_SOLUTIONS, 3))
     out = 0
     for s in range(samples.shape[0]):
-        n = solve_p3p(xq3d[samples[s]], X3d[samples[s]], Rs, ts)
+        n = solve_p3p(prob.xq3d[samples[s]], prob.X3d[samples[s]], Rs, ts)
         if n == 0:
             dest.counters[DEGENERATE] += 1
             continue

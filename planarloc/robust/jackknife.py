@@ -18,11 +18,16 @@ from numba import njit
 from planarloc.geometry import mat3 as m3
 from planarloc.geometry.so3 import exp_so3
 from planarloc.numerics.cholesky import solve_spd
-from planarloc.robust.estimators import SIGMA_FLOOR_PX
 from planarloc.robust.map_prior import refine_with_map_prior
 from planarloc.robust.observability import supporting_pairs
 from planarloc.robust.problem import ProblemArrays
-from planarloc.robust.refinement import refine_pose_core, residuals_jacobian
+from planarloc.robust.refinement import (
+    RefineSettings,
+    StartPose,
+    refine_pose_core,
+    residuals_jacobian,
+    with_iterations,
+)
 
 
 @dataclass(frozen=True)
@@ -123,12 +128,11 @@ def jackknife_kernel(
     in2d: np.ndarray,
     in3d: np.ndarray,
     support: np.ndarray,
-    loss_scale: float,
-    max_iterations: int,
-    sigma_floor: float,
+    settings: RefineSettings,
 ) -> tuple[float, float, float, int]:
     """The numbers of :func:`reference_jackknife` in one compiled call (one refinement per
-    supporting reference with its rows left out, started at the full estimate).
+    supporting reference with its rows left out, started at the full estimate, with
+    ``settings.max_iterations`` in all).
 
     Returns:
         (jackknife position std, largest centre shift, largest rotation in degrees, index into
@@ -143,7 +147,7 @@ def jackknife_kernel(
     # at the full estimate, the normal equations without reference k are the full ones minus
     # k's share (H - H_k, g - g_k), so the step costs a 6x6 solve instead of a residual and
     # Jacobian pass per reference. The remaining iterations refine from there.
-    Hp, gp = _pair_normal_equations(R, c, prob, all2d, idx3d, loss_scale)
+    Hp, gp = _pair_normal_equations(R, c, prob, all2d, idx3d, settings.loss_scale)
     Ht = np.zeros((6, 6))
     gt = np.zeros(6)
     for q in range(Hp.shape[0]):
@@ -154,23 +158,13 @@ def jackknife_kernel(
     max_rot = 0.0
     eye = np.eye(3)
     free = np.zeros(6, dtype=np.bool_)
+    rest = with_iterations(settings, max(settings.max_iterations - 1, 0))  # the first is the step above
     for i in range(n):
         k = support[i]
         keep = all2d[(all2d < offsets[k]) | (all2d >= offsets[k + 1])]
-        R1, c1 = _first_step(R, c, Ht - Hp[k], gp[k] - gt, max_iterations)
+        R1, c1 = _first_step(R, c, Ht - Hp[k], gp[k] - gt, settings.max_iterations)
         Rk, tk, _, _, _ = refine_pose_core(
-            R1,
-            t,
-            prob,
-            keep,
-            idx3d,
-            loss_scale,
-            max(max_iterations - 1, 0),
-            sigma_floor,
-            c1,
-            eye,
-            free,
-            np.bool_(False),
+            StartPose(R1, c1, eye, free), prob, keep, idx3d, rest, np.bool_(False)
         )
         ck = -m3.t_vec(Rk, tk)
         for a in range(3):
@@ -216,9 +210,7 @@ def reference_jackknife(
         in2d,
         in3d,
         np.asarray(support, dtype=np.int64),
-        est.options.threshold_px,
-        max_iterations,
-        SIGMA_FLOOR_PX,
+        est.refine_settings(max_iterations),
     )
     return Jackknife(n, float(std), float(shift), float(rot), int(support[worst]))
 
@@ -238,32 +230,19 @@ def reference_jackknife_with_prior(
     :func:`reference_jackknife`: a point was triangulated from two map images whose poses agreed
     on it, and it ties the query to the world, not to one reference.
     """
-    p, o = est.p, est.options
+    p = est.p
     n = len(support)
     if n < 3:
         return Jackknife(n, float("nan"), float("nan"), float("nan"), -1)
     c = -R.T @ t
-    eye, free = np.eye(3), np.zeros(6, dtype=np.bool_)
+    start = StartPose(np.ascontiguousarray(R), c, np.eye(3), np.zeros(6, dtype=np.bool_))
+    settings = est.refine_settings(max_iterations)
     idx3d = np.flatnonzero(in3d)
     centres = np.empty((n, 3))
     max_rot = 0.0
-    rot_std, pos_std = math.radians(o.map_rotation_std_deg), float(o.map_position_std_m)
     for i, k in enumerate(support):
         idx2d = np.flatnonzero(in2d & (p.pair != k))
-        Rk, tk, *_ = refine_with_map_prior(
-            np.ascontiguousarray(R),
-            np.ascontiguousarray(t),
-            p.arrays,
-            idx2d,
-            idx3d,
-            o.threshold_px,
-            max_iterations,
-            SIGMA_FLOOR_PX,
-            (rot_std, pos_std),
-            c,
-            eye,
-            free,
-        )
+        Rk, tk, *_ = refine_with_map_prior(start, p.arrays, idx2d, idx3d, settings)
         centres[i] = -Rk.T @ tk
         max_rot = max(
             max_rot, math.degrees(math.acos(min(1.0, max(-1.0, (float(np.sum(Rk * R)) - 1.0) / 2.0))))

@@ -14,12 +14,14 @@ model on its inliers; here the inner refinement is the robust one of
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numpy as np
 from numba import njit
 
 from planarloc.geometry import mat3 as m3
 from planarloc.robust.problem import ProblemArrays
-from planarloc.robust.refinement import refine_pose_core
+from planarloc.robust.refinement import RefineSettings, StartPose, refine_pose_core, with_iterations
 from planarloc.robust.scoring import errors_sq
 
 # Planar motion in refine_pose's parameters (rotation increment Exp(δ) R in the camera frame,
@@ -86,113 +88,88 @@ def distinct_centres(R: np.ndarray, t: np.ndarray, cb: np.ndarray, ref_centres: 
     return out
 
 
+class LocalOptimization(NamedTuple):
+    """The settings of :func:`refine_planar_then_6dof` for one problem, as one record.
+
+    Attributes:
+        refine: the 6DoF stage's :class:`~planarloc.robust.refinement.RefineSettings`; its
+            inlier threshold (squared pixel error under which a datum is refined on) and loss
+            scale serve the planar stage too, and its σ̂ floor has no effect on the pose.
+        planar_iterations: LM iterations of the planar stage.
+        level: (3, 3) from :func:`level_plane`, or (0, 3) for no planar stage.
+        cos_level: the planar stage runs when the hypothesis' camera y axis is within
+            ``arccos(cos_level)`` of ``level[:, 1]``.
+        max_data: the planar stage refines on every s-th inlier, s = ⌈inliers / max_data⌉ (its
+            cost is linear in the data, and reaching the basin needs a hundred, not a
+            thousand); the 6DoF stage on all of them, so that the final refinement starts
+            converged.
+    """
+
+    refine: RefineSettings
+    planar_iterations: int
+    level: np.ndarray
+    cos_level: float
+    max_data: int
+
+
 @njit(cache=True, error_model="numpy")
 def _refine_stage(
-    R: np.ndarray,
-    t: np.ndarray,
-    prob: ProblemArrays,
-    inlier_threshold_sq: float,
-    loss_scale: float,
-    iterations: int,
-    sigma_floor: float,
-    B: np.ndarray,
-    fixed: np.ndarray,
-    max_data: int | np.integer,
-) -> tuple:
+    R: np.ndarray, t: np.ndarray, prob: ProblemArrays, lo: LocalOptimization, planar: np.bool_
+) -> tuple[np.ndarray, np.ndarray]:
+    """One stage of :func:`refine_planar_then_6dof` on the inliers of ``(R, t)``: ``planar``, yaw
+    and the centre within the level plane on at most about ``lo.max_data`` of them; else 6DoF
+    on all of them. Returns the input when fewer than 6 inliers."""
+    s = lo.refine
+    if planar:
+        settings = with_iterations(s, lo.planar_iterations)
+        B, fixed, max_data = lo.level, PLANAR_FIXED, lo.max_data
+    else:
+        settings, B, fixed, max_data = s, np.eye(3), _FREE, 1 << 62
     e2d, e3d = errors_sq(R, t, prob)
-    idx2d = np.flatnonzero(e2d < inlier_threshold_sq)
-    idx3d = np.flatnonzero(e3d < inlier_threshold_sq)
+    idx2d = np.flatnonzero(e2d < s.inlier_threshold_sq)
+    idx3d = np.flatnonzero(e3d < s.inlier_threshold_sq)
     n = idx2d.shape[0] + idx3d.shape[0]
     if n < 6:
         return R, t
     stride = (n + max_data - 1) // max_data
     if stride > 1:
         idx2d, idx3d = idx2d[::stride].copy(), idx3d[::stride].copy()
-    # Only the pose is wanted: no normal matrix after the last step.
-    refined = refine_pose_core(
-        R,
-        t,
-        prob,
-        idx2d,
-        idx3d,
-        loss_scale,
-        iterations,
-        sigma_floor,
-        -m3.t_vec(R, t),
-        B,
-        fixed.copy(),
-        np.bool_(False),
-    )  # writable, typed: refine_pose's one signature
+    # Only the pose is wanted: no normal matrix after the last step. ``fixed`` copied: writable,
+    # typed as in every other StartPose (refine_pose's one signature).
+    start = StartPose(R, -m3.t_vec(R, t), B, fixed.copy())
+    refined = refine_pose_core(start, prob, idx2d, idx3d, settings, np.bool_(False))
     return refined.R, refined.t
 
 
 @njit(cache=True, error_model="numpy")
 def refine_planar_then_6dof(
-    Rq: np.ndarray,
-    tq: np.ndarray,
-    prob: ProblemArrays,
-    inlier_threshold_sq: float,
-    loss_scale: float,
-    level: np.ndarray,
-    cos_level: float,
-    planar_iterations: int,
-    iterations: int,
-    sigma_floor: float,
-    max_data: int,
+    Rq: np.ndarray, tq: np.ndarray, prob: ProblemArrays, lo: LocalOptimization
 ) -> tuple[np.ndarray, np.ndarray]:
     """Local optimisation of one hypothesis: planar, then 6DoF robust refinement on its inliers.
 
-    Stage 1 (only when ``level`` is a basis and the hypothesis' camera y axis ``Rq[1]`` is
-    within ``arccos(cos_level)`` of ``level[:, 1]``, i.e. a planar hypothesis of references
-    level with each other): ``planar_iterations`` LM iterations of :func:`refine_pose` moving
-    only the yaw and the centre within the level plane, on the matches whose error is below
-    ``inlier_threshold_sq``. With few inliers and outliers let in by a widened threshold, the
-    3 extra DoF of a 6DoF step absorb outliers as tilt and height; the planar step cannot.
-    Stage 2: ``iterations`` 6DoF iterations on the inliers of the stage-1 pose (same
+    Stage 1 (only when ``lo.level`` is a basis and the hypothesis' camera y axis ``Rq[1]`` is
+    within ``arccos(lo.cos_level)`` of ``lo.level[:, 1]``, i.e. a planar hypothesis of references
+    level with each other): ``lo.planar_iterations`` LM iterations of :func:`refine_pose` moving
+    only the yaw and the centre within the level plane, on the matches whose error is below the
+    inlier threshold. With few inliers and outliers let in by a widened threshold, the 3 extra
+    DoF of a 6DoF step absorb outliers as tilt and height; the planar step cannot. Stage 2:
+    ``lo.refine.max_iterations`` 6DoF iterations on the inliers of the stage-1 pose (same
     threshold), so a slightly non-planar truth is still reached.
 
     Args:
         Rq, tq: (3, 3), (3,) hypothesis ``query_from_world``.
         prob: the problem's arrays (:attr:`planarloc.robust.problem.AbsolutePoseProblem.arrays`).
-        inlier_threshold_sq: squared pixel error under which a datum is refined on.
-        loss_scale: Cauchy scale of the refinement, pixels.
-        level: (3, 3) from :func:`level_plane`, or (0, 3) for no planar stage.
-        sigma_floor: as in :func:`refine_pose` (no effect on the pose).
-        max_data: the planar stage refines on every s-th inlier, s = ⌈inliers / max_data⌉
-            (its cost is linear in the data, and reaching the basin needs a hundred, not a
-            thousand); the 6DoF stage on all of them, so that the final refinement starts
-            converged.
+        lo: the settings (:class:`LocalOptimization`).
 
     Returns:
         the refined (R (3, 3), t (3,)); the input when fewer than 6 inliers.
     """
     R, t = Rq.copy(), tq.copy()
+    level = lo.level
     if (
-        planar_iterations > 0
+        lo.planar_iterations > 0
         and level.shape[0] == 3
-        and (R[1, 0] * level[0, 1] + R[1, 1] * level[1, 1] + R[1, 2] * level[2, 1]) > cos_level
+        and (R[1, 0] * level[0, 1] + R[1, 1] * level[1, 1] + R[1, 2] * level[2, 1]) > lo.cos_level
     ):
-        R, t = _refine_stage(
-            R,
-            t,
-            prob,
-            inlier_threshold_sq,
-            loss_scale,
-            planar_iterations,
-            sigma_floor,
-            level,
-            PLANAR_FIXED,
-            max_data,
-        )
-    return _refine_stage(
-        R,
-        t,
-        prob,
-        inlier_threshold_sq,
-        loss_scale,
-        iterations,
-        sigma_floor,
-        np.eye(3),
-        _FREE,
-        np.int64(1 << 62),
-    )
+        R, t = _refine_stage(R, t, prob, lo, np.bool_(True))  # typed, not literals: one compiled signature
+    return _refine_stage(R, t, prob, lo, np.bool_(False))

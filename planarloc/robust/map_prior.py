@@ -29,6 +29,8 @@ from planarloc.robust.problem import ProblemArrays, with_references
 from planarloc.robust.refinement import (
     FASTMATH,
     Refinement,
+    RefineSettings,
+    StartPose,
     irls_normal_equations,
     residuals,
     residuals_jacobian,
@@ -226,46 +228,37 @@ def _reference_corrections(
 
 
 @njit(cache=True, error_model="numpy", fastmath=FASTMATH)
-def _prior_weights(r: np.ndarray, s2: float, sigma_floor: float, prior_std: tuple[float, float]) -> tuple:
-    """``(λ_rot, λ_pos) = σ̂² / (σ_rot², σ_pos²)`` with σ̂ the IRLS residual scale at the initial
-    residuals ``r`` (floored at ``sigma_floor``), and that σ̂²."""
+def _prior_weights(r: np.ndarray, s2: float, settings: RefineSettings) -> tuple:
+    """``(λ_rot, λ_pos) = σ̂² / (σ_rot², σ_pos²)`` of the settings' map prior, with σ̂ the IRLS
+    residual scale at the initial residuals ``r`` (floored at ``settings.sigma_floor``)."""
     m = r.shape[0]
     wr2 = 0.0
     for i in range(m):
         wr2 += r[i] * r[i] / (1.0 + r[i] * r[i] / s2)
-    sig2 = max(wr2 / max(m - 6, 1), sigma_floor * sigma_floor)
-    return sig2 / max(prior_std[0], 1e-9) ** 2, sig2 / max(prior_std[1], 1e-9) ** 2
+    sig2 = max(wr2 / max(m - 6, 1), settings.sigma_floor * settings.sigma_floor)
+    return (
+        sig2 / max(settings.map_rotation_std_rad, 1e-9) ** 2,
+        sig2 / max(settings.map_position_std_m, 1e-9) ** 2,
+    )
 
 
 @njit(cache=True, error_model="numpy", fastmath=FASTMATH)
 def refine_with_map_prior(
-    Rq: np.ndarray,
-    tq: np.ndarray,
-    prob: ProblemArrays,
-    idx2d: np.ndarray,
-    idx3d: np.ndarray,
-    loss_scale: float,
-    max_iterations: int,
-    sigma_floor: float,
-    prior_std: tuple[float, float],
-    c0: np.ndarray,
-    B: np.ndarray,
-    fixed: np.ndarray,
+    start: StartPose, prob: ProblemArrays, idx2d: np.ndarray, idx3d: np.ndarray, settings: RefineSettings
 ) -> Refinement:
-    """Levenberg-Marquardt (IRLS, Cauchy loss at ``loss_scale``) of the query pose and one pose
-    correction per reference with the map prior; same arguments and returns as
-    :func:`planarloc.robust.refinement.refine_pose` (the centre ``c = c0 + B p``, ``fixed``
-    query parameters held), except that H is the Schur complement (marginal information of the
-    query's 6 parameters) and the cost includes the prior. The prior's pixel scale is σ̂ at the
-    initial pose (floored at ``sigma_floor``): ``Λ = σ̂² diag(1/σ_rot², 1/σ_pos²)``. Reference
-    centre shifts are expressed in the same orthonormal basis B (the prior is isotropic).
-    ``prior_std``: the map poses' ``(rotation std (rad), position std (m))``.
+    """Levenberg-Marquardt (IRLS, Cauchy loss at ``settings.loss_scale``) of the query pose and one
+    pose correction per reference with the settings' map prior; same arguments and returns as
+    :func:`planarloc.robust.refinement.refine_pose` (the centre ``c = start.c + start.B p``,
+    ``start.fixed`` query parameters held), except that H is the Schur complement (marginal
+    information of the query's 6 parameters) and the cost includes the prior. The prior's pixel
+    scale is σ̂ at the initial pose (floored at ``settings.sigma_floor``):
+    ``Λ = σ̂² diag(1/σ_rot², 1/σ_pos²)``. Reference centre shifts are expressed in the same
+    orthonormal basis B (the prior is isotropic).
     """
     ref_R, ref_t, pair = prob.ref_R, prob.ref_t, prob.pair
     P = ref_R.shape[0]
     m = idx2d.shape[0] + 2 * idx3d.shape[0]
-    R = Rq.copy()
-    c = c0.copy()
+    R, c, B, fixed = start.R.copy(), start.c.copy(), start.B, start.fixed
     ref_c = np.empty((P, 3))
     for p in range(P):
         ref_c[p] = -m3.t_vec(ref_R[p], ref_t[p])
@@ -277,9 +270,9 @@ def refine_with_map_prior(
     J = np.empty((m, 6))
     Jrot = np.empty((m, 3))
     zero = np.zeros(6)
-    s2 = loss_scale * loss_scale
+    s2 = settings.loss_scale * settings.loss_scale
     residuals_jacobian(R, c, B, with_references(prob, cur_R, cur_t), idx2d, idx3d, r, J, Jrot)
-    lam_rot, lam_pos = _prior_weights(r, s2, sigma_floor, prior_std)
+    lam_rot, lam_pos = _prior_weights(r, s2, settings)
     wr2 = 0.0
     cost = 0.5 * s2 * np.sum(np.log1p(r * r / s2)) + _prior_cost(omega, dvec, lam_rot, lam_pos)
     H = np.zeros((6, 6))
@@ -291,6 +284,7 @@ def refine_with_map_prior(
     lam = 1e-4
     rows_pair = pair[idx2d]
     Dinv = np.empty((P, 6, 6))
+    max_iterations = settings.max_iterations
     for it in range(max_iterations + 1):
         _pair_blocks(J, Jrot, r, rows_pair, s2, fixed, Bp, Dp, hp)
         wr2 = irls_normal_equations(J, r, s2, H, g)
@@ -324,5 +318,5 @@ def refine_with_map_prior(
         residuals_jacobian(R, c, B, with_references(prob, cur_R, cur_t), idx2d, idx3d, r, J, Jrot)
         if not improved or np.sqrt(np.sum(step * step)) < 1e-9:
             max_iterations = it + 1  # one more pass to evaluate H at the solution
-    sigma2 = max(wr2 / max(m - 6, 1), sigma_floor * sigma_floor)
+    sigma2 = max(wr2 / max(m - 6, 1), settings.sigma_floor * settings.sigma_floor)
     return Refinement(R, -m3.vec(R, c), Hm, np.sqrt(sigma2), cost)

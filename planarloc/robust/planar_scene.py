@@ -163,20 +163,13 @@ def homography_inlier_ratio(
 
 
 @njit(cache=True, error_model="numpy")
-def median_depth(
-    R: np.ndarray,
-    t: np.ndarray,
-    xq: np.ndarray,
-    xr: np.ndarray,
-    rows: np.ndarray,
-    ref_R: np.ndarray,
-    ref_t: np.ndarray,
-) -> float:
+def median_depth(R: np.ndarray, t: np.ndarray, prob: ProblemArrays, rows: np.ndarray, k: int) -> float:
     """Median distance from the query centre of the midpoint triangulations of the matches
-    ``rows`` of one pair (query ``cam_from_world = (R, t)``, reference ``(ref_R, ref_t)``);
-    NaN if none triangulates in front of the query."""
-    R_rq = m3.mul_t(ref_R, R)
-    t_rq = ref_t - m3.vec(R_rq, t)
+    ``rows`` of pair ``k`` (query ``cam_from_world = (R, t)``); NaN if none triangulates in front
+    of the query."""
+    xq, xr = prob.xq, prob.xr
+    R_rq = m3.mul_t(prob.ref_R[k], R)
+    t_rq = prob.ref_t[k] - m3.vec(R_rq, t)
     depth = np.empty(rows.shape[0])
     k = 0
     for n in range(rows.shape[0]):
@@ -262,9 +255,6 @@ def _distant_planar_kernel(
                 rows[n] = j
                 n += 1
         if not any_plane:
-            if (
-                n >= FEW_INLIERS
-                or not median_depth(R, t, xq, xr, rows, ref_R[k], ref_t[k]) > FAR_RATIO * spread
-            ):
+            if n >= FEW_INLIERS or not median_depth(R, t, prob, rows, k) > FAR_RATIO * spread:
                 continue
         out[i] = homography_inlier_ratio(xq, xr, rows, f_ref[k], threshold_px) >= PLANAR_INLIER_RATIO

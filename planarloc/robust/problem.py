@@ -7,7 +7,7 @@ import itertools
 from collections.abc import Sequence
 from dataclasses import dataclass
 from functools import cached_property
-from typing import NamedTuple
+from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
 from numba import njit
@@ -18,8 +18,22 @@ from planarloc.robust.pair_matches import PairMatches
 
 
 class ProblemArrays(NamedTuple):
-    """The arrays of an :class:`AbsolutePoseProblem` that the numba kernels read, as one named
-    record (numba compiles a ``NamedTuple`` of arrays as one argument; see the fields there)."""
+    """The arrays of one absolute-pose problem that the numba kernels read, as one named record
+    (numba compiles a ``NamedTuple`` of arrays as one argument). All matches of one query are
+    concatenated over pairs (pair ``p`` owns rows ``offsets[p]:offsets[p+1]``).
+
+    Attributes:
+        xq, xr: (N, 3) normalized homogeneous query / reference points (undistorted).
+        pair: (N,) pair index of each match.
+        offsets: (P + 1,) row offsets of the pairs.
+        f_query: (4,) pixel scales of the query's errors: (fx, fy) of the 2D-2D (Sampson)
+            errors, then (fx, fy)·s of the 2D-3D reprojection errors, with ``s = τ / τ₃``
+            (:meth:`AbsolutePoseProblem.with_reprojection_threshold`) so that every kernel's one
+            threshold τ and loss scale apply to a reprojection error at τ₃ (default s = 1).
+        f_ref: (P, 2) reference focal lengths.
+        ref_R, ref_t: (P, 3, 3), (P, 3) reference ``cam_from_world``.
+        xq3d: (M, 3) query rays of 2D-3D constraints; X3d: (M, 3) their world points.
+    """
 
     xq: np.ndarray
     xr: np.ndarray
@@ -43,21 +57,14 @@ def with_references(prob: ProblemArrays, ref_R: np.ndarray, ref_t: np.ndarray) -
 
 @dataclass(frozen=True, eq=False)
 class AbsolutePoseProblem:
-    """All matches of one query, concatenated over pairs (pair ``p`` owns rows
-    ``offsets[p]:offsets[p+1]``).
+    """One query's problem: the kernels' arrays and what only Python reads.
+
+    The fields of :attr:`arrays` read as the problem's own (``problem.xq``, ``problem.ref_R``, ...).
 
     Attributes:
-        xq, xr: (N, 3) normalized homogeneous query / reference points (undistorted).
-        pair: (N,) pair index of each match.
-        offsets: (P + 1,) row offsets of the pairs.
+        arrays: the arrays the kernels read (:class:`ProblemArrays`: matches, pairs, focal
+            lengths, reference poses, 2D-3D constraints).
         query_ids: (N,) query keypoint ids (-1 when unknown).
-        f_query: (4,) pixel scales of the query's errors: (fx, fy) of the 2D-2D (Sampson)
-            errors, then (fx, fy)·s of the 2D-3D reprojection errors, with ``s = τ / τ₃``
-            (:meth:`with_reprojection_threshold`) so that every kernel's one threshold τ and
-            loss scale apply to a reprojection error at τ₃ (default s = 1).
-        f_ref: (P, 2) reference focal lengths.
-        ref_R, ref_t: (P, 3, 3), (P, 3) reference ``cam_from_world``.
-        xq3d: (M, 3) query rays of 2D-3D constraints; X3d: (M, 3) their world points.
         source3d: (M,) -1 for a triangulated track, else the match row whose reference
             gave it (depth or local structure).
         X3d_cov: (M, 3, 3) covariance of the world points (m²; zeros for exact points).
@@ -69,30 +76,26 @@ class AbsolutePoseProblem:
             zeros where ``X3d_views`` is -1).
     """
 
-    xq: np.ndarray
-    xr: np.ndarray
-    pair: np.ndarray
-    offsets: np.ndarray
+    arrays: ProblemArrays
     query_ids: np.ndarray
-    f_query: np.ndarray
-    f_ref: np.ndarray
-    ref_R: np.ndarray
-    ref_t: np.ndarray
-    xq3d: np.ndarray
-    X3d: np.ndarray
     source3d: np.ndarray
     X3d_cov: np.ndarray
     X3d_views: np.ndarray
     X3d_pose_jac: np.ndarray
 
+    def __post_init__(self) -> None:
+        # The fields of ``arrays`` as plain attributes of the problem (``problem.xq``, ...): as fast
+        # to read as fields, which Python loops over the matches do.
+        for name, value in zip(ProblemArrays._fields, self.arrays):
+            object.__setattr__(self, name, value)
+
+    if TYPE_CHECKING:
+
+        def __getattr__(self, name: str) -> np.ndarray: ...  # those attributes, for the type checker
+
     @property
     def num_pairs(self) -> int:
         return len(self.offsets) - 1
-
-    @cached_property
-    def arrays(self) -> ProblemArrays:
-        """The kernels' record of this problem's arrays (built once)."""
-        return ProblemArrays(*(getattr(self, name) for name in ProblemArrays._fields))
 
     @cached_property
     def counts(self) -> np.ndarray:
@@ -104,7 +107,7 @@ class AbsolutePoseProblem:
         2D-3D one): kernels that threshold at τ then threshold reprojection errors at τ₃."""
         f = self.f_query.copy()
         f[2:] = f[:2] * float(ratio)
-        return dataclasses.replace(self, f_query=f)
+        return dataclasses.replace(self, arrays=self.arrays._replace(f_query=f))
 
     def points_only(self) -> AbsolutePoseProblem:
         """This problem with its 2D-3D constraints alone (no 2D-2D match in any pair): a search
@@ -112,10 +115,12 @@ class AbsolutePoseProblem:
         not (:func:`planarloc.robust.absolute_pose.estimate_absolute_pose`)."""
         return dataclasses.replace(
             self,
-            xq=np.zeros((0, 3)),
-            xr=np.zeros((0, 3)),
-            pair=np.zeros(0, dtype=np.int64),
-            offsets=np.zeros_like(self.offsets),
+            arrays=self.arrays._replace(
+                xq=np.zeros((0, 3)),
+                xr=np.zeros((0, 3)),
+                pair=np.zeros(0, dtype=np.int64),
+                offsets=np.zeros_like(self.offsets),
+            ),
             query_ids=np.zeros(0, dtype=np.int64),
         )
 
@@ -135,17 +140,11 @@ class AbsolutePoseProblem:
         views = np.full((m, 2), -1, dtype=np.int64) if X3d_views is None else X3d_views
         jac = np.zeros((m, 2, 3, 6)) if X3d_pose_jac is None else X3d_pose_jac
         return AbsolutePoseProblem(
-            self.xq,
-            self.xr,
-            self.pair,
-            self.offsets,
+            self.arrays._replace(
+                xq3d=np.ascontiguousarray(np.vstack([self.xq3d, xq3d])),
+                X3d=np.ascontiguousarray(np.vstack([self.X3d, X3d])),
+            ),
             self.query_ids,
-            self.f_query,
-            self.f_ref,
-            self.ref_R,
-            self.ref_t,
-            np.ascontiguousarray(np.vstack([self.xq3d, xq3d])),
-            np.ascontiguousarray(np.vstack([self.X3d, X3d])),
             np.concatenate([self.source3d, source3d]).astype(np.int64),
             np.ascontiguousarray(np.concatenate([self.X3d_cov, cov])),
             np.ascontiguousarray(np.concatenate([self.X3d_views, views]).astype(np.int64)),
@@ -246,18 +245,21 @@ def build_problem(query_camera: Camera, pairs: Sequence[PairMatches]) -> Absolut
                 for p in pairs
             ]
         ).astype(np.int64)
-    return AbsolutePoseProblem(
+    arrays = ProblemArrays(
         xq=xq_all,
         xr=xr_all,
         pair=pair,
         offsets=offsets,
-        query_ids=qids,
         f_query=np.asarray(query_camera.focal * 2, dtype=float),
         f_ref=np.asarray([p.ref_camera.focal for p in pairs], dtype=float),
         ref_R=np.array([p.ref_pose.R for p in pairs]),
         ref_t=np.array([p.ref_pose.t for p in pairs]),
         xq3d=np.ascontiguousarray(np.vstack(xq3)) if xq3 else np.zeros((0, 3)),
         X3d=np.ascontiguousarray(np.vstack(X3)) if X3 else np.zeros((0, 3)),
+    )
+    return AbsolutePoseProblem(
+        arrays=arrays,
+        query_ids=qids,
         source3d=np.concatenate(src).astype(np.int64) if src else np.zeros(0, dtype=np.int64),
         X3d_cov=np.ascontiguousarray(np.concatenate(cov3)) if cov3 else np.zeros((0, 3, 3)),
         X3d_views=np.ascontiguousarray(np.concatenate(views3))

@@ -33,6 +33,54 @@ from planarloc.robust.scoring import errors_sq
 FASTMATH = {"contract", "reassoc", "arcp", "nsz"}
 
 
+class StartPose(NamedTuple):
+    """Where a refinement starts and what it moves, as one record for the kernels: R (3, 3) the
+    rotation of ``query_from_world`` and c (3,) the camera centre, parametrised as
+    ``c + B p`` with B (3, 3) orthonormal, and fixed (6,) bool the parameters held at their start
+    (rotation 0-2, centre 3-5; e.g. to profile the cost along one direction)."""
+
+    R: np.ndarray
+    c: np.ndarray
+    B: np.ndarray
+    fixed: np.ndarray
+
+
+class RefineSettings(NamedTuple):
+    """How a refinement runs, as one record for the kernels.
+
+    Attributes:
+        inlier_threshold_sq: τ² (pixels²): the kernels that choose their own rows refine on the
+            data whose squared error at the start is below it.
+        loss_scale: Cauchy scale σ in pixels.
+        max_iterations: Levenberg-Marquardt iterations.
+        sigma_floor: lower bound on σ̂ in pixels for the covariance, so that noise-free or
+            overfitted residuals cannot make an ill-conditioned position look certain.
+        map_rotation_std_rad, map_position_std_m: the map prior, the std of each map image's
+            rotation (radians) and centre (metres) per axis, read by the refinements under it
+            (:mod:`planarloc.robust.map_prior`); 0 and 0: none.
+    """
+
+    inlier_threshold_sq: float
+    loss_scale: float
+    max_iterations: int
+    sigma_floor: float
+    map_rotation_std_rad: float
+    map_position_std_m: float
+
+
+@njit(cache=True)
+def with_iterations(settings: RefineSettings, max_iterations: int) -> RefineSettings:
+    """``settings`` with another iteration budget."""
+    return RefineSettings(
+        settings.inlier_threshold_sq,
+        settings.loss_scale,
+        max_iterations,
+        settings.sigma_floor,
+        settings.map_rotation_std_rad,
+        settings.map_position_std_m,
+    )
+
+
 class Refinement(NamedTuple):
     """A refined ``query_from_world``: R (3, 3), t (3,), the (6, 6) normal matrix ``JᵀWJ`` at the
     solution (:func:`centre_covariance`), the residual scale σ̂ (pixels) and the final robust cost."""
@@ -284,32 +332,21 @@ def irls_normal_equations(J: np.ndarray, r: np.ndarray, s2: float, H: np.ndarray
 
 @njit(cache=True, error_model="numpy", fastmath=FASTMATH)
 def refine_pose_core(
-    Rq: np.ndarray,
-    tq: np.ndarray,
+    start: StartPose,
     prob: ProblemArrays,
     idx2d: np.ndarray,
     idx3d: np.ndarray,
-    loss_scale: float,
-    max_iterations: int,
-    sigma_floor: float,
-    c0: np.ndarray,
-    B: np.ndarray,
-    fixed: np.ndarray,
-    final_normal: bool | np.bool_,
+    settings: RefineSettings,
+    final_normal: np.bool_,
 ) -> Refinement:
     """Refine ``query_from_world`` on the given inliers.
 
     Args:
-        Rq: (3, 3) initial rotation of ``query_from_world``; tq is ignored in favour of
-            the centre ``c0`` (kept in the signature for symmetry with the loop).
+        start: the initial pose and its parametrisation (:class:`StartPose`).
         prob: the problem's arrays (:attr:`planarloc.robust.problem.AbsolutePoseProblem.arrays`).
-        c0, B: the centre is parametrised as ``c = c0 + B p`` with B (3, 3) orthonormal.
-        fixed: (6,) bool; parameters held at their initial value (rotation 0-2, centre 3-5),
-            used to profile the cost along one direction (degeneracy test).
         idx2d: (K,) rows of inlier 2D-2D matches; idx3d: (L,) rows of inlier 2D-3D constraints.
-        loss_scale: Cauchy scale σ in pixels.
-        sigma_floor: lower bound on σ̂ in pixels for the covariance, so that noise-free or
-            overfitted residuals cannot make an ill-conditioned position look certain.
+        settings: the loss scale, iterations and σ̂ floor (:class:`RefineSettings`; its
+            inlier threshold and map prior are not read here).
         final_normal: False: the normal matrix and σ̂ are not re-evaluated after the last step
             (stale), which saves one residual-and-Jacobian pass where only the pose is wanted
             (leave-one-out refinements); :func:`refine_pose` passes True.
@@ -320,20 +357,20 @@ def refine_pose_core(
         final robust cost.
     """
     m = idx2d.shape[0] + 2 * idx3d.shape[0]
-    R = Rq.copy()
-    c = c0.copy()
+    R, c, B, fixed = start.R.copy(), start.c.copy(), start.B, start.fixed
     zero = np.zeros(6)
     r = np.empty(m)
     rp = np.empty(m)
     J = np.empty((m, 6))
     H = np.empty((6, 6))
     g = np.empty(6)
-    s2 = loss_scale * loss_scale
+    s2 = settings.loss_scale * settings.loss_scale
     lam = 1e-4
     no_ref = np.empty((0, 3))
     residuals_jacobian(R, c, B, prob, idx2d, idx3d, r, J, no_ref)
     cost = 0.5 * s2 * np.sum(np.log1p(r * r / s2))
     wr2 = 0.0
+    max_iterations = settings.max_iterations
     for it in range(max_iterations + 1):
         for k in range(6):
             if fixed[k]:
@@ -375,7 +412,7 @@ def refine_pose_core(
             max_iterations = it + 1  # one more pass to evaluate H at the solution
     # The normal matrix JᵀWJ at the solution; the covariance σ̂² (JᵀWJ)⁻¹ is formed by the caller.
     dof = max(m - 6, 1)
-    sigma2 = max(wr2 / dof, sigma_floor * sigma_floor)
+    sigma2 = max(wr2 / dof, settings.sigma_floor * settings.sigma_floor)
     t = -m3.vec(R, c)
     return Refinement(R, t, H.copy(), np.sqrt(sigma2), cost)
 
@@ -387,46 +424,27 @@ refine_pose = functools.partial(refine_pose_core, final_normal=np.bool_(True))
 
 @njit(cache=True, error_model="numpy")
 def refine_on_inliers(
-    Rq: np.ndarray,
-    tq: np.ndarray,
-    prob: ProblemArrays,
-    inlier_threshold_sq: float,
-    loss_scale: float,
-    max_iterations: int,
-    sigma_floor: float,
+    Rq: np.ndarray, tq: np.ndarray, prob: ProblemArrays, settings: RefineSettings
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, float, float, np.ndarray, np.ndarray]:
     """:func:`refine_pose` on the inliers of the initial pose, in one call.
 
     The inliers are the 2D-2D matches (Sampson) and 2D-3D constraints (reprojection) whose
-    squared pixel error at ``(Rq, tq)`` is below ``inlier_threshold_sq``; with fewer than 6
-    of them the pose is returned unchanged (cost inf).
+    squared pixel error at ``(Rq, tq)`` is below ``settings.inlier_threshold_sq``; with fewer
+    than 6 of them the pose is returned unchanged (cost inf).
 
     Returns:
         R, t, the normal matrix H, σ̂, cost (as :func:`refine_pose`), and the inlier masks
         (N,), (M,) bool at the initial pose.
     """
     e2d, e3d = errors_sq(Rq, tq, prob)
-    in2d = e2d < inlier_threshold_sq
-    in3d = e3d < inlier_threshold_sq
+    in2d = e2d < settings.inlier_threshold_sq
+    in3d = e3d < settings.inlier_threshold_sq
     idx2d = np.flatnonzero(in2d)
     idx3d = np.flatnonzero(in3d)
     if idx2d.shape[0] + idx3d.shape[0] < 6:
         return Rq.copy(), tq.copy(), np.zeros((6, 6)), np.inf, np.inf, in2d, in3d
-    c0 = -m3.t_vec(Rq, tq)
-    R, t, H, sigma, cost = refine_pose_core(
-        Rq,
-        tq,
-        prob,
-        idx2d,
-        idx3d,
-        loss_scale,
-        max_iterations,
-        sigma_floor,
-        c0,
-        np.eye(3),
-        np.zeros(6, dtype=np.bool_),
-        np.bool_(True),
-    )
+    start = StartPose(Rq, -m3.t_vec(Rq, tq), np.eye(3), np.zeros(6, dtype=np.bool_))
+    R, t, H, sigma, cost = refine_pose_core(start, prob, idx2d, idx3d, settings, np.bool_(True))
     return R, t, H, sigma, cost, in2d, in3d
 
 

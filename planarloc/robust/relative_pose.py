@@ -15,6 +15,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
+from typing import NamedTuple
 
 import numpy as np
 from numba import njit
@@ -67,28 +68,36 @@ class RelativePoseEstimate:
             self.status = status
 
 
-def _sampson_sq(
-    R: np.ndarray, t: np.ndarray, xa: np.ndarray, xb: np.ndarray, fa: np.ndarray, fb: np.ndarray
-) -> np.ndarray:
-    """(K, N) squared Sampson errors in pixels of K poses ``b_from_a`` on N ray pairs (N, 3)."""
+class RayPairs(NamedTuple):
+    """N matched rays of two images, as one record (also for the kernels): xa, xb (N, 3)
+    normalized homogeneous rays of image a and image b, and fa, fb (2,) the focal lengths
+    (fx, fy) of their cameras, the pixel scales of the Sampson errors."""
+
+    xa: np.ndarray
+    xb: np.ndarray
+    fa: np.ndarray
+    fb: np.ndarray
+
+    def subset(self, rows: np.ndarray) -> RayPairs:
+        """The ray pairs ``rows`` (an index or mask) of the same two cameras."""
+        return RayPairs(self.xa[rows], self.xb[rows], self.fa, self.fb)
+
+
+def _sampson_sq(R: np.ndarray, t: np.ndarray, rays: RayPairs) -> np.ndarray:
+    """(K, N) squared Sampson errors in pixels of K poses ``b_from_a`` on N ray pairs."""
+    xa, xb, fa, fb = rays
     return np.stack([sampson_error_sq(E, xa, xb, fa, fb) for E in essential_from_relpose(R, t)])
 
 
 @njit(cache=True, error_model="numpy", nogil=True)
 def _msac_kernel(
-    R: np.ndarray,
-    t: np.ndarray,
-    xa: np.ndarray,
-    xb: np.ndarray,
-    fa: np.ndarray,
-    fb: np.ndarray,
-    threshold_sq: float,
-    bound: float,
+    R: np.ndarray, t: np.ndarray, rays: RayPairs, threshold_sq: float, bound: float
 ) -> tuple[np.ndarray, np.ndarray]:
     """MSAC costs (K,) and inlier counts (K,) of K poses ``b_from_a`` on N ray pairs.
 
     A pose's scoring stops once its cost exceeds ``bound`` or the lowest cost of this call so
     far: its cost and count are then partial (a lower bound and a count that cannot win)."""
+    xa, xb, fa, fb = rays
     K = R.shape[0]
     cost = np.zeros(K)
     count = np.zeros(K, dtype=np.int64)
@@ -131,11 +140,9 @@ class _RelativeEstimator:
     #: the batch solver: (S, m, 3) rays of both cameras -> ``b_from_a`` R, t and valid flags per sample
     solver: Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray, np.ndarray]]
 
-    def __init__(
-        self, xa: np.ndarray, xb: np.ndarray, fa: np.ndarray, fb: np.ndarray, model: str, threshold_px: float
-    ) -> None:
-        self.xa, self.xb, self.fa, self.fb = xa, xb, fa, fb
-        self.num_data = len(xa)
+    def __init__(self, rays: RayPairs, model: str, threshold_px: float) -> None:
+        self.rays = rays
+        self.num_data = len(rays.xa)
         self.threshold_sq = threshold_px**2
         if model == "planar":
             from planarloc.solvers.relpose_planar_2p import planar_2p_batch_unchecked
@@ -150,7 +157,7 @@ class _RelativeEstimator:
         self, rng: np.random.Generator, n: int, stats: RansacStatistics
     ) -> tuple[np.ndarray, np.ndarray]:
         samples = distinct_samples(rng, n, self.num_data, self.sample_size)
-        R, t, valid = self.solver(self.xa[samples], self.xb[samples])  # b_from_a ("ref_from_query")
+        R, t, valid = self.solver(self.rays.xa[samples], self.rays.xb[samples])  # b_from_a ("ref_from_query")
         stats.hypotheses += int(valid.sum())
         return np.asarray(R)[valid], np.asarray(t)[valid]
 
@@ -166,10 +173,7 @@ class _RelativeEstimator:
         return _msac_kernel(
             np.ascontiguousarray(R, dtype=float),
             np.ascontiguousarray(t, dtype=float),
-            self.xa,
-            self.xb,
-            self.fa,
-            self.fb,
+            self.rays,
             self.threshold_sq,
             float(bound),
         )
@@ -179,13 +183,13 @@ class _RelativeEstimator:
         parameters (planar: yaw and heading of the translation; 6DoF: rotation and direction);
         a step is kept only when it lowers the cost. The Jacobian is by forward differences,
         all perturbed poses scored in one batch."""
-        e = _sampson_sq(R[None], t[None], self.xa, self.xb, self.fa, self.fb)[0]
+        e = _sampson_sq(R[None], t[None], self.rays)[0]
         inl = e < self.threshold_sq
         if inl.sum() < 2 * self.sample_size:
             return R, t
         idx = np.flatnonzero(inl)
         idx = idx[np.linspace(0, len(idx) - 1, min(len(idx), REFINE_MAX_POINTS)).astype(int)]
-        xa, xb = self.xa[idx], self.xb[idx]
+        rays = self.rays.subset(idx)
         planar = self.sample_size == 2
         p = 2 if planar else 5
         B = None if planar else direction_basis(t)
@@ -200,7 +204,7 @@ class _RelativeEstimator:
             return so3_exp(X[:, :3]) @ R, tt / np.linalg.norm(tt, axis=1, keepdims=True)
 
         def residuals(X: np.ndarray) -> np.ndarray:
-            return np.sqrt(_sampson_sq(*poses(X), xa, xb, self.fa, self.fb))
+            return np.sqrt(_sampson_sq(*poses(X), rays))
 
         x, h = np.zeros(p), 1e-6
         r = residuals(x[None])[0]
@@ -287,14 +291,14 @@ def estimate_relative_pose(
     if len(idx) < max(min_inliers, 5):
         return RelativePoseEstimate(None, False, Status.TOO_FEW_MATCHES, inliers=inliers)
     xa, xb = camera_a.bearings_from_img(pa[idx]), camera_b.bearings_from_img(pb[idx])
-    fa, fb = np.asarray(camera_a.focal, dtype=float), np.asarray(camera_b.focal, dtype=float)
+    rays = RayPairs(xa, xb, np.asarray(camera_a.focal, dtype=float), np.asarray(camera_b.focal, dtype=float))
     stats = RansacStatistics()
     best: tuple[str, np.ndarray, np.ndarray, int] | None = None
     for m in ("planar", "6dof") if model == "auto" else (model,):
         if m == "6dof" and best is not None and SIX_DOF_MARGIN * best[3] >= len(idx):
             stats.searches_skipped += 1  # more inliers than there are matches: 6DoF cannot win
             continue
-        est = _RelativeEstimator(xa, xb, fa, fb, m, options.threshold_px)
+        est = _RelativeEstimator(rays, m, options.threshold_px)
         own = RansacStatistics()  # each model gets its own iteration budget
         out = ransac(est, options, np.random.default_rng(options.seed), own)
         stats.merge(own)
@@ -312,8 +316,8 @@ def estimate_relative_pose(
             num_inliers=0 if best is None else best[3],
         )
     m, R, t, _ = best
-    R, t = _RelativeEstimator(xa, xb, fa, fb, m, options.threshold_px).refine(R, t)
-    e = _sampson_sq(R[None], t[None], xa, xb, fa, fb)[0]
+    R, t = _RelativeEstimator(rays, m, options.threshold_px).refine(R, t)
+    e = _sampson_sq(R[None], t[None], rays)[0]
     inl = e < options.threshold_px**2
     # The minimal sample's cheirality decides the sign of t on 2 or 5 points, which is fragile
     # under forward motion (distant points); all inliers vote.

@@ -49,6 +49,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
+from typing import TypedDict, Unpack
 
 import numpy as np
 
@@ -67,6 +68,8 @@ _FAIL_STYLE = {"marker": "x", "color": "tab:red", "linewidths": 1.5}
 _PREDICTED_STYLE = {"marker": "^", "edgecolors": "0.15", "linewidths": 0.6}
 _LOCALIZED_STYLE = {"marker": "o", "edgecolors": "none"}
 _SEGMENT_COLOR = "0.15"
+#: the default ``g_world`` (down): +y, as in KITTI and planarloc's generated worlds
+Y_DOWN = (0.0, 1.0, 0.0)
 
 
 def gravity_plane_basis(g_world: object) -> tuple[np.ndarray, np.ndarray, str]:
@@ -254,7 +257,7 @@ def plot_localization(
     results: Sequence,
     max_error_m: float | None = None,
     title: str | None = None,
-    g_world: object = (0.0, 1.0, 0.0),
+    g_world: object = Y_DOWN,
     norm=None,
 ):
     """Draw the top view (module docstring): the map trajectory, the ground truth, a marker per
@@ -435,30 +438,39 @@ def _top_view_height(map_centers: np.ndarray, results: Sequence, g_world: object
     return _TOP_VIEW_WIDTH_IN * aspect + 0.9  # + title and axis label
 
 
+class TopViewOptions(TypedDict, total=False):
+    """The top view's options that :func:`save_localization_plot` takes as keywords and passes on
+    to :func:`plot_localization` (the same meaning and defaults)."""
+
+    #: upper end of the colour scale; None: the largest usable error
+    max_error_m: float | None
+    #: (3,) the map's gravity direction (down) in its world frame
+    g_world: object
+
+
 def save_localization_plot(
-    path,
-    map_centers: np.ndarray,
-    results: Sequence,
-    title: str | None = None,
-    max_error_m: float | None = None,
-    g_world: object = (0.0, 1.0, 0.0),
+    path, map_centers: np.ndarray, results: Sequence, title: str | None = None, **view: Unpack[TopViewOptions]
 ) -> None:
     """Write the top view (:func:`plot_localization`) above the error over time
     (:func:`plot_error_over_time`), one colour scale for both, to an image file (headless backend).
 
-    ``max_error_m``: upper end of the colour scale; None: the largest usable error.
+    ``view``: ``max_error_m`` (upper end of the colour scale; None: the largest usable error) and
+    ``g_world`` (:class:`TopViewOptions`).
     """
+    unknown = sorted(set(view) - set(TopViewOptions.__annotations__))
+    if unknown:
+        raise TypeError(f"save_localization_plot() got unexpected keyword argument(s): {', '.join(unknown)}")
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    kinds, err, norm = _kinds_and_errors(results, max_error_m)
-    top = _top_view_height(map_centers, results, g_world)
+    kinds, err, norm = _kinds_and_errors(results, view.get("max_error_m"))
+    top = _top_view_height(map_centers, results, view.get("g_world", Y_DOWN))
     fig = plt.figure(figsize=(7.5, top + _TIME_PANEL_IN + 0.9), layout="constrained")
     grid = fig.add_gridspec(2, 1, height_ratios=(top, _TIME_PANEL_IN))
     ax, ax_t = fig.add_subplot(grid[0]), fig.add_subplot(grid[1])
-    sc = plot_localization(ax, map_centers, results, max_error_m, title, g_world, norm=norm)
+    sc = plot_localization(ax, map_centers, results, title=title, norm=norm, **view)
     plot_error_over_time(ax_t, results, norm=norm)
     usable = err[(kinds != FAILED) & np.isfinite(err)]
     below, above = bool((usable < norm.vmin).any()), bool((usable > norm.vmax).any())

@@ -13,7 +13,12 @@ import pytest
 
 from planarloc.geometry.planar import rotation_from_yaw
 from planarloc.geometry.pose import Pose
-from planarloc.robust.consensus_scale import hypotheses_2p1p_consensus, planar_relative_candidates
+from planarloc.robust.consensus_scale import (
+    ConsensusSettings,
+    RelativeCandidates,
+    hypotheses_2p1p_consensus,
+    planar_relative_candidates,
+)
 from planarloc.robust.hypotheses import DEGENERATE, HYPOTHESES, PDCHECK, Hypotheses
 from planarloc.robust.problem import ProblemArrays
 
@@ -86,13 +91,9 @@ def consensus(
     out_R, out_t = np.empty((peaks, 3, 3)), np.empty((peaks, 3))
     counters = np.zeros(5, dtype=np.int64)
     m = hypotheses_2p1p_consensus(
-        R[None],
-        t[None],
-        np.array([0]),
+        RelativeCandidates(R[None], t[None], np.array([0]), counters),
         pb,
-        threshold_px**2,
-        peaks,
-        max_votes,
+        ConsensusSettings(threshold_px**2, top_k=1, max_scored=max_votes, peaks=peaks, max_votes=max_votes),
         Hypotheses(out_R, out_t, counters),
     )
     return out_R[:m], out_t[:m], counters
@@ -149,20 +150,10 @@ def test_stage1_ranks_true_relative_pose_first(outliers: int) -> None:
     # samples: inlier pairs of matches of pair 0, plus samples with an outlier
     S = 40
     samples = np.stack([rng.choice(30, 2, replace=False) for _ in range(S)]).astype(np.int64)
-    sample_pair = np.zeros(S, dtype=np.int64)
-    out_R, out_t, out_pair = np.empty((6, 3, 3)), np.empty((6, 3)), np.empty(6, dtype=np.int64)
-    counters = np.zeros(5, dtype=np.int64)
+    out = RelativeCandidates.empty(6, np.zeros(5, dtype=np.int64))
+    out_R, out_t, out_pair = out.R, out.t, out.pair
     c = planar_relative_candidates(
-        samples,
-        sample_pair,
-        pb,
-        4.0,
-        2,
-        1000,
-        out_R,
-        out_t,
-        out_pair,
-        counters,
+        samples, pb, ConsensusSettings(4.0, top_k=2, max_scored=1000, peaks=1, max_votes=2000), out
     )
     assert 1 <= c <= 2 and (out_pair[:c] == 0).all()
     R_true, t_true = true_relative()

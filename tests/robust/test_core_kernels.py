@@ -8,7 +8,13 @@ import pytest
 
 from planarloc.geometry.pose import Pose
 from planarloc.robust.problem import build_problem
-from planarloc.robust.refinement import centre_covariance, refine_on_inliers, refine_pose
+from planarloc.robust.refinement import (
+    RefineSettings,
+    StartPose,
+    centre_covariance,
+    refine_on_inliers,
+    refine_pose,
+)
 from planarloc.robust.sampling import draw_pair_samples, draw_within_pairs, eligible_pairs
 from planarloc.robust.scoring import errors_sq, msac_scores
 from planarloc.robust.structure import triangulate_tracks
@@ -85,17 +91,11 @@ def test_refine_pose_converges_to_truth_on_exact_inliers(scene) -> None:
     start = perturbed(sc.query_pose, np.random.default_rng(2), 0.01, 0.1)
     idx = np.arange(len(pb.xq))
     R, t, H, sigma, cost = refine_pose(
-        start.R,
-        start.t,
+        StartPose(start.R, start.center, np.eye(3), np.zeros(6, dtype=np.bool_)),
         pb.arrays,
         idx,
         np.zeros(0, dtype=np.int64),
-        2.0,
-        20,
-        0.5,
-        start.center,
-        np.eye(3),
-        np.zeros(6, dtype=np.bool_),
+        RefineSettings(4.0, 2.0, 20, 0.5, 0.0, 0.0),
     )
     assert np.linalg.norm(-R.T @ t - sc.query_pose.center) < 1e-6 and np.abs(R - sc.query_pose.R).max() < 1e-7
     assert cost < 1e-9 and sigma == 0.5  # residual scale floored at sigma_floor
@@ -106,7 +106,9 @@ def test_refine_on_inliers_masks_and_too_few(scene) -> None:
     sc = scene(4, num_refs=3, matches_per_pair=40, noise_px=1.0, outlier_ratio=0.5)
     pb = build_problem(sc.query_camera, sc.pairs)
     start = perturbed(sc.query_pose, np.random.default_rng(3), 0.002, 0.02)
-    R, t, H, sigma, cost, in2d, in3d = refine_on_inliers(start.R, start.t, pb.arrays, 4.0, 2.0, 6, 0.5)
+    R, t, H, sigma, cost, in2d, in3d = refine_on_inliers(
+        start.R, start.t, pb.arrays, RefineSettings(4.0, 2.0, 6, 0.5, 0.0, 0.0)
+    )
     e, _ = errors_sq(start.R, start.t, pb.arrays)
     np.testing.assert_array_equal(in2d, e < 4.0)
     e_new, _ = errors_sq(R, t, pb.arrays)
@@ -116,7 +118,9 @@ def test_refine_on_inliers_masks_and_too_few(scene) -> None:
 
     assert cost == pytest.approx(cauchy(e_new), rel=1e-9) and cost < cauchy(e)
     far = perturbed(sc.query_pose, np.random.default_rng(4), 0.5, 5.0)
-    R2, t2, _, _, cost2, in2, _ = refine_on_inliers(far.R, far.t, pb.arrays, 1e-12, 2.0, 6, 0.5)
+    R2, t2, _, _, cost2, in2, _ = refine_on_inliers(
+        far.R, far.t, pb.arrays, RefineSettings(1e-12, 2.0, 6, 0.5, 0.0, 0.0)
+    )
     assert not in2.any() and cost2 == np.inf and np.array_equal(R2, far.R) and np.array_equal(t2, far.t)
 
 

@@ -13,8 +13,14 @@ import numpy as np
 import pytest
 
 from planarloc.geometry.planar import rotation_from_yaw
-from planarloc.robust.local_optimization import distinct_centres, level_plane, refine_planar_then_6dof
+from planarloc.robust.local_optimization import (
+    LocalOptimization,
+    distinct_centres,
+    level_plane,
+    refine_planar_then_6dof,
+)
 from planarloc.robust.problem import build_problem
+from planarloc.robust.refinement import RefineSettings
 from planarloc.synthetic.scenes import make_scene
 
 TH_SQ = 36.0  # 3τ at τ = 2 px
@@ -32,19 +38,10 @@ def _scene(seed: int, **kw):
 
 
 def _lo(p, R, t, level, planar_iterations: int, iterations: int) -> tuple[np.ndarray, np.ndarray]:
-    return refine_planar_then_6dof(
-        np.ascontiguousarray(R),
-        np.ascontiguousarray(t),
-        p.arrays,
-        TH_SQ,
-        2.0,
-        level,
-        COS_LEVEL,
-        planar_iterations,
-        iterations,
-        0.5,
-        128,
+    lo = LocalOptimization(
+        RefineSettings(TH_SQ, 2.0, iterations, 0.5, 0.0, 0.0), planar_iterations, level, COS_LEVEL, 128
     )
+    return refine_planar_then_6dof(np.ascontiguousarray(R), np.ascontiguousarray(t), p.arrays, lo)
 
 
 def _planar_perturbed(sc, yaw_deg: float, shift: tuple[float, float]) -> tuple[np.ndarray, np.ndarray]:

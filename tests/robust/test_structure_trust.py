@@ -21,6 +21,7 @@ from planarloc.robust.options import RansacOptions
 from planarloc.robust.pair_matches import PairMatches
 from planarloc.robust.planar_scene import homography_inlier_ratio
 from planarloc.robust.problem import build_problem
+from planarloc.robust.refinement import RefineSettings
 from planarloc.synthetic.scenes import make_scene
 
 FACADE_CAMERA = Camera("PINHOLE", 768, 512, (690.0, 690.0, 384.0, 256.0))
@@ -216,13 +217,10 @@ def test_map_prior_keeps_2d2d_from_outvoting_the_points() -> None:
                 T.R,
                 T.t,
                 pb.arrays,
-                4.0,
-                2.0,
-                6,
+                RefineSettings(
+                    4.0, 2.0, 6, SIGMA_FLOOR_PX, math.radians(0.3) if prior else 0.0, 0.02 if prior else 0.0
+                ),
                 4,
-                SIGMA_FLOOR_PX,
-                math.radians(0.3) if prior else 0.0,
-                0.02 if prior else 0.0,
             )
             errors[prior].append(pose_errors(Pose(R, t), T)[0])
     assert np.median(errors[True]) < 0.6 * np.median(errors[False]), errors
@@ -238,7 +236,11 @@ def test_map_prior_refinement_is_exact_on_a_perfect_map() -> None:
         T.center + np.array([0.05, -0.02, 0.04]),
     )
     R, t, H, sigma, *_ = refine_until_stable(
-        start.R, start.t, pb.arrays, 4.0, 2.0, 10, 4, SIGMA_FLOOR_PX, math.radians(0.1), 0.02
+        start.R,
+        start.t,
+        pb.arrays,
+        RefineSettings(4.0, 2.0, 10, SIGMA_FLOOR_PX, math.radians(0.1), 0.02),
+        4,
     )
     dc, dr = pose_errors(Pose(R, t), T)
     assert dc < 1e-6 and dr < 1e-5

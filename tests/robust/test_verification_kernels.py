@@ -19,6 +19,8 @@ from planarloc.robust.jackknife import reference_jackknife
 from planarloc.robust.options import RansacOptions
 from planarloc.robust.problem import build_problem
 from planarloc.robust.refinement import (
+    RefineSettings,
+    StartPose,
     map_centre_covariance,
     map_uncertainty_covariance,
     refine_pose,
@@ -40,9 +42,8 @@ def problem_with_points(sc, rng: np.random.Generator, n3d: int = 4):
 
 
 def refine_to_convergence(pb, pose: Pose, idx2d: np.ndarray, idx3d: np.ndarray = NO3D) -> Pose:
-    R, t, *_ = refine_pose(
-        pose.R, pose.t, pb.arrays, idx2d, idx3d, 2.0, 60, 0.5, pose.center, np.eye(3), FREE
-    )
+    start = StartPose(pose.R, pose.center, np.eye(3), FREE)
+    R, t, *_ = refine_pose(start, pb.arrays, idx2d, idx3d, RefineSettings(4.0, 2.0, 60, 0.5, 0.0, 0.0))
     return Pose(R, t)
 
 
@@ -113,7 +114,9 @@ def test_map_propagation_predicts_the_refined_shift(scene) -> None:
             dc = np.zeros(3)
             dc[k - 3] = h
             tp[p] = -pb.ref_R[p] @ (c_ref + dc)
-        moved = refine_to_convergence(replace(pb, ref_R=Rp, ref_t=tp), sc.query_pose, idx2d)
+        moved = refine_to_convergence(
+            replace(pb, arrays=pb.arrays._replace(ref_R=Rp, ref_t=tp)), sc.query_pose, idx2d
+        )
         shift = (moved.center - sc.query_pose.center) / h
         np.testing.assert_allclose(
             shift, Bm[3:, 6 * p + k], rtol=2e-3, atol=2e-3 * np.abs(Bm[3:, 6 * p + k]).max()
@@ -195,8 +198,10 @@ def test_pose_support_numbers(scene) -> None:
     line = Pose.from_center(np.eye(3), c + np.array([1.0, 0.0, 0.0]))
     pb_line = replace(
         pb,
-        ref_R=np.array([np.eye(3)] * pb.num_pairs),
-        ref_t=np.array([-(c + (k + 1) * (line.center - c)) for k in range(pb.num_pairs)]),
+        arrays=pb.arrays._replace(
+            ref_R=np.array([np.eye(3)] * pb.num_pairs),
+            ref_t=np.array([-(c + (k + 1) * (line.center - c)) for k in range(pb.num_pairs)]),
+        ),
     )
     assert obs.pose_support(pb_line, R, t, ~np.zeros(len(in2d), bool), g_world, g_world).collinearity < 1e-7
 
@@ -211,7 +216,7 @@ def test_refine_until_stable_returns_consistent_inliers_and_score(scene) -> None
     )
     th2 = 4.0
     R, t, H, sigma, cost, in2d, in3d, score, _ = refine_until_stable(
-        start.R, start.t, pb.arrays, th2, 2.0, 6, 4, SIGMA_FLOOR_PX
+        start.R, start.t, pb.arrays, RefineSettings(th2, 2.0, 6, SIGMA_FLOOR_PX, 0.0, 0.0), 4
     )
     e2d, _ = errors_sq(R, t, pb.arrays)
     np.testing.assert_array_equal(in2d, e2d < th2)

@@ -155,12 +155,12 @@ class TrajectoryConfig:
     shape: str = "loop"
     n_map: int = 40
     n_query: int = 30
-    camera_height: float = 1.0
-    wall_margin: float = 1.4
-    lateral_offset: float = 0.3
+    camera_height: float = 1.0  # m
+    wall_margin: float = 1.4  # m
+    lateral_offset: float = 0.3  # m
     yaw_offset_deg: float = 20.0
     yaw_wobble_deg: float = 8.0
-    min_clearance: float = 0.5
+    min_clearance: float = 0.5  # m
     frame_period: float = 0.1
     mount_pitch_deg: float = 0.0
     mount_roll_deg: float = 0.0
@@ -225,7 +225,7 @@ class EffectsConfig:
 
     Image: ``gain`` and ``gamma`` (out = 255 gain (in/255)^gamma), a smooth brightness
     ramp of relative amplitude ``shading_gradient`` across the image at ``shading_angle_deg``,
-    Gaussian ``blur_sigma`` (pixels) and Gaussian ``noise_sigma`` (grey levels).
+    a Gaussian blur of std ``blur_sigma`` and Gaussian noise of std ``noise_sigma``.
     Pose: random pitch and roll up to ``tilt_deg`` per frame (uneven floor).
     Scene (query session only): ``moved_boxes`` boxes moved, ``added_boxes`` new boxes.
     """
@@ -234,8 +234,8 @@ class EffectsConfig:
     gamma: float = 1.0
     shading_gradient: float = 0.0
     shading_angle_deg: float = 0.0
-    noise_sigma: float = 0.0
-    blur_sigma: float = 0.0
+    noise_sigma: float = 0.0  # grey levels
+    blur_sigma: float = 0.0  # px
     tilt_deg: float = 0.0
     moved_boxes: int = 0
     added_boxes: int = 0

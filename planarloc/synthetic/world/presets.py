@@ -23,7 +23,6 @@ from planarloc.synthetic.world.config import (
     CameraConfig,
     EffectsConfig,
     SceneConfig,
-    TrajectoryConfig,
     WorldConfig,
 )
 
@@ -31,23 +30,12 @@ DEFAULT_PRESET = "office"
 
 
 def office() -> WorldConfig:
-    """An 8 x 6 x 2.6 m office: 6 boxes, 12 posters, 40 map and 30 query frames of 640 x 480."""
-    return WorldConfig(
-        name="office",
-        camera=CameraConfig(),
-        scene=SceneConfig(kind="room", size_x=8.0, size_z=6.0, height=2.6, n_boxes=6, n_posters=12),
-        trajectory=TrajectoryConfig(
-            shape="loop",
-            n_map=40,
-            n_query=30,
-            wall_margin=1.4,
-            lateral_offset=0.3,
-            yaw_offset_deg=20.0,
-            yaw_wobble_deg=8.0,
-        ),
-        map_effects=EffectsConfig(),
-        query_effects=EffectsConfig(noise_sigma=2.0, tilt_deg=1.0),
-    )
+    """An 8 x 6 x 2.6 m office: 6 boxes, 12 posters, 40 map and 30 query frames of 640 x 480.
+
+    The camera, scene and trajectories are the config classes' defaults; the query session adds
+    mild noise and floor jitter.
+    """
+    return WorldConfig(name="office", query_effects=EffectsConfig(noise_sigma=2.0, tilt_deg=1.0))
 
 
 def corridor() -> WorldConfig:
@@ -60,7 +48,6 @@ def corridor() -> WorldConfig:
             kind="corridor",
             size_x=2.6,
             size_z=20.0,
-            height=2.6,
             n_boxes=3,
             box_size_min=(0.4, 0.4, 0.3),
             box_size_max=(1.0, 1.4, 0.5),

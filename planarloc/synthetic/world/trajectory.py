@@ -117,13 +117,15 @@ def straight_line(
     return start + frac[:, None] * d, np.full(count, np.arctan2(d[0], d[1]))
 
 
+WOBBLE_CYCLES = 3.0  # periods of a path's yaw wobble from start to end
+
+
 def offset_path(
     xz: np.ndarray,
     yaw: np.ndarray,
     lateral_m: float,
     yaw_offset_rad: float,
     yaw_wobble_rad: float = 0.0,
-    wobble_cycles: float = 3.0,
 ) -> tuple[np.ndarray, np.ndarray]:
     """A path shifted sideways and turned, to imitate a second run with a different viewpoint.
 
@@ -131,7 +133,7 @@ def offset_path(
         xz, yaw: (N, 2) and (N,) reference path.
         lateral_m: shift along each pose's right axis ``(cos yaw, -sin yaw)`` (negative: left).
         yaw_offset_rad: constant yaw added to every pose.
-        yaw_wobble_rad: amplitude of an extra sinusoidal yaw, ``wobble_cycles`` periods along the path.
+        yaw_wobble_rad: amplitude of an extra sinusoidal yaw, ``WOBBLE_CYCLES`` periods along the path.
 
     Returns:
         xz (N, 2), yaw (N,).
@@ -139,7 +141,7 @@ def offset_path(
     xz = np.asarray(xz, dtype=np.float64)
     yaw = np.asarray(yaw, dtype=np.float64)
     right = np.column_stack([np.cos(yaw), -np.sin(yaw)])
-    wobble = yaw_wobble_rad * np.sin(2 * np.pi * wobble_cycles * np.arange(len(yaw)) / max(len(yaw), 1))
+    wobble = yaw_wobble_rad * np.sin(2 * np.pi * WOBBLE_CYCLES * np.arange(len(yaw)) / max(len(yaw), 1))
     return xz + lateral_m * right, yaw + yaw_offset_rad + wobble
 
 
