@@ -1,4 +1,4 @@
-"""Shared benchmark code for end-to-end runs: cached worlds and maps, wrong-pose counts.
+"""Shared benchmark code for end-to-end runs: cached worlds and maps, wrong-pose counts, summary cells.
 
 Used by ``kitti.py``, ``world_presets.py`` and ``trust.py``. Caches live under one folder
 (by default ``$TMPDIR/planarloc-bench``) and are keyed by content:
@@ -18,6 +18,7 @@ Not part of the package: benchmarks sit on top of it and may import anything.
 
 from __future__ import annotations
 
+import argparse
 import hashlib
 import json
 import tempfile
@@ -29,6 +30,7 @@ import _peer_pipeline as peer
 import numpy as np
 
 import planarloc
+from planarloc.evaluation.queries import THRESHOLDS, threshold_name
 from planarloc.features.extract import FeatureConfig
 from planarloc.localize.held_out import calibrate_map_std
 from planarloc.map.builder import build_map
@@ -74,11 +76,47 @@ def broken_promises(summary: dict) -> list[str]:
     ]
 
 
+SUMMARY_HEADERS = [
+    "structure",
+    *[threshold_name(t, r) for t, r in THRESHOLDS],
+    "median t [m]",
+    "median R [°]",
+    "failed",
+    "degenerate",
+    "confident wrong",
+    "s/query",
+]
+"""The columns of :func:`summary_cells`."""
+
+
+def summary_cells(s: dict) -> list[str]:
+    """An evaluation summary as table cells, under ``SUMMARY_HEADERS``."""
+    return [
+        s["structure"],
+        *[peer.fmt_pct(v) for v in s["success"].values()],
+        peer.fmt_num(s["median_translation_error_m"]),
+        peer.fmt_num(s["median_rotation_error_deg"], 2),
+        f"{s['failed_queries']}/{s['queries']}",
+        str(s["status_counts"].get("degenerate_scale", 0)),
+        str(len(confident_wrong(s))),
+        peer.fmt_num(s["seconds_per_query"], 2),
+    ]
+
+
 def cache_root(path: Path | None = None) -> Path:
     """The cache folder (created): ``path`` or ``$TMPDIR/planarloc-bench``."""
     root = Path(path) if path is not None else Path(tempfile.gettempdir()) / "planarloc-bench"
     root.mkdir(parents=True, exist_ok=True)
     return root
+
+
+def add_cache_options(p: argparse.ArgumentParser, data_root: Path, kept: str) -> None:
+    """``--data-root`` (the shared real data, by default ``data_root``) and ``--cache-dir`` (``kept`` says
+    what is kept there; by default :func:`cache_root`'s folder)."""
+    p.add_argument(
+        "--data-root", type=Path, default=data_root, help="shared real data (default: %(default)s)"
+    )
+    p.add_argument("--cache-dir", type=Path, help=f"{kept} (default: $TMPDIR/planarloc-bench)")
 
 
 def content_key(*parts: object) -> str:

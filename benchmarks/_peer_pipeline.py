@@ -240,6 +240,14 @@ def load_note(label: str = "") -> str:
     return text
 
 
+def print_header(*lines: str) -> None:
+    """A run's heading on stdout: its own ``lines``, then which planarloc runs and the load at start."""
+    for line in lines:
+        print(line)
+    print(code_note())
+    print(load_note("at start"))
+
+
 def log(message: str) -> None:
     """Progress and notes go to stderr; tables and verdicts to stdout."""
     print(message, file=sys.stderr, flush=True)

@@ -1,11 +1,37 @@
-"""Run independent benchmark trials in worker processes with a progress line on stderr."""
+"""Run independent benchmark trials in worker processes with a progress line on stderr; the command
+line the synthetic benchmarks (``accuracy.py``, ``robustness.py``) share."""
 
 from __future__ import annotations
 
+import argparse
 import multiprocessing as mp
 import sys
 import time
 from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+
+
+@dataclass(frozen=True)
+class TrialPlan:
+    """What the shared flags ask for."""
+
+    args: argparse.Namespace
+    trials: int  # scenes per cell
+    methods: tuple[str, ...]  # ours
+    names: tuple[str, ...]  # ours, then the PoseLib peer unless --no-poselib
+
+
+def parse_trial_args(ap: argparse.ArgumentParser, argv: list[str] | None, peer: str) -> TrialPlan | None:
+    """Add the last shared flag (``--no-poselib``) and parse; ``--quick`` means 20 trials per cell.
+    None, with the error on stderr, when --trials or --jobs is below 1."""
+    ap.add_argument("--no-poselib", action="store_true", help="skip the PoseLib peer")
+    args = ap.parse_args(argv)
+    trials = 20 if args.quick else args.trials
+    if trials < 1 or args.jobs < 1:
+        print("error: --trials and --jobs must be >= 1", file=sys.stderr)
+        return None
+    methods = tuple(args.methods)
+    return TrialPlan(args, trials, methods, methods + (() if args.no_poselib else (peer,)))
 
 
 def run_trials(

@@ -53,8 +53,9 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _trial_runner import run_trials  # noqa: E402
+from _trial_runner import parse_trial_args, run_trials  # noqa: E402
 from poselib_peer import estimate_query_pose_poselib  # noqa: E402
+from robustness import ITERATIONS, THRESHOLD_PX, paper_options  # noqa: E402
 
 from planarloc.geometry.pose import Pose, pose_errors  # noqa: E402
 from planarloc.robust.absolute_pose import estimate_absolute_pose  # noqa: E402
@@ -66,8 +67,6 @@ PEER = "poselib-gen"
 NOISES = tuple(float(s) for s in range(11))
 MATCHES = (100, 50, 10)
 NUM_REFS = 5
-ITERATIONS = 100
-THRESHOLD_PX = 2.0
 METRICS = (
     ("rotation_deg", "rotation error (deg)"),
     ("direction_deg", "translation direction error (deg)"),
@@ -104,16 +103,7 @@ def run_trial(task: tuple[int, int, int, int, tuple[str, ...], bool, float, bool
         outlier_ratio=0.0,
     )
     refs = [p.ref_pose for p in sc.pairs]
-    # The paper's methods as published (no 6DoF cross-check of planar poses, see robustness.py).
-    opts = RansacOptions(
-        max_iterations=ITERATIONS,
-        min_iterations=ITERATIONS,
-        threshold_px=threshold,
-        seed=ransac_seed,
-        refine=refine,
-        structure="none",
-        cross_check=False,
-    )
+    opts = paper_options(threshold, ransac_seed, refine)
     out: dict = {"cell": (ni, mi), "methods": {}}
     for method in methods:
         try:
@@ -281,14 +271,10 @@ def main(argv: list[str] | None = None) -> int:
     )
     ap.add_argument("--jobs", type=int, default=min(2, os.cpu_count() or 1), help="worker processes")
     ap.add_argument("--methods", nargs="+", default=list(METHODS), choices=METHODS)
-    ap.add_argument("--no-poselib", action="store_true", help="skip the PoseLib peer")
-    args = ap.parse_args(argv)
-    trials = 20 if args.quick else args.trials
-    if trials < 1 or args.jobs < 1:
-        print("error: --trials and --jobs must be >= 1", file=sys.stderr)
+    plan = parse_trial_args(ap, argv, PEER)
+    if plan is None:
         return 1
-    methods = tuple(args.methods)
-    names = methods + (() if args.no_poselib else (PEER,))
+    args, trials, methods, names = plan.args, plan.trials, plan.methods, plan.names
     t0 = time.perf_counter()
     results = run(
         trials, args.seed, args.jobs, methods, not args.no_poselib, args.threshold_scale, not args.no_refine

@@ -574,14 +574,7 @@ def self_check(verbose: bool = True) -> list[str]:
 # ---- main ---------------------------------------------------------------------------------------------
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument(
-        "--datasets",
-        nargs="+",
-        default=None,
-        metavar="NAME",
-        help=f"data sets (default: {' '.join(DEFAULT_DATASETS)}; --quick: {' '.join(QUICK_DATASETS)}); "
-        f"choose from {' '.join(dataset_names())}",
-    )
+    trust.add_datasets_option(p, " ".join(DEFAULT_DATASETS), QUICK_DATASETS, dataset_names())
     p.add_argument("--quick", action="store_true", help="the self-check, then a small subset (<= 2 minutes)")
     p.add_argument(
         "--self-check",
@@ -594,7 +587,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
         default=1,
         help="worker processes over the queries of a data set (default 1: clean timings)",
     )
-    p.add_argument("--max-queries", type=int, default=None, help="first N queries of each data set")
+    p.add_argument("--max-queries", type=int, help="first N queries of each data set")
     p.add_argument(
         "--peer-min-inliers",
         type=int,
@@ -605,22 +598,11 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
         "--list-successes", action="store_true", help="print every planarloc success with its error / std"
     )
     p.add_argument("--per-query", action="store_true", help="print both pipelines' outcome for every query")
-    p.add_argument(
-        "--data-root", type=Path, default=DATA_ROOT, help="shared real data (default: %(default)s)"
-    )
-    p.add_argument(
-        "--cache-dir",
-        type=Path,
-        default=None,
-        help="rendered worlds and planarloc maps (default: $TMPDIR/planarloc-bench)",
-    )
-    p.add_argument("--json", type=Path, default=None, help="write the metrics and per-query records here")
+    cache.add_cache_options(p, DATA_ROOT, "rendered worlds and planarloc maps")
+    p.add_argument("--json", type=Path, help="write the metrics and per-query records here")
     args = p.parse_args(argv)
-    known = dataset_names()
     args.datasets = args.datasets or (QUICK_DATASETS if args.quick else DEFAULT_DATASETS)
-    unknown = [d for d in args.datasets if d not in known]
-    if unknown:
-        p.error(f"--datasets: unknown {' '.join(unknown)}; choose from {' '.join(known)}")
+    trust.check_datasets(p, args.datasets, dataset_names())
     if args.jobs < 1:
         p.error(f"--jobs: expected >= 1, got {args.jobs}")
     return args

@@ -47,9 +47,9 @@ OPTIONAL = ("jobs1", "demo", "demo-cold")
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--kitti", type=Path, default=KITTI, help="a KITTI sequence (default: %(default)s)")
-    p.add_argument("--keep", type=Path, default=None, help="work (venv, tree, map) here and keep it")
+    p.add_argument("--keep", type=Path, help="work (venv, tree, map) here and keep it")
     p.add_argument("--skip", nargs="*", default=[], choices=OPTIONAL, help="steps to leave out")
-    p.add_argument("--json", type=Path, default=None, help="write the measurements here")
+    p.add_argument("--json", type=Path, help="write the measurements here")
     return p.parse_args(argv)
 
 

@@ -52,11 +52,10 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
         "--opt",
         type=int,
         choices=(0, 1, 2, 3),
-        default=None,
         help="NUMBA_OPT of the profiled process (default: numba's)",
     )
     p.add_argument("--top", type=int, default=25, help="kernels listed per target (default: %(default)s)")
-    p.add_argument("--json", type=Path, default=None, help="write the measurements here")
+    p.add_argument("--json", type=Path, help="write the measurements here")
     p.add_argument("--child", nargs=3, metavar=("TARGET", "WORK", "OUT"), help=argparse.SUPPRESS)
     return p.parse_args(argv)
 
@@ -155,9 +154,7 @@ def main(argv: list[str] | None = None) -> int:
     if not args.targets:
         print("give at least one target: localize, demo or a warm-up step name", file=sys.stderr)
         return 2
-    print("# numba compile CPU of a cold first use, per kernel and signature")
-    print(peer.code_note())
-    print(peer.load_note("at start"))
+    peer.print_header("# numba compile CPU of a cold first use, per kernel and signature")
     results = {}
     with tempfile.TemporaryDirectory(prefix="planarloc-compile-") as tmp:
         work = Path(tmp)

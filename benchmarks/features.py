@@ -191,15 +191,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument(
         "--datasets", nargs="+", default=DATASETS, choices=DATASETS, help="data sets (default: all)"
     )
-    p.add_argument(
-        "--data-root", type=Path, default=trust.DATA_ROOT, help="shared real data (default: %(default)s)"
-    )
-    p.add_argument(
-        "--cache-dir",
-        type=Path,
-        default=None,
-        help="maps, reused when their content matches (default: $TMPDIR/planarloc-bench)",
-    )
+    cache.add_cache_options(p, trust.DATA_ROOT, "maps, reused when their content matches")
     p.add_argument(
         "--query-stride",
         type=int,
@@ -210,7 +202,6 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument(
         "--torch-threads",
         type=int,
-        default=None,
         metavar="N",
         help="torch's threads for the learned types (default: PLANARLOC_TORCH_THREADS, else one per core)",
     )
@@ -221,8 +212,8 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
         metavar="KIND=N",
         help="keypoint budget of a feature type, e.g. xfeat=2048 (default: FeatureConfig's)",
     )
-    p.add_argument("--json", type=Path, default=None, help="write all metrics and per-query results here")
-    p.add_argument("--markdown", type=Path, default=None, help="write the table as markdown")
+    p.add_argument("--json", type=Path, help="write all metrics and per-query results here")
+    p.add_argument("--markdown", type=Path, help="write the table as markdown")
     args = p.parse_args(argv)
     args.features = ["rootsift", *[k for k in args.features if k != "rootsift"]]
     budgets = {}
@@ -280,18 +271,7 @@ def main(argv: list[str] | None = None) -> int:
     markdown = peer.markdown_table(HEADERS, [table_row(r) for r in results], title)
     if args.markdown:
         args.markdown.write_text(markdown + "\n")
-    seconds = time.perf_counter() - t_start
-    console.print(f"total {seconds:.0f} s; {peer.load_note('at end')}")
-    peer.write_json(
-        args.json,
-        {
-            "args": {k: v for k, v in vars(args).items()},
-            "code": peer.code_version(),
-            "seconds": seconds,
-            "skipped": skipped,
-            "results": results,
-        },
-    )
+    trust.report_end(console, args, t_start, skipped, results)
     return 0
 
 

@@ -40,7 +40,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import _peer_pipeline as peer  # noqa: E402
-from _datasets import broken_promises, build_or_reuse, confident_wrong  # noqa: E402
+from _datasets import SUMMARY_HEADERS, broken_promises, build_or_reuse, confident_wrong, summary_cells  # noqa: E402
 
 from planarloc.evaluation.queries import (
     THRESHOLDS,
@@ -82,7 +82,6 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
         "--methods",
         nargs="+",
         choices=ALL_METHODS,
-        default=None,
         help="solvers (default: all five; --quick: 2p1p 2p2p)",
     )
     p.add_argument(
@@ -103,10 +102,9 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument(
         "--map-dir",
         type=Path,
-        default=None,
         help="keep the maps here and reuse them when present (default: a fresh temporary folder)",
     )
-    p.add_argument("--json", type=Path, default=None, help="write all summaries and per-query results here")
+    p.add_argument("--json", type=Path, help="write all summaries and per-query results here")
     args = p.parse_args(argv)
     if args.quick:
         args.map_every = [2]
@@ -116,30 +114,10 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
 
 
 def summary_row(s: dict, label: str | None = None) -> list[str]:
-    return [
-        label or s["method"],
-        s["structure"],
-        *[peer.fmt_pct(v) for v in s["success"].values()],
-        peer.fmt_num(s["median_translation_error_m"]),
-        peer.fmt_num(s["median_rotation_error_deg"], 2),
-        f"{s['failed_queries']}/{s['queries']}",
-        str(s["status_counts"].get("degenerate_scale", 0)),
-        str(len(confident_wrong(s))),
-        peer.fmt_num(s["seconds_per_query"], 2),
-    ]
+    return [label or s["method"], *summary_cells(s)]
 
 
-HEADERS = [
-    "method",
-    "structure",
-    *[threshold_name(t, r) for t, r in THRESHOLDS],
-    "median t [m]",
-    "median R [°]",
-    "failed",
-    "degenerate",
-    "confident wrong",
-    "s/query",
-]
+HEADERS = ["method", *SUMMARY_HEADERS]
 
 
 def run_peer(db: MapDatabase, map_images, queries) -> dict:
@@ -372,12 +350,10 @@ def main(argv: list[str] | None = None) -> int:
         args.no_peer = True
     t_start = time.perf_counter()
     images = read_dataset(args.data, "kitti")
-    print(
+    peer.print_header(
         f"# KITTI benchmark: {args.data.name}, {len(images)} frames; methods {', '.join(args.methods)}; "
         f"structures {', '.join(STRUCTURES)}; top-{TOP_N} retrieval"
     )
-    print(peer.code_note())
-    print(peer.load_note("at start"))
     report: dict = {
         "dataset": str(args.data),
         "frames": len(images),

@@ -57,11 +57,10 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument(
         "--map",
         type=Path,
-        default=None,
         help="map file to build, or to reuse if it is complete with the same size (default: temporary)",
     )
-    p.add_argument("--json", type=Path, default=None, help="write the measurements here")
-    p.add_argument("--child", type=Path, default=None, help=argparse.SUPPRESS)  # internal: the fresh process
+    p.add_argument("--json", type=Path, help="write the measurements here")
+    p.add_argument("--child", type=Path, help=argparse.SUPPRESS)  # internal: the fresh process
     return p.parse_args(argv)
 
 
@@ -211,17 +210,30 @@ def child(map_path: Path, num_queries: int, seed: int) -> int:
 
 
 # ---- driver -----------------------------------------------------------------------------------------------
+def child_command(script: str, path: Path, args: argparse.Namespace, *options: str) -> list[str]:
+    """The command of the fresh process that opens the map at ``path`` (``script``'s ``--child``)."""
+    return [
+        sys.executable,
+        str(Path(script).resolve()),
+        "--child",
+        str(path),
+        "--queries",
+        str(args.queries),
+        *options,
+        "--seed",
+        str(args.seed),
+    ]
+
+
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     if args.child is not None:
         return child(args.child, args.queries, args.seed)
     t_start = time.perf_counter()
-    print(
+    peer.print_header(
         f"# Map memory: {args.images} images x {args.features} random RootSIFT-like features, "
         f"{args.storage} storage, {args.queries} queries in a fresh process"
     )
-    print(peer.code_note())
-    print(peer.load_note("at start"))
     tmp = None if args.map else tempfile.TemporaryDirectory(prefix="planarloc-memory-")
     path = args.map or Path(tmp.name) / f"random-{args.images}.db"
     report: dict = {
@@ -240,16 +252,7 @@ def main(argv: list[str] | None = None) -> int:
         size_mb = sum(p.stat().st_size for p in path.parent.glob(path.name + "*")) / 2**20
         report["map_file_mb"] = size_mb
         peer.log("opening the map in a fresh process")
-        cmd = [
-            sys.executable,
-            str(Path(__file__).resolve()),
-            "--child",
-            str(path),
-            "--queries",
-            str(args.queries),
-            "--seed",
-            str(args.seed),
-        ]
+        cmd = child_command(__file__, path, args)
         proc = subprocess.run(cmd, stdout=subprocess.PIPE, text=True)
         if proc.returncode != 0:
             print(f"the subprocess failed with exit code {proc.returncode}: {' '.join(cmd)}")

@@ -40,7 +40,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import _peer_pipeline as peer  # noqa: E402
-from map_memory import build_random_map, map_is_reusable, rss_mb  # noqa: E402
+from map_memory import build_random_map, child_command, map_is_reusable, rss_mb  # noqa: E402
 
 TARGET_OPEN_S, TARGET_RETRIEVAL_MS, TARGET_RSS_GB = 2.0, 10.0, 1.0
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "data"
@@ -56,9 +56,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
         "--queries", type=int, default=50, help="retrieval queries per size (default: %(default)s)"
     )
     p.add_argument("--serve", type=int, default=5, help="of them localized end to end (default: %(default)s)")
-    p.add_argument(
-        "--dir", type=Path, default=None, help="keep the maps here and reuse them (default: temporary)"
-    )
+    p.add_argument("--dir", type=Path, help="keep the maps here and reuse them (default: temporary)")
     p.add_argument(
         "--ray-data",
         type=Path,
@@ -68,8 +66,8 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     )
     p.add_argument("--no-ray", action="store_true", help="skip the Ray build throughput")
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--json", type=Path, default=None, help="write the measurements here")
-    p.add_argument("--child", type=Path, default=None, help=argparse.SUPPRESS)  # internal: the fresh process
+    p.add_argument("--json", type=Path, help="write the measurements here")
+    p.add_argument("--child", type=Path, help=argparse.SUPPRESS)  # internal: the fresh process
     return p.parse_args(argv)
 
 
@@ -151,18 +149,7 @@ BLAS_ENV = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")
 
 def measure(path: Path, args: argparse.Namespace, blas_threads: int | None) -> dict:
     """The fresh process' measurements, with BLAS' default threads (None) or ``blas_threads``."""
-    cmd = [
-        sys.executable,
-        str(Path(__file__).resolve()),
-        "--child",
-        str(path),
-        "--queries",
-        str(args.queries),
-        "--serve",
-        str(args.serve),
-        "--seed",
-        str(args.seed),
-    ]
+    cmd = child_command(__file__, path, args, "--serve", str(args.serve))
     env = {k: v for k, v in os.environ.items() if k not in BLAS_ENV}
     if blas_threads is not None:
         env.update({k: str(blas_threads) for k in BLAS_ENV})
@@ -216,12 +203,10 @@ def main(argv: list[str] | None = None) -> int:
     if args.child is not None:
         return child(args.child, args.queries, args.serve, args.seed)
     t_start = time.perf_counter()
-    print(
+    peer.print_header(
         f"# Building scale: maps of {', '.join(f'{n:,}' for n in args.sizes)} generated images x "
         f"{args.features} RootSIFT-like features; {args.queries} queries each in a fresh process"
     )
-    print(peer.code_note())
-    print(peer.load_note("at start"))
     from planarloc.cli.warmup_command import compile_ahead
     from planarloc.compile import steps_for
     from planarloc.localize.localizer import LocalizerConfig

@@ -80,16 +80,14 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument(
         "--work-dir",
         type=Path,
-        default=None,
         help="where the generated world is kept (default: a temporary folder); maps are always rebuilt",
     )
     p.add_argument(
         "--blas-threads",
         type=int,
-        default=None,
         help="re-run with OPENBLAS_NUM_THREADS / OMP_NUM_THREADS set to N (default: the library's)",
     )
-    p.add_argument("--json", type=Path, default=None, help="write all timings here")
+    p.add_argument("--json", type=Path, help="write all timings here")
     return p.parse_args(argv)
 
 
@@ -272,17 +270,13 @@ def main(argv: list[str] | None = None) -> int:
     try:
         label, map_images, queries = load_data(args, work)
         h, w = read_gray(map_images[0].path).shape
-        print(
-            f"# Pipeline speed: {label}, {len(map_images)} map images, {w}x{h}; {args.queries} queries "
-            f"(+1 warm-up); OpenCV {cv2.__version__}, PoseLib {peer.poselib_version() or 'not installed'}"
-        )
         threads = {k: os.environ.get(k) for k in BLAS_ENV if os.environ.get(k)}
-        print(
+        peer.print_header(
+            f"# Pipeline speed: {label}, {len(map_images)} map images, {w}x{h}; {args.queries} queries "
+            f"(+1 warm-up); OpenCV {cv2.__version__}, PoseLib {peer.poselib_version() or 'not installed'}",
             f"threads: OpenCV {cv2.getNumThreads()}, BLAS "
-            f"{', '.join(f'{k}={v}' for k, v in threads.items()) or 'library default'}"
+            f"{', '.join(f'{k}={v}' for k, v in threads.items()) or 'library default'}",
         )
-        print(peer.code_note())
-        print(peer.load_note("at start"))
         report.update(
             {
                 "data": label,

@@ -36,13 +36,14 @@ import sys
 import time
 import traceback
 from collections import Counter
+from collections.abc import Callable, Sequence
 from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _trial_runner import run_trials  # noqa: E402
+from _trial_runner import parse_trial_args, run_trials  # noqa: E402
 from poselib_peer import estimate_query_pose_poselib  # noqa: E402
 
 from planarloc.geometry.pose import pose_errors  # noqa: E402
@@ -92,6 +93,21 @@ def inlier_pairs(sc) -> list[PairMatches]:
     ]
 
 
+def paper_options(threshold_px: float, seed: int, refine: bool = True) -> RansacOptions:
+    """The paper's methods as published: exactly ``ITERATIONS`` RANSAC iterations, no structure and no
+    6DoF cross-check of the planar pose (the library's default cross_check=True adds one 5-point search
+    per query; see BENCHMARKS.md, "Trust")."""
+    return RansacOptions(
+        max_iterations=ITERATIONS,
+        min_iterations=ITERATIONS,
+        threshold_px=threshold_px,
+        seed=seed,
+        refine=refine,
+        structure="none",
+        cross_check=False,
+    )
+
+
 def run_trial(task: tuple[int, int, int, int, tuple[str, ...], bool, str]) -> dict:
     """One scene, every method and the peer on it. Returns errors, status and time per method."""
     seed, mi, ri, trial, methods, with_peer, protocol = task
@@ -102,16 +118,7 @@ def run_trial(task: tuple[int, int, int, int, tuple[str, ...], bool, str]) -> di
         rng, num_refs=num_refs, matches_per_pair=matches[mi], noise_px=noise_px, outlier_ratio=OUTLIERS[ri]
     )
     out: dict = {"cell": (mi, ri), "scene_cpu_s": time.process_time() - c0, "methods": {}}
-    # The paper's methods as published: no 6DoF cross-check of the planar pose (the library's
-    # default cross_check=True adds one 5-point search per query; see BENCHMARKS.md, "Trust").
-    opts = RansacOptions(
-        max_iterations=ITERATIONS,
-        min_iterations=ITERATIONS,
-        threshold_px=THRESHOLD_PX,
-        seed=ransac_seed,
-        structure="none",
-        cross_check=False,
-    )
+    opts = paper_options(THRESHOLD_PX, ransac_seed)
     for method in methods:
         name, checked, oracle = DEFAULTS.get(
             method, ("2p1p" if method == ORACLE else method, False, method == ORACLE)
@@ -255,40 +262,32 @@ def print_tables(cells: dict, names: tuple[str, ...], trials: int, protocol: str
     num_refs, noise_px, matches = PROTOCOLS[protocol]
     w = max(len(n) for n in names) + 2
     head = "".join(f"{int(100 * r):>6d}%" for r in OUTLIERS)
+
+    def per_cell(rows: Sequence[str], cell: Callable[[dict], str]) -> None:
+        """A table per matches/pair: a row per method of ``rows``, a column per outlier rate."""
+        for m in matches:
+            print(f"\n  matches/pair = {m}\n  {'method':<{w}}{head}")
+            for name in rows:
+                vals = "".join(cell(cells[f"{m}x{r:.1f}"]["methods"][name]) for r in OUTLIERS)
+                print(f"  {name:<{w}}{vals}")
+
     print(
         f"\nSuccess rate (%), protocol {protocol!r}: {num_refs} refs, {noise_px:g} px noise, {ITERATIONS} "
         f"fixed iterations, centre < {MAX_CENTRE_ERROR_M} m & R < {MAX_ROTATION_ERROR_DEG} deg, "
         f"{trials} trials per cell"
     )
-    for m in matches:
-        print(f"\n  matches/pair = {m}\n  {'method':<{w}}{head}")
-        for name in names:
-            rates = [cells[f"{m}x{r:.1f}"]["methods"][name]["success_rate"] for r in OUTLIERS]
-            vals = "".join(f"{100 * v:>7.0f}" for v in rates)
-            print(f"  {name:<{w}}{vals}")
+    per_cell(names, lambda c: f"{100 * c['success_rate']:>7.0f}")
     print(
         f"\nWrong successes (reported a pose, but centre >= {MAX_CENTRE_ERROR_M} m or R >= "
         f"{MAX_ROTATION_ERROR_DEG} deg), count per cell of {trials}:"
     )
-    for m in matches:
-        print(f"\n  matches/pair = {m}\n  {'method':<{w}}{head}")
-        for name in names:
-            vals = "".join(
-                f"{cells[f'{m}x{r:.1f}']['methods'][name]['wrong_successes']:>7d}" for r in OUTLIERS
-            )
-            print(f"  {name:<{w}}{vals}")
+    per_cell(names, lambda c: f"{c['wrong_successes']:>7d}")
     ours = [n for n in names if n != PEER]
     print(
         "\nBroken promises (success with centre error > 3 x its position_std_m + 5 cm), count per cell of "
         f"{trials}:"
     )
-    for m in matches:
-        print(f"\n  matches/pair = {m}\n  {'method':<{w}}{head}")
-        for name in ours:
-            vals = "".join(
-                f"{cells[f'{m}x{r:.1f}']['methods'][name]['broken_promises']:>7d}" for r in OUTLIERS
-            )
-            print(f"  {name:<{w}}{vals}")
+    per_cell(ours, lambda c: f"{c['broken_promises']:>7d}")
     for key, label in (("median_cpu_s", "CPU"), ("median_time_s", "wall")):
         print(f"\nMedian {label} time per query (ms), by matches/pair (median of the per-cell medians):")
         print(f"  {'method':<{w}}" + "".join(f"{m:>8d}" for m in matches))
@@ -395,14 +394,10 @@ def main(argv: list[str] | None = None) -> int:
         default="paper",
         help="paper: 5 refs, 1 px, 100/50/20 matches; hard: 3 refs, 1.5 px, 50/20 matches",
     )
-    ap.add_argument("--no-poselib", action="store_true", help="skip the PoseLib peer")
-    args = ap.parse_args(argv)
-    trials = 20 if args.quick else args.trials
-    if trials < 1 or args.jobs < 1:
-        print("error: --trials and --jobs must be >= 1", file=sys.stderr)
+    plan = parse_trial_args(ap, argv, PEER)
+    if plan is None:
         return 1
-    methods = tuple(args.methods)
-    names = methods + (() if args.no_poselib else (PEER,))
+    args, trials, methods, names = plan.args, plan.trials, plan.methods, plan.names
     t0 = time.perf_counter()
     results = run(trials, args.seed, args.jobs, methods, not args.no_poselib, args.protocol)
     wall = time.perf_counter() - t0

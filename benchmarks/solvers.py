@@ -157,8 +157,8 @@ def time_batch(fn: Callable[[], object], n: int, repeats: int) -> tuple[float, f
     return min(per), statistics.median(per), min(cpu)
 
 
-@njit(cache=True)
-def _loop_planar_2p(xq, xr, reps):
+@njit  # not cached: a cached caller would keep a stale copy of an edited solver (solvers_1ac.py uses it too)
+def loop_planar_2p(xq, xr, reps):
     th = np.empty(2)
     ph = np.empty(2)
     total = 0
@@ -303,7 +303,7 @@ def run(quick: bool) -> tuple[list[Row], dict]:
     add(
         "solve_planar_2p kernel (in numba loop)",
         "kernel",
-        time_kernel(_loop_planar_2p, (xq2, xr2), n_batch_2p, reps),
+        time_kernel(loop_planar_2p, (xq2, xr2), n_batch_2p, reps),
         n_batch_2p,
         peer="PoseLib C++ planar 2pt (README)",
         note="what RANSAC hypotheses call",

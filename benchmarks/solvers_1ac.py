@@ -32,7 +32,9 @@ import argparse
 import math
 import os
 import statistics
+import sys
 import time
+from pathlib import Path
 
 import numpy as np
 from numba import njit
@@ -43,7 +45,10 @@ from planarloc.solvers.relpose_planar_1ac import (
     relpose_planar_1ac_batch,
     solve_planar_1ac,
 )
-from planarloc.solvers.relpose_planar_2p import relpose_planar_2p, relpose_planar_2p_batch, solve_planar_2p
+from planarloc.solvers.relpose_planar_2p import relpose_planar_2p, relpose_planar_2p_batch
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from solvers import loop_planar_2p  # noqa: E402
 
 F_PX = 500.0  # focal length of both cameras for the noise models, pixels
 
@@ -90,17 +95,6 @@ def _kernel_loop_1ac(xq, xr, A, reps):
     return total
 
 
-@njit  # not cached: a cached caller would keep a stale copy of an edited solver
-def _kernel_loop_2p(xq, xr, reps):
-    th = np.empty(2)
-    ph = np.empty(2)
-    total = 0
-    for _ in range(reps):
-        for i in range(xq.shape[0]):
-            total += solve_planar_2p(xq[i], xr[i], th, ph)
-    return total
-
-
 def interleaved(fn_a, fn_b, per: int, k: int) -> tuple[list[float], list[float]]:
     """k repetitions of (fn_a, fn_b), µs per item (``per`` items per call)."""
     ta, tb = [], []
@@ -134,7 +128,7 @@ def timing(rng: np.random.Generator, quick: bool) -> None:
     relpose_planar_1ac_batch(xq1[:10], xr1[:10], A1[:10])
     relpose_planar_2p_batch(xq2[:10], xr2[:10])
     _kernel_loop_1ac(xq1[:10], xr1[:10], A1[:10], 1)
-    _kernel_loop_2p(xq2[:10], xr2[:10], 1)
+    loop_planar_2p(xq2[:10], xr2[:10], 1)
 
     def single_1ac() -> None:
         for i in range(n_single):
@@ -169,7 +163,7 @@ def timing(rng: np.random.Generator, quick: bool) -> None:
             "compiled kernel",
             *interleaved(
                 lambda: _kernel_loop_1ac(xq1, xr1, A1, kreps),
-                lambda: _kernel_loop_2p(xq2, xr2, kreps),
+                lambda: loop_planar_2p(xq2, xr2, kreps),
                 n_single * kreps,
                 k,
             ),

@@ -255,6 +255,23 @@ def _brief(r: dict) -> dict:
     return {k: r.get(k) for k in keys if k in r}
 
 
+def crash_record(what: str, trace: str, index: int | None = None, frame: CaseFrame | None = None) -> dict:
+    """One crash (``what`` went wrong, and its traceback): of frame ``frame`` (number ``index``), or of the
+    whole run when no frame is given."""
+    return {
+        "index": index,
+        "name": None if frame is None else frame.name,
+        "kind": None if frame is None else frame.kind,
+        "exception": what,
+        "traceback": trace,
+    }
+
+
+def described(exc: BaseException) -> str:
+    """The exception's type and message."""
+    return f"{type(exc).__name__}: {exc}"
+
+
 # ---- the stream in this process -----------------------------------------------------------------
 def run_stream(
     loc: Localizer, frames: list[CaseFrame], fixes: str, odometry: bool, pace: str = "camera"
@@ -283,16 +300,8 @@ def run_stream(
                 except InputError as exc:
                     r = unposed_result(truth, f.stamp, f.kidnapped, "error", str(exc))
                 except Exception as exc:  # noqa: BLE001 - a crash of the stream is a result here
-                    r = unposed_result(truth, f.stamp, f.kidnapped, "crash", f"{type(exc).__name__}: {exc}")
-                    crashes.append(
-                        {
-                            "index": k,
-                            "name": f.name,
-                            "kind": f.kind,
-                            "exception": f"{type(exc).__name__}: {exc}",
-                            "traceback": traceback.format_exc(),
-                        }
-                    )
+                    r = unposed_result(truth, f.stamp, f.kidnapped, "crash", described(exc))
+                    crashes.append(crash_record(described(exc), traceback.format_exc(), k, f))
                 else:
                     r = frame_result(truth, est, f.kidnapped, time.perf_counter() - start)
                     message = est.message
@@ -308,15 +317,7 @@ def run_stream(
                 )
             stats = vars(seq.stats).copy()
     except Exception as exc:  # noqa: BLE001 - the stream could not start or stop
-        crashes.append(
-            {
-                "index": None,
-                "name": None,
-                "kind": None,
-                "exception": f"{type(exc).__name__}: {exc}",
-                "traceback": traceback.format_exc(),
-            }
-        )
+        crashes.append(crash_record(described(exc), traceback.format_exc()))
     summary = summarize_sequence(results) if results else {}
     summary.pop("per_frame", None)  # the records below hold the same, and each frame's kind
     lat = summary.get("latency_ms") or {}
@@ -376,26 +377,10 @@ def run_node(data: Stream, loc: Localizer, frames: list[CaseFrame], params: Sequ
                 node.kill()
                 stderr = node.stderr
     except Exception as exc:  # noqa: BLE001 - the node run failed: a result of this case
-        crashes.append(
-            {
-                "index": None,
-                "name": None,
-                "kind": None,
-                "exception": f"{type(exc).__name__}: {exc}",
-                "traceback": traceback.format_exc(),
-            }
-        )
+        crashes.append(crash_record(described(exc), traceback.format_exc()))
     for line in stderr:
         if "Traceback" in line or "internal error" in line:
-            crashes.append(
-                {
-                    "index": None,
-                    "name": None,
-                    "kind": None,
-                    "exception": f"node: {line.strip()}",
-                    "traceback": "".join(stderr)[-4000:],
-                }
-            )
+            crashes.append(crash_record(f"node: {line.strip()}", "".join(stderr)[-4000:]))
             break
     map_from_world, banner = node_map_from_world(stderr, loc)
     records, latencies = [], []
@@ -590,17 +575,15 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
         "--data",
         nargs="+",
         choices=[*KITTI, *WORLDS],
-        default=None,
         help=f"streams (default: {' '.join(DEFAULT_DATA)}; --quick: {' '.join(QUICK['data'])})",
     )
     p.add_argument(
         "--cases",
         nargs="+",
         choices=list(CASES),
-        default=None,
         help=f"stream cases (default: all; --quick: {' '.join(QUICK['cases'])})",
     )
-    p.add_argument("--fixes", nargs="+", choices=FIX_MODES, default=None, help="fix modes (default: both)")
+    p.add_argument("--fixes", nargs="+", choices=FIX_MODES, help="fix modes (default: both)")
     p.add_argument(
         "--pace",
         nargs="+",
@@ -613,7 +596,6 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
         "--odometry",
         nargs="+",
         choices=ODOMETRY,
-        default=None,
         help=f"with / without simulated wheel odometry (default: both; --quick: {QUICK['odometry'][0]})",
     )
     p.add_argument(
@@ -628,9 +610,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument(
         "--data-root", type=Path, default=SHARED, help="shared KITTI folders (default: %(default)s)"
     )
-    p.add_argument(
-        "--cache", type=Path, default=None, help="worlds and maps (default: $TMPDIR/planarloc-bench)"
-    )
+    p.add_argument("--cache", type=Path, help="worlds and maps (default: $TMPDIR/planarloc-bench)")
     p.add_argument("--node", action="store_true", help="also replay through the ROS 2 node (slow)")
     p.add_argument(
         "--node-cases",
@@ -646,7 +626,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
         metavar="NAME:=VALUE",
         help="extra -p parameter of the node (repeatable)",
     )
-    p.add_argument("--json", type=Path, default=None, help="write every run, per frame, here")
+    p.add_argument("--json", type=Path, help="write every run, per frame, here")
     args = p.parse_args(argv)
     for key, default in (
         ("data", list(DEFAULT_DATA)),

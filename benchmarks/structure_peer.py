@@ -231,7 +231,7 @@ def main(argv: list[str] | None = None) -> int:
     )
     p.add_argument("--map-every", nargs="+", type=int, default=MAP_EVERY, help="map = every N-th frame")
     p.add_argument("--data-root", type=Path, default=DATA_ROOT)
-    p.add_argument("--json", type=Path, default=None)
+    p.add_argument("--json", type=Path)
     p.add_argument(
         "--storage",
         choices=STORAGE_LAYOUTS,

@@ -347,22 +347,48 @@ def offending_lines(results: Sequence[dict]) -> list[str]:
     return out
 
 
+def report_end(console: Console, args: argparse.Namespace, t0: float, skipped: list, results: list) -> None:
+    """The closing line (total time since ``t0``, load) and the JSON: arguments, code, time, what was skipped,
+    results."""
+    seconds = time.perf_counter() - t0
+    console.print(f"total {seconds:.0f} s; {peer.load_note('at end')}")
+    peer.write_json(
+        args.json,
+        {
+            "args": dict(vars(args)),
+            "code": peer.code_version(),
+            "seconds": seconds,
+            "skipped": skipped,
+            "results": results,
+        },
+    )
+
+
 # ---- main -----------------------------------------------------------------------------------------
-def parse_args(argv: list[str] | None) -> argparse.Namespace:
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    all_methods = [m.value for m in Method]
+def add_datasets_option(p: argparse.ArgumentParser, default: str, quick: list[str], known: list[str]) -> None:
+    """``--datasets``: names out of ``known``; the help tells the ``default`` and the ``quick`` ones."""
     p.add_argument(
         "--datasets",
         nargs="+",
-        default=None,
         metavar="NAME",
-        help=f"data sets (default: all; --quick: {' '.join(QUICK_DATASETS)}); "
-        f"choose from {' '.join(dataset_names())}",
+        help=f"data sets (default: {default}; --quick: {' '.join(quick)}); choose from {' '.join(known)}",
     )
+
+
+def check_datasets(p: argparse.ArgumentParser, names: list[str], known: list[str]) -> None:
+    """Exit with a usage error unless every data set of ``names`` is ``known``."""
+    unknown = [d for d in names if d not in known]
+    if unknown:
+        p.error(f"--datasets: unknown {' '.join(unknown)}; choose from {' '.join(known)}")
+
+
+def parse_args(argv: list[str] | None) -> argparse.Namespace:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    all_methods = [m.value for m in Method]
+    add_datasets_option(p, "all", QUICK_DATASETS, dataset_names())
     p.add_argument(
         "--methods",
         nargs="+",
-        default=None,
         choices=all_methods,
         help=f"solvers (default: {' '.join(DEFAULT_METHODS)}; --quick: {QUICK_METHOD})",
     )
@@ -387,33 +413,21 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
         metavar=("MAP", "QUERY"),
         help="frames of a generated world (default: %(default)s)",
     )
-    p.add_argument(
-        "--data-root", type=Path, default=DATA_ROOT, help="shared real data (default: %(default)s)"
-    )
-    p.add_argument(
-        "--cache-dir",
-        type=Path,
-        default=None,
-        help="rendered worlds and maps, reused when their content matches (default: $TMPDIR/planarloc-bench)",
-    )
+    cache.add_cache_options(p, DATA_ROOT, "rendered worlds and maps, reused when their content matches")
     p.add_argument(
         "--quick",
         action="store_true",
         help="CI gate: 3 data sets, default method; exit 1 on any success beyond 1 m or 20°",
     )
-    p.add_argument("--json", type=Path, default=None, help="write all metrics and per-query results here")
-    p.add_argument(
-        "--markdown", type=Path, default=None, help="write the table as markdown (for BENCHMARKS.md)"
-    )
+    p.add_argument("--json", type=Path, help="write all metrics and per-query results here")
+    p.add_argument("--markdown", type=Path, help="write the table as markdown (for BENCHMARKS.md)")
     args = p.parse_args(argv)
     args.world_frames = tuple(args.world_frames)
     if min(args.world_frames) < 2:
         p.error(f"--world-frames: need at least 2 map and 2 query frames, got {args.world_frames}")
     known = dataset_names(args.world_frames)
     args.datasets = args.datasets or (QUICK_DATASETS if args.quick else known)
-    unknown = [d for d in args.datasets if d not in known]
-    if unknown:
-        p.error(f"--datasets: unknown {' '.join(unknown)}; choose from {' '.join(known)}")
+    check_datasets(p, args.datasets, known)
     args.methods = args.methods or ([QUICK_METHOD] if args.quick else DEFAULT_METHODS)
     if args.query_gravity == "truth" and not localizer_takes_gravity():
         p.error("--query-gravity truth: this Localizer.localize_features has no gravity argument")
@@ -484,18 +498,7 @@ def main(argv: list[str] | None = None) -> int:
         args.markdown.write_text(markdown + "\n")
         peer.log(f"wrote {args.markdown}")
     offending = offending_lines(results)
-    seconds = time.perf_counter() - t_start
-    console.print(f"total {seconds:.0f} s; {peer.load_note('at end')}")
-    peer.write_json(
-        args.json,
-        {
-            "args": {k: v for k, v in vars(args).items()},
-            "code": peer.code_version(),
-            "seconds": seconds,
-            "skipped": skipped,
-            "results": results,
-        },
-    )
+    report_end(console, args, t_start, skipped, results)
     if offending:
         console.print(
             f"[bold red]{len(offending)} success(es) beyond {cache.GATE_T:g} m or {cache.GATE_R:g}°:"

@@ -28,7 +28,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import _peer_pipeline as peer  # noqa: E402
-from _datasets import WRONG_R, WRONG_T, confident_wrong, is_wrong  # noqa: E402
+from _datasets import SUMMARY_HEADERS, WRONG_R, WRONG_T, confident_wrong, is_wrong, summary_cells  # noqa: E402
 
 from planarloc.evaluation.queries import (  # noqa: E402
     THRESHOLDS,
@@ -66,40 +66,17 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument(
         "--work-dir",
         type=Path,
-        default=None,
         help="keep rendered worlds here and reuse them (default: a temporary folder); maps are rebuilt",
     )
-    p.add_argument("--json", type=Path, default=None, help="write all summaries and per-query results here")
+    p.add_argument("--json", type=Path, help="write all summaries and per-query results here")
     return p.parse_args(argv)
 
 
 def row(preset: str, tilt: bool, s: dict) -> list[str]:
-    return [
-        preset,
-        "tilt" if tilt else "-",
-        s["structure"],
-        *[peer.fmt_pct(v) for v in s["success"].values()],
-        peer.fmt_num(s["median_translation_error_m"]),
-        peer.fmt_num(s["median_rotation_error_deg"], 2),
-        f"{s['failed_queries']}/{s['queries']}",
-        str(s["status_counts"].get("degenerate_scale", 0)),
-        str(len(confident_wrong(s))),
-        peer.fmt_num(s["seconds_per_query"], 2),
-    ]
+    return [preset, "tilt" if tilt else "-", *summary_cells(s)]
 
 
-HEADERS = [
-    "world",
-    "tilt",
-    "structure",
-    *[threshold_name(t, r) for t, r in THRESHOLDS],
-    "median t [m]",
-    "median R [°]",
-    "failed",
-    "degenerate",
-    "confident wrong",
-    "s/query",
-]
+HEADERS = ["world", "tilt", *SUMMARY_HEADERS]
 
 
 def run_preset(preset: str, args: argparse.Namespace, work: Path, maps: Path) -> list[dict]:
@@ -201,12 +178,10 @@ def targets(runs: list[dict]) -> list[tuple[bool, str]]:
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     t_start = time.perf_counter()
-    print(
+    peer.print_header(
         f"# Generated worlds: {', '.join(args.presets)} (seed {args.seed}); method {args.method}, "
         f"structures {', '.join(STRUCTURES)}, VLAD top-5"
     )
-    print(peer.code_note())
-    print(peer.load_note("at start"))
     code = peer.code_version()
     tmp = tempfile.TemporaryDirectory(prefix="planarloc-worlds-")
     work = args.work_dir or Path(tmp.name)

@@ -5,11 +5,11 @@ crosses a package, and the base install imports none of the optional extras."""
 from __future__ import annotations
 
 import ast
-import subprocess
 import sys
 from pathlib import Path
 
 import pytest
+from fresh_python import python_stdout
 
 ROOT = Path(__file__).resolve().parents[1] / "planarloc"
 #: Layer of each top-level package: a module may import its own package and lower layers only.
@@ -195,6 +195,4 @@ def test_the_base_install_imports_no_extra(entry: str) -> None:
         f"print(' '.join(m for m in {EXTRAS!r} if m in sys.modules or any(k.startswith(m + '.') for k in "
         "sys.modules)))"
     )
-    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
-    assert proc.returncode == 0, proc.stderr
-    assert proc.stdout.strip() == ""
+    assert python_stdout(code, timeout=300).strip() == ""

@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from _cli_runs import cli
 from other_user import base_env, other_user, run_as, shared_folder
 
 from planarloc.features.extract import Features
@@ -17,16 +18,6 @@ from planarloc.geometry.camera import Camera
 from planarloc.geometry.pose import Pose
 from planarloc.map.posed_image import PosedImage
 from planarloc.map.store import MapDatabase
-
-
-def cli(*args: object, env: dict) -> subprocess.CompletedProcess:
-    return subprocess.run(
-        [sys.executable, "-m", "planarloc.cli.main", *map(str, args)],
-        capture_output=True,
-        text=True,
-        env=env,
-        timeout=600,
-    )
 
 
 def _small_map(path: Path) -> None:

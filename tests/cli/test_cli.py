@@ -6,14 +6,12 @@ import json
 from pathlib import Path
 
 import pytest
+from _cli_runs import evaluate_argv, run
+from map_files import map_build_argv
 
-from planarloc.cli.main import build_parser, main
+from planarloc.cli.main import build_parser
 from planarloc.map.std_calibration import MIN_SAMPLES, load_std_calibration
 from planarloc.map.store import MapDatabase
-
-
-def run(argv: list[str]) -> int:
-    return main([str(a) for a in argv])
 
 
 @pytest.mark.parametrize(
@@ -48,10 +46,7 @@ def test_map_build_storage_compact_is_a_smaller_map_that_localizes(tiny_world: P
     sizes = {}
     for storage in ("full", "compact"):
         db = tmp_path / f"{storage}.db"
-        assert (
-            run(["map", "build", tiny_world / "map", "--format", "tum", "--out", db, "--storage", storage])
-            == 0
-        )
+        assert run(map_build_argv(tiny_world / "map", db, "--storage", storage)) == 0
         with MapDatabase.open(db) as m:
             assert m.storage == storage
         sizes[storage] = db.stat().st_size
@@ -62,19 +57,7 @@ def test_map_build_storage_compact_is_a_smaller_map_that_localizes(tiny_world: P
     assert run(["localize", "--map", tmp_path / "compact.db", query, "--camera", cam, "--out", out]) == 0
     assert len(out.read_text().splitlines()) == 1
     with pytest.raises(SystemExit):
-        run(
-            [
-                "map",
-                "build",
-                tiny_world / "map",
-                "--format",
-                "tum",
-                "--out",
-                tmp_path / "x.db",
-                "--storage",
-                "tiny",
-            ]
-        )
+        run(map_build_argv(tiny_world / "map", tmp_path / "x.db", "--storage", "tiny"))
 
 
 def test_map_build_localize_evaluate(
@@ -108,22 +91,9 @@ def test_map_build_localize_evaluate(
     plot = tmp_path / "eval.png"
     assert (
         run(
-            [
-                "evaluate",
-                tiny_world / "map",
-                "--format",
-                "tum",
-                "--map-every",
-                "2",
-                "--map",
-                tmp_path / "e.db",
-                "--structure",
-                "tracks",
-                "--json",
-                summary,
-                "--plot",
-                plot,
-            ]
+            evaluate_argv(
+                tiny_world / "map", tmp_path, "--structure", "tracks", "--json", summary, "--plot", plot
+            )
         )
         == 0
     )

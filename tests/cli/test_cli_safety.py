@@ -8,15 +8,12 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from _cli_runs import evaluate_argv, localize_argv, run
 
-from planarloc.cli.main import build_parser, main
+from planarloc.cli.main import build_parser
 from planarloc.evaluation.queries import default_map_path
 from planarloc.io.datasets import read_dataset
 from planarloc.map.store import MapDatabase
-
-
-def run(argv: list[object]) -> int:
-    return main([str(a) for a in argv])
 
 
 def one_error_line(capsys: pytest.CaptureFixture[str], *expected: str) -> str:
@@ -106,23 +103,8 @@ def test_bad_queries_are_recorded_and_the_batch_goes_on(
 
     cv2.imwrite(str(small), np.zeros((60, 80), np.uint8))
     out = tmp_path / "poses.txt"
-    rc = run(
-        [
-            "localize",
-            "--map",
-            world_map,
-            broken,
-            images[0],
-            small,
-            images[1],
-            "--camera",
-            cam,
-            "--structure",
-            "tracks",
-            "--out",
-            out,
-        ]
-    )
+    batch = (broken, images[0], small, images[1])
+    rc = run(localize_argv(world_map, *batch, "--camera", cam, "--structure", "tracks", "--out", out))
     assert rc == 3
     lines = out.read_text().splitlines()
     assert sorted(line.split()[0] for line in lines) == sorted(p.name for p in images)
@@ -144,21 +126,8 @@ def test_bad_queries_are_recorded_and_the_batch_goes_on(
 def test_camera_of_another_size_is_not_silently_used(world_map: Path, queries, tmp_path: Path) -> None:
     images, _ = queries
     out = tmp_path / "poses.txt"
-    assert (
-        run(
-            [
-                "localize",
-                "--map",
-                world_map,
-                images[0],
-                "--camera",
-                "PINHOLE 640 480 500 500 320 240",
-                "--out",
-                out,
-            ]
-        )
-        == 3
-    )
+    camera = "PINHOLE 640 480 500 500 320 240"
+    assert run(localize_argv(world_map, images[0], "--camera", camera, "--out", out)) == 3
     assert out.read_text() == ""
     record = json.loads(next((tmp_path / "poses.txt.json.d").glob("*")).read_text())
     assert not record["success"] and "640x480" in record["message"]
@@ -276,22 +245,9 @@ def test_same_file_names_in_two_folders_do_not_mix_up(world_map: Path, queries, 
         (tmp_path / sub).mkdir()
         shutil.copy(src, tmp_path / sub / "q.png")
     out = tmp_path / "poses.txt"
+    same_names = (tmp_path / "a" / "q.png", tmp_path / "b" / "q.png")
     assert (
-        run(
-            [
-                "localize",
-                "--map",
-                world_map,
-                tmp_path / "a" / "q.png",
-                tmp_path / "b" / "q.png",
-                "--camera",
-                cam,
-                "--structure",
-                "tracks",
-                "--out",
-                out,
-            ]
-        )
+        run(localize_argv(world_map, *same_names, "--camera", cam, "--structure", "tracks", "--out", out))
         == 0
     )
     names = sorted(line.split()[0] for line in out.read_text().splitlines())
@@ -326,27 +282,8 @@ def test_evaluate_records_a_broken_query_and_goes_on(tiny_world: Path, tmp_path:
     broken = read_dataset(data, "tum")[1]  # odd index: a query at --map-every 2
     broken.path.write_bytes(b"truncated")
     summary = tmp_path / "e.json"
-    assert (
-        run(
-            [
-                "evaluate",
-                data,
-                "-f",
-                "tum",
-                "--map-every",
-                "2",
-                "--map",
-                tmp_path / "e.db",
-                "--vocabulary-size",
-                "16",
-                "--structure",
-                "tracks",
-                "--json",
-                summary,
-            ]
-        )
-        == 3
-    )
+    options = ("--vocabulary-size", "16", "--structure", "tracks", "--json", summary)
+    assert run(evaluate_argv(data, tmp_path, *options)) == 3
     s = json.loads(summary.read_text())
     errors = [q for q in s["per_query"] if q["status"] == "error"]
     assert s["queries"] == 6 and len(errors) == 1 and errors[0]["name"] == broken.name

@@ -14,6 +14,8 @@ import sys
 import tomllib
 from pathlib import Path
 
+from _cli_runs import cli
+from map_files import map_build_argv
 from other_user import base_env, other_user, run_as, shared_folder
 
 REPO = Path(__file__).resolve().parents[2]
@@ -101,33 +103,14 @@ def test_the_dockerfile_commands_run_as_its_user(tiny_world: Path) -> None:
             target.parent.mkdir(parents=True, exist_ok=True)
             shutil.copy(f, target)
         env = base_env(PYTHONPATH=str(site))
-        cli = [sys.executable, "-m", "planarloc.cli.main"]
+        command = [sys.executable, "-m", "planarloc.cli.main"]
         # RUN, as root (cwd: `python -m` puts it first on sys.path, before PYTHONPATH)
-        warm = subprocess.run(
-            [*cli, "warmup"], env=env, capture_output=True, text=True, timeout=1800, cwd=root
-        )
+        warm = cli("warmup", env=env, cwd=root, timeout=1800)
         assert warm.returncode == 0, warm.stderr
         assert re.match(r"warm-up done in", warm.stdout)
         shutil.copytree(tiny_world, root / "world")
-        built = subprocess.run(
-            [
-                *cli,
-                "map",
-                "build",
-                root / "world" / "map",
-                "-f",
-                "tum",
-                "--out",
-                root / "map.db",
-                "--vocabulary-size",
-                "16",
-            ],
-            env=env,
-            capture_output=True,
-            text=True,
-            timeout=900,
-            cwd=root,
-        )
+        argv = map_build_argv(root / "world" / "map", root / "map.db", "--vocabulary-size", "16")
+        built = cli(*argv, env=env, cwd=root, timeout=900)
         assert built.returncode == 0, built.stderr
         subprocess.run(["chmod", "-R", "a+rX", str(root)], check=True)
         work = root / "work"  # WORKDIR /work, the user's
@@ -143,13 +126,13 @@ def test_the_dockerfile_commands_run_as_its_user(tiny_world: Path) -> None:
             if w in ("ENTRYPOINT", "CMD")
         ]
         assert entry[0] == ["planarloc"]
-        helped = run_as(user, [*cli, *entry[1]], env=as_user, cwd=work)  # ENTRYPOINT + CMD
+        helped = run_as(user, [*command, *entry[1]], env=as_user, cwd=work)  # ENTRYPOINT + CMD
         assert helped.returncode == 0 and "usage: planarloc" in helped.stdout, helped.stderr
         query = sorted((root / "world" / "query" / "rgb").glob("*.png"))[0]
         cam = (root / "world" / "query" / "camera.txt").read_text().splitlines()[-1]
         proc = run_as(
             user,
-            [*cli, "localize", "--map", root / "map.db", query, "--camera", cam],
+            [*command, "localize", "--map", root / "map.db", query, "--camera", cam],
             env={**as_user, "NUMBA_DEBUG_CACHE": "1"},
             cwd=work,
         )

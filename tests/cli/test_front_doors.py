@@ -12,29 +12,16 @@ import signal
 import sqlite3
 import stat
 import subprocess
-import sys
 import threading
 from pathlib import Path
 
 import pytest
+from _cli_runs import cli, evaluate_argv, localize_argv, run
+from map_files import map_build_argv
 
 from planarloc.cli.main import main
 
 POSE_LINE_FIELDS = 8
-
-
-def cli(
-    *argv: object, cwd: Path | None = None, preexec=None, timeout: float = 600
-) -> subprocess.CompletedProcess:
-    """Run `planarloc ARGV` in a new process (PYTHONPATH is inherited: this checkout's package)."""
-    return subprocess.run(
-        [sys.executable, "-m", "planarloc.cli.main", *map(str, argv)],
-        capture_output=True,
-        text=True,
-        cwd=cwd,
-        preexec_fn=preexec,
-        timeout=timeout,
-    )
 
 
 def error_lines(proc: subprocess.CompletedProcess) -> list[str]:
@@ -44,22 +31,7 @@ def error_lines(proc: subprocess.CompletedProcess) -> list[str]:
 @pytest.fixture(scope="module")
 def world_map(tiny_world: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
     db = tmp_path_factory.mktemp("doors") / "map.db"
-    assert (
-        main(
-            [
-                "map",
-                "build",
-                str(tiny_world / "map"),
-                "-f",
-                "tum",
-                "--out",
-                str(db),
-                "--vocabulary-size",
-                "16",
-            ]
-        )
-        == 0
-    )
+    assert run(map_build_argv(tiny_world / "map", db, "--vocabulary-size", "16")) == 0
     return db
 
 
@@ -119,20 +91,8 @@ def test_map_info_and_check_streams_and_long_paths_stay_on_one_line(world_map, t
 
 
 def test_evaluate_table_and_files_to_stdout_progress_to_stderr(tiny_world, tmp_path) -> None:
-    proc = cli(
-        "evaluate",
-        tiny_world / "map",
-        "-f",
-        "tum",
-        "--map-every",
-        "2",
-        "--map",
-        tmp_path / "e.db",
-        "--vocabulary-size",
-        "16",
-        "--json",
-        tmp_path / "e.json",
-    )
+    options = ("--vocabulary-size", "16", "--json", tmp_path / "e.json")
+    proc = cli(*evaluate_argv(tiny_world / "map", tmp_path, *options))
     assert proc.returncode == 0, proc.stderr
     assert "0.25m/10deg" in proc.stdout and f"wrote {tmp_path / 'e.json'}" in proc.stdout
     assert "0.25m/10deg" not in proc.stderr and "map: 6 frames" in proc.stderr
@@ -241,19 +201,8 @@ def test_a_stream_records_an_unreadable_frame_and_goes_on(world_map, tiny_world,
     listing.write_text("".join(f"{t:.6f} {p}\n" for t, p in entries))
     out = tmp_path / "poses.txt"
     out.write_text("")
-    proc = cli(
-        "localize",
-        "--map",
-        world_map,
-        "--sequence",
-        listing,
-        "--odometry",
-        query / "groundtruth.txt",
-        "--structure",
-        "tracks",
-        "--out",
-        out,
-    )
+    stream = ("--sequence", listing, "--odometry", query / "groundtruth.txt")
+    proc = cli(*localize_argv(world_map, *stream, "--structure", "tracks", "--out", out))
     assert proc.returncode == 3, proc.stderr
     records = {
         r["name"]: r for r in (json.loads(p.read_text()) for p in (tmp_path / "poses.txt.json.d").iterdir())

@@ -12,24 +12,15 @@ import signal
 import subprocess
 import sys
 import uuid
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import pytest
+from _cli_runs import cli, localize_argv
 
 from planarloc.cli.main import main
 
 OLD_RESULTS = "old.png 1.0 0.0 0.0 0.0 1.0 2.0 3.0\n"
-
-
-def cli(*argv: object, preexec=None) -> subprocess.CompletedProcess:
-    return subprocess.run(
-        [sys.executable, "-m", "planarloc.cli.main", *map(str, argv)],
-        capture_output=True,
-        text=True,
-        preexec_fn=preexec,
-        timeout=600,
-    )
 
 
 @pytest.fixture
@@ -92,6 +83,14 @@ def queries(tiny_world: Path) -> tuple[list[Path], str]:
     ).read_text().splitlines()[-1]
 
 
+def localize_queries(
+    world_map: Path, tiny_world: Path, *options: object, preexec: Callable[[], None] | None = None
+) -> subprocess.CompletedProcess:
+    """`localize` of every query image with the query camera, in a new process."""
+    images, camera = queries(tiny_world)
+    return cli(*localize_argv(world_map, *images, "--camera", camera, *options), preexec=preexec)
+
+
 @pytest.mark.parametrize(
     "pages", [0, 3, 6]
 )  # tmpfs pages of 4 KB left: the 1st record, the 4th, the trajectory
@@ -100,19 +99,8 @@ def test_a_full_disk_during_a_batch_run_keeps_everything_earlier(
 ) -> None:
     files = earlier_run(small_disk)
     fill(small_disk, pages * 4096)
-    images, camera = queries(tiny_world)
-    proc = cli(
-        "localize",
-        "--map",
-        world_map,
-        *images,
-        "--camera",
-        camera,
-        "--out",
-        small_disk / "poses.txt",
-        "--tum",
-        small_disk / "poses.tum",
-    )
+    outputs = ("--out", small_disk / "poses.txt", "--tum", small_disk / "poses.tum")
+    proc = localize_queries(world_map, tiny_world, *outputs)
     assert proc.returncode == 1, proc.stdout + proc.stderr
     errors = [line for line in proc.stderr.splitlines() if "error:" in line]
     assert len(errors) == 1 and "No space left on device" in errors[0] and "disk is full" in errors[0]
@@ -133,19 +121,8 @@ def test_a_full_disk_under_the_results_file_only_keeps_the_records_too(
     files = earlier_run(tmp_path / "roomy")
     (small_disk / "poses.txt").write_text(OLD_RESULTS)
     fill(small_disk, 0)
-    images, camera = queries(tiny_world)
-    proc = cli(
-        "localize",
-        "--map",
-        world_map,
-        *images,
-        "--camera",
-        camera,
-        "--out",
-        small_disk / "poses.txt",
-        "--json-dir",
-        tmp_path / "roomy" / "poses.txt.json.d",
-    )
+    records = tmp_path / "roomy" / "poses.txt.json.d"
+    proc = localize_queries(world_map, tiny_world, "--out", small_disk / "poses.txt", "--json-dir", records)
     assert proc.returncode == 1
     assert (small_disk / "poses.txt").read_text() == OLD_RESULTS and unchanged(files)
     assert no_temporaries(tmp_path) and no_temporaries(small_disk)
@@ -159,17 +136,8 @@ def test_a_full_disk_during_a_stream_keeps_every_earlier_frame_record(
     listing = small_disk / "frames.txt"
     listing.write_text("".join(f"{0.1 * k:.6f} {p}\n" for k, p in enumerate(images)))
     fill(small_disk, 6000)
-    proc = cli(
-        "localize",
-        "--map",
-        world_map,
-        "--sequence",
-        listing,
-        "--camera",
-        camera,
-        "--out",
-        small_disk / "poses.txt",
-    )
+    out = small_disk / "poses.txt"
+    proc = cli(*localize_argv(world_map, "--sequence", listing, "--camera", camera, "--out", out))
     assert proc.returncode == 1, proc.stderr
     assert unchanged(files) and no_temporaries(small_disk)
     for record in (small_disk / "poses.txt.json.d").iterdir():
@@ -214,25 +182,13 @@ def served_world_map(world_map) -> Iterator[tuple[str, subprocess.Popen]]:
 def test_rlimit_full_disk_keeps_the_records(world_map, tiny_world, tmp_path) -> None:
     """Where no tmpfs can be mounted: every file this process writes is cut at 600 bytes."""
     files = earlier_run(tmp_path)
-    images, camera = queries(tiny_world)
 
     def limit() -> None:
         signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
         resource.setrlimit(resource.RLIMIT_FSIZE, (600, 600))
 
-    proc = cli(
-        "localize",
-        "--map",
-        world_map,
-        *images,
-        "--camera",
-        camera,
-        "--out",
-        tmp_path / "poses.txt",
-        "--tum",
-        tmp_path / "poses.tum",
-        preexec=limit,
-    )
+    outputs = ("--out", tmp_path / "poses.txt", "--tum", tmp_path / "poses.tum")
+    proc = localize_queries(world_map, tiny_world, *outputs, preexec=limit)
     assert proc.returncode == 1 and "File too large" in proc.stderr
     assert unchanged(files) and no_temporaries(tmp_path)
 

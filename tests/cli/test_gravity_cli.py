@@ -6,35 +6,14 @@ import json
 from pathlib import Path
 
 import pytest
-
-from planarloc.cli.main import main
-
-
-def run(argv: list) -> int:
-    return main([str(a) for a in argv])
+from _cli_runs import evaluate_argv, localize_argv, run
+from map_files import map_build_argv
 
 
 @pytest.fixture(scope="module")
 def cli_map(tiny_world: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
     db = tmp_path_factory.mktemp("cli_gravity") / "map.db"
-    assert (
-        run(
-            [
-                "map",
-                "build",
-                tiny_world / "map",
-                "-f",
-                "tum",
-                "--every",
-                "2",
-                "--out",
-                db,
-                "--dataset-option",
-                "up=-y",
-            ]
-        )
-        == 0
-    )
+    assert run(map_build_argv(tiny_world / "map", db, "--every", "2", "--dataset-option", "up=-y")) == 0
     return db
 
 
@@ -49,22 +28,7 @@ def test_map_info_reports_gravity(cli_map: Path, capsys: pytest.CaptureFixture[s
 def test_bad_up_option_is_one_line(
     tiny_world: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    assert (
-        run(
-            [
-                "map",
-                "build",
-                tiny_world / "map",
-                "-f",
-                "tum",
-                "--out",
-                tmp_path / "m.db",
-                "--dataset-option",
-                "up=sideways",
-            ]
-        )
-        == 1
-    )
+    assert run(map_build_argv(tiny_world / "map", tmp_path / "m.db", "--dataset-option", "up=sideways")) == 1
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "up='sideways': expected an axis" in err[0]
     assert not (tmp_path / "m.db").exists()
@@ -121,42 +85,13 @@ def test_bad_gravity_is_one_line(
 
 def test_gravity_and_gravity_file_are_exclusive(cli_map: Path, tmp_path: Path) -> None:
     with pytest.raises(SystemExit) as exc:
-        run(
-            [
-                "localize",
-                "--map",
-                cli_map,
-                "x.png",
-                "--gravity",
-                "0 1 0",
-                "--gravity-file",
-                tmp_path / "g.txt",
-            ]
-        )
+        run(localize_argv(cli_map, "x.png", "--gravity", "0 1 0", "--gravity-file", tmp_path / "g.txt"))
     assert exc.value.code == 2
 
 
 def test_evaluate_with_true_gravity(tiny_world: Path, tmp_path: Path) -> None:
     summary = tmp_path / "eval.json"
-    assert (
-        run(
-            [
-                "evaluate",
-                tiny_world / "map",
-                "-f",
-                "tum",
-                "--map-every",
-                "2",
-                "--map",
-                tmp_path / "e.db",
-                "--gravity-from-truth",
-                "--structure",
-                "tracks",
-                "--json",
-                summary,
-            ]
-        )
-        == 0
-    )
+    options = ("--gravity-from-truth", "--structure", "tracks", "--json", summary)
+    assert run(evaluate_argv(tiny_world / "map", tmp_path, *options)) == 0
     s = json.loads(summary.read_text())
     assert s["query_gravity"] == "truth" and s["queries"] == 6 and s["success"]["0.25m/10deg"] >= 80.0

@@ -11,14 +11,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from _cli_runs import evaluate_argv, run
 from record_schemas import check, check_file
 
-from planarloc.cli.main import main
 from planarloc.geometry.pose import Pose
-
-
-def run(argv: list) -> int:
-    return main([str(a) for a in argv])
 
 
 @pytest.fixture(scope="module")
@@ -98,25 +94,7 @@ def test_evaluate_outputs_follow_the_schema(tiny_world: Path, tmp_path: Path) ->
     first = sorted((data / "rgb").glob("*.png"))[1]
     first.write_bytes(first.read_bytes()[:100])  # one query that cannot be read
     summary = tmp_path / "eval.json"
-    assert (
-        run(
-            [
-                "evaluate",
-                data,
-                "--format",
-                "tum",
-                "--map-every",
-                "2",
-                "--map",
-                tmp_path / "e.db",
-                "--structure",
-                "tracks",
-                "--json",
-                summary,
-            ]
-        )
-        == 3
-    )
+    assert run(evaluate_argv(data, tmp_path, "--structure", "tracks", "--json", summary)) == 3
     s = check_file("evaluation", summary)
     assert s["queries"] == len(s["per_query"]) == 6  # type: ignore[index]
     statuses = [q["status"] for q in s["per_query"]]  # type: ignore[index]
@@ -131,26 +109,8 @@ def test_evaluate_outputs_follow_the_schema(tiny_world: Path, tmp_path: Path) ->
 
 def test_sequential_evaluation_follows_the_schema(tiny_world: Path, tmp_path: Path) -> None:
     summary = tmp_path / "seq.json"
-    assert (
-        run(
-            [
-                "evaluate",
-                tiny_world / "query",
-                "--format",
-                "tum",
-                "--map-every",
-                "2",
-                "--map",
-                tmp_path / "e.db",
-                "--structure",
-                "tracks",
-                "--sequential",
-                "--json",
-                summary,
-            ]
-        )
-        == 0
-    )
+    sequential = ("--structure", "tracks", "--sequential", "--json", summary)
+    assert run(evaluate_argv(tiny_world / "query", tmp_path, *sequential)) == 0
     s = check_file("sequence-evaluation", summary)
     assert s["late_frames"] == s["stream"]["late"]  # type: ignore[index]
     assert sum(f["late"] for f in s["per_frame"]) == s["late_frames"]  # type: ignore[index]

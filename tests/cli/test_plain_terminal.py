@@ -7,8 +7,8 @@ import json
 from pathlib import Path
 
 import pytest
+from _cli_runs import evaluate_argv, run
 
-from planarloc.cli.main import main
 from planarloc.cli.report import print_summary_table
 from planarloc.cli.sequence_cli import print_sequence_table
 
@@ -108,29 +108,8 @@ def test_evaluate_sequential_table_piped(
 ) -> None:
     """The command itself, its stdout captured (not a terminal): the whole table, as in its JSON."""
     capsys.readouterr()
-    assert (
-        main(
-            [
-                str(a)
-                for a in [
-                    "evaluate",
-                    tiny_world / "query",
-                    "--format",
-                    "tum",
-                    "--map-every",
-                    "2",
-                    "--map",
-                    tmp_path / "e.db",
-                    "--structure",
-                    "tracks",
-                    "--sequential",
-                    "--json",
-                    tmp_path / "s.json",
-                ]
-            ]
-        )
-        == 0
-    )
+    sequential = ("--structure", "tracks", "--sequential", "--json", tmp_path / "s.json")
+    assert run(evaluate_argv(tiny_world / "query", tmp_path, *sequential)) == 0
     text = printed(capsys)
     assert "…" not in text
     header = lines_with(text, "localized/predicted/lost")

@@ -8,17 +8,13 @@ import shutil
 from pathlib import Path
 
 import pytest
+from _cli_runs import kitti_evaluate_argv, localize_argv, run
 from kitti_layout import write_kitti_sequence
 
-from planarloc.cli.main import main
 from planarloc.io.datasets import read_dataset
 
 #: times.txt of the generated sequence: seconds that no frame number or 0.1 s clock could give
 TIMES = [1317384506.40 + 0.1037 * k for k in range(12)]
-
-
-def run(argv: list) -> int:
-    return main([str(a) for a in argv])
 
 
 @pytest.fixture(scope="module")
@@ -35,25 +31,7 @@ def kitti_seq(tiny_world: Path, tmp_path_factory: pytest.TempPathFactory) -> Pat
 def kitti_map(kitti_seq: Path, tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
     """`evaluate --tum` once (it builds the map of the even frames): (map, TUM folder)."""
     out = tmp_path_factory.mktemp("kitti_times_eval")
-    assert (
-        run(
-            [
-                "evaluate",
-                kitti_seq,
-                "-f",
-                "kitti",
-                "--map-every",
-                "2",
-                "--map",
-                out / "map.db",
-                "--structure",
-                "tracks",
-                "--tum",
-                out / "tum",
-            ]
-        )
-        == 0
-    )
+    assert run(kitti_evaluate_argv(kitti_seq, out / "map.db", "--tum", out / "tum")) == 0
     return out / "map.db", out / "tum"
 
 
@@ -83,29 +61,8 @@ def test_evaluate_sequential_tum_first_column_is_times_txt(
     kitti_seq: Path, kitti_map: tuple[Path, Path], tmp_path: Path, extra: list, at_least: int
 ) -> None:
     db, _ = kitti_map
-    assert (
-        run(
-            [
-                "evaluate",
-                kitti_seq,
-                "-f",
-                "kitti",
-                "--map-every",
-                "2",
-                "--map",
-                db,
-                "--structure",
-                "tracks",
-                "--sequential",
-                "--fixes",
-                "wait",
-                *extra,
-                "--tum",
-                tmp_path / "tum",
-            ]
-        )
-        == 0
-    )
+    sequential = ("--sequential", "--fixes", "wait", *extra, "--tum", tmp_path / "tum")
+    assert run(kitti_evaluate_argv(kitti_seq, db, *sequential)) == 0
     est, gt = tum_times(tmp_path / "tum" / "estimate.txt"), tum_times(tmp_path / "tum" / "groundtruth.txt")
     assert est == gt
     assert_times_of(est, [1, 3, 5, 7, 9, 11], at_least=at_least)
@@ -116,42 +73,12 @@ def test_localize_image_files_and_sequence_folder_carry_times_txt(
 ) -> None:
     db, _ = kitti_map
     files = [kitti_seq / "image_l" / f"{k:06d}.png" for k in (1, 4, 7)]
-    assert (
-        run(
-            [
-                "localize",
-                "--map",
-                db,
-                *files,
-                "--structure",
-                "tracks",
-                "--out",
-                tmp_path / "p.txt",
-                "--tum",
-                tmp_path / "files.tum",
-            ]
-        )
-        == 0
-    )
+    tracks = ("--structure", "tracks", "--out", tmp_path / "p.txt")
+    assert run(localize_argv(db, *files, *tracks, "--tum", tmp_path / "files.tum")) == 0
     assert_times_of(tum_times(tmp_path / "files.tum"), [1, 4, 7], at_least=3)
     # the whole sequence folder, named image_l/00000k.png
-    assert (
-        run(
-            [
-                "localize",
-                "--map",
-                db,
-                kitti_seq,
-                "--structure",
-                "tracks",
-                "--out",
-                tmp_path / "q.txt",
-                "--tum",
-                tmp_path / "folder.tum",
-            ]
-        )
-        == 0
-    )
+    tracks = ("--structure", "tracks", "--out", tmp_path / "q.txt")
+    assert run(localize_argv(db, kitti_seq, *tracks, "--tum", tmp_path / "folder.tum")) == 0
     assert_times_of(tum_times(tmp_path / "folder.tum"), list(range(12)), at_least=10)
 
 
@@ -159,24 +86,8 @@ def test_localize_stream_carries_times_txt(
     kitti_seq: Path, kitti_map: tuple[Path, Path], tmp_path: Path
 ) -> None:
     db, _ = kitti_map
-    assert (
-        run(
-            [
-                "localize",
-                "--map",
-                db,
-                "--sequence",
-                kitti_seq / "image_l",
-                "--fixes",
-                "wait",
-                "--out",
-                tmp_path / "p.txt",
-                "--tum",
-                tmp_path / "stream.tum",
-            ]
-        )
-        == 0
-    )
+    stream = ("--sequence", kitti_seq / "image_l", "--fixes", "wait")
+    assert run(localize_argv(db, *stream, "--out", tmp_path / "p.txt", "--tum", tmp_path / "stream.tum")) == 0
     assert_times_of(tum_times(tmp_path / "stream.tum"), list(range(12)), at_least=6)
 
 
@@ -188,19 +99,6 @@ def test_without_times_txt_the_frame_number_stays(
     copy = tmp_path / "seq"
     shutil.copytree(kitti_seq, copy)
     (copy / "times.txt").unlink()
-    assert (
-        run(
-            [
-                "localize",
-                "--map",
-                db,
-                copy / "image_l" / "000003.png",
-                "--out",
-                tmp_path / "p.txt",
-                "--tum",
-                tmp_path / "t.tum",
-            ]
-        )
-        == 0
-    )
+    image = copy / "image_l" / "000003.png"
+    assert run(localize_argv(db, image, "--out", tmp_path / "p.txt", "--tum", tmp_path / "t.tum")) == 0
     assert tum_times(tmp_path / "t.tum") == [3.0]

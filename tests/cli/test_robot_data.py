@@ -14,16 +14,13 @@ import pytest
 
 pytest.importorskip("rosbags")
 
-from planarloc.cli.main import main  # noqa: E402
+from _cli_runs import localize_argv, run  # noqa: E402
+
 from planarloc.geometry.pose import Pose  # noqa: E402
 from planarloc.io.datasets import read_dataset  # noqa: E402
 from planarloc.io.rosbag import write_rosbag  # noqa: E402
 
 BASE_FROM_CAMERA = Pose.from_quat_wxyz([0.5, -0.5, 0.5, -0.5], [0.2, 0.0, 0.9])
-
-
-def run(argv: list) -> int:
-    return main([str(a) for a in argv])
 
 
 @pytest.fixture(scope="module")
@@ -224,27 +221,9 @@ def test_bags_into_map_build_and_localize(
     assert "12 images" in capsys.readouterr().err.replace("\n", " ")
     # queries from the bag without poses (images + CameraInfo only), TUM trajectory out
     out = tmp_path / "poses.txt"
-    assert (
-        run(
-            [
-                "localize",
-                "--map",
-                db,
-                query_bag,
-                "--format",
-                "rosbag",
-                "--dataset-option",
-                f"image_dir={tmp_path / 'q-images'}",
-                "--structure",
-                "tracks",
-                "--out",
-                out,
-                "--tum",
-                tmp_path / "est.tum",
-            ]
-        )
-        == 0
-    )
+    queries = localize_argv(db, query_bag, "--format", "rosbag")
+    outputs = ("--structure", "tracks", "--out", out, "--tum", tmp_path / "est.tum")
+    assert run([*queries, "--dataset-option", f"image_dir={tmp_path / 'q-images'}", *outputs]) == 0
     lines = [ln.split() for ln in (tmp_path / "est.tum").read_text().splitlines() if not ln.startswith("#")]
     truth = read_dataset(tiny_world / "query", "tum")
     by_time = {round(q.timestamp, 6): q for q in truth}
@@ -253,23 +232,7 @@ def test_bags_into_map_build_and_localize(
         q = by_time[round(float(ln[0]), 6)]
         assert np.linalg.norm(np.array(ln[1:4], float) - q.cam_from_world.center) < 0.25
     capsys.readouterr()
-    assert (
-        run(
-            [
-                "localize",
-                "--map",
-                db,
-                query_bag,
-                "--format",
-                "rosbag",
-                "--dataset-option",
-                "image_topic=/x",
-                "--out",
-                tmp_path / "p2.txt",
-            ]
-        )
-        == 1
-    )
+    assert run([*queries, "--dataset-option", "image_topic=/x", "--out", tmp_path / "p2.txt"]) == 1
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "image_topic='/x': no such topic" in err[0]
 

@@ -11,13 +11,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+from _cli_runs import evaluate_argv, localize_argv, run
 
-from planarloc.cli.main import main
 from planarloc.geometry.pose import Pose
-
-
-def run(argv: list) -> int:
-    return main([str(a) for a in argv])
 
 
 @pytest.fixture(scope="module")
@@ -31,24 +27,8 @@ def test_localize_a_stream_with_odometry(tiny_world: Path, world_map: Path, tmp_
     out = tmp_path / "poses.txt"
     q = tiny_world / "query"
     # rgb.txt is an image list 'timestamp path'; the ground truth is a perfect odometry file (TUM layout)
-    assert (
-        run(
-            [
-                "localize",
-                "--map",
-                world_map,
-                "--sequence",
-                q / "rgb.txt",
-                "--odometry",
-                q / "groundtruth.txt",
-                "--structure",
-                "tracks",
-                "--out",
-                out,
-            ]
-        )
-        == 0
-    )
+    stream = ("--sequence", q / "rgb.txt", "--odometry", q / "groundtruth.txt")
+    assert run(localize_argv(world_map, *stream, "--structure", "tracks", "--out", out)) == 0
     records = [json.loads(p.read_text()) for p in sorted((tmp_path / "poses.txt.json.d").glob("*.json"))]
     assert len(records) == 6
     assert all(r["status"] in ("localized", "predicted", "lost") for r in records)
@@ -60,27 +40,8 @@ def test_localize_a_stream_with_odometry(tiny_world: Path, world_map: Path, tmp_
 
 def test_evaluate_sequential_counts_every_frame(tiny_world: Path, tmp_path: Path) -> None:
     summary = tmp_path / "seq.json"
-    assert (
-        run(
-            [
-                "evaluate",
-                tiny_world / "query",
-                "--format",
-                "tum",
-                "--map-every",
-                "2",
-                "--map",
-                tmp_path / "e.db",
-                "--structure",
-                "tracks",
-                "--sequential",
-                "--simulate-odometry",
-                "--json",
-                summary,
-            ]
-        )
-        == 0
-    )
+    sequential = ("--structure", "tracks", "--sequential", "--simulate-odometry", "--json", summary)
+    assert run(evaluate_argv(tiny_world / "query", tmp_path, *sequential)) == 0
     s = json.loads(summary.read_text())
     assert s["frames"] == 3 == len(s["per_frame"]) and s["motion"] == "simulated odometry"
     assert set(s["success"]) == {"0.25m/10deg", "0.5m/10deg", "1m/20deg"}
@@ -135,27 +96,8 @@ def test_localize_a_stream_with_tum_and_rerun(tiny_world: Path, world_map: Path,
     out, tum, rrd = tmp_path / "poses.txt", tmp_path / "stream.tum", tmp_path / "stream.rrd"
     rerun = ["--rerun", rrd] if importlib.util.find_spec("rerun") else []
     query = tiny_world / "query"  # its frames are 1-5 m apart: too far to track, odometry gives the motion
-    assert (
-        run(
-            [
-                "localize",
-                "--map",
-                world_map,
-                "--sequence",
-                query / "rgb.txt",
-                "--odometry",
-                query / "groundtruth.txt",
-                "--fixes",
-                "wait",
-                "--out",
-                out,
-                "--tum",
-                tum,
-                *rerun,
-            ]
-        )
-        == 0
-    )
+    stream = ("--sequence", query / "rgb.txt", "--odometry", query / "groundtruth.txt", "--fixes", "wait")
+    assert run(localize_argv(world_map, *stream, "--out", out, "--tum", tum, *rerun)) == 0
     records = [json.loads(p.read_text()) for p in sorted((tmp_path / "poses.txt.json.d").glob("*.json"))]
     usable = sorted((r for r in records if r["success"]), key=lambda r: r["stamp"])
     rows = [line.split() for line in tum.read_text().splitlines() if not line.startswith("#")]
@@ -175,29 +117,9 @@ def test_evaluate_sequential_reports_speed_and_writes_tum_plot_rerun(
 ) -> None:
     summary, plot, rrd = tmp_path / "seq.json", tmp_path / "traj.png", tmp_path / "seq.rrd"
     rerun = ["--rerun", rrd] if importlib.util.find_spec("rerun") else []
+    outputs = ("--json", summary, "--tum", tmp_path / "tum", "--plot", plot, *rerun)
     assert (
-        run(
-            [
-                "evaluate",
-                tiny_world / "map",
-                "--format",
-                "tum",
-                "--map-every",
-                "2",
-                "--map",
-                tmp_path / "e.db",
-                "--sequential",
-                "--simulate-odometry",
-                "--json",
-                summary,
-                "--tum",
-                tmp_path / "tum",
-                "--plot",
-                plot,
-                *rerun,
-            ]
-        )
-        == 0
+        run(evaluate_argv(tiny_world / "map", tmp_path, "--sequential", "--simulate-odometry", *outputs)) == 0
     )
     s = json.loads(summary.read_text())
     assert s["fixes"] == "background" and s["frames"] == 6 and s["frames_with_pose"] >= 4
@@ -230,26 +152,9 @@ def test_a_stream_records_bad_frames_and_goes_on(tiny_world: Path, world_map: Pa
     listing.write_text("".join(f"{t:.6f} {p}\n" for t, p in entries))
     camera = (tiny_world / "query" / "camera.txt").read_text().splitlines()[-1]
     out = tmp_path / "poses.txt"
-    assert (
-        run(
-            [
-                "localize",
-                "--map",
-                world_map,
-                "--sequence",
-                listing,
-                "--camera",
-                camera,
-                "--fixes",
-                "wait",
-                "--odometry",
-                tiny_world / "query" / "groundtruth.txt",
-                "--out",
-                out,
-            ]
-        )
-        == 3
-    )
+    odometry = ("--odometry", tiny_world / "query" / "groundtruth.txt")
+    argv = localize_argv(world_map, "--sequence", listing, "--camera", camera, "--fixes", "wait", *odometry)
+    assert run([*argv, "--out", out]) == 3
     records = {
         r["name"]: r for r in (json.loads(p.read_text()) for p in (tmp_path / "poses.txt.json.d").iterdir())
     }
@@ -284,12 +189,12 @@ def test_an_image_list_out_of_order_is_a_one_line_error(
     listing.write_text("".join(f"{t:.6f} {p}\n" for t, p in entries))
     out = tmp_path / "poses.txt"
     out.write_text("old results\n")
-    assert run(["localize", "--map", world_map, "--sequence", listing, "--out", out]) == 1
+    assert run(localize_argv(world_map, "--sequence", listing, "--out", out)) == 1
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "frames.txt:3:" in err[0] and message in err[0]
     assert out.read_text() == "old results\n"  # nothing was touched
     # the same frame twice on the command line
-    assert run(["localize", "--map", world_map, "--sequence", frames[0], frames[0], "--out", out]) == 1
+    assert run(localize_argv(world_map, "--sequence", frames[0], frames[0], "--out", out)) == 1
     assert "given twice" in capsys.readouterr().err
 
 
@@ -300,26 +205,7 @@ def test_evaluate_sequential_records_a_bad_frame(tiny_world: Path, tmp_path: Pat
     raw = frames[3].read_bytes()
     frames[3].write_bytes(raw[: len(raw) // 3])  # a query frame (index 3), truncated
     summary = tmp_path / "seq.json"
-    assert (
-        run(
-            [
-                "evaluate",
-                data,
-                "--format",
-                "tum",
-                "--map-every",
-                "2",
-                "--map",
-                tmp_path / "e.db",
-                "--sequential",
-                "--fixes",
-                "wait",
-                "--json",
-                summary,
-            ]
-        )
-        == 3
-    )
+    assert run(evaluate_argv(data, tmp_path, "--sequential", "--fixes", "wait", "--json", summary)) == 3
     s = json.loads(summary.read_text())
     bad = [f for f in s["per_frame"] if f["status"] == "error"]
     assert len(bad) == 1 and "cannot read image" in bad[0]["message"] and s["frames"] == 3

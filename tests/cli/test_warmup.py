@@ -11,6 +11,8 @@ import threading
 from pathlib import Path
 
 import pytest
+from _cli_runs import cli, localize_argv
+from map_files import map_build_argv
 
 from planarloc.compile import CompileRecorder, load_manifest, warmup_steps
 from planarloc.compile.schedule import _Schedule
@@ -174,27 +176,8 @@ def bad_list_install(tiny_world: Path, tmp_path_factory: pytest.TempPathFactory)
     )
     env = {**os.environ, "PYTHONPATH": str(site)}
     env.pop("NUMBA_CACHE_DIR", None)
-    built = subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "planarloc.cli.main",
-            "map",
-            "build",
-            tiny_world / "map",
-            "-f",
-            "tum",
-            "--out",
-            root / "map.db",
-            "--vocabulary-size",
-            "16",
-        ],
-        env=env,
-        capture_output=True,
-        text=True,
-        timeout=900,
-        cwd=root,
-    )  # cwd: `python -m` puts it first on sys.path
+    argv = map_build_argv(tiny_world / "map", root / "map.db", "--vocabulary-size", "16")
+    built = cli(*argv, env=env, cwd=root, timeout=900)  # cwd: `python -m` puts it first on sys.path
     assert built.returncode == 0, built.stderr
     manifest = site / "planarloc" / "compile" / "kernels.json"
     manifest.write_text(BAD_LISTS["kernels a list"])
@@ -203,14 +186,7 @@ def bad_list_install(tiny_world: Path, tmp_path_factory: pytest.TempPathFactory)
 
 def test_warmup_with_a_kernel_list_of_the_wrong_shape_is_one_line_naming_it(bad_list_install) -> None:
     _root, env, manifest = bad_list_install
-    proc = subprocess.run(
-        [sys.executable, "-m", "planarloc.cli.main", "warmup"],
-        env=env,
-        capture_output=True,
-        text=True,
-        timeout=900,
-        cwd=_root,
-    )
+    proc = cli("warmup", env=env, cwd=_root, timeout=900)
     err = proc.stderr.strip().splitlines()
     assert proc.returncode == 1 and len(err) == 1, proc.stderr
     assert err[0].startswith(
@@ -222,25 +198,8 @@ def test_localize_goes_on_without_a_well_formed_kernel_list(bad_list_install, ti
     root, env, manifest = bad_list_install
     query = sorted((tiny_world / "query" / "rgb").glob("*.png"))[0]
     cam = (tiny_world / "query" / "camera.txt").read_text().splitlines()[-1]
-    proc = subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "planarloc.cli.main",
-            "localize",
-            "--map",
-            root / "map.db",
-            query,
-            "--camera",
-            cam,
-            "--out",
-            "-",
-        ],
-        env=env,
-        capture_output=True,
-        text=True,
-        timeout=900,
-        cwd=root,
+    proc = cli(
+        *localize_argv(root / "map.db", query, "--camera", cam, "--out", "-"), env=env, cwd=root, timeout=900
     )
     assert proc.returncode == 0, proc.stderr
     assert len([x for x in proc.stdout.splitlines() if len(x.split()) == 8]) == 1

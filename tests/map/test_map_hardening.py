@@ -11,8 +11,8 @@ import subprocess
 import sys
 from pathlib import Path
 
-import numpy as np
 import pytest
+from map_files import SMALL_VOCABULARY, garbage_in_the_middle, held_writer_lock, map_build_argv
 from other_user import base_env, other_user, run_as, shared_folder
 
 from planarloc.map.lock import MapBusyError, MapWriterLock, lock_path_of
@@ -29,7 +29,7 @@ def cli(*argv: object, env: dict | None = None) -> subprocess.CompletedProcess:
 @pytest.fixture(scope="module")
 def world_map(tiny_world: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
     db = tmp_path_factory.mktemp("map") / "map.db"
-    built = cli("map", "build", tiny_world / "map", "-f", "tum", "--out", db, "--vocabulary-size", "16")
+    built = cli(*map_build_argv(tiny_world / "map", db, *SMALL_VOCABULARY))
     assert built.returncode == 0, built.stderr
     return db
 
@@ -45,23 +45,6 @@ def _sha(path: Path) -> str:
 
 
 # ---- one writer per file ----------------------------------------------------------------------------
-def _holder(path: Path) -> subprocess.Popen:
-    holder = subprocess.Popen(
-        [
-            sys.executable,
-            "-c",
-            "import sys; from planarloc.map.lock import MapWriterLock; "
-            f"lock = MapWriterLock({str(path)!r}); lock.acquire(); print('held', flush=True); "
-            "sys.stdin.read()",
-        ],
-        stdin=subprocess.PIPE,
-        stdout=subprocess.PIPE,
-        text=True,
-    )
-    assert holder.stdout.readline().strip() == "held"
-    return holder
-
-
 def test_writers_through_a_link_and_the_real_path_take_turns(world_map: Path, tmp_path: Path) -> None:
     real = tmp_path / "real" / "m.db"
     real.parent.mkdir()
@@ -72,13 +55,9 @@ def test_writers_through_a_link_and_the_real_path_take_turns(world_map: Path, tm
     folder_link.symlink_to(real.parent)
     assert lock_path_of(file_link) == lock_path_of(folder_link / "m.db") == lock_path_of(real)
     for held, other in ((file_link, real), (real, folder_link / "m.db"), (folder_link / "m.db", file_link)):
-        holder = _holder(held)
-        try:
+        with held_writer_lock(held) as holder:
             with pytest.raises(MapBusyError, match=f"being built by PID {holder.pid}"):
                 MapDatabase.open(other, mode="a", lock_timeout=0.2)
-        finally:
-            holder.stdin.close()
-            holder.wait(30)
     with MapDatabase.open(file_link, mode="a", lock_timeout=0):  # free again; in-process too
         with pytest.raises(MapBusyError, match="already open for writing in this process"):
             MapWriterLock(real, timeout=0).acquire()
@@ -110,17 +89,7 @@ def shared_world(tiny_world: Path):
     user = other_user()
     with shared_folder() as root:
         shutil.copytree(tiny_world, root / "world")
-        built = cli(
-            "map",
-            "build",
-            root / "world" / "map",
-            "-f",
-            "tum",
-            "--out",
-            root / "map.db",
-            "--vocabulary-size",
-            "16",
-        )
+        built = cli(*map_build_argv(root / "world" / "map", root / "map.db", *SMALL_VOCABULARY))
         assert built.returncode == 0, built.stderr
         evaluated = cli(
             "evaluate", root / "world" / "map", "-f", "tum", "--map-every", "2", "--map", root / "e.db"
@@ -135,20 +104,7 @@ def test_map_build_onto_a_read_only_map_holding_those_images_succeeds_without_wr
     env = base_env()
     before = _sha(root / "map.db")
     proc = run_as(
-        user,
-        [
-            *CLI,
-            "map",
-            "build",
-            root / "world" / "map",
-            "-f",
-            "tum",
-            "--out",
-            root / "map.db",
-            "--vocabulary-size",
-            "16",
-        ],
-        env=env,
+        user, [*CLI, *map_build_argv(root / "world" / "map", root / "map.db", *SMALL_VOCABULARY)], env=env
     )
     assert proc.returncode == 0, proc.stderr
     assert "12 images" in proc.stdout and _sha(root / "map.db") == before
@@ -166,18 +122,7 @@ def test_map_build_onto_a_read_only_map_file_in_a_writable_folder_succeeds_witho
     before = _sha(folder / "map.db")
     proc = run_as(
         user,
-        [
-            *CLI,
-            "map",
-            "build",
-            root / "world" / "map",
-            "-f",
-            "tum",
-            "--out",
-            folder / "map.db",
-            "--vocabulary-size",
-            "16",
-        ],
+        [*CLI, *map_build_argv(root / "world" / "map", folder / "map.db", *SMALL_VOCABULARY)],
         env=base_env(),
     )
     assert proc.returncode == 0, proc.stderr
@@ -188,18 +133,7 @@ def test_a_read_only_map_missing_images_says_why_in_one_line(shared_world) -> No
     root, user = shared_world
     proc = run_as(
         user,
-        [
-            *CLI,
-            "map",
-            "build",
-            root / "world" / "query",
-            "-f",
-            "tum",
-            "--out",
-            root / "map.db",
-            "--vocabulary-size",
-            "16",
-        ],
+        [*CLI, *map_build_argv(root / "world" / "query", root / "map.db", *SMALL_VOCABULARY)],
         env=base_env(),
     )
     err = proc.stderr.strip().splitlines()
@@ -223,20 +157,12 @@ def test_evaluate_with_a_read_only_map_succeeds_without_writing(shared_world) ->
 
 
 # ---- a damaged map is refused when it is opened ----------------------------------------------------------
-def _garbage_in_the_middle(path: Path) -> None:
-    data = bytearray(path.read_bytes())
-    assert len(data) > 3 * 8192
-    mid = len(data) // 2
-    data[mid : mid + 8192] = np.random.default_rng(0).integers(0, 256, 8192, dtype=np.uint8).tobytes()
-    path.write_bytes(bytes(data))
-
-
 def test_a_map_with_garbage_in_its_middle_is_refused_at_open(
     world_map: Path, tiny_world: Path, tmp_path: Path
 ) -> None:
     damaged = tmp_path / "damaged.db"
     shutil.copy(world_map, damaged)
-    _garbage_in_the_middle(damaged)
+    garbage_in_the_middle(damaged)
     for mode in ("r", "a"):
         with pytest.raises(MapCorruptError, match="damaged map file .*map check"):
             MapDatabase.open(damaged, mode=mode)

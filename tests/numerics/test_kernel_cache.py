@@ -13,6 +13,8 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
+from fresh_python import python_stdout
+from map_files import SMALL_VOCABULARY, map_build_argv
 from other_user import base_env, other_user, run_as, shared_folder
 
 import planarloc
@@ -97,15 +99,7 @@ def install(tiny_world: Path):
                 sys.executable,
                 "-m",
                 "planarloc.cli.main",
-                "map",
-                "build",
-                world / "map",
-                "-f",
-                "tum",
-                "--out",
-                root / "map.db",
-                "--vocabulary-size",
-                "16",
+                *map_build_argv(world / "map", root / "map.db", *SMALL_VOCABULARY),
             ],
             env=env,
             capture_output=True,
@@ -193,7 +187,5 @@ def test_every_kernel_is_defined_after_the_cache_class_is_in_place() -> None:
         "ds = planarloc_dispatchers()\n"
         "print(len(ds), sorted(k for k, d in ds.items() if type(d._cache) is not KernelCache))\n"
     )
-    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=600)
-    assert proc.returncode == 0, proc.stderr
-    count, others = proc.stdout.split(" ", 1)
+    count, others = python_stdout(code, timeout=600).split(" ", 1)
     assert int(count) > 50 and others.strip() == "[]"

@@ -15,8 +15,14 @@ from planarloc.synthetic.scenes import gravity_world, make_scene
 PERFECT_MAP = dict(map_rotation_std_deg=0.0, map_position_std_m=0.0)
 
 
-def _world(seed: int) -> Pose:
-    return Pose(Rotation.random(random_state=seed).as_matrix(), np.array([3.0, -1.0, 2.0]))
+def _gravity_scene(seed: int, **tilts: float) -> tuple:
+    """(scene, W): a noise-free scene of 4 references, 60 matches each, with every image's gravity,
+    in a world frame W (``world_from_upright``, random for ``seed``) not gravity-aligned; ``tilts``:
+    the mount and query tilt angles of :func:`make_scene` (deg)."""
+    W = Pose(Rotation.random(random_state=seed).as_matrix(), np.array([3.0, -1.0, 2.0]))
+    rng = np.random.default_rng(seed)
+    kw = dict(num_refs=4, matches_per_pair=60, noise_px=0.0, world_from_upright=W, with_gravity=True)
+    return make_scene(rng, **kw, **tilts), W
 
 
 @pytest.mark.parametrize("method", ["2p1p", "2p2p", "auto"])
@@ -24,18 +30,7 @@ def test_mounted_pitch_in_a_rotated_world_is_exact(method: str) -> None:
     # Every camera pitched 10° and rolled 3°, world frame not gravity-aligned: with each
     # reference's gravity the planar solvers run on levelled bearings and recover the pose.
     for seed in range(3):
-        rng = np.random.default_rng(seed)
-        W = _world(seed)
-        sc = make_scene(
-            rng,
-            num_refs=4,
-            matches_per_pair=60,
-            noise_px=0.0,
-            mount_pitch_deg=10.0,
-            mount_roll_deg=3.0,
-            world_from_upright=W,
-            with_gravity=True,
-        )
+        sc, _W = _gravity_scene(seed, mount_pitch_deg=10.0, mount_roll_deg=3.0)
         est = estimate_absolute_pose(sc.query_camera, sc.pairs, method, RansacOptions(**PERFECT_MAP))
         assert est.success, est.message
         assert est.model == "planar"
@@ -45,18 +40,7 @@ def test_mounted_pitch_in_a_rotated_world_is_exact(method: str) -> None:
 
 def test_query_gravity_from_an_imu_is_used() -> None:
     # The query is tilted 3° more than the map: given its true gravity, 2p1p stays planar-exact.
-    rng = np.random.default_rng(4)
-    W = _world(4)
-    sc = make_scene(
-        rng,
-        num_refs=4,
-        matches_per_pair=60,
-        noise_px=0.0,
-        mount_pitch_deg=8.0,
-        query_tilt_deg=3.0,
-        world_from_upright=W,
-        with_gravity=True,
-    )
+    sc, W = _gravity_scene(4, mount_pitch_deg=8.0, query_tilt_deg=3.0)
     g_q = sc.query_pose.R @ gravity_world(sc, W)
     est = estimate_absolute_pose(
         sc.query_camera, sc.pairs, "2p1p", RansacOptions(**PERFECT_MAP), query_gravity=g_q

@@ -3,17 +3,15 @@
 from __future__ import annotations
 
 from collections.abc import Iterator
-from pathlib import Path
 
 import pytest
-from served import Served
+from served import Served, ServedWorld, serving
 
 pytest.importorskip("fastapi", reason="the serve extra is not installed (pip install 'planarloc[serve]')")
 pytest.importorskip("httpx", reason="the serve extra is not installed (pip install 'planarloc[serve]')")
 
 from planarloc.io.datasets import read_dataset  # noqa: E402
 from planarloc.map.builder import build_map  # noqa: E402
-from planarloc.serve.launcher import start_server, stop_server  # noqa: E402
 from planarloc.synthetic.world.export import generate  # noqa: E402
 from planarloc.synthetic.world.presets import get_preset, shrunk  # noqa: E402
 
@@ -21,7 +19,7 @@ TOKEN = "test-token"
 
 
 @pytest.fixture(scope="session")
-def served_world(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path, str]:
+def served_world(tmp_path_factory: pytest.TempPathFactory) -> ServedWorld:
     """(world folder, map file, query camera) of the office preset at 320x240, 12 map / 6 query frames."""
     config = shrunk(get_preset("office"), scale=0.5, n_map=12, n_query=6)
     world = generate(config, tmp_path_factory.mktemp("world") / "office", seed=0)
@@ -31,25 +29,8 @@ def served_world(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path, 
 
 
 @pytest.fixture(scope="module")
-def server(served_world: tuple[Path, Path, str]) -> Iterator[Served]:
-    world, map_path, camera = served_world
-    url, proc = start_server(
-        [
-            "--map",
-            f"office={map_path}",
-            "--map",
-            f"second={map_path}",
-            "--workers",
-            "2",
-            "--queue",
-            "2",
-            "--token",
-            TOKEN,
-            "--max-image-mb",
-            "1",
-        ]
-    )
-    try:
-        yield Served(url, proc, world, map_path, camera, TOKEN)
-    finally:
-        stop_server(proc)
+def server(served_world: ServedWorld) -> Iterator[Served]:
+    _world, map_path, _camera = served_world
+    options = ["--workers", "2", "--queue", "2", "--token", TOKEN, "--max-image-mb", "1"]
+    with serving(served_world, ["--map", f"second={map_path}", *options], TOKEN) as served:
+        yield served

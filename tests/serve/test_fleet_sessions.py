@@ -16,13 +16,13 @@ import httpx
 import numpy as np
 import pytest
 from record_schemas import check
-from served import Served
+from served import Served, serving
 
 from planarloc.cli.main import main
 from planarloc.client import Client, ServiceError, SessionRestarted
 from planarloc.geometry.pose import Pose
 from planarloc.io.tum import read_tum_trajectory
-from planarloc.serve.launcher import start_server, stop_server, worker_pids
+from planarloc.serve.launcher import worker_pids
 from planarloc.serve.requests import LocalizeRequest, RequestError
 from planarloc.serve.sessions import SessionGone, SessionTable
 
@@ -83,25 +83,9 @@ def test_the_table_bounds_sessions_in_number_and_idle_time() -> None:
 # ---- robots on a real server ---------------------------------------------------------------------------
 @pytest.fixture(scope="module")
 def fleet(served_world) -> Iterator[Served]:
-    world, map_path, camera = served_world
-    url, proc = start_server(
-        [
-            "--map",
-            f"office={map_path}",
-            "--workers",
-            "2",
-            "--queue",
-            "6",
-            "--max-sessions",
-            "3",
-            "--session-idle",
-            "6",
-        ]
-    )
-    try:
-        yield Served(url, proc, world, map_path, camera, "")
-    finally:
-        stop_server(proc)
+    options = ["--workers", "2", "--queue", "6", "--max-sessions", "3", "--session-idle", "6"]
+    with serving(served_world, options) as served:
+        yield served
 
 
 def stream(world: Path) -> list[tuple[float, Path, Pose]]:

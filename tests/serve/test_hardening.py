@@ -15,7 +15,7 @@ from pathlib import Path
 
 import httpx
 import pytest
-from served import Served
+from served import Served, serving
 
 from planarloc.cli.main import main
 from planarloc.client import Client, ServiceError, resolve_token
@@ -28,34 +28,15 @@ TOKEN = "hardening-token"
 @pytest.fixture(scope="module")
 def strict(served_world, tmp_path_factory) -> Iterator[Served]:
     """A server with short limits, its temporary folder a private empty one, the token from a file."""
-    world, map_path, camera = served_world
     tmp = tmp_path_factory.mktemp("server-tmp")
     token_file = tmp_path_factory.mktemp("secret") / "token"
     token_file.write_text(TOKEN + "\n")
-    url, proc = start_server(
-        [
-            "--map",
-            f"office={map_path}",
-            "--workers",
-            "2",
-            "--queue",
-            "2",
-            "--max-image-mb",
-            "1",
-            "--body-timeout",
-            "3",
-            "--header-timeout",
-            "2",
-            "--token-file",
-            str(token_file),
-        ],
-        env={"TMPDIR": str(tmp)},
-    )
-    proc.tmpdir = tmp  # type: ignore[attr-defined]
-    try:
-        yield Served(url, proc, world, map_path, camera, TOKEN)
-    finally:
-        stop_server(proc)
+    limits = ["--workers", "2", "--queue", "2", "--max-image-mb", "1"]
+    timeouts = ["--body-timeout", "3", "--header-timeout", "2"]  # s
+    options = [*limits, *timeouts, "--token-file", str(token_file)]
+    with serving(served_world, options, TOKEN, env={"TMPDIR": str(tmp)}) as served:
+        served.process.tmpdir = tmp  # type: ignore[attr-defined]
+        yield served
 
 
 def port_of(server: Served) -> int:
@@ -373,44 +354,11 @@ def test_the_token_comes_from_a_file_or_the_environment(strict, served_world, tm
         # `localize --server` reads the same sources.
         monkeypatch.setenv("PLANARLOC_TOKEN", "from-env")
         query = sorted((strict.world / "query" / "rgb").glob("*.png"))[0]
-        assert (
-            main(
-                [
-                    "localize",
-                    "--server",
-                    url,
-                    "--map",
-                    map_path.stem,
-                    str(query),
-                    "--camera",
-                    camera,
-                    "--out",
-                    str(tmp_path / "p.txt"),
-                ]
-            )
-            == 0
-        )
+        localize = ["localize", "--server", url, "--map", map_path.stem, str(query), "--camera", camera]
+        assert main([*localize, "--out", str(tmp_path / "p.txt")]) == 0
         token_file = tmp_path / "t"
         token_file.write_text("wrong\n")
-        assert (
-            main(
-                [
-                    "localize",
-                    "--server",
-                    url,
-                    "--map",
-                    map_path.stem,
-                    str(query),
-                    "--camera",
-                    camera,
-                    "--token-file",
-                    str(token_file),
-                    "--out",
-                    str(tmp_path / "q.txt"),
-                ]
-            )
-            == 1
-        )
+        assert main([*localize, "--token-file", str(token_file), "--out", str(tmp_path / "q.txt")]) == 1
     finally:
         stop_server(proc)
     for bad, match in [

@@ -16,11 +16,10 @@ import cv2
 import httpx
 import numpy as np
 import pytest
-from served import Served
+from served import Served, serving
 
 from planarloc.localize.localizer import Localizer
 from planarloc.serve.app import bearer_token_matches
-from planarloc.serve.launcher import start_server, stop_server
 from planarloc.serve.requests import (
     MAP_NAME,
     MAX_STAMP_AHEAD_S,
@@ -189,25 +188,9 @@ def test_a_session_goes_on_after_bad_frames_and_stamps(localizer: Localizer, ser
 # ---- on a real server --------------------------------------------------------------------------------------
 @pytest.fixture(scope="module")
 def served(served_world) -> Iterator[Served]:
-    world, map_path, camera = served_world
-    url, proc = start_server(
-        [
-            "--map",
-            f"office={map_path}",
-            "--workers",
-            "1",
-            "--queue",
-            "4",
-            "--token",
-            TOKEN,
-            "--session-idle",
-            "3",
-        ]
-    )
-    try:
-        yield Served(url, proc, world, map_path, camera, TOKEN)
-    finally:
-        stop_server(proc)
+    options = ["--workers", "1", "--queue", "4", "--token", TOKEN, "--session-idle", "3"]
+    with serving(served_world, options, TOKEN) as served:
+        yield served
 
 
 def post(server: Served, image: bytes, auth: str = f"Bearer {TOKEN}", **fields: str) -> httpx.Response:

@@ -9,21 +9,19 @@ from __future__ import annotations
 import numpy as np
 import poselib
 import pytest
-from two_view_scenes import make_scene, pose_error, random_relpose
+from two_view_scenes import e_distance, make_scene, pose_error, random_relpose, unit
 
 from planarloc.geometry.epipolar import essential_from_relpose, triangulation_depths
 from planarloc.geometry.validation import InputError
-from planarloc.solvers._five_point import MONOMIALS, five_point_constraints
-from planarloc.solvers.relpose_5p_nister import (
+from planarloc.solvers import (
     essentials_5p_nister,
+    essentials_5p_stewenius,
     relpose_5p_nister,
     relpose_5p_nister_batch,
-)
-from planarloc.solvers.relpose_5p_stewenius import (
-    essentials_5p_stewenius,
     relpose_5p_stewenius,
     relpose_5p_stewenius_batch,
 )
+from planarloc.solvers._five_point import MONOMIALS, five_point_constraints
 
 SOLVERS = {
     "nister": (essentials_5p_nister, relpose_5p_nister, relpose_5p_nister_batch),
@@ -33,17 +31,6 @@ SOLVERS = {
 
 def best_error(poses, R, t):
     return min((pose_error(p, R, t) for p in poses), default=np.inf)
-
-
-def e_distance(A, B):
-    """Distance of two essential matrices up to scale and sign."""
-    A = A / np.linalg.norm(A)
-    B = B / np.linalg.norm(B)
-    return min(np.abs(A - B).max(), np.abs(A + B).max())
-
-
-def unit(x):
-    return x / np.linalg.norm(x, axis=1, keepdims=True)
 
 
 def sets_agree(As, Bs, tol):

@@ -6,8 +6,8 @@ import cv2
 import numpy as np
 import poselib
 import pytest
+from two_view_scenes import e_distance, pose_error, random_relpose, unit
 from two_view_scenes import make_scene as _make_scene
-from two_view_scenes import pose_error, random_relpose
 
 from planarloc.geometry.epipolar import essential_from_relpose
 from planarloc.geometry.validation import InputError
@@ -16,16 +16,6 @@ from planarloc.solvers.relpose_8p import essential_8p, relpose_8p, relpose_8p_ba
 
 def make_scene(rng, n=8, **kw):
     return _make_scene(rng, n, **kw)
-
-
-def e_distance(A, B):
-    A = A / np.linalg.norm(A)
-    B = B / np.linalg.norm(B)
-    return min(np.abs(A - B).max(), np.abs(A + B).max())
-
-
-def unit(x):
-    return x / np.linalg.norm(x, axis=1, keepdims=True)
 
 
 # ---- recovery -----------------------------------------------------------------------------------

@@ -14,6 +14,17 @@ from planarloc.solvers.relpose_planar_1ac import relpose_planar_1ac, relpose_pla
 EXACT = 1e-8
 
 
+def affine_correspondence(pose, X: np.ndarray, n: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Rays ``(x, y, 1)`` xq, xr of the point X (query frame) and the true affine map A (2, 2): the
+    Jacobian at X of the homography ``H = R + t nᵀ / d`` of its surface patch (unit normal n)."""
+    H = pose.R + np.outer(pose.t, n) / (n @ X)
+    xq = X / X[2]
+    y = H @ xq
+    xr = y / y[2]
+    A = (H[:2, :2] - np.outer(xr[:2], H[2, :2])) / y[2]
+    return xq, xr, A
+
+
 def affine_scenes(rng: np.random.Generator, m: int, min_depth: float = 0.1):
     """m random planar scenes with one affine correspondence each (the paper's protocol, Sec. V-A).
 
@@ -33,11 +44,7 @@ def affine_scenes(rng: np.random.Generator, m: int, min_depth: float = 0.1):
             continue
         n = rng.normal(size=3)
         n /= np.linalg.norm(n)
-        H = pose.R + np.outer(pose.t, n) / (n @ X)
-        xq = X / X[2]
-        y = H @ xq
-        xr = y / y[2]
-        A = (H[:2, :2] - np.outer(xr[:2], H[2, :2])) / y[2]
+        xq, xr, A = affine_correspondence(pose, X, n)
         out.append((theta, phi, pose.R, pose.t, xq, xr, A))
     return [np.array(v) for v in zip(*out)]
 
@@ -126,11 +133,7 @@ def test_very_distant_point_with_a_baseline_gives_no_solution() -> None:
     pose = relpose_from_planar_params(0.4, 1.1)
     X = 1e9 * np.array([0.3, -0.1, 1.0])
     n = np.array([0.0, 0.0, 1.0])
-    H = pose.R + np.outer(pose.t, n) / (n @ X)
-    xq = X / X[2]
-    y = H @ xq
-    xr = y / y[2]
-    A = (H[:2, :2] - np.outer(xr[:2], H[2, :2])) / y[2]
+    xq, xr, A = affine_correspondence(pose, X, n)
     assert relpose_planar_1ac(xq, xr, A) == []
 
 
@@ -140,11 +143,7 @@ def test_point_on_the_horizon_of_both_views_gives_no_solution() -> None:
     X = np.array([1.0, 0.0, 6.0])
     n = np.array([0.2, 0.5, -1.0])
     n /= np.linalg.norm(n)
-    H = pose.R + np.outer(pose.t, n) / (n @ X)
-    xq = X / X[2]
-    y = H @ xq
-    xr = y / y[2]
-    A = (H[:2, :2] - np.outer(xr[:2], H[2, :2])) / y[2]
+    xq, xr, A = affine_correspondence(pose, X, n)
     assert abs(xr[1]) < 1e-15
     assert relpose_planar_1ac(xq, xr, A) == []
 

@@ -52,3 +52,15 @@ def unit_relpose(ref_cam_from_world, query_cam_from_world):
     rel = ref_cam_from_world @ query_cam_from_world.inverse()
     rho = float(np.linalg.norm(rel.t))
     return Pose(rel.R, rel.t / rho), rho
+
+
+def e_distance(A, B):
+    """Distance of two essential matrices up to scale and sign."""
+    A = A / np.linalg.norm(A)
+    B = B / np.linalg.norm(B)
+    return min(np.abs(A - B).max(), np.abs(A + B).max())
+
+
+def unit(x):
+    """The rows of ``x`` (n, 3) scaled to unit length (bearings)."""
+    return x / np.linalg.norm(x, axis=1, keepdims=True)
