@@ -3,6 +3,7 @@ on the modelled std (planarloc.map.std_calibration, planarloc.localize.held_out)
 
 from __future__ import annotations
 
+import dataclasses
 import shutil
 import subprocess
 import sys
@@ -12,13 +13,17 @@ import numpy as np
 import pytest
 from other_user import base_env, other_user, run_as, shared_folder
 
+from planarloc.geometry.pose import Pose
+from planarloc.geometry.so3 import so3_exp
 from planarloc.geometry.validation import InputError
 from planarloc.io.datasets import read_dataset
 from planarloc.localize.held_out import (
     calibrate_map_std,
     calibrate_map_std_when_due,
+    held_out_error,
     held_out_names,
     held_out_ratio,
+    stored_pose_disagreement_deg,
 )
 from planarloc.localize.localizer import Localizer, LocalizerConfig
 from planarloc.map.builder import build_map
@@ -180,3 +185,35 @@ def test_a_read_only_map_keeps_what_it_has(calibrated_map: tuple[Path, StdCalibr
         proc = run_as(user, [sys.executable, "-c", code, path], env=base_env())
         assert proc.returncode == 0 and proc.stdout.strip() == "None", proc.stderr
         assert path.read_bytes() == before and sorted(p.name for p in root.iterdir()) == ["map.db"]
+
+
+def test_a_held_out_image_whose_stored_pose_disagrees_with_its_images_is_no_answer(
+    tiny_world: Path, tmp_path: Path
+) -> None:
+    """The held-out error is measured against the stored pose: where that pose is off its images
+    (KITTI seq 1's first frames: 1.4-1.8 px against every neighbour), the image is not counted;
+    its neighbours, whose poses agree, still are."""
+    images = read_dataset(tiny_world / "map", "tum")
+    bad = 9  # one with enough 2D-3D inliers to be counted when its stored pose is right
+    pose = images[bad].cam_from_world
+    R = so3_exp(np.radians([[0.0, 0.0, 2.0]]))[0] @ pose.R  # 2° about its optical axis
+    centre = pose.center + np.array([0.2, 0.0, 0.0])  # and 20 cm aside
+    images[bad] = dataclasses.replace(images[bad], cam_from_world=Pose(R, -R @ centre))
+    path = tmp_path / "map.db"
+    build_map(images, path)
+    loc = Localizer(path)
+    prior = loc.ransac_options.map_rotation_std_deg
+    assert loc.ransac_options.map_prior_measured and prior < 0.3  # one image off: the map is still good
+    refs = {
+        p.name: [r for r in loc.retrieve(loc.db.get_features(p.name), 6) if r != p.name][:5]
+        for p in loc.map_images
+    }
+    names = [p.name for p in loc.map_images]
+    wrong = stored_pose_disagreement_deg(loc, names[bad], loc.db.get_features(names[bad]), refs[names[bad]])
+    assert wrong > max(prior, 0.3), (wrong, prior)
+    assert held_out_error(loc, names[bad]) is None
+    far = [n for k, n in enumerate(names) if abs(k - bad) > 3]
+    agreeing = [stored_pose_disagreement_deg(loc, n, loc.db.get_features(n), refs[n]) for n in far]
+    assert all(d <= prior for d in agreeing), (agreeing, prior)
+    # Some of them retrieve the bad image too (a raised map prior: not counted either way).
+    assert sum(held_out_error(loc, n) is not None for n in far) >= len(far) // 2
