@@ -73,15 +73,25 @@ def stored_pose_disagreement_deg(
     return map_rotation_std_deg(points[0].pose_residual_px, float(np.mean(own.camera.focal)))
 
 
+DOUBTFUL_POSE = "doubtful stored pose"
+"""What :func:`held_out_measurement` returns for a map image whose stored pose disagrees with its images."""
+
+
 def held_out_error(loc: Localizer, name: str) -> tuple[float, float] | None:
+    """``(error_m, std_m)`` of :func:`held_out_measurement`; None where it has none."""
+    measured = held_out_measurement(loc, name)
+    return None if measured is None or isinstance(measured, str) else measured
+
+
+def held_out_measurement(loc: Localizer, name: str) -> tuple[float, float] | str | None:
     """``(error_m, std_m)`` of map image ``name`` localized against the other map images (its own
     features, retrieval without it, the localizer's configuration): its position error against
     its stored pose and the reported std; None when it fails or is not in the calibrated regime:
     fewer than ``CARRYING_3D_INLIERS`` 2D-3D inliers (judged under the configured prior), or a map
     prior raised for this query because its retrieved map images disagree with their poses; the
-    factor touches neither. None too when its own stored pose disagrees with its images by more
-    than the map's rotation prior (:func:`stored_pose_disagreement_deg`): no answer to measure
-    against."""
+    factor touches neither. :data:`DOUBTFUL_POSE` when its own stored pose disagrees with its
+    images by more than the map's rotation prior (:func:`stored_pose_disagreement_deg`): no
+    answer to measure against."""
     posed = next(p for p in loc.map_images if p.name == name)
     features = loc.db.get_features(name)
     refs = [r for r in loc.retrieve(features, loc.config.top_n + 1) if r != name][: loc.config.top_n]
@@ -89,7 +99,7 @@ def held_out_error(loc: Localizer, name: str) -> tuple[float, float] | None:
         loc.ransac_options.map_prior_measured
         and stored_pose_disagreement_deg(loc, name, features, refs) > loc.ransac_options.map_rotation_std_deg
     ):
-        return None
+        return DOUBTFUL_POSE
     est = loc.localize_features(features, posed.camera, refs)
     if not est.success or est.pose is None or est.num_inliers_3d < CARRYING_3D_INLIERS:
         return None
@@ -116,13 +126,21 @@ def calibrate_std(loc: Localizer, progress: Progress | None = None) -> StdCalibr
     uncalibrated = loc.with_config(loc.config)
     uncalibrated.std_calibration = None  # the model's own std
     names = held_out_names([p.name for p in loc.map_images])
-    measured = []
+    measured, doubtful = [], []
     for n, name in enumerate(names):
-        m = held_out_error(uncalibrated, name)
-        if m is not None:
+        m = held_out_measurement(uncalibrated, name)
+        if m == DOUBTFUL_POSE:
+            doubtful.append(name)
+        elif isinstance(m, tuple):
             measured.append(m)
         if progress:
             progress("calibrate the std", n + 1, len(names))
+    if doubtful:
+        logger.info(
+            "%s: held-out map images whose stored pose disagrees with their images (not counted): %s",
+            loc.db.path,
+            ", ".join(doubtful),
+        )
     if len(measured) < MIN_SAMPLES:
         logger.info(
             "%s: std not calibrated (%d of %d held-out images counted)",
@@ -134,7 +152,9 @@ def calibrate_std(loc: Localizer, progress: Progress | None = None) -> StdCalibr
     errors, stds = np.array(measured).T
     ratios = errors / stds
     scale = scale_from_ratios(ratios, tail_ratios(errors, stds))
-    out = StdCalibration(scale, len(ratios), len(names), float(np.median(ratios)), float(ratios.max()))
+    out = StdCalibration(
+        scale, len(ratios), len(names), float(np.median(ratios)), float(ratios.max()), tuple(doubtful)
+    )
     logger.info("%s: %s", loc.db.path, out.summary())
     return out
 

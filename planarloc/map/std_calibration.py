@@ -68,6 +68,9 @@ class StdCalibration:
         held_out: map images held out.
         median_ratio: median error / std of the samples before the factor.
         max_ratio: the largest.
+        doubtful: held-out map images not counted because their stored pose disagrees with
+            their images (no answer to measure against; :mod:`planarloc.localize.held_out`):
+            worth a look at the map's poses there.
     """
 
     scale: float
@@ -75,12 +78,20 @@ class StdCalibration:
     held_out: int
     median_ratio: float
     max_ratio: float
+    doubtful: tuple[str, ...] = ()
 
     def summary(self) -> str:
-        return (
+        text = (
             f"position std x {self.scale:.2g} (held-out map images: median error / std "
             f"{self.median_ratio:.2g}, largest {self.max_ratio:.2g}, over {self.samples} of {self.held_out})"
         )
+        if self.doubtful:
+            more = f" and {len(self.doubtful) - 3} more" if len(self.doubtful) > 3 else ""
+            text += (
+                f"; not counted, their stored poses disagree with their images: "
+                f"{', '.join(self.doubtful[:3])}{more}"
+            )
+        return text
 
 
 def scale_from_ratios(ratios: np.ndarray, tail_ratios: np.ndarray | None = None) -> float:
@@ -130,7 +141,8 @@ def load_std_calibration(db: MapDatabase) -> StdCalibration | None:
     if not text or text == STALE:
         return None
     try:
-        out = StdCalibration(**json.loads(text))
+        fields = json.loads(text)
+        out = StdCalibration(**{**fields, "doubtful": tuple(fields.get("doubtful", ()))})
     except (TypeError, ValueError, json.JSONDecodeError):
         logger.warning("%s: unreadable %s meta value ignored", db.path, STD_CALIBRATION_META)
         return None

@@ -4,6 +4,7 @@ on the modelled std (planarloc.map.std_calibration, planarloc.localize.held_out)
 from __future__ import annotations
 
 import dataclasses
+import logging
 import shutil
 import subprocess
 import sys
@@ -188,7 +189,7 @@ def test_a_read_only_map_keeps_what_it_has(calibrated_map: tuple[Path, StdCalibr
 
 
 def test_a_held_out_image_whose_stored_pose_disagrees_with_its_images_is_no_answer(
-    tiny_world: Path, tmp_path: Path
+    tiny_world: Path, tmp_path: Path, caplog: pytest.LogCaptureFixture
 ) -> None:
     """The held-out error is measured against the stored pose: where that pose is off its images
     (KITTI seq 1's first frames: 1.4-1.8 px against every neighbour), the image is not counted;
@@ -217,3 +218,24 @@ def test_a_held_out_image_whose_stored_pose_disagrees_with_its_images_is_no_answ
     assert all(d <= prior for d in agreeing), (agreeing, prior)
     # Some of them retrieve the bad image too (a raised map prior: not counted either way).
     assert sum(held_out_error(loc, n) is not None for n in far) >= len(far) // 2
+    # The calibration names it (here in its log: its neighbours' priors are raised, too few count).
+    loc.db.close()
+    with caplog.at_level(logging.INFO, logger="planarloc.localize.held_out"):
+        calibrate_map_std(path)
+    assert any("disagrees with their images" in r.message and names[bad] in r.message for r in caplog.records)
+
+
+def test_the_record_names_held_out_images_with_doubtful_poses(tmp_path: Path, tiny_world: Path) -> None:
+    record = StdCalibration(0.5, 9, 13, 0.4, 0.9, ("image_l/000004.png",))
+    assert "image_l/000004.png" in record.summary() and "disagree" in record.summary()
+    assert "disagree" not in StdCalibration(0.5, 9, 13, 0.4, 0.9).summary()
+    path = tmp_path / "map.db"
+    build_map(read_dataset(tiny_world / "map", "tum")[:4], path)
+    with MapDatabase.open(path, mode="a") as db:
+        store_std_calibration(db, record)
+        assert load_std_calibration(db) == record  # stored and read back whole (a tuple again)
+        db.set_meta(
+            STD_CALIBRATION_META,
+            '{"scale": 0.5, "samples": 9, "held_out": 13, "median_ratio": 0.4, "max_ratio": 0.9}',
+        )  # a map calibrated before the field existed
+        assert load_std_calibration(db) == StdCalibration(0.5, 9, 13, 0.4, 0.9)
