@@ -130,18 +130,21 @@ def with_rival(est: PoseEstimate, rival_centre: np.ndarray, options: RansacOptio
     )
 
 
-def basin_distance(estimator, ref: RefinedPose, refine: FinalRefiner, beyond: float) -> float:
-    """Distance (> ``beyond``) of another basin of the cost found by restarting the refinement
-    just outside the promise, along the weakest axis of the pose covariance; 0 if none.
+def basin_distance(estimator, ref: RefinedPose, refine: FinalRefiner, step_m: float) -> float:
+    """Distance of the farthest pose that explains the matches as well, found by restarting the
+    refinement ``step_m`` away (just outside the promise) along the weakest axis of the pose
+    covariance; 0 if none. The std is then at least that distance, wherever it lies.
 
     The refinement re-selects its inliers, so a restart can fall into a basin with another
     inlier set, which the curvature at ``ref`` cannot know about. The start is ``ref`` moved
     along ±v, the top eigenvector of ``σ̂² H⁻¹`` (rotation and centre coupled as the data
     couple them: a distant scene trades rotation for translation), scaled so that the centre
-    moves by ``beyond``. A restart that lands beyond ``beyond`` with an MSAC cost within
+    moves by ``step_m``. A restart that lands with an MSAC cost within
     ``RESTART_MARGIN_INLIERS`` inlier's worth of ``ref``'s (or lower) is another answer the data
-    support as well. The restarts take the full refinement, not a quick look: falling into
-    another basin takes the rounds of inlier re-selection (a quick look missed a facade pose
-    0.5 m off with a 0.14 m std) (:meth:`FinalRefiner.restart_distance`).
+    support as well: beyond the promise it is a rival basin, inside it a flat valley the
+    curvature does not see (both broke promises on the hard protocol). The restarts take the
+    full refinement, not a quick look: falling into another basin takes the rounds of inlier
+    re-selection (a quick look missed a facade pose 0.5 m off with a 0.14 m std)
+    (:meth:`FinalRefiner.restart_distance`).
     """
-    return refine.restart_distance(ref, beyond, RESTART_MARGIN_INLIERS * estimator.threshold_sq)
+    return refine.restart_distance(ref, step_m, RESTART_MARGIN_INLIERS * estimator.threshold_sq)
