@@ -24,7 +24,7 @@ import numpy as np
 
 from planarloc.features.extract import Features
 from planarloc.geometry.pose import pose_errors
-from planarloc.localize.local_structure import MapView, map_rotation_std_deg, view_points
+from planarloc.localize.local_structure import map_rotation_std_deg, view_points
 from planarloc.localize.localizer import CARRYING_3D_INLIERS, Localizer
 from planarloc.map.std_calibration import (
     MAX_HELD_OUT,
@@ -59,9 +59,8 @@ def stored_pose_disagreement_deg(
     the localizer's matcher, threshold and pair cache), its median reprojection error turned into
     a rotation by :func:`~planarloc.localize.local_structure.map_rotation_std_deg`; 0 where it
     agrees to keypoint noise or nothing could be measured."""
-    posed = {p.name: p for p in loc.map_images}
-    views = [MapView(n, loc.db.get_features(n), posed[n].cam_from_world, posed[n].camera) for n in references]
-    own = MapView(name, features, posed[name].cam_from_world, posed[name].camera)
+    views = [loc.map_view(n, loc.db.get_features(n)) for n in references]
+    own = loc.map_view(name, features)
     points = view_points(
         [own, *views],
         [np.arange(len(features)), *(np.zeros(0, dtype=np.int64) for _ in views)],

@@ -182,6 +182,12 @@ class Localizer:
         """The map's image records (poses, cameras, files), in map order."""
         return list(self._posed.values())
 
+    def map_view(self, name: str, features: Features) -> MapView:
+        """What the local structure needs of map image ``name`` (:class:`MapView`): its
+        ``features``, stored pose and camera."""
+        posed = self._posed[name]
+        return MapView(name, features, posed.cam_from_world, posed.camera)
+
     @property
     def map_cameras(self) -> set[Camera]:
         """The map's distinct cameras (a query without a camera takes the only one)."""
@@ -345,10 +351,7 @@ class Localizer:
         widest angle over its matches); ``None`` per reference without structure mode."""
         if self.config.ransac.structure != Structure.TRACKS or len(references) < 2:
             return [None] * len(references)
-        views = [
-            MapView(n, f, self._posed[n].cam_from_world, self._posed[n].camera)
-            for n, f in zip(references, refs)
-        ]
+        views = [self.map_view(n, f) for n, f in zip(references, refs)]
         points = view_points(
             views,
             [m[:, 1] for m in matches],
