@@ -88,7 +88,8 @@ def parse_dataset_options(
 
 
 FEATURES_HELP = (
-    "rootsift (OpenCV SIFT, the base install), xfeat (XFeat, needs pip install 'planarloc[learned]') or "
+    "rootsift (OpenCV SIFT, the base install), xfeat (XFeat, needs pip install 'planarloc[learned]'), "
+    "xfeat-lighterglue (XFeat matched by LighterGlue, the same extra; slower on a CPU) or "
     "aliked-lightglue (ALIKED + LightGlue, needs pip install 'planarloc[aliked]')"
 )
 

