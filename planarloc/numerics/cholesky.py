@@ -86,5 +86,6 @@ def spd_inverse(A: np.ndarray, out: np.ndarray, rel_tol: float = 0.0) -> bool:
         e[:] = 0.0
         e[b] = 1.0
         cholesky_solve(L, e, col)
-        out[:, b] = col
+        for a in range(n):  # element-wise: a slice assignment compiles numba's shape-error path (1-3 s)
+            out[a, b] = col[a]
     return True

@@ -254,8 +254,12 @@ def _reference_motions(ref_R: np.ndarray, ref_t: np.ndarray) -> tuple[np.ndarray
     t_kj = np.empty((P, P, 3))
     for j in range(P):
         for k in range(P):
-            R_kj[j, k] = m3.mul_t(ref_R[k], ref_R[j])
-            t_kj[j, k] = ref_t[k] - m3.vec(R_kj[j, k], ref_t[j])
+            Rkj = m3.mul_t(ref_R[k], ref_R[j])
+            tkj = ref_t[k] - m3.vec(Rkj, ref_t[j])
+            for a in range(3):  # element-wise: a slice assignment compiles numba's shape-error path (1-3 s)
+                t_kj[j, k, a] = tkj[a]
+                for b in range(3):
+                    R_kj[j, k, a, b] = Rkj[a, b]
     return R_kj, t_kj
 
 

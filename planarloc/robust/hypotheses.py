@@ -92,8 +92,11 @@ def emit_planar(
     if not (rho > 0.0 and in_front):
         dest.counters[PDCHECK] += 1
         return out
-    dest.R[out] = m3.t_mul(R, Rj)
-    dest.t[out] = m3.t_vec(R, tj - rho * tt)
+    Rw, tw = m3.t_mul(R, Rj), m3.t_vec(R, tj - rho * tt)
+    for a in range(3):  # element-wise: a slice assignment compiles numba's shape-error path (1-3 s)
+        dest.t[out, a] = tw[a]
+        for b in range(3):
+            dest.R[out, a, b] = Rw[a, b]
     return out + 1
 
 
@@ -130,8 +133,9 @@ def hypotheses_2p1p(
     out = 0
     for s in range(samples.shape[0]):
         i1, i2, i3 = samples[s, 0], samples[s, 1], samples[s, 2]
-        sq[0], sq[1] = xq[i1], xq[i2]
-        sr[0], sr[1] = xr[i1], xr[i2]
+        for d in range(3):  # element-wise: a slice assignment compiles numba's shape-error path (1-3 s)
+            sq[0, d], sq[1, d] = xq[i1, d], xq[i2, d]
+            sr[0, d], sr[1, d] = xr[i1, d], xr[i2, d]
         n = solve_planar_2p(sq, sr, thetas, phis)
         if n == 0:
             dest.counters[DEGENERATE] += 1
@@ -230,8 +234,11 @@ def hypotheses_from_relative_poses(
                 if nt < 1e-12 or np.sum(that * tb[s, b]) / nt < cos_consistency:
                     dest.counters[CONSISTENCY] += 1
                     continue
-                dest.R[out] = Rq
-                dest.t[out] = tq
+                # element-wise: a slice assignment compiles numba's shape-error path (1-3 s)
+                for i in range(3):
+                    dest.t[out, i] = tq[i]
+                    for i2 in range(3):
+                        dest.R[out, i, i2] = Rq[i, i2]
                 out += 1
         if not any_valid:
             dest.counters[DEGENERATE] += 1
@@ -260,8 +267,10 @@ def hypotheses_up2p(samples: np.ndarray, pj: np.ndarray, prob: ProblemArrays, de
         j = pj[s]
         Rj, tj = ref_R[j], ref_t[j]
         for k in range(2):
-            x[k] = xq3d[samples[s, k]]
-            X[k] = m3.vec(Rj, X3d[samples[s, k]]) + tj
+            Xk = m3.vec(Rj, X3d[samples[s, k]])
+            for a in range(3):  # element-wise: a slice assignment compiles numba's shape-error path (1-3 s)
+                x[k, a] = xq3d[samples[s, k], a]
+                X[k, a] = Xk[a] + tj[a]
         n = solve_up2p(x, X, th, ts)
         if n == 0:
             dest.counters[DEGENERATE] += 1
@@ -270,8 +279,11 @@ def hypotheses_up2p(samples: np.ndarray, pj: np.ndarray, prob: ProblemArrays, de
             dest.counters[HYPOTHESES] += 1
             c, sn = np.cos(th[m]), np.sin(th[m])
             R[0, 0], R[0, 2], R[2, 0], R[2, 2] = c, -sn, sn, c
-            dest.R[out] = m3.mul(R, Rj)
-            dest.t[out] = m3.vec(R, tj) + ts[m]
+            Rm, tm = m3.mul(R, Rj), m3.vec(R, tj)
+            for a in range(3):
+                dest.t[out, a] = tm[a] + ts[m, a]
+                for b in range(3):
+                    dest.R[out, a, b] = Rm[a, b]
             out += 1
     return out
 
@@ -351,7 +363,9 @@ def top_distinct_relative(
                     break
             if same:
                 continue
-            out_R[pair, k] = R[s_, a_]
-            out_t[pair, k] = t[s_, a_]
+            for i in range(3):  # element-wise: a slice assignment compiles numba's shape-error path (1-3 s)
+                out_t[pair, k, i] = t[s_, a_, i]
+                for j in range(3):
+                    out_R[pair, k, i, j] = R[s_, a_, i, j]
             k += 1
         out_count[pair] = k

@@ -58,7 +58,8 @@ def level_plane(ref_R: np.ndarray, cos_tolerance: float) -> np.ndarray:
     u /= np.sqrt(u[0] * u[0] + u[1] * u[1] + u[2] * u[2])
     v = np.array([u[1] * g[2] - u[2] * g[1], u[2] * g[0] - u[0] * g[2], u[0] * g[1] - u[1] * g[0]])
     B = np.empty((3, 3))
-    B[:, 0], B[:, 1], B[:, 2] = u, g, v
+    for a in range(3):  # element-wise: a slice assignment compiles numba's shape-error path (1-3 s)
+        B[a, 0], B[a, 1], B[a, 2] = u[a], g[a], v[a]
     return B
 
 

@@ -50,8 +50,11 @@ def _perturbed_refs(
     """``R_p' = Exp(ω_p) R_p``, ``t_p' = −R_p' (c_p + B d_p)`` for every pair."""
     for p in range(ref_R.shape[0]):
         Rp = m3.mul(exp_so3(omega[p]), ref_R[p])
-        R_out[p] = Rp
-        t_out[p] = -m3.vec(Rp, ref_c[p] + m3.vec(B, d[p]))
+        tp = m3.vec(Rp, ref_c[p] + m3.vec(B, d[p]))
+        for a in range(3):  # element-wise: a slice assignment compiles numba's shape-error path (1-3 s)
+            t_out[p, a] = -tp[a]
+            for b in range(3):
+                R_out[p, a, b] = Rp[a, b]
 
 
 @njit(cache=True, error_model="numpy")
@@ -126,7 +129,10 @@ def _marginal_information(
 ) -> bool:
     """``Hm = H − Σ_p B_p D_p⁻¹ B_pᵀ`` (undamped Schur complement: the query's marginal
     information, symmetrised); False, Hm unfinished, when a ``D_p`` is not positive definite."""
-    Hm[:] = H
+    # element-wise: a slice assignment compiles numba's shape-error path (1-3 s)
+    for a in range(H.shape[0]):
+        for b in range(H.shape[1]):
+            Hm[a, b] = H[a, b]
     P = Dp.shape[0]
     ok_all = True
     for p in range(P):
@@ -178,7 +184,9 @@ def _damped_query_step(
             S[k, k] = 1.0
     Dl = np.empty((P, 6, 6))
     for p in range(P):
-        Dl[p] = Dp[p]
+        for a in range(6):  # element-wise: a slice assignment compiles numba's shape-error path (1-3 s)
+            for b in range(6):
+                Dl[p, a, b] = Dp[p, a, b]
         for k in range(6):
             Dl[p, k, k] += lam * Dp[p, k, k]
         if not spd_inverse(Dl[p], Dinv[p], 0.0):
@@ -261,7 +269,9 @@ def refine_with_map_prior(
     R, c, B, fixed = start.R.copy(), start.c.copy(), start.B, start.fixed
     ref_c = np.empty((P, 3))
     for p in range(P):
-        ref_c[p] = -m3.t_vec(ref_R[p], ref_t[p])
+        cp = m3.t_vec(ref_R[p], ref_t[p])
+        for a in range(3):  # element-wise: a slice assignment compiles numba's shape-error path (1-3 s)
+            ref_c[p, a] = -cp[a]
     omega = np.zeros((P, 3))
     dvec = np.zeros((P, 3))
     cur_R, cur_t = ref_R.copy(), ref_t.copy()

@@ -102,7 +102,9 @@ def support_kernel(
     c = -m3.t_vec(R, t)
     centres = np.empty((P, 3))
     for p in range(P):
-        centres[p] = -m3.t_vec(ref_R[p], ref_t[p])
+        cp = m3.t_vec(ref_R[p], ref_t[p])
+        for a in range(3):  # element-wise: a slice assignment compiles numba's shape-error path (1-3 s)
+            centres[p, a] = -cp[a]
     # collinearity: s2 / s1 of the centred {query centre} ∪ {supporting reference centres}
     pts = [c]
     for p in range(P):

@@ -113,7 +113,10 @@ def _fit(xq: np.ndarray, xr: np.ndarray, rows: np.ndarray, keep: np.ndarray, H: 
     # Undo the normalisations: H = T_r⁻¹ Hn T_q.
     Tq = np.array([[qs, 0.0, -qs * qx], [0.0, qs, -qs * qy], [0.0, 0.0, 1.0]])
     Tr_inv = np.array([[1.0 / rs, 0.0, rx], [0.0, 1.0 / rs, ry], [0.0, 0.0, 1.0]])
-    H[:] = Tr_inv @ Hn @ Tq
+    Hw = Tr_inv @ Hn @ Tq
+    for a in range(3):  # element-wise: a slice assignment compiles numba's shape-error path (1-3 s)
+        for b in range(3):
+            H[a, b] = Hw[a, b]
     return True
 
 

@@ -452,7 +452,11 @@ def five_point_template(
         return False
     if not five_point_nullspace(uq, ur, basis, RANK_TOL):
         return False
-    C[:, :] = five_point_constraints(basis)
+    constraints = five_point_constraints(basis)
+    # element-wise: a slice assignment compiles numba's shape-error path (1-3 s)
+    for i in range(10):
+        for j in range(20):
+            C[i, j] = constraints[i, j]
     for i in range(10):
         for j in range(20):
             A[i, j] = C[i, columns[j]]

@@ -91,7 +91,8 @@ def _add_pose(
     duplicate; returns the new count."""
     P = np.empty((3, 3))
     for i in range(3):
-        P[i] = s[i] * j[i]
+        for a in range(3):  # element-wise: a slice assignment compiles numba's shape-error path (1-3 s)
+            P[i, a] = s[i] * j[i, a]
     Fc = np.empty((3, 3))
     if not _frame(P[0], P[1], P[2], Fc):
         return count
@@ -100,8 +101,10 @@ def _add_pose(
     for m in range(count):
         if np.sum(np.abs(Rs[m] - R)) < 1e-9 and np.sum(np.abs(ts[m] - t)) < 1e-9 * (1.0 + np.sum(np.abs(t))):
             return count
-    Rs[count] = R
-    ts[count] = t
+    for a in range(3):  # element-wise, as above
+        ts[count, a] = t[a]
+        for b in range(3):
+            Rs[count, a, b] = R[a, b]
     return count + 1
 
 
@@ -118,7 +121,8 @@ def solve_p3p(x: np.ndarray, X: np.ndarray, Rs: np.ndarray, ts: np.ndarray) -> i
         n = np.sqrt(x[i, 0] ** 2 + x[i, 1] ** 2 + x[i, 2] ** 2)
         if not n > 0.0:
             return 0
-        j[i] = x[i] / n
+        for a in range(3):  # element-wise: a slice assignment compiles numba's shape-error path (1-3 s)
+            j[i, a] = x[i, a] / n
     d2 = np.array([np.sum((X[1] - X[2]) ** 2), np.sum((X[0] - X[2]) ** 2), np.sum((X[0] - X[1]) ** 2)])
     a2, b2, c2 = d2[0], d2[1], d2[2]
     if not (a2 > 1e-24 and b2 > 1e-24 and c2 > 1e-24):
