@@ -11,6 +11,8 @@ from typing import Unpack
 
 from planarloc.cli.console import note, notify
 from planarloc.cli.exit_codes import EXIT_PARTIAL
+from planarloc.cli.warmup_command import compile_ahead
+from planarloc.compile import steps_for
 from planarloc.features.extract import FeatureConfig
 from planarloc.localize.held_out import Progress, calibrate_map_std_when_due
 from planarloc.map.builder import BuildRun, build_map
@@ -54,7 +56,12 @@ def build_calibrated_map(
         skipped=skipped,
         **build,
     )
-    calibrate_map_std_when_due(path, progress=progress)
+    # The held-out images are localized: their kernels compile on every core first, as a query's do.
+    calibrate_map_std_when_due(
+        path,
+        progress=progress,
+        before_localizing=lambda config: compile_ahead(steps_for([config]), progress=progress),
+    )
     return left_out
 
 

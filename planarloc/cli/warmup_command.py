@@ -15,7 +15,7 @@ from __future__ import annotations
 import argparse
 import os
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 from planarloc.cli.commands import add_command
 from planarloc.cli.console import info, note, progress_bar
@@ -30,14 +30,20 @@ NOWHERE = (
 )
 
 
-def compile_ahead(steps: Sequence[str], jobs: int | None = None) -> None:
+def compile_ahead(
+    steps: Sequence[str], jobs: int | None = None, progress: Callable[[str, int, int], None] | None = None
+) -> None:
     """Before a command estimates poses: if kernels of the warm-up ``steps`` are not in numba's
     cache, say so in one line on stderr and compile them on every core, with a progress bar
-    (:func:`planarloc.compile.plan_ahead`)."""
+    (:func:`planarloc.compile.plan_ahead`): ``progress``, the caller's when it shows one already
+    (a terminal holds one live display at a time), else a new one."""
     plan = plan_ahead(steps, jobs)
     if plan is None:
         return
     note(plan.notice())
+    if progress is not None:
+        plan.run(progress)
+        return
     with progress_bar() as update:
         plan.run(update)
 

@@ -26,6 +26,7 @@ from planarloc.features.extract import Features
 from planarloc.geometry.pose import pose_errors
 from planarloc.localize.local_structure import map_rotation_std_deg, view_points
 from planarloc.localize.localizer import CARRYING_3D_INLIERS, Localizer
+from planarloc.localize.localizer_config import LocalizerConfig
 from planarloc.map.std_calibration import (
     MAX_HELD_OUT,
     MIN_SAMPLES,
@@ -41,6 +42,9 @@ from planarloc.map.store import MapDatabase
 logger = logging.getLogger(__name__)
 
 Progress = Callable[[str, int, int], None]
+BeforeLocalizing = Callable[[LocalizerConfig], None]
+"""Called with the localizer's configuration once the calibration is sure to localize held-out
+images, before the first (a front door compiles the kernels it needs on every core there)."""
 
 
 def held_out_names(names: list[str], most: int = MAX_HELD_OUT) -> list[str]:
@@ -116,12 +120,17 @@ def held_out_ratio(loc: Localizer, name: str) -> float | None:
     return None if measured is None else measured[0] / measured[1]
 
 
-def calibrate_std(loc: Localizer, progress: Progress | None = None) -> StdCalibration | None:
+def calibrate_std(
+    loc: Localizer, progress: Progress | None = None, before_localizing: BeforeLocalizing | None = None
+) -> StdCalibration | None:
     """:class:`StdCalibration` of the map behind ``loc`` over at most :data:`MAX_HELD_OUT`
     held-out map images; None when the map has no measured pose accuracy (the factor applies
-    only under the measured prior) or fewer than :data:`MIN_SAMPLES` held-out images count."""
+    only under the measured prior) or fewer than :data:`MIN_SAMPLES` held-out images count.
+    ``before_localizing``: see :data:`BeforeLocalizing`."""
     if loc.pose_accuracy is None or loc.config.map_prior != "measured" or len(loc.map_images) < 3:
         return None
+    if before_localizing is not None:
+        before_localizing(loc.config)
     uncalibrated = loc.with_config(loc.config)
     uncalibrated.std_calibration = None  # the model's own std
     names = held_out_names([p.name for p in loc.map_images])
@@ -158,16 +167,20 @@ def calibrate_std(loc: Localizer, progress: Progress | None = None) -> StdCalibr
     return out
 
 
-def calibrate_map_std(path: str | Path, progress: Progress | None = None) -> StdCalibration | None:
+def calibrate_map_std(
+    path: str | Path, progress: Progress | None = None, before_localizing: BeforeLocalizing | None = None
+) -> StdCalibration | None:
     """Measure the std calibration of the map file ``path`` with the default localizer and
     store it in the map (cleared when it cannot be measured)."""
     with MapDatabase.open(path, mode="a") as db:
-        calibration = calibrate_std(Localizer(db), progress)
+        calibration = calibrate_std(Localizer(db), progress, before_localizing)
         store_std_calibration(db, calibration)
     return calibration
 
 
-def calibrate_map_std_when_due(path: str | Path, progress: Progress | None = None) -> StdCalibration | None:
+def calibrate_map_std_when_due(
+    path: str | Path, progress: Progress | None = None, before_localizing: BeforeLocalizing | None = None
+) -> StdCalibration | None:
     """The std calibration of the map file ``path``, measured and stored (:func:`calibrate_map_std`)
     when a build changed the map since, or never measured it; a read-only map keeps what it
     has (None when it has nothing). Returns the map's calibration."""
@@ -180,4 +193,4 @@ def calibrate_map_std_when_due(path: str | Path, progress: Progress | None = Non
     if not (os.access(path, os.W_OK) and os.access(path.parent, os.W_OK)):
         logger.info("%s: read-only map, its std calibration is not measured", path)
         return stored
-    return calibrate_map_std(path, progress)
+    return calibrate_map_std(path, progress, before_localizing)

@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 from other_user import base_env, other_user, run_as, shared_folder
 
+from planarloc.features.extract import FeatureConfig
 from planarloc.geometry.pose import Pose
 from planarloc.geometry.so3 import so3_exp
 from planarloc.geometry.validation import InputError
@@ -239,3 +240,52 @@ def test_the_record_names_held_out_images_with_doubtful_poses(tmp_path: Path, ti
             '{"scale": 0.5, "samples": 9, "held_out": 13, "median_ratio": 0.4, "max_ratio": 0.9}',
         )  # a map calibrated before the field existed
         assert load_std_calibration(db) == StdCalibration(0.5, 9, 13, 0.4, 0.9)
+
+
+def test_the_front_door_hears_before_the_first_held_out_image_is_localized(
+    tiny_world: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """``before_localizing`` (the CLI compiles the kernels on every core there) is called once,
+    with the calibrating localizer's configuration, before any held-out image is localized; not
+    when the calibration localizes nothing (a map of two images)."""
+    from planarloc.localize import held_out
+
+    events: list[object] = []
+    measure = held_out.held_out_measurement
+    monkeypatch.setattr(
+        held_out, "held_out_measurement", lambda loc, name: (events.append(name), measure(loc, name))[1]
+    )
+    images = read_dataset(tiny_world / "map", "tum")
+    path = tmp_path / "map.db"
+    build_map(images, path)
+    calibration = calibrate_map_std_when_due(path, before_localizing=events.append)
+    assert calibration is not None
+    assert isinstance(events[0], LocalizerConfig) and events[0] == LocalizerConfig()
+    assert len(events) > 1 and all(isinstance(e, str) for e in events[1:])  # then the held-out images
+    events.clear()
+    small = tmp_path / "two.db"
+    build_map(images[:2], small)
+    assert calibrate_map_std_when_due(small, before_localizing=events.append) is None
+    assert events == []
+
+
+def test_a_cli_map_build_compiles_the_calibration_kernels_ahead_with_its_own_progress(
+    tiny_world: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from planarloc.cli import map_building
+    from planarloc.compile import steps_for
+
+    calls: list[tuple[list[str], object]] = []
+    monkeypatch.setattr(
+        map_building, "compile_ahead", lambda steps, progress=None: calls.append((list(steps), progress))
+    )
+    progress_calls: list[str] = []
+
+    def progress(stage: str, done: int, total: int) -> None:
+        progress_calls.append(stage)
+
+    images = read_dataset(tiny_world / "map", "tum")
+    left_out = map_building.build_calibrated_map(images, tmp_path / "map.db", FeatureConfig(), 16, progress)
+    assert left_out == []
+    assert calls == [(steps_for([LocalizerConfig()]), progress)]  # one live display: the caller's bar
+    assert "calibrate the std" in progress_calls
