@@ -249,13 +249,8 @@ def _uncertainty_kernel(
             PtP[1, 2] = PtP[2, 1] = -fy2 * y
             S[0, 1], S[0, 2], S[1, 0], S[1, 2], S[2, 0], S[2, 1] = -Xc[2], Xc[1], Xc[2], -Xc[0], -Xc[1], Xc[0]
             RtG = m3.t_mul(R, PtP)
-            Gv = m3.mul(RtG, R)
-            Kv = m3.mul(RtG, S)
-            # element-wise: a slice assignment compiles numba's shape-error path (1-3 s)
-            for a in range(3):
-                for b in range(3):
-                    G[v, a, b] = Gv[a, b]
-                    K[v, a, b] = Kv[a, b]
+            m3.store_mat(G, v, m3.mul(RtG, R))
+            m3.store_mat(K, v, m3.mul(RtG, S))
         A = G[0] + G[1]
         c00 = A[1, 1] * A[2, 2] - A[1, 2] * A[2, 1]
         c01 = A[1, 2] * A[2, 0] - A[1, 0] * A[2, 2]

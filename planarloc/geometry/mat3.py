@@ -1,13 +1,33 @@
-"""3x3 matrix and 3-vector products for numba kernels.
+"""3x3 matrix and 3-vector products for numba kernels, and stores into rows of arrays.
 
 Numba lowers ``A @ B`` on 2-D arrays to a BLAS call, whose fixed cost (~0.3 µs) dwarfs the 27
 multiply-adds of a 3x3 product; these scalar versions are what the hot loops use.
+
+Stores write element by element: numba compiles, for every slice assignment of an array
+(``out[k] = R``), a shape-mismatch error path per combination of types, 1.2–3.2 s of compile CPU
+each (BENCHMARKS.md, "First pose and compile time").
 """
 
 from __future__ import annotations
 
 import numpy as np
 from numba import njit
+
+
+@njit(cache=True, inline="always")
+def store_mat(out: np.ndarray, k: int, M: np.ndarray) -> None:
+    """``out[k] = M`` for a (3, 3) ``M`` and ``out`` (N, 3, 3), element by element."""
+    for a in range(3):
+        for b in range(3):
+            out[k, a, b] = M[a, b]
+
+
+@njit(cache=True, inline="always")
+def store_pose(R_out: np.ndarray, t_out: np.ndarray, k: int, R: np.ndarray, t: np.ndarray) -> None:
+    """``R_out[k] = R``, ``t_out[k] = t`` for (N, 3, 3) / (N, 3) arrays, element by element."""
+    store_mat(R_out, k, R)
+    for a in range(3):
+        t_out[k, a] = t[a]
 
 
 @njit(cache=True, inline="always")

@@ -255,11 +255,7 @@ def _reference_motions(ref_R: np.ndarray, ref_t: np.ndarray) -> tuple[np.ndarray
     for j in range(P):
         for k in range(P):
             Rkj = m3.mul_t(ref_R[k], ref_R[j])
-            tkj = ref_t[k] - m3.vec(Rkj, ref_t[j])
-            for a in range(3):  # element-wise: a slice assignment compiles numba's shape-error path (1-3 s)
-                t_kj[j, k, a] = tkj[a]
-                for b in range(3):
-                    R_kj[j, k, a, b] = Rkj[a, b]
+            m3.store_pose(R_kj[j], t_kj[j], k, Rkj, ref_t[k] - m3.vec(Rkj, ref_t[j]))
     return R_kj, t_kj
 
 

@@ -92,11 +92,7 @@ def emit_planar(
     if not (rho > 0.0 and in_front):
         dest.counters[PDCHECK] += 1
         return out
-    Rw, tw = m3.t_mul(R, Rj), m3.t_vec(R, tj - rho * tt)
-    for a in range(3):  # element-wise: a slice assignment compiles numba's shape-error path (1-3 s)
-        dest.t[out, a] = tw[a]
-        for b in range(3):
-            dest.R[out, a, b] = Rw[a, b]
+    m3.store_pose(dest.R, dest.t, out, m3.t_mul(R, Rj), m3.t_vec(R, tj - rho * tt))
     return out + 1
 
 
@@ -234,11 +230,7 @@ def hypotheses_from_relative_poses(
                 if nt < 1e-12 or np.sum(that * tb[s, b]) / nt < cos_consistency:
                     dest.counters[CONSISTENCY] += 1
                     continue
-                # element-wise: a slice assignment compiles numba's shape-error path (1-3 s)
-                for i in range(3):
-                    dest.t[out, i] = tq[i]
-                    for i2 in range(3):
-                        dest.R[out, i, i2] = Rq[i, i2]
+                m3.store_pose(dest.R, dest.t, out, Rq, tq)
                 out += 1
         if not any_valid:
             dest.counters[DEGENERATE] += 1
@@ -279,11 +271,7 @@ def hypotheses_up2p(samples: np.ndarray, pj: np.ndarray, prob: ProblemArrays, de
             dest.counters[HYPOTHESES] += 1
             c, sn = np.cos(th[m]), np.sin(th[m])
             R[0, 0], R[0, 2], R[2, 0], R[2, 2] = c, -sn, sn, c
-            Rm, tm = m3.mul(R, Rj), m3.vec(R, tj)
-            for a in range(3):
-                dest.t[out, a] = tm[a] + ts[m, a]
-                for b in range(3):
-                    dest.R[out, a, b] = Rm[a, b]
+            m3.store_pose(dest.R, dest.t, out, m3.mul(R, Rj), m3.vec(R, tj) + ts[m])
             out += 1
     return out
 
@@ -363,9 +351,6 @@ def top_distinct_relative(
                     break
             if same:
                 continue
-            for i in range(3):  # element-wise: a slice assignment compiles numba's shape-error path (1-3 s)
-                out_t[pair, k, i] = t[s_, a_, i]
-                for j in range(3):
-                    out_R[pair, k, i, j] = R[s_, a_, i, j]
+            m3.store_pose(out_R[pair], out_t[pair], k, R[s_, a_], t[s_, a_])
             k += 1
         out_count[pair] = k

@@ -50,11 +50,7 @@ def _perturbed_refs(
     """``R_p' = Exp(ω_p) R_p``, ``t_p' = −R_p' (c_p + B d_p)`` for every pair."""
     for p in range(ref_R.shape[0]):
         Rp = m3.mul(exp_so3(omega[p]), ref_R[p])
-        tp = m3.vec(Rp, ref_c[p] + m3.vec(B, d[p]))
-        for a in range(3):  # element-wise: a slice assignment compiles numba's shape-error path (1-3 s)
-            t_out[p, a] = -tp[a]
-            for b in range(3):
-                R_out[p, a, b] = Rp[a, b]
+        m3.store_pose(R_out, t_out, p, Rp, -m3.vec(Rp, ref_c[p] + m3.vec(B, d[p])))
 
 
 @njit(cache=True, error_model="numpy")

@@ -101,10 +101,7 @@ def _add_pose(
     for m in range(count):
         if np.sum(np.abs(Rs[m] - R)) < 1e-9 and np.sum(np.abs(ts[m] - t)) < 1e-9 * (1.0 + np.sum(np.abs(t))):
             return count
-    for a in range(3):  # element-wise, as above
-        ts[count, a] = t[a]
-        for b in range(3):
-            Rs[count, a, b] = R[a, b]
+    m3.store_pose(Rs, ts, count, R, t)
     return count + 1
 
 
