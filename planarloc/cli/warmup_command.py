@@ -15,11 +15,12 @@ from __future__ import annotations
 import argparse
 import os
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 
 from planarloc.cli.commands import add_command
 from planarloc.cli.console import info, note, progress_bar
 from planarloc.cli.exit_codes import WARMUP_RESUMES
+from planarloc.cli.progress import Update
 from planarloc.compile import compile_kernels, load_manifest, plan_ahead, run_steps
 from planarloc.compile.cache import kernels_persist, missing_kernels
 
@@ -30,9 +31,7 @@ NOWHERE = (
 )
 
 
-def compile_ahead(
-    steps: Sequence[str], jobs: int | None = None, progress: Callable[[str, int, int], None] | None = None
-) -> None:
+def compile_ahead(steps: Sequence[str], jobs: int | None = None, progress: Update | None = None) -> None:
     """Before a command estimates poses: if kernels of the warm-up ``steps`` are not in numba's
     cache, say so in one line on stderr and compile them on every core, with a progress bar
     (:func:`planarloc.compile.plan_ahead`): ``progress``, the caller's when it shows one already
