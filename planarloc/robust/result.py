@@ -20,6 +20,8 @@ class RansacStatistics:
     finite solution for the sample). ``scored`` = hypotheses that reached scoring. ``searches_skipped``:
     hypothesis families not searched because the planar pose passed every check (``auto`` and the planar
     methods' cross-check run the 6DoF search only when the planar answer is in doubt).
+    ``time_s["total"]`` is the whole :func:`~planarloc.robust.absolute_pose.estimate_absolute_pose`
+    call; the stages may overlap (``structure`` is part of ``setup``), so they need not add up to it.
     """
 
     iterations: int = 0

@@ -98,6 +98,23 @@ def test_reference_depth_gives_2d3d_inliers(scene, method: str) -> None:
     assert dc < 0.1 and dr < 1.0
 
 
+def test_total_time_spans_the_whole_call(scene, monkeypatch) -> None:
+    """``stats.time_s["total"]`` is the whole call, the short 6DoF check after the judgement
+    included (it was written by the judgement, a third of the call short of it)."""
+    sc = scene(0, num_refs=5, matches_per_pair=50, noise_px=1.0, outlier_ratio=0.2)
+    readings: list[float] = []
+
+    def clock() -> float:  # every reading one unit after the previous one
+        readings.append(float(len(readings)))
+        return readings[-1]
+
+    monkeypatch.setattr("time.perf_counter", clock)
+    est = estimate_absolute_pose(sc.query_camera, sc.pairs, "auto", RansacOptions(**PAPER_ITERATIONS))
+    assert est.success, est.message
+    assert est.stats.time_s["cross_check"] > 0  # the check ran after the judgement
+    assert est.stats.time_s["total"] == readings[-1] - readings[0]
+
+
 def test_statistics_and_result_summary(scene) -> None:
     sc = scene(0, num_refs=5, matches_per_pair=50, noise_px=1.0, outlier_ratio=0.2)
     est = estimate_absolute_pose(sc.query_camera, sc.pairs, "2p1p", RansacOptions(**PAPER_ITERATIONS))
