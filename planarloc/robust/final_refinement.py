@@ -76,9 +76,8 @@ class FinalRefiner:
     """The final refinement of poses of one problem with one set of options.
 
     ``refiner(R, t, quick)`` refines a pose (:func:`refine_until_stable`; ``quick``: one round of
-    ``QUICK_ITERATIONS``, a first look); :meth:`restart_distance` restarts it around a refined pose
-    (:func:`restart_distance`). ``scorer``: the estimator holding the flattened problem ``p`` and
-    ``threshold_sq`` (τ², pixels²)."""
+    ``QUICK_ITERATIONS``, a first look); :meth:`restarts` restarts it around a refined pose.
+    ``scorer``: the estimator holding the flattened problem ``p`` and ``threshold_sq`` (τ², pixels²)."""
 
     scorer: ProblemEstimator
     options: RansacOptions
@@ -98,42 +97,49 @@ class FinalRefiner:
         )
         return RefinedPose(R, t, centre_covariance(H, sigma), sigma, cost, score, in2d, in3d, score3d, H)
 
-    def restart_distance(self, ref: RefinedPose, step_m: float, margin: float) -> float:
-        """Distance (m) from ``ref`` of the farthest restart of the refinement that lands on a
-        pose explaining the matches as well; 0 if none.
+    def restarts(self, ref: RefinedPose, step_m: float) -> list[Restart]:
+        """Where restarts of the refinement around ``ref`` land: one :class:`Restart` per start
+        (none when ``ref`` has no usable normal matrix).
 
         The starts are ``ref`` moved along ±v, the eigenvector of the smallest eigenvalue of its
         normal matrix H (6, 6) (the top one of the covariance ``σ̂² H⁻¹``: rotation and centre
         coupled as the data couple them), scaled so that the centre moves by ``step_m``. Each is
-        refined in full like ``ref``; one that lands with an MSAC cost at most ``margin``
-        (pixels²) above ``ref.score`` (or below it), wherever it lands, is a pose the data
-        support as well, and its distance a lower bound on the position's uncertainty: the
-        curvature at ``ref`` sees only its own basin (benchmarks/robustness.py --protocol hard,
-        seeds 1, 5, 7, 11, 21, 33, 60 % outliers: the true pose's basin lay 0.15-0.7 m away along
-        v at a cost within the margin, and restarts landed between the two, inside the promise
-        of a 0.04-0.1 m std, where they used to be ignored).
+        refined in full like ``ref``. One that lands with an MSAC cost about ``ref.score`` (or
+        below it), wherever it lands, is a pose the data support as well, and its distance a
+        lower bound on the position's uncertainty: the curvature at ``ref`` sees only its own
+        basin (benchmarks/robustness.py --protocol hard, seeds 1, 5, 7, 11, 21, 33, 60 %
+        outliers: the true pose's basin lay 0.15-0.7 m away along v at a cost within the margin,
+        and restarts landed between the two, inside the promise of a 0.04-0.1 m std, where they
+        used to be ignored). :func:`planarloc.robust.rivals.basin_distance` sets the margins.
         Plain Python around two compiled refinements (~70 µs each): one kernel for the whole
         would save ~30 µs per call but cost ~4 s of compilation on first use.
         """
         w, V = np.empty(6), np.empty((6, 6))
         if ref.H is None or not symmetric_eigen(np.ascontiguousarray(ref.H), w, V) or not w[0] > 0.0:
-            return 0.0
+            return []
         v = V[:, 0]
         nc = float(np.linalg.norm(v[3:]))
         if not nc > 1e-12:
-            return 0.0
+            return []
         settings, rounds = self._budget(False)
         c = -ref.R.T @ ref.t
-        found = 0.0
+        out = []
         for sgn in (1.0, -1.0):
             step = sgn * (step_m / nc) * v
             R0 = exp_so3(np.ascontiguousarray(step[:3])) @ ref.R
             R1, t1, *_, score1, _ = refine_until_stable(
                 R0, -R0 @ (c + step[3:]), self.scorer.p.arrays, settings, rounds
             )
-            if score1 - ref.score <= margin:
-                found = max(found, float(np.linalg.norm(-R1.T @ t1 - c)))
-        return found
+            out.append(Restart(float(score1 - ref.score), float(np.linalg.norm(-R1.T @ t1 - c))))
+        return out
+
+
+class Restart(NamedTuple):
+    """Where one restart of the refinement landed: its MSAC cost above the refined pose's
+    (pixels², negative when lower) and its centre's distance from the refined pose's (m)."""
+
+    excess_cost: float
+    distance_m: float
 
 
 @njit(cache=True, error_model="numpy")

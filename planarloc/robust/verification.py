@@ -414,12 +414,24 @@ def _check_runner_ups(j: _Judging) -> PoseEstimate | None:
         # Few constraints: other basins of the cost, with other inlier sets, may explain the
         # matches as well (Strecha entry_p10 against the fountain_p11 map: a pose 0.95 m off with
         # std 0.23 m, while restarts 0.7 m away found lower costs).
-        d = basin_distance(cand.estimator, cand.ref, cand.refine, 3.0 * j.std + 0.05)
-        return j.widen(
+        options = j.ctx.options
+        basins = basin_distance(
+            cand.estimator,
+            cand.ref,
+            cand.refine,
+            3.0 * j.std + 0.05,
+            j.n2d + j.n3d,
+            options.max_position_std_m,
+        )
+        d = basins.rival_m
+        failed = j.widen(
             d,
             f"a restart of the refinement {d:.3g} m away converged to a pose "
             f"that explains the matches as well (within {RESTART_MARGIN_INLIERS} inlier's worth of "
             "MSAC cost, or better): the data do not single out one position; more matches or map "
             "images",
         )
+        if failed is not None:
+            return failed
+        j.std = max(j.std, basins.near_m)
     return None

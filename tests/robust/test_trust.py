@@ -299,3 +299,63 @@ def test_a_restart_that_lands_inside_the_promise_still_bounds_the_std(case) -> N
         assert err <= 3 * est.position_std_m + 0.05, (err, est.position_std_m, est.message)
     else:
         assert est.status in ("ambiguous_pose", "degenerate_scale"), est.status
+
+
+def test_basin_margins_rival_and_near() -> None:
+    """Restarts within one inlier's worth of cost are rivals wherever they land; for a pose on few
+    inliers, those within :data:`NEAR_BASIN_MARGIN_INLIERS` inliers' worth and within the largest
+    std of a success widen the std only."""
+    from planarloc.robust.final_refinement import Restart
+    from planarloc.robust.rivals import (
+        NEAR_BASIN_MARGIN_INLIERS,
+        RESTART_MARGIN_INLIERS,
+        RIVAL_POOL_BELOW_INLIERS,
+        basin_distance,
+    )
+
+    tight = RESTART_MARGIN_INLIERS * _Scorer.threshold_sq
+    near = NEAR_BASIN_MARGIN_INLIERS * _Scorer.threshold_sq
+
+    class Refiner:
+        def __init__(self, *landings: Restart) -> None:
+            self.landings = list(landings)
+
+        def restarts(self, ref, step_m):
+            return self.landings
+
+    ref, few, many = _refined([0, 0, 0], 100.0), RIVAL_POOL_BELOW_INLIERS - 1, RIVAL_POOL_BELOW_INLIERS
+
+    def basins(n: int, *landings: Restart):
+        return basin_distance(_Scorer(), ref, Refiner(*landings), 0.2, n, 0.3)
+
+    assert basins(few) == (0.0, 0.0)  # no restart (no usable normal matrix)
+    # Within the tight margin, or below the pose's cost: a rival at any distance.
+    assert basins(many, Restart(tight, 0.5), Restart(-3.0, 0.7)) == (0.7, 0.0)
+    # Between the margins: widens a pose on few inliers, within the largest std of a success only.
+    assert basins(few, Restart(0.5 * (tight + near), 0.15), Restart(near, 0.25)) == (0.0, 0.25)
+    assert basins(few, Restart(near, 0.45)) == (0.0, 0.0)
+    assert basins(many, Restart(near, 0.25)) == (0.0, 0.0)
+    assert basins(few, Restart(near * 1.01, 0.25)) == (0.0, 0.0)
+
+
+@pytest.mark.parametrize(
+    "case", [(1, 1, 3, 10), (5, 1, 2, 112), (11, 1, 4, 100), (21, 1, 4, 23), (33, 1, 4, 152)]
+)
+def test_a_near_basin_widens_the_std_of_a_weak_pose(case) -> None:
+    """Hard-protocol scenes (3 references x 20 matches, 1.5 px noise, 40-60 % outliers) where
+    `auto` reported success 0.24-0.33 m off with a std of 0.05-0.07 m, planar poses on 21-28
+    inliers that absorbed outliers: a restart landed 0.13-0.25 m away next to the true pose, 1.4-3.5
+    inliers' worth of cost above the answer (beyond the rival margin of one)."""
+    seed, mi, ri, trial = case
+    ss = np.random.SeedSequence([seed, mi, ri, trial])
+    rng, ransac_seed = np.random.default_rng(ss), int(ss.generate_state(1)[0])
+    sc = make_scene(
+        rng, num_refs=3, matches_per_pair=20, noise_px=1.5, outlier_ratio=(0.0, 0.2, 0.4, 0.5, 0.6)[ri]
+    )
+    opts = RansacOptions(
+        max_iterations=100, min_iterations=100, threshold_px=2.0, seed=ransac_seed, structure="none"
+    )
+    est = estimate_absolute_pose(sc.query_camera, sc.pairs, "auto", opts)
+    assert est.success, est.message  # widened, not refused
+    err, _ = pose_errors(est.pose, sc.query_pose)
+    assert err <= 3 * est.position_std_m + 0.05, (err, est.position_std_m)
