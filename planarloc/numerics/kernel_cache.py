@@ -22,6 +22,13 @@ numba cannot write. For its kernels the cache
   is then compiled in memory in each process. A fallback to the temp folder or to memory is
   said in one warning line per process, when the first kernel is compiled.
 
+Wherever planarloc's kernels are cached, an index or data file that cannot be unpickled counts as
+a cache miss (:class:`_TolerantIndexFile`): numba unpickles a kernel's index before it compares
+the source stamp, so an index written by another planarloc version (or an edited checkout) that
+names a type which no longer exists raised ``AttributeError`` from the kernel's first call, and
+again from every call that tried to save it; now the kernel compiles and its index is written
+anew.
+
 Everything else stays numba's own behaviour: ``NUMBA_CACHE_DIR`` and ``NUMBA_CACHE_LOCATOR_CLASSES``
 take precedence, a writable install caches in ``__pycache__``, other packages' kernels are not
 touched. How: ``Dispatcher.enable_caching`` (``@njit(cache=True)``) creates the cache as
@@ -98,18 +105,47 @@ def _tree_writable(folder: str) -> bool:
     return _writable(os.path.join(folder, "__pycache__"), private=False)
 
 
+def _planarloc_source(py_func) -> str | None:
+    """The source file of a planarloc kernel; None for every other kernel."""
+    try:
+        source = os.path.abspath(inspect.getfile(py_func))
+    except TypeError:
+        return None
+    return source if source.startswith(PACKAGE_ROOT + os.sep) and os.path.exists(source) else None
+
+
 def _read_only_module(py_func) -> str | None:
     """The source file of a planarloc kernel whose ``__pycache__`` numba cannot write (and no
     ``NUMBA_CACHE_DIR`` or locator override is set); None for every other kernel."""
     if getattr(config, "CACHE_DIR", "") or getattr(config, "CACHE_LOCATOR_CLASSES", ""):  # set at run time
         return None
-    try:
-        source = os.path.abspath(inspect.getfile(py_func))
-    except TypeError:
-        return None
-    if not source.startswith(PACKAGE_ROOT + os.sep) or not os.path.exists(source):
+    source = _planarloc_source(py_func)
+    if source is None:
         return None
     return None if _tree_writable(os.path.dirname(source)) else source
+
+
+class _TolerantIndexFile(_IndexDataFile):
+    """numba's index and data files of one kernel, where a file that cannot be unpickled counts
+    as missing: the kernel is compiled and, on save, the index is written anew (module docstring).
+    Read errors of the file system (``OSError``) stay numba's."""
+
+    def _load_index(self) -> dict:
+        try:
+            return super()._load_index()
+        except OSError:
+            raise
+        except Exception as exc:  # noqa: BLE001 - unpickling a stale or damaged index: a cache miss
+            logger.info("kernel cache index %s unreadable (%s): compiled again", self._index_path, exc)
+            return {}
+
+    def _load_data(self, name):
+        try:
+            return super()._load_data(name)
+        except OSError:
+            raise
+        except Exception as exc:  # noqa: BLE001 - numba's load() then compiles, as for a missing file
+            raise OSError(f"kernel cache data {name} unreadable ({exc})") from exc
 
 
 # ---- one line per process ----------------------------------------------------------------------------
@@ -186,7 +222,7 @@ class _LayeredCacheFile:
 
     def _file(self, path: str):
         if path not in self._files:
-            self._files[path] = _IndexDataFile(
+            self._files[path] = _TolerantIndexFile(
                 cache_path=path, filename_base=self._base, source_stamp=self._stamp
             )
         return self._files[path]
@@ -277,9 +313,9 @@ class _LayeredCacheFile:
 
 
 class KernelCache(_FunctionCache):
-    """numba's ``FunctionCache``, except for a planarloc kernel whose module's ``__pycache__``
-    numba cannot write: then it reads that folder and this user's folders, and writes to the first
-    writable user folder (module docstring)."""
+    """numba's ``FunctionCache``, except for planarloc's kernels: files that cannot be unpickled
+    are cache misses, and where the module's ``__pycache__`` numba cannot write, it reads that
+    folder and this user's folders, and writes to the first writable user folder (module docstring)."""
 
     def __init__(self, py_func) -> None:
         source = _read_only_module(py_func)
@@ -287,6 +323,12 @@ class KernelCache(_FunctionCache):
             self._impl_class = _InstalledTreeImpl
         super().__init__(py_func)
         self.read_only_install = source is not None
+        if source is None and _planarloc_source(py_func) is not None:
+            self._cache_file = _TolerantIndexFile(
+                cache_path=self._cache_path,
+                filename_base=self._impl.filename_base,
+                source_stamp=self._impl.locator.get_source_stamp(),
+            )
         if source is not None:
             subpath = _InTreeLocator.get_suitable_cache_subpath(source)
             home = _UserWideLocator(py_func, source).get_cache_path()

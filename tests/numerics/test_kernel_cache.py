@@ -189,3 +189,79 @@ def test_every_kernel_is_defined_after_the_cache_class_is_in_place() -> None:
     )
     count, others = python_stdout(code, timeout=600).split(" ", 1)
     assert int(count) > 50 and others.strip() == "[]"
+
+
+# ---- a stale or damaged index (another planarloc version, an edited checkout) -------------------------
+KERNEL_CALL = (
+    "import numpy as np\n"
+    "from planarloc.geometry.so3 import exp_so3\n"
+    "print(repr(float(exp_so3(np.array([0.1, 0.2, 0.3])).sum())))\n"
+)
+
+
+def _call_kernel(cache_dir: Path) -> subprocess.CompletedProcess:
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(cache_dir)}
+    return subprocess.run(
+        [sys.executable, "-c", KERNEL_CALL], env=env, capture_output=True, text=True, timeout=600
+    )
+
+
+def _index_of(cache_dir: Path) -> Path:
+    (index,) = cache_dir.rglob("so3.exp_so3-*.nbi")
+    return index
+
+
+def _read_index(index: Path) -> tuple[object, bytes]:
+    import pickle
+
+    with open(index, "rb") as f:
+        version = pickle.load(f)
+        return version, f.read()
+
+
+def _poison_with_a_removed_type(index: Path) -> None:
+    """Rewrite the index as another version of the module would have left it: an entry naming a type
+    (``planarloc.geometry.so3.RemovedType``) that this version does not have."""
+    import pickle
+
+    from planarloc.geometry import so3
+
+    version, payload = _read_index(index)
+    stamp, overloads = pickle.loads(payload)
+    removed = type("RemovedType", (), {"__module__": so3.__name__})
+    so3.RemovedType = removed  # reachable while pickled, then gone
+    try:
+        data = pickle.dumps((stamp, {**overloads, ("stale",): removed}))
+    finally:
+        del so3.RemovedType
+    with open(index, "wb") as f:
+        pickle.dump(version, f)
+        f.write(data)
+
+
+def _truncate(index: Path) -> None:
+    version, payload = _read_index(index)
+    import pickle
+
+    with open(index, "wb") as f:
+        pickle.dump(version, f)
+        f.write(payload[: len(payload) // 2])
+
+
+@pytest.mark.parametrize(
+    "damage", [_poison_with_a_removed_type, _truncate], ids=["removed type", "truncated"]
+)
+def test_an_index_that_cannot_be_unpickled_is_a_cache_miss(tmp_path: Path, damage) -> None:
+    import pickle
+
+    first = _call_kernel(tmp_path)
+    assert first.returncode == 0, first.stderr
+    index = _index_of(tmp_path)
+    damage(index)
+    with pytest.raises(Exception):  # noqa: B017 - what numba itself would meet: AttributeError / UnpicklingError
+        pickle.loads(_read_index(index)[1])
+    again = _call_kernel(tmp_path)
+    assert again.returncode == 0, again.stderr[-3000:]
+    assert again.stdout == first.stdout  # compiled again, the same kernel
+    stamp, overloads = pickle.loads(_read_index(index)[1])  # written anew, without the stale entry
+    assert len(overloads) == 1 and ("stale",) not in overloads
