@@ -30,7 +30,9 @@ from planarloc.localize.held_out import (
 from planarloc.localize.localizer import Localizer, LocalizerConfig
 from planarloc.map.builder import build_map
 from planarloc.map.std_calibration import (
+    GROW_ABOVE_MEDIAN,
     MAX_RATIO,
+    MAX_SCALE,
     MIN_SCALE,
     STD_CALIBRATION_META,
     TAIL_SLACK_M,
@@ -54,9 +56,15 @@ def test_the_factor_shrinks_to_the_median_target_and_keeps_the_tail() -> None:
     assert scale_from_ratios(tail) == pytest.approx(1.6 / MAX_RATIO)
     assert max(tail / scale_from_ratios(tail)) <= MAX_RATIO + 1e-12
     assert scale_from_ratios(np.full(8, 1e-4)) == MIN_SCALE
-    # Never grown: held-out images are the harder case (their neighbours are further away).
-    assert scale_from_ratios(np.full(8, 50.0)) == 1.0
+    # Held-out images are the harder case (their neighbours are further away): a median up to
+    # GROW_ABOVE_MEDIAN leaves the std as it is, whatever the tail; above it, the median is brought
+    # down to it, at most MAX_SCALE times.
     assert scale_from_ratios(np.array([1.1, 1.2, 1.2, 1.3, 1.5])) == 1.0
+    assert scale_from_ratios(np.array([0.5, 0.6, 0.7, 0.8, 9.0])) == 1.0
+    grown = np.array([1.0, 2.0, 2.5, 3.0, 6.0])
+    assert scale_from_ratios(grown) == pytest.approx(2.5 / GROW_ABOVE_MEDIAN)
+    assert np.median(grown / scale_from_ratios(grown)) == pytest.approx(GROW_ABOVE_MEDIAN)
+    assert scale_from_ratios(np.full(8, 50.0)) == MAX_SCALE
     assert scale_from_ratios(np.array([0.1, 0.1, np.nan, 0.1])) == 1.0  # too few: no measurement
 
 
@@ -139,6 +147,8 @@ def test_a_damaged_or_out_of_range_record_is_ignored(
         assert load_std_calibration(db) is None
         store_std_calibration(db, StdCalibration(100.0, 6, 6, 0.1, 0.2))
         assert load_std_calibration(db) is None
+        store_std_calibration(db, StdCalibration(2.0, 6, 6, 2.5, 3.0))  # a grown std is in range
+        assert load_std_calibration(db) == StdCalibration(2.0, 6, 6, 2.5, 3.0)
         store_std_calibration(db, None)
         assert load_std_calibration(db) is None
     assert Localizer(path).ransac_options.std_scale == 1.0
