@@ -56,10 +56,10 @@ GROW_ABOVE_MEDIAN = 1.25
 """A median held-out error / std above this grows the std until the median reaches it. Held-out
 images overstate a query's error (their neighbours are further away), so below it the std is only
 ever shrunk; RootSIFT maps of every benchmark set measure 0.26-1.16 (their queries 0.3-0.7). The
-learned types on the Strecha facades measured 1.3-3.3 (XFeat 1.32-1.89, LighterGlue 1.47-2.15,
-ALIKED + LightGlue 1.81-3.27), and their queries agreed: ALIKED's same-session queries ran at a
-median 1.7-1.9, and one of its cross-session successes was 4.0 stds off (BENCHMARKS.md, "Learned
-features")."""
+learned types' maps of the Strecha facades measured up to 3.3 (XFeat 1.04-1.89, LighterGlue
+1.47-2.15, ALIKED + LightGlue 1.81-3.27), and their queries agreed: ALIKED's same-session queries
+ran at a median 1.7-1.9, and one of its cross-session successes was 4.0 stds off (BENCHMARKS.md,
+"Learned features")."""
 MAX_SCALE = 4.0
 """The std is never grown more than 4 times."""
 MIN_SAMPLES = 5
