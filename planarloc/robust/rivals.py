@@ -141,7 +141,7 @@ class BasinRivals(NamedTuple):
 
     Attributes:
         rival_m: the farthest within :data:`RESTART_MARGIN_INLIERS` inlier's worth of cost (or
-            below it), beyond the promise: a rival answer (0: none).
+            below it), wherever it landed: a rival answer (0: none).
         near_m: for a pose on few inliers, the farthest within :data:`NEAR_BASIN_MARGIN_INLIERS`
             inliers' worth and no farther than the largest std a success may have: a basin the
             data barely tell apart, which widens the std without refusing the pose (0: none).
