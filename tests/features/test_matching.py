@@ -140,3 +140,54 @@ def test_bad_inputs_raise():
     for kwargs in ({"ratio": 0.0}, {"ratio": 1.5}, {"fginn_radius": -1.0}):
         with pytest.raises(InputError):
             match_features(f128, f128, **kwargs)
+
+
+def _read_only(f: Features) -> Features:
+    for a in (f.keypoints, f.descriptors, f.scales):
+        a.setflags(write=False)
+    return f
+
+
+def test_features_that_can_change_are_validated_on_every_call():
+    """A map image's read-only features are checked once; features that can still be written
+    (writeable, or a read-only view of a writeable array) are checked again on every call."""
+    q = make_features(np.eye(3, 128))
+    ref = _read_only(make_features(np.eye(3, 128)))
+    first = match_features(q, ref)
+    assert matching._validated.get(ref) is ref.descriptors  # kept: nothing can change it
+    assert np.array_equal(match_features(q, ref), first)
+
+    writeable = make_features(np.eye(3, 128))
+    match_features(q, writeable)
+    assert writeable not in matching._validated
+    writeable.descriptors[0] *= 3.0  # no longer unit norm: the next call must say so
+    with pytest.raises(InputError, match="row 0"):
+        match_features(q, writeable)
+
+    base = make_features(np.eye(3, 128))
+    view = Features(base.keypoints, base.descriptors[:], base.scales)
+    view.descriptors.setflags(write=False)
+    view.keypoints.setflags(write=False)
+    match_features(q, view)
+    assert view not in matching._validated
+    base.descriptors[1] *= 2.0  # written through the writeable base
+    with pytest.raises(InputError, match="row 1"):
+        match_features(q, view)
+
+
+def test_decoded_map_features_are_validated_once(monkeypatch):
+    """Features decoded from a map (read-only, :func:`planarloc.map.codec.decode_features`) are
+    norm-checked at their first match only."""
+    from planarloc.map import codec
+
+    rng = np.random.default_rng(0)
+    f = make_features(rng.normal(size=(50, 128)), rng.random((50, 2)) * 500)
+    kp_blob = np.concatenate([f.keypoints.ravel(), f.scales]).astype("<f4").tobytes()
+    desc_blob = f.descriptors.astype("<f4").tobytes()
+    decoded = codec.decode_features(50, kp_blob, 128, "float32", desc_blob, "float32")
+    checks = []
+    einsum = np.einsum
+    monkeypatch.setattr(matching.np, "einsum", lambda *a, **k: checks.append(1) or einsum(*a, **k))
+    for _ in range(3):
+        match_query_to_refs(f, [decoded, decoded])
+    assert len(checks) == 3 + 1  # the query once per call, the map image once in all
