@@ -44,6 +44,10 @@ from collections.abc import Callable
 from dataclasses import asdict
 from pathlib import Path
 
+# isort: off
+import planarloc  # noqa: F401 - first, before numpy: OpenBLAS's idle spin as `planarloc` sets it
+
+# isort: on
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))

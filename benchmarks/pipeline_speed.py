@@ -35,6 +35,10 @@ import tempfile
 import time
 from pathlib import Path
 
+# isort: off
+import planarloc  # noqa: F401 - first, before numpy: OpenBLAS's idle spin as `planarloc` sets it
+
+# isort: on
 import cv2
 import numpy as np
 

@@ -3,7 +3,13 @@
 Conventions: see docs/conventions.md. Poses are ``cam_from_world`` (x_cam = R x_world + t).
 """
 
-# First, before any numba kernel is defined: numba's cache also on read-only installs.
+# First, before numpy loads OpenBLAS: its idle threads stop spinning within a millisecond, not
+# 0.1 s, so the next query's feature extraction gets the cores (planarloc.numerics.blas_threads).
+from planarloc.numerics.blas_threads import shorten_openblas_spin
+
+shorten_openblas_spin()
+
+# Then, before any numba kernel is defined: numba's cache also on read-only installs.
 import planarloc.numerics.kernel_cache
 from planarloc.geometry import Camera, CameraModel, InputError, Pose
 from planarloc.robust.absolute_pose import estimate_absolute_pose

@@ -18,6 +18,8 @@ module                 holds
                        by ``planarloc/__init__.py`` before any kernel is defined
 ``user_folders``       this user's folder in the shared temp folder (``planarloc-<uid>``, mode
                        0700, refused if a link or another user's), for the caches
+``blas_threads``       how long OpenBLAS's idle threads spin (set before numpy loads, by
+                       ``planarloc/__init__.py``) and the stream's hold of BLAS to one thread
 =====================  =========================================================================
 
 What is specific to one problem stays with its solver: the eigenvectors of Stewénius' action
