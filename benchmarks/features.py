@@ -1,18 +1,19 @@
 """Feature types side by side (issue 33): RootSIFT, XFeat and ALIKED + LightGlue in the same run.
 
 Per feature type (``--features``; a type whose packages do not load is skipped with the reason)
-and data set, with the default Localizer (VLAD top-5, default method and structure mode):
+and data set, with the default Localizer (VLAD top-5, default method and structure mode, the
+type's coarse pass: ``--coarse-keypoints 0`` measures without it):
 
 - extraction: mean milliseconds per query image (``extract_features`` on the read image) and per
   map image (the map build's extraction, tilt-free: the build time / map images, cached maps: -);
-- matching: mean milliseconds to match one query against its 5 retrieved map images (the type's
-  own matcher, :func:`planarloc.features.matching.match_query_to_refs`, timed inside the
-  localization), and per image pair;
+- matching: mean milliseconds per query to match it against its 5 retrieved map images (the
+  type's own matcher, :func:`planarloc.features.matching.match_query_to_refs`, timed inside the
+  localization; both passes where a coarse pass fails), and per image pair;
 - the rest of a localization: retrieval, local structure and robust estimation, mean ms per query;
 - seconds per query: extraction + localization (retrieval, matching, robust estimation);
 - success (%) at 0.25 m / 10°, 0.5 m / 10° and 1 m / 20°; confident-wrong: successes off by
   0.25 m or 10° or more; broken promises: successes off by more than 3·std + 5 cm; beyond 1 m:
-  successes more than 1 m off.
+  successes more than 1 m off; coarse pass: the queries its pose answered.
 
 Timings are of warm code: before the timed queries, the first query is extracted and localized
 once by a Localizer that is then dropped (torch's first inference, numba kernels and map
@@ -65,7 +66,7 @@ from planarloc.features import learned  # noqa: E402
 from planarloc.features.extract import FeatureConfig, extract_features  # noqa: E402
 from planarloc.features.images import read_gray  # noqa: E402
 from planarloc.features.registry import FEATURE_TYPES  # noqa: E402
-from planarloc.localize import localizer as localizer_module  # noqa: E402
+from planarloc.localize import query_matches as matches_module  # noqa: E402
 from planarloc.localize.localizer import Localizer, LocalizerConfig  # noqa: E402
 from planarloc.map.store import MapDatabase  # noqa: E402
 
@@ -94,6 +95,7 @@ HEADERS = [
     "broken promises",
     "> 1 m",
     "median t [m]",
+    "coarse pass",
 ]
 
 
@@ -102,7 +104,7 @@ class TimedMatcher:
 
     def __init__(self) -> None:
         self.calls: list[tuple[float, int]] = []
-        self._inner = localizer_module.match_query_to_refs
+        self._inner = matches_module.match_query_to_refs
 
     def __call__(self, q, refs, *args, **kwargs):
         t0 = time.perf_counter()
@@ -118,18 +120,20 @@ def run_type(
     update: Callable[[str, int, int], None],
     stride: int = 1,
     budget: int | None = None,
+    coarse: int | None = None,
 ) -> dict:
     """Build (or reuse) the map of ``data`` with feature type ``kind`` (``budget`` keypoints per
-    image, default the type's) and localize every ``stride``-th query."""
+    image, default the type's) and localize every ``stride``-th query (``coarse``: the
+    localizer's ``coarse_keypoints``, default the type's)."""
     features = FeatureConfig(kind=kind) if budget is None else FeatureConfig(kind=kind, max_features=budget)
     map_path, build_s = cache.cached_map(
         data.map_images, f"{data.name}-{kind}", root, features=features, progress=update
     )
-    config = LocalizerConfig()
-    rows, t_extract = [], []
+    config = LocalizerConfig(coarse_keypoints=coarse)
+    rows, t_extract, coarse_answers = [], [], 0
     queries = data.queries[::stride]
     timed = TimedMatcher()
-    localizer_module.match_query_to_refs = timed
+    matches_module.match_query_to_refs = timed
     try:
         with MapDatabase.open(map_path) as db:
             warm = Localizer(db, config)
@@ -146,11 +150,12 @@ def run_type(
                 t1 = time.perf_counter()
                 est = loc.localize_features(f, q.camera)
                 t_loc = time.perf_counter() - t1
+                coarse_answers += est.keypoint_budget > 0
                 t_extract.append(t_feat)
                 rows.append(asdict(query_result(q, est, t_feat + t_loc)))
                 update(f"{kind} {data.name}", i + 1, len(queries))
     finally:
-        localizer_module.match_query_to_refs = timed._inner
+        matches_module.match_query_to_refs = timed._inner
     t_match = [t for t, _ in timed.calls]
     t_localize = [r["seconds"] - t for r, t in zip(rows, t_extract)]
     pairs = [n for _, n in timed.calls]
@@ -165,7 +170,8 @@ def run_type(
         "build_s": build_s,
         "extract_ms_query": 1000 * float(np.mean(t_extract)),
         "extract_ms_map": 1000 * build_s / len(data.map_images) if build_s else None,
-        "match_ms_query": 1000 * float(np.mean(t_match)) if t_match else None,
+        # every query's matching calls (a coarse pass that fails is followed by a full one)
+        "match_ms_query": 1000 * float(np.sum(t_match)) / max(1, len(rows)) if t_match else None,
         "match_ms_pair": 1000 * float(np.sum(t_match)) / max(1, int(np.sum(pairs))),
         "rest_ms_query": 1000 * (float(np.sum(t_localize)) - float(np.sum(t_match))) / max(1, len(rows)),
         "seconds_per_query": m["seconds_per_query"],
@@ -181,6 +187,7 @@ def run_type(
         if ok
         else None,
         "status_counts": m["status_counts"],
+        "coarse_answers": coarse_answers,  # answered by the coarse pass
         "per_query": rows,
     }
 
@@ -201,6 +208,7 @@ def table_row(r: dict) -> list[str]:
         str(len(r["broken_promises"])),
         str(r["beyond_1m"]),
         peer.fmt_num(r["median_translation_error_m"], 3),
+        f"{r['coarse_answers']} of {r['queries']}",
     ]
 
 
@@ -237,9 +245,17 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
         metavar="KIND=N",
         help="keypoint budget of a feature type, e.g. xfeat=2048 (default: FeatureConfig's)",
     )
+    p.add_argument(
+        "--coarse-keypoints",
+        type=int,
+        metavar="N",
+        help="the localizer's coarse pass for every type, 0 = none (default: each type's: xfeat 2048)",
+    )
     p.add_argument("--json", type=Path, help="write all metrics and per-query results here")
     p.add_argument("--markdown", type=Path, help="write the table as markdown")
     args = p.parse_args(argv)
+    if args.coarse_keypoints is not None and args.coarse_keypoints < 0:
+        p.error(f"--coarse-keypoints: expected N >= 0, got {args.coarse_keypoints}")
     args.features = ["rootsift", *[k for k in args.features if k != "rootsift"]]
     budgets = {}
     for item in args.max_features:
@@ -282,7 +298,9 @@ def main(argv: list[str] | None = None) -> int:
                 skipped.append(f"{name}: data not found under {args.data_root}")
                 continue
             for kind in kinds:
-                r = run_type(kind, data, root, update, args.query_stride, args.budgets.get(kind))
+                r = run_type(
+                    kind, data, root, update, args.query_stride, args.budgets.get(kind), args.coarse_keypoints
+                )
                 results.append(r)
                 peer.log("| " + " | ".join(table_row(r)) + " |")
     table = Table(title=title)

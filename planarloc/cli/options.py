@@ -213,13 +213,21 @@ def add_localizer_args(p: argparse.ArgumentParser) -> None:
         "report degenerate_scale above this position std in metres",
     )
     g.add_argument("--seed", type=int, default=_RANSAC.seed, help="RANSAC seed (default: %(default)s)")
+    g.add_argument(
+        "--coarse-keypoints",
+        type=int,
+        default=None,
+        metavar="N",
+        help="localize from the N strongest keypoints first, from all only when that fails; 0: all "
+        "keypoints at once (default: the map's feature type's: 2048 for xfeat, 0 for the others)",
+    )
 
 
 def localizer_config_of(args: argparse.Namespace) -> LocalizerConfig:
     """The :class:`LocalizerConfig` of the localization options (:func:`localizer_config`)."""
     return localizer_config_from(
         args,
-        (*SHARED_SETTINGS, "iterations", "use_depth"),
+        (*SHARED_SETTINGS, "iterations", "use_depth", "coarse_keypoints"),
         threshold_px=args.threshold,
         max_position_std_m=args.max_position_std,
     )

@@ -49,6 +49,17 @@ class Features:
     def __len__(self) -> int:
         return len(self.keypoints)
 
+    def first(self, n: int) -> Features:
+        """The first ``n`` features, as views of these arrays (read-only stays read-only); ``self``
+        when it has ``n`` or fewer. For a type that extracts strongest first
+        (:attr:`~planarloc.features.registry.FeatureType.coarse_keypoints`), the ``n`` strongest:
+        what a budget of ``n`` extracts."""
+        if n < 0:
+            raise InputError(f"Features.first: expected n >= 0, got {n}")
+        if len(self) <= n:
+            return self
+        return Features(self.keypoints[:n], self.descriptors[:n], self.scales[:n])
+
 
 @dataclass(frozen=True)
 class FeatureConfig:

@@ -48,6 +48,12 @@ class FeatureType:
             type's own weights: :func:`planarloc.features.learned.lightglue_matches`).
         extra: the pip extra that installs it (``None``: the base install).
         summary: one line for ``--help`` and error messages.
+        coarse_keypoints: for a type whose extraction returns keypoints strongest first (the
+            first ``n`` of a budget are what a budget of ``n`` extracts), how many of its
+            strongest keypoints a query localizes from first, against as many of each map
+            image's; all of them only when that pass fails
+            (:attr:`planarloc.localize.localizer_config.LocalizerConfig.coarse_keypoints`).
+            ``None``: every pass uses all keypoints.
     """
 
     name: str
@@ -55,6 +61,7 @@ class FeatureType:
     matcher: str
     extra: str | None
     summary: str
+    coarse_keypoints: int | None = None
 
 
 DEFAULT_FEATURE_TYPE = "rootsift"
@@ -64,7 +71,14 @@ FEATURE_TYPES: dict[str, FeatureType] = {
     "rootsift": FeatureType(
         "rootsift", 128, "nearest", None, "OpenCV SIFT with RootSIFT descriptors (default)"
     ),
-    "xfeat": FeatureType("xfeat", 64, "nearest", "learned", "XFeat (CVPR 2024), mutual nearest neighbours"),
+    "xfeat": FeatureType(
+        "xfeat",
+        64,
+        "nearest",
+        "learned",
+        "XFeat (CVPR 2024), mutual nearest neighbours",
+        coarse_keypoints=2048,  # half of XFeat's own default top_k (4,096)
+    ),
     "xfeat-lighterglue": FeatureType(
         "xfeat-lighterglue", 64, "lightglue", "learned", "XFeat matched by LighterGlue (its light LightGlue)"
     ),

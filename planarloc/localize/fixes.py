@@ -329,7 +329,9 @@ class FixSolver:
         if est.pose is None:
             return None
         if pairs is None:
-            pairs, names = self.localizer.pairs_for(features, est.references, camera)
+            pairs, names = self.localizer.pairs_for(
+                features, est.references, camera, keypoint_budget=est.keypoint_budget
+            )
             if names != list(est.references):
                 return None
         if len(est.inliers) != len(pairs):

@@ -16,22 +16,21 @@ from __future__ import annotations
 import copy
 import logging
 import time
-from collections import OrderedDict
 from collections.abc import Mapping, Sequence
 from dataclasses import replace
 from pathlib import Path
 
-import cv2
 import numpy as np
 
 from planarloc.features.extract import Features, extract_features
-from planarloc.features.matching import match_query_to_refs
+from planarloc.features.registry import feature_type
 from planarloc.features.retrieval import GlobalIndex, VladVocabulary, vlad_descriptor
 from planarloc.geometry.camera import Camera
 from planarloc.geometry.validation import InputError
-from planarloc.localize.local_structure import MapView, PairMatchCache, map_rotation_std_deg, view_points
+from planarloc.localize.local_structure import MapView, PairMatchCache, map_rotation_std_deg
 from planarloc.localize.localizer_config import MAP_PRIORS, LocalizerConfig, localizer_config  # noqa: F401  (re-exported)
 from planarloc.localize.query import ImageSource, Query, prepare_query
+from planarloc.localize.query_matches import MapMatcher, MatchSettings
 from planarloc.map.gravity import map_gravity
 from planarloc.map.pose_accuracy import load_accuracy
 from planarloc.map.posed_image import PosedImage
@@ -50,14 +49,6 @@ from planarloc.robust.structure import KEYPOINT_STD_PX
 logger = logging.getLogger(__name__)
 
 
-#: The share of a query's 2D-3D constraints whose map images' disagreement with their poses sets
-#: the query's map rotation std. A fifth: kitti_seq1 with the map every 8th frame, frames 1-5 take
-#: about half their points from frame 0, whose pose is 2 px off (the median of the points' value
-#: left frames 2 and 4 1.2 and 0.9 m off with stds of 0.22 and 0.19 m); one retrieved map image
-#: far down the road with a bad pose gives fewer and must not widen the poses its neighbours fix
-#: (the worst image's value did: position stds 0.04 -> 0.06 m from frame 13 on with the map every
-#: 4th frame, and the 10 Hz stream without odometry posed 34-36 of 38 frames instead of 37).
-MAP_DISAGREEMENT_SHARE = 0.2
 MIN_KEYPOINT_STD_PX = 0.1
 """Floor of the measured keypoint noise of the map images (pixels)."""
 CARRYING_3D_INLIERS = 30
@@ -67,20 +58,9 @@ measured one; entry -> fountain queries with 32 and 42 are 0.10-0.11 m off with 
 (BENCHMARKS.md, the calibration row: 2 of 11, as the hloc-style peer)."""
 
 
-def _partners_as_pairs(
-    pairs: list[PairMatches], names: Sequence[str], references: Sequence[str]
-) -> list[PairMatches]:
-    """The local-structure partners of ``pairs`` (indices into ``references``) as the estimator
-    takes them: an index into ``pairs`` (``names``), or ``len(pairs) + j`` for reference ``j``
-    whose pair was dropped (its pose errors still move the points it triangulated)."""
-    slot = {n: i for i, n in enumerate(names)}
-    lookup = np.array([slot.get(n, len(names) + j) for j, n in enumerate(references)] + [-1], dtype=np.int64)
-    return [
-        p
-        if p.ref_points3d_partner is None
-        else replace(p, ref_points3d_partner=lookup[p.ref_points3d_partner])
-        for p in pairs
-    ]
+def _joined(message: str, more: str) -> str:
+    """``message; more`` (``more`` alone when there is no message)."""
+    return f"{message}; {more}" if message else more
 
 
 class Localizer:
@@ -116,9 +96,6 @@ class Localizer:
         self.index = GlobalIndex(descs, basis=self.db.global_basis())
         self._posed = {p.name: p for p in self.db.posed_images()}
         self._by_id = {self.db.image_id(n): n for n in self._posed}
-        self._depth_cache: OrderedDict[str, np.ndarray | None] = OrderedDict()
-        self.pair_cache = PairMatchCache()
-        """Matches between map images (local structure), kept across queries."""
         self.gravity = map_gravity(self.db)
         """The map's :class:`~planarloc.gravity.world.GravityReport` (``g_world``, mount tilt)."""
         self.pose_accuracy = load_accuracy(self.db)
@@ -128,6 +105,9 @@ class Localizer:
         """How the modelled std relates to the errors of the map's held-out images
         (:mod:`planarloc.map.std_calibration`), None for a map without the measurement."""
         self._g_world = self.gravity.g_world_array
+        self.matcher = MapMatcher(self.db, self._posed, self._g_world)
+        """Matches queries with the map images (:mod:`planarloc.localize.query_matches`), its caches
+        shared by every :meth:`with_config`."""
 
     def with_config(self, config: LocalizerConfig) -> Localizer:
         """A localizer on the same open map, index and caches, with another configuration
@@ -182,11 +162,39 @@ class Localizer:
         """The map's image records (poses, cameras, files), in map order."""
         return list(self._posed.values())
 
+    @property
+    def coarse_keypoints(self) -> int:
+        """How many strongest keypoints a query's coarse pass uses (0: no coarse pass):
+        ``config.coarse_keypoints``, else the map's feature type's
+        (:attr:`~planarloc.features.registry.FeatureType.coarse_keypoints`)."""
+        n = self.config.coarse_keypoints
+        return int(feature_type(self.features.kind).coarse_keypoints or 0) if n is None else n
+
+    @property
+    def pair_cache(self) -> PairMatchCache:
+        """Matches between map images (local structure), kept across queries."""
+        return self.matcher.pair_cache
+
+    def map_features(self, name: str, budget: int = 0) -> Features:
+        """Map image ``name``'s stored features, or their first (strongest) ``budget`` if > 0."""
+        return self.matcher.map_features(name, budget)
+
     def map_view(self, name: str, features: Features) -> MapView:
         """What the local structure needs of map image ``name`` (:class:`MapView`): its
         ``features``, stored pose and camera."""
-        posed = self._posed[name]
-        return MapView(name, features, posed.cam_from_world, posed.camera)
+        return self.matcher.view(name, features)
+
+    def match_settings(self) -> MatchSettings:
+        """The settings of this configuration's matching (:class:`~.query_matches.MatchSettings`)."""
+        return MatchSettings(
+            ratio=self.config.ratio,
+            kind=self.features.kind,
+            min_matches=self.config.min_matches,
+            use_depth=self.config.use_depth,
+            structure=self.config.ransac.structure == Structure.TRACKS,
+            threshold_px=self.config.ransac.threshold_px,
+            keypoint_std_px=self.keypoint_std_px,
+        )
 
     @property
     def map_cameras(self) -> set[Camera]:
@@ -236,146 +244,28 @@ class Localizer:
         )
         return [self._by_id[int(self.index_ids[i])] for i in idx]
 
-    def _depth(self, name: str) -> np.ndarray | None:
-        if name in self._depth_cache:
-            return self._depth_cache[name]
-        posed = self._posed[name]
-        depth = None
-        if posed.depth_path is not None:
-            raw = cv2.imread(str(posed.depth_path), cv2.IMREAD_UNCHANGED)
-            depth = None if raw is None else raw.astype(np.float32) / float(posed.depth_scale)
-        self._depth_cache[name] = depth
-        if len(self._depth_cache) > 32:
-            self._depth_cache.popitem(last=False)
-        return depth
-
-    def _points3d(self, name: str, ref_points: np.ndarray) -> np.ndarray | None:
-        depth = self._depth(name)
-        if depth is None:
-            return None
-        posed = self._posed[name]
-        h, w = depth.shape[:2]
-        uv = np.rint(ref_points).astype(int)
-        ok = (uv[:, 0] >= 0) & (uv[:, 0] < w) & (uv[:, 1] >= 0) & (uv[:, 1] < h)
-        z = np.full(len(uv), np.nan)
-        z[ok] = depth[uv[ok, 1], uv[ok, 0]]
-        z[~(z > 0)] = np.nan
-        X_cam = posed.camera.bearings_from_img(ref_points) * z[:, None]
-        pose = posed.cam_from_world
-        return (X_cam - pose.t) @ pose.R
-
     def pairs_for(
-        self, features: Features, references: Sequence[str], camera: Camera | None = None
+        self,
+        features: Features,
+        references: Sequence[str],
+        camera: Camera | None = None,
+        *,
+        keypoint_budget: int = 0,
     ) -> tuple[list[PairMatches], list[str]]:
         """Match the query to each reference and package the matches for the estimator.
 
         ``camera`` (the query's) lets keypoints outside its distortion model's range be dropped.
+        ``keypoint_budget`` > 0: the first (strongest) that many keypoints of the query and of each
+        reference, as an estimate's :attr:`~planarloc.robust.result.PoseEstimate.keypoint_budget`
+        says it used.
 
         Returns:
             the pairs with at least ``min_matches`` matches, and the names of their references.
         """
-        pairs, names, _ = self._pairs_and_map_residual(features, references, camera)
-        return pairs, names
-
-    def _pairs_and_map_residual(
-        self, features: Features, references: Sequence[str], camera: Camera | None
-    ) -> tuple[list[PairMatches], list[str], tuple[float, float]]:
-        """:meth:`pairs_for`, and how much the map poses behind the query's 2D-3D constraints
-        disagree with their images: ``(px, focal px)``, the largest disagreement that at least
-        :data:`MAP_DISAGREEMENT_SHARE` of the constraints share (per constraint, the larger
-        :attr:`ViewPoints.pose_residual_px` of the two map images that triangulated it; NaN, NaN
-        without structure)."""
-        refs = [self.db.get_features(n) for n in references]
-        matches = match_query_to_refs(features, refs, ratio=self.config.ratio, kind=self.features.kind)
-        points3d = self._local_structure(references, refs, matches)
-        view_residual = np.array([np.nan if p is None else p.pose_residual_px for p in points3d])
-        point_residuals, focals = [], []
-        pairs, names = [], []
-        for name, ref, m, local in zip(references, refs, matches, points3d):
-            if len(m) < self.config.min_matches:
-                continue
-            posed = self._posed[name]
-            # Keypoints outside the valid range of a distortion model cannot be undistorted.
-            ok = np.isfinite(posed.camera.cam_from_img(ref.keypoints[m[:, 1]])).all(axis=1)
-            if camera is not None:
-                ok &= np.isfinite(camera.cam_from_img(features.keypoints[m[:, 0]])).all(axis=1)
-            m = m[ok]
-            if len(m) < self.config.min_matches:
-                continue
-            ref_pts = np.asarray(ref.keypoints[m[:, 1]], dtype=float)
-            X = self._points3d(name, ref_pts) if self.config.use_depth else None
-            cov = partner = jac = None
-            if local is not None:
-                X_local, cov, partner, jac = local.X[ok], local.cov[ok], local.partner[ok], local.pose_jac[ok]
-                has = np.isfinite(X_local[:, 0]) & (partner >= 0)
-                if has.any():
-                    point_residuals.append(np.fmax(local.pose_residual_px, view_residual[partner[has]]))
-                    focals.append(float(np.mean(posed.camera.focal)))
-                if X is not None:  # measured depth first
-                    take = np.isnan(X[:, 0])
-                    X_local, cov = (
-                        np.where(take[:, None], X_local, X),
-                        np.where(take[:, None, None], cov, 0.0),
-                    )
-                    partner = np.where(take, partner, -1)
-                X = X_local
-            pairs.append(
-                PairMatches(
-                    posed.cam_from_world,
-                    posed.camera,
-                    np.asarray(features.keypoints[m[:, 0]], dtype=float),
-                    ref_pts,
-                    query_indices=m[:, 0],
-                    ref_points3d=X,
-                    ref_gravity=posed.cam_from_world.R @ self._g_world,
-                    ref_points3d_cov=cov,
-                    ref_points3d_partner=partner,
-                    ref_points3d_pose_jac=jac,
-                )
-            )
-            names.append(name)
-        residuals = np.concatenate(point_residuals) if point_residuals else np.zeros(0)
-        residuals = residuals[np.isfinite(residuals)]
-        disagreement = (
-            (float(np.quantile(residuals, 1.0 - MAP_DISAGREEMENT_SHARE)), float(np.mean(focals)))
-            if len(residuals)
-            else (np.nan, np.nan)
-        )
-        return _partners_as_pairs(pairs, names, references), names, disagreement
-
-    def _local_structure(
-        self, references: Sequence[str], refs: Sequence[Features], matches: Sequence[np.ndarray]
-    ) -> list:
-        """Per reference, 3D points of its matched keypoints triangulated with the other
-        references (:mod:`planarloc.localize.local_structure`), one per query keypoint (the
-        widest angle over its matches); ``None`` per reference without structure mode."""
-        if self.config.ransac.structure != Structure.TRACKS or len(references) < 2:
-            return [None] * len(references)
-        views = [self.map_view(n, f) for n, f in zip(references, refs)]
-        points = view_points(
-            views,
-            [m[:, 1] for m in matches],
-            self.pair_cache,
-            ratio=self.config.ratio,
-            max_error_px=self.config.ransac.threshold_px,
-            keypoint_std_px=self.keypoint_std_px,
-        )
-        # One 2D-3D constraint per query keypoint: the widest-angle point among its matches.
-        query_kp = np.concatenate([m[:, 0] for m in matches])
-        angle = np.concatenate([np.where(p.partner >= 0, p.angle_deg, -1.0) for p in points])
-        order = np.lexsort((-angle, query_kp))
-        first = np.ones(len(order), dtype=bool)  # (no matches at all: nothing to keep)
-        first[1:] = query_kp[order][1:] != query_kp[order][:-1]
-        keep = np.zeros(len(query_kp), dtype=bool)
-        keep[order[first]] = True
-        keep &= angle >= 0
-        start = 0
-        for pts in points:
-            drop = ~keep[start : start + len(pts.X)]
-            pts.X[drop] = np.nan
-            pts.cov[drop] = np.nan
-            start += len(pts.X)
-        return points
+        if keypoint_budget > 0:
+            features = features.first(keypoint_budget)
+        found = self.matcher.match(features, references, camera, self.match_settings(), keypoint_budget)
+        return found.pairs, found.names
 
     def warm_up(self) -> float:
         """Localize one map image's stored features against the other retrieved map images and
@@ -426,7 +316,12 @@ class Localizer:
     ) -> tuple[PoseEstimate, list[PairMatches]]:
         """:meth:`localize_features`, and the matched pairs it estimated from (one per name of
         ``est.references``, in that order, as ``est.inliers``): callers that need the inliers'
-        matches (the stream's tracked map points) need not match again."""
+        matches (the stream's tracked map points) need not match again.
+
+        With :attr:`coarse_keypoints` > 0 and a query of more keypoints, the coarse pass first
+        (the query's and map images' strongest :attr:`coarse_keypoints`, the same references);
+        its success is the answer (``est.keypoint_budget`` says so), else every keypoint is used
+        and the estimate's statistics count both passes."""
         t0 = time.perf_counter()
         query_gravity = None if gravity is None else unit_gravity("gravity", gravity)
         refs = list(references) if references is not None else self.retrieve(features)
@@ -444,8 +339,43 @@ class Localizer:
             )
             est.stats.add_time("retrieval", time.perf_counter() - t0)
             return est, []
+        retrieval_s = time.perf_counter() - t0
+        budget = self.coarse_keypoints
+        coarse = None
+        if 0 < budget < len(features):
+            coarse, pairs = self._estimate(features.first(budget), camera, refs, query_gravity, budget)
+            if coarse.success:
+                ranked = feature_type(self.features.kind).coarse_keypoints is not None
+                coarse.message = _joined(
+                    coarse.message,
+                    f"from the {budget} {'strongest' if ranked else 'first'} of the query's {len(features)} "
+                    "keypoints and of each map image's (the coarse pass)",
+                )
+                coarse.stats.add_time("retrieval", retrieval_s)
+                return coarse, pairs
+        est, pairs = self._estimate(features, camera, refs, query_gravity, 0)
+        if coarse is not None:
+            est.stats.merge(coarse.stats)
+            est.message = _joined(
+                est.message,
+                f"from all {len(features)} keypoints: the coarse pass of {budget} gave {coarse.status}",
+            )
+        est.stats.add_time("retrieval", retrieval_s)
+        return est, pairs
+
+    def _estimate(
+        self,
+        features: Features,
+        camera: Camera,
+        refs: Sequence[str],
+        query_gravity: np.ndarray | None,
+        budget: int,
+    ) -> tuple[PoseEstimate, list[PairMatches]]:
+        """One pass of :meth:`localize_pairs` on ``refs``: match (the map images' first ``budget``
+        keypoints if > 0, ``features`` as given), estimate, judge."""
         t1 = time.perf_counter()
-        pairs, used, (residual_px, focal_px) = self._pairs_and_map_residual(features, refs, camera)
+        found = self.matcher.match(features, refs, camera, self.match_settings(), budget)
+        pairs, used, (residual_px, focal_px) = found.pairs, found.names, found.disagreement
         t2 = time.perf_counter()
         if len(pairs) < 2:
             est = PoseEstimate(
@@ -475,7 +405,8 @@ class Localizer:
                     f"{map_wide.map_rotation_std_deg:.2g}°"
                 )
             if ransac.map_prior_measured and est.success and est.num_inliers_3d < CARRYING_3D_INLIERS:
-                return self._under_assumed_prior(features, camera, refs, query_gravity, est.num_inliers_3d)
+                num_3d = est.num_inliers_3d
+                return self._under_assumed_prior(features, camera, refs, query_gravity, num_3d, budget)
             if ransac.map_prior_measured and est.success and ransac.std_scale != 1.0:
                 est.message += (
                     f"; modelled position std x {ransac.std_scale:.2g}, as the map's held-out images "
@@ -486,19 +417,25 @@ class Localizer:
             est = self._unless_unseen(est, refs, pairs, camera)
             est.stats.add_time("covisibility", time.perf_counter() - t3)
         est.references = used
-        est.stats.add_time("retrieval", t1 - t0)
+        est.keypoint_budget = budget
         est.stats.add_time("matching", t2 - t1)
         return est, pairs
 
     def _under_assumed_prior(
-        self, features: Features, camera: Camera, refs: Sequence[str], gravity: np.ndarray | None, num_3d: int
+        self,
+        features: Features,
+        camera: Camera,
+        refs: Sequence[str],
+        gravity: np.ndarray | None,
+        num_3d: int,
+        budget: int,
     ) -> tuple[PoseEstimate, list[PairMatches]]:
         """The estimate of a pose that few 2D-3D inliers carry, judged again under the configured
         (assumed) map prior and keypoint noise: the measured ones, small on a well-posed map, say
         how precise points triangulated from it are, not that a query mostly matched 2D-2D is
         (:data:`CARRYING_3D_INLIERS`)."""
-        est, pairs = self.with_config(replace(self.config, map_prior="configured")).localize_pairs(
-            features, camera, refs, gravity=gravity
+        est, pairs = self.with_config(replace(self.config, map_prior="configured"))._estimate(
+            features, camera, refs, gravity, budget
         )
         est.message += (
             f"; judged under the configured map prior: only {num_3d} 2D-3D inliers (fewer than "

@@ -7,6 +7,8 @@ from collections.abc import Iterable
 from dataclasses import dataclass, field
 from typing import Any
 
+import numpy as np
+
 from planarloc.features.matching import DEFAULT_RATIO
 from planarloc.features.retrieval import DEFAULT_TOP_N
 from planarloc.geometry.validation import InputError
@@ -32,6 +34,16 @@ class LocalizerConfig:
             (:mod:`planarloc.map.pose_accuracy`, stored by ``map build``) where the map has one,
             else ``ransac.map_rotation_std_deg`` / ``map_position_std_m``; ``"configured"``:
             always those two options.
+        coarse_keypoints: a query first localizes from its ``coarse_keypoints`` strongest
+            keypoints against as many of each retrieved map image's (the coarse pass), and from
+            all of them only when that pass fails (its status is not ``success``): a quarter of
+            the similarities, and fewer matches to verify, pin most poses. Every pass is judged
+            in full, so a pose of the coarse pass is a promise as any other; it is less precise
+            (its std says by how much). ``None`` (default): the feature type's
+            (:attr:`~planarloc.features.registry.FeatureType.coarse_keypoints`: 2,048 for
+            ``xfeat``; no coarse pass for the others);
+            ``0``: every pass uses all keypoints. For a type that does not rank its keypoints
+            (``rootsift``), a number > 0 takes the first ones stored, not the strongest.
     """
 
     top_n: int = DEFAULT_TOP_N
@@ -41,11 +53,17 @@ class LocalizerConfig:
     use_depth: bool = False
     min_matches: int = 3
     map_prior: str = "measured"
+    coarse_keypoints: int | None = None
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "method", parse_method(self.method))  # a name ("2p1p") becomes its Method
         if self.map_prior not in MAP_PRIORS:
             raise InputError(f"map_prior: expected one of {', '.join(MAP_PRIORS)}, got {self.map_prior!r}")
+        n = self.coarse_keypoints
+        if n is not None:
+            if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 0:
+                raise InputError(f"coarse_keypoints: expected None or an integer >= 0, got {n!r}")
+            object.__setattr__(self, "coarse_keypoints", int(n))
         if int(self.top_n) < 2:
             raise InputError(f"top_n: need at least 2 reference images to fix the scale, got {self.top_n}")
 
@@ -60,12 +78,14 @@ def localizer_config(
     threshold_px: float | None = None,
     max_position_std_m: float | None = None,
     use_depth: bool | None = None,
+    coarse_keypoints: int | None = None,
 ) -> LocalizerConfig:
     """A :class:`LocalizerConfig` from the settings a front door lets its user choose.
 
     Every argument left None keeps the default of :class:`LocalizerConfig` /
     :class:`~planarloc.robust.options.RansacOptions`, so the CLI, the service and a ROS node
     configure alike. ``iterations`` fixes the number of RANSAC iterations (the paper: 100).
+    ``coarse_keypoints`` None keeps the feature type's coarse pass (:attr:`LocalizerConfig.coarse_keypoints`).
 
     Raises:
         InputError: a value the options refuse (unknown method or structure, out of range).
@@ -82,7 +102,12 @@ def localizer_config(
     if iterations is not None:
         ransac.update(min_iterations=iterations, max_iterations=iterations)
     config: dict[str, object] = {"ransac": RansacOptions(**ransac)}  # type: ignore[arg-type]
-    for key, value in (("method", method), ("top_n", top_n), ("use_depth", use_depth)):
+    for key, value in (
+        ("method", method),
+        ("top_n", top_n),
+        ("use_depth", use_depth),
+        ("coarse_keypoints", coarse_keypoints),
+    ):
         if value is not None:
             config[key] = value
     return LocalizerConfig(**config)  # type: ignore[arg-type]

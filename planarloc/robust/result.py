@@ -80,6 +80,10 @@ class PoseEstimate:
         map_prior: the map pose prior the estimate assumed, ``(rotation std in degrees,
             position std in metres)`` per map image (filled by the Localizer: the map's own
             measurement, raised where the retrieved images disagree); None if not known.
+        keypoint_budget: 0 when the estimate used every keypoint of the query and its map images;
+            else it used the first (strongest) ``keypoint_budget`` of each (filled by the
+            Localizer: its coarse pass,
+            :attr:`~planarloc.localize.localizer_config.LocalizerConfig.coarse_keypoints`).
     """
 
     pose: Pose | None
@@ -97,6 +101,7 @@ class PoseEstimate:
     model: str = ""
     covariance: np.ndarray | None = None
     map_prior: tuple[float, float] | None = None
+    keypoint_budget: int = 0
 
     def __post_init__(self) -> None:
         status = Status.of(self.status)

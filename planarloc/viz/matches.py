@@ -45,7 +45,9 @@ def query_pairs(
     Raises:
         ValueError: the re-matched references differ from the estimate's (the map changed).
     """
-    pairs, names = localizer.pairs_for(features, estimate.references, camera)
+    pairs, names = localizer.pairs_for(
+        features, estimate.references, camera, keypoint_budget=estimate.keypoint_budget
+    )
     if names != list(estimate.references):
         raise ValueError("the matches of this estimate cannot be recovered (did the map change?)")
     inliers: list[np.ndarray | None] = []

@@ -24,7 +24,7 @@ from planarloc.features.matching import match_query_to_refs
 from planarloc.features.registry import FEATURE_TYPES, check_map_feature_kind, feature_kind_of_config
 from planarloc.geometry.validation import InputError
 from planarloc.io.datasets import read_dataset
-from planarloc.localize.localizer import Localizer
+from planarloc.localize.localizer import Localizer, localizer_config
 from planarloc.map.builder import build_map
 from planarloc.map.settings import feature_config_from_map, map_config
 from planarloc.map.store import MapDatabase
@@ -165,6 +165,19 @@ def test_xfeat_matches_follow_a_known_shift_also_downscaled_and_tilted(image_pai
     assert (tilted.keypoints[:, 1] > -0.5).all() and (tilted.keypoints[:, 1] < 479.5).all()
 
 
+def test_xfeat_keypoints_come_strongest_first_so_a_smaller_budget_is_a_prefix(image_pair) -> None:
+    """The localizer's coarse pass takes the first keypoints of a query and of each map image as
+    what a smaller budget would extract (``FeatureType.coarse_keypoints``)."""
+    img, _, _ = image_pair
+    full = extract_features(img, FeatureConfig(kind="xfeat", max_features=1500))
+    assert len(full) == 1500
+    for n in (300, 1000):
+        small = extract_features(img, FeatureConfig(kind="xfeat", max_features=n))
+        head = full.first(n)
+        np.testing.assert_array_equal(head.keypoints, small.keypoints)
+        np.testing.assert_array_equal(head.descriptors, small.descriptors)
+
+
 def test_small_images_are_upsampled_for_xfeat_and_thumbnails_give_no_features() -> None:
     small = textured_image(np.random.default_rng(5), 120, 160)
     f = extract_features(small, FeatureConfig(kind="xfeat", max_features=500))
@@ -214,6 +227,28 @@ def test_a_map_of_each_learned_type_localizes_its_queries(kind: str, world_image
         if est.success:
             errors.append(float(np.linalg.norm(est.pose.center - q.cam_from_world.center)))
     assert len(errors) >= 2 and max(errors) < 0.25, errors
+
+
+def test_an_xfeat_map_localizes_from_its_strongest_keypoints_first(world_images, learned_maps) -> None:
+    """The coarse pass on an XFeat map: the default (2,048) exceeds these 2,000-keypoint queries,
+    so nothing changes; a budget of 800 poses the queries from their 800 strongest keypoints, each
+    pose within its promise, and hands a query it cannot pose to every keypoint."""
+    path = learned_maps("xfeat")
+    _, queries = world_images
+    default = Localizer(path)
+    assert default.coarse_keypoints == 2048
+    coarse = Localizer(path, localizer_config(coarse_keypoints=800))
+    budgets = []
+    for q in queries[:3]:
+        features = extract_features(cv2.imread(str(q.path), cv2.IMREAD_GRAYSCALE), default.features)
+        assert 800 < len(features) <= 2000
+        assert default.localize_features(features, q.camera).keypoint_budget == 0
+        est = coarse.localize_features(features, q.camera)
+        if est.success:
+            budgets.append(est.keypoint_budget)
+            error = float(np.linalg.norm(est.pose.center - q.cam_from_world.center))
+            assert error <= 3 * est.position_std_m + 0.05, (q.name, error, est.position_std_m)
+    assert budgets.count(800) >= 2, budgets
 
 
 def test_stored_xfeat_descriptors_round_trip(world_images, learned_maps) -> None:
