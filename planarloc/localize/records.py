@@ -24,8 +24,9 @@ Every record has (``null`` where a value is absent — never NaN or Infinity, :m
   "Pose covariances");
 - ``time_s``: seconds per stage, ``total`` among them.
 
-A fix adds the estimator's evidence (``num_inliers``, ``references``, ``model``, ...) and the map pose
-prior it assumed (``map_prior``: the map's measurement, :mod:`planarloc.map.pose_accuracy`); a frame adds
+A fix adds the estimator's evidence (``num_inliers``, ``references``, ``model``, ...), the map pose
+prior it assumed (``map_prior``: the map's measurement, :mod:`planarloc.map.pose_accuracy`) and the
+keypoints it used (``keypoint_budget``: 0 for all, else the coarse pass's budget); a frame adds
 the stream's bookkeeping (``fix_status``, ``motion_source``, ``late``, ..., and ``fix``: the fix
 record handled in its step).
 """
@@ -122,6 +123,7 @@ def query_record(
             "rotation_std_deg": float(estimate.map_prior[0]),
             "position_std_m": float(estimate.map_prior[1]),
         },
+        "keypoint_budget": int(estimate.keypoint_budget),
     }
 
 

@@ -123,6 +123,7 @@ class PoseEstimate:
             "time_s": dict(self.stats.time_s),
             "references": list(self.references),
             "model": self.model,
+            "keypoint_budget": int(self.keypoint_budget),
         }
         if self.pose is not None:
             d["quat_wxyz"] = [float(v) for v in self.pose.quat_wxyz]

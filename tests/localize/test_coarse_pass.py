@@ -8,6 +8,7 @@ pass that fails hands over to the full one, whose answer is the full pass's own.
 
 from __future__ import annotations
 
+import json
 from dataclasses import replace
 from pathlib import Path
 
@@ -136,5 +137,8 @@ def test_the_command_line_takes_and_checks_the_coarse_budget(
     budget = int(0.6 * len(_query_features(Localizer(path), queries[0])))
     argv = ["localize", "--map", path, "--coarse-keypoints", budget, "--out", tmp_path / "poses.txt"]
     assert main([str(a) for a in [*argv, "--json-dir", records, queries[0].path]]) == 0
-    (record,) = records.glob("*.json")
-    assert f"from the {budget} first of the query's" in record.read_text()
+    (path_json,) = records.glob("*.json")
+    record = json.loads(path_json.read_text())
+    assert (
+        record["keypoint_budget"] == budget and f"from the {budget} first of the query's" in record["message"]
+    )
