@@ -25,6 +25,9 @@ Data sets (map / queries):
   all of entry_p10, whose facade stands far in the background of the fountain images) and
   ``entry-to-fountain``.
 
+Maps are RootSIFT unless ``--features NAME`` (e.g. ``xfeat``, with ``planarloc[learned]``);
+``--coarse-keypoints N [N ...]`` adds one configuration per coarse-pass budget (0: none; default:
+the type's, :attr:`planarloc.localize.localizer_config.LocalizerConfig.coarse_keypoints`).
 Queries are localized with the default Localizer (VLAD top-5) and no query gravity, unless
 ``--query-gravity truth`` (generated worlds only: the true gravity of ``gravity.txt``; needs a
 Localizer whose ``localize_features`` accepts ``gravity=``). Worlds and maps are cached under
@@ -38,6 +41,7 @@ Localizer whose ``localize_features`` accepts ``gravity=``). Worlds and maps are
     python benchmarks/trust.py --quick
     python benchmarks/trust.py --json trust.json --markdown trust.md
     python benchmarks/trust.py --datasets office-tilt3-pitch0 offplane --methods 2p1p
+    python benchmarks/trust.py --features xfeat --methods auto --coarse-keypoints 0 2048
 """
 
 from __future__ import annotations
@@ -69,8 +73,9 @@ from planarloc.evaluation.queries import (
     split_map_queries,
     threshold_name,
 )
-from planarloc.features.extract import extract_features  # noqa: E402
+from planarloc.features.extract import FeatureConfig, extract_features  # noqa: E402
 from planarloc.features.images import read_gray  # noqa: E402
+from planarloc.features.registry import DEFAULT_FEATURE_TYPE, FEATURE_TYPES  # noqa: E402
 from planarloc.io.datasets import read_dataset  # noqa: E402
 from planarloc.localize.localizer import Localizer, LocalizerConfig  # noqa: E402
 from planarloc.map.posed_image import PosedImage  # noqa: E402
@@ -419,9 +424,25 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
         action="store_true",
         help="CI gate: 3 data sets, default method; exit 1 on any success beyond 1 m or 20°",
     )
+    p.add_argument(
+        "--features",
+        default=DEFAULT_FEATURE_TYPE,
+        choices=list(FEATURE_TYPES),
+        help="the maps' feature type (default: %(default)s; the learned ones need their extra)",
+    )
+    p.add_argument(
+        "--coarse-keypoints",
+        nargs="+",
+        type=int,
+        metavar="N",
+        help="the localizer's coarse pass, one configuration per value (0: none; default: the type's)",
+    )
     p.add_argument("--json", type=Path, help="write all metrics and per-query results here")
     p.add_argument("--markdown", type=Path, help="write the table as markdown (for BENCHMARKS.md)")
     args = p.parse_args(argv)
+    if args.coarse_keypoints is not None and min(args.coarse_keypoints) < 0:
+        p.error(f"--coarse-keypoints: expected N >= 0, got {args.coarse_keypoints}")
+    args.coarse_keypoints = args.coarse_keypoints or [None]
     args.world_frames = tuple(args.world_frames)
     if min(args.world_frames) < 2:
         p.error(f"--world-frames: need at least 2 map and 2 query frames, got {args.world_frames}")
@@ -435,11 +456,14 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
 
 
 def run_dataset(data: DataSet, args: argparse.Namespace, root: Path, update) -> list[dict]:
-    map_path, build_s = cache.cached_map(data.map_images, data.name, root, progress=update)
+    features = FeatureConfig(kind=args.features)
+    label = data.name if args.features == DEFAULT_FEATURE_TYPE else f"{data.name}-{args.features}"
+    map_path, build_s = cache.cached_map(data.map_images, label, root, features=features, progress=update)
     configs = [
-        LocalizerConfig(method=m, ransac=RansacOptions(structure=s))
+        LocalizerConfig(method=m, ransac=RansacOptions(structure=s), coarse_keypoints=c)
         for m in args.methods
         for s in args.structures
+        for c in args.coarse_keypoints
     ]
     t0 = time.perf_counter()
     with MapDatabase.open(map_path) as db:
@@ -454,7 +478,9 @@ def run_dataset(data: DataSet, args: argparse.Namespace, root: Path, update) -> 
         {
             "dataset": data.name,
             "source": data.source,
-            "method": config_label(c)[0],
+            "method": config_label(c)[0]
+            + ("" if c.coarse_keypoints is None else f" coarse={c.coarse_keypoints}"),
+            "features": args.features,
             "structure": config_label(c)[1],
             "map_images": len(data.map_images),
             "queries": len(data.queries),

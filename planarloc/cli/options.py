@@ -219,7 +219,15 @@ def add_localizer_args(p: argparse.ArgumentParser) -> None:
         default=None,
         metavar="N",
         help="localize from the N strongest keypoints first, from all only when that fails; 0: all "
-        "keypoints at once (default: the map's feature type's: 2048 for xfeat, 0 for the others)",
+        "keypoints at once (default: the map's feature type's with --structure tracks: 2048 for xfeat, "
+        "0 for the others; 0 with --structure none)",
+    )
+    g.add_argument(
+        "--coarse-top-n",
+        type=int,
+        default=_LOC.coarse_top_n,
+        metavar="K",
+        help="map images the coarse pass matches: the first K retrieved (default: %(default)s)",
     )
 
 
@@ -227,7 +235,7 @@ def localizer_config_of(args: argparse.Namespace) -> LocalizerConfig:
     """The :class:`LocalizerConfig` of the localization options (:func:`localizer_config`)."""
     return localizer_config_from(
         args,
-        (*SHARED_SETTINGS, "iterations", "use_depth", "coarse_keypoints"),
+        (*SHARED_SETTINGS, "iterations", "use_depth", "coarse_keypoints", "coarse_top_n"),
         threshold_px=args.threshold,
         max_position_std_m=args.max_position_std,
     )

@@ -166,9 +166,16 @@ class Localizer:
     def coarse_keypoints(self) -> int:
         """How many strongest keypoints a query's coarse pass uses (0: no coarse pass):
         ``config.coarse_keypoints``, else the map's feature type's
-        (:attr:`~planarloc.features.registry.FeatureType.coarse_keypoints`)."""
+        (:attr:`~planarloc.features.registry.FeatureType.coarse_keypoints`) with local structure
+        (``tracks``) and none without: on 2D-2D constraints alone, XFeat's coarse pass broke 2
+        promises in 246 successes (generated worlds pitched 10°, 0.29 and 0.60 m off at 4.7 and
+        5.7 stds; every keypoint: 0 in 238), with local structure 0 in 377 (BENCHMARKS.md)."""
         n = self.config.coarse_keypoints
-        return int(feature_type(self.features.kind).coarse_keypoints or 0) if n is None else n
+        if n is not None:
+            return n
+        if self.config.ransac.structure != Structure.TRACKS:
+            return 0
+        return int(feature_type(self.features.kind).coarse_keypoints or 0)
 
     @property
     def pair_cache(self) -> PairMatchCache:
@@ -319,7 +326,8 @@ class Localizer:
         matches (the stream's tracked map points) need not match again.
 
         With :attr:`coarse_keypoints` > 0 and a query of more keypoints, the coarse pass first
-        (the query's and map images' strongest :attr:`coarse_keypoints`, the same references);
+        (the query's strongest :attr:`coarse_keypoints` against as many of each of the first
+        ``config.coarse_top_n`` references');
         its success is the answer (``est.keypoint_budget`` says so), else every keypoint is used
         and the estimate's statistics count both passes."""
         t0 = time.perf_counter()
@@ -343,13 +351,14 @@ class Localizer:
         budget = self.coarse_keypoints
         coarse = None
         if 0 < budget < len(features):
-            coarse, pairs = self._estimate(features.first(budget), camera, refs, query_gravity, budget)
+            nearest = refs[: self.config.coarse_top_n]
+            coarse, pairs = self._estimate(features.first(budget), camera, nearest, query_gravity, budget)
             if coarse.success:
                 ranked = feature_type(self.features.kind).coarse_keypoints is not None
                 coarse.message = _joined(
                     coarse.message,
                     f"from the {budget} {'strongest' if ranked else 'first'} of the query's {len(features)} "
-                    "keypoints and of each map image's (the coarse pass)",
+                    f"keypoints and of each of the first {len(nearest)} map images' (the coarse pass)",
                 )
                 coarse.stats.add_time("retrieval", retrieval_s)
                 return coarse, pairs

@@ -35,15 +35,21 @@ class LocalizerConfig:
             else ``ransac.map_rotation_std_deg`` / ``map_position_std_m``; ``"configured"``:
             always those two options.
         coarse_keypoints: a query first localizes from its ``coarse_keypoints`` strongest
-            keypoints against as many of each retrieved map image's (the coarse pass), and from
-            all of them only when that pass fails (its status is not ``success``): a quarter of
-            the similarities, and fewer matches to verify, pin most poses. Every pass is judged
+            keypoints against as many of each of its ``coarse_top_n`` first retrieved map images
+            (the coarse pass), and from all of them against every retrieved image only when that
+            pass fails (its status is not ``success``): a quarter of the similarities per image,
+            fewer images, fewer matches to verify, and most poses are pinned. Every pass is judged
             in full, so a pose of the coarse pass is a promise as any other; it is less precise
             (its std says by how much). ``None`` (default): the feature type's
             (:attr:`~planarloc.features.registry.FeatureType.coarse_keypoints`: 2,048 for
-            ``xfeat``; no coarse pass for the others);
+            ``xfeat``; no coarse pass for the others) with local structure (``tracks``, the
+            default), none on 2D-2D constraints alone (``ransac.structure`` ``none``: there the
+            coarse pass broke promises, :attr:`~planarloc.localize.localizer.Localizer.coarse_keypoints`);
             ``0``: every pass uses all keypoints. For a type that does not rank its keypoints
             (``rootsift``), a number > 0 takes the first ones stored, not the strongest.
+        coarse_top_n: how many of the retrieved map images (the first, most similar ones) the
+            coarse pass matches (at least 2). 3 of the 5: with XFeat, as many successes on the
+            shared and generated sets as all 5, in 0.6–0.85x the time (BENCHMARKS.md).
     """
 
     top_n: int = DEFAULT_TOP_N
@@ -54,6 +60,7 @@ class LocalizerConfig:
     min_matches: int = 3
     map_prior: str = "measured"
     coarse_keypoints: int | None = None
+    coarse_top_n: int = 3
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "method", parse_method(self.method))  # a name ("2p1p") becomes its Method
@@ -64,6 +71,10 @@ class LocalizerConfig:
             if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 0:
                 raise InputError(f"coarse_keypoints: expected None or an integer >= 0, got {n!r}")
             object.__setattr__(self, "coarse_keypoints", int(n))
+        k = self.coarse_top_n
+        if isinstance(k, bool) or not isinstance(k, (int, np.integer)) or k < 2:
+            raise InputError(f"coarse_top_n: need at least 2 reference images, got {k!r}")
+        object.__setattr__(self, "coarse_top_n", int(k))
         if int(self.top_n) < 2:
             raise InputError(f"top_n: need at least 2 reference images to fix the scale, got {self.top_n}")
 
@@ -79,6 +90,7 @@ def localizer_config(
     max_position_std_m: float | None = None,
     use_depth: bool | None = None,
     coarse_keypoints: int | None = None,
+    coarse_top_n: int | None = None,
 ) -> LocalizerConfig:
     """A :class:`LocalizerConfig` from the settings a front door lets its user choose.
 
@@ -107,6 +119,7 @@ def localizer_config(
         ("top_n", top_n),
         ("use_depth", use_depth),
         ("coarse_keypoints", coarse_keypoints),
+        ("coarse_top_n", coarse_top_n),
     ):
         if value is not None:
             config[key] = value

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 import cv2
@@ -237,6 +238,9 @@ def test_an_xfeat_map_localizes_from_its_strongest_keypoints_first(world_images,
     _, queries = world_images
     default = Localizer(path)
     assert default.coarse_keypoints == 2048
+    flat = localizer_config(structure="none")  # 2D-2D only: no coarse pass unless asked for
+    assert Localizer(path, flat).coarse_keypoints == 0
+    assert Localizer(path, replace(flat, coarse_keypoints=900)).coarse_keypoints == 900
     coarse = Localizer(path, localizer_config(coarse_keypoints=800))
     budgets = []
     for q in queries[:3]:

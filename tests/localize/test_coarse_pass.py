@@ -57,6 +57,8 @@ def test_first_features_are_read_only_views_of_the_leading_rows() -> None:
 def test_a_bad_coarse_budget_is_refused_in_one_line(bad: object) -> None:
     with pytest.raises(InputError, match="coarse_keypoints: expected None or an integer >= 0"):
         LocalizerConfig(coarse_keypoints=bad)  # type: ignore[arg-type]
+    with pytest.raises(InputError, match="coarse_top_n: need at least 2 reference images"):
+        LocalizerConfig(coarse_top_n=bad if bad != -1 else 1)  # type: ignore[arg-type]
 
 
 def test_the_feature_types_default_budget_applies_unless_configured(world_map: tuple) -> None:
@@ -80,6 +82,7 @@ def test_a_coarse_pose_keeps_its_promise_and_its_matches_can_be_recovered(world_
         est, pairs = coarse.localize_pairs(features, q.camera)
         assert est.success, (q.name, est.status, est.message)
         assert est.keypoint_budget == budget and "coarse pass" in est.message
+        assert set(est.references) <= set(loc.retrieve(features)[:3])  # the coarse pass's 3 nearest
         used += 1
         for name, pair in zip(est.references, pairs):  # every match is between leading keypoints
             assert pair.query_indices.max() < budget
