@@ -93,6 +93,9 @@ class NodeSettings:
             localize --features``); another is refused when the node starts; empty: the map's own
             (frames always use the map's features).
         seed: the RANSAC seed (``planarloc localize --seed``).
+        coarse_keypoints: a fix localizes from this many strongest keypoints first, from all only
+            when that fails (``planarloc localize --coarse-keypoints``); -1: the map's feature
+            type's (2048 for xfeat with ``structure`` ``tracks``, none otherwise); 0: none.
         window: poses kept in the stream's sliding-window pose graph.
         local_top_n: map images nearest to the predicted pose used for a fix.
         vo_model: frame-to-frame motion model: ``planar``, ``6dof`` or ``auto``.
@@ -128,6 +131,7 @@ class NodeSettings:
     top_n: int = _LOC.top_n
     features: str = ""
     seed: int = int(_LOC.ransac.seed or 0)
+    coarse_keypoints: int = -1
     window: int = _SEQ.window
     local_top_n: int = _SEQ.local_top_n
     vo_model: str = _SEQ.vo_model
@@ -155,6 +159,11 @@ class NodeSettings:
         for name in ("odom_tolerance_s", "max_position_std_m", "max_published_std_m"):
             if not getattr(self, name) > 0:
                 raise InputError(f"parameter {name}: expected a number > 0, got {getattr(self, name)}")
+        if self.coarse_keypoints < -1:
+            raise InputError(
+                "parameter coarse_keypoints: expected -1 (the feature type's), 0 or more, "
+                f"got {self.coarse_keypoints}"
+            )
         if self.queue_size < 1:
             raise InputError(f"parameter queue_size: expected an integer >= 1, got {self.queue_size}")
         if not self.transform_tolerance_s >= 0:
@@ -176,7 +185,10 @@ class NodeSettings:
     def localizer_config(self) -> LocalizerConfig:
         """The fixes' single-frame localizer configuration (``method`` and ``structure`` parsed here,
         the ROS parameters' edge; what is not a parameter keeps :class:`LocalizerConfig`'s default)."""
-        return localizer_config_from(self, (*LOCALIZER_SETTINGS, "max_position_std_m"))
+        coarse = None if self.coarse_keypoints == -1 else self.coarse_keypoints
+        return localizer_config_from(
+            self, (*LOCALIZER_SETTINGS, "max_position_std_m"), coarse_keypoints=coarse
+        )
 
     def sequence_config(self) -> SequenceConfig:
         """The stream's configuration (what is not a parameter keeps :class:`SequenceConfig`'s default)."""

@@ -87,3 +87,11 @@ def test_parameters_are_parsed_into_the_enums_at_the_edge() -> None:
     for name in ("method", "structure"):
         with pytest.raises(InputError, match=f"parameter {name}: expected one of"):
             NodeSettings(map="m.db", **{name: "bogus"})
+
+
+def test_the_coarse_pass_parameter_keeps_the_feature_types_default_unless_set() -> None:
+    assert NodeSettings(map="m.db").localizer_config().coarse_keypoints is None  # -1: the type's
+    assert NodeSettings(map="m.db", coarse_keypoints=0).localizer_config().coarse_keypoints == 0
+    assert NodeSettings(map="m.db", coarse_keypoints=1500).localizer_config().coarse_keypoints == 1500
+    with pytest.raises(InputError, match="parameter coarse_keypoints: expected -1"):
+        NodeSettings(map="m.db", coarse_keypoints=-2)
