@@ -168,8 +168,9 @@ class Localizer:
         ``config.coarse_keypoints``, else the map's feature type's
         (:attr:`~planarloc.features.registry.FeatureType.coarse_keypoints`) with local structure
         (``tracks``) and none without: on 2D-2D constraints alone, XFeat's coarse pass broke 2
-        promises in 246 successes (generated worlds pitched 10°, 0.29 and 0.60 m off at 4.7 and
-        5.7 stds; every keypoint: 0 in 238), with local structure 0 in 377 (BENCHMARKS.md)."""
+        promises in 240-246 successes (generated worlds with pitched cameras or tilted floors,
+        0.29-0.60 m off at 4.4-6.7 stds; every keypoint: 0 in 238), with local structure 0 in
+        377 (BENCHMARKS.md, "The coarse pass")."""
         n = self.config.coarse_keypoints
         if n is not None:
             return n
@@ -325,11 +326,11 @@ class Localizer:
         ``est.references``, in that order, as ``est.inliers``): callers that need the inliers'
         matches (the stream's tracked map points) need not match again.
 
-        With :attr:`coarse_keypoints` > 0 and a query of more keypoints, the coarse pass first
-        (the query's strongest :attr:`coarse_keypoints` against as many of each of the first
-        ``config.coarse_top_n`` references');
-        its success is the answer (``est.keypoint_budget`` says so), else every keypoint is used
-        and the estimate's statistics count both passes."""
+        With :attr:`coarse_keypoints` > 0 and a query of more keypoints, the coarse pass comes
+        first: the query's strongest :attr:`coarse_keypoints` against as many of each of the
+        first ``config.coarse_top_n`` references'. Its success is the answer
+        (``est.keypoint_budget`` says so); otherwise every keypoint is matched against every
+        reference, and the estimate's statistics count both passes."""
         t0 = time.perf_counter()
         query_gravity = None if gravity is None else unit_gravity("gravity", gravity)
         refs = list(references) if references is not None else self.retrieve(features)
