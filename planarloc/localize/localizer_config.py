@@ -7,11 +7,9 @@ from collections.abc import Iterable
 from dataclasses import dataclass, field
 from typing import Any
 
-import numpy as np
-
 from planarloc.features.matching import DEFAULT_RATIO
 from planarloc.features.retrieval import DEFAULT_TOP_N
-from planarloc.geometry.validation import InputError
+from planarloc.geometry.validation import InputError, check_integer
 from planarloc.robust.options import Method, RansacOptions, Structure, parse_method
 
 MAP_PRIORS = ("measured", "configured")
@@ -66,15 +64,11 @@ class LocalizerConfig:
         object.__setattr__(self, "method", parse_method(self.method))  # a name ("2p1p") becomes its Method
         if self.map_prior not in MAP_PRIORS:
             raise InputError(f"map_prior: expected one of {', '.join(MAP_PRIORS)}, got {self.map_prior!r}")
-        n = self.coarse_keypoints
-        if n is not None:
-            if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 0:
-                raise InputError(f"coarse_keypoints: expected None or an integer >= 0, got {n!r}")
-            object.__setattr__(self, "coarse_keypoints", int(n))
-        k = self.coarse_top_n
-        if isinstance(k, bool) or not isinstance(k, (int, np.integer)) or k < 2:
-            raise InputError(f"coarse_top_n: need at least 2 reference images, got {k!r}")
-        object.__setattr__(self, "coarse_top_n", int(k))
+        check_integer("coarse_keypoints", self.coarse_keypoints, 0, allow_none=True)
+        check_integer("coarse_top_n", self.coarse_top_n, 2)
+        if self.coarse_keypoints is not None:
+            object.__setattr__(self, "coarse_keypoints", int(self.coarse_keypoints))
+        object.__setattr__(self, "coarse_top_n", int(self.coarse_top_n))
         if int(self.top_n) < 2:
             raise InputError(f"top_n: need at least 2 reference images to fix the scale, got {self.top_n}")
 

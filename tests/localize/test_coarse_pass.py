@@ -57,7 +57,7 @@ def test_first_features_are_read_only_views_of_the_leading_rows() -> None:
 def test_a_bad_coarse_budget_is_refused_in_one_line(bad: object) -> None:
     with pytest.raises(InputError, match="coarse_keypoints: expected None or an integer >= 0"):
         LocalizerConfig(coarse_keypoints=bad)  # type: ignore[arg-type]
-    with pytest.raises(InputError, match="coarse_top_n: need at least 2 reference images"):
+    with pytest.raises(InputError, match="coarse_top_n: expected an integer >= 2"):
         LocalizerConfig(coarse_top_n=bad if bad != -1 else 1)  # type: ignore[arg-type]
 
 
