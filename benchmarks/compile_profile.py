@@ -12,10 +12,19 @@ Targets:
   localize  ``planarloc localize`` of one KITTI frame against a map of every 4th frame (built
             first, in another process: no kernels involved)
   demo      ``planarloc demo`` (render, map build, both structure modes)
+  fuse      the price of fewer compiled calls (issue 31): a new kernel whose only work is to call
+            one compiled kernel (the final refinement, ``refine_until_stable``) twice, compiled
+            after that kernel is in the cache (numba links the callee's code into the caller and
+            optimises it again): what fusing Python-level stages into one kernel adds to a cold start
+  ahead:N   compiling ahead as a cold ``planarloc localize`` does (the kernels of its warm-up step,
+            ``auto tracks``) on N worker processes: wall, CPU of the workers, and how busy they
+            were; ``ahead:1 ahead:2`` shows what a second core buys and what the per-process
+            compilation of numba's own functions costs
   STEP      a warm-up step of ``planarloc warmup`` by name, e.g. ``"auto tracks"``
 
     python benchmarks/compile_profile.py localize demo
     python benchmarks/compile_profile.py localize --opt 2 --top 15 --json prof.json
+    python benchmarks/compile_profile.py fuse ahead:1 ahead:2
 """
 
 from __future__ import annotations
@@ -41,7 +50,7 @@ KITTI = REPO.parent / "shared" / "data" / "kitti_seq2"
 
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("targets", nargs="*", help="localize, demo or a warm-up step name")
+    p.add_argument("targets", nargs="*", help="localize, demo, fuse, ahead:N or a warm-up step name")
     p.add_argument(
         "--kitti",
         type=Path,
@@ -57,7 +66,12 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument("--top", type=int, default=25, help="kernels listed per target (default: %(default)s)")
     p.add_argument("--json", type=Path, help="write the measurements here")
     p.add_argument("--child", nargs=3, metavar=("TARGET", "WORK", "OUT"), help=argparse.SUPPRESS)
-    return p.parse_args(argv)
+    args = p.parse_args(argv)
+    for target in args.targets:
+        jobs = target.partition(":")[2] if target.startswith("ahead:") else "1"
+        if not (jobs.isdigit() and int(jobs) >= 1):
+            p.error(f"target {target!r}: ahead:N takes a number of worker processes N >= 1, e.g. ahead:2")
+    return args
 
 
 def _child(target: str, work: Path, out: Path) -> int:
@@ -65,6 +79,7 @@ def _child(target: str, work: Path, out: Path) -> int:
     from planarloc.cli import main as cli
     from planarloc.compile import CompileRecorder, compile_lazily, run_steps
 
+    extra: dict = {}
     t0, c0 = time.perf_counter(), time.process_time()
     with compile_lazily(), CompileRecorder() as rec:  # lazy compilation, in this process
         if target == "localize":
@@ -74,6 +89,12 @@ def _child(target: str, work: Path, out: Path) -> int:
             )
         elif target == "demo":
             code = cli.main(["demo", "--out", str(work / "demo")])
+        elif target == "fuse":
+            extra = _fuse_cost()
+            code = 0
+        elif target.startswith("ahead:"):
+            extra = _ahead_cost(int(target.partition(":")[2]))
+            code = 0
         else:
             run_steps([target])
             code = 0
@@ -85,10 +106,99 @@ def _child(target: str, work: Path, out: Path) -> int:
                 "wall_s": time.perf_counter() - t0,
                 "cpu_s": time.process_time() - c0,
                 "exit_code": code,
+                **extra,
             }
         )
     )
     return int(code)
+
+
+def _fuse_cost() -> dict:
+    """Compile CPU of ``refine_until_stable`` on a small problem, then of a new kernel that calls
+    it twice (``rounds`` a run-time value: a literal would compile another specialisation)."""
+    import numpy as np
+    from numba import njit
+
+    from planarloc.robust.estimators import Planar2p1pEstimator
+    from planarloc.robust.final_refinement import refine_until_stable
+    from planarloc.robust.options import RansacOptions
+    from planarloc.robust.problem import build_problem
+    from planarloc.synthetic.scenes import make_scene
+
+    sc = make_scene(
+        np.random.default_rng(0), num_refs=3, matches_per_pair=30, noise_px=1.0, outlier_ratio=0.0
+    )
+    problem = build_problem(sc.query_camera, sc.pairs)
+    settings = Planar2p1pEstimator(problem, RansacOptions()).refine_settings(6)
+    R, t, rounds = sc.query_pose.R.copy(), sc.query_pose.t.copy(), int(np.int64(4))
+    c0 = time.process_time()
+    first = refine_until_stable(R, t, problem.arrays, settings, rounds)
+    callee_s = time.process_time() - c0
+
+    @njit
+    def twice(R, t, prob, settings, rounds):
+        return (
+            refine_until_stable(R, t, prob, settings, rounds).score
+            + refine_until_stable(R, t, prob, settings, rounds).score
+        )
+
+    c0 = time.process_time()
+    fused = twice(R, t, problem.arrays, settings, rounds)
+    caller_s = time.process_time() - c0
+    if not np.isclose(fused, 2.0 * first.score):
+        raise RuntimeError(f"the fused call disagrees: {fused} != 2 x {first.score}")
+    return {"fuse": {"callee_compile_cpu_s": callee_s, "caller_compile_cpu_s": caller_s}}
+
+
+def _ahead_cost(jobs: int) -> dict:
+    """Compile the kernels of the ``auto tracks`` step as a cold localize does, on ``jobs``
+    worker processes, each worker's busy time read from the schedule."""
+    import threading
+
+    from planarloc.compile import load_manifest
+    from planarloc.compile import schedule as sched
+    from planarloc.compile.cache import missing_kernels
+
+    manifest = load_manifest()
+    keys = missing_kernels(manifest.for_steps(["auto tracks"]), manifest)
+    busy: dict[int, float] = defaultdict(float)
+    started: dict[str, float] = {}
+    took: dict[str, float] = {}
+    take, finish = sched._Schedule.take, sched._Schedule.finish
+
+    def timed_take(self):  # type: ignore[no-untyped-def]
+        key = take(self)
+        if key is not None:
+            started[key] = time.perf_counter()
+        return key
+
+    def timed_finish(self, key):  # type: ignore[no-untyped-def]
+        took[key] = time.perf_counter() - started[key]
+        busy[threading.get_ident()] += took[key]
+        finish(self, key)
+
+    sched._Schedule.take, sched._Schedule.finish = timed_take, timed_finish  # type: ignore[method-assign]
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
+    t0 = time.perf_counter()
+    try:
+        done = sched.compile_kernels(keys, manifest, jobs)
+    finally:
+        sched._Schedule.take, sched._Schedule.finish = take, finish  # type: ignore[method-assign]
+    wall = time.perf_counter() - t0
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return {
+        "ahead": {
+            "jobs": jobs,
+            "kernels": len(keys),
+            "compiled": done.compiled,
+            "failed": sorted(done.failed),
+            "wall_s": wall,
+            "workers_cpu_s": after.ru_utime + after.ru_stime - before.ru_utime - before.ru_stime,
+            "busy_s": sorted(busy.values(), reverse=True),
+            "longest": sorted(took.items(), key=lambda kv: -kv[1])[:3],
+            "estimated_s": sched.estimated_seconds(keys, manifest, jobs),
+        }
+    }
 
 
 def profile(target: str, args: argparse.Namespace, work: Path) -> dict:
@@ -109,6 +219,28 @@ def profile(target: str, args: argparse.Namespace, work: Path) -> dict:
 
 
 def report(target: str, rec: dict, top: int) -> None:
+    if "fuse" in rec:
+        f = rec["fuse"]
+        callee, caller = f["callee_compile_cpu_s"], f["caller_compile_cpu_s"]
+        print(
+            f"{target}: refine_until_stable and its callees compile in {callee:.1f} s of CPU on an empty "
+            f"cache; a new kernel that only calls it twice then takes {caller:.1f} s more "
+            f"({caller / callee:.0%} of the callee's own)\n"
+        )
+        return
+    if "ahead" in rec:
+        a = rec["ahead"]
+        print(
+            f"{target}: {a['compiled']} of {a['kernels']} kernels compiled ahead on {a['jobs']} worker(s) in "
+            f"{a['wall_s']:.1f} s wall, {a['workers_cpu_s']:.1f} s of the workers' CPU; each worker busy "
+            + " / ".join(f"{b:.1f}" for b in a["busy_s"])
+            + f" s; the notice's estimate {a['estimated_s']:.1f} s; longest single tasks "
+            "(a bound on the wall with more cores): "
+            + ", ".join(f"{k.partition(':')[2]} {v:.1f} s" for k, v in a["longest"])
+            + (f"; failed: {a['failed']}" if a["failed"] else "")
+            + "\n"
+        )
+        return
     kernels = rec["kernels"]
     total = sum(s for sigs in kernels.values() for s in sigs.values())
     nsig = sum(len(sigs) for sigs in kernels.values())

@@ -62,8 +62,9 @@ def _direct_callees(d) -> set:
 
 
 def kernel_dependencies(keys: Sequence[str]) -> dict[str, set[str]]:
-    """For each kernel, the kernels among ``keys`` it calls, directly or through kernels that are
-    inlined into it (``inline="always"``: compiled as part of the caller)."""
+    """For each kernel, the kernels among ``keys`` it calls, directly or through kernels compiled
+    as part of it: those inlined into it (``inline="always"``) and those not among ``keys``
+    (a kernel not handed out compiles in the process of its first caller, with its callees)."""
     dispatchers = {k: dispatcher(k) for k in keys}
     key_of = {d: k for k, d in dispatchers.items() if d is not None}
     memo: dict[object, set] = {}
@@ -75,7 +76,7 @@ def kernel_dependencies(keys: Sequence[str]) -> dict[str, set[str]]:
         for c in _direct_callees(d):
             if c in seen:
                 continue
-            if c.targetoptions.get("inline") == "always":
+            if c.targetoptions.get("inline") == "always" or c not in key_of:
                 out |= calls(c, seen | {c})
             else:
                 out.add(c)

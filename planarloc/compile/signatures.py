@@ -8,13 +8,26 @@ import re
 from collections.abc import Callable
 
 
+class _LiteralOf:
+    """``Literal[int](5)``, ``Literal[bool](True)`` (the repr of numba's literal types) -> the type of
+    that constant: a kernel called with a constant argument compiles a specialisation for its value."""
+
+    def __getitem__(self, _kind: object) -> Callable[[object], object]:
+        from numba.core import types
+
+        return types.literal
+
+
 def numba_types() -> dict[str, object]:
-    """The names a signature may use: numba's type names, plus ``bool`` and ``omitted``."""
+    """The names a signature may use: numba's type names, plus ``bool``, ``omitted`` and the
+    literal types (``Literal[int](5)``)."""
     from numba.core import types
 
     names = {k: v for k, v in vars(types).items() if not k.startswith("_")}
     names["bool"] = types.boolean  # repr(types.boolean) is 'bool'
     names["omitted"] = lambda default: types.Omitted(default)  # repr: 'omitted(default=...)'
+    names["Literal"] = _LiteralOf()
+    names["int"] = int  # only as the subscript of ``Literal[int]``
     # the kernels' named records (typing.NamedTuple): repr 'ProblemArrays(array(float64, 2d, C), ...)'
     for record in kernel_records():
         names[record.__name__] = _record_type(record)
@@ -79,8 +92,8 @@ _SIGNATURE_NODES = (
 
 def parse_signature(text: str, names: dict[str, object] | None = None) -> tuple | None:
     """The argument types of a signature written as ``repr(tuple_of_numba_types)``; None if it
-    does not parse (e.g. a literal type) or is not made only of numba type names, calls, constants
-    and tuples (the list is data: it is never evaluated as code beyond that)."""
+    does not parse or is not made only of numba type names, calls, subscripts, constants and
+    tuples (the list is data: it is never evaluated as code beyond that)."""
     try:
         text = _SHORT_ARRAY.sub(r"Array(\1, \2, '\3')", text)
         if (
