@@ -1,5 +1,6 @@
 """Kernel signatures as ``kernels.json`` writes them (``repr`` of a tuple of numba types), read
-back as data: never evaluated as code beyond numba type names, calls, constants and tuples."""
+back as data: never evaluated as code beyond numba type names, calls and subscripts of them, constants
+and tuples (``Literal[int](5)``: the type of a constant argument)."""
 
 from __future__ import annotations
 
