@@ -36,7 +36,7 @@ import robustness as rb  # noqa: E402
 from poselib_peer import estimate_query_pose_poselib  # noqa: E402
 
 import planarloc.robust.absolute_pose as absolute_pose  # noqa: E402
-from planarloc.robust.options import RansacOptions  # noqa: E402
+from planarloc.robust.options import RansacOptions, parse_method  # noqa: E402
 from planarloc.synthetic.scenes import make_scene  # noqa: E402
 
 # The stages of one estimate: (module, attribute, label). Each is timed where it is called from.
@@ -146,6 +146,10 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     args = p.parse_args(argv)
     if args.trials < 1:
         p.error("--trials must be >= 1")
+    try:
+        parse_method(args.method)
+    except ValueError as exc:
+        p.error(f"--method: {exc}")
     return args
 
 
