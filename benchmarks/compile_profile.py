@@ -130,7 +130,7 @@ def _fuse_cost() -> dict:
     )
     problem = build_problem(sc.query_camera, sc.pairs)
     settings = Planar2p1pEstimator(problem, RansacOptions()).refine_settings(6)
-    R, t, rounds = sc.query_pose.R.copy(), sc.query_pose.t.copy(), int(np.int64(4))
+    R, t, rounds = sc.query_pose.R.copy(), sc.query_pose.t.copy(), 4
     c0 = time.process_time()
     first = refine_until_stable(R, t, problem.arrays, settings, rounds)
     callee_s = time.process_time() - c0
@@ -152,39 +152,15 @@ def _fuse_cost() -> dict:
 
 def _ahead_cost(jobs: int) -> dict:
     """Compile the kernels of the ``auto tracks`` step as a cold localize does, on ``jobs``
-    worker processes, each worker's busy time read from the schedule."""
-    import threading
-
-    from planarloc.compile import load_manifest
-    from planarloc.compile import schedule as sched
+    worker processes (the compile report times each task and each worker)."""
+    from planarloc.compile import compile_kernels, load_manifest
     from planarloc.compile.cache import missing_kernels
+    from planarloc.compile.schedule import estimated_seconds
 
     manifest = load_manifest()
     keys = missing_kernels(manifest.for_steps(["auto tracks"]), manifest)
-    busy: dict[int, float] = defaultdict(float)
-    started: dict[str, float] = {}
-    took: dict[str, float] = {}
-    take, finish = sched._Schedule.take, sched._Schedule.finish
-
-    def timed_take(self):  # type: ignore[no-untyped-def]
-        key = take(self)
-        if key is not None:
-            started[key] = time.perf_counter()
-        return key
-
-    def timed_finish(self, key):  # type: ignore[no-untyped-def]
-        took[key] = time.perf_counter() - started[key]
-        busy[threading.get_ident()] += took[key]
-        finish(self, key)
-
-    sched._Schedule.take, sched._Schedule.finish = timed_take, timed_finish  # type: ignore[method-assign]
     before = resource.getrusage(resource.RUSAGE_CHILDREN)
-    t0 = time.perf_counter()
-    try:
-        done = sched.compile_kernels(keys, manifest, jobs)
-    finally:
-        sched._Schedule.take, sched._Schedule.finish = take, finish  # type: ignore[method-assign]
-    wall = time.perf_counter() - t0
+    done = compile_kernels(keys, manifest, jobs)
     after = resource.getrusage(resource.RUSAGE_CHILDREN)
     return {
         "ahead": {
@@ -192,11 +168,11 @@ def _ahead_cost(jobs: int) -> dict:
             "kernels": len(keys),
             "compiled": done.compiled,
             "failed": sorted(done.failed),
-            "wall_s": wall,
+            "wall_s": done.seconds,
             "workers_cpu_s": after.ru_utime + after.ru_stime - before.ru_utime - before.ru_stime,
-            "busy_s": sorted(busy.values(), reverse=True),
-            "longest": sorted(took.items(), key=lambda kv: -kv[1])[:3],
-            "estimated_s": sched.estimated_seconds(keys, manifest, jobs),
+            "busy_s": sorted(done.busy_seconds, reverse=True),
+            "longest": sorted(done.task_seconds.items(), key=lambda kv: -kv[1])[:3],
+            "estimated_s": estimated_seconds(keys, manifest, jobs),
         }
     }
 

@@ -74,11 +74,14 @@ class _Schedule:
 
 @dataclass
 class CompileReport:
-    """What :func:`compile_kernels` did."""
+    """What :func:`compile_kernels` did: counts, failures, the wall ``seconds``, and the wall
+    seconds of each kernel's task (``task_seconds``) and each worker's busy time (``busy_seconds``)."""
 
     compiled: int = 0
     failed: dict[str, str] = field(default_factory=dict)
     seconds: float = 0.0
+    task_seconds: dict[str, float] = field(default_factory=dict)
+    busy_seconds: list[float] = field(default_factory=list)
 
 
 def estimated_seconds(keys: Sequence[str], manifest: Manifest, jobs: int) -> float:
@@ -105,7 +108,11 @@ def _drive(
     if stdin is None or stdout is None:
         raise ValueError("a compile worker must be started with stdin=PIPE and stdout=PIPE")
     total = len(schedule.deps)
+    with lock:
+        worker = len(report.busy_seconds)
+        report.busy_seconds.append(0.0)
     while (key := schedule.take()) is not None:
+        t0 = time.perf_counter()
         try:
             stdin.write(json.dumps({"key": key, "signatures": manifest.kernels[key].signatures}) + "\n")
             stdin.flush()
@@ -114,7 +121,10 @@ def _drive(
             reply = ""
         errors = json.loads(reply)["errors"] if reply else ["the worker process ended"]
         schedule.finish(key)
+        took = time.perf_counter() - t0
         with lock:
+            report.task_seconds[key] = took
+            report.busy_seconds[worker] += took
             if errors:
                 report.failed[key] = "; ".join(errors)
             else:

@@ -3,6 +3,7 @@ numba cache (real worker processes), the one-line notice, and progress without a
 
 from __future__ import annotations
 
+import json
 import os
 import re
 import subprocess
@@ -141,6 +142,26 @@ def test_compile_ahead_says_so_and_fills_an_empty_cache_in_parallel(tmp_path: Pa
     second = _python(check, env)
     assert second.returncode == 0, second.stderr
     assert second.stdout.strip() == "[]" and "for first use" not in second.stderr
+
+
+def test_the_compile_report_times_each_task_and_each_worker(tmp_path: Path) -> None:
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path / "numba")}
+    code = (
+        "import json\n"
+        "from planarloc.compile import compile_kernels, load_manifest\n"
+        "keys = ['planarloc.geometry.mat3:sym_eigvals', 'planarloc.numerics.sturm:polyval']\n"
+        "r = compile_kernels(keys, load_manifest(), jobs=2)\n"
+        "print(json.dumps([r.compiled, r.seconds, r.task_seconds, r.busy_seconds]))\n"
+    )
+    proc = _python(code, env)
+    assert proc.returncode == 0, proc.stderr
+    compiled, wall, tasks, busy = json.loads(proc.stdout.strip().splitlines()[-1])
+    assert compiled == 2 and sorted(tasks) == [
+        "planarloc.geometry.mat3:sym_eigvals",
+        "planarloc.numerics.sturm:polyval",
+    ]
+    assert len(busy) == 2 and all(t > 0 for t in tasks.values())
+    assert sum(busy) == pytest.approx(sum(tasks.values())) and max(tasks.values()) <= wall
 
 
 def test_warmup_without_a_terminal_prints_plain_progress(tmp_path: Path) -> None:
