@@ -14,13 +14,17 @@ per cent above an uninstrumented run, which is timed first and printed too.
 
     python benchmarks/estimator_profile.py --method auto --trials 60 --seed 60
     python benchmarks/estimator_profile.py --method 2p1p --no-cross-check --json split.json
+    python benchmarks/estimator_profile.py --method auto --dispatch   # numba's dispatch per call too
 """
 
 from __future__ import annotations
 
 import argparse
+import copy
 import functools
+import inspect
 import json
+import math
 import sys
 import time
 from collections import Counter
@@ -59,11 +63,20 @@ class KernelClock:
         self.stage = "other"
         self._depth = 0
         self._wrapped: dict[int, Callable] = {}
+        # Every call from Python, nested ones included (each pays numba's dispatch), and the
+        # arguments of each kernel's first call (a copy), for :func:`dispatch_costs`.
+        self.dispatches: Counter[str] = Counter()
+        self.kernels: dict[str, CPUDispatcher] = {}
+        self.first_args: dict[str, tuple[tuple, dict]] = {}
 
     def _wrap(self, kernel: CPUDispatcher) -> Callable:
         name = f"{kernel.py_func.__module__.removeprefix('planarloc.')}:{kernel.__name__}"
 
         def timed(*args, **kwargs):
+            self.dispatches[name] += 1
+            if name not in self.first_args:
+                self.kernels[name] = kernel
+                self.first_args[name] = copy.deepcopy((args, kwargs))
             if self._depth:
                 return kernel(*args, **kwargs)
             self._depth += 1
@@ -100,6 +113,64 @@ class KernelClock:
                     if isinstance(inner, CPUDispatcher):
                         cell.cell_contents = self._wrapped.setdefault(id(inner), self._wrap(inner))
         return len(self._wrapped)
+
+
+def _loop_seconds(fn: Callable, args: tuple, reps: int) -> float:
+    """Best of 5 wall times of ``reps`` calls ``fn(*args)``, per call."""
+    best = math.inf
+    for _ in range(5):
+        t0 = time.perf_counter()
+        for _ in range(reps):
+            fn(*args)
+        best = min(best, (time.perf_counter() - t0) / reps)
+    return best
+
+
+def dispatch_costs(clock: KernelClock, reps: int = 2000) -> dict[str, float]:
+    """Seconds of numba's dispatch per call of each kernel: its first call's arguments timed
+    through the dispatcher (type fingerprints, overload resolution, then the compiled wrapper)
+    and through the compiled wrapper of the matching overload directly (``entry_point``: it
+    unboxes the arguments and boxes the result, as the dispatcher's path does); the difference,
+    best of 5 runs each. Kernels whose call leaves arguments to their defaults (numba types
+    those as omitted) are left out."""
+    out = {}
+    for name, (args, kwargs) in clock.first_args.items():
+        kernel = clock.kernels[name]
+        bound = inspect.signature(kernel.py_func).bind(*args, **kwargs)
+        if len(bound.args) < len(inspect.signature(kernel.py_func).parameters):
+            continue
+        call_args = copy.deepcopy(bound.args)
+        entry = kernel.overloads.get(tuple(kernel.typeof_pyval(a) for a in call_args))
+        if entry is None:
+            continue
+        through = _loop_seconds(kernel, call_args, reps)
+        direct = _loop_seconds(entry.entry_point, call_args, reps)
+        out[name] = max(through - direct, 0.0)
+    return out
+
+
+def report_dispatch(clock: KernelClock, n: int, peer: float) -> dict:
+    """Print and return numba's dispatch time per scene (:func:`dispatch_costs`); ``n`` scenes,
+    ``peer`` PoseLib's seconds on them."""
+    costs = dispatch_costs(clock)
+    calls = {k: clock.dispatches[k] / n for k in costs}
+    per_scene = sum(costs[k] * calls[k] for k in costs)
+    all_calls = sum(clock.dispatches.values()) / n
+    per_call = sorted(costs.values()) or [math.nan]
+    print(
+        f"\nnumba's dispatch: {all_calls:.1f} kernel calls per scene, "
+        f"{sum(calls.values()):.1f} of them timed; "
+        f"{1e6 * per_call[len(per_call) // 2]:.2f} µs per call (median of {len(costs)} kernels, "
+        f"{1e6 * per_call[0]:.2f}-{1e6 * per_call[-1]:.2f}): {1e3 * per_scene:.3f} ms per scene, "
+        f"{per_scene * n / peer:.2f} of PoseLib's time"
+    )
+    for name in sorted(costs, key=lambda k: -costs[k] * calls[k])[:8]:
+        print(f"  {1e6 * costs[name]:6.2f} µs x {calls[name]:5.2f} calls  {name}")
+    return {
+        "ms_per_scene": 1e3 * per_scene,
+        "calls_per_scene": all_calls,
+        "kernels": {k: {"us_per_call": 1e6 * costs[k], "calls": calls[k]} for k in costs},
+    }
 
 
 def staged(clock: KernelClock, module: ModuleType, attr: str, label: str, totals: Counter[str]) -> None:
@@ -142,6 +213,12 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument("--trials", type=int, default=60, help="scenes per cell, 10 cells (default: %(default)s)")
     p.add_argument("--seed", type=int, default=60, help="base seed (default: %(default)s)")
     p.add_argument("--top", type=int, default=12, help="kernels listed (default: %(default)s)")
+    p.add_argument(
+        "--dispatch",
+        action="store_true",
+        help="also time numba's dispatch per kernel call (its first call's arguments, through the "
+        "dispatcher and through the compiled wrapper directly)",
+    )
     p.add_argument("--json", type=Path, help="write the split here")
     args = p.parse_args(argv)
     if args.trials < 1:
@@ -221,6 +298,7 @@ def main(argv: list[str] | None = None) -> int:
     print(f"\nthe {args.top} kernels taking most time (ms per scene, calls per scene):")
     for name, s in clock.seconds.most_common(args.top):
         print(f"  {ms(s):7.4f}  {clock.calls[name] / n:5.2f}  {name}")
+    dispatch = report_dispatch(clock, n, peer) if args.dispatch else None
     if args.json:
         args.json.write_text(
             json.dumps(
@@ -238,6 +316,7 @@ def main(argv: list[str] | None = None) -> int:
                     "kernels": {
                         k: {"ms": ms(v), "calls": clock.calls[k] / n} for k, v in clock.seconds.items()
                     },
+                    "dispatch": dispatch,
                 },
                 indent=1,
             )
