@@ -56,7 +56,7 @@ class KernelClock:
     the outermost call (a kernel calling a kernel from Python, as the five-point drivers do,
     counts once); ``stage`` names the stage a call belongs to."""
 
-    def __init__(self) -> None:
+    def __init__(self, record_args: bool = False) -> None:
         self.seconds: Counter[str] = Counter()
         self.calls: Counter[str] = Counter()
         self.by_stage: Counter[str] = Counter()
@@ -64,7 +64,9 @@ class KernelClock:
         self._depth = 0
         self._wrapped: dict[int, Callable] = {}
         # Every call from Python, nested ones included (each pays numba's dispatch), and the
-        # arguments of each kernel's first call (a copy), for :func:`dispatch_costs`.
+        # arguments of each kernel's first call (a copy, with ``record_args``), for
+        # :func:`dispatch_costs`.
+        self.record_args = record_args
         self.dispatches: Counter[str] = Counter()
         self.kernels: dict[str, CPUDispatcher] = {}
         self.first_args: dict[str, tuple[tuple, dict]] = {}
@@ -74,7 +76,7 @@ class KernelClock:
 
         def timed(*args, **kwargs):
             self.dispatches[name] += 1
-            if name not in self.first_args:
+            if self.record_args and name not in self.first_args:
                 self.kernels[name] = kernel
                 self.first_args[name] = copy.deepcopy((args, kwargs))
             if self._depth:
@@ -265,7 +267,7 @@ def main(argv: list[str] | None = None) -> int:
         plain += t1 - t0
         peer += time.process_time() - t1
 
-    clock = KernelClock()
+    clock = KernelClock(record_args=args.dispatch)
     wrapped = clock.install()
     stage_totals: Counter[str] = Counter()
     for module, attr, label in STAGES:
