@@ -201,7 +201,8 @@ def add_localizer_args(p: argparse.ArgumentParser) -> None:
         "--iterations",
         type=int,
         default=None,
-        help="fixed number of RANSAC iterations (the paper uses 100); default: adaptive "
+        help="fixed number of RANSAC iterations (the paper uses 100; too few for the matches' inlier "
+        "ratio answer search_incomplete); default: adaptive "
         f"between {_RANSAC.min_iterations} and {_RANSAC.max_iterations}",
     )
     add_number(g, "--threshold", float, _RANSAC.threshold_px, "inlier threshold, Sampson error in pixels")

@@ -11,10 +11,11 @@ search (``planar_model_violated``).
 
 from __future__ import annotations
 
+import functools
 import logging
 import math
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -252,6 +253,8 @@ class _Estimation:
             best.pool,
             FinalRefiner(best.scorer, self.ctx.options),
             any_plane_degenerate=best.family == Method.EIGHT,
+            # Every search could have found a pose of more support: all of them missed it.
+            missed=math.prod(s.missed(best.refined.in2d, best.refined.in3d) for s in searches),
         )
         return judge_pose(self.ctx, candidate, _rivals(best, searches))
 
@@ -352,13 +355,16 @@ class _Search:
 
     ``alternatives``: the other locally optimised models ``(R, t, MSAC cost)``; ``pool``: raw
     hypotheses near the best cost ``(R (k, 3, 3), t (k, 3))``; ``scorer``: the estimator that
-    scores and refines on the original (not levelled) problem."""
+    scores and refines on the original (not levelled) problem; ``missed(in2d, in3d)``: the
+    chance that its samples missed a pose with these inliers or more
+    (:mod:`planarloc.robust.search_confidence`)."""
 
     family: Method
     refined: RefinedPose
     alternatives: list
     pool: tuple[np.ndarray, np.ndarray]
     scorer: ProblemEstimator
+    missed: Callable[[np.ndarray, np.ndarray], float]
 
 
 def _prepare(
@@ -409,9 +415,9 @@ def _search(
     t0 = time.perf_counter()
     refined = FinalRefiner(scorer, options)(out.R, out.t, quick)
     stats.add_time("refinement", time.perf_counter() - t0)
-    return _Search(
-        family, refined, list(zip(out.alt_R, out.alt_t, out.alt_cost)), (out.pool_R, out.pool_t), scorer
-    )
+    missed = functools.partial(estimator.missed, samples=search.iterations)
+    alternatives = list(zip(out.alt_R, out.alt_t, out.alt_cost))
+    return _Search(family, refined, alternatives, (out.pool_R, out.pool_t), scorer, missed)
 
 
 def rival_check_samples(inliers: np.ndarray, counts: np.ndarray, sample_size: int = 5) -> int:
@@ -504,7 +510,7 @@ def _points_search(
     t0 = time.perf_counter()
     refined = FinalRefiner(scorer, options)(points.refined.R, points.refined.t)
     stats.add_time("cross_check", time.perf_counter() - t0)
-    return _Search(Method.NISTER, refined, [], (np.zeros((0, 3, 3)), np.zeros((0, 3))), scorer)
+    return _Search(Method.NISTER, refined, [], (np.zeros((0, 3, 3)), np.zeros((0, 3))), scorer, points.missed)
 
 
 def _better_supported(best: _Search, found: Sequence[_Search]) -> _Search | None:

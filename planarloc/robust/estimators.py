@@ -47,7 +47,6 @@ from planarloc.robust.local_optimization import (
 from planarloc.robust.map_prior import refine_with_map_prior
 from planarloc.robust.options import Method, RansacOptions
 from planarloc.robust.problem import AbsolutePoseProblem
-from planarloc.robust.ransac import Estimator
 from planarloc.robust.refinement import (
     RefineSettings,
     StartPose,
@@ -58,6 +57,12 @@ from planarloc.robust.refinement import (
 from planarloc.robust.result import RansacStatistics
 from planarloc.robust.sampling import draw_pair_samples, draw_within_pairs
 from planarloc.robust.scoring import errors_sq, msac_scores, relative_msac_scores
+from planarloc.robust.search_confidence import (
+    inlier_ratios,
+    missed_by_draws,
+    missed_by_pairs,
+    pair_sample_chance,
+)
 from planarloc.solvers.relpose_planar_2p import planar_2p_batch_unchecked
 
 SIGMA_FLOOR_PX = 0.5  # lower bound of the pixel noise assumed for covariances
@@ -179,6 +184,14 @@ class ProblemEstimator:
             np.ascontiguousarray(R), np.ascontiguousarray(t), self.p.arrays, self._local_optimization
         )
 
+    def missed(self, in2d: np.ndarray, in3d: np.ndarray, samples: int) -> float:
+        """The chance that ``samples`` samples drew none of the data a pose with inliers ``in2d``
+        (N,), ``in3d`` (M,) (or more) rests on (:mod:`planarloc.robust.search_confidence`):
+        here RANSAC's own bound, ``sample_size`` draws from all data at the pose's inlier ratio;
+        the families refine it to how they sample."""
+        ratio = (np.count_nonzero(in2d) + np.count_nonzero(in3d)) / max(self.num_data, 1)
+        return missed_by_draws(ratio**self.sample_size, samples)
+
     def _flush(self, stats: RansacStatistics) -> None:
         c = self.counters
         stats.hypotheses += int(c[0])
@@ -213,6 +226,24 @@ class Planar2p1pEstimator(ProblemEstimator):
         self._any_eligible = bool((problem.counts >= 2).any())
         self._consensus = ConsensusSettings(
             self.threshold_sq, self.top_k, self.max_votes // 2, self.peaks, self.max_votes
+        )
+
+    def missed(self, in2d: np.ndarray, in3d: np.ndarray, samples: int) -> float:
+        """Two inlier matches of map image j (drawn in proportion to its matches) make a good
+        sample when the scale comes by consensus; a random third match must be an inlier too.
+        In structure mode a third of the samples each take a 2D-2D third datum, a 2D-3D one, or
+        two 2D-3D constraints (upright P2P)."""
+        ratios, counts = inlier_ratios(in2d, self.p.offsets)
+        p = pair_sample_chance(ratios, counts, 2)
+        if not self.use_3d and self.consensus_scale:
+            return missed_by_draws(p, samples)
+        r2d = np.count_nonzero(in2d) / max(len(in2d), 1)
+        if not self.use_3d:
+            return missed_by_draws(p * r2d, samples)
+        r3d = np.count_nonzero(in3d) / max(len(in3d), 1)
+        third = samples // 3
+        return (
+            missed_by_draws(p * r2d, third) * missed_by_draws(p * r3d, third) * missed_by_draws(r3d**2, third)
         )
 
     def _generate_consensus(
@@ -341,6 +372,18 @@ class RelativePairEstimator(ProblemEstimator):
         self.p3p = method != Method.P2P2 and len(problem.X3d) >= 3
         self._pair_pairs = _pairs_of_pairs(problem.num_pairs)  # every two pairs (j < k), stage 2
 
+    def missed(self, in2d: np.ndarray, in3d: np.ndarray, samples: int) -> float:
+        """Stage 1 draws ``samples`` samples of ``m`` matches in every map image; a pose needs an
+        all-inlier one in two images (stage 2 pairs them); with 2D-3D constraints, P3P samples
+        (6DoF families) or 2p1p ones (2p2p) may find it as well."""
+        ratios, counts = inlier_ratios(in2d, self.p.offsets)
+        missed = missed_by_pairs(ratios, counts, self.m, samples)
+        if self.p3p:
+            missed *= missed_by_draws((np.count_nonzero(in3d) / max(len(in3d), 1)) ** 3, samples)
+        if self._planar is not None:
+            missed *= self._planar.missed(in2d, in3d, samples)
+        return missed
+
     def _best_relative(self, rng: np.random.Generator, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Stage 1: per pair, up to ``top_k`` distinct best relative poses: R (P, K, 3, 3),
         t (P, K, 3) and their count per pair (P,) (:func:`top_distinct_relative`)."""
@@ -426,7 +469,10 @@ class RectifiedHypotheses:
     """
 
     def __init__(
-        self, hypotheses: Estimator, scorer: ProblemEstimator, upright_from_query: np.ndarray
+        self,
+        hypotheses: Planar2p1pEstimator | RelativePairEstimator,
+        scorer: ProblemEstimator,
+        upright_from_query: np.ndarray,
     ) -> None:
         self.hypotheses = hypotheses
         self.scorer = scorer
@@ -441,6 +487,10 @@ class RectifiedHypotheses:
     ) -> tuple[np.ndarray, np.ndarray]:
         R, t = self.hypotheses.generate(rng, n, stats)
         return np.ascontiguousarray(self.Uq_T @ R), np.ascontiguousarray(t @ self.Uq_T.T)
+
+    def missed(self, in2d: np.ndarray, in3d: np.ndarray, samples: int) -> float:
+        """The levelled family's (it draws the samples; the rows are the original problem's)."""
+        return self.hypotheses.missed(in2d, in3d, samples)
 
     def __getattr__(
         self, name: str

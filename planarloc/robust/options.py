@@ -65,7 +65,9 @@ class RansacOptions:
     """Options of :func:`planarloc.estimate_absolute_pose`.
 
     Attributes:
-        max_iterations: upper bound on minimal samples drawn.
+        max_iterations: upper bound on minimal samples drawn. A search that stops on it before
+            it could rule out a pose of more support than its own gives ``search_incomplete``
+            (:mod:`planarloc.robust.search_confidence`).
         min_iterations: lower bound; set both to 100 to reproduce the paper's fixed 100.
         threshold_px: inlier threshold on the Sampson error of 2D-2D matches, in pixels.
         threshold_3d_px: inlier threshold on the reprojection error of 2D-3D constraints, in

@@ -30,6 +30,8 @@ class Status(StrEnum):
     INCONSISTENT_REFERENCES = "inconsistent_references"
     #: another pose far away explains the matches nearly as well
     AMBIGUOUS_POSE = "ambiguous_pose"
+    #: the search stopped on its budget before it could rule out a pose of more support
+    SEARCH_INCOMPLETE = "search_incomplete"
     #: an explicit planar method's model does not fit: a 6DoF pose far from it is clearly better
     PLANAR_MODEL_VIOLATED = "planar_model_violated"
     #: no retrieved map image sees the query (:mod:`planarloc.robust.covisibility`): the map does

@@ -39,6 +39,7 @@ from planarloc.robust.rivals import (
     basin_distance,
     rival_distance,
 )
+from planarloc.robust.search_confidence import MAX_MISS_PROBABILITY
 from planarloc.robust.status import Status
 
 PROFILE_BELOW_RATIO = 0.15  # centre collinearity ratio under which the cost profile is checked
@@ -92,6 +93,9 @@ class Candidate:
             is examined.
         any_plane_degenerate: the search's solver cannot tell the epipolar geometry on a plane
             (the 8-point algorithm): any plane, not only a distant one, is degenerate.
+        missed: the chance that the search's samples missed a pose of more support
+            (:mod:`planarloc.robust.search_confidence`); above ``MAX_MISS_PROBABILITY`` the
+            pose is ``search_incomplete``.
     """
 
     estimator: ProblemEstimator
@@ -100,6 +104,7 @@ class Candidate:
     pool: tuple[np.ndarray, np.ndarray] = (np.zeros((0, 3, 3)), np.zeros((0, 3)))
     refine: FinalRefiner | None = None
     any_plane_degenerate: bool = False
+    missed: float = 0.0
 
 
 @dataclass
@@ -165,12 +170,12 @@ def judge_pose(ctx: EstimateContext, cand: Candidate, rivals: Sequence[np.ndarra
 
     Returns:
         :class:`PoseEstimate`: ``success`` with the position std, or the first failed check as
-        its status (``too_few_inliers``, ``single_reference``, ``degenerate_scale``,
-        ``inconsistent_references``, ``ambiguous_pose``) with the pose as ``unreliable_pose``
-        where one exists.
+        its status (``too_few_inliers``, ``single_reference``, ``search_incomplete``,
+        ``degenerate_scale``, ``inconsistent_references``, ``ambiguous_pose``) with the pose as
+        ``unreliable_pose`` where one exists.
     """
     j = _uncertainty(ctx, cand, rivals, time.perf_counter())
-    for check in (_check_support, _check_distant_plane, _check_position, _check_runner_ups):
+    for check in (_check_support, _check_search, _check_distant_plane, _check_position, _check_runner_ups):
         failed = check(j)
         if failed is not None:
             return failed
@@ -286,6 +291,19 @@ def _check_support(j: _Judging) -> PoseEstimate | None:
                 "see the same scene; retrieve other map images or add map images of this place",
             )
     return None
+
+
+def _check_search(j: _Judging) -> PoseEstimate | None:
+    """A search that may have missed a pose of more support vouches for nothing: every later
+    check compares the pose with the poses the search found."""
+    if j.cand.missed <= MAX_MISS_PROBABILITY:
+        return None
+    return j.fail(
+        Status.SEARCH_INCOMPLETE,
+        f"the search stopped on its budget: its samples would have missed a pose with more than these "
+        f"{j.n2d + j.n3d} inliers with probability {j.cand.missed:.2g} (> {MAX_MISS_PROBABILITY}); raise "
+        "max_iterations (--iterations), or leave the iterations adaptive",
+    )
 
 
 def _check_distant_plane(j: _Judging) -> PoseEstimate | None:

@@ -15,7 +15,8 @@ from planarloc.robust.relative_pose import RelativePoseEstimate
 from planarloc.robust.result import PoseEstimate
 from planarloc.robust.status import DATA_LIMITED, Status
 
-# The strings in result files, the CLI report and the tests: they must not change.
+# The strings in result files, the CLI report and the tests: they must not change (new ones are
+# added to the record schema as well).
 VALUES = {
     "SUCCESS": "success",
     "TOO_FEW_MATCHES": "too_few_matches",
@@ -26,6 +27,7 @@ VALUES = {
     "SINGLE_REFERENCE": "single_reference",
     "INCONSISTENT_REFERENCES": "inconsistent_references",
     "AMBIGUOUS_POSE": "ambiguous_pose",
+    "SEARCH_INCOMPLETE": "search_incomplete",
     "PLANAR_MODEL_VIOLATED": "planar_model_violated",
     "NOT_IN_MAP": "not_in_map",
 }

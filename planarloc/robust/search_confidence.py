@@ -1,0 +1,78 @@
+"""How sure a finished search can be that no pose with more support than its own went unsampled.
+
+RANSAC's stopping rule draws samples until an all-inlier sample of the best pose's support would
+have been drawn with the chosen confidence (:func:`planarloc.robust.ransac.required_iterations`).
+A search that stops on its budget first (``max_iterations``, a fixed ``--iterations``) may have
+missed a pose that more matches support, and then every check of its pose compares it only with
+the poses the search did find: its restarts, runner-ups and jackknife agree, and the pose is
+wrong far beyond its std (``benchmarks/robustness.py --protocol hard`` with bare ``2p1p`` at 5
+and 10 fixed samples: 11 of 435 and 4 of 484 successes 1.5-2.5 m off with stds of 0.09-0.26 m;
+none at 20 or more samples).
+
+The probability that a pose with at least the found pose's inliers would have given no good
+sample in the samples drawn bounds what was missed: more support means a larger chance per
+sample. Every search of an estimate (the planar one, the 6DoF one, a short check) could have
+found such a pose, so the estimate's chance is the product of theirs, each with its own samples.
+Each family's sampling gives it its own form, all functions of the found inliers per map image
+(:func:`inlier_ratios`) and the samples drawn:
+
+* one draw per sample (:func:`missed_by_draws`): ``(1 - p)^n``, with ``p`` the chance of a good
+  sample, e.g. ``Σ_j w_j r_j²`` for 2p1p's two matches of one map image j drawn with weight
+  ``w_j`` (the consensus scale needs no third draw; :func:`pair_sample_chance`);
+* two-stage relative poses (2p2p, 5p5p, 8p8p, paper Sec. IV-B; :func:`missed_by_pairs`): ``n``
+  samples of ``m`` matches in every map image, and a pose needs good samples in two of them.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+#: A success needs the chance that its searches all missed a better-supported pose (the product
+#: over the estimate's searches, each drawing its own samples) at most this. The hard protocol's
+#: 1,000 scenes at 5, 10 and 20 fixed samples: 22 / 10 / 4 broken promises of bare ``2p1p`` and
+#: 21 / 10 / 4 of ``auto`` before, none with it (bare ``2p1p`` also at 0.01 and 0.1); at 100
+#: samples and with the default adaptive budget it refuses nothing there (BENCHMARKS.md, "A
+#: search's own confidence").
+MAX_MISS_PROBABILITY = 0.05
+
+
+def inlier_ratios(inliers: np.ndarray, offsets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per map image, the inlier ratio of a pose and the number of matches.
+
+    Args:
+        inliers: (N,) bool, the pose's inlier 2D-2D matches (rows of the flattened problem).
+        offsets: (P + 1,) row offsets of the map images.
+
+    Returns:
+        ratios (P,) (0 where a map image has no match) and counts (P,) int.
+    """
+    counts = np.diff(offsets)
+    running = np.concatenate([[0], np.cumsum(inliers, dtype=np.int64)])
+    return (running[offsets[1:]] - running[offsets[:-1]]) / np.maximum(counts, 1), counts
+
+
+def pair_sample_chance(ratios: np.ndarray, counts: np.ndarray, m: int) -> float:
+    """The chance that one sample of ``m`` matches of a map image, drawn with probability in
+    proportion to its matches among those with at least ``m``, is all inliers: ``Σ_j w_j r_j^m``
+    (with replacement: a slight over-estimate for a few matches, so the bound stays on the
+    side of refusing)."""
+    eligible = counts >= m
+    total = counts[eligible].sum()
+    if total == 0:
+        return 0.0
+    return float(np.sum(counts[eligible] / total * ratios[eligible] ** m))
+
+
+def missed_by_draws(p: float, samples: int) -> float:
+    """``(1 - p)^samples``: no good sample in ``samples`` independent draws of chance ``p`` each."""
+    return float((1.0 - min(max(p, 0.0), 1.0)) ** max(samples, 0))
+
+
+def missed_by_pairs(ratios: np.ndarray, counts: np.ndarray, m: int, samples: int) -> float:
+    """The chance that fewer than two map images had an all-inlier sample of ``m`` matches among
+    ``samples`` drawn in each (the two-stage search's stage 1 for every map image with at least
+    ``m`` matches): ``1 - P(at least two)``, the images independent."""
+    good = np.where(counts >= m, 1.0 - (1.0 - np.clip(ratios, 0.0, 1.0) ** m) ** max(samples, 0), 0.0)
+    none = float(np.prod(1.0 - good))
+    one = sum(float(g * np.prod(np.delete(1.0 - good, j))) for j, g in enumerate(good))
+    return min(max(none + one, 0.0), 1.0)
