@@ -93,9 +93,9 @@ class Candidate:
             is examined.
         any_plane_degenerate: the search's solver cannot tell the epipolar geometry on a plane
             (the 8-point algorithm): any plane, not only a distant one, is degenerate.
-        missed: the chance that the search's samples missed a pose of more support
-            (:mod:`planarloc.robust.search_confidence`); above ``MAX_MISS_PROBABILITY`` the
-            pose is ``search_incomplete``.
+        missed: the chance that the samples of every search of the estimate missed a pose of
+            more support (:mod:`planarloc.robust.search_confidence`); above
+            ``MAX_MISS_PROBABILITY`` the pose is ``search_incomplete``.
     """
 
     estimator: ProblemEstimator
@@ -294,13 +294,13 @@ def _check_support(j: _Judging) -> PoseEstimate | None:
 
 
 def _check_search(j: _Judging) -> PoseEstimate | None:
-    """A search that may have missed a pose of more support vouches for nothing: every later
-    check compares the pose with the poses the search found."""
+    """Searches that may have missed a pose of more support vouch for nothing: every later check
+    compares the pose with the poses they found."""
     if j.cand.missed <= MAX_MISS_PROBABILITY:
         return None
     return j.fail(
         Status.SEARCH_INCOMPLETE,
-        f"the search stopped on its budget: its samples would have missed a pose with more than these "
+        f"the search stopped on its budget: its samples would miss a pose with more than these "
         f"{j.n2d + j.n3d} inliers with probability {j.cand.missed:.2g} (> {MAX_MISS_PROBABILITY}); raise "
         "max_iterations (--iterations), or leave the iterations adaptive",
     )
