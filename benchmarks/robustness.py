@@ -25,6 +25,7 @@ Usage::
     python benchmarks/robustness.py --protocol hard --methods 2p1p 2p2p 2p1p-oracle --trials 50
     python benchmarks/robustness.py --quick         # 20 trials per cell
     python benchmarks/robustness.py --trials 50 --seed 3 --json out.json --jobs 1
+    python benchmarks/robustness.py --protocol hard --methods 2p1p auto --iterations 10 --no-poselib
 """
 
 from __future__ import annotations
@@ -93,13 +94,15 @@ def inlier_pairs(sc) -> list[PairMatches]:
     ]
 
 
-def paper_options(threshold_px: float, seed: int, refine: bool = True) -> RansacOptions:
-    """The paper's methods as published: exactly ``ITERATIONS`` RANSAC iterations, no structure and no
-    6DoF cross-check of the planar pose (the library's default cross_check=True adds one 5-point search
-    per query; see BENCHMARKS.md, "Trust")."""
+def paper_options(
+    threshold_px: float, seed: int, refine: bool = True, iterations: int = ITERATIONS
+) -> RansacOptions:
+    """The paper's methods as published: exactly ``iterations`` (the paper's ``ITERATIONS``) RANSAC
+    iterations, no structure and no 6DoF cross-check of the planar pose (the library's default
+    cross_check=True adds one 5-point search per query; see BENCHMARKS.md, "Trust")."""
     return RansacOptions(
-        max_iterations=ITERATIONS,
-        min_iterations=ITERATIONS,
+        max_iterations=iterations,
+        min_iterations=iterations,
         threshold_px=threshold_px,
         seed=seed,
         refine=refine,
@@ -108,9 +111,9 @@ def paper_options(threshold_px: float, seed: int, refine: bool = True) -> Ransac
     )
 
 
-def run_trial(task: tuple[int, int, int, int, tuple[str, ...], bool, str]) -> dict:
+def run_trial(task: tuple[int, int, int, int, tuple[str, ...], bool, str, int]) -> dict:
     """One scene, every method and the peer on it. Returns errors, status and time per method."""
-    seed, mi, ri, trial, methods, with_peer, protocol = task
+    seed, mi, ri, trial, methods, with_peer, protocol, iterations = task
     num_refs, noise_px, matches = PROTOCOLS[protocol]
     rng, ransac_seed = trial_seeds(seed, mi, ri, trial)
     c0 = time.process_time()
@@ -118,7 +121,7 @@ def run_trial(task: tuple[int, int, int, int, tuple[str, ...], bool, str]) -> di
         rng, num_refs=num_refs, matches_per_pair=matches[mi], noise_px=noise_px, outlier_ratio=OUTLIERS[ri]
     )
     out: dict = {"cell": (mi, ri), "scene_cpu_s": time.process_time() - c0, "methods": {}}
-    opts = paper_options(THRESHOLD_PX, ransac_seed)
+    opts = paper_options(THRESHOLD_PX, ransac_seed, iterations=iterations)
     for method in methods:
         name, checked, oracle = DEFAULTS.get(
             method, ("2p1p" if method == ORACLE else method, False, method == ORACLE)
@@ -155,7 +158,7 @@ def run_trial(task: tuple[int, int, int, int, tuple[str, ...], bool, str]) -> di
         out["methods"][method] = r
     if with_peer:
         peer = estimate_query_pose_poselib(
-            sc.query_camera, sc.pairs, iterations=ITERATIONS, threshold_px=THRESHOLD_PX, seed=ransac_seed
+            sc.query_camera, sc.pairs, iterations=iterations, threshold_px=THRESHOLD_PX, seed=ransac_seed
         )
         r = {
             "status": "success" if peer.pose is not None else "no_pose",
@@ -196,11 +199,17 @@ def warm_up(methods: tuple[str, ...] = METHODS) -> None:
 
 
 def run(
-    trials: int, seed: int, jobs: int, methods: tuple[str, ...], with_peer: bool, protocol: str = "paper"
+    trials: int,
+    seed: int,
+    jobs: int,
+    methods: tuple[str, ...],
+    with_peer: bool,
+    protocol: str = "paper",
+    iterations: int = ITERATIONS,
 ) -> list[dict]:
     matches = PROTOCOLS[protocol][2]
     tasks = [
-        (seed, mi, ri, k, methods, with_peer, protocol)
+        (seed, mi, ri, k, methods, with_peer, protocol, iterations)
         for k in range(trials)
         for mi in range(len(matches))
         for ri in range(len(OUTLIERS))
@@ -258,7 +267,9 @@ def cells_ratio(cells: dict, matches: int | None, name: str) -> float:
     return ours / peer if peer > 0 else float("nan")
 
 
-def print_tables(cells: dict, names: tuple[str, ...], trials: int, protocol: str = "paper") -> None:
+def print_tables(
+    cells: dict, names: tuple[str, ...], trials: int, protocol: str = "paper", iterations: int = ITERATIONS
+) -> None:
     num_refs, noise_px, matches = PROTOCOLS[protocol]
     w = max(len(n) for n in names) + 2
     head = "".join(f"{int(100 * r):>6d}%" for r in OUTLIERS)
@@ -272,7 +283,7 @@ def print_tables(cells: dict, names: tuple[str, ...], trials: int, protocol: str
                 print(f"  {name:<{w}}{vals}")
 
     print(
-        f"\nSuccess rate (%), protocol {protocol!r}: {num_refs} refs, {noise_px:g} px noise, {ITERATIONS} "
+        f"\nSuccess rate (%), protocol {protocol!r}: {num_refs} refs, {noise_px:g} px noise, {iterations} "
         f"fixed iterations, centre < {MAX_CENTRE_ERROR_M} m & R < {MAX_ROTATION_ERROR_DEG} deg, "
         f"{trials} trials per cell"
     )
@@ -394,15 +405,24 @@ def main(argv: list[str] | None = None) -> int:
         default="paper",
         help="paper: 5 refs, 1 px, 100/50/20 matches; hard: 3 refs, 1.5 px, 50/20 matches",
     )
+    ap.add_argument(
+        "--iterations",
+        type=int,
+        default=ITERATIONS,
+        help="fixed RANSAC samples of every method and the peer (default: the paper's %(default)s); "
+        "fewer show what a small budget does to success and to promises",
+    )
     plan = parse_trial_args(ap, argv, PEER)
     if plan is None:
         return 1
     args, trials, methods, names = plan.args, plan.trials, plan.methods, plan.names
     t0 = time.perf_counter()
-    results = run(trials, args.seed, args.jobs, methods, not args.no_poselib, args.protocol)
+    if args.iterations < 1:
+        ap.error("--iterations must be >= 1")
+    results = run(trials, args.seed, args.jobs, methods, not args.no_poselib, args.protocol, args.iterations)
     wall = time.perf_counter() - t0
     cells = summarise(results, names, args.protocol)
-    print_tables(cells, names, trials, args.protocol)
+    print_tables(cells, names, trials, args.protocol, args.iterations)
     scene_s = sum(r["scene_cpu_s"] for r in results)
     method_s = {
         n: sum(r["methods"][n]["cpu_s"] for r in results if np.isfinite(r["methods"][n]["cpu_s"]))
@@ -424,7 +444,7 @@ def main(argv: list[str] | None = None) -> int:
                         "name": args.protocol,
                         "num_refs": PROTOCOLS[args.protocol][0],
                         "noise_px": PROTOCOLS[args.protocol][1],
-                        "iterations": ITERATIONS,
+                        "iterations": args.iterations,
                         "threshold_px": THRESHOLD_PX,
                         "success": {"centre_m": MAX_CENTRE_ERROR_M, "rotation_deg": MAX_ROTATION_ERROR_DEG},
                         "trials": trials,
