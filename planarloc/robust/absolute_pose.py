@@ -38,6 +38,7 @@ from planarloc.robust.ransac import ransac
 from planarloc.robust.result import PoseEstimate, RansacStatistics
 from planarloc.robust.rivals import RIVAL_COST_RATIO, RIVAL_MARGIN_INLIERS, with_rival
 from planarloc.robust.sampling import eligible_pairs
+from planarloc.robust.search_confidence import missed_by_all
 from planarloc.robust.status import DATA_LIMITED, Status
 from planarloc.robust.structure import triangulate_tracks
 from planarloc.robust.verification import Candidate, EstimateContext, failed_estimate, judge_pose
@@ -254,7 +255,10 @@ class _Estimation:
             FinalRefiner(best.scorer, self.ctx.options),
             any_plane_degenerate=best.family == Method.EIGHT,
             # Every search could have found a pose of more support: all of them missed it.
-            missed=math.prod(s.missed(best.refined.in2d, best.refined.in3d) for s in searches),
+            missed=missed_by_all(
+                functools.partial(s.missed, best.refined.in2d, best.refined.in3d)
+                for s in [best, *(s for s in searches if s is not best)]
+            ),
         )
         return judge_pose(self.ctx, candidate, _rivals(best, searches))
 

@@ -15,6 +15,7 @@ from planarloc.robust.options import RansacOptions
 from planarloc.robust.search_confidence import (
     MAX_MISS_PROBABILITY,
     inlier_ratios,
+    missed_by_all,
     missed_by_draws,
     missed_by_pairs,
     pair_sample_chance,
@@ -26,10 +27,10 @@ def test_inlier_ratios_per_map_image_with_empty_images() -> None:
     offsets = np.array([0, 4, 4, 10, 10])
     inliers = np.array([1, 1, 0, 1, 0, 0, 1, 1, 1, 0], dtype=bool)
     ratios, counts = inlier_ratios(inliers, offsets)
-    assert counts.tolist() == [4, 0, 6, 0]
+    assert counts == [4, 0, 6, 0]
     np.testing.assert_allclose(ratios, [0.75, 0.0, 0.5, 0.0])
     ratios, counts = inlier_ratios(np.zeros(0, dtype=bool), np.array([0, 0, 0]))
-    assert ratios.tolist() == [0.0, 0.0] and counts.tolist() == [0, 0]
+    assert ratios == [0.0, 0.0] and counts == [0, 0]
 
 
 def test_pair_sample_chance_weighs_images_by_matches_among_those_with_enough() -> None:
@@ -59,6 +60,20 @@ def test_missed_by_pairs_matches_enumeration(ratios: list[float]) -> None:
     # an image with fewer than m matches never has a sample
     counts[0] = m - 1
     assert missed_by_pairs(r, counts, m, n) >= expected
+
+
+def test_the_product_over_searches_stops_once_it_is_below_the_limit() -> None:
+    calls = []
+
+    def search(p: float):
+        return lambda: calls.append(p) or p
+
+    assert missed_by_all([search(0.5), search(0.5), search(0.3)]) == pytest.approx(0.075)
+    assert calls == [0.5, 0.5, 0.3]
+    calls.clear()
+    assert missed_by_all([search(0.5), search(0.01), search(0.3)]) == pytest.approx(0.005)
+    assert calls == [0.5, 0.01]  # the third search is not evaluated
+    assert missed_by_all([]) == 1.0
 
 
 def test_more_samples_and_more_support_miss_less() -> None:
