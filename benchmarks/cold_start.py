@@ -9,7 +9,9 @@ processes (compile workers included):
    to calibrate the map's stds, so on an empty cache it compiles the estimator's kernels itself.
 3. ``planarloc cache clean kernels``, then the first ``planarloc localize --map MAP FRAME`` with an
    empty kernel cache: what a user gets without ``planarloc warmup`` (the one-line notice, the
-   compile on every core, the pose).
+   kernels as Python while a detached process compiles them, the pose) — the target: ≤ 20 s. Then
+   the wait for that compile to end (its lock released) and a second localize, compiled; then the
+   same cold localize with ``--compile wait`` (compile on every core first, as before issue 31).
 4. ``planarloc cache clean kernels`` and ``planarloc warmup`` (what an install or image build
    runs), then the first ``planarloc localize`` of a new process — the target: ≤ 20 s.
 5. The peer in the same run: ``planarloc warmup --jobs 1`` on an empty cache (one core: how the
@@ -77,6 +79,26 @@ class Steps:
         peer.log(f"{label}: {wall:.1f} s wall, {cpu:.1f} s CPU")
         return proc
 
+    def wait_background(self, label: str, python: Path) -> None:
+        """Wait for the detached compile a cold command started (its lock released); record the wait
+        and the compile's own last log line."""
+        probe = (
+            "from planarloc.compile.background import _held, lock_path; p = lock_path(); "
+            "print(_held(p)); print(p.with_suffix('.log'))"
+        )
+        t0 = time.perf_counter()
+        while True:
+            held, log = subprocess.run(
+                [str(python), "-c", probe], env=self.env, capture_output=True, text=True, check=True
+            ).stdout.split()
+            if held == "False":
+                break
+            time.sleep(1.0)
+        wall = time.perf_counter() - t0
+        tail = Path(log).read_text().strip().splitlines()[-1:] if Path(log).is_file() else []
+        self.results[label] = {"wall_s": wall, "cpu_s": None, "stderr_head": tail}
+        peer.log(f"{label}: {wall:.1f} s more ({tail[0] if tail else 'no log'})")
+
 
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
@@ -117,7 +139,10 @@ def main(argv: list[str] | None = None) -> int:
         localize = [pl, "localize", "--map", root / "map.db", frame, "--out", root / "q.txt"]
         steps.run("cache clean kernels (0)", [pl, "cache", "clean", "kernels"])  # the build compiled them
         cold = steps.run("first localize, empty kernel cache", localize)
+        steps.wait_background("background compile, after the first localize", venv / "bin" / "python")
         steps.run("second localize", localize)
+        steps.run("cache clean kernels (1)", [pl, "cache", "clean", "kernels"])
+        steps.run("first localize, empty kernel cache, --compile wait", [*localize, "--compile", "wait"])
         steps.run("cache clean kernels", [pl, "cache", "clean", "kernels"])
         warm = steps.run("warmup (every core)", [pl, "warmup"])
         steps.run("first localize after warmup", localize)
@@ -135,7 +160,7 @@ def main(argv: list[str] | None = None) -> int:
             shutil.rmtree(root, ignore_errors=True)
     res = steps.results
     rows = [
-        [k, f"{v['wall_s']:.1f} s", f"{v['cpu_s']:.1f} s"]
+        [k, f"{v['wall_s']:.1f} s", "-" if v["cpu_s"] is None else f"{v['cpu_s']:.1f} s"]
         for k, v in res.items()
         if not k.startswith("cache")
     ]
@@ -147,7 +172,7 @@ def main(argv: list[str] | None = None) -> int:
             f"Fresh venv, base install, {os.cpu_count()} cores",
         )
     )
-    notice = [line for line in cold.stderr.splitlines() if "for first use" in line]
+    notice = [line for line in cold.stderr.splitlines() if "not compiled yet" in line]
     print(f"\nthe cold localize said: {notice[0] if notice else '(nothing)'}")
     lines = [line for line in warm.stderr.splitlines() if re.match(r"(compile kernels|run steps): ", line)]
     print(
@@ -155,11 +180,16 @@ def main(argv: list[str] | None = None) -> int:
     )
     print(peer.load_note())
     first = res["first localize after warmup"]["wall_s"]
+    cold_s = res["first localize, empty kernel cache"]["wall_s"]
     checks = [
         (
             first <= TARGET_FIRST_POSE_S,
             f"first localize after the install (+ warmup) {first:.1f} s (target ≤ {TARGET_FIRST_POSE_S:g} s)",
-        )
+        ),
+        (
+            cold_s <= TARGET_FIRST_POSE_S,
+            f"first localize on an empty kernel cache {cold_s:.1f} s (target ≤ {TARGET_FIRST_POSE_S:g} s)",
+        ),
     ]
     readme = "demo after warmup (README's first command)"
     if readme in res:

@@ -3,12 +3,18 @@ helper modules of ``tests/support`` (posed image folders, textured images) on th
 
 from __future__ import annotations
 
+import os
 import sys
 from pathlib import Path
 
 import pytest
 
 sys.path.insert(0, str(Path(__file__).parent / "support"))
+
+# `planarloc localize` on a cold kernel cache compiles first here, as before the background compile
+# (`--compile`'s default, auto, would start a detached compile that outlives the tests and competes with
+# their workers); tests/cli/test_first_use.py runs the background path on purpose.
+os.environ.setdefault("PLANARLOC_COMPILE", "wait")
 
 from planarloc.synthetic.world.export import generate  # noqa: E402
 from planarloc.synthetic.world.presets import get_preset, shrunk  # noqa: E402

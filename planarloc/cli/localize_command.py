@@ -38,7 +38,7 @@ from planarloc.cli.query_sources import QuerySource, dataset_queries, image_quer
 from planarloc.cli.remote_localize import add_server_args, check_remote_args, remote_localizer
 from planarloc.cli.result_outputs import EstimateOutputs, add_output_args
 from planarloc.cli.sequence_cli import add_sequence_args, check_stream_args, sequence_config, stream_rerun
-from planarloc.cli.warmup_command import compile_ahead
+from planarloc.cli.warmup_command import first_use
 from planarloc.compile import steps_for
 from planarloc.geometry.camera import Camera
 from planarloc.geometry.validation import InputError
@@ -54,6 +54,15 @@ from planarloc.map.schema import MapFormatError
 
 #: ``localize(query) -> record`` of one path (batch, stream, server).
 LocalizeOne = Callable[[QuerySource], dict]
+
+#: The environment variable that sets ``--compile``'s default (e.g. ``wait`` for batch jobs).
+COMPILE_ENV = "PLANARLOC_COMPILE"
+COMPILE_CHOICES = ("auto", "background", "wait")
+#: ``--compile auto``: run as Python while compiling in the background up to this many queries.
+#: Measured on KITTI (2 cores, empty cache): compiling first takes 50 s on both cores, then about
+#: 1 s per query; in the background it takes 100 s on one core while queries run as Python at
+#: about 10 s each. Compiling first is sooner done from 6 queries on.
+AUTO_BACKGROUND = 5
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -102,6 +111,15 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     )
     add_server_args(p)
     add_sequence_args(p, evaluate=False)
+    p.add_argument(
+        "--compile",
+        choices=COMPILE_CHOICES,
+        default=os.environ.get(COMPILE_ENV, "auto"),
+        help="when planarloc's kernels are not compiled yet (no `planarloc warmup`): compile them in a "
+        "detached process and run the queries meanwhile as Python, slower (background: a first pose in "
+        f"seconds), or compile on every core first (wait); auto: background for up to {AUTO_BACKGROUND} "
+        f"queries (default: %(default)s, or ${COMPILE_ENV})",
+    )
 
 
 def _add_input_args(p: argparse.ArgumentParser) -> None:
@@ -204,6 +222,11 @@ def _with_source_times(queries: list[QuerySource], stream: bool) -> list[QuerySo
 
 def _check_options(args: argparse.Namespace) -> None:
     """Option combinations, refused before any work."""
+    if args.compile not in COMPILE_CHOICES:  # argparse checks a given --compile, not its default
+        raise ValueError(
+            f"{COMPILE_ENV}={args.compile!r}: expected one of {', '.join(COMPILE_CHOICES)} "
+            "(the default of --compile)"
+        )
     check_stream_args(args, args.sequence, "--sequence")
     if args.sequence:
         used = [
@@ -251,7 +274,8 @@ def run(args: argparse.Namespace) -> int:
         else:
             loc = Localizer(args.map, localizer_config_of(args))
             check_map_features(args.map, loc.features.kind, args.features)
-            compile_ahead(steps_for([loc.config]))
+            wait = args.compile == "wait" or (args.compile == "auto" and len(queries) > AUTO_BACKGROUND)
+            poll_compile = stack.enter_context(first_use(steps_for([loc.config]), wait=wait))
             if camera is None and len(loc.map_cameras) != 1 and not all(q.camera for q in queries):
                 raise ValueError(
                     f"the map has {len(loc.map_cameras)} cameras: pass the query intrinsics with --camera"
@@ -263,10 +287,11 @@ def run(args: argparse.Namespace) -> int:
                     f"the map cameras (pitch {rep.pitch_deg:+.1f}°, roll {rep.roll_deg:+.1f}°)"
                 )
             if args.sequence:
-                localize = _stream_localizer(loc, args, camera, gravity, queries, timed, stack)
+                each = _stream_localizer(loc, args, camera, gravity, queries, timed, stack)
             else:
                 outputs = stack.enter_context(closing(EstimateOutputs(args.plot_matches, args.rerun)))
-                localize = _batch_localizer(loc, camera, gravity, gravity_file, pairs, outputs)
+                each = _batch_localizer(loc, camera, gravity, gravity_file, pairs, outputs)
+            localize = _then(each, poll_compile)
             where = ""
         writer = ResultsWriter(
             args.out, records_dir, tum=args.tum, predicted=getattr(args, "predicted", "mark")
@@ -308,6 +333,17 @@ def run_queries(writer: ResultsWriter, queries: list[QuerySource], localize: Loc
         raise
     writer.close()
     return EXIT_PARTIAL if writer.errors else EXIT_OK
+
+
+def _then(localize: LocalizeOne, after: Callable[[], None]) -> LocalizeOne:
+    """``localize``, then ``after()`` (between queries: whether the kernels are compiled now)."""
+
+    def each(q: QuerySource) -> dict:
+        record = localize(q)
+        after()
+        return record
+
+    return each
 
 
 def _batch_localizer(

@@ -1,11 +1,13 @@
 """`planarloc warmup`: compile every numba kernel a query uses into numba's on-disk cache, on all cores.
 
 The compiling is :mod:`planarloc.compile`'s; this module is its command-line front: the
-``warmup`` command, and :func:`compile_ahead` for the commands that estimate poses (the one-line
-notice and the progress bar on stderr). ``planarloc warmup`` at install or image-build time
-(``RUN planarloc warmup`` after ``pip install``, as root, before ``USER``) writes the cache once,
-and queries only load it, also as a user who cannot write the install (the repository's
-``Dockerfile`` does this). A kernel list that cannot be read, or is not of its shape, fails
+``warmup`` command, :func:`compile_ahead` for the commands that estimate poses (the one-line
+notice and the progress bar on stderr), and :func:`first_use` for ``planarloc localize``: on an
+empty cache its queries run with kernels as Python while a detached process compiles them, so a
+first pose comes in seconds instead of after the whole compile. ``planarloc warmup`` at install or
+image-build time (``RUN planarloc warmup`` after ``pip install``, as root, before ``USER``) writes
+the cache once, and queries only load it, also as a user who cannot write the install (the
+repository's ``Dockerfile`` does this). A kernel list that cannot be read, or is not of its shape, fails
 ``warmup`` with one line naming the file; the other commands warn in one line and let the
 kernels compile on first use.
 """
@@ -15,7 +17,8 @@ from __future__ import annotations
 import argparse
 import os
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
 
 from planarloc.cli.commands import add_command
 from planarloc.cli.console import info, note, progress_bar
@@ -23,6 +26,7 @@ from planarloc.cli.exit_codes import WARMUP_RESUMES
 from planarloc.cli.progress import Update
 from planarloc.compile import compile_kernels, load_manifest, plan_ahead, run_steps
 from planarloc.compile.cache import kernels_persist, missing_kernels
+from planarloc.compile.first_use import FirstUse, start_first_use
 
 NOWHERE = (
     "nowhere to keep compiled kernels: planarloc's install is read-only here and neither HOME nor the temp "
@@ -45,6 +49,39 @@ def compile_ahead(steps: Sequence[str], jobs: int | None = None, progress: Updat
         return
     with progress_bar() as update:
         plan.run(update)
+
+
+@contextmanager
+def first_use(steps: Sequence[str], wait: bool = False) -> Iterator[Callable[[], None]]:
+    """Around a command's queries: if kernels of the warm-up ``steps`` are not in numba's cache,
+    compile them in a detached process and run the queries meanwhile with the kernels as Python
+    (:mod:`planarloc.compile.first_use`), saying so in one line. Yields ``poll``: call it between
+    queries; once the compile has ended the next queries run compiled. ``wait``: compile on every
+    core first instead (:func:`compile_ahead`), the faster choice for many queries."""
+    if wait:
+        compile_ahead(steps)
+        yield lambda: None
+        return
+    try:
+        started = start_first_use(steps)
+    except OSError as exc:  # no lock or log file, no process: compile here first, as before
+        note(f"cannot compile in the background ({exc}); compiling first")
+        compile_ahead(steps)
+        started = None
+    if started is None:
+        yield lambda: None
+        return
+    first: FirstUse = started
+    note(f"{first.notice}; --compile wait compiles first")
+
+    def poll() -> None:
+        if first.poll():
+            note("planarloc's kernels are compiled: the next queries run compiled")
+
+    try:
+        yield poll
+    finally:
+        first.end()
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:

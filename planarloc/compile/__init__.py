@@ -13,6 +13,9 @@ before estimating poses.
 - :mod:`.steps`: the warm-up steps, small runs that call every kernel a query uses.
 - :mod:`.schedule`: compiling kernels in worker processes, callees first, longest chain first.
 - :mod:`.ahead`: :func:`compile_ahead`, what the front doors call (:func:`compile_lazily` to skip it).
+- :mod:`.interpreted`: the kernels run as plain Python (except a few hot ones) while they compile.
+- :mod:`.background`: compiling in a detached process, one per kernel cache (a lock file).
+- :mod:`.first_use`: the two together, a first pose in seconds on an empty cache (``planarloc localize``).
 - :mod:`.recorder`: :class:`CompileRecorder`, numba's compile events per kernel and signature.
 - ``python -m planarloc.compile --write-manifest`` regenerates the list after kernels change.
 """

@@ -1,5 +1,6 @@
 """``python -m planarloc.compile``: regenerate the kernel list (developers, after changing
-kernels: ``--write-manifest``, minutes), and the compile worker processes of :mod:`.schedule`."""
+kernels: ``--write-manifest``, minutes), the compile worker processes of :mod:`.schedule`, and
+the detached compile of :mod:`.background` (``--background STEP...``)."""
 
 from __future__ import annotations
 
@@ -11,6 +12,7 @@ import sys
 import tempfile
 from pathlib import Path
 
+from planarloc.compile.background import run_background_compile
 from planarloc.compile.dispatchers import planarloc_dispatchers
 from planarloc.compile.manifest import MANIFEST
 from planarloc.compile.recorder import CompileRecorder
@@ -77,7 +79,11 @@ def main(argv: list[str] | None = None) -> int:
     g.add_argument("--compile-worker", action="store_true", help=argparse.SUPPRESS)
     g.add_argument("--profile-steps", type=Path, metavar="OUT", help=argparse.SUPPRESS)
     g.add_argument("--step-entries", nargs=2, metavar=("STEP", "OUT"), help=argparse.SUPPRESS)
+    g.add_argument("--background", nargs="+", metavar="STEP", help=argparse.SUPPRESS)
+    ap.add_argument("--jobs", type=int, default=1, help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
+    if args.background:
+        return run_background_compile(args.background, max(1, args.jobs))
     if args.compile_worker:
         serve_compile_requests(sys.stdin, sys.stdout)
     elif args.profile_steps:

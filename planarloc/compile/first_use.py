@@ -1,0 +1,77 @@
+"""A first use on an empty kernel cache without waiting for the compile: the kernels run as Python
+(:mod:`.interpreted`) while a detached process compiles them (:mod:`.background`), until it ends.
+
+:func:`start_first_use` is what a front door calls before its first query (``planarloc
+localize``, the ROS 2 node): None when every kernel of its warm-up steps is cached (or cannot be
+kept: then they compile on first use, as before); else a :class:`FirstUse` whose ``notice`` the
+front door says once and whose :meth:`FirstUse.poll` it calls between queries. ``end`` returns to
+compiled kernels in any case (the front door's exit).
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+from planarloc.compile.ahead import plan_ahead
+from planarloc.compile.background import BackgroundCompile, compile_in_background
+from planarloc.compile.interpreted import PythonKernels
+
+__all__ = ["FirstUse", "start_first_use"]
+
+logger = logging.getLogger(__name__)
+
+
+@dataclass
+class FirstUse:
+    """Kernels run as Python while ``compiling`` (a detached compile of ``missing`` kernels) runs."""
+
+    compiling: BackgroundCompile
+    kernels: PythonKernels
+    missing: int
+
+    @property
+    def notice(self) -> str:
+        """The one line that says what happens, and how to avoid it."""
+        who = (
+            "compiling them in the background" if self.compiling.ours else "another command is compiling them"
+        )
+        return (
+            f"planarloc's kernels are not compiled yet ({self.missing} kernels): {who} "
+            f"(pid {self.compiling.pid}, log {self.compiling.log}); until it ends, queries run as Python, "
+            "slower. `planarloc warmup` at install or image-build time compiles them ahead"
+        )
+
+    @property
+    def as_python(self) -> bool:
+        """Whether the kernels still run as Python."""
+        return self.kernels.active
+
+    def poll(self) -> bool:
+        """Between queries: once the compile has ended, return to compiled kernels. Returns True
+        exactly once, when that happens now."""
+        if self.kernels.active and self.compiling.done():
+            self.kernels.end()
+            return True
+        return False
+
+    def end(self) -> None:
+        """Compiled kernels from now on (those the compile missed compile on first use)."""
+        self.kernels.end()
+
+
+def start_first_use(steps: Sequence[str], jobs: int | None = None) -> FirstUse | None:
+    """If kernels of the warm-up ``steps`` miss the cache: start (or join) their compile in the
+    background on ``jobs`` cores (default: all but one, left to the queries) and run the kernels
+    as Python until it ends. None when nothing is to be compiled.
+
+    Raises:
+        OSError: the compile cannot be started (no writable temp folder for its lock and log);
+            the caller compiles otherwise (``compile_ahead``) or lazily.
+    """
+    plan = plan_ahead(steps, jobs)
+    if plan is None:
+        return None
+    compiling = compile_in_background(steps, jobs=jobs or max(1, plan.jobs - 1))
+    return FirstUse(compiling, PythonKernels(), len(plan.missing))
