@@ -88,8 +88,8 @@ class Steps:
         )
         t0 = time.perf_counter()
         while True:
-            held, log = subprocess.run(
-                [str(python), "-c", probe], env=self.env, capture_output=True, text=True, check=True
+            held, log = subprocess.run(  # in cwd: ``-c`` would import a planarloc checkout from ours
+                [str(python), "-c", probe], cwd=self.cwd, env=self.env, capture_output=True, text=True, check=True
             ).stdout.split()
             if held == "False":
                 break
