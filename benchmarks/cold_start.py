@@ -88,8 +88,14 @@ class Steps:
         )
         t0 = time.perf_counter()
         while True:
-            held, log = subprocess.run(  # in cwd: ``-c`` would import a planarloc checkout from ours
-                [str(python), "-c", probe], cwd=self.cwd, env=self.env, capture_output=True, text=True, check=True
+            # in the work folder: ``-c`` in ours would import the checkout beside this script instead
+            held, log = subprocess.run(
+                [str(python), "-c", probe],
+                cwd=self.cwd,
+                env=self.env,
+                capture_output=True,
+                text=True,
+                check=True,
             ).stdout.split()
             if held == "False":
                 break

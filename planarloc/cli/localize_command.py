@@ -59,10 +59,11 @@ LocalizeOne = Callable[[QuerySource], dict]
 COMPILE_ENV = "PLANARLOC_COMPILE"
 COMPILE_CHOICES = ("auto", "background", "wait")
 #: ``--compile auto``: run as Python while compiling in the background up to this many queries.
-#: Measured on KITTI (2 cores, empty cache): compiling first takes 50 s on both cores, then about
-#: 1 s per query; in the background it takes 100 s on one core while queries run as Python at
-#: about 10 s each. Compiling first is sooner done from 6 queries on.
-AUTO_BACKGROUND = 5
+#: Measured on KITTI seq 2 (a 13-image map, 2 cores, empty cache): 12 queries take 52.4 s as
+#: Python with the compile in the background (the first 10-12 s with the hot kernels' compile,
+#: the next about 3.7 s each; the compile alone 92 s on one core) and 54.1 s compiling first
+#: (48 s on both cores, then about 0.5 s per query): even at about 12, compiling first wins beyond.
+AUTO_BACKGROUND = 12
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:

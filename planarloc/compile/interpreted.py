@@ -44,7 +44,8 @@ __all__ = ["HOT_KERNELS", "PythonKernels", "interpreted_kernels", "running_as_py
 #: Kernels compiled in the process even while the others run as Python: the loops over every
 #: match or residual row, where Python costs seconds per query (a cold KITTI query as Python:
 #: MSAC scoring 4.9 s, map-prior pair blocks 3.2 s, Sampson rows 2.3 s, IRLS normal equations
-#: 1.8 s of 17 s; compiled in the process 2.5 + 1.3 + 0.7 + 0.9 + 0.3 s). The next largest
+#: 1.8 s of 17 s; compiled in the process: the two scorings 2.5 + 1.3 s, the pair blocks 0.7 s,
+#: the Sampson rows 0.9 s, the normal equations 0.3 s; BENCHMARKS.md). The next largest
 #: (Nistér's five-point batch 1.8 s as Python, 12 s to compile with its callees; the centre
 #: covariance of points 0.5 s against 1.6 s) are cheaper as Python than compiled once.
 HOT_KERNELS = (
