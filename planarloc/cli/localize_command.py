@@ -40,6 +40,7 @@ from planarloc.cli.result_outputs import EstimateOutputs, add_output_args
 from planarloc.cli.sequence_cli import add_sequence_args, check_stream_args, sequence_config, stream_rerun
 from planarloc.cli.warmup_command import first_use
 from planarloc.compile import steps_for
+from planarloc.compile.first_use import COMPILE_CHOICES, COMPILE_ENV
 from planarloc.geometry.camera import Camera
 from planarloc.geometry.validation import InputError
 from planarloc.io.datasets import FORMATS
@@ -55,9 +56,6 @@ from planarloc.map.schema import MapFormatError
 #: ``localize(query) -> record`` of one path (batch, stream, server).
 LocalizeOne = Callable[[QuerySource], dict]
 
-#: The environment variable that sets ``--compile``'s default (e.g. ``wait`` for batch jobs).
-COMPILE_ENV = "PLANARLOC_COMPILE"
-COMPILE_CHOICES = ("auto", "background", "wait")
 #: ``--compile auto``: run as Python while compiling in the background up to this many queries.
 #: Measured on KITTI seq 2 (a 13-image map, 2 cores, empty cache): 12 queries take 52.4 s as
 #: Python with the compile in the background (the first 10-12 s with the hot kernels' compile,

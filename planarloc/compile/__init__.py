@@ -3,9 +3,10 @@
 numba compiles a kernel on its first call and caches the machine code next to its module
 (``__pycache__/*.nbi, *.nbc``; :mod:`planarloc.numerics.kernel_cache`). Compiling all of
 planarloc's kernels takes about 170 s of CPU, so ``planarloc warmup`` does it once at install or
-image-build time. Without it, ``planarloc localize`` runs the kernels as Python while a detached
-process compiles them (:mod:`.first_use`), and the other commands call :func:`compile_ahead`
-before estimating poses; the service and the ROS 2 node compile them where they are first called.
+image-build time. Without it, ``planarloc localize`` and the ROS 2 node run the kernels as Python
+while a detached process compiles them (:mod:`.first_use`), the other commands call
+:func:`compile_ahead` before estimating poses, and the service compiles them where they are
+first called.
 
 - :mod:`.manifest`: the shipped kernel list ``kernels.json`` (kernels, signatures, compile
   seconds, the kernels of each warm-up step); :mod:`.signatures` reads its signatures as data.

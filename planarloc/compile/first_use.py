@@ -11,14 +11,28 @@ compiled kernels in any case (the front door's exit).
 from __future__ import annotations
 
 import logging
-from collections.abc import Sequence
+import os
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
-from planarloc.compile.ahead import plan_ahead
+from planarloc.compile.ahead import compile_ahead, plan_ahead
 from planarloc.compile.background import BackgroundCompile, compile_in_background
 from planarloc.compile.interpreted import PythonKernels
 
-__all__ = ["FirstUse", "start_first_use"]
+__all__ = [
+    "COMPILE_CHOICES",
+    "COMPILE_ENV",
+    "FirstUse",
+    "compile_setting",
+    "first_use_or_compile",
+    "start_first_use",
+]
+
+#: The environment variable that chooses how a front door treats an empty kernel cache:
+#: ``wait`` compiles on every core first; ``auto`` (the default) and ``background`` run as
+#: Python meanwhile (``planarloc localize --compile``: ``auto`` waits for more than 12 queries).
+COMPILE_ENV = "PLANARLOC_COMPILE"
+COMPILE_CHOICES = ("auto", "background", "wait")
 
 logger = logging.getLogger(__name__)
 
@@ -61,6 +75,18 @@ class FirstUse:
         self.kernels.end()
 
 
+def compile_setting() -> str:
+    """``$PLANARLOC_COMPILE`` (default ``auto``).
+
+    Raises:
+        ValueError: a value not in :data:`COMPILE_CHOICES` (one line naming the variable).
+    """
+    value = os.environ.get(COMPILE_ENV, "auto")
+    if value not in COMPILE_CHOICES:
+        raise ValueError(f"{COMPILE_ENV}={value!r}: expected one of {', '.join(COMPILE_CHOICES)}")
+    return value
+
+
 def start_first_use(steps: Sequence[str], jobs: int | None = None) -> FirstUse | None:
     """If kernels of the warm-up ``steps`` miss the cache: start (or join) their compile in the
     background on ``jobs`` cores (default: all but one, left to the queries) and run the kernels
@@ -75,3 +101,22 @@ def start_first_use(steps: Sequence[str], jobs: int | None = None) -> FirstUse |
         return None
     compiling = compile_in_background(steps, jobs=jobs or max(1, plan.jobs - 1))
     return FirstUse(compiling, PythonKernels(), len(plan.missing))
+
+
+def first_use_or_compile(steps: Sequence[str], say: Callable[[str], None]) -> FirstUse | None:
+    """What a long-running front door (the ROS 2 node) does before its first query: with
+    ``$PLANARLOC_COMPILE`` other than ``wait``, :func:`start_first_use` (its notice to ``say``);
+    with ``wait``, or when the compile cannot be started (said), compile the missing kernels on
+    every core first (:func:`compile_ahead`, its notice to ``say``). The caller polls and ends the
+    returned :class:`FirstUse`, if any."""
+    if compile_setting() != "wait":
+        try:
+            first = start_first_use(steps)
+        except OSError as exc:
+            say(f"cannot compile planarloc's kernels in the background ({exc}); compiling them first")
+        else:
+            if first is not None:
+                say(first.notice)
+            return first
+    compile_ahead(steps, notify=say)
+    return None

@@ -46,6 +46,11 @@ up in a few frames) where a single slot would drop them, and a dropped frame als
 next one (tracking across a gap is harder). ``/initialpose`` restarts the stream: the window is forgotten and
 the next pose comes from a global fix (planarloc localizes absolutely; the given pose is not
 used as a prior).
+
+Start-up on an empty kernel cache (no ``planarloc warmup``): the kernels run as Python while a
+detached process compiles them (:mod:`planarloc.compile.first_use`; a warning once), so the node
+is up in seconds and its first frames are slower; ``PLANARLOC_COMPILE=wait`` compiles them on
+every core before the node subscribes.
 """
 
 from __future__ import annotations
@@ -61,6 +66,8 @@ from typing import Any
 import cv2
 import numpy as np
 
+from planarloc.compile import steps_for
+from planarloc.compile.first_use import FirstUse, first_use_or_compile
 from planarloc.extras import require
 from planarloc.features import learned
 from planarloc.features.registry import check_map_feature_kind
@@ -168,6 +175,7 @@ class LocalizerNode:
         # The map (SQLite) is opened by the thread that localizes; its errors are raised here.
         self._opened = threading.Event()
         self._open_error: BaseException | None = None
+        self._first_use: FirstUse | None = None  # kernels as Python while they compile (_compile)
         self._worker = threading.Thread(target=self._work, name="planarloc-localize", daemon=True)
         self._worker.start()
         self._opened.wait()
@@ -196,6 +204,7 @@ class LocalizerNode:
             )
         else:
             self.map_frame_note = "the map's world (map_frame_convention world)"
+        self._first_use = first_use_or_compile(steps_for([localizer.config]), self._warn_once)
         logger.info("warming up the localizer on the map's own images")
         logger.info("warm-up done in %.1f s", self.sequence.warm_up())
 
@@ -275,6 +284,8 @@ class LocalizerNode:
                 msg, received, reset = self._pending.pop()
             try:
                 self._process(msg, received, reset)
+                if self._first_use is not None and self._first_use.poll():
+                    logger.info("planarloc's kernels are compiled: the next frames run compiled")
             except (
                 Exception
             ) as exc:  # a bug must not stop the node silently: log it, count and report the frame
@@ -287,6 +298,8 @@ class LocalizerNode:
             self._stop = True
             self._cond.notify_all()
         self._worker.join(timeout=30)
+        if self._first_use is not None:
+            self._first_use.end()
 
     def _frame_from_camera(self, frame: str, camera_frame: str) -> Pose | None:
         """``frame_from_camera`` (identity for the camera's own frame): TF, else ``base_to_camera``

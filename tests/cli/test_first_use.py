@@ -131,3 +131,18 @@ def test_the_environment_sets_the_default_and_the_option_wins(value: str) -> Non
         assert given.compile == "auto"
     finally:
         os.environ["PLANARLOC_COMPILE"] = "wait"  # the tests' setting (conftest)
+
+
+def test_the_front_doors_setting_reads_the_environment_and_refuses_an_unknown_value(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    from planarloc.compile.first_use import compile_setting
+
+    monkeypatch.delenv("PLANARLOC_COMPILE")
+    assert compile_setting() == "auto"
+    monkeypatch.setenv("PLANARLOC_COMPILE", "wait")
+    assert compile_setting() == "wait"
+    monkeypatch.setenv("PLANARLOC_COMPILE", "soon")
+    expected = r"^PLANARLOC_COMPILE='soon': expected one of auto, background, wait$"
+    with pytest.raises(ValueError, match=expected):
+        compile_setting()

@@ -276,3 +276,40 @@ def test_tf2_msgs_that_cannot_be_built_is_a_one_line_error(
     lines = proc.stderr.strip().splitlines()
     assert proc.returncode == 1 and len(lines) == 1, proc.stderr
     assert "tf2_msgs" in lines[0] and "no C/C++ compiler (CC=no-such-cc)" in lines[0]
+
+
+def test_on_an_empty_kernel_cache_the_node_is_up_in_seconds_and_publishes_poses_as_python(
+    tiny_world: Path, world_map: Path, ros_domain: int, tmp_path: Path
+) -> None:
+    """No `planarloc warmup`: the node says so once, runs its kernels as Python while one detached
+    process compiles them, and its poses are as good as the compiled ones."""
+    import re
+    import signal
+
+    from planarloc.ros2.replay import NodeProcess
+
+    (tmp_path / "tmp").mkdir()
+    cold = {
+        **loopback_env(ros_domain),
+        "NUMBA_CACHE_DIR": str(tmp_path / "numba"),  # empty: a machine without the warm-up
+        "TMPDIR": str(tmp_path / "tmp"),
+        "PLANARLOC_COMPILE": "auto",  # the default (the tests' conftest sets wait)
+    }
+    node = NodeProcess(["--map", str(world_map), "--ros-args", "-p", "fixes:=wait"], cold)
+    pid = None
+    try:
+        node.wait_ready(timeout=120.0)
+        notice = re.compile(r".*kernels are not compiled yet .*compiling them in the background \(pid (\d+),")
+        notices = [m for m in map(notice.match, node.stderr) if m]
+        assert len(notices) == 1, "".join(node.stderr)
+        pid = int(notices[0][1])
+        frames, truths = _frames(tiny_world, odometry=False)
+        frames, truths = frames[:3], truths[:3]
+        result = replay(frames, wait_s=WAIT_S)
+        assert _check_poses(result, truths, frames, Pose.identity()) >= 2
+        assert node.interrupt() == 0
+        assert "Traceback" not in "".join(node.stderr)
+    finally:
+        node.kill()
+        if pid is not None:
+            os.killpg(pid, signal.SIGKILL)  # the detached compile and its workers (minutes of CPU)
