@@ -26,7 +26,7 @@ from planarloc.cli.exit_codes import WARMUP_RESUMES
 from planarloc.cli.progress import Update
 from planarloc.compile import compile_kernels, load_manifest, plan_ahead, run_steps
 from planarloc.compile.cache import kernels_persist, missing_kernels
-from planarloc.compile.first_use import FirstUse, start_first_use
+from planarloc.compile.first_use import FirstUse, first_use_or_compile
 
 NOWHERE = (
     "nowhere to keep compiled kernels: planarloc's install is read-only here and neither HOME nor the temp "
@@ -58,21 +58,11 @@ def first_use(steps: Sequence[str], wait: bool = False) -> Iterator[Callable[[],
     (:mod:`planarloc.compile.first_use`), saying so in one line. Yields ``poll``: call it between
     queries; once the compile has ended the next queries run compiled. ``wait``: compile on every
     core first instead (:func:`compile_ahead`), the faster choice for many queries."""
-    if wait:
-        compile_ahead(steps)
-        yield lambda: None
-        return
-    try:
-        started = start_first_use(steps)
-    except OSError as exc:  # no lock or log file, no process: compile here first, as before
-        note(f"cannot compile in the background ({exc}); compiling first")
-        compile_ahead(steps)
-        started = None
+    started = first_use_or_compile(steps, note, wait, compile_first=compile_ahead)
     if started is None:
         yield lambda: None
         return
     first: FirstUse = started
-    note(f"{first.notice}; --compile wait compiles first")
 
     def poll() -> None:
         if first.poll():

@@ -53,8 +53,9 @@ class FirstUse:
         )
         return (
             f"planarloc's kernels are not compiled yet ({self.missing} kernels): {who} "
-            f"(pid {self.compiling.pid}, log {self.compiling.log}); until it ends, queries run as Python, "
-            "slower. `planarloc warmup` at install or image-build time compiles them ahead"
+            f"(pid {self.compiling.pid or 'not yet known'}, log {self.compiling.log}); until it ends, "
+            "queries run as Python, slower. `planarloc warmup` at install or image-build time compiles "
+            f"them ahead; {COMPILE_ENV}=wait compiles them first"
         )
 
     @property
@@ -103,13 +104,19 @@ def start_first_use(steps: Sequence[str], jobs: int | None = None) -> FirstUse |
     return FirstUse(compiling, PythonKernels(), len(plan.missing))
 
 
-def first_use_or_compile(steps: Sequence[str], say: Callable[[str], None]) -> FirstUse | None:
-    """What a long-running front door (the ROS 2 node) does before its first query: with
-    ``$PLANARLOC_COMPILE`` other than ``wait``, :func:`start_first_use` (its notice to ``say``);
-    with ``wait``, or when the compile cannot be started (said), compile the missing kernels on
-    every core first (:func:`compile_ahead`, its notice to ``say``). The caller polls and ends the
-    returned :class:`FirstUse`, if any."""
-    if compile_setting() != "wait":
+def first_use_or_compile(
+    steps: Sequence[str],
+    say: Callable[[str], None],
+    wait: bool,
+    compile_first: Callable[[Sequence[str]], object] | None = None,
+) -> FirstUse | None:
+    """What a front door does before its first query (``planarloc localize``, the ROS 2 node):
+    unless ``wait``, :func:`start_first_use` (its notice to ``say``); with ``wait``, or when the
+    compile cannot be started (said), compile the missing kernels on every core first:
+    ``compile_first(steps)`` (default :func:`compile_ahead`, its notice to ``say``; the command
+    line passes its own, with a progress bar). The caller polls and ends the returned
+    :class:`FirstUse`, if any."""
+    if not wait:
         try:
             first = start_first_use(steps)
         except OSError as exc:
@@ -118,5 +125,8 @@ def first_use_or_compile(steps: Sequence[str], say: Callable[[str], None]) -> Fi
             if first is not None:
                 say(first.notice)
             return first
-    compile_ahead(steps, notify=say)
+    if compile_first is None:
+        compile_ahead(steps, notify=say)
+    else:
+        compile_first(steps)
     return None

@@ -67,7 +67,7 @@ import cv2
 import numpy as np
 
 from planarloc.compile import steps_for
-from planarloc.compile.first_use import FirstUse, first_use_or_compile
+from planarloc.compile.first_use import FirstUse, compile_setting, first_use_or_compile
 from planarloc.extras import require
 from planarloc.features import learned
 from planarloc.features.registry import check_map_feature_kind
@@ -204,7 +204,9 @@ class LocalizerNode:
             )
         else:
             self.map_frame_note = "the map's world (map_frame_convention world)"
-        self._first_use = first_use_or_compile(steps_for([localizer.config]), self._warn_once)
+        self._first_use = first_use_or_compile(
+            steps_for([localizer.config]), self._warn_once, wait=compile_setting() == "wait"
+        )
         logger.info("warming up the localizer on the map's own images")
         logger.info("warm-up done in %.1f s", self.sequence.warm_up())
 
