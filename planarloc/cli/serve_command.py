@@ -14,6 +14,7 @@ from pathlib import Path
 from planarloc.cli.commands import add_command
 from planarloc.cli.console import note
 from planarloc.cli.options import add_map_features_arg, add_number, check_map_file_features
+from planarloc.compile.first_use import compile_setting
 from planarloc.serve.settings import (
     DEFAULT_BODY_TIMEOUT_S,
     DEFAULT_HEADER_TIMEOUT_S,
@@ -42,8 +43,10 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         (Prometheus). Localization runs in --workers processes that open every map once, read-only; a
         request is admitted once its body has arrived, at most --workers + --queue at a time, the others get
         503 with Retry-After. A map file changed on disk is refused until restart. The banner on stderr
-        names the address bound (with --port 0: the port chosen) once the workers are ready. Ctrl-C stops
-        it. Needs: pip install 'planarloc[serve]'.""",
+        names the address bound (with --port 0: the port chosen) once the workers are ready. On an empty
+        kernel cache (no `planarloc warmup`) the workers share one background compile and answer as
+        Python (slower) until it ends; PLANARLOC_COMPILE=wait compiles first, before the banner. Ctrl-C
+        stops it. Needs: pip install 'planarloc[serve]'.""",
         [
             "planarloc serve --map office=office.db --map lab=lab.db --workers 2 --port 8080",
             "curl -F image=@q.png -F 'camera=PINHOLE 640 480 525 525 320 240' -F map=office "
@@ -166,6 +169,7 @@ def check_settings(args: argparse.Namespace) -> None:
         raise ValueError(f"--workers must be >= 1 and --queue >= 0, got {args.workers} and {args.queue}")
     if args.max_sessions < 1:
         raise ValueError(f"--max-sessions: must be >= 1, got {args.max_sessions}")
+    compile_setting()  # $PLANARLOC_COMPILE: a bad value is one line here, not a worker failing to start
     for option in ("header_timeout", "body_timeout", "queue_timeout", "job_timeout", "session_idle"):
         value = getattr(args, option)
         if not value > 0 or not math.isfinite(value):

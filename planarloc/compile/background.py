@@ -28,7 +28,7 @@ from pathlib import Path
 
 from planarloc.numerics.user_folders import user_temp_folder
 
-__all__ = ["BackgroundCompile", "compile_in_background", "lock_path"]
+__all__ = ["BackgroundCompile", "compile_in_background", "compile_running", "lock_path"]
 
 BACKGROUND_COMMAND = ("-m", "planarloc.compile")
 
@@ -39,6 +39,11 @@ def lock_path() -> Path:
     where = f"{os.environ.get('NUMBA_CACHE_DIR', '')}\0{package}"
     key = hashlib.sha256(where.encode()).hexdigest()[:16]
     return user_temp_folder("compile") / f"{key}.lock"
+
+
+def compile_running() -> bool:
+    """Whether a background compile of this kernel cache (``NUMBA_CACHE_DIR``) runs now."""
+    return _held(lock_path())
 
 
 def _held(lock: Path) -> bool:

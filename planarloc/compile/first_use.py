@@ -5,13 +5,15 @@
 localize``, the ROS 2 node): None when every kernel of its warm-up steps is cached (or cannot be
 kept: then they compile on first use, as before); else a :class:`FirstUse` whose ``notice`` the
 front door says once and whose :meth:`FirstUse.poll` it calls between queries. ``end`` returns to
-compiled kernels in any case (the front door's exit).
+compiled kernels in any case (the front door's exit). The processes of a pool (the service's
+workers) share one compile: :func:`first_use_in_pool`.
 """
 
 from __future__ import annotations
 
 import logging
 import os
+import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
@@ -24,6 +26,7 @@ __all__ = [
     "COMPILE_ENV",
     "FirstUse",
     "compile_setting",
+    "first_use_in_pool",
     "first_use_or_compile",
     "start_first_use",
 ]
@@ -129,4 +132,42 @@ def first_use_or_compile(
         compile_ahead(steps, notify=say)
     else:
         compile_first(steps)
+    return None
+
+
+#: How often a pool's process that waits for the shared compile looks whether it has ended (s).
+POOL_WAIT_POLL_S = 0.5
+
+
+def first_use_in_pool(steps: Sequence[str], say: Callable[[str], None], wait: bool) -> FirstUse | None:
+    """What each process of a pool does before its first query (``planarloc serve``'s workers, a
+    Ray Serve replica): the processes share one detached compile, whichever starts it first (the
+    others join it), so a cold pool of N workers compiles once, not N times on one core each
+    inside their first requests (``planarloc serve`` on an empty cache, 2 workers on 2 cores:
+    96 s for each worker's first request, against a job timeout of 120 s).
+
+    Without ``wait`` the process runs its kernels as Python meanwhile (:func:`start_first_use`;
+    the notice to ``say``; the caller polls and ends the returned :class:`FirstUse`). With
+    ``wait`` the compile runs on every core and the process waits for its end before it returns
+    None: the pool answers compiled from its first request. When the compile cannot be started
+    (said), the kernels compile on first use, in each process, as before.
+    """
+    try:
+        first = start_first_use(steps, jobs=(os.cpu_count() or 1) if wait else None)
+    except OSError as exc:
+        say(f"cannot compile planarloc's kernels in the background ({exc}); they compile on first use")
+        return None
+    if first is None:
+        return None
+    if not wait:
+        say(first.notice)
+        return first
+    say(
+        f"planarloc's kernels are not compiled yet ({first.missing} kernels): waiting for their "
+        f"compile (pid {first.compiling.pid or 'not yet known'}, log {first.compiling.log}) "
+        f"before the first query ({COMPILE_ENV}=wait)"
+    )
+    while not first.compiling.done():
+        time.sleep(POOL_WAIT_POLL_S)
+    first.end()
     return None

@@ -43,9 +43,13 @@ class ServerOutput:
 
 
 def start_server(
-    args: list[str], timeout_s: float = 120.0, env: dict[str, str] | None = None
+    args: list[str], timeout_s: float = 600.0, env: dict[str, str] | None = None
 ) -> tuple[str, subprocess.Popen]:
     """Run ``planarloc serve ARGS --host 127.0.0.1 --port 0`` and wait until ``/healthz`` answers.
+
+    ``timeout_s`` defaults to the workers' own start-up limit (``worker_pool.STARTUP_TIMEOUT_S``,
+    not imported: this module stays light): on an empty kernel cache with ``PLANARLOC_COMPILE=wait``
+    they compile before the banner. A server that exits is seen at once.
 
     The server binds any free port and names it in its banner, so two servers never race for one.
     ``env``: variables added to the server's environment (e.g. ``PLANARLOC_TOKEN``, ``TMPDIR``).

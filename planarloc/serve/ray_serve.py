@@ -59,7 +59,7 @@ from planarloc.serve.requests import (
 )
 from planarloc.serve.sessions import SessionStates, SessionTable
 from planarloc.serve.settings import DEFAULT_MAX_SESSIONS, DEFAULT_SESSION_IDLE_S
-from planarloc.serve.worker import localize_with, session_frame_with
+from planarloc.serve.worker import compiled_now, localize_with, session_frame_with, start_kernels
 
 logger = logging.getLogger(__name__)
 Answer = tuple[dict, int, dict]
@@ -101,8 +101,12 @@ class LocalizerReplica:
         # the replica's event loop; the replica computes one request at a time, in arrival order.
         self._thread = ThreadPoolExecutor(1, thread_name_prefix="planarloc-localizer")
         self.localizer = self._thread.submit(Localizer, Path(map_path)).result()
+        # On an empty kernel cache the replicas share one compile, as Python meanwhile (in the
+        # thread that computes: the kernels switch back between two requests).
+        self._first_use = self._thread.submit(start_kernels, [self.localizer]).result()
 
     def _compute(self, req: LocalizeRequest, generation: int | None) -> dict:
+        compiled_now(self._first_use)
         if generation is None:
             return localize_with(self.localizer, req)
         return session_frame_with(self.localizer, self._states, req, generation)

@@ -24,6 +24,8 @@ import time
 from collections.abc import Mapping
 from pathlib import Path
 
+from planarloc.compile import steps_for
+from planarloc.compile.first_use import FirstUse, compile_setting, first_use_in_pool
 from planarloc.features import learned
 from planarloc.localize.localizer import Localizer
 from planarloc.localize.records import query_record
@@ -73,6 +75,21 @@ def open_localizers(
             if change is not None:
                 _CHANGED[name] = change
     return dict(_CHANGED)
+
+
+def start_kernels(localizers: list[Localizer]) -> FirstUse | None:
+    """Before a process' first request: on an empty kernel cache, the kernels these maps'
+    localizations need compile once for the whole pool (:func:`first_use_in_pool`), as Python
+    meanwhile, or first with ``PLANARLOC_COMPILE=wait``. Poll the returned :class:`FirstUse`
+    between requests (:func:`compiled_now`)."""
+    steps = steps_for([loc.config for loc in localizers])
+    return first_use_in_pool(steps, logger.warning, wait=compile_setting() == "wait")
+
+
+def compiled_now(first: FirstUse | None) -> None:
+    """Between requests: back to compiled kernels once the shared compile has ended (said once)."""
+    if first is not None and first.poll():
+        logger.warning("planarloc's kernels are compiled: requests run compiled from now on")
 
 
 def localize_with(base: Localizer, req: LocalizeRequest) -> dict:
@@ -169,6 +186,7 @@ def worker_main(conn, maps: Mapping[str, str], expected: Mapping[str, MapFingerp
     threading.Thread(target=_exit_with_parent, args=(os.getppid(),), daemon=True).start()
     try:
         changed = open_localizers(maps, expected)
+        first = start_kernels(list(_LOCALIZERS.values()))
     except Exception as exc:  # noqa: BLE001 - reported to the server, which refuses to start
         logger.error("cannot open the maps: %s", exc)
         conn.send(("failed", f"{type(exc).__name__}: {' '.join(str(exc).split())}"))
@@ -179,6 +197,7 @@ def worker_main(conn, maps: Mapping[str, str], expected: Mapping[str, MapFingerp
             fn, args = conn.recv()
         except (EOFError, OSError):
             return
+        compiled_now(first)
         try:
             answer: tuple = ("ok", fn(*args))
         except Exception as exc:  # noqa: BLE001 - every failure is answered

@@ -45,7 +45,8 @@ from planarloc.serve.settings import DEFAULT_JOB_TIMEOUT_S, DEFAULT_QUEUE_TIMEOU
 
 logger = logging.getLogger(__name__)
 
-#: Time for a (re)started worker to open its maps.
+#: Time for a (re)started worker to open its maps (and, on an empty kernel cache with
+#: ``PLANARLOC_COMPILE=wait``, for the compile it waits for: :func:`worker.start_kernels`).
 STARTUP_TIMEOUT_S = 600.0
 
 

@@ -1,0 +1,79 @@
+"""`planarloc serve` on an empty kernel cache: the workers share one detached compile and answer as
+Python meanwhile, with the poses of the compiled kernels."""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import signal
+from pathlib import Path
+
+import numpy as np
+from served import serving
+
+from planarloc.cli.main import main
+from planarloc.client import Client
+
+NOTICE = re.compile(
+    r".*kernels are not compiled yet .*: "
+    r"(compiling them in the background|another command is compiling them) \(pid (\d+),"
+)
+
+
+def test_a_cold_service_compiles_once_for_its_workers_and_answers_as_python(
+    served_world, tmp_path: Path
+) -> None:
+    world, map_path, camera = served_world
+    image = sorted((world / "query" / "rgb").glob("*.png"))[0]
+    (tmp_path / "tmp").mkdir()
+    cold = {
+        "NUMBA_CACHE_DIR": str(tmp_path / "numba"),  # empty: a machine without the warm-up
+        "TMPDIR": str(tmp_path / "tmp"),
+        "PLANARLOC_COMPILE": "auto",  # the default (the tests' conftest sets wait)
+    }
+    pids: set[int] = set()
+    try:
+        with serving(served_world, ["--workers", "2", "--queue", "2"], env=cold) as served:
+            notices = [m for m in map(NOTICE.match, served.process.output.text().splitlines()) if m]
+            pids = {int(m[2]) for m in notices}
+            # One notice per worker, one compile between them: one started it, the other joined it.
+            assert len(notices) == 2 and len(pids) == 1, served.process.output.text()
+            assert sorted(m[1] for m in notices) == [
+                "another command is compiling them",
+                "compiling them in the background",
+            ]
+            with Client(served.url) as client:
+                record = client.localize(image, camera, map="office", structure="tracks", seed=7)
+    finally:
+        for pid in pids:
+            try:
+                os.killpg(pid, signal.SIGKILL)  # the detached compile and its workers (minutes of CPU)
+            except ProcessLookupError:
+                pass
+    out = tmp_path / "poses.txt"  # the same query with this process' compiled kernels
+    args = ["localize", "--map", str(map_path), str(image), "--camera", camera, "--structure", "tracks"]
+    assert main([*args, "--seed", "7", "--out", str(out)]) == 0
+    local = json.loads((tmp_path / "poses.txt.json.d" / (image.name + ".json")).read_text())
+    assert record["success"] and record["status"] == local["status"]
+    for key in "num_inliers num_inliers_3d model".split():
+        assert record[key] == local[key], key
+    for key in "quat_wxyz t position_std_m".split():
+        np.testing.assert_allclose(record[key], local[key], rtol=1e-9, atol=1e-12, err_msg=key)
+
+
+def test_a_bad_compile_setting_stops_the_server_in_one_line(served_world) -> None:
+    import subprocess
+    import sys
+
+    _world, map_path, _camera = served_world
+    proc = subprocess.run(
+        [sys.executable, "-m", "planarloc.cli.main", "serve", "--map", str(map_path), "--port", "0"],
+        env={**os.environ, "PLANARLOC_COMPILE": "later"},
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    lines = proc.stderr.strip().splitlines()
+    assert proc.returncode != 0 and len(lines) == 1, proc.stderr
+    assert "PLANARLOC_COMPILE='later'" in lines[0]
