@@ -3,10 +3,10 @@
 numba compiles a kernel on its first call and caches the machine code next to its module
 (``__pycache__/*.nbi, *.nbc``; :mod:`planarloc.numerics.kernel_cache`). Compiling all of
 planarloc's kernels takes about 170 s of CPU, so ``planarloc warmup`` does it once at install or
-image-build time. Without it, ``planarloc localize`` and the ROS 2 node run the kernels as Python
-while a detached process compiles them (:mod:`.first_use`), the other commands call
-:func:`compile_ahead` before estimating poses, and the service compiles them where they are
-first called.
+image-build time. Without it, ``planarloc localize``, the ROS 2 node and the service's workers
+run the kernels as Python while a detached process compiles them (:mod:`.first_use`; the
+service's workers share one), and the other commands call :func:`compile_ahead` before
+estimating poses.
 
 - :mod:`.manifest`: the shipped kernel list ``kernels.json`` (kernels, signatures, compile
   seconds, the kernels of each warm-up step); :mod:`.signatures` reads its signatures as data.
@@ -17,7 +17,8 @@ first called.
 - :mod:`.ahead`: :func:`compile_ahead`, what the front doors call (:func:`compile_lazily` to skip it).
 - :mod:`.interpreted`: the kernels run as plain Python (except a few hot ones) while they compile.
 - :mod:`.background`: compiling in a detached process, one per kernel cache (a lock file).
-- :mod:`.first_use`: the two together, a first pose in seconds on an empty cache (``planarloc localize``).
+- :mod:`.first_use`: the two together, a first pose in seconds on an empty cache (``planarloc
+  localize``, the node, the service's workers).
 - :mod:`.recorder`: :class:`CompileRecorder`, numba's compile events per kernel and signature.
 - ``python -m planarloc.compile --write-manifest`` regenerates the list after kernels change.
 """
