@@ -186,11 +186,15 @@ def worker_main(conn, maps: Mapping[str, str], expected: Mapping[str, MapFingerp
     threading.Thread(target=_exit_with_parent, args=(os.getppid(),), daemon=True).start()
     try:
         changed = open_localizers(maps, expected)
-        first = start_kernels(list(_LOCALIZERS.values()))
     except Exception as exc:  # noqa: BLE001 - reported to the server, which refuses to start
         logger.error("cannot open the maps: %s", exc)
         conn.send(("failed", f"{type(exc).__name__}: {' '.join(str(exc).split())}"))
         return
+    try:
+        first = start_kernels(list(_LOCALIZERS.values()))
+    except Exception as exc:  # noqa: BLE001 - not fatal: the kernels compile on first use, as before
+        logger.warning("cannot check the kernel cache (%s): kernels compile where first called", exc)
+        first = None
     conn.send(("ready", os.getpid(), changed))
     while True:
         try:
