@@ -78,6 +78,11 @@ class BackgroundCompile:
             return self._process.poll() is not None
         return not _held(self.lock)
 
+    def seen_from_elsewhere(self) -> BackgroundCompile:
+        """This compile as another process sees it (picklable, without the process handle):
+        :meth:`done` then asks the lock, which the system releases when the compile ends."""
+        return BackgroundCompile(self.lock, self.log, self.pid, ours=False)
+
 
 def compile_in_background(steps: Sequence[str], jobs: int) -> BackgroundCompile:
     """Start compiling the kernels of the warm-up ``steps`` that the cache misses, on ``jobs``

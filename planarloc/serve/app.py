@@ -13,7 +13,9 @@ Endpoints:
   what happened to the file since the server started).
 - ``GET /healthz`` — the pool and the maps as they are now (no token needed): 200 ``ok`` or
   ``degraded`` (a worker down or restarting, a map refused), 503 ``failing`` (no worker alive, or
-  no map servable).
+  no map servable). ``workers_as_python``: workers that answer as Python, slower, because the
+  kernel cache was empty and the compile they share still runs (``ok`` all the same: the
+  answers are the compiled kernels' poses).
 - ``GET /metrics`` — Prometheus exposition (:class:`~planarloc.serve.metrics.ServiceMetrics`).
 
 Answers other than 200 are ``{"error": "<one line>"}``: 4xx for the request's faults (400 bad
@@ -187,6 +189,7 @@ class Service:
             "status": status,
             "workers": self.pool.workers,
             "workers_alive": sum(alive),
+            "workers_as_python": self.pool.as_python(),
             "worker_restarts": self.pool.restarts,
             "worker_deaths": self.pool.deaths,
             "admitted": self.pool.admitted,

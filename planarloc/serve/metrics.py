@@ -19,6 +19,8 @@ class ServiceMetrics:
       ``session_gone``, ``server_fault``).
     - ``planarloc_queue_admitted`` / ``planarloc_workers_busy`` / ``planarloc_workers_alive``: gauges
       read at scrape time (``workers_alive`` asks the processes then, as ``/healthz`` does).
+    - ``planarloc_workers_as_python``: workers answering as Python (slower) because the kernel
+      cache was empty and the compile they share still runs (0 once it has ended).
     - ``planarloc_worker_restarts_total``, ``planarloc_worker_deaths_total``.
     - ``planarloc_map_ok{map}``: 1 while the map file is the version the server started with, 0
       once it was deleted, replaced or modified (checked at scrape time).
@@ -53,6 +55,10 @@ class ServiceMetrics:
             "planarloc_workers_alive": (
                 "worker processes alive with their maps open",
                 lambda: sum(pool.alive()),
+            ),
+            "planarloc_workers_as_python": (
+                "workers running their kernels as Python while the shared compile runs",
+                pool.as_python,
             ),
             "planarloc_worker_restarts_total": (
                 "worker processes replaced after dying",

@@ -174,7 +174,10 @@ def _describe(exc: BaseException) -> tuple:
 
 
 def worker_main(conn, maps: Mapping[str, str], expected: Mapping[str, MapFingerprint]) -> None:
-    """A worker process: open the maps, say ``("ready", pid, changed)``, then answer jobs.
+    """A worker process: open the maps, say ``("ready", pid, changed, compiling)``, then answer jobs.
+
+    ``compiling``: the shared compile (:class:`~planarloc.compile.background.BackgroundCompile`)
+    while which this worker runs its kernels as Python, or None.
 
     Each job is ``(fn, args)``; the answer ``("ok", result)``, ``("request", status, message,
     retry_after)`` or ``("fault", public message)``. Ends when the server closes the pipe, or when
@@ -195,7 +198,9 @@ def worker_main(conn, maps: Mapping[str, str], expected: Mapping[str, MapFingerp
     except Exception as exc:  # noqa: BLE001 - not fatal: the kernels compile on first use, as before
         logger.warning("cannot check the kernel cache (%s): kernels compile where first called", exc)
         first = None
-    conn.send(("ready", os.getpid(), changed))
+    # The server reports workers that run as Python (/healthz, /metrics) while this compile runs.
+    compiling = first.compiling.seen_from_elsewhere() if first is not None and first.as_python else None
+    conn.send(("ready", os.getpid(), changed, compiling))
     while True:
         try:
             fn, args = conn.recv()

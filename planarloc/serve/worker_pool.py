@@ -38,6 +38,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from planarloc.compile.background import BackgroundCompile
 from planarloc.serve import worker
 from planarloc.serve.map_watch import MapFingerprint
 from planarloc.serve.requests import RequestError, ServerFault
@@ -90,6 +91,7 @@ class _Worker:
     pid: int | None = None
     ready: bool = False
     dead: bool = False
+    compiling: BackgroundCompile | None = None  # while it runs, the worker's kernels run as Python
     started_at: float = field(default_factory=time.monotonic)
 
 
@@ -199,7 +201,7 @@ class WorkerPool:
                 f"a worker process failed to open the maps ({answer[1]}); run `planarloc map info` "
                 "on each map"
             )
-        _, w.pid, changed = answer
+        _, w.pid, changed, w.compiling = answer
         for name, change in changed.items():
             logger.error(
                 "worker %d (pid %d) opened another version of map %s than the server's (%s)",
@@ -270,6 +272,20 @@ class WorkerPool:
         for w in self._current:
             out.append(w is not None and w.ready and not w.dead and w.process.is_alive())
         return out
+
+    def as_python(self) -> int:
+        """Live workers whose kernels run as Python: they started on an empty kernel cache and the
+        compile they share still runs (checked now). Once it has ended, each worker switches to
+        compiled kernels before its next request, so none counts any more."""
+        count = 0
+        for ok, w in zip(self.alive(), self._current):
+            if w is None or w.compiling is None:
+                continue
+            if w.compiling.done():
+                w.compiling = None
+            elif ok:
+                count += 1
+        return count
 
     @property
     def pids(self) -> list[int | None]:

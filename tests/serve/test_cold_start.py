@@ -4,11 +4,14 @@ Python meanwhile, with the poses of the compiled kernels."""
 from __future__ import annotations
 
 import json
+import math
 import os
 import re
 import signal
+import time
 from pathlib import Path
 
+import httpx
 import numpy as np
 from served import serving
 
@@ -43,8 +46,18 @@ def test_a_cold_service_compiles_once_for_its_workers_and_answers_as_python(
                 "another command is compiling them",
                 "compiling them in the background",
             ]
+            # The server says that its workers answer as Python, and stops once the compile ends.
+            assert as_python(served.url) == (2, 2.0)
             with Client(served.url) as client:
                 record = client.localize(image, camera, map="office", structure="tracks", seed=7)
+            assert as_python(served.url) == (2, 2.0)  # the compile takes minutes: it still runs
+            for pid in pids:
+                os.killpg(pid, signal.SIGKILL)  # ended (here killed): the lock is released
+            deadline = time.monotonic() + 30
+            while as_python(served.url) != (0, 0.0) and time.monotonic() < deadline:
+                time.sleep(0.1)
+            assert as_python(served.url) == (0, 0.0)
+            assert httpx.get(served.url + "/healthz").json()["status"] == "ok"
     finally:
         for pid in pids:
             try:
@@ -60,6 +73,14 @@ def test_a_cold_service_compiles_once_for_its_workers_and_answers_as_python(
         assert record[key] == local[key], key
     for key in "quat_wxyz t position_std_m".split():
         np.testing.assert_allclose(record[key], local[key], rtol=1e-9, atol=1e-12, err_msg=key)
+
+
+def as_python(url: str) -> tuple[int, float]:
+    """Workers that run as Python, by ``/healthz`` and by ``/metrics``."""
+    health = httpx.get(url + "/healthz", timeout=10).json()["workers_as_python"]
+    lines = httpx.get(url + "/metrics", timeout=10).text.splitlines()
+    gauge = [float(line.split()[1]) for line in lines if line.startswith("planarloc_workers_as_python ")]
+    return health, gauge[0] if len(gauge) == 1 else math.nan
 
 
 def test_a_bad_compile_setting_stops_the_server_in_one_line(served_world) -> None:
