@@ -177,7 +177,7 @@ def worker_main(conn, maps: Mapping[str, str], expected: Mapping[str, MapFingerp
     """A worker process: open the maps, say ``("ready", pid, changed, compiling)``, then answer jobs.
 
     ``compiling``: the shared compile (:class:`~planarloc.compile.background.BackgroundCompile`)
-    while which this worker runs its kernels as Python, or None.
+    during which this worker runs its kernels as Python; None when they run compiled.
 
     Each job is ``(fn, args)``; the answer ``("ok", result)``, ``("request", status, message,
     retry_after)`` or ``("fault", public message)``. Ends when the server closes the pipe, or when
