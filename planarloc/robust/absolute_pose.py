@@ -38,7 +38,12 @@ from planarloc.robust.ransac import ransac
 from planarloc.robust.result import PoseEstimate, RansacStatistics
 from planarloc.robust.rivals import RIVAL_COST_RATIO, RIVAL_MARGIN_INLIERS, with_rival
 from planarloc.robust.sampling import eligible_pairs
-from planarloc.robust.search_confidence import missed_by_all
+from planarloc.robust.search_confidence import (
+    RIVAL_CHECK_ITERATIONS,
+    SECOND_SEARCH_BELOW_INLIERS,
+    missed_by_all,
+    rival_check_samples,
+)
 from planarloc.robust.status import DATA_LIMITED, Status
 from planarloc.robust.structure import triangulate_tracks
 from planarloc.robust.verification import Candidate, EstimateContext, failed_estimate, judge_pose
@@ -68,11 +73,6 @@ E_Y = np.array([0.0, 1.0, 0.0])
 E_Y.setflags(write=False)
 # An explicit planar method fails when a 6DoF pose elsewhere has less than this share of its cost.
 PLANAR_VIOLATION_RATIO = 0.8
-# Samples per map image of the short 6DoF search that checks a planar pose: at most this many,
-# fewer where the planar pose's inlier ratio says a clean 5-point sample comes sooner
-# (:func:`rival_check_samples`).
-RIVAL_CHECK_ITERATIONS = 10
-RIVAL_CHECK_CONFIDENCE = 0.9  # chance of one all-inlier sample per map image the budget aims at
 
 
 @dataclass(frozen=True)
@@ -291,7 +291,8 @@ class _Estimation:
         image, a quick refinement) only checks it: a pose of clearly lower cost means the planar
         search failed (a generated office tilted 1°: a planar pose 6.6° off on 993 inliers, the
         6DoF one right on 1,184 at a seventh of the cost), one elsewhere of about the same cost is
-        a rival; at 60 % outliers the short search rarely finds anything, and costs little. The
+        a rival; at 60 % outliers the short search rarely finds anything, and costs little. A
+        planar pose on few inliers is searched for twice first (:meth:`_second_search`). The
         full 6DoF search runs when the planar answer is in doubt: no pose, too few inliers, a
         pose that leaves the plane (a tilted query, one off the map's plane), or a clearly
         better 6DoF pose."""
@@ -301,6 +302,7 @@ class _Estimation:
         for family in first:
             found += [r for r in [self.search(family, counted=True)] if r is not None]
         if found and method in (Method.AUTO, *PLANAR) and (method == Method.AUTO or options.cross_check):
+            found += self._second_search(min(found, key=lambda s: s.refined.score))
             best = min(found, key=lambda s: s.refined.score)
             est = self.judge(best, found)
             if est.model == "planar" and (est.success or est.status in DATA_LIMITED):
@@ -328,6 +330,15 @@ class _Estimation:
         if method in PLANAR:
             return _planar_model_check(est, method, options, problem, best, others)
         return est
+
+    def _second_search(self, best: _Search) -> list[_Search]:
+        """Another search of ``best``'s family when its pose rests on fewer than
+        ``SECOND_SEARCH_BELOW_INLIERS`` inliers (2D-2D and 2D-3D), else nothing: on so little
+        support one search's basin is not evidence enough (:mod:`~planarloc.robust.search_confidence`)."""
+        support = np.count_nonzero(best.refined.in2d) + np.count_nonzero(best.refined.in3d)
+        if support >= SECOND_SEARCH_BELOW_INLIERS:
+            return []
+        return [r for r in [self.search(best.family, counted=True)] if r is not None]
 
     def _checked_planar(
         self, est: PoseEstimate, best: _Search, found: list[_Search]
@@ -422,32 +433,6 @@ def _search(
     missed = functools.partial(estimator.missed, samples=search.iterations)
     alternatives = list(zip(out.alt_R, out.alt_t, out.alt_cost))
     return _Search(family, refined, alternatives, (out.pool_R, out.pool_t), scorer, missed)
-
-
-def rival_check_samples(inliers: np.ndarray, counts: np.ndarray, sample_size: int = 5) -> int:
-    """Samples per map image of the short 6DoF check of a planar pose.
-
-    Enough for an all-inlier ``sample_size`` sample with probability ``RIVAL_CHECK_CONFIDENCE``
-    in the map image with the second-highest inlier ratio ``w`` of the planar pose (stage 2
-    needs two map images): ``log(1 − c) / log(1 − w^m)`` (the RANSAC bound), between 2 and
-    ``RIVAL_CHECK_ITERATIONS``. A 6DoF pose clearly better than the planar one has at least
-    its inliers, so ``w`` errs on the side of more samples.
-
-    Args:
-        inliers: (P,) inliers per map image of the planar pose; counts: (P,) matches per map image.
-    """
-    ratios = sorted(
-        (i / c for i, c in zip(inliers.tolist(), counts.tolist()) if c >= sample_size), reverse=True
-    )
-    if len(ratios) < 2:
-        return RIVAL_CHECK_ITERATIONS
-    clean = ratios[1] ** sample_size
-    if clean >= 1.0:
-        return 2
-    if clean <= 0.0:
-        return RIVAL_CHECK_ITERATIONS
-    needed = math.log(1.0 - RIVAL_CHECK_CONFIDENCE) / math.log1p(-clean)
-    return int(min(max(math.ceil(needed), 2), RIVAL_CHECK_ITERATIONS))
 
 
 def _no_hypothesis(stats: RansacStatistics, method: Method, options: RansacOptions) -> tuple[Status, str]:

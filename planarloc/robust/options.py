@@ -122,8 +122,10 @@ class RansacOptions:
             explains the matches better (tilted query, query off the map's plane). With the 6DoF
             baselines a planar 2p1p search: its pose, where it explains the matches about as
             well from elsewhere, is a rival that bounds the uncertainty (cross-session facades
-            with repeated windows gave 6DoF poses 10-40 m off with 40-130 inliers). Turning it
-            off reproduces the paper's methods and timing, without the guarantee.
+            with repeated windows gave 6DoF poses 10-40 m off with 40-130 inliers). A planar pose
+            on few inliers is also searched for a second time (``auto`` too; the better pose
+            wins, one elsewhere at about its cost is a rival). Turning it off reproduces the
+            paper's methods and timing, without the guarantee.
         max_reference_shift_std: verification. Each supporting reference is left out in
             turn and the pose refined again; a pose that moves by more than this many
             (final) standard deviations, or by more than ``max_position_std_m``, when one
