@@ -46,14 +46,14 @@ RIVAL_CHECK_CONFIDENCE = 0.9  # chance of one all-inlier sample per map image th
 
 #: A cross-checked planar pose on fewer inliers than this gets a second, independent search of
 #: its family (its own samples, the full budget): the bound above assumes an all-inlier sample
-#: yields the true pose, and on so little support it may not. The hard protocol's weak poses
-#: (3 x 20 matches, 1.5 px, 40-60 % outliers) broke promises from a basin the only search ended
-#: in: the truth's basin cheaper and never sampled (0.53 m off, std 0.15 m), or dearer and never
-#: refined into (0.72 m, std 0.15 m). The better of the two searches is the answer, and one
-#: elsewhere at about its cost is a rival. Seeds 1-13, 21, 33, 78, 79 (32,000 scenes): broken
-#: promises 11 -> 7 of 28,830 successes; seeds 81-88, never used before: 7 -> 4 of 14,410, every
-#: rate within 0.04 points. The price is a second search on those poses only (BENCHMARKS.md, "A
-#: second search for weak poses").
+#: yields the true pose, and on so little support it may not. The hard protocol (3 x 20 matches,
+#: 1.5 px, 60 % outliers, seed 79) had a success 0.53 m off with a 0.15 m std on 19 inliers: the
+#: truth's basin was 15 px² cheaper, and none of the search's 8 hypotheses lay in it. The better
+#: of the two searches is the answer, and one elsewhere at about its cost is a rival. Seeds 1-5,
+#: 7-13, 21, 33, 78, 79 (32,000 scenes): broken promises 11 -> 7 of 28,830 successes; seeds 81-88,
+#: never used before: 7 -> 4 of 14,410; success at 0.1 m / 1° within 0.07 points. Where both
+#: searches end in the same wrong basin, nothing changes. The price is a second search on those
+#: poses only (BENCHMARKS.md, "A second search for weak poses").
 SECOND_SEARCH_BELOW_INLIERS = 32
 
 
