@@ -37,6 +37,7 @@ from planarloc.robust.rivals import (
     RIVAL_COST_RATIO,
     RIVAL_MARGIN_INLIERS,
     basin_distance,
+    pool_basins,
     rival_distance,
 )
 from planarloc.robust.search_confidence import MAX_MISS_PROBABILITY
@@ -428,6 +429,27 @@ def _check_runner_ups(j: _Judging) -> PoseEstimate | None:
         )
         if failed is not None:
             return failed
+        # The search's own runner-ups, refined in full: basins away from the weakest axis that
+        # the restarts below do not reach.
+        basins = pool_basins(
+            cand.estimator,
+            cand.ref,
+            cand.pool,
+            cand.refine,
+            j.std,
+            3.0 * j.std + 0.05,
+            j.n2d + j.n3d,
+            j.ctx.options.max_position_std_m,
+        )
+        failed = j.widen(
+            basins.rival_m,
+            f"a runner-up of the search, refined, converged {basins.rival_m:.3g} m away to a pose that "
+            f"explains the matches as well (within {RESTART_MARGIN_INLIERS} inlier's worth of MSAC "
+            "cost, or better): the data do not single out one position; more matches or map images",
+        )
+        if failed is not None:
+            return failed
+        j.std = max(j.std, basins.near_m)
     if cand.refine is not None and j.n2d + j.n3d < PROFILE_BELOW_INLIERS:
         # Few constraints: other basins of the cost, with other inlier sets, may explain the
         # matches as well (Strecha entry_p10 against the fountain_p11 map: a pose 0.95 m off with

@@ -338,14 +338,14 @@ def test_basin_margins_rival_and_near() -> None:
     assert basins(few, Restart(near * 1.01, 0.25)) == (0.0, 0.0)
 
 
-@pytest.mark.parametrize(
-    "case", [(1, 1, 3, 10), (5, 1, 2, 112), (11, 1, 4, 100), (21, 1, 4, 23), (33, 1, 4, 152)]
-)
+@pytest.mark.parametrize("case", [(1, 1, 3, 10), (5, 1, 2, 112), (11, 1, 4, 100), (21, 1, 4, 23)])
 def test_a_near_basin_widens_the_std_of_a_weak_pose(case) -> None:
     """Hard-protocol scenes (3 references x 20 matches, 1.5 px noise, 40-60 % outliers) where
     `auto` reported success 0.24-0.33 m off with a std of 0.05-0.07 m, planar poses on 21-28
     inliers that absorbed outliers: a restart landed 0.13-0.25 m away next to the true pose, 1.4-3.5
-    inliers' worth of cost above the answer (beyond the rival margin of one)."""
+    inliers' worth of cost above the answer (beyond the rival margin of one). A fifth such scene,
+    seed 33 (1, 4, 152), is now refused: a runner-up of its search lands in a basin within one
+    inlier's worth (tests/robust/test_pool_basins.py)."""
     seed, mi, ri, trial = case
     ss = np.random.SeedSequence([seed, mi, ri, trial])
     rng, ransac_seed = np.random.default_rng(ss), int(ss.generate_state(1)[0])
