@@ -201,10 +201,11 @@ def pool_basins(
     The restarts go along the weakest axis of the curvature at ``ref`` only; on few inliers the
     truth's basin may lie along another (a pose that absorbed outliers bends the cost), and the
     search often drew a hypothesis next to it that lost on raw cost to one the local optimisation
-    then took elsewhere. Its raw cost says little about its basin (10-20 px² above it, beyond
-    :func:`rival_distance`'s margin), so up to :data:`POOL_BASIN_STARTS` of the raw hypotheses
-    ``pool`` (R (k, 3, 3), t (k, 3)) are refined in full, cheapest first, skipping those within
-    ``std_m`` of ``ref``'s centre or of a start already taken (they would land at home). Where
+    then took elsewhere. Its raw cost says little about its basin (3-18 px² above it in the
+    hard protocol's broken promises, often beyond :func:`rival_distance`'s margin), so up to
+    :data:`POOL_BASIN_STARTS` of the raw hypotheses ``pool`` (R (k, 3, 3), t (k, 3)) are
+    refined in full, cheapest first, skipping those within ``std_m`` of ``ref``'s centre or of
+    a start already taken (they would land at home). Where
     they land is judged as the restarts' landings are (:func:`_landings`), but for one landing
     within ``promise_m`` (3σ + 5 cm) at about ``ref``'s cost: that is the pose's own valley, which
     widens its std as a near basin does rather than refusing it (as a rival there, the same
