@@ -134,6 +134,22 @@ class FinalRefiner:
         return out
 
 
+class CachedRefiner:
+    """A refiner (``refine(R, t, quick)``, e.g. :class:`FinalRefiner`) that remembers its
+    results by start pose: checks that examine the same runner-ups of a search refine each one
+    once (the refinement is deterministic, so the answers are those of the refiner itself)."""
+
+    def __init__(self, refine) -> None:
+        self._refine = refine
+        self._done: dict[tuple[bytes, bytes, bool], RefinedPose] = {}
+
+    def __call__(self, R: np.ndarray, t: np.ndarray, quick: bool = False) -> RefinedPose:
+        key = (np.asarray(R, dtype=float).tobytes(), np.asarray(t, dtype=float).tobytes(), bool(quick))
+        if key not in self._done:
+            self._done[key] = self._refine(R, t, quick)
+        return self._done[key]
+
+
 class Restart(NamedTuple):
     """Where one restart of the refinement landed: its MSAC cost above the refined pose's
     (pixels², negative when lower) and its centre's distance from the refined pose's (m)."""

@@ -45,6 +45,12 @@ MAX_POOL_CANDIDATES = 8
 # Runner-up hypotheses of a weak pose's search refined in full to see where they land
 # (:func:`pool_basins`).
 POOL_BASIN_STARTS = 4
+# ... for a pose on fewer inliers than this. Not RIVAL_POOL_BELOW_INLIERS: on the hard protocol's
+# 50-match cells (40-60 % outliers) poses on 32-63 inliers broke promises the same way, a basin
+# the search had drawn a hypothesis in, 1-4 inliers' worth above the answer. Seeds 102-133 (64,000
+# scenes): broken promises of ``auto`` 28 -> 19, seeds above 0.1 % 8 -> 3, 19 correct poses fewer,
+# +3.6 % time; 96 gave the same 19 for +5 % (BENCHMARKS.md, "Runner-ups' basins on more inliers").
+POOL_BASINS_BELOW_INLIERS = 64
 
 
 def rival_distance(
@@ -181,7 +187,9 @@ def basin_distance(
     them a restart landed next to it, 0.13-0.25 m away at 1.4-3.5 inliers' worth of cost above
     the answer, where the 1-inlier margin ignored it.
     """
-    return _landings(estimator, refine.restarts(ref, step_m), num_inliers, max_std_m)
+    return _landings(
+        estimator, refine.restarts(ref, step_m), num_inliers < RIVAL_POOL_BELOW_INLIERS, max_std_m
+    )
 
 
 def pool_basins(
@@ -196,7 +204,7 @@ def pool_basins(
 ) -> BasinRivals:
     """Where the search's runner-up hypotheses of a weak pose land when refined: the basins of
     :func:`basin_distance`, started from where the search itself looked (nothing for a pose on
-    :data:`RIVAL_POOL_BELOW_INLIERS` inliers or more).
+    :data:`POOL_BASINS_BELOW_INLIERS` inliers or more; ``num_inliers`` counts the pose's).
 
     The restarts go along the weakest axis of the curvature at ``ref`` only; on few inliers the
     truth's basin may lie along another (a pose that absorbed outliers bends the cost), and the
@@ -212,10 +220,13 @@ def pool_basins(
     scenes lost 0.05 points more of correct poses for no promise more).
     benchmarks/robustness.py --protocol hard, seeds 94-109 (32,000 scenes new to the estimator):
     broken promises of ``auto`` 25 -> 18, success at 0.1 m / 1° within 0.11 points
-    (BENCHMARKS.md, "Runner-ups' basins, and what fresh seeds say").
+    (BENCHMARKS.md, "Runner-ups' basins, and what fresh seeds say"), then 28 -> 19 on seeds
+    102-133 when poses on 32-63 inliers were examined too (:data:`POOL_BASINS_BELOW_INLIERS`).
+    ``refine`` may be the one :func:`rival_distance` took: a runner-up both refine in full is
+    refined once when it caches (``verification._check_runner_ups`` does).
     """
     R, t = pool
-    if num_inliers >= RIVAL_POOL_BELOW_INLIERS or not len(R):
+    if num_inliers >= POOL_BASINS_BELOW_INLIERS or not len(R):
         return BasinRivals(0.0, 0.0)
     c = -ref.R.T @ ref.t
     centres = -np.einsum("nji,nj->ni", R, t)
@@ -233,23 +244,19 @@ def pool_basins(
     for i in starts:
         alt = refine(R[i], t[i], False)
         landed.append(Restart(float(alt.score - ref.score), float(np.linalg.norm(-alt.R.T @ alt.t - c))))
-    return _landings(estimator, landed, num_inliers, max_std_m, promise_m)
+    return _landings(estimator, landed, num_inliers < POOL_BASINS_BELOW_INLIERS, max_std_m, promise_m)
 
 
 def _landings(
-    estimator, landed: Sequence[Restart], num_inliers: int, max_std_m: float, rival_beyond_m: float = 0.0
+    estimator, landed: Sequence[Restart], weak: bool, max_std_m: float, rival_beyond_m: float = 0.0
 ) -> BasinRivals:
     """Refinements started away from a pose, judged by where they landed (:class:`Restart`): one
     within :data:`RESTART_MARGIN_INLIERS` inlier's worth of its cost (or below) and farther than
-    ``rival_beyond_m`` is a rival; for a pose on fewer than :data:`RIVAL_POOL_BELOW_INLIERS`
-    inliers, one within :data:`NEAR_BASIN_MARGIN_INLIERS` inliers' worth and ``max_std_m``
-    widens the std only."""
+    ``rival_beyond_m`` is a rival; for a ``weak`` pose (few inliers, as the caller counts them),
+    one within :data:`NEAR_BASIN_MARGIN_INLIERS` inliers' worth and ``max_std_m`` widens the std
+    only."""
     tight = RESTART_MARGIN_INLIERS * estimator.threshold_sq
-    near = (
-        NEAR_BASIN_MARGIN_INLIERS * estimator.threshold_sq
-        if num_inliers < RIVAL_POOL_BELOW_INLIERS
-        else tight
-    )
+    near = NEAR_BASIN_MARGIN_INLIERS * estimator.threshold_sq if weak else tight
     rival_m = near_m = 0.0
     for r in landed:
         if r.excess_cost <= tight and r.distance_m > rival_beyond_m:

@@ -15,10 +15,11 @@ from hard_protocol import hard_protocol_scene
 import planarloc.robust.verification as verification
 from planarloc.geometry.pose import pose_errors
 from planarloc.robust.absolute_pose import estimate_absolute_pose
-from planarloc.robust.final_refinement import RefinedPose
+from planarloc.robust.final_refinement import CachedRefiner, RefinedPose
 from planarloc.robust.rivals import (
     NEAR_BASIN_MARGIN_INLIERS,
     POOL_BASIN_STARTS,
+    POOL_BASINS_BELOW_INLIERS,
     RESTART_MARGIN_INLIERS,
     RIVAL_POOL_BELOW_INLIERS,
     BasinRivals,
@@ -85,16 +86,29 @@ def test_runner_ups_are_refined_cheapest_first_skipping_those_at_home() -> None:
     assert pool_basins(scorer, ref, pool, refine, 0.1, 0.35, few, 0.3) == BasinRivals(0.0, 0.0)
 
 
+@pytest.mark.parametrize("num_inliers", [RIVAL_POOL_BELOW_INLIERS - 1, POOL_BASINS_BELOW_INLIERS - 1])
+def test_a_near_basin_widens_poses_on_fewer_inliers_than_the_pool_examination_reaches(num_inliers) -> None:
+    """The restarts' near margin (four inliers' worth) holds for every pose whose runner-ups are
+    refined, past RIVAL_POOL_BELOW_INLIERS too."""
+    near = NEAR_BASIN_MARGIN_INLIERS * TAU_SQ
+    refine = _Landings({0.5: (0.25, 100.0 + near)})
+    out = pool_basins(
+        _Scorer([100.0]), _refined([0, 0, 0], 100.0), _pool([0.5, 0, 0]), refine, 0.1, 0.35, num_inliers, 0.3
+    )
+    assert out == BasinRivals(0.0, 0.25)
+
+
 def test_at_most_a_few_starts_and_only_for_weak_poses() -> None:
+    assert POOL_BASINS_BELOW_INLIERS > RIVAL_POOL_BELOW_INLIERS
     ref = _refined([0, 0, 0], 100.0)
     xs = [0.2 * (k + 1) for k in range(POOL_BASIN_STARTS + 3)]
     pool = _pool(*[[x, 0, 0] for x in xs])
     scorer = _Scorer(np.arange(len(xs), dtype=float))
     refine = _Landings({float(-t): (0.0, 100.0) for t in pool[1][:, 0]})
-    pool_basins(scorer, ref, pool, refine, 0.1, 0.35, RIVAL_POOL_BELOW_INLIERS - 1, 0.3)
+    pool_basins(scorer, ref, pool, refine, 0.1, 0.35, POOL_BASINS_BELOW_INLIERS - 1, 0.3)
     assert len(refine.started) == POOL_BASIN_STARTS
     refine.started.clear()
-    assert pool_basins(scorer, ref, pool, refine, 0.1, 0.35, RIVAL_POOL_BELOW_INLIERS, 0.3) == BasinRivals(
+    assert pool_basins(scorer, ref, pool, refine, 0.1, 0.35, POOL_BASINS_BELOW_INLIERS, 0.3) == BasinRivals(
         0.0, 0.0
     )
     assert not refine.started
@@ -111,11 +125,23 @@ def _without_pool_basins(monkeypatch) -> None:
     monkeypatch.setattr(verification, "pool_basins", lambda *a, **k: BasinRivals(0.0, 0.0))
 
 
-@pytest.mark.parametrize("case", [(96, 152), (94, 120)])
+@pytest.mark.parametrize(
+    "case",
+    [
+        (96, 1, 4, 152, 20),
+        (94, 1, 4, 120, 20),
+        (104, 0, 4, 1, 50),
+        (129, 0, 4, 104, 50),
+    ],
+)
 def test_a_runner_ups_near_basin_widens_a_weak_pose(monkeypatch, case) -> None:
     """Seed 96: 0.195 m off with a 0.044 m std (23 inliers); seed 94: 0.55 m off with a 0.163 m
-    std. A runner-up lands 0.09 / 0.30 m away, 2.2 / 0.3 inliers' worth above the answer."""
-    sc, options = _hard_scene(*case)
+    std. A runner-up lands 0.09 / 0.30 m away, 2.2 / 0.3 inliers' worth above the answer.
+    Seeds 104 and 129 (50 matches per map image): 0.21 / 0.20 m off with 0.034 / 0.048 m stds on
+    45 / 50 inliers, past the 32 where the pool's rivals are looked for; widened to 0.175 /
+    0.208 m."""
+    seed, matches_index, outlier_index, trial, matches = case
+    sc, options = hard_protocol_scene(seed, matches_index, outlier_index, trial, matches)
     est = estimate_absolute_pose(sc.query_camera, sc.pairs, "auto", options)
     assert est.success, est.message  # widened, not refused
     err, _ = pose_errors(est.pose, sc.query_pose)
@@ -139,3 +165,14 @@ def test_a_runner_ups_rival_basin_refuses_a_wrong_weak_pose(monkeypatch) -> None
     assert err > 0.25  # the refused pose was wrong
     _without_pool_basins(monkeypatch)
     assert estimate_absolute_pose(sc.query_camera, sc.pairs, "auto", options).success
+
+
+def test_a_cached_refiner_refines_each_start_once_and_answers_as_the_refiner() -> None:
+    refine = _Landings({0.5: (0.25, 104.0), 0.9: (0.9, 101.0)})
+    cached = CachedRefiner(refine)
+    R, t = _pool([0.5, 0, 0], [0.9, 0, 0])
+    first = cached(R[0], t[0], False)
+    assert cached(R[0].copy(), t[0].copy(), False) is first  # the same start, by value
+    assert cached(R[1], t[1], False).score == 101.0
+    assert refine.started == [0.5, 0.9]
+    assert first.score == 104.0 and np.allclose(-first.R.T @ first.t, [0.25, 0, 0])

@@ -1,8 +1,11 @@
 """Trust: gravity-levelled planar solvers, method auto, and no confident wrong pose on tilted or
 off-plane queries (issue: never confidently wrong)."""
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
+from hard_protocol import hard_protocol_scene
 from scipy.spatial.transform import Rotation
 
 from planarloc.geometry.pose import Pose, pose_errors
@@ -252,20 +255,8 @@ def test_few_inliers_far_runner_up_is_not_a_confident_success(case) -> None:
     report success 0.2-0.3 m off with a std of 0.04 m: a runner-up pose explained the matches
     within two inliers' worth of MSAC cost."""
     seed, ri, trial = case
-    ss = np.random.SeedSequence([seed, 1, ri, trial])
-    rng, ransac_seed = np.random.default_rng(ss), int(ss.generate_state(1)[0])
-    sc = make_scene(
-        rng, num_refs=3, matches_per_pair=20, noise_px=1.5, outlier_ratio=(0.0, 0.2, 0.4, 0.5, 0.6)[ri]
-    )
-    opts = RansacOptions(
-        max_iterations=100,
-        min_iterations=100,
-        threshold_px=2.0,
-        seed=ransac_seed,
-        structure="none",
-        cross_check=False,
-    )
-    est = estimate_absolute_pose(sc.query_camera, sc.pairs, "2p1p", opts)
+    sc, opts = hard_protocol_scene(seed, 1, ri, trial, matches=20)
+    est = estimate_absolute_pose(sc.query_camera, sc.pairs, "2p1p", replace(opts, cross_check=False))
     if est.success:
         err, _ = pose_errors(est.pose, sc.query_pose)
         assert err <= 3 * est.position_std_m + 0.05, (err, est.position_std_m)
@@ -281,18 +272,7 @@ def test_a_restart_that_lands_inside_the_promise_still_bounds_the_std(case) -> N
     between the two, inside the old promise, where they were ignored. A pose the data support as
     well, wherever it lies, is a lower bound on the std."""
     seed, mi, ri, trial = case
-    ss = np.random.SeedSequence([seed, mi, ri, trial])
-    rng, ransac_seed = np.random.default_rng(ss), int(ss.generate_state(1)[0])
-    sc = make_scene(
-        rng,
-        num_refs=3,
-        matches_per_pair=(50, 20)[mi],
-        noise_px=1.5,
-        outlier_ratio=(0.0, 0.2, 0.4, 0.5, 0.6)[ri],
-    )
-    opts = RansacOptions(
-        max_iterations=100, min_iterations=100, threshold_px=2.0, seed=ransac_seed, structure="none"
-    )
+    sc, opts = hard_protocol_scene(seed, mi, ri, trial, matches=(50, 20)[mi])
     est = estimate_absolute_pose(sc.query_camera, sc.pairs, "auto", opts)
     if est.success:
         err, _ = pose_errors(est.pose, sc.query_pose)
@@ -347,14 +327,7 @@ def test_a_near_basin_widens_the_std_of_a_weak_pose(case) -> None:
     seed 33 (1, 4, 152), is now refused: a runner-up of its search lands in a basin within one
     inlier's worth (tests/robust/test_pool_basins.py)."""
     seed, mi, ri, trial = case
-    ss = np.random.SeedSequence([seed, mi, ri, trial])
-    rng, ransac_seed = np.random.default_rng(ss), int(ss.generate_state(1)[0])
-    sc = make_scene(
-        rng, num_refs=3, matches_per_pair=20, noise_px=1.5, outlier_ratio=(0.0, 0.2, 0.4, 0.5, 0.6)[ri]
-    )
-    opts = RansacOptions(
-        max_iterations=100, min_iterations=100, threshold_px=2.0, seed=ransac_seed, structure="none"
-    )
+    sc, opts = hard_protocol_scene(seed, mi, ri, trial, matches=20)
     est = estimate_absolute_pose(sc.query_camera, sc.pairs, "auto", opts)
     assert est.success, est.message  # widened, not refused
     err, _ = pose_errors(est.pose, sc.query_pose)
