@@ -8,6 +8,7 @@ map-error share of the uncertainty is propagated afterwards).
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import NamedTuple
 
@@ -139,7 +140,7 @@ class CachedRefiner:
     results by start pose: checks that examine the same runner-ups of a search refine each one
     once (the refinement is deterministic, so the answers are those of the refiner itself)."""
 
-    def __init__(self, refine) -> None:
+    def __init__(self, refine: Callable[[np.ndarray, np.ndarray, bool], RefinedPose]) -> None:
         self._refine = refine
         self._done: dict[tuple[bytes, bytes, bool], RefinedPose] = {}
 

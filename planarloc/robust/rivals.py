@@ -1,9 +1,9 @@
 """Rival answers: other poses that explain the matches about as well as a judged one.
 
 A rival far from a pose bounds its position std from below: the runner-ups of its search
-(:func:`rival_distance`), a restart of its refinement that falls into another basin of the cost
-(:func:`basin_distance`), and another search's pose found after the judgement
-(:func:`with_rival`). :mod:`planarloc.robust.verification` applies them.
+(:func:`rival_distance`, and refined in full, :func:`pool_basins`), a restart of its refinement
+that falls into another basin of the cost (:func:`basin_distance`), and another search's pose
+found after the judgement (:func:`with_rival`). :mod:`planarloc.robust.verification` applies them.
 """
 
 from __future__ import annotations
