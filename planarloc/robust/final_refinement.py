@@ -8,7 +8,6 @@ map-error share of the uncertainty is propagated afterwards).
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from dataclasses import dataclass
 from typing import NamedTuple
 
@@ -133,22 +132,6 @@ class FinalRefiner:
             )
             out.append(Restart(float(score1 - ref.score), float(np.linalg.norm(-R1.T @ t1 - c))))
         return out
-
-
-class CachedRefiner:
-    """A refiner (``refine(R, t, quick)``, e.g. :class:`FinalRefiner`) that remembers its
-    results by start pose: checks that examine the same runner-ups of a search refine each one
-    once (the refinement is deterministic, so the answers are those of the refiner itself)."""
-
-    def __init__(self, refine: Callable[[np.ndarray, np.ndarray, bool], RefinedPose]) -> None:
-        self._refine = refine
-        self._done: dict[tuple[bytes, bytes, bool], RefinedPose] = {}
-
-    def __call__(self, R: np.ndarray, t: np.ndarray, quick: bool = False) -> RefinedPose:
-        key = (np.asarray(R, dtype=float).tobytes(), np.asarray(t, dtype=float).tobytes(), bool(quick))
-        if key not in self._done:
-            self._done[key] = self._refine(R, t, quick)
-        return self._done[key]
 
 
 class Restart(NamedTuple):

@@ -1,9 +1,10 @@
 """Rival answers: other poses that explain the matches about as well as a judged one.
 
-A rival far from a pose bounds its position std from below: the runner-ups of its search
-(:func:`rival_distance`, and refined in full, :func:`pool_basins`), a restart of its refinement
-that falls into another basin of the cost (:func:`basin_distance`), and another search's pose
-found after the judgement (:func:`with_rival`). :mod:`planarloc.robust.verification` applies them.
+A rival far from a pose bounds its position std from below: the runner-ups of its search (its
+locally optimised models, :func:`rival_distance`; its raw hypotheses, refined in full,
+:func:`pool_basins`), a restart of its refinement that falls into another basin of the cost
+(:func:`basin_distance`), and another search's pose found after the judgement
+(:func:`with_rival`). :mod:`planarloc.robust.verification` applies them.
 """
 
 from __future__ import annotations
@@ -28,24 +29,24 @@ MAX_ALTERNATIVE_REFINEMENTS = 2  # runner-up hypotheses refined per verified pos
 # matches / 60 % outliers a margin of 4 removed 6 of 8 broken promises of 2p1p but refused 9 % of
 # its correct poses (and the oracle's); 2 removes half of them at a cost of 1-3 points.
 RIVAL_MARGIN_INLIERS = ALTERNATIVE_MARGIN_INLIERS // 2
-# Raw runner-up hypotheses are examined too for poses on fewer inliers than this: that is where
-# benchmarks/robustness.py --protocol hard found successes 0.2-3 m off with std 0.04-0.2 m (3
-# references x 20 matches, 12-31 inliers); the paper protocol's 40-200 inliers had none.
-RIVAL_POOL_BELOW_INLIERS = 32
+# For a pose on fewer inliers than this, a restart landing within NEAR_BASIN_MARGIN_INLIERS widens
+# the std (:func:`basin_distance`): that is where benchmarks/robustness.py --protocol hard found
+# successes 0.2-3 m off with std 0.04-0.2 m (3 references x 20 matches, 12-31 inliers); the paper
+# protocol's 40-200 inliers had none.
+NEAR_BASIN_BELOW_INLIERS = 32
 # A restart of the refinement beyond the promise is a rival when it explains the matches within
 # one inlier's worth of cost (or better): the other basins of weak data are where the checks
 # refused most correct poses of the hard protocol (3 x 20 matches, 60 % outliers) at two.
 RESTART_MARGIN_INLIERS = 1
-# For a pose on fewer than RIVAL_POOL_BELOW_INLIERS inliers, a restart landing within this many
+# For a pose on fewer than NEAR_BASIN_BELOW_INLIERS inliers, a restart landing within this many
 # inliers' worth of cost widens the std to its distance, up to the largest std of a success,
 # without refusing the pose: with so few inliers, a pose that absorbs a few outliers is barely
 # told apart from the truth.
 NEAR_BASIN_MARGIN_INLIERS = 4
-MAX_POOL_CANDIDATES = 8
 # Runner-up hypotheses of a weak pose's search refined in full to see where they land
 # (:func:`pool_basins`).
 POOL_BASIN_STARTS = 4
-# ... for a pose on fewer inliers than this. Not RIVAL_POOL_BELOW_INLIERS: on the hard protocol's
+# ... for a pose on fewer inliers than this. Not NEAR_BASIN_BELOW_INLIERS: on the hard protocol's
 # 50-match cells (40-60 % outliers) poses on 32-63 inliers broke promises the same way, a basin
 # the search had drawn a hypothesis in, 1-4 inliers' worth above the answer. Seeds 102-133 (64,000
 # scenes): broken promises of ``auto`` 28 -> 19, seeds above 0.1 % 8 -> 3, 19 correct poses fewer,
@@ -56,9 +57,7 @@ POOL_BASINS_BELOW_INLIERS = 64
 def rival_distance(
     estimator,
     ref: RefinedPose,
-    num_inliers: int,
     alternatives: Sequence[tuple[np.ndarray, np.ndarray, float]],
-    pool: tuple[np.ndarray, np.ndarray],
     refine: Callable[[np.ndarray, np.ndarray, bool], RefinedPose],
     beyond: float,
 ) -> float:
@@ -67,22 +66,17 @@ def rival_distance(
     (``score − ref.score ≤ margin·τ²``); 0 if none.
 
     The margin is in inliers, not a cost ratio: with hundreds of inliers a pose 20 % worse is
-    clearly worse, with twenty it may differ by three matches. Runner-ups are the search's
+    clearly worse, with twenty it may differ by three matches. The runner-ups are the search's
     other locally optimised models ``alternatives`` ``(R, t, MSAC cost)`` (free: their cost is
-    known), and, for a pose resting on fewer than ``RIVAL_POOL_BELOW_INLIERS`` inliers, the
-    search's raw hypotheses near its best cost (``pool``; rescored in full). Those lying beyond
-    with a cost within twice the margin are refined, at most ``MAX_ALTERNATIVE_REFINEMENTS``."""
+    known). Those lying beyond with a cost within twice the margin are refined, at most
+    ``MAX_ALTERNATIVE_REFINEMENTS``. The search's raw hypotheses are :func:`pool_basins`' to
+    examine: looking at them here too (for poses on fewer than 32 inliers, up to 2 of them, a
+    quick look first) refused 99 more successes on 67 seeds of benchmarks/robustness.py
+    --protocol hard (134,000 scenes), 55 of them correct, and kept no promise more
+    (BENCHMARKS.md, "One examination of the search's runner-ups")."""
     margin = RIVAL_MARGIN_INLIERS * estimator.threshold_sq
     # Plain Python until a candidate is close enough in cost: this runs for every estimate.
     candidates = [a for a in alternatives if a[2] - ref.score <= 2.0 * margin]
-    if num_inliers < RIVAL_POOL_BELOW_INLIERS and len(pool[0]):
-        full, _ = estimator.score(*pool)
-        order = np.argsort(full)
-        candidates += [
-            (pool[0][i], pool[1][i], float(full[i]))
-            for i in order[:MAX_POOL_CANDIDATES]
-            if full[i] - ref.score <= 2.0 * margin
-        ]
     if not candidates:
         return 0.0
     c = -ref.R.T @ ref.t
@@ -179,7 +173,7 @@ def basin_distance(
     re-selection (a quick look missed a facade pose 0.5 m off with a 0.14 m std)
     (:meth:`FinalRefiner.restarts`).
 
-    For a pose on fewer than :data:`RIVAL_POOL_BELOW_INLIERS` inliers (``num_inliers``), one
+    For a pose on fewer than :data:`NEAR_BASIN_BELOW_INLIERS` inliers (``num_inliers``), one
     landing within :data:`NEAR_BASIN_MARGIN_INLIERS` inliers' worth and within ``max_std_m``
     widens the std only (:attr:`BasinRivals.near_m`). benchmarks/robustness.py --protocol hard,
     seeds 1, 5, 7, 11, 21, 33 (12,000 scenes): 10 successes broke their promise, 9 of them on
@@ -188,7 +182,7 @@ def basin_distance(
     the answer, where the 1-inlier margin ignored it.
     """
     return _landings(
-        estimator, refine.restarts(ref, step_m), num_inliers < RIVAL_POOL_BELOW_INLIERS, max_std_m
+        estimator, refine.restarts(ref, step_m), num_inliers < NEAR_BASIN_BELOW_INLIERS, max_std_m
     )
 
 
@@ -222,8 +216,8 @@ def pool_basins(
     broken promises of ``auto`` 25 -> 18, success at 0.1 m / 1° within 0.11 points
     (BENCHMARKS.md, "Runner-ups' basins, and what fresh seeds say"), then 28 -> 19 on seeds
     102-133 when poses on 32-63 inliers were examined too (:data:`POOL_BASINS_BELOW_INLIERS`).
-    ``refine`` may be the one :func:`rival_distance` took: a runner-up both refine in full is
-    refined once when it caches (``verification._check_runner_ups`` does).
+    This is the one examination of the raw hypotheses (:func:`rival_distance` looks at the locally
+    optimised ones).
     """
     R, t = pool
     if num_inliers >= POOL_BASINS_BELOW_INLIERS or not len(R):

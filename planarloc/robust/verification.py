@@ -25,7 +25,7 @@ from planarloc.robust import observability as obs
 from planarloc.robust.chance_support import beyond_chance, chance_inliers
 from planarloc.robust.covariance import pose_covariance, position_covariance
 from planarloc.robust.estimators import ProblemEstimator
-from planarloc.robust.final_refinement import CachedRefiner, FinalRefiner, RefinedPose
+from planarloc.robust.final_refinement import FinalRefiner, RefinedPose
 from planarloc.robust.jackknife import reference_jackknife, reference_jackknife_with_prior
 from planarloc.robust.options import RansacOptions, Structure
 from planarloc.robust.planar_scene import distant_planar_pairs
@@ -408,20 +408,11 @@ def _check_runner_ups(j: _Judging) -> PoseEstimate | None:
     explains the matches about as well."""
     cand = j.cand
     if cand.refine is not None and (len(cand.alternatives) or len(cand.pool[0])):
-        refine = CachedRefiner(cand.refine)  # both checks below may refine one runner-up in full
         # Few inliers per reference: a pose that absorbs a few outliers can explain the matches
         # as well as the truth, far beyond what the curvature at either optimum says
         # (benchmarks/robustness.py --protocol hard, 20 matches per pair: ~1 % of successes
         # were 0.2-3 m off with std 0.04-0.2 m before this check; about half are left).
-        d = rival_distance(
-            cand.estimator,
-            cand.ref,
-            j.n2d + j.n3d,
-            cand.alternatives,
-            cand.pool,
-            refine,
-            3.0 * j.std + 0.05,
-        )
+        d = rival_distance(cand.estimator, cand.ref, cand.alternatives, cand.refine, 3.0 * j.std + 0.05)
         failed = j.widen(
             d,
             f"another pose {d:.3g} m away explains the matches nearly as "
@@ -436,7 +427,7 @@ def _check_runner_ups(j: _Judging) -> PoseEstimate | None:
             cand.estimator,
             cand.ref,
             cand.pool,
-            refine,
+            cand.refine,
             j.std,
             3.0 * j.std + 0.05,
             j.n2d + j.n3d,

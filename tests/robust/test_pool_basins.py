@@ -15,13 +15,13 @@ from hard_protocol import hard_protocol_scene
 import planarloc.robust.verification as verification
 from planarloc.geometry.pose import pose_errors
 from planarloc.robust.absolute_pose import estimate_absolute_pose
-from planarloc.robust.final_refinement import CachedRefiner, RefinedPose
+from planarloc.robust.final_refinement import RefinedPose
 from planarloc.robust.rivals import (
+    NEAR_BASIN_BELOW_INLIERS,
     NEAR_BASIN_MARGIN_INLIERS,
     POOL_BASIN_STARTS,
     POOL_BASINS_BELOW_INLIERS,
     RESTART_MARGIN_INLIERS,
-    RIVAL_POOL_BELOW_INLIERS,
     BasinRivals,
     pool_basins,
 )
@@ -68,7 +68,7 @@ class _Landings:
 
 def test_runner_ups_are_refined_cheapest_first_skipping_those_at_home() -> None:
     ref = _refined([0, 0, 0], 100.0)
-    few = RIVAL_POOL_BELOW_INLIERS - 1
+    few = NEAR_BASIN_BELOW_INLIERS - 1
     tight, near = RESTART_MARGIN_INLIERS * TAU_SQ, NEAR_BASIN_MARGIN_INLIERS * TAU_SQ
     # centres 0.05 (at home: within the std 0.1), 0.5, 0.55 (within the std of the start at 0.5),
     # 0.9, 0.2; raw costs make 0.9 the cheapest start
@@ -86,10 +86,10 @@ def test_runner_ups_are_refined_cheapest_first_skipping_those_at_home() -> None:
     assert pool_basins(scorer, ref, pool, refine, 0.1, 0.35, few, 0.3) == BasinRivals(0.0, 0.0)
 
 
-@pytest.mark.parametrize("num_inliers", [RIVAL_POOL_BELOW_INLIERS - 1, POOL_BASINS_BELOW_INLIERS - 1])
+@pytest.mark.parametrize("num_inliers", [NEAR_BASIN_BELOW_INLIERS - 1, POOL_BASINS_BELOW_INLIERS - 1])
 def test_a_near_basin_widens_poses_on_fewer_inliers_than_the_pool_examination_reaches(num_inliers) -> None:
     """The restarts' near margin (four inliers' worth) holds for every pose whose runner-ups are
-    refined, past RIVAL_POOL_BELOW_INLIERS too."""
+    refined, past NEAR_BASIN_BELOW_INLIERS too."""
     near = NEAR_BASIN_MARGIN_INLIERS * TAU_SQ
     refine = _Landings({0.5: (0.25, 100.0 + near)})
     out = pool_basins(
@@ -99,7 +99,7 @@ def test_a_near_basin_widens_poses_on_fewer_inliers_than_the_pool_examination_re
 
 
 def test_at_most_a_few_starts_and_only_for_weak_poses() -> None:
-    assert POOL_BASINS_BELOW_INLIERS > RIVAL_POOL_BELOW_INLIERS
+    assert POOL_BASINS_BELOW_INLIERS > NEAR_BASIN_BELOW_INLIERS
     ref = _refined([0, 0, 0], 100.0)
     xs = [0.2 * (k + 1) for k in range(POOL_BASIN_STARTS + 3)]
     pool = _pool(*[[x, 0, 0] for x in xs])
@@ -165,14 +165,3 @@ def test_a_runner_ups_rival_basin_refuses_a_wrong_weak_pose(monkeypatch) -> None
     assert err > 0.25  # the refused pose was wrong
     _without_pool_basins(monkeypatch)
     assert estimate_absolute_pose(sc.query_camera, sc.pairs, "auto", options).success
-
-
-def test_a_cached_refiner_refines_each_start_once_and_answers_as_the_refiner() -> None:
-    refine = _Landings({0.5: (0.25, 104.0), 0.9: (0.9, 101.0)})
-    cached = CachedRefiner(refine)
-    R, t = _pool([0.5, 0, 0], [0.9, 0, 0])
-    first = cached(R[0], t[0], False)
-    assert cached(R[0].copy(), t[0].copy(), False) is first  # the same start, by value
-    assert cached(R[1], t[1], False).score == 101.0
-    assert refine.started == [0.5, 0.9]
-    assert first.score == 104.0 and np.allclose(-first.R.T @ first.t, [0.25, 0, 0])

@@ -193,60 +193,44 @@ def _refined(centre, score, n=20):
 class _Scorer:
     threshold_sq = 4.0
 
-    def score(self, R, t):  # the pool's full MSAC costs
-        return np.full(len(R), 100.0), np.zeros(len(R), dtype=np.int64)
-
 
 def test_rival_distance_margin_in_inliers() -> None:
-    from planarloc.robust.rivals import RIVAL_MARGIN_INLIERS, rival_distance
+    from planarloc.robust.rivals import MAX_ALTERNATIVE_REFINEMENTS, RIVAL_MARGIN_INLIERS, rival_distance
 
     ref = _refined([0, 0, 0], 100.0)
     margin = RIVAL_MARGIN_INLIERS * _Scorer.threshold_sq
     far = (np.eye(3), -np.array([1.0, 0, 0]))
-    none = (np.zeros((0, 3, 3)), np.zeros((0, 3)))
-    calls = []
+    calls = []  # the start's centre x and quick, per refinement
 
     def refine_to(centre, score):
         def refine(R, t, quick):
-            calls.append(1)
+            calls.append((float(-t[0]), quick))
             return _refined(centre, score)
 
         return refine
 
     # A runner-up refining 1 m away within the margin is a rival: its distance bounds the std.
-    d = rival_distance(
-        _Scorer(), ref, 60, [(*far, 100.0 + margin)], none, refine_to([1, 0, 0], 100 + margin), 0.2
-    )
+    d = rival_distance(_Scorer(), ref, [(*far, 100.0 + margin)], refine_to([1, 0, 0], 100 + margin), 0.2)
     assert d == pytest.approx(1.0)
     # Beyond the margin after refinement, or back at the best pose: no rival.
     assert (
-        rival_distance(
-            _Scorer(), ref, 60, [(*far, 100.0)], none, refine_to([1, 0, 0], 100 + 1.5 * margin), 0.2
-        )
-        == 0.0
+        rival_distance(_Scorer(), ref, [(*far, 100.0)], refine_to([1, 0, 0], 100 + 1.5 * margin), 0.2) == 0.0
     )
-    assert (
-        rival_distance(_Scorer(), ref, 60, [(*far, 100.0)], none, refine_to([0.05, 0, 0], 100.0), 0.2) == 0.0
-    )
+    assert rival_distance(_Scorer(), ref, [(*far, 100.0)], refine_to([0.05, 0, 0], 100.0), 0.2) == 0.0
     # Far in cost before refinement, or already near: never refined.
     calls.clear()
+    assert rival_distance(_Scorer(), ref, [(*far, 100.0 + 3 * margin)], refine_to([1, 0, 0], 100), 0.2) == 0
     assert (
-        rival_distance(_Scorer(), ref, 60, [(*far, 100.0 + 3 * margin)], none, refine_to([1, 0, 0], 100), 0.2)
-        == 0
-    )
-    assert (
-        rival_distance(
-            _Scorer(), ref, 60, [(np.eye(3), np.zeros(3), 100.0)], none, refine_to([1, 0, 0], 100), 0.2
-        )
-        == 0.0
+        rival_distance(_Scorer(), ref, [(np.eye(3), np.zeros(3), 100.0)], refine_to([1, 0, 0], 100), 0.2) == 0
     )
     assert not calls
-    # The raw pool is only examined for poses on few inliers.
-    pool = (np.eye(3)[None].copy(), -np.array([[2.0, 0, 0]]))
-    assert rival_distance(_Scorer(), ref, 10, [], pool, refine_to([2, 0, 0], 100.0), 0.2) == pytest.approx(
-        2.0
-    )
-    assert rival_distance(_Scorer(), ref, 400, [], pool, refine_to([2, 0, 0], 100.0), 0.2) == 0.0
+    # At most MAX_ALTERNATIVE_REFINEMENTS runner-ups are refined, cheapest first; one whose quick
+    # look lands beyond twice the margin is not refined in full.
+    many = [
+        (np.eye(3), -np.array([1.0 + k, 0, 0]), 100.0 + k) for k in range(MAX_ALTERNATIVE_REFINEMENTS + 2)
+    ]
+    assert rival_distance(_Scorer(), ref, many[::-1], refine_to([1, 0, 0], 100 + 3 * margin), 0.2) == 0.0
+    assert calls == [(1.0 + k, True) for k in range(MAX_ALTERNATIVE_REFINEMENTS)]
 
 
 @pytest.mark.parametrize("case", [(2, 4, 77), (3, 3, 56), (1, 4, 86)])
@@ -287,9 +271,9 @@ def test_basin_margins_rival_and_near() -> None:
     std of a success widen the std only."""
     from planarloc.robust.final_refinement import Restart
     from planarloc.robust.rivals import (
+        NEAR_BASIN_BELOW_INLIERS,
         NEAR_BASIN_MARGIN_INLIERS,
         RESTART_MARGIN_INLIERS,
-        RIVAL_POOL_BELOW_INLIERS,
         basin_distance,
     )
 
@@ -303,7 +287,7 @@ def test_basin_margins_rival_and_near() -> None:
         def restarts(self, ref, step_m):
             return self.landings
 
-    ref, few, many = _refined([0, 0, 0], 100.0), RIVAL_POOL_BELOW_INLIERS - 1, RIVAL_POOL_BELOW_INLIERS
+    ref, few, many = _refined([0, 0, 0], 100.0), NEAR_BASIN_BELOW_INLIERS - 1, NEAR_BASIN_BELOW_INLIERS
 
     def basins(n: int, *landings: Restart):
         return basin_distance(_Scorer(), ref, Refiner(*landings), 0.2, n, 0.3)
