@@ -127,9 +127,10 @@ class RansacOptions:
             wins, one elsewhere at about its cost is a rival). Turning it off reproduces the
             paper's methods and timing, without the guarantee.
         max_reference_shift_std: verification. Each supporting reference is left out in
-            turn and the pose refined again; a pose that moves by more than this many
-            (final) standard deviations, or by more than ``max_position_std_m``, when one
-            reference is removed is reported as ``inconsistent_references``.
+            turn and the pose refined again; the spread of those poses is a floor of the
+            position std, and a pose that moves by more than this many (final) standard
+            deviations when one reference is removed is reported as
+            ``inconsistent_references``.
         seed: seed of the ``numpy.random.Generator`` used for sampling.
     """
 

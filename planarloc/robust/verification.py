@@ -386,8 +386,15 @@ def _check_position(j: _Judging) -> PoseEstimate | None:
             else reference_jackknife(estimator, R, t, in2d, in3d, support=supporting)
         )
         if math.isfinite(jk.position_std_m):
+            # The references' spread is a floor of the std, and a shift beyond
+            # ``max_reference_shift_std`` stds of that is a disagreement. A shift beyond
+            # ``max_position_std_m`` alone is not: the floor already widens the promise over it,
+            # and the std's own limit below refuses a spread too wide to promise anything.
+            # benchmarks/robustness.py --protocol hard, 67 seeds (134,000 scenes): that second
+            # limit refused 3,955 successes, 3,432 of them correct at 0.1 m / 1°, to keep one
+            # promise (BENCHMARKS.md, "The references' spread is a floor, not a refusal").
             j.std = max(j.std, jk.position_std_m)
-            limit = min(options.max_reference_shift_std * j.std, options.max_position_std_m)
+            limit = options.max_reference_shift_std * j.std
             if jk.max_shift_m > limit or jk.max_rotation_deg > 5.0:
                 return j.fail(
                     Status.INCONSISTENT_REFERENCES,
