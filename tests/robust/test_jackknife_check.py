@@ -16,23 +16,27 @@ from planarloc.synthetic.scenes import make_scene
 PERFECT_MAP = dict(map_rotation_std_deg=0.0, map_position_std_m=0.0)
 
 
-def _with_jackknife(monkeypatch: pytest.MonkeyPatch, std: float, shift: float, rotation_deg: float):
-    """Estimate a clean 3-reference scene (whose pose alone has a std of a few cm) with the
-    leave-one-reference-out refinements replaced by these numbers."""
-    monkeypatch.setattr(
-        verification, "reference_jackknife", lambda *a, **k: Jackknife(3, std, shift, rotation_deg, 1)
-    )
+def _clean_estimate():
+    """A clean 3-reference scene, its options and its ``2p1p`` estimate (the pose alone has a
+    std of a few cm)."""
     sc = make_scene(np.random.default_rng(5), num_refs=3, matches_per_pair=80, noise_px=0.5)
     options = RansacOptions(cross_check=False, **PERFECT_MAP)
     return estimate_absolute_pose(sc.query_camera, sc.pairs, "2p1p", options), sc, options
 
 
+def _with_jackknife(monkeypatch: pytest.MonkeyPatch, std: float, shift: float, rotation_deg: float):
+    """:func:`_clean_estimate` with the leave-one-reference-out refinements replaced by these
+    numbers."""
+    monkeypatch.setattr(
+        verification, "reference_jackknife", lambda *a, **k: Jackknife(3, std, shift, rotation_deg, 1)
+    )
+    return _clean_estimate()
+
+
 def test_the_clean_scene_is_certain_without_the_floor() -> None:
     # The premise of the tests below: left alone, the pose is a success with a std far below
     # the jackknife numbers they substitute.
-    sc = make_scene(np.random.default_rng(5), num_refs=3, matches_per_pair=80, noise_px=0.5)
-    options = RansacOptions(cross_check=False, **PERFECT_MAP)
-    est = estimate_absolute_pose(sc.query_camera, sc.pairs, "2p1p", options)
+    est, _, _ = _clean_estimate()
     assert est.success and est.position_std_m < 0.05, (est.status, est.position_std_m)
 
 
