@@ -128,9 +128,11 @@ class RansacOptions:
             paper's methods and timing, without the guarantee.
         max_reference_shift_std: verification. Each supporting reference is left out in
             turn and the pose refined again; the spread of those poses is a floor of the
-            position std, and a pose that moves by more than this many (final) standard
-            deviations when one reference is removed is reported as
-            ``inconsistent_references``.
+            position std, and a pose that moves by more than this many standard deviations
+            (the std floored by the spread) when one reference is removed is reported as
+            ``inconsistent_references``. With three references under a pose on many inliers
+            the spread is that of the two-image problems left, the scale's minimum: it floors
+            the std up to ``max_position_std_m`` and does not refuse the pose.
         seed: seed of the ``numpy.random.Generator`` used for sampling.
     """
 
