@@ -42,7 +42,6 @@ from poselib_peer import estimate_query_pose_poselib  # noqa: E402
 
 import planarloc.robust.absolute_pose as absolute_pose  # noqa: E402
 from planarloc.robust.options import RansacOptions, parse_method  # noqa: E402
-from planarloc.synthetic.scenes import make_scene  # noqa: E402
 
 # The stages of one estimate: (owner, attribute, label). Each is timed at its outermost call, so
 # the searches and judgements inside the 6DoF check of a planar pose and inside the second search
@@ -201,17 +200,13 @@ def staged(clock: KernelClock, owner: ModuleType | type, attr: str, label: str, 
 
 def scenes(seed: int, trials: int) -> list[tuple]:
     """The hard protocol's scenes: (scene, RANSAC seed) for every cell."""
-    num_refs, noise_px, matches = rb.PROTOCOLS["hard"]
-    out = []
-    for mi, m in enumerate(matches):
-        for ri, outliers in enumerate(rb.OUTLIERS):
-            for trial in range(trials):
-                rng, ransac_seed = rb.trial_seeds(seed, mi, ri, trial)
-                sc = make_scene(
-                    rng, num_refs=num_refs, matches_per_pair=m, noise_px=noise_px, outlier_ratio=outliers
-                )
-                out.append((sc, ransac_seed))
-    return out
+    matches = rb.PROTOCOLS["hard"][2]
+    return [
+        rb.trial_scene("hard", seed, mi, ri, trial)
+        for mi in range(len(matches))
+        for ri in range(len(rb.OUTLIERS))
+        for trial in range(trials)
+    ]
 
 
 def parse_args(argv: list[str] | None) -> argparse.Namespace:

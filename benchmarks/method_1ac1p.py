@@ -66,7 +66,6 @@ from planarloc.robust.options import Method, RansacOptions  # noqa: E402
 from planarloc.robust.sampling import draw_pair_samples  # noqa: E402
 from planarloc.solvers.relpose_planar_1ac import solve_planar_1ac  # noqa: E402
 from planarloc.solvers.relpose_planar_2p import planar_pose_into  # noqa: E402
-from planarloc.synthetic.scenes import make_scene  # noqa: E402
 
 FRAME_ANGLE_DEG = 1.0  # rotation noise of a frame (solvers_1ac.py)
 FRAME_LOG_SCALE = 0.02  # scale noise of a frame, log
@@ -250,7 +249,7 @@ def budget_options(budget: str, seed: int) -> RansacOptions:
 
 
 def run(args: argparse.Namespace) -> dict:
-    num_refs, noise_px, matches = rb.PROTOCOLS["hard"]
+    matches = rb.PROTOCOLS["hard"][2]
     absolute_pose._estimator = _estimator
     methods = [("2p1p", None)] + [(g, f) for g in GENERATORS[1:] for f in args.frames]
     rows: dict = defaultdict(lambda: defaultdict(list))
@@ -259,10 +258,7 @@ def run(args: argparse.Namespace) -> dict:
     for mi, m in enumerate(matches):
         for ri, outliers in enumerate(rb.OUTLIERS):
             for trial in range(args.trials):
-                rng, ransac_seed = rb.trial_seeds(args.seed, mi, ri, trial)
-                sc = make_scene(
-                    rng, num_refs=num_refs, matches_per_pair=m, noise_px=noise_px, outlier_ratio=outliers
-                )
+                sc, ransac_seed = rb.trial_scene("hard", args.seed, mi, ri, trial)
                 frames = {
                     f: match_frames(np.random.default_rng([args.seed, mi, ri, trial]), sc, f)
                     for f in args.frames

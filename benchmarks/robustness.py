@@ -51,7 +51,7 @@ from planarloc.geometry.pose import pose_errors  # noqa: E402
 from planarloc.robust.absolute_pose import estimate_absolute_pose  # noqa: E402
 from planarloc.robust.options import RansacOptions  # noqa: E402
 from planarloc.robust.pair_matches import PairMatches  # noqa: E402
-from planarloc.synthetic.scenes import make_scene  # noqa: E402
+from planarloc.synthetic.scenes import SyntheticScene, make_scene  # noqa: E402
 
 METHODS = ("2p1p", "2p2p", "5p5p-nister", "5p5p-stewenius", "8p8p")
 ORACLE = "2p1p-oracle"  # 2p1p on the true inliers only
@@ -78,6 +78,17 @@ def trial_seeds(seed: int, mi: int, ri: int, trial: int) -> tuple[np.random.Gene
     """Scene generator and RANSAC seed of one trial, independent of scheduling."""
     ss = np.random.SeedSequence([seed, mi, ri, trial])
     return np.random.default_rng(ss), int(ss.generate_state(1)[0])
+
+
+def trial_scene(protocol: str, seed: int, mi: int, ri: int, trial: int) -> tuple[SyntheticScene, int]:
+    """The scene of one trial of ``protocol`` (``matches[mi]`` per pair, ``OUTLIERS[ri]``) and its
+    RANSAC seed, from :func:`trial_seeds`: the scenes every hard-protocol benchmark shares."""
+    num_refs, noise_px, matches = PROTOCOLS[protocol]
+    rng, ransac_seed = trial_seeds(seed, mi, ri, trial)
+    sc = make_scene(
+        rng, num_refs=num_refs, matches_per_pair=matches[mi], noise_px=noise_px, outlier_ratio=OUTLIERS[ri]
+    )
+    return sc, ransac_seed
 
 
 def inlier_pairs(sc) -> list[PairMatches]:
@@ -114,12 +125,8 @@ def paper_options(
 def run_trial(task: tuple[int, int, int, int, tuple[str, ...], bool, str, int]) -> dict:
     """One scene, every method and the peer on it. Returns errors, status and time per method."""
     seed, mi, ri, trial, methods, with_peer, protocol, iterations = task
-    num_refs, noise_px, matches = PROTOCOLS[protocol]
-    rng, ransac_seed = trial_seeds(seed, mi, ri, trial)
     c0 = time.process_time()
-    sc = make_scene(
-        rng, num_refs=num_refs, matches_per_pair=matches[mi], noise_px=noise_px, outlier_ratio=OUTLIERS[ri]
-    )
+    sc, ransac_seed = trial_scene(protocol, seed, mi, ri, trial)
     out: dict = {"cell": (mi, ri), "scene_cpu_s": time.process_time() - c0, "methods": {}}
     opts = paper_options(THRESHOLD_PX, ransac_seed, iterations=iterations)
     for method in methods:

@@ -40,7 +40,6 @@ from planarloc.geometry.pose import pose_errors  # noqa: E402
 from planarloc.robust.absolute_pose import estimate_absolute_pose  # noqa: E402
 from planarloc.robust.problem import build_problem  # noqa: E402
 from planarloc.robust.refinement import residuals_jacobian  # noqa: E402
-from planarloc.synthetic.scenes import make_scene  # noqa: E402
 
 BANDS = ((0, 24), (24, 32), (32, 48), (48, 64), (64, 96), (96, 10_000))  # inliers
 WIDEN = (1.0, 1.2, 1.5)  # k in "std x max(1, k x ratio)"
@@ -74,11 +73,7 @@ def fit_statistics(J: np.ndarray, r: np.ndarray, loss_scale: float) -> dict[str,
 def run_trial(task: tuple[int, int, int, int]) -> dict | None:
     """One scene through ``auto``: None unless it succeeds, else its error, std and fit statistics."""
     seed, mi, ri, trial = task
-    num_refs, noise_px, matches = rb.PROTOCOLS["hard"]
-    rng, ransac_seed = rb.trial_seeds(seed, mi, ri, trial)
-    sc = make_scene(
-        rng, num_refs=num_refs, matches_per_pair=matches[mi], noise_px=noise_px, outlier_ratio=rb.OUTLIERS[ri]
-    )
+    sc, ransac_seed = rb.trial_scene("hard", seed, mi, ri, trial)
     options = rb.paper_options(rb.THRESHOLD_PX, ransac_seed)
     est = estimate_absolute_pose(sc.query_camera, sc.pairs, "auto", options)
     if not est.success:

@@ -38,7 +38,6 @@ from planarloc.robust.absolute_pose import estimate_absolute_pose  # noqa: E402
 from planarloc.robust.jackknife import _pair_normal_equations  # noqa: E402
 from planarloc.robust.refinement import StartPose, refine_pose_core  # noqa: E402
 from planarloc.robust.rivals import NEAR_BASIN_BELOW_INLIERS  # noqa: E402
-from planarloc.synthetic.scenes import make_scene  # noqa: E402
 
 LEAVE_ONE_OUT_ITERATIONS = 4  # LM iterations of each leave-one-out pose of the Hausman test
 
@@ -116,12 +115,7 @@ def run_scene(task: tuple[int, int, int, int]) -> dict:
     global _RECORDER
     if _RECORDER is None:
         _RECORDER = _Recorder()
-    seed, mi, ri, trial = task
-    num_refs, noise_px, matches = rb.PROTOCOLS["hard"]
-    rng, ransac_seed = rb.trial_seeds(seed, mi, ri, trial)
-    sc = make_scene(
-        rng, num_refs=num_refs, matches_per_pair=matches[mi], noise_px=noise_px, outlier_ratio=rb.OUTLIERS[ri]
-    )
+    sc, ransac_seed = rb.trial_scene("hard", *task)
     _RECORDER.found.clear()
     est = estimate_absolute_pose(
         sc.query_camera, sc.pairs, "auto", rb.paper_options(rb.THRESHOLD_PX, ransac_seed)
