@@ -53,6 +53,14 @@ def mul(A: np.ndarray, B: np.ndarray) -> np.ndarray:
 
 
 @njit(cache=True, inline="always")
+def mul_into(A: np.ndarray, B: np.ndarray, C: np.ndarray) -> None:
+    """``C = A @ B`` for (3, 3) matrices, into C (not A or B): :func:`mul` without its array."""
+    for i in range(3):
+        for j in range(3):
+            C[i, j] = A[i, 0] * B[0, j] + A[i, 1] * B[1, j] + A[i, 2] * B[2, j]
+
+
+@njit(cache=True, inline="always")
 def mul_t(A: np.ndarray, B: np.ndarray) -> np.ndarray:
     """``A @ B.T`` for (3, 3) matrices (a transposed view costs nothing once inlined)."""
     return mul(A, B.T)

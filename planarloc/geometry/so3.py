@@ -67,3 +67,22 @@ def exp_so3(w: np.ndarray) -> np.ndarray:
     if th < 1e-12:
         return np.eye(3) + K
     return np.eye(3) + np.sin(th) / th * K + (1.0 - np.cos(th)) / (th * th) * m3.mul(K, K)
+
+
+@njit(cache=True, error_model="numpy")
+def exp_so3_into(w: np.ndarray, out: np.ndarray) -> None:
+    """:func:`exp_so3` of ``w[:3]`` written into ``out`` (3, 3), with the same arithmetic but
+    none of its five temporary arrays: the refinements' inner loops call it once per step tried."""
+    th = np.sqrt(w[0] * w[0] + w[1] * w[1] + w[2] * w[2])
+    K = ((0.0, -w[2], w[1]), (w[2], 0.0, -w[0]), (-w[1], w[0], 0.0))
+    a, b = 1.0, 0.0
+    if not th < 1e-12:
+        a, b = np.sin(th) / th, (1.0 - np.cos(th)) / (th * th)
+    for i in range(3):
+        for j in range(3):
+            eye = 1.0 if i == j else 0.0
+            if th < 1e-12:
+                out[i, j] = eye + K[i][j]
+            else:
+                KK = K[i][0] * K[0][j] + K[i][1] * K[1][j] + K[i][2] * K[2][j]
+                out[i, j] = eye + a * K[i][j] + b * KK

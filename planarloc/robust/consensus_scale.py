@@ -17,6 +17,7 @@ from planarloc.geometry import mat3 as m3
 from planarloc.geometry.epipolar_kernels import sampson_sq
 from planarloc.robust.hypotheses import DEGENERATE, HYPOTHESES, Hypotheses, emit_planar, positive_depths
 from planarloc.robust.problem import ProblemArrays
+from planarloc.robust.sampling import draw_pair_samples
 from planarloc.solvers.relpose_planar_2p import planar_pose_into, solve_planar_2p
 
 
@@ -449,3 +450,35 @@ def hypotheses_2p1p_consensus(
             in_front = rho > 0.0 and _majority_in_front(rho, votes, m, motions, prob.xq, prob.xr)
             out = emit_planar(rho, in_front, R, tt, prob.ref_R[j], prob.ref_t[j], dest, out)
     return out
+
+
+@njit(cache=True, error_model="numpy")
+def consensus_2p1p(
+    u: np.ndarray, prob: ProblemArrays, settings: ConsensusSettings, counters: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Both stages in one call: ``len(u)`` samples of two matches of one pair each (the pair drawn
+    in proportion to its matches, :func:`~planarloc.robust.sampling.draw_pair_samples`), then
+    :func:`planar_relative_candidates` and :func:`hypotheses_2p1p_consensus` on them. The same
+    kernels the estimator called one by one from Python (the same hypotheses to the bit) without
+    the numpy calls between them (~30 µs of a hard-protocol query, benchmarks/estimator_profile.py).
+
+    Args:
+        u: (S, 4) uniform variates.
+        counters: (5,) the hypothesis counters, incremented.
+
+    Returns:
+        ``query_from_world`` hypotheses R (H, 3, 3), t (H, 3).
+    """
+    n = u.shape[0]
+    samples = np.empty((n, 2), dtype=np.int64)
+    sample_pair = np.empty(n, dtype=np.int64)
+    draw_pair_samples(u, prob.offsets, 2, 0, samples, sample_pair, np.empty(n, dtype=np.int64))
+    rows = settings.top_k * (prob.offsets.shape[0] - 1)
+    candidates = RelativeCandidates(
+        np.empty((rows, 3, 3)), np.empty((rows, 3)), np.empty(rows, dtype=np.int64), counters
+    )
+    c = planar_relative_candidates(samples, prob, settings, candidates)
+    found = Hypotheses(np.empty((c * settings.peaks, 3, 3)), np.empty((c * settings.peaks, 3)), counters)
+    kept = RelativeCandidates(candidates.R[:c], candidates.t[:c], candidates.pair[:c], counters)
+    m = hypotheses_2p1p_consensus(kept, prob, settings, found)
+    return found.R[:m], found.t[:m]

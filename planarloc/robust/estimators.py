@@ -23,20 +23,13 @@ from collections.abc import Callable
 
 import numpy as np
 
-from planarloc.robust.consensus_scale import (
-    ConsensusSettings,
-    RelativeCandidates,
-    hypotheses_2p1p_consensus,
-    planar_relative_candidates,
-)
+from planarloc.robust.consensus_scale import ConsensusSettings, consensus_2p1p
 from planarloc.robust.hypotheses import (
     Hypotheses,
     RelativePoses,
     hypotheses_2p1p,
-    hypotheses_from_relative_poses,
     hypotheses_p3p,
     hypotheses_up2p,
-    top_distinct_relative,
 )
 from planarloc.robust.local_optimization import (
     LocalOptimization,
@@ -54,9 +47,10 @@ from planarloc.robust.refinement import (
     refine_on_inliers,
     refine_pose,
 )
+from planarloc.robust.relative_stages import hypotheses_of_relative_samples, relative_samples
 from planarloc.robust.result import RansacStatistics
 from planarloc.robust.sampling import draw_pair_samples, draw_within_pairs
-from planarloc.robust.scoring import errors_sq, msac_scores, relative_msac_scores
+from planarloc.robust.scoring import errors_sq, msac_scores
 from planarloc.robust.search_confidence import (
     inlier_ratios,
     missed_by_draws,
@@ -254,26 +248,19 @@ class Planar2p1pEstimator(ProblemEstimator):
         The ``n`` minimal samples are pairs of matches of one reference (the pair drawn in
         proportion to its matches, as in the paper); their planar relative poses are scored on
         their own pair and the ``top_k`` best per pair kept (stage 1,
-        :func:`planar_relative_candidates`). For each, eq. (18) is solved for every match of
-        the other pairs at once: the scale ρ supported by the most of them is the hypothesis
-        (:func:`hypotheses_2p1p_consensus`). A random third match is an inlier with
-        probability w; the consensus scale needs only some inliers among all the other pairs'
-        matches, so at 60 % outliers the hypotheses are those of the all-inlier samples.
+        :func:`~planarloc.robust.consensus_scale.planar_relative_candidates`). For each, eq. (18)
+        is solved for every match of the other pairs at once: the scale ρ supported by the most of
+        them is the hypothesis (:func:`~planarloc.robust.consensus_scale.hypotheses_2p1p_consensus`;
+        both stages in one call, :func:`~planarloc.robust.consensus_scale.consensus_2p1p`). A
+        random third match is an inlier with probability w; the consensus scale needs only some
+        inliers among all the other pairs' matches, so at 60 % outliers the hypotheses are those of
+        the all-inlier samples.
         """
-        p = self.p
         if not self._any_eligible:
             return np.zeros((0, 3, 3)), np.zeros((0, 3))
-        samples = np.empty((n, 2), dtype=np.int64)
-        sample_pair = np.empty(n, dtype=np.int64)
-        draw_pair_samples(
-            rng.random((n, 4)), p.offsets, 2, 0, samples, sample_pair, np.empty(n, dtype=np.int64)
-        )
-        candidates = RelativeCandidates.empty(self.top_k * p.num_pairs, self.counters)
-        c = planar_relative_candidates(samples, p.arrays, self._consensus, candidates)
-        found = Hypotheses.empty(c * self.peaks, self.counters)
-        m = hypotheses_2p1p_consensus(candidates.first(c), p.arrays, self._consensus, found)
+        R, t = consensus_2p1p(rng.random((n, 4)), self.p.arrays, self._consensus, self.counters)
         self._flush(stats)
-        return found.first(m)
+        return R, t
 
     def generate(
         self, rng: np.random.Generator, n: int, stats: RansacStatistics
@@ -371,6 +358,7 @@ class RelativePairEstimator(ProblemEstimator):
         # samples its 2D-3D and 2D-2D solvers side by side).
         self.p3p = method != Method.P2P2 and len(problem.X3d) >= 3
         self._pair_pairs = _pairs_of_pairs(problem.num_pairs)  # every two pairs (j < k), stage 2
+        self._eligible = np.flatnonzero(problem.counts >= self.m).astype(np.int64)  # sampled in stage 1
 
     def missed(self, in2d: np.ndarray, in3d: np.ndarray, samples: int) -> float:
         """Stage 1 draws ``samples`` samples of ``m`` matches in every map image; a pose needs an
@@ -384,50 +372,33 @@ class RelativePairEstimator(ProblemEstimator):
             missed *= self._planar.missed(in2d, in3d, samples)
         return missed
 
-    def _best_relative(self, rng: np.random.Generator, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Stage 1: per pair, up to ``top_k`` distinct best relative poses: R (P, K, 3, 3),
-        t (P, K, 3) and their count per pair (P,) (:func:`top_distinct_relative`)."""
-        p, m = self.p, self.m
-        eligible = np.flatnonzero(p.counts >= m)
-        sample_pair = np.repeat(eligible, n)
-        samples = np.empty((len(sample_pair), m), dtype=np.int64)
-        draw_within_pairs(rng.random((len(sample_pair), m)), p.offsets, sample_pair, m, samples)
-        R, t, valid = self.solver(p.xq[samples], p.xr[samples])
-        R, t, valid = np.ascontiguousarray(R), np.ascontiguousarray(t), np.ascontiguousarray(valid)
-        cost = relative_msac_scores(R, t, valid, sample_pair, p.arrays, self.threshold_sq)
-        K = self.top_k
-        top_R, top_t = np.zeros((p.num_pairs, K, 3, 3)), np.zeros((p.num_pairs, K, 3))
-        count = np.zeros(p.num_pairs, dtype=np.int64)
-        top_distinct_relative(R, t, cost, eligible.astype(np.int64), n, K, top_R, top_t, count)
-        return top_R, top_t, count
-
     def generate(
         self, rng: np.random.Generator, n: int, stats: RansacStatistics
     ) -> tuple[np.ndarray, np.ndarray]:
+        """Stage 1 (per map image of enough matches, ``n`` samples, up to ``top_k`` distinct best
+        relative poses) and stage 2 (every two images' kept poses combined): the solver between
+        two kernels of :mod:`planarloc.robust.relative_stages`."""
         p = self.p
-        top_R, top_t, count = self._best_relative(rng, n)
-        K = self.top_k
+        sample_pair, xq, xr = relative_samples(
+            rng.random((len(self._eligible) * n, self.m)), p.arrays, self._eligible, n, self.m
+        )
+        R, t, valid = self.solver(xq, xr)
         pj, pk = self._pair_pairs
-        use = (count[pj] > 0) & (count[pk] > 0)
-        pj, pk = pj[use].astype(np.int64), pk[use].astype(np.int64)
-        C = len(pj)
-        slots = np.arange(K)
-        Ra, ta, va = top_R[pj], top_t[pj], slots[None, :] < count[pj][:, None]
-        Rb, tb, vb = top_R[pk], top_t[pk], slots[None, :] < count[pk][:, None]
-        found = Hypotheses.empty(C * K * K, self.counters)
-        cnt = hypotheses_from_relative_poses(
-            RelativePoses(Ra, ta, va),
-            RelativePoses(Rb, tb, vb),
+        R, t = hypotheses_of_relative_samples(
+            RelativePoses(np.ascontiguousarray(R), np.ascontiguousarray(t), np.ascontiguousarray(valid)),
+            sample_pair,
+            self._eligible,
+            n,
+            p.arrays,
+            self.threshold_sq,
+            self.top_k,
             pj,
             pk,
-            p.ref_R,
-            p.ref_t,
             self.cos_rcheck,
             self.cos_consistency,
-            found,
+            self.counters,
         )
         self._flush(stats)
-        R, t = found.first(cnt)
         if self._planar is not None:
             # Structure mode: the 2p relative pose of pair j with the scale from a 2D-3D
             # constraint survives collinear geometry, where eq. (15) is singular.

@@ -97,6 +97,21 @@ class FinalRefiner:
         )
         return RefinedPose(R, t, centre_covariance(H, sigma), sigma, cost, score, in2d, in3d, score3d, H)
 
+    def landings(self, R: np.ndarray, t: np.ndarray, ref: RefinedPose) -> list[Restart]:
+        """Where full refinements started at the poses R (k, 3, 3), t (k, 3) land, relative to
+        ``ref``: one :class:`Restart` per start (:func:`start_landings`, one compiled call)."""
+        settings, rounds = self._budget(False)
+        landed = start_landings(
+            np.ascontiguousarray(R),
+            np.ascontiguousarray(t),
+            -ref.R.T @ ref.t,
+            float(ref.score),
+            self.scorer.p.arrays,
+            settings,
+            rounds,
+        )
+        return [Restart(float(e), float(d)) for e, d in landed]
+
     def restarts(self, ref: RefinedPose, step_m: float) -> list[Restart]:
         """Where restarts of the refinement around ``ref`` land: one :class:`Restart` per start
         (none when ``ref`` has no usable normal matrix).
@@ -111,27 +126,23 @@ class FinalRefiner:
         outliers: the true pose's basin lay 0.15-0.7 m away along v at a cost within the margin,
         and restarts landed between the two, inside the promise of a 0.04-0.1 m std, where they
         used to be ignored). :func:`planarloc.robust.rivals.basin_distance` sets the margins.
-        Plain Python around two compiled refinements (~70 µs each): one kernel for the whole
-        would save ~30 µs per call but cost ~4 s of compilation on first use.
+        One compiled call (:func:`restart_landings`): as Python around two compiled refinements
+        it spent ~50 µs per query between them (benchmarks/estimator_profile.py, issue 31).
         """
-        w, V = np.empty(6), np.empty((6, 6))
-        if ref.H is None or not symmetric_eigen(np.ascontiguousarray(ref.H), w, V) or not w[0] > 0.0:
-            return []
-        v = V[:, 0]
-        nc = float(np.linalg.norm(v[3:]))
-        if not nc > 1e-12:
+        if ref.H is None:
             return []
         settings, rounds = self._budget(False)
-        c = -ref.R.T @ ref.t
-        out = []
-        for sgn in (1.0, -1.0):
-            step = sgn * (step_m / nc) * v
-            R0 = exp_so3(np.ascontiguousarray(step[:3])) @ ref.R
-            R1, t1, *_, score1, _ = refine_until_stable(
-                R0, -R0 @ (c + step[3:]), self.scorer.p.arrays, settings, rounds
-            )
-            out.append(Restart(float(score1 - ref.score), float(np.linalg.norm(-R1.T @ t1 - c))))
-        return out
+        landed = restart_landings(
+            np.ascontiguousarray(ref.R),
+            np.ascontiguousarray(ref.t),
+            np.ascontiguousarray(ref.H),
+            float(ref.score),
+            float(step_m),
+            self.scorer.p.arrays,
+            settings,
+            rounds,
+        )
+        return [Restart(float(e), float(d)) for e, d in landed]
 
 
 class Restart(NamedTuple):
@@ -195,3 +206,68 @@ def refine_until_stable(
     for i in range(e3d.shape[0]):
         msac3d += min(e3d[i], inlier_threshold_sq)
     return StableRefinement(R, t, H, sigma, cost, in2d, in3d, msac2d + msac3d, msac3d)
+
+
+@njit(cache=True, error_model="numpy")
+def start_landings(
+    Rs: np.ndarray,
+    ts: np.ndarray,
+    c: np.ndarray,
+    score: float,
+    prob: ProblemArrays,
+    settings: RefineSettings,
+    rounds: int,
+) -> np.ndarray:
+    """Where refinements started at ``(Rs (k, 3, 3), ts (k, 3))`` land (:func:`refine_until_stable`
+    with ``prob``, ``settings``, ``rounds``): (k, 2), per start the landing's MSAC cost above
+    ``score`` (pixels²) and its centre's distance from ``c`` (3,) (m)."""
+    out = np.empty((Rs.shape[0], 2))
+    for k in range(Rs.shape[0]):
+        landed = refine_until_stable(
+            np.ascontiguousarray(Rs[k]), np.ascontiguousarray(ts[k]), prob, settings, rounds
+        )
+        d = -m3.t_vec(landed.R, landed.t) - c
+        out[k, 0] = landed.score - score
+        out[k, 1] = np.sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2])
+    return out
+
+
+@njit(cache=True, error_model="numpy")
+def restart_landings(
+    R: np.ndarray,
+    t: np.ndarray,
+    H: np.ndarray,
+    score: float,
+    step_m: float,
+    prob: ProblemArrays,
+    settings: RefineSettings,
+    rounds: int,
+) -> np.ndarray:
+    """Where the restarts of :meth:`FinalRefiner.restarts` land, in one call.
+
+    Args:
+        R, t: the refined pose ``query_from_world`` (3, 3), (3,); H: its (6, 6) normal matrix;
+            score: its MSAC cost.
+        step_m: how far the starts move the centre (metres).
+        prob, settings, rounds: as :func:`refine_until_stable` refines.
+
+    Returns:
+        :func:`start_landings` of the starts along +v, then −v; (0, 2) when H has no positive
+        smallest eigenvalue or its eigenvector does not move the centre.
+    """
+    w, V = np.empty(6), np.empty((6, 6))
+    if not symmetric_eigen(H, w, V) or not w[0] > 0.0:
+        return np.empty((0, 2))
+    nc = np.sqrt(V[3, 0] * V[3, 0] + V[4, 0] * V[4, 0] + V[5, 0] * V[5, 0])
+    if not nc > 1e-12:
+        return np.empty((0, 2))
+    c = -m3.t_vec(R, t)
+    Rs, ts = np.empty((2, 3, 3)), np.empty((2, 3))
+    step = np.empty(6)
+    for s in range(2):
+        scale = (1.0 if s == 0 else -1.0) * (step_m / nc)
+        for k in range(6):
+            step[k] = scale * V[k, 0]
+        R0 = m3.mul(exp_so3(step[:3]), R)
+        m3.store_pose(Rs, ts, s, R0, -m3.vec(R0, c + step[3:]))
+    return start_landings(Rs, ts, c, score, prob, settings, rounds)

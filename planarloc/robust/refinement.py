@@ -23,8 +23,8 @@ from numba import njit
 
 from planarloc.geometry import mat3 as m3
 from planarloc.geometry.epipolar_kernels import project, relative_essential_into, sampson_signed
-from planarloc.geometry.so3 import exp_so3
-from planarloc.numerics.cholesky import solve_spd, spd_inverse
+from planarloc.geometry.so3 import exp_so3, exp_so3_into
+from planarloc.numerics.cholesky import cholesky_factor, cholesky_solve, spd_inverse
 from planarloc.robust.problem import ProblemArrays
 from planarloc.robust.scoring import errors_sq
 
@@ -106,14 +106,30 @@ def residuals(
     """Signed Sampson errors (pixels) of the 2D-2D rows ``idx2d``, then reprojection errors (2 per
     2D-3D row ``idx3d``) of the problem ``prob``, through the shared kernels of
     :mod:`planarloc.geometry.epipolar_kernels` (the same errors scoring thresholds)."""
-    xq, xr, pair, f_query, f_ref = prob.xq, prob.xr, prob.pair, prob.f_query, prob.f_ref
-    ref_R, ref_t, xq3d, X3d = prob.ref_R, prob.ref_t, prob.xq3d, prob.X3d
     Rq = m3.mul(exp_so3(params[:3]), R0)
     c = c0 + m3.vec(B, params[3:])
-    tq = -m3.vec(Rq, c)
-    P = ref_R.shape[0]
-    Es = np.empty((P, 3, 3))
-    for p in range(P):
+    _residuals_at(Rq, c, prob, idx2d, idx3d, out, np.empty((prob.ref_R.shape[0], 3, 3)), np.empty(3))
+
+
+@njit(cache=True, error_model="numpy", fastmath=FASTMATH)
+def _residuals_at(
+    Rq: np.ndarray,
+    c: np.ndarray,
+    prob: ProblemArrays,
+    idx2d: np.ndarray,
+    idx3d: np.ndarray,
+    out: np.ndarray,
+    Es: np.ndarray,
+    tq: np.ndarray,
+) -> None:
+    """The errors of :func:`residuals` at the pose ``(Rq, c)`` itself (no increment), with its
+    essential matrices in the scratch ``Es`` (P, 3, 3) and ``tq`` (3,): the trial steps of
+    :func:`refine_pose_core` call it with scratch they allocate once."""
+    xq, xr, pair, f_query, f_ref = prob.xq, prob.xr, prob.pair, prob.f_query, prob.f_ref
+    ref_R, ref_t, xq3d, X3d = prob.ref_R, prob.ref_t, prob.xq3d, prob.X3d
+    for i in range(3):
+        tq[i] = -(Rq[i, 0] * c[0] + Rq[i, 1] * c[1] + Rq[i, 2] * c[2])
+    for p in range(ref_R.shape[0]):
         relative_essential_into(ref_R[p], ref_t[p], Rq, tq, Es[p])
     fq0, fq1 = f_query[0], f_query[1]
     for n in range(idx2d.shape[0]):
@@ -358,12 +374,15 @@ def refine_pose_core(
     """
     m = idx2d.shape[0] + 2 * idx3d.shape[0]
     R, c, B, fixed = start.R.copy(), start.c.copy(), start.B, start.fixed
-    zero = np.zeros(6)
     r = np.empty(m)
     rp = np.empty(m)
     J = np.empty((m, 6))
     H = np.empty((6, 6))
     g = np.empty(6)
+    # The trial steps' scratch, allocated once.
+    A, L, neg_g, step = np.empty((6, 6)), np.empty((6, 6)), np.empty(6), np.zeros(6)
+    Exp, R_new, c_new = np.empty((3, 3)), np.empty((3, 3)), np.empty(3)
+    Es, tq = np.empty((prob.ref_R.shape[0], 3, 3)), np.empty(3)
     s2 = settings.loss_scale * settings.loss_scale
     lam = 1e-4
     no_ref = np.empty((0, 3))
@@ -379,22 +398,30 @@ def refine_pose_core(
         if it == max_iterations:
             break
         improved = False
-        step = np.zeros(6)
+        for k in range(6):
+            step[k] = 0.0
+            neg_g[k] = -g[k]
         for _try in range(6):
-            A = H.copy()
+            for a in range(6):
+                for b in range(6):
+                    A[a, b] = H[a, b]
             for k in range(6):
                 A[k, k] += lam * max(H[k, k], 1e-12)
                 if fixed[k]:
                     A[k, k] = 1.0
-            if not solve_spd(A, -g, step):
+            if not cholesky_factor(A, L, 0.0):
                 lam *= 10.0
                 continue
-            R_new = m3.mul(exp_so3(step[:3]), R)
-            c_new = c + m3.vec(B, step[3:])
-            residuals(zero, R_new, c_new, B, prob, idx2d, idx3d, rp)
+            cholesky_solve(L, neg_g, step)
+            exp_so3_into(step, Exp)
+            m3.mul_into(Exp, R, R_new)
+            for k in range(3):
+                c_new[k] = c[k] + (B[k, 0] * step[3] + B[k, 1] * step[4] + B[k, 2] * step[5])
+            _residuals_at(R_new, c_new, prob, idx2d, idx3d, rp, Es, tq)
             new_cost = 0.5 * s2 * np.sum(np.log1p(rp * rp / s2))
             if new_cost <= cost:
-                R, c = R_new, c_new
+                R, R_new = R_new, R
+                c, c_new = c_new, c
                 # Converged when a step gains less than 5e-4 σ̂² of cost: with the quadratic
                 # model ΔC ≈ ½ (δ/std)² σ̂², the step moved the pose by < ~0.03 std, and IRLS
                 # contracts the remaining error ~4× per iteration (1e-6 of the cost alone took

@@ -14,7 +14,9 @@ from collections.abc import Callable, Sequence
 from typing import NamedTuple
 
 import numpy as np
+from numba import njit
 
+from planarloc.geometry import mat3 as m3
 from planarloc.robust.final_refinement import FinalRefiner, RefinedPose, Restart
 from planarloc.robust.options import RansacOptions
 from planarloc.robust.ransac import ALTERNATIVE_MARGIN_INLIERS
@@ -190,7 +192,7 @@ def pool_basins(
     estimator,
     ref: RefinedPose,
     pool: tuple[np.ndarray, np.ndarray],
-    refine: Callable[[np.ndarray, np.ndarray, bool], RefinedPose],
+    refine: FinalRefiner,
     std_m: float,
     promise_m: float,
     num_inliers: int,
@@ -207,9 +209,10 @@ def pool_basins(
     hard protocol's broken promises, often beyond :func:`rival_distance`'s margin), so up to
     :data:`POOL_BASIN_STARTS` of the raw hypotheses ``pool`` (R (k, 3, 3), t (k, 3)) are
     refined in full, cheapest first, skipping those within ``std_m`` of ``ref``'s centre or of
-    a start already taken (they would land at home). Where
-    they land is judged as the restarts' landings are (:func:`_landings`), but for one landing
-    within ``promise_m`` (3σ + 5 cm) at about ``ref``'s cost: that is the pose's own valley, which
+    a start already taken (they would land at home; :func:`pool_starts`), in one compiled call
+    (:meth:`~planarloc.robust.final_refinement.FinalRefiner.landings`). Where they land is
+    judged as the restarts' landings are (:func:`_landings`), but for one landing within
+    ``promise_m`` (3σ + 5 cm) at about ``ref``'s cost: that is the pose's own valley, which
     widens its std as a near basin does rather than refusing it (as a rival there, the same
     scenes lost 0.05 points more of correct poses for no promise more).
     benchmarks/robustness.py --protocol hard, seeds 94-109 (32,000 scenes new to the estimator):
@@ -222,24 +225,50 @@ def pool_basins(
     R, t = pool
     if num_inliers >= POOL_BASINS_BELOW_INLIERS or not len(R):
         return BasinRivals(0.0, 0.0)
-    c = -ref.R.T @ ref.t
-    centres = -np.einsum("nji,nj->ni", R, t)
     full, _ = estimator.score(R, t)
-    starts: list[int] = []
-    for i in np.argsort(full):
-        if np.linalg.norm(centres[i] - c) <= std_m or any(
-            np.linalg.norm(centres[i] - centres[s]) <= std_m for s in starts
-        ):
-            continue
-        starts.append(int(i))
-        if len(starts) == POOL_BASIN_STARTS:
-            break
-    landed = []
-    for i in starts:
-        alt = refine(R[i], t[i], False)
-        landed.append(Restart(float(alt.score - ref.score), float(np.linalg.norm(-alt.R.T @ alt.t - c))))
+    starts = pool_starts(
+        np.ascontiguousarray(R), np.ascontiguousarray(t), np.argsort(full), -ref.R.T @ ref.t, std_m
+    )
     # Every pose examined here is weak: the near rule holds over the whole reach.
-    return _landings(estimator, landed, True, max_std_m, promise_m)
+    return _landings(estimator, refine.landings(R[starts], t[starts], ref), True, max_std_m, promise_m)
+
+
+@njit(cache=True, error_model="numpy")
+def pool_starts(R: np.ndarray, t: np.ndarray, order: np.ndarray, c: np.ndarray, std_m: float) -> np.ndarray:
+    """The starts :func:`pool_basins` refines: in ``order`` (cheapest first), the hypotheses
+    ``query_from_world`` R (k, 3, 3), t (k, 3) whose centre lies farther than ``std_m`` from ``c``
+    (3,) and from every start taken before, at most :data:`POOL_BASIN_STARTS` (indices)."""
+    centres = np.empty((R.shape[0], 3))
+    for n in range(R.shape[0]):
+        centre = -m3.t_vec(R[n], t[n])
+        for k in range(3):
+            centres[n, k] = centre[k]
+    starts = np.empty(POOL_BASIN_STARTS, dtype=np.int64)
+    taken = 0
+    for i in order:
+        if _distance(centres[i], c) <= std_m:
+            continue
+        if _any_within(centres, starts[:taken], centres[i], std_m):
+            continue
+        starts[taken] = i
+        taken += 1
+        if taken == POOL_BASIN_STARTS:
+            break
+    return starts[:taken]
+
+
+@njit(cache=True, inline="always")
+def _distance(a: np.ndarray, b: np.ndarray) -> float:
+    return np.sqrt((a[0] - b[0]) ** 2 + (a[1] - b[1]) ** 2 + (a[2] - b[2]) ** 2)
+
+
+@njit(cache=True, inline="always")
+def _any_within(centres: np.ndarray, rows: np.ndarray, x: np.ndarray, radius: float) -> bool:
+    """Whether any of ``centres[rows]`` lies within ``radius`` of ``x``."""
+    for r in rows:
+        if _distance(centres[r], x) <= radius:
+            return True
+    return False
 
 
 def _landings(

@@ -15,7 +15,7 @@ from hard_protocol import hard_protocol_scene
 import planarloc.robust.verification as verification
 from planarloc.geometry.pose import pose_errors
 from planarloc.robust.absolute_pose import estimate_absolute_pose
-from planarloc.robust.final_refinement import RefinedPose
+from planarloc.robust.final_refinement import RefinedPose, Restart
 from planarloc.robust.rivals import (
     NEAR_BASIN_BELOW_INLIERS,
     NEAR_BASIN_MARGIN_INLIERS,
@@ -54,16 +54,19 @@ def _pool(*centres):
 class _Landings:
     """A refinement that sends each start (by its centre's x) to a given centre and cost."""
 
-    def __init__(self, landings: dict[float, tuple[float, float]]) -> None:
-        self.landings = landings
+    def __init__(self, to: dict[float, tuple[float, float]]) -> None:
+        self.to = to
         self.started: list[float] = []
 
-    def __call__(self, R, t, quick):
-        assert not quick  # basins take the full refinement
-        x = float(-t[0])
-        self.started.append(x)
-        where, cost = self.landings[x]
-        return _refined([where, 0, 0], cost)
+    def landings(self, R, t, ref):
+        """FinalRefiner.landings: where full refinements from (R, t) land, relative to ``ref``."""
+        c = -ref.R.T @ ref.t
+        out = []
+        for x in (-t[:, 0]).tolist():
+            self.started.append(x)
+            where, cost = self.to[x]
+            out.append(Restart(cost - ref.score, float(np.linalg.norm(np.array([where, 0.0, 0.0]) - c))))
+        return out
 
 
 def test_runner_ups_are_refined_cheapest_first_skipping_those_at_home() -> None:
